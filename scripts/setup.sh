@@ -1,0 +1,37 @@
+#!/usr/bin/env bash
+# Installs everything efem-viz needs on a fresh Debian machine (idempotent; fast when already installed).
+#   bash scripts/setup.sh          runtime: system libraries for open3d, CPU torch, efem-viz (editable)
+#   bash scripts/setup.sh --test   also the test extras and Debian chromium for the real-browser tests
+set -euo pipefail
+cd "$(dirname "$0")/.."
+WITH_TEST=0
+[[ "${1:-}" == "--test" ]] && WITH_TEST=1
+
+SUDO=""
+if [[ "$(id -u)" != "0" ]] && command -v sudo >/dev/null 2>&1; then SUDO="sudo"; fi
+
+# System packages: open3d needs libusb/libGL/libgomp; browser tests need Debian's chromium (never `playwright install`).
+PKGS=(libusb-1.0-0 libgl1 libgomp1)
+[[ $WITH_TEST == 1 ]] && PKGS+=(chromium)
+missing=()
+for p in "${PKGS[@]}"; do dpkg -s "$p" >/dev/null 2>&1 || missing+=("$p"); done
+if (( ${#missing[@]} )); then
+  echo "[setup] apt-get install ${missing[*]}"
+  $SUDO apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+fi
+
+PY=${PYTHON:-python3}
+# CPU torch: 2.13.0 comes from the local wheel on these machines; a bare `torch` would pull a multi-GB CUDA build.
+if ! $PY -c "import torch" >/dev/null 2>&1; then
+  echo "[setup] pip install torch==2.13.0 (CPU build)"
+  $PY -m pip install -q torch==2.13.0
+fi
+EXTRA=""
+[[ $WITH_TEST == 1 ]] && EXTRA="[test]"
+if ! $PY -c "import efem_viz, annotator" >/dev/null 2>&1 || [[ $WITH_TEST == 1 ]]; then
+  echo "[setup] pip install -e .${EXTRA}"
+fi
+$PY -m pip install -q -e ".${EXTRA}" 2>&1 | grep -v -E "Running pip as the 'root' user|notice" || true
+$PY -c "import efem_viz, annotator, torch, open3d, viser" || { echo "[setup] install check failed" >&2; exit 1; }
+echo "[setup] ok"
