@@ -1,0 +1,26 @@
+"""EFEM solver: proposal pool, config presets, trace recording and replay, results.
+
+Light at import time (no torch): the solver imports torch inside its functions.
+"""
+
+from __future__ import annotations
+
+from efem_viz.em.config import PRESETS, EMConfig, preset, schedule
+from efem_viz.em.results import EMResult, Instances
+from efem_viz.em.solver import EMCancelled, StepInfo, run_em
+from efem_viz.em.trace import DeathEvent, EMTrace, ProposalView
+
+__all__ = [
+    "PRESETS",
+    "DeathEvent",
+    "EMCancelled",
+    "EMConfig",
+    "EMResult",
+    "EMTrace",
+    "Instances",
+    "ProposalView",
+    "StepInfo",
+    "preset",
+    "run_em",
+    "schedule",
+]

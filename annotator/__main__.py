@@ -1,0 +1,73 @@
+"""`efem-annotate SCAN [--labels FILE] [--out DIR] [--host 127.0.0.1] [--port 8081]`: label a scan in the browser."""
+
+from __future__ import annotations
+
+import logging
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+
+@dataclass
+class AnnotateArgs:
+    """Label per-vertex object instances of a scan in the browser (viser). Edits are journalled and autosaved."""
+
+    scan: Path
+    """Scan to label: PLY/OBJ/OFF/GLB/NPZ mesh or point cloud, or an RGB-D frame .npz. Never modified."""
+    labels: Path | None = None
+    """Labels to start from (PLY `instance`, NPZ, ScanNet .aggregation.json / .segs.json, EFEM .efem.npz).
+    Ignored when the output folder already has a journal for this scan (the session resumes)."""
+    out: Path | None = None
+    """Output folder for the journal, autosave checkpoint and exports (default: the scan's folder)."""
+    host: str = "127.0.0.1"
+    """Bind address. The default serves this machine only; use 0.0.0.0 deliberately."""
+    port: int = 8081
+    """TCP port (a busy port is replaced by the next free one; the real URL is printed)."""
+    max_points: int = 2_000_000
+    """Refuse scans with more vertices than this."""
+    autosave_delay: float = 0.5
+    """Seconds between an edit and the checkpoint rewrite (the journal is written before every edit returns)."""
+
+    def run(self) -> int:
+        from annotator.app import AnnotatorApp
+
+        app = AnnotatorApp(
+            self.scan,
+            labels_path=self.labels,
+            out_dir=self.out,
+            host=self.host,
+            port=self.port,
+            max_points=self.max_points,
+            autosave_delay=self.autosave_delay,
+        )
+        print(f"efem-annotate: {app.scan_path.name} ({app.n:,} vertices) at {app.url}  — Ctrl+C to quit", flush=True)
+        print(f"  autosave: {app.work_dir}", flush=True)
+        try:
+            while True:
+                time.sleep(1.0)
+        except KeyboardInterrupt:
+            pass
+        finally:
+            app.close()
+        return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the `efem-annotate` console script."""
+    import tyro
+
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    args = tyro.cli(AnnotateArgs, args=sys.argv[1:] if argv is None else argv, prog="efem-annotate")
+    from annotator.io import LabelIOError
+    from annotator.journal import JournalError
+
+    try:
+        return args.run()
+    except (LabelIOError, JournalError, FileNotFoundError, PermissionError, ValueError) as exc:
+        print(f"efem-annotate: error: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

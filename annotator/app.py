@@ -1,0 +1,880 @@
+"""The annotator's viser layer: draws the scan in spatial chunks, turns GUI/scene events into label edits.
+
+Thin by design: callbacks read GUI values into `ToolSettings`, call the pure tools (`annotator.selection`) and
+the label store (`annotator.journal.LabelStore`, one lock, journal first), and the store's listener redraws the
+touched chunks (`draw_chunks`). Every action the GUI offers is also a public method (`paint_stroke`, `click`,
+`box`, `new_instance`, `undo`, ...) so tests and scripts drive the same code paths without a browser.
+
+Interaction (see docs/ANNOTATOR.md):
+* Ctrl/Cmd + left-drag on the scan: brush (or erase) stroke; one stroke = one undo step.
+* Ctrl/Cmd + click: the active tool at the clicked point (brush dab, erase dab, region grow, fill, pick instance,
+  segment with the shape prior).
+* Shift + drag a rectangle: box select, painted with the active instance (erased with the erase tool).
+* Hotkeys (also in the Ctrl/Cmd+K palette): B brush, E erase, G grow, F fill, I pick, S segment, N new instance,
+  H hide/show active, L lock/unlock active, Ctrl+Z undo, Ctrl+Y redo.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Literal
+
+import numpy as np
+import viser
+
+from annotator import selection as sel
+from annotator.io import (
+    LabelData,
+    LabelIOError,
+    load_labels,
+    load_scan,
+    resolve_inside,
+    save_labels_npz,
+    save_labels_ply,
+    save_scannet,
+)
+from annotator.journal import JournalError, LabelStore
+from annotator.labels import Delta, InstanceInfo, LabelSet
+from annotator.render import Chunks, build_chunks, color_lut, compose_colors, splat_proxy
+
+log = logging.getLogger(__name__)
+
+Tool = Literal["brush", "erase", "grow", "fill", "pick", "segment"]
+TOOLS: tuple[str, ...] = ("brush", "erase", "grow", "fill", "pick", "segment")
+TOOL_KEYS: dict[str, str] = {"brush": "B", "erase": "E", "grow": "G", "fill": "F", "pick": "I", "segment": "S"}
+
+
+@dataclass
+class ToolSettings:
+    """What the tool controls say; read from the GUI, never read by compute code directly."""
+
+    tool: str = "brush"
+    """Active tool, one of TOOLS."""
+    radius: float = 0.01
+    """Brush radius, metres."""
+    brush_max_angle_deg: float = 180.0
+    """Brush paints only vertices whose normal is within this angle of the hit normal (180 = no limit)."""
+    grow_angle_deg: float = 20.0
+    """Region grow: maximum normal change across one edge, degrees."""
+    grow_distance: float = 0.15
+    """Region grow: maximum distance from the seed, metres."""
+    only_unlabelled: bool = False
+    """Paint/grow/box change only unlabelled vertices."""
+    box_facing: str = "front"
+    """Box select: "front" (vertices facing the camera) or "all"."""
+    active_id: int = 0
+    """Active instance id (0 = none yet)."""
+
+
+@dataclass
+class Stats:
+    """Counters for the benchmark and the status line."""
+
+    bytes_sent: int = 0
+    """Colour payload bytes sent to clients since start (3 bytes per point of each redrawn chunk)."""
+    chunks_sent: int = 0
+    last_edit_bytes: int = 0
+    last_edit_ms: float = 0.0
+    edits: int = 0
+    history: list[str] = field(default_factory=list)
+
+
+@dataclass
+class _Stroke:
+    group: str
+    last: np.ndarray
+    normal: np.ndarray
+    erase: bool
+
+
+class AnnotatorApp:
+    """The annotator server for one scan.
+
+    Args:
+        scan_path: the scan (PLY/OBJ/OFF/GLB/NPZ scene, or an RGB-D frame .npz). Never written.
+        labels_path: labels to start a *new* session from (ignored with a warning when the output directory
+            already holds a journal for this scan: the session resumes instead).
+        out_dir: where the journal, checkpoint and exports go (default: the scan's directory). The journal and
+            checkpoint live in `<out>/<stem>.annotate/`.
+        host: bind address (127.0.0.1 by default: local only).
+        port: TCP port (0 = any free port).
+        max_points: refuse scans with more vertices.
+        autosave_delay: seconds between an edit and the checkpoint rewrite (the journal is always immediate).
+        chunk_size: points per drawn chunk.
+        efem_result: an `<scene>.efem.npz` to import as pre-labels at start (optional).
+
+    Raises:
+        LabelIOError: the scan or labels cannot be read; JournalError: the journal belongs to another scan.
+    """
+
+    def __init__(
+        self,
+        scan_path: str | Path,
+        *,
+        labels_path: str | Path | None = None,
+        out_dir: str | Path | None = None,
+        host: str = "127.0.0.1",
+        port: int = 8081,
+        max_points: int = 2_000_000,
+        autosave_delay: float = 0.5,
+        chunk_size: int = 32768,
+    ) -> None:
+        t0 = time.perf_counter()
+        self.scan_path = Path(scan_path).resolve()
+        self.scene = load_scan(self.scan_path, max_points=max_points)
+        self.n = self.scene.num_points
+        self.out_dir = Path(out_dir).resolve() if out_dir is not None else self.scan_path.parent
+        if self.out_dir.exists() and not self.out_dir.is_dir():
+            raise LabelIOError(f"--out {self.out_dir} exists and is not a directory")
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        self.stem = self.scan_path.name.split(".")[0] if self.scan_path.suffix else self.scan_path.name
+        self.roots = [self.scan_path.parent, self.out_dir]
+        self.work_dir = self.out_dir / f"{self.stem}.annotate"
+        initial: LabelData | None = None
+        if labels_path is not None:
+            initial = load_labels(labels_path, self.n)
+        elif self.scene.instance is not None and self.scene.has_gt:
+            cats = dict(self.scene.categories)
+            initial = LabelData(
+                self.scene.instance.copy(),
+                [
+                    InstanceInfo(int(i), f"{cats.get(int(i), 'object')} {int(i)}", category=cats.get(int(i), "object"),
+                                 color=_color(int(i)))
+                    for i in self.scene.instance_ids()
+                ],
+            )
+        journal_path = self.work_dir / f"{self.stem}.journal"
+        if labels_path is not None and journal_path.exists():
+            log.warning(
+                "%s already has a journal: resuming it and ignoring --labels %s (use Import in the GUI to load "
+                "them as an undoable edit)", self.work_dir, labels_path,
+            )
+        self.store = LabelStore(
+            self.n,
+            journal_path=journal_path,
+            label_path=self.work_dir / f"{self.stem}.labels.npz",
+            scan_id={"name": self.scan_path.name, "num_vertices": self.n},
+            initial_labels=None if initial is None else initial.labels,
+            initial_instances=None if initial is None else initial.instances,
+            autosave_delay=autosave_delay,
+        )
+        self.geom = sel.ScanGeometry(self.scene.points, self.scene.normals, faces=self.scene.faces)
+        self.chunks: Chunks = build_chunks(self.scene.points, max_chunk=chunk_size)
+        self.settings = ToolSettings(radius=max(0.005, 0.02 * float(np.linalg.norm(np.ptp(self.scene.points, axis=0)))))
+        self.stats = Stats()
+        self.preview: np.ndarray | None = None
+        """(N,) bool mask drawn highlighted (click-to-segment preview), or None."""
+        self.pending_segment: np.ndarray | None = None
+        self._strokes: dict[int, _Stroke] = {}
+        self._edits: queue.Queue[tuple[str, Any]] = queue.Queue()
+        self._tls = threading.local()
+        self._draw_lock = threading.Lock()
+        self._closed = threading.Event()
+        ls = self.store.labelset
+        if ls.instances:
+            self.settings.active_id = max(ls.instances)
+
+        self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        self.server.gui.configure_theme(control_width="large")
+        self._draw_scan()
+        self._build_gui()
+        self.store.listeners.append(self._on_labels_changed)
+        self._worker = threading.Thread(target=self._edit_loop, name="annotator-edits", daemon=True)
+        self._worker.start()
+        threading.Thread(target=self.geom.warm_up, name="annotator-warmup", daemon=True).start()
+        self.open_s = time.perf_counter() - t0
+        log.info("opened %s: %d vertices, %d chunks, %.2f s", self.scan_path.name, self.n, self.chunks.count, self.open_s)
+
+    # ================================================================== drawing
+    @property
+    def url(self) -> str:
+        return f"http://{self.server.get_host()}:{self.server.get_port()}"
+
+    def _draw_scan(self) -> None:
+        pts = self.scene.points
+        centre = pts.mean(axis=0)
+        extent = float(np.linalg.norm(np.ptp(pts, axis=0)))
+        spacing = self.geom.spacing
+        self.point_size = float(max(spacing * 1.6, extent * 5e-4))
+        if self.scene.is_mesh:
+            assert self.scene.faces is not None
+            self.surface = self.server.scene.add_mesh_simple(
+                "/scan/surface", pts, self.scene.faces, color=(205, 205, 205), side="double"
+            )
+        else:
+            verts, faces = splat_proxy(pts, self.scene.normals, size=2.5 * spacing, max_splats=150_000)
+            # An invisible proxy surface: it receives the drag gestures that point clouds do not.
+            self.surface = self.server.scene.add_mesh_simple(
+                "/scan/surface", verts, faces, color=(200, 200, 200), opacity=0.0, side="double"
+            )
+        self.surface.on_drag("left", modifier="cmd/ctrl")(self._on_drag)
+        self.chunk_handles = []
+        labels = self.store.labels
+        lut, show = color_lut(self.store.labelset.instances, int(labels.max(initial=0)))
+        for c in range(self.chunks.count):
+            m = self.chunks.members(c)
+            h = self.server.scene.add_point_cloud(
+                f"/scan/labels/chunk_{c:04d}",
+                points=pts[m],
+                colors=compose_colors(self.scene.colors[m], labels[m], lut, show),
+                point_size=self.point_size,
+                point_shape="circle",
+            )
+            self.chunk_handles.append(h)
+        self.server.scene.on_click(modifier="cmd/ctrl")(self._on_scene_click)
+        self.server.scene.on_rect_select(modifier="shift")(self._on_rect)
+        self.server.initial_camera.look_at = tuple(float(v) for v in centre)
+        self.server.initial_camera.position = tuple(float(v) for v in centre + np.array([0.0, -1.0, 0.8]) * extent * 0.8)
+        self.server.initial_camera.up = (0.0, 0.0, 1.0)
+
+    def draw_chunks(self, chunk_ids: np.ndarray) -> int:
+        """Recompute and send the colours of some chunks; returns the payload bytes sent."""
+        with self._draw_lock:
+            labels = self.store.labels
+            lut, show = color_lut(self.store.labelset.instances, int(labels.max(initial=0)))
+            sent = 0
+            for c in np.asarray(chunk_ids, np.int64):
+                m = self.chunks.members(int(c))
+                hl = None if self.preview is None else self.preview[m]
+                cols = compose_colors(self.scene.colors[m], labels[m], lut, show, highlight=hl)
+                self.chunk_handles[int(c)].colors = cols
+                sent += cols.nbytes
+            self.stats.bytes_sent += sent
+            self.stats.chunks_sent += len(chunk_ids)
+            return sent
+
+    def _on_labels_changed(self, d: Delta, how: str) -> None:
+        t0 = time.perf_counter()
+        touched = self.chunks.touched(d.idx)
+        if d.table_after:
+            # Colour / visibility changes recolour every chunk holding those instances.
+            ids = np.array([k for k in d.table_after], np.int32)
+            visual = [
+                k for k in ids
+                if (d.table_before.get(int(k)) is None) != (d.table_after.get(int(k)) is None)
+                or (d.table_before.get(int(k)) and d.table_after.get(int(k))
+                    and (d.table_before[int(k)].color != d.table_after[int(k)].color  # type: ignore[union-attr]
+                         or d.table_before[int(k)].visible != d.table_after[int(k)].visible))  # type: ignore[union-attr]
+            ]
+            if visual:
+                mask = np.isin(self.store.labels, np.array(visual, np.int32))
+                touched = np.union1d(touched, self.chunks.touched(np.flatnonzero(mask)))
+        sent = self.draw_chunks(touched)
+        self.stats.last_edit_bytes = sent
+        self.stats.last_edit_ms = 1000 * (time.perf_counter() - t0)
+        self.stats.edits += 1
+        self.stats.history = ([f"{how}: {d.label}"] + self.stats.history)[:8]
+        self._refresh_panel()
+
+    # ================================================================== GUI
+    def _build_gui(self) -> None:
+        gui = self.server.gui
+        s = self.settings
+        with gui.add_folder("Tools"):
+            self.gui_tool = gui.add_dropdown("Tool", TOOLS, initial_value=s.tool,
+                                             hint="Ctrl/Cmd+drag paints; Ctrl/Cmd+click applies the tool")
+            self.gui_radius = gui.add_slider("Brush radius (cm)", min=0.1, max=20.0, step=0.1,
+                                             initial_value=round(100 * s.radius, 1))
+            self.gui_brush_angle = gui.add_slider("Brush normal limit (deg)", min=5, max=180, step=5, initial_value=180,
+                                                  hint="paint only surface facing like the hit point; 180 = off")
+            self.gui_grow_angle = gui.add_slider("Grow: max normal change (deg)", min=1, max=90, step=1,
+                                                 initial_value=s.grow_angle_deg)
+            self.gui_grow_dist = gui.add_slider("Grow: max distance (cm)", min=1, max=200, step=1,
+                                                initial_value=round(100 * s.grow_distance))
+            self.gui_only_unlabelled = gui.add_checkbox("Only unlabelled vertices", s.only_unlabelled)
+            self.gui_box_facing = gui.add_dropdown("Box select", ("front", "all"), initial_value="front",
+                                                   hint="Shift+drag a box; front = vertices facing the camera")
+        with gui.add_folder("Instances"):
+            self.gui_active = gui.add_dropdown("Active", self._instance_options() or ("(none)",))
+            self.gui_name = gui.add_text("Name", "")
+            self.gui_category = gui.add_text("Category", "mug")
+            self.gui_color = gui.add_rgb("Colour", (255, 0, 0))
+            self.gui_new = gui.add_button("New instance (N)")
+            self.gui_visible = gui.add_checkbox("Visible", True)
+            self.gui_locked = gui.add_checkbox("Locked", False)
+            self.gui_merge_into = gui.add_dropdown("Merge active into", self._instance_options() or ("(none)",))
+            self.gui_merge = gui.add_button("Merge")
+            self.gui_delete = gui.add_button("Delete active", color="red")
+            self.gui_progress = gui.add_progress_bar(0.0)
+            self.gui_table = gui.add_markdown("")
+        with gui.add_folder("History"):
+            self.gui_undo = gui.add_button("Undo (Ctrl+Z)")
+            self.gui_redo = gui.add_button("Redo (Ctrl+Y)")
+            self.gui_history = gui.add_markdown("")
+        with gui.add_folder("Files", expand_by_default=False):
+            self.gui_status = gui.add_markdown("")
+            self.gui_export_ply = gui.add_button("Export PLY")
+            self.gui_export_npz = gui.add_button("Export NPZ")
+            self.gui_export_scannet = gui.add_button("Export ScanNet JSON")
+            self.gui_import_path = gui.add_text("Import labels from", "", hint="path inside the scan or output folder")
+            self.gui_import = gui.add_button("Import labels (undoable)")
+        with gui.add_folder("EFEM assist", expand_by_default=False):
+            default_efem = self.scan_path.with_name(self.stem + ".efem.npz")
+            self.gui_efem_path = gui.add_text("EFEM result", default_efem.name if default_efem.exists() else "")
+            self.gui_efem_import = gui.add_button("Import EFEM pre-labels")
+            self.gui_prelabel = gui.add_dropdown("Pre-label", ("(none)",))
+            self.gui_accept = gui.add_button("Accept")
+            self.gui_reject = gui.add_button("Reject")
+            self.gui_accept_merge = gui.add_button("Merge into active")
+            self.gui_prior = gui.add_text("Prior for Segment tool", "mug")
+            self.gui_seg_accept = gui.add_button("Accept segment preview", disabled=True)
+            self.gui_seg_cancel = gui.add_button("Discard segment preview", disabled=True)
+
+        # ---- callbacks: read values into settings, call the action methods
+        def read_settings(_: Any = None) -> None:
+            if getattr(self._tls, 'syncing', False):
+                return
+            s.tool = str(self.gui_tool.value)
+            s.radius = float(self.gui_radius.value) / 100.0
+            s.brush_max_angle_deg = float(self.gui_brush_angle.value)
+            s.grow_angle_deg = float(self.gui_grow_angle.value)
+            s.grow_distance = float(self.gui_grow_dist.value) / 100.0
+            s.only_unlabelled = bool(self.gui_only_unlabelled.value)
+            s.box_facing = str(self.gui_box_facing.value)
+
+        for h in (self.gui_tool, self.gui_radius, self.gui_brush_angle, self.gui_grow_angle, self.gui_grow_dist,
+                  self.gui_only_unlabelled, self.gui_box_facing):
+            h.on_update(read_settings)
+
+        def guarded(fn: Callable[..., Any]) -> Callable[[Any], None]:
+            def cb(event: Any) -> None:
+                if getattr(self._tls, 'syncing', False):
+                    return
+                self._run_reporting(lambda: fn(), getattr(event, "client", None))
+
+            return cb
+
+        self.gui_active.on_update(guarded(lambda: self.set_active(_id_of(self.gui_active.value))))
+        self.gui_name.on_update(guarded(lambda: self._update_active(name=str(self.gui_name.value))))
+        self.gui_category.on_update(guarded(lambda: self._update_active(category=str(self.gui_category.value))))
+        self.gui_color.on_update(guarded(lambda: self._update_active(color=tuple(int(c) for c in self.gui_color.value))))
+        self.gui_visible.on_update(guarded(lambda: self._update_active(visible=bool(self.gui_visible.value))))
+        self.gui_locked.on_update(guarded(lambda: self._update_active(locked=bool(self.gui_locked.value))))
+        self.gui_new.on_click(guarded(lambda: self.new_instance(category=str(self.gui_category.value) or "object")))
+        self.gui_merge.on_click(guarded(lambda: self.merge([self.settings.active_id], _id_of(self.gui_merge_into.value))))
+        self.gui_delete.on_click(guarded(lambda: self.delete_instance(self.settings.active_id)))
+        self.gui_undo.on_click(guarded(lambda: self.undo()))
+        self.gui_redo.on_click(guarded(lambda: self.redo()))
+        self.gui_export_ply.on_click(guarded(lambda: self.export("ply")))
+        self.gui_export_npz.on_click(guarded(lambda: self.export("npz")))
+        self.gui_export_scannet.on_click(guarded(lambda: self.export("scannet")))
+        self.gui_import.on_click(guarded(lambda: self.import_labels(str(self.gui_import_path.value))))
+        self.gui_efem_import.on_click(guarded(lambda: self.import_efem(str(self.gui_efem_path.value))))
+        self.gui_accept.on_click(guarded(lambda: self.review_prelabel(_id_of(self.gui_prelabel.value), "accept")))
+        self.gui_reject.on_click(guarded(lambda: self.review_prelabel(_id_of(self.gui_prelabel.value), "reject")))
+        self.gui_accept_merge.on_click(guarded(lambda: self.review_prelabel(_id_of(self.gui_prelabel.value), "merge")))
+        self.gui_seg_accept.on_click(guarded(lambda: self.accept_segment()))
+        self.gui_seg_cancel.on_click(guarded(lambda: self.discard_segment()))
+
+        # ---- hotkeys
+        for tool, key in TOOL_KEYS.items():
+            cmd = gui.add_command(f"Tool: {tool}", hotkey=key)  # type: ignore[arg-type]
+            cmd.on_trigger(guarded(lambda t=tool: self.set_tool(t)))
+        gui.add_command("New instance", hotkey="N").on_trigger(
+            guarded(lambda: self.new_instance(category=str(self.gui_category.value) or "object")))
+        gui.add_command("Hide / show active instance", hotkey="H").on_trigger(
+            guarded(lambda: self._toggle_active("visible")))
+        gui.add_command("Lock / unlock active instance", hotkey="L").on_trigger(
+            guarded(lambda: self._toggle_active("locked")))
+        gui.add_command("Undo", hotkey="Z", modifier="cmd/ctrl").on_trigger(guarded(lambda: self.undo()))
+        gui.add_command("Redo", hotkey="Y", modifier="cmd/ctrl").on_trigger(guarded(lambda: self.redo()))
+        self._refresh_panel()
+
+    def _instance_options(self) -> tuple[str, ...]:
+        ls = self.store.labelset
+        return tuple(f"{k}: {v.name}" for k, v in ls.instances.items())
+
+    def _refresh_panel(self) -> None:
+        """Push counts, progress, the instance list and the active instance's fields to the GUI."""
+        if not hasattr(self, "gui_table"):
+            return
+        with self.store.lock:
+            ls: LabelSet = self.store.labelset
+            table = ls.instances
+            counts = ls.counts()
+            progress = ls.progress()
+            n_undo, n_redo = len(ls.undo_stack), len(ls.redo_stack)
+        opts = tuple(f"{k}: {v.name}" for k, v in table.items()) or ("(none)",)
+        self._tls.syncing = True
+        try:
+            if self.settings.active_id not in table:
+                self.settings.active_id = max(table) if table else 0
+            self.gui_active.options = opts
+            self.gui_merge_into.options = opts
+            self.gui_active.value = _option_for(opts, self.settings.active_id)
+            pre = tuple(f"{k}: {v.name}" for k, v in table.items() if "unreviewed" in v.note) or ("(none)",)
+            self.gui_prelabel.options = pre
+            info = table.get(self.settings.active_id)
+            if info is not None:
+                self.gui_name.value = info.name
+                self.gui_category.value = info.category
+                self.gui_color.value = info.color
+                self.gui_visible.value = info.visible
+                self.gui_locked.value = info.locked
+            self.gui_progress.value = round(100.0 * progress, 2)
+            rows = ["| id | name | category | vertices | flags |", "|---:|---|---|---:|---|"]
+            for k, v in table.items():
+                flags = ("hidden " if not v.visible else "") + ("locked" if v.locked else "")
+                mark = " ◀" if k == self.settings.active_id else ""
+                rows.append(f"| {k}{mark} | {v.name} | {v.category} | {counts.get(k, 0):,} | {flags} |")
+            self.gui_table.content = (
+                f"**{100 * progress:.1f}%** of {self.n:,} vertices labelled\n\n" + "\n".join(rows)
+            )
+            self.gui_history.content = (
+                f"{n_undo} undoable, {n_redo} redoable\n\n" + "\n".join(f"- {h}" for h in self.stats.history)
+            )
+            self.gui_status.content = (
+                f"Autosave: `{self.store.label_path.name}` + journal in `{self.work_dir}`  \n"
+                f"last edit: {self.stats.last_edit_bytes / 1024:.0f} KiB sent, {self.stats.last_edit_ms:.0f} ms"
+            )
+        finally:
+            self._tls.syncing = False
+
+    def _run_reporting(self, fn: Callable[[], Any], client: Any = None) -> Any:
+        """Run an action; a refused action (bad input) becomes a notification, never a crash."""
+        try:
+            return fn()
+        except (ValueError, KeyError, OSError) as exc:
+            msg = str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc)
+            log.warning("refused: %s", msg)
+            self.notify("Not done", msg, client=client, color="red")
+            return None
+
+    def notify(self, title: str, body: str, *, client: Any = None, color: str | None = None) -> None:
+        """Show a notification to one client (or all)."""
+        targets = [client] if client is not None else list(self.server.get_clients().values())
+        for c in targets:
+            try:
+                c.add_notification(title, body, auto_close_seconds=6.0, color=color)
+            except Exception:  # a disconnected client must not break the action
+                log.debug("notification to %r failed", c, exc_info=True)
+
+    # ================================================================== actions (GUI callbacks call these)
+    def set_tool(self, tool: str) -> None:
+        if tool not in TOOLS:
+            raise ValueError(f"unknown tool {tool!r}; tools: {TOOLS}")
+        self.settings.tool = tool
+        self._tls.syncing = True
+        try:
+            self.gui_tool.value = tool
+        finally:
+            self._tls.syncing = False
+
+    def set_active(self, instance_id: int) -> None:
+        """Make an instance the one brushes paint."""
+        self.store.labelset.info(instance_id)  # KeyError when unknown
+        self.settings.active_id = int(instance_id)
+        self._refresh_panel()
+
+    def new_instance(self, *, category: str = "object", name: str | None = None, client: str = "") -> int:
+        """Create an instance and make it active; returns its id."""
+        d = self.store.do(lambda ls: ls.create_instance(category=category, name=name), client=client)
+        assert d is not None
+        iid = next(iter(d.table_after))
+        self.settings.active_id = int(iid)
+        self._refresh_panel()
+        return int(iid)
+
+    def _update_active(self, **changes: Any) -> None:
+        iid = self.settings.active_id
+        if iid <= 0:
+            return
+        self.store.do(lambda ls: ls.update_instance(iid, **changes))
+
+    def _toggle_active(self, what: str) -> None:
+        info = self.store.labelset.info(self.settings.active_id)
+        self._update_active(**{what: not getattr(info, what)})
+
+    def update_instance(self, instance_id: int, **changes: Any) -> None:
+        """Rename / recategorise / recolour / hide / lock an instance (undoable)."""
+        self.store.do(lambda ls: ls.update_instance(instance_id, **changes))
+
+    def delete_instance(self, instance_id: int) -> None:
+        self.store.do(lambda ls: ls.delete_instance(instance_id))
+
+    def merge(self, sources: list[int], into: int) -> None:
+        self.store.do(lambda ls: ls.merge(sources, into))
+        self.settings.active_id = int(into)
+        self._refresh_panel()
+
+    def undo(self, *, client: str = "") -> list[Delta]:
+        return self.store.undo(client=client)
+
+    def redo(self, *, client: str = "") -> list[Delta]:
+        return self.store.redo(client=client)
+
+    def _require_active(self) -> int:
+        iid = self.settings.active_id
+        if iid <= 0 or iid not in self.store.labelset.instances:
+            raise ValueError("no active instance: create one first (N)")
+        return iid
+
+    def paint(self, idx: np.ndarray, *, erase: bool = False, group: str = "", client: str = "") -> Delta | None:
+        """Paint vertices `idx` with the active instance (or erase them); one journalled edit."""
+        if erase:
+            return self.store.do(lambda ls: ls.erase(idx), client=client, group=group)
+        iid = self._require_active()
+        return self.store.do(
+            lambda ls: ls.paint(idx, iid, overwrite=not self.settings.only_unlabelled), client=client, group=group
+        )
+
+    def _brush_normal(self, vertex: int) -> tuple[np.ndarray | None, float | None]:
+        lim = self.settings.brush_max_angle_deg
+        if lim >= 180:
+            return None, None
+        return self.geom.normals[vertex], lim
+
+    def paint_stroke(self, points: np.ndarray, *, erase: bool = False, client: str = "") -> int:
+        """Paint a whole stroke through surface points (what a drag does): returns vertices changed.
+
+        Args:
+            points: (S, 3) brush positions on the surface, world frame.
+            erase: erase instead of painting the active instance.
+        """
+        pts = np.asarray(points, np.float32).reshape(-1, 3)
+        group = uuid.uuid4().hex[:12]
+        changed = 0
+        prev = None
+        for p in pts:
+            v = int(self.geom.tree.query(p)[1])
+            nrm, lim = self._brush_normal(v)
+            if prev is None:
+                idx = sel.brush(self.geom, p, self.settings.radius, normal=nrm, max_normal_angle_deg=lim)
+            else:
+                idx = sel.brush_segment(self.geom, prev, p, self.settings.radius, normal=nrm, max_normal_angle_deg=lim)
+            d = self.paint(idx, erase=erase, group=group, client=client)
+            changed += 0 if d is None else d.num_vertices
+            prev = p
+        return changed
+
+    def grow(self, seed: int, *, client: str = "") -> Delta | None:
+        """Region grow from a vertex with the current settings and paint the result."""
+        ls = self.store.labelset
+        allowed = ~np.isin(ls.labels, ls.protected_ids())
+        if self.settings.only_unlabelled:
+            allowed &= ls.labels == 0
+        idx = sel.region_grow(self.geom, seed, max_angle_deg=self.settings.grow_angle_deg,
+                              max_distance=self.settings.grow_distance, allowed=allowed)
+        return self.paint(idx, client=client)
+
+    def fill(self, seed: int, *, client: str = "") -> Delta | None:
+        """Bucket fill: the connected region sharing the seed's label becomes the active instance."""
+        idx = sel.fill_same_label(self.geom, seed, self.store.labels)
+        return self.paint(idx, client=client)
+
+    def pick_instance(self, vertex: int) -> int:
+        """Make the instance under a vertex active; returns its id (0 = unlabelled, nothing changes)."""
+        iid = int(self.store.labels[vertex])
+        if iid > 0:
+            self.set_active(iid)
+        return iid
+
+    def click(self, origin: np.ndarray, direction: np.ndarray, *, client: str = "") -> int | None:
+        """Apply the active tool at the surface point hit by a ray; returns the hit vertex (None = miss)."""
+        hit = sel.pick(self.geom, origin, direction)
+        if hit is None:
+            return None
+        v, pos = hit
+        tool = self.settings.tool
+        if tool in ("brush", "erase"):
+            nrm, lim = self._brush_normal(v)
+            idx = sel.brush(self.geom, pos, self.settings.radius, normal=nrm, max_normal_angle_deg=lim)
+            self.paint(idx, erase=tool == "erase", client=client)
+        elif tool == "grow":
+            self.grow(v, client=client)
+        elif tool == "fill":
+            self.fill(v, client=client)
+        elif tool == "pick":
+            self.pick_instance(v)
+        elif tool == "segment":
+            self.segment_at(v)
+        return v
+
+    def box(
+        self,
+        *,
+        position: np.ndarray,
+        wxyz: np.ndarray,
+        fov: float,
+        aspect: float,
+        screen_min: tuple[float, float],
+        screen_max: tuple[float, float],
+        client: str = "",
+    ) -> Delta | None:
+        """Box select with a camera, painted with the active instance (erased with the erase tool)."""
+        idx = sel.box_select(self.geom, position=position, wxyz=wxyz, fov=fov, aspect=aspect,
+                             screen_min=screen_min, screen_max=screen_max,
+                             facing="front" if self.settings.box_facing == "front" else "all")
+        return self.paint(idx, erase=self.settings.tool == "erase", client=client)
+
+    # ---- files
+    def _safe_path(self, name: str, *, what: str) -> Path:
+        p = resolve_inside(name, self.roots, what=what)
+        if p == self.scan_path:
+            raise LabelIOError(f"refusing to write {what} over the source scan {p}")
+        return p
+
+    def export(self, fmt: Literal["ply", "npz", "scannet"], *, directory: str | None = None) -> list[Path]:
+        """Write the labels to `<out>/<stem>.labels.ply|.labels.npz` or ScanNet JSON; returns the paths."""
+        d = self._safe_path(directory, what="export directory") if directory else self.out_dir
+        labels, table = self.store.snapshot()
+        if fmt == "ply":
+            out = [save_labels_ply(self.scene, labels, table, self._safe_path(str(d / f"{self.stem}.labels.ply"),
+                                                                               what="export file"))]
+        elif fmt == "npz":
+            out = [save_labels_npz(labels, table, self._safe_path(str(d / f"{self.stem}.labels.npz"), what="export file"),
+                                   scan_name=self.stem)]
+        elif fmt == "scannet":
+            out = list(save_scannet(labels, table, d, self.stem))
+        else:
+            raise ValueError(f"unknown export format {fmt!r}; use ply, npz or scannet")
+        self.notify("Exported", ", ".join(p.name for p in out))
+        log.info("exported %s", [str(p) for p in out])
+        return out
+
+    def import_labels(self, path: str) -> Delta | None:
+        """Replace all labels by a file's (undoable). Only files inside the scan/output folders are read."""
+        p = resolve_inside(path, self.roots, what="label file")
+        data = load_labels(p, self.n)
+        return self.store.do(lambda ls: ls.replace_all(data.labels, data.instances, label=f"import {p.name}"))
+
+    # ---- EFEM assist
+    def import_efem(self, path: str, *, threshold: float = 0.0) -> list[int]:
+        """Import an EFEM result as unreviewed pre-label instances on unlabelled vertices; returns their ids."""
+        p = resolve_inside(path, self.roots, what="EFEM result")
+        data = load_labels(p, self.n)
+        if not p.name.endswith(".efem.npz"):
+            raise LabelIOError(f"{p.name} is not an EFEM result (*.efem.npz)")
+        return self.add_prelabels(data, source=p.name)
+
+    def add_prelabels(self, data: LabelData, *, source: str) -> list[int]:
+        """Add proposals (labels + rows) as new unreviewed instances, painted only where nothing is labelled."""
+        new_ids: list[int] = []
+        group = uuid.uuid4().hex[:12]
+        conf = data.confidence or {}
+        order = sorted((r for r in data.instances if (data.labels == r.id).any()),
+                       key=lambda r: -conf.get(r.id, 0.0))
+        for row in order:
+            note = f"unreviewed; from {source}" + (f"; confidence {conf[row.id]:.3f}" if row.id in conf else "")
+            d = self.store.do(lambda ls, row=row, note=note: ls.create_instance(category=row.category,
+                                                                                name=f"{row.category} (EFEM)"),
+                              group=group)
+            assert d is not None
+            iid = int(next(iter(d.table_after)))
+            self.store.do(lambda ls, iid=iid, note=note: ls.update_instance(iid, note=note), group=group)
+            idx = np.flatnonzero(data.labels == row.id)
+            self.store.do(lambda ls, iid=iid, idx=idx: ls.paint(idx, iid, overwrite=False), group=group)
+            new_ids.append(iid)
+        self._refresh_panel()
+        return new_ids
+
+    def review_prelabel(self, instance_id: int, action: Literal["accept", "reject", "merge"]) -> None:
+        """Accept (keep as a real instance), reject (delete) or merge (into the active instance) a pre-label."""
+        info = self.store.labelset.info(instance_id)
+        if action == "accept":
+            self.store.do(lambda ls: ls.update_instance(instance_id, note=info.note.replace("unreviewed", "accepted"),
+                                                        name=info.name.replace(" (EFEM)", "")))
+        elif action == "reject":
+            self.store.do(lambda ls: ls.delete_instance(instance_id))
+        elif action == "merge":
+            target = self._require_active()
+            if target == instance_id:
+                raise ValueError("choose another active instance to merge this pre-label into")
+            self.store.do(lambda ls: ls.merge([instance_id], target))
+        else:
+            raise ValueError(f"unknown review action {action!r}")
+        self._refresh_panel()
+
+    def segment_at(self, vertex: int, *, wait: bool = False) -> np.ndarray | None:
+        """Click-to-segment: run EFEM seeded near a vertex with the chosen prior and preview the mask.
+
+        The solver runs in a background thread (edits stay responsive); the mask is highlighted when it is ready
+        and becomes labels only through `accept_segment`.
+
+        Args:
+            vertex: the clicked vertex.
+            wait: run in the calling thread and return the mask (tests, scripts).
+
+        Returns:
+            With `wait`, (K,) int32 vertex indices of the proposed mask (also kept in `pending_segment`); else None.
+        """
+        from annotator.assist import segment_at_point
+
+        prior_name = str(self.gui_prior.value) or "mug"
+
+        def job() -> np.ndarray:
+            t0 = time.perf_counter()
+            mask_idx = segment_at_point(self.scene, int(vertex), prior_name=prior_name)
+            self.set_preview(mask_idx)
+            self.notify("Segment preview", f"{len(mask_idx):,} vertices in {time.perf_counter() - t0:.1f} s: "
+                        "Accept or Discard in the EFEM assist panel")
+            return mask_idx
+
+        if wait:
+            return job()
+        self.notify("Segmenting", f"EFEM with prior {prior_name!r} around vertex {vertex}...")
+        threading.Thread(target=lambda: self._run_reporting(job), name="annotator-segment", daemon=True).start()
+        return None
+
+    def set_preview(self, idx: np.ndarray | None) -> None:
+        """Highlight a proposed mask (None clears it) without touching the labels."""
+        old = self.preview
+        if idx is None or len(idx) == 0:
+            self.preview, self.pending_segment = None, None
+        else:
+            self.preview = np.zeros(self.n, bool)
+            self.preview[idx] = True
+            self.pending_segment = np.asarray(idx, np.int32)
+        touched = np.zeros(0, np.int64)
+        for m in (old, self.preview):
+            if m is not None:
+                touched = np.union1d(touched, self.chunks.touched(np.flatnonzero(m)))
+        self.draw_chunks(touched)
+        has = self.pending_segment is not None
+        self.gui_seg_accept.disabled = not has
+        self.gui_seg_cancel.disabled = not has
+
+    def accept_segment(self) -> Delta | None:
+        """Paint the previewed segment as a new instance (category from the prior name)."""
+        if self.pending_segment is None:
+            raise ValueError("no segment preview to accept: Ctrl+click with the segment tool first")
+        idx = self.pending_segment
+        self.set_preview(None)
+        self.new_instance(category=str(self.gui_prior.value) or "object")
+        return self.paint(idx)
+
+    def discard_segment(self) -> None:
+        self.set_preview(None)
+
+    # ================================================================== viser events
+    def _on_scene_click(self, event: Any) -> None:
+        self._edits.put(("click", event))
+
+    def _on_rect(self, event: Any) -> None:
+        self._edits.put(("rect", event))
+
+    async def _on_drag(self, event: Any) -> None:
+        # async: phases arrive in order; the work itself runs on the edit thread.
+        self._edits.put(("drag", event))
+
+    def _edit_loop(self) -> None:
+        while not self._closed.is_set():
+            try:
+                kind, event = self._edits.get(timeout=0.5)
+            except queue.Empty:
+                continue
+            if kind == "stop":
+                break
+            # Coalesce a backlog of drag updates of one client: the segment from the last point covers them.
+            if kind == "drag" and event.phase == "update":
+                while True:
+                    try:
+                        k2, e2 = self._edits.queue[0]
+                    except IndexError:
+                        break
+                    if k2 == "drag" and e2.phase == "update" and e2.client_id == event.client_id:
+                        self._edits.get_nowait()
+                        event = e2
+                    else:
+                        break
+            client = getattr(event, "client", None)
+            try:
+                self._run_reporting(lambda: self.handle_event(kind, event), client)
+            except Exception:  # never let one bad event kill the edit thread
+                log.exception("event %s failed", kind)
+            finally:
+                self._edits.task_done()
+
+    def handle_event(self, kind: str, event: Any) -> None:
+        """Process one viser event (click, rect or drag); runs on the edit thread (tests may call it directly)."""
+        cid = f"client{getattr(event, 'client_id', '?')}"
+        if kind == "click":
+            self.click(np.asarray(event.ray_origin), np.asarray(event.ray_direction), client=cid)
+        elif kind == "rect":
+            cam = event.client.camera
+            self.box(position=np.asarray(cam.position), wxyz=np.asarray(cam.wxyz), fov=float(cam.fov),
+                     aspect=float(cam.aspect), screen_min=tuple(event.screen_min), screen_max=tuple(event.screen_max),
+                     client=cid)
+        elif kind == "drag":
+            self._drag(event, cid)
+        self.server.flush()
+
+    def _drag(self, event: Any, cid: str) -> None:
+        tool = self.settings.tool
+        erase = tool == "erase"
+        key = int(event.client_id)
+        if event.phase == "start":
+            if tool not in ("brush", "erase"):
+                # Other tools act once at the grabbed point.
+                start = np.asarray(event.start_position, np.float32)
+                v = int(self.geom.tree.query(start)[1])
+                {"grow": lambda: self.grow(v, client=cid), "fill": lambda: self.fill(v, client=cid),
+                 "pick": lambda: self.pick_instance(v), "segment": lambda: self.segment_at(v)}[tool]()
+                return
+            start = np.asarray(event.start_position, np.float32)
+            v = int(self.geom.tree.query(start)[1])
+            p = self.scene.points[v] if self.geom.is_mesh is False else start
+            stroke = _Stroke(group=uuid.uuid4().hex[:12], last=np.asarray(p, np.float32), normal=self.geom.normals[v],
+                             erase=erase)
+            self._strokes[key] = stroke
+            nrm, lim = self._brush_normal(v)
+            idx = sel.brush(self.geom, stroke.last, self.settings.radius, normal=nrm, max_normal_angle_deg=lim)
+            self.paint(idx, erase=erase, group=stroke.group, client=cid)
+            return
+        stroke = self._strokes.get(key)
+        if stroke is None:
+            return
+        if event.phase == "end":
+            self._strokes.pop(key, None)
+        cam_pos = np.asarray(event.client.camera.position, np.float64)
+        end = np.asarray(event.end_position, np.float64)
+        hit = sel.pick(self.geom, cam_pos, end - cam_pos)
+        if hit is None:
+            return
+        v, pos = hit
+        nrm, lim = self._brush_normal(v)
+        idx = sel.brush_segment(self.geom, stroke.last, pos, self.settings.radius, normal=nrm, max_normal_angle_deg=lim)
+        stroke.last = np.asarray(pos, np.float32)
+        self.paint(idx, erase=stroke.erase, group=stroke.group, client=cid)
+
+    def wait_idle(self, timeout: float = 10.0) -> None:
+        """Block until queued viser events are processed (tests)."""
+        t_end = time.time() + timeout
+        while self._edits.unfinished_tasks and time.time() < t_end:
+            time.sleep(0.01)
+
+    def close(self) -> None:
+        """Stop the server, flush the checkpoint, release the journal."""
+        self._closed.set()
+        self._edits.put(("stop", None))
+        try:
+            self.server.stop()
+        finally:
+            self.store.close()
+
+
+def _color(i: int) -> tuple[int, int, int]:
+    from annotator.labels import instance_color
+
+    return instance_color(i)
+
+
+def _id_of(option: str) -> int:
+    """Instance id from a dropdown option "12: mug 12"."""
+    head = str(option).split(":", 1)[0]
+    if not head.strip().isdigit():
+        raise ValueError("no instance selected")
+    return int(head)
+
+
+def _option_for(options: tuple[str, ...], instance_id: int) -> str:
+    for o in options:
+        if o.split(":", 1)[0] == str(instance_id):
+            return o
+    return options[0]

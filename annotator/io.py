@@ -1,0 +1,370 @@
+"""Label file formats (PLY `instance`, NPZ, ScanNet segs/aggregation JSON, EFEM results) and path safety.
+
+Formats (all writes atomic):
+
+* **PLY** (`<scan>.labels.ply`): the whole scan (points, normals, colours, faces) with the per-vertex int
+  property `instance` (0 = unlabelled) — the ground-truth format the rest of efem-viz reads
+  (`efem_viz.data.io.load_scene`). Categories are in the `efem_categories` header comment; the annotator's full
+  instance table (names, colours, flags) rides in `efem_provenance` under the key ``"annotator_instances"``.
+* **NPZ** (`<scan>.labels.npz`): ``instance`` (N,) int32, ``instances_json`` (the instance table),
+  ``journal_seq``, ``scan_json``, ``schema_version``. This is also the autosave checkpoint.
+* **ScanNet** (`<scan>.segs.json` + `<scan>.aggregation.json`): ``segIndices`` (N,) per-vertex segment ids (here
+  one segment per instance: segment id = instance id, 0 = unlabelled) and ``segGroups`` entries
+  ``{id, objectId, label, segments}`` with ``objectId = instance id - 1`` (ScanNet object ids are 0-based).
+  Import maps every vertex of a group's segments to ``objectId + 1``.
+* **EFEM results** (`<scene>.efem.npz`): imported as pre-labels through `efem_viz.em.EMResult.load`.
+
+Path safety: `resolve_inside` resolves symlinks and refuses paths that leave the allowed roots.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+import numpy as np
+
+from annotator.journal import read_label_file, write_label_file
+from annotator.labels import InstanceInfo, instance_color, table_from_json, table_to_json
+
+log = logging.getLogger(__name__)
+
+LABEL_SUFFIXES = (".labels.ply", ".labels.npz", ".ply", ".npz", ".aggregation.json", ".segs.json", ".efem.npz")
+
+
+class LabelIOError(ValueError):
+    """A label file that cannot be read or written, or a path that is not allowed; the message is for the user."""
+
+
+@dataclass(frozen=True)
+class LabelData:
+    """Imported labels."""
+
+    labels: np.ndarray
+    """(N,) int32, 0 = unlabelled."""
+    instances: list[InstanceInfo]
+    """Instance table rows (at least one per id present in `labels`)."""
+    confidence: dict[int, float] | None = None
+    """Per-instance confidence (EFEM pre-labels), or None."""
+
+
+# ---------------------------------------------------------------------------------------------- path safety
+def resolve_inside(path: str | os.PathLike[str], roots: Iterable[str | os.PathLike[str]], *, what: str = "path") -> Path:
+    """Resolve `path` (following symlinks) and check it lies inside one of `roots`.
+
+    Relative paths are taken relative to the first root.
+
+    Args:
+        path: user-supplied path.
+        roots: allowed directories.
+        what: noun for the error message ("label file", "export directory").
+
+    Returns:
+        The resolved absolute path.
+
+    Raises:
+        LabelIOError: empty path, NUL bytes, or the resolved path escapes every root (`..`, absolute paths
+            elsewhere, symlinks pointing out).
+    """
+    s = os.fspath(path)
+    if not s or "\x00" in s:
+        raise LabelIOError(f"invalid {what}: {s!r}")
+    root_list = [Path(r).resolve() for r in roots]
+    if not root_list:
+        raise LabelIOError("no allowed directories configured")
+    p = Path(s).expanduser()
+    if not p.is_absolute():
+        p = root_list[0] / p
+    resolved = p.resolve()
+    for r in root_list:
+        if resolved == r or r in resolved.parents:
+            return resolved
+    raise LabelIOError(
+        f"refusing {what} {s!r}: it resolves to {resolved}, outside the allowed directories "
+        f"{[str(r) for r in root_list]}"
+    )
+
+
+# ---------------------------------------------------------------------------------------------- helpers
+def _table_rows(table: Mapping[int, InstanceInfo] | Iterable[InstanceInfo]) -> list[InstanceInfo]:
+    if isinstance(table, Mapping):
+        return [table[k] for k in sorted(table)]
+    return sorted(table, key=lambda i: i.id)
+
+
+def _check_labels(labels: np.ndarray, n: int, path: Path) -> np.ndarray:
+    lab = np.asarray(labels)
+    if lab.ndim != 1 or lab.shape[0] != n:
+        raise LabelIOError(f"{path}: has {lab.shape[0] if lab.ndim == 1 else lab.shape} labels, the scan has {n} vertices")
+    if not np.issubdtype(lab.dtype, np.integer):
+        if np.issubdtype(lab.dtype, np.floating) and np.isfinite(lab).all() and (np.round(lab) == lab).all():
+            lab = lab.astype(np.int64)
+        else:
+            raise LabelIOError(f"{path}: labels must be integers, got dtype {lab.dtype}")
+    if lab.size and lab.min() < 0:
+        raise LabelIOError(f"{path}: labels must be >= 0 (0 = unlabelled), found {lab.min()}")
+    if lab.size and lab.max() > np.iinfo(np.int32).max:
+        raise LabelIOError(f"{path}: label {lab.max()} does not fit int32")
+    return lab.astype(np.int32)
+
+
+def _complete(labels: np.ndarray, rows: list[InstanceInfo], categories: Mapping[int, str] | None = None) -> list[InstanceInfo]:
+    have = {r.id for r in rows}
+    out = list(rows)
+    for iid in np.unique(labels):
+        i = int(iid)
+        if i > 0 and i not in have:
+            cat = (categories or {}).get(i, "object")
+            out.append(InstanceInfo(i, f"{cat} {i}", category=cat, color=instance_color(i)))
+    return sorted(out, key=lambda r: r.id)
+
+
+# ---------------------------------------------------------------------------------------------- writers
+def save_labels_ply(scene: Any, labels: np.ndarray, table: Mapping[int, InstanceInfo], path: str | os.PathLike[str]) -> Path:
+    """Write the scan with an `instance` vertex property (efem-viz ground-truth PLY). Atomic.
+
+    Args:
+        scene: the `efem_viz.data.scene.Scene` being labelled.
+        labels: (N,) int32.
+        table: instance table (categories and the annotator table go into the header comments).
+        path: destination `.ply`.
+    """
+    from efem_viz.data.io import save_scene
+
+    p = Path(path)
+    if p.is_symlink():
+        raise LabelIOError(f"refusing to overwrite {p}: it is a symbolic link")
+    lab = np.asarray(labels, np.int32)
+    present = set(int(i) for i in np.unique(lab) if i > 0)
+    cats = {k: v.category for k, v in table.items() if k in present}
+    prov = dict(scene.provenance)
+    prov["annotator_instances"] = table_to_json({k: v for k, v in table.items()})
+    prov["labelled_by"] = "efem-annotate"
+    labelled = scene.replace(instance=lab, categories=cats, provenance=prov)
+    return save_scene(labelled, p)
+
+
+def save_labels_npz(
+    labels: np.ndarray, table: Mapping[int, InstanceInfo], path: str | os.PathLike[str], *, scan_name: str = ""
+) -> Path:
+    """Write labels + instance table as NPZ (the checkpoint format). Atomic."""
+    lab = np.asarray(labels, np.int32)
+    write_label_file(path, lab, dict(table), seq=-1, scan_id={"num_vertices": int(len(lab)), "name": scan_name})
+    return Path(path)
+
+
+def save_scannet(
+    labels: np.ndarray, table: Mapping[int, InstanceInfo], directory: str | os.PathLike[str], scan_name: str
+) -> tuple[Path, Path]:
+    """Write `<scan>.segs.json` and `<scan>.aggregation.json` (ScanNet layout). Atomic.
+
+    Returns:
+        (segs path, aggregation path).
+    """
+    from efem_viz.data.io import atomic_write_text
+
+    lab = np.asarray(labels, np.int32)
+    d = Path(directory)
+    segs = {"sceneId": scan_name, "segIndices": lab.tolist()}
+    groups = []
+    for iid in sorted(int(i) for i in np.unique(lab) if i > 0):
+        info = table.get(iid)
+        groups.append(
+            {
+                "id": iid - 1,
+                "objectId": iid - 1,
+                "label": info.category if info else "object",
+                "segments": [iid],
+                "name": info.name if info else f"instance {iid}",
+            }
+        )
+    agg = {"sceneId": scan_name, "appId": "efem-annotate", "segGroups": groups, "segmentsFile": f"{scan_name}.segs.json"}
+    sp = atomic_write_text(d / f"{scan_name}.segs.json", json.dumps(segs, separators=(",", ":")))
+    ap = atomic_write_text(d / f"{scan_name}.aggregation.json", json.dumps(agg, indent=1))
+    return sp, ap
+
+
+# ---------------------------------------------------------------------------------------------- readers
+def _read_ply_labels(p: Path, n: int) -> LabelData:
+    import plyfile
+
+    try:
+        ply = plyfile.PlyData.read(str(p))
+        v = ply["vertex"].data
+    except Exception as exc:  # plyfile raises many types on corrupt input
+        raise LabelIOError(f"{p}: could not read PLY ({type(exc).__name__}: {exc})") from exc
+    props = v.dtype.names or ()
+    key = next((k for k in ("instance", "instance_id", "objectId", "label") if k in props), None)
+    if key is None:
+        raise LabelIOError(f"{p}: PLY has no 'instance' vertex property (has {list(props)})")
+    labels = _check_labels(np.asarray(v[key]), n, p)
+    cats: dict[int, str] = {}
+    rows: list[InstanceInfo] = []
+    for c in list(ply.comments) + list(getattr(ply, "obj_info", [])):
+        c = c.strip()
+        try:
+            if c.startswith("efem_categories "):
+                cats = {int(k): str(val) for k, val in json.loads(c[len("efem_categories ") :]).items()}
+            elif c.startswith("efem_provenance "):
+                prov = json.loads(c[len("efem_provenance ") :])
+                if isinstance(prov, dict) and isinstance(prov.get("annotator_instances"), dict):
+                    rows = [r for r in table_from_json(prov["annotator_instances"]).values() if r is not None]
+        except (ValueError, TypeError, AttributeError) as exc:
+            log.warning("%s: ignoring an unreadable header comment (%s)", p, exc)
+    return LabelData(labels, _complete(labels, rows, cats))
+
+
+def _read_npz_labels(p: Path, n: int) -> LabelData:
+    try:
+        with np.load(p, allow_pickle=False) as z:
+            keys = set(z.files)
+    except (OSError, ValueError) as exc:
+        raise LabelIOError(f"{p}: could not read NPZ ({exc})") from exc
+    if "instances_json" in keys:
+        try:
+            labels, table, _ = read_label_file(p, n)
+        except ValueError as exc:
+            raise LabelIOError(str(exc)) from exc
+        return LabelData(_check_labels(labels, n, p), _complete(labels, list(table.values())))
+    if "instance" not in keys:
+        raise LabelIOError(f"{p}: NPZ has no 'instance' array (has {sorted(keys)})")
+    with np.load(p, allow_pickle=False) as z:
+        labels = _check_labels(z["instance"], n, p)
+        cats: dict[int, str] = {}
+        if "categories_json" in keys:
+            try:
+                cats = {int(k): str(v) for k, v in json.loads(str(z["categories_json"])).items()}
+            except (ValueError, TypeError) as exc:
+                log.warning("%s: ignoring unreadable categories (%s)", p, exc)
+    return LabelData(labels, _complete(labels, [], cats))
+
+
+def _read_scannet(p: Path, n: int) -> LabelData:
+    name = p.name
+    stem = name[: -len(".aggregation.json")] if name.endswith(".aggregation.json") else name[: -len(".segs.json")]
+    agg_p = p.with_name(stem + ".aggregation.json")
+    try:
+        agg = json.loads(agg_p.read_text(encoding="utf-8"))
+        segs_name = agg.get("segmentsFile") or f"{stem}.segs.json"
+        segs_p = p.with_name(Path(str(segs_name)).name)  # never follow a path inside the file
+        if not segs_p.exists():
+            segs_p = p.with_name(stem + ".segs.json")
+        segs = json.loads(segs_p.read_text(encoding="utf-8"))
+        seg_idx = np.asarray(segs["segIndices"])
+        groups = agg["segGroups"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise LabelIOError(f"{p}: could not read ScanNet segs/aggregation pair ({type(exc).__name__}: {exc})") from exc
+    if seg_idx.ndim != 1 or len(seg_idx) != n:
+        raise LabelIOError(f"{segs_p}: has {seg_idx.shape} segIndices, the scan has {n} vertices")
+    if not np.issubdtype(seg_idx.dtype, np.integer):
+        raise LabelIOError(f"{segs_p}: segIndices must be integers, got {seg_idx.dtype}")
+    labels = np.zeros(n, np.int32)
+    rows: list[InstanceInfo] = []
+    for g in groups:
+        try:
+            iid = int(g.get("objectId", g.get("id"))) + 1
+            segments = np.asarray([int(s) for s in g["segments"]], np.int64)
+            cat = str(g.get("label", "object"))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise LabelIOError(f"{agg_p}: malformed segGroup {g!r} ({exc})") from exc
+        if iid <= 0:
+            raise LabelIOError(f"{agg_p}: objectId must be >= 0, got {iid - 1}")
+        labels[np.isin(seg_idx, segments)] = iid
+        rows.append(InstanceInfo(iid, str(g.get("name", f"{cat} {iid}")), category=cat, color=instance_color(iid)))
+    return LabelData(labels, _complete(labels, rows))
+
+
+def _read_efem(p: Path, n: int, *, threshold: float = 0.0) -> LabelData:
+    try:
+        from efem_viz.em import EMResult  # type: ignore[attr-defined]
+    except ImportError as exc:
+        raise LabelIOError(f"{p}: EFEM results need efem_viz.em.EMResult, which is not available ({exc})") from exc
+    try:
+        res = EMResult.load(p)
+        inst = res.instances.above(threshold) if threshold > 0 else res.instances
+        labels = np.asarray(inst.label_array(n), np.int32)
+    except Exception as exc:  # the result loader raises its own errors; all mean "cannot use this file"
+        raise LabelIOError(f"{p}: could not load EFEM result ({type(exc).__name__}: {exc})") from exc
+    labels = _check_labels(labels, n, p)
+    rows: list[InstanceInfo] = []
+    conf: dict[int, float] = {}
+    # `label_array` numbers instances by position: the k-th instance is label k + 1.
+    for k in range(len(inst.confidence)):
+        iid = k + 1
+        cat = str(np.asarray(inst.category)[k]) if len(np.asarray(inst.category)) > k else "object"
+        c = float(np.asarray(inst.confidence)[k])
+        conf[iid] = c
+        rows.append(InstanceInfo(iid, f"efem {cat} {iid}", category=cat, color=instance_color(iid), note=f"EFEM confidence {c:.3f}"))
+    return LabelData(labels, _complete(labels, rows), conf)
+
+
+def load_labels(path: str | os.PathLike[str], num_vertices: int) -> LabelData:
+    """Import labels for a scan of `num_vertices` vertices from PLY, NPZ, ScanNet JSON or an EFEM result.
+
+    Args:
+        path: the label file (for ScanNet either the `.segs.json` or the `.aggregation.json`).
+        num_vertices: N of the scan; files with another length are refused.
+
+    Raises:
+        LabelIOError: missing, empty, unreadable, wrong length, non-integer or negative labels, unknown format.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise LabelIOError(f"{p}: no such file")
+    if p.is_dir():
+        raise LabelIOError(f"{p} is a directory, not a label file")
+    if p.stat().st_size == 0:
+        raise LabelIOError(f"{p}: file is empty (0 bytes)")
+    name = p.name.lower()
+    if name.endswith(".efem.npz"):
+        return _read_efem(p, num_vertices)
+    if name.endswith(".ply"):
+        return _read_ply_labels(p, num_vertices)
+    if name.endswith(".npz"):
+        return _read_npz_labels(p, num_vertices)
+    if name.endswith(".aggregation.json") or name.endswith(".segs.json"):
+        return _read_scannet(p, num_vertices)
+    raise LabelIOError(f"{p}: unknown label format; expected one of {', '.join(LABEL_SUFFIXES)}")
+
+
+def load_scan(path: str | os.PathLike[str], *, max_points: int = 2_000_000) -> Any:
+    """Open a scan as an `efem_viz.data.scene.Scene`: PLY/OBJ/OFF/GLB/NPZ scenes or a real RGB-D frame `.npz`.
+
+    An `.npz` with a depth image (`depth_mm` or `depth`, and `K`) is imported with
+    `efem_viz.data.rgbd.import_rgbd_file` (table plane to +Z). The file is only read, never written.
+
+    Raises:
+        LabelIOError: anything that prevents opening it (the message names the file and the reason).
+    """
+    from efem_viz.data.scene import SceneError
+
+    p = Path(path)
+    if p.suffix.lower() == ".npz" and p.exists() and p.stat().st_size > 0:
+        try:
+            with np.load(p, allow_pickle=False) as z:
+                is_rgbd = ("depth_mm" in z.files or "depth" in z.files) and "K" in z.files and "points" not in z.files
+        except (OSError, ValueError) as exc:
+            raise LabelIOError(f"{p}: could not read NPZ ({exc})") from exc
+        if is_rgbd:
+            try:
+                from efem_viz.data.rgbd import import_rgbd_file
+            except ImportError as exc:
+                raise LabelIOError(f"{p} is an RGB-D frame but efem_viz.data.rgbd is not available ({exc})") from exc
+            try:
+                scene = import_rgbd_file(p)
+            except (SceneError, ValueError, KeyError, OSError) as exc:
+                raise LabelIOError(f"{p}: could not import RGB-D frame ({exc})") from exc
+            if scene.num_points > max_points:
+                raise LabelIOError(f"{p}: {scene.num_points:,} points, more than the limit of {max_points:,}")
+            return scene
+    from efem_viz.data.io import load_scene
+
+    try:
+        return load_scene(p, max_points=max_points)
+    except SceneError as exc:
+        raise LabelIOError(str(exc)) from exc
+

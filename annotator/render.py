@@ -1,0 +1,166 @@
+"""Spatial chunks and label colours for drawing big scans with partial updates (pure numpy).
+
+viser cannot update part of an array, so the scan is split into spatial chunks (a kd split into boxes of at most
+`max_chunk` points); each chunk is one point-cloud node, and an edit resends the colours of the chunks it touched
+only (3 bytes per point of those chunks).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping
+
+import numpy as np
+
+from annotator.labels import InstanceInfo
+
+
+@dataclass(frozen=True)
+class Chunks:
+    """A partition of the scan vertices into spatially compact chunks."""
+
+    order: np.ndarray
+    """(N,) int32: vertex ids grouped by chunk (chunk c = order[offsets[c]:offsets[c+1]])."""
+    offsets: np.ndarray
+    """(C+1,) int64 chunk boundaries in `order`."""
+    chunk_of: np.ndarray
+    """(N,) int32 chunk of each vertex."""
+
+    @property
+    def count(self) -> int:
+        return int(len(self.offsets) - 1)
+
+    def members(self, c: int) -> np.ndarray:
+        """(n_c,) int32 vertex ids of chunk c."""
+        return self.order[self.offsets[c] : self.offsets[c + 1]]
+
+    def touched(self, idx: np.ndarray) -> np.ndarray:
+        """Sorted chunk ids that contain any of the vertices `idx`."""
+        if len(idx) == 0:
+            return np.zeros(0, np.int32)
+        return np.unique(self.chunk_of[idx])
+
+
+def build_chunks(points: np.ndarray, *, max_chunk: int = 32768) -> Chunks:
+    """Split points into chunks of at most `max_chunk` by recursive median splits along the longest axis.
+
+    Args:
+        points: (N, 3) float, world frame.
+        max_chunk: maximum points per chunk.
+
+    Returns:
+        `Chunks`.
+    """
+    pts = np.asarray(points)
+    n = len(pts)
+    if max_chunk < 1:
+        raise ValueError(f"max_chunk must be >= 1, got {max_chunk}")
+    stack = [np.arange(n, dtype=np.int32)]
+    done: list[np.ndarray] = []
+    while stack:
+        ids = stack.pop()
+        if len(ids) <= max_chunk:
+            done.append(ids)
+            continue
+        p = pts[ids]
+        axis = int(np.argmax(p.max(axis=0) - p.min(axis=0)))
+        half = len(ids) // 2
+        part = np.argpartition(p[:, axis], half)
+        stack.append(ids[part[half:]])
+        stack.append(ids[part[:half]])
+    order = np.concatenate(done) if done else np.zeros(0, np.int32)
+    offsets = np.concatenate([[0], np.cumsum([len(d) for d in done])]).astype(np.int64)
+    chunk_of = np.empty(n, np.int32)
+    for c, d in enumerate(done):
+        chunk_of[d] = c
+    return Chunks(order=order.astype(np.int32), offsets=offsets, chunk_of=chunk_of)
+
+
+def color_lut(instances: Mapping[int, InstanceInfo], top: int) -> tuple[np.ndarray, np.ndarray]:
+    """Colour lookup tables indexed by label.
+
+    Args:
+        instances: instance table.
+        top: highest label value that may occur.
+
+    Returns:
+        (lut (top+1, 3) uint8 instance colours, show (top+1,) bool: draw the label colour, i.e. the id is > 0,
+        known and visible).
+    """
+    size = max(int(top), max(instances, default=0)) + 1
+    lut = np.zeros((size, 3), np.uint8)
+    show = np.zeros(size, bool)
+    for k, info in instances.items():
+        lut[k] = info.color
+        show[k] = info.visible
+    return lut, show
+
+
+def compose_colors(
+    base: np.ndarray,
+    labels: np.ndarray,
+    lut: np.ndarray,
+    show: np.ndarray,
+    *,
+    alpha: float = 0.7,
+    highlight: np.ndarray | None = None,
+) -> np.ndarray:
+    """Display colours: label colour blended over the scan colour where labelled and visible.
+
+    Args:
+        base: (K, 3) uint8 scan colours of the vertices to draw.
+        labels: (K,) int labels of the same vertices.
+        lut, show: from `color_lut`.
+        alpha: label colour weight in [0, 1].
+        highlight: (K,) bool vertices drawn bright white-ish (preview of a proposal), or None.
+
+    Returns:
+        (K, 3) uint8.
+    """
+    lab = np.minimum(labels, len(lut) - 1)
+    m = show[lab] & (labels > 0) & (labels < len(lut))
+    out = base.copy()
+    if m.any():
+        a = np.float32(alpha)
+        out[m] = (a * lut[lab[m]].astype(np.float32) + (1 - a) * base[m].astype(np.float32)).astype(np.uint8)
+    if highlight is not None and highlight.any():
+        out[highlight] = (0.5 * out[highlight].astype(np.float32) + 127.0).astype(np.uint8)
+    return out
+
+
+def splat_proxy(
+    points: np.ndarray, normals: np.ndarray, *, size: float, max_splats: int = 150_000, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """A light triangle-splat surface for a point cloud (one small triangle per sampled point).
+
+    Point clouds receive no drag events in viser; this proxy mesh (drawn fully transparent) does. It only has
+    to catch where a drag starts: later positions are ray-cast against the points themselves.
+
+    Args:
+        points: (N, 3) float, world frame.
+        normals: (N, 3) unit normals.
+        size: splat circumradius, metres (about 2-3x the point spacing).
+        max_splats: at most this many splats (a random subset beyond).
+        seed: subset seed.
+
+    Returns:
+        (vertices (3S, 3) float32, faces (S, 3) int32).
+    """
+    pts = np.asarray(points, np.float32)
+    nrm = np.asarray(normals, np.float32)
+    n = len(pts)
+    if n > max_splats:
+        pick = np.sort(np.random.default_rng(seed).choice(n, size=max_splats, replace=False))
+        pts, nrm = pts[pick], nrm[pick]
+    ref = np.where(np.abs(nrm[:, 2:3]) < 0.9, np.array([[0, 0, 1]], np.float32), np.array([[1, 0, 0]], np.float32))
+    t1 = np.cross(nrm, ref)
+    t1 /= np.maximum(np.linalg.norm(t1, axis=1, keepdims=True), 1e-12)
+    t2 = np.cross(nrm, t1)
+    c = pts - 0.3 * size * nrm  # slightly behind the points so it never hides them
+    s = np.float32(size)
+    v0 = c + s * t1
+    v1 = c + s * (-0.5 * t1 + 0.8660254 * t2)
+    v2 = c + s * (-0.5 * t1 - 0.8660254 * t2)
+    verts = np.stack([v0, v1, v2], axis=1).reshape(-1, 3).astype(np.float32)
+    faces = np.arange(len(verts), dtype=np.int32).reshape(-1, 3)
+    return verts, faces

@@ -1,0 +1,421 @@
+"""Selection tools: picking, brush, region grow, fill and box select → vertex indices (pure numpy/scipy).
+
+All positions are world frame, metres. `ScanGeometry` holds the scan's points, normals and optional faces and
+builds its search structures lazily (kd-tree, adjacency graph, mesh ray caster); the tools take it and return
+sorted unique int32 vertex indices. Nothing here knows about labels beyond an optional `labels` array, or about
+viser: the app turns GUI events into these calls, and tests/benchmarks call them directly.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from typing import Literal
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+class ScanGeometry:
+    """Scan geometry with lazily built search structures (thread-safe construction).
+
+    Args:
+        points: (N, 3) float32 vertex positions, world frame, metres.
+        normals: (N, 3) float32 unit normals.
+        faces: (M, 3) int triangle indices, or None for a point cloud.
+        knn: neighbours per point for the point-cloud graph (region grow / fill).
+    """
+
+    def __init__(
+        self, points: np.ndarray, normals: np.ndarray, *, faces: np.ndarray | None = None, knn: int = 10
+    ) -> None:
+        pts = np.ascontiguousarray(points, dtype=np.float32)
+        nrm = np.ascontiguousarray(normals, dtype=np.float32)
+        if pts.ndim != 2 or pts.shape[1] != 3 or nrm.shape != pts.shape:
+            raise ValueError(f"points {pts.shape} and normals {nrm.shape} must both be (N, 3)")
+        self.points = pts
+        self.normals = nrm
+        self.faces = None if faces is None or len(faces) == 0 else np.ascontiguousarray(faces, dtype=np.int32)
+        self.knn = int(knn)
+        self._lock = threading.Lock()
+        self._tree = None
+        self._adj: tuple[np.ndarray, np.ndarray] | None = None
+        self._raycaster = None
+        self._spacing: float | None = None
+
+    @property
+    def n(self) -> int:
+        return int(self.points.shape[0])
+
+    @property
+    def is_mesh(self) -> bool:
+        return self.faces is not None
+
+    # ------------------------------------------------------------------ lazy structures
+    @property
+    def tree(self):  # noqa: ANN201 - scipy type
+        """scipy cKDTree over the points."""
+        if self._tree is None:
+            with self._lock:
+                if self._tree is None:
+                    from scipy.spatial import cKDTree
+
+                    self._tree = cKDTree(self.points, balanced_tree=False, compact_nodes=False)
+        return self._tree
+
+    @property
+    def spacing(self) -> float:
+        """Median nearest-neighbour distance (metres), from a sample of ≤ 2000 points."""
+        if self._spacing is None:
+            rng = np.random.default_rng(0)
+            sample = self.points[rng.choice(self.n, size=min(2000, self.n), replace=False)]
+            d, _ = self.tree.query(sample, k=2)
+            self._spacing = float(max(np.median(d[:, 1]), 1e-6))
+        return self._spacing
+
+    @property
+    def adjacency(self) -> tuple[np.ndarray, np.ndarray]:
+        """CSR graph (indptr (N+1,) int64, indices (E,) int32): mesh edges, or symmetric kNN for points."""
+        if self._adj is None:
+            with self._lock:
+                if self._adj is None:
+                    self._adj = self._build_adjacency()
+        return self._adj
+
+    def _build_adjacency(self) -> tuple[np.ndarray, np.ndarray]:
+        from scipy import sparse
+
+        n = self.n
+        if self.faces is not None:
+            f = self.faces
+            a = np.concatenate([f[:, 0], f[:, 1], f[:, 2]])
+            b = np.concatenate([f[:, 1], f[:, 2], f[:, 0]])
+        else:
+            k = min(self.knn + 1, n)
+            d, nb = self.tree.query(self.points, k=k, workers=1)
+            # Cut long edges (across gaps) at 4x the median spacing so that fills stop at holes.
+            ok = d[:, 1:] <= 4.0 * self.spacing
+            a = np.repeat(np.arange(n, dtype=np.int32), k - 1)[ok.ravel()]
+            b = nb[:, 1:].astype(np.int32).ravel()[ok.ravel()]
+        m = sparse.coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(n, n)).tocsr()
+        m = (m + m.T).tocsr()
+        return m.indptr.astype(np.int64), m.indices.astype(np.int32)
+
+    def raycaster(self):  # noqa: ANN201 - open3d type
+        """open3d RaycastingScene over the mesh (meshes only)."""
+        if self.faces is None:
+            raise ValueError("ray casting against triangles needs a mesh; this scan is a point cloud")
+        if self._raycaster is None:
+            with self._lock:
+                if self._raycaster is None:
+                    import open3d as o3d
+
+                    rc = o3d.t.geometry.RaycastingScene()
+                    rc.add_triangles(
+                        o3d.core.Tensor(self.points), o3d.core.Tensor(self.faces.astype(np.uint32))
+                    )
+                    self._raycaster = rc
+        return self._raycaster
+
+    def warm_up(self) -> None:
+        """Build every structure now (call from a worker thread after opening a scan)."""
+        _ = self.tree, self.spacing, self.adjacency
+        if self.faces is not None:
+            self.raycaster()
+
+
+# ---------------------------------------------------------------------------------------------- picking
+def pick(
+    geom: ScanGeometry,
+    origin: np.ndarray,
+    direction: np.ndarray,
+    *,
+    tolerance: float | None = None,
+) -> tuple[int, np.ndarray] | None:
+    """The first surface point hit by a ray.
+
+    Meshes: exact triangle ray cast, then the nearest vertex of the hit. Point clouds: among the points within
+    `tolerance` of the ray (default 2x the median spacing), the one closest to the ray origin.
+
+    Args:
+        geom: the scan.
+        origin: (3,) ray origin, world frame.
+        direction: (3,) ray direction (need not be unit).
+
+    Returns:
+        (vertex index, hit position (3,) float32), or None when the ray misses.
+    """
+    o = np.asarray(origin, np.float64).reshape(3)
+    dvec = np.asarray(direction, np.float64).reshape(3)
+    nd = np.linalg.norm(dvec)
+    if not np.isfinite(nd) or nd < 1e-12 or not np.isfinite(o).all():
+        return None
+    dvec = dvec / nd
+    if geom.faces is not None:
+        import open3d as o3d
+
+        rays = o3d.core.Tensor(np.concatenate([o, dvec])[None].astype(np.float32))
+        ans = geom.raycaster().cast_rays(rays)
+        t = float(ans["t_hit"].numpy()[0])
+        if not np.isfinite(t):
+            return None
+        hit = (o + t * dvec).astype(np.float32)
+        prim = int(ans["primitive_ids"].numpy()[0])
+        tri = geom.faces[prim]
+        v = tri[np.argmin(np.linalg.norm(geom.points[tri] - hit, axis=1))]
+        return int(v), hit
+    tol = 2.0 * geom.spacing if tolerance is None else float(tolerance)
+    rel = geom.points.astype(np.float64) - o
+    t = rel @ dvec
+    front = t > 0
+    perp2 = np.einsum("ij,ij->i", rel, rel) - t * t
+    cand = np.flatnonzero(front & (perp2 <= tol * tol))
+    if len(cand) == 0:
+        return None
+    best = cand[np.argmin(t[cand])]
+    return int(best), geom.points[best].copy()
+
+
+# ---------------------------------------------------------------------------------------------- brush
+def _normal_filter(
+    geom: ScanGeometry, idx: np.ndarray, normal: np.ndarray | None, max_normal_angle_deg: float | None
+) -> np.ndarray:
+    if normal is None or max_normal_angle_deg is None or max_normal_angle_deg >= 180:
+        return idx
+    nv = np.asarray(normal, np.float32).reshape(3)
+    nv = nv / max(float(np.linalg.norm(nv)), 1e-12)
+    cos = geom.normals[idx] @ nv
+    return idx[cos >= np.cos(np.deg2rad(max_normal_angle_deg))]
+
+
+def brush(
+    geom: ScanGeometry,
+    center: np.ndarray,
+    radius: float,
+    *,
+    normal: np.ndarray | None = None,
+    max_normal_angle_deg: float | None = None,
+) -> np.ndarray:
+    """Vertices within `radius` of `center`, optionally only those whose normal is within an angle of `normal`.
+
+    Args:
+        geom: the scan.
+        center: (3,) brush centre on the surface, world frame.
+        radius: metres (> 0).
+        normal: (3,) reference normal (usually the normal at the hit vertex), or None.
+        max_normal_angle_deg: keep vertices whose normal is within this angle of `normal`; None = no limit.
+
+    Returns:
+        (K,) int32 sorted vertex indices.
+    """
+    if not radius > 0:
+        raise ValueError(f"brush radius must be > 0, got {radius}")
+    idx = np.asarray(geom.tree.query_ball_point(np.asarray(center, np.float64), float(radius)), np.int64)
+    idx = np.sort(idx).astype(np.int32)
+    return _normal_filter(geom, idx, normal, max_normal_angle_deg)
+
+
+def brush_segment(
+    geom: ScanGeometry,
+    a: np.ndarray,
+    b: np.ndarray,
+    radius: float,
+    *,
+    normal: np.ndarray | None = None,
+    max_normal_angle_deg: float | None = None,
+) -> np.ndarray:
+    """Vertices within `radius` of the segment a→b (a continuous stroke between two drag samples).
+
+    Args:
+        geom: the scan.
+        a: (3,) previous brush position. b: (3,) current brush position (world frame).
+        radius: metres.
+        normal, max_normal_angle_deg: as in `brush`.
+
+    Returns:
+        (K,) int32 sorted vertex indices.
+    """
+    a64 = np.asarray(a, np.float64).reshape(3)
+    b64 = np.asarray(b, np.float64).reshape(3)
+    seg = b64 - a64
+    length = float(np.linalg.norm(seg))
+    if length < 1e-9:
+        return brush(geom, a64, radius, normal=normal, max_normal_angle_deg=max_normal_angle_deg)
+    if length > 50 * radius:  # a jump (pointer left the surface): paint only the end
+        return brush(geom, b64, radius, normal=normal, max_normal_angle_deg=max_normal_angle_deg)
+    mid = 0.5 * (a64 + b64)
+    cand = np.asarray(geom.tree.query_ball_point(mid, radius + 0.5 * length), np.int64)
+    if len(cand) == 0:
+        return np.zeros(0, np.int32)
+    p = geom.points[cand].astype(np.float64)
+    t = np.clip((p - a64) @ seg / (length * length), 0.0, 1.0)
+    d = np.linalg.norm(p - (a64 + t[:, None] * seg), axis=1)
+    idx = np.sort(cand[d <= radius]).astype(np.int32)
+    return _normal_filter(geom, idx, normal, max_normal_angle_deg)
+
+
+# ---------------------------------------------------------------------------------------------- graph fills
+def _csr_neighbours(indptr: np.ndarray, indices: np.ndarray, frontier: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(source, neighbour) pairs of all edges leaving `frontier` (vectorised CSR gather)."""
+    starts = indptr[frontier]
+    lens = (indptr[frontier + 1] - starts).astype(np.int64)
+    total = int(lens.sum())
+    if total == 0:
+        return np.zeros(0, np.int32), np.zeros(0, np.int32)
+    src = np.repeat(frontier, lens)
+    offs = np.arange(total, dtype=np.int64) - np.repeat(np.cumsum(lens) - lens, lens)
+    nb = indices[np.repeat(starts, lens) + offs]
+    return src, nb
+
+
+def region_grow(
+    geom: ScanGeometry,
+    seed: int,
+    *,
+    max_angle_deg: float = 25.0,
+    max_distance: float | None = None,
+    max_vertices: int | None = None,
+    allowed: np.ndarray | None = None,
+) -> np.ndarray:
+    """Flood fill from `seed` over the mesh adjacency (or kNN graph) through smooth surface.
+
+    An edge u→v is crossed when the normals of u and v differ by at most `max_angle_deg` (the fill stops at
+    creases such as the mug/table contact) and v lies within `max_distance` of the seed.
+
+    Args:
+        geom: the scan.
+        seed: start vertex.
+        max_angle_deg: maximum normal change across one edge, degrees.
+        max_distance: maximum Euclidean distance from the seed (metres), or None.
+        max_vertices: stop once this many vertices are reached (breadth-first order), or None.
+        allowed: (N,) bool mask of vertices the fill may enter (e.g. not locked), or None.
+
+    Returns:
+        (K,) int32 sorted vertex indices, including the seed.
+    """
+    n = geom.n
+    if not 0 <= int(seed) < n:
+        raise ValueError(f"seed vertex {seed} outside [0, {n})")
+    if allowed is not None and allowed.shape != (n,):
+        raise ValueError(f"allowed mask must have shape ({n},), got {allowed.shape}")
+    indptr, indices = geom.adjacency
+    cos_min = np.float32(np.cos(np.deg2rad(max_angle_deg)))
+    p0 = geom.points[int(seed)]
+    r2 = None if max_distance is None else float(max_distance) ** 2
+    visited = np.zeros(n, bool)
+    if allowed is not None and not allowed[seed]:
+        return np.zeros(0, np.int32)
+    visited[seed] = True
+    frontier = np.array([seed], np.int32)
+    count = 1
+    while len(frontier):
+        src, nb = _csr_neighbours(indptr, indices, frontier)
+        keep = ~visited[nb]
+        if allowed is not None:
+            keep &= allowed[nb]
+        src, nb = src[keep], nb[keep]
+        if len(nb) == 0:
+            break
+        ok = np.einsum("ij,ij->i", geom.normals[src], geom.normals[nb]) >= cos_min
+        if r2 is not None:
+            dv = geom.points[nb] - p0
+            ok &= np.einsum("ij,ij->i", dv, dv) <= r2
+        nb = np.unique(nb[ok])
+        if max_vertices is not None and count + len(nb) > max_vertices:
+            nb = nb[: max(0, int(max_vertices) - count)]
+        visited[nb] = True
+        count += len(nb)
+        frontier = nb
+        if max_vertices is not None and count >= max_vertices:
+            break
+    return np.flatnonzero(visited).astype(np.int32)
+
+
+def fill_same_label(geom: ScanGeometry, seed: int, labels: np.ndarray, *, max_angle_deg: float = 180.0) -> np.ndarray:
+    """Bucket fill: the connected set of vertices that share the seed's current label.
+
+    Args:
+        geom: the scan.
+        seed: start vertex.
+        labels: (N,) int labels.
+        max_angle_deg: optional normal-smoothness limit as in `region_grow` (180 = none).
+
+    Returns:
+        (K,) int32 sorted vertex indices.
+    """
+    lab = np.asarray(labels)
+    if lab.shape != (geom.n,):
+        raise ValueError(f"labels must have shape ({geom.n},), got {lab.shape}")
+    return region_grow(geom, seed, max_angle_deg=max_angle_deg, allowed=lab == lab[int(seed)])
+
+
+# ---------------------------------------------------------------------------------------------- box select
+def quat_wxyz_to_matrix(wxyz: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation matrix from a unit quaternion (w, x, y, z)."""
+    w, x, y, z = (np.asarray(wxyz, np.float64) / np.linalg.norm(wxyz)).tolist()
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def project(
+    points: np.ndarray, *, position: np.ndarray, wxyz: np.ndarray, fov: float, aspect: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Project world points with a viser camera (OpenCV axes: +Z forward, +Y down; `fov` vertical, radians).
+
+    Args:
+        points: (N, 3) world frame.
+        position: (3,) camera position, world frame.
+        wxyz: (4,) camera orientation R_world_camera as a quaternion.
+        fov: vertical field of view, radians.
+        aspect: width / height.
+
+    Returns:
+        (uv (N, 2) float64 in [0, 1] screen coordinates (0,0) = top-left, depth (N,) float64 along +Z).
+    """
+    R = quat_wxyz_to_matrix(wxyz)
+    pc = (np.asarray(points, np.float64) - np.asarray(position, np.float64)) @ R  # world → camera
+    z = pc[:, 2]
+    f = 0.5 / np.tan(0.5 * float(fov))  # focal length in units of the image height
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = 0.5 + f * pc[:, 0] / (z * float(aspect))
+        v = 0.5 + f * pc[:, 1] / z
+    return np.stack([u, v], axis=1), z
+
+
+def box_select(
+    geom: ScanGeometry,
+    *,
+    position: np.ndarray,
+    wxyz: np.ndarray,
+    fov: float,
+    aspect: float,
+    screen_min: tuple[float, float],
+    screen_max: tuple[float, float],
+    facing: Literal["front", "all"] = "front",
+) -> np.ndarray:
+    """Vertices whose projection falls in a screen rectangle.
+
+    Args:
+        geom: the scan.
+        position, wxyz, fov, aspect: the client camera (see `project`).
+        screen_min, screen_max: rectangle corners in [0, 1] screen coordinates (OpenCV: (0,0) top-left).
+        facing: "front" keeps only vertices whose normal faces the camera (a cheap stand-in for visibility);
+            "all" selects through the object.
+
+    Returns:
+        (K,) int32 sorted vertex indices.
+    """
+    uv, z = project(geom.points, position=position, wxyz=wxyz, fov=fov, aspect=aspect)
+    u0, v0 = min(screen_min[0], screen_max[0]), min(screen_min[1], screen_max[1])
+    u1, v1 = max(screen_min[0], screen_max[0]), max(screen_min[1], screen_max[1])
+    inside = (z > 1e-6) & (uv[:, 0] >= u0) & (uv[:, 0] <= u1) & (uv[:, 1] >= v0) & (uv[:, 1] <= v1)
+    if facing == "front":
+        view = geom.points.astype(np.float64) - np.asarray(position, np.float64)
+        inside &= np.einsum("ij,ij->i", view, geom.normals.astype(np.float64)) < 0
+    return np.flatnonzero(inside).astype(np.int32)

@@ -1,0 +1,628 @@
+"""Reading and writing scenes: PLY (binary/ASCII), OBJ, OFF, GLB and the native NPZ, plus `atomic_write`.
+
+Which format keeps what (a round trip through `save_scene` then `load_scene`):
+
+| format | points | normals | colours | faces | instance labels | categories, provenance |
+|--------|--------|---------|---------|-------|-----------------|------------------------|
+| .ply   | yes    | yes     | yes     | yes   | yes (`instance` int vertex property) | yes (comment lines) |
+| .npz   | yes    | yes     | yes     | yes   | yes             | yes                    |
+| .glb   | yes    | meshes  | yes     | yes   | yes (`_instance` vertex attribute, meshes; scene extras, point clouds) | yes (scene extras) |
+| .obj   | yes    | yes     | yes (`v x y z r g b`) | yes | no  | no                     |
+| .off   | yes    | yes (NOFF) | yes (COFF) | yes | no         | no                     |
+
+OBJ and OFF have no place for per-vertex integer labels, so ground truth is dropped on save (with a warning) and
+never present on load; use PLY or NPZ for labelled scenes. glTF is +Y up by specification: GLB files are converted
+from our +Z-up world frame on save, `(x, y, z) -> (x, z, -y)`, and back on load. GLB point clouds have no normals
+slot; their normals and labels travel in the scene's JSON extras.
+
+PLY conventions (the same file the annotator writes, readable by MeshLab/CloudCompare): vertex properties
+`x y z` (float), `nx ny nz` (float, optional), `red green blue` (uchar, optional), `instance` (int, optional,
+0 = unlabelled); element `face` with list property `vertex_indices`. Categories and provenance are stored as
+header comments `efem_categories {json}` and `efem_provenance {json}`.
+
+Every write goes through `atomic_write`: a temporary file in the destination directory, fsync, then `os.replace`,
+so a crash never leaves a half-written scene behind.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import logging
+import os
+import re
+import tempfile
+import zlib
+from pathlib import Path
+from typing import Any, Callable, Iterable
+
+import numpy as np
+
+from efem_viz.data.scene import DEFAULT_MAX_POINTS, SCENE_SCHEMA_VERSION, Scene, SceneError
+
+log = logging.getLogger(__name__)
+
+SCENE_SUFFIXES: tuple[str, ...] = (".ply", ".obj", ".off", ".glb", ".npz")
+"""File suffixes `load_scene` understands (lower case)."""
+RESULT_SUFFIX = ".efem.npz"
+"""Suffix of EFEM result files (`EMResult.save`); `find_scenes` skips them."""
+
+_CATEGORIES_COMMENT = "efem_categories"
+_PROVENANCE_COMMENT = "efem_provenance"
+_GLB_EXTRAS_KEY = "efem"
+_MAX_GLB_LABEL = 2**24  # float32 represents every integer up to 2^24 exactly
+
+
+# ---------------------------------------------------------------------------------------------- atomic write
+def atomic_write(path: str | os.PathLike[str], writer: Callable[[Path], Any]) -> Path:
+    """Write a file atomically: `writer(tmp_path)` writes a temporary file in the same directory, then rename.
+
+    The temporary file keeps the destination's suffix (so writers that infer the format from the name, or that
+    append `.npz`, behave), is fsynced, and then replaces `path` with `os.replace` (atomic on POSIX and Windows).
+    On any error the temporary file is removed and `path` is left untouched.
+
+    Args:
+        path: destination file; its parent directory is created if missing.
+        writer: callable that writes the whole file to the `Path` it is given.
+
+    Returns:
+        The destination path.
+    """
+    dest = Path(path)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    suffix = "".join(dest.suffixes[-2:]) if dest.name.endswith(RESULT_SUFFIX) else dest.suffix
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{dest.stem}.", suffix=".tmp" + suffix, dir=dest.parent)
+    os.close(fd)
+    tmp = Path(tmp_name)
+    try:
+        writer(tmp)
+        if not tmp.exists():
+            raise OSError(f"writer did not create the temporary file {tmp}")
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, dest)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    try:  # make the rename itself durable (best effort; not possible on every platform)
+        dir_fd = os.open(dest.parent, os.O_RDONLY)
+        try:
+            os.fsync(dir_fd)
+        finally:
+            os.close(dir_fd)
+    except OSError:
+        pass
+    return dest
+
+
+def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
+    """`atomic_write` for a bytes payload."""
+    return atomic_write(path, lambda p: p.write_bytes(data))
+
+
+def atomic_write_text(path: str | os.PathLike[str], text: str) -> Path:
+    """`atomic_write` for a UTF-8 text payload."""
+    return atomic_write(path, lambda p: p.write_text(text, encoding="utf-8"))
+
+
+# ---------------------------------------------------------------------------------------------- discovery
+def is_scene_file(path: str | os.PathLike[str]) -> bool:
+    """True for a file name with a scene suffix that is not an EFEM result (`*.efem.npz`) or a hidden file."""
+    p = Path(path)
+    name = p.name.lower()
+    return (
+        not name.startswith(".")
+        and not name.endswith(RESULT_SUFFIX)
+        and p.suffix.lower() in SCENE_SUFFIXES
+    )
+
+
+def find_scenes(paths: str | os.PathLike[str] | Iterable[str | os.PathLike[str]]) -> list[Path]:
+    """Scene files among the given files and directories.
+
+    Directories are listed (not recursively), keeping files with a scene suffix, sorted by name, skipping EFEM
+    result files (`*.efem.npz`) and hidden files. Files given explicitly are kept (in the order given) if they
+    have a scene suffix. Duplicates are removed.
+
+    Args:
+        paths: one path or several: files and/or directories.
+
+    Returns:
+        Scene file paths.
+
+    Raises:
+        SceneError: a path does not exist, or a file given explicitly is not a scene file.
+    """
+    items = [paths] if isinstance(paths, (str, os.PathLike)) else list(paths)
+    out: list[Path] = []
+    seen: set[Path] = set()
+    for item in items:
+        p = Path(item)
+        if p.is_dir():
+            found = sorted((c for c in p.iterdir() if c.is_file() and is_scene_file(c)), key=lambda c: c.name)
+        elif p.is_file():
+            if not is_scene_file(p):
+                if p.name.lower().endswith(RESULT_SUFFIX):
+                    raise SceneError(f"{p} is an EFEM result file, not a scene")
+                raise SceneError(
+                    f"{p}: unknown scene format {p.suffix!r}; expected one of {', '.join(SCENE_SUFFIXES)}"
+                )
+            found = [p]
+        else:
+            raise SceneError(f"{p}: no such file or directory")
+        for f in found:
+            key = f.resolve()
+            if key not in seen:
+                seen.add(key)
+                out.append(f)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------- load
+def load_scene(
+    path: str | os.PathLike[str],
+    *,
+    max_points: int = DEFAULT_MAX_POINTS,
+    name: str | None = None,
+) -> Scene:
+    """Load a scene (mesh or point cloud) from .ply, .obj, .off, .glb or .npz.
+
+    Missing normals are estimated (face normals for meshes, open3d PCA normals oriented consistently for point
+    clouds); missing colours become grey.
+
+    Args:
+        path: the scene file.
+        max_points: refuse files with more points than this.
+        name: scene name; default: the file name without its suffix.
+
+    Returns:
+        The validated `Scene` (world frame, metres, +Z up).
+
+    Raises:
+        SceneError: missing file, a directory, unknown suffix, corrupt or truncated file, empty scene, NaN/Inf,
+            mismatched array lengths, non-integer labels, more than `max_points` points. The message names the path.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise SceneError(f"{p}: no such file")
+    if p.is_dir():
+        raise SceneError(f"{p} is a directory, not a scene file (use find_scenes to list a folder)")
+    if p.name.lower().endswith(RESULT_SUFFIX):
+        raise SceneError(f"{p} is an EFEM result file (load it with EMResult.load), not a scene")
+    suffix = p.suffix.lower()
+    if suffix not in SCENE_SUFFIXES:
+        raise SceneError(f"{p}: unknown scene format {suffix!r}; expected one of {', '.join(SCENE_SUFFIXES)}")
+    if p.stat().st_size == 0:
+        raise SceneError(f"{p}: file is empty (0 bytes)")
+    scene_name = name if name is not None else p.name[: -len(p.suffix)]
+    loaders = {".ply": _load_ply, ".obj": _load_obj, ".off": _load_off, ".glb": _load_glb, ".npz": _load_npz}
+    try:
+        kwargs = loaders[suffix](p, max_points)
+    except SceneError as exc:
+        msg = str(exc)
+        raise SceneError(msg if str(p) in msg else f"{p}: {msg}") from exc
+    except (MemoryError, KeyboardInterrupt):
+        raise
+    except Exception as exc:  # parser errors of plyfile / trimesh / numpy: corrupt or truncated file
+        raise SceneError(f"{p}: could not read {suffix[1:].upper()} file ({type(exc).__name__}: {exc})") from exc
+    kwargs.pop("name", None)  # the file name wins over a name stored inside the file
+    try:
+        return Scene.create(scene_name, max_points=max_points, **kwargs)
+    except SceneError as exc:
+        raise SceneError(f"{p}: {exc}") from exc
+
+
+def scene_from_npz(data: Any, *, name: str | None = None, max_points: int = DEFAULT_MAX_POINTS) -> Scene:
+    """Build a Scene from the arrays of a native scene `.npz` (as written by `Scene.to_npz_dict`).
+
+    Args:
+        data: a mapping of arrays (an open `np.load` result or a dict).
+        name: override the stored name.
+        max_points: refuse scenes with more points than this.
+
+    Raises:
+        SceneError: wrong or missing schema version, missing arrays.
+    """
+    kwargs = _npz_kwargs(data)
+    stored = kwargs.pop("name", None)
+    return Scene.create(name or stored or "scene", max_points=max_points, **kwargs)
+
+
+def _npz_kwargs(data: Any) -> dict[str, Any]:
+    keys = set(data.keys())
+    if "schema_version" not in keys:
+        raise SceneError("not a native scene .npz: no 'schema_version' array (expected keys points, normals, ...)")
+    version = int(np.asarray(data["schema_version"]))
+    if version != SCENE_SCHEMA_VERSION:
+        raise SceneError(
+            f"scene schema_version {version} is not supported (this efem-viz reads version {SCENE_SCHEMA_VERSION})"
+        )
+    if "points" not in keys:
+        raise SceneError("scene .npz has no 'points' array")
+    out: dict[str, Any] = {"points": data["points"]}
+    for key in ("normals", "colors", "faces", "instance"):
+        if key in keys:
+            out[key] = data[key]
+    if "name" in keys:
+        out["name"] = str(np.asarray(data["name"]))
+    if "categories_json" in keys:
+        out["categories"] = _parse_categories(str(np.asarray(data["categories_json"])))
+    if "provenance_json" in keys:
+        out["provenance"] = json.loads(str(np.asarray(data["provenance_json"])))
+    return out
+
+
+def _load_npz(p: Path, max_points: int) -> dict[str, Any]:
+    with np.load(p, allow_pickle=False) as data:
+        kwargs = _npz_kwargs(data)
+        # materialise the arrays before the file closes
+        return {k: (np.array(v) if isinstance(v, np.ndarray) else v) for k, v in kwargs.items()}
+
+
+def _parse_categories(text: str) -> dict[int, str]:
+    raw = json.loads(text)
+    if not isinstance(raw, dict):
+        raise SceneError(f"categories must be a JSON object {{id: name}}, got {type(raw).__name__}")
+    try:
+        return {int(k): str(v) for k, v in raw.items()}
+    except ValueError as exc:
+        raise SceneError(f"category ids must be integers: {exc}") from exc
+
+
+def _ply_vertex_count(p: Path) -> int | None:
+    """Vertex count from a PLY header without reading the body (None when the header is unreadable)."""
+    with open(p, "rb") as fh:
+        head = fh.read(1 << 16)
+    end = head.find(b"end_header")
+    if not head.startswith(b"ply") or end < 0:
+        return None
+    m = re.search(rb"^element\s+vertex\s+(\d+)", head[:end], flags=re.MULTILINE)
+    return int(m.group(1)) if m else None
+
+
+def _load_ply(p: Path, max_points: int) -> dict[str, Any]:
+    import plyfile
+
+    n_header = _ply_vertex_count(p)
+    if n_header is not None and n_header > max_points:
+        raise SceneError(
+            f"{p} has {n_header:,} points, more than the limit of {max_points:,}; downsample it or raise max_points"
+        )
+    ply = plyfile.PlyData.read(str(p))
+    names = [e.name for e in ply.elements]
+    if "vertex" not in names:
+        raise SceneError(f"{p}: PLY file has no 'vertex' element (elements: {names})")
+    v = ply["vertex"].data
+    props = set(v.dtype.names or ())
+    missing = {"x", "y", "z"} - props
+    if missing:
+        raise SceneError(f"{p}: PLY vertex element lacks {sorted(missing)} (has {sorted(props)})")
+    out: dict[str, Any] = {"points": np.stack([v["x"], v["y"], v["z"]], axis=1)}
+    if {"nx", "ny", "nz"} <= props:
+        nrm = np.stack([v["nx"], v["ny"], v["nz"]], axis=1).astype(np.float32)
+        if np.all(np.abs(nrm).sum(axis=1) > 0):  # all-zero normals = "not set" in many exporters
+            out["normals"] = nrm
+    for rgb in (("red", "green", "blue"), ("r", "g", "b"), ("diffuse_red", "diffuse_green", "diffuse_blue")):
+        if set(rgb) <= props:
+            out["colors"] = np.stack([v[c] for c in rgb], axis=1)
+            break
+    if "instance" in props:
+        out["instance"] = np.asarray(v["instance"])
+    if "face" in names:
+        fdata = ply["face"].data
+        fprops = fdata.dtype.names or ()
+        key = "vertex_indices" if "vertex_indices" in fprops else ("vertex_index" if "vertex_index" in fprops else None)
+        if key is None:
+            raise SceneError(f"{p}: PLY face element lacks a 'vertex_indices' list (has {list(fprops)})")
+        out["faces"] = _triangulate([np.asarray(f) for f in fdata[key]], p)
+    comments = list(ply.comments) + list(getattr(ply, "obj_info", []))
+    for c in comments:
+        c = c.strip()
+        if c.startswith(_CATEGORIES_COMMENT + " "):
+            out["categories"] = _parse_categories(c[len(_CATEGORIES_COMMENT) + 1 :])
+        elif c.startswith(_PROVENANCE_COMMENT + " "):
+            out["provenance"] = json.loads(c[len(_PROVENANCE_COMMENT) + 1 :])
+    return out
+
+
+def _triangulate(polys: list[np.ndarray], p: Path) -> np.ndarray | None:
+    """Fan-triangulate polygon faces into (M, 3) int64."""
+    if not polys:
+        return None
+    lens = np.fromiter((len(f) for f in polys), dtype=np.int64, count=len(polys))
+    if (lens == 3).all():
+        return np.stack(polys).astype(np.int64)
+    if (lens < 3).any():
+        raise SceneError(f"{p}: {(lens < 3).sum()} faces have fewer than 3 vertices")
+    tris = [np.stack([np.full(len(f) - 2, f[0]), f[1:-1], f[2:]], axis=1) for f in polys]
+    return np.concatenate(tris).astype(np.int64)
+
+
+def _from_trimesh(geom: Any, p: Path) -> dict[str, Any]:
+    """Arrays from a trimesh Trimesh or PointCloud."""
+    import trimesh
+
+    out: dict[str, Any] = {}
+    if isinstance(geom, trimesh.PointCloud):
+        out["points"] = np.asarray(geom.vertices)
+        cols = getattr(geom, "colors", None)
+        if cols is not None and len(cols) == len(geom.vertices):
+            out["colors"] = np.asarray(cols)[:, :3]
+        return out
+    if not isinstance(geom, trimesh.Trimesh):
+        raise SceneError(f"{p}: contains no mesh or point cloud (got {type(geom).__name__})")
+    out["points"] = np.asarray(geom.vertices)
+    faces = np.asarray(geom.faces)
+    out["faces"] = faces if faces.size else None
+    if faces.size or "vertex_normals" in geom._cache:
+        nrm = np.asarray(geom.vertex_normals)
+        if len(nrm) == len(geom.vertices) and np.isfinite(nrm).all():
+            out["normals"] = nrm
+    visual = geom.visual
+    if getattr(visual, "kind", None) == "vertex":
+        out["colors"] = np.asarray(visual.vertex_colors)[:, :3]
+    elif getattr(visual, "kind", None) in ("texture", "face"):
+        try:
+            out["colors"] = np.asarray(visual.to_color().vertex_colors)[:, :3]
+        except Exception as exc:  # texture without UVs etc.: keep default grey
+            log.warning("%s: could not convert the material/texture to vertex colours (%s)", p, exc)
+    return out
+
+
+def _load_obj(p: Path, max_points: int) -> dict[str, Any]:
+    import trimesh
+
+    geom = trimesh.load(str(p), file_type="obj", process=False, maintain_order=True)
+    if isinstance(geom, trimesh.Scene):
+        if not geom.geometry:
+            raise SceneError(f"{p}: OBJ file has no geometry")
+        geom = geom.to_geometry()
+    out = _from_trimesh(geom, p)
+    if isinstance(geom, trimesh.PointCloud):
+        # trimesh drops `vn` lines of a point-cloud OBJ; read them back when there is one per vertex.
+        vn = _obj_vn(p)
+        if vn is not None and len(vn) == len(out["points"]):
+            out["normals"] = vn
+    return out
+
+
+def _obj_vn(p: Path) -> np.ndarray | None:
+    rows = []
+    with open(p, encoding="utf-8", errors="replace") as fh:
+        for line in fh:
+            if line.startswith("vn "):
+                rows.append(line.split()[1:4])
+    return np.asarray(rows, dtype=np.float64) if rows else None
+
+
+def _load_off(p: Path, max_points: int) -> dict[str, Any]:
+    """Read OFF/COFF/NOFF/CNOFF (ASCII): vertices `x y z [nx ny nz] [r g b [a]]`, faces `n i0 .. i(n-1) [...]`."""
+    text = p.read_text(encoding="utf-8", errors="strict")
+    lines = [ln.split("#", 1)[0].strip() for ln in text.splitlines()]
+    lines = [ln for ln in lines if ln]
+    if not lines:
+        raise SceneError(f"{p}: OFF file has no content")
+    first = lines[0].split()
+    key = first[0].upper()
+    if key not in ("OFF", "COFF", "NOFF", "CNOFF", "NCOFF"):
+        raise SceneError(f"{p}: not an OFF file (first keyword {first[0]!r}; expected OFF, COFF, NOFF or CNOFF)")
+    has_normals = "N" in key[:-3]
+    has_colors = "C" in key[:-3]
+    rest = first[1:]
+    idx = 1
+    if not rest:
+        rest = lines[1].split()
+        idx = 2
+    if len(rest) < 2:
+        raise SceneError(f"{p}: OFF count line must hold 'n_vertices n_faces [n_edges]', got {rest}")
+    nv, nf = int(rest[0]), int(rest[1])
+    if nv > max_points:
+        raise SceneError(f"{p} has {nv:,} points, more than the limit of {max_points:,}")
+    if len(lines) < idx + nv + nf:
+        raise SceneError(f"{p}: OFF file is truncated: expected {nv} vertices and {nf} faces after the header")
+    vrows = [ln.split() for ln in lines[idx : idx + nv]]
+    ncol = min(len(r) for r in vrows) if vrows else 3
+    vals = np.asarray([r[:ncol] for r in vrows], dtype=np.float64)
+    out: dict[str, Any] = {"points": vals[:, :3]}
+    c = 3
+    if has_normals:
+        if ncol < 6:
+            raise SceneError(f"{p}: {key} vertices need normals but have {ncol} values")
+        out["normals"] = vals[:, 3:6]
+        c = 6
+    if has_colors and ncol >= c + 3:
+        col = vals[:, c : c + 3]
+        is_float = any(("." in t or "e" in t.lower()) for t in vrows[0][c : c + 3])
+        # COFF colours are either integers 0..255 or floats 0..1 (decided by how the first row is written)
+        out["colors"] = col.astype(np.float32) if is_float else np.clip(np.round(col), 0, 255).astype(np.uint8)
+    polys = []
+    for ln in lines[idx + nv : idx + nv + nf]:
+        parts = ln.split()
+        k = int(parts[0])
+        if len(parts) < k + 1:
+            raise SceneError(f"{p}: OFF face line {ln!r} lists fewer than {k} indices")
+        polys.append(np.asarray(parts[1 : k + 1], dtype=np.int64))
+    out["faces"] = _triangulate(polys, p) if polys else None
+    return out
+
+
+def _load_glb(p: Path, max_points: int) -> dict[str, Any]:
+    import trimesh
+
+    loaded = trimesh.load(str(p), file_type="glb", process=False)
+    extras: dict[str, Any] = {}
+    if isinstance(loaded, trimesh.Scene):
+        extras = dict(loaded.metadata.get(_GLB_EXTRAS_KEY, {}) or {})
+        geoms = list(loaded.geometry.values())
+        if not geoms:
+            raise SceneError(f"{p}: GLB file has no geometry")
+        if len(geoms) == 1 and len(loaded.graph.nodes_geometry) == 1:
+            node = loaded.graph.nodes_geometry[0]
+            T, gname = loaded.graph[node]
+            geom = loaded.geometry[gname].copy()
+            geom.apply_transform(T)
+        else:
+            geom = loaded.to_geometry()
+    else:
+        geom = loaded
+    out = _from_trimesh(geom, p)
+    # glTF is +Y up: (x, y, z)_gltf -> (x, -z, y)_world
+    for key in ("points", "normals"):
+        if key in out and out[key] is not None:
+            arr = np.asarray(out[key], dtype=np.float64)
+            out[key] = np.stack([arr[:, 0], -arr[:, 2], arr[:, 1]], axis=1)
+    attrs = getattr(geom, "vertex_attributes", {}) or {}
+    for key in ("_instance", "instance"):
+        if key in attrs:
+            out["instance"] = np.asarray(attrs[key]).reshape(-1)
+            break
+    if "instance_zb64" in extras and "instance" not in out:
+        out["instance"] = _unpack_array(extras["instance_zb64"], np.int32)
+    if "normals_zb64" in extras and "normals" not in out:
+        out["normals"] = _unpack_array(extras["normals_zb64"], np.float32).reshape(-1, 3)  # world frame
+    if "categories" in extras:
+        out["categories"] = {int(k): str(v) for k, v in dict(extras["categories"]).items()}
+    if "provenance" in extras:
+        out["provenance"] = dict(extras["provenance"])
+    return out
+
+
+def _pack_array(a: np.ndarray) -> str:
+    return base64.b64encode(zlib.compress(np.ascontiguousarray(a).tobytes(), 6)).decode("ascii")
+
+
+def _unpack_array(s: str, dtype: Any) -> np.ndarray:
+    return np.frombuffer(zlib.decompress(base64.b64decode(s)), dtype=dtype).copy()
+
+
+# ---------------------------------------------------------------------------------------------- save
+def save_scene(scene: Scene, path: str | os.PathLike[str], *, ascii: bool = False) -> Path:
+    """Save a scene; the format comes from the suffix (.ply, .obj, .off, .glb, .npz). Atomic.
+
+    Args:
+        scene: the scene.
+        path: destination file.
+        ascii: for .ply, write ASCII instead of binary little-endian.
+
+    Returns:
+        The destination path.
+
+    Raises:
+        SceneError: unknown suffix.
+    """
+    p = Path(path)
+    suffix = p.suffix.lower()
+    if p.name.lower().endswith(RESULT_SUFFIX):
+        raise SceneError(f"{p}: the suffix {RESULT_SUFFIX} is reserved for EFEM results; choose another name")
+    writers: dict[str, Callable[[Path], None]] = {
+        ".ply": lambda t: _write_ply(scene, t, ascii=ascii),
+        ".obj": lambda t: _write_obj(scene, t),
+        ".off": lambda t: _write_off(scene, t),
+        ".glb": lambda t: _write_glb(scene, t),
+        ".npz": lambda t: np.savez_compressed(t, **scene.to_npz_dict()),
+    }
+    if suffix not in writers:
+        raise SceneError(f"{p}: unknown scene format {suffix!r}; expected one of {', '.join(SCENE_SUFFIXES)}")
+    if suffix in (".obj", ".off") and scene.has_gt:
+        log.warning("%s: %s cannot hold instance labels; they are not saved (use .ply or .npz)", p, suffix)
+    return atomic_write(p, writers[suffix])
+
+
+def _write_ply(scene: Scene, tmp: Path, *, ascii: bool) -> None:
+    import plyfile
+
+    n = scene.num_points
+    fields: list[tuple[str, str]] = [
+        ("x", "f4"), ("y", "f4"), ("z", "f4"),
+        ("nx", "f4"), ("ny", "f4"), ("nz", "f4"),
+        ("red", "u1"), ("green", "u1"), ("blue", "u1"),
+    ]
+    if scene.instance is not None:
+        fields.append(("instance", "i4"))
+    v = np.empty(n, dtype=fields)
+    v["x"], v["y"], v["z"] = scene.points.T
+    v["nx"], v["ny"], v["nz"] = scene.normals.T
+    v["red"], v["green"], v["blue"] = scene.colors.T
+    if scene.instance is not None:
+        v["instance"] = scene.instance
+    elements = [plyfile.PlyElement.describe(v, "vertex")]
+    if scene.faces is not None and len(scene.faces):
+        f = np.empty(len(scene.faces), dtype=[("vertex_indices", "i4", (3,))])
+        f["vertex_indices"] = scene.faces
+        elements.append(plyfile.PlyElement.describe(f, "face", len_types={"vertex_indices": "u1"}))
+    comments = ["written by efem-viz"]
+    if scene.categories:
+        comments.append(f"{_CATEGORIES_COMMENT} " + json.dumps({str(k): v for k, v in scene.categories.items()}))
+    if scene.provenance:
+        comments.append(f"{_PROVENANCE_COMMENT} " + json.dumps(scene.provenance, default=str))
+    for c in comments:
+        if "\n" in c or "\r" in c:
+            raise SceneError("PLY comment lines cannot contain newlines (categories/provenance)")
+    plyfile.PlyData(elements, text=ascii, byte_order="<" if not ascii else "=", comments=comments).write(str(tmp))
+
+
+def _fmt_rows(a: np.ndarray, prefix: str, fmt: str) -> str:
+    if len(a) == 0:
+        return ""
+    row = prefix + " ".join([fmt] * a.shape[1]) + "\n"
+    return "".join(row % tuple(r) for r in a.tolist())
+
+
+def _write_obj(scene: Scene, tmp: Path) -> None:
+    vc = np.concatenate([scene.points.astype(np.float64), scene.colors.astype(np.float64) / 255.0], axis=1)
+    parts = [f"# efem-viz scene {scene.name}\n", _fmt_rows(vc, "v ", "%.7g"), _fmt_rows(scene.normals, "vn ", "%.6g")]
+    if scene.faces is not None and len(scene.faces):
+        f1 = scene.faces.astype(np.int64) + 1
+        parts.append("".join(f"f {a}//{a} {b}//{b} {c}//{c}\n" for a, b, c in f1.tolist()))
+    tmp.write_text("".join(parts), encoding="utf-8")
+
+
+def _write_off(scene: Scene, tmp: Path) -> None:
+    nf = len(scene.faces) if scene.faces is not None else 0
+    vals = np.concatenate(
+        [scene.points.astype(np.float64), scene.normals.astype(np.float64), scene.colors.astype(np.float64)], axis=1
+    )
+    lines = ["CNOFF\n", f"{scene.num_points} {nf} 0\n"]
+    rows = "".join(
+        "%.7g %.7g %.7g %.6g %.6g %.6g %d %d %d\n" % tuple(r) for r in vals.tolist()
+    )
+    lines.append(rows)
+    if nf:
+        lines.append("".join(f"3 {a} {b} {c}\n" for a, b, c in scene.faces.tolist()))  # type: ignore[union-attr]
+    tmp.write_text("".join(lines), encoding="utf-8")
+
+
+def _write_glb(scene: Scene, tmp: Path) -> None:
+    import trimesh
+
+    def to_gltf(a: np.ndarray) -> np.ndarray:  # world +Z up -> glTF +Y up
+        a = np.asarray(a, dtype=np.float64)
+        return np.stack([a[:, 0], a[:, 2], -a[:, 1]], axis=1)
+
+    extras: dict[str, Any] = {
+        "schema_version": SCENE_SCHEMA_VERSION,
+        "name": scene.name,
+        "categories": {str(k): v for k, v in scene.categories.items()},
+        "provenance": json.loads(json.dumps(scene.provenance, default=str)),
+    }
+    rgba = np.concatenate([scene.colors, np.full((scene.num_points, 1), 255, np.uint8)], axis=1)
+    if scene.is_mesh:
+        geom = trimesh.Trimesh(
+            vertices=to_gltf(scene.points),
+            faces=scene.faces,
+            vertex_normals=to_gltf(scene.normals),
+            vertex_colors=rgba,
+            process=False,
+        )
+        if scene.instance is not None:
+            if scene.instance.max(initial=0) >= _MAX_GLB_LABEL:
+                raise SceneError(f"GLB stores labels as float32; ids must be < {_MAX_GLB_LABEL}")
+            geom.vertex_attributes["instance"] = scene.instance.astype(np.float32)
+    else:
+        geom = trimesh.PointCloud(to_gltf(scene.points), colors=rgba)
+        extras["normals_zb64"] = _pack_array(scene.normals.astype(np.float32))
+        if scene.instance is not None:
+            extras["instance_zb64"] = _pack_array(scene.instance.astype(np.int32))
+    tscene = trimesh.Scene(geom)
+    tscene.metadata[_GLB_EXTRAS_KEY] = extras
+    tmp.write_bytes(tscene.export(file_type="glb"))

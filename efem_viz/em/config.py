@@ -1,0 +1,212 @@
+"""Typed configuration of the EFEM solver (efem-method.md §3.12) and its presets.
+
+All distances are in metres (world) unless the field says "canonical" (decoder SDF units, about one object
+size); angles are in degrees. efem-viz is +Z up, so the "horizontal" scale group is {x, y} and the height
+group is {z} of the canonical object frame.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass
+from typing import Any, Literal
+
+PresetName = Literal["synthetic_mugs", "real_mugs", "fast"]
+CropMode = Literal["sphere", "cylinder"]
+
+
+@dataclass(frozen=True)
+class EMConfig:
+    """Every knob of the EFEM solver. Build one with `preset(name)` and adjust with `.replace(...)`."""
+
+    name: str = "synthetic_mugs"
+    """Preset this config was derived from (informational)."""
+    n_init: tuple[int, ...] = (400,)
+    """Proposals initialised per episode; the number of episodes is len(n_init)."""
+    crop: CropMode = "sphere"
+    """Initial crop and E-step neighbourhood shape: 3-D ball, or infinite vertical (+Z) cylinder."""
+    r_init: float = 0.07
+    """Initial crop radius around each anchor (m)."""
+    r_err: float = 0.11
+    """E-step neighbourhood radius around the proposal centre Θ_c (m)."""
+    alpha_d: tuple[float, float] = (3.0, 30.0)
+    """SDF energy slope α_D, start → end (per canonical unit)."""
+    tau_d: tuple[float, float] = (0.1, 0.1)
+    """SDF truncation τ_D, start → end (canonical units)."""
+    alpha_n: tuple[float, float] = (0.003, 0.006)
+    """Normal energy slope α_N, start → end (per degree)."""
+    tau_n: tuple[float, float] = (90.0, 60.0)
+    """Normal truncation τ_N, start → end (degrees)."""
+    end_step: int = 10
+    """Annealing length T_e: λ(t) = min(t, T_e) / T_e."""
+    t1: int = 15
+    """Phase-1 (independent) steps."""
+    t2: int = 5
+    """Phase-2 (joint) steps."""
+    omega: float = 1e-4
+    """Background weight ω (Bernoulli w/(w+ω) in phase 1, background class in phase 2)."""
+    out_value: float = 100.0
+    """Energy U of a truncated term."""
+    min_size: int = 300
+    """A proposal with fewer inliers than this dies ("proposal too small")."""
+    dup_sdf: float = 0.04
+    """δ_dup: the duplicate/inclusion sets are {j : |d_ij| < δ_dup} (canonical units)."""
+    dup_iou: float = 0.7
+    """Phase-1 duplicate IoU threshold."""
+    joint_dup_iou: float = 0.7
+    """Phase-2 duplicate IoU threshold."""
+    joint_incl: float = 0.8
+    """Phase-2 inclusion ratio threshold (pairwise)."""
+    tau_out: float = 0.04
+    """Output mask SDF threshold (canonical units)."""
+    gamma_out: float = 180.0
+    """Output mask normal-angle threshold (degrees; 180 = normals ignored)."""
+    stat_tau: float = 0.04
+    """Stationary score SDF threshold (canonical units)."""
+    stat_gamma: float = 45.0
+    """Stationary score normal-angle threshold (degrees)."""
+    cov_tau: float = 0.04
+    """Coverage distance threshold (canonical units)."""
+    cov_gamma: float = 45.0
+    """Coverage normal-angle threshold (degrees)."""
+    cov_cap: float = 0.4
+    """Coverage saturation in the confidence: conf = s_stat · min(cov, cap) / cap."""
+    scale_horizontal: tuple[float, float] = (0.03, 0.13)
+    """Allowed range of the horizontal radius max ‖Q̃_xy‖ of the completed shape (m)."""
+    scale_height: tuple[float, float] = (0.015, 0.30)
+    """Allowed range of the half-height max |Q̃_z| of the completed shape (m)."""
+    up_range: tuple[float, float] = (0.0, 180.0)
+    """Allowed angle between the canonical up axis R[:, 2] and world +Z (degrees)."""
+    n_store: int = 5000
+    """Surface samples drawn on each review mesh."""
+    mesh_resolution: int = 40
+    """Grid resolution (voxels per side) of review meshes; the hot spot of the reviews."""
+    encode_batch: int = 30
+    """Proposals per encoder call."""
+    decode_chunk: int = 30000
+    """Decoder queries per chunk (ragged over all live proposals)."""
+    n_pcl: int | None = None
+    """Points sampled per proposal per M-step; None = the prior's training size."""
+    pose_retrieval: bool = True
+    """Estimate the pose with the prior's codebook in reviews (when it has one); else R = identity."""
+
+    # ------------------------------------------------------------------ helpers
+    @property
+    def num_episodes(self) -> int:
+        return len(self.n_init)
+
+    @property
+    def steps_per_episode(self) -> int:
+        return self.t1 + self.t2
+
+    def replace(self, **changes: Any) -> "EMConfig":
+        """A copy with some fields changed (validated)."""
+        cfg = dataclasses.replace(self, **changes)
+        cfg.validate()
+        return cfg
+
+    def with_proposals(self, n: int) -> "EMConfig":
+        """A copy with `n` proposals in the first episode (later episodes scaled proportionally)."""
+        if n < 1:
+            raise ValueError(f"number of proposals must be >= 1, got {n}")
+        first = self.n_init[0]
+        scaled = tuple([n] + [max(1, round(k * n / first)) for k in self.n_init[1:]])
+        return self.replace(n_init=scaled)
+
+    def validate(self) -> None:
+        """Raise ValueError on inconsistent values."""
+        if not self.n_init or any(int(k) < 1 for k in self.n_init):
+            raise ValueError(f"n_init must be a non-empty tuple of positive ints, got {self.n_init}")
+        if self.crop not in ("sphere", "cylinder"):
+            raise ValueError(f"crop must be 'sphere' or 'cylinder', got {self.crop!r}")
+        for nm in ("r_init", "r_err", "omega", "end_step"):
+            if getattr(self, nm) <= 0:
+                raise ValueError(f"{nm} must be > 0, got {getattr(self, nm)}")
+        if self.t1 < 0 or self.t2 < 0 or self.t1 + self.t2 == 0:
+            raise ValueError(f"need t1, t2 >= 0 and t1 + t2 > 0, got t1={self.t1} t2={self.t2}")
+        for nm in ("alpha_d", "tau_d", "alpha_n", "tau_n", "scale_horizontal", "scale_height", "up_range"):
+            v = getattr(self, nm)
+            if len(v) != 2:
+                raise ValueError(f"{nm} must be a pair, got {v}")
+        if self.n_pcl is not None and self.n_pcl < 1:
+            raise ValueError(f"n_pcl must be >= 1, got {self.n_pcl}")
+        if self.mesh_resolution < 8:
+            raise ValueError(f"mesh_resolution must be >= 8, got {self.mesh_resolution}")
+        if self.encode_batch < 1 or self.decode_chunk < 1 or self.n_store < 1:
+            raise ValueError("encode_batch, decode_chunk and n_store must be >= 1")
+
+    def to_json(self) -> str:
+        return json.dumps(dataclasses.asdict(self), sort_keys=True)
+
+    @classmethod
+    def from_json(cls, text: str) -> "EMConfig":
+        d = json.loads(text)
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"unknown EMConfig fields in saved config: {sorted(unknown)}")
+        for k, v in list(d.items()):
+            if isinstance(v, list):
+                d[k] = tuple(v)
+        cfg = cls(**d)
+        cfg.validate()
+        return cfg
+
+
+def schedule(cfg: EMConfig, t: int) -> tuple[float, float, float, float]:
+    """Annealed E-step parameters at local step t (efem-method.md §3.6.3).
+
+    Args:
+        cfg: solver config.
+        t: step index within the episode (0-based). Phase-2 steps (t >= t1) use the end values.
+
+    Returns:
+        (α_D, τ_D, α_N, τ_N).
+    """
+    lam = 1.0 if t >= cfg.t1 else min(t, cfg.end_step) / cfg.end_step
+
+    def lerp(p: tuple[float, float]) -> float:
+        return float(p[0] + (p[1] - p[0]) * lam)
+
+    return lerp(cfg.alpha_d), lerp(cfg.tau_d), lerp(cfg.alpha_n), lerp(cfg.tau_n)
+
+
+_SYNTHETIC_MUGS = EMConfig()
+
+_REAL_MUGS = EMConfig(
+    name="real_mugs",
+    tau_d=(0.1, 0.07),
+    stat_tau=0.03,
+    stat_gamma=30.0,
+    cov_tau=0.03,
+    cov_gamma=30.0,
+    scale_horizontal=(0.03, 0.08),
+    scale_height=(0.015, 0.10),
+)
+
+_FAST = EMConfig(
+    name="fast",
+    n_init=(80,),
+    n_store=2000,
+    mesh_resolution=32,
+)
+
+
+def preset(name: str) -> EMConfig:
+    """A named solver config.
+
+    Args:
+        name: "synthetic_mugs" (§3.12 synthetic mugs), "real_mugs" (§3.12 real mugs, also the demo config) or
+            "fast" (synthetic-mug thresholds with 80 proposals and cheaper reviews, for tests and interactive runs).
+
+    Raises:
+        ValueError: unknown name.
+    """
+    table = {"synthetic_mugs": _SYNTHETIC_MUGS, "real_mugs": _REAL_MUGS, "fast": _FAST}
+    if name not in table:
+        raise ValueError(f"unknown EM preset {name!r}; choose one of {sorted(table)}")
+    return table[name]
+
+
+PRESETS: tuple[str, ...] = ("synthetic_mugs", "real_mugs", "fast")

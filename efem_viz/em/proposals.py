@@ -1,0 +1,447 @@
+"""The proposal pool's sparse bookkeeping: neighbourhoods, M-step sampling and per-step eliminations.
+
+Everything here is plain NumPy/SciPy and works on *ragged rows*: proposal r owns the scene-point indices
+`idx[offsets[r]:offsets[r+1]]` (its crop or E-step neighbourhood) with one value per entry (weights, SDF, ...).
+Weights outside a row are zero by definition, so cost scales with the neighbourhood sizes, never with P × N.
+Rows are always in increasing proposal-id order. References: efem-method.md §3.3, §3.4 and §3.8.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+logger = logging.getLogger(__name__)
+
+REASON_TOO_SMALL = "proposal too small"
+REASON_DUPLICATE = "duplicated or included"
+REASON_SCALE = "scale-fail"
+REASON_POSE = "pose-fail"
+REASON_SURVIVE = "survive"
+REASONS: tuple[str, ...] = (REASON_TOO_SMALL, REASON_DUPLICATE, REASON_SCALE, REASON_POSE, REASON_SURVIVE)
+
+
+@dataclass(frozen=True)
+class Ragged:
+    """Per-proposal sets of scene-point indices, stored flat.
+
+    Attributes:
+        idx: (K,) int64 scene-point indices, row after row.
+        offsets: (P + 1,) int64; row r is `idx[offsets[r]:offsets[r + 1]]`.
+    """
+
+    idx: np.ndarray
+    offsets: np.ndarray
+
+    @property
+    def num_rows(self) -> int:
+        return int(len(self.offsets) - 1)
+
+    @property
+    def lengths(self) -> np.ndarray:
+        """(P,) int64 number of entries per row."""
+        return np.diff(self.offsets)
+
+    @property
+    def row(self) -> np.ndarray:
+        """(K,) int64 row of every entry."""
+        return np.repeat(np.arange(self.num_rows, dtype=np.int64), self.lengths)
+
+    def row_slice(self, r: int) -> slice:
+        return slice(int(self.offsets[r]), int(self.offsets[r + 1]))
+
+    @classmethod
+    def from_lists(cls, rows: Sequence[Sequence[int] | np.ndarray]) -> "Ragged":
+        """Build from one index sequence per row."""
+        lens = np.fromiter((len(r) for r in rows), dtype=np.int64, count=len(rows))
+        offsets = np.zeros(len(rows) + 1, np.int64)
+        np.cumsum(lens, out=offsets[1:])
+        if len(rows) and isinstance(rows[0], np.ndarray):
+            idx = np.concatenate([np.asarray(r, np.int64) for r in rows]) if lens.sum() else np.zeros(0, np.int64)
+        else:
+            idx = np.fromiter(itertools.chain.from_iterable(rows), dtype=np.int64, count=int(lens.sum()))
+        return cls(idx=idx, offsets=offsets)
+
+    def take_rows(self, rows: np.ndarray) -> tuple["Ragged", np.ndarray]:
+        """Keep some rows (in the given order).
+
+        Returns:
+            (the new Ragged, (K',) int64 positions of the kept entries in the old flat arrays) so that
+            per-entry values can be carried over with `values[positions]`.
+        """
+        rows = np.asarray(rows, np.int64)
+        lens = self.lengths[rows]
+        offsets = np.zeros(len(rows) + 1, np.int64)
+        np.cumsum(lens, out=offsets[1:])
+        starts = self.offsets[:-1][rows]
+        pos = np.repeat(starts - offsets[:-1], lens) + np.arange(int(offsets[-1]), dtype=np.int64)
+        return Ragged(idx=self.idx[pos], offsets=offsets), pos
+
+
+def neighbourhoods(
+    points: np.ndarray,
+    available: np.ndarray,
+    centers: np.ndarray,
+    radius: float,
+    *,
+    crop: str = "sphere",
+    tree: object | None = None,
+) -> Ragged:
+    """Available scene points within `radius` of each centre (ball, or vertical cylinder for crop="cylinder").
+
+    Args:
+        points: (N, 3) float32 scene points, world frame.
+        available: (N,) bool, points not yet assigned to an accepted object.
+        centers: (P, 3) float centres, world frame.
+        radius: metres.
+        crop: "sphere" (3-D distance) or "cylinder" (distance in the x-y plane, +Z up).
+        tree: optional prebuilt `AvailableTree` for these points/availability (speeds up repeated calls).
+
+    Returns:
+        Ragged rows of scene-point indices, each sorted increasingly.
+    """
+    t = tree if isinstance(tree, AvailableTree) else AvailableTree(points, available, crop=crop)
+    return t.query(centers, radius)
+
+
+class AvailableTree:
+    """A KD-tree over the available points (3-D, or x-y for cylinder crops) that answers ball queries."""
+
+    def __init__(self, points: np.ndarray, available: np.ndarray, *, crop: str = "sphere") -> None:
+        from scipy.spatial import cKDTree
+
+        if crop not in ("sphere", "cylinder"):
+            raise ValueError(f"crop must be 'sphere' or 'cylinder', got {crop!r}")
+        self.crop = crop
+        self.avail_idx = np.flatnonzero(np.asarray(available, bool)).astype(np.int64)
+        dims = 3 if crop == "sphere" else 2
+        self.tree = cKDTree(np.asarray(points, np.float64)[self.avail_idx, :dims]) if len(self.avail_idx) else None
+        self.dims = dims
+
+    def query(self, centers: np.ndarray, radius: float) -> Ragged:
+        centers = np.asarray(centers, np.float64).reshape(-1, 3)
+        if self.tree is None or len(centers) == 0:
+            return Ragged(np.zeros(0, np.int64), np.zeros(len(centers) + 1, np.int64))
+        res = self.tree.query_ball_point(centers[:, : self.dims], r=float(radius), return_sorted=True)
+        rag = Ragged.from_lists(list(res))
+        return Ragged(idx=self.avail_idx[rag.idx], offsets=rag.offsets)
+
+
+def init_crops(
+    points: np.ndarray,
+    available: np.ndarray,
+    n: int,
+    r_init: float,
+    rng: np.random.Generator,
+    *,
+    crop: str = "sphere",
+    tree: AvailableTree | None = None,
+) -> tuple[np.ndarray, Ragged]:
+    """Draw `n` anchors with replacement among the available points and crop around them (§3.3).
+
+    Args:
+        points: (N, 3) float32 scene points, world frame.
+        available: (N,) bool.
+        n: number of proposals.
+        r_init: crop radius (m).
+        rng: NumPy generator (anchors are its first draw).
+        crop: "sphere" or "cylinder".
+        tree: optional prebuilt AvailableTree for (points, available, crop).
+
+    Returns:
+        anchors (n,) int64 scene indices, and the crops as Ragged rows (initial weights are 1 on every entry).
+    """
+    avail_idx = np.flatnonzero(np.asarray(available, bool))
+    if len(avail_idx) == 0:
+        raise ValueError("no available points to draw proposal anchors from")
+    anchors = avail_idx[rng.integers(0, len(avail_idx), size=int(n))].astype(np.int64)
+    t = tree if tree is not None else AvailableTree(points, available, crop=crop)
+    return anchors, t.query(np.asarray(points)[anchors], r_init)
+
+
+def _categorical_rows(
+    rag: Ragged,
+    w: np.ndarray,
+    m: int,
+    rng: np.random.Generator,
+    fallback: np.ndarray,
+) -> np.ndarray:
+    """M i.i.d. draws per row from the categorical ∝ w over the row's entries (rows with zero mass: uniform over
+    `fallback`, the whole-scene safety rule of §3.4). Returns (P, m) int64 scene indices."""
+    p = rag.num_rows
+    out = np.empty((p, m), np.int64)
+    if p == 0:
+        return out
+    row = rag.row
+    w64 = np.asarray(w, np.float64)
+    tot = np.bincount(row, weights=w64, minlength=p)
+    ok = tot > 0
+    # Normalise every row to mass 1 before the global cumsum: no cancellation between rows.
+    wn = np.where(ok[row], w64 / np.where(tot > 0, tot, 1.0)[row], 0.0)
+    cs = np.cumsum(wn)
+    start, end = rag.offsets[:-1], rag.offsets[1:]
+    base = np.where(start > 0, cs[np.maximum(start - 1, 0)], 0.0)
+    u = rng.random((p, m))
+    if ok.any():
+        rows_ok = np.flatnonzero(ok)
+        target = base[rows_ok, None] + u[rows_ok]
+        pos = np.searchsorted(cs, target, side="right")
+        pos = np.clip(pos, start[rows_ok, None], end[rows_ok, None] - 1)
+        # zero-weight entries can only be hit through rounding at a row's end: step back to the last positive one
+        bad = wn[pos] <= 0
+        if bad.any():
+            for r_local, j in zip(*np.nonzero(bad)):
+                r = rows_ok[r_local]
+                sl = rag.row_slice(int(r))
+                nz = np.flatnonzero(wn[sl] > 0)
+                pos[r_local, j] = sl.start + nz[min(np.searchsorted(nz, pos[r_local, j] - sl.start), len(nz) - 1)]
+        out[rows_ok] = rag.idx[pos]
+    if (~ok).any():
+        if len(fallback) == 0:
+            raise ValueError("a proposal has no weight and there are no available points to fall back on")
+        n_bad = int((~ok).sum())
+        logger.debug("%d proposals with all-zero weights sample the whole scene", n_bad)
+        out[~ok] = fallback[np.minimum((u[~ok] * len(fallback)).astype(np.int64), len(fallback) - 1)]
+    return out
+
+
+def sample_independent(
+    rag: Ragged,
+    w: np.ndarray,
+    m: int,
+    omega: float,
+    rng: np.random.Generator,
+    *,
+    fallback: np.ndarray,
+) -> np.ndarray:
+    """Phase-1 M-step sampling (§3.4): Bernoulli(w/(w+ω)) masks, then M categorical draws ∝ w·b per row.
+
+    Args:
+        rag: the rows' supports (entries outside have weight 0).
+        w: (K,) float weights per entry in [0, 1].
+        m: samples per row (with replacement).
+        omega: background weight ω.
+        rng: NumPy generator.
+        fallback: (F,) int scene indices drawn uniformly for rows without weight (available points).
+
+    Returns:
+        (P, m) int64 scene indices.
+    """
+    w = np.asarray(w, np.float64)
+    keep = rng.random(len(w)) < w / (w + omega)
+    return _categorical_rows(rag, w * keep, m, rng, fallback)
+
+
+def sample_joint(
+    rag: Ragged,
+    w: np.ndarray,
+    scores: np.ndarray,
+    m: int,
+    omega: float,
+    rng: np.random.Generator,
+    *,
+    fallback: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Phase-2 M-step sampling (§3.4): every scene point draws one owner among {background: ω} ∪ {i: w_ij·S_i};
+    each proposal then samples M points ∝ w over the points it claimed.
+
+    Args:
+        rag: the rows' supports.
+        w: (K,) float weights per entry.
+        scores: (P,) float competition weights S_i (the previous step's stationary scores).
+        m: samples per row.
+        omega: background weight ω.
+        rng: NumPy generator.
+        fallback: (F,) int scene indices for rows without any weight.
+
+    Returns:
+        ((P, m) int64 scene indices, (K,) bool claimed flag per entry).
+    """
+    p = rag.num_rows
+    w = np.asarray(w, np.float64)
+    k = len(w)
+    claimed = np.zeros(k, bool)
+    row = rag.row
+    if k:
+        vals = w * np.asarray(scores, np.float64)[row]
+        order = np.argsort(rag.idx, kind="stable")
+        pts = rag.idx[order]
+        v = vals[order]
+        gstart = np.flatnonzero(np.r_[True, pts[1:] != pts[:-1]])
+        gend = np.r_[gstart[1:], len(pts)]
+        gsum = np.add.reduceat(v, gstart)
+        total = gsum + omega
+        gid = np.repeat(np.arange(len(gstart)), gend - gstart)
+        vn = v / total[gid]
+        cs = np.cumsum(vn)
+        base = np.where(gstart > 0, cs[np.maximum(gstart - 1, 0)], 0.0)
+        u = rng.random(len(gstart))
+        pos = np.searchsorted(cs, base + u, side="right")
+        hit = (pos < gend) & (u < gsum / total)
+        pos = np.minimum(pos, gend - 1)
+        hit &= vn[pos] > 0
+        claimed[order[pos[hit]]] = True
+        # points labelled background: every entry of a group without a hit
+        bg_entry = np.zeros(k, bool)
+        bg_entry[order] = ~np.repeat(hit, gend - gstart)
+    else:
+        bg_entry = np.zeros(0, bool)
+    has = np.bincount(row[claimed], minlength=p) > 0 if k else np.zeros(p, bool)
+    empty_rows = np.flatnonzero(~has)
+    for r in empty_rows:
+        sl = rag.row_slice(int(r))
+        if sl.stop == sl.start:
+            continue
+        cand = np.flatnonzero(bg_entry[sl] & (w[sl] > 0))
+        if len(cand) == 0:
+            cand = np.flatnonzero(w[sl] > 0)
+        if len(cand) == 0:
+            continue
+        best = sl.start + cand[np.argmax(w[sl][cand])]
+        claimed[best] = True
+    if len(empty_rows):
+        logger.warning("joint M-step: %d proposals claimed no point; each gets its best background point",
+                       len(empty_rows))
+    return _categorical_rows(rag, w * claimed, m, rng, fallback), claimed
+
+
+def set_matrix(rag: Ragged, mask: np.ndarray, n_points: int) -> "object":
+    """(P, N) scipy.sparse CSR boolean matrix of the entries where `mask` holds (e.g. |d| < δ_dup)."""
+    import scipy.sparse as sp
+
+    mask = np.asarray(mask, bool)
+    row = rag.row[mask]
+    col = rag.idx[mask]
+    data = np.ones(len(row), np.float32)
+    return sp.csr_matrix((data, (row, col)), shape=(rag.num_rows, int(n_points)))
+
+
+def overlap_counts(sets: "object") -> tuple[np.ndarray, np.ndarray]:
+    """Pairwise intersection sizes of sparse sets.
+
+    Args:
+        sets: (P, N) scipy.sparse matrix with 0/1 entries.
+
+    Returns:
+        inter (P, P) float64 |B_i ∩ B_k| and sizes (P,) float64 |B_i|.
+    """
+    gram = (sets @ sets.T).toarray().astype(np.float64)
+    sizes = np.asarray(sets.sum(axis=1)).ravel().astype(np.float64)
+    return gram, sizes
+
+
+@dataclass(frozen=True)
+class Kill:
+    """One elimination: row `row` dies because of `partner` (row index, or -1) with overlap `ratio`."""
+
+    row: int
+    reason: str
+    partner: int = -1
+    ratio: float = float("nan")
+
+
+def find_too_small(inlier_counts: np.ndarray, min_size: int) -> list[Kill]:
+    """§3.8a: rows with fewer than `min_size` inliers."""
+    counts = np.asarray(inlier_counts)
+    return [Kill(int(r), REASON_TOO_SMALL, -1, float(counts[r])) for r in np.flatnonzero(counts < min_size)]
+
+
+def find_duplicates(
+    sets: "object",
+    scores: np.ndarray,
+    iou_threshold: float,
+    *,
+    active: np.ndarray | None = None,
+) -> list[Kill]:
+    """§3.8b duplicate removal over sparse sets, rows visited in order (= increasing proposal id).
+
+    For each still-active row i, the group is {k active : IoU(B_i, B_k) ≥ θ} (i included when B_i is not empty);
+    if it has more than one member, only the member with the highest score survives (argmax within the group,
+    ties to the lowest row), the others die with that winner as partner.
+
+    Args:
+        sets: (P, N) sparse 0/1 matrix of the sets B_i.
+        scores: (P,) stationary scores.
+        iou_threshold: θ_iou.
+        active: (P,) bool rows that take part (default all).
+
+    Returns:
+        The kills in the order they happen; `ratio` is IoU(killed, winner).
+    """
+    inter, sizes = overlap_counts(sets)
+    p = len(sizes)
+    alive = np.ones(p, bool) if active is None else np.asarray(active, bool).copy()
+    union = sizes[:, None] + sizes[None, :] - inter
+    iou = inter / (union + 1e-6)
+    scores = np.asarray(scores, np.float64)
+    kills: list[Kill] = []
+    for i in range(p):
+        if not alive[i]:
+            continue
+        group = np.flatnonzero(alive & (iou[i] >= iou_threshold))
+        if len(group) <= 1:
+            continue
+        winner = int(group[np.argmax(scores[group])])
+        for k in group:
+            if k != winner:
+                alive[k] = False
+                kills.append(Kill(int(k), REASON_DUPLICATE, winner, float(iou[k, winner])))
+    return kills
+
+
+def find_inclusions(
+    sets: "object",
+    threshold: float,
+    *,
+    active: np.ndarray | None = None,
+) -> list[Kill]:
+    """§3.8c pairwise inclusion: row i dies if |B_i ∩ B_k| / |B_i| > θ for a single other active k.
+
+    Rows are visited in order and a kill takes effect immediately (later rows no longer see it).
+
+    Returns:
+        The kills; `partner` is the k of the largest overlap and `ratio` that overlap.
+    """
+    inter, sizes = overlap_counts(sets)
+    p = len(sizes)
+    alive = np.ones(p, bool) if active is None else np.asarray(active, bool).copy()
+    kills: list[Kill] = []
+    for i in range(p):
+        if not alive[i]:
+            continue
+        ratio = inter[i] / (sizes[i] + 1e-6)
+        ratio = np.where(alive, ratio, -1.0)
+        ratio[i] = -1.0
+        k = int(np.argmax(ratio)) if p > 1 else -1
+        if k >= 0 and ratio[k] > threshold:
+            alive[i] = False
+            kills.append(Kill(i, REASON_DUPLICATE, k, float(ratio[k])))
+    return kills
+
+
+def lookup(rag: Ragged, rows: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """Flat entry positions of (row, scene index) pairs, -1 where the point is not in that row.
+
+    Args:
+        rag: ragged rows, each sorted increasingly.
+        rows: (...) int row per query.
+        idx: (...) int scene index per query (same shape).
+
+    Returns:
+        (...) int64 positions into rag.idx, or -1.
+    """
+    rows = np.asarray(rows, np.int64)
+    idx = np.asarray(idx, np.int64)
+    if len(rag.idx) == 0:
+        return np.full(idx.shape, -1, np.int64)
+    n = int(max(rag.idx.max(), idx.max() if idx.size else 0)) + 1
+    keys = rag.row * n + rag.idx  # sorted because rows are contiguous and each row is sorted
+    q = rows * n + idx
+    pos = np.searchsorted(keys, q)
+    pos_c = np.minimum(pos, len(keys) - 1)
+    found = keys[pos_c] == q
+    return np.where(found, pos_c, -1)

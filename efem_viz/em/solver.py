@@ -1,0 +1,578 @@
+"""The EFEM solver: proposals → EM steps (independent, then joint) → reviews → accepted instances.
+
+Reference: efem-method.md §3 (efem-viz is +Z up). Batched over proposals: one ragged decoder pass per step over
+the error balls of all live proposals at once (`ShapePrior.sdf_and_normals(x, latent, index)`), encoder calls in
+chunks of `cfg.encode_batch` proposals, eliminations on sparse P×N sets. A dead proposal costs nothing after its
+death. Randomness: one NumPy Generator seeded from `seed` draws anchors, Bernoulli masks and all categorical
+draws (on the CPU), so a run is reproducible on any device; the network itself is deterministic.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Callable
+
+import numpy as np
+
+from efem_viz.em.config import EMConfig, schedule
+from efem_viz.em.proposals import (
+    REASON_POSE,
+    REASON_SCALE,
+    REASON_SURVIVE,
+    AvailableTree,
+    Kill,
+    Ragged,
+    find_duplicates,
+    find_inclusions,
+    find_too_small,
+    init_crops,
+    lookup,
+    sample_independent,
+    sample_joint,
+    set_matrix,
+)
+from efem_viz.em.trace import TraceRecorder, energy_weights
+
+if TYPE_CHECKING:
+    import trimesh
+
+    from efem_viz.data.scene import Scene
+    from efem_viz.em.results import EMResult
+
+logger = logging.getLogger(__name__)
+
+STAGES: tuple[str, ...] = (
+    "m_step", "encode", "neighbourhood", "decode", "score", "eliminate", "review_mesh", "review_pose",
+    "review_coverage", "accept",
+)
+
+
+class EMCancelled(RuntimeError):
+    """Raised by `run_em` when its `cancel` event is set."""
+
+
+@dataclass(frozen=True)
+class StepInfo:
+    """Progress report passed to `on_step` after every EM step."""
+
+    step: int
+    """Global step index (0-based, over all episodes)."""
+    num_steps: int
+    """Planned number of steps (episodes × (t1 + t2)); a run may end earlier when every proposal died."""
+    phase: int
+    """1 = independent, 2 = joint."""
+    active: int
+    """Live proposals after this step's eliminations (and review)."""
+    elapsed_s: float
+    """Seconds since `run_em` started."""
+    episode: int = 0
+    """Episode of this step."""
+
+
+def confidence(stationary: float, coverage: float, *, cap: float = 0.4) -> float:
+    """Final confidence of an accepted proposal: s_stat · min(coverage, cap) / cap (efem-method.md §3.10)."""
+    if not cap > 0:
+        raise ValueError(f"coverage cap must be > 0, got {cap}")
+    return float(stationary) * min(float(coverage), cap) / cap
+
+
+# ---------------------------------------------------------------------------------------------- network glue
+def _latent_from_numpy(prior: Any, lat: dict[str, np.ndarray]) -> Any:
+    import torch
+
+    from efem_viz.prior.model import Latent
+
+    dev = _prior_device(prior)
+    dt = _prior_dtype(prior)
+    return Latent(
+        R=torch.as_tensor(np.asarray(lat["R"]), device=dev, dtype=dt),
+        inv=torch.as_tensor(np.asarray(lat["inv"]), device=dev, dtype=dt),
+        center=torch.as_tensor(np.asarray(lat["center"]), device=dev, dtype=dt),
+        scale=torch.as_tensor(np.asarray(lat["scale"]).reshape(-1), device=dev, dtype=dt),
+    )
+
+
+def _prior_device(prior: Any) -> Any:
+    try:
+        return next(prior.parameters()).device
+    except (StopIteration, AttributeError):
+        return "cpu"
+
+
+def _prior_dtype(prior: Any) -> Any:
+    import torch
+
+    try:
+        return next(prior.parameters()).dtype
+    except (StopIteration, AttributeError):
+        return torch.float32
+
+
+def decode_rows(
+    prior: Any,
+    latent: Any,
+    rag: Ragged,
+    points: np.ndarray,
+    normals: np.ndarray,
+    *,
+    chunk: int = 30000,
+) -> tuple[np.ndarray, np.ndarray]:
+    """SDF and normal angle of every (row, point) entry, decoding all rows in one ragged pass.
+
+    Args:
+        prior: the shape prior.
+        latent: a batched `Latent` (torch) or a dict of numpy arrays with one latent per row of `rag`.
+        rag: the rows' neighbourhoods (scene indices).
+        points: (N, 3) float32 scene points, world frame.
+        normals: (N, 3) float32 scene unit normals.
+        chunk: decoder queries per chunk.
+
+    Returns:
+        d (K,) float32 canonical SDF and γ (K,) float32 signed angle (degrees) between the scene normal and the
+        decoded normal; one value per entry of `rag`.
+    """
+    import torch
+
+    if isinstance(latent, dict):
+        latent = _latent_from_numpy(prior, latent)
+    k = len(rag.idx)
+    if k == 0:
+        return np.zeros(0, np.float32), np.zeros(0, np.float32)
+    dev = _prior_device(prior)
+    dt = _prior_dtype(prior)
+    idx_t = torch.from_numpy(rag.idx)
+    x = torch.from_numpy(np.asarray(points, np.float32))[idx_t].to(device=dev, dtype=dt)
+    n_obs = torch.from_numpy(np.asarray(normals, np.float32))[idx_t].to(device=dev, dtype=dt)
+    index = torch.from_numpy(rag.row).to(dev)
+    d_parts, g_parts = [], []
+    for s in range(0, k, chunk):
+        sdf, nrm = prior.sdf_and_normals(x[s : s + chunk], latent, index[s : s + chunk], chunk=chunk)
+        cos = (nrm * n_obs[s : s + chunk]).sum(-1).clamp(-1.0, 1.0)
+        d_parts.append(sdf.detach().float())
+        g_parts.append(torch.rad2deg(torch.arccos(cos)).detach().float())
+    d = torch.cat(d_parts).cpu().numpy()
+    g = torch.cat(g_parts).cpu().numpy()
+    return d, g
+
+
+def encode_samples(prior: Any, pts: np.ndarray, *, batch: int = 30) -> dict[str, np.ndarray]:
+    """Encode (P, M, 3) world point sets in chunks of `batch`; returns numpy latent arrays (float32)."""
+    import torch
+
+    dev = _prior_device(prior)
+    dt = _prior_dtype(prior)
+    parts: dict[str, list[np.ndarray]] = {"R": [], "inv": [], "center": [], "scale": []}
+    with torch.no_grad():
+        for s in range(0, len(pts), batch):
+            lat = prior.encode(torch.from_numpy(np.ascontiguousarray(pts[s : s + batch])).to(device=dev, dtype=dt))
+            parts["R"].append(lat.R.detach().float().cpu().numpy())
+            parts["inv"].append(lat.inv.detach().float().cpu().numpy())
+            parts["center"].append(lat.center.detach().float().cpu().numpy())
+            parts["scale"].append(lat.scale.detach().float().cpu().numpy().reshape(-1))
+    return {k: np.concatenate(v) for k, v in parts.items()}
+
+
+def mesh_of_latent(prior: Any, lat: dict[str, np.ndarray], *, resolution: int = 32) -> "trimesh.Trimesh":
+    """World-frame mesh of one latent (dict of arrays R (C,3), inv (C,), center (3,), scale ()).
+
+    Uses `efem_viz.prior.meshing.extract_mesh` (coarse-to-fine from resolution/2).
+    """
+    from efem_viz.prior.meshing import extract_mesh
+
+    one = {k: np.asarray(v)[None] if k != "scale" else np.asarray(v).reshape(1) for k, v in lat.items()}
+    coarse = resolution // 2 if resolution % 2 == 0 else None
+    return extract_mesh(prior, _latent_from_numpy(prior, one), resolution=resolution, coarse=coarse)
+
+
+# ---------------------------------------------------------------------------------------------- pool state
+@dataclass
+class _Pool:
+    """Live proposals of an episode, rows in increasing id order."""
+
+    ids: np.ndarray  # (P,) int64
+    rag: Ragged  # supports of the current weights
+    w: np.ndarray  # (K,) float32 weights (W_out of the last step; crop mask at t = 0)
+    d: np.ndarray | None = None  # (K,) last E-step SDF over rag
+    gamma: np.ndarray | None = None  # (K,) last E-step normal angles
+    latent: dict[str, np.ndarray] | None = None
+    stationary: np.ndarray | None = None  # (P,)
+    inliers: np.ndarray | None = None  # (P,)
+
+    @property
+    def size(self) -> int:
+        return int(len(self.ids))
+
+    def keep(self, rows: np.ndarray) -> None:
+        rows = np.asarray(rows, np.int64)
+        self.rag, pos = self.rag.take_rows(rows)
+        self.ids = self.ids[rows]
+        self.w = self.w[pos]
+        if self.d is not None:
+            self.d = self.d[pos]
+        if self.gamma is not None:
+            self.gamma = self.gamma[pos]
+        if self.latent is not None:
+            self.latent = {k: v[rows] for k, v in self.latent.items()}
+        if self.stationary is not None:
+            self.stationary = self.stationary[rows]
+        if self.inliers is not None:
+            self.inliers = self.inliers[rows]
+
+
+class _Timer:
+    def __init__(self) -> None:
+        self.t: dict[str, float] = {k: 0.0 for k in STAGES}
+
+    def add(self, key: str, t0: float) -> float:
+        now = time.perf_counter()
+        self.t[key] = self.t.get(key, 0.0) + now - t0
+        return now
+
+
+# ---------------------------------------------------------------------------------------------- main entry
+def run_em(
+    scene: "Scene",
+    prior: Any,
+    cfg: EMConfig | None = None,
+    *,
+    seed: int = 0,
+    device: str = "cpu",
+    on_step: Callable[[StepInfo], None] | None = None,
+    cancel: threading.Event | None = None,
+) -> "EMResult":
+    """Segment a scene with EFEM (efem-method.md §3) and record the full trace.
+
+    Args:
+        scene: the scan (points (N,3) float32 world metres, +Z up, unit normals).
+        prior: a `ShapePrior` (encode / sdf_and_normals / codebook). It is moved to `device` if needed.
+        cfg: solver config (default `preset("synthetic_mugs")`).
+        seed: seeds the NumPy generator of every random draw.
+        device: "cpu" or "cuda" (or a torch device string).
+        on_step: called with a `StepInfo` after every step.
+        cancel: when set, the run stops at the next check and raises `EMCancelled`.
+
+    Returns:
+        EMResult with trace, instances, config and per-stage timings (seconds).
+
+    Raises:
+        ValueError: bad config, a scene without points, or a prior without the needed methods.
+        EMCancelled: `cancel` was set.
+    """
+    from efem_viz.em.config import preset
+    from efem_viz.em.results import EMResult, Instances
+
+    cfg = cfg if cfg is not None else preset("synthetic_mugs")
+    cfg.validate()
+    for meth in ("encode", "sdf_and_normals", "sdf"):
+        if not callable(getattr(prior, meth, None)):
+            raise ValueError(f"prior {type(prior).__name__} has no {meth}() method")
+    points = np.ascontiguousarray(scene.points, np.float32)
+    normals = np.ascontiguousarray(scene.normals, np.float32)
+    if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
+        raise ValueError(f"scene points must be a non-empty (N, 3) array, got {points.shape}")
+    if normals.shape != points.shape:
+        raise ValueError(f"scene normals {normals.shape} do not match points {points.shape}")
+    _move_prior(prior, device)
+    was_training = getattr(prior, "training", False)
+    if hasattr(prior, "eval"):
+        prior.eval()
+    try:
+        solver = _Solver(scene.name, points, normals, prior, cfg, seed=seed, on_step=on_step, cancel=cancel)
+        inst_rows = solver.run()
+    finally:
+        if was_training and hasattr(prior, "train"):
+            prior.train(True)
+    timings = dict(solver.timer.t)
+    timings["total"] = time.perf_counter() - solver.t_start
+    timings["decoder_queries"] = float(solver.n_queries)
+    timings["encoded_sets"] = float(solver.n_encoded)
+    trace = solver.rec.finish(timings)
+    trace.bind(scene, prior)
+    instances = Instances.from_rows(inst_rows, category=str(getattr(prior, "name", "object")))
+    logger.info(
+        "%s: %d instances, %d steps, %.1f s (%s)",
+        scene.name, len(instances), trace.num_steps, timings["total"],
+        ", ".join(f"{k} {v:.1f}" for k, v in timings.items() if k in STAGES and v > 0.05),
+    )
+    return EMResult(trace=trace, instances=instances, config=cfg, timings=timings, scene_name=scene.name,
+                    num_points=len(points), seed=int(seed))
+
+
+def _move_prior(prior: Any, device: str) -> None:
+    import torch
+
+    dev = torch.device(device)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError("device 'cuda' requested but CUDA is not available")
+    cur = _prior_device(prior)
+    if hasattr(prior, "to") and torch.device(cur).type != dev.type:
+        prior.to(dev)
+
+
+class _Solver:
+    def __init__(
+        self,
+        name: str,
+        points: np.ndarray,
+        normals: np.ndarray,
+        prior: Any,
+        cfg: EMConfig,
+        *,
+        seed: int,
+        on_step: Callable[[StepInfo], None] | None,
+        cancel: threading.Event | None,
+    ) -> None:
+        self.name = name
+        self.points = points
+        self.normals = normals
+        self.prior = prior
+        self.cfg = cfg
+        self.rng = np.random.default_rng(seed)
+        self.seed = int(seed)
+        self.on_step = on_step
+        self.cancel = cancel
+        self.n = len(points)
+        self.m = int(cfg.n_pcl or getattr(getattr(prior, "config", None), "n_pcl", 512))
+        self.rec = TraceRecorder(cfg, self.n)
+        self.timer = _Timer()
+        self.t_start = time.perf_counter()
+        self.n_queries = 0
+        self.n_encoded = 0
+        self.planned_steps = cfg.num_episodes * cfg.steps_per_episode
+        cb = getattr(prior, "codebook", None)
+        self.ref_scale = float(cb.mean_scale) if cb is not None else 1.0
+
+    def _check_cancel(self) -> None:
+        if self.cancel is not None and self.cancel.is_set():
+            raise EMCancelled(f"EM on {self.name!r} cancelled after {self.rec.num_steps} steps")
+
+    # ------------------------------------------------------------------ episodes
+    def run(self) -> list[dict[str, Any]]:
+        cfg = self.cfg
+        assigned = np.zeros(self.n, bool)
+        accepted: list[dict[str, Any]] = []
+        for ep, n_init in enumerate(cfg.n_init):
+            self._check_cancel()
+            available = ~assigned
+            n_avail = int(available.sum())
+            if n_avail <= cfg.min_size:
+                logger.info("episode %d skipped: %d available points <= min_size %d", ep, n_avail, cfg.min_size)
+                break
+            tree = AvailableTree(self.points, available, crop=cfg.crop)
+            anchors, crops = init_crops(self.points, available, n_init, cfg.r_init, self.rng, crop=cfg.crop,
+                                        tree=tree)
+            ids = self.rec.birth(ep, anchors, cfg.r_init, cfg.r_err)
+            self.rec.start_episode(np.flatnonzero(assigned), len(ids))
+            pool = _Pool(ids=ids, rag=crops, w=np.ones(len(crops.idx), np.float32))
+            last_review: dict[int, dict[str, Any]] = {}
+            for t in range(cfg.steps_per_episode):
+                if pool.size == 0:
+                    break
+                self._check_cancel()
+                phase = 1 if t < cfg.t1 else 2
+                step = self._em_step(pool, tree, available, ep, t, phase)
+                self._eliminate(pool, step, phase)
+                if (phase == 1 and t == cfg.t1 - 1) or (phase == 2 and t == cfg.steps_per_episode - 1):
+                    last_review = self._review(pool, tree, available, step, phase)
+                self.rec.end_step(pool.size)
+                if self.on_step is not None:
+                    self.on_step(StepInfo(step, self.planned_steps, phase, pool.size,
+                                          time.perf_counter() - self.t_start, ep))
+            t0 = time.perf_counter()
+            final_step = self.rec.num_steps - 1
+            for r, pid in enumerate(pool.ids):
+                rev = last_review[int(pid)]
+                s_stat = float(pool.stationary[r])
+                conf = confidence(s_stat, float(rev["coverage"]), cap=cfg.cov_cap)
+                self.rec.death(int(pid), final_step, REASON_SURVIVE, -1, conf)
+                accepted.append({**rev, "confidence": conf, "stationary": s_stat,
+                                 "center": pool.latent["center"][r], "scale": float(pool.latent["scale"][r])})
+                assigned[rev["mask"]] = True
+            self.timer.add("accept", t0)
+        return accepted
+
+    # ------------------------------------------------------------------ one EM step
+    def _em_step(self, pool: _Pool, tree: AvailableTree, available: np.ndarray, ep: int, t: int, phase: int) -> int:
+        cfg = self.cfg
+        fallback = tree.avail_idx
+        t0 = time.perf_counter()
+        if phase == 1 or pool.stationary is None:
+            samples = sample_independent(pool.rag, pool.w, self.m, cfg.omega, self.rng, fallback=fallback)
+        else:
+            samples, _ = sample_joint(pool.rag, pool.w, pool.stationary, self.m, cfg.omega, self.rng,
+                                      fallback=fallback)
+        t0 = self.timer.add("m_step", t0)
+        latent = encode_samples(self.prior, self.points[samples], batch=cfg.encode_batch)
+        self.n_encoded += len(samples)
+        t0 = self.timer.add("encode", t0)
+        rag = tree.query(latent["center"], cfg.r_err)
+        t0 = self.timer.add("neighbourhood", t0)
+        d, gamma = decode_rows(self.prior, latent, rag, self.points, self.normals, chunk=cfg.decode_chunk)
+        self.n_queries += len(rag.idx)
+        t0 = self.timer.add("decode", t0)
+        sched = schedule(cfg, t)
+        w, inlier = energy_weights(d, gamma, sched, out_value=cfg.out_value)
+        inliers = np.bincount(rag.row[inlier], minlength=pool.size).astype(np.int32)
+        # stationary score: samples explained by the shape they produced (outside the ball: placeholder 1000)
+        pos = lookup(rag, np.repeat(np.arange(pool.size), self.m).reshape(pool.size, self.m), samples)
+        found = pos >= 0
+        pc = np.maximum(pos, 0)
+        hit = found & (np.abs(d[pc]) < cfg.stat_tau) & (gamma[pc] < cfg.stat_gamma) if len(d) else found
+        stationary = hit.mean(axis=1).astype(np.float32) if self.m else np.zeros(pool.size, np.float32)
+        pool.rag, pool.w, pool.d, pool.gamma = rag, w, d, gamma
+        pool.latent, pool.stationary, pool.inliers = latent, stationary, inliers
+        self.timer.add("score", t0)
+        return self.rec.step(phase=phase, episode=ep, local=t, sched=sched, ids=pool.ids, latent=latent,
+                             stationary=stationary, inliers=inliers, samples=samples)
+
+    # ------------------------------------------------------------------ eliminations (§3.8)
+    def _eliminate(self, pool: _Pool, step: int, phase: int) -> None:
+        cfg = self.cfg
+        t0 = time.perf_counter()
+        assert pool.inliers is not None and pool.d is not None and pool.stationary is not None
+        kills: list[Kill] = find_too_small(pool.inliers, cfg.min_size)
+        active = np.ones(pool.size, bool)
+        for k in kills:
+            active[k.row] = False
+        if active.sum() > 1:
+            sets = set_matrix(pool.rag, np.abs(pool.d) < cfg.dup_sdf, self.n)
+            thr = cfg.dup_iou if phase == 1 else cfg.joint_dup_iou
+            dups = find_duplicates(sets, pool.stationary, thr, active=active)
+            for k in dups:
+                active[k.row] = False
+            kills += dups
+            if phase == 2 and active.sum() > 1:
+                inc = find_inclusions(sets, cfg.joint_incl, active=active)
+                for k in inc:
+                    active[k.row] = False
+                kills += inc
+        for k in kills:
+            partner = int(pool.ids[k.partner]) if k.partner >= 0 else -1
+            self.rec.death(int(pool.ids[k.row]), step, k.reason, partner, k.ratio)
+        if kills:
+            pool.keep(np.flatnonzero(active))
+        self.timer.add("eliminate", t0)
+
+    # ------------------------------------------------------------------ review (§3.9)
+    def _review(
+        self, pool: _Pool, tree: AvailableTree, available: np.ndarray, step: int, phase: int
+    ) -> dict[int, dict[str, Any]]:
+        cfg = self.cfg
+        assert pool.latent is not None and pool.d is not None and pool.gamma is not None
+        records: dict[int, dict[str, Any]] = {}
+        keep = np.ones(pool.size, bool)
+        up = np.array([0.0, 0.0, 1.0])
+        for r in range(pool.size):
+            self._check_cancel()
+            pid = int(pool.ids[r])
+            lat = {k: v[r] for k, v in pool.latent.items()}
+            center = lat["center"].astype(np.float64)
+            scale = float(lat["scale"])
+            t0 = time.perf_counter()
+            mesh = mesh_of_latent(self.prior, lat, resolution=cfg.mesh_resolution)
+            if len(mesh.faces):
+                samples, fidx = _sample_surface(mesh, cfg.n_store, seed=self.seed * 1_000_003 + pid)
+                fnorm = np.asarray(mesh.face_normals, np.float64)[fidx]
+                Q = samples - center
+            else:
+                Q = np.zeros((cfg.n_store, 3))
+                fnorm = np.zeros((cfg.n_store, 3))
+            t0 = self.timer.add("review_mesh", t0)
+            R, R_raw, s_sel, db_sim, nbrs = self._pose(lat, Q, fnorm)
+            t0 = self.timer.add("review_pose", t0)
+            from efem_viz.geometry.obb import oriented_box
+
+            obb = oriented_box(Q + center, center, R)
+            # coverage: completed-shape samples explained by observed points of the ball around Θ_c
+            sl = pool.rag.row_slice(r)
+            ball = pool.rag.idx[sl]
+            cov = 0.0
+            if len(ball) and np.any(Q):
+                from scipy.spatial import cKDTree
+
+                dist, j = cKDTree(self.points[ball]).query(Q + center)
+                dist_c = dist * (s_sel / scale)
+                cosang = np.clip((fnorm * self.normals[ball][j]).sum(1), -1.0, 1.0)
+                ang = np.degrees(np.arccos(cosang))
+                cov = float(np.mean((dist_c <= cfg.cov_tau) & (ang <= cfg.cov_gamma)))
+            Qt = Q @ R
+            radii = np.array([np.linalg.norm(Qt[:, :2], axis=1).max(), np.abs(Qt[:, 2]).max()])
+            scale_pass = bool(
+                cfg.scale_horizontal[0] <= radii[0] <= cfg.scale_horizontal[1]
+                and cfg.scale_height[0] <= radii[1] <= cfg.scale_height[1]
+            )
+            up_angle = float(np.degrees(np.arccos(np.clip(R_raw[:, 2] @ up, -1.0, 1.0))))
+            pose_pass = bool(cfg.up_range[0] <= up_angle <= cfg.up_range[1])
+            dsl, gsl = pool.d[sl], pool.gamma[sl]
+            m_ok = np.abs(dsl) < cfg.tau_out
+            if cfg.gamma_out < 180.0:
+                m_ok &= gsl < cfg.gamma_out
+            mask = ball[m_ok].astype(np.int32)
+            rec = {
+                "step": step,
+                "phase": phase,
+                "proposal_id": pid,
+                "R": R,
+                "R_raw": R_raw,
+                "scale_sel": s_sel,
+                "db_sim": db_sim,
+                "coverage": cov,
+                "radii": radii,
+                "scale_pass": scale_pass,
+                "up_angle": up_angle,
+                "pose_pass": pose_pass,
+                "obb_center": obb.center,
+                "obb_axes": obb.axes,
+                "obb_half_extents": obb.half_extents,
+                "mask": mask,
+                "mesh_vertices": (np.asarray(mesh.vertices) - center).astype(np.float32),
+                "mesh_faces": np.asarray(mesh.faces, np.int32),
+                "neighbours": np.asarray(nbrs, np.int32),
+            }
+            self.rec.review(rec)
+            records[pid] = rec
+            if not scale_pass:
+                keep[r] = False
+                self.rec.death(pid, step, REASON_SCALE, -1, float(radii.max()))
+            elif not pose_pass:
+                keep[r] = False
+                self.rec.death(pid, step, REASON_POSE, -1, up_angle)
+            self.timer.add("review_coverage", t0)
+        if not keep.all():
+            pool.keep(np.flatnonzero(keep))
+        return records
+
+    def _pose(
+        self, lat: dict[str, np.ndarray], Q: np.ndarray, fnorm: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, float, float, np.ndarray]:
+        """(R, R_raw, s_sel, db_sim, neighbour ids) from the codebook, or identity without one."""
+        cb = getattr(self.prior, "codebook", None)
+        if cb is None or not self.cfg.pose_retrieval:
+            eye = np.eye(3)
+            return eye, eye.copy(), self.ref_scale, float("nan"), np.zeros(0, np.int32)
+        from efem_viz.prior.pose import estimate_pose
+
+        one = {k: np.asarray(v)[None] if k != "scale" else np.asarray(v).reshape(1) for k, v in lat.items()}
+        est = estimate_pose(self.prior, _latent_from_numpy(self.prior, one), Q, fnorm)
+        s_sel = float(est.scale_sel) if np.isfinite(est.scale_sel) and est.scale_sel > 0 else self.ref_scale
+        return (np.asarray(est.R, np.float64), np.asarray(est.R_raw, np.float64), s_sel, float(est.score_db_sim),
+                np.asarray(est.neighbour_ids))
+
+
+def _sample_surface(mesh: "trimesh.Trimesh", n: int, *, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """n area-weighted samples on a mesh (points (n,3) float64, face index (n,) int)."""
+    rng = np.random.default_rng(seed)
+    tri = np.asarray(mesh.triangles, np.float64)
+    area = np.asarray(mesh.area_faces, np.float64)
+    if area.sum() <= 0:
+        return np.repeat(tri[:1, 0], n, axis=0), np.zeros(n, np.int64)
+    fidx = rng.choice(len(tri), size=n, p=area / area.sum())
+    u = rng.random((n, 2))
+    flip = u.sum(1) > 1
+    u[flip] = 1 - u[flip]
+    t = tri[fidx]
+    pts = t[:, 0] + u[:, :1] * (t[:, 1] - t[:, 0]) + u[:, 1:] * (t[:, 2] - t[:, 0])
+    return pts, fidx

@@ -1,0 +1,716 @@
+"""`EMTrace`: everything an EFEM run did, step by step, stored compactly (efem-method.md §3.11).
+
+Stored per step (global step index over all episodes): phase, episode, step within the episode, the schedule
+(α_D, τ_D, α_N, τ_N), and for every proposal that took part (a "row"): its id, latent (float32, exact replay),
+stationary score, inlier count and the M sampled point indices (int32). Stored per proposal: birth (episode,
+anchor, r_init, r_err, first step) and death (step, reason, partner, ratio). Stored per review (end of each
+phase) and proposal: pose, OBB, coverage, codebook similarity, scale radii, up angle, pass flags, the tentative
+mask and the mesh (vertices float16 relative to Θ_c, faces int32).
+
+Not stored: the weights over the scene and the decoded shapes. `EMTrace.view` re-derives them from the stored
+latents with the same code the solver uses (`energy_weights`), and caches the result (LRU). The weights that
+produced step t's samples are `W_out` of step t−1; at the first step of an episode they are the crop mask.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, ClassVar, NamedTuple
+
+import numpy as np
+
+from efem_viz.em.config import EMConfig, schedule
+from efem_viz.em.proposals import REASONS, AvailableTree, Ragged
+
+if TYPE_CHECKING:
+    import trimesh
+
+    from efem_viz.data.scene import Scene
+
+logger = logging.getLogger(__name__)
+
+TRACE_SCHEMA_VERSION = 1
+
+
+class DeathEvent(NamedTuple):
+    """A proposal's termination (`reason` one of proposals.REASONS; `survive` = accepted)."""
+
+    step: int
+    proposal_id: int
+    reason: str
+    partner: int
+    ratio: float
+
+
+class ProposalView(NamedTuple):
+    """What the viewer shows for one proposal at one step (Fig. S9), re-derived on demand.
+
+    Attributes:
+        proposal_id: the proposal.
+        step: the global step of the record shown (the requested step, or the death step if it died before).
+        weights: (N,) float32 W_in over the scene: the weights that produced this step's samples.
+        sample_idx: (M,) int32 sampled scene indices (with repeats).
+        sampled_points: (M, 3) float32 world points of the samples.
+        mesh: the decoded shape of this step's latent (world frame), or None (no prior / not asked).
+        scores: {"stationary", "inliers", and for a review step "coverage", "db_sim", ...}.
+        schedule: {"alpha_d", "tau_d", "alpha_n", "tau_n"} at this step.
+        alive: False when the proposal is dead at (the end of) the requested step.
+        death: (step, reason, partner, ratio) or None while it lives (accepted ones: reason "survive").
+        latent: dict of this step's latent arrays (R (C,3), inv (C,), center (3,), scale ()).
+    """
+
+    proposal_id: int
+    step: int
+    weights: np.ndarray
+    sample_idx: np.ndarray
+    sampled_points: np.ndarray
+    mesh: "trimesh.Trimesh | None"
+    scores: dict[str, float]
+    schedule: dict[str, float]
+    alive: bool
+    death: tuple[int, str, int, float] | None
+    latent: dict[str, np.ndarray]
+
+
+def energy_weights(
+    d: np.ndarray,
+    gamma: np.ndarray,
+    sched: tuple[float, float, float, float],
+    *,
+    out_value: float = 100.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Truncated energies → new weights and inlier flags (efem-method.md §3.6.4–6).
+
+    Args:
+        d: (K,) canonical SDF values.
+        gamma: (K,) signed normal angles in degrees.
+        sched: (α_D, τ_D, α_N, τ_N).
+        out_value: U, the energy of a truncated term.
+
+    Returns:
+        w (K,) float32 = exp(−E_D − E_N) (NaN/Inf → 0), inlier (K,) bool = |d| ≤ τ_D and γ ≤ τ_N.
+    """
+    a_d, t_d, a_n, t_n = sched
+    ad = np.abs(np.asarray(d, np.float32))
+    g = np.asarray(gamma, np.float32)
+    ok_d = ad <= t_d
+    ok_n = g <= t_n
+    e = np.where(ok_d, np.float32(a_d) * ad, np.float32(out_value)) + np.where(
+        ok_n, np.float32(a_n) * g, np.float32(out_value)
+    )
+    w = np.exp(-e).astype(np.float32)
+    w[~(np.isfinite(w) & np.isfinite(ad) & np.isfinite(g))] = 0.0
+    return w, ok_d & ok_n
+
+
+def _ragged_to_npz(prefix: str, values: np.ndarray, offsets: np.ndarray, out: dict[str, np.ndarray]) -> None:
+    out[prefix] = values
+    out[prefix + "_offsets"] = np.asarray(offsets, np.int64)
+
+
+def _ragged_get(values: np.ndarray, offsets: np.ndarray, i: int) -> np.ndarray:
+    return values[int(offsets[i]) : int(offsets[i + 1])]
+
+
+def _offsets(lengths: list[int] | np.ndarray) -> np.ndarray:
+    out = np.zeros(len(lengths) + 1, np.int64)
+    if len(lengths):
+        np.cumsum(np.asarray(lengths, np.int64), out=out[1:])
+    return out
+
+
+@dataclass
+class EMTrace:
+    """The recorded EM run. Arrays only (+ the config); bind a scene (and prior) to re-derive views.
+
+    Step arrays have length T (global steps), row arrays one entry per (step, live proposal), proposal arrays
+    one entry per proposal id (ids are 0..P−1 in creation order), review arrays one entry per (review, proposal).
+    """
+
+    config: EMConfig
+    num_points: int
+    # ---- steps (T,)
+    step_phase: np.ndarray
+    """(T,) int8: 1 = independent, 2 = joint."""
+    step_episode: np.ndarray
+    """(T,) int16 episode of each step."""
+    step_local: np.ndarray
+    """(T,) int16 step index within its episode (drives the schedule)."""
+    schedule: np.ndarray
+    """(T, 4) float32 (α_D, τ_D, α_N, τ_N)."""
+    active_count: np.ndarray
+    """(T+1,) int32: live proposals before step 0, then after each step's eliminations (and review)."""
+    row_offsets: np.ndarray
+    """(T+1,) int64: rows of step t are row_offsets[t]:row_offsets[t+1]."""
+    # ---- rows (R,)
+    row_id: np.ndarray
+    """(R,) int32 proposal id (increasing within a step)."""
+    row_R: np.ndarray
+    """(R, C, 3) float32 Θ_R."""
+    row_inv: np.ndarray
+    """(R, C) float32 Θ_inv."""
+    row_center: np.ndarray
+    """(R, 3) float32 Θ_c, world."""
+    row_scale: np.ndarray
+    """(R,) float32 Θ_s."""
+    row_stationary: np.ndarray
+    """(R,) float32 stationary score."""
+    row_inliers: np.ndarray
+    """(R,) int32 inlier count."""
+    row_samples: np.ndarray
+    """(R, M) int32 sampled scene indices."""
+    # ---- proposals (P,)
+    prop_episode: np.ndarray
+    prop_anchor: np.ndarray
+    """(P,) int64 anchor scene index."""
+    prop_r_init: np.ndarray
+    prop_r_err: np.ndarray
+    prop_birth_step: np.ndarray
+    """(P,) int32 first global step of the proposal."""
+    death_step: np.ndarray
+    """(P,) int32 global step of death (acceptance counts as the episode's last step); −1 = never decided."""
+    death_reason: np.ndarray
+    """(P,) int8 index into proposals.REASONS; −1 = none."""
+    death_partner: np.ndarray
+    """(P,) int32 partner proposal id (duplicates/inclusions), else −1."""
+    death_ratio: np.ndarray
+    """(P,) float32 IoU / inclusion ratio / inlier count, NaN if none."""
+    death_order: np.ndarray
+    """(P,) int32 order in which deaths happened (−1 none)."""
+    # ---- episodes (E,)
+    episode_unavailable: np.ndarray
+    """Flat int32 scene indices assigned before each episode (ragged by `episode_unavailable_offsets`)."""
+    episode_unavailable_offsets: np.ndarray
+    # ---- reviews (V,)
+    rev_step: np.ndarray
+    """(V,) int32 global step after which the review ran (last step of its phase)."""
+    rev_phase: np.ndarray
+    rev_id: np.ndarray
+    rev_R: np.ndarray
+    """(V, 3, 3) float32 pose (columns = canonical axes in world)."""
+    rev_R_raw: np.ndarray
+    rev_scale_sel: np.ndarray
+    rev_db_sim: np.ndarray
+    rev_coverage: np.ndarray
+    rev_radii: np.ndarray
+    """(V, 2) float32 horizontal radius and half-height (m)."""
+    rev_scale_pass: np.ndarray
+    rev_up_angle: np.ndarray
+    rev_pose_pass: np.ndarray
+    rev_obb_center: np.ndarray
+    rev_obb_axes: np.ndarray
+    rev_obb_half: np.ndarray
+    rev_mask: np.ndarray
+    """Flat int32 tentative masks (ragged by rev_mask_offsets)."""
+    rev_mask_offsets: np.ndarray
+    rev_mesh_vertices: np.ndarray
+    """Flat (·, 3) float16 mesh vertices relative to Θ_c (ragged by rev_mesh_vertex_offsets)."""
+    rev_mesh_vertex_offsets: np.ndarray
+    rev_mesh_faces: np.ndarray
+    """Flat (·, 3) int32 faces (ragged by rev_mesh_face_offsets)."""
+    rev_mesh_face_offsets: np.ndarray
+    rev_neighbours: np.ndarray
+    """Flat int32 codebook neighbour ids (ragged by rev_neighbour_offsets)."""
+    rev_neighbour_offsets: np.ndarray
+    timings: dict[str, float] = field(default_factory=dict)
+    # ---- runtime-only (not saved)
+    _scene_points: np.ndarray | None = field(default=None, repr=False)
+    _scene_normals: np.ndarray | None = field(default=None, repr=False)
+    _prior: Any = field(default=None, repr=False)
+    _cache: "OrderedDict[tuple[Any, ...], ProposalView]" = field(default_factory=OrderedDict, repr=False)
+    cache_size: int = 32
+
+    # ------------------------------------------------------------------ basic queries
+    @property
+    def num_steps(self) -> int:
+        return int(len(self.step_phase))
+
+    @property
+    def num_proposals(self) -> int:
+        return int(len(self.prop_anchor))
+
+    @property
+    def phase(self) -> np.ndarray:
+        """(T,) int8 phase per step (1 or 2)."""
+        return self.step_phase
+
+    def rows(self, step: int) -> slice:
+        """Row slice of a global step."""
+        self._check_step(step)
+        return slice(int(self.row_offsets[step]), int(self.row_offsets[step + 1]))
+
+    def alive(self, step: int) -> np.ndarray:
+        """(P_t,) int32 ids of the proposals that took part in `step` (live at its start)."""
+        return self.row_id[self.rows(step)]
+
+    def events(self) -> list[DeathEvent]:
+        """Every termination in the order it happened (acceptances last in their episode)."""
+        ids = np.flatnonzero(self.death_order >= 0)
+        ids = ids[np.argsort(self.death_order[ids], kind="stable")]
+        return [
+            DeathEvent(
+                int(self.death_step[i]),
+                int(i),
+                REASONS[int(self.death_reason[i])],
+                int(self.death_partner[i]),
+                float(self.death_ratio[i]),
+            )
+            for i in ids
+        ]
+
+    def death(self, proposal_id: int) -> tuple[int, str, int, float] | None:
+        """(step, reason, partner, ratio) of a proposal, or None."""
+        self._check_id(proposal_id)
+        r = int(self.death_reason[proposal_id])
+        if r < 0:
+            return None
+        return (
+            int(self.death_step[proposal_id]),
+            REASONS[r],
+            int(self.death_partner[proposal_id]),
+            float(self.death_ratio[proposal_id]),
+        )
+
+    def row_of(self, proposal_id: int, step: int) -> int | None:
+        """Global row index of (proposal, step), or None if it did not take part in that step."""
+        sl = self.rows(step)
+        ids = self.row_id[sl]
+        k = int(np.searchsorted(ids, proposal_id))
+        if k < len(ids) and ids[k] == proposal_id:
+            return sl.start + k
+        return None
+
+    def last_step(self, proposal_id: int) -> int:
+        """The last global step the proposal took part in (−1 if none)."""
+        self._check_id(proposal_id)
+        steps = np.flatnonzero(self.row_id == proposal_id)
+        if len(steps) == 0:
+            return -1
+        return int(np.searchsorted(self.row_offsets, steps[-1], side="right") - 1)
+
+    def latent(self, proposal_id: int, step: int) -> dict[str, np.ndarray]:
+        """The stored latent arrays of (proposal, step): R (C,3), inv (C,), center (3,), scale ()."""
+        r = self.row_of(proposal_id, step)
+        if r is None:
+            raise ValueError(f"proposal {proposal_id} did not take part in step {step}")
+        return {"R": self.row_R[r], "inv": self.row_inv[r], "center": self.row_center[r], "scale": self.row_scale[r]}
+
+    def reviews(self, proposal_id: int) -> list[dict[str, Any]]:
+        """All review records of a proposal (0, 1 or 2), as dicts (mesh arrays in world coordinates)."""
+        out = []
+        for v in np.flatnonzero(self.rev_id == proposal_id):
+            out.append(self.review_record(int(v)))
+        return out
+
+    def review_record(self, v: int) -> dict[str, Any]:
+        """One review record as a dict."""
+        verts = _ragged_get(self.rev_mesh_vertices, self.rev_mesh_vertex_offsets, v).astype(np.float32)
+        pid = int(self.rev_id[v])
+        step = int(self.rev_step[v])
+        r = self.row_of(pid, step)
+        center = self.row_center[r] if r is not None else np.zeros(3, np.float32)
+        return {
+            "step": step,
+            "phase": int(self.rev_phase[v]),
+            "proposal_id": pid,
+            "R": self.rev_R[v],
+            "R_raw": self.rev_R_raw[v],
+            "scale_sel": float(self.rev_scale_sel[v]),
+            "db_sim": float(self.rev_db_sim[v]),
+            "coverage": float(self.rev_coverage[v]),
+            "radii": self.rev_radii[v],
+            "scale_pass": bool(self.rev_scale_pass[v]),
+            "up_angle": float(self.rev_up_angle[v]),
+            "pose_pass": bool(self.rev_pose_pass[v]),
+            "obb_center": self.rev_obb_center[v],
+            "obb_axes": self.rev_obb_axes[v],
+            "obb_half_extents": self.rev_obb_half[v],
+            "mask": _ragged_get(self.rev_mask, self.rev_mask_offsets, v),
+            "mesh_vertices": verts + center[None, :],
+            "mesh_faces": _ragged_get(self.rev_mesh_faces, self.rev_mesh_face_offsets, v),
+            "neighbours": _ragged_get(self.rev_neighbours, self.rev_neighbour_offsets, v),
+        }
+
+    def _check_step(self, step: int) -> None:
+        if not 0 <= int(step) < self.num_steps:
+            raise ValueError(f"step {step} out of range [0, {self.num_steps})")
+
+    def _check_id(self, proposal_id: int) -> None:
+        if not 0 <= int(proposal_id) < self.num_proposals:
+            raise ValueError(f"proposal id {proposal_id} out of range [0, {self.num_proposals})")
+
+    # ------------------------------------------------------------------ re-derivation
+    def bind(self, scene: "Scene | None" = None, prior: Any = None) -> "EMTrace":
+        """Attach the scene (points/normals) and/or the prior used by `view`. Returns self."""
+        if scene is not None:
+            if scene.num_points != self.num_points:
+                raise ValueError(
+                    f"scene {scene.name!r} has {scene.num_points} points but the trace was recorded on "
+                    f"{self.num_points}"
+                )
+            self._scene_points = np.asarray(scene.points, np.float32)
+            self._scene_normals = np.asarray(scene.normals, np.float32)
+            self._cache.clear()
+        if prior is not None:
+            self._prior = prior
+            self._cache.clear()
+        return self
+
+    def available_mask(self, episode: int) -> np.ndarray:
+        """(N,) bool points available during an episode."""
+        avail = np.ones(self.num_points, bool)
+        avail[_ragged_get(self.episode_unavailable, self.episode_unavailable_offsets, int(episode))] = False
+        return avail
+
+    def weights_in(self, proposal_id: int, step: int, prior: Any = None) -> np.ndarray:
+        """(N,) float32 weights that produced the samples of (proposal, step) (= W_out of step − 1)."""
+        r = self.row_of(proposal_id, step)
+        if r is None:
+            raise ValueError(f"proposal {proposal_id} did not take part in step {step}")
+        pts = self._points()
+        ep = int(self.step_episode[step])
+        avail = self.available_mask(ep)
+        w = np.zeros(self.num_points, np.float32)
+        if int(self.step_local[step]) == 0:
+            tree = AvailableTree(pts, avail, crop=self.config.crop)
+            rag = tree.query(pts[int(self.prop_anchor[proposal_id])][None], float(self.prop_r_init[proposal_id]))
+            w[rag.idx] = 1.0
+            return w
+        return self.weights_out(proposal_id, step - 1, prior)
+
+    def weights_out(self, proposal_id: int, step: int, prior: Any = None) -> np.ndarray:
+        """(N,) float32 weights produced by the E-step of (proposal, step), re-derived from its latent."""
+        from efem_viz.em.solver import decode_rows
+
+        pri = prior if prior is not None else self._prior
+        if pri is None:
+            raise ValueError("re-deriving weights needs the shape prior: pass prior= or trace.bind(prior=...)")
+        r = self.row_of(proposal_id, step)
+        if r is None:
+            raise ValueError(f"proposal {proposal_id} did not take part in step {step}")
+        pts, nrm = self._points(), self._normals()
+        avail = self.available_mask(int(self.step_episode[step]))
+        tree = AvailableTree(pts, avail, crop=self.config.crop)
+        rag = tree.query(self.row_center[r][None], float(self.prop_r_err[proposal_id]))
+        lat = {k: v[None] for k, v in self.latent(proposal_id, step).items()}
+        lat["scale"] = np.asarray(lat["scale"]).reshape(1)
+        d, gamma = decode_rows(pri, lat, rag, pts, nrm, chunk=self.config.decode_chunk)
+        wk, _ = energy_weights(d, gamma, tuple(self.schedule[step]), out_value=self.config.out_value)
+        w = np.zeros(self.num_points, np.float32)
+        w[rag.idx] = wk
+        return w
+
+    def view(self, proposal_id: int, step: int, prior: Any = None, *, mesh: bool = True) -> ProposalView:
+        """Everything the inspector shows for (proposal, step), re-derived from the stored latent and cached.
+
+        If the proposal died before `step`, the record of its death step is shown (alive=False).
+
+        Args:
+            proposal_id: the proposal.
+            step: global step.
+            prior: the shape prior (default: the one bound with `bind` / by `run_em`); needed for weights after
+                an episode's first step and for meshes.
+            mesh: extract the decoded shape (a few hundred ms).
+
+        Raises:
+            ValueError: unknown id/step, the proposal was not born yet, or scene/prior missing.
+        """
+        self._check_id(proposal_id)
+        self._check_step(step)
+        pri = prior if prior is not None else self._prior
+        key = (int(proposal_id), int(step), id(pri), bool(mesh))
+        if key in self._cache:
+            self._cache.move_to_end(key)
+            return self._cache[key]
+        birth = int(self.prop_birth_step[proposal_id])
+        if step < birth:
+            raise ValueError(f"proposal {proposal_id} is born at step {birth}, not yet alive at step {step}")
+        last = self.last_step(proposal_id)
+        shown = min(int(step), last)
+        r = self.row_of(proposal_id, shown)
+        assert r is not None
+        weights = (
+            self.weights_in(proposal_id, shown, pri)
+            if pri is not None or int(self.step_local[shown]) == 0
+            else None
+        )
+        if weights is None:
+            raise ValueError("re-deriving weights needs the shape prior: pass prior= or trace.bind(prior=...)")
+        samples = self.row_samples[r]
+        dead = self.death(proposal_id)
+        alive = not (dead is not None and dead[1] != "survive" and dead[0] <= step)
+        scores: dict[str, float] = {
+            "stationary": float(self.row_stationary[r]),
+            "inliers": float(self.row_inliers[r]),
+        }
+        for v in np.flatnonzero((self.rev_id == proposal_id) & (self.rev_step == shown)):
+            scores.update(
+                coverage=float(self.rev_coverage[v]),
+                db_sim=float(self.rev_db_sim[v]),
+                radius_horizontal=float(self.rev_radii[v, 0]),
+                half_height=float(self.rev_radii[v, 1]),
+                up_angle=float(self.rev_up_angle[v]),
+                scale_pass=float(self.rev_scale_pass[v]),
+                pose_pass=float(self.rev_pose_pass[v]),
+            )
+        sch = self.schedule[shown]
+        lat = self.latent(proposal_id, shown)
+        mesh_obj = None
+        if mesh and pri is not None:
+            from efem_viz.em.solver import mesh_of_latent
+
+            mesh_obj = mesh_of_latent(pri, lat, resolution=self.config.mesh_resolution)
+        view = ProposalView(
+            proposal_id=int(proposal_id),
+            step=shown,
+            weights=weights,
+            sample_idx=samples,
+            sampled_points=self._points()[samples],
+            mesh=mesh_obj,
+            scores=scores,
+            schedule={"alpha_d": float(sch[0]), "tau_d": float(sch[1]), "alpha_n": float(sch[2]),
+                      "tau_n": float(sch[3])},
+            alive=alive,
+            death=dead,
+            latent=lat,
+        )
+        self._cache[key] = view
+        while len(self._cache) > self.cache_size:
+            self._cache.popitem(last=False)
+        return view
+
+    def _points(self) -> np.ndarray:
+        if self._scene_points is None:
+            raise ValueError("this trace has no scene bound: call trace.bind(scene) with the scene it was run on")
+        return self._scene_points
+
+    def _normals(self) -> np.ndarray:
+        if self._scene_normals is None:
+            raise ValueError("this trace has no scene bound: call trace.bind(scene) with the scene it was run on")
+        return self._scene_normals
+
+    # ------------------------------------------------------------------ persistence
+    _ARRAY_FIELDS: ClassVar[tuple[str, ...]] = (
+        "step_phase", "step_episode", "step_local", "schedule", "active_count", "row_offsets",
+        "row_id", "row_R", "row_inv", "row_center", "row_scale", "row_stationary", "row_inliers", "row_samples",
+        "prop_episode", "prop_anchor", "prop_r_init", "prop_r_err", "prop_birth_step",
+        "death_step", "death_reason", "death_partner", "death_ratio", "death_order",
+        "episode_unavailable", "episode_unavailable_offsets",
+        "rev_step", "rev_phase", "rev_id", "rev_R", "rev_R_raw", "rev_scale_sel", "rev_db_sim", "rev_coverage",
+        "rev_radii", "rev_scale_pass", "rev_up_angle", "rev_pose_pass", "rev_obb_center", "rev_obb_axes",
+        "rev_obb_half", "rev_mask", "rev_mask_offsets", "rev_mesh_vertices", "rev_mesh_vertex_offsets",
+        "rev_mesh_faces", "rev_mesh_face_offsets", "rev_neighbours", "rev_neighbour_offsets",
+    )
+
+    def to_npz_dict(self, prefix: str = "trace/") -> dict[str, np.ndarray]:
+        """Arrays for `np.savez_compressed` (keys prefixed)."""
+        out = {prefix + k: np.asarray(getattr(self, k)) for k in self._ARRAY_FIELDS}
+        out[prefix + "schema_version"] = np.array(TRACE_SCHEMA_VERSION, np.int32)
+        out[prefix + "config_json"] = np.array(self.config.to_json())
+        out[prefix + "num_points"] = np.array(self.num_points, np.int64)
+        out[prefix + "timings_json"] = np.array(json.dumps(self.timings))
+        return out
+
+    @classmethod
+    def from_npz_dict(cls, data: Any, prefix: str = "trace/") -> "EMTrace":
+        """Inverse of `to_npz_dict` (accepts an `np.load` result or a dict)."""
+        keys = set(data.keys()) if hasattr(data, "keys") else set(data)
+        ver_key = prefix + "schema_version"
+        if ver_key not in keys:
+            raise ValueError(f"not an EFEM trace: key {ver_key!r} missing")
+        ver = int(np.asarray(data[ver_key]))
+        if ver != TRACE_SCHEMA_VERSION:
+            raise ValueError(f"unsupported trace schema_version {ver} (this build reads {TRACE_SCHEMA_VERSION})")
+        missing = [k for k in cls._ARRAY_FIELDS if prefix + k not in keys]
+        if missing:
+            raise ValueError(f"trace is missing arrays: {missing}")
+        arrays = {k: np.asarray(data[prefix + k]) for k in cls._ARRAY_FIELDS}
+        return cls(
+            config=EMConfig.from_json(str(np.asarray(data[prefix + "config_json"]))),
+            num_points=int(np.asarray(data[prefix + "num_points"])),
+            timings=json.loads(str(np.asarray(data[prefix + "timings_json"]))),
+            **arrays,
+        )
+
+    def nbytes(self) -> int:
+        """Total bytes of the stored arrays (uncompressed)."""
+        return int(sum(np.asarray(getattr(self, k)).nbytes for k in self._ARRAY_FIELDS))
+
+
+class TraceRecorder:
+    """Builds an `EMTrace` while the solver runs (append-only lists, concatenated at the end)."""
+
+    def __init__(self, config: EMConfig, num_points: int) -> None:
+        self.config = config
+        self.num_points = int(num_points)
+        self.steps: list[tuple[int, int, int, tuple[float, float, float, float]]] = []
+        self.active_count: list[int] = []
+        self.rows: list[dict[str, np.ndarray]] = []
+        self.props: dict[str, list[Any]] = {k: [] for k in ("episode", "anchor", "r_init", "r_err", "birth")}
+        self.deaths: dict[int, tuple[int, int, int, float, int]] = {}
+        self.episode_unavail: list[np.ndarray] = []
+        self.reviews: list[dict[str, Any]] = []
+        self._order = 0
+
+    @property
+    def num_steps(self) -> int:
+        return len(self.steps)
+
+    def start_episode(self, unavailable: np.ndarray, initial_count: int) -> None:
+        self.episode_unavail.append(np.asarray(unavailable, np.int32))
+        if not self.active_count:
+            self.active_count.append(int(initial_count))
+
+    def birth(self, episode: int, anchors: np.ndarray, r_init: float, r_err: float) -> np.ndarray:
+        """Register proposals; returns their ids."""
+        start = len(self.props["anchor"])
+        n = len(anchors)
+        self.props["episode"].extend([episode] * n)
+        self.props["anchor"].extend(int(a) for a in anchors)
+        self.props["r_init"].extend([r_init] * n)
+        self.props["r_err"].extend([r_err] * n)
+        self.props["birth"].extend([self.num_steps] * n)
+        return np.arange(start, start + n, dtype=np.int64)
+
+    def step(
+        self,
+        *,
+        phase: int,
+        episode: int,
+        local: int,
+        sched: tuple[float, float, float, float],
+        ids: np.ndarray,
+        latent: dict[str, np.ndarray],
+        stationary: np.ndarray,
+        inliers: np.ndarray,
+        samples: np.ndarray,
+    ) -> int:
+        """Record one step's rows; returns the global step index."""
+        self.steps.append((phase, episode, local, sched))
+        self.rows.append(
+            {
+                "id": np.asarray(ids, np.int32),
+                "R": np.asarray(latent["R"], np.float32),
+                "inv": np.asarray(latent["inv"], np.float32),
+                "center": np.asarray(latent["center"], np.float32),
+                "scale": np.asarray(latent["scale"], np.float32).reshape(-1),
+                "stationary": np.asarray(stationary, np.float32),
+                "inliers": np.asarray(inliers, np.int32),
+                "samples": np.asarray(samples, np.int32),
+            }
+        )
+        return self.num_steps - 1
+
+    def end_step(self, active: int) -> None:
+        self.active_count.append(int(active))
+
+    def death(self, proposal_id: int, step: int, reason: str, partner: int = -1, ratio: float = float("nan")) -> None:
+        if int(proposal_id) in self.deaths:
+            raise ValueError(f"proposal {proposal_id} died twice")
+        self.deaths[int(proposal_id)] = (int(step), REASONS.index(reason), int(partner), float(ratio), self._order)
+        self._order += 1
+
+    def review(self, record: dict[str, Any]) -> None:
+        self.reviews.append(record)
+
+    def finish(self, timings: dict[str, float] | None = None) -> EMTrace:
+        """Concatenate everything into an `EMTrace`."""
+        n_prop = len(self.props["anchor"])
+        c = None
+        m = self.config.n_pcl or 0
+        for r in self.rows:
+            if len(r["id"]):
+                c = r["R"].shape[1]
+                m = r["samples"].shape[1]
+                break
+        c = c or 0
+
+        def cat(key: str, shape: tuple[int, ...], dtype: Any) -> np.ndarray:
+            parts = [r[key] for r in self.rows if len(r["id"])]
+            return np.concatenate(parts).astype(dtype) if parts else np.zeros((0, *shape), dtype)
+
+        death_step = np.full(n_prop, -1, np.int32)
+        death_reason = np.full(n_prop, -1, np.int8)
+        death_partner = np.full(n_prop, -1, np.int32)
+        death_ratio = np.full(n_prop, np.nan, np.float32)
+        death_order = np.full(n_prop, -1, np.int32)
+        for pid, (st, rs, pa, ra, od) in self.deaths.items():
+            death_step[pid], death_reason[pid], death_partner[pid], death_ratio[pid], death_order[pid] = (
+                st, rs, pa, ra, od)
+        revs = self.reviews
+
+        def rv(key: str, shape: tuple[int, ...], dtype: Any) -> np.ndarray:
+            if not revs:
+                return np.zeros((0, *shape), dtype)
+            return np.stack([np.asarray(r[key], dtype) for r in revs]).reshape(len(revs), *shape)
+
+        def rr(key: str, shape: tuple[int, ...], dtype: Any) -> tuple[np.ndarray, np.ndarray]:
+            parts = [np.asarray(r[key], dtype).reshape(-1, *shape) for r in revs]
+            offs = _offsets([len(p) for p in parts])
+            vals = np.concatenate(parts) if parts else np.zeros((0, *shape), dtype)
+            return vals.astype(dtype), offs
+
+        mask, mask_off = rr("mask", (), np.int32)
+        mv, mv_off = rr("mesh_vertices", (3,), np.float16)
+        mf, mf_off = rr("mesh_faces", (3,), np.int32)
+        nb, nb_off = rr("neighbours", (), np.int32)
+        un_off = _offsets([len(u) for u in self.episode_unavail])
+        un = np.concatenate(self.episode_unavail) if self.episode_unavail else np.zeros(0, np.int32)
+        active = list(self.active_count) or [0]
+        return EMTrace(
+            config=self.config,
+            num_points=self.num_points,
+            step_phase=np.array([s[0] for s in self.steps], np.int8),
+            step_episode=np.array([s[1] for s in self.steps], np.int16),
+            step_local=np.array([s[2] for s in self.steps], np.int16),
+            schedule=np.array([s[3] for s in self.steps], np.float32).reshape(-1, 4),
+            active_count=np.array(active, np.int32),
+            row_offsets=_offsets([len(r["id"]) for r in self.rows]),
+            row_id=cat("id", (), np.int32),
+            row_R=cat("R", (c, 3), np.float32),
+            row_inv=cat("inv", (c,), np.float32),
+            row_center=cat("center", (3,), np.float32),
+            row_scale=cat("scale", (), np.float32),
+            row_stationary=cat("stationary", (), np.float32),
+            row_inliers=cat("inliers", (), np.int32),
+            row_samples=cat("samples", (m,), np.int32),
+            prop_episode=np.array(self.props["episode"], np.int16),
+            prop_anchor=np.array(self.props["anchor"], np.int64),
+            prop_r_init=np.array(self.props["r_init"], np.float32),
+            prop_r_err=np.array(self.props["r_err"], np.float32),
+            prop_birth_step=np.array(self.props["birth"], np.int32),
+            death_step=death_step,
+            death_reason=death_reason,
+            death_partner=death_partner,
+            death_ratio=death_ratio,
+            death_order=death_order,
+            episode_unavailable=un.astype(np.int32),
+            episode_unavailable_offsets=un_off,
+            rev_step=rv("step", (), np.int32),
+            rev_phase=rv("phase", (), np.int8),
+            rev_id=rv("proposal_id", (), np.int32),
+            rev_R=rv("R", (3, 3), np.float32),
+            rev_R_raw=rv("R_raw", (3, 3), np.float32),
+            rev_scale_sel=rv("scale_sel", (), np.float32),
+            rev_db_sim=rv("db_sim", (), np.float32),
+            rev_coverage=rv("coverage", (), np.float32),
+            rev_radii=rv("radii", (2,), np.float32),
+            rev_scale_pass=rv("scale_pass", (), bool),
+            rev_up_angle=rv("up_angle", (), np.float32),
+            rev_pose_pass=rv("pose_pass", (), bool),
+            rev_obb_center=rv("obb_center", (3,), np.float32),
+            rev_obb_axes=rv("obb_axes", (3, 3), np.float32),
+            rev_obb_half=rv("obb_half_extents", (3,), np.float32),
+            rev_mask=mask,
+            rev_mask_offsets=mask_off,
+            rev_mesh_vertices=mv,
+            rev_mesh_vertex_offsets=mv_off,
+            rev_mesh_faces=mf,
+            rev_mesh_face_offsets=mf_off,
+            rev_neighbours=nb,
+            rev_neighbour_offsets=nb_off,
+            timings=dict(timings or {}),
+        )

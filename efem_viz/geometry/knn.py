@@ -1,0 +1,35 @@
+"""Brute-force k-nearest neighbours (batched, torch), in any feature dimension."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import torch
+
+
+def knn_indices(query: torch.Tensor, ref: torch.Tensor, k: int) -> torch.Tensor:
+    """Indices of the ``k`` nearest ``ref`` rows of every ``query`` row (Euclidean, ascending distance).
+
+    Args:
+        query: ``(B, Nq, D)`` float.
+        ref: ``(B, Nr, D)`` float, same dtype/device.
+        k: Neighbours per query, ``1 <= k <= Nr``.
+
+    Returns:
+        ``(B, Nq, k)`` int64 indices into ``Nr``. No gradient flows through the selection.
+
+    Raises:
+        ValueError: On mismatched shapes or a bad ``k``.
+    """
+    import torch
+
+    if query.ndim != 3 or ref.ndim != 3 or query.shape[0] != ref.shape[0] or query.shape[2] != ref.shape[2]:
+        raise ValueError(f"query (B,Nq,D) and ref (B,Nr,D) must agree, got {tuple(query.shape)} / {tuple(ref.shape)}")
+    if not 1 <= k <= ref.shape[1]:
+        raise ValueError(f"k must be in [1, {ref.shape[1]}], got {k}")
+    with torch.no_grad():
+        q = query.detach()
+        r = ref.detach()
+        d2 = (q * q).sum(-1, keepdim=True) - 2.0 * q @ r.transpose(1, 2) + (r * r).sum(-1)[:, None, :]
+        return d2.topk(k, dim=-1, largest=False).indices

@@ -1,0 +1,471 @@
+"""Training data for a shape prior (efem-method.md §2.1-§2.4): per-object caches and per-example sampling.
+
+Per object (canonical frame: +Z up, bounding-box centre at the origin, longest side 1) we cache in an npz:
+``uni`` (Nu, 4) uniform queries in ``[-0.55, 0.55]³`` + SDF, ``nss`` (Nn, 4) near-surface queries + SDF,
+``surface`` (Ns, 3) dense surface samples, ``views`` (V, 3) back-projected depth-view hits with ``view_offsets``
+(12 + 1) and ``view_elev_deg`` (12,). SDF comes from ``open3d.t.geometry.RaycastingScene.compute_signed_distance``
+(negative inside; needs watertight meshes).
+
+Depth views (deviation from §2.1, documented in the training report): views 0-7 look from above (elevation
+30-60°, as in the release data), views 8-9 from the side (-10..30°) and views 10-11 from below (-60..-10°), because
+so3/pile scenes show mugs in any orientation. An example uses only the top views with probability ``p_top_only``.
+A table-plane patch under the object (``p_table``) is an added augmentation (real scans always have a table).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import os
+import tempfile
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    import trimesh
+
+log = logging.getLogger(__name__)
+
+CACHE_VERSION = 2
+MESH_SUFFIXES = (".obj", ".ply", ".off", ".glb", ".gltf", ".stl")
+
+
+@dataclass(frozen=True)
+class PrepConfig:
+    """How per-object training data is precomputed (all sizes in canonical units)."""
+
+    n_uniform: int = 16000
+    """Uniform SDF queries per object (cube ``[-0.55, 0.55]³``)."""
+    n_near: int = 16000
+    """Near-surface SDF queries per object."""
+    near_sigmas: tuple[float, ...] = (0.01, 0.03)
+    """Gaussian offset std of near-surface queries (split evenly)."""
+    n_surface: int = 8000
+    """Dense surface samples per object."""
+    n_views: int = 12
+    """Depth views per object."""
+    n_top_views: int = 8
+    """Views 0..n_top-1 from above (elevation 30-60°); the rest half from the side, half from below."""
+    resolution: int = 128
+    """Depth image size (square), pixels."""
+    fov_deg: float = 60.0
+    """Camera field of view."""
+    distance: tuple[float, float] = (0.9, 1.3)
+    """Camera distance range from the object centre."""
+    max_view_points: int = 3000
+    """Hits kept per view (random subset)."""
+
+
+@dataclass
+class ObjectData:
+    """Cached training data of one normalised object (float32 arrays, canonical frame)."""
+
+    name: str
+    uni: np.ndarray
+    """(Nu, 4) xyz + SDF, uniform queries."""
+    nss: np.ndarray
+    """(Nn, 4) xyz + SDF, near-surface queries."""
+    surface: np.ndarray
+    """(Ns, 3) surface samples."""
+    views: np.ndarray
+    """(V, 3) concatenated depth-view points."""
+    view_offsets: np.ndarray
+    """(n_views + 1,) int64 offsets into ``views``."""
+    view_elev_deg: np.ndarray
+    """(n_views,) camera elevation of every view."""
+
+    @property
+    def z_bottom(self) -> float:
+        """Lowest surface z (the table height under an upright object)."""
+        return float(self.surface[:, 2].min())
+
+    def view(self, i: int) -> np.ndarray:
+        """(n_i, 3) points of depth view ``i``."""
+        return self.views[self.view_offsets[i]:self.view_offsets[i + 1]]
+
+
+@dataclass(frozen=True)
+class SampleConfig:
+    """Per-example sampling and augmentation (§2.2-§2.4; mug defaults)."""
+
+    n_pcl: int = 512
+    """Encoder input points."""
+    n_query_uniform: int = 1024
+    """Uniform queries per example."""
+    n_query_near: int = 1024
+    """Near-surface queries per example."""
+    min_views: int = 4
+    """Minimum number of views drawn (max = all)."""
+    p_top_only: float = 0.6
+    """Probability that an example draws only from the top views."""
+    noise_std: float = 0.01
+    """Gaussian noise on input points."""
+    aug_ratio: float = 0.7
+    """ρ: at most ⌊ρN⌋ points are replaced."""
+    p_obj: float = 0.7
+    """Probability of other-object crops."""
+    p_ball: float = 0.7
+    """Probability of ball removal."""
+    p_table: float = 0.3
+    """Probability of a table-plane patch at the object bottom (deviation: replaces the unused mug plane aug)."""
+    crop_radius: tuple[float, float] = (0.15, 0.09)
+    """Crop radius mean / std."""
+    crop_scale: tuple[float, float] = (0.5, 1.5)
+    """Crop scale range."""
+    placement_std: float = 0.1
+    """Crop placement std L."""
+    ball_max_k: int = 25
+    """Points removed per ball."""
+    ball_noise: float = 0.05
+    """Noise on squared distances when removing balls."""
+    table_scale: tuple[float, float] = (0.4, 1.0)
+    """Half-size range of the table patch."""
+    centroid_noise: float = 0.05
+    """Std of the centroid augmentation (§2.4)."""
+
+
+# ---------------------------------------------------------------------------------------------- meshes
+def normalize_mesh(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """Bounding-box centre to the origin, longest side to 1 (a copy).
+
+    Raises:
+        ValueError: On an empty or degenerate mesh.
+    """
+    if len(mesh.vertices) == 0 or len(mesh.faces) == 0:
+        raise ValueError("cannot normalise an empty mesh")
+    lo, hi = mesh.bounds
+    ext = float(np.max(hi - lo))
+    if not np.isfinite(ext) or ext <= 0:
+        raise ValueError(f"degenerate mesh bounds {mesh.bounds.tolist()}")
+    out = mesh.copy()
+    out.apply_translation(-(lo + hi) / 2.0)
+    out.apply_scale(1.0 / ext)
+    return out
+
+
+def _raycasting_scene(mesh: trimesh.Trimesh) -> Any:
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
+                        o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
+    return scene
+
+
+def _signed_distance(scene: Any, pts: np.ndarray) -> np.ndarray:
+    import open3d as o3d
+
+    return scene.compute_signed_distance(o3d.core.Tensor(pts.astype(np.float32))).numpy().astype(np.float32)
+
+
+def _view_elevations(cfg: PrepConfig, rng: np.random.Generator) -> np.ndarray:
+    n_rest = cfg.n_views - cfg.n_top_views
+    n_side = (n_rest + 1) // 2
+    top = rng.uniform(30.0, 60.0, cfg.n_top_views)
+    side = rng.uniform(-10.0, 30.0, n_side)
+    below = rng.uniform(-60.0, -10.0, n_rest - n_side)
+    return np.concatenate([top, side, below])
+
+
+def render_views(mesh: trimesh.Trimesh, cfg: PrepConfig, *, rng: np.random.Generator,
+                 scene: Any = None) -> tuple[list[np.ndarray], np.ndarray]:
+    """Ray-cast depth views and back-project the hits (canonical frame).
+
+    Args:
+        mesh: Normalised mesh.
+        cfg: Camera settings.
+        rng: Random generator (azimuths, elevations, distances, subsets).
+        scene: Optional prebuilt RaycastingScene.
+
+    Returns:
+        (list of (n_i, 3) float32 hit points per view, (n_views,) elevations in degrees).
+    """
+    import open3d as o3d
+
+    scene = scene if scene is not None else _raycasting_scene(mesh)
+    elev = _view_elevations(cfg, rng)
+    out = []
+    for e in elev:
+        az = rng.uniform(0.0, 2.0 * np.pi)
+        d = rng.uniform(*cfg.distance)
+        el = np.deg2rad(e)
+        eye = d * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+        rays = scene.create_rays_pinhole(fov_deg=cfg.fov_deg, center=o3d.core.Tensor([0.0, 0.0, 0.0]),
+                                         eye=o3d.core.Tensor(eye.astype(np.float32)),
+                                         up=o3d.core.Tensor([0.0, 0.0, 1.0]),
+                                         width_px=cfg.resolution, height_px=cfg.resolution)
+        t = scene.cast_rays(rays)["t_hit"].numpy().reshape(-1)
+        r = rays.numpy().reshape(-1, 6)
+        hit = np.isfinite(t)
+        pts = r[hit, :3] + r[hit, 3:] * t[hit, None]
+        if len(pts) > cfg.max_view_points:
+            pts = pts[rng.choice(len(pts), cfg.max_view_points, replace=False)]
+        out.append(pts.astype(np.float32))
+    return out, elev.astype(np.float32)
+
+
+def prepare_object(mesh: trimesh.Trimesh, *, name: str, cfg: PrepConfig, seed: int) -> ObjectData:
+    """Normalise a watertight mesh and compute its SDF queries, surface samples and depth views.
+
+    Args:
+        mesh: Watertight mesh, +Z up, any scale.
+        name: Object name.
+        cfg: Sampling sizes.
+        seed: Seed of all sampling.
+
+    Returns:
+        ``ObjectData``.
+
+    Raises:
+        ValueError: If the mesh is empty or no depth view hits it.
+    """
+    import trimesh as tm
+
+    rng = np.random.default_rng(seed)
+    m = normalize_mesh(mesh)
+    scene = _raycasting_scene(m)
+    uni = rng.uniform(-0.55, 0.55, (cfg.n_uniform, 3)).astype(np.float32)
+    surf, _ = tm.sample.sample_surface(m, cfg.n_surface + cfg.n_near, seed=int(rng.integers(2**31)))
+    surf = np.asarray(surf, np.float32)
+    base = surf[cfg.n_surface:]
+    sig = np.asarray(cfg.near_sigmas, np.float32)[np.arange(cfg.n_near) % len(cfg.near_sigmas)]
+    nss = (base + rng.normal(size=base.shape).astype(np.float32) * sig[:, None]).astype(np.float32)
+    views, elev = render_views(m, cfg, rng=rng, scene=scene)
+    if sum(len(v) for v in views) == 0:
+        raise ValueError(f"object {name}: no depth view hits the mesh")
+    offsets = np.concatenate([[0], np.cumsum([len(v) for v in views])]).astype(np.int64)
+    return ObjectData(
+        name=name,
+        uni=np.concatenate([uni, _signed_distance(scene, uni)[:, None]], axis=1),
+        nss=np.concatenate([nss, _signed_distance(scene, nss)[:, None]], axis=1),
+        surface=surf[:cfg.n_surface],
+        views=np.concatenate(views, axis=0),
+        view_offsets=offsets,
+        view_elev_deg=elev,
+    )
+
+
+def _save_npz_atomic(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp.npz", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, **arrays)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def load_or_prepare(source: tuple[str, Callable[[], trimesh.Trimesh]], *, cache_dir: Path, cfg: PrepConfig,
+                    seed: int) -> ObjectData:
+    """Return the cached ``ObjectData`` of ``source`` (name, mesh factory), computing and caching it if needed."""
+    name, factory = source
+    key = hashlib.sha1(json.dumps([CACHE_VERSION, dataclasses.asdict(cfg), seed]).encode()).hexdigest()[:10]
+    path = cache_dir / f"{name}_{key}.npz"
+    if path.is_file():
+        try:
+            with np.load(path) as z:
+                return ObjectData(name=name, **{k: z[k] for k in ("uni", "nss", "surface", "views",
+                                                                  "view_offsets", "view_elev_deg")})
+        except (OSError, KeyError, ValueError) as exc:
+            log.warning("ignoring unreadable cache %s (%s)", path, exc)
+    obj = prepare_object(factory(), name=name, cfg=cfg, seed=seed)
+    _save_npz_atomic(path, {k: getattr(obj, k) for k in ("uni", "nss", "surface", "views", "view_offsets",
+                                                           "view_elev_deg")})
+    return obj
+
+
+def procedural_sources(category: str, split: str, n: int) -> list[tuple[str, Callable[[], trimesh.Trimesh]]]:
+    """(name, mesh factory) for the first ``n`` seeds of a procedural split."""
+    from efem_viz.data.procedural import make_shape, split_seeds
+
+    seeds = split_seeds(category, split)  # type: ignore[arg-type]
+    if n > len(seeds):
+        raise ValueError(f"split {split!r} of {category!r} has {len(seeds)} seeds, asked for {n}")
+    return [(f"{category}_{s:06d}", (lambda s=s: make_shape(category, s))) for s in seeds[:n]]
+
+
+def folder_sources(folder: Path) -> list[tuple[str, Callable[[], trimesh.Trimesh]]]:
+    """(name, mesh factory) for every mesh file in ``folder`` (sorted by name).
+
+    Raises:
+        FileNotFoundError: If the folder does not exist.
+        ValueError: If it holds no mesh files.
+    """
+    import trimesh as tm
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"mesh folder not found: {folder}")
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in MESH_SUFFIXES)
+    if not files:
+        raise ValueError(f"no mesh files ({', '.join(MESH_SUFFIXES)}) in {folder}")
+
+    def load(p: Path) -> tm.Trimesh:
+        m = tm.load(p, force="mesh")
+        if not isinstance(m, tm.Trimesh) or len(m.faces) == 0:
+            raise ValueError(f"{p} holds no triangle mesh")
+        if not m.is_watertight:
+            log.warning("%s is not watertight: its SDF signs may be wrong", p)
+        return m
+
+    return [(p.stem, (lambda p=p: load(p))) for p in files]
+
+
+# ---------------------------------------------------------------------------------------------- examples
+def _random_rotation(rng: np.random.Generator) -> np.ndarray:
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    w, x, y, z = q
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def input_cloud(obj: ObjectData, cfg: SampleConfig, rng: np.random.Generator) -> np.ndarray:
+    """Partial input cloud: union of 4..12 views (with replacement), ``n_pcl`` points, Gaussian noise.
+
+    Returns:
+        (n_pcl, 3) float32, canonical frame.
+    """
+    n_all = len(obj.view_offsets) - 1
+    n_top = int(np.sum(obj.view_elev_deg >= 30.0 - 1e-3))
+    pool = n_top if (n_top > 0 and rng.random() < cfg.p_top_only) else n_all
+    n_v = int(rng.integers(min(cfg.min_views, n_all), n_all + 1))
+    ids = rng.integers(0, pool, n_v)
+    pts = np.concatenate([obj.view(int(i)) for i in ids], axis=0)
+    if len(pts) == 0:
+        pts = obj.surface
+    sel = rng.integers(0, len(pts), cfg.n_pcl)
+    return (pts[sel] + rng.normal(0.0, cfg.noise_std, (cfg.n_pcl, 3))).astype(np.float32)
+
+
+def _remove_balls(pcl: np.ndarray, n_remove: int, cfg: SampleConfig, rng: np.random.Generator) -> np.ndarray:
+    keep = np.ones(len(pcl), bool)
+    removed = 0
+    while removed < n_remove:
+        alive = np.flatnonzero(keep)
+        anchor = pcl[alive[rng.integers(len(alive))]]
+        d2 = ((pcl[alive] - anchor) ** 2).sum(-1) + rng.normal(0.0, cfg.ball_noise, len(alive))
+        k = min(cfg.ball_max_k, n_remove - removed, len(alive))
+        keep[alive[np.argpartition(d2, k - 1)[:k]]] = False
+        removed += k
+    return keep
+
+
+def _object_crops(n_obj: int, pcl: np.ndarray, uni: np.ndarray, others: Sequence[ObjectData], cfg: SampleConfig,
+                  rng: np.random.Generator) -> np.ndarray:
+    crops: list[np.ndarray] = []
+    total = 0
+    for _ in range(64):
+        if total >= n_obj:
+            break
+        other = others[int(rng.integers(len(others)))]
+        pts = other.surface[rng.integers(0, len(other.surface), cfg.n_pcl)]
+        r_crop = max(cfg.crop_radius[0] + rng.normal(0.0, cfg.crop_radius[1]), 0.01)
+        anchor = pts[rng.integers(len(pts))]
+        crop = pts[((pts - anchor) ** 2).sum(-1) <= r_crop * r_crop]
+        crop = (crop - crop.mean(0)) * rng.uniform(*cfg.crop_scale)
+        r = float(np.sqrt((crop ** 2).sum(-1).max()))
+        centre = pcl[rng.integers(len(pcl))]
+        for _ in range(100):
+            centre = pcl[rng.integers(len(pcl))] + rng.normal(0.0, cfg.placement_std, 3)
+            nearest = int(((uni[:, :3] - centre) ** 2).sum(-1).argmin())
+            if uni[nearest, 3] > r:
+                break
+        crops.append(crop @ _random_rotation(rng).T + centre)
+        total += len(crop)
+    if not crops:
+        return np.zeros((0, 3), np.float32)
+    return np.concatenate(crops, axis=0)[:n_obj]
+
+
+def augment_v1(pcl: np.ndarray, obj: ObjectData, uni: np.ndarray, others: Sequence[ObjectData], cfg: SampleConfig,
+               rng: np.random.Generator) -> np.ndarray:
+    """Content augmentation "v1" (§2.3) with a table patch in place of the (unused for mugs) planes.
+
+    Args:
+        pcl: (N, 3) noisy object cloud.
+        obj: The object (for its bottom height).
+        uni: (Nq, 4) this example's uniform queries (crop placement test).
+        others: Training objects to crop distractors from.
+        cfg: Augmentation parameters.
+        rng: Random generator.
+
+    Returns:
+        (N, 3) float32 augmented cloud (same size).
+    """
+    n = len(pcl)
+    n_aug = int(rng.random() * int(cfg.aug_ratio * n))
+    if n_aug == 0:
+        return pcl
+    use_obj = rng.random() <= cfg.p_obj and len(others) > 0
+    use_table = rng.random() <= cfg.p_table
+    use_ball = rng.random() <= cfg.p_ball
+    if not (use_obj or use_table or use_ball):
+        return pcl
+    n_obj = n_table = n_noise = 0
+    if use_obj and use_table:
+        n_obj = int(rng.random() * n_aug)
+        n_table = n_aug - n_obj
+    elif use_obj:
+        n_obj = n_aug
+    elif use_table:
+        n_table = n_aug
+    else:
+        n_noise = n_aug
+    keep = np.ones(n, bool)
+    n_ball = int(rng.random() * n_aug) if use_ball else 0
+    if n_ball > 0:
+        keep = _remove_balls(pcl, n_ball, cfg, rng)
+    rest = n_aug - int((~keep).sum())
+    if rest > 0:
+        alive = np.flatnonzero(keep)
+        keep[rng.choice(alive, rest, replace=False)] = False
+    reduced = pcl[keep]
+    added: list[np.ndarray] = []
+    if n_obj > 0:
+        crops = _object_crops(n_obj, reduced, uni, others, cfg, rng)
+        added.append(crops)
+    if n_table > 0:
+        half = rng.uniform(*cfg.table_scale)
+        c = rng.uniform(-0.2, 0.2, 2)
+        uv = rng.uniform(-1.0, 1.0, (n_table, 2)) * half + c
+        z = obj.z_bottom + rng.normal(0.0, cfg.noise_std, n_table)
+        added.append(np.concatenate([uv, z[:, None]], axis=1))
+    if n_noise > 0:
+        added.append(rng.uniform(-0.5, 0.5, (n_noise, 3)))
+    out = np.concatenate([*added, reduced], axis=0)
+    if len(out) < n:  # crops can come up short: pad from the reduced cloud
+        out = np.concatenate([out, reduced[rng.integers(0, len(reduced), n - len(out))]], axis=0)
+    return out[:n].astype(np.float32)
+
+
+def make_example(obj: ObjectData, cfg: SampleConfig, rng: np.random.Generator, *,
+                 others: Sequence[ObjectData] = (), augment: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """One training example.
+
+    Returns:
+        ``pcl`` (n_pcl, 3) float32 input cloud and ``queries`` (Qu + Qn, 4) float32 (uniform first, then near).
+    """
+    uni = obj.uni[rng.integers(0, len(obj.uni), cfg.n_query_uniform)]
+    nss = obj.nss[rng.integers(0, len(obj.nss), cfg.n_query_near)]
+    pcl = input_cloud(obj, cfg, rng)
+    if augment:
+        pcl = augment_v1(pcl, obj, uni, others, cfg, rng)
+    return pcl, np.concatenate([uni, nss], axis=0)
+
+
+def make_batch(objs: Sequence[ObjectData], cfg: SampleConfig, rng: np.random.Generator, *,
+               others: Sequence[ObjectData] = (), augment: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Stack ``make_example`` over ``objs``: (B, n_pcl, 3) and (B, Q, 4) float32."""
+    ex = [make_example(o, cfg, rng, others=others, augment=augment) for o in objs]
+    return np.stack([e[0] for e in ex]), np.stack([e[1] for e in ex])

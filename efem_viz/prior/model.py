@@ -1,0 +1,416 @@
+"""``ShapePrior``: SIM(3)-equivariant encoder + invariant SDF decoder, its ``Latent`` and checkpoint IO.
+
+Frames: ``encode`` takes points in any (world) frame; ``Latent.center``/``Latent.scale`` live in that frame;
+``sdf`` takes world queries and returns a *canonical-unit* SDF (negative inside); world distance ≈ Θ_s · sdf.
+
+Precision: the network computes in the dtype of its parameters (``prior.double()`` for float64); inputs and
+latents are cast to it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, NamedTuple
+
+import numpy as np
+import torch
+from torch import nn
+
+from efem_viz.prior.decoder import SDFDecoder
+from efem_viz.prior.encoder import VNDGCNNEncoder
+
+if TYPE_CHECKING:
+    from efem_viz.prior.codebook import Codebook
+
+log = logging.getLogger(__name__)
+
+WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
+CHECKPOINT_FORMAT = "efem-viz-prior/1"
+
+
+@dataclass
+class PriorConfig:
+    """Architecture of a shape prior (defaults = the released mug model, efem-method.md §1.3)."""
+
+    widths: tuple[int, ...] = (32, 32, 64, 64, 128, 256, 512)
+    """Output width of every backbone block (the number of entries is the depth)."""
+    k: int = 16
+    """Neighbours of the dynamic feature-space kNN graph."""
+    n_pcl: int = 512
+    """Encoder input size used in training / by the solver."""
+    down_blocks: tuple[int, ...] = (2, 4, 5)
+    """Blocks preceded by farthest-point down-sampling."""
+    down_factors: tuple[int, ...] = (2, 4, 4)
+    """Down-sampling factor for each entry of ``down_blocks``."""
+    global_from: int = 2
+    """First block with global-context fusion."""
+    attention_blocks: tuple[int, ...] = ()
+    """Blocks that aggregate with VN attention instead of the mean (chairs: 2..6)."""
+    att_head_dim: int = 16
+    """Channels per attention head."""
+    latent_dim: int = 256
+    """Latent width L (rows of Θ_R, length of Θ_inv)."""
+    center_hidden: int = 128
+    """Hidden width of the centre-head residual block."""
+    scale_factor: float = 64000.0
+    """σ: fixed multiplier of the Θ_s head (set once at init so Θ_s ≈ 1 for unit objects)."""
+    center_times_sigma: bool = False
+    """Multiply δ by σ (the kit4cates prior does)."""
+    negative_slope: float = 0.2
+    """VN-LeakyReLU negative slope."""
+    decoder_hidden: int = 256
+    """Decoder MLP width."""
+    decoder_blocks: int = 5
+    """Decoder residual blocks."""
+    use_qnorm: bool = True
+    """Feed ‖q‖ to the decoder."""
+
+    def __post_init__(self) -> None:
+        self.widths = tuple(int(w) for w in self.widths)
+        self.down_blocks = tuple(int(b) for b in self.down_blocks)
+        self.down_factors = tuple(int(f) for f in self.down_factors)
+        self.attention_blocks = tuple(int(b) for b in self.attention_blocks)
+        if not self.widths or min(self.widths) < 1:
+            raise ValueError(f"widths must be a non-empty tuple of positive ints, got {self.widths}")
+        if len(self.down_blocks) != len(self.down_factors):
+            raise ValueError(f"down_blocks {self.down_blocks} and down_factors {self.down_factors} differ in length")
+        if self.k < 1 or self.latent_dim < 1 or self.decoder_hidden < 1 or self.decoder_blocks < 0:
+            raise ValueError(f"bad PriorConfig sizes: {self}")
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-able dict (tuples become lists)."""
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> PriorConfig:
+        """Inverse of ``to_dict``; unknown keys raise ``ValueError``."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(d) - names
+        if unknown:
+            raise ValueError(f"unknown PriorConfig keys: {sorted(unknown)}")
+        return cls(**d)
+
+    def points_per_block(self) -> list[int]:
+        """Number of points after each block for an input of ``n_pcl`` points."""
+        n, out = self.n_pcl, []
+        down = dict(zip(self.down_blocks, self.down_factors))
+        for b in range(len(self.widths)):
+            if b in down:
+                n = max(1, n // down[b])
+            out.append(n)
+        return out
+
+
+class Latent(NamedTuple):
+    """Batched latent code Θ = (Θ_R, Θ_inv, Θ_c, Θ_s) (torch tensors, or numpy arrays after ``.numpy()``).
+
+    Attributes:
+        R: ``(B, L, 3)`` Θ_R, transforms as ``Θ_R Rᵀ`` (rows rotate), scale-free.
+        inv: ``(B, L)`` Θ_inv, invariant.
+        center: ``(B, 3)`` Θ_c, world frame (transforms as ``sRΘ_c + t``).
+        scale: ``(B,)`` Θ_s, world units per canonical unit (transforms as ``sΘ_s``).
+
+    Integer indexing ``latent[i]`` keeps a batch axis of size 1; slices, index tensors/arrays and boolean masks select
+    along the batch axis.
+    """
+
+    R: Any
+    inv: Any
+    center: Any
+    scale: Any
+
+    def __getitem__(self, idx: Any) -> Latent:  # type: ignore[override]
+        if isinstance(idx, (int, np.integer)):
+            n = len(self)
+            i = int(idx)
+            if not -n <= i < n:
+                raise IndexError(f"latent index {i} out of range for batch size {n}")
+            idx = slice(i, i + 1 if i != -1 else None)
+        return Latent(*(t[idx] for t in tuple.__iter__(self)))
+
+    def __len__(self) -> int:
+        return int(tuple.__getitem__(self, 3).shape[0])
+
+    def select(self, idx: Any) -> Latent:
+        """Select latents along the batch axis (int keeps a size-1 axis; index array or bool mask)."""
+        return self[idx]
+
+    @property
+    def batch_size(self) -> int:
+        """Number of latents B."""
+        return len(self)
+
+    def to(self, device: Any = None, dtype: Any = None) -> Latent:
+        """Move/cast every tensor (torch latents only)."""
+        return Latent(*(t.to(device=device, dtype=dtype) for t in tuple.__iter__(self)))
+
+    def detach(self) -> Latent:
+        """Detach every tensor from the autograd graph."""
+        return Latent(*(t.detach() for t in tuple.__iter__(self)))
+
+    def numpy(self) -> Latent:
+        """A ``Latent`` of numpy arrays (detached, on CPU)."""
+        return Latent(*(t.detach().cpu().numpy() if isinstance(t, torch.Tensor) else np.asarray(t)
+                        for t in tuple.__iter__(self)))
+
+    def torch(self, device: Any = "cpu", dtype: Any = None) -> Latent:
+        """A ``Latent`` of torch tensors from numpy arrays or tensors."""
+        return Latent(*(torch.as_tensor(t, device=device, dtype=dtype) for t in tuple.__iter__(self)))
+
+    @staticmethod
+    def cat(latents: list[Latent]) -> Latent:
+        """Concatenate torch latents along the batch axis."""
+        if not latents:
+            raise ValueError("Latent.cat needs at least one latent")
+        return Latent(*(torch.cat(parts, dim=0) for parts in zip(*(tuple.__iter__(x) for x in latents))))
+
+
+class ShapePrior(nn.Module):
+    """Encoder + decoder with a typed config, an optional pose codebook and a name.
+
+    Args:
+        config: Architecture.
+        name: Display name (e.g. ``"mug"``).
+    """
+
+    def __init__(self, config: PriorConfig | None = None, *, name: str = "prior") -> None:
+        super().__init__()
+        self.config = config if config is not None else PriorConfig()
+        self.name = name
+        self.codebook: Codebook | None = None
+        self.metadata: dict[str, Any] = {}
+        self.encoder = VNDGCNNEncoder(self.config)
+        self.decoder = SDFDecoder(self.config.latent_dim, self.config.decoder_hidden, self.config.decoder_blocks,
+                                  use_qnorm=self.config.use_qnorm)
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """Parameter dtype (the compute dtype)."""
+        return self.decoder.fc_in.weight.dtype
+
+    @property
+    def device(self) -> torch.device:
+        """Parameter device."""
+        return self.decoder.fc_in.weight.device
+
+    def encode(self, points: torch.Tensor, *, centroid_noise: torch.Tensor | None = None) -> Latent:
+        """Encode point clouds (each centred by its mean internally).
+
+        Args:
+            points: ``(B, M, 3)`` (or ``(M, 3)``, treated as B=1) world-frame points.
+            centroid_noise: Optional ``(B, 3)`` offset added to the centroid before centring (training, §2.4);
+                Θ_c is then ``x̄ + noise + δ``.
+
+        Returns:
+            ``Latent`` with batch size B in the model dtype.
+
+        Raises:
+            ValueError: On a bad shape or an empty cloud.
+        """
+        if points.ndim == 2:
+            points = points[None]
+        if points.ndim != 3 or points.shape[-1] != 3 or points.shape[1] < 1:
+            raise ValueError(f"points must be (B, M, 3) with M >= 1, got {tuple(points.shape)}")
+        points = points.to(device=self.device, dtype=self.dtype)
+        centroid = points.mean(dim=1)
+        if centroid_noise is not None:
+            if centroid_noise.shape != centroid.shape:
+                raise ValueError(f"centroid_noise must be {tuple(centroid.shape)}, got {tuple(centroid_noise.shape)}")
+            centroid = centroid + centroid_noise.to(centroid)
+        out = self.encoder(points - centroid[:, None, :])
+        return Latent(R=out.R.transpose(1, 2), inv=out.inv, center=centroid + out.delta, scale=out.scale)
+
+    def _prep_latent(self, latent: Latent) -> Latent:
+        lat = latent.to(device=self.device, dtype=self.dtype)
+        if lat.R.ndim == 2:  # unbatched
+            lat = Latent(lat.R[None], lat.inv[None], lat.center[None], lat.scale.reshape(1))
+        return lat
+
+    def sdf(self, x: torch.Tensor, latent: Latent, index: torch.Tensor | None = None, *,
+            chunk: int = 65536) -> torch.Tensor:
+        """Canonical-unit SDF of world queries (negative inside).
+
+        Args:
+            x: ``(B, Q, 3)`` queries for a batch of B latents, or ``(Q, 3)`` with ``index`` (or with a single
+                latent).
+            latent: ``Latent`` with batch size B.
+            index: Optional ``(Q,)`` int64: query q uses latent ``index[q]`` (only with ``x`` of shape (Q, 3)).
+            chunk: Queries per chunk in the ragged form (bounds memory).
+
+        Returns:
+            ``(B, Q)`` or ``(Q,)`` SDF in the model dtype.
+
+        Raises:
+            ValueError: On inconsistent shapes.
+        """
+        lat = self._prep_latent(latent)
+        x = x.to(device=self.device, dtype=self.dtype)
+        n_lat = lat.R.shape[0]
+        m, bias = self.decoder.fold(lat.R, lat.inv)
+        if x.ndim == 3:
+            if index is not None:
+                raise ValueError("index is only supported with x of shape (Q, 3)")
+            if x.shape[0] != n_lat or x.shape[-1] != 3:
+                raise ValueError(f"x {tuple(x.shape)} does not match a latent batch of {n_lat}")
+            q = (x - lat.center[:, None, :]) / lat.scale[:, None, None]
+            return self.decoder.forward_batched(q, m, bias)
+        if x.ndim != 2 or x.shape[-1] != 3:
+            raise ValueError(f"x must be (Q, 3) or (B, Q, 3), got {tuple(x.shape)}")
+        if index is None:
+            if n_lat != 1:
+                raise ValueError(f"x of shape (Q, 3) needs `index` when the latent batch is {n_lat} (not 1)")
+            q = (x - lat.center) / lat.scale[:, None]
+            return self.decoder.forward_batched(q[None], m, bias)[0]
+        index = index.to(device=self.device, dtype=torch.long)
+        if index.shape != x.shape[:1]:
+            raise ValueError(f"index must be ({x.shape[0]},), got {tuple(index.shape)}")
+        if index.numel() and (int(index.min()) < 0 or int(index.max()) >= n_lat):
+            raise ValueError(f"index values must be in [0, {n_lat}), got [{int(index.min())}, {int(index.max())}]")
+        outs = []
+        for s in range(0, x.shape[0], chunk):
+            xi, ii = x[s:s + chunk], index[s:s + chunk]
+            q = (xi - lat.center[ii]) / lat.scale[ii, None]
+            outs.append(self.decoder.forward_ragged(q, m[ii], bias[ii]))
+        if not outs:
+            return x.new_zeros(0)
+        return torch.cat(outs)
+
+    def sdf_and_normals(self, x: torch.Tensor, latent: Latent, index: torch.Tensor | None = None, *,
+                        chunk: int = 65536) -> tuple[torch.Tensor, torch.Tensor]:
+        """SDF and outward unit normals ``∂sdf/∂x / ‖·‖`` (world frame), usable inside ``torch.no_grad()``.
+
+        The returned tensors are detached.
+
+        Args:
+            x: As in ``sdf``.
+            latent: As in ``sdf``.
+            index: As in ``sdf``.
+            chunk: Queries per autograd chunk.
+
+        Returns:
+            ``sdf`` with the shape of ``x`` minus its last axis, and ``normals`` with the shape of ``x``.
+        """
+        lat = self._prep_latent(latent).detach()
+        x = x.to(device=self.device, dtype=self.dtype).detach()
+        sdfs, grads = [], []
+        flat = x.ndim == 2
+        n = x.shape[0] if flat else x.shape[1]
+        with torch.enable_grad():
+            for s in range(0, max(n, 1), chunk):
+                xi = (x[s:s + chunk] if flat else x[:, s:s + chunk]).clone().requires_grad_(True)
+                ii = index[s:s + chunk] if index is not None else None
+                f = self.sdf(xi, lat, ii, chunk=chunk)
+                (g,) = torch.autograd.grad(f.sum(), xi)
+                sdfs.append(f.detach())
+                grads.append(g)
+        dim = 0 if flat else 1
+        sdf = torch.cat(sdfs, dim=dim)
+        grad = torch.cat(grads, dim=dim)
+        normals = grad / grad.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        return sdf, normals
+
+
+def _atomic_torch_save(obj: Any, path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save(obj, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def save_prior(prior: ShapePrior, path: str | os.PathLike[str], *, extra: dict[str, Any] | None = None) -> Path:
+    """Write a model-only checkpoint (config + float32 state dict + metadata), atomically.
+
+    Args:
+        prior: The model.
+        path: Target ``.pt`` file.
+        extra: JSON-able metadata merged into ``prior.metadata`` (e.g. iteration, val IoU).
+
+    Returns:
+        The written path.
+    """
+    path = Path(path)
+    meta = dict(prior.metadata)
+    if extra:
+        meta.update(extra)
+    state = {k: v.detach().to("cpu", torch.float32).clone() for k, v in prior.state_dict().items()}
+    _atomic_torch_save({"format": CHECKPOINT_FORMAT, "name": prior.name, "config": prior.config.to_dict(),
+                        "state_dict": state, "metadata": meta}, path)
+    return path
+
+
+def resolve_prior_path(name_or_path: str | os.PathLike[str]) -> Path:
+    """Map a prior name (``"mug"``) to ``efem_viz/weights/<name>.pt``; a path is returned as is.
+
+    Raises:
+        FileNotFoundError: If the file does not exist.
+    """
+    s = str(name_or_path)
+    p = Path(s)
+    if p.suffix != ".pt" and os.sep not in s and "/" not in s:
+        p = WEIGHTS_DIR / f"{s}.pt"
+    if not p.is_file():
+        raise FileNotFoundError(f"shape prior weights not found: {p}")
+    return p
+
+
+def load_prior(name_or_path: str | os.PathLike[str] = "mug", *, device: str | torch.device = "cpu",
+               load_codebook: bool = True) -> ShapePrior:
+    """Load a prior saved by ``save_prior`` (and its codebook ``<stem>_codebook.npz`` if present).
+
+    Also accepts a full training checkpoint (it carries the same ``config``/``state_dict`` keys).
+
+    Args:
+        name_or_path: A name under ``efem_viz/weights/`` or a ``.pt`` path.
+        device: Target device.
+        load_codebook: Try to attach the codebook.
+
+    Returns:
+        The model in eval mode, float32.
+
+    Raises:
+        FileNotFoundError: If the weights file is missing.
+        ValueError: If the file is not a prior checkpoint.
+    """
+    path = resolve_prior_path(name_or_path)
+    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    if not isinstance(ckpt, dict) or "config" not in ckpt or "state_dict" not in ckpt:
+        raise ValueError(f"{path} is not an efem-viz prior checkpoint (keys: "
+                         f"{sorted(ckpt) if isinstance(ckpt, dict) else type(ckpt).__name__})")
+    config = PriorConfig.from_dict(ckpt["config"])
+    name = str(ckpt.get("name") or path.stem)
+    prior = ShapePrior(config, name=name)
+    prior.load_state_dict(ckpt["state_dict"])
+    prior.metadata = dict(ckpt.get("metadata") or {})
+    prior.eval().to(device)
+    if load_codebook:
+        cb_path = path.with_name(f"{path.stem}_codebook.npz")
+        if cb_path.is_file():
+            try:
+                from efem_viz.prior.codebook import Codebook
+            except ImportError:
+                log.warning("codebook %s present but efem_viz.prior.codebook is unavailable", cb_path)
+            else:
+                prior.codebook = Codebook.load(cb_path)
+    return prior
+
+
+def count_parameters(module: nn.Module) -> int:
+    """Number of trainable parameters."""
+    return int(sum(p.numel() for p in module.parameters() if p.requires_grad))
+
+
+__all__ = ["PriorConfig", "Latent", "ShapePrior", "save_prior", "load_prior", "resolve_prior_path",
+           "count_parameters", "WEIGHTS_DIR"]

@@ -1,0 +1,581 @@
+"""Train a shape prior (efem-method.md §2): ``efem-viz train-prior``.
+
+The module top is light (the CLI imports it); torch/open3d are imported inside functions.
+
+Outputs under ``out_dir`` (default ``runs/<category>``): ``config.json`` (resolved run config), ``last.pt`` (full
+resume checkpoint: model, optimizer, iteration, RNG states, curve), ``train.log`` lines via logging, and the exported
+best model (by validation IoU) at ``export`` (default ``efem_viz/weights/<category>.pt``) with
+``<stem>_training_report.json`` / ``.md`` next to it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import os
+import shutil
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal
+
+import numpy as np
+
+if TYPE_CHECKING:
+    import torch
+
+    from efem_viz.prior.data import ObjectData, SampleConfig
+    from efem_viz.prior.model import PriorConfig, ShapePrior
+
+log = logging.getLogger(__name__)
+
+Preset = Literal["spec", "cpu", "cpu-small", "tiny"]
+
+PRESETS: dict[str, dict[str, Any]] = {
+    # the released mug architecture (§1.3)
+    "spec": {},
+    # CPU budget: widths halved, latent 128, small decoder (see mug_training_report.md for the timings)
+    "cpu": {"widths": (16, 16, 32, 32, 64, 128, 256), "latent_dim": 128, "center_hidden": 64, "n_pcl": 512,
+            "decoder_hidden": 128, "decoder_blocks": 2},
+    # quarter widths
+    "cpu-small": {"widths": (8, 8, 16, 16, 32, 64, 128), "latent_dim": 64, "center_hidden": 32, "n_pcl": 256,
+                  "k": 16, "decoder_hidden": 128, "decoder_blocks": 2},
+    # unit tests
+    "tiny": {"widths": (8, 8, 16, 16), "down_blocks": (2,), "down_factors": (2,), "latent_dim": 16,
+             "center_hidden": 8, "n_pcl": 64, "k": 8, "decoder_hidden": 32, "decoder_blocks": 1},
+}
+
+
+@dataclass
+class TrainArgs:
+    """Train a SIM(3)-equivariant shape prior on procedural meshes or a folder of aligned watertight meshes."""
+
+    category: str = "mug"
+    """Procedural category (``efem_viz.data.procedural``); also the default output name."""
+    meshes: Path | None = None
+    """Folder of aligned (+Z up) watertight training meshes instead of the procedural category."""
+    val_meshes: Path | None = None
+    """Folder of validation meshes (default with --meshes: every 10th mesh is held out)."""
+    n_train: int = 400
+    """Procedural training objects (first seeds of the train split)."""
+    n_val: int = 24
+    """Procedural validation objects (first seeds of the val split)."""
+    out_dir: Path | None = None
+    """Run folder (checkpoints, config, log). Default: runs/<category>."""
+    export: Path | None = None
+    """Where the best model goes. Default: efem_viz/weights/<category>.pt."""
+    resume_export: Path | None = None
+    """Also copy the latest resume checkpoint here (if < 20 MB), e.g. efem_viz/weights/mug_resume.pt."""
+    resume_export_every_min: float = 10.0
+    """Minutes between copies to --resume-export."""
+    cache_dir: Path = Path("runs/cache")
+    """Per-object data cache."""
+    preset: Preset = "cpu"
+    """Architecture preset; the fields below override it."""
+    widths: tuple[int, ...] | None = None
+    """Backbone block widths (override)."""
+    latent_dim: int | None = None
+    """Latent width (override)."""
+    decoder_hidden: int | None = None
+    """Decoder width (override)."""
+    decoder_blocks: int | None = None
+    """Decoder residual blocks (override)."""
+    n_pcl: int | None = None
+    """Encoder input points (override)."""
+    k: int | None = None
+    """kNN size (override)."""
+    batch_size: int = 16
+    """Examples per iteration."""
+    iterations: int = 80000
+    """Total iterations (the learning-rate decay points are fractions of this)."""
+    lr: float = 1e-4
+    """Adam learning rate."""
+    decay_at: tuple[float, ...] = (0.625, 0.75, 0.875)
+    """LR decay points as fractions of --iterations (spec: 50k/60k/70k of 80k)."""
+    decay_factor: float = 0.3
+    """LR multiplier at every decay point."""
+    val_every: int = 250
+    """Iterations between validations."""
+    ckpt_every_min: float = 4.0
+    """Minutes between resume checkpoints."""
+    time_budget_min: float | None = None
+    """Stop (with a final checkpoint and validation) after this many minutes of this process."""
+    threads: int = 2
+    """torch CPU threads."""
+    seed: int = 12345
+    """Seed of the model init and of all sampling."""
+    resume: bool = False
+    """Continue from <out_dir>/last.pt (or --resume-from)."""
+    resume_from: Path | None = None
+    """Explicit checkpoint to resume from (implies --resume)."""
+    p_table: float = 0.3
+    """Probability of the table-plane augmentation."""
+    progress: bool = True
+    """Show a progress bar."""
+    report_notes: Path | None = None
+    """Markdown inserted at the top of the training report (default: <out_dir>/report_notes.md if present)."""
+    device: str = "cpu"
+    """Torch device."""
+
+    def run(self) -> int:
+        """CLI entry: train with a tqdm progress bar. Returns 0 on success."""
+        from tqdm import tqdm
+
+        bar: Any = None
+
+        def on_progress(it: int, total: int, info: dict[str, Any]) -> None:
+            nonlocal bar
+            if bar is None:
+                bar = tqdm(total=total, initial=it, unit="it", dynamic_ncols=True,
+                           mininterval=1.0 if os.isatty(2) else 60.0)
+            bar.n = it
+            bar.set_postfix({k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in info.items()}, refresh=False)
+            bar.refresh()
+
+        try:
+            result = train(self, on_progress=on_progress if self.progress else None)
+        finally:
+            if bar is not None:
+                bar.close()
+        log.info("finished at iteration %d; best val IoU %.4f (iteration %d); exported %s", result["iteration"],
+                 result["best_iou"], result["best_iteration"], result["export"])
+        return 0
+
+    # ----------------------------------------------------------------------------------------------- resolved
+    def prior_config(self) -> PriorConfig:
+        """The architecture: preset + overrides."""
+        from efem_viz.prior.model import PriorConfig
+
+        if self.preset not in PRESETS:
+            raise ValueError(f"unknown preset {self.preset!r}; known: {sorted(PRESETS)}")
+        kw = dict(PRESETS[self.preset])
+        for name in ("widths", "latent_dim", "decoder_hidden", "decoder_blocks", "n_pcl", "k"):
+            v = getattr(self, name)
+            if v is not None:
+                kw[name] = v
+        return PriorConfig(**kw)
+
+    def sample_config(self, n_pcl: int) -> SampleConfig:
+        """Per-example sampling for this run."""
+        from efem_viz.prior.data import SampleConfig
+
+        return SampleConfig(n_pcl=n_pcl, p_table=self.p_table)
+
+    def resolved_out_dir(self) -> Path:
+        """``out_dir`` or ``runs/<category>``."""
+        return self.out_dir if self.out_dir is not None else Path("runs") / self.category
+
+    def resolved_export(self) -> Path:
+        """``export`` or ``efem_viz/weights/<category>.pt``."""
+        if self.export is not None:
+            return self.export
+        from efem_viz.prior.model import WEIGHTS_DIR
+
+        return WEIGHTS_DIR / f"{self.category}.pt"
+
+
+# --------------------------------------------------------------------------------------------------- helpers
+def _json_default(o: Any) -> Any:
+    if isinstance(o, Path):
+        return str(o)
+    if isinstance(o, (np.integer, np.floating)):
+        return o.item()
+    if isinstance(o, tuple):
+        return list(o)
+    raise TypeError(f"not JSON-serialisable: {type(o).__name__}")
+
+
+def _write_text_atomic(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _copy_atomic(src: Path, dst: Path) -> None:
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{dst.name}.", suffix=".tmp", dir=dst.parent)
+    os.close(fd)
+    try:
+        shutil.copyfile(src, tmp)
+        os.replace(tmp, dst)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def lr_at(iteration: int, *, base: float, total: int, decay_at: tuple[float, ...], factor: float) -> float:
+    """Step-decayed learning rate at ``iteration`` (floor 1e-8)."""
+    n = sum(1 for f in decay_at if iteration >= int(round(f * total)))
+    return max(base * factor**n, 1e-8)
+
+
+def load_objects(args: TrainArgs, split: Literal["train", "val"], *,
+                 on_item: Callable[[int, int], None] | None = None) -> list[ObjectData]:
+    """Load (or prepare and cache) the objects of a split."""
+    from efem_viz.prior.data import PrepConfig, folder_sources, load_or_prepare, procedural_sources
+
+    if args.meshes is not None:
+        srcs = folder_sources(args.meshes)
+        if split == "val":
+            srcs = folder_sources(args.val_meshes) if args.val_meshes is not None else srcs[::10]
+        elif args.val_meshes is None:
+            srcs = [s for i, s in enumerate(srcs) if i % 10 != 0] or srcs
+        cache = args.cache_dir / f"folder_{Path(args.meshes).name}"
+    else:
+        srcs = procedural_sources(args.category, split, args.n_train if split == "train" else args.n_val)
+        cache = args.cache_dir / f"procedural_{args.category}"
+    out = []
+    for i, s in enumerate(srcs):
+        out.append(load_or_prepare(s, cache_dir=cache, cfg=PrepConfig(), seed=args.seed + i + (0 if split == "train"
+                                                                                                else 10**6)))
+        if on_item is not None:
+            on_item(i + 1, len(srcs))
+    return out
+
+
+def compute_losses(prior: ShapePrior, pcl: torch.Tensor, queries: torch.Tensor, *, n_uniform: int,
+                   centroid_noise: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    """Training losses of §2.5 for a batch.
+
+    Args:
+        prior: The model.
+        pcl: (B, N, 3) input clouds (canonical frame).
+        queries: (B, Q, 4) xyz + GT SDF, the first ``n_uniform`` uniform, the rest near-surface.
+        n_uniform: Number of uniform queries per example.
+        centroid_noise: Optional (B, 3) centroid noise.
+
+    Returns:
+        Dict with ``loss`` (clamped to [-4, 4]), ``sdf``, ``center``, ``scale`` (scalars).
+    """
+    import torch
+
+    lat = prior.encode(pcl, centroid_noise=centroid_noise)
+    pred = prior.sdf(queries[..., :3], lat)
+    err = (pred - queries[..., 3]).abs()
+    w = torch.where(err.detach() < 0.1, 1.0, 0.5).to(err)
+    we = w * err
+    parts = [we[:, :n_uniform], we[:, n_uniform:]]
+    parts = [p for p in parts if p.shape[1] > 0]
+    l_sdf = sum(p.mean() for p in parts) / len(parts)
+    l_center = lat.center.abs().sum(-1).mean()
+    l_scale = (lat.scale - 1.0).abs().mean()
+    loss = l_sdf + 0.2 * l_center + 0.001 * l_scale
+    return {"loss": loss.clamp(-4.0, 4.0), "sdf": l_sdf, "center": l_center, "scale": l_scale}
+
+
+def validate(prior: ShapePrior, objs: list[ObjectData], cfg: SampleConfig, *, seed: int, n_queries: int = 10000,
+             batch: int = 8) -> dict[str, float]:
+    """Mean volumetric IoU on the first ``n_queries`` uniform queries of each object (§2.7).
+
+    Inputs are random depth views + noise with a fixed seed (the same inputs every validation), no augmentation,
+    no centroid noise.
+
+    Returns:
+        ``iou`` (mean), ``iou_min``, ``center_err`` (mean L2 of Θ_c), ``scale`` (mean Θ_s), ``sdf_l1`` (mean |err|).
+    """
+    import torch
+
+    from efem_viz.prior.data import input_cloud
+
+    rng = np.random.default_rng(seed)
+    clouds = np.stack([input_cloud(o, cfg, rng) for o in objs])
+    ious, cerr, scales, l1 = [], [], [], []
+    with torch.no_grad():
+        for s in range(0, len(objs), batch):
+            part = objs[s:s + batch]
+            pcl = torch.as_tensor(clouds[s:s + batch], dtype=prior.dtype, device=prior.device)
+            q = torch.as_tensor(np.stack([o.uni[:n_queries] for o in part]), dtype=prior.dtype, device=prior.device)
+            lat = prior.encode(pcl)
+            pred = prior.sdf(q[..., :3], lat)
+            gt_in = q[..., 3] <= 0
+            pr_in = pred < 0
+            inter = (gt_in & pr_in).sum(1).to(torch.float64)
+            union = (gt_in | pr_in).sum(1).to(torch.float64).clamp_min(1)
+            ious.extend((inter / union).tolist())
+            cerr.extend(lat.center.norm(dim=-1).tolist())
+            scales.extend(lat.scale.tolist())
+            l1.extend((pred - q[..., 3]).abs().mean(1).tolist())
+    return {"iou": float(np.mean(ious)), "iou_min": float(np.min(ious)), "center_err": float(np.mean(cerr)),
+            "scale": float(np.mean(scales)), "sdf_l1": float(np.mean(l1))}
+
+
+def calibrate_scale_factor(prior: ShapePrior, pcl: torch.Tensor) -> float:
+    """Set σ so that the mean Θ_s of ``pcl`` (unit objects) is 1 at initialisation; returns the new σ."""
+    import torch
+
+    with torch.no_grad():
+        s = float(prior.encode(pcl).scale.mean())
+    if not math.isfinite(s) or s <= 0:
+        raise ValueError(f"cannot calibrate σ: mean Θ_s at init is {s}")
+    prior.config.scale_factor = prior.config.scale_factor / s
+    return prior.config.scale_factor
+
+
+@dataclass
+class _State:
+    iteration: int = 0
+    wall_s: float = 0.0
+    best_iou: float = -1.0
+    best_iteration: int = -1
+    curve: list[dict[str, Any]] = field(default_factory=list)
+    val_curve: list[dict[str, Any]] = field(default_factory=list)
+
+
+def _rng_state(rng: np.random.Generator) -> dict[str, Any]:
+    return rng.bit_generator.state
+
+
+def save_checkpoint(path: Path, prior: ShapePrior, opt: Any, state: _State, rng: np.random.Generator,
+                    args_dict: dict[str, Any]) -> None:
+    """Full resume checkpoint (atomic)."""
+    import torch
+
+    from efem_viz.prior.model import CHECKPOINT_FORMAT, _atomic_torch_save
+
+    _atomic_torch_save({
+        "format": CHECKPOINT_FORMAT, "kind": "train", "name": prior.name, "config": prior.config.to_dict(),
+        "state_dict": {k: v.detach().cpu().clone() for k, v in prior.state_dict().items()},
+        "optimizer": opt.state_dict(), "state": dataclasses.asdict(state), "np_rng": _rng_state(rng),
+        "torch_rng": torch.get_rng_state(), "args": args_dict, "metadata": dict(prior.metadata),
+    }, path)
+
+
+def _report(args: TrainArgs, prior: ShapePrior, state: _State, *, sec_per_iter: float | None,
+            n_train: int, n_val: int, out_dir: Path, export: Path) -> None:
+    """Write ``<export stem>_training_report.json`` and ``.md`` next to the exported weights."""
+    from efem_viz.prior.model import count_parameters
+
+    stem = export.with_suffix("")
+    rep = {
+        "name": prior.name, "config": prior.config.to_dict(), "args": _args_dict(args),
+        "parameters": {"encoder": count_parameters(prior.encoder), "decoder": count_parameters(prior.decoder)},
+        "n_train_objects": n_train, "n_val_objects": n_val, "iteration": state.iteration,
+        "wall_time_s": round(state.wall_s, 1), "sec_per_iter": sec_per_iter, "best_val_iou": state.best_iou,
+        "best_iteration": state.best_iteration, "val_curve": state.val_curve, "train_curve": state.curve[-400:],
+        "updated_utc": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime()),
+    }
+    _write_text_atomic(Path(f"{stem}_training_report.json"),
+                       json.dumps(rep, indent=1, default=_json_default) + "\n")
+    notes_path = args.report_notes if args.report_notes is not None else out_dir / "report_notes.md"
+    notes = notes_path.read_text(encoding="utf-8") if notes_path.is_file() else ""
+    lines = [f"# Training report: `{export.name}`", "", notes.strip(), "",
+             "## Run (generated by `efem-viz train-prior`, rewritten at every validation)", "",
+             f"- updated: {rep['updated_utc']} UTC; iterations: {state.iteration}; wall time: "
+             f"{state.wall_s / 60:.1f} min" + (f"; {sec_per_iter:.2f} s/iter" if sec_per_iter else ""),
+             f"- objects: {n_train} train / {n_val} val; batch {args.batch_size}; lr {args.lr:g}, "
+             f"decay ×{args.decay_factor} at {[int(round(f * args.iterations)) for f in args.decay_at]} "
+             f"of {args.iterations}",
+             f"- parameters: encoder {rep['parameters']['encoder']:,}, decoder {rep['parameters']['decoder']:,}",
+             f"- architecture: `{json.dumps(prior.config.to_dict())}`",
+             f"- **best validation IoU {state.best_iou:.4f} at iteration {state.best_iteration}** "
+             "(exported model)", "",
+             "| iteration | wall min | val IoU | min IoU | |Θ_c| | mean Θ_s | SDF L1 | train loss |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for v in state.val_curve:
+        lines.append(f"| {v['iteration']} | {v['wall_s'] / 60:.1f} | {v['iou']:.4f} | {v['iou_min']:.3f} | "
+                     f"{v['center_err']:.4f} | {v['scale']:.3f} | {v['sdf_l1']:.4f} | {v.get('train_loss', 0):.4f} |")
+    _write_text_atomic(Path(f"{stem}_training_report.md"), "\n".join(lines) + "\n")
+
+
+def _args_dict(args: TrainArgs) -> dict[str, Any]:
+    return json.loads(json.dumps(dataclasses.asdict(args), default=_json_default))
+
+
+# ------------------------------------------------------------------------------------------------------ train
+def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], None] | None = None,
+          max_iterations: int | None = None) -> dict[str, Any]:
+    """Run (or resume) training.
+
+    Args:
+        args: Run configuration.
+        on_progress: Called after every iteration with ``(iteration, total, info)``.
+        max_iterations: Stop after this many iterations of *this call* (tests).
+
+    Returns:
+        Summary dict: ``iteration``, ``best_iou``, ``best_iteration``, ``export``, ``val_curve``, ``curve``.
+
+    Raises:
+        FileNotFoundError: If resuming without a checkpoint.
+        ValueError: On bad arguments.
+    """
+    import torch
+
+    from efem_viz.prior.model import ShapePrior, count_parameters, save_prior
+
+    if args.batch_size < 1 or args.iterations < 1 or args.val_every < 1:
+        raise ValueError(f"batch_size/iterations/val_every must be >= 1 (got {args.batch_size}, "
+                         f"{args.iterations}, {args.val_every})")
+    t_start = time.monotonic()
+    torch.set_num_threads(max(1, args.threads))
+    out_dir = args.resolved_out_dir()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    export = args.resolved_export()
+    last = out_dir / "last.pt"
+    resume_path = args.resume_from if args.resume_from is not None else (last if args.resume else None)
+    ckpt: dict[str, Any] | None = None
+    if resume_path is not None:
+        if not Path(resume_path).is_file():
+            raise FileNotFoundError(f"no checkpoint to resume from: {resume_path}")
+        ckpt = torch.load(resume_path, map_location="cpu", weights_only=False)
+
+    log.info("loading training data ...")
+    train_objs = load_objects(args, "train")
+    val_objs = load_objects(args, "val")
+    log.info("data: %d train / %d val objects (%.1f s)", len(train_objs), len(val_objs), time.monotonic() - t_start)
+
+    torch.manual_seed(args.seed)
+    rng = np.random.default_rng(args.seed)
+    if ckpt is not None:
+        from efem_viz.prior.model import PriorConfig
+
+        cfg = PriorConfig.from_dict(ckpt["config"])
+    else:
+        cfg = args.prior_config()
+    prior = ShapePrior(cfg, name=args.category).to(args.device)
+    scfg = args.sample_config(cfg.n_pcl)
+    opt = torch.optim.Adam(prior.parameters(), lr=args.lr)
+    state = _State()
+    if ckpt is not None:
+        prior.load_state_dict(ckpt["state_dict"])
+        opt.load_state_dict(ckpt["optimizer"])
+        state = _State(**ckpt["state"])
+        rng.bit_generator.state = ckpt["np_rng"]
+        torch.set_rng_state(ckpt["torch_rng"])
+        prior.metadata = dict(ckpt.get("metadata") or {})
+        log.info("resumed from %s at iteration %d", resume_path, state.iteration)
+    else:
+        calib_rng = np.random.default_rng(args.seed + 7)
+        from efem_viz.prior.data import input_cloud
+
+        calib = np.stack([input_cloud(o, scfg, calib_rng) for o in train_objs[:32]])
+        sigma = calibrate_scale_factor(prior, torch.as_tensor(calib, dtype=prior.dtype))
+        log.info("calibrated σ = %.6g", sigma)
+    args_dict = _args_dict(args)
+    _write_text_atomic(out_dir / "config.json", json.dumps(
+        {"args": args_dict, "prior": prior.config.to_dict(), "sample": dataclasses.asdict(scfg),
+         "n_train": len(train_objs), "n_val": len(val_objs)}, indent=1, default=_json_default) + "\n")
+    log.info("model: encoder %d params, decoder %d params", count_parameters(prior.encoder),
+             count_parameters(prior.decoder))
+    enc_params = list(prior.encoder.parameters())
+    dec_params = list(prior.decoder.parameters())
+    n_uni = scfg.n_query_uniform
+    budget_s = args.time_budget_min * 60.0 if args.time_budget_min is not None else math.inf
+    wall0 = state.wall_s
+    t_loop = time.monotonic()
+    last_ckpt = time.monotonic()
+    last_resume_export = -math.inf
+    iter_times: list[float] = []
+    done_here = 0
+    running: list[float] = []
+
+    def elapsed() -> float:
+        return time.monotonic() - t_start
+
+    def do_validation() -> None:
+        prior.eval()
+        t0 = time.monotonic()
+        m = validate(prior, val_objs, scfg, seed=args.seed + 99)
+        prior.train()
+        m.update(iteration=state.iteration, wall_s=wall0 + (time.monotonic() - t_loop),
+                 train_loss=float(np.mean(running)) if running else float("nan"),
+                 val_time_s=round(time.monotonic() - t0, 2))
+        state.val_curve.append(m)
+        log.info("val @%d: IoU %.4f (min %.3f) |Θc| %.4f Θs %.3f L1 %.4f [%.1fs]", state.iteration, m["iou"],
+                 m["iou_min"], m["center_err"], m["scale"], m["sdf_l1"], m["val_time_s"])
+        if m["iou"] > state.best_iou:
+            state.best_iou, state.best_iteration = m["iou"], state.iteration
+            save_prior(prior, export, extra={"iteration": state.iteration, "val_iou": m["iou"],
+                                             "val_metrics": m, "trained_on": args.meshes or f"procedural:{args.category}",
+                                             "n_train": len(train_objs)})
+            log.info("exported best model to %s", export)
+        spi = float(np.median(iter_times[-200:])) if iter_times else None
+        _report(args, prior, state, sec_per_iter=spi, n_train=len(train_objs), n_val=len(val_objs),
+                out_dir=out_dir, export=export)
+
+    def do_checkpoint() -> None:
+        nonlocal last_ckpt, last_resume_export
+        state.wall_s = wall0 + (time.monotonic() - t_loop)
+        save_checkpoint(last, prior, opt, state, rng, args_dict)
+        last_ckpt = time.monotonic()
+        if args.resume_export is not None and time.monotonic() - last_resume_export >= args.resume_export_every_min * 60:
+            if last.stat().st_size < 20 * 2**20:
+                _copy_atomic(last, args.resume_export)
+                last_resume_export = time.monotonic()
+            else:
+                log.warning("resume checkpoint is %.1f MB (> 20 MB): not copied to %s",
+                            last.stat().st_size / 2**20, args.resume_export)
+
+    prior.train()
+    if state.iteration == 0 and not state.val_curve:
+        do_validation()
+    stop_reason = "iterations"
+    while state.iteration < args.iterations:
+        if max_iterations is not None and done_here >= max_iterations:
+            stop_reason = "max_iterations"
+            break
+        if elapsed() >= budget_s:
+            stop_reason = "time budget"
+            break
+        t0 = time.monotonic()
+        lr = lr_at(state.iteration, base=args.lr, total=args.iterations, decay_at=args.decay_at,
+                   factor=args.decay_factor)
+        for g in opt.param_groups:
+            g["lr"] = lr
+        idx = rng.integers(0, len(train_objs), args.batch_size)
+        from efem_viz.prior.data import make_batch
+
+        pcl_np, q_np = make_batch([train_objs[i] for i in idx], scfg, rng, others=train_objs, augment=True)
+        noise_np = rng.normal(0.0, scfg.centroid_noise, (args.batch_size, 3))
+        pcl = torch.as_tensor(pcl_np, dtype=prior.dtype, device=prior.device)
+        q = torch.as_tensor(q_np, dtype=prior.dtype, device=prior.device)
+        noise = torch.as_tensor(noise_np, dtype=prior.dtype, device=prior.device)
+        losses = compute_losses(prior, pcl, q, n_uniform=n_uni, centroid_noise=noise)
+        opt.zero_grad(set_to_none=True)
+        losses["loss"].backward()
+        gn_e = float(torch.nn.utils.clip_grad_norm_(enc_params, 4.0))
+        gn_d = float(torch.nn.utils.clip_grad_norm_(dec_params, 4.0))
+        opt.step()
+        state.iteration += 1
+        done_here += 1
+        dt = time.monotonic() - t0
+        iter_times.append(dt)
+        lv = float(losses["loss"])
+        running.append(lv)
+        running[:] = running[-50:]
+        if not math.isfinite(lv):
+            raise FloatingPointError(f"non-finite loss at iteration {state.iteration}")
+        if state.iteration % 10 == 0:
+            state.curve.append({"iteration": state.iteration, "loss": lv, "sdf": float(losses["sdf"]),
+                                "center": float(losses["center"]), "scale": float(losses["scale"]),
+                                "grad_enc": gn_e, "grad_dec": gn_d, "lr": lr, "sec": round(dt, 3)})
+        if state.iteration % 50 == 0:
+            log.info("it %d loss %.4f sdf %.4f center %.4f scale %.4f |g| %.2f/%.2f lr %.2g %.2fs/it",
+                     state.iteration, lv, float(losses["sdf"]), float(losses["center"]), float(losses["scale"]),
+                     gn_e, gn_d, lr, float(np.median(iter_times[-50:])))
+        if on_progress is not None:
+            on_progress(state.iteration, args.iterations,
+                        {"loss": float(np.mean(running)), "best_iou": state.best_iou,
+                         "left_min": (budget_s - elapsed()) / 60 if math.isfinite(budget_s) else float("nan")})
+        if state.iteration % args.val_every == 0:
+            do_validation()
+        if time.monotonic() - last_ckpt >= args.ckpt_every_min * 60:
+            do_checkpoint()
+    if not state.val_curve or state.val_curve[-1]["iteration"] != state.iteration:
+        do_validation()
+    do_checkpoint()
+    log.info("stopped (%s) at iteration %d after %.1f min", stop_reason, state.iteration, elapsed() / 60)
+    return {"iteration": state.iteration, "best_iou": state.best_iou, "best_iteration": state.best_iteration,
+            "export": str(export), "val_curve": state.val_curve, "curve": state.curve, "stop_reason": stop_reason,
+            "checkpoint": str(last)}

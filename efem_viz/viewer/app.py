@@ -1,0 +1,899 @@
+"""The EFEM viewer: a thin viser layer over the scene, EM, trace and evaluation code.
+
+Threading: GUI callbacks run on viser's threads. They read handle values into `ViewerState` and either redraw
+directly (cheap: colours, visibility) or submit heavy work (loading, EM, decoding shapes, exports) to worker
+threads. One re-entrant lock guards the state and the scene nodes; the workers take it only to publish results.
+
+Sharing: one state, one scene and one GUI for all browsers (`server.gui` / `server.scene`): every client sees the
+same scene, step, threshold and selection. Errors are shown in the status line and as a notification to every
+connected client; the server stays up.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from concurrent.futures import Future, ThreadPoolExecutor
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from efem_viz.viewer import state as st
+from efem_viz.viewer.nodes import SceneNodes
+from efem_viz.viewer.panels import COLOR_MODES, NO_PROPOSAL, active_figure, build_panels, pr_figure
+from efem_viz.viewer.state import SceneEntry, ViewerState
+
+logger = logging.getLogger(__name__)
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+DEFAULT_SCENE_DIR = REPO_ROOT / "sample_scenes"
+MAX_DEAD_LISTED = 40
+
+
+class ViewerApp:
+    """The viewer application (server, state, panels, nodes, workers).
+
+    Args:
+        paths: scene files and/or folders; the browser lists only scene files inside them.
+        host: interface to bind (default loopback only).
+        port: port (0 = a free random port; a busy port is replaced by the next free one, see `url`).
+        prior: a `ShapePrior`, or None to load `prior_name` lazily when first needed (decoding, runs).
+        prior_name: name for `efem_viz.prior.load_prior`.
+        open_first: open the first scene at start (and its saved trace when present).
+        out_dir: default export folder.
+    """
+
+    def __init__(
+        self,
+        paths: Sequence[str | Path] = (),
+        *,
+        host: str = "127.0.0.1",
+        port: int = 8080,
+        prior: Any = None,
+        prior_name: str = "mug",
+        open_first: bool = True,
+        out_dir: str | Path = "efem_out",
+    ) -> None:
+        import viser
+
+        self.state = ViewerState()
+        self.state.entries = st.discover_scenes(list(paths) if paths else [DEFAULT_SCENE_DIR])
+        self._roots = [Path(p).expanduser().resolve() for p in (paths or [DEFAULT_SCENE_DIR])]
+        self._prior = prior
+        self._prior_name = prior_name
+        self._prior_error: str | None = None
+        self._lock = threading.RLock()
+        self._quiet = False
+        self._worker = ThreadPoolExecutor(1, thread_name_prefix="efem-viewer-work")
+        self._decoder = ThreadPoolExecutor(1, thread_name_prefix="efem-viewer-decode")
+        self._pending: set[Future[Any]] = set()
+        self._pending_lock = threading.Lock()
+        self._cancel = threading.Event()
+        self._play_stop = threading.Event()
+        self._play_thread: threading.Thread | None = None
+        self._view_cache: dict[tuple[int, int], Any] = {}
+        self._gt_cache: dict[tuple[int, float], st.GTMetrics] = {}
+        self._inspect_weights: np.ndarray | None = None
+        self._generation = 0
+        """Bumped on every scene/result change so stale worker results are dropped."""
+
+        self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        self.server.gui.configure_theme(control_width="large", dark_mode=False, show_logo=False)
+        self.server.scene.set_up_direction("+z")
+        self.nodes = SceneNodes(self.server.scene)
+        self.panels = build_panels(
+            self.server.gui, scene_names=[e.name for e in self.state.entries], out_dir=str(out_dir)
+        )
+        self._wire()
+        self.server.on_client_connect(self._on_connect)
+        if open_first and self.state.entries:
+            for e in self.state.entries:  # the first scene that opens (a bad file only shows its error)
+                if self.open_scene(e.name):
+                    break
+        elif not self.state.entries:
+            self._set_status("No scene files found in the given paths.", error=True)
+
+    # ================================================================== lifecycle
+    @property
+    def url(self) -> str:
+        """The real URL (after viser may have moved to a free port)."""
+        host = self.server.get_host()
+        shown = "127.0.0.1" if host in ("0.0.0.0", "") else host
+        return f"http://{shown}:{self.server.get_port()}"
+
+    def stop(self) -> None:
+        """Stop playback, cancel a run, shut the workers and the server down."""
+        self.pause()
+        self._cancel.set()
+        self._worker.shutdown(wait=False, cancel_futures=True)
+        self._decoder.shutdown(wait=False, cancel_futures=True)
+        self.server.stop()
+
+    def wait_idle(self, timeout: float = 60.0) -> bool:
+        """Block until every submitted job (loads, runs, decodes) has finished. Returns False on timeout."""
+        deadline = time.monotonic() + timeout
+        while True:
+            with self._pending_lock:
+                pending = [f for f in self._pending if not f.done()]
+                self._pending = set(pending)
+            if not pending:
+                return True
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.01)
+
+    def _submit(self, pool: ThreadPoolExecutor, fn: Callable[..., Any], *args: Any, **kw: Any) -> Future[Any]:
+        def guarded() -> Any:
+            try:
+                return fn(*args, **kw)
+            except Exception as exc:  # noqa: BLE001 - shown in the GUI, server stays up
+                logger.exception("viewer job %s failed", getattr(fn, "__name__", fn))
+                self._set_status(f"{getattr(fn, '__name__', 'job')} failed: {exc}", error=True)
+                raise
+
+        fut = pool.submit(guarded)
+        with self._pending_lock:
+            self._pending.add(fut)
+        return fut
+
+    # ================================================================== status
+    def _set_status(self, text: str, *, error: bool = False) -> None:
+        with self._lock:
+            self.state.status = text
+            self.state.error = text if error else None
+            icon = "⚠️ " if error else ""
+            self.panels.gui_status.content = f"{icon}{text}" if text else ""
+        if error:
+            logger.warning("%s", text)
+            for client in list(self.server.get_clients().values()):
+                try:
+                    client.add_notification("efem-viz", text, color="red", auto_close_seconds=8.0)
+                except Exception:  # noqa: BLE001 - a client may disconnect meanwhile
+                    pass
+
+    def _on_connect(self, client: Any) -> None:
+        if self.state.error:
+            client.add_notification("efem-viz", self.state.error, color="red", auto_close_seconds=8.0)
+
+    # ================================================================== wiring (callbacks stay thin)
+    def _wire(self) -> None:
+        p = self.panels
+
+        def guard(fn: Callable[[], None]) -> Callable[[Any], None]:
+            def cb(_event: Any) -> None:
+                if self._quiet:
+                    return
+                try:
+                    fn()
+                except Exception as exc:  # noqa: BLE001
+                    logger.exception("callback failed")
+                    self._set_status(f"error: {exc}", error=True)
+
+            return cb
+
+        p.gui_scene.on_update(guard(lambda: self._submit(self._worker, self.open_scene, p.gui_scene.value)))
+        p.gui_display.on_update(guard(lambda: self.set_display(p.gui_display.value)))
+        p.gui_color.on_update(guard(lambda: self.set_color_mode(COLOR_MODES[p.gui_color.value])))
+        p.gui_point_size.on_update(guard(lambda: self.set_point_size(float(p.gui_point_size.value) / 1000.0)))
+        p.gui_run.on_click(
+            guard(lambda: self.start_run(preset=p.gui_preset.value, proposals=int(p.gui_proposals.value), seed=int(p.gui_seed.value)))
+        )
+        p.gui_cancel.on_click(guard(self.cancel_run))
+        p.gui_load.on_click(guard(lambda: self._submit(self._worker, self.load_trace)))
+        p.gui_step.on_update(guard(lambda: self.set_step(int(p.gui_step.value))))
+        p.gui_play.on_click(guard(self.toggle_play))
+        p.gui_speed.on_update(guard(lambda: setattr(self.state, "speed", float(p.gui_speed.value))))
+        p.gui_show_shapes.on_update(guard(lambda: self.set_proposal_layers(shapes=bool(p.gui_show_shapes.value))))
+        p.gui_show_samples.on_update(guard(lambda: self.set_proposal_layers(samples=bool(p.gui_show_samples.value))))
+        p.gui_max_shapes.on_update(guard(lambda: self.set_max_shapes(int(p.gui_max_shapes.value))))
+        p.gui_proposal.on_update(guard(lambda: self.select_proposal(_parse_pid(p.gui_proposal.value))))
+        p.gui_threshold.on_update(guard(lambda: self.set_threshold(float(p.gui_threshold.value))))
+        for h in (p.gui_show_meshes, p.gui_show_obbs, p.gui_show_axes):
+            h.on_update(
+                guard(
+                    lambda: self.set_result_layers(
+                        meshes=bool(p.gui_show_meshes.value), obbs=bool(p.gui_show_obbs.value), axes=bool(p.gui_show_axes.value)
+                    )
+                )
+            )
+        p.gui_export_results.on_click(guard(lambda: self._submit(self._worker, self.export_results, p.gui_out_dir.value)))
+        p.gui_export_static.on_click(guard(lambda: self._submit(self._worker, self.export_static, None)))
+
+    def _gui_set(self, handle: Any, value: Any) -> None:
+        """Set a GUI value without re-entering our own callback."""
+        with self._lock:
+            prev, self._quiet = self._quiet, True
+            try:
+                handle.value = value
+            finally:
+                self._quiet = prev
+
+    # ================================================================== prior
+    def prior(self) -> Any:
+        """The shape prior (loaded on first use). Raises RuntimeError with the reason when unavailable."""
+        if self._prior is None:
+            if self._prior_error is not None:
+                raise RuntimeError(self._prior_error)
+            try:
+                from efem_viz.prior import load_prior
+
+                self._prior = load_prior(self._prior_name)
+            except Exception as exc:  # noqa: BLE001
+                self._prior_error = f"shape prior {self._prior_name!r} unavailable: {exc}"
+                raise RuntimeError(self._prior_error) from exc
+        return self._prior
+
+    # ================================================================== 1. scenes
+    def open_scene(self, name: str) -> bool:
+        """Load a scene from the browser list, draw it, and load its saved trace when present.
+
+        Returns:
+            True on success; on failure the error is shown in the GUI and the previous scene stays.
+        """
+        from efem_viz.data.io import load_scene
+
+        try:
+            entry = self.state.entry(name)
+        except KeyError as exc:
+            self._set_status(str(exc), error=True)
+            return False
+        if not st.is_inside(entry.path, self._roots):  # never read outside the given paths
+            self._set_status(f"refusing to open {entry.path}: outside the given paths", error=True)
+            return False
+        self._set_status(f"Loading {entry.name} …")
+        try:
+            scene = load_scene(entry.path)
+        except Exception as exc:  # noqa: BLE001 - SceneError, OSError, parser errors: show, stay up
+            self._set_status(f"Could not open {entry.path.name}: {exc}", error=True)
+            if self.state.scene_name is not None:
+                self._gui_set(self.panels.gui_scene, self.state.scene_name)
+            return False
+        with self._lock:
+            self.pause()
+            self._generation += 1
+            self._view_cache.clear()
+            self._inspect_weights = None
+            s = self.state
+            s.scene_name, s.scene, s.result, s.result_source = entry.name, scene, None, ""
+            s.step, s.selected, s.color_mode = 0, None, "rgb"
+            if scene.is_mesh and s.display == "points":
+                s.display = "mesh"
+            elif not scene.is_mesh:
+                s.display = "points"
+            self.nodes.draw_scene(scene, display=s.display)
+            s.point_size = self.nodes.point_size
+            self._gui_set(self.panels.gui_scene, entry.name)
+            self._gui_set(self.panels.gui_display, s.display)
+            self._gui_set(self.panels.gui_color, "scene colours")
+            self._gui_set(self.panels.gui_point_size, float(np.clip(round(s.point_size * 2000) / 2, 0.5, 20.0)))
+            self.panels.gui_info.content = scene_info_markdown(scene, entry)
+            self._frame_cameras(scene)
+            self._draw_no_result()
+            self._set_status(f"Opened {entry.name} ({scene.num_points:,} points).")
+        if entry.trace_path.is_file() and st.is_inside(entry.trace_path, self._roots):
+            self.load_trace()
+        return True
+
+    def _frame_cameras(self, scene: Any) -> None:
+        """Point the initial camera (new clients, "Reset View") and every connected camera at the scene."""
+        lo, hi = scene.bounds
+        center = (lo + hi) / 2.0
+        diag = float(np.linalg.norm(hi - lo)) or 1.0
+        position = center + diag * np.array([0.55, -0.75, 0.65])
+        cam = self.server.initial_camera
+        cam.look_at = tuple(float(v) for v in center)
+        cam.position = tuple(float(v) for v in position)
+        cam.up = (0.0, 0.0, 1.0)
+        for client in list(self.server.get_clients().values()):
+            try:
+                client.camera.look_at = tuple(float(v) for v in center)
+                client.camera.position = tuple(float(v) for v in position)
+            except Exception:  # noqa: BLE001 - a client may disconnect meanwhile
+                pass
+
+    def set_display(self, display: str) -> None:
+        """'points' or 'mesh'."""
+        if display not in ("points", "mesh"):
+            raise ValueError(f"display must be 'points' or 'mesh', got {display!r}")
+        with self._lock:
+            self.state.display = display  # type: ignore[assignment]
+            self.nodes.set_display(display, recolored=self.state.color_mode != "rgb")
+
+    def set_point_size(self, size_m: float) -> None:
+        with self._lock:
+            self.state.point_size = float(size_m)
+            if self.nodes.points is not None:
+                self.nodes.points.point_size = float(size_m)
+
+    def set_color_mode(self, mode: str) -> None:
+        """How the scene points are coloured: 'rgb', 'instances', 'gt_match' or 'weights'."""
+        if mode not in COLOR_MODES.values():
+            raise ValueError(f"unknown colour mode {mode!r}; expected one of {sorted(COLOR_MODES.values())}")
+        with self._lock:
+            self.state.color_mode = mode  # type: ignore[assignment]
+            label = next(k for k, v in COLOR_MODES.items() if v == mode)
+            self._gui_set(self.panels.gui_color, label)
+            self.draw_point_colors()
+            self.nodes.set_display(self.state.display, recolored=mode != "rgb")
+
+    # ================================================================== 2. results: load / run
+    def load_trace(self, path: str | Path | None = None) -> bool:
+        """Load `<scene>.efem.npz` (or `path`, which must lie inside the given paths) for the open scene."""
+        from efem_viz.em import EMResult
+
+        s = self.state
+        if s.scene is None or s.scene_name is None:
+            self._set_status("Open a scene first.", error=True)
+            return False
+        p = Path(path) if path is not None else s.entry(s.scene_name).trace_path
+        if not st.is_inside(p, self._roots):
+            self._set_status(f"refusing to read {p}: outside the given paths", error=True)
+            return False
+        if not p.is_file():
+            self._set_status(f"No saved trace at {p.name}; run EFEM first.", error=True)
+            return False
+        try:
+            result = EMResult.load(p)
+            self.set_result(result, source=str(p.name))
+        except Exception as exc:  # noqa: BLE001 - corrupt file, other scene's result: show, stay up
+            logger.exception("loading %s failed", p)
+            self._set_status(f"Could not load {p.name}: {exc}", error=True)
+            return False
+        return True
+
+    def start_run(self, *, preset: str = "fast", proposals: int | None = None, seed: int = 0) -> Future[Any] | None:
+        """Run EFEM on the open scene in the worker thread (progress bar, cancel). Returns the job's Future."""
+        with self._lock:
+            if self.state.running:
+                self._set_status("A run is already in progress.", error=True)
+                return None
+            if self.state.scene is None:
+                self._set_status("Open a scene first.", error=True)
+                return None
+            self.state.running = True
+            self._cancel.clear()
+            p = self.panels
+            p.gui_run.disabled = True
+            p.gui_load.disabled = True
+            p.gui_cancel.disabled = False
+            p.gui_progress.value = 0.0
+            p.gui_progress.visible = True
+            p.gui_progress.animated = True
+        return self._submit(self._worker, self._run_job, preset, proposals, seed, self._generation)
+
+    def _run_job(self, preset: str, proposals: int | None, seed: int, generation: int) -> Any:
+        from efem_viz.em import EMCancelled, preset as make_preset, run_em
+
+        scene = self.state.scene
+        t0 = time.perf_counter()
+        try:
+            cfg = make_preset(preset)
+            if proposals is not None:
+                cfg = cfg.with_proposals(int(proposals))
+            self._set_status(f"Running EFEM ({preset}, {cfg.n_init[0]} proposals, seed {seed}) …")
+            prior = self.prior()
+
+            def on_step(info: Any) -> None:
+                frac = 100.0 * (int(info.step) + 1) / max(int(info.num_steps), 1)
+                self.panels.gui_progress.value = float(np.clip(frac, 0.0, 100.0))
+                self.panels.gui_run_info.content = (
+                    f"step {int(info.step) + 1}/{int(info.num_steps)} · phase {int(info.phase)} · "
+                    f"{int(info.active)} active · {float(info.elapsed_s):.1f} s"
+                )
+
+            result = run_em(scene, prior, cfg, seed=int(seed), on_step=on_step, cancel=self._cancel)
+        except EMCancelled:
+            self._set_status("Run cancelled.")
+            return None
+        except Exception as exc:  # noqa: BLE001
+            self._set_status(f"EFEM run failed: {exc}", error=True)
+            return None
+        finally:
+            with self._lock:
+                self.state.running = False
+                p = self.panels
+                p.gui_run.disabled = False
+                p.gui_load.disabled = False
+                p.gui_cancel.disabled = True
+                p.gui_progress.visible = False
+        if generation != self._generation:
+            logger.info("scene changed during the run; result dropped")
+            return None
+        self.set_result(result, source=f"run ({preset}, seed {seed}, {time.perf_counter() - t0:.1f} s)")
+        return result
+
+    def cancel_run(self) -> None:
+        """Ask a running EM to stop at its next step."""
+        self._cancel.set()
+        self._set_status("Cancelling …")
+
+    def set_result(self, result: Any, *, source: str) -> None:
+        """Show an EMResult: timeline, proposals at the last step, final instances and ground truth."""
+        with self._lock:
+            self.pause()
+            self._generation += 1
+            self._view_cache.clear()
+            self._inspect_weights = None
+            s = self.state
+            trace = result.trace
+            if s.scene is not None and hasattr(trace, "bind"):
+                trace.bind(s.scene)  # raises ValueError when the result belongs to another scene
+            s.result, s.result_source, s.selected = result, source, None
+            T = int(trace.num_steps)
+            s.step = max(T - 1, 0)
+            p = self.panels
+            marks = st.phase_marks(np.asarray(trace.phase))
+            p.gui_step.max = max(T - 1, 1)
+            p.gui_step.marks = tuple((m.step, m.label) for m in marks) or None
+            p.gui_step.disabled = T == 0
+            p.gui_play.disabled = T == 0
+            self._gui_set(p.gui_step, s.step)
+            self._gui_set(p.gui_proposal, NO_PROPOSAL)
+            self.nodes.clear_inspector()
+            # Remove old per-step shapes and draw the final instances once.
+            for key in list(self.nodes.shapes):
+                h = self.nodes.shapes.pop(key)
+                try:
+                    h.remove()
+                except Exception:  # noqa: BLE001
+                    pass
+            self.nodes.draw_results(result.instances, show_meshes=s.show_meshes, show_obbs=s.show_obbs, show_axes=s.show_axes)
+            conf = np.asarray(result.instances.confidence, float)
+            hi = float(conf.max()) if conf.size else 1.0
+            p.gui_threshold.max = max(round(hi + 0.005, 2), 0.01)
+            s.threshold = float(np.clip(s.threshold, 0.0, p.gui_threshold.max))
+            self._gui_set(p.gui_threshold, s.threshold)
+            p.gui_run_info.content = f"**Result**: {source} · {T} steps · {len(result.instances.ids)} instances"
+            p.gui_active_plot.visible = True
+            s.color_mode = "instances"
+            self._gui_set(p.gui_color, "instances")
+            self.set_step(s.step)
+            self.set_threshold(s.threshold)
+            self._set_status(f"Loaded result: {source}.")
+
+    def _draw_no_result(self) -> None:
+        p = self.panels
+        p.gui_step.disabled = True
+        p.gui_play.disabled = True
+        p.gui_active_plot.visible = False
+        p.gui_pr_plot.visible = False
+        p.gui_step_info.content = "_No trace: run EFEM or load a saved trace._"
+        p.gui_inspect_info.content = ""
+        p.gui_dead_info.content = ""
+        p.gui_result_info.content = ""
+        p.gui_gt_info.content = ""
+        p.gui_run_info.content = ""
+        self._gui_set(p.gui_proposal, NO_PROPOSAL)
+        p.gui_proposal.options = (NO_PROPOSAL,)
+
+    # ================================================================== 3. timeline
+    def set_step(self, step: int) -> None:
+        """Show EM step `step`: proposals alive then (samples now, decoded shapes as they arrive), the dead list,
+        the inspected proposal's views and the active-count plot marker. Cheap; decoding runs in the worker."""
+        with self._lock:
+            s = self.state
+            if s.result is None:
+                return
+            T = s.num_steps
+            t = int(np.clip(step, 0, max(T - 1, 0)))
+            s.step = t
+            self._gui_set(self.panels.gui_step, t)
+            trace = s.result.trace
+            ids, scores = st.alive_table(trace, t)
+            drawn = st.top_n(ids, scores, s.max_shapes)
+            self._draw_samples(trace, t, drawn)
+            self._draw_shapes(t, drawn)
+            self._update_step_panels(trace, t, ids, scores)
+            if s.selected is not None:
+                self._request_inspect(s.selected, t)
+
+    def _draw_samples(self, trace: Any, t: int, drawn: np.ndarray) -> None:
+        s = self.state
+        if not s.show_samples or drawn.size == 0:
+            self.nodes.hide_samples()
+            return
+        pts_list, col_list = [], []
+        cols = st.palette(drawn)
+        for k, pid in enumerate(drawn):
+            idx = st.sample_indices(trace, int(pid), t)
+            if idx is None or idx.size == 0:
+                continue
+            idx = np.unique(idx)
+            pts_list.append(s.scene.points[idx])
+            col_list.append(np.repeat(cols[k : k + 1], idx.size, axis=0))
+        if not pts_list:
+            self.nodes.hide_samples()
+            return
+        self.nodes.draw_samples(np.concatenate(pts_list), np.concatenate(col_list))
+
+    def _draw_shapes(self, t: int, drawn: np.ndarray) -> None:
+        s = self.state
+        keys = [(int(pid), t) for pid in drawn] if s.show_shapes else []
+        self.nodes.show_shapes(keys)
+        missing = [k for k in keys if not self.nodes.has_shape(*k)]
+        if missing:
+            self._submit(self._decoder, self._decode_shapes, missing, self._generation)
+
+    def _decode_shapes(self, keys: list[tuple[int, int]], generation: int) -> None:
+        """Worker: decode the shapes of (proposal, step) pairs from their stored latents and send each once."""
+        from efem_viz.em.solver import mesh_of_latent
+
+        try:
+            prior = self.prior()
+        except RuntimeError as exc:
+            self._set_status(f"Decoded shapes unavailable: {exc}", error=True)
+            return
+        for pid, t in keys:
+            with self._lock:
+                if generation != self._generation or self.state.step != t or self.nodes.has_shape(pid, t):
+                    continue  # the user moved on (decoded again when asked) or it is already there
+                trace = self.state.result.trace
+                latent = trace.latent(pid, t)
+                resolution = int(getattr(trace.config, "mesh_resolution", 40))
+            mesh = mesh_of_latent(prior, latent, resolution=resolution)
+            with self._lock:
+                if generation != self._generation:
+                    return
+                if mesh is not None and len(getattr(mesh, "faces", ())):
+                    dead = st.is_dead_at(trace, pid, t)
+                    self.nodes.add_shape(pid, t, np.asarray(mesh.vertices), np.asarray(mesh.faces), dead=dead)
+                if self.state.step == t and self.state.show_shapes:
+                    ids, scores = st.alive_table(trace, t)
+                    drawn = st.top_n(ids, scores, self.state.max_shapes)
+                    self.nodes.show_shapes([(int(p_), t) for p_ in drawn])
+
+    def _view(self, pid: int, t: int, prior: Any) -> Any:
+        key = (int(pid), int(t))
+        v = self._view_cache.get(key)
+        if v is None or (prior is not None and getattr(v, "mesh", None) is None):
+            v = self.state.result.trace.view(int(pid), int(t), prior, mesh=prior is not None)
+            self._view_cache[key] = v
+            if len(self._view_cache) > 256:
+                self._view_cache.pop(next(iter(self._view_cache)))
+        return v
+
+    def _update_step_panels(self, trace: Any, t: int, ids: np.ndarray, scores: np.ndarray) -> None:
+        p = self.panels
+        phase = int(np.asarray(trace.phase)[t]) if len(trace.phase) else 0
+        sched = np.asarray(trace.schedule)[t] if len(trace.schedule) else np.zeros(4)
+        active = np.asarray(trace.active_count)
+        p.gui_step_info.content = (
+            f"**Step {t}** / {int(trace.num_steps) - 1} · phase {phase} · **{len(ids)} alive** "
+            f"(of {int(active[0]) if active.size else 0} initial)\n\n"
+            f"α_D={sched[0]:.3g} · τ_D={sched[1]:.3g} · α_N={sched[2]:.3g} · τ_N={sched[3]:.3g}"
+        )
+        p.gui_active_plot.figure = active_figure(
+            active, [(m.step, m.label) for m in st.phase_marks(np.asarray(trace.phase))], t
+        )
+        order = st.top_n(ids, scores, len(ids))
+        score_of = dict(zip(np.asarray(ids).tolist(), np.asarray(scores).tolist()))
+        options = [NO_PROPOSAL] + [f"#{int(i)}  (score {score_of[int(i)]:.3f})" for i in order]
+        if self.state.selected is not None and int(self.state.selected) not in score_of:
+            options.append(f"#{int(self.state.selected)}  (dead)")
+        p.gui_proposal.options = tuple(options)
+        sel = self.state.selected
+        current = next((o for o in options if _parse_pid(o) == sel), NO_PROPOSAL)
+        self._gui_set(p.gui_proposal, current)
+        deaths = [d for d in st.deaths(trace) if d.step <= t]
+        lines = [f"**Terminated by step {t}: {len(deaths)}**", ""]
+        for d in sorted(deaths, key=lambda d: (-d.step, d.pid))[:MAX_DEAD_LISTED]:
+            extra = f" (partner #{d.partner}, ratio {d.ratio:.2f})" if d.partner is not None and d.partner >= 0 else ""
+            lines.append(f"- #{d.pid}: {d.reason} at step {d.step}{extra}")
+        if len(deaths) > MAX_DEAD_LISTED:
+            lines.append(f"- … {len(deaths) - MAX_DEAD_LISTED} more")
+        p.gui_dead_info.content = "\n".join(lines)
+
+    def play(self) -> None:
+        """Start playback from the current step (from 0 when at the end)."""
+        with self._lock:
+            if self.state.result is None or self.state.playing:
+                return
+            if self.state.step >= self.state.num_steps - 1:
+                self.set_step(0)
+            self.state.playing = True
+            self.panels.gui_play.label = "Pause"
+            self._play_stop.clear()
+            self._play_thread = threading.Thread(target=self._play_loop, name="efem-viewer-play", daemon=True)
+            self._play_thread.start()
+
+    def pause(self) -> None:
+        with self._lock:
+            self.state.playing = False
+            self._play_stop.set()
+            self.panels.gui_play.label = "Play"
+
+    def toggle_play(self) -> None:
+        if self.state.playing:
+            self.pause()
+        else:
+            self.play()
+
+    def _play_loop(self) -> None:
+        while not self._play_stop.wait(1.0 / max(self.state.speed, 0.1)):
+            with self._lock:
+                if not self.state.playing or self.state.result is None:
+                    return
+                nxt = self.state.step + 1
+                if nxt >= self.state.num_steps:
+                    self.pause()
+                    return
+                self.set_step(nxt)
+
+    # ================================================================== 4. proposals
+    def set_max_shapes(self, n: int) -> None:
+        with self._lock:
+            self.state.max_shapes = max(int(n), 0)
+            self.set_step(self.state.step)
+
+    def set_proposal_layers(self, *, shapes: bool | None = None, samples: bool | None = None) -> None:
+        with self._lock:
+            if shapes is not None:
+                self.state.show_shapes = bool(shapes)
+            if samples is not None:
+                self.state.show_samples = bool(samples)
+            self.set_step(self.state.step)
+
+    def select_proposal(self, pid: int | None) -> Future[Any] | None:
+        """Inspect one proposal (None clears): Fig. S9 views computed in the worker, drawn when ready."""
+        with self._lock:
+            s = self.state
+            s.selected = None if pid is None else int(pid)
+            if pid is None or s.result is None:
+                self.nodes.clear_inspector()
+                self.panels.gui_inspect_info.content = ""
+                if s.color_mode == "weights":
+                    self.set_color_mode("instances" if s.result is not None else "rgb")
+                self._gui_set(self.panels.gui_proposal, NO_PROPOSAL)
+                return None
+            opts = self.panels.gui_proposal.options
+            cur = next((o for o in opts if _parse_pid(o) == int(pid)), None)
+            if cur is None:
+                cur = f"#{int(pid)}"
+                self.panels.gui_proposal.options = tuple(opts) + (cur,)
+            self._gui_set(self.panels.gui_proposal, cur)
+            return self._request_inspect(int(pid), s.step)
+
+    def _request_inspect(self, pid: int, t: int) -> Future[Any]:
+        return self._submit(self._decoder, self._inspect_job, pid, t, self._generation)
+
+    def _inspect_job(self, pid: int, t: int, generation: int) -> None:
+        try:
+            prior = self.prior()
+        except RuntimeError as exc:
+            prior = None
+            logger.info("inspecting without a prior: %s", exc)
+        view = self._view(pid, t, prior)
+        with self._lock:
+            s = self.state
+            if generation != self._generation or s.selected != pid or s.step != t:
+                return
+            self._draw_inspector(pid, t, view)
+
+    def _draw_inspector(self, pid: int, t: int, view: Any) -> None:
+        s = self.state
+        scene = s.scene
+        w = np.asarray(view.weights, np.float32).reshape(-1)
+        r_err = float(s.result.trace.prop_r_err[pid])
+        center = st.proposal_center(s.result.trace, pid, t)
+        near = np.flatnonzero(np.linalg.norm(scene.points - center[None], axis=1) <= r_err)
+        crop_cols = st.heatmap(w[near], vmin=0.0, vmax=1.0)
+        mesh = getattr(view, "mesh", None)
+        col = st.palette([pid])[0] if view.alive else st.DEAD_COLOR  # red once terminated (paper Fig. S9)
+        self.nodes.draw_inspector(
+            crop_points=scene.points[near],
+            crop_colors=crop_cols,
+            sampled_points=np.asarray(view.sampled_points, np.float32).reshape(-1, 3),
+            sample_color=col,
+            mesh_vertices=None if mesh is None else np.asarray(mesh.vertices),
+            mesh_faces=None if mesh is None else np.asarray(mesh.faces),
+            center=center,
+            label=f"#{pid} t={t}",
+        )
+        self._inspect_weights = w
+        if s.color_mode != "weights":
+            s.color_mode = "weights"
+            self._gui_set(self.panels.gui_color, "proposal weights")
+        self.draw_point_colors()
+        self.nodes.set_display(s.display, recolored=True)
+        self.panels.gui_inspect_info.content = inspect_markdown(pid, t, view)
+
+    # ================================================================== 5./6. results and ground truth
+    def set_threshold(self, threshold: float) -> None:
+        """Filter the final instances by confidence (visibility + colours only, no re-run)."""
+        with self._lock:
+            s = self.state
+            s.threshold = float(threshold)
+            self._gui_set(self.panels.gui_threshold, s.threshold)
+            if s.result is None:
+                return
+            keep = self.kept_mask()
+            self.nodes.show_results(keep, show_meshes=s.show_meshes, show_obbs=s.show_obbs, show_axes=s.show_axes)
+            self.draw_point_colors()
+            conf = np.asarray(s.result.instances.confidence, float)
+            self.panels.gui_result_info.content = (
+                f"**{int(keep.sum())} of {keep.size} instances** with confidence ≥ {s.threshold:.2f}"
+                + (f" (max {conf.max():.2f})" if conf.size else "")
+            )
+            self._update_gt_panel(keep)
+
+    def kept_mask(self) -> np.ndarray:
+        """(K,) bool: final instances at or above the threshold."""
+        res = self.state.result
+        if res is None:
+            return np.zeros(0, bool)
+        return np.asarray(res.instances.confidence, float) >= self.state.threshold
+
+    def set_result_layers(self, *, meshes: bool, obbs: bool, axes: bool) -> None:
+        with self._lock:
+            s = self.state
+            s.show_meshes, s.show_obbs, s.show_axes = bool(meshes), bool(obbs), bool(axes)
+            self.nodes.show_results(self.kept_mask(), show_meshes=s.show_meshes, show_obbs=s.show_obbs, show_axes=s.show_axes)
+
+    def _update_gt_panel(self, keep: np.ndarray) -> None:
+        s = self.state
+        p = self.panels
+        if s.scene is None or not s.scene.has_gt or s.result is None:
+            p.gui_gt_info.content = "_No ground truth in this scene._" if s.scene is not None else ""
+            p.gui_pr_plot.visible = False
+            return
+        try:
+            metrics = self._gt_metrics()
+        except Exception as exc:  # noqa: BLE001 - evaluation problems must not break the threshold view
+            logger.exception("ground-truth evaluation failed")
+            p.gui_gt_info.content = f"_Ground-truth evaluation failed: {exc}_"
+            p.gui_pr_plot.visible = False
+            return
+        p.gui_gt_info.content = (
+            f"**Ground truth** ({len(s.scene.instance_ids())} objects) at confidence ≥ {s.threshold:.2f}: "
+            f"TP {len(metrics.tp)} · FP {len(metrics.fp)} · FN {len(metrics.fn)}\n\n"
+            f"AP {metrics.ap:.3f} · AP50 {metrics.ap50:.3f} · AP25 {metrics.ap25:.3f}"
+        )
+        p.gui_pr_plot.figure = pr_figure(metrics.curves, point=metrics.point)
+        p.gui_pr_plot.visible = True
+
+    def _gt_metrics(self) -> st.GTMetrics:
+        """Ground-truth metrics of the current result at the current threshold (cached per threshold)."""
+        s = self.state
+        key = (self._generation, round(float(s.threshold), 6))
+        cached = self._gt_cache.get(key)
+        if cached is None:
+            cached = st.gt_metrics(s.result.instances, s.scene, s.threshold)
+            if len(self._gt_cache) > 64:
+                self._gt_cache.clear()
+            self._gt_cache[key] = cached
+        return cached
+
+    def _gt_metrics_or_none(self) -> st.GTMetrics | None:
+        try:
+            return self._gt_metrics()
+        except Exception:  # noqa: BLE001 - shown in the ground-truth panel
+            return None
+
+    def draw_point_colors(self) -> None:
+        """Recolour the scene points for the current colour mode (sends only (N,3) uint8)."""
+        s = self.state
+        if s.scene is None:
+            return
+        base = s.scene.colors
+        mode = s.color_mode
+        cols: np.ndarray
+        key: Any
+        if mode == "instances" and s.result is not None:
+            keep = self.kept_mask()
+            cols = st.instance_colors(base, s.result.instances, keep)
+            key = ("inst", self._generation, keep.tobytes())
+        elif mode == "gt_match" and s.result is not None and s.scene.has_gt and self._gt_metrics_or_none() is not None:
+            m = self._gt_metrics()
+            cols = st.gt_match_colors(base, m.masks, s.scene.instance, tp=m.tp, fp=m.fp, fn=m.fn)
+            key = ("gt", self._generation, self.kept_mask().tobytes())
+        elif mode in ("instances", "gt_match") and s.result is not None:
+            keep = self.kept_mask()
+            cols = st.instance_colors(base, s.result.instances, keep)
+            key = ("inst", self._generation, keep.tobytes())
+        elif mode == "weights" and s.selected is not None and self._inspect_weights is not None:
+            cols = st.weights_colors(base, self._inspect_weights)
+            key = ("w", self._generation, s.selected, s.step)
+        else:
+            cols, key = base, ("rgb", id(base))
+        self.nodes.set_point_colors(cols, key=key)
+
+    # ================================================================== 7. export
+    def export_results(self, out_dir: str | Path) -> Path | None:
+        """Write the thresholded result: ScanNet layout + coloured PLY under `out_dir`."""
+        from efem_viz.viewer.export import export_results
+
+        s = self.state
+        if s.result is None or s.scene is None:
+            self._set_status("Nothing to export: load or run a result first.", error=True)
+            return None
+        out = export_results(s.result, s.scene, Path(out_dir), threshold=s.threshold)
+        self.panels.gui_export_info.content = f"Results written to `{out}`"
+        self._set_status(f"Exported results to {out}.")
+        return out
+
+    def export_static(self, out_dir: str | Path | None = None) -> Path | None:
+        """Write the static demo page `static/<scene>/index.html` (final result + playback of the steps)."""
+        from efem_viz.viewer.export import export_static_demo
+
+        s = self.state
+        if s.result is None or s.scene is None:
+            self._set_status("Nothing to export: load or run a result first.", error=True)
+            return None
+        target = Path(out_dir) if out_dir is not None else REPO_ROOT / "static" / _safe_name(s.scene.name)
+        out = export_static_demo(s.scene, s.result, target, threshold=s.threshold)
+        self.panels.gui_export_info.content = f"Static demo written to `{out}`"
+        self._set_status(f"Exported static demo to {out}.")
+        return out
+
+
+# ====================================================================== markdown helpers
+def _parse_pid(option: str) -> int | None:
+    if not option or option == NO_PROPOSAL or not option.startswith("#"):
+        return None
+    try:
+        return int(option[1:].split()[0])
+    except ValueError:
+        return None
+
+
+def _safe_name(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name) or "scene"
+
+
+def scene_info_markdown(scene: Any, entry: SceneEntry) -> str:
+    """Info panel text: counts, bounds, ground truth, provenance."""
+    summ = scene.summary()
+    lo, hi = summ["bounds_min"], summ["bounds_max"]
+    lines = [
+        f"**{scene.name}** — {summ['kind']}",
+        f"- points: {summ['points']:,}" + (f" · faces: {summ['faces']:,}" if summ["faces"] else ""),
+        f"- bounds: [{lo[0]:.3f}, {lo[1]:.3f}, {lo[2]:.3f}] → [{hi[0]:.3f}, {hi[1]:.3f}, {hi[2]:.3f}] m",
+        f"- extent: {summ['extent'][0]:.3f} × {summ['extent'][1]:.3f} × {summ['extent'][2]:.3f} m",
+    ]
+    if scene.has_gt:
+        cats = ", ".join(f"{k}: {v}" for k, v in summ.get("categories", {}).items())
+        lines.append(f"- ground truth: {len(scene.instance_ids())} instances ({cats}), {summ.get('labelled_points', 0):,} labelled points")
+    else:
+        lines.append("- ground truth: none")
+    lines.append(f"- file: `{entry.path.name}`")
+    prov = summ.get("provenance") or {}
+    if prov:
+        items = list(prov.items())[:8]
+        lines.append("- provenance: " + "; ".join(f"{k}={_short(v)}" for k, v in items))
+    trace = entry.trace_path
+    lines.append(f"- saved trace: {'`' + trace.name + '`' if trace.is_file() else 'none'}")
+    return "\n".join(lines)
+
+
+def _short(v: Any, n: int = 60) -> str:
+    s = str(v)
+    return s if len(s) <= n else s[: n - 1] + "…"
+
+
+def inspect_markdown(pid: int, t: int, view: Any) -> str:
+    """Inspector text: state, scores and schedule values of a proposal at a step."""
+    lines = [f"**Proposal #{pid} at step {t}** — {'alive' if view.alive else 'terminated'}"]
+    death = getattr(view, "death", None)
+    if death is not None:
+        d_step, reason, partner, ratio = (list(death) + [None] * 4)[:4]
+        extra = ""
+        if partner is not None and int(partner) >= 0:
+            extra = f", partner #{int(partner)}" + (f", ratio {float(ratio):.2f}" if ratio is not None else "")
+        lines.append(f"- death: **{reason}** at step {d_step}{extra}")
+    for name, val in dict(getattr(view, "scores", {}) or {}).items():
+        lines.append(f"- {name}: {_fmt(val)}")
+    sched = dict(getattr(view, "schedule", {}) or {})
+    if sched:
+        lines.append("- schedule: " + " · ".join(f"{k}={_fmt(v)}" for k, v in sched.items()))
+    lines.append(f"- sampled points: {len(np.asarray(view.sample_idx))}")
+    return "\n".join(lines)
+
+
+def _fmt(v: Any) -> str:
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        return str(v)
+    return f"{int(f)}" if f.is_integer() and abs(f) < 1e9 else f"{f:.4g}"

@@ -1,0 +1,221 @@
+"""GUI panels of the viewer (viser handles only; callbacks are wired in `app.py`).
+
+The GUI is shared (`server.gui`): every connected browser sees and drives the same controls, so a presenter and
+an audience, or two people debugging together, always look at the same scene, step and selection.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+NO_PROPOSAL = "(none)"
+PRESETS = ("fast", "synthetic_mugs", "real_mugs")
+COLOR_MODES = {
+    "scene colours": "rgb",
+    "instances": "instances",
+    "TP / FP / FN": "gt_match",
+    "proposal weights": "weights",
+}
+
+
+@dataclass
+class Panels:
+    """All GUI handles of the viewer. Names start with `gui_`."""
+
+    gui_status: Any
+    gui_scene: Any
+    gui_display: Any
+    gui_color: Any
+    gui_point_size: Any
+    gui_info: Any
+    gui_preset: Any
+    gui_proposals: Any
+    gui_seed: Any
+    gui_run: Any
+    gui_cancel: Any
+    gui_load: Any
+    gui_progress: Any
+    gui_run_info: Any
+    gui_step: Any
+    gui_play: Any
+    gui_speed: Any
+    gui_step_info: Any
+    gui_active_plot: Any
+    gui_show_shapes: Any
+    gui_show_samples: Any
+    gui_max_shapes: Any
+    gui_proposal: Any
+    gui_inspect_info: Any
+    gui_dead_info: Any
+    gui_threshold: Any
+    gui_show_meshes: Any
+    gui_show_obbs: Any
+    gui_show_axes: Any
+    gui_result_info: Any
+    gui_gt_info: Any
+    gui_pr_plot: Any
+    gui_out_dir: Any
+    gui_export_results: Any
+    gui_export_static: Any
+    gui_export_info: Any
+
+
+def build_panels(gui: Any, *, scene_names: list[str], out_dir: str) -> Panels:
+    """Create every control under `gui` (a `viser.GuiApi`), grouped in tabs.
+
+    Args:
+        gui: `server.gui`.
+        scene_names: dropdown options of the scene browser.
+        out_dir: default export folder.
+    """
+    import plotly.graph_objects as go
+
+    status = gui.add_markdown("")
+    tabs = gui.add_tab_group()
+
+    with tabs.add_tab("Scene"):
+        opts = tuple(scene_names) if scene_names else ("(no scenes)",)
+        scene = gui.add_dropdown("Scene", opts, initial_value=opts[0], hint="scenes inside the paths given")
+        display = gui.add_dropdown("Display", ("points", "mesh"), initial_value="points")
+        color = gui.add_dropdown("Colour", tuple(COLOR_MODES), initial_value="scene colours")
+        point_size = gui.add_slider("Point size (mm)", 0.5, 20.0, 0.5, 4.0)
+        info = gui.add_markdown("")
+
+    with tabs.add_tab("Run"):
+        preset = gui.add_dropdown("Preset", PRESETS, initial_value="fast")
+        proposals = gui.add_number("Proposals", 100, min=1, max=2000, step=1)
+        seed = gui.add_number("Seed", 0, min=0, max=2**31 - 1, step=1)
+        run = gui.add_button("Run EFEM", hint="run EM on this scene in the background")
+        cancel = gui.add_button("Cancel", disabled=True, color="red")
+        load = gui.add_button("Load saved trace", hint="<scene>.efem.npz next to the scene file")
+        progress = gui.add_progress_bar(0.0, visible=False)
+        run_info = gui.add_markdown("")
+
+    with tabs.add_tab("Timeline"):
+        step = gui.add_slider("Step", 0, 1, 1, 0, disabled=True)
+        play = gui.add_button("Play", disabled=True)
+        speed = gui.add_slider("Speed (steps/s)", 0.5, 10.0, 0.5, 2.0)
+        step_info = gui.add_markdown("")
+        active_plot = gui.add_plotly(go.Figure(), aspect=1.6, visible=False)
+
+    with tabs.add_tab("Proposals"):
+        show_shapes = gui.add_checkbox("Decoded shapes", True)
+        show_samples = gui.add_checkbox("Sampled points", True)
+        max_shapes = gui.add_slider("Max shapes drawn", 0, 64, 1, 8, hint="top-N by stationary score")
+        proposal = gui.add_dropdown("Inspect", (NO_PROPOSAL,), initial_value=NO_PROPOSAL)
+        inspect_info = gui.add_markdown("")
+        dead_info = gui.add_markdown("")
+
+    with tabs.add_tab("Results"):
+        threshold = gui.add_slider("Confidence ≥", 0.0, 1.0, 0.01, 0.0)
+        show_meshes = gui.add_checkbox("Meshes", True)
+        show_obbs = gui.add_checkbox("Boxes (OBB)", True)
+        show_axes = gui.add_checkbox("Pose axes", False)
+        result_info = gui.add_markdown("")
+        gt_info = gui.add_markdown("")
+        pr_plot = gui.add_plotly(go.Figure(), aspect=1.3, visible=False)
+
+    with tabs.add_tab("Export"):
+        out = gui.add_text("Output folder", out_dir)
+        export_results = gui.add_button("Export results", hint="ScanNet layout + coloured PLY")
+        export_static = gui.add_button("Export static demo", hint="static/<scene>/index.html")
+        export_info = gui.add_markdown("")
+
+    return Panels(
+        gui_status=status,
+        gui_scene=scene,
+        gui_display=display,
+        gui_color=color,
+        gui_point_size=point_size,
+        gui_info=info,
+        gui_preset=preset,
+        gui_proposals=proposals,
+        gui_seed=seed,
+        gui_run=run,
+        gui_cancel=cancel,
+        gui_load=load,
+        gui_progress=progress,
+        gui_run_info=run_info,
+        gui_step=step,
+        gui_play=play,
+        gui_speed=speed,
+        gui_step_info=step_info,
+        gui_active_plot=active_plot,
+        gui_show_shapes=show_shapes,
+        gui_show_samples=show_samples,
+        gui_max_shapes=max_shapes,
+        gui_proposal=proposal,
+        gui_inspect_info=inspect_info,
+        gui_dead_info=dead_info,
+        gui_threshold=threshold,
+        gui_show_meshes=show_meshes,
+        gui_show_obbs=show_obbs,
+        gui_show_axes=show_axes,
+        gui_result_info=result_info,
+        gui_gt_info=gt_info,
+        gui_pr_plot=pr_plot,
+        gui_out_dir=out,
+        gui_export_results=export_results,
+        gui_export_static=export_static,
+        gui_export_info=export_info,
+    )
+
+
+def active_figure(active_count: np.ndarray, marks: list[tuple[int, str]], step: int) -> Any:
+    """Plotly figure: active proposals after each step, phase/review marks, and the current step.
+
+    Args:
+        active_count: (T+1,) int, proposals active before step 0 and after each step.
+        marks: (step, label) timeline marks.
+        step: current step (highlighted).
+    """
+    import plotly.graph_objects as go
+
+    ac = np.asarray(active_count).reshape(-1)
+    x = np.arange(ac.shape[0]) - 1  # -1 = initial pool, t = after step t
+    fig = go.Figure()
+    fig.add_trace(go.Scatter(x=x.tolist(), y=ac.tolist(), mode="lines+markers", name="active", line={"width": 2}))
+    if 0 <= step + 1 < ac.shape[0]:
+        fig.add_trace(
+            go.Scatter(x=[step], y=[int(ac[step + 1])], mode="markers", marker={"size": 12, "color": "red"}, name="now")
+        )
+    for s, lab in marks:
+        fig.add_vline(x=s, line={"dash": "dot", "color": "grey", "width": 1})
+        fig.add_annotation(x=s, y=float(ac.max()) if ac.size else 1.0, text=lab, showarrow=False, yshift=10)
+    fig.update_layout(
+        margin={"l": 30, "r": 10, "t": 20, "b": 30},
+        showlegend=False,
+        xaxis_title="step",
+        yaxis_title="active proposals",
+        height=260,
+    )
+    return fig
+
+
+def pr_figure(curves: list[tuple[str, np.ndarray, np.ndarray]], *, point: tuple[float, float] | None = None) -> Any:
+    """Plotly figure of precision-recall curves.
+
+    Args:
+        curves: (label, recall (P,), precision (P,)) per curve.
+        point: (recall, precision) at the current threshold, marked.
+    """
+    import plotly.graph_objects as go
+
+    fig = go.Figure()
+    for label, rec, prec in curves:
+        fig.add_trace(go.Scatter(x=np.asarray(rec).tolist(), y=np.asarray(prec).tolist(), mode="lines", name=label))
+    if point is not None:
+        fig.add_trace(
+            go.Scatter(x=[point[0]], y=[point[1]], mode="markers", marker={"size": 11, "color": "red"}, name="threshold")
+        )
+    fig.update_layout(
+        margin={"l": 30, "r": 10, "t": 20, "b": 30},
+        xaxis={"range": [0, 1.02], "title": "recall"},
+        yaxis={"range": [0, 1.02], "title": "precision"},
+        height=260,
+        legend={"orientation": "h"},
+    )
+    return fig

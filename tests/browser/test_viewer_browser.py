@@ -1,0 +1,153 @@
+"""Real-browser tests of the viewer (headless Debian chromium, software WebGL): run with `-m browser`.
+
+The page must render something non-blank, and moving the step slider and the confidence threshold in the GUI
+must change what is drawn. With EFEM_SAVE_SCREENSHOTS=1 the screenshots are also written to docs/img/ for the user
+guide (off by default, so CI leaves the tree clean).
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import time
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import numpy as np
+import pytest
+
+pytestmark = [pytest.mark.browser, pytest.mark.timeout(120)]
+
+DOCS_IMG = Path(__file__).resolve().parents[2] / "docs" / "img"
+SAVE = os.environ.get("EFEM_SAVE_SCREENSHOTS") == "1"
+
+
+@pytest.fixture(scope="module")
+def viewer(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
+    """A viewer on a small sphere scene (≈5k points) with a saved EM result from the real solver."""
+    em = pytest.importorskip("efem_viz.em", reason="efem_viz.em not importable yet")
+    analytic = pytest.importorskip("efem_viz.em.analytic", reason="efem_viz.em.analytic not importable yet")
+    import torch
+
+    from efem_viz.data.io import save_scene
+    from efem_viz.viewer.app import ViewerApp
+
+    torch.set_num_threads(1)
+    d = tmp_path_factory.mktemp("browser_scenes")
+    scene = analytic.make_sphere_scene(seed=0, spacing=0.008, name="spheres")
+    save_scene(scene, d / "spheres.ply")
+    prior = analytic.make_sphere_prior()
+    result = em.run_em(scene, prior, em.preset("fast").with_proposals(16).replace(min_size=30), seed=0)
+    result.save(d / "spheres.efem.npz")
+    app = ViewerApp([d], port=0, prior=prior)
+    assert app.wait_idle(60)
+    yield app
+    app.stop()
+
+
+def _wait(cond: Callable[[], bool], timeout: float = 20.0, what: str = "condition") -> None:
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.05)
+
+
+def _canvas_png(page: Any) -> np.ndarray:
+    from PIL import Image
+
+    png = page.locator("canvas").first.screenshot()
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(np.int16)
+
+
+def _settle(page: Any, *, timeout: float = 25.0) -> np.ndarray:
+    """Screenshot the canvas until two consecutive shots agree (software rendering takes a few frames)."""
+    prev = _canvas_png(page)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        page.wait_for_timeout(700)
+        cur = _canvas_png(page)
+        if cur.shape == prev.shape and np.abs(cur - prev).mean() < 0.05:
+            return cur
+        prev = cur
+    return prev
+
+
+def _open(page: Any, app: Any) -> None:
+    page.goto(app.url)
+    page.wait_for_selector("canvas", timeout=30_000)
+    _wait(lambda: len(app.server.get_clients()) >= 1, 30, "the client to connect")
+    page.get_by_role("tab", name="Scene").wait_for(timeout=30_000)
+
+
+def _save(page: Any, name: str) -> None:
+    if SAVE:
+        DOCS_IMG.mkdir(parents=True, exist_ok=True)
+        page.screenshot(path=str(DOCS_IMG / name))
+
+
+def test_page_renders_scene(viewer: Any, page: Any) -> None:
+    _open(page, viewer)
+    img = _settle(page)
+    assert img.std() > 8.0, f"canvas looks blank (pixel std {img.std():.2f})"
+    # The scene (grey table, coloured instances) is drawn: several distinct colours on the canvas.
+    colors = {tuple(c) for c in (img[::8, ::8] // 32).reshape(-1, 3)}
+    assert len(colors) > 4
+    _save(page, "viewer_overview.png")
+
+
+def test_step_slider_changes_view(viewer: Any, page: Any) -> None:
+    _open(page, viewer)
+    page.get_by_role("tab", name="Timeline").click()
+    slider = page.get_by_role("slider").first
+    slider.wait_for(timeout=20_000)
+    before = _settle(page)
+    last = viewer.state.step
+    slider.focus()
+    page.keyboard.press("Home")  # step 0: many more proposals alive, other samples and shapes
+    _wait(lambda: viewer.state.step == 0, 20, "the step callback")
+    assert viewer.wait_idle(60)
+    after = _settle(page)
+    assert last != 0
+    diff = np.abs(after - before).mean()
+    assert diff > 0.5, f"moving the step slider did not change the canvas (mean diff {diff:.3f})"
+    _save(page, "viewer_timeline.png")
+    slider.focus()
+    page.keyboard.press("End")
+    _wait(lambda: viewer.state.step == last, 20, "the step callback")
+
+
+def test_threshold_changes_view(viewer: Any, page: Any) -> None:
+    _open(page, viewer)
+    page.get_by_role("tab", name="Results").click()
+    slider = page.get_by_role("slider").first
+    slider.wait_for(timeout=20_000)
+    viewer.set_threshold(0.0)
+    before = _settle(page)
+    _save(page, "viewer_results.png")
+    slider.focus()
+    page.keyboard.press("End")  # above every confidence: all instances hidden, points back to scene colours
+    _wait(lambda: viewer.state.threshold >= float(np.max(viewer.state.result.instances.confidence)), 20, "threshold")
+    after = _settle(page)
+    diff = np.abs(after - before).mean()
+    assert diff > 0.5, f"moving the threshold did not change the canvas (mean diff {diff:.3f})"
+    slider.focus()
+    page.keyboard.press("Home")
+    _wait(lambda: viewer.state.threshold == 0.0, 20, "threshold reset")
+
+
+def test_two_clients_share_state(viewer: Any, browser: Any, page: Any) -> None:
+    _open(page, viewer)
+    ctx2 = browser.new_context(viewport={"width": 1280, "height": 800})
+    try:
+        page2 = ctx2.new_page()
+        _open(page2, viewer)
+        _wait(lambda: len(viewer.server.get_clients()) >= 2, 30, "two clients")
+        page.get_by_role("tab", name="Timeline").click()
+        page2.get_by_role("tab", name="Timeline").click()
+        viewer.set_step(1)
+        s2 = page2.get_by_role("slider").first
+        _wait(lambda: s2.get_attribute("aria-valuenow") == "1", 20, "the second client to see step 1")
+        viewer.set_step(viewer.state.num_steps - 1)
+    finally:
+        ctx2.close()

@@ -1,0 +1,148 @@
+"""Selection tools against naive reference computations on small meshes and point clouds."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from annotator import selection as sel
+from annotator.render import build_chunks, color_lut, compose_colors, splat_proxy
+from annotator.labels import InstanceInfo
+
+
+@pytest.fixture(scope="module")
+def box_on_plane() -> sel.ScanGeometry:
+    """A 20 cm box standing on a 1 m plane (separate components glued only by geometry), as one mesh."""
+    plane = trimesh.creation.box(extents=(1.0, 1.0, 0.02))
+    plane.apply_translation((0, 0, -0.01))
+    plane = plane.subdivide().subdivide().subdivide()
+    cube = trimesh.creation.box(extents=(0.2, 0.2, 0.2)).subdivide().subdivide().subdivide()
+    cube.apply_translation((0, 0, 0.1))
+    m = trimesh.util.concatenate([plane, cube])
+    return sel.ScanGeometry(np.asarray(m.vertices, np.float32), np.asarray(m.vertex_normals, np.float32),
+                            faces=np.asarray(m.faces))
+
+
+@pytest.fixture(scope="module")
+def sphere_points() -> sel.ScanGeometry:
+    rng = np.random.default_rng(0)
+    p = rng.normal(size=(4000, 3))
+    p /= np.linalg.norm(p, axis=1, keepdims=True)
+    return sel.ScanGeometry((0.1 * p).astype(np.float32), p.astype(np.float32))
+
+
+def test_brush_matches_naive_ball_and_normal_limit(sphere_points: sel.ScanGeometry) -> None:
+    g = sphere_points
+    c = g.points[17]
+    got = sel.brush(g, c, 0.03)
+    naive = np.flatnonzero(np.linalg.norm(g.points - c, axis=1) <= 0.03)
+    assert np.array_equal(got, naive)
+    lim = sel.brush(g, c, 0.03, normal=g.normals[17], max_normal_angle_deg=5.0)
+    cos = g.normals[naive] @ g.normals[17]
+    assert np.array_equal(lim, naive[cos >= np.cos(np.deg2rad(5.0))])
+    assert 0 < len(lim) < len(naive)
+    with pytest.raises(ValueError):
+        sel.brush(g, c, 0.0)
+
+
+def test_brush_segment_is_the_capsule(sphere_points: sel.ScanGeometry) -> None:
+    g = sphere_points
+    a, b = g.points[3], g.points[3] + np.array([0.0, 0.0, 0.03], np.float32)
+    got = sel.brush_segment(g, a, b, 0.01)
+    seg = b - a
+    t = np.clip((g.points - a) @ seg / (seg @ seg), 0, 1)
+    d = np.linalg.norm(g.points - (a + t[:, None] * seg), axis=1)
+    assert np.array_equal(got, np.flatnonzero(d <= 0.01))
+    # union of the end dabs is a subset of the capsule
+    ends = np.union1d(sel.brush(g, a, 0.01), sel.brush(g, b, 0.01))
+    assert np.isin(ends, got).all()
+
+
+def test_pick_mesh_and_points(box_on_plane: sel.ScanGeometry, sphere_points: sel.ScanGeometry) -> None:
+    v, hit = sel.pick(box_on_plane, np.array([0.01, 0.02, 1.0]), np.array([0, 0, -1.0]))
+    assert hit[2] == pytest.approx(0.2, abs=1e-5)  # the top of the box, not the plane below
+    assert np.linalg.norm(box_on_plane.points[v] - hit) < 0.05
+    assert sel.pick(box_on_plane, np.array([5.0, 5, 1]), np.array([0, 0, 1.0])) is None
+    res = sel.pick(sphere_points, np.array([0, 0, 1.0]), np.array([0, 0, -1.0]))
+    assert res is not None
+    v, _ = res
+    assert sphere_points.points[v][2] > 0.09  # front side of the sphere
+    assert sel.pick(sphere_points, np.array([0, 0, 1.0]), np.array([0, 0, 0.0])) is None
+
+
+def test_region_grow_stops_at_crease_and_distance(box_on_plane: sel.ScanGeometry) -> None:
+    g = box_on_plane
+    top = np.flatnonzero(np.isclose(g.points[:, 2], 0.2) & (np.abs(g.points[:, :2]).max(axis=1) < 0.099))
+    seed = int(top[len(top) // 2])
+    grown = sel.region_grow(g, seed, max_angle_deg=20.0)
+    # Exactly the top face (vertex normals at the face border bend by ~45 degrees and stop the fill).
+    assert np.all(np.isclose(g.points[grown, 2], 0.2, atol=1e-6))
+    assert np.isin(top, grown).all()
+    everything = sel.region_grow(g, seed, max_angle_deg=90.0)
+    assert len(everything) > len(grown)
+    assert np.all(g.points[everything, 2] > 0.0 - 1e-6)  # still never jumps to the plane (not connected)
+    near = sel.region_grow(g, seed, max_angle_deg=90.0, max_distance=0.05)
+    assert np.linalg.norm(g.points[near] - g.points[seed], axis=1).max() <= 0.05
+    capped = sel.region_grow(g, seed, max_angle_deg=90.0, max_vertices=10)
+    assert len(capped) == 10 and seed in capped
+    allowed = np.ones(g.n, bool)
+    allowed[top[::2]] = False
+    partial = sel.region_grow(g, seed if allowed[seed] else int(top[1]), max_angle_deg=20.0, allowed=allowed)
+    assert not np.isin(top[::2], partial).any()
+
+
+def test_knn_graph_and_fill(sphere_points: sel.ScanGeometry) -> None:
+    g = sphere_points
+    indptr, indices = g.adjacency
+    assert len(indptr) == g.n + 1 and indices.max() < g.n
+    # symmetric
+    a = np.repeat(np.arange(g.n), np.diff(indptr))
+    pairs = set(zip(a.tolist(), indices.tolist()))
+    assert all((j, i) in pairs for i, j in list(pairs)[:500])
+    labels = np.zeros(g.n, np.int32)
+    labels[g.points[:, 2] > 0.05] = 3
+    filled = sel.fill_same_label(g, int(np.argmax(g.points[:, 2])), labels)
+    assert np.all(labels[filled] == 3) and len(filled) == int((labels == 3).sum())
+
+
+def test_box_select_matches_projection() -> None:
+    pts = np.array([[0, 0, 0], [0.5, 0, 0], [0, 0.5, 0], [0, 0, -5.0]], np.float32)
+    nrm = np.tile(np.array([[0, 0, 1.0]], np.float32), (4, 1))
+    nrm[3] = (0, 0, -1.0)  # behind the others and facing away: a back face
+    g = sel.ScanGeometry(pts, nrm)
+    # camera 2 m above, looking down -Z. OpenCV camera: +Z forward = world -Z; choose R with x→x, y→-y, z→-z.
+    wxyz = np.array([0.0, 1.0, 0.0, 0.0])  # 180° about x
+    uv, z = sel.project(pts, position=np.array([0, 0, 2.0]), wxyz=wxyz, fov=np.deg2rad(60), aspect=1.0)
+    assert uv[0] == pytest.approx([0.5, 0.5]) and z[0] == pytest.approx(2.0)
+    assert uv[1, 0] > 0.5 and uv[2, 1] < 0.5  # +x → right, +y → up on screen
+    got = sel.box_select(g, position=np.array([0, 0, 2.0]), wxyz=wxyz, fov=np.deg2rad(60), aspect=1.0,
+                         screen_min=(0.4, 0.4), screen_max=(0.9, 0.6))
+    assert got.tolist() == [0, 1]
+    back = sel.box_select(g, position=np.array([0, 0, -10.0]), wxyz=np.array([1.0, 0, 0, 0]), fov=1.0, aspect=1.0,
+                          screen_min=(0, 0), screen_max=(1, 1))
+    assert back.tolist() == [3]  # only the point facing this camera
+    allp = sel.box_select(g, position=np.array([0, 0, -10.0]), wxyz=np.array([1.0, 0, 0, 0]), fov=1.0, aspect=1.0,
+                          screen_min=(0, 0), screen_max=(1, 1), facing="all")
+    assert len(allp) == 4
+
+
+def test_chunks_partition_and_colours() -> None:
+    rng = np.random.default_rng(1)
+    pts = rng.uniform(size=(10_000, 3)).astype(np.float32)
+    ch = build_chunks(pts, max_chunk=1000)
+    assert np.array_equal(np.sort(ch.order), np.arange(10_000))
+    sizes = np.diff(ch.offsets)
+    assert sizes.max() <= 1000 and ch.count >= 10
+    for c in range(ch.count):
+        assert np.all(ch.chunk_of[ch.members(c)] == c)
+    # spatial compactness: chunk boxes are much smaller than the whole cube
+    vol = [np.prod(np.ptp(pts[ch.members(c)], axis=0)) for c in range(ch.count)]
+    assert max(vol) < 0.5
+    assert ch.touched(np.array([ch.members(3)[0], ch.members(3)[1], ch.members(5)[0]])).tolist() == [3, 5]
+    base = np.full((4, 3), 100, np.uint8)
+    lut, show = color_lut({1: InstanceInfo(1, "a", color=(255, 0, 0)), 2: InstanceInfo(2, "b", visible=False)}, 2)
+    out = compose_colors(base, np.array([0, 1, 2, 9]), lut, show, alpha=1.0)
+    assert out.tolist() == [[100] * 3, [255, 0, 0], [100] * 3, [100] * 3]
+    v, f = splat_proxy(pts[:50], np.tile([[0, 0, 1.0]], (50, 1)), size=0.01)
+    assert v.shape == (150, 3) and f.shape == (50, 3) and f.max() == 149

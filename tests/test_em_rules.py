@@ -1,0 +1,299 @@
+"""EFEM per-step rules on hand-made cases: eliminations, schedule, energies, sampling, confidence."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from efem_viz.em.config import EMConfig, preset, schedule
+from efem_viz.em.proposals import (
+    REASON_DUPLICATE,
+    REASON_TOO_SMALL,
+    AvailableTree,
+    Ragged,
+    find_duplicates,
+    find_inclusions,
+    find_too_small,
+    init_crops,
+    lookup,
+    sample_independent,
+    sample_joint,
+    set_matrix,
+)
+from efem_viz.em.solver import confidence
+from efem_viz.em.trace import energy_weights
+
+N = 100
+
+
+def sets_from(lists: list[list[int]], n: int = N) -> sp.csr_matrix:
+    rag = Ragged.from_lists([np.array(sorted(x), np.int64) for x in lists])
+    return set_matrix(rag, np.ones(len(rag.idx), bool), n)
+
+
+# ---------------------------------------------------------------------------------------------- too small
+def test_too_small_kills_exactly_rows_below_min_size() -> None:
+    kills = find_too_small(np.array([299, 300, 0, 1000]), 300)
+    assert [k.row for k in kills] == [0, 2]
+    assert all(k.reason == REASON_TOO_SMALL for k in kills)
+    assert [k.ratio for k in kills] == [299.0, 0.0]
+
+
+# ---------------------------------------------------------------------------------------------- duplicates
+def test_duplicates_keep_highest_stationary_score_in_group() -> None:
+    a = list(range(0, 20))
+    b = list(range(1, 20))  # IoU(a, b) = 19/20
+    c = list(range(50, 70))
+    kills = find_duplicates(sets_from([a, b, c]), np.array([0.5, 0.9, 0.1]), 0.7)
+    assert [(k.row, k.partner) for k in kills] == [(0, 1)]
+    assert kills[0].reason == REASON_DUPLICATE
+    assert kills[0].ratio == pytest.approx(19 / 20, abs=1e-5)
+
+
+def test_duplicates_argmax_restricted_to_group_when_scores_are_zero() -> None:
+    # rows 0 and 2 are duplicates with score 0; row 1 is unrelated with a high score: it must not be chosen,
+    # and the group keeps its first member (the release's quirk would pick row 1).
+    a = list(range(0, 20))
+    b = list(range(50, 70))
+    kills = find_duplicates(sets_from([a, b, a]), np.array([0.0, 0.9, 0.0]), 0.7)
+    assert [(k.row, k.partner) for k in kills] == [(2, 0)]
+
+
+def test_duplicates_below_threshold_survive_and_inactive_rows_ignored() -> None:
+    a = list(range(0, 20))
+    b = list(range(10, 30))  # IoU 10/30
+    kills = find_duplicates(sets_from([a, b]), np.array([0.1, 0.2]), 0.7)
+    assert kills == []
+    # an inactive identical row does not take part
+    kills = find_duplicates(sets_from([a, a]), np.array([0.1, 0.2]), 0.7, active=np.array([True, False]))
+    assert kills == []
+
+
+def test_duplicate_groups_are_per_visited_row() -> None:
+    # chain a ~ b ~ c with IoU(a, c) below threshold: visiting a forms {a, b}; b wins (higher score);
+    # visiting b then forms {b, c}: c wins. a and b die, c survives.
+    a = list(range(0, 20))
+    b = list(range(2, 22))
+    c = list(range(4, 24))
+    scores = np.array([0.1, 0.5, 0.9])
+    kills = find_duplicates(sets_from([a, b, c]), scores, 0.75)
+    assert [(k.row, k.partner) for k in kills] == [(0, 1), (1, 2)]
+
+
+def naive_duplicates(sets: list[set[int]], scores: np.ndarray, thr: float) -> list[tuple[int, int]]:
+    alive = [True] * len(sets)
+    out = []
+    for i in range(len(sets)):
+        if not alive[i]:
+            continue
+        group = []
+        for k in range(len(sets)):
+            if alive[k]:
+                inter = len(sets[i] & sets[k])
+                union = len(sets[i] | sets[k])
+                if inter / (union + 1e-6) >= thr:
+                    group.append(k)
+        if len(group) > 1:
+            win = max(group, key=lambda k: (scores[k], -k))
+            for k in group:
+                if k != win:
+                    alive[k] = False
+                    out.append((k, win))
+    return out
+
+
+def naive_inclusions(sets: list[set[int]], thr: float) -> list[tuple[int, int]]:
+    alive = [True] * len(sets)
+    out = []
+    for i in range(len(sets)):
+        if not alive[i]:
+            continue
+        best, bk = -1.0, -1
+        for k in range(len(sets)):
+            if k != i and alive[k]:
+                r = len(sets[i] & sets[k]) / (len(sets[i]) + 1e-6)
+                if r > best:
+                    best, bk = r, k
+        if bk >= 0 and best > thr:
+            alive[i] = False
+            out.append((i, bk))
+    return out
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 10_000))
+def test_sparse_rules_match_naive_loops(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    p = int(rng.integers(2, 12))
+    sets = []
+    for _ in range(p):
+        lo = int(rng.integers(0, 40))
+        hi = lo + int(rng.integers(0, 30))
+        s = set(range(lo, hi)) - set(rng.integers(0, 80, size=3).tolist())
+        sets.append(s)
+    scores = rng.integers(0, 4, size=p) / 4.0
+    mat = sets_from([sorted(s) for s in sets], 80)
+    dup = find_duplicates(mat, scores, 0.7)
+    assert [(k.row, k.partner) for k in dup] == naive_duplicates(sets, scores, 0.7)
+    inc = find_inclusions(mat, 0.8)
+    assert [(k.row, k.partner) for k in inc] == naive_inclusions(sets, 0.8)
+
+
+# ---------------------------------------------------------------------------------------------- inclusion
+def test_inclusion_is_pairwise_not_union() -> None:
+    x = list(range(0, 20))
+    left = list(range(0, 10)) + list(range(40, 60))
+    right = list(range(10, 20)) + list(range(60, 80))
+    # x is covered by left ∪ right but only half by each: it survives
+    assert find_inclusions(sets_from([x, left, right]), 0.8) == []
+
+
+def test_inclusion_kills_the_included_set_with_partner_and_ratio() -> None:
+    big = list(range(0, 50))
+    small = list(range(5, 15)) + [90]  # 10 of 11 inside big
+    kills = find_inclusions(sets_from([big, small]), 0.8)
+    assert [(k.row, k.partner) for k in kills] == [(1, 0)]
+    assert kills[0].ratio == pytest.approx(10 / 11, abs=1e-5)
+
+
+def test_inclusion_kill_takes_effect_immediately() -> None:
+    a = list(range(0, 20))
+    # two identical sets include each other; only the first visited dies, the second then has no partner
+    kills = find_inclusions(sets_from([a, a]), 0.8)
+    assert [(k.row, k.partner) for k in kills] == [(0, 1)]
+    # inactive rows are never partners
+    assert find_inclusions(sets_from([a, a]), 0.8, active=np.array([True, False])) == []
+
+
+# ---------------------------------------------------------------------------------------------- schedule
+@pytest.mark.parametrize(
+    "t, expected",
+    [
+        (0, (3.0, 0.1, 0.003, 90.0)),
+        (5, (16.5, 0.085, 0.0045, 75.0)),
+        (10, (30.0, 0.07, 0.006, 60.0)),
+        (15, (30.0, 0.07, 0.006, 60.0)),
+    ],
+)
+def test_schedule_real_mugs(t: int, expected: tuple[float, ...]) -> None:
+    assert schedule(preset("real_mugs"), t) == pytest.approx(expected)
+
+
+def test_schedule_synthetic_mugs_keeps_tau_d_and_phase2_uses_end_values() -> None:
+    cfg = preset("synthetic_mugs")
+    assert schedule(cfg, 5)[1] == pytest.approx(0.1)
+    long = cfg.replace(end_step=30)  # phase 2 must use the end values even if annealing is not finished
+    assert schedule(long, 15) == pytest.approx((30.0, 0.1, 0.006, 60.0))
+    assert schedule(long, 14)[0] < 30.0
+
+
+def test_presets_follow_the_spec_table() -> None:
+    syn, real, fast = preset("synthetic_mugs"), preset("real_mugs"), preset("fast")
+    assert syn.n_init == (400,) and syn.r_init == 0.07 and syn.r_err == 0.11 and syn.min_size == 300
+    assert (syn.stat_tau, syn.stat_gamma, syn.cov_tau, syn.cov_gamma) == (0.04, 45.0, 0.04, 45.0)
+    assert (real.stat_tau, real.stat_gamma, real.cov_tau, real.cov_gamma) == (0.03, 30.0, 0.03, 30.0)
+    assert real.scale_horizontal == (0.03, 0.08) and real.scale_height == (0.015, 0.10)
+    assert syn.scale_horizontal == (0.03, 0.13) and syn.scale_height == (0.015, 0.30)
+    assert (syn.t1, syn.t2, syn.omega, syn.joint_incl) == (15, 5, 1e-4, 0.8)
+    assert 50 <= fast.n_init[0] <= 100
+    with pytest.raises(ValueError, match="unknown EM preset"):
+        preset("chairs")
+    assert EMConfig.from_json(real.to_json()) == real
+    assert syn.with_proposals(64).n_init == (64,)
+
+
+# ---------------------------------------------------------------------------------------------- energies
+def test_energy_weights_truncation_and_inliers() -> None:
+    sched = (30.0, 0.1, 0.006, 60.0)
+    d = np.array([0.0, 0.05, -0.05, 0.2, 0.0, np.nan], np.float32)
+    g = np.array([0.0, 10.0, 10.0, 0.0, 70.0, 0.0], np.float32)
+    w, inl = energy_weights(d, g, sched)
+    assert w[0] == pytest.approx(1.0)
+    assert w[1] == pytest.approx(np.exp(-30 * 0.05 - 0.006 * 10), rel=1e-5)
+    assert w[2] == pytest.approx(w[1])  # |d|
+    assert w[3] < 1e-40 and w[4] < 1e-40  # a truncated term costs U = 100
+    assert w[5] == 0.0  # NaN -> out
+    assert inl.tolist() == [True, True, True, False, False, False]
+
+
+def test_confidence_formula() -> None:
+    assert confidence(0.8, 0.2) == pytest.approx(0.8 * 0.2 / 0.4)
+    assert confidence(0.8, 0.9) == pytest.approx(0.8)  # coverage saturates at 0.4
+    assert confidence(0.0, 1.0) == 0.0
+    with pytest.raises(ValueError):
+        confidence(0.5, 0.5, cap=0.0)
+
+
+# ---------------------------------------------------------------------------------------------- sampling
+def test_independent_sampling_stays_in_support_and_follows_weights() -> None:
+    rng = np.random.default_rng(0)
+    rag = Ragged.from_lists([np.array([3, 5, 7]), np.array([10, 11]), np.array([20])])
+    w = np.array([1.0, 0.5, 0.0, 1.0, 1e-9, 0.0])
+    s = sample_independent(rag, w, 4000, 1e-4, rng, fallback=np.arange(50, 60))
+    assert set(np.unique(s[0])) <= {3, 5}
+    frac = (s[0] == 3).mean()
+    assert 0.6 < frac < 0.73  # ≈ 2/3
+    assert set(np.unique(s[1])) == {10}  # 1e-9 << ω drops out
+    assert set(np.unique(s[2])) <= set(range(50, 60))  # zero weight -> whole available scene
+
+
+def test_joint_sampling_one_owner_per_point() -> None:
+    rng = np.random.default_rng(1)
+    rows = [np.arange(0, 60), np.arange(30, 90), np.arange(200, 210)]
+    rag = Ragged.from_lists(rows)
+    w = np.ones(len(rag.idx))
+    scores = np.array([1.0, 1.0, 0.5])
+    s, claimed = sample_joint(rag, w, scores, 256, 1e-4, rng, fallback=np.arange(300))
+    owners: dict[int, int] = {}
+    for r in range(3):
+        pts = rag.idx[rag.row_slice(r)][claimed[rag.row_slice(r)]]
+        for p in pts:
+            assert p not in owners, "a point was claimed twice"
+            owners[int(p)] = r
+        assert set(np.unique(s[r])) <= set(pts.tolist())
+    shared = [owners.get(p) for p in range(30, 60)]
+    assert 0 in shared and 1 in shared  # contested points are split between the two proposals
+    assert all(owners.get(p) == 0 for p in range(0, 30))  # uncontested points (ω tiny) go to their owner
+
+
+def test_joint_sampling_empty_claim_gets_best_background_point() -> None:
+    rng = np.random.default_rng(2)
+    rag = Ragged.from_lists([np.arange(0, 10), np.arange(0, 10)])
+    w = np.r_[np.ones(10), np.full(10, 1e-12)]
+    s, claimed = sample_joint(rag, w, np.array([1.0, 1.0]), 16, 1e-4, rng, fallback=np.arange(10))
+    assert claimed[10:].sum() == 1  # the weak proposal is given exactly one point
+    assert len(np.unique(s[1])) == 1
+
+
+def test_init_crops_anchors_among_available_only() -> None:
+    rng = np.random.default_rng(3)
+    pts = np.random.default_rng(0).uniform(-1, 1, (500, 3)).astype(np.float32)
+    avail = np.zeros(500, bool)
+    avail[:100] = True
+    anchors, crops = init_crops(pts, avail, 50, 0.3, rng)
+    assert anchors.max() < 100
+    assert crops.idx.max() < 100
+    for r in range(50):
+        sl = crops.row_slice(r)
+        d = np.linalg.norm(pts[crops.idx[sl]] - pts[anchors[r]], axis=1)
+        assert (d < 0.3).all()
+        brute = np.flatnonzero(avail & (np.linalg.norm(pts - pts[anchors[r]], axis=1) < 0.3))
+        assert np.array_equal(np.sort(crops.idx[sl]), brute)
+
+
+def test_cylinder_neighbourhood_ignores_height() -> None:
+    pts = np.array([[0, 0, 0], [0, 0, 5], [0.5, 0, 0], [0.05, 0, -3]], np.float32)
+    tree = AvailableTree(pts, np.ones(4, bool), crop="cylinder")
+    rag = tree.query(np.zeros((1, 3)), 0.1)
+    assert rag.idx.tolist() == [0, 1, 3]
+
+
+def test_lookup_and_take_rows() -> None:
+    rag = Ragged.from_lists([np.array([1, 4, 9]), np.array([2, 4])])
+    pos = lookup(rag, np.array([0, 0, 1, 1]), np.array([4, 2, 4, 9]))
+    assert pos.tolist() == [1, -1, 4, -1]
+    sub, posk = rag.take_rows(np.array([1]))
+    assert sub.idx.tolist() == [2, 4] and posk.tolist() == [3, 4]

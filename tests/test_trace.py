@@ -1,0 +1,166 @@
+"""EMTrace: consistency of the recorded run, save/load round trip, on-demand re-derivation of views."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from efem_viz.em import EMResult, preset, run_em
+from efem_viz.em.analytic import make_sphere_prior, make_sphere_scene
+from efem_viz.em.proposals import REASONS
+
+
+@pytest.fixture(scope="module")
+def run() -> tuple[object, object, EMResult]:
+    import torch
+
+    torch.set_num_threads(1)
+    scene = make_sphere_scene(seed=3)
+    prior = make_sphere_prior()
+    cfg = preset("fast").replace(n_init=(48,), t1=6, t2=3, end_step=4)
+    return scene, prior, run_em(scene, prior, cfg, seed=7)
+
+
+def test_trace_shapes_and_bookkeeping(run: tuple) -> None:
+    scene, _, res = run
+    tr = res.trace
+    assert tr.num_steps == 9
+    assert tr.num_proposals == 48
+    assert tr.active_count[0] == 48
+    assert np.all(np.diff(tr.active_count) <= 0)
+    for t in range(tr.num_steps):
+        ids = tr.alive(t)
+        assert np.all(np.diff(ids) > 0)
+        assert len(ids) == tr.active_count[t]  # rows of step t = the proposals alive after step t − 1
+        # every proposal that is not alive at t + 1 died at step t (or t is the last step)
+        if t + 1 < tr.num_steps:
+            gone = np.setdiff1d(ids, tr.alive(t + 1))
+            assert all(tr.death_step[g] == t for g in gone)
+    assert tr.row_samples.shape == (int(tr.row_offsets[-1]), 256)
+    assert tr.row_samples.dtype == np.int32 and tr.row_samples.max() < scene.num_points
+    assert list(tr.step_phase) == [1] * 6 + [2] * 3
+    assert (tr.schedule[:, 0] > 0).all()
+
+
+def test_events_are_complete_and_ordered(run: tuple) -> None:
+    _, _, res = run
+    tr = res.trace
+    ev = tr.events()
+    assert len(ev) == tr.num_proposals  # every proposal dies or is accepted
+    assert [e.step for e in ev] == sorted(e.step for e in ev)
+    assert {e.reason for e in ev} <= set(REASONS)
+    accepted = [e.proposal_id for e in ev if e.reason == "survive"]
+    assert sorted(accepted) == sorted(res.instances.ids.tolist())
+    for e in ev:
+        if e.reason == "duplicated or included":
+            assert e.partner >= 0 and 0 <= e.ratio <= 1.0 + 1e-6
+            # the partner was alive at that step
+            assert e.partner in tr.alive(e.step)
+        if e.reason == "proposal too small":
+            assert e.ratio < res.config.min_size
+
+
+def test_reviews_recorded_at_phase_ends(run: tuple) -> None:
+    _, _, res = run
+    tr = res.trace
+    assert set(np.unique(tr.rev_step).tolist()) <= {5, 8}
+    for pid in res.instances.ids:
+        recs = tr.reviews(int(pid))
+        assert [r["phase"] for r in recs] == [1, 2]
+        final = recs[-1]
+        assert final["scale_pass"] and final["pose_pass"]
+        k = int(np.flatnonzero(res.instances.ids == pid)[0])
+        assert np.array_equal(final["mask"], res.instances.masks[k])
+        assert len(final["mesh_faces"]) > 0
+        # float16 relative vertices are accurate to well under a millimetre
+        assert np.abs(final["mesh_vertices"] - res.instances.mesh_vertices[k]).max() < 1e-3
+
+
+def test_confidence_matches_recorded_scores(run: tuple) -> None:
+    _, _, res = run
+    tr = res.trace
+    for k, pid in enumerate(res.instances.ids):
+        last = tr.last_step(int(pid))
+        r = tr.row_of(int(pid), last)
+        cov = tr.reviews(int(pid))[-1]["coverage"]
+        expect = tr.row_stationary[r] * min(cov, 0.4) / 0.4
+        assert res.instances.confidence[k] == pytest.approx(expect, rel=1e-5)
+
+
+def test_weights_rederivation_matches_recorded_inliers(run: tuple) -> None:
+    _, _, res = run
+    tr = res.trace
+    pid = int(res.instances.ids[0])
+    for t in range(tr.num_steps):
+        w = tr.weights_out(pid, t)
+        r = tr.row_of(pid, t)
+        # inliers pass both truncations (weight ≥ exp(−α_D τ_D − α_N τ_N)); outliers get ≤ exp(−100)
+        assert int((w > 1e-30).sum()) == int(tr.row_inliers[r])
+    # the first step's input weights are the crop mask around the anchor
+    w0 = tr.weights_in(pid, 0)
+    assert set(np.unique(w0).tolist()) <= {0.0, 1.0}
+    anchor = tr.prop_anchor[pid]
+    pts = tr._points()
+    inside = np.linalg.norm(pts - pts[anchor], axis=1) < tr.prop_r_init[pid]
+    assert np.array_equal(w0 > 0, inside)
+    # later input weights are the previous step's output weights
+    assert np.array_equal(tr.weights_in(pid, 3), tr.weights_out(pid, 2))
+
+
+def test_view_contents_and_dead_proposals(run: tuple) -> None:
+    scene, _, res = run
+    tr = res.trace
+    pid = int(res.instances.ids[0])
+    v = tr.view(pid, 2)
+    assert v.weights.shape == (scene.num_points,) and v.weights.dtype == np.float32
+    assert np.array_equal(v.sampled_points, scene.points[v.sample_idx])
+    assert v.alive and v.death is not None and v.death[1] == "survive"
+    assert v.mesh is not None and len(v.mesh.faces) > 0
+    assert set(v.schedule) == {"alpha_d", "tau_d", "alpha_n", "tau_n"}
+    # sampled points carry positive input weight (they were drawn from it)
+    assert (v.weights[v.sample_idx] > 0).all()
+    assert tr.view(pid, 2) is v  # cached
+    dead = [e for e in tr.events() if e.reason == "proposal too small"]
+    assert dead
+    e = dead[0]
+    dv = tr.view(e.proposal_id, tr.num_steps - 1, mesh=False)
+    assert not dv.alive and dv.step == e.step and dv.death[1] == "proposal too small"
+    with pytest.raises(ValueError, match="out of range"):
+        tr.view(10_000, 0)
+
+
+def test_save_load_round_trip(run: tuple, tmp_path: Path) -> None:
+    scene, prior, res = run
+    path = res.save(tmp_path)
+    assert path.name == f"{scene.name}.efem.npz"
+    back = EMResult.load(path)
+    for k in res.trace._ARRAY_FIELDS:
+        a, b = getattr(res.trace, k), getattr(back.trace, k)
+        assert a.dtype == b.dtype, k
+        assert np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), k
+    assert back.config == res.config
+    assert back.scene_name == scene.name and back.num_points == scene.num_points
+    assert np.array_equal(back.instances.confidence, res.instances.confidence)
+    assert all(np.array_equal(a, b) for a, b in zip(back.instances.masks, res.instances.masks))
+    with pytest.raises(ValueError, match="needs the shape prior|no scene bound"):
+        back.trace.view(int(res.instances.ids[0]), 1)
+    back.trace.bind(scene, prior)
+    pid = int(res.instances.ids[-1])
+    for step in (0, 4, res.trace.num_steps - 1):
+        v1, v2 = res.trace.view(pid, step, mesh=False), back.trace.view(pid, step, mesh=False)
+        assert np.array_equal(v1.weights, v2.weights)
+        assert np.array_equal(v1.sample_idx, v2.sample_idx)
+        assert v1.scores == v2.scores and v1.death == v2.death
+    # the file stays small: no dense per-step weights
+    assert path.stat().st_size < 2_000_000
+
+
+def test_load_rejects_other_files(tmp_path: Path) -> None:
+    bad = tmp_path / "x.efem.npz"
+    np.savez(bad, a=np.zeros(3))
+    with pytest.raises(ValueError, match="not an EFEM result"):
+        EMResult.load(bad)
+    with pytest.raises(FileNotFoundError):
+        EMResult.load(tmp_path / "missing.efem.npz")

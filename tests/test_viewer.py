@@ -1,0 +1,294 @@
+"""Viewer tests without a browser: build the app on port 0, drive its callbacks, assert scene nodes and state.
+
+The EM result comes from the real solver (`efem_viz.em.run_em`) on the analytic sphere scene with the analytic
+sphere prior (exact, fast, no trained weights), saved next to the scene file like a precomputed result.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+import pytest
+
+from efem_viz.viewer import state as st
+
+em = pytest.importorskip("efem_viz.em", reason="efem_viz.em not importable yet")
+analytic = pytest.importorskip("efem_viz.em.analytic", reason="efem_viz.em.analytic not importable yet")
+
+
+# ---------------------------------------------------------------------------------------------- fixtures
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A folder with a sphere scene, its saved EM result, a broken scene file, and a result-less scene."""
+    import torch
+
+    from efem_viz.data.io import save_scene
+
+    torch.set_num_threads(1)
+    d = tmp_path_factory.mktemp("scenes")
+    scene = analytic.make_sphere_scene(seed=0, spacing=0.008, name="spheres")
+    save_scene(scene, d / "spheres.ply")
+    prior = analytic.make_sphere_prior()
+    cfg = em.preset("fast").with_proposals(16).replace(min_size=30)
+    result = em.run_em(scene, prior, cfg, seed=0)
+    assert len(result.instances) >= 1, "the sphere scene should give at least one instance"
+    result.save(d / "spheres.efem.npz")
+    other = analytic.make_sphere_scene(seed=1, spacing=0.012, radii=(0.05,), name="one_sphere")
+    save_scene(other, d / "one_sphere.ply")
+    (d / "broken.ply").write_text("ply\nthis is not a ply header\n")
+    return d
+
+
+@pytest.fixture(scope="module")
+def prior() -> Any:
+    return analytic.make_sphere_prior()
+
+
+@pytest.fixture(scope="module")
+def app(scene_dir: Path, prior: Any) -> Iterator[Any]:
+    from efem_viz.viewer.app import ViewerApp
+
+    a = ViewerApp([scene_dir], port=0, prior=prior, open_first=False)
+    assert a.open_scene("spheres")
+    assert a.wait_idle(60)
+    yield a
+    a.stop()
+
+
+def _visible_shapes(app: Any) -> set[tuple[int, int]]:
+    return {k for k, h in app.nodes.shapes.items() if h.visible}
+
+
+# ---------------------------------------------------------------------------------------------- pure state
+def test_discover_scenes_only_inside_given_paths(tmp_path: Path) -> None:
+    inside = tmp_path / "in"
+    outside = tmp_path / "out"
+    inside.mkdir()
+    outside.mkdir()
+    (inside / "a.ply").write_text("x")
+    (inside / "b.npz").write_text("x")
+    (inside / "a.efem.npz").write_text("x")  # a result, not a scene
+    (inside / "notes.txt").write_text("x")
+    (outside / "secret.ply").write_text("x")
+    os.symlink(outside / "secret.ply", inside / "link.ply")  # points outside: must be dropped
+    entries = st.discover_scenes([inside])
+    assert [e.name for e in entries] == ["a", "b"]
+    assert all(st.is_inside(e.path, [inside.resolve()]) for e in entries)
+    assert not st.is_inside(outside / "secret.ply", [inside.resolve()])
+    assert entries[0].trace_path.name == "a.efem.npz"
+    with pytest.raises(FileNotFoundError):
+        st.discover_scenes([tmp_path / "missing"])
+
+
+def test_palette_heatmap_and_marks() -> None:
+    cols = st.palette([3, 4, 5, 3])
+    assert cols.dtype == np.uint8 and cols.shape == (4, 3)
+    assert (cols[0] == cols[3]).all() and len({tuple(c) for c in cols[:3]}) == 3
+    h = st.heatmap(np.array([0.0, 1.0, np.nan]), vmin=0.0, vmax=1.0)
+    assert h[0, 2] > h[0, 0] and h[1, 0] > h[1, 2]  # cold is blue, hot is red
+    assert (h[2] == st.BACKGROUND_COLOR).all()
+    marks = st.phase_marks(np.array([1, 1, 1, 2, 2]))
+    assert [(m.step, m.label) for m in marks] == [(0, "P1"), (2, "R"), (3, "P2"), (4, "R")]
+    ids = st.top_n(np.array([7, 8, 9, 10]), np.array([0.5, np.nan, 0.9, 0.5]), 3)
+    assert ids.tolist() == [9, 7, 10]
+
+
+def test_weights_and_label_colors() -> None:
+    base = np.full((5, 3), 100, np.uint8)
+    w = np.array([0.0, 0.0, 0.5, 1.0, 0.0], np.float32)
+    c = st.weights_colors(base, w)
+    assert (c[0] == c[1]).all() and not (c[2] == c[0]).all() and not (c[3] == c[2]).all()
+    lab = st.label_colors(base, np.array([0, 2, 2, 5, 0]))
+    assert (lab[1] == lab[2]).all() and not (lab[1] == lab[3]).all() and (lab[0] == lab[4]).all()
+    with pytest.raises(ValueError):
+        st.weights_colors(base, np.zeros(4))
+
+
+# ---------------------------------------------------------------------------------------------- app: scenes
+def test_app_binds_loopback_and_lists_scenes(app: Any, scene_dir: Path) -> None:
+    assert app.url.startswith("http://127.0.0.1:")
+    assert app.server.get_host() == "127.0.0.1"
+    names = [e.name for e in app.state.entries]
+    assert names == ["broken", "one_sphere", "spheres"]
+    assert set(app.panels.gui_scene.options) == set(names)
+    assert app.nodes.points is not None
+    assert app.nodes.points.points.shape[0] == app.state.scene.num_points
+    info = app.panels.gui_info.content
+    assert "spheres" in info and f"{app.state.scene.num_points:,}" in info and "ground truth: 3 instances" in info
+
+
+def test_saved_trace_loads_automatically(app: Any) -> None:
+    s = app.state
+    assert s.result is not None and s.result_source == "spheres.efem.npz"
+    T = s.result.trace.num_steps
+    assert app.panels.gui_step.max == T - 1 and s.step == T - 1
+    marks = dict(app.panels.gui_step.marks)
+    assert marks[0].startswith("P1") and any("R" in v for v in marks.values())
+    assert len(app.nodes.result_meshes) == len(s.result.instances)
+    assert app.panels.gui_active_plot.visible
+
+
+def test_step_change_updates_samples_shapes_and_lists(app: Any) -> None:
+    trace = app.state.result.trace
+    app.set_step(0)
+    assert app.wait_idle(60)
+    ids0, _ = st.alive_table(trace, 0)
+    drawn0 = set(st.top_n(*st.alive_table(trace, 0), app.state.max_shapes).tolist())
+    assert {p for p, t in _visible_shapes(app)} == drawn0 and all(t == 0 for _, t in _visible_shapes(app))
+    samples0 = np.array(app.nodes.samples.points)
+    assert f"**{len(ids0)} alive**" in app.panels.gui_step_info.content
+    last = trace.num_steps - 1
+    app.set_step(last)
+    assert app.wait_idle(60)
+    assert all(t == last for _, t in _visible_shapes(app))
+    assert not np.array_equal(samples0, np.array(app.nodes.samples.points))
+    n_dead = len([d for d in st.deaths(trace) if d.step <= last])
+    assert f"Terminated by step {last}: {n_dead}" in app.panels.gui_dead_info.content
+    app.set_step(10_000)  # clamped
+    assert app.state.step == last
+    # Going back re-shows cached shapes without re-sending them.
+    n_cached = len(app.nodes.shapes)
+    app.set_step(0)
+    assert app.wait_idle(60)
+    assert len(app.nodes.shapes) == n_cached
+    app.set_max_shapes(1)
+    assert len(_visible_shapes(app)) == 1
+    app.set_max_shapes(8)
+
+
+def test_inspect_proposal_shows_fig_s9_views(app: Any) -> None:
+    trace = app.state.result.trace
+    app.set_step(2)
+    ids, _ = st.alive_table(trace, 2)
+    pid = int(ids[0])
+    fut = app.select_proposal(pid)
+    fut.result(timeout=60)
+    assert app.wait_idle(60)
+    assert app.state.color_mode == "weights"
+    assert {"crop", "samples", "shape"} <= set(app.nodes.inspect)
+    view = trace.view(pid, 2, app.prior())
+    assert np.asarray(app.nodes.inspect["samples"].points).shape[0] == len(view.sampled_points)
+    colors = np.asarray(app.nodes.points.colors)
+    assert not np.array_equal(colors, app.state.scene.colors)
+    assert f"Proposal #{pid} at step 2" in app.panels.gui_inspect_info.content
+    assert "stationary" in app.panels.gui_inspect_info.content and "alpha_d" in app.panels.gui_inspect_info.content
+    # A dead proposal lists its reason.
+    dead = st.deaths(trace)
+    if dead:
+        d = dead[0]
+        app.set_step(d.step)
+        app.select_proposal(d.pid).result(timeout=60)
+        assert app.wait_idle(60)
+        assert d.reason in app.panels.gui_inspect_info.content
+    app.select_proposal(None)
+    assert not app.nodes.inspect and app.state.color_mode == "instances"
+
+
+def test_threshold_filters_instances_without_rerun(app: Any) -> None:
+    inst = app.state.result.instances
+    app.set_result_layers(meshes=True, obbs=True, axes=True)
+    app.set_threshold(0.0)
+    vis_all = [h.visible for h in app.nodes.result_obbs]
+    assert all(vis_all) and len(vis_all) == len(inst)
+    colors_all = np.array(app.nodes.points.colors)
+    app.set_threshold(float(np.max(inst.confidence)) + 0.001)
+    assert not any(h.visible for h in app.nodes.result_obbs)
+    assert not any(h.visible for h in app.nodes.result_axes)
+    assert "**0 of" in app.panels.gui_result_info.content
+    assert not np.array_equal(colors_all, np.array(app.nodes.points.colors))
+    assert app.state.result.instances is inst  # a view, not a re-run
+    app.set_threshold(0.0)
+    app.set_result_layers(meshes=False, obbs=True, axes=False)
+    assert not any(h.visible for h in app.nodes.result_meshes if h is not None)
+
+
+def test_bad_scene_shows_error_and_server_stays_up(app: Any) -> None:
+    assert app.open_scene("broken") is False
+    assert app.state.error is not None and "broken.ply" in app.state.error
+    assert "broken.ply" in app.panels.gui_status.content
+    assert app.state.scene_name == "spheres"  # previous scene kept
+    assert app.open_scene("one_sphere") is True
+    assert app.state.result is None and app.state.error is None
+    assert app.load_trace() is False and "No saved trace" in app.state.status
+    assert app.open_scene("spheres") is True and app.state.result is not None
+    assert app.wait_idle(60)
+
+
+def test_never_reads_outside_given_paths(app: Any, tmp_path: Path) -> None:
+    outside = tmp_path / "elsewhere.efem.npz"
+    outside.write_bytes(b"not read")
+    assert app.load_trace(outside) is False
+    assert "outside the given paths" in app.state.error
+    with pytest.raises(KeyError):
+        app.state.entry("../elsewhere")
+
+
+def test_run_in_worker_with_progress_and_cancel(app: Any) -> None:
+    import threading
+
+    gate = threading.Event()
+    app._submit(app._worker, gate.wait, 30)  # keep the worker busy so the cancel lands before the run starts
+    before = app.state.result
+    fut = app.start_run(preset="fast", proposals=8, seed=3)
+    assert fut is not None and app.state.running
+    assert app.panels.gui_run.disabled and not app.panels.gui_cancel.disabled and app.panels.gui_progress.visible
+    assert app.start_run(preset="fast") is None  # one run at a time
+    app.cancel_run()
+    gate.set()
+    assert fut.result(timeout=120) is None
+    assert app.state.status == "Run cancelled." and app.state.result is before
+    assert not app.state.running and not app.panels.gui_run.disabled and not app.panels.gui_progress.visible
+    fut = app.start_run(preset="fast", proposals=8, seed=3)
+    res = fut.result(timeout=120)
+    assert res is not None and app.state.result is res
+    assert app.state.result_source.startswith("run (fast, seed 3")
+    assert len(res.trace.alive(0)) == 8
+    assert app.load_trace() is True  # back to the saved one
+    assert app.wait_idle(60)
+
+
+def test_export_results_and_static_demo(app: Any, tmp_path: Path) -> None:
+    app.set_threshold(0.0)
+    out = app.export_results(tmp_path / "res")
+    assert out is not None
+    txt = (out / "spheres.txt").read_text().splitlines()
+    assert len(txt) == len(app.state.result.instances)
+    assert (out / "spheres_instances.ply").is_file()
+    index = app.export_static(tmp_path / "static" / "spheres")
+    assert index is not None and index.name == "index.html"
+    html = index.read_text()
+    assert "__VISER_EMBED_DATA__" in html and len(html) < 20_000_000
+    import json
+
+    meta = json.loads((index.parent / "meta.json").read_text())
+    assert meta["steps"] == app.state.result.trace.num_steps
+
+
+def test_ground_truth_panel(app: Any) -> None:
+    pytest.importorskip("efem_viz.eval", reason="efem_viz.eval not importable yet")
+    from efem_viz import eval as ev
+
+    if not hasattr(ev, "match_instances") or not hasattr(ev, "evaluate_instances"):
+        pytest.skip("efem_viz.eval has no match_instances/evaluate_instances yet")
+    app.set_threshold(0.0)
+    app.set_color_mode("gt_match")
+    m = app._gt_metrics()
+    assert len(m.tp) + len(m.fn) == len(app.state.scene.instance_ids())
+    assert "AP50" in app.panels.gui_gt_info.content
+    colors = np.asarray(app.nodes.points.colors)
+    if m.tp:
+        assert (colors[m.masks[m.tp[0]]] == st.TP_COLOR).all()
+    assert app.panels.gui_pr_plot.visible
+    app.set_color_mode("instances")
+
+
+def test_view_args_defaults() -> None:
+    from efem_viz.viewer.commands import ViewArgs
+
+    args = ViewArgs()
+    assert args.host == "127.0.0.1" and args.port == 8080 and args.paths == ()
+    with pytest.raises(FileNotFoundError):
+        ViewArgs(paths=(Path("/nonexistent/dir"),)).run()
