@@ -8,12 +8,14 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import tyro
+
 
 @dataclass
 class AnnotateArgs:
     """Label per-vertex object instances of a scan in the browser (viser). Edits are journalled and autosaved."""
 
-    scan: Path
+    scan: tyro.conf.Positional[Path]
     """Scan to label: PLY/OBJ/OFF/GLB/NPZ mesh or point cloud, or an RGB-D frame .npz. Never modified."""
     labels: Path | None = None
     """Labels to start from (PLY `instance`, NPZ, ScanNet .aggregation.json / .segs.json, EFEM .efem.npz).
@@ -55,8 +57,6 @@ class AnnotateArgs:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the `efem-annotate` console script."""
-    import tyro
-
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     args = tyro.cli(AnnotateArgs, args=sys.argv[1:] if argv is None else argv, prog="efem-annotate")
     from annotator.io import LabelIOError

@@ -123,7 +123,7 @@ class AnnotatorApp:
         port: int = 8081,
         max_points: int = 2_000_000,
         autosave_delay: float = 0.5,
-        chunk_size: int = 32768,
+        chunk_size: int = 16384,
     ) -> None:
         t0 = time.perf_counter()
         self.scan_path = Path(scan_path).resolve()
@@ -780,6 +780,7 @@ class AnnotatorApp:
                         break
                     if k2 == "drag" and e2.phase == "update" and e2.client_id == event.client_id:
                         self._edits.get_nowait()
+                        self._edits.task_done()
                         event = e2
                     else:
                         break

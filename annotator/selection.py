@@ -227,6 +227,9 @@ def brush_segment(
 ) -> np.ndarray:
     """Vertices within `radius` of the segment a→b (a continuous stroke between two drag samples).
 
+    Segments longer than 4 radii are walked along the surface instead (samples snapped to the nearest scan
+    point), so a fast stroke over a curved object does not cut through it.
+
     Args:
         geom: the scan.
         a: (3,) previous brush position. b: (3,) current brush position (world frame).
@@ -244,6 +247,16 @@ def brush_segment(
         return brush(geom, a64, radius, normal=normal, max_normal_angle_deg=max_normal_angle_deg)
     if length > 50 * radius:  # a jump (pointer left the surface): paint only the end
         return brush(geom, b64, radius, normal=normal, max_normal_angle_deg=max_normal_angle_deg)
+    if length > 4 * radius:
+        # A long chord may cut through the object: walk it in steps of radius/2, snap each sample to the
+        # nearest scan point, and paint balls there (a polyline on the surface).
+        k = int(np.ceil(length / (0.5 * radius))) + 1
+        samples = a64 + np.linspace(0.0, 1.0, k)[:, None] * seg
+        _, nn = geom.tree.query(samples)
+        centres = geom.points[np.unique(nn)].astype(np.float64)
+        lists = geom.tree.query_ball_point(centres, float(radius))
+        idx = np.unique(np.concatenate([np.asarray(li, np.int64) for li in lists])).astype(np.int32)
+        return _normal_filter(geom, idx, normal, max_normal_angle_deg)
     mid = 0.5 * (a64 + b64)
     cand = np.asarray(geom.tree.query_ball_point(mid, radius + 0.5 * length), np.int64)
     if len(cand) == 0:

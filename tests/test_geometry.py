@@ -1,4 +1,4 @@
-"""Tests of efem_viz.geometry: transforms, Procrustes (points and VN latents), rotation-only ICP, oriented boxes."""
+"""Tests of efem_viz.geometry: transforms, Procrustes (points and VN latents), rotation-only ICP, boxes."""
 
 from __future__ import annotations
 
@@ -58,7 +58,8 @@ def test_quaternion_round_trip(seed: int) -> None:
 def test_quaternion_known_values_and_edge_angles() -> None:
     R = rotation_about_axis([0, 0, 1], np.pi / 2)
     np.testing.assert_allclose(R @ [1, 0, 0], [0, 1, 0], atol=1e-12)
-    np.testing.assert_allclose(rotation_to_quat_wxyz(R), [np.cos(np.pi / 4), 0, 0, np.sin(np.pi / 4)], atol=1e-12)
+    expected = [np.cos(np.pi / 4), 0, 0, np.sin(np.pi / 4)]
+    np.testing.assert_allclose(rotation_to_quat_wxyz(R), expected, atol=1e-12)
     for axis in ([1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0]):  # 180° turns: trace = −1 branch
         R = rotation_about_axis(axis, np.pi)
         np.testing.assert_allclose(quat_wxyz_to_rotation(rotation_to_quat_wxyz(R)), R, atol=1e-10)

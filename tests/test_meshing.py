@@ -96,6 +96,19 @@ def test_decimation_and_padding() -> None:
     np.testing.assert_allclose(clipped.bounds, [[-0.5] * 3, [0.5] * 3], atol=0.02)
 
 
+def test_sample_surface_points_lie_on_mesh_with_outward_normals() -> None:
+    mesh = mesh_from_sdf_fn(sphere_sdf(0.4), resolution=32, coarse=8, max_faces=None)
+    pts, nrm = meshing.sample_surface(mesh, 500, seed=1)
+    assert pts.shape == nrm.shape == (500, 3)
+    np.testing.assert_allclose(np.linalg.norm(pts, axis=1), 0.4, atol=0.01)
+    assert (np.sum(pts * nrm, axis=1) > 0.9 * 0.4).all()
+    a, b = meshing.sample_surface(mesh, 50, seed=3)[0], meshing.sample_surface(mesh, 50, seed=3)[0]
+    np.testing.assert_array_equal(a, b)
+    empty = mesh_from_sdf_fn(lambda p: np.ones(len(p)), resolution=8, coarse=None)
+    e_pts, e_nrm = meshing.sample_surface(empty, 7)
+    assert e_pts.shape == (7, 3) and not e_pts.any() and not e_nrm.any()
+
+
 def test_empty_and_invalid() -> None:
     empty = mesh_from_sdf_fn(lambda p: np.ones(len(p)), resolution=16, coarse=8)
     assert len(empty.faces) == 0 and len(empty.vertices) == 0
@@ -110,8 +123,8 @@ def test_empty_and_invalid() -> None:
 # ------------------------------------------------------------------------------------------ extract_mesh
 def _sphere_prior(radius: float) -> ShapePrior:
     """A small ShapePrior whose decoder computes exactly `‖q‖ − radius` (q = (x − Θ_c)/Θ_s)."""
-    cfg = PriorConfig(widths=(8, 8, 16, 16), down_blocks=(2,), down_factors=(2,), latent_dim=16, center_hidden=8,
-                      n_pcl=64, k=8, decoder_hidden=16, decoder_blocks=1)
+    cfg = PriorConfig(widths=(8, 8, 16, 16), down_blocks=(2,), down_factors=(2,), latent_dim=16,
+                      center_hidden=8, n_pcl=64, k=8, decoder_hidden=16, decoder_blocks=1)
     torch.manual_seed(0)
     prior = ShapePrior(cfg).eval()
     dec = prior.decoder

@@ -1,7 +1,7 @@
 """Tests of the pose codebook (efem_viz.prior.codebook) and pose estimation (efem_viz.prior.pose).
 
-They use a small randomly initialised ShapePrior: exact SO(3) equivariance of the encoder is all the pose search
-needs to recover the rotation of a codebook entry's own (rotated, scaled, shifted) input.
+They use a small randomly initialised ShapePrior: exact SO(3) equivariance of the encoder is all the pose
+search needs to recover the rotation of a codebook entry's own (rotated, scaled, shifted) input.
 """
 
 from __future__ import annotations
@@ -83,8 +83,8 @@ def test_codebook_save_load_round_trip(codebook: Codebook, tmp_path: Path) -> No
         else:
             assert a == b, f.name
     assert not list(tmp_path.glob(".*tmp*"))  # atomic write leaves no temporary file
-    lat = Latent(*(torch.as_tensor(x[None]) for x in (codebook.z_so3[1], codebook.z_inv[1], codebook.center[1],
-                                                       codebook.scale[1:2].reshape(()))))
+    entry = (codebook.z_so3[1], codebook.z_inv[1], codebook.center[1], codebook.scale[1])
+    lat = Latent(*(torch.as_tensor(np.asarray(x)[None]) for x in entry))
     np.testing.assert_array_equal(loaded.retrieve(lat), codebook.retrieve(lat))
 
 
@@ -142,8 +142,9 @@ def test_pose_reflection_is_resolved_to_a_rotation(codebook: Codebook, prior: Sh
     """A mug is mirror symmetric (y → −y); fake a latent that the raw search maps with a reflection."""
     rng = np.random.default_rng(0)
     theta = np.linalg.qr(rng.normal(size=(prior.config.latent_dim, 3)))[0] * [2.0, 0.5, 1.0]  # y weakest
-    cb = dataclasses.replace(codebook, z_so3=np.repeat(theta[None], len(codebook), 0).astype(np.float32),
-                             proj=np.repeat(project_so3_code(theta)[0][None], len(codebook), 0).astype(np.float32))
+    K = len(codebook)
+    cb = dataclasses.replace(codebook, z_so3=np.repeat(theta[None], K, 0).astype(np.float32),
+                             proj=np.repeat(project_so3_code(theta)[0][None], K, 0).astype(np.float32))
     F = np.diag([1.0, -1.0, 1.0])
     R_true = random_rotation(7)
     lat = Latent(R=torch.as_tensor((theta @ (R_true @ F).T)[None]), inv=torch.as_tensor(cb.z_inv[1][None]),

@@ -80,6 +80,7 @@ def atomic_write(path: str | os.PathLike[str], writer: Callable[[Path], Any]) ->
             raise OSError(f"writer did not create the temporary file {tmp}")
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
+        os.chmod(tmp, _file_mode(dest))  # mkstemp makes 0600 files; give the usual permissions
         os.replace(tmp, dest)
     except BaseException:
         tmp.unlink(missing_ok=True)
@@ -93,6 +94,26 @@ def atomic_write(path: str | os.PathLike[str], writer: Callable[[Path], Any]) ->
     except OSError:
         pass
     return dest
+
+
+def _file_mode(dest: Path) -> int:
+    """The existing file's permissions, or 0666 minus the process umask for a new file."""
+    try:
+        return dest.stat().st_mode & 0o7777
+    except OSError:
+        return 0o666 & ~_umask()
+
+
+def _umask() -> int:
+    """The process umask, read without changing it (os.umask would race with other threads); 0o022 if unknown."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    return 0o022
 
 
 def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:

@@ -360,31 +360,46 @@ def _wall_parts(
     wall: float,
     sectors: int = 12,
     bands: int = 3,
+    inset: float = 0.0005,
 ) -> list[np.ndarray]:
     """Convex pieces (angular sector x height band) covering a revolved wall between heights z0 and z1.
 
-    Each piece is the point set of outer and inner wall samples at three angles of its sector; its convex hull
-    lies inside the wall up to the chord sagitta (towards the cavity). Returns a list of (K, 3) float64 arrays.
+    The wall ends in the rounded rim of `_hollow_profile` (centre at z1 - wall / 2): the top band stops there and
+    adds the rim's top points. Each piece is the point set of outer and inner wall samples at three angles of its
+    sector; its convex hull lies inside the wall up to the chord sagitta (towards the cavity).
+
+    Returns:
+        A list of (K, 3) float64 point sets.
     """
     parts: list[np.ndarray] = []
-    z_edges = np.linspace(z0, z1, bands + 1)
+    z_top = z1 - wall / 2.0
+    z_edges = np.linspace(z0, z_top, bands + 1)
     for b in range(bands):
         z = np.linspace(z_edges[b], z_edges[b + 1], 4)
-        ro, ri = r_out(z), _inner_radius(r_out, z, wall)
+        # inset by `inset` from both wall surfaces: the mesh is a polygonal approximation of the curved profile
+        ro, ri = r_out(z) - inset, _inner_radius(r_out, z, wall) + inset
+        rings = [(ro, z), (ri, z)]
+        if b == bands - 1:
+            rings.append((np.array([(ro[-1] + ri[-1]) / 2.0]), np.array([z1])))
         for s in range(sectors):
             a = np.linspace(2 * np.pi * s / sectors, 2 * np.pi * (s + 1) / sectors, 3)
             ca, sa = np.cos(a)[:, None], np.sin(a)[:, None]
-            pts = [np.stack([r[None, :] * ca, r[None, :] * sa, np.broadcast_to(z, (3, 4))], -1) for r in (ro, ri)]
-            parts.append(np.concatenate(pts, axis=0).reshape(-1, 3))
+            pts = [
+                np.stack([r[None, :] * ca, r[None, :] * sa, np.broadcast_to(zz, (3, len(zz)))], -1).reshape(-1, 3)
+                for r, zz in rings
+            ]
+            parts.append(np.concatenate(pts, axis=0))
     return parts
 
 
-def _disk_part(r_out: Callable[[np.ndarray], np.ndarray], *, z0: float, z1: float, n: int = 24) -> np.ndarray:
-    """(2n, 3) points of a convex disk (solid base) between heights z0 and z1."""
+def _disk_part(
+    r_out: Callable[[np.ndarray], np.ndarray], *, z0: float, z1: float, foot_radius: float = 0.0, n: int = 24
+) -> np.ndarray:
+    """(2n, 3) points of a convex disk (solid base) between heights z0 and z1, inset by the foot fillet at z0."""
     a = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
     out = []
-    for z in (z0, z1):
-        r = float(r_out(np.array([z]))[0])
+    for z, inset in ((z0, foot_radius), (z1, 0.0)):
+        r = float(r_out(np.array([z]))[0]) - inset
         out.append(np.stack([r * np.cos(a), r * np.sin(a), np.full(n, z)], axis=1))
     return np.concatenate(out, axis=0)
 
@@ -392,8 +407,8 @@ def _disk_part(r_out: Callable[[np.ndarray], np.ndarray], *, z0: float, z1: floa
 def _build_mug(p: MugParams) -> tuple[trimesh.Trimesh, list[np.ndarray]]:
     """Mesh and convex collision pieces of a mug, both in the frame with the foot centre at the origin."""
     body = _mug_body(p)
-    parts = _wall_parts(p.outer_radius, z0=p.bottom * 0.5, z1=p.height, wall=p.wall)
-    parts.append(_disk_part(p.outer_radius, z0=0.0, z1=p.bottom))
+    parts = _wall_parts(p.outer_radius, z0=max(p.bottom * 0.5, p.foot_radius), z1=p.height, wall=p.wall)
+    parts.append(_disk_part(p.outer_radius, z0=0.0, z1=p.bottom, foot_radius=p.foot_radius))
     if p.handle == "none":
         return body, parts
     path = _handle_path_xz(p)
@@ -489,7 +504,7 @@ def bowl_with_parts(seed: int) -> tuple[trimesh.Trimesh, list[np.ndarray]]:
     rng = np.random.default_rng([int(seed), 0x426F776C])
     rim, h = rng.uniform(0.06, 0.10), rng.uniform(0.04, 0.08)
     foot = rng.uniform(0.35, 0.55) * rim
-    expo = rng.uniform(0.45, 0.8)
+    expo = rng.uniform(0.5, 0.8)
     wall = rng.uniform(0.003, 0.006)
 
     def r_out(z: np.ndarray) -> np.ndarray:
@@ -499,11 +514,11 @@ def bowl_with_parts(seed: int) -> tuple[trimesh.Trimesh, list[np.ndarray]]:
 
     bottom = wall * 1.5
     prof = _hollow_profile(
-        r_out, height=h, wall=wall, bottom=bottom, foot_radius=0.002, inner_fillet=0.004, n_wall=14
+        r_out, height=h, wall=wall, bottom=bottom, foot_radius=0.002, inner_fillet=0.004, n_wall=22
     )
-    mesh = _revolve(prof, 48)
-    parts = _wall_parts(r_out, z0=bottom * 0.5, z1=h, wall=wall, sectors=16, bands=4)
-    parts.append(_disk_part(r_out, z0=0.0, z1=bottom))
+    mesh = _revolve(prof, 40)
+    parts = _wall_parts(r_out, z0=max(bottom * 0.5, 0.002), z1=h, wall=wall, sectors=16, bands=4)
+    parts.append(_disk_part(r_out, z0=0.0, z1=bottom, foot_radius=0.002))
     return _finish(mesh, parts, f"bowl {seed}")
 
 

@@ -105,6 +105,50 @@ class PlaneFit:
     """RMS point-to-plane distance of those inliers, metres."""
 
 
+def ransac_plane(
+    points: np.ndarray,
+    *,
+    rng: np.random.Generator,
+    distance: float = 0.01,
+    iterations: int = 1000,
+    score_points: int = 4000,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Deterministic (seeded) RANSAC plane fit, vectorised in NumPy, refined by least squares on the inliers.
+
+    (open3d's `segment_plane` runs its hypotheses in parallel threads and is not reproducible even when seeded.)
+
+    Args:
+        points: (N, 3) float.
+        rng: random generator.
+        distance: inlier distance.
+        iterations: plane hypotheses.
+        score_points: hypotheses are scored on this many random points (all if fewer).
+
+    Returns:
+        `(model (4,) [a, b, c, d] with unit normal, inlier indices (K,) int64)`.
+    """
+    n = len(points)
+    tri = points[rng.integers(0, n, size=(iterations, 3))]
+    nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    length = np.linalg.norm(nrm, axis=1)
+    ok = length > 1e-12
+    nrm = nrm[ok] / length[ok, None]
+    d = -np.einsum("ij,ij->i", nrm, tri[ok, 0])
+    sub = points[rng.choice(n, size=min(n, score_points), replace=False)]
+    counts = (np.abs(sub @ nrm.T + d) < distance).sum(axis=0)
+    best = int(np.argmax(counts))
+    normal, off = nrm[best], float(d[best])
+    inl = np.flatnonzero(np.abs(points @ normal + off) < distance)
+    for _ in range(2):  # least-squares refinement
+        if len(inl) < 3:
+            break
+        c = points[inl].mean(axis=0)
+        normal = np.linalg.svd(points[inl] - c, full_matrices=False)[2][2]
+        off = float(-normal @ c)
+        inl = np.flatnonzero(np.abs(points @ normal + off) < distance)
+    return np.array([*normal, off]), inl.astype(np.int64)
+
+
 def find_support_plane(
     points_cam: np.ndarray,
     *,
@@ -113,7 +157,7 @@ def find_support_plane(
     max_planes: int = 4,
     cluster_eps: float = 0.03,
 ) -> PlaneFit:
-    """Find the table plane: RANSAC planes (open3d), keep those facing the camera with normal toward image-up,
+    """Find the table plane: RANSAC planes (seeded, `ransac_plane`), keep those facing the camera with normal toward image-up,
     take each one's largest connected region, prefer the plane nearest the camera among the large ones (a table
     above a floor), refit by least squares.
 
@@ -129,16 +173,14 @@ def find_support_plane(
     """
     import open3d as o3d
 
-    o3d.utility.random.seed(int(seed))
+    rng = np.random.default_rng(seed)
     pts = np.asarray(points_cam, dtype=np.float64)
     remaining = np.arange(len(pts))
     cands: list[dict[str, Any]] = []
     for _ in range(max_planes):
         if len(remaining) < 500:
             break
-        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts[remaining]))
-        model, inl = pcd.segment_plane(distance_threshold=distance, ransac_n=3, num_iterations=1000)
-        inl = np.asarray(inl, dtype=np.int64)
+        model, inl = ransac_plane(pts[remaining], rng=rng, distance=distance)
         if len(inl) < 300:
             break
         idx = remaining[inl]

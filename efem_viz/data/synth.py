@@ -49,6 +49,9 @@ DISTRACTOR_CATEGORIES: tuple[str, ...] = ("box", "can", "bowl", "bottle")
 PENETRATION_TOLERANCE = 0.002
 """Largest accepted interpenetration depth between final meshes (metres)."""
 
+COLLISION_SHRINK = 0.0008
+"""Collision pieces are pulled in by this much (metres) to offset Bullet's convex-hull margin."""
+
 _MUG_COLORS = np.array(
     [
         [235, 235, 230],
@@ -132,7 +135,7 @@ def _footprint_radius(mesh: "trimesh.Trimesh", R: np.ndarray) -> tuple[np.ndarra
 def _scatter_xy(rng: np.random.Generator, radii: Sequence[float], *, gap: float = 0.01) -> np.ndarray:
     """Non-overlapping disc centres (K, 2) around the origin (rejection sampling in a growing square)."""
     n = len(radii)
-    half = min(0.08 + 0.035 * n, TABLE_HALF - 0.12)
+    half = min(0.05 + 0.025 * n, TABLE_HALF - 0.12)
     for _ in range(50):
         centres: list[np.ndarray] = []
         ok = True
@@ -164,8 +167,14 @@ def _place_upright(objs: list[_Object], rng: np.random.Generator) -> None:
         o.T_world_object = T
 
 
-def _write_parts_obj(parts: Sequence[np.ndarray], path: str) -> None:
-    """Write convex pieces as separate OBJ objects (pybullet makes a compound of their convex hulls)."""
+def _write_parts_obj(parts: Sequence[np.ndarray], path: str, *, shrink: float = 0.0) -> None:
+    """Write convex pieces as separate OBJ objects (pybullet makes a compound of their convex hulls).
+
+    Args:
+        parts: list of (K, 3) point sets.
+        path: destination .obj.
+        shrink: move every hull vertex this far (metres) towards the piece centroid (at most halfway).
+    """
     from scipy.spatial import ConvexHull
 
     lines: list[str] = []
@@ -173,6 +182,11 @@ def _write_parts_obj(parts: Sequence[np.ndarray], path: str) -> None:
     for k, pts in enumerate(parts):
         hull = ConvexHull(pts)
         v = pts[hull.vertices]
+        if shrink > 0:  # Bullet inflates convex hulls by a collision margin: pull the vertices in by about that
+            c = v.mean(axis=0)
+            d = v - c
+            ln = np.linalg.norm(d, axis=1, keepdims=True)
+            v = c + d * np.maximum(ln - shrink, 0.5 * ln) / np.maximum(ln, 1e-12)
         remap = {int(i): j for j, i in enumerate(hull.vertices)}
         lines.append(f"o part{k}")
         lines.extend(f"v {a:.6f} {b:.6f} {c:.6f}" for a, b, c in v)
@@ -226,7 +240,7 @@ def _simulate(
         with tempfile.TemporaryDirectory(prefix="efem_synth_") as tmp:
             for k, (o, R, c) in enumerate(zip(objs, rots, coms)):
                 fn = os.path.join(tmp, f"obj{k}.obj")
-                _write_parts_obj([q - c for q in o.parts], fn)
+                _write_parts_obj([q - c for q in o.parts], fn, shrink=COLLISION_SHRINK)
                 shape = pb.createCollisionShape(pb.GEOM_MESH, fileName=fn, physicsClientId=cid)
                 mass = max(float(o.mesh.volume) * 2000.0, 0.02)
                 quat = _matrix_to_quat_xyzw(R)
@@ -236,18 +250,18 @@ def _simulate(
                 pb.changeDynamics(
                     b,
                     -1,
-                    lateralFriction=0.6,
-                    spinningFriction=0.002,
-                    rollingFriction=0.0005,
+                    lateralFriction=0.8,
+                    spinningFriction=0.003,
+                    rollingFriction=0.002 if layout == "pile" else 0.0005,
                     restitution=0.05,
-                    linearDamping=0.2,
-                    angularDamping=0.2,
+                    linearDamping=0.3,
+                    angularDamping=0.3,
                     physicsClientId=cid,
                 )
                 bodies.append(b)
         walls: list[int] = []
         if layout == "pile":
-            ring_r = 0.06 + 0.012 * len(objs) + max(radii)
+            ring_r = 0.6 * max(radii) + 0.012 * len(objs) + 0.03
             height = max(sum(2 * r for r in radii), 0.3)
             n_w = 16
             wshape = pb.createCollisionShape(
@@ -322,6 +336,8 @@ def contact_report(objs_world: Sequence["trimesh.Trimesh"], *, samples: int = 30
     Returns:
         {"max_penetration": metres (objects into each other or below the table top),
          "pair_penetration": (K, K) array, [i, j] = deepest point of i inside j,
+         "pair_gap": (K, K) array, [i, j] = smallest distance from i's surface to j (0 when touching or
+         penetrating; inf when their bounding boxes are more than 1 cm apart),
          "gap": (K,) distance from each object to the nearest other object or the table top}.
     """
     import open3d as o3d
@@ -333,6 +349,7 @@ def contact_report(objs_world: Sequence["trimesh.Trimesh"], *, samples: int = 30
         s, _ = trimesh.sample.sample_surface(m, samples, seed=seed + i)
         probes.append(np.concatenate([np.asarray(m.vertices), s]).astype(np.float32))
     pen = np.zeros((k, k))
+    pair_gap = np.full((k, k), np.inf)
     gap = np.array([max(float(p[:, 2].min()), 0.0) for p in probes])
     table_pen = max([max(-float(p[:, 2].min()), 0.0) for p in probes], default=0.0)
     for j, mj in enumerate(objs_world):
@@ -350,10 +367,12 @@ def contact_report(objs_world: Sequence["trimesh.Trimesh"], *, samples: int = 30
                 continue
             sd = scene.compute_signed_distance(o3d.core.Tensor(p[near])).numpy()
             pen[i, j] = max(-float(sd.min()), 0.0)
-            gap[i] = min(gap[i], max(float(sd.min()), 0.0))
+            pair_gap[i, j] = max(float(sd.min()), 0.0)
+            gap[i] = min(gap[i], pair_gap[i, j])
     return {
         "max_penetration": float(max(pen.max(initial=0.0), table_pen)),
         "pair_penetration": pen,
+        "pair_gap": pair_gap,
         "gap": gap,
     }
 
@@ -493,7 +512,7 @@ def _fuse_tsdf(
     voxel: float,
     lo: np.ndarray,
     hi: np.ndarray,
-    trunc_voxels: float = 4.0,
+    trunc_voxels: float = 3.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Fuse depth frames into a truncated signed distance grid over the box [lo, hi] and mesh its zero level.
 
@@ -575,14 +594,20 @@ def _fuse_tsdf(
     if not cube.any() or vol[cube].min() >= 0 or vol[cube].max() <= 0:
         return np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3))
     verts, faces, _, _ = marching_cubes(vol, level=0.0, spacing=(voxel, voxel, voxel), mask=cube)
-    # scikit-image orients faces towards increasing values (+ = free space, towards the cameras): keep that
-    faces = faces[:, ::-1].astype(np.int64)
+    # with the default gradient_direction="descent", scikit-image winds the faces so that their normals point
+    # towards increasing values: + is free space, so the normals face the cameras (checked in tests)
+    faces = faces.astype(np.int64)
     full_col = np.zeros((int(np.prod(dims)), 3), np.float32)
     full_col[active] = color
     ijk = np.clip(np.round(verts / voxel).astype(np.int64), 0, dims - 1)
     flat = np.ravel_multi_index((ijk[:, 0], ijk[:, 1], ijk[:, 2]), tuple(dims))
     vcol = full_col[flat].astype(np.float64)
-    return verts + lo, faces, vcol
+    # merge coincident vertices (the masked marching cubes can emit a few) and drop collapsed faces
+    uniq, first, inv = np.unique(verts, axis=0, return_index=True, return_inverse=True)
+    inv = inv.reshape(-1)
+    faces = inv[faces]
+    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])]
+    return uniq.astype(np.float64) + lo, faces, vcol[first]
 
 
 def _remove_small_components(v: np.ndarray, f: np.ndarray, min_faces: int) -> tuple[np.ndarray, np.ndarray]:

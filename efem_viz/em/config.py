@@ -86,6 +86,10 @@ class EMConfig:
     """Proposals per encoder call."""
     decode_chunk: int = 30000
     """Decoder queries per chunk (ragged over all live proposals)."""
+    work_voxel: float | None = None
+    """Run the EM loop on a thinned working set, one point per cell of this size (m); None = every point.
+    `min_size` scales with the kept fraction; review masks and coverage always use every point. A speed
+    knob (not in the release): decoder queries fall with the square of the thinning on surface scans."""
     n_pcl: int | None = None
     """Points sampled per proposal per M-step; None = the prior's training size."""
     pose_retrieval: bool = True
@@ -129,6 +133,8 @@ class EMConfig:
             v = getattr(self, nm)
             if len(v) != 2:
                 raise ValueError(f"{nm} must be a pair, got {v}")
+        if self.work_voxel is not None and self.work_voxel < 0:
+            raise ValueError(f"work_voxel must be >= 0 or None, got {self.work_voxel}")
         if self.n_pcl is not None and self.n_pcl < 1:
             raise ValueError(f"n_pcl must be >= 1, got {self.n_pcl}")
         if self.mesh_resolution < 8:

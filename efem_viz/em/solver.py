@@ -119,8 +119,14 @@ def decode_rows(
     normals: np.ndarray,
     *,
     chunk: int = 30000,
+    normals_within: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """SDF and normal angle of every (row, point) entry, decoding all rows in one ragged pass.
+
+    With `normals_within`, a first no-grad pass computes the SDF of every entry and the (3× dearer) gradient
+    pass runs only on entries with |d| ≤ normals_within; the others get γ = 180°. The solver sets it to the
+    largest SDF threshold any later test applies (τ_D(t), the stationary and output thresholds), so every
+    result is unchanged: an entry beyond it fails the SDF test anyway, and its weight exp(−U − E_N) is 0.
 
     Args:
         prior: the shape prior.
@@ -129,6 +135,7 @@ def decode_rows(
         points: (N, 3) float32 scene points, world frame.
         normals: (N, 3) float32 scene unit normals.
         chunk: decoder queries per chunk.
+        normals_within: see above; None = normals for every entry.
 
     Returns:
         d (K,) float32 canonical SDF and γ (K,) float32 signed angle (degrees) between the scene normal and the
@@ -147,15 +154,33 @@ def decode_rows(
     x = torch.from_numpy(np.asarray(points, np.float32))[idx_t].to(device=dev, dtype=dt)
     n_obs = torch.from_numpy(np.asarray(normals, np.float32))[idx_t].to(device=dev, dtype=dt)
     index = torch.from_numpy(rag.row).to(dev)
-    d_parts, g_parts = [], []
-    for s in range(0, k, chunk):
-        sdf, nrm = prior.sdf_and_normals(x[s : s + chunk], latent, index[s : s + chunk], chunk=chunk)
-        cos = (nrm * n_obs[s : s + chunk]).sum(-1).clamp(-1.0, 1.0)
-        d_parts.append(sdf.detach().float())
-        g_parts.append(torch.rad2deg(torch.arccos(cos)).detach().float())
-    d = torch.cat(d_parts).cpu().numpy()
-    g = torch.cat(g_parts).cpu().numpy()
-    return d, g
+    if normals_within is None:
+        d_parts, g_parts = [], []
+        for s in range(0, k, chunk):
+            sdf, nrm = prior.sdf_and_normals(x[s : s + chunk], latent, index[s : s + chunk], chunk=chunk)
+            cos = (nrm * n_obs[s : s + chunk]).sum(-1).clamp(-1.0, 1.0)
+            d_parts.append(sdf.detach().float())
+            g_parts.append(torch.rad2deg(torch.arccos(cos)).detach().float())
+        return torch.cat(d_parts).cpu().numpy(), torch.cat(g_parts).cpu().numpy()
+    with torch.no_grad():
+        d_t = torch.cat([prior.sdf(x[s : s + chunk], latent, index[s : s + chunk], chunk=chunk).float()
+                         for s in range(0, k, chunk)])
+    sel = torch.nonzero(d_t.abs() <= float(normals_within)).reshape(-1)
+    g_t = torch.full((k,), 180.0, dtype=torch.float32, device=d_t.device)
+    for s in range(0, len(sel), chunk):
+        si = sel[s : s + chunk]
+        _, nrm = prior.sdf_and_normals(x[si], latent, index[si], chunk=chunk)
+        cos = (nrm * n_obs[si]).sum(-1).clamp(-1.0, 1.0)
+        g_t[si] = torch.rad2deg(torch.arccos(cos)).detach().float()
+    return d_t.cpu().numpy(), g_t.cpu().numpy()
+
+
+def normals_threshold(cfg: EMConfig, tau_d: float) -> float:
+    """The largest |d| at which a decoded normal can still matter at a step with SDF truncation `tau_d`."""
+    out = [tau_d, cfg.stat_tau]
+    if cfg.gamma_out < 180.0:
+        out.append(cfg.tau_out)
+    return float(max(out))
 
 
 def encode_samples(prior: Any, pts: np.ndarray, *, batch: int = 30) -> dict[str, np.ndarray]:
@@ -185,6 +210,28 @@ def mesh_of_latent(prior: Any, lat: dict[str, np.ndarray], *, resolution: int = 
     one = {k: np.asarray(v)[None] if k != "scale" else np.asarray(v).reshape(1) for k, v in lat.items()}
     coarse = resolution // 2 if resolution % 2 == 0 else None
     return extract_mesh(prior, _latent_from_numpy(prior, one), resolution=resolution, coarse=coarse)
+
+
+def working_set(points: np.ndarray, voxel: float | None) -> np.ndarray:
+    """Indices of the points EM iterates on: one point per `voxel`-sized cell (the first in index order), or
+    every point when `voxel` is None/0. Sorted increasingly.
+
+    Args:
+        points: (N, 3) float32 world points.
+        voxel: cell size (m) or None.
+
+    Returns:
+        (N_w,) int64 indices into `points`.
+    """
+    n = len(points)
+    if not voxel:
+        return np.arange(n, dtype=np.int64)
+    keys = np.floor(np.asarray(points, np.float64) / float(voxel)).astype(np.int64)
+    keys -= keys.min(axis=0)
+    dims = keys.max(axis=0) + 1
+    flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
+    _, first = np.unique(flat, return_index=True)
+    return np.sort(first).astype(np.int64)
 
 
 # ---------------------------------------------------------------------------------------------- pool state
@@ -326,17 +373,24 @@ class _Solver:
         cancel: threading.Event | None,
     ) -> None:
         self.name = name
-        self.points = points
-        self.normals = normals
+        self.full_points = points
+        self.full_normals = normals
+        self.n_full = len(points)
+        self.work_idx = working_set(points, cfg.work_voxel)
+        self.identity = len(self.work_idx) == self.n_full
+        self.points = points[self.work_idx] if not self.identity else points
+        self.normals = normals[self.work_idx] if not self.identity else normals
+        self.n = len(self.points)
+        # min_size is defined at the scene's resolution; on a thinned working set it scales with the density
+        self.min_size = max(1, int(round(cfg.min_size * self.n / self.n_full)))
         self.prior = prior
         self.cfg = cfg
         self.rng = np.random.default_rng(seed)
         self.seed = int(seed)
         self.on_step = on_step
         self.cancel = cancel
-        self.n = len(points)
         self.m = int(cfg.n_pcl or getattr(getattr(prior, "config", None), "n_pcl", 512))
-        self.rec = TraceRecorder(cfg, self.n)
+        self.rec = TraceRecorder(cfg, self.n_full, work_idx=self.work_idx, work_min_size=self.min_size)
         self.timer = _Timer()
         self.t_start = time.perf_counter()
         self.n_queries = 0
@@ -344,6 +398,9 @@ class _Solver:
         self.planned_steps = cfg.num_episodes * cfg.steps_per_episode
         cb = getattr(prior, "codebook", None)
         self.ref_scale = float(cb.mean_scale) if cb is not None else 1.0
+        if not self.identity:
+            logger.info("%s: EM on a %.1f mm working set of %d of %d points (min_size %d -> %d)", name,
+                        cfg.work_voxel * 1000, self.n, self.n_full, cfg.min_size, self.min_size)
 
     def _check_cancel(self) -> None:
         if self.cancel is not None and self.cancel.is_set():
@@ -352,19 +409,21 @@ class _Solver:
     # ------------------------------------------------------------------ episodes
     def run(self) -> list[dict[str, Any]]:
         cfg = self.cfg
-        assigned = np.zeros(self.n, bool)
+        assigned = np.zeros(self.n_full, bool)  # full resolution
         accepted: list[dict[str, Any]] = []
         for ep, n_init in enumerate(cfg.n_init):
             self._check_cancel()
-            available = ~assigned
+            available_full = ~assigned
+            available = available_full[self.work_idx]
             n_avail = int(available.sum())
-            if n_avail <= cfg.min_size:
-                logger.info("episode %d skipped: %d available points <= min_size %d", ep, n_avail, cfg.min_size)
+            if n_avail <= self.min_size:
+                logger.info("episode %d skipped: %d available points <= min_size %d", ep, n_avail, self.min_size)
                 break
             tree = AvailableTree(self.points, available, crop=cfg.crop)
+            full_tree = tree if self.identity else None
             anchors, crops = init_crops(self.points, available, n_init, cfg.r_init, self.rng, crop=cfg.crop,
                                         tree=tree)
-            ids = self.rec.birth(ep, anchors, cfg.r_init, cfg.r_err)
+            ids = self.rec.birth(ep, self.work_idx[anchors], cfg.r_init, cfg.r_err)
             self.rec.start_episode(np.flatnonzero(assigned), len(ids))
             pool = _Pool(ids=ids, rag=crops, w=np.ones(len(crops.idx), np.float32))
             last_review: dict[int, dict[str, Any]] = {}
@@ -373,19 +432,22 @@ class _Solver:
                     break
                 self._check_cancel()
                 phase = 1 if t < cfg.t1 else 2
-                step = self._em_step(pool, tree, available, ep, t, phase)
+                step = self._em_step(pool, tree, ep, t, phase)
                 self._eliminate(pool, step, phase)
                 if (phase == 1 and t == cfg.t1 - 1) or (phase == 2 and t == cfg.steps_per_episode - 1):
-                    last_review = self._review(pool, tree, available, step, phase)
+                    if full_tree is None:
+                        full_tree = AvailableTree(self.full_points, available_full, crop=cfg.crop)
+                    last_review = self._review(pool, full_tree, step, phase)
                 self.rec.end_step(pool.size)
                 if self.on_step is not None:
                     self.on_step(StepInfo(step, self.planned_steps, phase, pool.size,
                                           time.perf_counter() - self.t_start, ep))
             t0 = time.perf_counter()
             final_step = self.rec.num_steps - 1
+            assert pool.stationary is not None or pool.size == 0
             for r, pid in enumerate(pool.ids):
                 rev = last_review[int(pid)]
-                s_stat = float(pool.stationary[r])
+                s_stat = float(pool.stationary[r])  # type: ignore[index]
                 conf = confidence(s_stat, float(rev["coverage"]), cap=cfg.cov_cap)
                 self.rec.death(int(pid), final_step, REASON_SURVIVE, -1, conf)
                 accepted.append({**rev, "confidence": conf, "stationary": s_stat,
@@ -395,7 +457,7 @@ class _Solver:
         return accepted
 
     # ------------------------------------------------------------------ one EM step
-    def _em_step(self, pool: _Pool, tree: AvailableTree, available: np.ndarray, ep: int, t: int, phase: int) -> int:
+    def _em_step(self, pool: _Pool, tree: AvailableTree, ep: int, t: int, phase: int) -> int:
         cfg = self.cfg
         fallback = tree.avail_idx
         t0 = time.perf_counter()
@@ -410,10 +472,11 @@ class _Solver:
         t0 = self.timer.add("encode", t0)
         rag = tree.query(latent["center"], cfg.r_err)
         t0 = self.timer.add("neighbourhood", t0)
-        d, gamma = decode_rows(self.prior, latent, rag, self.points, self.normals, chunk=cfg.decode_chunk)
+        sched = schedule(cfg, t)
+        d, gamma = decode_rows(self.prior, latent, rag, self.points, self.normals, chunk=cfg.decode_chunk,
+                               normals_within=normals_threshold(cfg, sched[1]))
         self.n_queries += len(rag.idx)
         t0 = self.timer.add("decode", t0)
-        sched = schedule(cfg, t)
         w, inlier = energy_weights(d, gamma, sched, out_value=cfg.out_value)
         inliers = np.bincount(rag.row[inlier], minlength=pool.size).astype(np.int32)
         # stationary score: samples explained by the shape they produced (outside the ball: placeholder 1000)
@@ -426,14 +489,14 @@ class _Solver:
         pool.latent, pool.stationary, pool.inliers = latent, stationary, inliers
         self.timer.add("score", t0)
         return self.rec.step(phase=phase, episode=ep, local=t, sched=sched, ids=pool.ids, latent=latent,
-                             stationary=stationary, inliers=inliers, samples=samples)
+                             stationary=stationary, inliers=inliers, samples=self.work_idx[samples])
 
     # ------------------------------------------------------------------ eliminations (§3.8)
     def _eliminate(self, pool: _Pool, step: int, phase: int) -> None:
         cfg = self.cfg
         t0 = time.perf_counter()
         assert pool.inliers is not None and pool.d is not None and pool.stationary is not None
-        kills: list[Kill] = find_too_small(pool.inliers, cfg.min_size)
+        kills: list[Kill] = find_too_small(pool.inliers, self.min_size)
         active = np.ones(pool.size, bool)
         for k in kills:
             active[k.row] = False
@@ -457,14 +520,22 @@ class _Solver:
         self.timer.add("eliminate", t0)
 
     # ------------------------------------------------------------------ review (§3.9)
-    def _review(
-        self, pool: _Pool, tree: AvailableTree, available: np.ndarray, step: int, phase: int
-    ) -> dict[int, dict[str, Any]]:
+    def _review(self, pool: _Pool, full_tree: AvailableTree, step: int, phase: int) -> dict[int, dict[str, Any]]:
         cfg = self.cfg
         assert pool.latent is not None and pool.d is not None and pool.gamma is not None
         records: dict[int, dict[str, Any]] = {}
         keep = np.ones(pool.size, bool)
         up = np.array([0.0, 0.0, 1.0])
+        t0 = time.perf_counter()
+        if self.identity:
+            full_rag, d_full, g_full = pool.rag, pool.d, pool.gamma
+        else:  # masks and coverage at the scene's full resolution
+            full_rag = full_tree.query(pool.latent["center"], cfg.r_err)
+            d_full, g_full = decode_rows(self.prior, pool.latent, full_rag, self.full_points, self.full_normals,
+                                         chunk=cfg.decode_chunk,
+                                         normals_within=cfg.tau_out if cfg.gamma_out < 180.0 else -1.0)
+            self.n_queries += len(full_rag.idx)
+        self.timer.add("review_coverage", t0)
         for r in range(pool.size):
             self._check_cancel()
             pid = int(pool.ids[r])
@@ -487,15 +558,15 @@ class _Solver:
 
             obb = oriented_box(Q + center, center, R)
             # coverage: completed-shape samples explained by observed points of the ball around Θ_c
-            sl = pool.rag.row_slice(r)
-            ball = pool.rag.idx[sl]
+            sl = full_rag.row_slice(r)
+            ball = full_rag.idx[sl]
             cov = 0.0
             if len(ball) and np.any(Q):
                 from scipy.spatial import cKDTree
 
-                dist, j = cKDTree(self.points[ball]).query(Q + center)
+                dist, j = cKDTree(self.full_points[ball]).query(Q + center)
                 dist_c = dist * (s_sel / scale)
-                cosang = np.clip((fnorm * self.normals[ball][j]).sum(1), -1.0, 1.0)
+                cosang = np.clip((fnorm * self.full_normals[ball][j]).sum(1), -1.0, 1.0)
                 ang = np.degrees(np.arccos(cosang))
                 cov = float(np.mean((dist_c <= cfg.cov_tau) & (ang <= cfg.cov_gamma)))
             Qt = Q @ R
@@ -506,7 +577,7 @@ class _Solver:
             )
             up_angle = float(np.degrees(np.arccos(np.clip(R_raw[:, 2] @ up, -1.0, 1.0))))
             pose_pass = bool(cfg.up_range[0] <= up_angle <= cfg.up_range[1])
-            dsl, gsl = pool.d[sl], pool.gamma[sl]
+            dsl, gsl = d_full[sl], g_full[sl]
             m_ok = np.abs(dsl) < cfg.tau_out
             if cfg.gamma_out < 180.0:
                 m_ok &= gsl < cfg.gamma_out

@@ -215,6 +215,10 @@ class EMTrace:
     rev_neighbours: np.ndarray
     """Flat int32 codebook neighbour ids (ragged by rev_neighbour_offsets)."""
     rev_neighbour_offsets: np.ndarray
+    work_idx: np.ndarray | None = None
+    """(N_w,) int32 scene indices of the EM working set (None = every point; see EMConfig.work_voxel)."""
+    work_min_size: int = 0
+    """min_size applied on the working set."""
     timings: dict[str, float] = field(default_factory=dict)
     # ---- runtime-only (not saved)
     _scene_points: np.ndarray | None = field(default=None, repr=False)
@@ -365,25 +369,40 @@ class EMTrace:
         avail[_ragged_get(self.episode_unavailable, self.episode_unavailable_offsets, int(episode))] = False
         return avail
 
-    def weights_in(self, proposal_id: int, step: int, prior: Any = None) -> np.ndarray:
-        """(N,) float32 weights that produced the samples of (proposal, step) (= W_out of step − 1)."""
+    def _work_mask(self) -> np.ndarray | None:
+        if self.work_idx is None or len(self.work_idx) == self.num_points:
+            return None
+        m = np.zeros(self.num_points, bool)
+        m[self.work_idx] = True
+        return m
+
+    def weights_in(self, proposal_id: int, step: int, prior: Any = None, *, full_resolution: bool = True) -> np.ndarray:
+        """(N,) float32 weights that produced the samples of (proposal, step) (= W_out of step − 1).
+
+        With `full_resolution=False` only the EM working set carries weights (exactly what the solver sampled
+        from); with True every available point of the ball gets the same formula (identical on the working
+        set), which is what a viewer should paint.
+        """
         r = self.row_of(proposal_id, step)
         if r is None:
             raise ValueError(f"proposal {proposal_id} did not take part in step {step}")
         pts = self._points()
         ep = int(self.step_episode[step])
         avail = self.available_mask(ep)
+        if not full_resolution and (wm := self._work_mask()) is not None:
+            avail &= wm
         w = np.zeros(self.num_points, np.float32)
         if int(self.step_local[step]) == 0:
             tree = AvailableTree(pts, avail, crop=self.config.crop)
             rag = tree.query(pts[int(self.prop_anchor[proposal_id])][None], float(self.prop_r_init[proposal_id]))
             w[rag.idx] = 1.0
             return w
-        return self.weights_out(proposal_id, step - 1, prior)
+        return self.weights_out(proposal_id, step - 1, prior, full_resolution=full_resolution)
 
-    def weights_out(self, proposal_id: int, step: int, prior: Any = None) -> np.ndarray:
+    def weights_out(self, proposal_id: int, step: int, prior: Any = None, *, full_resolution: bool = True
+                    ) -> np.ndarray:
         """(N,) float32 weights produced by the E-step of (proposal, step), re-derived from its latent."""
-        from efem_viz.em.solver import decode_rows
+        from efem_viz.em.solver import decode_rows, normals_threshold
 
         pri = prior if prior is not None else self._prior
         if pri is None:
@@ -393,17 +412,22 @@ class EMTrace:
             raise ValueError(f"proposal {proposal_id} did not take part in step {step}")
         pts, nrm = self._points(), self._normals()
         avail = self.available_mask(int(self.step_episode[step]))
+        if not full_resolution and (wm := self._work_mask()) is not None:
+            avail &= wm
         tree = AvailableTree(pts, avail, crop=self.config.crop)
         rag = tree.query(self.row_center[r][None], float(self.prop_r_err[proposal_id]))
         lat = {k: v[None] for k, v in self.latent(proposal_id, step).items()}
         lat["scale"] = np.asarray(lat["scale"]).reshape(1)
-        d, gamma = decode_rows(pri, lat, rag, pts, nrm, chunk=self.config.decode_chunk)
-        wk, _ = energy_weights(d, gamma, tuple(self.schedule[step]), out_value=self.config.out_value)
+        sched = tuple(float(v) for v in self.schedule[step])
+        d, gamma = decode_rows(pri, lat, rag, pts, nrm, chunk=self.config.decode_chunk,
+                               normals_within=normals_threshold(self.config, sched[1]))
+        wk, _ = energy_weights(d, gamma, sched, out_value=self.config.out_value)
         w = np.zeros(self.num_points, np.float32)
         w[rag.idx] = wk
         return w
 
-    def view(self, proposal_id: int, step: int, prior: Any = None, *, mesh: bool = True) -> ProposalView:
+    def view(self, proposal_id: int, step: int, prior: Any = None, *, mesh: bool = True,
+             full_resolution: bool = True) -> ProposalView:
         """Everything the inspector shows for (proposal, step), re-derived from the stored latent and cached.
 
         If the proposal died before `step`, the record of its death step is shown (alive=False).
@@ -414,6 +438,7 @@ class EMTrace:
             prior: the shape prior (default: the one bound with `bind` / by `run_em`); needed for weights after
                 an episode's first step and for meshes.
             mesh: extract the decoded shape (a few hundred ms).
+            full_resolution: weights on every point of the ball (True) or only on the EM working set.
 
         Raises:
             ValueError: unknown id/step, the proposal was not born yet, or scene/prior missing.
@@ -421,7 +446,7 @@ class EMTrace:
         self._check_id(proposal_id)
         self._check_step(step)
         pri = prior if prior is not None else self._prior
-        key = (int(proposal_id), int(step), id(pri), bool(mesh))
+        key = (int(proposal_id), int(step), id(pri), bool(mesh), bool(full_resolution))
         if key in self._cache:
             self._cache.move_to_end(key)
             return self._cache[key]
@@ -433,7 +458,7 @@ class EMTrace:
         r = self.row_of(proposal_id, shown)
         assert r is not None
         weights = (
-            self.weights_in(proposal_id, shown, pri)
+            self.weights_in(proposal_id, shown, pri, full_resolution=full_resolution)
             if pri is not None or int(self.step_local[shown]) == 0
             else None
         )
@@ -512,6 +537,10 @@ class EMTrace:
         out[prefix + "config_json"] = np.array(self.config.to_json())
         out[prefix + "num_points"] = np.array(self.num_points, np.int64)
         out[prefix + "timings_json"] = np.array(json.dumps(self.timings))
+        out[prefix + "work_idx"] = (np.asarray(self.work_idx, np.int32) if self.work_idx is not None
+                                    else np.zeros(0, np.int32))
+        out[prefix + "has_work_idx"] = np.array(self.work_idx is not None)
+        out[prefix + "work_min_size"] = np.array(self.work_min_size, np.int64)
         return out
 
     @classmethod
@@ -532,6 +561,9 @@ class EMTrace:
             config=EMConfig.from_json(str(np.asarray(data[prefix + "config_json"]))),
             num_points=int(np.asarray(data[prefix + "num_points"])),
             timings=json.loads(str(np.asarray(data[prefix + "timings_json"]))),
+            work_idx=np.asarray(data[prefix + "work_idx"]) if bool(np.asarray(data[prefix + "has_work_idx"]))
+            else None,
+            work_min_size=int(np.asarray(data[prefix + "work_min_size"])),
             **arrays,
         )
 
@@ -543,9 +575,12 @@ class EMTrace:
 class TraceRecorder:
     """Builds an `EMTrace` while the solver runs (append-only lists, concatenated at the end)."""
 
-    def __init__(self, config: EMConfig, num_points: int) -> None:
+    def __init__(self, config: EMConfig, num_points: int, *, work_idx: np.ndarray | None = None,
+                 work_min_size: int | None = None) -> None:
         self.config = config
         self.num_points = int(num_points)
+        self.work_idx = None if work_idx is None or len(work_idx) == num_points else np.asarray(work_idx, np.int32)
+        self.work_min_size = int(work_min_size if work_min_size is not None else config.min_size)
         self.steps: list[tuple[int, int, int, tuple[float, float, float, float]]] = []
         self.active_count: list[int] = []
         self.rows: list[dict[str, np.ndarray]] = []
@@ -712,5 +747,7 @@ class TraceRecorder:
             rev_mesh_face_offsets=mf_off,
             rev_neighbours=nb,
             rev_neighbour_offsets=nb_off,
+            work_idx=self.work_idx,
+            work_min_size=self.work_min_size,
             timings=dict(timings or {}),
         )

@@ -1,0 +1,29 @@
+"""Shape priors: SIM(3)-equivariant encoder + invariant SDF decoder (torch; never imports viser).
+
+Public names are re-exported lazily (``from efem_viz.prior import load_prior``) so that importing the package, as
+the CLI does for ``efem_viz.prior.train``, stays free of torch.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from efem_viz.prior.model import Latent, PriorConfig, ShapePrior, load_prior, save_prior
+
+_LAZY = {
+    "Latent": "efem_viz.prior.model",
+    "PriorConfig": "efem_viz.prior.model",
+    "ShapePrior": "efem_viz.prior.model",
+    "load_prior": "efem_viz.prior.model",
+    "save_prior": "efem_viz.prior.model",
+}
+
+__all__ = sorted(_LAZY)
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

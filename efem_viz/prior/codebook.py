@@ -4,16 +4,16 @@ For every training object we store its latent (Θ_R, Θ_inv, Θ_s, Θ_c), a nois
 rotation-invariant version of Θ_R, and we answer k-nearest-neighbour queries on three feature spaces
 (Θ_inv; the projected Θ_R; their concatenation) for the pose search of `efem_viz.prior.pose`.
 
-Deviation from the release (spec §8.4, documented): the projected code `Θ_R^proj = Θ_R E` (E = eigenvectors of
-`S = Θ_Rᵀ Θ_R`, eigenvalues ascending) has a sign ambiguity per eigenvector. We canonicalise it: column j of
-`Θ_R E` is flipped so that its third moment `Σ_c p_cj³` is positive (if that is ~0, so that its entry of largest
-magnitude is positive). This makes `Θ_R^proj` invariant to rotations of Θ_R (and to the sign choices of the
-eigen-solver), which the release's projection is not.
+Deviation from the release (spec §8.4, documented): the projected code `Θ_R^proj = Θ_R E` (E = eigenvectors
+of `S = Θ_Rᵀ Θ_R`, eigenvalues ascending) has a sign ambiguity per eigenvector. We canonicalise it: column j
+of `Θ_R E` is flipped so that its third moment `Σ_c p_cj³` is positive (if that is ~0, so that its entry of
+largest magnitude is positive). This makes `Θ_R^proj` invariant to rotations of Θ_R (and to the sign choices
+of the eigen-solver), which the release's projection is not.
 
-Other choices: the stored centre is the encoder's full centre `Θ_c = x̄ + δ` in the canonical frame (the spec's
-"proper centre", not the release's raw offset δ); the stored cloud is `n_store` noisy surface points in float16
-(default 2000 instead of the release's 5000, to keep the shipped file small); kNN indices are scipy cKDTrees
-built on the fly after loading.
+Other choices: the stored centre is the encoder's full centre `Θ_c = x̄ + δ` in the canonical frame (the
+spec's "proper centre", not the release's raw offset δ); the stored cloud is `n_store` noisy surface points
+in float16 (default 2000 instead of the release's 5000, to keep the shipped file small); kNN indices are
+scipy cKDTrees built on the fly after loading.
 
 This module's top is light (no torch): the CLI dispatcher imports it.
 """
@@ -138,7 +138,8 @@ class Codebook:
         C = self.z_so3.shape[1] if self.z_so3.ndim == 3 else -1
         expect = {
             "z_so3": (K, C, 3), "z_inv": (K, C), "scale": (K,), "center": (K, 3), "proj": (K, C, 3),
-            "basis": (K, 3, 3), "eigvals": (K, 3), "bbox_center": (K, 3), "bbox_half": (K, 3), "class_id": (K,),
+            "basis": (K, 3, 3), "eigvals": (K, 3), "bbox_center": (K, 3), "bbox_half": (K, 3),
+            "class_id": (K,),
         }
         for name, shape in expect.items():
             got = np.shape(getattr(self, name))
@@ -147,7 +148,8 @@ class Codebook:
         if self.pcl.ndim != 3 or self.pcl.shape[0] != K or self.pcl.shape[2] != 3 or self.pcl.shape[1] < 1:
             raise ValueError(f"Codebook.pcl must have shape ({K}, n_store, 3), got {self.pcl.shape}")
         idx = np.asarray(self.input_idx)
-        if idx.ndim != 2 or idx.shape[0] != K or (idx.size and (idx.min() < 0 or idx.max() >= self.pcl.shape[1])):
+        bad_range = idx.size > 0 and (idx.min() < 0 or idx.max() >= self.pcl.shape[1])
+        if idx.ndim != 2 or idx.shape[0] != K or bad_range:
             raise ValueError(f"Codebook.input_idx must be ({K}, n_pcl) indices into pcl, got {idx.shape}")
 
     # ------------------------------------------------------------------------------------------------ basics
@@ -291,10 +293,12 @@ class Codebook:
         version = int(data.pop("schema_version"))
         if version != CODEBOOK_SCHEMA_VERSION:
             raise ValueError(f"{path}: codebook schema_version {version} is not supported "
-                             f"(expected {CODEBOOK_SCHEMA_VERSION}); rebuild it with `efem-viz build-codebook`")
+                             f"(expected {CODEBOOK_SCHEMA_VERSION}); rebuild it with "
+                             "`efem-viz build-codebook`")
         meta = json.loads(str(data.pop("meta_json"))) if "meta_json" in data else {}
-        missing = {"ids", "z_so3", "z_inv", "scale", "center", "pcl", "proj", "basis", "eigvals", "bbox_center",
-                   "bbox_half", "class_id", "input_idx"} - set(data)
+        required = {"ids", "z_so3", "z_inv", "scale", "center", "pcl", "proj", "basis", "eigvals",
+                    "bbox_center", "bbox_half", "class_id", "input_idx"}
+        missing = required - set(data)
         if missing:
             raise ValueError(f"{path}: codebook lacks arrays {sorted(missing)}")
         return cls(meta=meta, **{k: data[k] for k in data if k in cls.__dataclass_fields__})
@@ -327,10 +331,10 @@ def build_codebook(
 ) -> Codebook:
     """Encode training objects into a codebook (spec §2.8).
 
-    Per object: `n_store` area-uniform surface samples plus i.i.d. Gaussian noise (σ = `noise`, canonical units,
-    as in training), rounded to the stored float16; the encoder input is `prior.config.n_pcl` of those drawn
-    with replacement (their indices are kept in `input_idx`); encoded in
-    the prior's dtype (float32 for a loaded prior; the encoder centres by the mean itself).
+    Per object: `n_store` area-uniform surface samples plus i.i.d. Gaussian noise (σ = `noise`, canonical
+    units, as in training), rounded to the stored float16; the encoder input is `prior.config.n_pcl` of
+    those drawn with replacement (their indices are kept in `input_idx`); encoded in the prior's dtype
+    (float32 for a loaded prior; the encoder centres by the mean itself).
 
     Args:
         prior: the trained `ShapePrior`.
@@ -375,19 +379,14 @@ def build_codebook(
     idx = np.stack(input_idx).astype(np.int32)
     X = np.take_along_axis(pcl, idx[:, :, None], axis=1).astype(np.float64)
     Rs, invs, cs, ss = [], [], [], []
-    was_training = prior.training
-    prior.eval()
-    try:
-        with torch.no_grad():
-            for s in range(0, len(X), batch):
-                x = torch.as_tensor(X[s : s + batch], dtype=torch.float32)
-                lat = prior.encode(x)
-                Rs.append(lat.R.cpu().numpy())
-                invs.append(lat.inv.cpu().numpy())
-                cs.append(lat.center.cpu().numpy())
-                ss.append(lat.scale.cpu().numpy())
-    finally:
-        prior.train(was_training)
+    with torch.no_grad():  # the prior has no dropout/normalisation layers: no eval() toggling needed
+        for s in range(0, len(X), batch):
+            x = torch.as_tensor(X[s : s + batch], dtype=torch.float32)
+            lat = prior.encode(x)
+            Rs.append(lat.R.cpu().numpy())
+            invs.append(lat.inv.cpu().numpy())
+            cs.append(lat.center.cpu().numpy())
+            ss.append(lat.scale.cpu().numpy())
     z_so3 = np.concatenate(Rs).astype(np.float64)
     proj, basis, evals = project_so3_code(z_so3)
     centred = X - X.mean(axis=1, keepdims=True)
@@ -423,8 +422,8 @@ def build_codebook(
 class BuildCodebookArgs:
     """Build the pose codebook of a trained prior from its training-split procedural objects."""
 
-    prior: Path = Path("efem_viz/weights/mug.pt")
-    """Prior weights (.pt) or a name under efem_viz/weights/."""
+    prior: str = "mug"
+    """Prior weights: a .pt path, or a name under efem_viz/weights/ ("mug" = efem_viz/weights/mug.pt)."""
     out: Path | None = None
     """Output .npz (default: `<prior stem>_codebook.npz` next to the weights, which `load_prior` picks up)."""
     count: int = 150

@@ -1,4 +1,4 @@
-"""Pose of a proposal by codebook retrieval, latent Procrustes and rotation-only ICP (efem-method.md §3.9, 2-7).
+"""Pose of a proposal: codebook retrieval, latent Procrustes and rotation-only ICP (efem-method.md §3.9, 2-7).
 
 Steps for one latent Θ with centred surface samples `Q` (samples of its decoded mesh minus Θ_c, world scale):
 
@@ -9,14 +9,15 @@ Steps for one latent Θ with centred surface samples `Q` (samples of its decoded
 5. inlier ratio `r_n = (#{Q→A < τ} + #{A→Q < τ}) / (|Q| + |A|)` with distances in canonical units
    (× Θ'_s,n/Θ_s); select `n* = argmax r_n`.
 
-Reflections (spec §8.5, our decision). Steps 2 and 4 use the release's *orthogonal* Procrustes (no determinant
-fix), so `R_raw = R_{n*}` may be a reflection (det −1); it is returned as found, with `score_db_sim = r_{n*}`
-(release parity; the EM orientation check reads `R_raw` like the release does). For display and the OBB, `R` must
-be a proper rotation. Projecting a reflection matrix after the fact is ill-posed (all singular values are 1, so
-"the nearest rotation" is arbitrary), so instead we **re-solve** for the selected neighbour: latent Procrustes with
-the determinant fix (`U diag(1,1,det(UVᵀ)) Vᵀ`), then ICP restricted to SO(3). That finds the best proper
-rotation aligning the same neighbour; when `R_raw` is already proper, `R = R_raw`. With `proper_search=True` every
-neighbour is aligned with proper rotations from the start (then `R_raw = R` always).
+Reflections (spec §8.5, our decision). Steps 2 and 4 use the release's *orthogonal* Procrustes (no
+determinant fix), so `R_raw = R_{n*}` may be a reflection (det −1); it is returned as found, with
+`score_db_sim = r_{n*}` (release parity; the EM orientation check reads `R_raw` like the release does). For
+display and the OBB, `R` must be a proper rotation. Projecting a reflection matrix after the fact is
+ill-posed (all singular values are 1, so "the nearest rotation" is arbitrary), so instead we **re-solve**
+for the selected neighbour: latent Procrustes with the determinant fix (`U diag(1,1,det(UVᵀ)) Vᵀ`), then ICP
+restricted to SO(3). That finds the best proper rotation aligning the same neighbour; when `R_raw` is
+already proper, `R = R_raw`. With `proper_search=True` every neighbour is aligned with proper rotations from
+the start (then `R_raw = R` always).
 """
 
 from __future__ import annotations
@@ -119,8 +120,8 @@ def estimate_pose(
     Args:
         prior: the `ShapePrior` (only its `.codebook` is used, when `codebook` is None).
         latent_i: one `Latent` (Θ_R (1, C, 3) or (C, 3)), world frame.
-        surface_samples: (S, 3) float, samples of the proposal's decoded surface minus Θ_c (world orientation and
-            scale, centred at the object centre). All-zero or empty samples give an identity pose with score 0.
+        surface_samples: (S, 3) float, samples of the proposal's decoded surface minus Θ_c (world orientation
+            and scale, centred at the object centre). All-zero/empty samples: identity pose, score 0.
         normals: (S, 3) face normals of the samples; accepted for interface compatibility, not used by the
             pose search (they matter for the coverage score only).
         codebook: overrides `prior.codebook`.

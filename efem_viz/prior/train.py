@@ -38,8 +38,8 @@ Preset = Literal["spec", "cpu", "cpu-small", "tiny"]
 PRESETS: dict[str, dict[str, Any]] = {
     # the released mug architecture (§1.3)
     "spec": {},
-    # CPU budget: widths halved, latent 128, small decoder (see mug_training_report.md for the timings)
-    "cpu": {"widths": (16, 16, 32, 32, 64, 128, 256), "latent_dim": 128, "center_hidden": 64, "n_pcl": 512,
+    # CPU budget: widths halved, 256 input points, latent 128, small decoder (mug_training_report.md: timings)
+    "cpu": {"widths": (16, 16, 32, 32, 64, 128, 256), "latent_dim": 128, "center_hidden": 64, "n_pcl": 256,
             "decoder_hidden": 128, "decoder_blocks": 2},
     # quarter widths
     "cpu-small": {"widths": (8, 8, 16, 16, 32, 64, 128), "latent_dim": 64, "center_hidden": 32, "n_pcl": 256,
@@ -195,6 +195,7 @@ def _write_text_atomic(path: Path, text: str) -> None:
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as f:
             f.write(text)
+        os.chmod(tmp, 0o644)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -208,6 +209,7 @@ def _copy_atomic(src: Path, dst: Path) -> None:
     os.close(fd)
     try:
         shutil.copyfile(src, tmp)
+        os.chmod(tmp, 0o644)
         os.replace(tmp, dst)
     except BaseException:
         if os.path.exists(tmp):
@@ -551,7 +553,7 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
         done_here += 1
         dt = time.monotonic() - t0
         iter_times.append(dt)
-        lv = float(losses["loss"])
+        lv = float(losses["loss"].detach())
         running.append(lv)
         running[:] = running[-50:]
         if not math.isfinite(lv):

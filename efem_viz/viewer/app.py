@@ -83,6 +83,7 @@ class ViewerApp:
         self.server.gui.configure_theme(control_width="large", dark_mode=False, show_logo=False)
         self.server.scene.set_up_direction("+z")
         self.nodes = SceneNodes(self.server.scene)
+        self.nodes.on_shape_click = self._on_shape_click
         self.panels = build_panels(
             self.server.gui, scene_names=[e.name for e in self.state.entries], out_dir=str(out_dir)
         )
@@ -442,7 +443,7 @@ class ViewerApp:
             self.nodes.draw_results(result.instances, show_meshes=s.show_meshes, show_obbs=s.show_obbs, show_axes=s.show_axes)
             conf = np.asarray(result.instances.confidence, float)
             hi = float(conf.max()) if conf.size else 1.0
-            p.gui_threshold.max = max(round(hi + 0.005, 2), 0.01)
+            p.gui_threshold.max = float(np.ceil(hi * 100.0 + 1e-6) / 100.0 + 0.01)  # the top hides every instance
             s.threshold = float(np.clip(s.threshold, 0.0, p.gui_threshold.max))
             self._gui_set(p.gui_threshold, s.threshold)
             p.gui_run_info.content = f"**Result**: {source} · {T} steps · {len(result.instances.ids)} instances"
@@ -654,6 +655,12 @@ class ViewerApp:
                 self.panels.gui_proposal.options = tuple(opts) + (cur,)
             self._gui_set(self.panels.gui_proposal, cur)
             return self._request_inspect(int(pid), s.step)
+
+    def _on_shape_click(self, pid: int) -> None:
+        try:
+            self.select_proposal(pid)
+        except Exception as exc:  # noqa: BLE001
+            self._set_status(f"error: {exc}", error=True)
 
     def _request_inspect(self, pid: int, t: int) -> Future[Any]:
         return self._submit(self._decoder, self._inspect_job, pid, t, self._generation)

@@ -84,6 +84,8 @@ class SceneNodes:
     result_obbs: list[Any] = field(default_factory=list)
     result_axes: list[Any] = field(default_factory=list)
     max_cached_shapes: int = 256
+    on_shape_click: Any = None
+    """Called with the proposal id when a decoded shape is clicked in the browser (or None)."""
     _colors_key: int | None = None
     _extent: float = 1.0
     _offset_step: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0]))
@@ -216,6 +218,13 @@ class SceneNodes:
             opacity=0.85,
             visible=False,
         )
+        if self.on_shape_click is not None:
+            callback = self.on_shape_click
+
+            @h.on_click
+            def _(_event: Any, _pid: int = int(pid)) -> None:
+                callback(_pid)
+
         self.shapes[key] = h
         while len(self.shapes) > self.max_cached_shapes:
             old_key, old = self.shapes.popitem(last=False)

@@ -1,0 +1,176 @@
+"""Annotator server-side benchmark on a 1M-vertex mesh: open, brush stroke, region grow, autosave, bytes sent.
+
+Builds a procedural 1000x1000-vertex tabletop height field (1M vertices, 2M triangles) with mug-sized bumps,
+opens it in `AnnotatorApp` (port 0, no browser) and drives the same handlers the GUI calls:
+
+* open: `AnnotatorApp(...)` construction (load PLY, store + journal, chunks, draw, GUI), and until the search
+  structures (kd-tree, adjacency graph, ray caster) are built in the background.
+* brush: a ctrl-drag stroke of 1 start + 30 updates + end through `handle_event("drag", ...)`: ray cast,
+  capsule selection, journal append + fsync, colour update of the touched chunks. Median ms per drag event,
+  payload bytes per event and per stroke.
+* region grow: `grow(seed)` (20° / 15 cm) including the paint edit.
+* autosave: `store.save_now()` (atomic checkpoint rewrite of 1M labels).
+
+Writes bench/results/annotator.json. Usage: `python bench/annotator.py [--n-side 1000]`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import platform
+import shutil
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def make_surface(n_side: int, *, seed: int = 0) -> "object":
+    """A (n_side x n_side)-vertex height-field mesh, 1.2 m square, with cylinder-like bumps (metres, +Z up)."""
+    from efem_viz.data.scene import Scene
+
+    rng = np.random.default_rng(seed)
+    xs = np.linspace(-0.6, 0.6, n_side, dtype=np.float32)
+    X, Y = np.meshgrid(xs, xs, indexing="ij")
+    Z = np.zeros_like(X)
+    for _ in range(8):
+        cx, cy = rng.uniform(-0.45, 0.45, size=2)
+        r = rng.uniform(0.035, 0.05)
+        h = rng.uniform(0.08, 0.12)
+        d = np.sqrt((X - cx) ** 2 + (Y - cy) ** 2)
+        Z = np.maximum(Z, h / (1.0 + np.exp((d - r) / 0.004)))
+    pts = np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1).astype(np.float32)
+    i = np.arange(n_side - 1)
+    a = (i[:, None] * n_side + i[None, :]).ravel()
+    faces = np.concatenate([np.stack([a, a + n_side, a + 1], 1), np.stack([a + 1, a + n_side, a + n_side + 1], 1)])
+    return Scene.create("bench_surface", pts, faces=faces.astype(np.int32), max_points=len(pts))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--n-side", type=int, default=1000)
+    ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "annotator.json")
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.WARNING)
+    import torch
+
+    torch.set_num_threads(1)
+    from annotator.app import AnnotatorApp
+    from efem_viz.data.io import save_scene
+
+    tmp = Path(tempfile.mkdtemp(prefix="bench_annotator_"))
+    t0 = time.perf_counter()
+    scene = make_surface(args.n_side)
+    scan = save_scene(scene, tmp / "surface.ply")
+    gen_s = time.perf_counter() - t0
+    n = scene.num_points
+
+    t0 = time.perf_counter()
+    app = AnnotatorApp(scan, out_dir=tmp / "out", port=0, autosave_delay=0.5)
+    open_s = time.perf_counter() - t0
+    app.geom.warm_up()
+    ready_s = time.perf_counter() - t0
+    try:
+        iid = app.new_instance(category="mug")
+        app.settings.radius = 0.02
+        cam = SimpleNamespace(position=np.array([0.0, -0.3, 1.0]), wxyz=np.array([0.0, 1.0, 0.0, 0.0]),
+                              fov=0.9, aspect=1.5)
+        client = SimpleNamespace(camera=cam)
+
+        def ev(phase: str, end: np.ndarray) -> SimpleNamespace:
+            return SimpleNamespace(phase=phase, client_id=1, client=client, start_position=tuple(start),
+                                   end_position=tuple(end), modifier="cmd/ctrl")
+
+        event_ms: list[float] = []
+        event_bytes: list[int] = []
+        stroke_bytes: list[int] = []
+        for s in range(5):
+            y = -0.4 + 0.2 * s
+            start = np.array([-0.5, y, 0.0], np.float32)
+            b0 = app.stats.bytes_sent
+            for k in range(32):
+                phase = "start" if k == 0 else ("end" if k == 31 else "update")
+                x = -0.5 + 0.03 * k
+                # a point on the drag plane between the camera and the surface point (x, y, 0)
+                target = np.array([x, y, 0.0])
+                end = cam.position + 0.5 * (target - cam.position)
+                bb = app.stats.bytes_sent
+                t1 = time.perf_counter()
+                app.handle_event("drag", ev(phase, end))
+                event_ms.append(1000 * (time.perf_counter() - t1))
+                event_bytes.append(app.stats.bytes_sent - bb)
+            stroke_bytes.append(app.stats.bytes_sent - b0)
+        painted = int((app.store.labels == iid).sum())
+
+        # region grow on a bump top: seed = highest vertex
+        app.settings.grow_angle_deg = 20.0
+        app.settings.grow_distance = 0.15
+        grow_ms = []
+        grow_sel_ms = []
+        tops = np.argsort(app.scene.points[:, 2])[-1:]
+        seeds = [int(tops[0])] + [int(i) for i in np.random.default_rng(1).choice(n, size=4, replace=False)]
+        from annotator import selection as sel
+
+        for sd in seeds:
+            b = app.new_instance()
+            t1 = time.perf_counter()
+            idx = sel.region_grow(app.geom, sd, max_angle_deg=20.0, max_distance=0.15)
+            grow_sel_ms.append(1000 * (time.perf_counter() - t1))
+            t1 = time.perf_counter()
+            d = app.grow(sd)
+            grow_ms.append(1000 * (time.perf_counter() - t1))
+            assert d is None or d.num_vertices <= len(idx)
+            assert b > 0
+        grown_sizes = [int(len(sel.region_grow(app.geom, sd, max_angle_deg=20.0, max_distance=0.15))) for sd in seeds]
+
+        save_ms = []
+        for k in range(5):
+            app.paint(np.arange(k * 10, k * 10 + 10))
+            t1 = time.perf_counter()
+            app.store.save_now()
+            save_ms.append(1000 * (time.perf_counter() - t1))
+        journal_bytes = app.store.journal.bytes_written
+    finally:
+        app.close()
+        shutil.rmtree(tmp, ignore_errors=True)
+
+    res = {
+        "machine": platform.platform(),
+        "vertices": n,
+        "faces": int(len(scene.faces)),
+        "chunks": app.chunks.count,
+        "chunk_size_max": int(np.diff(app.chunks.offsets).max()),
+        "generate_and_write_ply_s": round(gen_s, 2),
+        "open_s": round(open_s, 2),
+        "open_until_tools_ready_s": round(ready_s, 2),
+        "brush_event_ms_median": round(statistics.median(event_ms), 2),
+        "brush_event_ms_p90": round(float(np.percentile(event_ms, 90)), 2),
+        "brush_bytes_per_event_median": int(statistics.median(event_bytes)),
+        "brush_bytes_per_stroke_median": int(statistics.median(stroke_bytes)),
+        "brush_stroke_events": 32,
+        "brush_radius_m": 0.02,
+        "painted_vertices": painted,
+        "full_colour_resend_bytes": 3 * n,
+        "region_grow_ms_median": round(statistics.median(grow_ms), 1),
+        "region_grow_select_only_ms_median": round(statistics.median(grow_sel_ms), 1),
+        "region_grow_sizes": grown_sizes,
+        "autosave_ms_median": round(statistics.median(save_ms), 1),
+        "journal_bytes": journal_bytes,
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(res, indent=1))
+    for k, v in res.items():
+        print(f"{k:36s} {v}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,217 @@
+"""`efem-viz info` and `efem-viz import-rgbd`. Imported lazily by the CLI dispatcher; heavy imports stay in `run`."""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import tyro
+
+from efem_viz.data.scene import DEFAULT_MAX_POINTS, SceneError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class InfoArgs:
+    """Print what scene files contain: points, faces, bounds, ground-truth labels, categories, provenance."""
+
+    scenes: Annotated[list[Path], tyro.conf.Positional]
+    """Scene files (.ply/.obj/.off/.glb/.npz) and/or folders of them."""
+    json: bool = False
+    """Print one JSON object per scene instead of tables."""
+    max_points: int = DEFAULT_MAX_POINTS
+    """Refuse scenes with more points than this."""
+
+    def run(self) -> int:
+        """Describe every scene; returns 1 if any file could not be read, else 0."""
+        from rich.console import Console
+        from rich.table import Table
+
+        from efem_viz.data.io import find_scenes, load_scene
+
+        console = Console()
+        paths = find_scenes(self.scenes)
+        if not paths:
+            raise SceneError(f"no scene files found in {[str(s) for s in self.scenes]}")
+        failures = 0
+        for path in paths:
+            try:
+                scene = load_scene(path, max_points=self.max_points)
+            except SceneError as exc:
+                console.print(f"[red]{exc}[/]")
+                failures += 1
+                continue
+            summary = scene.summary()
+            summary["file"] = str(path)
+            if self.json:
+                print(json.dumps(summary, default=str))
+                continue
+            table = Table(title=f"{path}", show_header=False, title_justify="left")
+            table.add_column("field", style="bold")
+            table.add_column("value")
+            table.add_row("kind", summary["kind"])
+            table.add_row("points", f"{summary['points']:,}")
+            table.add_row("faces", f"{summary['faces']:,}")
+            table.add_row("bounds min (m)", _vec(summary["bounds_min"]))
+            table.add_row("bounds max (m)", _vec(summary["bounds_max"]))
+            table.add_row("extent (m)", _vec(summary["extent"]))
+            colours = "grey (none)" if bool((scene.colors == 180).all()) else "per point"
+            table.add_row("colours", colours)
+            if scene.instance is None:
+                table.add_row("ground truth", "none")
+            else:
+                table.add_row(
+                    "ground truth",
+                    f"{len(summary.get('instances', {}))} instances, "
+                    f"{summary.get('labelled_points', 0):,} labelled points",
+                )
+                cats = summary.get("categories", {})
+                if cats:
+                    table.add_row("categories", ", ".join(f"{k} x{v}" for k, v in sorted(cats.items())))
+            for key, val in dict(scene.provenance).items():
+                if key in ("K", "T_world_camera"):
+                    continue
+                table.add_row(f"provenance.{key}", str(val))
+            console.print(table)
+            if scene.instance is not None and summary.get("instances"):
+                inst = Table(title="instances", title_justify="left")
+                inst.add_column("id", justify="right")
+                inst.add_column("category")
+                inst.add_column("points", justify="right")
+                for i, rec in summary["instances"].items():
+                    inst.add_row(str(i), str(rec["category"]), f"{rec['points']:,}")
+                console.print(inst)
+        return 1 if failures else 0
+
+
+def _vec(v: list[float]) -> str:
+    return "  ".join(f"{x:+.3f}" for x in v)
+
+
+@dataclass
+class ImportRgbdArgs:
+    """Import a real RGB-D frame as a tabletop scene (table at z = 0, +Z up), written as a binary PLY (or any
+    scene format, by the suffix of --out).
+
+    Either give FRAME.npz (arrays rgb, depth_mm or depth, K), or --depth with the intrinsics --fx --fy --cx --cy.
+    """
+
+    frame: Annotated[Path | None, tyro.conf.Positional] = None
+    """An .npz frame with `rgb` (H,W,3) uint8, `depth_mm` (H,W) uint16 (or `depth` float metres) and `K` (3,3)."""
+    out: Path = Path("scene.ply")
+    """Output scene file (.ply, .npz, .glb, .obj, .off)."""
+    depth: Path | None = None
+    """Depth image instead of FRAME: .npy in metres, or a 16-bit .png in millimetres."""
+    rgb: Path | None = None
+    """Colour image registered to --depth (any format PIL reads)."""
+    fx: float | None = None
+    """Focal length x in pixels (with --depth)."""
+    fy: float | None = None
+    """Focal length y in pixels (with --depth)."""
+    cx: float | None = None
+    """Principal point x in pixels (with --depth)."""
+    cy: float | None = None
+    """Principal point y in pixels (with --depth)."""
+    name: str | None = None
+    """Scene name (default: the output file's stem)."""
+    voxel: float = 0.004
+    """Voxel size of the output point cloud, metres."""
+    max_depth: float = 2.5
+    """Ignore depth readings farther than this, metres."""
+    max_height: float = 0.4
+    """Keep points up to this height above the table, metres."""
+    seed: int = 0
+    """RANSAC seed."""
+
+    def run(self) -> int:
+        """Import the frame and save it; returns 0."""
+        from rich.console import Console
+
+        from efem_viz.data.io import save_scene
+        from efem_viz.data.rgbd import import_rgbd, load_rgbd_npz
+
+        console = Console()
+        t0 = time.perf_counter()
+        if (self.frame is None) == (self.depth is None):
+            raise SceneError("give either FRAME.npz or --depth (with --fx --fy --cx --cy), not both or neither")
+        if self.frame is not None:
+            rgb, depth_m, K = load_rgbd_npz(self.frame)
+            source = self.frame
+        else:
+            assert self.depth is not None
+            intr = (self.fx, self.fy, self.cx, self.cy)
+            if any(v is None for v in intr):
+                raise SceneError("--depth needs the intrinsics --fx --fy --cx --cy")
+            K = np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1]], dtype=np.float64)
+            depth_m = read_depth_image(self.depth)
+            rgb = read_rgb_image(self.rgb) if self.rgb is not None else None
+            source = self.depth
+        name = self.name or self.out.name.split(".")[0]
+        scene = import_rgbd(
+            depth_m,
+            K,
+            rgb,
+            name=name,
+            voxel=self.voxel,
+            max_depth=self.max_depth,
+            max_height=self.max_height,
+            seed=self.seed,
+            provenance={"source_file": source.name},
+        )
+        save_scene(scene, self.out)
+        b = scene.bounds
+        console.print(
+            f"[green]wrote[/] {self.out}: {scene.num_points:,} points, "
+            f"extent {[round(float(v), 3) for v in b[1] - b[0]]} m, "
+            f"plane rms {scene.provenance['plane_residual_rms_m'] * 1000:.1f} mm, "
+            f"{time.perf_counter() - t0:.1f} s"
+        )
+        return 0
+
+
+def read_depth_image(path: Path) -> np.ndarray:
+    """Depth in metres from a `.npy` (float metres, or integer millimetres) or a 16-bit `.png` (millimetres).
+
+    Returns:
+        (H, W) float32 metres, 0 = no reading.
+
+    Raises:
+        SceneError: missing file, unknown suffix, not a 2-D image.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise SceneError(f"{p}: no such file")
+    suffix = p.suffix.lower()
+    if suffix == ".npy":
+        d = np.load(p, allow_pickle=False)
+        d = d.astype(np.float32) / 1000.0 if np.issubdtype(d.dtype, np.integer) else d.astype(np.float32)
+    elif suffix == ".png":
+        from PIL import Image
+
+        with Image.open(p) as im:
+            arr = np.asarray(im)
+        if arr.dtype not in (np.uint16, np.int32, np.uint32) and not (arr.dtype == np.int64):
+            raise SceneError(f"{p}: a depth PNG must be 16-bit millimetres, got {arr.dtype} (mode {im.mode})")
+        d = arr.astype(np.float32) / 1000.0
+    else:
+        raise SceneError(f"{p}: depth must be .npy (metres) or 16-bit .png (millimetres), got {suffix!r}")
+    if d.ndim != 2:
+        raise SceneError(f"{p}: depth must be a 2-D image, got shape {d.shape}")
+    return np.where(np.isfinite(d), d, 0.0).astype(np.float32)
+
+
+def read_rgb_image(path: Path) -> np.ndarray:
+    """(H, W, 3) uint8 colours from an image file."""
+    from PIL import Image
+
+    p = Path(path)
+    if not p.is_file():
+        raise SceneError(f"{p}: no such file")
+    with Image.open(p) as im:
+        return np.asarray(im.convert("RGB"))

@@ -1,0 +1,105 @@
+"""Real-browser test of the annotator (headless Debian chromium, software WebGL): run with `-m browser`.
+
+A Ctrl+left-drag across the mesh in the page must paint vertices: the label store changes, and the canvas
+changes colour where the stroke went. With EFEM_SAVE_SCREENSHOTS=1 screenshots go to docs/img/ for the guide.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import time
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import numpy as np
+import pytest
+
+pytestmark = [pytest.mark.browser, pytest.mark.timeout(150)]
+
+DOCS_IMG = Path(__file__).resolve().parents[2] / "docs" / "img"
+SAVE = os.environ.get("EFEM_SAVE_SCREENSHOTS") == "1"
+
+
+@pytest.fixture()
+def annotator(tmp_path: Path) -> Iterator[Any]:
+    """The annotator on a 2.5k-vertex sphere mesh (small: software rendering is slow)."""
+    import trimesh
+
+    from annotator.app import AnnotatorApp
+
+    scan = tmp_path / "ball.ply"
+    trimesh.creation.icosphere(subdivisions=4, radius=0.15).export(scan)
+    app = AnnotatorApp(scan, out_dir=tmp_path / "out", port=0, autosave_delay=0)
+    app.new_instance(category="mug")
+    app.settings.radius = 0.03
+    yield app
+    app.close()
+
+
+def _wait(cond: Callable[[], bool], timeout: float = 20.0, what: str = "condition") -> None:
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.05)
+
+
+def _canvas_png(page: Any) -> np.ndarray:
+    from PIL import Image
+
+    png = page.locator("canvas").first.screenshot()
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(np.int16)
+
+
+def _settle(page: Any, *, timeout: float = 15.0) -> np.ndarray:
+    prev = _canvas_png(page)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        page.wait_for_timeout(700)
+        cur = _canvas_png(page)
+        if cur.shape == prev.shape and np.abs(cur - prev).mean() < 0.05:
+            return cur
+        prev = cur
+    return prev
+
+
+def test_ctrl_drag_on_mesh_paints_vertices(annotator: Any, page: Any) -> None:
+    app = annotator
+    iid = app.settings.active_id
+    page.goto(app.url)
+    page.get_by_text("Tools", exact=True).first.wait_for(timeout=30_000)
+    _wait(lambda: len(app.server.get_clients()) > 0, 30, "client connection")
+    before = _settle(page)
+    box = page.locator("canvas").first.bounding_box()
+    assert box is not None
+    cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    painted = 0
+    for attempt in range(3):  # the first gesture can land while the scene is still streaming in
+        page.keyboard.down("Control")
+        page.mouse.move(cx - 40, cy)
+        page.mouse.down()
+        for k in range(1, 13):
+            page.mouse.move(cx - 40 + 7 * k, cy + 2 * k, steps=2)
+            page.wait_for_timeout(60)
+        page.mouse.up()
+        page.keyboard.up("Control")
+        try:
+            _wait(lambda: int((app.store.labels == iid).sum()) > 0, 10, "painted vertices")
+        except AssertionError:
+            continue
+        app.wait_idle()
+        painted = int((app.store.labels == iid).sum())
+        break
+    assert painted > 10, "a ctrl-drag on the mesh did not paint any vertex"
+    # the whole stroke is one undoable journal group
+    groups = {r.header.get("group") for r in app.store.journal.records if r.kind == "do" and r.arrays["idx"].size}
+    assert len(groups) == 1 + attempt - attempt  # one stroke landed (earlier attempts painted nothing)
+    after = _settle(page)
+    changed = int((np.abs(after - before).sum(axis=-1) > 60).sum())
+    assert changed > 50, f"the canvas barely changed after painting ({changed} pixels)"
+    if SAVE:
+        DOCS_IMG.mkdir(parents=True, exist_ok=True)
+        page.screenshot(path=str(DOCS_IMG / "annotator_brush.png"))
+    app.undo()
+    assert int((app.store.labels == iid).sum()) == 0

@@ -1,0 +1,268 @@
+"""App-level tests: build the viser app (port 0, no browser) and drive its callbacks and event handlers."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import trimesh
+
+from annotator.app import AnnotatorApp
+from annotator.io import LabelIOError, load_labels
+from efem_viz.data.io import load_scene, save_scene
+from efem_viz.data.scene import Scene
+
+
+@pytest.fixture()
+def mesh_path(tmp_path: Path) -> Path:
+    m = trimesh.creation.icosphere(subdivisions=4, radius=0.1)  # 2562 vertices
+    p = tmp_path / "scans" / "ball.ply"
+    p.parent.mkdir()
+    m.export(p)
+    return p
+
+
+@pytest.fixture()
+def app(mesh_path: Path, tmp_path: Path):
+    a = AnnotatorApp(mesh_path, out_dir=tmp_path / "out", port=0, autosave_delay=0, chunk_size=300)
+    yield a
+    a.close()
+
+
+def _client(pos=(0.0, 0.0, 1.0), wxyz=(0.0, 1.0, 0.0, 0.0)) -> SimpleNamespace:
+    cam = SimpleNamespace(position=np.array(pos), wxyz=np.array(wxyz), fov=np.deg2rad(50), aspect=1.0)
+    return SimpleNamespace(camera=cam)
+
+
+def _drag(phase: str, start, end, client_id: int = 7) -> SimpleNamespace:
+    return SimpleNamespace(phase=phase, client_id=client_id, client=_client(), start_position=tuple(start),
+                           end_position=tuple(end), modifier="cmd/ctrl")
+
+
+def test_open_builds_chunks_and_panel(app: AnnotatorApp) -> None:
+    assert app.n == 2562 and app.chunks.count >= 9
+    assert app.url.startswith("http://127.0.0.1:")
+    assert len(app.chunk_handles) == app.chunks.count
+    assert "0.0%" in app.gui_table.content
+
+
+def test_drag_stroke_paints_only_touched_chunks_and_undoes_as_one(app: AnnotatorApp) -> None:
+    iid = app.new_instance(category="mug")
+    app.settings.radius = 0.015
+    sent0 = app.stats.bytes_sent
+    app.handle_event("drag", _drag("start", (0, 0, 0.1), (0, 0, 0.1)))
+    for x in (0.01, 0.02, 0.03):
+        app.handle_event("drag", _drag("update", (0, 0, 0.1), (x, 0.0, 0.5)))
+    app.handle_event("drag", _drag("end", (0, 0, 0.1), (0.04, 0.0, 0.5)))
+    lab = app.store.labels
+    painted = np.flatnonzero(lab == iid)
+    assert len(painted) > 20
+    pts = app.scene.points[painted]
+    assert pts[:, 2].min() > 0.045 and pts[:, 0].max() > 0.05  # along the stroke over the top of the ball
+    sent = app.stats.bytes_sent - sent0
+    assert 0 < sent < 3 * app.n  # partial update: fewer bytes than resending every colour
+    assert len(app.undo()) == 5  # start + 3 updates + end undo together
+    assert (app.store.labels == iid).sum() == 0
+
+
+def test_queued_events_are_processed_in_order(app: AnnotatorApp) -> None:
+    iid = app.new_instance()
+    app._edits.put(("drag", _drag("start", (0, 0, 0.1), (0, 0, 0.1))))
+    for x in np.linspace(0.0, 0.05, 8):
+        app._edits.put(("drag", _drag("update", (0, 0, 0.1), (x, 0.0, 0.5))))
+    app._edits.put(("drag", _drag("end", (0, 0, 0.1), (0.05, 0.0, 0.5))))
+    app.wait_idle()
+    assert (app.store.labels == iid).sum() > 20
+    assert not app._strokes
+
+
+def test_click_tools_grow_fill_pick_erase(app: AnnotatorApp) -> None:
+    a = app.new_instance()
+    app.set_tool("grow")
+    app.settings.grow_angle_deg = 60
+    app.settings.grow_distance = 0.05
+    v = app.click(np.array([0, 0, 1.0]), np.array([0, 0, -1.0]))
+    assert v is not None
+    grown = np.flatnonzero(app.store.labels == a)
+    assert len(grown) > 50
+    assert np.linalg.norm(app.scene.points[grown] - app.scene.points[v], axis=1).max() <= 0.05 + 1e-6
+    b = app.new_instance()
+    app.set_tool("fill")
+    app.click(np.array([0, 0, 1.0]), np.array([0, 0, -1.0]))  # fill the connected region of `a` with `b`
+    assert (app.store.labels == a).sum() == 0 and (app.store.labels == b).sum() == len(grown)
+    app.set_tool("pick")
+    app.set_active(a)
+    app.click(np.array([0, 0, 1.0]), np.array([0, 0, -1.0]))
+    assert app.settings.active_id == b
+    app.set_tool("erase")
+    app.settings.radius = 0.5
+    app.click(np.array([0, 0, 1.0]), np.array([0, 0, -1.0]))
+    assert (app.store.labels > 0).sum() == 0
+    assert app.click(np.array([5.0, 5, 5]), np.array([1.0, 0, 0])) is None  # a miss changes nothing
+
+
+def test_rect_select_uses_client_camera(app: AnnotatorApp) -> None:
+    iid = app.new_instance()
+    ev = SimpleNamespace(client_id=3, client=_client(), screen_min=(0.45, 0.45), screen_max=(0.55, 0.55))
+    app.handle_event("rect", ev)
+    sel = np.flatnonzero(app.store.labels == iid)
+    assert len(sel) > 0
+    assert app.scene.points[sel, 2].min() > 0.0  # front-facing only: the top half seen from above
+    assert np.abs(app.scene.points[sel, :2]).max() < 0.06
+
+
+def test_instance_panel_through_gui_handles(app: AnnotatorApp) -> None:
+    a = app.new_instance(category="mug")
+    app.paint(np.arange(0, 100))
+    app.gui_name.value = "left mug"  # programmatic update runs the same callback as a client edit
+    app.gui_category.value = "cup"
+    app.gui_color.value = (1, 2, 3)
+    info = app.store.labelset.info(a)
+    assert (info.name, info.category, info.color) == ("left mug", "cup", (1, 2, 3))
+    c0 = app.chunks.chunk_of[0]
+    m = app.chunks.members(c0)
+    first = int(np.flatnonzero(m == 0)[0])
+    app.gui_visible.value = False  # hidden: drawn in scan colour
+    assert tuple(app.chunk_handles[c0].colors[first]) == tuple(app.scene.colors[0])
+    app.gui_visible.value = True
+    app.gui_locked.value = True
+    with pytest.raises(ValueError, match="locked"):
+        app.paint(np.arange(0, 10))
+    app.gui_locked.value = False
+    b = app.new_instance()
+    app.paint(np.arange(200, 250))
+    app.merge([b], a)
+    assert app.store.labelset.counts() == {a: 150}
+    app.delete_instance(a)
+    assert (app.store.labels > 0).sum() == 0
+    app.undo()
+    assert app.store.labelset.counts() == {a: 150}
+    assert "150" in app.gui_table.content and "left mug" in app.gui_table.content
+
+
+def test_two_clients_concurrent_edits_are_all_kept(app: AnnotatorApp) -> None:
+    a = app.new_instance()
+    b = app.new_instance()
+    errors: list[BaseException] = []
+
+    def worker(iid: int, start: int) -> None:
+        try:
+            for k in range(40):
+                idx = np.arange(start + 10 * k, start + 10 * k + 10)
+                app.store.do(lambda ls, idx=idx, iid=iid: ls.paint(idx, iid), client=f"c{iid}")
+        except BaseException as exc:  # pragma: no cover - reported below
+            errors.append(exc)
+
+    ts = [threading.Thread(target=worker, args=(a, 0)), threading.Thread(target=worker, args=(b, 1000))]
+    for t in ts:
+        t.start()
+    for t in ts:
+        t.join()
+    assert not errors
+    assert app.store.labelset.counts() == {a: 400, b: 400}
+    kinds = [r.kind for r in app.store.journal.records]
+    assert kinds.count("do") == 2 + 80
+
+
+def test_restart_resumes_labels_and_undo(mesh_path: Path, tmp_path: Path) -> None:
+    a1 = AnnotatorApp(mesh_path, out_dir=tmp_path / "o", port=0, autosave_delay=0)
+    iid = a1.new_instance(category="mug")
+    a1.paint(np.arange(0, 300))
+    a1.paint(np.arange(300, 400))
+    a1.close()
+    a2 = AnnotatorApp(mesh_path, out_dir=tmp_path / "o", port=0, autosave_delay=0)
+    try:
+        assert (a2.store.labels == iid).sum() == 400 and a2.settings.active_id == iid
+        a2.undo()
+        assert (a2.store.labels == iid).sum() == 300
+    finally:
+        a2.close()
+
+
+def test_exports_round_trip_and_never_touch_the_scan(app: AnnotatorApp, mesh_path: Path) -> None:
+    before = mesh_path.read_bytes()
+    iid = app.new_instance(category="mug")
+    app.paint(np.arange(50, 500))
+    ply, = app.export("ply")
+    npz, = app.export("npz")
+    segs, agg = app.export("scannet")
+    for p in (ply, npz, agg):
+        assert np.array_equal(load_labels(p, app.n).labels, app.store.labels)
+    assert load_scene(ply).instance is not None
+    assert mesh_path.read_bytes() == before
+    with pytest.raises(LabelIOError):
+        app.export("ply", directory="../../..")
+
+
+def test_gui_import_refuses_traversal_and_bad_files_server_stays_up(app: AnnotatorApp, tmp_path: Path) -> None:
+    iid = app.new_instance()
+    app.paint(np.arange(10))
+    state = app.store.labels.copy()
+    app.gui_import_path.value = "../../../../etc/passwd"
+    app.gui_import.value = True  # a button "click" from Python: runs the callback; refusal is a notification
+    assert np.array_equal(app.store.labels, state)
+    bad = tmp_path / "out" / "short.npz"
+    np.savez(bad, instance=np.zeros(7, np.int32))
+    with pytest.raises(LabelIOError, match="7"):
+        app.import_labels(str(bad))
+    assert app._run_reporting(lambda: app.import_labels(str(bad))) is None
+    assert np.array_equal(app.store.labels, state)
+    good = tmp_path / "out" / "good.npz"
+    lab = np.zeros(app.n, np.int32)
+    lab[100:120] = 5
+    np.savez(good, instance=lab)
+    app.import_labels(str(good))
+    assert (app.store.labels == 5).sum() == 20
+    app.undo()
+    assert np.array_equal(app.store.labels, state)
+    assert app.server.get_port() > 0
+
+
+def test_point_cloud_scan_and_prelabels(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    p = rng.normal(size=(3000, 3))
+    p /= np.linalg.norm(p, axis=1, keepdims=True)
+    scan = tmp_path / "pc.ply"
+    save_scene(Scene.create("pc", (0.1 * p).astype(np.float32), normals=p.astype(np.float32)), scan)
+    a = AnnotatorApp(scan, port=0, autosave_delay=0)
+    try:
+        assert not a.scene.is_mesh
+        iid = a.new_instance()
+        a.settings.radius = 0.02
+        a.click(np.array([0, 0, 1.0]), np.array([0, 0, -1.0]))
+        assert (a.store.labels == iid).sum() > 5
+        from annotator.io import LabelData
+        from annotator.labels import InstanceInfo
+
+        pre = np.zeros(a.n, np.int32)
+        pre[a.scene.points[:, 0] > 0.05] = 1
+        pre[a.scene.points[:, 0] < -0.05] = 2
+        ids = a.add_prelabels(LabelData(pre, [InstanceInfo(1, "x", "mug"), InstanceInfo(2, "y", "mug")],
+                                        {1: 0.9, 2: 0.4}), source="test.efem.npz")
+        assert len(ids) == 2
+        assert all("unreviewed" in a.store.labelset.info(i).note for i in ids)
+        a.review_prelabel(ids[0], "accept")
+        assert "accepted" in a.store.labelset.info(ids[0]).note
+        a.review_prelabel(ids[1], "reject")
+        assert ids[1] not in a.store.labelset.instances
+        a.undo()
+        a.set_active(iid)
+        a.review_prelabel(ids[1], "merge")
+        assert ids[1] not in a.store.labelset.instances and (a.store.labels == iid).sum() > 100
+    finally:
+        a.close()
+    assert (tmp_path / "pc.annotate" / "pc.journal").exists()
+
+
+def test_bad_startup_inputs(tmp_path: Path, mesh_path: Path) -> None:
+    from annotator.__main__ import main
+
+    (tmp_path / "empty.ply").write_bytes(b"")
+    assert main([str(tmp_path / "empty.ply"), "--port", "0"]) == 1
+    short = tmp_path / "short.npz"
+    np.savez(short, instance=np.zeros(3, np.int32))
+    assert main([str(mesh_path), "--labels", str(short), "--port", "0", "--out", str(tmp_path / "o2")]) == 1
+    assert not (tmp_path / "o2" / "ball.annotate" / "ball.journal").exists()

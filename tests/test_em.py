@@ -1,0 +1,244 @@
+"""EFEM solver end to end: analytic sphere prior (known answer), a small random ShapePrior (smoke, cancel,
+progress), result views and exports, the CLI, and a regression on a seeded mug scene with the trained prior."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from efem_viz.em import EMCancelled, EMResult, Instances, StepInfo, preset, run_em
+from efem_viz.em.analytic import make_sphere_prior, make_sphere_scene
+
+WEIGHTS = Path(__file__).resolve().parents[1] / "efem_viz" / "weights" / "mug.pt"
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread() -> None:
+    import torch
+
+    torch.set_num_threads(1)
+
+
+def ious(inst: Instances, gt: np.ndarray) -> np.ndarray:
+    """(K, G) IoU of every predicted mask against every ground-truth instance 1..G."""
+    ids = [g for g in np.unique(gt) if g > 0]
+    out = np.zeros((len(inst), len(ids)))
+    for k, m in enumerate(inst.bool_masks(len(gt))):
+        for j, g in enumerate(ids):
+            t = gt == g
+            out[k, j] = (m & t).sum() / max((m | t).sum(), 1)
+    return out
+
+
+@pytest.fixture(scope="module")
+def sphere_run() -> tuple[object, object, EMResult, list[StepInfo]]:
+    scene = make_sphere_scene(seed=11)
+    prior = make_sphere_prior()
+    steps: list[StepInfo] = []
+    res = run_em(scene, prior, preset("fast").replace(n_init=(64,)), seed=5, on_step=steps.append)
+    return scene, prior, res, steps
+
+
+# ---------------------------------------------------------------------------------------------- sphere prior
+def test_sphere_scene_each_object_found_once(sphere_run: tuple) -> None:
+    scene, _, res, _ = sphere_run
+    m = ious(res.instances, scene.instance)
+    assert m.shape == (3, 3), f"expected 3 instances, got {len(res.instances)}"
+    assert (m.max(axis=0) >= 0.9).all()  # every sphere matched
+    assert ((m >= 0.5).sum(axis=0) == 1).all()  # exactly once
+    assert (res.instances.confidence > 0.5).all()
+    # the fitted Θ_s of a sphere is its diameter
+    assert np.allclose(np.sort(res.instances.scale), np.sort(2 * np.array(scene.provenance["radii"])), atol=0.01)
+
+
+def test_progress_and_active_counts(sphere_run: tuple) -> None:
+    _, _, res, steps = sphere_run
+    tr = res.trace
+    assert [s.step for s in steps] == list(range(tr.num_steps))
+    assert all(s.num_steps == 20 for s in steps)
+    assert [s.active for s in steps] == tr.active_count[1:].tolist()
+    assert [s.phase for s in steps] == tr.step_phase.tolist()
+    assert np.all(np.diff([s.elapsed_s for s in steps]) >= 0)
+    assert set(res.timings) >= {"encode", "decode", "m_step", "eliminate", "review_mesh", "total"}
+
+
+def test_same_seed_same_run_other_seed_other_anchors(sphere_run: tuple) -> None:
+    scene, prior, res, _ = sphere_run
+    cfg = res.config.replace(t1=2, t2=1, end_step=2)
+    a = run_em(scene, prior, cfg, seed=5)
+    b = run_em(scene, prior, cfg, seed=5)
+    c = run_em(scene, prior, cfg, seed=6)
+    assert np.array_equal(a.trace.row_samples, b.trace.row_samples)
+    assert np.array_equal(a.trace.prop_anchor, res.trace.prop_anchor)  # anchors are the first draw
+    assert not np.array_equal(a.trace.prop_anchor, c.trace.prop_anchor)
+
+
+def test_cancel_raises(sphere_run: tuple) -> None:
+    scene, prior, _, _ = sphere_run
+    ev = threading.Event()
+    seen: list[int] = []
+
+    def on_step(s: StepInfo) -> None:
+        seen.append(s.step)
+        if s.step == 1:
+            ev.set()
+
+    with pytest.raises(EMCancelled):
+        run_em(scene, prior, preset("fast").replace(n_init=(16,)), on_step=on_step, cancel=ev)
+    assert seen == [0, 1]
+
+
+def test_bad_inputs_raise_clear_errors(sphere_run: tuple) -> None:
+    scene, prior, _, _ = sphere_run
+    with pytest.raises(ValueError, match="no encode"):
+        run_em(scene, object(), preset("fast"))
+    with pytest.raises(ValueError, match="n_init"):
+        preset("fast").replace(n_init=())
+    with pytest.raises(ValueError, match="CUDA|cuda"):
+        import torch
+
+        if torch.cuda.is_available():
+            pytest.skip("CUDA present")
+        run_em(scene, prior, preset("fast"), device="cuda")
+
+
+def test_episodes_reseed_only_unassigned_points(sphere_run: tuple) -> None:
+    scene, prior, _, _ = sphere_run
+    cfg = preset("fast").replace(n_init=(40, 30), t1=4, t2=2, end_step=3)
+    res = run_em(scene, prior, cfg, seed=2)
+    tr = res.trace
+    assert tr.num_proposals == 70
+    ep1 = np.flatnonzero(tr.prop_episode == 1)
+    if len(ep1) == 0:
+        pytest.skip("episode 1 skipped (too few unassigned points)")
+    taken = np.concatenate([res.instances.masks[k] for k in range(len(res.instances))
+                            if tr.prop_episode[res.instances.ids[k]] == 0])
+    assert not np.isin(tr.prop_anchor[ep1], taken).any()
+    assert np.array_equal(np.sort(tr.episode_unavailable[tr.episode_unavailable_offsets[1]:]), np.unique(taken))
+    assert tr.step_local.tolist() == list(range(6)) * 2 or tr.num_steps < 12
+
+
+# ---------------------------------------------------------------------------------------------- random ShapePrior
+def test_random_shape_prior_smoke() -> None:
+    import torch
+
+    from efem_viz.prior.model import PriorConfig, ShapePrior
+
+    torch.manual_seed(0)
+    prior = ShapePrior(PriorConfig(widths=(8, 8, 16, 16), down_blocks=(2,), down_factors=(2,), latent_dim=16,
+                                   center_hidden=8, n_pcl=64, k=8, decoder_hidden=32, decoder_blocks=1),
+                       name="rand").eval()
+    scene = make_sphere_scene(seed=1, radii=(0.05, 0.05))
+    cfg = preset("fast").replace(n_init=(24,), t1=3, t2=2, end_step=2, min_size=1, tau_d=(5.0, 5.0),
+                                 scale_horizontal=(0.0, 100.0), scale_height=(0.0, 100.0), mesh_resolution=16,
+                                 n_store=200)
+    steps: list[StepInfo] = []
+    res = run_em(scene, prior, cfg, seed=0, on_step=steps.append)
+    tr = res.trace
+    assert len(steps) == tr.num_steps >= 1
+    assert np.all(np.diff(tr.active_count) <= 0)
+    for e in tr.events():
+        assert e.reason in ("proposal too small", "duplicated or included", "scale-fail", "pose-fail", "survive")
+    assert (tr.death_reason >= 0).all()  # every proposal ended with a recorded reason
+    assert tr.row_R.shape[1:] == (16, 3) and tr.row_samples.shape[1] == 64
+    assert res.timings["encoded_sets"] == tr.row_offsets[-1]
+
+
+# ---------------------------------------------------------------------------------------------- results
+def _toy_instances() -> Instances:
+    rows = []
+    for k, (mask, conf) in enumerate([([0, 1, 2, 3], 0.9), ([3, 4, 5], 0.2), ([5, 6], 0.5)]):
+        rows.append({
+            "proposal_id": 10 + k, "mask": np.array(mask), "confidence": conf, "R": np.eye(3),
+            "center": np.zeros(3), "scale": 0.1, "obb_center": np.zeros(3), "obb_axes": np.eye(3),
+            "obb_half_extents": np.ones(3), "mesh_vertices": np.zeros((3, 3)), "mesh_faces": np.array([[0, 1, 2]]),
+            "coverage": 0.5, "stationary": conf, "db_sim": 0.3,
+        })
+    return Instances.from_rows(rows, category="mug")
+
+
+def test_instances_above_and_label_array() -> None:
+    inst = _toy_instances()
+    hi = inst.above(0.5)
+    assert hi.ids.tolist() == [10, 12] and len(inst) == 3  # a view; the original is untouched
+    assert inst.above(0.95).label_array(8).tolist() == [0] * 8
+    lab = inst.label_array(8)
+    # point 3: instance 1 (0.9) beats instance 2 (0.2); point 5: instance 3 (0.5) beats instance 2
+    assert lab.tolist() == [1, 1, 1, 1, 2, 3, 3, 0]
+    with pytest.raises(ValueError, match="n_points"):
+        inst.label_array(4)
+
+
+def test_scannet_export_readable(tmp_path: Path) -> None:
+    inst = _toy_instances()
+    txt = inst.to_scannet(tmp_path, "scene0", 8)
+    lines = txt.read_text().splitlines()
+    assert len(lines) == 3
+    for k, line in enumerate(lines):
+        rel, label, conf = line.split()
+        assert rel == f"pred_mask/scene0_{k:03d}.txt" and label == "1"
+        assert conf == f"{inst.confidence[k]:.4f}"
+        m = np.loadtxt(tmp_path / rel, dtype=int)
+        assert m.shape == (8,)
+        assert np.flatnonzero(m).tolist() == inst.masks[k].tolist()
+
+
+def test_colored_ply_round_trip(sphere_run: tuple, tmp_path: Path) -> None:
+    from efem_viz.data.io import load_scene
+
+    scene, _, res, _ = sphere_run
+    p = res.instances.to_colored_ply(scene, tmp_path / "seg.ply")
+    back = load_scene(p)
+    assert back.num_points == scene.num_points
+    assert np.array_equal(back.instance, res.instances.label_array(scene.num_points))
+    assert len(np.unique(back.colors[back.instance > 0], axis=0)) == len(res.instances)
+
+
+# ---------------------------------------------------------------------------------------------- CLI
+def test_segment_cli(tmp_path: Path) -> None:
+    import torch
+
+    from efem_viz import cli
+    from efem_viz.data.io import save_scene
+    from efem_viz.prior.model import PriorConfig, ShapePrior, save_prior
+
+    torch.manual_seed(0)
+    prior = ShapePrior(PriorConfig(widths=(8, 8, 16, 16), down_blocks=(2,), down_factors=(2,), latent_dim=16,
+                                   center_hidden=8, n_pcl=64, k=8, decoder_hidden=32, decoder_blocks=1),
+                       name="rand")
+    pt = save_prior(prior, tmp_path / "rand.pt")
+    scene = make_sphere_scene(seed=2, radii=(0.05,))
+    sp = save_scene(scene, tmp_path / "one.npz")
+    out = tmp_path / "out"
+    rc = cli.main(["segment", str(sp), "--prior", str(pt), "--out", str(out), "--preset", "fast",
+                   "--proposals", "8", "--seed", "3"])
+    assert rc == 0
+    res = EMResult.load(out / "one.efem.npz")
+    assert res.trace.num_proposals == 8 and res.seed == 3
+    assert (out / "scannet" / "one.txt").is_file()
+    assert (out / "one.seg.ply").is_file()
+
+
+# ---------------------------------------------------------------------------------------------- trained prior
+def _mug_scene() -> object:
+    """Three upright test-split mugs on a table (synthetic scan, seeded)."""
+    from efem_viz.data.synth import generate_scene
+
+    return generate_scene("z", seed=4242, n_objects=3, mode="points", distractors=False)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not WEIGHTS.is_file(), reason=f"trained mug prior not found at {WEIGHTS} (train it first)")
+def test_trained_prior_finds_mugs() -> None:
+    from efem_viz.prior.model import load_prior
+
+    prior = load_prior(WEIGHTS)
+    scene = _mug_scene()
+    res = run_em(scene, prior, preset("fast").replace(n_init=(100,)), seed=0)
+    m = ious(res.instances, scene.instance)
+    assert m.shape[1] == len(scene.instance_ids())
+    best = m.max(axis=0) if len(res.instances) else np.zeros(m.shape[1])
+    assert (best >= 0.7).all(), f"per-object best IoU {np.round(best, 3)}"

@@ -1,0 +1,183 @@
+"""Tests of the synthetic tabletop scan generator (efem_viz.data.synth). Small, low-resolution scenes."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from efem_viz.data.procedural import make_shape, split_seeds
+from efem_viz.data.scene import Scene
+from efem_viz.data.synth import PENETRATION_TOLERANCE, GenerateArgs, contact_report, generate_scene
+
+FAST = dict(image_size=(200, 150), voxel=0.006)
+
+
+@lru_cache(maxsize=None)
+def _scene(config: str, seed: int, n: int, mode: str = "tsdf", distractors: bool = True) -> Scene:
+    return generate_scene(config, seed=seed, n_objects=n, mode=mode, distractors=distractors, **FAST)  # type: ignore[arg-type]
+
+
+def _world_meshes(scene: Scene) -> list:
+    out = []
+    for o in scene.provenance["objects"]:
+        m = make_shape(o["category"], o["seed"])
+        m.apply_transform(np.asarray(o["T_world_object"]))
+        out.append(m)
+    return out
+
+
+def _distance_to(mesh, pts: np.ndarray) -> np.ndarray:
+    import open3d as o3d
+
+    rc = o3d.t.geometry.RaycastingScene()
+    rc.add_triangles(
+        o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)), o3d.core.Tensor(np.asarray(mesh.faces, np.uint32))
+    )
+    return rc.compute_distance(o3d.core.Tensor(pts.astype(np.float32))).numpy()
+
+
+def test_same_seed_identical_different_seed_different() -> None:
+    a = _scene("so3", 1, 2)
+    b = generate_scene("so3", seed=1, n_objects=2, **FAST)  # type: ignore[arg-type]
+    c = _scene("so3", 2, 2)
+    assert np.array_equal(a.points, b.points) and np.array_equal(a.faces, b.faces)
+    assert np.array_equal(a.instance, b.instance) and np.array_equal(a.colors, b.colors)
+    assert a.provenance == b.provenance or {k: v for k, v in a.provenance.items() if k != "timings_s"} == {
+        k: v for k, v in b.provenance.items() if k != "timings_s"
+    }
+    assert a.points.shape != c.points.shape or not np.allclose(a.points, c.points)
+
+
+@pytest.mark.parametrize("config", ["z", "so3", "pile"])
+def test_ground_truth_labels_visible_objects_and_lie_on_their_surface(config: str) -> None:
+    s = _scene(config, 3, 3)
+    assert s.is_mesh and s.has_gt
+    meshes = _world_meshes(s)
+    objs = s.provenance["objects"]
+    mug_ids = {o["instance_id"] for o in objs if o["category"] == "mug"}
+    assert set(s.instance_ids().tolist()) <= mug_ids
+    assert set(s.categories.values()) == {"mug"}
+    for o, m in zip(objs, meshes):
+        if o["category"] != "mug":
+            continue
+        lab = s.instance == o["instance_id"]
+        if o["visible_pixels"] > 200:
+            assert lab.sum() > 20, f"visible mug {o['instance_id']} has only {lab.sum()} labelled points"
+        if lab.any():
+            d = _distance_to(m, s.points[lab])
+            assert d.max() < s.provenance["label_tolerance"] + 1e-6
+            assert np.median(d) < 0.004, f"labelled points lie {np.median(d) * 1e3:.1f} mm from their mug"
+    # unlabelled points near a mug surface would be missed ground truth: they must be nearer to something else
+    table_or_other = s.instance == 0
+    for o, m in zip(objs, meshes):
+        if o["category"] == "mug" and table_or_other.any():
+            d = _distance_to(m, s.points[table_or_other])
+            others = [_distance_to(q, s.points[table_or_other]) for q in meshes if q is not m]
+            table_d = np.abs(s.points[table_or_other, 2])
+            nearest_other = np.minimum.reduce(others + [table_d])
+            assert not np.any((d < 0.003) & (d + 1e-4 < nearest_other)), "points on a mug left unlabelled"
+
+
+def test_tsdf_surface_close_to_truth_and_sensible_size() -> None:
+    s = _scene("z", 4, 3)
+    meshes = _world_meshes(s)
+    d_obj = np.minimum.reduce([_distance_to(m, s.points) for m in meshes])
+    d = np.minimum(d_obj, np.abs(s.points[:, 2]))
+    vox = FAST["voxel"]
+    assert np.median(d) < 0.25 * vox, f"median distance to the true surfaces {np.median(d) * 1e3:.1f} mm"
+    assert np.quantile(d, 0.95) < 1.25 * vox, f"95% of the fused surface within {np.quantile(d, 0.95) * 1e3:.1f} mm"
+    assert np.quantile(d, 0.99) < 2.5 * vox
+    assert 2_000 < s.num_points < 120_000
+    assert s.faces is not None and s.faces.max() < s.num_points
+    # normals face the cameras: table normals point up
+    on_table = (np.abs(s.points[:, 2]) < 0.003) & (s.instance == 0) & (d_obj > 0.02)
+    assert on_table.sum() > 100 and np.median(s.normals[on_table, 2]) > 0.9
+
+
+def test_points_mode_spacing_and_noise() -> None:
+    s = _scene("z", 4, 3, mode="points")
+    from scipy.spatial import cKDTree
+
+    assert not s.is_mesh and s.has_gt
+    dist, _ = cKDTree(s.points).query(s.points, k=2)
+    spacing = float(np.median(dist[:, 1]))
+    assert 0.5 * FAST["voxel"] < spacing < 2.0 * FAST["voxel"], spacing
+    table = (s.instance == 0) & (np.abs(s.points[:, 2]) < 0.01)
+    assert table.sum() > 200
+    # Kinect-like noise: the table is not perfectly flat but within a few millimetres
+    assert 0.0002 < np.std(s.points[table, 2]) < 0.004
+    # orientation toward the sensors: table normals point up
+    assert np.median(s.normals[table, 2]) > 0.9
+
+
+def test_z_config_mugs_upright_and_resting() -> None:
+    s = _scene("z", 5, 3)
+    for o, m in zip(s.provenance["objects"], _world_meshes(s)):
+        T = np.asarray(o["T_world_object"])
+        assert np.allclose(T[:3, 2], [0, 0, 1], atol=1e-6), f"{o['category']} not upright"
+        assert abs(m.bounds[0, 2]) < 1e-6, "not resting on the table top"
+    rep = contact_report(_world_meshes(s))
+    assert rep["max_penetration"] < 1e-4
+
+
+def test_pile_contacts_without_interpenetration() -> None:
+    s = _scene("pile", 6, 3, distractors=False)
+    rep = contact_report(_world_meshes(s))
+    assert rep["max_penetration"] <= PENETRATION_TOLERANCE
+    assert rep["max_penetration"] == pytest.approx(s.provenance["max_penetration_m"], abs=1e-3)
+    # every object rests on something (table or another object)
+    assert rep["gap"].max() < 0.003, rep["gap"]
+    # it is a pile: some objects touch each other, or one lies on another
+    pair = np.minimum(rep["pair_gap"], rep["pair_gap"].T)
+    assert np.isfinite(pair).any() and pair[np.isfinite(pair)].min() < 0.003, pair
+
+
+def test_so3_orientations_are_not_all_upright() -> None:
+    tilts = []
+    for seed in (7, 8):
+        s = _scene("so3", seed, 3, distractors=False)
+        tilts += [np.asarray(o["T_world_object"])[2, 2] for o in s.provenance["objects"]]
+        rep = contact_report(_world_meshes(s))
+        assert rep["max_penetration"] <= PENETRATION_TOLERANCE
+        assert rep["gap"].max() < 0.003  # resting, not floating
+    assert min(tilts) < 0.7, f"all objects nearly upright: {np.round(tilts, 2)}"
+
+
+def test_provenance_and_split() -> None:
+    s = _scene("so3", 1, 2)
+    p = s.provenance
+    test_seeds = split_seeds("mug", "test")
+    assert p["config"] == "so3" and p["seed"] == 1 and p["split"] == "test"
+    assert len(p["mug_seeds"]) == 2 and all(m in test_seeds for m in p["mug_seeds"])
+    for o in p["objects"]:
+        T = np.asarray(o["T_world_object"])
+        assert T.shape == (4, 4) and np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-5)
+    assert len(p["cameras"]) == 4
+
+
+def test_bad_arguments_raise() -> None:
+    with pytest.raises(ValueError, match="config"):
+        generate_scene("xyz", seed=0)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="n_objects"):
+        generate_scene("z", seed=0, n_objects=11)
+    with pytest.raises(ValueError, match="mode"):
+        generate_scene("z", seed=0, mode="mesh")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="split"):
+        generate_scene("z", seed=0, split="dev")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="voxel"):
+        generate_scene("z", seed=0, voxel=0.0)
+
+
+def test_cli_writes_loadable_ply(tmp_path: Path) -> None:
+    from efem_viz.data.io import load_scene
+
+    args = GenerateArgs(config="z", count=1, seed=11, out=tmp_path, objects=1, distractors=False, voxel=0.006)
+    assert args.run() == 0
+    path = tmp_path / "z_11.ply"
+    assert path.exists()
+    s = load_scene(path)
+    assert s.has_gt and s.is_mesh
+    assert set(s.instance_ids().tolist()) == {1}
