@@ -64,6 +64,9 @@ class ToolSettings:
     """Region grow: maximum normal change across one edge, degrees."""
     grow_distance: float = 0.15
     """Region grow: maximum distance from the seed, metres."""
+    grow_min_height: float = 0.0
+    """Region grow and fill never enter points lower than this above z = 0 (the table plane of imported
+    tabletop scans), metres; 0 = off."""
     only_unlabelled: bool = False
     """Paint/grow/box change only unlabelled vertices."""
     box_facing: str = "front"
@@ -287,6 +290,9 @@ class AnnotatorApp:
                                                  initial_value=s.grow_angle_deg)
             self.gui_grow_dist = gui.add_slider("Grow: max distance (cm)", min=1, max=200, step=1,
                                                 initial_value=round(100 * s.grow_distance))
+            self.gui_grow_height = gui.add_slider("Grow: min height (cm)", min=0.0, max=10.0, step=0.1,
+                                                  initial_value=0.0,
+                                                  hint="keep fills above the table (z = 0 in imported tabletop scans); 0 = off")
             self.gui_only_unlabelled = gui.add_checkbox("Only unlabelled vertices", s.only_unlabelled)
             self.gui_box_facing = gui.add_dropdown("Box select", ("front", "all"), initial_value="front",
                                                    hint="Shift+drag a box; front = vertices facing the camera")
@@ -335,11 +341,12 @@ class AnnotatorApp:
             s.brush_max_angle_deg = float(self.gui_brush_angle.value)
             s.grow_angle_deg = float(self.gui_grow_angle.value)
             s.grow_distance = float(self.gui_grow_dist.value) / 100.0
+            s.grow_min_height = float(self.gui_grow_height.value) / 100.0
             s.only_unlabelled = bool(self.gui_only_unlabelled.value)
             s.box_facing = str(self.gui_box_facing.value)
 
         for h in (self.gui_tool, self.gui_radius, self.gui_brush_angle, self.gui_grow_angle, self.gui_grow_dist,
-                  self.gui_only_unlabelled, self.gui_box_facing):
+                  self.gui_grow_height, self.gui_only_unlabelled, self.gui_box_facing):
             h.on_update(read_settings)
 
         def guarded(fn: Callable[..., Any]) -> Callable[[Any], None]:
@@ -559,6 +566,8 @@ class AnnotatorApp:
         allowed = ~np.isin(ls.labels, ls.protected_ids())
         if self.settings.only_unlabelled:
             allowed &= ls.labels == 0
+        if self.settings.grow_min_height > 0:
+            allowed &= self.scene.points[:, 2] >= self.settings.grow_min_height
         idx = sel.region_grow(self.geom, seed, max_angle_deg=self.settings.grow_angle_deg,
                               max_distance=self.settings.grow_distance, allowed=allowed)
         return self.paint(idx, client=client)
@@ -566,6 +575,8 @@ class AnnotatorApp:
     def fill(self, seed: int, *, client: str = "") -> Delta | None:
         """Bucket fill: the connected region sharing the seed's label becomes the active instance."""
         idx = sel.fill_same_label(self.geom, seed, self.store.labels)
+        if self.settings.grow_min_height > 0:
+            idx = idx[self.scene.points[idx, 2] >= self.settings.grow_min_height]
         return self.paint(idx, client=client)
 
     def pick_instance(self, vertex: int) -> int:

@@ -46,6 +46,7 @@ def segment_at_point(
     n_proposals: int = 12,
     preset_name: str = "real_mugs",
     seed: int = 0,
+    **overrides: Any,
 ) -> np.ndarray:
     """Segment the object under a vertex with EFEM restricted to a crop around it.
 
@@ -58,6 +59,7 @@ def segment_at_point(
         n_proposals: proposals initialised (all anchored inside the crop).
         preset_name: `efem_viz.em.preset` name the config starts from.
         seed: EM seed.
+        **overrides: further `EMConfig` fields (e.g. min_size=30 for small test objects).
 
     Returns:
         (K,) int32 sorted scene vertex indices of the proposed object; empty when EFEM found nothing here.
@@ -76,7 +78,7 @@ def segment_at_point(
     pts = np.asarray(scene.points, np.float32)
     centre = pts[int(vertex)]
     crop = np.sort(np.asarray(cKDTree(pts).query_ball_point(centre, crop_radius), np.int64))
-    cfg = preset(preset_name)
+    cfg = preset(preset_name).replace(**overrides) if overrides else preset(preset_name)
     if len(crop) <= cfg.min_size:
         raise ValueError(
             f"only {len(crop)} points within {crop_radius:.2f} m of the click (EFEM needs > {cfg.min_size})"

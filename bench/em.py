@@ -54,7 +54,7 @@ def run_one(scene: Any, prior: Any, cfg: Any, seed: int = 0) -> Any:
 def stage_table(timings: list[dict[str, float]]) -> dict[str, float]:
     from efem_viz.em.solver import STAGES
 
-    tot = {k: float(np.sum([t.get(k, 0.0) for t in timings])) for k in STAGES}
+    tot = {k: float(np.sum([t.get(k, 0.0) for t in timings])) for k in STAGES}  # wall seconds per stage
     total = float(np.sum([t["total"] for t in timings]))
     return {k: v / total for k, v in tot.items()} | {"other": max(0.0, 1 - sum(tot.values()) / total)}
 
@@ -67,6 +67,7 @@ def main() -> int:
     ap.add_argument("--mode", default="points", choices=["points", "tsdf"])
     ap.add_argument("--preset", default="synthetic_mugs")
     ap.add_argument("--proposals", type=int, default=400)
+    ap.add_argument("--work-voxel", type=float, default=None, help="EMConfig.work_voxel for every run (m)")
     ap.add_argument("--n-scenes", type=int, default=None, help="scenes per configuration (default 10, quick 2)")
     ap.add_argument("--skip-accuracy", action="store_true")
     ap.add_argument("--skip-speed", action="store_true")
@@ -82,7 +83,7 @@ def main() -> int:
 
     torch.set_num_threads(args.threads)
     prior = load_prior(args.prior)
-    cfg = preset(args.preset).with_proposals(args.proposals)
+    cfg = preset(args.preset).with_proposals(args.proposals).replace(work_voxel=args.work_voxel)
     n_scenes = args.n_scenes or (2 if args.quick else 10)
     out: dict[str, Any] = {
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "torch_threads": args.threads,
@@ -94,6 +95,7 @@ def main() -> int:
     }
     all_timings: list[dict[str, float]] = []
     runtimes: list[float] = []
+    cpu_times: list[float] = []
     if not args.skip_accuracy:
         acc: dict[str, Any] = {}
         print(f"accuracy: {n_scenes} scenes x {CONFIGS}, {args.proposals} proposals, preset {args.preset}")
@@ -109,28 +111,34 @@ def main() -> int:
                 gts.append(SceneGroundTruth.from_scene(scene))
                 one = evaluate([preds[-1]], [gts[-1]], class_names=("mug",))
                 per_scene.append({"scene": scene.name, "points": scene.num_points, "gt": len(scene.instance_ids()),
-                                  "pred": len(res.instances), "ap50": one.ap50, "seconds": res.timings["total"]})
+                                  "pred": len(res.instances), "ap50": one.ap50, "seconds": res.timings["total"],
+                                  "cpu_seconds": res.timings["total_cpu"]})
+                cpu_times.append(res.timings["total_cpu"])
                 print(f"  {scene.name:>10}: {scene.num_points:6d} pts, gt {len(scene.instance_ids())}, "
-                      f"pred {len(res.instances)}, AP50 {one.ap50 * 100:5.1f}, {res.timings['total']:6.1f} s",
-                      flush=True)
+                      f"pred {len(res.instances)}, AP50 {one.ap50 * 100:5.1f}, {res.timings['total']:6.1f} s "
+                      f"(cpu {res.timings['total_cpu']:6.1f} s)", flush=True)
             ev = evaluate(preds, gts, class_names=("mug",))
             acc[config] = {"ap": ev.ap * 100, "ap50": ev.ap50 * 100, "ap25": ev.ap25 * 100, "scenes": per_scene}
             print(f"{config:>5}: AP {ev.ap * 100:5.1f}  AP50 {ev.ap50 * 100:5.1f}  AP25 {ev.ap25 * 100:5.1f}")
         out["accuracy"] = acc
         out["median_seconds_per_scene"] = float(np.median(runtimes))
-        print(f"median runtime per scene at {args.proposals} proposals: {np.median(runtimes):.1f} s")
+        out["median_cpu_seconds_per_scene"] = float(np.median(cpu_times))
+        print(f"median runtime per scene at {args.proposals} proposals: {np.median(runtimes):.1f} s wall, "
+              f"{np.median(cpu_times):.1f} s CPU (process time, all threads)")
     if not args.skip_speed:
         scene = get_scene("z", SEED0, args.mode)
         props = (50, 200, 400) if args.quick else (50, 100, 200, 400)
         rows = []
         print(f"runtime vs proposals ({scene.name}, {scene.num_points} points):")
         for p in props:
-            res = run_one(scene, prior, preset(args.preset).with_proposals(p))
+            res = run_one(scene, prior, cfg.with_proposals(p))
             all_timings.append(res.timings)
-            rows.append({"proposals": p, "seconds": res.timings["total"], "instances": len(res.instances),
+            rows.append({"proposals": p, "seconds": res.timings["total"], "cpu_seconds": res.timings["total_cpu"],
+                         "instances": len(res.instances),
                          "decoder_queries": res.timings["decoder_queries"],
                          "encoded_sets": res.timings["encoded_sets"]})
-            print(f"  {p:4d} proposals: {res.timings['total']:6.1f} s, {res.timings['encoded_sets']:6.0f} encodes, "
+            print(f"  {p:4d} proposals: {res.timings['total']:6.1f} s (cpu {res.timings['total_cpu']:6.1f} s), "
+                  f"{res.timings['encoded_sets']:6.0f} encodes, "
                   f"{res.timings['decoder_queries'] / 1e6:5.2f} M queries", flush=True)
         out["runtime_vs_proposals"] = rows
         rows = []
@@ -142,9 +150,10 @@ def main() -> int:
                                 instance=scene.instance[keep], faces=None)
             res = run_one(sub, prior, cfg)
             all_timings.append(res.timings)
-            rows.append({"points": sub.num_points, "seconds": res.timings["total"], "instances": len(res.instances),
+            rows.append({"points": sub.num_points, "seconds": res.timings["total"], "cpu_seconds": res.timings["total_cpu"],
+                         "instances": len(res.instances),
                          "decoder_queries": res.timings["decoder_queries"]})
-            print(f"  {sub.num_points:7d} points: {res.timings['total']:6.1f} s, "
+            print(f"  {sub.num_points:7d} points: {res.timings['total']:6.1f} s (cpu {res.timings['total_cpu']:6.1f} s), "
                   f"{res.timings['decoder_queries'] / 1e6:5.2f} M queries", flush=True)
         out["runtime_vs_points"] = rows
     if all_timings:

@@ -266,3 +266,70 @@ def test_bad_startup_inputs(tmp_path: Path, mesh_path: Path) -> None:
     np.savez(short, instance=np.zeros(3, np.int32))
     assert main([str(mesh_path), "--labels", str(short), "--port", "0", "--out", str(tmp_path / "o2")]) == 1
     assert not (tmp_path / "o2" / "ball.annotate" / "ball.journal").exists()
+
+
+@pytest.fixture(scope="module")
+def spheres(tmp_path_factory: pytest.TempPathFactory):
+    """A sphere tabletop scene with a saved EFEM result from the real solver and the analytic sphere prior."""
+    em = pytest.importorskip("efem_viz.em", reason="efem_viz.em not importable")
+    analytic = pytest.importorskip("efem_viz.em.analytic", reason="efem_viz.em.analytic not importable")
+    import torch
+
+    torch.set_num_threads(1)
+    d = tmp_path_factory.mktemp("spheres")
+    scene = analytic.make_sphere_scene(seed=0, spacing=0.008, name="spheres")
+    save_scene(scene, d / "spheres.ply")
+    prior = analytic.make_sphere_prior()
+    result = em.run_em(scene, prior, em.preset("fast").with_proposals(16).replace(min_size=30), seed=0)
+    result.save(d / "spheres.efem.npz")
+    return d, scene, prior
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> float:
+    return float((a & b).sum()) / max(1, int((a | b).sum()))
+
+
+def test_efem_prelabels_import_and_review(spheres) -> None:
+    d, scene, _ = spheres
+    a = AnnotatorApp(d / "spheres.ply", out_dir=d / "out_import", port=0, autosave_delay=0)
+    try:
+        a.store.do(lambda ls: ls.replace_all(np.zeros(a.n, np.int32), []))  # start unlabelled (file has GT)
+        ids = a.import_efem("spheres.efem.npz")
+        assert ids, "EFEM found no sphere"
+        gt = scene.instance
+        best = [max(_iou(a.store.labels == i, gt == g) for g in scene.instance_ids()) for i in ids]
+        assert max(best) > 0.5
+        assert a.gui_prelabel.options[0] != "(none)"
+        a.review_prelabel(ids[0], "accept")
+        assert "accepted" in a.store.labelset.info(ids[0]).note
+        with pytest.raises(LabelIOError):
+            a.import_efem("spheres.ply")  # not an EFEM result
+    finally:
+        a.close()
+
+
+def test_click_to_segment_previews_then_accepts(spheres) -> None:
+    from annotator.assist import segment_at_point
+
+    d, scene, prior = spheres
+    g = int(scene.instance_ids()[0])
+    members = np.flatnonzero(scene.instance == g)
+    top = int(members[np.argmax(scene.points[members, 2])])
+    idx = segment_at_point(scene, top, prior=prior, preset_name="fast", n_proposals=8, crop_radius=0.1, min_size=30)
+    assert _iou(np.isin(np.arange(scene.num_points), idx), scene.instance == g) > 0.5
+    a = AnnotatorApp(d / "spheres.ply", out_dir=d / "out_seg", port=0, autosave_delay=0)
+    try:
+        before = a.store.labels.copy()
+        a.set_preview(idx)
+        assert np.array_equal(a.store.labels, before)  # a preview is not an edit
+        assert not a.gui_seg_accept.disabled
+        a.gui_prior.value = "sphere"
+        a.accept_segment()
+        new = a.settings.active_id
+        assert a.store.labelset.info(new).category == "sphere"
+        assert set(np.flatnonzero(a.store.labels == new)) <= set(idx.tolist())
+        assert a.pending_segment is None and a.gui_seg_accept.disabled
+        with pytest.raises(ValueError, match="no segment preview"):
+            a.accept_segment()
+    finally:
+        a.close()

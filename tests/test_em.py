@@ -230,12 +230,26 @@ def _mug_scene() -> object:
     return generate_scene("z", seed=4242, n_objects=3, mode="points", distractors=False)
 
 
-@pytest.mark.slow
-@pytest.mark.skipif(not WEIGHTS.is_file(), reason=f"trained mug prior not found at {WEIGHTS} (train it first)")
-def test_trained_prior_finds_mugs() -> None:
+def _trained_prior_or_skip() -> object:
+    """The shipped mug prior, or skip: missing file, or a checkpoint still early in training."""
+    if not WEIGHTS.is_file():
+        pytest.skip(f"trained mug prior not found at {WEIGHTS} (train it first)")
     from efem_viz.prior.model import load_prior
 
     prior = load_prior(WEIGHTS)
+    val_iou = float(prior.metadata.get("val_iou", 1.0))
+    if val_iou < MIN_VAL_IOU:
+        pytest.skip(f"{WEIGHTS} is an early checkpoint (validation IoU {val_iou:.2f} < {MIN_VAL_IOU}); "
+                    "the regression needs the trained prior")
+    return prior
+
+
+MIN_VAL_IOU = 0.5
+
+
+@pytest.mark.slow
+def test_trained_prior_finds_mugs() -> None:
+    prior = _trained_prior_or_skip()
     scene = _mug_scene()
     res = run_em(scene, prior, preset("fast").replace(n_init=(100,)), seed=0)
     m = ious(res.instances, scene.instance)

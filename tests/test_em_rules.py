@@ -297,3 +297,10 @@ def test_lookup_and_take_rows() -> None:
     assert pos.tolist() == [1, -1, 4, -1]
     sub, posk = rag.take_rows(np.array([1]))
     assert sub.idx.tolist() == [2, 4] and posk.tolist() == [3, 4]
+
+
+def test_nan_centre_owns_no_points() -> None:
+    pts = np.random.default_rng(0).uniform(-1, 1, (200, 3)).astype(np.float32)
+    tree = AvailableTree(pts, np.ones(200, bool))
+    rag = tree.query(np.array([[np.nan, 0, 0], [0, 0, 0]]), 0.5)
+    assert rag.lengths[0] == 0 and rag.lengths[1] > 0

@@ -18,8 +18,8 @@ from efem_viz.prior.vn_layers import (
 )
 
 DT = torch.float64
-SMALL = dict(widths=(8, 8, 16, 16, 32), down_blocks=(2, 4), down_factors=(2, 4), k=8, n_pcl=128, latent_dim=16,
-             center_hidden=8, decoder_hidden=32, decoder_blocks=2)
+SMALL = dict(widths=(8, 8, 16, 16, 32), down_blocks=(2, 4), down_factors=(2, 4), k=8, n_pcl=128,
+             latent_dim=16, center_hidden=8, decoder_hidden=32, decoder_blocks=2)
 
 
 def random_rotation(gen: torch.Generator) -> torch.Tensor:
@@ -47,7 +47,7 @@ def vn_rotate(v: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
 
 
 def mug_like(n: int, seed: int) -> torch.Tensor:
-    """A handled cup-like cloud (n, 3) float64, z up, about unit size (asymmetric, so poses are well defined)."""
+    """A handled cup-like cloud (n, 3) float64, z up, about unit size (asymmetric: poses are well defined)."""
     gen = torch.Generator().manual_seed(seed)
     n_body = n * 3 // 4
     th = torch.rand(n_body, generator=gen, dtype=DT) * 6.283
@@ -118,7 +118,7 @@ def test_knn_and_fps_indices_invariant() -> None:
     idx = knn_indices(feat.flatten(2), feat.flatten(2), 8)
     idx_g = knn_indices((s * vn_rotate(feat, R)).flatten(2), (s * vn_rotate(feat, R)).flatten(2), 8)
     assert torch.equal(idx, idx_g)
-    assert torch.equal(idx[..., 0], torch.arange(64).expand(2, 64))  # every point is its own nearest neighbour
+    assert torch.equal(idx[..., 0], torch.arange(64).expand(2, 64))  # each point is its own nearest neighbour
     pts = torch.randn(2, 100, 3, generator=gen, dtype=DT)
     f = farthest_point_sample(pts, 25)
     assert torch.equal(f, farthest_point_sample(s * pts @ R.T + t, 25))

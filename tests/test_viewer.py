@@ -292,3 +292,28 @@ def test_view_args_defaults() -> None:
     assert args.host == "127.0.0.1" and args.port == 8080 and args.paths == ()
     with pytest.raises(FileNotFoundError):
         ViewArgs(paths=(Path("/nonexistent/dir"),)).run()
+
+
+def test_single_file_path_reads_its_saved_result_only(scene_dir: Path, prior: Any) -> None:
+    from efem_viz.viewer.app import ViewerApp
+
+    a = ViewerApp([scene_dir / "spheres.ply"], port=0, prior=prior)
+    try:
+        assert [e.name for e in a.state.entries] == ["spheres"]
+        assert a.state.result is not None  # spheres.efem.npz next to the given file is part of it
+        assert a.load_trace(scene_dir / "one_sphere.ply") is False  # a sibling that was not given
+        assert "outside the given paths" in (a.state.error or "")
+    finally:
+        a.stop()
+
+
+def test_labels_copy_shares_the_base_result(tmp_path: Path) -> None:
+    (tmp_path / "scan.ply").write_text("x")
+    (tmp_path / "scan.labels.ply").write_text("x")
+    entries = {e.name: e for e in st.discover_scenes([tmp_path])}
+    assert entries["scan.labels"].trace_path.name == "scan.labels.efem.npz"  # no result yet anywhere
+    (tmp_path / "scan.efem.npz").write_text("x")
+    assert entries["scan.labels"].trace_path.name == "scan.efem.npz"
+    (tmp_path / "scan.labels.efem.npz").write_text("x")
+    assert entries["scan.labels"].trace_path.name == "scan.labels.efem.npz"  # its own result wins
+    assert entries["scan"].trace_path.name == "scan.efem.npz"

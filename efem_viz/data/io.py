@@ -6,6 +6,9 @@ Which format keeps what (a round trip through `save_scene` then `load_scene`):
 |--------|--------|---------|---------|-------|-----------------|------------------------|
 | .ply   | yes    | yes     | yes     | yes   | yes (`instance` int vertex property) | yes (comment lines) |
 | .npz   | yes    | yes     | yes     | yes   | yes             | yes                    |
+
+(An `.npz` holding an RGB-D frame — `depth_mm` or `depth`, `K`, optional `rgb` — instead of a scene is imported
+with `efem_viz.data.rgbd.import_rgbd_file` and its default settings.)
 | .glb   | yes    | meshes  | yes     | yes   | yes (`_instance` vertex attribute, meshes; scene extras, point clouds) | yes (scene extras) |
 | .obj   | yes    | yes     | yes (`v x y z r g b`) | yes | no  | no                     |
 | .off   | yes    | yes (NOFF) | yes (COFF) | yes | no         | no                     |
@@ -275,6 +278,23 @@ def _npz_kwargs(data: Any) -> dict[str, Any]:
 
 def _load_npz(p: Path, max_points: int) -> dict[str, Any]:
     with np.load(p, allow_pickle=False) as data:
+        keys = set(data.files)
+        if "schema_version" not in keys and "K" in keys and ({"depth_mm", "depth"} & keys):
+            rgbd_frame = True
+        else:
+            rgbd_frame = False
+            kwargs = _npz_kwargs(data)
+    if rgbd_frame:  # an RGB-D frame (rgb, depth_mm, K): import it with the default settings
+        from efem_viz.data.rgbd import import_rgbd_file
+
+        scene = import_rgbd_file(p)
+        return {
+            "points": scene.points,
+            "normals": scene.normals,
+            "colors": scene.colors,
+            "provenance": dict(scene.provenance),
+        }
+    with np.load(p, allow_pickle=False) as data:
         kwargs = _npz_kwargs(data)
         # materialise the arrays before the file closes
         return {k: (np.array(v) if isinstance(v, np.ndarray) else v) for k, v in kwargs.items()}
@@ -325,7 +345,10 @@ def _load_ply(p: Path, max_points: int) -> dict[str, Any]:
             out["normals"] = nrm
     for rgb in (("red", "green", "blue"), ("r", "g", "b"), ("diffuse_red", "diffuse_green", "diffuse_blue")):
         if set(rgb) <= props:
-            out["colors"] = np.stack([v[c] for c in rgb], axis=1)
+            col = np.stack([v[c] for c in rgb], axis=1)
+            if col.dtype == np.uint16:  # 16-bit colour channels
+                col = np.round(col / 257.0).astype(np.uint8)
+            out["colors"] = col
             break
     if "instance" in props:
         out["instance"] = np.asarray(v["instance"])
@@ -579,7 +602,28 @@ def _write_ply(scene: Scene, tmp: Path, *, ascii: bool) -> None:
     for c in comments:
         if "\n" in c or "\r" in c:
             raise SceneError("PLY comment lines cannot contain newlines (categories/provenance)")
-    plyfile.PlyData(elements, text=ascii, byte_order="<" if not ascii else "=", comments=comments).write(str(tmp))
+    if not ascii:
+        plyfile.PlyData(elements, text=False, byte_order="<", comments=comments).write(str(tmp))
+        return
+    # ASCII: plyfile formats row by row (~30 s for 200k points); one %-format per row is ~50x faster
+    head = ["ply", "format ascii 1.0", *(f"comment {c}" for c in comments), f"element vertex {n}"]
+    ply_type = {"f4": "float", "u1": "uchar", "i4": "int"}
+    head += [f"property {ply_type[t]} {name}" for name, t in fields]
+    nf = len(scene.faces) if scene.faces is not None else 0
+    if nf:
+        head += [f"element face {nf}", "property list uchar int vertex_indices"]
+    head.append("end_header")
+    cols = [scene.points.astype(np.float64), scene.normals.astype(np.float64), scene.colors.astype(np.float64)]
+    fmt = "%.9g %.9g %.9g %.7g %.7g %.7g %d %d %d"
+    if scene.instance is not None:
+        cols.append(scene.instance.astype(np.float64)[:, None])
+        fmt += " %d"
+    vals = np.concatenate(cols, axis=1)
+    fmt += "\n"
+    body = "".join(fmt % tuple(r) for r in vals.tolist())
+    if nf:
+        body += "".join(f"3 {a} {b} {c}\n" for a, b, c in scene.faces.tolist())  # type: ignore[union-attr]
+    tmp.write_text("\n".join(head) + "\n" + body, encoding="ascii", errors="strict")
 
 
 def _fmt_rows(a: np.ndarray, prefix: str, fmt: str) -> str:

@@ -269,4 +269,11 @@ def _as_colors(colors: np.ndarray | None, n: int, name: str) -> np.ndarray:
         if c.max() <= 1.0 + 1e-6:
             c = c * 255.0
         c = np.clip(np.round(c), 0, 255)
+    elif np.issubdtype(c.dtype, np.integer) and c.dtype != np.uint8 and c.size and (c.min() < 0 or c.max() > 255):
+        # e.g. 16-bit colours: casting would wrap around silently
+        raise SceneError(
+            f"scene {name!r}: integer colours must lie in 0..255, got [{int(c.min())}, {int(c.max())}] ({c.dtype})"
+        )
+    elif not (np.issubdtype(c.dtype, np.integer) or np.issubdtype(c.dtype, np.floating)):
+        raise SceneError(f"scene {name!r}: colours must be numeric, got dtype {c.dtype}")
     return np.ascontiguousarray(c, dtype=np.uint8)

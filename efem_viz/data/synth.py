@@ -19,6 +19,7 @@ World frame: metres, +Z up, table top at z = 0. Same arguments -> identical arra
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -135,7 +136,7 @@ def _footprint_radius(mesh: "trimesh.Trimesh", R: np.ndarray) -> tuple[np.ndarra
 def _scatter_xy(rng: np.random.Generator, radii: Sequence[float], *, gap: float = 0.01) -> np.ndarray:
     """Non-overlapping disc centres (K, 2) around the origin (rejection sampling in a growing square)."""
     n = len(radii)
-    half = min(0.05 + 0.025 * n, TABLE_HALF - 0.12)
+    half = min(0.04 + 0.02 * n, TABLE_HALF - 0.12)
     for _ in range(50):
         centres: list[np.ndarray] = []
         ok = True
@@ -205,8 +206,9 @@ def _simulate(
 ) -> None:
     """Drop the objects with random orientations (pybullet, DIRECT mode) and store their resting poses.
 
-    scatter: each object above its own non-overlapping spot; pile: stacked above a small area inside a temporary
-    ring wall, which is removed once they settle.
+    scatter: all objects at once, each above its own non-overlapping spot. pile: one after the other, just above
+    the top of the objects already lying there (near their centre), each settling before the next is dropped, so
+    that they land on and slide against each other.
     """
     import pybullet as pb
 
@@ -225,27 +227,31 @@ def _simulate(
         rots = [_random_rotation(rng) for _ in objs]
         coms = [np.asarray(o.mesh.center_mass, np.float64) for o in objs]
         radii = [float(np.linalg.norm(np.asarray(o.mesh.vertices) - c, axis=1).max()) for o, c in zip(objs, coms)]
-        if layout == "scatter":
-            xy = _scatter_xy(rng, radii, gap=0.005)
-            z = [r + 0.005 + float(rng.uniform(0, 0.02)) for r in radii]
-        else:
-            ang = rng.uniform(0, 2 * np.pi, len(objs))
-            rad = 0.035 * np.sqrt(rng.uniform(0, 1, len(objs)))
-            xy = np.stack([rad * np.cos(ang), rad * np.sin(ang)], axis=1)
-            z, top = [], 0.0
-            for r in radii:
-                z.append(top + r + 0.003)
-                top = z[-1] + r
-        bodies = []
+        xy = _scatter_xy(rng, radii, gap=0.005) if layout == "scatter" else None
+        bodies: list[int] = []
         with tempfile.TemporaryDirectory(prefix="efem_synth_") as tmp:
             for k, (o, R, c) in enumerate(zip(objs, rots, coms)):
                 fn = os.path.join(tmp, f"obj{k}.obj")
                 _write_parts_obj([q - c for q in o.parts], fn, shrink=COLLISION_SHRINK)
                 shape = pb.createCollisionShape(pb.GEOM_MESH, fileName=fn, physicsClientId=cid)
-                mass = max(float(o.mesh.volume) * 2000.0, 0.02)
-                quat = _matrix_to_quat_xyzw(R)
+                if xy is not None:
+                    pos = [xy[k, 0], xy[k, 1], radii[k] + 0.005 + float(rng.uniform(0, 0.02))]
+                else:
+                    # above the centre of the pile so far, just clear of its top
+                    if bodies:
+                        lo_hi = [pb.getAABB(b, physicsClientId=cid) for b in bodies]
+                        centre = np.mean([pb.getBasePositionAndOrientation(b, physicsClientId=cid)[0] for b in bodies], 0)
+                        top = max(h[1][2] for h in lo_hi)
+                    else:
+                        centre, top = np.zeros(3), 0.0
+                    off = rng.normal(0.0, 0.015, 2)
+                    pos = [centre[0] + off[0], centre[1] + off[1], top + radii[k] + 0.005]
                 b = pb.createMultiBody(
-                    mass, shape, basePosition=[xy[k, 0], xy[k, 1], z[k]], baseOrientation=quat, physicsClientId=cid
+                    max(float(o.mesh.volume) * 2000.0, 0.02),
+                    shape,
+                    basePosition=pos,
+                    baseOrientation=_matrix_to_quat_xyzw(R),
+                    physicsClientId=cid,
                 )
                 pb.changeDynamics(
                     b,
@@ -259,32 +265,9 @@ def _simulate(
                     physicsClientId=cid,
                 )
                 bodies.append(b)
-        walls: list[int] = []
-        if layout == "pile":
-            ring_r = 0.6 * max(radii) + 0.012 * len(objs) + 0.03
-            height = max(sum(2 * r for r in radii), 0.3)
-            n_w = 16
-            wshape = pb.createCollisionShape(
-                pb.GEOM_BOX,
-                halfExtents=[0.01, ring_r * math.tan(math.pi / n_w) + 0.01, height / 2],
-                physicsClientId=cid,
-            )
-            for i in range(n_w):
-                a = 2 * math.pi * i / n_w
-                walls.append(
-                    pb.createMultiBody(
-                        0,
-                        wshape,
-                        basePosition=[(ring_r + 0.01) * math.cos(a), (ring_r + 0.01) * math.sin(a), height / 2],
-                        baseOrientation=pb.getQuaternionFromEuler([0, 0, a]),
-                        physicsClientId=cid,
-                    )
-                )
+                if layout == "pile":
+                    _settle(pb, cid, bodies, max_steps=int(3.0 / dt), min_steps=240)
         _settle(pb, cid, bodies, max_steps=int(max_seconds / dt))
-        if walls:
-            for w in walls:
-                pb.removeBody(w, physicsClientId=cid)
-            _settle(pb, cid, bodies, max_steps=int(max_seconds / dt))
         for o, b, c in zip(objs, bodies, coms):
             pos, quat = pb.getBasePositionAndOrientation(b, physicsClientId=cid)
             R = np.asarray(pb.getMatrixFromQuaternion(quat), np.float64).reshape(3, 3)
@@ -296,10 +279,11 @@ def _simulate(
         pb.disconnect(physicsClientId=cid)
 
 
-def _settle(pb: Any, cid: int, bodies: list[int], *, max_steps: int, check_every: int = 24) -> int:
-    """Step until every body is (nearly) at rest or `max_steps`; returns the steps taken."""
+def _settle(
+    pb: Any, cid: int, bodies: list[int], *, max_steps: int, min_steps: int = 120, check_every: int = 24
+) -> int:
+    """Step until every body is (nearly) at rest (after at least `min_steps`) or `max_steps`; returns the steps."""
     steps = 0
-    min_steps = 120
     while steps < max_steps:
         for _ in range(check_every):
             pb.stepSimulation(physicsClientId=cid)
@@ -668,6 +652,7 @@ def generate_scene(
     noise: bool = True,
     label_tolerance: float = 0.01,
     name: str | None = None,
+    timings: dict[str, float] | None = None,
 ) -> "Scene":
     """Generate one synthetic tabletop scan with per-point instance ground truth.
 
@@ -685,6 +670,8 @@ def generate_scene(
         noise: add depth noise, dropout and colour noise.
         label_tolerance: a point is labelled with the nearest true surface's id when closer than this (metres).
         name: scene name (default "<config>_<seed>").
+        timings: if given, filled with the seconds spent per stage (poses, scan, fusion, labels); kept out of
+            the provenance so that regenerating a scene gives identical files.
 
     Returns:
         A `Scene` (world frame, metres, +Z up, table top at z = 0) with `instance` (mug k -> k, else 0),
@@ -759,7 +746,7 @@ def generate_scene(
     albedo = np.stack([_TABLE_COLOR] + [o.color for o in objs])
     obj_lo = np.min([m.bounds[0] for m in world[1:]], axis=0)
     obj_hi = np.max([m.bounds[1] for m in world[1:]], axis=0)
-    margin = 0.06
+    margin = 0.04
     crop_lo = np.array([max(obj_lo[0] - margin, -TABLE_HALF), max(obj_lo[1] - margin, -TABLE_HALF), -0.02])
     crop_hi = np.array([min(obj_hi[0] + margin, TABLE_HALF), min(obj_hi[1] + margin, TABLE_HALF), obj_hi[2] + 0.03])
     target = np.array([(obj_lo[0] + obj_hi[0]) / 2, (obj_lo[1] + obj_hi[1]) / 2, 0.04])
@@ -845,13 +832,16 @@ def generate_scene(
         ],  # fmt: skip
         "max_penetration_m": round(float(penetration), 5),
         "drops": attempts,
-        "timings_s": {
-            "poses": round(t_pose - t0, 3),
-            "scan": round(t_scan - t_pose, 3),
-            "fusion": round(t_fuse - t_scan, 3),
-            "labels": round(time.perf_counter() - t_fuse, 3),
-        },
     }
+    stages = {
+        "poses": round(t_pose - t0, 3),
+        "scan": round(t_scan - t_pose, 3),
+        "fusion": round(t_fuse - t_scan, 3),
+        "labels": round(time.perf_counter() - t_fuse, 3),
+    }
+    if timings is not None:
+        timings.update(stages)
+    logger.debug("scene %s_%d stages (s): %s", config, seed, stages)
     return Scene.create(
         name or f"{config}_{seed}",
         points.astype(np.float32),
@@ -891,7 +881,7 @@ class GenerateArgs:
     seed: int = 0
     """Seed of the first scene."""
     out: Path = Path("generated")
-    """Output folder; files are named <config>_<seed>.ply."""
+    """Output folder; files are named <prefix><config>_<seed>.ply."""
     mode: Mode = "tsdf"
     """tsdf: fused mesh (like the paper's scans); points: merged depth points, voxel-downsampled."""
     objects: int | None = None
@@ -902,6 +892,8 @@ class GenerateArgs:
     """Mug seed split to draw from."""
     voxel: float = 0.004
     """TSDF voxel / point spacing in metres."""
+    prefix: str = ""
+    """Prefix of the file and scene names (e.g. "syn_" gives syn_z_0.ply)."""
 
     def run(self) -> int:
         """Generate the scenes with a progress bar; returns the exit code."""
@@ -914,6 +906,7 @@ class GenerateArgs:
         self.out.mkdir(parents=True, exist_ok=True)
         bar = tqdm(range(self.seed, self.seed + self.count), desc=f"generate {self.config}", unit="scene")
         for s in bar:
+            name = f"{self.prefix}{self.config}_{s}"
             scene = generate_scene(
                 self.config,
                 seed=s,
@@ -922,8 +915,13 @@ class GenerateArgs:
                 distractors=self.distractors,
                 split=self.split,
                 voxel=self.voxel,
+                name=name,
             )
-            path = save_scene(scene, self.out / f"{self.config}_{s}.ply")
+            if self.prefix:
+                prov = dict(scene.provenance)
+                prov["command"] = f"{prov['command']} --prefix {self.prefix}"
+                scene = dataclasses.replace(scene, provenance=prov)
+            path = save_scene(scene, self.out / f"{name}.ply")
             bar.set_postfix(points=scene.num_points, mugs=len(scene.categories))
             logger.info("wrote %s (%d points, %d mugs)", path, scene.num_points, len(scene.categories))
         return 0

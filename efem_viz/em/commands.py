@@ -30,6 +30,8 @@ class SegmentArgs:
     """Solver configuration (efem-method.md §3.12)."""
     proposals: int | None = None
     """Override the number of proposals (first episode)."""
+    work_voxel: float | None = None
+    """Run EM on a thinned working set (one point per cell of this size, m); masks stay full resolution."""
     seed: int = 0
     """Random seed (anchors, samples); the same seed replays the same run."""
     device: str = "cpu"
@@ -63,6 +65,8 @@ class SegmentArgs:
         cfg = preset(self.preset)
         if self.proposals is not None:
             cfg = cfg.with_proposals(int(self.proposals))
+        if self.work_voxel is not None:
+            cfg = cfg.replace(work_voxel=float(self.work_voxel) or None)
         prior = load_prior(self.prior, device=self.device)
         if prior.codebook is None:
             console.print(f"[yellow]prior {self.prior!r} has no codebook: poses fall back to identity[/]")

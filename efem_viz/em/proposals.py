@@ -126,8 +126,16 @@ class AvailableTree:
         centers = np.asarray(centers, np.float64).reshape(-1, 3)
         if self.tree is None or len(centers) == 0:
             return Ragged(np.zeros(0, np.int64), np.zeros(len(centers) + 1, np.int64))
-        res = self.tree.query_ball_point(centers[:, : self.dims], r=float(radius), return_sorted=True)
-        rag = Ragged.from_lists(list(res))
+        finite = np.isfinite(centers).all(axis=1)
+        if finite.all():
+            res = list(self.tree.query_ball_point(centers[:, : self.dims], r=float(radius), return_sorted=True))
+        else:  # a degenerate latent (NaN centre) owns no points
+            res = [[] for _ in range(len(centers))]
+            if finite.any():
+                got = self.tree.query_ball_point(centers[finite, : self.dims], r=float(radius), return_sorted=True)
+                for i, lst in zip(np.flatnonzero(finite), got):
+                    res[i] = lst
+        rag = Ragged.from_lists(res)
         return Ragged(idx=self.avail_idx[rag.idx], offsets=rag.offsets)
 
 

@@ -148,31 +148,79 @@ def decode_rows(
     k = len(rag.idx)
     if k == 0:
         return np.zeros(0, np.float32), np.zeros(0, np.float32)
+    pts_t = torch.from_numpy(np.asarray(points, np.float32))
+    nrm_t = torch.from_numpy(np.asarray(normals, np.float32))
+    row = rag.row
+    if normals_within is None:
+        d, g = _decode_padded(prior, latent, rag.idx, row, pts_t, nrm_t, chunk=chunk, with_normals=True)
+        return d, g
+    d, _ = _decode_padded(prior, latent, rag.idx, row, pts_t, nrm_t, chunk=chunk, with_normals=False)
+    g = np.full(k, 180.0, np.float32)
+    sel = np.flatnonzero(np.abs(d) <= float(normals_within))
+    if len(sel):
+        _, g_sel = _decode_padded(prior, latent, rag.idx[sel], row[sel], pts_t, nrm_t, chunk=chunk,
+                                  with_normals=True)
+        g[sel] = g_sel
+    return d, g
+
+
+def _decode_padded(
+    prior: Any,
+    latent: Any,
+    idx: np.ndarray,
+    row: np.ndarray,
+    pts_t: Any,
+    nrm_t: Any,
+    *,
+    chunk: int,
+    with_normals: bool,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Decode entries (row r, scene point idx) grouped by row: rows of similar length are padded into dense
+    (G, L, 3) batches of at most `chunk` queries and sent through the prior's batched form (one latent per
+    batch row), which avoids gathering a per-query copy of the folded first layer. `row` must be sorted."""
+    import torch
+
+    k = len(idx)
     dev = _prior_device(prior)
     dt = _prior_dtype(prior)
-    idx_t = torch.from_numpy(rag.idx)
-    x = torch.from_numpy(np.asarray(points, np.float32))[idx_t].to(device=dev, dtype=dt)
-    n_obs = torch.from_numpy(np.asarray(normals, np.float32))[idx_t].to(device=dev, dtype=dt)
-    index = torch.from_numpy(rag.row).to(dev)
-    if normals_within is None:
-        d_parts, g_parts = [], []
-        for s in range(0, k, chunk):
-            sdf, nrm = prior.sdf_and_normals(x[s : s + chunk], latent, index[s : s + chunk], chunk=chunk)
-            cos = (nrm * n_obs[s : s + chunk]).sum(-1).clamp(-1.0, 1.0)
-            d_parts.append(sdf.detach().float())
-            g_parts.append(torch.rad2deg(torch.arccos(cos)).detach().float())
-        return torch.cat(d_parts).cpu().numpy(), torch.cat(g_parts).cpu().numpy()
-    with torch.no_grad():
-        d_t = torch.cat([prior.sdf(x[s : s + chunk], latent, index[s : s + chunk], chunk=chunk).float()
-                         for s in range(0, k, chunk)])
-    sel = torch.nonzero(d_t.abs() <= float(normals_within)).reshape(-1)
-    g_t = torch.full((k,), 180.0, dtype=torch.float32, device=d_t.device)
-    for s in range(0, len(sel), chunk):
-        si = sel[s : s + chunk]
-        _, nrm = prior.sdf_and_normals(x[si], latent, index[si], chunk=chunk)
-        cos = (nrm * n_obs[si]).sum(-1).clamp(-1.0, 1.0)
-        g_t[si] = torch.rad2deg(torch.arccos(cos)).detach().float()
-    return d_t.cpu().numpy(), g_t.cpu().numpy()
+    n_rows = int(row[-1]) + 1 if k else 0
+    counts = np.bincount(row, minlength=n_rows)
+    starts = np.zeros(n_rows + 1, np.int64)
+    np.cumsum(counts, out=starts[1:])
+    present = np.flatnonzero(counts > 0)
+    order = present[np.argsort(counts[present], kind="stable")]
+    d_out = np.empty(k, np.float32)
+    g_out = np.empty(k, np.float32) if with_normals else None
+    i = 0
+    while i < len(order):
+        # grow a group of rows while the padded size stays within the chunk budget
+        j = i + 1
+        while j < len(order) and (j + 1 - i) * counts[order[j]] <= chunk:
+            j += 1
+        grp = order[i:j]
+        lens = counts[grp]
+        lmax = int(lens.max())
+        if len(grp) * lmax > chunk and len(grp) == 1:
+            lmax = int(lens[0])  # a single row longer than the chunk: one big batch
+        ar = np.arange(lmax)
+        valid = ar[None, :] < lens[:, None]
+        pos = starts[grp][:, None] + np.minimum(ar[None, :], lens[:, None] - 1)  # pad with the row's last entry
+        pidx = torch.from_numpy(idx[pos])
+        x = pts_t[pidx].to(device=dev, dtype=dt)
+        lat_g = latent[torch.from_numpy(grp).to(latent.R.device)]
+        vmask = valid.reshape(-1)
+        flat_pos = pos.reshape(-1)[vmask]
+        if with_normals:
+            sdf, nrm = prior.sdf_and_normals(x, lat_g)
+            cos = (nrm.float().cpu() * nrm_t[pidx]).sum(-1).clamp(-1.0, 1.0)
+            g = torch.rad2deg(torch.arccos(cos)).reshape(-1).numpy()
+            g_out[flat_pos] = g[vmask]  # type: ignore[index]
+        else:
+            with torch.no_grad():
+                sdf = prior.sdf(x, lat_g)
+        d_out[flat_pos] = sdf.detach().float().cpu().reshape(-1).numpy()[vmask]
+        i = j
+    return d_out, g_out
 
 
 def normals_threshold(cfg: EMConfig, tau_d: float) -> float:
@@ -334,6 +382,7 @@ def run_em(
             prior.train(True)
     timings = dict(solver.timer.t)
     timings["total"] = time.perf_counter() - solver.t_start
+    timings["total_cpu"] = time.process_time() - solver.cpu_start
     timings["decoder_queries"] = float(solver.n_queries)
     timings["encoded_sets"] = float(solver.n_encoded)
     trace = solver.rec.finish(timings)
@@ -393,6 +442,7 @@ class _Solver:
         self.rec = TraceRecorder(cfg, self.n_full, work_idx=self.work_idx, work_min_size=self.min_size)
         self.timer = _Timer()
         self.t_start = time.perf_counter()
+        self.cpu_start = time.process_time()
         self.n_queries = 0
         self.n_encoded = 0
         self.planned_steps = cfg.num_episodes * cfg.steps_per_episode

@@ -11,8 +11,8 @@ if TYPE_CHECKING:
 def farthest_point_sample(points: torch.Tensor, n_samples: int, *, start: int = 0) -> torch.Tensor:
     """Greedy farthest-point sampling starting from a fixed index.
 
-    The result depends only on pairwise distances, so it is invariant to similarity transforms of the input (up to
-    exact ties), but not to a permutation of the input order.
+    The result depends only on pairwise distances, so it is invariant to similarity transforms of the input
+    (up to exact ties), but not to a permutation of the input order.
 
     Args:
         points: ``(B, N, D)`` float positions (any frame; D is usually 3).

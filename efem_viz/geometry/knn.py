@@ -25,7 +25,8 @@ def knn_indices(query: torch.Tensor, ref: torch.Tensor, k: int) -> torch.Tensor:
     import torch
 
     if query.ndim != 3 or ref.ndim != 3 or query.shape[0] != ref.shape[0] or query.shape[2] != ref.shape[2]:
-        raise ValueError(f"query (B,Nq,D) and ref (B,Nr,D) must agree, got {tuple(query.shape)} / {tuple(ref.shape)}")
+        raise ValueError(f"query (B,Nq,D) and ref (B,Nr,D) must agree, "
+                         f"got {tuple(query.shape)} / {tuple(ref.shape)}")
     if not 1 <= k <= ref.shape[1]:
         raise ValueError(f"k must be in [1, {ref.shape[1]}], got {k}")
     with torch.no_grad():

@@ -1,7 +1,7 @@
 """Shape priors: SIM(3)-equivariant encoder + invariant SDF decoder (torch; never imports viser).
 
-Public names are re-exported lazily (``from efem_viz.prior import load_prior``) so that importing the package, as
-the CLI does for ``efem_viz.prior.train``, stays free of torch.
+Public names are re-exported lazily (``from efem_viz.prior import load_prior``) so that importing the package,
+as the CLI does for ``efem_viz.prior.train``, stays free of torch.
 """
 
 from __future__ import annotations

@@ -2,13 +2,14 @@
 
 Per object (canonical frame: +Z up, bounding-box centre at the origin, longest side 1) we cache in an npz:
 ``uni`` (Nu, 4) uniform queries in ``[-0.55, 0.55]³`` + SDF, ``nss`` (Nn, 4) near-surface queries + SDF,
-``surface`` (Ns, 3) dense surface samples, ``views`` (V, 3) back-projected depth-view hits with ``view_offsets``
-(12 + 1) and ``view_elev_deg`` (12,). SDF comes from ``open3d.t.geometry.RaycastingScene.compute_signed_distance``
-(negative inside; needs watertight meshes).
+``surface`` (Ns, 3) dense surface samples, ``views`` (V, 3) back-projected depth-view hits with
+``view_offsets`` (12 + 1) and ``view_elev_deg`` (12,). SDF comes from
+``open3d.t.geometry.RaycastingScene.compute_signed_distance`` (negative inside; needs watertight meshes).
 
 Depth views (deviation from §2.1, documented in the training report): views 0-7 look from above (elevation
-30-60°, as in the release data), views 8-9 from the side (-10..30°) and views 10-11 from below (-60..-10°), because
-so3/pile scenes show mugs in any orientation. An example uses only the top views with probability ``p_top_only``.
+30-60°, as in the release data), views 8-9 from the side (-10..30°) and views 10-11 from below (-60..-10°),
+because so3/pile scenes show mugs in any orientation. An example uses only the top views with probability
+``p_top_only``.
 A table-plane patch under the object (``p_table``) is an added augmentation (real scans always have a table).
 """
 
@@ -113,7 +114,7 @@ class SampleConfig:
     p_ball: float = 0.7
     """Probability of ball removal."""
     p_table: float = 0.3
-    """Probability of a table-plane patch at the object bottom (deviation: replaces the unused mug plane aug)."""
+    """Probability of a table-plane patch at the object bottom (deviation: replaces the unused plane aug)."""
     crop_radius: tuple[float, float] = (0.15, 0.09)
     """Crop radius mean / std."""
     crop_scale: tuple[float, float] = (0.5, 1.5)
@@ -267,7 +268,7 @@ def _save_npz_atomic(path: Path, arrays: dict[str, np.ndarray]) -> None:
 
 def load_or_prepare(source: tuple[str, Callable[[], trimesh.Trimesh]], *, cache_dir: Path, cfg: PrepConfig,
                     seed: int) -> ObjectData:
-    """Return the cached ``ObjectData`` of ``source`` (name, mesh factory), computing and caching it if needed."""
+    """The cached ``ObjectData`` of ``source`` (name, mesh factory); computed and cached if needed."""
     name, factory = source
     key = hashlib.sha1(json.dumps([CACHE_VERSION, dataclasses.asdict(cfg), seed]).encode()).hexdigest()[:10]
     path = cache_dir / f"{name}_{key}.npz"
@@ -362,8 +363,8 @@ def _remove_balls(pcl: np.ndarray, n_remove: int, cfg: SampleConfig, rng: np.ran
     return keep
 
 
-def _object_crops(n_obj: int, pcl: np.ndarray, uni: np.ndarray, others: Sequence[ObjectData], cfg: SampleConfig,
-                  rng: np.random.Generator) -> np.ndarray:
+def _object_crops(n_obj: int, pcl: np.ndarray, uni: np.ndarray, others: Sequence[ObjectData],
+                  cfg: SampleConfig, rng: np.random.Generator) -> np.ndarray:
     crops: list[np.ndarray] = []
     total = 0
     for _ in range(64):
@@ -389,8 +390,8 @@ def _object_crops(n_obj: int, pcl: np.ndarray, uni: np.ndarray, others: Sequence
     return np.concatenate(crops, axis=0)[:n_obj]
 
 
-def augment_v1(pcl: np.ndarray, obj: ObjectData, uni: np.ndarray, others: Sequence[ObjectData], cfg: SampleConfig,
-               rng: np.random.Generator) -> np.ndarray:
+def augment_v1(pcl: np.ndarray, obj: ObjectData, uni: np.ndarray, others: Sequence[ObjectData],
+               cfg: SampleConfig, rng: np.random.Generator) -> np.ndarray:
     """Content augmentation "v1" (§2.3) with a table patch in place of the (unused for mugs) planes.
 
     Args:
@@ -455,7 +456,8 @@ def make_example(obj: ObjectData, cfg: SampleConfig, rng: np.random.Generator, *
     """One training example.
 
     Returns:
-        ``pcl`` (n_pcl, 3) float32 input cloud and ``queries`` (Qu + Qn, 4) float32 (uniform first, then near).
+        ``pcl`` (n_pcl, 3) float32 input cloud and ``queries`` (Qu + Qn, 4) float32 (uniform first, then
+        near-surface).
     """
     uni = obj.uni[rng.integers(0, len(obj.uni), cfg.n_query_uniform)]
     nss = obj.nss[rng.integers(0, len(obj.nss), cfg.n_query_near)]

@@ -1,4 +1,4 @@
-"""SIM(3)-equivariant point-cloud encoder: VN-DGCNN backbone + the four latent heads (efem-method.md §1.3-§1.4).
+"""SIM(3)-equivariant point-cloud encoder: VN-DGCNN backbone + the four latent heads (efem-method.md §1.3-1.4).
 
 Tensors are channels-last VN features ``(B, N, 3, C)`` (see ``vn_layers``). Parameter names follow §1.7
 (``V_list.{b}.lin.weight``, ``global_conv_list.{j}``, ``Q_list.{b}``/``K_list.{b}``, ``conv_c``, ``fc_inv``,
@@ -29,7 +29,7 @@ if TYPE_CHECKING:
 
 
 class EncoderOutput(NamedTuple):
-    """Raw encoder heads for a batch of centred clouds (channels-last; the model turns them into a ``Latent``).
+    """Raw encoder heads for a batch of centred clouds (channels-last; the model makes them a ``Latent``).
 
     Attributes:
         R: ``(B, 3, L)`` Θ_R (ChNorm of the pooled feature), rotation-carrying, scale-free.
@@ -75,7 +75,8 @@ class VNDGCNNEncoder(nn.Module):
                 if b == 0:
                     raise ValueError("attention is not supported in block 0")
                 if c_b % cfg.att_head_dim != 0:
-                    raise ValueError(f"block {b} width {c_b} is not a multiple of att_head_dim {cfg.att_head_dim}")
+                    raise ValueError(f"block {b} width {c_b} is not a multiple of att_head_dim "
+                                     f"{cfg.att_head_dim}")
                 self.Q_list[str(b)] = VNLinearLeakyReLU(c_prev, c_b, negative_slope=slope)
                 self.K_list[str(b)] = VNLinearLeakyReLU(c_edge, c_b, negative_slope=slope)
             if b >= cfg.global_from:
@@ -89,7 +90,7 @@ class VNDGCNNEncoder(nn.Module):
 
     def _edge_linear(self, layer: VNLinearLeakyReLU, f_src: torch.Tensor, f_dst: torch.Tensor,
                      nbr: torch.Tensor) -> torch.Tensor:
-        """``layer([f_j − f_i ; f_i])`` for every edge, computed as ``W1 f_j + (W2 − W1) f_i`` (exact, k× cheaper).
+        """``layer([f_j − f_i ; f_i])`` for every edge, as ``W1 f_j + (W2 − W1) f_i`` (exact, k× cheaper).
 
         Args:
             layer: VNLA whose ``lin.weight`` is ``(C_out, 2 C_in)``.
@@ -146,7 +147,8 @@ class VNDGCNNEncoder(nn.Module):
                 q = channel_normalize(self.Q_list[str(b)](f_dst))  # (B, Nd, 3, C)
                 logits = (q[:, :, None] * kap).sum(dim=-2)  # (B, Nd, k, C)
                 heads = logits.shape[-1] // cfg.att_head_dim
-                logits = logits.unflatten(-1, (heads, cfg.att_head_dim)).sum(-1) / math.sqrt(3 * cfg.att_head_dim)
+                logits = logits.unflatten(-1, (heads, cfg.att_head_dim)).sum(-1)
+                logits = logits / math.sqrt(3 * cfg.att_head_dim)
                 att = logits.softmax(dim=2)  # (B, Nd, k, H)
                 att = att.repeat_interleave(cfg.att_head_dim, dim=-1)[..., None, :]  # (B, Nd, k, 1, C)
                 out = (att * u).sum(dim=2)

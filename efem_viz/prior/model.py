@@ -78,7 +78,8 @@ class PriorConfig:
         if not self.widths or min(self.widths) < 1:
             raise ValueError(f"widths must be a non-empty tuple of positive ints, got {self.widths}")
         if len(self.down_blocks) != len(self.down_factors):
-            raise ValueError(f"down_blocks {self.down_blocks} and down_factors {self.down_factors} differ in length")
+            raise ValueError(f"down_blocks {self.down_blocks} and down_factors {self.down_factors} "
+                             "differ in length")
         if self.k < 1 or self.latent_dim < 1 or self.decoder_hidden < 1 or self.decoder_blocks < 0:
             raise ValueError(f"bad PriorConfig sizes: {self}")
 
@@ -115,8 +116,8 @@ class Latent(NamedTuple):
         center: ``(B, 3)`` Θ_c, world frame (transforms as ``sRΘ_c + t``).
         scale: ``(B,)`` Θ_s, world units per canonical unit (transforms as ``sΘ_s``).
 
-    Integer indexing ``latent[i]`` keeps a batch axis of size 1; slices, index tensors/arrays and boolean masks select
-    along the batch axis.
+    Integer indexing ``latent[i]`` keeps a batch axis of size 1; slices, index tensors/arrays and boolean masks
+    select along the batch axis.
     """
 
     R: Any
@@ -185,8 +186,8 @@ class ShapePrior(nn.Module):
         self.codebook: Codebook | None = None
         self.metadata: dict[str, Any] = {}
         self.encoder = VNDGCNNEncoder(self.config)
-        self.decoder = SDFDecoder(self.config.latent_dim, self.config.decoder_hidden, self.config.decoder_blocks,
-                                  use_qnorm=self.config.use_qnorm)
+        c = self.config
+        self.decoder = SDFDecoder(c.latent_dim, c.decoder_hidden, c.decoder_blocks, use_qnorm=c.use_qnorm)
 
     @property
     def dtype(self) -> torch.dtype:
@@ -220,7 +221,8 @@ class ShapePrior(nn.Module):
         centroid = points.mean(dim=1)
         if centroid_noise is not None:
             if centroid_noise.shape != centroid.shape:
-                raise ValueError(f"centroid_noise must be {tuple(centroid.shape)}, got {tuple(centroid_noise.shape)}")
+                raise ValueError(f"centroid_noise must be {tuple(centroid.shape)}, "
+                                 f"got {tuple(centroid_noise.shape)}")
             centroid = centroid + centroid_noise.to(centroid)
         out = self.encoder(points - centroid[:, None, :])
         return Latent(R=out.R.transpose(1, 2), inv=out.inv, center=centroid + out.delta, scale=out.scale)
@@ -239,7 +241,8 @@ class ShapePrior(nn.Module):
             x: ``(B, Q, 3)`` queries for a batch of B latents, or ``(Q, 3)`` with ``index`` (or with a single
                 latent).
             latent: ``Latent`` with batch size B.
-            index: Optional ``(Q,)`` int64: query q uses latent ``index[q]`` (only with ``x`` of shape (Q, 3)).
+            index: Optional ``(Q,)`` int64: query q uses latent ``index[q]`` (only with ``x`` of shape
+                (Q, 3)).
             chunk: Queries per chunk in the ragged form (bounds memory).
 
         Returns:
@@ -270,7 +273,8 @@ class ShapePrior(nn.Module):
         if index.shape != x.shape[:1]:
             raise ValueError(f"index must be ({x.shape[0]},), got {tuple(index.shape)}")
         if index.numel() and (int(index.min()) < 0 or int(index.max()) >= n_lat):
-            raise ValueError(f"index values must be in [0, {n_lat}), got [{int(index.min())}, {int(index.max())}]")
+            raise ValueError(f"index values must be in [0, {n_lat}), "
+                             f"got [{int(index.min())}, {int(index.max())}]")
         outs = []
         for s in range(0, x.shape[0], chunk):
             xi, ii = x[s:s + chunk], index[s:s + chunk]
@@ -331,7 +335,8 @@ def _atomic_torch_save(obj: Any, path: Path) -> None:
         raise
 
 
-def save_prior(prior: ShapePrior, path: str | os.PathLike[str], *, extra: dict[str, Any] | None = None) -> Path:
+def save_prior(prior: ShapePrior, path: str | os.PathLike[str], *,
+               extra: dict[str, Any] | None = None) -> Path:
     """Write a model-only checkpoint (config + float32 state dict + metadata), atomically.
 
     Args:

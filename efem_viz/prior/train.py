@@ -2,9 +2,9 @@
 
 The module top is light (the CLI imports it); torch/open3d are imported inside functions.
 
-Outputs under ``out_dir`` (default ``runs/<category>``): ``config.json`` (resolved run config), ``last.pt`` (full
-resume checkpoint: model, optimizer, iteration, RNG states, curve), ``train.log`` lines via logging, and the exported
-best model (by validation IoU) at ``export`` (default ``efem_viz/weights/<category>.pt``) with
+Outputs under ``out_dir`` (default ``runs/<category>``): ``config.json`` (resolved run config) and ``last.pt``
+(full resume checkpoint: model, optimizer, iteration, RNG states, curve); progress goes to logging. The best
+model by validation IoU goes to ``export`` (default ``efem_viz/weights/<category>.pt``) with
 ``<stem>_training_report.json`` / ``.md`` next to it.
 """
 
@@ -52,7 +52,7 @@ PRESETS: dict[str, dict[str, Any]] = {
 
 @dataclass
 class TrainArgs:
-    """Train a SIM(3)-equivariant shape prior on procedural meshes or a folder of aligned watertight meshes."""
+    """Train a SIM(3)-equivariant shape prior on procedural meshes or a folder of aligned meshes."""
 
     category: str = "mug"
     """Procedural category (``efem_viz.data.procedural``); also the default output name."""
@@ -120,6 +120,8 @@ class TrainArgs:
     """Markdown inserted at the top of the training report (default: <out_dir>/report_notes.md if present)."""
     device: str = "cpu"
     """Torch device."""
+    log_every: int = 10
+    """Iterations between entries of the training-loss curve."""
 
     def run(self) -> int:
         """CLI entry: train with a tqdm progress bar. Returns 0 on success."""
@@ -132,17 +134,17 @@ class TrainArgs:
             if bar is None:
                 bar = tqdm(total=total, initial=it, unit="it", dynamic_ncols=True,
                            mininterval=1.0 if os.isatty(2) else 60.0)
-            bar.n = it
-            bar.set_postfix({k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in info.items()}, refresh=False)
-            bar.refresh()
+            post = {k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in info.items()}
+            bar.set_postfix(post, refresh=False)
+            bar.update(it - bar.n)  # tqdm redraws at most every `mininterval` seconds
 
         try:
             result = train(self, on_progress=on_progress if self.progress else None)
         finally:
             if bar is not None:
                 bar.close()
-        log.info("finished at iteration %d; best val IoU %.4f (iteration %d); exported %s", result["iteration"],
-                 result["best_iou"], result["best_iteration"], result["export"])
+        log.info("finished at iteration %d; best val IoU %.4f (iteration %d); exported %s",
+                 result["iteration"], result["best_iou"], result["best_iteration"], result["export"])
         return 0
 
     # ----------------------------------------------------------------------------------------------- resolved
@@ -240,8 +242,8 @@ def load_objects(args: TrainArgs, split: Literal["train", "val"], *,
         cache = args.cache_dir / f"procedural_{args.category}"
     out = []
     for i, s in enumerate(srcs):
-        out.append(load_or_prepare(s, cache_dir=cache, cfg=PrepConfig(), seed=args.seed + i + (0 if split == "train"
-                                                                                                else 10**6)))
+        seed = args.seed + i + (0 if split == "train" else 10**6)
+        out.append(load_or_prepare(s, cache_dir=cache, cfg=PrepConfig(), seed=seed))
         if on_item is not None:
             on_item(i + 1, len(srcs))
     return out
@@ -277,15 +279,16 @@ def compute_losses(prior: ShapePrior, pcl: torch.Tensor, queries: torch.Tensor, 
     return {"loss": loss.clamp(-4.0, 4.0), "sdf": l_sdf, "center": l_center, "scale": l_scale}
 
 
-def validate(prior: ShapePrior, objs: list[ObjectData], cfg: SampleConfig, *, seed: int, n_queries: int = 10000,
-             batch: int = 8) -> dict[str, float]:
+def validate(prior: ShapePrior, objs: list[ObjectData], cfg: SampleConfig, *, seed: int,
+             n_queries: int = 10000, batch: int = 8) -> dict[str, float]:
     """Mean volumetric IoU on the first ``n_queries`` uniform queries of each object (§2.7).
 
-    Inputs are random depth views + noise with a fixed seed (the same inputs every validation), no augmentation,
-    no centroid noise.
+    Inputs are random depth views + noise with a fixed seed (the same inputs every validation), no
+    augmentation, no centroid noise.
 
     Returns:
-        ``iou`` (mean), ``iou_min``, ``center_err`` (mean L2 of Θ_c), ``scale`` (mean Θ_s), ``sdf_l1`` (mean |err|).
+        ``iou`` (mean), ``iou_min``, ``center_err`` (mean L2 of Θ_c), ``scale`` (mean Θ_s), ``sdf_l1``
+        (mean |err|).
     """
     import torch
 
@@ -298,7 +301,8 @@ def validate(prior: ShapePrior, objs: list[ObjectData], cfg: SampleConfig, *, se
         for s in range(0, len(objs), batch):
             part = objs[s:s + batch]
             pcl = torch.as_tensor(clouds[s:s + batch], dtype=prior.dtype, device=prior.device)
-            q = torch.as_tensor(np.stack([o.uni[:n_queries] for o in part]), dtype=prior.dtype, device=prior.device)
+            q = torch.as_tensor(np.stack([o.uni[:n_queries] for o in part]), dtype=prior.dtype,
+                                device=prior.device)
             lat = prior.encode(pcl)
             pred = prior.sdf(q[..., :3], lat)
             gt_in = q[..., 3] <= 0
@@ -362,10 +366,12 @@ def _report(args: TrainArgs, prior: ShapePrior, state: _State, *, sec_per_iter: 
     stem = export.with_suffix("")
     rep = {
         "name": prior.name, "config": prior.config.to_dict(), "args": _args_dict(args),
-        "parameters": {"encoder": count_parameters(prior.encoder), "decoder": count_parameters(prior.decoder)},
+        "parameters": {"encoder": count_parameters(prior.encoder),
+                       "decoder": count_parameters(prior.decoder)},
         "n_train_objects": n_train, "n_val_objects": n_val, "iteration": state.iteration,
         "wall_time_s": round(state.wall_s, 1), "sec_per_iter": sec_per_iter, "best_val_iou": state.best_iou,
-        "best_iteration": state.best_iteration, "val_curve": state.val_curve, "train_curve": state.curve[-400:],
+        "best_iteration": state.best_iteration, "val_curve": state.val_curve,
+        "train_curve": state.curve[-400:],
         "updated_utc": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime()),
     }
     _write_text_atomic(Path(f"{stem}_training_report.json"),
@@ -379,7 +385,8 @@ def _report(args: TrainArgs, prior: ShapePrior, state: _State, *, sec_per_iter: 
              f"- objects: {n_train} train / {n_val} val; batch {args.batch_size}; lr {args.lr:g}, "
              f"decay ×{args.decay_factor} at {[int(round(f * args.iterations)) for f in args.decay_at]} "
              f"of {args.iterations}",
-             f"- parameters: encoder {rep['parameters']['encoder']:,}, decoder {rep['parameters']['decoder']:,}",
+             f"- parameters: encoder {rep['parameters']['encoder']:,}, "
+             f"decoder {rep['parameters']['decoder']:,}",
              f"- architecture: `{json.dumps(prior.config.to_dict())}`",
              f"- **best validation IoU {state.best_iou:.4f} at iteration {state.best_iteration}** "
              "(exported model)", "",
@@ -387,7 +394,8 @@ def _report(args: TrainArgs, prior: ShapePrior, state: _State, *, sec_per_iter: 
              "|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for v in state.val_curve:
         lines.append(f"| {v['iteration']} | {v['wall_s'] / 60:.1f} | {v['iou']:.4f} | {v['iou_min']:.3f} | "
-                     f"{v['center_err']:.4f} | {v['scale']:.3f} | {v['sdf_l1']:.4f} | {v.get('train_loss', 0):.4f} |")
+                     f"{v['center_err']:.4f} | {v['scale']:.3f} | {v['sdf_l1']:.4f} | "
+                     f"{v.get('train_loss', 0):.4f} |")
     _write_text_atomic(Path(f"{stem}_training_report.md"), "\n".join(lines) + "\n")
 
 
@@ -435,7 +443,8 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
     log.info("loading training data ...")
     train_objs = load_objects(args, "train")
     val_objs = load_objects(args, "val")
-    log.info("data: %d train / %d val objects (%.1f s)", len(train_objs), len(val_objs), time.monotonic() - t_start)
+    log.info("data: %d train / %d val objects (%.1f s)", len(train_objs), len(val_objs),
+             time.monotonic() - t_start)
 
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
@@ -498,20 +507,22 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
                  m["iou_min"], m["center_err"], m["scale"], m["sdf_l1"], m["val_time_s"])
         if m["iou"] > state.best_iou:
             state.best_iou, state.best_iteration = m["iou"], state.iteration
+            trained_on = str(args.meshes) if args.meshes is not None else f"procedural:{args.category}"
             save_prior(prior, export, extra={"iteration": state.iteration, "val_iou": m["iou"],
-                                             "val_metrics": m, "trained_on": args.meshes or f"procedural:{args.category}",
+                                             "val_metrics": m, "trained_on": trained_on,
                                              "n_train": len(train_objs)})
             log.info("exported best model to %s", export)
         spi = float(np.median(iter_times[-200:])) if iter_times else None
         _report(args, prior, state, sec_per_iter=spi, n_train=len(train_objs), n_val=len(val_objs),
                 out_dir=out_dir, export=export)
 
-    def do_checkpoint() -> None:
+    def do_checkpoint(final: bool = False) -> None:
         nonlocal last_ckpt, last_resume_export
         state.wall_s = wall0 + (time.monotonic() - t_loop)
         save_checkpoint(last, prior, opt, state, rng, args_dict)
         last_ckpt = time.monotonic()
-        if args.resume_export is not None and time.monotonic() - last_resume_export >= args.resume_export_every_min * 60:
+        due = time.monotonic() - last_resume_export >= args.resume_export_every_min * 60
+        if args.resume_export is not None and (due or final):
             if last.stat().st_size < 20 * 2**20:
                 _copy_atomic(last, args.resume_export)
                 last_resume_export = time.monotonic()
@@ -558,26 +569,30 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
         running[:] = running[-50:]
         if not math.isfinite(lv):
             raise FloatingPointError(f"non-finite loss at iteration {state.iteration}")
-        if state.iteration % 10 == 0:
-            state.curve.append({"iteration": state.iteration, "loss": lv, "sdf": float(losses["sdf"]),
-                                "center": float(losses["center"]), "scale": float(losses["scale"]),
+        if state.iteration % max(1, args.log_every) == 0:
+            state.curve.append({"iteration": state.iteration, "loss": lv,
+                                "sdf": float(losses["sdf"].detach()),
+                                "center": float(losses["center"].detach()),
+                                "scale": float(losses["scale"].detach()),
                                 "grad_enc": gn_e, "grad_dec": gn_d, "lr": lr, "sec": round(dt, 3)})
         if state.iteration % 50 == 0:
             log.info("it %d loss %.4f sdf %.4f center %.4f scale %.4f |g| %.2f/%.2f lr %.2g %.2fs/it",
-                     state.iteration, lv, float(losses["sdf"]), float(losses["center"]), float(losses["scale"]),
+                     state.iteration, lv, float(losses["sdf"].detach()), float(losses["center"].detach()),
+                     float(losses["scale"].detach()),
                      gn_e, gn_d, lr, float(np.median(iter_times[-50:])))
         if on_progress is not None:
             on_progress(state.iteration, args.iterations,
                         {"loss": float(np.mean(running)), "best_iou": state.best_iou,
-                         "left_min": (budget_s - elapsed()) / 60 if math.isfinite(budget_s) else float("nan")})
+                         "left_min": (budget_s - elapsed()) / 60 if math.isfinite(budget_s)
+                         else float("nan")})
         if state.iteration % args.val_every == 0:
             do_validation()
         if time.monotonic() - last_ckpt >= args.ckpt_every_min * 60:
             do_checkpoint()
     if not state.val_curve or state.val_curve[-1]["iteration"] != state.iteration:
         do_validation()
-    do_checkpoint()
+    do_checkpoint(final=True)
     log.info("stopped (%s) at iteration %d after %.1f min", stop_reason, state.iteration, elapsed() / 60)
     return {"iteration": state.iteration, "best_iou": state.best_iou, "best_iteration": state.best_iteration,
-            "export": str(export), "val_curve": state.val_curve, "curve": state.curve, "stop_reason": stop_reason,
-            "checkpoint": str(last)}
+            "export": str(export), "val_curve": state.val_curve, "curve": state.curve,
+            "stop_reason": stop_reason, "checkpoint": str(last)}

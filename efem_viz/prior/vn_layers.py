@@ -1,9 +1,10 @@
 """Vector-neuron (VN) primitive layers (efem-method.md §1.2).
 
-Memory layout. The spec writes a VN feature as a matrix ``V`` of shape ``(C, 3)``. Here every VN tensor is stored
-*channels last*, ``(..., 3, C)`` (the 3-D axis second to last), so that a VN-Linear is one dense GEMM
-(``torch.nn.functional.linear``) over all points, edges and spatial components at once. The weights keep the spec's
-``(C_out, C_in)`` shape and names (``lin.weight``, ``act.lin_dir.weight``) so released checkpoints map one to one.
+Memory layout. The spec writes a VN feature as a matrix ``V`` of shape ``(C, 3)``. Here every VN tensor is
+stored *channels last*, ``(..., 3, C)`` (the 3-D axis second to last), so that a VN-Linear is one dense GEMM
+(``torch.nn.functional.linear``) over all points, edges and spatial components at once. The weights keep the
+spec's ``(C_out, C_in)`` shape and names (``lin.weight``, ``act.lin_dir.weight``) so released checkpoints map one
+to one.
 
 All layers are bias-free and positively homogeneous: for a similarity ``g = (s, R, t)`` with ``s > 0`` and
 ``R ∈ SO(3)``, ``f(s R V) = s R f(V)`` in this layout (``V ↦ s V Rᵀ`` in the spec's row layout).
@@ -53,7 +54,8 @@ class VNLeakyReLU(nn.Module):
 
     Args:
         channels: Number of feature channels ``C``.
-        shared: If True one direction serves all channels (``U ∈ R^{1×C}``), else per-channel (``U ∈ R^{C×C}``).
+        shared: If True one direction serves all channels (``U ∈ R^{1×C}``), else per-channel
+            (``U ∈ R^{C×C}``).
         negative_slope: ``α``.
     """
 
@@ -72,8 +74,8 @@ class VNLeakyReLU(nn.Module):
             ``(..., 3, C)``.
         """
         d = self.lin_dir(x)  # (..., 3, C or 1)
-        # proj_c k̂_c = <v_c, k_c> k_c / ‖k_c‖²; the three components are handled as separate contiguous slices
-        # because reductions over the short strided 3-axis are very slow on CPU.
+        # proj_c k̂_c = <v_c, k_c> k_c / ‖k_c‖²; the three components are handled as separate contiguous
+        # slices because reductions over the short strided 3-axis are very slow on CPU.
         dx, dy, dz = d.unbind(-2)
         xx, xy, xz = x.unbind(-2)
         dot = xx * dx + xy * dy + xz * dz

@@ -107,9 +107,10 @@ class ViewerApp:
     def stop(self) -> None:
         """Stop playback, cancel a run, shut the workers and the server down."""
         self.pause()
-        self._cancel.set()
-        self._worker.shutdown(wait=False, cancel_futures=True)
-        self._decoder.shutdown(wait=False, cancel_futures=True)
+        self._cancel.set()  # a running EM stops at its next step
+        self._generation += 1  # running decode/inspect jobs drop their results
+        self._worker.shutdown(wait=True, cancel_futures=True)
+        self._decoder.shutdown(wait=True, cancel_futures=True)
         self.server.stop()
 
     def wait_idle(self, timeout: float = 60.0) -> bool:
@@ -211,6 +212,13 @@ class ViewerApp:
             finally:
                 self._quiet = prev
 
+    def _allowed(self, path: Path) -> bool:
+        """May the viewer read `path`? Inside a given folder, a given file, or the saved result of a given file."""
+        if st.is_inside(path, self._roots):
+            return True
+        rp = path.resolve()
+        return any(r.is_file() and rp == st.trace_path_for(r) for r in self._roots)
+
     # ================================================================== prior
     def prior(self) -> Any:
         """The shape prior (loaded on first use). Raises RuntimeError with the reason when unavailable."""
@@ -273,7 +281,7 @@ class ViewerApp:
             self._frame_cameras(scene)
             self._draw_no_result()
             self._set_status(f"Opened {entry.name} ({scene.num_points:,} points).")
-        if entry.trace_path.is_file() and st.is_inside(entry.trace_path, self._roots):
+        if entry.trace_path.is_file() and self._allowed(entry.trace_path):
             self.load_trace()
         return True
 
@@ -282,7 +290,7 @@ class ViewerApp:
         lo, hi = scene.bounds
         center = (lo + hi) / 2.0
         diag = float(np.linalg.norm(hi - lo)) or 1.0
-        position = center + diag * np.array([0.55, -0.75, 0.65])
+        position = center + diag * np.array([0.5, -0.95, 0.85])
         cam = self.server.initial_camera
         cam.look_at = tuple(float(v) for v in center)
         cam.position = tuple(float(v) for v in position)
@@ -318,6 +326,7 @@ class ViewerApp:
             self._gui_set(self.panels.gui_color, label)
             self.draw_point_colors()
             self.nodes.set_display(self.state.display, recolored=mode != "rgb")
+            self._show_results()
 
     # ================================================================== 2. results: load / run
     def load_trace(self, path: str | Path | None = None) -> bool:
@@ -329,7 +338,7 @@ class ViewerApp:
             self._set_status("Open a scene first.", error=True)
             return False
         p = Path(path) if path is not None else s.entry(s.scene_name).trace_path
-        if not st.is_inside(p, self._roots):
+        if not self._allowed(p):
             self._set_status(f"refusing to read {p}: outside the given paths", error=True)
             return False
         if not p.is_file():
@@ -696,6 +705,7 @@ class ViewerApp:
             mesh_vertices=None if mesh is None else np.asarray(mesh.vertices),
             mesh_faces=None if mesh is None else np.asarray(mesh.faces),
             center=center,
+            radius=r_err,
             label=f"#{pid} t={t}",
         )
         self._inspect_weights = w
@@ -704,6 +714,7 @@ class ViewerApp:
             self._gui_set(self.panels.gui_color, "proposal weights")
         self.draw_point_colors()
         self.nodes.set_display(s.display, recolored=True)
+        self._show_results()
         self.panels.gui_inspect_info.content = inspect_markdown(pid, t, view)
 
     # ================================================================== 5./6. results and ground truth
@@ -716,7 +727,7 @@ class ViewerApp:
             if s.result is None:
                 return
             keep = self.kept_mask()
-            self.nodes.show_results(keep, show_meshes=s.show_meshes, show_obbs=s.show_obbs, show_axes=s.show_axes)
+            self._show_results()
             self.draw_point_colors()
             conf = np.asarray(s.result.instances.confidence, float)
             self.panels.gui_result_info.content = (
@@ -736,7 +747,17 @@ class ViewerApp:
         with self._lock:
             s = self.state
             s.show_meshes, s.show_obbs, s.show_axes = bool(meshes), bool(obbs), bool(axes)
-            self.nodes.show_results(self.kept_mask(), show_meshes=s.show_meshes, show_obbs=s.show_obbs, show_axes=s.show_axes)
+            self._show_results()
+
+    def _show_results(self) -> None:
+        """Result layers per the toggles and the threshold; meshes step aside while a weight heat map is shown."""
+        s = self.state
+        self.nodes.show_results(
+            self.kept_mask(),
+            show_meshes=s.show_meshes and s.color_mode != "weights",
+            show_obbs=s.show_obbs,
+            show_axes=s.show_axes,
+        )
 
     def _update_gt_panel(self, keep: np.ndarray) -> None:
         s = self.state

@@ -88,7 +88,7 @@ class SceneNodes:
     """Called with the proposal id when a decoded shape is clicked in the browser (or None)."""
     _colors_key: int | None = None
     _extent: float = 1.0
-    _offset_step: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0]))
+    _bounds: np.ndarray = field(default_factory=lambda: np.array([[-0.5, -0.5, 0.0], [0.5, 0.5, 0.5]]))
 
     # ------------------------------------------------------------------ scene
     def clear(self) -> None:
@@ -120,7 +120,7 @@ class SceneNodes:
         diag = float(np.linalg.norm(hi - lo)) or 1.0
         self._extent = diag
         self.point_size = float(point_size) if point_size else max(diag * 0.004, 1e-4)
-        self._offset_step = np.array([float(hi[0] - lo[0]) * 1.15 + 0.1 * diag, 0.0, 0.0])
+        self._bounds = np.stack([lo, hi]).astype(np.float64)
         self.points = self.scene_api.add_point_cloud(
             "/scene/points",
             points=pts,
@@ -247,9 +247,16 @@ class SceneNodes:
         return changed
 
     # ------------------------------------------------------------------ inspector (paper Fig. S9)
-    def panel_offset(self, k: int) -> np.ndarray:
-        """World offset of the k-th inspector panel (k = 1, 2, 3) beside the scene, along +X."""
-        return self._offset_step * float(k)
+    def panel_offset(self, k: int, *, center: np.ndarray, radius: float) -> np.ndarray:
+        """World translation that moves content around `center` into inspector panel k (1, 2, 3).
+
+        The panels float in a row above the scene (camera looks down on the table, so they appear above it on
+        screen), spaced by 2.6 × `radius` (r_err) and centred on the scene's x.
+        """
+        lo, hi = self._bounds
+        spacing = 2.6 * radius
+        target = np.array([(lo[0] + hi[0]) / 2 + (k - 2) * spacing, (lo[1] + hi[1]) / 2, hi[2] + 1.8 * radius])
+        return (target - np.asarray(center, float).reshape(3)).astype(np.float32)
 
     def draw_inspector(
         self,
@@ -261,9 +268,10 @@ class SceneNodes:
         mesh_vertices: np.ndarray | None,
         mesh_faces: np.ndarray | None,
         center: np.ndarray,
+        radius: float,
         label: str,
     ) -> None:
-        """Draw the crop, the sampled points and the decoded shape beside the scene (panels 1-3).
+        """Draw the crop, the sampled points and the decoded shape in three panels above the scene (Fig. S9).
 
         Panel 0 is the scene itself, recoloured by the weights (done through `set_point_colors`).
 
@@ -271,25 +279,27 @@ class SceneNodes:
             crop_points: (C, 3) float32 world, points within r_err of the proposal centre.
             crop_colors: (C, 3) uint8 heat-map colours of their weights.
             sampled_points: (M, 3) float32 world.
-            sample_color: (3,) uint8.
+            sample_color: (3,) uint8 (red once the proposal is terminated).
             mesh_vertices: (V, 3) float32 world or None (not decoded).
             mesh_faces: (F, 3) int32 or None.
-            center: (3,) proposal centre (where the panels' content is centred from).
+            center: (3,) proposal centre Θ_c, world.
+            radius: r_err of the proposal (panel size).
             label: text shown above the panels.
         """
         self.clear_inspector()
         c = np.asarray(center, np.float32).reshape(3)
         api = self.scene_api
         ps = self.point_size * 1.3
+        offs = {k: self.panel_offset(k, center=c, radius=radius) for k in (1, 2, 3)}
         for k, title in ((1, "weights (crop)"), (2, "sampled points"), (3, "decoded shape")):
-            off = self.panel_offset(k)
+            pos = c + offs[k] + np.array([0.0, 0.0, 1.15 * radius], np.float32)
             self.inspect[f"label{k}"] = api.add_label(
-                f"/inspect/label{k}", text=f"{label}: {title}", position=tuple(float(v) for v in (c + off + [0, 0, 0.12 * self._extent]))
+                f"/inspect/label{k}", text=f"{label}: {title}", position=tuple(float(v) for v in pos)
             )
         if crop_points.shape[0]:
             self.inspect["crop"] = api.add_point_cloud(
                 "/inspect/crop",
-                points=np.asarray(crop_points, np.float32) + self.panel_offset(1).astype(np.float32),
+                points=np.asarray(crop_points, np.float32) + offs[1],
                 colors=np.asarray(crop_colors, np.uint8),
                 point_size=ps,
                 point_shape="rounded",
@@ -297,7 +307,7 @@ class SceneNodes:
         if sampled_points.shape[0]:
             self.inspect["samples"] = api.add_point_cloud(
                 "/inspect/samples",
-                points=np.asarray(sampled_points, np.float32) + self.panel_offset(2).astype(np.float32),
+                points=np.asarray(sampled_points, np.float32) + offs[2],
                 colors=tuple(int(v) for v in np.asarray(sample_color).reshape(3)),
                 point_size=ps,
                 point_shape="circle",
@@ -305,7 +315,7 @@ class SceneNodes:
         if mesh_vertices is not None and mesh_faces is not None and len(mesh_faces):
             self.inspect["shape"] = api.add_mesh_simple(
                 "/inspect/shape",
-                vertices=np.asarray(mesh_vertices, np.float32) + self.panel_offset(3).astype(np.float32),
+                vertices=np.asarray(mesh_vertices, np.float32) + offs[3],
                 faces=np.asarray(mesh_faces, np.int32),
                 color=tuple(int(v) for v in np.asarray(sample_color).reshape(3)),
             )

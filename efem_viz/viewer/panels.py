@@ -6,6 +6,7 @@ an audience, or two people debugging together, always look at the same scene, st
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from typing import Any
 
@@ -164,58 +165,79 @@ def build_panels(gui: Any, *, scene_names: list[str], out_dir: str) -> Panels:
     )
 
 
-def active_figure(active_count: np.ndarray, marks: list[tuple[int, str]], step: int) -> Any:
-    """Plotly figure: active proposals after each step, phase/review marks, and the current step.
+class PlotlyJSON:
+    """A Plotly figure given as its JSON dict; viser's plot handle only calls `to_json()` on what it is given.
+
+    Building `plotly.graph_objects.Figure` objects costs 10-40 ms each (validation); the timeline plot is redrawn
+    on every step change, so the figures here are plain dicts (≈0.1 ms).
+    """
+
+    def __init__(self, spec: dict[str, Any]) -> None:
+        self.spec = spec
+
+    def to_json(self) -> str:
+        return json.dumps(self.spec, separators=(",", ":"))
+
+
+def active_figure(active_count: np.ndarray, marks: list[tuple[int, str]], step: int) -> PlotlyJSON:
+    """Plot of the active proposals after each step, with phase/review marks and the current step.
 
     Args:
-        active_count: (T+1,) int, proposals active before step 0 and after each step.
+        active_count: (T+1,) int, proposals active before step 0 and after each step (x = -1 is the initial pool).
         marks: (step, label) timeline marks.
-        step: current step (highlighted).
+        step: current step (highlighted in red).
     """
-    import plotly.graph_objects as go
-
     ac = np.asarray(active_count).reshape(-1)
-    x = np.arange(ac.shape[0]) - 1  # -1 = initial pool, t = after step t
-    fig = go.Figure()
-    fig.add_trace(go.Scatter(x=x.tolist(), y=ac.tolist(), mode="lines+markers", name="active", line={"width": 2}))
+    x = (np.arange(ac.shape[0]) - 1).tolist()
+    data: list[dict[str, Any]] = [
+        {"type": "scatter", "x": x, "y": ac.tolist(), "mode": "lines+markers", "name": "active", "line": {"width": 2}}
+    ]
     if 0 <= step + 1 < ac.shape[0]:
-        fig.add_trace(
-            go.Scatter(x=[step], y=[int(ac[step + 1])], mode="markers", marker={"size": 12, "color": "red"}, name="now")
+        data.append(
+            {"type": "scatter", "x": [step], "y": [int(ac[step + 1])], "mode": "markers", "name": "now",
+             "marker": {"size": 12, "color": "red"}}
         )
-    for s, lab in marks:
-        fig.add_vline(x=s, line={"dash": "dot", "color": "grey", "width": 1})
-        fig.add_annotation(x=s, y=float(ac.max()) if ac.size else 1.0, text=lab, showarrow=False, yshift=10)
-    fig.update_layout(
-        margin={"l": 30, "r": 10, "t": 20, "b": 30},
-        showlegend=False,
-        xaxis_title="step",
-        yaxis_title="active proposals",
-        height=260,
-    )
-    return fig
+    shapes = [
+        {"type": "line", "x0": s, "x1": s, "yref": "paper", "y0": 0, "y1": 1,
+         "line": {"dash": "dot", "color": "grey", "width": 1}}
+        for s, _ in marks
+    ]
+    annotations = [
+        {"x": s, "y": 1.0, "yref": "paper", "text": lab, "showarrow": False, "yshift": 8, "font": {"size": 10}}
+        for s, lab in marks
+    ]
+    layout = {
+        "margin": {"l": 40, "r": 10, "t": 24, "b": 36},
+        "showlegend": False,
+        "xaxis": {"title": {"text": "step"}},
+        "yaxis": {"title": {"text": "active proposals"}, "rangemode": "tozero"},
+        "shapes": shapes,
+        "annotations": annotations,
+    }
+    return PlotlyJSON({"data": data, "layout": layout})
 
 
-def pr_figure(curves: list[tuple[str, np.ndarray, np.ndarray]], *, point: tuple[float, float] | None = None) -> Any:
-    """Plotly figure of precision-recall curves.
+def pr_figure(curves: list[tuple[str, np.ndarray, np.ndarray]], *, point: tuple[float, float] | None = None) -> PlotlyJSON:
+    """Precision-recall curves.
 
     Args:
         curves: (label, recall (P,), precision (P,)) per curve.
-        point: (recall, precision) at the current threshold, marked.
+        point: (recall, precision) of the shown predictions at IoU 0.5, marked in red.
     """
-    import plotly.graph_objects as go
-
-    fig = go.Figure()
-    for label, rec, prec in curves:
-        fig.add_trace(go.Scatter(x=np.asarray(rec).tolist(), y=np.asarray(prec).tolist(), mode="lines", name=label))
+    data: list[dict[str, Any]] = [
+        {"type": "scatter", "x": np.asarray(rec, float).tolist(), "y": np.asarray(prec, float).tolist(),
+         "mode": "lines", "name": label}
+        for label, rec, prec in curves
+    ]
     if point is not None:
-        fig.add_trace(
-            go.Scatter(x=[point[0]], y=[point[1]], mode="markers", marker={"size": 11, "color": "red"}, name="threshold")
+        data.append(
+            {"type": "scatter", "x": [point[0]], "y": [point[1]], "mode": "markers", "name": "threshold",
+             "marker": {"size": 11, "color": "red"}}
         )
-    fig.update_layout(
-        margin={"l": 30, "r": 10, "t": 20, "b": 30},
-        xaxis={"range": [0, 1.02], "title": "recall"},
-        yaxis={"range": [0, 1.02], "title": "precision"},
-        height=260,
-        legend={"orientation": "h"},
-    )
-    return fig
+    layout = {
+        "margin": {"l": 40, "r": 10, "t": 20, "b": 36},
+        "xaxis": {"range": [0, 1.02], "title": {"text": "recall"}},
+        "yaxis": {"range": [0, 1.02], "title": {"text": "precision"}},
+        "legend": {"orientation": "h"},
+    }
+    return PlotlyJSON({"data": data, "layout": layout})

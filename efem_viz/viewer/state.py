@@ -21,6 +21,8 @@ logger = logging.getLogger(__name__)
 SCENE_SUFFIXES = (".ply", ".obj", ".off", ".glb", ".npz")
 """File suffixes the scene browser lists (`.efem.npz` results are excluded)."""
 TRACE_SUFFIX = ".efem.npz"
+LABELS_INFIX = ".labels"
+"""`<scene>.labels.ply` is an annotated copy of `<scene>.ply` (annotator output) and may share its result."""
 
 ColorMode = Literal["rgb", "instances", "gt_match", "weights", "proposals"]
 DisplayMode = Literal["points", "mesh"]
@@ -50,8 +52,15 @@ class SceneEntry:
 
     @property
     def trace_path(self) -> Path:
-        """`<scene>.efem.npz` next to the scene file."""
-        return trace_path_for(self.path)
+        """The saved result to open with this scene: `<scene>.efem.npz` next to it, or, for an annotated copy
+        `<base>.labels.ply` without its own result, the result of `<base>` (same points, labels added)."""
+        own = trace_path_for(self.path)
+        stem = self.path.name[: -len(self.path.suffix)] if self.path.suffix else self.path.name
+        if not own.is_file() and stem.endswith(LABELS_INFIX):
+            base = self.path.with_name(stem[: -len(LABELS_INFIX)] + TRACE_SUFFIX)
+            if base.is_file():
+                return base
+        return own
 
 
 def trace_path_for(scene_path: Path) -> Path:
@@ -503,24 +512,21 @@ class GTMetrics:
 
 
 def gt_metrics(instances: Any, scene: Any, threshold: float) -> GTMetrics:
-    """Match the instances above `threshold` to the scene's ground truth at IoU 0.5 and compute AP/AP50/AP25."""
-    from efem_viz.eval import evaluate_instances, match_instances
+    """Match the instances above `threshold` to the scene's ground truth at IoU 0.5 and compute AP/AP50/AP25.
 
-    shown = instances.above(float(threshold))
-    n = scene.num_points
+    Evaluated classes are the scene's ground-truth category names (one class: every prediction counts as it).
+    """
+    from efem_viz.eval import DEFAULT_CLASS_NAMES, evaluate_instances, match_instances
+
+    keep = np.asarray(instances.confidence, np.float64) >= float(threshold)
+    shown = instances.select(keep)
     masks = [np.asarray(m, np.int64) for m in shown.masks]
-    bool_masks = []
-    for m in masks:
-        b = np.zeros(n, bool)
-        b[m] = True
-        bool_masks.append(b)
-    tp, fp, fn = match_instances(bool_masks, scene.instance, iou=0.5)
-    res = evaluate_instances(instances, scene, threshold=float(threshold))
-    curves = _pr_curves(res)
+    tp, fp, fn = match_instances(masks, scene.instance, iou=0.5, confidences=np.asarray(shown.confidence))
+    cats = sorted({str(v) for v in dict(scene.categories).values()})
+    class_names = tuple(cats) if cats else DEFAULT_CLASS_NAMES
+    res = evaluate_instances(instances, scene, threshold=float(threshold), class_names=class_names)
     n_gt = len(scene.instance_ids())
-    point = None
-    if len(masks):
-        point = (len(tp) / max(n_gt, 1), len(tp) / max(len(masks), 1))
+    point = (len(tp) / max(n_gt, 1), len(tp) / len(masks)) if masks else None
     return GTMetrics(
         masks=masks,
         tp=[int(i) for i in tp],
@@ -529,7 +535,7 @@ def gt_metrics(instances: Any, scene: Any, threshold: float) -> GTMetrics:
         ap=float(res.ap),
         ap50=float(res.ap50),
         ap25=float(res.ap25),
-        curves=curves,
+        curves=_pr_curves(res),
         point=point,
     )
 

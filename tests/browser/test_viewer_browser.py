@@ -78,16 +78,16 @@ def _changed_pixels(a: np.ndarray, b: np.ndarray) -> int:
     return int((np.abs(a - b).sum(axis=-1) > 60).sum())
 
 
-def _open(page: Any, app: Any) -> None:
+def _open(page: Any, app: Any, *, close_notice: bool = True) -> None:
     page.goto(app.url)
     page.wait_for_selector("canvas", timeout=30_000)
     _wait(lambda: len(app.server.get_clients()) >= 1, 30, "the client to connect")
     page.get_by_role("tab", name="Scene").wait_for(timeout=30_000)
-    close = page.locator(".mantine-Notification-closeButton")  # "software WebGL" notice: keep shots clean
-    try:
-        close.first.click(timeout=3_000)
-    except Exception:  # noqa: BLE001 - the notice may not appear
-        pass
+    if close_notice:  # the "software WebGL" notice: keep screenshots clean
+        try:
+            page.locator(".mantine-Notification-closeButton").first.click(timeout=3_000)
+        except Exception:  # noqa: BLE001 - the notice may not appear
+            pass
 
 
 def _save(page: Any, name: str) -> None:
@@ -149,11 +149,11 @@ def test_threshold_changes_view(viewer: Any, page: Any) -> None:
 
 
 def test_two_clients_share_state(viewer: Any, browser: Any, page: Any) -> None:
-    _open(page, viewer)
+    _open(page, viewer, close_notice=False)
     ctx2 = browser.new_context(viewport={"width": 1280, "height": 800})
     try:
         page2 = ctx2.new_page()
-        _open(page2, viewer)
+        _open(page2, viewer, close_notice=False)
         _wait(lambda: len(viewer.server.get_clients()) >= 2, 30, "two clients")
         page.get_by_role("tab", name="Timeline").click()
         page2.get_by_role("tab", name="Timeline").click()

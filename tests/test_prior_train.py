@@ -1,0 +1,203 @@
+"""Shape-prior training: smoke run, exact resume, checkpoint round trip, data pipeline, shipped weights."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from efem_viz.prior.data import (
+    PrepConfig,
+    SampleConfig,
+    augment_v1,
+    input_cloud,
+    load_or_prepare,
+    make_example,
+    normalize_mesh,
+    procedural_sources,
+)
+from efem_viz.prior.model import WEIGHTS_DIR, PriorConfig, ShapePrior, load_prior, save_prior
+from efem_viz.prior.train import TrainArgs, lr_at, train
+
+SMALL_PREP = PrepConfig(n_uniform=4000, n_near=4000, n_surface=2000, resolution=64, max_view_points=800)
+
+
+@pytest.fixture(scope="module")
+def cache_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tmp_path_factory.mktemp("prior_cache")
+
+
+def _args(tmp: Path, cache: Path, **kw: object) -> TrainArgs:
+    base = dict(preset="tiny", n_train=3, n_val=2, out_dir=tmp / "run", export=tmp / "w" / "mug.pt",
+                cache_dir=cache, batch_size=4, iterations=40, val_every=20, threads=1, progress=False,
+                log_every=1, lr=1e-3)
+    base.update(kw)
+    return TrainArgs(**base)  # type: ignore[arg-type]
+
+
+# ------------------------------------------------------------------------------------------------------ data
+def test_prepared_object_is_consistent(cache_dir: Path) -> None:
+    src = procedural_sources("mug", "train", 1)[0]
+    obj = load_or_prepare(src, cache_dir=cache_dir / "data", cfg=SMALL_PREP, seed=0)
+    # normalised: longest bbox side 1, centred
+    lo, hi = obj.surface.min(0), obj.surface.max(0)
+    assert abs(float((hi - lo).max()) - 1.0) < 0.02 and np.abs((hi + lo) / 2).max() < 0.02
+    # SDF signs: far corners outside, near-surface queries close to the surface
+    assert (obj.uni[np.abs(obj.uni[:, :3]).max(1) > 0.52, 3] > 0).all()
+    assert 0.0 < (obj.uni[:, 3] < 0).mean() < 0.5
+    assert np.abs(obj.nss[:, 3]).mean() < 0.04
+    # depth-view points lie on the surface (distance to the nearest surface sample is small)
+    import open3d as o3d
+
+    mesh = normalize_mesh(src[1]())
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
+                        o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
+    for pts in (obj.view(0), obj.view(11), obj.surface):
+        assert np.abs(scene.compute_distance(o3d.core.Tensor(pts)).numpy()).max() < 1e-4
+    sdf = scene.compute_signed_distance(o3d.core.Tensor(obj.uni[:, :3].copy())).numpy()
+    assert np.allclose(sdf, obj.uni[:, 3], atol=1e-5)
+    assert (obj.view_elev_deg[:8] >= 30).all() and (obj.view_elev_deg[10:] < -10).all()
+    again = load_or_prepare(src, cache_dir=cache_dir / "data", cfg=SMALL_PREP, seed=0)  # from the cache
+    assert np.array_equal(again.uni, obj.uni) and np.array_equal(again.views, obj.views)
+
+
+def test_examples_and_augmentation(cache_dir: Path) -> None:
+    srcs = procedural_sources("mug", "train", 2)
+    objs = [load_or_prepare(s, cache_dir=cache_dir / "data", cfg=SMALL_PREP, seed=i)
+            for i, s in enumerate(srcs)]
+    cfg = SampleConfig(n_pcl=256)
+    pcl, q = make_example(objs[0], cfg, np.random.default_rng(0), others=objs)
+    assert pcl.shape == (256, 3) and q.shape == (2048, 4) and pcl.dtype == np.float32
+    # same seed, same example; other seed, other example
+    pcl2, _ = make_example(objs[0], cfg, np.random.default_rng(0), others=objs)
+    assert np.array_equal(pcl, pcl2)
+    # forced augmentation: the table patch is a flat layer at the bottom of the mug
+    forced = dataclasses.replace(cfg, aug_ratio=0.7, p_obj=0.0, p_ball=0.0, p_table=1.0)
+    rng = np.random.default_rng(3)
+    base = input_cloud(objs[0], cfg, rng)
+    for _ in range(10):
+        out = augment_v1(base, objs[0], q[:1024], objs, forced, rng)
+        assert out.shape == base.shape
+        z_bot = objs[0].z_bottom
+        n_new = int((np.abs(out[:, 2] - z_bot) < 0.04).sum() - (np.abs(base[:, 2] - z_bot) < 0.04).sum())
+        if n_new > 20:
+            break
+    else:
+        pytest.fail("the table augmentation never added a bottom plane")
+    # ball removal only (+ uniform noise points): same size, different cloud
+    only_ball = dataclasses.replace(cfg, p_obj=0.0, p_table=0.0, p_ball=1.0)
+    noisy = augment_v1(base, objs[0], q[:1024], objs, only_ball, np.random.default_rng(5))
+    assert noisy.shape == base.shape and not np.array_equal(noisy, base)
+
+
+def test_lr_schedule() -> None:
+    kw = dict(base=1e-4, total=80000, decay_at=(0.625, 0.75, 0.875), factor=0.3)
+    assert lr_at(0, **kw) == 1e-4 and lr_at(49999, **kw) == 1e-4
+    assert lr_at(50000, **kw) == pytest.approx(3e-5) and lr_at(79999, **kw) == pytest.approx(2.7e-6)
+
+
+# --------------------------------------------------------------------------------------------------- training
+def test_training_smoke_loss_decreases(tmp_path: Path, cache_dir: Path) -> None:
+    res = train(_args(tmp_path, cache_dir))
+    losses = [c["sdf"] for c in res["curve"]]
+    assert len(losses) == 40 and all(np.isfinite(losses))
+    assert np.mean(losses[-8:]) < 0.9 * np.mean(losses[:8])
+    assert (tmp_path / "w" / "mug.pt").is_file() and (tmp_path / "run" / "last.pt").is_file()
+    cfg = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert cfg["prior"]["widths"] == [8, 8, 16, 16] and cfg["n_train"] == 3
+    rep = json.loads((tmp_path / "w" / "mug_training_report.json").read_text())
+    assert rep["iteration"] == 40 and [v["iteration"] for v in rep["val_curve"]] == [0, 20, 40]
+    assert (tmp_path / "w" / "mug_training_report.md").read_text().startswith("# Training report")
+    prior = load_prior(tmp_path / "w" / "mug.pt")
+    assert prior.metadata["val_iou"] == pytest.approx(res["best_iou"])
+
+
+def test_resume_is_exact(tmp_path: Path, cache_dir: Path) -> None:
+    straight = train(_args(tmp_path / "a", cache_dir, iterations=6, val_every=100))
+    first = train(_args(tmp_path / "b", cache_dir, iterations=6, val_every=100), max_iterations=3)
+    assert first["iteration"] == 3 and first["stop_reason"] == "max_iterations"
+    ck = torch.load(tmp_path / "b" / "run" / "last.pt", weights_only=False)
+    assert ck["state"]["iteration"] == 3 and "optimizer" in ck and "np_rng" in ck
+    resumed = train(_args(tmp_path / "b", cache_dir, iterations=6, val_every=100, resume=True))
+    assert resumed["iteration"] == 6
+    assert [c["iteration"] for c in resumed["curve"]] == list(range(1, 7))
+    assert np.allclose([c["loss"] for c in resumed["curve"]], [c["loss"] for c in straight["curve"]],
+                       rtol=1e-6)
+    sa = torch.load(tmp_path / "a" / "run" / "last.pt", weights_only=False)
+    sb = torch.load(tmp_path / "b" / "run" / "last.pt", weights_only=False)
+    for k, v in sa["state_dict"].items():
+        assert torch.allclose(v, sb["state_dict"][k], rtol=1e-6, atol=1e-9), k
+    assert sa["np_rng"] == sb["np_rng"]
+
+
+def test_resume_without_checkpoint_fails(tmp_path: Path, cache_dir: Path) -> None:
+    with pytest.raises(FileNotFoundError, match="resume"):
+        train(_args(tmp_path, cache_dir, resume=True))
+
+
+def test_save_load_round_trip(tmp_path: Path) -> None:
+    torch.manual_seed(0)
+    prior = ShapePrior(PriorConfig(widths=(8, 8, 16), down_blocks=(2,), down_factors=(2,), latent_dim=16,
+                                   center_hidden=8, decoder_hidden=32, decoder_blocks=1, n_pcl=64, k=8,
+                                   scale_factor=123.0), name="cup")
+    path = save_prior(prior, tmp_path / "cup.pt", extra={"note": "x"})
+    back = load_prior(path)
+    assert back.name == "cup" and back.metadata["note"] == "x" and back.config == prior.config
+    pts = torch.rand(2, 64, 3)
+    x = torch.rand(2, 100, 3) - 0.5
+    with torch.no_grad():
+        a, b = prior.encode(pts), back.encode(pts)
+        assert all(torch.equal(u, v) for u, v in zip(a, b))
+        assert torch.equal(prior.sdf(x, a), back.sdf(x, b))
+    with pytest.raises(FileNotFoundError):
+        load_prior(tmp_path / "missing.pt")
+    with pytest.raises(FileNotFoundError):
+        load_prior("no_such_prior_name")
+    torch.save({"foo": 1}, tmp_path / "bad.pt")
+    with pytest.raises(ValueError, match="not an efem-viz prior"):
+        load_prior(tmp_path / "bad.pt")
+
+
+# ------------------------------------------------------------------------------------------ shipped weights
+SHIPPED = WEIGHTS_DIR / "mug.pt"
+#: measured on the shipped weights (see the final report); the bar leaves a margin below the measured IoU
+SHIPPED_IOU_BAR = 0.5
+#: weights exported before this many iterations are snapshots of a training run still in progress
+MIN_SHIPPED_ITERATIONS = 1000
+
+
+@pytest.mark.skipif(not SHIPPED.is_file(), reason="efem_viz/weights/mug.pt not trained yet")
+def test_shipped_mug_reconstructs_held_out_partial_view(cache_dir: Path) -> None:
+    prior = load_prior("mug")
+    assert SHIPPED.stat().st_size < 20 * 2**20
+    if int(prior.metadata.get("iteration", 0)) < MIN_SHIPPED_ITERATIONS:
+        pytest.skip(f"shipped mug.pt is an early snapshot of a running training (iteration "
+                    f"{prior.metadata.get('iteration')})")
+    srcs = procedural_sources("mug", "test", 3)
+    rng = np.random.default_rng(0)
+    gen = torch.Generator().manual_seed(0)
+    ious = []
+    for i, src in enumerate(srcs):
+        obj = load_or_prepare(src, cache_dir=cache_dir / "test", cfg=PrepConfig(), seed=1000 + i)
+        # a single depth view from above, then placed in a random world pose at real scale
+        view = obj.view(0)
+        n = prior.config.n_pcl
+        pcl_np = view[rng.integers(0, len(view), n)] + rng.normal(0, 0.01, (n, 3))
+        pcl = torch.as_tensor(pcl_np, dtype=torch.float32)
+        q, _ = torch.linalg.qr(torch.randn(3, 3, generator=gen))
+        R = q * torch.sign(torch.det(q))
+        s, t = 0.12, torch.tensor([0.3, -0.2, 0.8])
+        x = torch.as_tensor(obj.uni[:10000, :3])
+        with torch.no_grad():
+            lat = prior.encode((s * pcl @ R.T + t)[None])
+            sdf = prior.sdf(s * x @ R.T + t, lat[0])
+        gt_in = torch.as_tensor(obj.uni[:10000, 3]) <= 0
+        pr_in = sdf < 0
+        ious.append(float((gt_in & pr_in).sum() / (gt_in | pr_in).sum()))
+        assert abs(float(lat.scale) / s - 1.0) < 0.3
+    assert np.mean(ious) > SHIPPED_IOU_BAR, ious
