@@ -183,10 +183,19 @@ class AnnotatorApp:
         if ls.instances:
             self.settings.active_id = max(ls.instances)
 
-        self.server = viser.ViserServer(host=host, port=port, verbose=False)
-        self.server.gui.configure_theme(control_width="large")
-        self._draw_scan()
-        self._build_gui()
+        try:
+            self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        except BaseException:
+            self.store.close()
+            raise
+        try:
+            self.server.gui.configure_theme(control_width="large")
+            self._draw_scan()
+            self._build_gui()
+        except BaseException:
+            self.server.stop()
+            self.store.close()
+            raise
         self.store.listeners.append(self._on_labels_changed)
         self._worker = threading.Thread(target=self._edit_loop, name="annotator-edits", daemon=True)
         self._worker.start()
@@ -862,7 +871,9 @@ class AnnotatorApp:
             time.sleep(0.01)
 
     def close(self) -> None:
-        """Stop the server, flush the checkpoint, release the journal."""
+        """Stop the server, flush the checkpoint, release the journal (idempotent)."""
+        if self._closed.is_set():
+            return
         self._closed.set()
         self._edits.put(("stop", None))
         try:

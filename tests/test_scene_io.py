@@ -271,3 +271,23 @@ def test_find_scenes(tmp_path: Path) -> None:
         find_scenes([tmp_path / "nope"])
     with pytest.raises(SceneError, match="result"):
         find_scenes([d / "a.efem.npz"])
+
+
+def test_info_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import json
+
+    from efem_viz.cli import main
+
+    save_scene(mesh_scene(), tmp_path / "m.ply")
+    save_scene(cloud_scene(), tmp_path / "c.npz")
+    assert main(["info", str(tmp_path), "--json"]) == 0
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
+    assert [r["name"] for r in rows] == ["c", "m"]
+    m = rows[1]
+    assert m["kind"] == "mesh" and m["points"] == 162 and m["faces"] == 320
+    assert m["categories"] == {"mug": 2, "bowl": 1}
+    assert main(["info", str(tmp_path / "m.ply")]) == 0
+    out = capsys.readouterr().out
+    assert "162" in out and "mug" in out
+    (tmp_path / "bad.ply").write_bytes(b"ply\ngarbage")
+    assert main(["info", str(tmp_path / "bad.ply")]) == 1

@@ -279,25 +279,17 @@ def _npz_kwargs(data: Any) -> dict[str, Any]:
 def _load_npz(p: Path, max_points: int) -> dict[str, Any]:
     with np.load(p, allow_pickle=False) as data:
         keys = set(data.files)
-        if "schema_version" not in keys and "K" in keys and ({"depth_mm", "depth"} & keys):
-            rgbd_frame = True
-        else:
-            rgbd_frame = False
+        rgbd_frame = "schema_version" not in keys and "K" in keys and bool({"depth_mm", "depth"} & keys)
+        if not rgbd_frame:
             kwargs = _npz_kwargs(data)
-    if rgbd_frame:  # an RGB-D frame (rgb, depth_mm, K): import it with the default settings
-        from efem_viz.data.rgbd import import_rgbd_file
+            # materialise the arrays before the file closes
+            return {k: (np.array(v) if isinstance(v, np.ndarray) else v) for k, v in kwargs.items()}
+    # an RGB-D frame (rgb, depth_mm or depth, K): import it with the default settings
+    from efem_viz.data.rgbd import import_rgbd_file
 
-        scene = import_rgbd_file(p)
-        return {
-            "points": scene.points,
-            "normals": scene.normals,
-            "colors": scene.colors,
-            "provenance": dict(scene.provenance),
-        }
-    with np.load(p, allow_pickle=False) as data:
-        kwargs = _npz_kwargs(data)
-        # materialise the arrays before the file closes
-        return {k: (np.array(v) if isinstance(v, np.ndarray) else v) for k, v in kwargs.items()}
+    scene = import_rgbd_file(p)
+    return {"points": scene.points, "normals": scene.normals, "colors": scene.colors,
+            "provenance": dict(scene.provenance)}
 
 
 def _parse_categories(text: str) -> dict[int, str]:

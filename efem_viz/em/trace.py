@@ -36,7 +36,12 @@ TRACE_SCHEMA_VERSION = 1
 
 
 class DeathEvent(NamedTuple):
-    """A proposal's termination (`reason` one of proposals.REASONS; `survive` = accepted)."""
+    """A proposal's termination (`reason` one of proposals.REASONS; `survive` = accepted).
+
+    `ratio` depends on the reason: the inlier count ("proposal too small"), the IoU or inclusion ratio with
+    `partner` ("duplicated or included"), the largest scale radius in metres ("scale-fail"), the up-axis angle
+    in degrees ("pose-fail"), or the confidence ("survive"). `partner` is −1 unless a duplicate/inclusion.
+    """
 
     step: int
     proposal_id: int

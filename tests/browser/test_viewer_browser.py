@@ -24,13 +24,30 @@ SAVE = os.environ.get("EFEM_SAVE_SCREENSHOTS") == "1"
 
 @pytest.fixture(scope="module")
 def viewer(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
-    """A viewer on a small sphere scene (≈5k points) with a saved EM result from the real solver."""
+    """A viewer on a small sphere scene (≈5k points) with a saved EM result from the real solver.
+
+    With EFEM_GUIDE_SCENES=<folder> (screenshots for the user guide) the viewer opens that folder instead, with the
+    default prior, on the scene EFEM_GUIDE_SCENE (default: the first one with a saved result).
+    """
+    from efem_viz.viewer.app import ViewerApp
+
+    guide = os.environ.get("EFEM_GUIDE_SCENES")
+    if guide:
+        app = ViewerApp([guide], port=0, open_first=False)
+        wanted = os.environ.get("EFEM_GUIDE_SCENE")
+        names = [e.name for e in app.state.entries if wanted in (None, e.name) and e.trace_path.is_file()]
+        if not names or not app.open_scene(names[0]):
+            app.stop()
+            pytest.skip(f"no scene with a saved result in {guide}")
+        assert app.wait_idle(300)
+        yield app
+        app.stop()
+        return
     em = pytest.importorskip("efem_viz.em", reason="efem_viz.em not importable yet")
     analytic = pytest.importorskip("efem_viz.em.analytic", reason="efem_viz.em.analytic not importable yet")
     import torch
 
     from efem_viz.data.io import save_scene
-    from efem_viz.viewer.app import ViewerApp
 
     torch.set_num_threads(1)
     d = tmp_path_factory.mktemp("browser_scenes")
@@ -163,3 +180,58 @@ def test_two_clients_share_state(viewer: Any, browser: Any, page: Any) -> None:
         viewer.set_step(viewer.state.num_steps - 1)
     finally:
         ctx2.close()
+
+
+# ---------------------------------------------------------------------------------------------- user-guide shots
+guide_only = pytest.mark.skipif(not SAVE, reason="screenshots for docs/USER_GUIDE.md: set EFEM_SAVE_SCREENSHOTS=1")
+
+
+@guide_only
+def test_guide_run_tab(viewer: Any, page: Any) -> None:
+    _open(page, viewer)
+    page.get_by_role("tab", name="Run").click()
+    gate = __import__("threading").Event()
+    viewer._submit(viewer._worker, gate.wait, 30)  # hold the run in the queue while the progress bar shows
+    fut = viewer.start_run(preset="fast", proposals=int(viewer.panels.gui_proposals.value), seed=0)
+    viewer.panels.gui_progress.value = 35.0
+    viewer.panels.gui_run_info.content = "step 7/20 · phase 1 · 23 active · 4.2 s"
+    page.wait_for_timeout(1500)
+    _save(page, "viewer_run.png")
+    viewer.cancel_run()
+    gate.set()
+    assert fut is not None and fut.result(timeout=120) is None
+    assert viewer.load_trace() and viewer.wait_idle(120)
+
+
+@guide_only
+def test_guide_proposals_tab(viewer: Any, page: Any) -> None:
+    from efem_viz.viewer import state as st
+
+    _open(page, viewer)
+    trace = viewer.state.result.trace
+    t = min(2, trace.num_steps - 1)
+    viewer.set_step(t)
+    ids, scores = st.alive_table(trace, t)
+    viewer.select_proposal(int(st.top_n(ids, scores, 1)[0])).result(timeout=120)
+    assert viewer.wait_idle(120)
+    page.get_by_role("tab", name="Proposals").click()
+    _settle(page)
+    _save(page, "viewer_proposals.png")
+    viewer.select_proposal(None)
+    viewer.set_step(trace.num_steps - 1)
+    assert viewer.wait_idle(120)
+
+
+@guide_only
+def test_guide_ground_truth(viewer: Any, page: Any) -> None:
+    if not viewer.state.scene.has_gt:
+        pytest.skip("the guide scene has no ground truth")
+    _open(page, viewer)
+    viewer.set_proposal_layers(shapes=False, samples=False)
+    viewer.set_threshold(0.0)
+    viewer.set_color_mode("gt_match")
+    page.get_by_role("tab", name="Results").click()
+    _settle(page)
+    _save(page, "viewer_ground_truth.png")
+    viewer.set_color_mode("instances")
+    viewer.set_proposal_layers(shapes=True, samples=True)
