@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import statistics
 import time
@@ -40,7 +41,11 @@ def main() -> int:
             stages: dict[str, float] = {}
             t0 = time.perf_counter()
             scene = generate_scene(
-                config, seed=seed, n_objects=args.objects, mode=args.mode, timings=stages  # type: ignore[arg-type]
+                config,  # type: ignore[arg-type]
+                seed=seed,
+                n_objects=args.objects,
+                mode=args.mode,
+                timings=stages,
             )
             dt = time.perf_counter() - t0
             d, _ = cKDTree(scene.points).query(scene.points, k=2)
@@ -57,7 +62,7 @@ def main() -> int:
                     "stages_s": stages,
                 }
             )
-            print(f"{config:>5} seed {seed}: {dt:6.2f} s  {scene.num_points:6d} points  stages {rows[-1]['stages_s']}")
+            print(f"{config:>5} seed {seed}: {dt:6.2f} s  {scene.num_points:6d} points  stages {stages}")
         results[config] = {
             "median_seconds": statistics.median(r["seconds"] for r in rows),
             "median_points": statistics.median(r["points"] for r in rows),
@@ -67,9 +72,8 @@ def main() -> int:
     print()
     print(f"{'config':>6} | {'median s':>8} | {'points':>7} | {'spacing mm':>10}")
     for config, r in results.items():
-        print(
-            f"{config:>6} | {r['median_seconds']:8.2f} | {r['median_points']:7.0f} | {r['median_nn_spacing_mm']:10.2f}"
-        )
+        sec, pts, spc = r["median_seconds"], r["median_points"], r["median_nn_spacing_mm"]
+        print(f"{config:>6} | {sec:8.2f} | {pts:7.0f} | {spc:10.2f}")
     payload = {
         "benchmark": "generate",
         "mode": args.mode,
@@ -78,7 +82,11 @@ def main() -> int:
         "voxel_m": 0.004,
         "image_size": [640, 480],
         "cameras": 4,
-        "machine": {"platform": platform.platform(), "processor": platform.processor(), "python": platform.python_version()},
+        "machine": {
+            "platform": platform.platform(),
+            "cpus": os.cpu_count(),
+            "python": platform.python_version(),
+        },
         "note": "wall-clock on a shared 2-core machine; other jobs were running",
         "results": results,
     }

@@ -223,8 +223,8 @@ def main() -> int:
 
     torch.set_num_threads(args.threads)
     prior = load_prior(args.prior)
-    if prior.codebook is None:
-        raise SystemExit(f"{args.prior} has no codebook next to it: "
+    if prior.codebook is None or not prior.codebook.matches(prior):
+        raise SystemExit(f"{args.prior} has no codebook next to it, or one built from other weights: "
                          f"run `efem-viz build-codebook --prior {args.prior}`")
     rng = np.random.default_rng(args.seed)
     t_start = time.perf_counter()

@@ -56,6 +56,10 @@ def test_codebook_contents(codebook: Codebook, prior: ShapePrior) -> None:
     np.testing.assert_allclose(lat.R.numpy()[0], codebook.z_so3[2], atol=1e-4)
     np.testing.assert_allclose(lat.scale.numpy(), codebook.scale[2:3], rtol=1e-4)
     assert codebook.mean_scale == pytest.approx(float(np.mean(codebook.scale)))
+    # tied to the weights it was built from
+    assert codebook.matches(prior)
+    other = ShapePrior(prior.config)
+    assert not codebook.matches(other)
 
 
 def test_projection_is_rotation_invariant() -> None:

@@ -105,7 +105,8 @@ def test_explicit_params_and_validation() -> None:
     _assert_solid(m, "handle-less replacement")
     assert abs(m.extents[0] - m.extents[1]) < 1e-3  # rotationally symmetric without a handle
     with pytest.raises(ValueError, match="profile"):
-        MugParams(**{**dataclasses.asdict(p), "profile": "cone"}).outer_radius(np.zeros(1))  # type: ignore[arg-type]
+        bad = MugParams(**{**dataclasses.asdict(p), "profile": "cone"})  # type: ignore[arg-type]
+        bad.outer_radius(np.zeros(1))
 
 
 def test_splits_disjoint_and_errors() -> None:
@@ -141,7 +142,8 @@ def test_collision_parts_lie_on_or_inside_the_solid(category: str) -> None:
         sd = trimesh.proximity.signed_distance(m, pts)
         assert sd.min() > -1e-3, f"{category} {s}: collision piece {-sd.min() * 1e3:.2f} mm outside the mesh"
         # the pieces cover the object: its bounding box is (nearly) the pieces' bounding box
-        assert np.allclose(pts.min(0), m.bounds[0], atol=3e-3) and np.allclose(pts.max(0), m.bounds[1], atol=3e-3)
+        assert np.allclose(pts.min(0), m.bounds[0], atol=3e-3)
+        assert np.allclose(pts.max(0), m.bounds[1], atol=3e-3)
 
 
 def test_mug_parts_frame_matches_mesh() -> None:

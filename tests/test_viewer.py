@@ -317,3 +317,23 @@ def test_labels_copy_shares_the_base_result(tmp_path: Path) -> None:
     (tmp_path / "scan.labels.efem.npz").write_text("x")
     assert entries["scan.labels"].trace_path.name == "scan.labels.efem.npz"  # its own result wins
     assert entries["scan"].trace_path.name == "scan.efem.npz"
+
+
+def test_prior_mismatch_is_reported_once(scene_dir: Path) -> None:
+    from efem_viz.viewer.app import ViewerApp
+
+    class OtherPrior:
+        name = "other"
+        config = type("Cfg", (), {"latent_dim": 999})()
+
+    a = ViewerApp([scene_dir], port=0, prior=OtherPrior(), open_first=False)
+    try:
+        assert a.open_scene("spheres")
+        assert a.wait_idle(60)
+        assert "latent size" in (a.state.error or "")
+        a.set_step(1)
+        assert a.wait_idle(60)
+        assert not a.nodes.shapes  # nothing decoded with the wrong prior, and no retry per step
+        assert a.nodes.samples is not None and a.nodes.samples.visible  # the rest of the timeline works
+    finally:
+        a.stop()

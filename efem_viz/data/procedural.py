@@ -7,8 +7,8 @@ centre. Mugs have their handle (if any) on the +X side.
 Mugs are built as
   * a body of revolution (closed (r, z) profile with outer wall, rounded rim, inner wall and a thick bottom,
     revolved about +Z; a real open cup, hollow inside),
-  * a handle: an (optionally flattened) tube swept along a planar curve in the XZ half-plane x > 0, whose ends are
-    sunk into the wall and clipped by a slightly grown copy of the cavity so that they never poke into the cup,
+  * a handle: an (optionally flattened) tube swept along a planar curve in the XZ half-plane x > 0, whose ends
+    are sunk into the wall and clipped by a slightly grown copy of the cavity so they never poke into the cup,
   * a boolean union of both with manifold3d, which makes the result a single watertight solid.
 
 The seed ranges of the train / val / test splits are disjoint (see `split_seeds`).
@@ -64,7 +64,7 @@ def _hollow_profile(
     inner_fillet: float,
     n_wall: int = 12,
 ) -> np.ndarray:
-    """Closed (r, z) polyline of an open cup: axis → foot → outer wall → rounded rim → inner wall → axis.
+    """Closed (r, z) polyline of an open cup: axis, foot, outer wall, rounded rim, inner wall, floor, axis.
 
     Returns:
         (P, 2) float64, first and last point on the axis (r = 0); revolving it gives a positive-volume solid.
@@ -189,7 +189,7 @@ def _min_curvature_radius(curve: np.ndarray) -> float:
 
 
 def _handle_path_xz(p: MugParams) -> np.ndarray:
-    """(K, 2) handle centre line in the body's XZ plane (x radial, z above the foot), ends sunk into the wall."""
+    """(K, 2) handle centre line in the XZ plane (x radial, z above the foot), both ends sunk in the wall."""
     uv = _handle_curve(p)
     z = p.handle_center + uv[:, 1]
     z_top, z_bot = z[0], z[-1]
@@ -345,7 +345,7 @@ def _mug_body(p: MugParams) -> trimesh.Trimesh:
 
 
 def _grown_cavity(p: MugParams, grow: float) -> trimesh.Trimesh:
-    """Solid of revolution filling the cavity grown by `grow` (metres) into the wall, extending above the rim."""
+    """Solid of revolution: the cavity grown by `grow` (metres) into the wall, reaching above the rim."""
     z = np.linspace(p.bottom - grow, p.height + 0.02, 16)
     r = _inner_radius(p.outer_radius, np.minimum(z, p.height), p.wall) + grow
     prof = np.concatenate([[[0.0, z[0]]], np.stack([r, z], axis=1), [[0.0, z[-1]]]], axis=0)
@@ -364,9 +364,9 @@ def _wall_parts(
 ) -> list[np.ndarray]:
     """Convex pieces (angular sector x height band) covering a revolved wall between heights z0 and z1.
 
-    The wall ends in the rounded rim of `_hollow_profile` (centre at z1 - wall / 2): the top band stops there and
-    adds the rim's top points. Each piece is the point set of outer and inner wall samples at three angles of its
-    sector; its convex hull lies inside the wall up to the chord sagitta (towards the cavity).
+    The wall ends in the rounded rim of `_hollow_profile` (centre at z1 - wall / 2): the top band stops there
+    and adds the rim's top points. Each piece is the point set of outer and inner wall samples at three
+    angles of its sector; its convex hull lies inside the wall up to the chord sagitta (towards the cavity).
 
     Returns:
         A list of (K, 3) float64 point sets.
@@ -376,7 +376,7 @@ def _wall_parts(
     z_edges = np.linspace(z0, z_top, bands + 1)
     for b in range(bands):
         z = np.linspace(z_edges[b], z_edges[b + 1], 4)
-        # inset by `inset` from both wall surfaces: the mesh is a polygonal approximation of the curved profile
+        # inset from both wall surfaces: the mesh is a polygonal approximation of the curved profile
         ro, ri = r_out(z) - inset, _inner_radius(r_out, z, wall) + inset
         rings = [(ro, z), (ri, z)]
         if b == bands - 1:
@@ -385,7 +385,8 @@ def _wall_parts(
             a = np.linspace(2 * np.pi * s / sectors, 2 * np.pi * (s + 1) / sectors, 3)
             ca, sa = np.cos(a)[:, None], np.sin(a)[:, None]
             pts = [
-                np.stack([r[None, :] * ca, r[None, :] * sa, np.broadcast_to(zz, (3, len(zz)))], -1).reshape(-1, 3)
+                np.stack([r[None, :] * ca, r[None, :] * sa, np.broadcast_to(zz, (3, len(zz)))], -1)
+                .reshape(-1, 3)
                 for r, zz in rings
             ]
             parts.append(np.concatenate(pts, axis=0))
@@ -395,7 +396,7 @@ def _wall_parts(
 def _disk_part(
     r_out: Callable[[np.ndarray], np.ndarray], *, z0: float, z1: float, foot_radius: float = 0.0, n: int = 24
 ) -> np.ndarray:
-    """(2n, 3) points of a convex disk (solid base) between heights z0 and z1, inset by the foot fillet at z0."""
+    """(2n, 3) points of a convex disk (solid base) between heights z0 and z1, inset by the foot fillet."""
     a = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
     out = []
     for z, inset in ((z0, foot_radius), (z1, 0.0)):
@@ -441,10 +442,14 @@ def _tube_rings(path_xz: np.ndarray, *, radius: float, aspect: float, ring: int 
     return p3[:, None, :] + offs
 
 
-def _finish(mesh: trimesh.Trimesh, parts: list[np.ndarray], what: str) -> tuple[trimesh.Trimesh, list[np.ndarray]]:
+def _finish(
+    mesh: trimesh.Trimesh, parts: list[np.ndarray], what: str
+) -> tuple[trimesh.Trimesh, list[np.ndarray]]:
     """Check the solid, then move mesh and pieces into the canonical frame (bbox centre at the origin)."""
     if not mesh.is_watertight or mesh.volume <= 0:
-        raise RuntimeError(f"{what} is not a watertight solid (watertight={mesh.is_watertight}, volume={mesh.volume})")
+        raise RuntimeError(
+            f"{what} is not a watertight solid (watertight={mesh.is_watertight}, volume={mesh.volume})"
+        )
     shift = -mesh.bounds.mean(axis=0)
     mesh.apply_translation(shift)
     return mesh, [np.asarray(q, np.float64) + shift for q in parts]
@@ -467,7 +472,9 @@ def make_mug(seed: int, params: MugParams | None = None) -> trimesh.Trimesh:
     return make_mug_with_parts(seed, params)[0]
 
 
-def make_mug_with_parts(seed: int, params: MugParams | None = None) -> tuple[trimesh.Trimesh, list[np.ndarray]]:
+def make_mug_with_parts(
+    seed: int, params: MugParams | None = None
+) -> tuple[trimesh.Trimesh, list[np.ndarray]]:
     """`make_mug` plus a convex decomposition for physics: list of (K, 3) point sets, canonical frame."""
     p = sample_mug_params(seed) if params is None else params
     mesh, parts = _build_mug(p)
@@ -625,7 +632,7 @@ def make_shape_with_parts(category: str, seed: int) -> tuple[trimesh.Trimesh, li
 
     Returns:
         (mesh, parts): the watertight mesh and a list of (K, 3) float64 point sets in the same canonical frame
-        whose convex hulls approximate the solid from inside (concave mugs and bowls: wall sectors, base disk and
+        whose convex hulls approximate the solid from inside (concave mugs and bowls: wall sectors, base disk,
         handle segments; convex shapes: one piece).
 
     Raises:

@@ -3,16 +3,17 @@
 Three configurations, as in the EFEM paper's synthetic mug scenes:
   * ``"z"``: mugs upright with a random yaw, placed without overlap;
   * ``"so3"``: objects dropped with a random orientation (pybullet) and resting on the table;
-  * ``"pile"``: objects dropped into a small area inside a temporary ring wall (pybullet), which is then removed,
-    so that they stack and touch.
-Physics uses a convex decomposition of every object (`procedural.make_shape_with_parts`); final poses are checked
-for interpenetration with signed distances on the exact meshes (retried with new drops when above tolerance).
+  * ``"pile"``: objects dropped one after the other onto the ones already lying there (pybullet), so that
+    they stack, lean on and touch each other.
+Physics uses a convex decomposition of every object (`procedural.make_shape_with_parts`); final poses are
+checked for interpenetration with signed distances on the exact meshes (dropped again when above tolerance).
 
-The table top (0.8 x 0.8 m, top face at z = 0) is scanned by virtual depth cameras at the table corners looking at
-the objects (open3d ray casting; pinhole 640 x 480, Kinect-like axial noise sigma(z) = 1.2 mm + 1.9 mm (z - 0.4)^2
-and dropout at grazing angles), then fused by TSDF into a mesh (``mode="tsdf"``) or merged and voxel-downsampled
-as points (``mode="points"``). Ground truth: each output point takes the label of the nearest true surface (table,
-object or distractor) when closer than `label_tolerance`; mug k has id k, everything else 0.
+The table top (0.8 x 0.8 m, top face at z = 0) is scanned by virtual depth cameras at the table corners
+looking at the objects (open3d ray casting; pinhole 640 x 480, Kinect-like axial noise
+sigma(z) = 1.2 mm + 1.9 mm (z - 0.4)^2 and dropout at grazing angles), then fused by a projective TSDF into
+a mesh (``mode="tsdf"``) or merged and voxel-downsampled as points (``mode="points"``). Ground truth: each
+output point takes the label of the nearest true surface (table, object or distractor) when closer than
+`label_tolerance`; mug k has id k, everything else 0.
 
 World frame: metres, +Z up, table top at z = 0. Same arguments -> identical arrays.
 """
@@ -69,7 +70,9 @@ _MUG_COLORS = np.array(
     dtype=np.float64,
 )
 _TABLE_COLOR = np.array([190, 155, 115], dtype=np.float64)
-_DISTRACTOR_COLORS = np.array([[170, 170, 150], [120, 120, 200], [100, 160, 100], [200, 170, 120]], np.float64)
+_DISTRACTOR_COLORS = np.array(
+    [[170, 170, 150], [120, 120, 200], [100, 160, 100], [200, 170, 120]], dtype=np.float64
+)
 
 
 # ====================================================================================== objects and poses
@@ -183,15 +186,17 @@ def _write_parts_obj(parts: Sequence[np.ndarray], path: str, *, shrink: float = 
     for k, pts in enumerate(parts):
         hull = ConvexHull(pts)
         v = pts[hull.vertices]
-        if shrink > 0:  # Bullet inflates convex hulls by a collision margin: pull the vertices in by about that
+        if shrink > 0:  # Bullet inflates convex hulls by a collision margin: pull the vertices in by that
             c = v.mean(axis=0)
             d = v - c
             ln = np.linalg.norm(d, axis=1, keepdims=True)
             v = c + d * np.maximum(ln - shrink, 0.5 * ln) / np.maximum(ln, 1e-12)
-        remap = {int(i): j for j, i in enumerate(hull.vertices)}
+        remap = np.zeros(len(pts), np.int64)
+        remap[hull.vertices] = np.arange(len(hull.vertices)) + off  # 1-based OBJ indices
+        tri = remap[hull.simplices]
         lines.append(f"o part{k}")
         lines.extend(f"v {a:.6f} {b:.6f} {c:.6f}" for a, b, c in v)
-        lines.extend(f"f {remap[int(i)] + off} {remap[int(j)] + off} {remap[int(m)] + off}" for i, j, m in hull.simplices)
+        lines.extend(f"f {a} {b} {c}" for a, b, c in tri)
         off += len(v)
     with open(path, "w", encoding="ascii") as fh:
         fh.write("\n".join(lines) + "\n")
@@ -206,9 +211,9 @@ def _simulate(
 ) -> None:
     """Drop the objects with random orientations (pybullet, DIRECT mode) and store their resting poses.
 
-    scatter: all objects at once, each above its own non-overlapping spot. pile: one after the other, just above
-    the top of the objects already lying there (near their centre), each settling before the next is dropped, so
-    that they land on and slide against each other.
+    scatter: all objects at once, each above its own non-overlapping spot. pile: one after the other, just
+    above the top of the objects already lying there (near their centre), each settling before the next is
+    dropped, so that they land on and slide against each other.
     """
     import pybullet as pb
 
@@ -226,7 +231,9 @@ def _simulate(
         pb.changeDynamics(tid, -1, lateralFriction=0.8, physicsClientId=cid)
         rots = [_random_rotation(rng) for _ in objs]
         coms = [np.asarray(o.mesh.center_mass, np.float64) for o in objs]
-        radii = [float(np.linalg.norm(np.asarray(o.mesh.vertices) - c, axis=1).max()) for o, c in zip(objs, coms)]
+        radii = [
+            float(np.linalg.norm(np.asarray(o.mesh.vertices) - c, axis=1).max()) for o, c in zip(objs, coms)
+        ]
         xy = _scatter_xy(rng, radii, gap=0.005) if layout == "scatter" else None
         bodies: list[int] = []
         with tempfile.TemporaryDirectory(prefix="efem_synth_") as tmp:
@@ -240,7 +247,8 @@ def _simulate(
                     # above the centre of the pile so far, just clear of its top
                     if bodies:
                         lo_hi = [pb.getAABB(b, physicsClientId=cid) for b in bodies]
-                        centre = np.mean([pb.getBasePositionAndOrientation(b, physicsClientId=cid)[0] for b in bodies], 0)
+                        poses = [pb.getBasePositionAndOrientation(b, physicsClientId=cid) for b in bodies]
+                        centre = np.mean([q[0] for q in poses], axis=0)
                         top = max(h[1][2] for h in lo_hi)
                     else:
                         centre, top = np.zeros(3), 0.0
@@ -282,7 +290,7 @@ def _simulate(
 def _settle(
     pb: Any, cid: int, bodies: list[int], *, max_steps: int, min_steps: int = 120, check_every: int = 24
 ) -> int:
-    """Step until every body is (nearly) at rest (after at least `min_steps`) or `max_steps`; returns the steps."""
+    """Step until every body is (nearly) at rest (after `min_steps`) or `max_steps`; returns the steps."""
     steps = 0
     while steps < max_steps:
         for _ in range(check_every):
@@ -309,7 +317,9 @@ def _matrix_to_quat_xyzw(R: np.ndarray) -> list[float]:
 
 
 # ====================================================================================== checks
-def contact_report(objs_world: Sequence["trimesh.Trimesh"], *, samples: int = 3000, seed: int = 0) -> dict[str, Any]:
+def contact_report(
+    objs_world: Sequence["trimesh.Trimesh"], *, samples: int = 3000, seed: int = 0
+) -> dict[str, Any]:
     """Interpenetration and contact of posed meshes (world frame, table top at z = 0).
 
     Args:
@@ -339,7 +349,8 @@ def contact_report(objs_world: Sequence["trimesh.Trimesh"], *, samples: int = 30
     for j, mj in enumerate(objs_world):
         scene = o3d.t.geometry.RaycastingScene()
         scene.add_triangles(
-            o3d.core.Tensor(np.asarray(mj.vertices, np.float32)), o3d.core.Tensor(np.asarray(mj.faces, np.uint32))
+            o3d.core.Tensor(np.asarray(mj.vertices, np.float32)),
+            o3d.core.Tensor(np.asarray(mj.faces, np.uint32)),
         )
         lo, hi = mj.bounds[0] - 0.01, mj.bounds[1] + 0.01
         for i in range(k):
@@ -500,25 +511,29 @@ def _fuse_tsdf(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Fuse depth frames into a truncated signed distance grid over the box [lo, hi] and mesh its zero level.
 
-    Projective TSDF (Curless & Levoy / KinectFusion): every voxel centre in front of a measurement or less than
-    `trunc_voxels * voxel` behind it takes the weighted mean of the truncated signed distances of all cameras;
+    Projective TSDF (Curless & Levoy / KinectFusion): every voxel centre in front of a measurement or less
+    than `trunc_voxels * voxel` behind it takes the mean of the truncated signed distances of all cameras;
     marching cubes (scikit-image) runs only on cubes whose 8 corners were observed. Pure NumPy, deterministic.
 
     Args:
         frames: depth (H, W) float32 metres (0 = none) and colour (H, W, 3) uint8 per camera.
         cams: the cameras (intrinsics, T_world_camera).
         voxel: voxel size, metres.
-        lo, hi: (3,) world-frame corners of the fused box.
+        lo, hi: (3,) world-frame corners of the fused box (the grid origin moves by up to half a voxel in z).
         trunc_voxels: truncation distance in voxels.
 
     Returns:
-        vertices (V, 3) float64 world frame, faces (F, 3) int64 (outward = towards the cameras), colours (V, 3)
-        float64 in [0, 255].
+        vertices (V, 3) float64 world frame, faces (F, 3) int64 (outward = towards the cameras),
+        colours (V, 3) float64 in [0, 255].
     """
     from skimage.measure import marching_cubes
 
     from scipy.ndimage import binary_dilation
 
+    # put the table top (z = 0) halfway between two voxel layers: a surface running exactly through voxel
+    # centres makes marching cubes emit degenerate triangles, which leaves holes and doubles the vertex count
+    lo = np.array(lo, dtype=np.float64)
+    lo[2] = (math.floor(lo[2] / voxel) + 0.5) * voxel
     dims = np.maximum(np.ceil((hi - lo) / voxel).astype(int) + 1, 2)
     trunc = trunc_voxels * voxel
     # only voxels within the truncation band of some measurement can carry |tsdf| < 1: find them first
@@ -668,7 +683,7 @@ def generate_scene(
         image_size: (width, height) of the virtual depth cameras.
         n_cameras: number of cameras around the table (at the corners for 4).
         noise: add depth noise, dropout and colour noise.
-        label_tolerance: a point is labelled with the nearest true surface's id when closer than this (metres).
+        label_tolerance: a point takes the nearest true surface's id when closer than this (metres).
         name: scene name (default "<config>_<seed>").
         timings: if given, filled with the seconds spent per stage (poses, scan, fusion, labels); kept out of
             the provenance so that regenerating a scene gives identical files.
@@ -720,7 +735,9 @@ def generate_scene(
                 best = (rep["max_penetration"], [o.T_world_object.copy() for o in objs])
             if rep["max_penetration"] <= PENETRATION_TOLERANCE:
                 break
-            logger.info("scene %s_%d: penetration %.4f m, dropping again", config, seed, rep["max_penetration"])
+            logger.info(
+                "scene %s_%d: penetration %.4f m, dropping again", config, seed, rep["max_penetration"]
+            )
         assert best is not None
         penetration = best[0]
         for o, T in zip(objs, best[1]):
@@ -741,14 +758,17 @@ def generate_scene(
     rc = o3d.t.geometry.RaycastingScene()
     for m in world:
         rc.add_triangles(
-            o3d.core.Tensor(np.asarray(m.vertices, np.float32)), o3d.core.Tensor(np.asarray(m.faces, np.uint32))
+            o3d.core.Tensor(np.asarray(m.vertices, np.float32)),
+            o3d.core.Tensor(np.asarray(m.faces, np.uint32)),
         )
     albedo = np.stack([_TABLE_COLOR] + [o.color for o in objs])
     obj_lo = np.min([m.bounds[0] for m in world[1:]], axis=0)
     obj_hi = np.max([m.bounds[1] for m in world[1:]], axis=0)
     margin = 0.04
     crop_lo = np.array([max(obj_lo[0] - margin, -TABLE_HALF), max(obj_lo[1] - margin, -TABLE_HALF), -0.02])
-    crop_hi = np.array([min(obj_hi[0] + margin, TABLE_HALF), min(obj_hi[1] + margin, TABLE_HALF), obj_hi[2] + 0.03])
+    crop_hi = np.array(
+        [min(obj_hi[0] + margin, TABLE_HALF), min(obj_hi[1] + margin, TABLE_HALF), obj_hi[2] + 0.03]
+    )
     target = np.array([(obj_lo[0] + obj_hi[0]) / 2, (obj_lo[1] + obj_hi[1]) / 2, 0.04])
     cams = _make_cameras(rng, target, n_cameras=n_cameras, image_size=image_size)
     frames = [_render(rc, c, albedo, rng, noise=noise, crop_lo=crop_lo, crop_hi=crop_hi) for c in cams]
@@ -809,7 +829,7 @@ def generate_scene(
         "distractors": distractors,
         "image_size": list(image_size),
         "n_cameras": n_cameras,
-        "noise": "kinect axial sigma(z)=1.2mm+1.9mm*(z-0.4)^2, grazing dropout 65-85 deg" if noise else "none",
+        "noise": "kinect sigma(z)=1.2mm+1.9mm*(z-0.4)^2, grazing dropout 65-85 deg" if noise else "none",
         "label_tolerance": label_tolerance,
         "table": {"half_size": TABLE_HALF, "top_z": 0.0},
         "crop": [crop_lo.round(4).tolist(), crop_hi.round(4).tolist()],

@@ -78,7 +78,9 @@ def make_sphere_prior(n_pcl: int = 256) -> Any:
             v, s = self._prep(x, latent, index)
             return v.norm(dim=-1) / s - 0.5
 
-        def sdf_and_normals(self, x: Any, latent: Any, index: Any = None, *, chunk: int = 65536) -> tuple[Any, Any]:
+        def sdf_and_normals(
+            self, x: Any, latent: Any, index: Any = None, *, chunk: int = 65536
+        ) -> tuple[Any, Any]:
             v, s = self._prep(x, latent, index)
             nrm = v.norm(dim=-1, keepdim=True)
             return (nrm[..., 0] / s - 0.5), v / nrm.clamp_min(1e-12)
@@ -143,5 +145,6 @@ def make_sphere_scene(
         normals=np.concatenate(nrm).astype(np.float32),
         instance=np.concatenate(inst),
         categories={k + 1: "sphere" for k in range(len(centers))},
-        provenance={"generator": "efem_viz.em.analytic.make_sphere_scene", "seed": seed, "radii": list(radii)},
+        provenance={"generator": "efem_viz.em.analytic.make_sphere_scene", "seed": seed,
+                    "radii": list(radii)},
     )

@@ -99,13 +99,15 @@ class SegmentArgs:
             if self.scannet:
                 result.instances.to_scannet(self.out / "scannet", scene.name, scene.num_points)
             if self.ply:
-                result.instances.to_colored_ply(scene, self.out / f"{scene.name}.seg.ply", threshold=self.threshold)
+                result.instances.to_colored_ply(scene, self.out / f"{scene.name}.seg.ply",
+                                                threshold=self.threshold)
             n_inst = len(result.instances)
             summary.append((scene.name, scene.num_points, n_inst, dt))
             confs = ", ".join(f"{c:.2f}" for c in sorted(result.instances.confidence, reverse=True))
             console.print(f"{scene.name}: {n_inst} instances [{confs}] in {dt:.1f} s -> {res_path}")
         if len(summary) > 1:
             tot = sum(s[3] for s in summary)
-            console.print(f"{len(summary)} scenes, {sum(s[2] for s in summary)} instances, {tot:.1f} s total, "
+            n_all = sum(s[2] for s in summary)
+            console.print(f"{len(summary)} scenes, {n_all} instances, {tot:.1f} s total, "
                           f"{tot / len(summary):.1f} s per scene")
         return 1 if failures else 0

@@ -1,7 +1,7 @@
 """The proposal pool's sparse bookkeeping: neighbourhoods, M-step sampling and per-step eliminations.
 
 Everything here is plain NumPy/SciPy and works on *ragged rows*: proposal r owns the scene-point indices
-`idx[offsets[r]:offsets[r+1]]` (its crop or E-step neighbourhood) with one value per entry (weights, SDF, ...).
+`idx[offsets[r]:offsets[r+1]]` (its crop or E-step neighbourhood) with one value per entry (weights, SDF).
 Weights outside a row are zero by definition, so cost scales with the neighbourhood sizes, never with P × N.
 Rows are always in increasing proposal-id order. References: efem-method.md §3.3, §3.4 and §3.8.
 """
@@ -61,7 +61,8 @@ class Ragged:
         offsets = np.zeros(len(rows) + 1, np.int64)
         np.cumsum(lens, out=offsets[1:])
         if len(rows) and isinstance(rows[0], np.ndarray):
-            idx = np.concatenate([np.asarray(r, np.int64) for r in rows]) if lens.sum() else np.zeros(0, np.int64)
+            parts = [np.asarray(r, np.int64) for r in rows]
+            idx = np.concatenate(parts) if lens.sum() else np.zeros(0, np.int64)
         else:
             idx = np.fromiter(itertools.chain.from_iterable(rows), dtype=np.int64, count=int(lens.sum()))
         return cls(idx=idx, offsets=offsets)
@@ -119,7 +120,8 @@ class AvailableTree:
         self.crop = crop
         self.avail_idx = np.flatnonzero(np.asarray(available, bool)).astype(np.int64)
         dims = 3 if crop == "sphere" else 2
-        self.tree = cKDTree(np.asarray(points, np.float64)[self.avail_idx, :dims]) if len(self.avail_idx) else None
+        pts = np.asarray(points, np.float64)[self.avail_idx, :dims]
+        self.tree = cKDTree(pts) if len(self.avail_idx) else None
         self.dims = dims
 
     def query(self, centers: np.ndarray, radius: float) -> Ragged:
@@ -128,11 +130,13 @@ class AvailableTree:
             return Ragged(np.zeros(0, np.int64), np.zeros(len(centers) + 1, np.int64))
         finite = np.isfinite(centers).all(axis=1)
         if finite.all():
-            res = list(self.tree.query_ball_point(centers[:, : self.dims], r=float(radius), return_sorted=True))
+            res = list(self.tree.query_ball_point(centers[:, : self.dims], r=float(radius),
+                                                  return_sorted=True))
         else:  # a degenerate latent (NaN centre) owns no points
             res = [[] for _ in range(len(centers))]
             if finite.any():
-                got = self.tree.query_ball_point(centers[finite, : self.dims], r=float(radius), return_sorted=True)
+                got = self.tree.query_ball_point(centers[finite, : self.dims], r=float(radius),
+                                                 return_sorted=True)
                 for i, lst in zip(np.flatnonzero(finite), got):
                     res[i] = lst
         rag = Ragged.from_lists(res)
@@ -178,8 +182,11 @@ def _categorical_rows(
     rng: np.random.Generator,
     fallback: np.ndarray,
 ) -> np.ndarray:
-    """M i.i.d. draws per row from the categorical ∝ w over the row's entries (rows with zero mass: uniform over
-    `fallback`, the whole-scene safety rule of §3.4). Returns (P, m) int64 scene indices."""
+    """M i.i.d. draws per row from the categorical ∝ w over the row's entries.
+
+    Rows with zero mass draw uniformly from `fallback` (the whole-scene safety rule of §3.4).
+    Returns (P, m) int64 scene indices.
+    """
     p = rag.num_rows
     out = np.empty((p, m), np.int64)
     if p == 0:
@@ -199,14 +206,15 @@ def _categorical_rows(
         target = base[rows_ok, None] + u[rows_ok]
         pos = np.searchsorted(cs, target, side="right")
         pos = np.clip(pos, start[rows_ok, None], end[rows_ok, None] - 1)
-        # zero-weight entries can only be hit through rounding at a row's end: step back to the last positive one
+        # zero-weight entries are only hit through rounding at a row's end: step to a positive one
         bad = wn[pos] <= 0
         if bad.any():
             for r_local, j in zip(*np.nonzero(bad)):
                 r = rows_ok[r_local]
                 sl = rag.row_slice(int(r))
                 nz = np.flatnonzero(wn[sl] > 0)
-                pos[r_local, j] = sl.start + nz[min(np.searchsorted(nz, pos[r_local, j] - sl.start), len(nz) - 1)]
+                k = min(int(np.searchsorted(nz, pos[r_local, j] - sl.start)), len(nz) - 1)
+                pos[r_local, j] = sl.start + nz[k]
         out[rows_ok] = rag.idx[pos]
     if (~ok).any():
         if len(fallback) == 0:
@@ -254,8 +262,10 @@ def sample_joint(
     *,
     fallback: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Phase-2 M-step sampling (§3.4): every scene point draws one owner among {background: ω} ∪ {i: w_ij·S_i};
-    each proposal then samples M points ∝ w over the points it claimed.
+    """Phase-2 M-step sampling (§3.4).
+
+    Every scene point draws one owner among {background: ω} ∪ {i: w_ij·S_i}; each proposal then samples M
+    points ∝ w over the points it claimed.
 
     Args:
         rag: the rows' supports.
@@ -367,8 +377,8 @@ def find_duplicates(
 ) -> list[Kill]:
     """§3.8b duplicate removal over sparse sets, rows visited in order (= increasing proposal id).
 
-    For each still-active row i, the group is {k active : IoU(B_i, B_k) ≥ θ} (i included when B_i is not empty);
-    if it has more than one member, only the member with the highest score survives (argmax within the group,
+    For each still-active row i, the group is {k active : IoU(B_i, B_k) ≥ θ} (i included when B_i is not
+    empty); if it has more than one member, only the member with the highest score survives (argmax within the group,
     ties to the lowest row), the others die with that winner as partner.
 
     Args:

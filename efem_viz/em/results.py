@@ -108,7 +108,8 @@ class Instances:
                 return np.zeros((0, *shape), dtype)
             return np.stack([np.asarray(r[key], dtype).reshape(shape) for r in rows])
 
-        verts = [np.asarray(r["mesh_vertices"], np.float32) + np.asarray(r["center"], np.float32) for r in rows]
+        verts = [np.asarray(r["mesh_vertices"], np.float32) + np.asarray(r["center"], np.float32)
+                 for r in rows]
         return cls(
             ids=np.array([int(r["proposal_id"]) for r in rows], np.int64),
             masks=[np.asarray(r["mask"], np.int32) for r in rows],
@@ -187,9 +188,9 @@ class Instances:
     def to_npz_dict(self, prefix: str = "instances/") -> dict[str, np.ndarray]:
         def flat(parts: list[np.ndarray], shape: tuple[int, ...], dtype: Any) -> tuple[np.ndarray, np.ndarray]:
             offs = _offsets([len(p) for p in parts])
-            vals = np.concatenate([np.asarray(p, dtype).reshape(-1, *shape) for p in parts]) if parts else np.zeros(
-                (0, *shape), dtype)
-            return vals.astype(dtype), offs
+            if not parts:
+                return np.zeros((0, *shape), dtype), offs
+            return np.concatenate([np.asarray(p, dtype).reshape(-1, *shape) for p in parts]).astype(dtype), offs
 
         mv, mv_off = flat(self.mesh_vertices, (3,), np.float32)
         mf, mf_off = flat(self.mesh_faces, (3,), np.int32)
@@ -328,7 +329,8 @@ class EMResult:
                 raise ValueError(f"{p} is not an EFEM result file (keys: {sorted(z.files)[:8]}...)")
             ver = int(z["schema_version"])
             if ver != RESULT_SCHEMA_VERSION:
-                raise ValueError(f"{p}: unsupported result schema_version {ver} (expected {RESULT_SCHEMA_VERSION})")
+                raise ValueError(
+                    f"{p}: unsupported result schema_version {ver} (expected {RESULT_SCHEMA_VERSION})")
             data = {k: z[k] for k in z.files}
         return cls(
             trace=EMTrace.from_npz_dict(data),

@@ -1,9 +1,9 @@
 """The EFEM solver: proposals → EM steps (independent, then joint) → reviews → accepted instances.
 
-Reference: efem-method.md §3 (efem-viz is +Z up). Batched over proposals: one ragged decoder pass per step over
-the error balls of all live proposals at once (`ShapePrior.sdf_and_normals(x, latent, index)`), encoder calls in
-chunks of `cfg.encode_batch` proposals, eliminations on sparse P×N sets. A dead proposal costs nothing after its
-death. Randomness: one NumPy Generator seeded from `seed` draws anchors, Bernoulli masks and all categorical
+Reference: efem-method.md §3 (efem-viz is +Z up). Batched over proposals: one decoder pass per step over the
+error balls of all live proposals at once (rows of similar size padded into batches, see `decode_rows`),
+encoder calls in chunks of `cfg.encode_batch` proposals, eliminations on sparse P×N sets. A dead proposal
+costs nothing after its death. Randomness: one NumPy Generator seeded from `seed` draws anchors, Bernoulli masks and all categorical
 draws (on the CPU), so a run is reproducible on any device; the network itself is deterministic.
 """
 
@@ -138,8 +138,8 @@ def decode_rows(
         normals_within: see above; None = normals for every entry.
 
     Returns:
-        d (K,) float32 canonical SDF and γ (K,) float32 signed angle (degrees) between the scene normal and the
-        decoded normal; one value per entry of `rag`.
+        d (K,) float32 canonical SDF and γ (K,) float32 signed angle (degrees) between the scene normal and
+        the decoded normal; one value per entry of `rag`.
     """
     import torch
 
@@ -204,7 +204,8 @@ def _decode_padded(
             lmax = int(lens[0])  # a single row longer than the chunk: one big batch
         ar = np.arange(lmax)
         valid = ar[None, :] < lens[:, None]
-        pos = starts[grp][:, None] + np.minimum(ar[None, :], lens[:, None] - 1)  # pad with the row's last entry
+        # pad each row with its last entry
+        pos = starts[grp][:, None] + np.minimum(ar[None, :], lens[:, None] - 1)
         pidx = torch.from_numpy(idx[pos])
         x = pts_t[pidx].to(device=dev, dtype=dt)
         lat_g = latent[torch.from_numpy(grp).to(latent.R.device)]
@@ -240,7 +241,8 @@ def encode_samples(prior: Any, pts: np.ndarray, *, batch: int = 30) -> dict[str,
     parts: dict[str, list[np.ndarray]] = {"R": [], "inv": [], "center": [], "scale": []}
     with torch.no_grad():
         for s in range(0, len(pts), batch):
-            lat = prior.encode(torch.from_numpy(np.ascontiguousarray(pts[s : s + batch])).to(device=dev, dtype=dt))
+            x = torch.from_numpy(np.ascontiguousarray(pts[s : s + batch])).to(device=dev, dtype=dt)
+            lat = prior.encode(x)
             parts["R"].append(lat.R.detach().float().cpu().numpy())
             parts["inv"].append(lat.inv.detach().float().cpu().numpy())
             parts["center"].append(lat.center.detach().float().cpu().numpy())
@@ -467,7 +469,8 @@ class _Solver:
             available = available_full[self.work_idx]
             n_avail = int(available.sum())
             if n_avail <= self.min_size:
-                logger.info("episode %d skipped: %d available points <= min_size %d", ep, n_avail, self.min_size)
+                logger.info("episode %d skipped: %d available points <= min_size %d", ep, n_avail,
+                            self.min_size)
                 break
             tree = AvailableTree(self.points, available, crop=cfg.crop)
             full_tree = tree if self.identity else None
@@ -570,7 +573,9 @@ class _Solver:
         self.timer.add("eliminate", t0)
 
     # ------------------------------------------------------------------ review (§3.9)
-    def _review(self, pool: _Pool, full_tree: AvailableTree, step: int, phase: int) -> dict[int, dict[str, Any]]:
+    def _review(
+        self, pool: _Pool, full_tree: AvailableTree, step: int, phase: int
+    ) -> dict[int, dict[str, Any]]:
         cfg = self.cfg
         assert pool.latent is not None and pool.d is not None and pool.gamma is not None
         records: dict[int, dict[str, Any]] = {}
@@ -581,9 +586,9 @@ class _Solver:
             full_rag, d_full, g_full = pool.rag, pool.d, pool.gamma
         else:  # masks and coverage at the scene's full resolution
             full_rag = full_tree.query(pool.latent["center"], cfg.r_err)
-            d_full, g_full = decode_rows(self.prior, pool.latent, full_rag, self.full_points, self.full_normals,
-                                         chunk=cfg.decode_chunk,
-                                         normals_within=cfg.tau_out if cfg.gamma_out < 180.0 else -1.0)
+            d_full, g_full = decode_rows(
+                self.prior, pool.latent, full_rag, self.full_points, self.full_normals, chunk=cfg.decode_chunk,
+                normals_within=cfg.tau_out if cfg.gamma_out < 180.0 else -1.0)
             self.n_queries += len(full_rag.idx)
         self.timer.add("review_coverage", t0)
         for r in range(pool.size):
@@ -679,8 +684,8 @@ class _Solver:
         one = {k: np.asarray(v)[None] if k != "scale" else np.asarray(v).reshape(1) for k, v in lat.items()}
         est = estimate_pose(self.prior, _latent_from_numpy(self.prior, one), Q, fnorm)
         s_sel = float(est.scale_sel) if np.isfinite(est.scale_sel) and est.scale_sel > 0 else self.ref_scale
-        return (np.asarray(est.R, np.float64), np.asarray(est.R_raw, np.float64), s_sel, float(est.score_db_sim),
-                np.asarray(est.neighbour_ids))
+        R = np.asarray(est.R, np.float64)
+        return R, np.asarray(est.R_raw, np.float64), s_sel, float(est.score_db_sim), np.asarray(est.neighbour_ids)
 
 
 def _sample_surface(mesh: "trimesh.Trimesh", n: int, *, seed: int) -> tuple[np.ndarray, np.ndarray]:

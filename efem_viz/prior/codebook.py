@@ -41,6 +41,7 @@ __all__ = [
     "Codebook",
     "build_codebook",
     "latent_to_numpy",
+    "prior_fingerprint",
     "project_so3_code",
 ]
 
@@ -69,6 +70,24 @@ def project_so3_code(theta_R: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nd
     sign = np.where(np.abs(m3) > 1e-6 * scale, np.sign(m3), np.sign(amax))
     sign = np.where(sign == 0, 1.0, sign)
     return P * sign[..., None, :], E * sign[..., None, :], evals
+
+
+def prior_fingerprint(prior: Any) -> str:
+    """SHA-1 of a prior's weights (float32 bytes of its state dict, in key order): ties a codebook to a prior.
+
+    Args:
+        prior: a `ShapePrior` (any torch module).
+
+    Returns:
+        40-character hex digest.
+    """
+    import hashlib
+
+    h = hashlib.sha1()
+    for key, tensor in prior.state_dict().items():
+        h.update(key.encode())
+        h.update(tensor.detach().to("cpu").float().contiguous().numpy().tobytes())
+    return h.hexdigest()
 
 
 def latent_to_numpy(latent_i: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
@@ -170,6 +189,15 @@ class Codebook:
     def mean_scale(self) -> float:
         """`s̄`, the mean stored Θ_s (mesh-extraction reference scale, spec §3.9.1)."""
         return float(np.mean(self.scale.astype(np.float64)))
+
+    def matches(self, prior: Any) -> bool:
+        """True if this codebook was built from exactly these weights (see `prior_fingerprint`).
+
+        A codebook of other weights gives meaningless retrievals and poses: rebuild it with
+        `efem-viz build-codebook`. Codebooks without a stored fingerprint return True (cannot tell).
+        """
+        stored = self.meta.get("prior_fingerprint")
+        return stored is None or stored == prior_fingerprint(prior)
 
     def cloud(self, k: int) -> np.ndarray:
         """(n_store, 3) float64 canonical cloud of entry `k`."""
@@ -407,6 +435,7 @@ def build_codebook(
         input_idx=idx,
         meta={
             "prior": str(getattr(prior, "name", "")),
+            "prior_fingerprint": prior_fingerprint(prior),
             "category": category,
             "n_store": int(n_store),
             "noise": float(noise),

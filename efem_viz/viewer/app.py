@@ -75,6 +75,7 @@ class ViewerApp:
         self._play_thread: threading.Thread | None = None
         self._view_cache: dict[tuple[int, int], Any] = {}
         self._gt_cache: dict[tuple[int, float], st.GTMetrics] = {}
+        self._no_shapes_generation = -1
         self._inspect_weights: np.ndarray | None = None
         self._generation = 0
         """Bumped on every scene/result change so stale worker results are dropped."""
@@ -233,6 +234,24 @@ class ViewerApp:
                 self._prior_error = f"shape prior {self._prior_name!r} unavailable: {exc}"
                 raise RuntimeError(self._prior_error) from exc
         return self._prior
+
+    def _prior_for(self, trace: Any) -> Any:
+        """The prior, checked against the latent size recorded in the trace.
+
+        Raises:
+            RuntimeError: no prior, or one whose latent size differs from the trace's (another prior's run).
+        """
+        prior = self.prior()
+        c_trace = int(np.asarray(trace.row_R).shape[1]) if len(trace.row_R) else None
+        cfg = getattr(prior, "config", None)
+        c_prior = getattr(cfg, "latent_dim", None)
+        if c_trace is not None and c_prior is not None and int(c_prior) != c_trace:
+            raise RuntimeError(
+                f"this trace was recorded with a prior of latent size {c_trace}, but the viewer's prior "
+                f"{getattr(prior, 'name', self._prior_name)!r} has latent size {c_prior}; start the viewer with the "
+                "prior used for the run (--prior)"
+            )
+        return prior
 
     # ================================================================== 1. scenes
     def open_scene(self, name: str) -> bool:
@@ -523,7 +542,7 @@ class ViewerApp:
         keys = [(int(pid), t) for pid in drawn] if s.show_shapes else []
         self.nodes.show_shapes(keys)
         missing = [k for k in keys if not self.nodes.has_shape(*k)]
-        if missing:
+        if missing and self._no_shapes_generation != self._generation:
             self._submit(self._decoder, self._decode_shapes, missing, self._generation)
 
     def _decode_shapes(self, keys: list[tuple[int, int]], generation: int) -> None:
@@ -531,8 +550,9 @@ class ViewerApp:
         from efem_viz.em.solver import mesh_of_latent
 
         try:
-            prior = self.prior()
+            prior = self._prior_for(self.state.result.trace)
         except RuntimeError as exc:
+            self._no_shapes_generation = generation  # say it once, do not retry on every step
             self._set_status(f"Decoded shapes unavailable: {exc}", error=True)
             return
         for pid, t in keys:
@@ -676,11 +696,15 @@ class ViewerApp:
 
     def _inspect_job(self, pid: int, t: int, generation: int) -> None:
         try:
-            prior = self.prior()
+            prior = self._prior_for(self.state.result.trace)
         except RuntimeError as exc:
-            prior = None
+            prior = None  # the first step of an episode still has weights (the crop); later steps need the prior
             logger.info("inspecting without a prior: %s", exc)
-        view = self._view(pid, t, prior)
+        try:
+            view = self._view(pid, t, prior)
+        except ValueError as exc:
+            self._set_status(f"Cannot inspect #{pid} at step {t}: {exc}", error=True)
+            return
         with self._lock:
             s = self.state
             if generation != self._generation or s.selected != pid or s.step != t:
@@ -750,11 +774,12 @@ class ViewerApp:
             self._show_results()
 
     def _show_results(self) -> None:
-        """Result layers per the toggles and the threshold; meshes step aside while a weight heat map is shown."""
+        """Result layers per the toggles and the threshold; meshes step aside while the points carry a weight heat
+        map or the TP/FP/FN colours (they would hide them)."""
         s = self.state
         self.nodes.show_results(
             self.kept_mask(),
-            show_meshes=s.show_meshes and s.color_mode != "weights",
+            show_meshes=s.show_meshes and s.color_mode in ("rgb", "instances"),
             show_obbs=s.show_obbs,
             show_axes=s.show_axes,
         )

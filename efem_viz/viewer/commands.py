@@ -7,6 +7,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import tyro
+
 logger = logging.getLogger(__name__)
 
 
@@ -14,7 +16,7 @@ logger = logging.getLogger(__name__)
 class ViewArgs:
     """Open the EFEM viewer in the browser on scenes (files or folders; default: the bundled sample_scenes/)."""
 
-    paths: tuple[Path, ...] = field(default_factory=tuple)
+    paths: tyro.conf.Positional[tuple[Path, ...]] = field(default_factory=tuple)
     """Scene files and/or folders. Only scene files inside these paths can be opened."""
     host: str = "127.0.0.1"
     """Interface to bind. The default keeps the viewer private to this machine; use 0.0.0.0 to share it."""

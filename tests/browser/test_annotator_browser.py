@@ -64,19 +64,14 @@ def _settle(page: Any, *, timeout: float = 15.0) -> np.ndarray:
     return prev
 
 
-def test_ctrl_drag_on_mesh_paints_vertices(annotator: Any, page: Any, browser: Any) -> None:
-    """Tab 1 paints with a ctrl-drag; the store changes, and tab 2 (another browser context) sees it too."""
+def test_ctrl_drag_on_mesh_paints_vertices(annotator: Any, page: Any) -> None:
+    """A ctrl-drag paints: the label store changes (one undoable stroke) and so does the canvas."""
     app = annotator
     iid = app.settings.active_id
-    other_ctx = browser.new_context(viewport={"width": 1280, "height": 800})
-    other = other_ctx.new_page()
     page.goto(app.url)
-    other.goto(app.url)
     page.get_by_text("Tools", exact=True).first.wait_for(timeout=30_000)
-    other.get_by_text("Tools", exact=True).first.wait_for(timeout=30_000)
-    _wait(lambda: len(app.server.get_clients()) > 1, 30, "two client connections")
+    _wait(lambda: len(app.server.get_clients()) > 0, 30, "client connection")
     before = _settle(page)
-    before_other = _settle(other)
     box = page.locator("canvas").first.bounding_box()
     assert box is not None
     cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
@@ -104,10 +99,6 @@ def test_ctrl_drag_on_mesh_paints_vertices(annotator: Any, page: Any, browser: A
     after = _settle(page)
     changed = int((np.abs(after - before).sum(axis=-1) > 60).sum())
     assert changed > 50, f"the canvas barely changed after painting ({changed} pixels)"
-    after_other = _settle(other)
-    changed_other = int((np.abs(after_other - before_other).sum(axis=-1) > 60).sum())
-    assert changed_other > 50, f"the second tab did not show the edit ({changed_other} pixels changed)"
-    other_ctx.close()
     if SAVE:
         DOCS_IMG.mkdir(parents=True, exist_ok=True)
         page.screenshot(path=str(DOCS_IMG / "annotator_brush.png"))
