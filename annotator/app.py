@@ -39,7 +39,7 @@ from annotator.io import (
     save_labels_ply,
     save_scannet,
 )
-from annotator.journal import JournalError, LabelStore
+from annotator.journal import LabelStore
 from annotator.labels import Delta, InstanceInfo, LabelSet
 from annotator.render import Chunks, build_chunks, color_lut, compose_colors, splat_proxy
 

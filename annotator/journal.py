@@ -22,7 +22,6 @@ import json
 import logging
 import os
 import struct
-import tempfile
 import threading
 import time
 import zlib
@@ -52,42 +51,28 @@ class JournalError(ValueError):
 
 
 # ---------------------------------------------------------------------------------------------- atomic files
-def fsync_dir(path: Path) -> None:
-    """fsync a directory so that a rename inside it is durable (no-op where unsupported)."""
-    with contextlib.suppress(OSError):
-        fd = os.open(str(path), os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-
-
 def atomic_write_bytes(path: str | os.PathLike[str], writer: Callable[[Any], None]) -> None:
-    """Write a file atomically: `writer(fileobj)` into a temp file in the same directory, fsync, rename.
+    """Write a file atomically with `efem_viz.data.io.atomic_write` (temp file in the same directory, fsync,
+    rename, directory fsync), handing `writer` an open binary file object.
 
     Args:
-        path: destination; an existing symlink at `path` is refused (never written through).
+        path: destination; an existing symlink at `path` is refused (never replaced or written through).
         writer: called with a binary file object open for writing.
 
     Raises:
         JournalError: `path` is a symlink.
     """
+    from efem_viz.data.io import atomic_write
+
     p = Path(path)
     if p.is_symlink():
         raise JournalError(f"refusing to overwrite {p}: it is a symbolic link")
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=str(p.parent))
-    try:
-        with os.fdopen(fd, "wb") as f:
+
+    def write(tmp: Path) -> None:
+        with open(tmp, "wb") as f:
             writer(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, p)
-        fsync_dir(p.parent)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
+
+    atomic_write(p, write)
 
 
 # ---------------------------------------------------------------------------------------------- records

@@ -91,9 +91,6 @@ class InstanceInfo:
         return self.locked or not self.visible
 
 
-TableChange = Mapping[int, "InstanceInfo | None"]
-
-
 @dataclass(frozen=True)
 class Delta:
     """One invertible edit.

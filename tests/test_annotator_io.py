@@ -169,3 +169,32 @@ def test_writers_refuse_symlink_targets(tmp_path: Path, scene: Scene, labelled) 
     with pytest.raises(ValueError, match="symbolic link"):
         save_labels_npz(lab, table, tmp_path / "toy.labels.npz")
     assert victim.read_text() == "keep me"
+
+
+@pytest.mark.parametrize("suffix", [".ply", ".obj", ".off", ".glb", ".npz"])
+def test_scans_open_in_every_format_unchanged(tmp_path: Path, scene: Scene, suffix: str) -> None:
+    p = save_scene(scene, tmp_path / f"toy{suffix}")
+    before = p.read_bytes()
+    got = load_scan(p)
+    assert got.num_points == scene.num_points and got.is_mesh
+    assert np.allclose(got.points, scene.points, atol=1e-5)
+    assert p.read_bytes() == before  # the source scan is only read
+
+
+def test_binary_triangle_ply_fast_path_matches_general_loader(tmp_path: Path, scene: Scene) -> None:
+    p = save_scene(scene.with_labels(np.arange(500) % 3, {1: "mug", 2: "bowl"}), tmp_path / "t.ply")
+    fast = load_scan(p)
+    ref = load_scene(p)
+    for k in ("points", "normals", "colors", "faces", "instance"):
+        assert np.array_equal(getattr(fast, k), getattr(ref, k)), k
+    assert fast.categories == ref.categories
+
+
+RGBD = Path("/work/shared/data/real_tabletop/image_0000.npz")
+
+
+@pytest.mark.skipif(not RGBD.exists(), reason="real RGB-D frames not present")
+def test_rgbd_frame_opens_as_a_tabletop_scene() -> None:
+    s = load_scan(RGBD)
+    assert 10_000 < s.num_points < 2_000_000 and not s.is_mesh
+    assert abs(float(np.median(s.points[:, 2]))) < 0.05  # the table plane is z = 0

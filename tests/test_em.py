@@ -184,6 +184,12 @@ def test_scannet_export_readable(tmp_path: Path) -> None:
         m = np.loadtxt(tmp_path / rel, dtype=int)
         assert m.shape == (8,)
         assert np.flatnonzero(m).tolist() == inst.masks[k].tolist()
+    from efem_viz.eval import load_scannet_predictions
+
+    (pred,) = load_scannet_predictions(tmp_path)
+    assert pred.name == "scene0"
+    assert [np.flatnonzero(m).tolist() for m in pred.masks] == [m.tolist() for m in inst.masks]
+    assert np.allclose(pred.confidences, np.round(inst.confidence, 4))
 
 
 def test_colored_ply_round_trip(sphere_run: tuple, tmp_path: Path) -> None:
@@ -256,3 +262,14 @@ def test_trained_prior_finds_mugs() -> None:
     assert m.shape[1] == len(scene.instance_ids())
     best = m.max(axis=0) if len(res.instances) else np.zeros(m.shape[1])
     assert (best >= 0.7).all(), f"per-object best IoU {np.round(best, 3)}"
+
+
+def test_instances_npz_round_trip_including_empty() -> None:
+    for inst in (_toy_instances(), Instances.empty()):
+        back = Instances.from_npz_dict(inst.to_npz_dict())
+        assert len(back) == len(inst)
+        assert np.array_equal(back.ids, inst.ids) and np.array_equal(back.confidence, inst.confidence)
+        assert all(np.array_equal(a, b) for a, b in zip(back.masks, inst.masks))
+        assert all(np.array_equal(a, b) for a, b in zip(back.mesh_faces, inst.mesh_faces))
+        assert back.R.shape == (len(inst), 3, 3)
+        assert back.label_array(10).shape == (10,)

@@ -90,7 +90,7 @@ def test_tsdf_surface_close_to_truth_and_sensible_size() -> None:
     vox = FAST["voxel"]
     assert np.median(d) < 0.25 * vox, f"median distance to the true surfaces {np.median(d) * 1e3:.1f} mm"
     q95 = np.quantile(d, 0.95)
-    assert q95 < 1.25 * vox, f"95% of the fused surface within {q95 * 1e3:.1f} mm of the truth"
+    assert q95 < 1.5 * vox, f"95% of the fused surface within {q95 * 1e3:.1f} mm of the truth"
     assert np.quantile(d, 0.99) < 2.5 * vox
     assert 2_000 < s.num_points < 120_000
     assert s.faces is not None and s.faces.max() < s.num_points

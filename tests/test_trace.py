@@ -42,6 +42,7 @@ def test_trace_shapes_and_bookkeeping(run: tuple) -> None:
     assert tr.row_samples.dtype == np.int32 and tr.row_samples.max() < scene.num_points
     assert list(tr.step_phase) == [1] * 6 + [2] * 3
     assert (tr.schedule[:, 0] > 0).all()
+    assert np.all(np.diff(tr.step_elapsed) >= 0) and len(tr.step_elapsed) == tr.num_steps
 
 
 def test_events_are_complete_and_ordered(run: tuple) -> None:
@@ -190,3 +191,14 @@ def test_working_set_run_records_full_resolution_indices() -> None:
     on[tr.work_idx] = True
     assert np.allclose(w_full[on], w_work[on], atol=1e-6)
     assert (w_work[~on] == 0).all() and (w_full[~on] > 0).any()
+
+
+def test_load_binds_scene_and_checks_size(run: tuple, tmp_path: Path) -> None:
+    scene, prior, res = run
+    path = res.save(tmp_path / "r.efem.npz")
+    back = EMResult.load(path, scene=scene, prior=prior)
+    pid = int(res.instances.ids[0])
+    assert np.array_equal(back.trace.view(pid, 1, mesh=False).weights, res.trace.view(pid, 1, mesh=False).weights)
+    other = make_sphere_scene(seed=99, radii=(0.05,))
+    with pytest.raises(ValueError, match="points"):
+        EMResult.load(path, scene=other)

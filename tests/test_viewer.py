@@ -265,6 +265,7 @@ def test_export_results_and_static_demo(app: Any, tmp_path: Path) -> None:
 
     meta = json.loads((index.parent / "meta.json").read_text())
     assert meta["steps"] == app.state.result.trace.num_steps
+    assert meta["decoded_shapes"] > 0  # the viewer's prior decoded the best proposals of every step
 
 
 def test_ground_truth_panel(app: Any) -> None:
@@ -337,3 +338,37 @@ def test_prior_mismatch_is_reported_once(scene_dir: Path) -> None:
         assert a.nodes.samples is not None and a.nodes.samples.visible  # the rest of the timeline works
     finally:
         a.stop()
+
+
+def test_playback_advances_and_stops_at_the_end(app: Any) -> None:
+    import time
+
+    app.set_step(0)
+    app.state.speed = 40.0
+    app.play()
+    assert app.state.playing and app.panels.gui_play.label == "Pause"
+    deadline = time.monotonic() + 30
+    while app.state.playing and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not app.state.playing and app.state.step == app.state.num_steps - 1
+    assert app.panels.gui_play.label == "Play" and app.panels.gui_step.value == app.state.step
+    app.state.speed = 2.0
+    assert app.wait_idle(60)
+
+
+def test_gui_callbacks_drive_the_app(app: Any) -> None:
+    """Setting a GUI value (as a browser does) runs the callback; programmatic updates do not re-enter."""
+    app.panels.gui_step.value = 1
+    assert app.state.step == 1
+    app.panels.gui_threshold.value = app.panels.gui_threshold.max
+    assert app.state.threshold == app.panels.gui_threshold.max and app.kept_mask().sum() == 0
+    app.panels.gui_threshold.value = 0.0
+    assert app.kept_mask().all()
+    app.panels.gui_max_shapes.value = 2
+    assert app.state.max_shapes == 2
+    app.panels.gui_max_shapes.value = 8
+    app.panels.gui_color.value = "scene colours"
+    assert app.state.color_mode == "rgb"
+    assert np.array_equal(np.asarray(app.nodes.points.colors), app.state.scene.colors)
+    app.set_step(app.state.num_steps - 1)
+    assert app.wait_idle(60)

@@ -314,8 +314,8 @@ class EMResult:
         return atomic_write(p, lambda t: np.savez_compressed(t, **data))
 
     @classmethod
-    def load(cls, path: str | os.PathLike[str]) -> "EMResult":
-        """Read a file written by `save`.
+    def load(cls, path: str | os.PathLike[str], *, scene: "Scene | None" = None, prior: Any = None) -> "EMResult":
+        """Read a file written by `save`; optionally bind the scene and prior for `trace.view` replays.
 
         Raises:
             FileNotFoundError: missing file.
@@ -332,8 +332,13 @@ class EMResult:
                 raise ValueError(
                     f"{p}: unsupported result schema_version {ver} (expected {RESULT_SCHEMA_VERSION})")
             data = {k: z[k] for k in z.files}
+        if scene is not None and scene.num_points != int(data["num_points"]):
+            raise ValueError(f"{p} was computed on {int(data['num_points'])} points but scene {scene.name!r} has "
+                             f"{scene.num_points}")
+        trace = EMTrace.from_npz_dict(data)
+        trace.bind(scene, prior)
         return cls(
-            trace=EMTrace.from_npz_dict(data),
+            trace=trace,
             instances=Instances.from_npz_dict(data),
             config=EMConfig.from_json(str(data["config_json"])),
             timings=json.loads(str(data["timings_json"])),

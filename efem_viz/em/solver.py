@@ -491,10 +491,10 @@ class _Solver:
                     if full_tree is None:
                         full_tree = AvailableTree(self.full_points, available_full, crop=cfg.crop)
                     last_review = self._review(pool, full_tree, step, phase)
-                self.rec.end_step(pool.size)
+                elapsed = time.perf_counter() - self.t_start
+                self.rec.end_step(pool.size, elapsed)
                 if self.on_step is not None:
-                    self.on_step(StepInfo(step, self.planned_steps, phase, pool.size,
-                                          time.perf_counter() - self.t_start, ep))
+                    self.on_step(StepInfo(step, self.planned_steps, phase, pool.size, elapsed, ep))
             t0 = time.perf_counter()
             final_step = self.rec.num_steps - 1
             assert pool.stationary is not None or pool.size == 0
@@ -598,8 +598,15 @@ class _Solver:
             center = lat["center"].astype(np.float64)
             scale = float(lat["scale"])
             t0 = time.perf_counter()
-            mesh = mesh_of_latent(self.prior, lat, resolution=cfg.mesh_resolution)
-            if len(mesh.faces):
+            if np.isfinite(center).all() and np.isfinite(scale) and scale > 0:
+                mesh = mesh_of_latent(self.prior, lat, resolution=cfg.mesh_resolution)
+            else:  # a degenerate latent has no shape (it fails the scale check below)
+                import trimesh
+
+                mesh = trimesh.Trimesh()
+                center = np.nan_to_num(center)
+                scale = 1.0
+            if len(mesh.faces) and np.isfinite(np.asarray(mesh.vertices)).all():
                 samples, fidx = _sample_surface(mesh, cfg.n_store, seed=self.seed * 1_000_003 + pid)
                 fnorm = np.asarray(mesh.face_normals, np.float64)[fidx]
                 Q = samples - center

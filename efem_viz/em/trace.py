@@ -56,7 +56,8 @@ class ProposalView(NamedTuple):
     Attributes:
         proposal_id: the proposal.
         step: the global step of the record shown (the requested step, or the death step if it died before).
-        weights: (N,) float32 W_in over the scene: the weights that produced this step's samples.
+        weights: (N,) float32 W_in over the scene: the weights that produced this step's samples (in the
+            joint phase the samples come from the part of W_in this proposal won in the competition).
         sample_idx: (M,) int32 sampled scene indices (with repeats).
         sampled_points: (M, 3) float32 world points of the samples.
         mesh: the decoded shape of this step's latent (world frame), or None (no prior / not asked).
@@ -148,6 +149,8 @@ class EMTrace:
     """(T, 4) float32 (α_D, τ_D, α_N, τ_N)."""
     active_count: np.ndarray
     """(T+1,) int32: live proposals before step 0, then after each step's eliminations (and review)."""
+    step_elapsed: np.ndarray
+    """(T,) float32 seconds since the run started, at the end of each step (review included)."""
     row_offsets: np.ndarray
     """(T+1,) int64: rows of step t are row_offsets[t]:row_offsets[t+1]."""
     # ---- rows (R,)
@@ -524,7 +527,7 @@ class EMTrace:
 
     # ------------------------------------------------------------------ persistence
     _ARRAY_FIELDS: ClassVar[tuple[str, ...]] = (
-        "step_phase", "step_episode", "step_local", "schedule", "active_count", "row_offsets",
+        "step_phase", "step_episode", "step_local", "schedule", "active_count", "step_elapsed", "row_offsets",
         "row_id", "row_R", "row_inv", "row_center", "row_scale", "row_stationary", "row_inliers", "row_samples",
         "prop_episode", "prop_anchor", "prop_r_init", "prop_r_err", "prop_birth_step",
         "death_step", "death_reason", "death_partner", "death_ratio", "death_order",
@@ -588,6 +591,7 @@ class TraceRecorder:
         self.work_min_size = int(work_min_size if work_min_size is not None else config.min_size)
         self.steps: list[tuple[int, int, int, tuple[float, float, float, float]]] = []
         self.active_count: list[int] = []
+        self.elapsed: list[float] = []
         self.rows: list[dict[str, np.ndarray]] = []
         self.props: dict[str, list[Any]] = {k: [] for k in ("episode", "anchor", "r_init", "r_err", "birth")}
         self.deaths: dict[int, tuple[int, int, int, float, int]] = {}
@@ -644,8 +648,9 @@ class TraceRecorder:
         )
         return self.num_steps - 1
 
-    def end_step(self, active: int) -> None:
+    def end_step(self, active: int, elapsed_s: float = float("nan")) -> None:
         self.active_count.append(int(active))
+        self.elapsed.append(float(elapsed_s))
 
     def death(self, proposal_id: int, step: int, reason: str, partner: int = -1, ratio: float = float("nan")) -> None:
         if int(proposal_id) in self.deaths:
@@ -708,6 +713,7 @@ class TraceRecorder:
             step_local=np.array([s[2] for s in self.steps], np.int16),
             schedule=np.array([s[3] for s in self.steps], np.float32).reshape(-1, 4),
             active_count=np.array(active, np.int32),
+            step_elapsed=np.array(self.elapsed, np.float32),
             row_offsets=_offsets([len(r["id"]) for r in self.rows]),
             row_id=cat("id", (), np.int32),
             row_R=cat("R", (c, 3), np.float32),

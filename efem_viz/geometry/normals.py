@@ -34,7 +34,7 @@ def estimate_normals(
         import trimesh
 
         mesh = trimesh.Trimesh(vertices=pts, faces=np.asarray(faces), process=False)
-        nrm = np.asarray(mesh.vertex_normals, dtype=np.float64)
+        nrm = np.array(mesh.vertex_normals, dtype=np.float64)  # copy: trimesh caches are read-only
         bad = ~np.isfinite(nrm).all(axis=1) | (np.linalg.norm(nrm, axis=1) < 1e-9)
         if bad.any():
             nrm[bad] = 0.0

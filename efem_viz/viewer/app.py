@@ -166,8 +166,9 @@ class ViewerApp:
 
         def guard(fn: Callable[[], None]) -> Callable[[Any], None]:
             def cb(_event: Any) -> None:
-                if self._quiet:
-                    return
+                with self._lock:  # our own programmatic updates set _quiet while holding the lock
+                    if self._quiet:
+                        return
                 try:
                     fn()
                 except Exception as exc:  # noqa: BLE001
@@ -875,7 +876,13 @@ class ViewerApp:
             self._set_status("Nothing to export: load or run a result first.", error=True)
             return None
         target = Path(out_dir) if out_dir is not None else REPO_ROOT / "static" / _safe_name(s.scene.name)
-        out = export_static_demo(s.scene, s.result, target, threshold=s.threshold)
+        try:
+            prior = self._prior_for(s.result.trace)
+        except RuntimeError as exc:
+            prior = None
+            logger.info("static demo without decoded shapes: %s", exc)
+        self._set_status(f"Exporting the static demo of {s.scene.name} …")
+        out = export_static_demo(s.scene, s.result, target, threshold=s.threshold, prior=prior)
         self.panels.gui_export_info.content = f"Static demo written to `{out}`"
         self._set_status(f"Exported static demo to {out}.")
         return out

@@ -1,8 +1,8 @@
 """Exports from the viewer: results (ScanNet layout + coloured PLY) and a static, self-contained demo page.
 
 The static demo is recorded with viser's scene serializer on a private, short-lived server bound to 127.0.0.1
-(port 0): the scan, then one frame per EM step (sampled points of the live proposals, coloured by id, and a caption
-with the phase and the number of active proposals), then the final result (instance colours, meshes, boxes).
+(port 0): the scan, then one frame per EM step (sampled points of the live proposals, coloured by id, the decoded
+shapes of the best few when the prior is given, and a caption with the phase and the number of active proposals), then the final result (instance colours, meshes, boxes).
 `as_html()` inlines the viser client and the zstd-compressed recording, so `index.html` opens from file:// with a
 playback bar (pause, scrub, speed, loop) and needs nothing else.
 """
@@ -80,6 +80,8 @@ def export_static_demo(
     step_seconds: float = 0.6,
     final_seconds: float = 3.0,
     seed: int = 0,
+    prior: Any = None,
+    shapes_per_step: int = 4,
 ) -> Path:
     """Record a static demo page: the scan, a playback of the EM steps, and the final result.
 
@@ -93,6 +95,9 @@ def export_static_demo(
         step_seconds: playback time per EM step.
         final_seconds: time the final result stays before the loop restarts.
         seed: subsampling seed.
+        prior: the shape prior of the run; when given, the decoded shapes of the `shapes_per_step` best live
+            proposals are part of every step (decoded here, about 0.3 s each with the mug prior on a CPU).
+        shapes_per_step: see `prior`.
 
     Returns:
         Path of the written `index.html`.
@@ -114,11 +119,17 @@ def export_static_demo(
     labels = inst.label_array(n)
     caption_pos = (float((lo[0] + hi[0]) / 2), float((lo[1] + hi[1]) / 2), float(hi[2] + 0.08 * diag))
 
+    n_shapes = 0
     server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
     try:
         ser = server.get_scene_serializer()
         api = server.scene
         api.set_up_direction("+z")
+        center = (lo + hi) / 2.0
+        cam = server.initial_camera  # recorded: the page opens looking at the scene
+        cam.look_at = tuple(float(v) for v in center)
+        cam.position = tuple(float(v) for v in center + diag * np.array([0.5, -0.95, 0.85]))
+        cam.up = (0.0, 0.0, 1.0)
         cloud = api.add_point_cloud(
             "/scene/points", points=pts[keep], colors=st.dim(scene.colors[keep]), point_size=psize, point_shape="rounded"
         )
@@ -144,6 +155,25 @@ def export_static_demo(
                     point_size=psize * 1.6,
                     point_shape="circle",
                 )
+            api.remove_by_name("/em/shapes")
+            if prior is not None and shapes_per_step > 0:
+                from efem_viz.em.solver import mesh_of_latent
+
+                res = int(getattr(trace.config, "mesh_resolution", 32))
+                for pid in drawn[:shapes_per_step]:
+                    mesh = mesh_of_latent(prior, trace.latent(int(pid), t), resolution=res)
+                    if mesh is None or not len(mesh.faces):
+                        continue
+                    n_shapes += 1
+                    dead = st.is_dead_at(trace, int(pid), t)
+                    col = st.DEAD_COLOR if dead else st.palette([int(pid)])[0]
+                    api.add_mesh_simple(
+                        f"/em/shapes/p{int(pid)}",
+                        vertices=np.asarray(mesh.vertices, np.float32),
+                        faces=np.asarray(mesh.faces, np.int32),
+                        color=tuple(int(c) for c in col),
+                        opacity=0.85,
+                    )
             phase = int(np.asarray(trace.phase)[t])
             api.add_label("/caption", text=f"step {t}/{T - 1} · phase {phase} · {len(ids)} active", position=caption_pos)
             ser.insert_sleep(step_seconds)
@@ -190,6 +220,7 @@ def export_static_demo(
         "points_total": int(n),
         "steps": T,
         "instances": int(len(inst.ids)),
+        "decoded_shapes": n_shapes,
         "threshold": float(threshold),
         "step_seconds": step_seconds,
         "bytes": len(html.encode("utf-8")),

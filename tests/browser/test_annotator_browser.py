@@ -1,6 +1,6 @@
 """Real-browser test of the annotator (headless Debian chromium, software WebGL): run with `-m browser`.
 
-A Ctrl+left-drag across the mesh in the page must paint vertices: the label store changes, and the canvas
+A Ctrl+left-drag across the scan (a mesh, and a point cloud) in the page must paint vertices: the label store changes, and the canvas
 changes colour where the stroke went. With EFEM_SAVE_SCREENSHOTS=1 screenshots go to docs/img/ for the guide.
 """
 
@@ -21,18 +21,28 @@ DOCS_IMG = Path(__file__).resolve().parents[2] / "docs" / "img"
 SAVE = os.environ.get("EFEM_SAVE_SCREENSHOTS") == "1"
 
 
-@pytest.fixture()
-def annotator(tmp_path: Path) -> Iterator[Any]:
-    """The annotator on a 2.5k-vertex sphere mesh (small: software rendering is slow)."""
+@pytest.fixture(params=["mesh", "points"])
+def annotator(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Any]:
+    """The annotator on a small sphere (software rendering is slow): a 2.5k-vertex mesh, or 6k points (whose
+    drags land on the invisible splat proxy surface)."""
     import trimesh
 
     from annotator.app import AnnotatorApp
 
     scan = tmp_path / "ball.ply"
-    trimesh.creation.icosphere(subdivisions=4, radius=0.15).export(scan)
+    if request.param == "mesh":
+        trimesh.creation.icosphere(subdivisions=4, radius=0.15).export(scan)
+    else:
+        from efem_viz.data.io import save_scene
+        from efem_viz.data.scene import Scene
+
+        p = np.random.default_rng(0).normal(size=(6000, 3))
+        p /= np.linalg.norm(p, axis=1, keepdims=True)
+        save_scene(Scene.create("ball", (0.15 * p).astype(np.float32), normals=p.astype(np.float32)), scan)
     app = AnnotatorApp(scan, out_dir=tmp_path / "out", port=0, autosave_delay=0)
     app.new_instance(category="mug")
     app.settings.radius = 0.03
+    app.kind = request.param
     yield app
     app.close()
 
@@ -101,6 +111,6 @@ def test_ctrl_drag_on_mesh_paints_vertices(annotator: Any, page: Any) -> None:
     assert changed > 50, f"the canvas barely changed after painting ({changed} pixels)"
     if SAVE:
         DOCS_IMG.mkdir(parents=True, exist_ok=True)
-        page.screenshot(path=str(DOCS_IMG / "annotator_brush.png"))
+        page.screenshot(path=str(DOCS_IMG / f"annotator_brush_{app.kind}.png"))
     app.undo()
     assert int((app.store.labels == iid).sum()) == 0
