@@ -21,7 +21,7 @@ class AnnotateArgs:
     """Labels to start from (PLY `instance`, NPZ, ScanNet .aggregation.json / .segs.json, EFEM .efem.npz).
     Ignored when the output folder already has a journal for this scan (the session resumes)."""
     out: Path | None = None
-    """Output folder for the journal, autosave checkpoint and exports (default: the scan's folder)."""
+    """Output folder for the journal, autosave checkpoint and exports (default: the current directory)."""
     host: str = "127.0.0.1"
     """Bind address. The default serves this machine only; use 0.0.0.0 deliberately."""
     port: int = 8081

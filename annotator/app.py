@@ -17,6 +17,7 @@ Interaction (see docs/ANNOTATOR.md):
 from __future__ import annotations
 
 import logging
+import os
 import queue
 import threading
 import time
@@ -103,8 +104,8 @@ class AnnotatorApp:
         scan_path: the scan (PLY/OBJ/OFF/GLB/NPZ scene, or an RGB-D frame .npz). Never written.
         labels_path: labels to start a *new* session from (ignored with a warning when the output directory
             already holds a journal for this scan: the session resumes instead).
-        out_dir: where the journal, checkpoint and exports go (default: the scan's directory). The journal and
-            checkpoint live in `<out>/<stem>.annotate/`.
+        out_dir: where the journal, checkpoint and exports go (default: the current working directory). The
+            journal and checkpoint live in `<out>/<stem>.annotate/`; read-only folders are refused.
         host: bind address (127.0.0.1 by default: local only).
         port: TCP port (0 = any free port).
         max_points: refuse scans with more vertices.
@@ -132,11 +133,17 @@ class AnnotatorApp:
         self.scan_path = Path(scan_path).resolve()
         self.scene = load_scan(self.scan_path, max_points=max_points)
         self.n = self.scene.num_points
-        self.out_dir = Path(out_dir).resolve() if out_dir is not None else self.scan_path.parent
+        self.out_dir = Path(out_dir).resolve() if out_dir is not None else Path.cwd().resolve()
         if self.out_dir.exists() and not self.out_dir.is_dir():
             raise LabelIOError(f"--out {self.out_dir} exists and is not a directory")
-        self.out_dir.mkdir(parents=True, exist_ok=True)
-        self.stem = self.scan_path.name.split(".")[0] if self.scan_path.suffix else self.scan_path.name
+        try:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise LabelIOError(f"cannot create the output folder {self.out_dir} ({exc}); choose one with --out") from exc
+        # Mode bits too: a read-only data folder (r-x) is still writable for root, and must not be written.
+        if not os.access(self.out_dir, os.W_OK) or not (self.out_dir.stat().st_mode & 0o222):
+            raise LabelIOError(f"the output folder {self.out_dir} is read-only; choose another with --out")
+        self.stem = self.scan_path.stem
         self.roots = [self.scan_path.parent, self.out_dir]
         self.work_dir = self.out_dir / f"{self.stem}.annotate"
         initial: LabelData | None = None
@@ -337,7 +344,11 @@ class AnnotatorApp:
             self.gui_accept = gui.add_button("Accept")
             self.gui_reject = gui.add_button("Reject")
             self.gui_accept_merge = gui.add_button("Merge into active")
-            self.gui_prior = gui.add_text("Prior for Segment tool", "mug")
+            from annotator.assist import available_priors
+
+            priors = tuple(available_priors()) or ("mug",)
+            self.gui_prior = gui.add_dropdown("Prior for Segment tool", priors,
+                                              initial_value="mug" if "mug" in priors else priors[0])
             self.gui_seg_accept = gui.add_button("Accept segment preview", disabled=True)
             self.gui_seg_cancel = gui.add_button("Discard segment preview", disabled=True)
 

@@ -10,6 +10,7 @@ scene's vertex indices.
 from __future__ import annotations
 
 import logging
+import re
 import threading
 from typing import Any
 
@@ -21,8 +22,28 @@ _PRIORS: dict[str, Any] = {}
 _PRIOR_LOCK = threading.Lock()
 
 
+def available_priors() -> list[str]:
+    """Names of the priors shipped in `efem_viz/weights/` (`<name>.pt`, training checkpoints excluded)."""
+    from pathlib import Path
+
+    import efem_viz
+
+    d = Path(efem_viz.__file__).parent / "weights"
+    names = sorted(p.stem for p in d.glob("*.pt") if not p.stem.endswith("_resume"))
+    return names
+
+
 def get_prior(name: str) -> Any:
-    """Load (once) and return a shape prior by name or path (`efem_viz.prior.load_prior`)."""
+    """Load (once) and return a shipped shape prior by *name* (`efem_viz.prior.load_prior`).
+
+    Only names of files in `efem_viz/weights/` are accepted, never paths: a prior file is a pickle, and GUI
+    input must not make the server unpickle an arbitrary file.
+
+    Raises:
+        ValueError: not a shipped prior name.
+    """
+    if not re.fullmatch(r"[A-Za-z0-9_\-]+", name or "") or name not in available_priors():
+        raise ValueError(f"unknown shape prior {name!r}; available: {available_priors()}")
     with _PRIOR_LOCK:
         if name not in _PRIORS:
             try:

@@ -363,76 +363,9 @@ def load_scan(path: str | os.PathLike[str], *, max_points: int = 2_000_000) -> A
             return scene
     from efem_viz.data.io import load_scene
 
-    if p.suffix.lower() == ".ply" and p.is_file():
-        fast = _load_triangle_ply(p, max_points=max_points)
-        if fast is not None:
-            return fast
     try:
         return load_scene(p, max_points=max_points)
     except SceneError as exc:
         raise LabelIOError(str(exc)) from exc
 
 
-def _load_triangle_ply(p: Path, *, max_points: int) -> Any:
-    """Fast path for binary triangle-mesh PLY files (None when the file is anything else).
-
-    plyfile reads list properties row by row (~17 s for 2M faces here) unless told their fixed length
-    (`known_list_len`, ~0.03 s); it then checks every row's length and raises on a polygon that is not a
-    triangle, in which case we fall back to the general `efem_viz.data.io.load_scene`.
-    """
-    import plyfile
-
-    from efem_viz.data.scene import Scene, SceneError
-
-    try:
-        with open(p, "rb") as fh:
-            head = fh.read(1 << 16)
-    except OSError:
-        return None
-    end = head.find(b"end_header")
-    header = head[:end] if end > 0 else b""
-    if not header.startswith(b"ply") or b"format binary" not in header or b"element face" not in header:
-        return None
-    list_name = b"vertex_indices" if b"vertex_indices" in header else (b"vertex_index" if b"vertex_index" in header else None)
-    if list_name is None:
-        return None
-    try:
-        # The fast path needs mmap (plyfile's default); copy out of the map at once.
-        ply = plyfile.PlyData.read(str(p), known_list_len={"face": {list_name.decode(): 3}})
-        v = np.array(ply["vertex"].data)
-        fdata = ply["face"].data[list_name.decode()]
-        if fdata.dtype == object:
-            return None
-        faces = np.array(fdata, dtype=np.int64).reshape(-1, 3)
-    except Exception:  # non-triangle faces, odd layouts: the general loader handles (or reports) them
-        return None
-    props = set(v.dtype.names or ())
-    if not {"x", "y", "z"} <= props:
-        return None
-    if len(v) > max_points:
-        raise LabelIOError(f"{p} has {len(v):,} points, more than the limit of {max_points:,}")
-    kw: dict[str, Any] = {"faces": faces}
-    if {"nx", "ny", "nz"} <= props:
-        nrm = np.stack([v["nx"], v["ny"], v["nz"]], axis=1).astype(np.float32)
-        if np.all(np.abs(nrm).sum(axis=1) > 0):
-            kw["normals"] = nrm
-    for rgb in (("red", "green", "blue"), ("r", "g", "b"), ("diffuse_red", "diffuse_green", "diffuse_blue")):
-        if set(rgb) <= props:
-            kw["colors"] = np.stack([v[c] for c in rgb], axis=1)
-            break
-    if "instance" in props:
-        kw["instance"] = np.asarray(v["instance"])
-    for c in list(ply.comments) + list(getattr(ply, "obj_info", [])):
-        c = c.strip()
-        try:
-            if c.startswith("efem_categories "):
-                kw["categories"] = {int(k): str(val) for k, val in json.loads(c[len("efem_categories ") :]).items()}
-            elif c.startswith("efem_provenance "):
-                kw["provenance"] = json.loads(c[len("efem_provenance ") :])
-        except (ValueError, TypeError, AttributeError):
-            log.warning("%s: ignoring an unreadable header comment", p)
-    try:
-        pts = np.stack([v["x"], v["y"], v["z"]], axis=1)
-        return Scene.create(p.name[: -len(p.suffix)], pts, max_points=max_points, **kw)
-    except SceneError as exc:
-        raise LabelIOError(f"{p}: {exc}") from exc

@@ -88,7 +88,8 @@ def main() -> int:
     out: dict[str, Any] = {
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "torch_threads": args.threads,
                     "torch": torch.__version__},
-        "prior": {"name": args.prior, "config": prior.config.to_dict(), "has_codebook": prior.codebook is not None},
+        "prior": {"name": args.prior, "config": prior.config.to_dict(), "has_codebook": prior.codebook is not None,
+                  "metadata": {k: v for k, v in prior.metadata.items() if k in ("iteration", "val_iou")}},
         "em_config": json.loads(cfg.to_json()),
         "scene_mode": args.mode,
         "quick": bool(args.quick),

@@ -221,7 +221,8 @@ def test_gui_import_refuses_traversal_and_bad_files_server_stays_up(app: Annotat
     assert app.server.get_port() > 0
 
 
-def test_point_cloud_scan_and_prelabels(tmp_path: Path) -> None:
+def test_point_cloud_scan_and_prelabels(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)  # the default output folder is the working directory
     rng = np.random.default_rng(0)
     p = rng.normal(size=(3000, 3))
     p /= np.linalg.norm(p, axis=1, keepdims=True)
@@ -323,13 +324,32 @@ def test_click_to_segment_previews_then_accepts(spheres) -> None:
         a.set_preview(idx)
         assert np.array_equal(a.store.labels, before)  # a preview is not an edit
         assert not a.gui_seg_accept.disabled
-        a.gui_prior.value = "sphere"
         a.accept_segment()
         new = a.settings.active_id
-        assert a.store.labelset.info(new).category == "sphere"
+        assert a.store.labelset.info(new).category == a.gui_prior.value  # the prior's category
         assert set(np.flatnonzero(a.store.labels == new)) <= set(idx.tolist())
         assert a.pending_segment is None and a.gui_seg_accept.disabled
         with pytest.raises(ValueError, match="no segment preview"):
             a.accept_segment()
     finally:
         a.close()
+
+
+@pytest.mark.parametrize("name", ["/etc/passwd", "../../weights/mug", "mug.pt", "x; rm", ""])
+def test_prior_names_from_the_gui_are_never_paths(name: str) -> None:
+    from annotator.assist import get_prior
+
+    with pytest.raises(ValueError, match="unknown shape prior"):
+        get_prior(name)
+
+
+def test_read_only_output_folder_is_refused(tmp_path: Path, mesh_path: Path) -> None:
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o555)
+    try:
+        with pytest.raises(LabelIOError, match="read-only"):
+            AnnotatorApp(mesh_path, out_dir=ro, port=0)
+        assert list(ro.iterdir()) == []
+    finally:
+        ro.chmod(0o755)

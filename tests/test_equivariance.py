@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 
@@ -70,7 +72,8 @@ def prior() -> ShapePrior:
 @pytest.fixture(scope="module")
 def prior_att() -> ShapePrior:
     torch.manual_seed(1)
-    cfg = PriorConfig(**{**SMALL, "attention_blocks": (2, 3, 4), "att_head_dim": 8, "center_times_sigma": True})
+    cfg = PriorConfig(**{**SMALL, "attention_blocks": (2, 3, 4), "att_head_dim": 8, "center_times_sigma": True,
+                         "decoder_proj_gain": 4.0, "decoder_inv_gain": 16.0})
     m = ShapePrior(cfg).double().eval().requires_grad_(False)
     calibrate_scale_factor(m, torch.stack([mug_like(128, i) for i in range(4)]))
     return m
@@ -200,6 +203,23 @@ def test_decoder_invariant_and_normals_rotate(prior: ShapePrior, seed: int) -> N
     assert rel_err(f2, f1) < 1e-9
     assert rel_err(n2, n1 @ R.T) < 1e-7
     assert torch.allclose(n1.norm(dim=-1), torch.ones(300, dtype=DT))
+
+
+def test_decoder_gains_are_a_reparameterisation(prior_att: ShapePrior) -> None:
+    """φ gains == the same decoder with gain 1 and scaled fc_in columns; and invariance holds with gains."""
+    plain = ShapePrior(PriorConfig(**{**dataclasses.asdict(prior_att.config), "decoder_proj_gain": 1.0,
+                                      "decoder_inv_gain": 1.0})).double()
+    plain.load_state_dict(prior_att.state_dict())
+    L = prior_att.config.latent_dim
+    with torch.no_grad():
+        plain.decoder.fc_in.weight[:, :L] *= 4.0
+        plain.decoder.fc_in.weight[:, -L:] *= 16.0
+    lat = prior_att.encode(mug_like(128, 5)[None])
+    x = torch.rand(1, 200, 3, generator=torch.Generator().manual_seed(1), dtype=DT) - 0.5
+    assert rel_err(plain.sdf(x, lat), prior_att.sdf(x, lat)) < 1e-12
+    s, R, t = random_similarity(42)
+    lat_t = Latent(lat.R @ R.T, lat.inv, s * lat.center @ R.T + t, s * lat.scale)
+    assert rel_err(prior_att.sdf(s * x @ R.T + t, lat_t), prior_att.sdf(x, lat)) < 1e-12
 
 
 def test_normals_match_finite_differences(prior: ShapePrior) -> None:

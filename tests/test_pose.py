@@ -168,6 +168,7 @@ def test_pose_edge_cases(codebook: Codebook, prior: ShapePrior) -> None:
     est = estimate_pose(prior, lat, np.zeros((100, 3)), codebook=codebook)
     np.testing.assert_array_equal(est.R, np.eye(3))
     assert est.score_db_sim == 0.0 and est.selected == -1
+    assert est.scale_sel == pytest.approx(codebook.mean_scale)
     with pytest.raises(ValueError, match="codebook"):
         estimate_pose(prior, lat, np.ones((10, 3)))  # the prior has no codebook attached
     with pytest.raises(ValueError, match=r"\(S, 3\)"):

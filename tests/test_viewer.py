@@ -230,12 +230,15 @@ def test_run_in_worker_with_progress_and_cancel(app: Any) -> None:
     import threading
 
     gate = threading.Event()
-    app._submit(app._worker, gate.wait, 30)  # keep the worker busy so the cancel lands before the run starts
+    app._submit(app._runner, gate.wait, 30)  # keep the run thread busy so the cancel lands before the run starts
     before = app.state.result
     fut = app.start_run(preset="fast", proposals=8, seed=3)
     assert fut is not None and app.state.running
     assert app.panels.gui_run.disabled and not app.panels.gui_cancel.disabled and app.panels.gui_progress.visible
     assert app.start_run(preset="fast") is None  # one run at a time
+    # The UI stays usable during a run: loading a trace (worker thread) does not wait for it.
+    assert app._submit(app._worker, app.load_trace).result(timeout=30) is True
+    before = app.state.result
     app.cancel_run()
     gate.set()
     assert fut.result(timeout=120) is None
@@ -372,3 +375,37 @@ def test_gui_callbacks_drive_the_app(app: Any) -> None:
     assert np.array_equal(np.asarray(app.nodes.points.colors), app.state.scene.colors)
     app.set_step(app.state.num_steps - 1)
     assert app.wait_idle(60)
+
+
+def test_mesh_scene_shows_mesh_and_overlays_points_for_colourings(tmp_path: Path, prior: Any) -> None:
+    import trimesh
+
+    from efem_viz.data.io import save_scene
+    from efem_viz.data.scene import Scene
+    from efem_viz.viewer.app import ViewerApp
+
+    box = trimesh.creation.box(extents=(0.2, 0.1, 0.05))
+    scene = Scene.create("box", np.asarray(box.vertices), faces=np.asarray(box.faces))
+    save_scene(scene, tmp_path / "box.ply")
+    a = ViewerApp([tmp_path], port=0, prior=prior)
+    try:
+        assert a.state.scene is not None and a.state.scene.is_mesh
+        assert a.state.display == "mesh" and a.nodes.mesh is not None
+        assert a.nodes.mesh.visible and not a.nodes.points.visible
+        a.set_color_mode("instances")  # no result: scene colours, but the overlay is on
+        assert a.nodes.points.visible and a.nodes.mesh.visible
+        a.set_display("points")
+        assert not a.nodes.mesh.visible and a.nodes.points.visible
+        with pytest.raises(ValueError):
+            a.set_display("voxels")
+    finally:
+        a.stop()
+
+
+def test_export_command_writes_a_demo(scene_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from efem_viz.viewer.export import main
+
+    assert main([str(scene_dir / "spheres.ply"), "--prior", "", "--out", str(tmp_path / "demo")]) == 0
+    index = tmp_path / "demo" / "index.html"
+    assert index.is_file() and str(index) in capsys.readouterr().out
+    assert index.stat().st_size < 20_000_000

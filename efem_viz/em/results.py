@@ -178,6 +178,16 @@ class Instances:
             out.append(b)
         return out
 
+    def obb(self, k: int) -> Any:
+        """The k-th instance's oriented box as an `efem_viz.geometry.obb.OBB` (corners, edges, contains, ...)."""
+        from efem_viz.geometry.obb import BOX_CORNER_SIGNS, BOX_EDGES, OBB
+
+        c = np.asarray(self.obb_center[k], np.float64)
+        ax = np.asarray(self.obb_axes[k], np.float64)
+        e = np.asarray(self.obb_half_extents[k], np.float64)
+        return OBB(center=c, axes=ax, half_extents=e, corners=c + (BOX_CORNER_SIGNS * e) @ ax.T,
+                   edges=BOX_EDGES.copy())
+
     def mesh(self, k: int) -> "trimesh.Trimesh":
         """The k-th instance's mesh (world frame)."""
         import trimesh

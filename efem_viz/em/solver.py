@@ -120,6 +120,7 @@ def decode_rows(
     *,
     chunk: int = 30000,
     normals_within: float | None = None,
+    stats: dict[str, float] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """SDF and normal angle of every (row, point) entry, decoding all rows in one ragged pass.
 
@@ -136,6 +137,7 @@ def decode_rows(
         normals: (N, 3) float32 scene unit normals.
         chunk: decoder queries per chunk.
         normals_within: see above; None = normals for every entry.
+        stats: if given, "normal_queries" is incremented by the number of gradient queries.
 
     Returns:
         d (K,) float32 canonical SDF and γ (K,) float32 signed angle (degrees) between the scene normal and
@@ -153,10 +155,14 @@ def decode_rows(
     row = rag.row
     if normals_within is None:
         d, g = _decode_padded(prior, latent, rag.idx, row, pts_t, nrm_t, chunk=chunk, with_normals=True)
+        if stats is not None:
+            stats["normal_queries"] = stats.get("normal_queries", 0.0) + k
         return d, g
     d, _ = _decode_padded(prior, latent, rag.idx, row, pts_t, nrm_t, chunk=chunk, with_normals=False)
     g = np.full(k, 180.0, np.float32)
     sel = np.flatnonzero(np.abs(d) <= float(normals_within))
+    if stats is not None:
+        stats["normal_queries"] = stats.get("normal_queries", 0.0) + len(sel)
     if len(sel):
         _, g_sel = _decode_padded(prior, latent, rag.idx[sel], row[sel], pts_t, nrm_t, chunk=chunk,
                                   with_normals=True)
@@ -352,7 +358,10 @@ def run_em(
         cancel: when set, the run stops at the next check and raises `EMCancelled`.
 
     Returns:
-        EMResult with trace, instances, config and per-stage timings (seconds).
+        EMResult with trace, instances, config and `timings`: wall seconds per stage (`STAGES`: m_step, encode,
+        neighbourhood, decode, score, eliminate, review_mesh, review_pose, review_coverage, accept), `total`
+        (wall), `total_cpu` (process CPU time, all threads), and the counts `decoder_queries`,
+        `normal_queries` (the gradient subset) and `encoded_sets`.
 
     Raises:
         ValueError: bad config, a scene without points, or a prior without the needed methods.
@@ -387,6 +396,7 @@ def run_em(
     timings["total_cpu"] = time.process_time() - solver.cpu_start
     timings["decoder_queries"] = float(solver.n_queries)
     timings["encoded_sets"] = float(solver.n_encoded)
+    timings["normal_queries"] = float(solver.stats["normal_queries"])
     trace = solver.rec.finish(timings)
     trace.bind(scene, prior)
     instances = Instances.from_rows(inst_rows, category=str(getattr(prior, "name", "object")))
@@ -447,6 +457,7 @@ class _Solver:
         self.cpu_start = time.process_time()
         self.n_queries = 0
         self.n_encoded = 0
+        self.stats: dict[str, float] = {"normal_queries": 0.0}
         self.planned_steps = cfg.num_episodes * cfg.steps_per_episode
         cb = getattr(prior, "codebook", None)
         self.ref_scale = float(cb.mean_scale) if cb is not None else 1.0
@@ -527,7 +538,7 @@ class _Solver:
         t0 = self.timer.add("neighbourhood", t0)
         sched = schedule(cfg, t)
         d, gamma = decode_rows(self.prior, latent, rag, self.points, self.normals, chunk=cfg.decode_chunk,
-                               normals_within=normals_threshold(cfg, sched[1]))
+                               normals_within=normals_threshold(cfg, sched[1]), stats=self.stats)
         self.n_queries += len(rag.idx)
         t0 = self.timer.add("decode", t0)
         w, inlier = energy_weights(d, gamma, sched, out_value=cfg.out_value)

@@ -4,8 +4,8 @@ Stored per step (global step index over all episodes): phase, episode, step with
 (α_D, τ_D, α_N, τ_N), and for every proposal that took part (a "row"): its id, latent (float32, exact replay),
 stationary score, inlier count and the M sampled point indices (int32). Stored per proposal: birth (episode,
 anchor, r_init, r_err, first step) and death (step, reason, partner, ratio). Stored per review (end of each
-phase) and proposal: pose, OBB, coverage, codebook similarity, scale radii, up angle, pass flags, the tentative
-mask and the mesh (vertices float16 relative to Θ_c, faces int32).
+phase) and proposal: pose, OBB, coverage, codebook similarity, scale radii, up angle, pass flags, the
+tentative mask and the mesh (vertices float16 relative to Θ_c, faces int32).
 
 Not stored: the weights over the scene and the decoded shapes. `EMTrace.view` re-derives them from the stored
 latents with the same code the solver uses (`energy_weights`), and caches the result (LRU). The weights that
@@ -33,6 +33,8 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 TRACE_SCHEMA_VERSION = 1
+_NEED_PRIOR = "re-deriving weights needs the shape prior: pass prior= or trace.bind(prior=...)"
+_NEED_SCENE = "this trace has no scene bound: call trace.bind(scene) with the scene it was run on"
 
 
 class DeathEvent(NamedTuple):
@@ -133,7 +135,8 @@ class EMTrace:
     """The recorded EM run. Arrays only (+ the config); bind a scene (and prior) to re-derive views.
 
     Step arrays have length T (global steps), row arrays one entry per (step, live proposal), proposal arrays
-    one entry per proposal id (ids are 0..P−1 in creation order), review arrays one entry per (review, proposal).
+    one entry per proposal id (ids are 0..P−1 in creation order), review arrays one entry per (review,
+    proposal).
     """
 
     config: EMConfig
@@ -308,7 +311,8 @@ class EMTrace:
         r = self.row_of(proposal_id, step)
         if r is None:
             raise ValueError(f"proposal {proposal_id} did not take part in step {step}")
-        return {"R": self.row_R[r], "inv": self.row_inv[r], "center": self.row_center[r], "scale": self.row_scale[r]}
+        return {"R": self.row_R[r], "inv": self.row_inv[r], "center": self.row_center[r],
+                "scale": self.row_scale[r]}
 
     def reviews(self, proposal_id: int) -> list[dict[str, Any]]:
         """All review records of a proposal (0, 1 or 2), as dicts (mesh arrays in world coordinates)."""
@@ -384,7 +388,9 @@ class EMTrace:
         m[self.work_idx] = True
         return m
 
-    def weights_in(self, proposal_id: int, step: int, prior: Any = None, *, full_resolution: bool = True) -> np.ndarray:
+    def weights_in(
+        self, proposal_id: int, step: int, prior: Any = None, *, full_resolution: bool = True
+    ) -> np.ndarray:
         """(N,) float32 weights that produced the samples of (proposal, step) (= W_out of step − 1).
 
         With `full_resolution=False` only the EM working set carries weights (exactly what the solver sampled
@@ -402,7 +408,8 @@ class EMTrace:
         w = np.zeros(self.num_points, np.float32)
         if int(self.step_local[step]) == 0:
             tree = AvailableTree(pts, avail, crop=self.config.crop)
-            rag = tree.query(pts[int(self.prop_anchor[proposal_id])][None], float(self.prop_r_init[proposal_id]))
+            anchor = pts[int(self.prop_anchor[proposal_id])][None]
+            rag = tree.query(anchor, float(self.prop_r_init[proposal_id]))
             w[rag.idx] = 1.0
             return w
         return self.weights_out(proposal_id, step - 1, prior, full_resolution=full_resolution)
@@ -414,7 +421,7 @@ class EMTrace:
 
         pri = prior if prior is not None else self._prior
         if pri is None:
-            raise ValueError("re-deriving weights needs the shape prior: pass prior= or trace.bind(prior=...)")
+            raise ValueError(_NEED_PRIOR)
         r = self.row_of(proposal_id, step)
         if r is None:
             raise ValueError(f"proposal {proposal_id} did not take part in step {step}")
@@ -471,7 +478,7 @@ class EMTrace:
             else None
         )
         if weights is None:
-            raise ValueError("re-deriving weights needs the shape prior: pass prior= or trace.bind(prior=...)")
+            raise ValueError(_NEED_PRIOR)
         samples = self.row_samples[r]
         dead = self.death(proposal_id)
         alive = not (dead is not None and dead[1] != "survive" and dead[0] <= step)
@@ -517,12 +524,12 @@ class EMTrace:
 
     def _points(self) -> np.ndarray:
         if self._scene_points is None:
-            raise ValueError("this trace has no scene bound: call trace.bind(scene) with the scene it was run on")
+            raise ValueError(_NEED_SCENE)
         return self._scene_points
 
     def _normals(self) -> np.ndarray:
         if self._scene_normals is None:
-            raise ValueError("this trace has no scene bound: call trace.bind(scene) with the scene it was run on")
+            raise ValueError(_NEED_SCENE)
         return self._scene_normals
 
     # ------------------------------------------------------------------ persistence
@@ -560,7 +567,8 @@ class EMTrace:
             raise ValueError(f"not an EFEM trace: key {ver_key!r} missing")
         ver = int(np.asarray(data[ver_key]))
         if ver != TRACE_SCHEMA_VERSION:
-            raise ValueError(f"unsupported trace schema_version {ver} (this build reads {TRACE_SCHEMA_VERSION})")
+            raise ValueError(
+                f"unsupported trace schema_version {ver} (this build reads {TRACE_SCHEMA_VERSION})")
         missing = [k for k in cls._ARRAY_FIELDS if prefix + k not in keys]
         if missing:
             raise ValueError(f"trace is missing arrays: {missing}")
@@ -587,7 +595,8 @@ class TraceRecorder:
                  work_min_size: int | None = None) -> None:
         self.config = config
         self.num_points = int(num_points)
-        self.work_idx = None if work_idx is None or len(work_idx) == num_points else np.asarray(work_idx, np.int32)
+        full = work_idx is None or len(work_idx) == num_points
+        self.work_idx = None if full else np.asarray(work_idx, np.int32)
         self.work_min_size = int(work_min_size if work_min_size is not None else config.min_size)
         self.steps: list[tuple[int, int, int, tuple[float, float, float, float]]] = []
         self.active_count: list[int] = []
@@ -652,10 +661,13 @@ class TraceRecorder:
         self.active_count.append(int(active))
         self.elapsed.append(float(elapsed_s))
 
-    def death(self, proposal_id: int, step: int, reason: str, partner: int = -1, ratio: float = float("nan")) -> None:
+    def death(
+        self, proposal_id: int, step: int, reason: str, partner: int = -1, ratio: float = float("nan")
+    ) -> None:
         if int(proposal_id) in self.deaths:
             raise ValueError(f"proposal {proposal_id} died twice")
-        self.deaths[int(proposal_id)] = (int(step), REASONS.index(reason), int(partner), float(ratio), self._order)
+        code = REASONS.index(reason)
+        self.deaths[int(proposal_id)] = (int(step), code, int(partner), float(ratio), self._order)
         self._order += 1
 
     def review(self, record: dict[str, Any]) -> None:

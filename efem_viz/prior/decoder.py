@@ -41,12 +41,17 @@ class SDFDecoder(nn.Module):
         hidden: MLP width.
         n_blocks: Number of residual blocks.
         use_qnorm: Include ``‖q‖`` in φ (the released models do).
+        proj_gain: Constant multiplier of the projections ``Θ_R q`` in φ.
+        inv_gain: Constant multiplier of Θ_inv in φ.
     """
 
-    def __init__(self, latent_dim: int, hidden: int, n_blocks: int, *, use_qnorm: bool = True) -> None:
+    def __init__(self, latent_dim: int, hidden: int, n_blocks: int, *, use_qnorm: bool = True,
+                 proj_gain: float = 1.0, inv_gain: float = 1.0) -> None:
         super().__init__()
         self.latent_dim = latent_dim
         self.use_qnorm = use_qnorm
+        self.proj_gain = float(proj_gain)
+        self.inv_gain = float(inv_gain)
         self.n_blocks = n_blocks
         self.fc_in = nn.Linear(2 * latent_dim + (1 if use_qnorm else 0), hidden)
         for i in range(n_blocks):
@@ -66,7 +71,9 @@ class SDFDecoder(nn.Module):
         L = self.latent_dim
         w = self.fc_in.weight
         m = torch.matmul(w[:, :L], R)  # (B, H, 3)
-        bias = F.linear(inv, w[:, -L:], self.fc_in.bias)
+        if self.proj_gain != 1.0:
+            m = m * self.proj_gain
+        bias = F.linear(inv * self.inv_gain if self.inv_gain != 1.0 else inv, w[:, -L:], self.fc_in.bias)
         return m, bias
 
     def _mlp(self, h: torch.Tensor) -> torch.Tensor:

@@ -69,6 +69,12 @@ class PriorConfig:
     """Decoder residual blocks."""
     use_qnorm: bool = True
     """Feed ‖q‖ to the decoder."""
+    decoder_proj_gain: float = 1.0
+    """Multiplier of the projections ``Θ_R q`` in φ (released models: 1). ChNorm makes each row of Θ_R about
+    ``1/√L`` long, so the raw projections are small; ``√L`` gives them unit scale. A pure reparameterisation of
+    ``fc_in`` (invariance is unaffected); it did not speed up early training in our CPU runs."""
+    decoder_inv_gain: float = 1.0
+    """Multiplier of Θ_inv in φ (released models: 1; each entry is ~``1/L``, so ``L`` gives unit scale)."""
 
     def __post_init__(self) -> None:
         self.widths = tuple(int(w) for w in self.widths)
@@ -187,7 +193,8 @@ class ShapePrior(nn.Module):
         self.metadata: dict[str, Any] = {}
         self.encoder = VNDGCNNEncoder(self.config)
         c = self.config
-        self.decoder = SDFDecoder(c.latent_dim, c.decoder_hidden, c.decoder_blocks, use_qnorm=c.use_qnorm)
+        self.decoder = SDFDecoder(c.latent_dim, c.decoder_hidden, c.decoder_blocks, use_qnorm=c.use_qnorm,
+                                  proj_gain=c.decoder_proj_gain, inv_gain=c.decoder_inv_gain)
 
     @property
     def dtype(self) -> torch.dtype:

@@ -48,7 +48,7 @@ class PoseEstimate:
     R_raw: np.ndarray
     """(3, 3) float64 orthogonal matrix as found by the release's search (may be a reflection)."""
     scale_sel: float
-    """Θ'_s of the selected codebook entry (canonical units)."""
+    """Θ'_s of the selected codebook entry (the mean codebook scale when there were no samples)."""
     score_db_sim: float
     """Inlier ratio r_{n*} in [0, 1] (release parity: of the raw search)."""
     neighbour_ids: np.ndarray
@@ -157,7 +157,9 @@ def estimate_pose(
         raise ValueError(f"latent scale must be > 0, got {scale}")
     if len(Q) == 0 or not np.any(Q):
         eye = np.eye(3)
-        return PoseEstimate(eye, eye.copy(), float("nan"), 0.0, np.zeros(0, np.int64), np.zeros(0), -1,
+        # no surface (empty mesh): identity pose, score 0, and the mean codebook scale (finite, so downstream
+        # unit conversions stay finite)
+        return PoseEstimate(eye, eye.copy(), cb.mean_scale, 0.0, np.zeros(0, np.int64), np.zeros(0), -1,
                             np.zeros((0, 3)), False)
     nbrs = cb.retrieve(latent_i, k_inv=k_inv, k_so3=k_so3, k_joint=k_joint)
     Q_tree = cKDTree(Q - Q.mean(axis=0))

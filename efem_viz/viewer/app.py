@@ -68,6 +68,8 @@ class ViewerApp:
         self._quiet = False
         self._worker = ThreadPoolExecutor(1, thread_name_prefix="efem-viewer-work")
         self._decoder = ThreadPoolExecutor(1, thread_name_prefix="efem-viewer-decode")
+        self._runner = ThreadPoolExecutor(1, thread_name_prefix="efem-viewer-run")
+        """EM runs have their own thread: opening another scene or a trace does not wait for a run."""
         self._pending: set[Future[Any]] = set()
         self._pending_lock = threading.Lock()
         self._cancel = threading.Event()
@@ -110,8 +112,8 @@ class ViewerApp:
         self.pause()
         self._cancel.set()  # a running EM stops at its next step
         self._generation += 1  # running decode/inspect jobs drop their results
-        self._worker.shutdown(wait=True, cancel_futures=True)
-        self._decoder.shutdown(wait=True, cancel_futures=True)
+        for pool in (self._runner, self._worker, self._decoder):
+            pool.shutdown(wait=True, cancel_futures=True)
         self.server.stop()
 
     def wait_idle(self, timeout: float = 60.0) -> bool:
@@ -281,6 +283,8 @@ class ViewerApp:
             return False
         with self._lock:
             self.pause()
+            if self.state.running:
+                self._cancel.set()  # the run belongs to the previous scene
             self._generation += 1
             self._view_cache.clear()
             self._inspect_weights = None
@@ -391,7 +395,7 @@ class ViewerApp:
             p.gui_progress.value = 0.0
             p.gui_progress.visible = True
             p.gui_progress.animated = True
-        return self._submit(self._worker, self._run_job, preset, proposals, seed, self._generation)
+        return self._submit(self._runner, self._run_job, preset, proposals, seed, self._generation)
 
     def _run_job(self, preset: str, proposals: int | None, seed: int, generation: int) -> Any:
         from efem_viz.em import EMCancelled, preset as make_preset, run_em
@@ -469,7 +473,7 @@ class ViewerApp:
                     h.remove()
                 except Exception:  # noqa: BLE001
                     pass
-            self.nodes.draw_results(result.instances, show_meshes=s.show_meshes, show_obbs=s.show_obbs, show_axes=s.show_axes)
+            self.nodes.draw_results(result.instances)
             conf = np.asarray(result.instances.confidence, float)
             hi = float(conf.max()) if conf.size else 1.0
             p.gui_threshold.max = float(np.ceil(hi * 100.0 + 1e-6) / 100.0 + 0.01)  # the top hides every instance
@@ -948,6 +952,13 @@ def inspect_markdown(pid: int, t: int, view: Any) -> str:
     if sched:
         lines.append("- schedule: " + " · ".join(f"{k}={_fmt(v)}" for k, v in sched.items()))
     lines.append(f"- sampled points: {len(np.asarray(view.sample_idx))}")
+    mesh = getattr(view, "mesh", None)
+    if mesh is None:
+        lines.append("- decoded shape: not available (no matching prior)")
+    elif not len(mesh.faces):
+        lines.append("- decoded shape: **empty** (the SDF has no zero crossing on the meshing grid)")
+    else:
+        lines.append(f"- decoded shape: {len(mesh.vertices):,} vertices")
     return "\n".join(lines)
 
 

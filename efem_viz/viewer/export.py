@@ -116,7 +116,6 @@ def export_static_demo(
     trace = result.trace
     T = int(trace.num_steps)
     inst = result.instances.above(float(threshold))
-    labels = inst.label_array(n)
     caption_pos = (float((lo[0] + hi[0]) / 2), float((lo[1] + hi[1]) / 2), float(hi[2] + 0.08 * diag))
 
     n_shapes = 0
@@ -178,7 +177,8 @@ def export_static_demo(
             api.add_label("/caption", text=f"step {t}/{T - 1} · phase {phase} · {len(ids)} active", position=caption_pos)
             ser.insert_sleep(step_seconds)
         api.remove_by_name("/em")
-        cloud.colors = st.label_colors(scene.colors, labels)[keep]
+        kept = np.asarray(result.instances.confidence, float) >= float(threshold)
+        cloud.colors = st.instance_colors(scene.colors, result.instances, kept)[keep]  # same colours as the meshes
         ids_all = np.asarray(inst.ids).reshape(-1)
         pal = st.palette(ids_all)
         for k in range(ids_all.shape[0]):
@@ -228,3 +228,37 @@ def export_static_demo(
     _atomic_write_text(out / "meta.json", json.dumps(meta, indent=2))
     logger.info("static demo of %s: %s (%.1f MB)", scene.name, index, meta["bytes"] / 1e6)
     return index
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m efem_viz.viewer.export SCENE [--prior mug] [--threshold T] [--out DIR]`: write a static demo of
+    a scene and its saved `<scene>.efem.npz` (default output: `static/<scene>/` of the repository)."""
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m efem_viz.viewer.export", description=main.__doc__)
+    ap.add_argument("scene", type=Path, help="scene file; its result <scene>.efem.npz must lie next to it")
+    ap.add_argument("--prior", default="mug", help="prior for the decoded shapes ('' = none)")
+    ap.add_argument("--threshold", type=float, default=0.0, help="confidence threshold of the final instances")
+    ap.add_argument("--out", type=Path, default=None, help="output folder (default: static/<scene>/)")
+    args = ap.parse_args(argv)
+    from efem_viz.data.io import load_scene
+    from efem_viz.em import EMResult
+
+    scene = load_scene(args.scene)
+    result = EMResult.load(st.trace_path_for(args.scene))
+    result.trace.bind(scene)
+    prior = None
+    if args.prior:
+        from efem_viz.prior import load_prior
+
+        prior = load_prior(args.prior)
+    out = args.out or Path(__file__).resolve().parents[2] / "static" / "".join(
+        c if c.isalnum() or c in "-_." else "_" for c in scene.name
+    )
+    index = export_static_demo(scene, result, out, threshold=args.threshold, prior=prior)
+    print(index)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -329,7 +329,7 @@ class SceneNodes:
             self.inspect.clear()
 
     # ------------------------------------------------------------------ results
-    def draw_results(self, instances: Any, *, show_meshes: bool, show_obbs: bool, show_axes: bool) -> None:
+    def draw_results(self, instances: Any) -> None:
         """Send the final instances once: a mesh, an OBB and pose axes each (all hidden until `show_results`).
 
         Args:

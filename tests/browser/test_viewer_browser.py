@@ -188,19 +188,26 @@ guide_only = pytest.mark.skipif(not SAVE, reason="screenshots for docs/USER_GUID
 
 
 @guide_only
-def test_guide_run_tab(viewer: Any, page: Any) -> None:
+def test_guide_run_tab(viewer: Any, page: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    import efem_viz.em as em
+
+    real_run_em = em.run_em
+
+    def slowed_run_em(*args: Any, on_step: Any = None, **kw: Any) -> Any:
+        def step(info: Any) -> None:  # a real run, paused 0.4 s per step so that the shot catches it running
+            on_step(info)
+            time.sleep(0.4)
+
+        return real_run_em(*args, on_step=step, **kw)
+
+    monkeypatch.setattr(em, "run_em", slowed_run_em)
     _open(page, viewer)
     page.get_by_role("tab", name="Run").click()
-    gate = __import__("threading").Event()
-    viewer._submit(viewer._worker, gate.wait, 30)  # hold the run in the queue while the progress bar shows
-    fut = viewer.start_run(preset="fast", proposals=int(viewer.panels.gui_proposals.value), seed=0)
-    viewer.panels.gui_progress.value = 35.0
-    viewer.panels.gui_run_info.content = "step 7/20 · phase 1 · 23 active · 4.2 s"
-    page.wait_for_timeout(1500)
+    fut = viewer.start_run(preset="fast", proposals=100, seed=0)
+    assert fut is not None
+    _wait(lambda: viewer.panels.gui_progress.value >= 25 or fut.done(), 120, "a quarter of the run")
     _save(page, "viewer_run.png")
-    viewer.cancel_run()
-    gate.set()
-    assert fut is not None and fut.result(timeout=120) is None
+    fut.result(timeout=300)
     assert viewer.load_trace() and viewer.wait_idle(120)
 
 
@@ -236,3 +243,17 @@ def test_guide_ground_truth(viewer: Any, page: Any) -> None:
     _save(page, "viewer_ground_truth.png")
     viewer.set_color_mode("instances")
     viewer.set_proposal_layers(shapes=True, samples=True)
+
+
+@guide_only
+def test_guide_export(viewer: Any, page: Any, tmp_path: Path) -> None:
+    _open(page, viewer)
+    page.get_by_role("tab", name="Export").click()
+    index = viewer.export_static(tmp_path / "demo")
+    assert index is not None and index.is_file()
+    page.wait_for_timeout(800)
+    _save(page, "viewer_export.png")
+    page.goto(index.as_uri())  # the static page, from disk, no server
+    page.add_style_tag(content="#webgl-software-rendering { display: none !important; }")
+    page.wait_for_timeout(9000)
+    _save(page, "viewer_static_demo.png")
