@@ -38,7 +38,7 @@ class ScanGeometry:
         self.normals = nrm
         self.faces = None if faces is None or len(faces) == 0 else np.ascontiguousarray(faces, dtype=np.int32)
         self.knn = int(knn)
-        self._lock = threading.Lock()
+        self._lock = threading.RLock()  # re-entrant: adjacency() builds the tree under the same lock
         self._tree = None
         self._adj: tuple[np.ndarray, np.ndarray] | None = None
         self._raycaster = None

@@ -146,3 +146,21 @@ def test_chunks_partition_and_colours() -> None:
     assert out.tolist() == [[100] * 3, [255, 0, 0], [100] * 3, [100] * 3]
     v, f = splat_proxy(pts[:50], np.tile([[0, 0, 1.0]], (50, 1)), size=0.01)
     assert v.shape == (150, 3) and f.shape == (50, 3) and f.max() == 149
+
+
+def test_region_grow_on_fresh_point_cloud_does_not_deadlock() -> None:
+    """Adjacency is built under the geometry lock and needs the KD-tree, built under the same lock."""
+    import threading
+
+    from annotator.selection import ScanGeometry, region_grow
+
+    rng = np.random.default_rng(0)
+    pts = np.c_[rng.uniform(0, 0.1, (400, 2)), np.zeros(400)].astype(np.float32)
+    nrm = np.tile(np.float32([0, 0, 1]), (400, 1))
+    geom = ScanGeometry(pts, nrm)  # nothing built yet
+    out: list[np.ndarray] = []
+    t = threading.Thread(target=lambda: out.append(region_grow(geom, 0)), daemon=True)
+    t.start()
+    t.join(timeout=30)
+    assert not t.is_alive(), "region_grow deadlocked on a fresh point-cloud geometry"
+    assert len(out[0]) > 1
