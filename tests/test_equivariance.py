@@ -72,8 +72,8 @@ def prior() -> ShapePrior:
 @pytest.fixture(scope="module")
 def prior_att() -> ShapePrior:
     torch.manual_seed(1)
-    cfg = PriorConfig(**{**SMALL, "attention_blocks": (2, 3, 4), "att_head_dim": 8, "center_times_sigma": True,
-                         "decoder_proj_gain": 4.0, "decoder_inv_gain": 16.0})
+    cfg = PriorConfig(**{**SMALL, "attention_blocks": (2, 3, 4), "att_head_dim": 8,
+                         "center_times_sigma": True, "decoder_proj_gain": 4.0, "decoder_inv_gain": 16.0})
     m = ShapePrior(cfg).double().eval().requires_grad_(False)
     calibrate_scale_factor(m, torch.stack([mug_like(128, i) for i in range(4)]))
     return m
@@ -167,7 +167,7 @@ def test_encoder_sim3_equivariant(prior: ShapePrior, seed: int) -> None:
 
 
 def test_encoder_with_attention_equivariant(prior_att: ShapePrior) -> None:
-    """VN attention (softmax weights built from ChNorm'd features) and a σ-scaled centre head stay equivariant."""
+    """VN attention (softmax weights from ChNorm'd features) and a σ-scaled centre head stay equivariant."""
     _check_encoder(prior_att, 4)
 
 

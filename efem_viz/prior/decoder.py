@@ -1,11 +1,13 @@
 """Invariant implicit SDF decoder (efem-method.md §1.5).
 
-``q = (x − Θ_c)/Θ_s``; ``φ = [Θ_R q ; ‖q‖ ; Θ_inv]``; ``h_0 = A_in φ + a_in``; pre-activation residual ReLU
-blocks; ``sdf = w_outᵀ ReLU(h) + b_out``. Parameter names follow §1.7 (``fc_in``, ``block{i}.fc_0/fc_1``, ``fc_out``).
+``q = (x − Θ_c)/Θ_s``; ``φ = [Θ_R q ; ‖q‖ ; Θ_inv]``; ``h_0 = A_in φ + a_in``; pre-activation residual
+ReLU blocks; ``sdf = w_outᵀ ReLU(h) + b_out``. Parameter names follow §1.7 (``fc_in``,
+``block{i}.fc_0/fc_1``, ``fc_out``).
 
-Implementation note: ``A_in φ`` is evaluated as ``(A_proj Θ_R) q + a_q ‖q‖ + (A_inv Θ_inv + a_in)``, i.e. the
-projection onto the ``L`` rows of Θ_R is folded into the first layer once per latent. That is the same
-function (same parameters, same gradients) but costs 4 instead of ``2L+1`` multiply-adds per query and hidden unit.
+Implementation note: ``A_in φ`` is evaluated as ``(A_proj Θ_R) q + a_q ‖q‖ + (A_inv Θ_inv + a_in)``, i.e.
+the projection onto the ``L`` rows of Θ_R is folded into the first layer once per latent. That is the same
+function (same parameters, same gradients) but costs 4 instead of ``2L+1`` multiply-adds per query and
+hidden unit.
 """
 
 from __future__ import annotations

@@ -71,8 +71,8 @@ class PriorConfig:
     """Feed ‖q‖ to the decoder."""
     decoder_proj_gain: float = 1.0
     """Multiplier of the projections ``Θ_R q`` in φ (released models: 1). ChNorm makes each row of Θ_R about
-    ``1/√L`` long, so the raw projections are small; ``√L`` gives them unit scale. A pure reparameterisation of
-    ``fc_in`` (invariance is unaffected); it did not speed up early training in our CPU runs."""
+    ``1/√L`` long, so the raw projections are small; ``√L`` gives them unit scale. A pure reparameterisation
+    of ``fc_in`` (invariance is unaffected); it did not speed up early training in our CPU runs."""
     decoder_inv_gain: float = 1.0
     """Multiplier of Θ_inv in φ (released models: 1; each entry is ~``1/L``, so ``L`` gives unit scale)."""
 
@@ -122,8 +122,8 @@ class Latent(NamedTuple):
         center: ``(B, 3)`` Θ_c, world frame (transforms as ``sRΘ_c + t``).
         scale: ``(B,)`` Θ_s, world units per canonical unit (transforms as ``sΘ_s``).
 
-    Integer indexing ``latent[i]`` keeps a batch axis of size 1; slices, index tensors/arrays and boolean masks
-    select along the batch axis.
+    Integer indexing ``latent[i]`` keeps a batch axis of size 1; slices, index tensors/arrays and boolean
+    masks select along the batch axis.
     """
 
     R: Any

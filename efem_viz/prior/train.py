@@ -39,10 +39,10 @@ PRESETS: dict[str, dict[str, Any]] = {
     # the released mug architecture (§1.3)
     "spec": {},
     # CPU budget: widths halved, 256 input points, latent 128, small decoder (mug_training_report.md: timings)
-    # δ is multiplied by σ (as in the kit4cates prior): with a calibrated σ ≈ 1e6 an unscaled δ starts ~1e-6 and
-    # the centre head cannot learn within a CPU budget (observed: |Θ_c| error unchanged after 250 iterations).
-    # (PriorConfig.decoder_proj_gain/inv_gain = √L/L were tried as well: validation SDF L1 after 250 iterations
-    # was worse, 0.12 vs 0.079, so the shipped preset keeps them at 1.)
+    # δ is multiplied by σ (as in the kit4cates prior): with a calibrated σ ≈ 1e6 an unscaled δ starts ~1e-6
+    # and the centre head cannot learn within a CPU budget (observed: |Θ_c| error unchanged after 250 its).
+    # (PriorConfig.decoder_proj_gain/inv_gain = √L/L were tried as well: validation SDF L1 after 250
+    # iterations was worse, 0.12 vs 0.079, so the shipped preset keeps them at 1.)
     "cpu": {"widths": (16, 16, 32, 32, 64, 128, 256), "latent_dim": 128, "center_hidden": 64, "n_pcl": 256,
             "decoder_hidden": 128, "decoder_blocks": 2, "center_times_sigma": True},
     # quarter widths
@@ -126,6 +126,9 @@ class TrainArgs:
     """Torch device."""
     log_every: int = 10
     """Iterations between entries of the training-loss curve."""
+    calibrate_iso: bool = True
+    """Select and export by the iso-offset-calibrated validation IoU (the offset is folded into the exported
+    ``fc_out.bias`` and stored as metadata ``iso_offset``); False = the spec's raw IoU."""
 
     def run(self) -> int:
         """CLI entry: train with a tqdm progress bar. Returns 0 on success."""
@@ -290,9 +293,13 @@ def validate(prior: ShapePrior, objs: list[ObjectData], cfg: SampleConfig, *, se
     Inputs are random depth views + noise with a fixed seed (the same inputs every validation), no
     augmentation, no centroid noise.
 
+    Also calibrates an iso offset ``c ∈ [0, 0.06]``: the constant that maximises the mean IoU of
+    ``sdf − c < 0`` (a thin-walled shape is first learnt as a slightly positive shell; shifting the level set
+    by ``c`` recovers it). ``c = 0`` is in the grid, so ``iou_cal >= iou``.
+
     Returns:
-        ``iou`` (mean), ``iou_min``, ``center_err`` (mean L2 of Θ_c), ``scale`` (mean Θ_s), ``sdf_l1``
-        (mean |err|).
+        ``iou`` (mean), ``iou_min``, ``iou_cal`` (mean IoU at the best offset), ``iso_offset`` (that offset),
+        ``center_err`` (mean L2 of Θ_c), ``scale`` (mean Θ_s), ``sdf_l1`` (mean |err|).
     """
     import torch
 
@@ -300,7 +307,7 @@ def validate(prior: ShapePrior, objs: list[ObjectData], cfg: SampleConfig, *, se
 
     rng = np.random.default_rng(seed)
     clouds = np.stack([input_cloud(o, cfg, rng) for o in objs])
-    ious, cerr, scales, l1 = [], [], [], []
+    ious, cerr, scales, l1, preds, gts = [], [], [], [], [], []
     with torch.no_grad():
         for s in range(0, len(objs), batch):
             part = objs[s:s + batch]
@@ -317,8 +324,30 @@ def validate(prior: ShapePrior, objs: list[ObjectData], cfg: SampleConfig, *, se
             cerr.extend(lat.center.norm(dim=-1).tolist())
             scales.extend(lat.scale.tolist())
             l1.extend((pred - q[..., 3]).abs().mean(1).tolist())
-    return {"iou": float(np.mean(ious)), "iou_min": float(np.min(ious)), "center_err": float(np.mean(cerr)),
-            "scale": float(np.mean(scales)), "sdf_l1": float(np.mean(l1))}
+            preds.append(pred.cpu().numpy())
+            gts.append(gt_in.cpu().numpy())
+    pred_all, gt_all = np.concatenate(preds), np.concatenate(gts)
+    best_c, best_iou = 0.0, -1.0
+    for c in np.linspace(0.0, 0.06, 25):
+        pr = pred_all < c
+        iou_c = float(np.mean((pr & gt_all).sum(1) / np.maximum((pr | gt_all).sum(1), 1)))
+        if iou_c > best_iou + 1e-9:
+            best_c, best_iou = float(c), iou_c
+    return {"iou": float(np.mean(ious)), "iou_min": float(np.min(ious)), "iou_cal": best_iou,
+            "iso_offset": best_c, "center_err": float(np.mean(cerr)), "scale": float(np.mean(scales)),
+            "sdf_l1": float(np.mean(l1))}
+
+
+def with_iso_offset(prior: ShapePrior, offset: float) -> ShapePrior:
+    """A copy of ``prior`` whose SDF is ``sdf − offset`` (``fc_out.bias`` shifted); ``prior`` is untouched."""
+    import copy
+
+    import torch
+
+    out = copy.deepcopy(prior)
+    with torch.no_grad():
+        out.decoder.fc_out.bias -= offset
+    return out
 
 
 def calibrate_scale_factor(prior: ShapePrior, pcl: torch.Tensor) -> float:
@@ -393,11 +422,14 @@ def _report(args: TrainArgs, prior: ShapePrior, state: _State, *, sec_per_iter: 
              f"decoder {rep['parameters']['decoder']:,}",
              f"- architecture: `{json.dumps(prior.config.to_dict())}`",
              f"- **best validation IoU {state.best_iou:.4f} at iteration {state.best_iteration}** "
-             "(exported model)", "",
-             "| iteration | wall min | val IoU | min IoU | Θ_c error | mean Θ_s | SDF L1 | train loss |",
-             "|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             f"(exported model; {'iso-offset calibrated' if args.calibrate_iso else 'raw'} IoU)", "",
+             "| iteration | wall min | val IoU | min IoU | calibrated IoU (offset) | Θ_c error | mean Θ_s "
+             "| SDF L1 | train loss |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for v in state.val_curve:
+        cal = f"{v['iou_cal']:.4f} ({v['iso_offset']:.4f})" if "iou_cal" in v else "–"
         lines.append(f"| {v['iteration']} | {v['wall_s'] / 60:.1f} | {v['iou']:.4f} | {v['iou_min']:.3f} | "
+                     f"{cal} | "
                      f"{v['center_err']:.4f} | {v['scale']:.3f} | {v['sdf_l1']:.4f} | "
                      f"{v.get('train_loss', 0):.4f} |")
     _write_text_atomic(Path(f"{stem}_training_report.md"), "\n".join(lines) + "\n")
@@ -507,14 +539,18 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
                  train_loss=float(np.mean(running)) if running else float("nan"),
                  val_time_s=round(time.monotonic() - t0, 2))
         state.val_curve.append(m)
-        log.info("val @%d: IoU %.4f (min %.3f) |Θc| %.4f Θs %.3f L1 %.4f [%.1fs]", state.iteration, m["iou"],
-                 m["iou_min"], m["center_err"], m["scale"], m["sdf_l1"], m["val_time_s"])
-        if m["iou"] > state.best_iou:
-            state.best_iou, state.best_iteration = m["iou"], state.iteration
+        log.info("val @%d: IoU %.4f (min %.3f; calibrated %.4f at c=%.4f) |Θc| %.4f Θs %.3f L1 %.4f [%.1fs]",
+                 state.iteration, m["iou"], m["iou_min"], m["iou_cal"], m["iso_offset"], m["center_err"],
+                 m["scale"], m["sdf_l1"], m["val_time_s"])
+        score = m["iou_cal"] if args.calibrate_iso else m["iou"]
+        if score > state.best_iou:
+            state.best_iou, state.best_iteration = score, state.iteration
             trained_on = str(args.meshes) if args.meshes is not None else f"procedural:{args.category}"
-            save_prior(prior, export, extra={"iteration": state.iteration, "val_iou": m["iou"],
-                                             "val_metrics": m, "trained_on": trained_on,
-                                             "n_train": len(train_objs)})
+            offset = m["iso_offset"] if args.calibrate_iso else 0.0
+            save_prior(with_iso_offset(prior, offset), export,
+                       extra={"iteration": state.iteration, "val_iou": score, "val_iou_raw": m["iou"],
+                              "iso_offset": offset, "val_metrics": m, "trained_on": trained_on,
+                              "n_train": len(train_objs)})
             log.info("exported best model to %s", export)
         spi = float(np.median(iter_times[-200:])) if iter_times else None
         _report(args, prior, state, sec_per_iter=spi, n_train=len(train_objs), n_val=len(val_objs),

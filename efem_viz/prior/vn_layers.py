@@ -3,8 +3,8 @@
 Memory layout. The spec writes a VN feature as a matrix ``V`` of shape ``(C, 3)``. Here every VN tensor is
 stored *channels last*, ``(..., 3, C)`` (the 3-D axis second to last), so that a VN-Linear is one dense GEMM
 (``torch.nn.functional.linear``) over all points, edges and spatial components at once. The weights keep the
-spec's ``(C_out, C_in)`` shape and names (``lin.weight``, ``act.lin_dir.weight``) so released checkpoints map one
-to one.
+spec's ``(C_out, C_in)`` shape and names (``lin.weight``, ``act.lin_dir.weight``) so released checkpoints map
+one to one.
 
 All layers are bias-free and positively homogeneous: for a similarity ``g = (s, R, t)`` with ``s > 0`` and
 ``R ∈ SO(3)``, ``f(s R V) = s R f(V)`` in this layout (``V ↦ s V Rᵀ`` in the spec's row layout).
