@@ -6,14 +6,13 @@ changes colour where the stroke went. With EFEM_SAVE_SCREENSHOTS=1 screenshots g
 
 from __future__ import annotations
 
-import io
 import os
-import time
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Iterator
 
 import numpy as np
 import pytest
+from browser_utils import png_to_array, settle, wait_until
 
 pytestmark = [pytest.mark.browser, pytest.mark.timeout(150)]
 
@@ -47,31 +46,16 @@ def annotator(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Any]:
     app.close()
 
 
-def _wait(cond: Callable[[], bool], timeout: float = 20.0, what: str = "condition") -> None:
-    deadline = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.05)
 
 
 def _canvas_png(page: Any) -> np.ndarray:
-    from PIL import Image
-
     png = page.locator("canvas").first.screenshot()
-    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(np.int16)
+    return png_to_array(png)
 
 
 def _settle(page: Any, *, timeout: float = 15.0) -> np.ndarray:
-    prev = _canvas_png(page)
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        page.wait_for_timeout(700)
-        cur = _canvas_png(page)
-        if cur.shape == prev.shape and np.abs(cur - prev).mean() < 0.05:
-            return cur
-        prev = cur
-    return prev
+    """Canvas screenshot once rendering has settled."""
+    return settle(lambda: _canvas_png(page), page, timeout=timeout)
 
 
 def test_ctrl_drag_on_mesh_paints_vertices(annotator: Any, page: Any) -> None:
@@ -80,7 +64,7 @@ def test_ctrl_drag_on_mesh_paints_vertices(annotator: Any, page: Any) -> None:
     iid = app.settings.active_id
     page.goto(app.url)
     page.get_by_text("Tools", exact=True).first.wait_for(timeout=30_000)
-    _wait(lambda: len(app.server.get_clients()) > 0, 30, "client connection")
+    wait_until(lambda: len(app.server.get_clients()) > 0, 30, "client connection")
     before = _settle(page)
     box = page.locator("canvas").first.bounding_box()
     assert box is not None
@@ -96,7 +80,7 @@ def test_ctrl_drag_on_mesh_paints_vertices(annotator: Any, page: Any) -> None:
         page.mouse.up()
         page.keyboard.up("Control")
         try:
-            _wait(lambda: int((app.store.labels == iid).sum()) > 0, 10, "painted vertices")
+            wait_until(lambda: int((app.store.labels == iid).sum()) > 0, 10, "painted vertices")
         except AssertionError:
             continue
         app.wait_idle()

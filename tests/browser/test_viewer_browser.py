@@ -7,14 +7,14 @@ guide (off by default, so CI leaves the tree clean).
 
 from __future__ import annotations
 
-import io
 import os
 import time
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Iterator
 
 import numpy as np
 import pytest
+from browser_utils import png_to_array, settle, wait_until
 
 pytestmark = [pytest.mark.browser, pytest.mark.timeout(120)]
 
@@ -62,33 +62,17 @@ def viewer(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
     app.stop()
 
 
-def _wait(cond: Callable[[], bool], timeout: float = 20.0, what: str = "condition") -> None:
-    deadline = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.05)
 
 
 def _canvas_png(page: Any) -> np.ndarray:
-    from PIL import Image
-
     png = page.screenshot()  # the 3-D view fills the page; the control panel sits at the right
-    img = np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(np.int16)
+    img = png_to_array(png)
     return img[:, : int(img.shape[1] * 0.7)]
 
 
 def _settle(page: Any, *, timeout: float = 15.0) -> np.ndarray:
-    """Screenshot the canvas until two consecutive shots agree (software rendering takes a few frames)."""
-    prev = _canvas_png(page)
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        page.wait_for_timeout(700)
-        cur = _canvas_png(page)
-        if cur.shape == prev.shape and np.abs(cur - prev).mean() < 0.05:
-            return cur
-        prev = cur
-    return prev
+    """Canvas screenshot once rendering has settled."""
+    return settle(lambda: _canvas_png(page), page, timeout=timeout)
 
 
 def _changed_pixels(a: np.ndarray, b: np.ndarray) -> int:
@@ -102,7 +86,7 @@ def _open(page: Any, app: Any, *, close_notice: bool = True, canvas: bool = True
         page.wait_for_function(
             "Array.from(document.querySelectorAll('canvas')).some(c => c.width > 0 && c.height > 0)", timeout=30_000
         )
-    _wait(lambda: len(app.server.get_clients()) >= 1, 30, "the client to connect")
+    wait_until(lambda: len(app.server.get_clients()) >= 1, 30, "the client to connect")
     page.get_by_role("tab", name="Scene").wait_for(timeout=30_000)
     if close_notice:  # hide the "software WebGL rendering" notice of headless chromium: clean screenshots
         page.add_style_tag(content="#webgl-software-rendering { display: none !important; }")
@@ -133,7 +117,7 @@ def test_step_slider_changes_view(viewer: Any, page: Any) -> None:
     last = viewer.state.step
     slider.focus()
     page.keyboard.press("Home")  # step 0: many more proposals alive, other samples and shapes
-    _wait(lambda: viewer.state.step == 0, 20, "the step callback")
+    wait_until(lambda: viewer.state.step == 0, 20, "the step callback")
     assert viewer.wait_idle(60)
     after = _settle(page)
     assert last != 0
@@ -142,7 +126,7 @@ def test_step_slider_changes_view(viewer: Any, page: Any) -> None:
     _save(page, "viewer_timeline.png")
     slider.focus()
     page.keyboard.press("End")
-    _wait(lambda: viewer.state.step == last, 20, "the step callback")
+    wait_until(lambda: viewer.state.step == last, 20, "the step callback")
 
 
 def test_threshold_changes_view(viewer: Any, page: Any) -> None:
@@ -156,13 +140,13 @@ def test_threshold_changes_view(viewer: Any, page: Any) -> None:
     _save(page, "viewer_results.png")
     slider.focus()
     page.keyboard.press("End")  # above every confidence: all instances hidden, points back to scene colours
-    _wait(lambda: viewer.state.threshold > float(np.max(viewer.state.result.instances.confidence)), 20, "threshold")
+    wait_until(lambda: viewer.state.threshold > float(np.max(viewer.state.result.instances.confidence)), 20, "threshold")
     after = _settle(page)
     changed = _changed_pixels(after, before)
     assert changed > 1500, f"moving the threshold did not change the canvas ({changed} pixels changed)"
     slider.focus()
     page.keyboard.press("Home")
-    _wait(lambda: viewer.state.threshold == 0.0, 20, "threshold reset")
+    wait_until(lambda: viewer.state.threshold == 0.0, 20, "threshold reset")
     viewer.set_proposal_layers(shapes=True, samples=True)
 
 
@@ -172,12 +156,12 @@ def test_two_clients_share_state(viewer: Any, browser: Any, page: Any) -> None:
     try:
         page2 = ctx2.new_page()
         _open(page2, viewer, close_notice=False, canvas=False)
-        _wait(lambda: len(viewer.server.get_clients()) >= 2, 30, "two clients")
+        wait_until(lambda: len(viewer.server.get_clients()) >= 2, 30, "two clients")
         page.get_by_role("tab", name="Timeline").click()
         page2.get_by_role("tab", name="Timeline").click()
         viewer.set_step(1)
         s2 = page2.get_by_role("slider").first
-        _wait(lambda: s2.get_attribute("aria-valuenow") == "1", 20, "the second client to see step 1")
+        wait_until(lambda: s2.get_attribute("aria-valuenow") == "1", 20, "the second client to see step 1")
         viewer.set_step(viewer.state.num_steps - 1)
     finally:
         ctx2.close()
@@ -205,7 +189,7 @@ def test_guide_run_tab(viewer: Any, page: Any, monkeypatch: pytest.MonkeyPatch) 
     page.get_by_role("tab", name="Run").click()
     fut = viewer.start_run(preset="fast", proposals=100, seed=0)
     assert fut is not None
-    _wait(lambda: viewer.panels.gui_progress.value >= 25 or fut.done(), 120, "a quarter of the run")
+    wait_until(lambda: viewer.panels.gui_progress.value >= 25 or fut.done(), 120, "a quarter of the run")
     _save(page, "viewer_run.png")
     fut.result(timeout=300)
     assert viewer.load_trace() and viewer.wait_idle(120)
