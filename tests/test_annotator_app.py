@@ -184,7 +184,7 @@ def test_restart_resumes_labels_and_undo(mesh_path: Path, tmp_path: Path) -> Non
 
 def test_exports_round_trip_and_never_touch_the_scan(app: AnnotatorApp, mesh_path: Path) -> None:
     before = mesh_path.read_bytes()
-    iid = app.new_instance(category="mug")
+    app.new_instance(category="mug")
     app.paint(np.arange(50, 500))
     ply, = app.export("ply")
     npz, = app.export("npz")
@@ -198,7 +198,7 @@ def test_exports_round_trip_and_never_touch_the_scan(app: AnnotatorApp, mesh_pat
 
 
 def test_gui_import_refuses_traversal_and_bad_files_server_stays_up(app: AnnotatorApp, tmp_path: Path) -> None:
-    iid = app.new_instance()
+    app.new_instance()
     app.paint(np.arange(10))
     state = app.store.labels.copy()
     app.gui_import_path.value = "../../../../etc/passwd"

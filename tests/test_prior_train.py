@@ -207,3 +207,22 @@ def test_shipped_mug_reconstructs_held_out_partial_scan(cache_dir: Path) -> None
         assert abs(float(lat.scale) / s - 1.0) < 0.3
         assert float((lat.center[0] - t).norm()) / s < 0.25  # canonical bbox centre ↦ t
     assert np.mean(ious) > SHIPPED_IOU_BAR, ious
+
+
+def test_sigterm_stops_cleanly_with_a_final_checkpoint(tmp_path: Path, cache_dir: Path) -> None:
+    """A background run that gets SIGTERM (or Ctrl+C) validates, checkpoints and can be resumed."""
+    import os
+    import signal
+
+    def kill_at_3(it: int, total: int, info: dict) -> None:
+        if it == 3:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    before = signal.getsignal(signal.SIGTERM)
+    res = train(_args(tmp_path, cache_dir, iterations=10, val_every=100), on_progress=kill_at_3)
+    assert res["stop_reason"].startswith("interrupted") and res["iteration"] == 3
+    assert signal.getsignal(signal.SIGTERM) is before
+    ck = torch.load(tmp_path / "run" / "last.pt", weights_only=False)
+    assert ck["state"]["iteration"] == 3
+    resumed = train(_args(tmp_path, cache_dir, iterations=5, val_every=100, resume=True))
+    assert resumed["iteration"] == 5

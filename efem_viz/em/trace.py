@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, NamedTuple
 
 import numpy as np
 
-from efem_viz.em.config import EMConfig, schedule
+from efem_viz.em.config import EMConfig
 from efem_viz.em.proposals import REASONS, AvailableTree
 
 if TYPE_CHECKING:

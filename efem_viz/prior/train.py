@@ -17,6 +17,7 @@ import math
 import os
 import shutil
 import tempfile
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -210,6 +211,33 @@ def _write_text_atomic(path: Path, text: str) -> None:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+def _install_stop_handlers() -> tuple[threading.Event, Callable[[], None]]:
+    """SIGINT/SIGTERM ask the loop to stop after the current iteration; it then validates and checkpoints.
+
+    Only in the main thread (signal handlers cannot be set elsewhere); elsewhere the event is never set.
+    Returns the event and a function that restores the previous handlers.
+    """
+    import signal
+
+    stop = threading.Event()
+    previous: dict[int, Any] = {}
+    if threading.current_thread() is threading.main_thread():
+        def _handler(signum: int, frame: object) -> None:  # noqa: ARG001
+            if stop.is_set():  # a second signal: stop at once
+                raise KeyboardInterrupt
+            log.warning("signal %d: stopping after this iteration (final validation + checkpoint)", signum)
+            stop.set()
+
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, _handler)
+
+    def restore() -> None:
+        for sig, old in previous.items():
+            signal.signal(sig, old)
+
+    return stop, restore
 
 
 def _copy_atomic(src: Path, dst: Path) -> None:
@@ -574,7 +602,11 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
     if state.iteration == 0 and not state.val_curve:
         do_validation()
     stop_reason = "iterations"
+    stop_requested, restore_handlers = _install_stop_handlers()
     while state.iteration < args.iterations:
+        if stop_requested.is_set():
+            stop_reason = "interrupted (SIGINT/SIGTERM)"
+            break
         if max_iterations is not None and done_here >= max_iterations:
             stop_reason = "max_iterations"
             break
@@ -629,6 +661,7 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
             do_validation()
         if time.monotonic() - last_ckpt >= args.ckpt_every_min * 60:
             do_checkpoint()
+    restore_handlers()
     if not state.val_curve or state.val_curve[-1]["iteration"] != state.iteration:
         do_validation()
     do_checkpoint(final=True)
