@@ -23,7 +23,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
-REAL = Path("/work/shared/data/real_tabletop")
+REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_tabletop"
+if not REAL.is_dir():
+    REAL = Path("/work/shared/data/real_tabletop")
 
 
 def main() -> None:

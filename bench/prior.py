@@ -37,7 +37,9 @@ from typing import Any
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
-YCB_MUG = Path("/work/shared/data/ycb/025_mug/nontextured.ply")
+YCB_MUG = ROOT.parent / "shared" / "data" / "ycb" / "025_mug" / "nontextured.ply"  # ../shared beside the repo
+if not YCB_MUG.exists():
+    YCB_MUG = Path("/work/shared/data/ycb/025_mug/nontextured.ply")
 
 
 def _sd_scene(mesh: Any) -> Any:

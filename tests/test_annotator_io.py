@@ -190,7 +190,9 @@ def test_binary_triangle_ply_fast_path_matches_general_loader(tmp_path: Path, sc
     assert fast.categories == ref.categories
 
 
-RGBD = Path("/work/shared/data/real_tabletop/image_0000.npz")
+RGBD = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_tabletop" / "image_0000.npz"
+if not RGBD.exists():
+    RGBD = Path("/work/shared/data/real_tabletop/image_0000.npz")
 
 
 @pytest.mark.skipif(not RGBD.exists(), reason="real RGB-D frames not present")
