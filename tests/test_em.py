@@ -233,7 +233,7 @@ def _mug_scene() -> object:
     """Three upright test-split mugs on a table (synthetic scan, seeded)."""
     from efem_viz.data.synth import generate_scene
 
-    return generate_scene("z", seed=4242, n_objects=3, mode="points", distractors=False)
+    return generate_scene("z", seed=4242, n_objects=3, mode="tsdf", distractors=False)
 
 
 def _trained_prior_or_skip() -> object:
@@ -262,6 +262,25 @@ def test_trained_prior_finds_mugs() -> None:
     assert m.shape[1] == len(scene.instance_ids())
     best = m.max(axis=0) if len(res.instances) else np.zeros(m.shape[1])
     assert (best >= 0.7).all(), f"per-object best IoU {np.round(best, 3)}"
+
+
+def test_shipped_prior_regression_each_mug_found_once() -> None:
+    """EM regression with the prior as shipped now (always runs; tolerances set from its measured behaviour).
+
+    Measured with the iteration-4500 prior (val IoU 0.42): 3 instances, per-mug best IoU 0.56 / 0.71 / 0.86. The
+    bar (every mug matched by exactly one instance at IoU ≥ 0.5, no extra instance) catches solver or prior
+    regressions; `test_trained_prior_finds_mugs` holds the issue's IoU ≥ 0.7 bar for a better-trained prior.
+    """
+    if not WEIGHTS.is_file():
+        pytest.skip(f"trained mug prior not found at {WEIGHTS}")
+    from efem_viz.prior.model import load_prior
+
+    scene = _mug_scene()
+    res = run_em(scene, load_prior(WEIGHTS), preset("fast").replace(n_init=(100,)), seed=0)
+    m = ious(res.instances, scene.instance)
+    assert m.shape == (3, 3), f"expected 3 instances for 3 mugs, got {m.shape[0]}"
+    assert (m.max(axis=0) >= 0.5).all(), f"per-mug best IoU {np.round(m.max(axis=0), 3)}"
+    assert sorted(m.argmax(axis=1).tolist()) == [0, 1, 2], "two instances claim the same mug"
 
 
 def test_instances_npz_round_trip_including_empty() -> None:
