@@ -16,7 +16,6 @@ import logging
 import math
 import os
 import shutil
-import tempfile
 import threading
 import time
 from collections.abc import Callable
@@ -200,17 +199,9 @@ def _json_default(o: Any) -> Any:
 
 
 def _write_text_atomic(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    from efem_viz.data.io import atomic_write_text
+
+    atomic_write_text(path, text)
 
 
 def _install_stop_handlers() -> tuple[threading.Event, Callable[[], None]]:
@@ -241,17 +232,9 @@ def _install_stop_handlers() -> tuple[threading.Event, Callable[[], None]]:
 
 
 def _copy_atomic(src: Path, dst: Path) -> None:
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{dst.name}.", suffix=".tmp", dir=dst.parent)
-    os.close(fd)
-    try:
-        shutil.copyfile(src, tmp)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, dst)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    from efem_viz.data.io import atomic_write
+
+    atomic_write(dst, lambda tmp: shutil.copyfile(src, tmp))
 
 
 def lr_at(iteration: int, *, base: float, total: int, decay_at: tuple[float, ...], factor: float) -> float:

@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -25,19 +23,9 @@ logger = logging.getLogger(__name__)
 
 
 def _atomic_write_text(path: Path, text: str) -> Path:
-    try:
-        from efem_viz.data.io import atomic_write_text
+    from efem_viz.data.io import atomic_write_text
 
-        return Path(atomic_write_text(path, text))
-    except ImportError:  # pragma: no cover - io always exists in the package
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-        return path
+    return Path(atomic_write_text(path, text))
 
 
 def export_results(result: Any, scene: Any, out_dir: Path, *, threshold: float = 0.0) -> Path:
