@@ -175,3 +175,14 @@ def test_pose_edge_cases(codebook: Codebook, prior: ShapePrior) -> None:
         estimate_pose(prior, lat, np.ones((10, 2)), codebook=codebook)
     with pytest.raises(ValueError, match="normals"):
         estimate_pose(prior, lat, np.ones((10, 3)), np.ones((9, 3)), codebook=codebook)
+
+
+def test_load_prior_refuses_a_codebook_of_other_weights(prior: ShapePrior, codebook: Codebook, tmp_path) -> None:  # noqa: ANN001
+    """A codebook built from other weights is not attached by load_prior (its poses would be meaningless)."""
+    from efem_viz.prior.model import load_prior, save_prior
+
+    save_prior(prior, tmp_path / "p.pt")
+    codebook.save(tmp_path / "p_codebook.npz")
+    assert load_prior(tmp_path / "p.pt").codebook is not None
+    save_prior(ShapePrior(prior.config), tmp_path / "p.pt")  # other (random) weights, same file name
+    assert load_prior(tmp_path / "p.pt").codebook is None

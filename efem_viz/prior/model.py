@@ -405,7 +405,12 @@ def load_prior(name_or_path: str | os.PathLike[str] = "mug", *, device: str | to
             except ImportError:
                 log.warning("codebook %s present but efem_viz.prior.codebook is unavailable", cb_path)
             else:
-                prior.codebook = Codebook.load(cb_path)
+                codebook = Codebook.load(cb_path)
+                if codebook.matches(prior):
+                    prior.codebook = codebook
+                else:  # retrievals and poses from another network's codes would be meaningless
+                    log.warning("codebook %s was built from other weights than %s; not attached (rebuild it with "
+                                "`efem-viz build-codebook --prior %s`)", cb_path, path, path)
     return prior
 
 
