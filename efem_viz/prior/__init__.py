@@ -10,7 +10,8 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from efem_viz.prior.model import Latent, PriorConfig, ShapePrior, load_prior, save_prior
+    from efem_viz.prior.model import Latent as Latent, PriorConfig as PriorConfig, ShapePrior as ShapePrior
+    from efem_viz.prior.model import load_prior as load_prior, save_prior as save_prior
 
 _LAZY = {
     "Latent": "efem_viz.prior.model",
