@@ -334,37 +334,17 @@ def load_labels(path: str | os.PathLike[str], num_vertices: int) -> LabelData:
 def load_scan(path: str | os.PathLike[str], *, max_points: int = 2_000_000) -> Any:
     """Open a scan as an `efem_viz.data.scene.Scene`: PLY/OBJ/OFF/GLB/NPZ scenes or a real RGB-D frame `.npz`.
 
-    An `.npz` with a depth image (`depth_mm` or `depth`, and `K`) is imported with
-    `efem_viz.data.rgbd.import_rgbd_file` (table plane to +Z). The file is only read, never written.
+    Thin wrapper over `efem_viz.data.io.load_scene` (which also imports RGB-D frames with the table plane to +Z)
+    that reports failures as `LabelIOError`. The file is only read, never written.
 
     Raises:
         LabelIOError: anything that prevents opening it (the message names the file and the reason).
     """
+    from efem_viz.data.io import load_scene
     from efem_viz.data.scene import SceneError
 
-    p = Path(path)
-    if p.suffix.lower() == ".npz" and p.exists() and p.stat().st_size > 0:
-        try:
-            with np.load(p, allow_pickle=False) as z:
-                is_rgbd = ("depth_mm" in z.files or "depth" in z.files) and "K" in z.files and "points" not in z.files
-        except (OSError, ValueError) as exc:
-            raise LabelIOError(f"{p}: could not read NPZ ({exc})") from exc
-        if is_rgbd:
-            try:
-                from efem_viz.data.rgbd import import_rgbd_file
-            except ImportError as exc:
-                raise LabelIOError(f"{p} is an RGB-D frame but efem_viz.data.rgbd is not available ({exc})") from exc
-            try:
-                scene = import_rgbd_file(p)
-            except (SceneError, ValueError, KeyError, OSError) as exc:
-                raise LabelIOError(f"{p}: could not import RGB-D frame ({exc})") from exc
-            if scene.num_points > max_points:
-                raise LabelIOError(f"{p}: {scene.num_points:,} points, more than the limit of {max_points:,}")
-            return scene
-    from efem_viz.data.io import load_scene
-
     try:
-        return load_scene(p, max_points=max_points)
+        return load_scene(Path(path), max_points=max_points)
     except SceneError as exc:
         raise LabelIOError(str(exc)) from exc
 
