@@ -1,10 +1,9 @@
-"""Click-to-segment: one EFEM run seeded near a clicked point, with a shape prior (torch; imported lazily).
+"""Click-to-segment: one EFEM run seeded at a clicked point, with a shape prior (torch; imported lazily).
 
-`efem_viz.em.run_em` draws its proposal anchors at random among the scene's points and has no argument to force
-them. To anchor the proposals near the click we run it on a *crop* of the scene: the points within
-`crop_radius` of the click, so every anchor lies within `crop_radius` of it, with a few proposals. The instance
-whose mask contains the clicked point (else the one whose centre is nearest) is returned, mapped back to the
-scene's vertex indices.
+EFEM runs on a *crop* of the scene (the points within `crop_radius` of the click, which bounds the cost on big
+scans) with a few proposals whose anchors are forced near the click (`run_em(anchor_candidates=...)`: the points
+within `anchor_radius` of it). The instance whose mask contains the clicked point (else the one whose centre is
+nearest) is returned, mapped back to the scene's vertex indices.
 """
 
 from __future__ import annotations
@@ -64,6 +63,7 @@ def segment_at_point(
     prior_name: str = "mug",
     prior: Any = None,
     crop_radius: float = 0.16,
+    anchor_radius: float = 0.03,
     n_proposals: int = 12,
     preset_name: str = "real_mugs",
     seed: int = 0,
@@ -77,6 +77,7 @@ def segment_at_point(
         prior_name: prior to load when `prior` is None ("mug").
         prior: an already loaded `ShapePrior` (tests), or None.
         crop_radius: metres; EM sees only points within this distance of the click.
+        anchor_radius: metres; the proposals are anchored on points within this distance of the click.
         n_proposals: proposals initialised (all anchored inside the crop).
         preset_name: `efem_viz.em.preset` name the config starts from.
         seed: EM seed.
@@ -116,7 +117,11 @@ def segment_at_point(
     import torch
 
     torch.set_num_threads(max(1, min(2, torch.get_num_threads())))
-    res = run_em(sub, pr, cfg, seed=seed)
+    local_tree = cKDTree(pts[crop])
+    near = np.asarray(local_tree.query_ball_point(centre, max(float(anchor_radius), 0.0)), np.int64)
+    if len(near) == 0:
+        near = np.asarray([int(np.searchsorted(crop, int(vertex)))], np.int64)
+    res = run_em(sub, pr, cfg, seed=seed, anchor_candidates=near)
     inst = res.instances
     if len(inst) == 0:
         return np.zeros(0, np.int32)

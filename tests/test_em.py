@@ -76,6 +76,24 @@ def test_same_seed_same_run_other_seed_other_anchors(sphere_run: tuple) -> None:
     assert not np.array_equal(a.trace.prop_anchor, c.trace.prop_anchor)
 
 
+def test_anchor_candidates_seed_the_first_episode_there(sphere_run: tuple) -> None:
+    scene, prior, _, _ = sphere_run
+    g = int(scene.instance_ids()[1])
+    members = np.flatnonzero(scene.instance == g)[:5]
+    cfg = preset("fast").replace(n_init=(12,), t1=4, t2=2, end_step=3)
+    res = run_em(scene, prior, cfg, seed=3, anchor_candidates=members)
+    assert set(res.trace.prop_anchor.tolist()) <= set(members.tolist())
+    m = ious(res.instances, scene.instance)
+    k = list(scene.instance_ids()).index(g)
+    assert len(res.instances) >= 1 and m[:, k].max() >= 0.9  # the seeded sphere is found
+    thin = run_em(scene, prior, cfg.replace(work_voxel=0.02), seed=3, anchor_candidates=members)
+    d = np.linalg.norm(scene.points[thin.trace.prop_anchor][:, None] - scene.points[members][None], axis=2)
+    assert d.min(axis=1).max() < 0.02 * np.sqrt(3)  # thinned working set: the kept point nearest a candidate
+    for bad in (np.array([], np.int64), np.array([0.5]), np.array([scene.num_points]), np.array([[1]])):
+        with pytest.raises(ValueError, match="anchor_candidates"):
+            run_em(scene, prior, cfg, anchor_candidates=bad)
+
+
 def test_cancel_raises(sphere_run: tuple) -> None:
     scene, prior, _, _ = sphere_run
     ev = threading.Event()

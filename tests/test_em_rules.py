@@ -284,6 +284,25 @@ def test_init_crops_anchors_among_available_only() -> None:
         assert np.array_equal(np.sort(crops.idx[sl]), brute)
 
 
+def test_init_crops_anchor_mask_restricts_anchors_not_crops() -> None:
+    rng = np.random.default_rng(4)
+    pts = np.random.default_rng(1).uniform(-1, 1, (400, 3)).astype(np.float32)
+    avail = np.ones(400, bool)
+    avail[300:] = False
+    mask = np.zeros(400, bool)
+    mask[[5, 17, 350]] = True  # 350 is not available: never an anchor
+    anchors, crops = init_crops(pts, avail, 40, 0.5, rng, anchor_mask=mask)
+    assert set(anchors.tolist()) <= {5, 17}
+    assert len(set(anchors.tolist())) == 2  # both drawn among 40 (with replacement)
+    for r in range(40):  # the crops still hold every available point in the ball
+        brute = np.flatnonzero(avail & (np.linalg.norm(pts - pts[anchors[r]], axis=1) < 0.5))
+        assert np.array_equal(np.sort(crops.idx[crops.row_slice(r)]), brute)
+    with pytest.raises(ValueError, match="no available points"):
+        init_crops(pts, avail, 4, 0.5, rng, anchor_mask=np.eye(1, 400, 350, dtype=bool)[0])
+    with pytest.raises(ValueError, match="anchor_mask has shape"):
+        init_crops(pts, avail, 4, 0.5, rng, anchor_mask=np.ones(10, bool))
+
+
 def test_cylinder_neighbourhood_ignores_height() -> None:
     pts = np.array([[0, 0, 0], [0, 0, 5], [0.5, 0, 0], [0.05, 0, -3]], np.float32)
     tree = AvailableTree(pts, np.ones(4, bool), crop="cylinder")

@@ -152,6 +152,7 @@ def init_crops(
     *,
     crop: str = "sphere",
     tree: AvailableTree | None = None,
+    anchor_mask: np.ndarray | None = None,
 ) -> tuple[np.ndarray, Ragged]:
     """Draw `n` anchors with replacement among the available points and crop around them (§3.3).
 
@@ -163,11 +164,22 @@ def init_crops(
         rng: NumPy generator (anchors are its first draw).
         crop: "sphere" or "cylinder".
         tree: optional prebuilt AvailableTree for (points, available, crop).
+        anchor_mask: optional (N,) bool: anchors are drawn only among available points where it is True (the
+            crops still take every available point).
 
     Returns:
         anchors (n,) int64 scene indices, and the crops as Ragged rows (initial weights are 1 on every entry).
+
+    Raises:
+        ValueError: no available point (within `anchor_mask`) to anchor on, or a mask of the wrong shape.
     """
-    avail_idx = np.flatnonzero(np.asarray(available, bool))
+    avail = np.asarray(available, bool)
+    if anchor_mask is not None:
+        anchor_mask = np.asarray(anchor_mask, bool)
+        if anchor_mask.shape != avail.shape:
+            raise ValueError(f"anchor_mask has shape {anchor_mask.shape}, expected {avail.shape}")
+        avail = avail & anchor_mask
+    avail_idx = np.flatnonzero(avail)
     if len(avail_idx) == 0:
         raise ValueError("no available points to draw proposal anchors from")
     anchors = avail_idx[rng.integers(0, len(avail_idx), size=int(n))].astype(np.int64)

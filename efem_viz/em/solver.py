@@ -345,6 +345,7 @@ def run_em(
     device: str = "cpu",
     on_step: Callable[[StepInfo], None] | None = None,
     cancel: threading.Event | None = None,
+    anchor_candidates: np.ndarray | None = None,
 ) -> "EMResult":
     """Segment a scene with EFEM (efem-method.md §3) and record the full trace.
 
@@ -356,6 +357,10 @@ def run_em(
         device: "cpu" or "cuda" (or a torch device string).
         on_step: called with a `StepInfo` after every step.
         cancel: when set, the run stops at the next check and raises `EMCancelled`.
+        anchor_candidates: optional (K,) int scene point indices: the first episode draws its proposal anchors
+            only among these (with replacement; on a thinned working set, among the kept points nearest to
+            them), e.g. the points around a click for click-to-segment. Crops, E-steps and later episodes still
+            use the whole scene. None = every point (the method as specified).
 
     Returns:
         EMResult with trace, instances, config and `timings`: wall seconds per stage (`STAGES`: m_step, encode,
@@ -381,12 +386,21 @@ def run_em(
         raise ValueError(f"scene points must be a non-empty (N, 3) array, got {points.shape}")
     if normals.shape != points.shape:
         raise ValueError(f"scene normals {normals.shape} do not match points {points.shape}")
+    if anchor_candidates is not None:
+        anchor_candidates = np.asarray(anchor_candidates)
+        if anchor_candidates.ndim != 1 or len(anchor_candidates) == 0 or anchor_candidates.dtype.kind not in "iu":
+            raise ValueError(f"anchor_candidates must be a non-empty (K,) integer array, got "
+                             f"{anchor_candidates.dtype} {anchor_candidates.shape}")
+        if anchor_candidates.min() < 0 or anchor_candidates.max() >= len(points):
+            raise ValueError(f"anchor_candidates must index the scene's {len(points)} points, got range "
+                             f"[{anchor_candidates.min()}, {anchor_candidates.max()}]")
     _move_prior(prior, device)
     was_training = getattr(prior, "training", False)
     if hasattr(prior, "eval"):
         prior.eval()
     try:
-        solver = _Solver(scene.name, points, normals, prior, cfg, seed=seed, on_step=on_step, cancel=cancel)
+        solver = _Solver(scene.name, points, normals, prior, cfg, seed=seed, on_step=on_step, cancel=cancel,
+                         anchor_candidates=anchor_candidates)
         inst_rows = solver.run()
     finally:
         if was_training and hasattr(prior, "train"):
@@ -432,6 +446,7 @@ class _Solver:
         seed: int,
         on_step: Callable[[StepInfo], None] | None,
         cancel: threading.Event | None,
+        anchor_candidates: np.ndarray | None = None,
     ) -> None:
         self.name = name
         self.full_points = points
@@ -442,6 +457,9 @@ class _Solver:
         self.points = points[self.work_idx] if not self.identity else points
         self.normals = normals[self.work_idx] if not self.identity else normals
         self.n = len(self.points)
+        self.anchor_mask: np.ndarray | None = None
+        if anchor_candidates is not None:
+            self.anchor_mask = self._anchor_mask(points, anchor_candidates)
         # min_size is defined at the scene's resolution; on a thinned working set it scales with the density
         self.min_size = max(1, int(round(cfg.min_size * self.n / self.n_full)))
         self.prior = prior
@@ -465,6 +483,19 @@ class _Solver:
             logger.info("%s: EM on a %.1f mm working set of %d of %d points (min_size %d -> %d)", name,
                         cfg.work_voxel * 1000, self.n, self.n_full, cfg.min_size, self.min_size)
 
+    def _anchor_mask(self, points: np.ndarray, candidates: np.ndarray) -> np.ndarray:
+        """(n,) bool over the working set: the candidates, or (thinned set) the kept point nearest to each."""
+        if self.identity:
+            mask = np.zeros(self.n, bool)
+            mask[candidates] = True
+            return mask
+        from scipy.spatial import cKDTree
+
+        _, near = cKDTree(self.points).query(points[candidates])
+        mask = np.zeros(self.n, bool)
+        mask[np.asarray(near, np.int64)] = True
+        return mask
+
     def _check_cancel(self) -> None:
         if self.cancel is not None and self.cancel.is_set():
             raise EMCancelled(f"EM on {self.name!r} cancelled after {self.rec.num_steps} steps")
@@ -485,8 +516,11 @@ class _Solver:
                 break
             tree = AvailableTree(self.points, available, crop=cfg.crop)
             full_tree = tree if self.identity else None
+            anchor_mask = self.anchor_mask if ep == 0 else None
+            if anchor_mask is not None and not (anchor_mask & available).any():
+                raise ValueError("none of the anchor candidates is an available scene point")
             anchors, crops = init_crops(self.points, available, n_init, cfg.r_init, self.rng, crop=cfg.crop,
-                                        tree=tree)
+                                        tree=tree, anchor_mask=anchor_mask)
             ids = self.rec.birth(ep, self.work_idx[anchors], cfg.r_init, cfg.r_err)
             self.rec.start_episode(np.flatnonzero(assigned), len(ids))
             pool = _Pool(ids=ids, rag=crops, w=np.ones(len(crops.idx), np.float32))

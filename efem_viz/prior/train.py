@@ -118,6 +118,12 @@ class TrainArgs:
     """Explicit checkpoint to resume from (implies --resume)."""
     p_table: float = 0.3
     """Probability of the table-plane augmentation."""
+    min_views: int = 4
+    """Fewest depth views in an input cloud (spec: 4 for mugs; 1 also trains single-view inputs, as real RGB-D
+    frames are). Validation inputs are drawn with the same setting."""
+    reset_best: bool = False
+    """On resume, forget the best validation IoU so far (use when the validation inputs change, e.g. a new
+    --min-views): the next validation exports."""
     progress: bool = True
     """Show a progress bar."""
     report_notes: Path | None = None
@@ -172,7 +178,9 @@ class TrainArgs:
         """Per-example sampling for this run."""
         from efem_viz.prior.data import SampleConfig
 
-        return SampleConfig(n_pcl=n_pcl, p_table=self.p_table)
+        if self.min_views < 1:
+            raise ValueError(f"min_views must be >= 1 (got {self.min_views})")
+        return SampleConfig(n_pcl=n_pcl, p_table=self.p_table, min_views=self.min_views)
 
     def resolved_out_dir(self) -> Path:
         """``out_dir`` or ``runs/<category>``."""
@@ -513,6 +521,10 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
         torch.set_rng_state(ckpt["torch_rng"])
         prior.metadata = dict(ckpt.get("metadata") or {})
         log.info("resumed from %s at iteration %d", resume_path, state.iteration)
+        if args.reset_best:
+            log.info("--reset-best: forgetting best val IoU %.4f (iteration %d)", state.best_iou,
+                     state.best_iteration)
+            state.best_iou, state.best_iteration = -1.0, -1
     else:
         calib_rng = np.random.default_rng(args.seed + 7)
         from efem_viz.prior.data import input_cloud
@@ -582,7 +594,7 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
                             last.stat().st_size / 2**20, args.resume_export)
 
     prior.train()
-    if state.iteration == 0 and not state.val_curve:
+    if (state.iteration == 0 and not state.val_curve) or (ckpt is not None and args.reset_best):
         do_validation()
     stop_reason = "iterations"
     stop_requested, restore_handlers = _install_stop_handlers()
