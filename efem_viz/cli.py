@@ -13,6 +13,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "import-rgbd": ("efem_viz.data.commands:ImportRgbdArgs", "import a real RGB-D frame as a scene"),
     "train-prior": ("efem_viz.prior.train:TrainArgs", "train a SIM(3)-equivariant shape prior"),
     "build-codebook": ("efem_viz.prior.codebook:BuildCodebookArgs", "build the pose codebook of a prior"),
+    "convert-prior": ("efem_viz.prior.convert:ConvertArgs",
+                      "convert a released EFEM checkpoint (weights/mugs.pt) + build its +Z-up codebook"),
     "segment": ("efem_viz.em.commands:SegmentArgs", "run EFEM on scenes and save traces + results"),
     "evaluate": ("efem_viz.eval.commands:EvaluateArgs", "compute AP / AP50 / AP25 against ground truth"),
 }
@@ -44,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     parsed = tyro.cli(cls, args=rest, prog=f"efem-viz {name}")
     try:
         return int(parsed.run() or 0)
-    except (ValueError, FileNotFoundError, PermissionError) as exc:
+    except (ValueError, FileNotFoundError, FileExistsError, PermissionError) as exc:
         print(f"efem-viz {name}: error: {exc}", file=sys.stderr)
         return 1
 

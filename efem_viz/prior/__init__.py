@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from efem_viz.prior.model import Latent as Latent, PriorConfig as PriorConfig, ShapePrior as ShapePrior
+    from efem_viz.prior.convert import convert_released_checkpoint as convert_released_checkpoint
     from efem_viz.prior.model import load_prior as load_prior, save_prior as save_prior
 
 _LAZY = {
@@ -19,6 +20,7 @@ _LAZY = {
     "ShapePrior": "efem_viz.prior.model",
     "load_prior": "efem_viz.prior.model",
     "save_prior": "efem_viz.prior.model",
+    "convert_released_checkpoint": "efem_viz.prior.convert",
 }
 
 __all__ = sorted(_LAZY)

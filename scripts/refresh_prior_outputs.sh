@@ -1,0 +1,36 @@
+#!/usr/bin/env bash
+# After the shipped prior (efem_viz/weights/mug.pt) changes, rebuild everything that was computed with it:
+#   1. its pose codebook (efem_viz/weights/mug_codebook.npz)
+#   2. the precomputed EFEM traces of every bundled scene (sample_scenes/<scene>.efem.npz; traces replay by
+#      re-decoding stored latents, so old traces are wrong with new weights)
+#   3. the static demo of syn_z_0 (static/syn_z_0/)
+# Usage: bash scripts/refresh_prior_outputs.sh [--skip-codebook] [--skip-demo]
+# Time on a 2-core CPU: about 1 min (codebook) + 10-30 s per scene + 1 min (demo).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+SKIP_CB=0; SKIP_DEMO=0
+for a in "$@"; do
+  case "$a" in
+    --skip-codebook) SKIP_CB=1 ;;
+    --skip-demo) SKIP_DEMO=1 ;;
+    *) echo "unknown option $a" >&2; exit 2 ;;
+  esac
+done
+PY=${PYTHON:-python3}
+if [[ $SKIP_CB == 0 ]]; then
+  $PY -m efem_viz.cli build-codebook --prior mug --count 150 --n-store 2000 --noise 0.01 --seed 0
+fi
+# The bundled traces: 100 proposals, seed 0; synthetic scenes with the synthetic_mugs preset, real ones with
+# real_mugs (efem-method.md §3.12; the demo config equals the real-mugs config).
+OUT=$(mktemp -d)
+trap 'rm -rf "$OUT"' EXIT
+$PY -m efem_viz.cli segment sample_scenes/syn_*.ply --prior mug --preset synthetic_mugs --proposals 100 --seed 0 \
+  --out "$OUT" --no-scannet --no-ply
+$PY -m efem_viz.cli segment sample_scenes/real_tabletop_*.ply --prior mug --preset real_mugs --proposals 100 \
+  --seed 0 --out "$OUT" --no-scannet --no-ply
+cp "$OUT"/*.efem.npz sample_scenes/
+$PY -m efem_viz.cli evaluate sample_scenes --gt sample_scenes
+if [[ $SKIP_DEMO == 0 ]]; then
+  $PY -m efem_viz.viewer.export sample_scenes/syn_z_0.ply --prior mug
+fi
+echo "[refresh] done: commit efem_viz/weights/mug_codebook.npz sample_scenes/*.efem.npz static/syn_z_0/"
