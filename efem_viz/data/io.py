@@ -30,12 +30,15 @@ so a crash never leaves a half-written scene behind.
 from __future__ import annotations
 
 import base64
+import io
 import json
 import logging
 import os
 import re
 import tempfile
+import warnings
 import zlib
+from itertools import islice
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
@@ -322,6 +325,9 @@ def _load_ply(p: Path, max_points: int) -> dict[str, Any]:
             f"{p} has {n_header:,} points, more than the limit of {max_points:,}; downsample it or raise max_points"
         )
     ply, tri_faces = _read_ply_fast(p)
+    polys: tuple[np.ndarray, np.ndarray] | None = None
+    if ply is None:
+        ply, polys = _read_ply_ascii(p)
     if ply is None:
         ply = plyfile.PlyData.read(str(p))
     names = [e.name for e in ply.elements]
@@ -354,6 +360,8 @@ def _load_ply(p: Path, max_points: int) -> dict[str, Any]:
             raise SceneError(f"{p}: PLY face element lacks a 'vertex_indices' list (has {list(fprops)})")
         if tri_faces is not None:
             out["faces"] = tri_faces
+        elif polys is not None:
+            out["faces"] = _triangulate_flat(*polys, p)
         else:
             out["faces"] = _triangulate([np.asarray(f) for f in fdata[key]], p)
     comments = list(ply.comments) + list(getattr(ply, "obj_info", []))
@@ -396,17 +404,373 @@ def _read_ply_fast(p: Path) -> tuple[Any, np.ndarray | None]:
     return ply, faces
 
 
+_PLY_ASCII_BYTES = b"\t\n" + bytes(range(0x20, 0x7F))
+"""Bytes of an ASCII PLY body that `_read_ply_ascii` parses itself: printable ASCII, tab and newline. A body
+with any other byte (other whitespace such as \\v or \\x1c, control characters, non-ASCII) is left to plyfile,
+whose decoding and `str.split` rules then decide, so that the two readers never disagree about such a file."""
+
+_PLY_TYPE_NAMES = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int", "u4": "uint",
+                   "f4": "float", "f8": "double"}
+
+
+def _read_ply_ascii(p: Path) -> tuple[Any, tuple[np.ndarray, np.ndarray] | None]:
+    """ASCII PLY read with one `np.loadtxt` per element instead of plyfile's row-by-row parser (~10x faster).
+
+    plyfile reads an ASCII body one row at a time and builds a numpy scalar per value (2-6 s for 200k
+    points). This reader parses each element's block of rows with `np.loadtxt` into the same field types,
+    following plyfile's rules: plyfile itself parses the header; each element takes the next `count` lines
+    (LF, CR or CRLF); a row holds exactly its properties' values; a list property is a length followed by
+    that many values. `np.loadtxt` accepts a subset of the tokens plyfile accepts (plyfile also takes `1_0`,
+    or `-0` for an unsigned type) and reads them to the same values, float32 included. An element with one
+    list property whose rows differ in length (a mesh mixing triangles and quads) is read grouping rows by
+    length.
+
+    What this reader does not settle returns (None, None); plyfile then reads the file and accepts or rejects
+    it exactly as before: a header plyfile rejects, a body with a byte outside `_PLY_ASCII_BYTES`, an element
+    without properties, several list properties whose lengths vary, or a block numpy refuses although no row
+    breaks plyfile's rules.
+
+    Args:
+        p: the PLY file.
+
+    Returns:
+        (ply, polys): `ply` is a `PlyData` whose elements hold their rows in plyfile's dtype (list properties
+        are object fields left as None: building one array per row is the slow part); `polys` is the face
+        element's `vertex_indices` (or `vertex_index`) list flattened, (lens (F,) int64, indices (sum(lens),)
+        of the list's value type), or None without such a list. (None, None) for a binary file or where this
+        reader does not apply.
+
+    Raises:
+        SceneError: a body that plyfile rejects as well: truncated, a blank row, a row with too few or too
+            many values, or a value that is not a number of its property's type. The message names element,
+            row and line.
+    """
+    import plyfile
+
+    parse_header = getattr(plyfile.PlyData, "_parse_header", None)  # private: if gone, plyfile reads the file
+    if parse_header is None:
+        return None, None
+    with open(p, "rb") as fh:
+        head = fh.read(1 << 16)
+        end = head.find(b"end_header")
+        if not head.startswith(b"ply") or not re.search(rb"format\s+ascii", head[: max(end, 0)]):
+            return None, None
+        fh.seek(0)
+        try:
+            ply = parse_header(fh)
+        except Exception:  # plyfile reports a bad header in its own words
+            return None, None
+        if not ply.text:
+            return None, None
+        n_head = fh.tell()
+        body = fh.read()
+    head_lines = len(head[:n_head].splitlines()) if n_head <= len(head) else None
+    if b"\r" in body:  # plyfile reads the body with universal newlines
+        body = body.replace(b"\r\n", b"\n").replace(b"\r", b"\n")
+    if body.translate(None, _PLY_ASCII_BYTES):
+        return None, None
+    text = body.decode("ascii")
+    newlines = np.flatnonzero(np.frombuffer(body, np.uint8) == 10)
+    n_lines = len(newlines) + (1 if body and not body.endswith(b"\n") else 0)
+    line_start = np.concatenate([[0], newlines + 1])  # body line i is text[line_start[i] : line_end[i]]
+    line_end = np.concatenate([newlines, [len(body)]])
+
+    polys: tuple[np.ndarray, np.ndarray] | None = None
+    row0 = 0  # body line of the current element's first row
+    for elt in ply.elements:
+        count, props = elt.count, elt.properties
+        if count < 0 or (count and not props):
+            return None, None
+        if row0 + count > n_lines:
+            raise SceneError(
+                f"{p}: ASCII PLY file is truncated: element {elt.name!r} has {count:,} rows in the header "
+                f"but the file ends after {max(n_lines - row0, 0):,} of them "
+                "(was it cut short while copying or writing?)"
+            )
+        block = text[line_start[row0] : line_end[row0 + count - 1]] if count else ""
+        parsed = _parse_ascii_block(props, block, count)
+        if parsed is None:
+            bad = _ascii_first_bad_row(props, block)
+            if bad is None:  # numpy refused what plyfile accepts (e.g. `1_000`): plyfile reads the file
+                return None, None
+            k, why = bad
+            where = f", line {head_lines + row0 + k + 1:,} of the file" if head_lines is not None else ""
+            if row0 + k + 1 == n_lines and not body.endswith(b"\n"):
+                why += " (the file ends in this row without a newline: was it cut short?)"
+            raise SceneError(f"{p}: ASCII PLY element {elt.name!r}, row {k + 1:,} of {count:,}{where}: {why}")
+        data, lists = parsed
+        elt.data = data
+        names = [q.name for q in props]
+        key = next((k for k in ("vertex_indices", "vertex_index") if k in names), None)  # as _load_ply picks
+        if elt.name == "face" and key is not None:
+            if key not in lists:  # a scalar `vertex_indices`: the general reader reports it
+                return None, None
+            polys = lists[key]
+        row0 += count
+    return ply, polys
+
+
+def _parse_ascii_block(
+    props: tuple[Any, ...], block: str, count: int
+) -> tuple[np.ndarray, dict[str, tuple[np.ndarray, np.ndarray]]] | None:
+    """The rows of one ASCII PLY element, or None where numpy refuses them (`_ascii_first_bad_row` says why).
+
+    Args:
+        props: the element's plyfile properties.
+        block: the element's `count` lines, joined by newlines (no final newline).
+        count: number of rows.
+
+    Returns:
+        (data, lists): `data` is a (count,) structured array in plyfile's dtype for the element (list
+        properties are object fields left as None); `lists` maps each list property to (lens (count,) int64,
+        values flattened).
+    """
+    import plyfile
+
+    dtype = np.dtype([(q.name, q.dtype()) for q in props])
+    list_props = [q for q in props if isinstance(q, plyfile.PlyListProperty)]
+    if count == 0:
+        empty = {q.name: (np.zeros(0, np.int64), np.zeros(0, q.val_dtype)) for q in list_props}
+        return np.empty(0, dtype), empty
+    if re.search(r"\S", block) is None:  # only blank rows (np.loadtxt would warn "no data")
+        return None
+    if not list_props:
+        arr = _loadtxt(block, dtype)
+        return (arr, {}) if arr is not None and len(arr) == count else None  # fewer rows: blank lines skipped
+    # every row laid out like the first (all triangles, say): one np.loadtxt
+    lengths = _ascii_list_lengths(props, block.split("\n", 1)[0].split())
+    if lengths is not None:
+        arr = _loadtxt(block, _ascii_row_dtype(props, lengths))
+        if (
+            arr is not None
+            and len(arr) == count
+            and all(bool((arr[q.name + "\nlen"] == n).all()) for q, n in zip(list_props, lengths))
+        ):
+            data = np.empty(count, dtype)
+            for q in props:
+                if q not in list_props:
+                    data[q.name] = arr[q.name]
+            lists = {q.name: (np.full(count, n, np.int64), arr[q.name].reshape(-1))
+                     for q, n in zip(list_props, lengths)}
+            return data, lists
+    if len(list_props) != 1:
+        return None
+    return _parse_ascii_ragged(props, list_props[0], block, count, dtype)
+
+
+def _parse_ascii_ragged(
+    props: tuple[Any, ...], lp: Any, block: str, count: int, dtype: np.dtype
+) -> tuple[np.ndarray, dict[str, tuple[np.ndarray, np.ndarray]]] | None:
+    """Rows of an element whose one list property `lp` varies in length (triangles and quads): one np.loadtxt
+    per row length. Arguments and result as `_parse_ascii_block`."""
+    raw = np.frombuffer(block.encode("ascii"), np.uint8)
+    is_tok = raw > 32  # the body holds only printable ASCII, tab and newline
+    tok_starts = np.flatnonzero(is_tok & ~np.concatenate([[False], is_tok[:-1]]))
+    rows = np.searchsorted(np.flatnonzero(raw == 10), tok_starts)  # newlines before a value = its row
+    lens = np.bincount(rows, minlength=count) - len(props)  # the row's values less the scalars and the length
+    if len(lens) != count or (lens < 0).any():
+        return None
+    lines = block.split("\n")
+    data = np.empty(count, dtype)
+    first = np.cumsum(lens) - lens
+    values = np.empty(int(lens.sum()), lp.val_dtype)
+    for n in np.unique(lens).tolist():
+        idx = np.flatnonzero(lens == n)
+        arr = _loadtxt([lines[i] for i in idx.tolist()], _ascii_row_dtype(props, [n]))
+        if arr is None or len(arr) != len(idx) or not (arr[lp.name + "\nlen"] == n).all():
+            return None
+        for q in props:
+            if q is not lp:
+                data[q.name][idx] = arr[q.name]
+        if n:
+            values[first[idx][:, None] + np.arange(n)] = arr[lp.name]
+    return data, {lp.name: (lens.astype(np.int64), values)}
+
+
+def _ascii_list_lengths(props: tuple[Any, ...], tokens: list[str]) -> list[int] | None:
+    """Lengths of a row's list properties, read from its length values (None if the row does not lay out)."""
+    import plyfile
+
+    lengths, pos = [], 0
+    for q in props:
+        if isinstance(q, plyfile.PlyListProperty):
+            try:
+                n = int(tokens[pos])
+            except (IndexError, ValueError):
+                return None
+            if n < 0:
+                return None
+            lengths.append(n)
+            pos += 1 + n
+        else:
+            pos += 1
+    return lengths if pos == len(tokens) else None
+
+
+def _ascii_row_dtype(props: tuple[Any, ...], lengths: list[int]) -> np.dtype:
+    """Structured dtype of one ASCII row: scalars in their type, a list as `name\\nlen` then `name` (n,)."""
+    import plyfile
+
+    fields: list[tuple[Any, ...]] = []
+    it = iter(lengths)
+    for q in props:
+        if isinstance(q, plyfile.PlyListProperty):
+            len_t, val_t = q.list_dtype()
+            fields += [(q.name + "\nlen", len_t), (q.name, val_t, (next(it),))]
+        else:
+            fields.append((q.name, q.dtype()))
+    return np.dtype(fields)
+
+
+def _loadtxt(src: str | list[str], dtype: np.dtype) -> np.ndarray | None:
+    """Whitespace-separated rows into a (N,) structured array; None where numpy refuses them."""
+    try:
+        return np.loadtxt(io.StringIO(src) if isinstance(src, str) else src, dtype=dtype, comments=None,
+                          delimiter=None, quotechar=None, ndmin=1)
+    except MemoryError:
+        raise
+    except Exception:  # a value numpy cannot parse, a row with another number of values
+        return None
+
+
+def _ascii_first_bad_row(props: tuple[Any, ...], block: str) -> tuple[int, str] | None:
+    """The first row plyfile would reject, as (row index, reason), or None when plyfile accepts every row.
+
+    A quick Python check passes most rows; a row it flags is judged by `_ascii_row_problem` (plyfile's rules).
+    """
+    import plyfile
+
+    def quick(t: str) -> Callable[[str], Any]:
+        if t[0] == "f":
+            return float
+        lo, hi = int(np.iinfo(t).min), int(np.iinfo(t).max)
+
+        def in_range(tok: str) -> None:
+            if not lo <= int(tok) <= hi:
+                raise ValueError(tok)
+
+        return in_range
+
+    kinds = [
+        (True, quick(q.list_dtype()[0][1:]), quick(q.val_dtype)) if isinstance(q, plyfile.PlyListProperty)
+        else (False, quick(q.val_dtype), float)
+        for q in props
+    ]
+    for k, line in enumerate(block.split("\n")):
+        tokens = line.split()
+        try:
+            pos = 0
+            for is_list, conv, val_conv in kinds:
+                if is_list:
+                    conv(tokens[pos])
+                    n = int(tokens[pos])
+                    vals = tokens[pos + 1 : pos + 1 + n]
+                    if len(vals) < n:
+                        raise ValueError
+                    for t in vals:
+                        val_conv(t)
+                    pos += 1 + n
+                else:
+                    conv(tokens[pos])
+                    pos += 1
+            if pos == len(tokens):
+                continue
+        except (IndexError, ValueError, OverflowError):
+            pass
+        why = _ascii_row_problem(props, tokens)
+        if why is not None:
+            return k, why
+    return None
+
+
+def _ply_type_text(t: str) -> str:
+    """'a uchar (an integer 0..255)' for the numpy type code 'u1'."""
+    name = _PLY_TYPE_NAMES[t]
+    if t[0] == "f":
+        return f"a {name} (a number)"
+    info = np.iinfo(t)
+    return f"{'an' if name == 'int' else 'a'} {name} (an integer {info.min}..{info.max})"
+
+
+def _ascii_row_problem(props: tuple[Any, ...], tokens: list[str]) -> str | None:
+    """Why plyfile rejects this row of values (None: it accepts it), following `PlyElement._read_txt`."""
+    import plyfile
+
+    names = " ".join(q.name for q in props)
+    n_tok = len(tokens)
+    it = iter(tokens)
+    for q in props:
+        tok = next(it, None)
+        if tok is None:
+            what = "an empty row" if n_tok == 0 else f"only {n_tok} value{'s' if n_tok != 1 else ''}"
+            return f"{what}, property {q.name!r} is missing (the properties are: {names})"
+        if isinstance(q, plyfile.PlyListProperty):
+            len_t, val_t = q.list_dtype()
+            try:
+                n = int(np.dtype(len_t).type(tok))
+            except (ValueError, OverflowError):
+                return f"list length {tok!r} of property {q.name!r} is not {_ply_type_text(len_t[1:])}"
+            if n < 0:
+                return f"list length {n} of property {q.name!r} is negative"
+            vals = list(islice(it, n))
+            if len(vals) < n:
+                return f"property {q.name!r} has length {n} but the row has only {len(vals)} values after it"
+            # plyfile reads list values with np.loadtxt, where `#` opens a comment: `#5` is no value
+            for t in vals:
+                try:
+                    with warnings.catch_warnings():
+                        warnings.simplefilter("ignore")  # "input contained no data"
+                        if len(np.loadtxt([t], val_t, ndmin=1)) == 1:
+                            continue
+                except (ValueError, OverflowError):
+                    pass
+                return f"{t!r} in list {q.name!r} is not {_ply_type_text(val_t[1:])}"
+        else:
+            try:
+                np.dtype(q.dtype()).type(tok)
+            except (ValueError, OverflowError):
+                return f"{tok!r} for property {q.name!r} is not {_ply_type_text(q.val_dtype)}"
+    extra = sum(1 for _ in it)
+    if extra:
+        return (f"{n_tok} values, {extra} more than the properties take ({names}); "
+                "is a property missing from the header?")
+    return None
+
+
 def _triangulate(polys: list[np.ndarray], p: Path) -> np.ndarray | None:
-    """Fan-triangulate polygon faces into (M, 3) int64."""
+    """Fan-triangulate polygon faces into (M, 3) int64 (None for no faces); see `_triangulate_flat`."""
     if not polys:
         return None
     lens = np.fromiter((len(f) for f in polys), dtype=np.int64, count=len(polys))
+    return _triangulate_flat(lens, np.concatenate(polys), p)
+
+
+def _triangulate_flat(lens: np.ndarray, flat: np.ndarray, p: Path) -> np.ndarray | None:
+    """Fan-triangulate flattened polygons: polygon i is `flat[o_i : o_i + lens[i]]` with o_i = sum(lens[:i]).
+
+    Polygon (v0, v1, ..., vn-1) becomes the triangles (v0, v1, v2), (v0, v2, v3), ..., in polygon order.
+
+    Args:
+        lens: (F,) int, vertices per polygon.
+        flat: (sum(lens),) int (or the PLY list's value type), vertex indices of all polygons in order.
+        p: the file, for the error message.
+
+    Returns:
+        (M, 3) int64 triangles, or None when there are no polygons.
+
+    Raises:
+        SceneError: a polygon has fewer than 3 vertices.
+    """
+    if len(lens) == 0:
+        return None
     if (lens == 3).all():
-        return np.stack(polys).astype(np.int64)
+        return flat.reshape(-1, 3).astype(np.int64)
     if (lens < 3).any():
         raise SceneError(f"{p}: {(lens < 3).sum()} faces have fewer than 3 vertices")
-    tris = [np.stack([np.full(len(f) - 2, f[0]), f[1:-1], f[2:]], axis=1) for f in polys]
-    return np.concatenate(tris).astype(np.int64)
+    n_tri = lens - 2
+    first = np.repeat(np.cumsum(lens) - lens, n_tri)  # index in `flat` of each triangle's polygon's v0
+    k = np.arange(int(n_tri.sum())) - np.repeat(np.cumsum(n_tri) - n_tri, n_tri)  # triangle's rank in polygon
+    return np.stack([flat[first], flat[first + 1 + k], flat[first + 2 + k]], axis=1).astype(np.int64)
 
 
 def _from_trimesh(geom: Any, p: Path) -> dict[str, Any]:

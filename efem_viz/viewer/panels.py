@@ -235,9 +235,11 @@ def pr_figure(curves: list[tuple[str, np.ndarray, np.ndarray]], *, point: tuple[
              "marker": {"size": 11, "color": "red"}}
         )
     layout = {
-        "margin": {"l": 40, "r": 10, "t": 20, "b": 36},
+        "margin": {"l": 40, "r": 10, "t": 44, "b": 36},
         "xaxis": {"range": [0, 1.02], "title": {"text": "recall"}},
         "yaxis": {"range": [0, 1.02], "title": {"text": "precision"}},
-        "legend": {"orientation": "h"},
+        # above the plot: the default horizontal legend sits under the x axis and covers its title
+        "legend": {"orientation": "h", "x": 0, "xanchor": "left", "y": 1.02, "yanchor": "bottom",
+                   "font": {"size": 10}},
     }
     return PlotlyJSON({"data": data, "layout": layout})
