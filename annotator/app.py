@@ -24,7 +24,7 @@ import time
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Literal
+from typing import TYPE_CHECKING, Any, Callable, Literal
 
 import numpy as np
 import viser
@@ -44,11 +44,16 @@ from annotator.journal import LabelStore
 from annotator.labels import Delta, InstanceInfo, LabelSet
 from annotator.render import Chunks, build_chunks, color_lut, compose_colors, splat_proxy
 
+if TYPE_CHECKING:
+    from viser._messages import LiteralColor  # the colour names `add_notification` accepts
+
 log = logging.getLogger(__name__)
 
 Tool = Literal["brush", "erase", "grow", "fill", "pick", "segment"]
 TOOLS: tuple[str, ...] = ("brush", "erase", "grow", "fill", "pick", "segment")
 TOOL_KEYS: dict[str, str] = {"brush": "B", "erase": "E", "grow": "G", "fill": "F", "pick": "I", "segment": "S"}
+NO_OPTIONS: tuple[str, ...] = ("(none)",)
+"""Dropdown options while a list is empty (typed `str` so that the handles accept real options later)."""
 
 
 @dataclass
@@ -248,8 +253,8 @@ class AnnotatorApp:
             self.chunk_handles.append(h)
         self.server.scene.on_click(modifier="cmd/ctrl")(self._on_scene_click)
         self.server.scene.on_rect_select(modifier="shift")(self._on_rect)
-        self.server.initial_camera.look_at = tuple(float(v) for v in centre)
-        self.server.initial_camera.position = tuple(float(v) for v in centre + np.array([0.0, -1.0, 0.8]) * extent * 0.8)
+        self.server.initial_camera.look_at = _xyz(centre)
+        self.server.initial_camera.position = _xyz(centre + np.array([0.0, -1.0, 0.8]) * extent * 0.8)
         self.server.initial_camera.up = (0.0, 0.0, 1.0)
 
     def draw_chunks(self, chunk_ids: np.ndarray) -> int:
@@ -313,14 +318,14 @@ class AnnotatorApp:
             self.gui_box_facing = gui.add_dropdown("Box select", ("front", "all"), initial_value="front",
                                                    hint="Shift+drag a box; front = vertices facing the camera")
         with gui.add_folder("Instances"):
-            self.gui_active = gui.add_dropdown("Active", self._instance_options() or ("(none)",))
+            self.gui_active = gui.add_dropdown("Active", self._instance_options() or NO_OPTIONS)
             self.gui_name = gui.add_text("Name", "")
             self.gui_category = gui.add_text("Category", "mug")
             self.gui_color = gui.add_rgb("Colour", (255, 0, 0))
             self.gui_new = gui.add_button("New instance (N)")
             self.gui_visible = gui.add_checkbox("Visible", True)
             self.gui_locked = gui.add_checkbox("Locked", False)
-            self.gui_merge_into = gui.add_dropdown("Merge active into", self._instance_options() or ("(none)",))
+            self.gui_merge_into = gui.add_dropdown("Merge active into", self._instance_options() or NO_OPTIONS)
             self.gui_merge = gui.add_button("Merge")
             self.gui_delete = gui.add_button("Delete active", color="red")
             self.gui_progress = gui.add_progress_bar(0.0)
@@ -340,7 +345,7 @@ class AnnotatorApp:
             default_efem = self.scan_path.with_name(self.stem + ".efem.npz")
             self.gui_efem_path = gui.add_text("EFEM result", default_efem.name if default_efem.exists() else "")
             self.gui_efem_import = gui.add_button("Import EFEM pre-labels")
-            self.gui_prelabel = gui.add_dropdown("Pre-label", ("(none)",))
+            self.gui_prelabel = gui.add_dropdown("Pre-label", NO_OPTIONS)
             self.gui_accept = gui.add_button("Accept")
             self.gui_reject = gui.add_button("Reject")
             self.gui_accept_merge = gui.add_button("Merge into active")
@@ -427,7 +432,7 @@ class AnnotatorApp:
             counts = ls.counts()
             progress = ls.progress()
             n_undo, n_redo = len(ls.undo_stack), len(ls.redo_stack)
-        opts = tuple(f"{k}: {v.name}" for k, v in table.items()) or ("(none)",)
+        opts = tuple(f"{k}: {v.name}" for k, v in table.items()) or NO_OPTIONS
         self._tls.syncing = True
         try:
             if self.settings.active_id not in table:
@@ -435,7 +440,7 @@ class AnnotatorApp:
             self.gui_active.options = opts
             self.gui_merge_into.options = opts
             self.gui_active.value = _option_for(opts, self.settings.active_id)
-            pre = tuple(f"{k}: {v.name}" for k, v in table.items() if "unreviewed" in v.note) or ("(none)",)
+            pre = tuple(f"{k}: {v.name}" for k, v in table.items() if "unreviewed" in v.note) or NO_OPTIONS
             self.gui_prelabel.options = pre
             info = table.get(self.settings.active_id)
             if info is not None:
@@ -473,7 +478,7 @@ class AnnotatorApp:
             self.notify("Not done", msg, client=client, color="red")
             return None
 
-    def notify(self, title: str, body: str, *, client: Any = None, color: str | None = None) -> None:
+    def notify(self, title: str, body: str, *, client: Any = None, color: LiteralColor | None = None) -> None:
         """Show a notification to one client (or all)."""
         targets = [client] if client is not None else list(self.server.get_clients().values())
         for c in targets:
@@ -743,8 +748,13 @@ class AnnotatorApp:
             t0 = time.perf_counter()
             mask_idx = segment_at_point(self.scene, int(vertex), prior_name=prior_name)
             self.set_preview(mask_idx)
-            self.notify("Segment preview", f"{len(mask_idx):,} vertices in {time.perf_counter() - t0:.1f} s: "
-                        "Accept or Discard in the EFEM assist panel")
+            if len(mask_idx) == 0:
+                self.notify("No object found", f"EFEM with prior {prior_name!r} accepted no proposal around vertex "
+                            f"{vertex} ({time.perf_counter() - t0:.1f} s): click nearer the object's centre, or "
+                            "label it with the brush / region grow")
+            else:
+                self.notify("Segment preview", f"{len(mask_idx):,} vertices in {time.perf_counter() - t0:.1f} s: "
+                            "Accept or Discard in the EFEM assist panel")
             return mask_idx
 
         if wait:
@@ -759,8 +769,9 @@ class AnnotatorApp:
         if idx is None or len(idx) == 0:
             self.preview, self.pending_segment = None, None
         else:
-            self.preview = np.zeros(self.n, bool)
-            self.preview[idx] = True
+            preview = np.zeros(self.n, bool)
+            self.preview = preview
+            preview[idx] = True
             self.pending_segment = np.asarray(idx, np.int32)
         touched = np.zeros(0, np.int64)
         for m in (old, self.preview):
@@ -891,6 +902,12 @@ class AnnotatorApp:
             self.server.stop()
         finally:
             self.store.close()
+
+
+def _xyz(v: np.ndarray) -> tuple[float, float, float]:
+    """A 3-vector as the float triple viser's camera setters take."""
+    x, y, z = (float(c) for c in v)
+    return x, y, z
 
 
 def _color(i: int) -> tuple[int, int, int]:

@@ -89,8 +89,7 @@ def segment_at_point(
     Raises:
         ValueError: bad vertex, prior unavailable, too few points around the click.
     """
-    from scipy.spatial import cKDTree
-
+    from efem_viz._typeshims import cKDTree
     from efem_viz.data.scene import Scene
     from efem_viz.em import preset, run_em
 

@@ -24,7 +24,7 @@ import logging
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import Any, Iterable, Mapping, cast
 
 import numpy as np
 
@@ -92,7 +92,9 @@ def resolve_inside(path: str | os.PathLike[str], roots: Iterable[str | os.PathLi
 # ---------------------------------------------------------------------------------------------- helpers
 def _table_rows(table: Mapping[int, InstanceInfo] | Iterable[InstanceInfo]) -> list[InstanceInfo]:
     if isinstance(table, Mapping):
-        return [table[k] for k in sorted(table)]
+        # cast: to pyright this may also be a Mapping keyed by InstanceInfo; a Mapping here is the id table
+        by_id = cast("Mapping[int, InstanceInfo]", table)
+        return [by_id[k] for k in sorted(by_id)]
     return sorted(table, key=lambda i: i.id)
 
 

@@ -59,7 +59,7 @@ class ScanGeometry:
         if self._tree is None:
             with self._lock:
                 if self._tree is None:
-                    from scipy.spatial import cKDTree
+                    from efem_viz._typeshims import cKDTree
 
                     self._tree = cKDTree(self.points, balanced_tree=False, compact_nodes=False)
         return self._tree
@@ -111,9 +111,11 @@ class ScanGeometry:
                 if self._raycaster is None:
                     import open3d as o3d
 
+                    from efem_viz._typeshims import o3d_tensor
+
                     rc = o3d.t.geometry.RaycastingScene()
                     rc.add_triangles(
-                        o3d.core.Tensor(self.points), o3d.core.Tensor(self.faces.astype(np.uint32))
+                        o3d_tensor(self.points), o3d_tensor(self.faces.astype(np.uint32))
                     )
                     self._raycaster = rc
         return self._raycaster
@@ -153,9 +155,9 @@ def pick(
         return None
     dvec = dvec / nd
     if geom.faces is not None:
-        import open3d as o3d
+        from efem_viz._typeshims import o3d_tensor
 
-        rays = o3d.core.Tensor(np.concatenate([o, dvec])[None].astype(np.float32))
+        rays = o3d_tensor(np.concatenate([o, dvec])[None].astype(np.float32))
         ans = geom.raycaster().cast_rays(rays)
         t = float(ans["t_hit"].numpy()[0])
         if not np.isfinite(t):

@@ -291,3 +291,16 @@ def test_info_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert "162" in out and "mug" in out
     (tmp_path / "bad.ply").write_bytes(b"ply\ngarbage")
     assert main(["info", str(tmp_path / "bad.ply")]) == 1
+
+
+@pytest.mark.parametrize("suffix", [".glb", ".obj"])
+def test_mesh_with_face_colours_keeps_them(tmp_path: Path, suffix: str) -> None:
+    import trimesh
+
+    m = trimesh.creation.box()
+    m.visual.face_colors = np.tile([200, 30, 40, 255], (len(m.faces), 1))
+    p = tmp_path / f"box{suffix}"
+    m.export(p)
+    s = load_scene(p)
+    assert s.faces is not None and len(s.faces) == 12
+    assert np.array_equal(s.colors, np.tile([200, 30, 40], (s.num_points, 1)))  # not the default grey

@@ -40,7 +40,7 @@ import warnings
 import zlib
 from itertools import islice
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any, Callable, Iterable, cast
 
 import numpy as np
 
@@ -793,10 +793,14 @@ def _from_trimesh(geom: Any, p: Path) -> dict[str, Any]:
         nrm = np.asarray(geom.vertex_normals)
         if len(nrm) == len(geom.vertices) and np.isfinite(nrm).all():
             out["normals"] = nrm
-    visual = geom.visual
+    # duck-typed on `kind`: ColorVisuals ("vertex"/"face") or TextureVisuals ("texture")
+    visual: Any = geom.visual
     if getattr(visual, "kind", None) == "vertex":
         out["colors"] = np.asarray(visual.vertex_colors)[:, :3]
-    elif getattr(visual, "kind", None) in ("texture", "face"):
+    elif getattr(visual, "kind", None) == "face":
+        # ColorVisuals with per-face colours: trimesh averages them onto the vertices (to_color() is for textures)
+        out["colors"] = np.asarray(visual.vertex_colors)[:, :3]
+    elif getattr(visual, "kind", None) == "texture":
         try:
             out["colors"] = np.asarray(visual.to_color().vertex_colors)[:, :3]
         except Exception as exc:  # texture without UVs etc.: keep default grey
@@ -954,7 +958,8 @@ def save_scene(scene: Scene, path: str | os.PathLike[str], *, ascii: bool = Fals
         ".obj": lambda t: _write_obj(scene, t),
         ".off": lambda t: _write_off(scene, t),
         ".glb": lambda t: _write_glb(scene, t),
-        ".npz": lambda t: np.savez_compressed(t, **scene.to_npz_dict()),
+        # cast: numpy's stub would take a **dict[str, ndarray] to possibly fill `allow_pickle: bool`
+        ".npz": lambda t: np.savez_compressed(t, **cast("dict[str, Any]", scene.to_npz_dict())),
     }
     if suffix not in writers:
         raise SceneError(f"{p}: unknown scene format {suffix!r}; expected one of {', '.join(SCENE_SUFFIXES)}")
@@ -1081,4 +1086,7 @@ def _write_glb(scene: Scene, tmp: Path) -> None:
             extras["instance_zb64"] = _pack_array(scene.instance.astype(np.int32))
     tscene = trimesh.Scene(geom)
     tscene.metadata[_GLB_EXTRAS_KEY] = extras
-    tmp.write_bytes(tscene.export(file_type="glb"))
+    glb = tscene.export(file_type="glb")
+    if not isinstance(glb, bytes):  # trimesh types export() as str | bytes | dict; GLB is always bytes
+        raise TypeError(f"trimesh returned {type(glb).__name__} for a GLB export, expected bytes")
+    tmp.write_bytes(glb)

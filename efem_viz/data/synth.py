@@ -29,7 +29,7 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal, Sequence
+from typing import TYPE_CHECKING, Any, Literal, Sequence, cast
 
 import numpy as np
 
@@ -337,10 +337,13 @@ def contact_report(
     import open3d as o3d
     import trimesh
 
+    from efem_viz._typeshims import o3d_tensor
+
     k = len(objs_world)
     probes = []
     for i, m in enumerate(objs_world):
-        s, _ = trimesh.sample.sample_surface(m, samples, seed=seed + i)
+        # cast: trimesh's inferred return is a union over its optional outputs; these args give (points, faces)
+        s, _ = cast("tuple[np.ndarray, np.ndarray]", trimesh.sample.sample_surface(m, samples, seed=seed + i))
         probes.append(np.concatenate([np.asarray(m.vertices), s]).astype(np.float32))
     pen = np.zeros((k, k))
     pair_gap = np.full((k, k), np.inf)
@@ -349,8 +352,8 @@ def contact_report(
     for j, mj in enumerate(objs_world):
         scene = o3d.t.geometry.RaycastingScene()
         scene.add_triangles(
-            o3d.core.Tensor(np.asarray(mj.vertices, np.float32)),
-            o3d.core.Tensor(np.asarray(mj.faces, np.uint32)),
+            o3d_tensor(np.asarray(mj.vertices, np.float32)),
+            o3d_tensor(np.asarray(mj.faces, np.uint32)),
         )
         lo, hi = mj.bounds[0] - 0.01, mj.bounds[1] + 0.01
         for i in range(k):
@@ -360,7 +363,7 @@ def contact_report(
             near = np.all((p >= lo) & (p <= hi), axis=1)
             if not near.any():
                 continue
-            sd = scene.compute_signed_distance(o3d.core.Tensor(p[near])).numpy()
+            sd = scene.compute_signed_distance(o3d_tensor(p[near])).numpy()
             pen[i, j] = max(-float(sd.min()), 0.0)
             pair_gap[i, j] = max(float(sd.min()), 0.0)
             gap[i] = min(gap[i], pair_gap[i, j])
@@ -436,7 +439,7 @@ def _render(
     crop_lo: np.ndarray,
     crop_hi: np.ndarray,
 ) -> _Frame:
-    import open3d as o3d
+    from efem_viz._typeshims import o3d_tensor
 
     h, w = cam.height, cam.width
     u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
@@ -444,7 +447,7 @@ def _render(
     R, t = cam.T_world_camera[:3, :3], cam.T_world_camera[:3, 3]
     d_world = d_cam @ R.T
     rays = np.concatenate([np.broadcast_to(t, d_world.shape), d_world], -1).astype(np.float32)
-    ans = scene.cast_rays(o3d.core.Tensor(rays))
+    ans = scene.cast_rays(o3d_tensor(rays))
     z = ans["t_hit"].numpy().astype(np.float64)  # ray direction has unit z in the camera: t = depth
     gid = ans["geometry_ids"].numpy().astype(np.int64)
     nrm = ans["primitive_normals"].numpy().astype(np.float64)
@@ -698,6 +701,7 @@ def generate_scene(
     """
     import open3d as o3d
 
+    from efem_viz._typeshims import o3d_tensor
     from efem_viz.data.scene import Scene
 
     if config not in CONFIGS:
@@ -758,8 +762,8 @@ def generate_scene(
     rc = o3d.t.geometry.RaycastingScene()
     for m in world:
         rc.add_triangles(
-            o3d.core.Tensor(np.asarray(m.vertices, np.float32)),
-            o3d.core.Tensor(np.asarray(m.faces, np.uint32)),
+            o3d_tensor(np.asarray(m.vertices, np.float32)),
+            o3d_tensor(np.asarray(m.faces, np.uint32)),
         )
     albedo = np.stack([_TABLE_COLOR] + [o.color for o in objs])
     obj_lo = np.min([m.bounds[0] for m in world[1:]], axis=0)
@@ -809,7 +813,7 @@ def generate_scene(
     t_fuse = time.perf_counter()
 
     # ---- ground truth: nearest true surface within tolerance
-    q = rc.compute_closest_points(o3d.core.Tensor(points.astype(np.float32)))
+    q = rc.compute_closest_points(o3d_tensor(points.astype(np.float32)))
     gid = q["geometry_ids"].numpy().astype(np.int64)
     dist = np.linalg.norm(q["points"].numpy() - points.astype(np.float32), axis=1)
     labels_of_geom = np.array([0] + [o.label for o in objs], np.int32)

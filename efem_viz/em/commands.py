@@ -49,7 +49,14 @@ class SegmentArgs:
         """Run every scene; returns 0 when all succeeded, 1 otherwise."""
         import torch
         from rich.console import Console
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+        from rich.progress import (
+            BarColumn,
+            MofNCompleteColumn,
+            Progress,
+            TaskID,
+            TextColumn,
+            TimeElapsedColumn,
+        )
 
         from efem_viz.data.io import find_scenes, load_scene
         from efem_viz.em.config import preset
@@ -87,7 +94,7 @@ class SegmentArgs:
                 total = cfg.num_episodes * cfg.steps_per_episode
                 task = progress.add_task(scene.name, total=total, info="")
 
-                def on_step(s: StepInfo, _task: int = task) -> None:
+                def on_step(s: StepInfo, _task: TaskID = task) -> None:
                     progress.update(_task, completed=s.step + 1,
                                     info=f"phase {s.phase}  active {s.active:4d}")
 

@@ -11,9 +11,12 @@ from __future__ import annotations
 import itertools
 import logging
 from dataclasses import dataclass
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
+
+if TYPE_CHECKING:
+    import scipy.sparse as sp
 
 logger = logging.getLogger(__name__)
 
@@ -113,7 +116,7 @@ class AvailableTree:
     """A KD-tree over the available points (3-D, or x-y for cylinder crops) that answers ball queries."""
 
     def __init__(self, points: np.ndarray, available: np.ndarray, *, crop: str = "sphere") -> None:
-        from scipy.spatial import cKDTree
+        from efem_viz._typeshims import cKDTree
 
         if crop not in ("sphere", "cylinder"):
             raise ValueError(f"crop must be 'sphere' or 'cylinder', got {crop!r}")
@@ -339,7 +342,7 @@ def sample_joint(
     return _categorical_rows(rag, w * claimed, m, rng, fallback), claimed
 
 
-def set_matrix(rag: Ragged, mask: np.ndarray, n_points: int) -> "object":
+def set_matrix(rag: Ragged, mask: np.ndarray, n_points: int) -> sp.csr_matrix:
     """(P, N) scipy.sparse CSR boolean matrix of the entries where `mask` holds (e.g. |d| < δ_dup)."""
     import scipy.sparse as sp
 
@@ -350,7 +353,7 @@ def set_matrix(rag: Ragged, mask: np.ndarray, n_points: int) -> "object":
     return sp.csr_matrix((data, (row, col)), shape=(rag.num_rows, int(n_points)))
 
 
-def overlap_counts(sets: "object") -> tuple[np.ndarray, np.ndarray]:
+def overlap_counts(sets: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray]:
     """Pairwise intersection sizes of sparse sets.
 
     Args:
@@ -381,7 +384,7 @@ def find_too_small(inlier_counts: np.ndarray, min_size: int) -> list[Kill]:
 
 
 def find_duplicates(
-    sets: "object",
+    sets: sp.csr_matrix,
     scores: np.ndarray,
     iou_threshold: float,
     *,
@@ -424,7 +427,7 @@ def find_duplicates(
 
 
 def find_inclusions(
-    sets: "object",
+    sets: sp.csr_matrix,
     threshold: float,
     *,
     active: np.ndarray | None = None,

@@ -12,7 +12,7 @@ import logging
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -321,7 +321,10 @@ class EMResult:
         }
         data.update(self.trace.to_npz_dict())
         data.update(self.instances.to_npz_dict())
-        return atomic_write(p, lambda t: np.savez_compressed(t, **data))
+        # cast: numpy's stub types savez's keywords as `allow_pickle: bool, **kwds: ArrayLike`, so it takes a
+        # **dict[str, ndarray] to possibly fill `allow_pickle`; these keys are array names.
+        kwds = cast("dict[str, Any]", data)
+        return atomic_write(p, lambda t: np.savez_compressed(t, **kwds))
 
     @classmethod
     def load(cls, path: str | os.PathLike[str], *, scene: "Scene | None" = None, prior: Any = None) -> "EMResult":

@@ -157,6 +157,7 @@ def decode_rows(
         d, g = _decode_padded(prior, latent, rag.idx, row, pts_t, nrm_t, chunk=chunk, with_normals=True)
         if stats is not None:
             stats["normal_queries"] = stats.get("normal_queries", 0.0) + k
+        assert g is not None  # with_normals=True always fills the angles
         return d, g
     d, _ = _decode_padded(prior, latent, rag.idx, row, pts_t, nrm_t, chunk=chunk, with_normals=False)
     g = np.full(k, 180.0, np.float32)
@@ -479,7 +480,7 @@ class _Solver:
         self.planned_steps = cfg.num_episodes * cfg.steps_per_episode
         cb = getattr(prior, "codebook", None)
         self.ref_scale = float(cb.mean_scale) if cb is not None else 1.0
-        if not self.identity:
+        if not self.identity and cfg.work_voxel:  # a thinned working set implies work_voxel > 0
             logger.info("%s: EM on a %.1f mm working set of %d of %d points (min_size %d -> %d)", name,
                         cfg.work_voxel * 1000, self.n, self.n_full, cfg.min_size, self.min_size)
 
@@ -489,7 +490,7 @@ class _Solver:
             mask = np.zeros(self.n, bool)
             mask[candidates] = True
             return mask
-        from scipy.spatial import cKDTree
+        from efem_viz._typeshims import cKDTree
 
         _, near = cKDTree(self.points).query(points[candidates])
         mask = np.zeros(self.n, bool)
@@ -542,10 +543,11 @@ class _Solver:
                     self.on_step(StepInfo(step, self.planned_steps, phase, pool.size, elapsed, ep))
             t0 = time.perf_counter()
             final_step = self.rec.num_steps - 1
-            assert pool.stationary is not None or pool.size == 0
             for r, pid in enumerate(pool.ids):
+                # every live proposal has been through an E-step, which sets both
+                assert pool.stationary is not None and pool.latent is not None
                 rev = last_review[int(pid)]
-                s_stat = float(pool.stationary[r])  # type: ignore[index]
+                s_stat = float(pool.stationary[r])
                 conf = confidence(s_stat, float(rev["coverage"]), cap=cfg.cov_cap)
                 self.rec.death(int(pid), final_step, REASON_SURVIVE, -1, conf)
                 accepted.append({**rev, "confidence": conf, "stationary": s_stat,
@@ -669,7 +671,7 @@ class _Solver:
             ball = full_rag.idx[sl]
             cov = 0.0
             if len(ball) and np.any(Q):
-                from scipy.spatial import cKDTree
+                from efem_viz._typeshims import cKDTree
 
                 dist, j = cKDTree(self.full_points[ball]).query(Q + center)
                 dist_c = dist * (s_sel / scale)

@@ -433,7 +433,8 @@ class EMTrace:
         rag = tree.query(self.row_center[r][None], float(self.prop_r_err[proposal_id]))
         lat = {k: v[None] for k, v in self.latent(proposal_id, step).items()}
         lat["scale"] = np.asarray(lat["scale"]).reshape(1)
-        sched = tuple(float(v) for v in self.schedule[step])
+        a_d, t_d, a_n, t_n = (float(v) for v in self.schedule[step])
+        sched = (a_d, t_d, a_n, t_n)
         d, gamma = decode_rows(pri, lat, rag, pts, nrm, chunk=self.config.decode_chunk,
                                normals_within=normals_threshold(self.config, sched[1]))
         wk, _ = energy_weights(d, gamma, sched, out_value=self.config.out_value)
@@ -572,7 +573,8 @@ class EMTrace:
         missing = [k for k in cls._ARRAY_FIELDS if prefix + k not in keys]
         if missing:
             raise ValueError(f"trace is missing arrays: {missing}")
-        arrays = {k: np.asarray(data[prefix + k]) for k in cls._ARRAY_FIELDS}
+        # Any, not ndarray: typed as arrays, **arrays could (for pyright) fill the non-array fields too
+        arrays: dict[str, Any] = {k: np.asarray(data[prefix + k]) for k in cls._ARRAY_FIELDS}
         return cls(
             config=EMConfig.from_json(str(np.asarray(data[prefix + "config_json"]))),
             num_points=int(np.asarray(data[prefix + "num_points"])),

@@ -308,7 +308,8 @@ def evaluate_scene(
         raise ValueError(f"{len(pred_masks)} masks but {len(conf)} confidences")
     keep = np.flatnonzero(conf >= threshold)
     lab = None if labels is None else np.asarray(labels).reshape(-1)[keep]
-    pred = ScenePrediction(name=name, masks=[pred_masks[i] for i in keep], confidences=conf[keep], labels=lab)
+    pred = ScenePrediction(name=name, masks=[pred_masks[int(i)] for i in keep], confidences=conf[keep],
+                           labels=lab)
     gt = SceneGroundTruth(name=name, instance=np.asarray(gt_instance), categories=dict(gt_categories or {}))
     return evaluate([pred], [gt], class_names=class_names, min_region_size=min_region_size, decimals=decimals)
 

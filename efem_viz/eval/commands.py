@@ -61,9 +61,9 @@ class EvaluateArgs:
             from efem_viz.eval.ap import prediction_from_instances
 
             preds = []
-            for f in efem_files:
-                res = EMResult.load(f)
-                name = f.name[: -len(".efem.npz")]
+            for efem_file in efem_files:
+                res = EMResult.load(efem_file)
+                name = efem_file.name[: -len(".efem.npz")]
                 preds.append(prediction_from_instances(res.instances, name=name, class_names=self.classes))
         else:
             preds = load_scannet_predictions(self.results)
@@ -73,7 +73,7 @@ class EvaluateArgs:
             preds = [
                 ScenePrediction(
                     name=p.name,
-                    masks=[p.masks[i] for i in np.flatnonzero(p.confidences >= self.threshold)],
+                    masks=[p.masks[int(i)] for i in np.flatnonzero(p.confidences >= self.threshold)],
                     confidences=p.confidences[p.confidences >= self.threshold],
                     labels=None if p.labels is None else p.labels[p.confidences >= self.threshold],
                 )

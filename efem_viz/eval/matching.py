@@ -360,7 +360,7 @@ def match_instances(
     fp: list[int] = []
     pairs: list[tuple[int, int, float]] = []
     for p in order:
-        b = _bool_mask(pred_masks[p], n, f"prediction {p}")
+        b = _bool_mask(pred_masks[int(p)], n, f"prediction {p}")
         size = int(b.sum())
         c = col[b]
         inter = np.bincount(c[c >= 0], minlength=len(ids)).astype(np.float64)

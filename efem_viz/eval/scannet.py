@@ -111,7 +111,9 @@ def write_scannet_predictions(
     root = Path(path)
     (root / mask_dir).mkdir(parents=True, exist_ok=True)
     lines = []
-    labels: Sequence[int] = pred.labels if pred.labels is not None else np.ones(len(pred.masks), np.int64)
+    labels: Sequence[int] | np.ndarray = (
+        pred.labels if pred.labels is not None else np.ones(len(pred.masks), np.int64)
+    )
     for k, (m, lab, conf) in enumerate(zip(pred.masks, labels, pred.confidences)):
         rel = f"{mask_dir}/{pred.name}_{k:03d}.txt"
         b = _bool_mask(m, num_points, f"prediction {k}").astype(np.uint8)

@@ -45,6 +45,8 @@ def farthest_point_sample(points: torch.Tensor, n_samples: int, *, start: int = 
             for c in comps:
                 diff = c - c.gather(1, cur)
                 d = diff * diff if d is None else d + diff * diff
+            if d is None:
+                raise ValueError("points must have at least one coordinate (D >= 1), got D = 0")
             dist = torch.minimum(dist, d)
             cur = dist.argmax(dim=1, keepdim=True)
     return idx

@@ -7,11 +7,14 @@ Pure NumPy/SciPy; no torch.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
 from efem_viz.geometry.procrustes import rotation_from_cross_covariance
+
+if TYPE_CHECKING:
+    from efem_viz._typeshims import cKDTree
 
 __all__ = ["IcpResult", "icp_rotation"]
 
@@ -36,7 +39,7 @@ def icp_rotation(
     *,
     iters: int = 3,
     proper: bool = True,
-    tree: object | None = None,
+    tree: cKDTree | None = None,
     tol_deg: float = 0.0,
 ) -> IcpResult:
     """Rotation-only ICP about the clouds' centroids.
@@ -53,7 +56,7 @@ def icp_rotation(
     Returns:
         IcpResult.
     """
-    from scipy.spatial import cKDTree
+    from efem_viz._typeshims import cKDTree
 
     X = np.asarray(source, dtype=np.float64)
     Y = np.asarray(target, dtype=np.float64)

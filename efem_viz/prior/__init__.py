@@ -23,7 +23,7 @@ _LAZY = {
     "convert_released_checkpoint": "efem_viz.prior.convert",
 }
 
-__all__ = sorted(_LAZY)
+__all__ = ["Latent", "PriorConfig", "ShapePrior", "convert_released_checkpoint", "load_prior", "save_prior"]
 
 
 def __getattr__(name: str) -> Any:

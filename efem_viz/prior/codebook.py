@@ -220,7 +220,7 @@ class Codebook:
     def tree(self, space: str) -> Any:
         """The (cached) scipy cKDTree of a feature space: "inv", "so3" or "joint"."""
         if space not in self._trees:
-            from scipy.spatial import cKDTree
+            from efem_viz._typeshims import cKDTree
 
             self._trees[space] = cKDTree(self._features(space))
         return self._trees[space]

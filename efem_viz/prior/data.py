@@ -22,7 +22,7 @@ import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -151,16 +151,18 @@ def normalize_mesh(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
 def _raycasting_scene(mesh: trimesh.Trimesh) -> Any:
     import open3d as o3d
 
+    from efem_viz._typeshims import o3d_tensor
+
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
-                        o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
+    scene.add_triangles(o3d_tensor(np.asarray(mesh.vertices, np.float32)),
+                        o3d_tensor(np.asarray(mesh.faces, np.uint32)))
     return scene
 
 
 def _signed_distance(scene: Any, pts: np.ndarray) -> np.ndarray:
-    import open3d as o3d
+    from efem_viz._typeshims import o3d_tensor
 
-    return scene.compute_signed_distance(o3d.core.Tensor(pts.astype(np.float32))).numpy().astype(np.float32)
+    return scene.compute_signed_distance(o3d_tensor(pts.astype(np.float32))).numpy().astype(np.float32)
 
 
 def _view_elevations(cfg: PrepConfig, rng: np.random.Generator) -> np.ndarray:
@@ -185,7 +187,7 @@ def render_views(mesh: trimesh.Trimesh, cfg: PrepConfig, *, rng: np.random.Gener
     Returns:
         (list of (n_i, 3) float32 hit points per view, (n_views,) elevations in degrees).
     """
-    import open3d as o3d
+    from efem_viz._typeshims import o3d_tensor
 
     scene = scene if scene is not None else _raycasting_scene(mesh)
     elev = _view_elevations(cfg, rng)
@@ -195,9 +197,9 @@ def render_views(mesh: trimesh.Trimesh, cfg: PrepConfig, *, rng: np.random.Gener
         d = rng.uniform(*cfg.distance)
         el = np.deg2rad(e)
         eye = d * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-        rays = scene.create_rays_pinhole(fov_deg=cfg.fov_deg, center=o3d.core.Tensor([0.0, 0.0, 0.0]),
-                                         eye=o3d.core.Tensor(eye.astype(np.float32)),
-                                         up=o3d.core.Tensor([0.0, 0.0, 1.0]),
+        rays = scene.create_rays_pinhole(fov_deg=cfg.fov_deg, center=o3d_tensor([0.0, 0.0, 0.0]),
+                                         eye=o3d_tensor(eye.astype(np.float32)),
+                                         up=o3d_tensor([0.0, 0.0, 1.0]),
                                          width_px=cfg.resolution, height_px=cfg.resolution)
         t = scene.cast_rays(rays)["t_hit"].numpy().reshape(-1)
         r = rays.numpy().reshape(-1, 6)
@@ -230,7 +232,9 @@ def prepare_object(mesh: trimesh.Trimesh, *, name: str, cfg: PrepConfig, seed: i
     m = normalize_mesh(mesh)
     scene = _raycasting_scene(m)
     uni = rng.uniform(-0.55, 0.55, (cfg.n_uniform, 3)).astype(np.float32)
-    surf, _ = tm.sample.sample_surface(m, cfg.n_surface + cfg.n_near, seed=int(rng.integers(2**31)))
+    # cast: trimesh's inferred return is a union over its optional outputs; these args give (points, faces)
+    surf, _ = cast("tuple[np.ndarray, np.ndarray]",
+                   tm.sample.sample_surface(m, cfg.n_surface + cfg.n_near, seed=int(rng.integers(2**31))))
     surf = np.asarray(surf, np.float32)
     base = surf[cfg.n_surface:]
     sig = np.asarray(cfg.near_sigmas, np.float32)[np.arange(cfg.n_near) % len(cfg.near_sigmas)]
@@ -255,7 +259,8 @@ def _save_npz_atomic(path: Path, arrays: dict[str, np.ndarray]) -> None:
 
     def write(tmp: Path) -> None:
         with open(tmp, "wb") as f:  # a file object: np.savez would append ".npz" to a bare name
-            np.savez(f, **arrays)
+            # cast: numpy's stub would take a **dict[str, ndarray] to possibly fill `allow_pickle: bool`
+            np.savez(f, **cast("dict[str, Any]", arrays))
 
     atomic_write(path, write)
 

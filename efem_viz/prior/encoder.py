@@ -8,7 +8,7 @@ Tensors are channels-last VN features ``(B, N, 3, C)`` (see ``vn_layers``). Para
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, NamedTuple
+from typing import TYPE_CHECKING, Iterable, NamedTuple, cast
 
 import torch
 import torch.nn.functional as F
@@ -121,7 +121,8 @@ class VNDGCNNEncoder(nn.Module):
         pos = x
         feat = x[..., None]  # (B, N, 3, 1)
         g_idx = 0
-        for b, layer in enumerate(self.V_list):
+        # casts: nn.ModuleList/ModuleDict are not generic; __init__ fills them with VNLinearLeakyReLU only
+        for b, layer in enumerate(cast("Iterable[VNLinearLeakyReLU]", self.V_list)):
             n_src = feat.shape[1]
             if b in self.down:
                 n_dst = max(1, n_src // self.down[b])
@@ -143,7 +144,8 @@ class VNDGCNNEncoder(nn.Module):
                 out = y.mean(dim=2)
             elif str(b) in self.Q_list:
                 u = self._edge_linear(layer, feat, f_dst, nbr)  # (B, Nd, k, 3, C)
-                kap = channel_normalize(self._edge_linear(self.K_list[str(b)], feat, f_dst, nbr))
+                k_layer = cast(VNLinearLeakyReLU, self.K_list[str(b)])
+                kap = channel_normalize(self._edge_linear(k_layer, feat, f_dst, nbr))
                 q = channel_normalize(self.Q_list[str(b)](f_dst))  # (B, Nd, 3, C)
                 logits = (q[:, :, None] * kap).sum(dim=-2)  # (B, Nd, k, C)
                 heads = logits.shape[-1] // cfg.att_head_dim
@@ -155,7 +157,7 @@ class VNDGCNNEncoder(nn.Module):
             else:
                 out = self._edge_linear(layer, feat, f_dst, nbr).mean(dim=2)
             if b >= cfg.global_from:
-                glayer = self.global_conv_list[g_idx]
+                glayer = cast(VNLinearLeakyReLU, self.global_conv_list[g_idx])
                 g_idx += 1
                 c = out.shape[-1]
                 w = glayer.lin.weight

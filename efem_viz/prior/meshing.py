@@ -195,11 +195,13 @@ def simplify_mesh(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
     out = trimesh.Trimesh(np.asarray(om.vertices), np.asarray(om.triangles), process=False)
     if out.is_watertight or not mesh.is_watertight:
         return out
-    import pymeshlab
+    # pymeshlab re-exports these with `from .pmeshlab import *` (a compiled module), which pyright cannot
+    # follow; importing them from there gives the same classes and still runs pymeshlab/__init__.py first
+    from pymeshlab.pmeshlab import Mesh, MeshSet
 
     logger.debug("open3d decimation broke watertightness; retrying with pymeshlab (preservetopology)")
-    ms = pymeshlab.MeshSet()
-    ms.add_mesh(pymeshlab.Mesh(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int32)))
+    ms = MeshSet()
+    ms.add_mesh(Mesh(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int32)))
     ms.meshing_decimation_quadric_edge_collapse(targetfacenum=int(max_faces), preservetopology=True,
                                                 preservenormal=True)
     cm = ms.current_mesh()

@@ -93,7 +93,7 @@ def _align_neighbour(
 
 
 def _inlier_ratio(Q: np.ndarray, Q_tree: Any, A: np.ndarray, to_canonical: float, tau: float) -> float:
-    from scipy.spatial import cKDTree
+    from efem_viz._typeshims import cKDTree
 
     d_aq, _ = Q_tree.query(A - Q.mean(axis=0), k=1)
     d_qa, _ = cKDTree(A).query(Q, k=1)
@@ -138,8 +138,7 @@ def estimate_pose(
     Raises:
         ValueError: no codebook, or bad shapes.
     """
-    from scipy.spatial import cKDTree
-
+    from efem_viz._typeshims import cKDTree
     from efem_viz.prior.codebook import latent_to_numpy
 
     cb = codebook if codebook is not None else getattr(prior, "codebook", None)

@@ -21,7 +21,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any, Literal, cast
 
 import numpy as np
 
@@ -298,7 +298,7 @@ def compute_losses(prior: ShapePrior, pcl: torch.Tensor, queries: torch.Tensor, 
     we = w * err
     parts = [we[:, :n_uniform], we[:, n_uniform:]]
     parts = [p for p in parts if p.shape[1] > 0]
-    l_sdf = sum(p.mean() for p in parts) / len(parts)
+    l_sdf = cast("torch.Tensor", sum(p.mean() for p in parts)) / len(parts)  # sum() of tensors is a tensor
     l_center = lat.center.abs().sum(-1).mean()
     l_scale = (lat.scale - 1.0).abs().mean()
     loss = l_sdf + 0.2 * l_center + 0.001 * l_scale
@@ -365,7 +365,7 @@ def with_iso_offset(prior: ShapePrior, offset: float) -> ShapePrior:
 
     out = copy.deepcopy(prior)
     with torch.no_grad():
-        out.decoder.fc_out.bias -= offset
+        out.decoder.fc_out.bias.sub_(offset)
     return out
 
 
@@ -392,7 +392,7 @@ class _State:
 
 
 def _rng_state(rng: np.random.Generator) -> dict[str, Any]:
-    return rng.bit_generator.state
+    return dict(rng.bit_generator.state)
 
 
 def save_checkpoint(path: Path, prior: ShapePrior, opt: Any, state: _State, rng: np.random.Generator,

@@ -6,6 +6,12 @@ that `import efem_viz.viewer` stays light.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from efem_viz.viewer.app import ViewerApp as ViewerApp
+    from efem_viz.viewer.commands import ViewArgs as ViewArgs
+
 __all__ = ["ViewerApp", "ViewArgs"]
 
 

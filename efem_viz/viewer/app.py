@@ -166,7 +166,7 @@ class ViewerApp:
     def _wire(self) -> None:
         p = self.panels
 
-        def guard(fn: Callable[[], None]) -> Callable[[Any], None]:
+        def guard(fn: Callable[[], object]) -> Callable[[Any], None]:
             def cb(_event: Any) -> None:
                 with self._lock:  # our own programmatic updates set _quiet while holding the lock
                     if self._quiet:
@@ -316,13 +316,13 @@ class ViewerApp:
         diag = float(np.linalg.norm(hi - lo)) or 1.0
         position = center + diag * np.array([0.5, -0.95, 0.85])
         cam = self.server.initial_camera
-        cam.look_at = tuple(float(v) for v in center)
-        cam.position = tuple(float(v) for v in position)
+        cam.look_at = st.xyz_tuple(center)
+        cam.position = st.xyz_tuple(position)
         cam.up = (0.0, 0.0, 1.0)
         for client in list(self.server.get_clients().values()):
             try:
-                client.camera.look_at = tuple(float(v) for v in center)
-                client.camera.position = tuple(float(v) for v in position)
+                client.camera.look_at = st.xyz_tuple(center)
+                client.camera.position = st.xyz_tuple(position)
             except Exception:  # noqa: BLE001 - a client may disconnect meanwhile
                 pass
 

@@ -114,8 +114,8 @@ def export_static_demo(
         api.set_up_direction("+z")
         center = (lo + hi) / 2.0
         cam = server.initial_camera  # recorded: the page opens looking at the scene
-        cam.look_at = tuple(float(v) for v in center)
-        cam.position = tuple(float(v) for v in center + diag * np.array([0.5, -0.95, 0.85]))
+        cam.look_at = st.xyz_tuple(center)
+        cam.position = st.xyz_tuple(center + diag * np.array([0.5, -0.95, 0.85]))
         cam.up = (0.0, 0.0, 1.0)
         cloud = api.add_point_cloud(
             "/scene/points", points=pts[keep], colors=st.dim(scene.colors[keep]), point_size=psize, point_shape="rounded"
@@ -158,7 +158,7 @@ def export_static_demo(
                         f"/em/shapes/p{int(pid)}",
                         vertices=np.asarray(mesh.vertices, np.float32),
                         faces=np.asarray(mesh.faces, np.int32),
-                        color=tuple(int(c) for c in col),
+                        color=st.rgb_tuple(col),
                         opacity=0.85,
                     )
             phase = int(np.asarray(trace.phase)[t])
@@ -170,7 +170,7 @@ def export_static_demo(
         ids_all = np.asarray(inst.ids).reshape(-1)
         pal = st.palette(ids_all)
         for k in range(ids_all.shape[0]):
-            col = tuple(int(c) for c in pal[k])
+            col = st.rgb_tuple(pal[k])
             if k < len(inst.mesh_vertices) and inst.mesh_vertices[k] is not None and len(inst.mesh_faces[k]):
                 api.add_mesh_simple(
                     f"/results/mesh/k{k}",
@@ -189,7 +189,7 @@ def export_static_demo(
             api.add_frame(
                 f"/results/axes/k{k}",
                 wxyz=tuple(rotation_to_wxyz(inst.R[k])),
-                position=tuple(float(v) for v in np.asarray(inst.center[k]).reshape(3)),
+                position=st.xyz_tuple(np.asarray(inst.center[k]).reshape(3)),
                 axes_length=float(np.max(inst.obb_half_extents[k])) * 1.2,
                 axes_radius=float(np.max(inst.obb_half_extents[k])) * 0.05,
             )

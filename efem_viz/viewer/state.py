@@ -308,6 +308,18 @@ def hex_color(rgb: np.ndarray | Sequence[int]) -> str:
     return f"#{r:02x}{g:02x}{b:02x}"
 
 
+def rgb_tuple(rgb: np.ndarray | Sequence[int]) -> tuple[int, int, int]:
+    """A uint8 RGB colour as the int triple viser's `color` arguments take."""
+    r, g, b = (int(c) for c in rgb)
+    return r, g, b
+
+
+def xyz_tuple(v: np.ndarray | Sequence[float]) -> tuple[float, float, float]:
+    """A 3-vector as the float triple viser's `position`/`look_at` arguments take."""
+    x, y, z = (float(c) for c in v)
+    return x, y, z
+
+
 # ---------------------------------------------------------------------------------------------- timeline
 @dataclass(frozen=True)
 class PhaseMark:
