@@ -18,28 +18,13 @@ import trimesh
 import efem_viz.data.io as scene_io
 from efem_viz.data.io import load_scene, save_scene
 from efem_viz.data.scene import Scene, SceneError
+from helpers import mesh_scene
 
 HEAD_XYZ = "property float x\nproperty float y\nproperty float z\n"
 QUAD = "0 0 0\n1 0 0\n1 1 0\n0 1 0\n"
 
 
 # ---------------------------------------------------------------------------------------------- helpers
-def mesh_scene(seed: int = 0, *, subdivisions: int = 2) -> Scene:
-    rng = np.random.default_rng(seed)
-    m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=0.1)
-    n = len(m.vertices)
-    return Scene.create(
-        "ball",
-        m.vertices + [0.2, -0.1, 0.3],
-        normals=m.vertex_normals,
-        colors=rng.integers(0, 256, (n, 3)).astype(np.uint8),
-        faces=m.faces,
-        instance=rng.integers(0, 4, n),
-        categories={1: "mug", 2: "bowl", 3: "mug"},
-        provenance={"source": "test", "seed": seed, "nested": {"a": [1, 2]}},
-    )
-
-
 def cloud_scene(seed: int = 1, n: int = 500) -> Scene:
     rng = np.random.default_rng(seed)
     pts = rng.normal(size=(n, 3))

@@ -19,25 +19,10 @@ from efem_viz.data.io import (
     scene_from_npz,
 )
 from efem_viz.data.scene import Scene, SceneError
+from helpers import mesh_scene
 
 FORMATS = [".ply", ".npz", ".glb", ".obj", ".off"]
 LABELS_KEPT = {".ply", ".npz", ".glb"}
-
-
-def mesh_scene(seed: int = 0) -> Scene:
-    rng = np.random.default_rng(seed)
-    m = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
-    n = len(m.vertices)
-    return Scene.create(
-        "ball",
-        m.vertices + [0.2, -0.1, 0.3],
-        normals=m.vertex_normals,
-        colors=rng.integers(0, 256, (n, 3)).astype(np.uint8),
-        faces=m.faces,
-        instance=rng.integers(0, 4, n),
-        categories={1: "mug", 2: "bowl", 3: "mug"},
-        provenance={"source": "test", "seed": seed, "nested": {"a": [1, 2]}},
-    )
 
 
 def cloud_scene(seed: int = 1, n: int = 500) -> Scene:

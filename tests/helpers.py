@@ -1,0 +1,25 @@
+"""Small scene builders shared by several test modules (imported as ``helpers``: pytest puts tests/ on sys.path)."""
+
+from __future__ import annotations
+
+import numpy as np
+import trimesh
+
+from efem_viz.data.scene import Scene
+
+
+def mesh_scene(seed: int = 0, *, subdivisions: int = 2) -> Scene:
+    """A 0.1 m icosphere mesh with random colours, instance labels, categories and nested provenance."""
+    rng = np.random.default_rng(seed)
+    m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=0.1)
+    n = len(m.vertices)
+    return Scene.create(
+        "ball",
+        m.vertices + [0.2, -0.1, 0.3],
+        normals=m.vertex_normals,
+        colors=rng.integers(0, 256, (n, 3)).astype(np.uint8),
+        faces=m.faces,
+        instance=rng.integers(0, 4, n),
+        categories={1: "mug", 2: "bowl", 3: "mug"},
+        provenance={"source": "test", "seed": seed, "nested": {"a": [1, 2]}},
+    )
