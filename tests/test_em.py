@@ -246,6 +246,21 @@ def test_segment_cli(tmp_path: Path) -> None:
     assert (out / "one.seg.ply").is_file()
 
 
+def test_evaluate_cli_reads_efem_results_beside_unrelated_txt(sphere_run: tuple, tmp_path: Path,
+                                                              capsys: pytest.CaptureFixture[str]) -> None:
+    """A README/LICENSE .txt next to `<scene>.efem.npz` (as in sample_scenes/) must not select the ScanNet reader."""
+    from efem_viz import cli
+    from efem_viz.data.io import save_scene
+
+    scene, _, res, _ = sphere_run
+    save_scene(scene, tmp_path / f"{scene.name}.ply")
+    res.save(tmp_path / f"{scene.name}.efem.npz")
+    (tmp_path / "LICENSE.txt").write_text("Some licence text, not a ScanNet prediction list.\n")
+    assert cli.main(["evaluate", str(tmp_path), "--gt", str(tmp_path / f"{scene.name}.ply"),
+                     "--classes", "sphere"]) == 0
+    assert "100.0" in capsys.readouterr().out  # every sphere found: AP50 = 100
+
+
 # ---------------------------------------------------------------------------------------------- trained prior
 def _mug_scene() -> object:
     """Three upright test-split mugs on a table (synthetic scan, seeded)."""

@@ -56,7 +56,11 @@ class EvaluateArgs:
             raise SceneError(f"{self.results}: not a folder")
         efem_files = sorted(self.results.glob("*.efem.npz"))
         preds: list[ScenePrediction]
-        if efem_files and not any(self.results.glob("*.txt")):
+        # ScanNet layout only where a `<scene>.txt` names a labelled scene: a README/LICENSE .txt beside the
+        # .efem.npz results (as in sample_scenes/) must not switch the reader
+        gt_names = {g.name for g in gts}
+        txt_stems = {t.stem for t in self.results.glob("*.txt")} | {t.stem for t in self.results.glob("scannet/*.txt")}
+        if efem_files and not (txt_stems & gt_names):
             from efem_viz.em.results import EMResult
             from efem_viz.eval.ap import prediction_from_instances
 
