@@ -170,43 +170,46 @@ def test_save_load_round_trip(tmp_path: Path) -> None:
 
 # ------------------------------------------------------------------------------------------ shipped weights
 SHIPPED = WEIGHTS_DIR / "mug.pt"
-#: Measured 2026-11-25 on the iteration-2500 export (iso offset 0.005) with exactly this test: IoU 0.39/0.30/
-#: 0.39/0.32 (mean 0.35), Θ_s/s 0.86-1.01, centre error 0.04-0.09 (relative to s). On 12 test mugs: mean 0.37
-#: from top views, 0.19 from a single view. The bar leaves a margin; later exports only score higher on val.
-SHIPPED_IOU_BAR = 0.2
+#: Measured 2026-12-01 on the shipped iteration-14500 export with exactly this test: mean IoU 0.639 from 4-12 top
+#: views (0.76/0.61/0.65/0.54) and 0.580 from 1-12 views incl. single ones (0.64/0.59/0.65/0.44); Θ_s/s 0.93-1.02;
+#: centre error 0.01-0.07 (relative to s). (Session 1's iteration-2500 export: 0.35 from top views.) The bars leave
+#: a margin for float and platform differences, not for a worse prior.
+SHIPPED_IOU_BAR = {"top views": 0.55, "1-12 views": 0.5}
 #: weights exported before this many iterations are snapshots of a training run still in progress
 MIN_SHIPPED_ITERATIONS = 2000
 
 
 @pytest.mark.skipif(not SHIPPED.is_file(), reason="efem_viz/weights/mug.pt not trained yet")
 def test_shipped_mug_reconstructs_held_out_partial_scan(cache_dir: Path) -> None:
-    """Held-out test mugs, seen from above only (4-12 top depth views + noise, bottom never seen), placed in a
-    random world pose at real scale: the shipped prior recovers scale, centre and volume (IoU)."""
+    """Held-out test mugs, seen from above only (4-12 top depth views, then 1-12 incl. single views; noise; the
+    bottom never seen), placed in a random world pose at real scale: the shipped prior recovers scale, centre and
+    volume (IoU)."""
     prior = load_prior("mug")
     assert SHIPPED.stat().st_size < 20 * 2**20
     if int(prior.metadata.get("iteration", 0)) < MIN_SHIPPED_ITERATIONS:
         pytest.skip(f"shipped mug.pt is an early snapshot of a running training (iteration "
                     f"{prior.metadata.get('iteration')})")
-    cfg = SampleConfig(n_pcl=prior.config.n_pcl, p_top_only=1.0)
-    rng = np.random.default_rng(0)
-    gen = torch.Generator().manual_seed(0)
-    ious = []
-    for i, src in enumerate(procedural_sources("mug", "test", 4)):
-        obj = load_or_prepare(src, cache_dir=cache_dir / "test", cfg=PrepConfig(), seed=1000 + i)
-        pcl = torch.as_tensor(input_cloud(obj, cfg, rng), dtype=torch.float32)
-        q, _ = torch.linalg.qr(torch.randn(3, 3, generator=gen))
-        R = q * torch.sign(torch.det(q))
-        s, t = 0.12, torch.tensor([0.3, -0.2, 0.8])
-        x = torch.as_tensor(obj.uni[:10000, :3])
-        with torch.no_grad():
-            lat = prior.encode((s * pcl @ R.T + t)[None])
-            sdf = prior.sdf(s * x @ R.T + t, lat[0])
-        gt_in = torch.as_tensor(obj.uni[:10000, 3]) <= 0
-        pr_in = sdf < 0
-        ious.append(float((gt_in & pr_in).sum() / (gt_in | pr_in).sum()))
-        assert abs(float(lat.scale) / s - 1.0) < 0.3
-        assert float((lat.center[0] - t).norm()) / s < 0.25  # canonical bbox centre ↦ t
-    assert np.mean(ious) > SHIPPED_IOU_BAR, ious
+    for label, cfg in (("top views", SampleConfig(n_pcl=prior.config.n_pcl, p_top_only=1.0)),
+                       ("1-12 views", SampleConfig(n_pcl=prior.config.n_pcl, p_top_only=1.0, min_views=1))):
+        rng = np.random.default_rng(0)
+        gen = torch.Generator().manual_seed(0)
+        ious = []
+        for i, src in enumerate(procedural_sources("mug", "test", 4)):
+            obj = load_or_prepare(src, cache_dir=cache_dir / "test", cfg=PrepConfig(), seed=1000 + i)
+            pcl = torch.as_tensor(input_cloud(obj, cfg, rng), dtype=torch.float32)
+            q, _ = torch.linalg.qr(torch.randn(3, 3, generator=gen))
+            R = q * torch.sign(torch.det(q))
+            s, t = 0.12, torch.tensor([0.3, -0.2, 0.8])
+            x = torch.as_tensor(obj.uni[:10000, :3])
+            with torch.no_grad():
+                lat = prior.encode((s * pcl @ R.T + t)[None])
+                sdf = prior.sdf(s * x @ R.T + t, lat[0])
+            gt_in = torch.as_tensor(obj.uni[:10000, 3]) <= 0
+            pr_in = sdf < 0
+            ious.append(float((gt_in & pr_in).sum() / (gt_in | pr_in).sum()))
+            assert abs(float(lat.scale) / s - 1.0) < 0.15, (label, i)
+            assert float((lat.center[0] - t).norm()) / s < 0.15, (label, i)  # canonical bbox centre ↦ t
+        assert np.mean(ious) > SHIPPED_IOU_BAR[label], (label, ious)
 
 
 def test_sigterm_stops_cleanly_with_a_final_checkpoint(tmp_path: Path, cache_dir: Path) -> None:
