@@ -4,6 +4,8 @@ Fixture names are stable and used by the viewer and annotator browser tests:
 
 * `browser` — session-scoped playwright `Browser` (headless chromium, software WebGL via SwiftShader).
 * `page` — a fresh `Page` (own context, 1280x800) per test, closed afterwards.
+* `new_page` — a factory for more such pages (one browser context each, like separate tabs of separate users);
+  all are closed after the test.
 
 Tests using them must be marked `@pytest.mark.browser`. Everything skips cleanly (with the reason) when
 playwright or /usr/bin/chromium is missing.
@@ -13,7 +15,7 @@ from __future__ import annotations
 
 import os
 import shutil
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import pytest
 
@@ -67,3 +69,23 @@ def page(browser: Any) -> Iterator[Any]:
         yield pg
     finally:
         context.close()
+
+
+@pytest.fixture()
+def new_page(browser: Any) -> Iterator[Callable[..., Any]]:
+    """Call it for another fresh page in its own browser context (1280x800, or `viewport={"width": .., "height":
+    ..}`: smaller pages render faster in software); all are closed after the test."""
+    contexts: list[Any] = []
+
+    def make(viewport: dict[str, int] | None = None) -> Any:
+        context = browser.new_context(viewport=viewport or VIEWPORT)
+        contexts.append(context)
+        pg = context.new_page()
+        pg.set_default_timeout(30_000)
+        return pg
+
+    try:
+        yield make
+    finally:
+        for context in contexts:
+            context.close()

@@ -1,18 +1,19 @@
 """Real-browser test of the annotator (headless Debian chromium, software WebGL): run with `-m browser`.
 
 A Ctrl+left-drag across the scan (a mesh, and a point cloud) in the page must paint vertices: the label store changes, and the canvas
-changes colour where the stroke went. With EFEM_SAVE_SCREENSHOTS=1 screenshots go to docs/img/ for the guide.
+changes colour where the stroke went. Two tabs on one scan see each other's strokes, and the store keeps both.
+With EFEM_SAVE_SCREENSHOTS=1 screenshots go to docs/img/ for the guide.
 """
 
 from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 import pytest
-from browser_utils import png_to_array, settle, wait_until
+from browser_utils import changed_mask, ctrl_drag, open_viser_pages, settle_canvas, wait_until
 
 pytestmark = [pytest.mark.browser, pytest.mark.timeout(150)]
 
@@ -47,17 +48,6 @@ def annotator(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Any]:
 
 
 
-
-def _canvas_png(page: Any) -> np.ndarray:
-    png = page.locator("canvas").first.screenshot()
-    return png_to_array(png)
-
-
-def _settle(page: Any, *, timeout: float = 15.0) -> np.ndarray:
-    """Canvas screenshot once rendering has settled."""
-    return settle(lambda: _canvas_png(page), page, timeout=timeout)
-
-
 def test_ctrl_drag_on_mesh_paints_vertices(annotator: Any, page: Any) -> None:
     """A ctrl-drag paints: the label store changes (one undoable stroke) and so does the canvas."""
     app = annotator
@@ -65,20 +55,13 @@ def test_ctrl_drag_on_mesh_paints_vertices(annotator: Any, page: Any) -> None:
     page.goto(app.url)
     page.get_by_text("Tools", exact=True).first.wait_for(timeout=30_000)
     wait_until(lambda: len(app.server.get_clients()) > 0, 30, "client connection")
-    before = _settle(page)
+    before = settle_canvas(page)
     box = page.locator("canvas").first.bounding_box()
     assert box is not None
     cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
     painted = 0
     for attempt in range(3):  # the first gesture can land while the scene is still streaming in
-        page.keyboard.down("Control")
-        page.mouse.move(cx - 40, cy)
-        page.mouse.down()
-        for k in range(1, 13):
-            page.mouse.move(cx - 40 + 7 * k, cy + 2 * k, steps=2)
-            page.wait_for_timeout(60)
-        page.mouse.up()
-        page.keyboard.up("Control")
+        ctrl_drag(page, (cx - 40, cy), (cx + 44, cy + 24))
         try:
             wait_until(lambda: int((app.store.labels == iid).sum()) > 0, 10, "painted vertices")
         except AssertionError:
@@ -90,11 +73,106 @@ def test_ctrl_drag_on_mesh_paints_vertices(annotator: Any, page: Any) -> None:
     # the whole stroke is one undoable journal group
     groups = {r.header.get("group") for r in app.store.journal.records if r.kind == "do" and r.arrays["idx"].size}
     assert len(groups) == 1  # one stroke landed (earlier attempts, if any, painted nothing)
-    after = _settle(page)
-    changed = int((np.abs(after - before).sum(axis=-1) > 60).sum())
+    after = settle_canvas(page)
+    changed = int(changed_mask(after, before).sum())
     assert changed > 50, f"the canvas barely changed after painting ({changed} pixels)"
     if SAVE:
         DOCS_IMG.mkdir(parents=True, exist_ok=True)
         page.screenshot(path=str(DOCS_IMG / f"annotator_brush_{app.kind}.png"))
     app.undo()
     assert int((app.store.labels == iid).sum()) == 0
+
+
+
+def _strokes(app: Any) -> list[tuple[str, str, np.ndarray]]:
+    """(client, group, vertices) of each stroke in the journal, in order (adjacent edits of one group merged)."""
+    out: list[tuple[str, str, np.ndarray]] = []
+    for r in app.store.journal.records:
+        if r.kind != "do" or not r.arrays["idx"].size:
+            continue
+        client, group = str(r.header.get("client")), str(r.header.get("group"))
+        if out and out[-1][:2] == (client, group):
+            out[-1] = (client, group, np.union1d(out[-1][2], r.arrays["idx"]))
+        else:
+            out.append((client, group, np.unique(r.arrays["idx"])))
+    return out
+
+
+def _stroke(page: Any, app: Any, stroke: tuple[tuple[float, float], tuple[float, float]],
+            painted: Callable[[], bool]) -> None:
+    """Ctrl-drag along `stroke` (offsets from the canvas centre) until `painted()` holds, at most 3 tries (a
+    gesture can land while the scene is still streaming in); then wait for the edit thread."""
+    box = page.locator("canvas").first.bounding_box()
+    assert box is not None
+    cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    (x0, y0), (x1, y1) = stroke
+    for _ in range(3):
+        ctrl_drag(page, (cx + x0, cy + y0), (cx + x1, cy + y1), moves=6, steps=1)
+        try:
+            wait_until(painted, 10, "painted vertices")
+        except AssertionError:
+            continue
+        app.wait_idle()
+        return
+    raise AssertionError("a ctrl-drag on the mesh did not paint any vertex")
+
+
+def _seen(before: np.ndarray, after: np.ndarray, stroke: tuple[tuple[float, float], tuple[float, float]],
+          margin: int = 70) -> tuple[int, int]:
+    """(changed pixels near `stroke` (offsets from the canvas centre, box grown by `margin`), all changed pixels)."""
+    changed = changed_mask(after, before)
+    h, w = changed.shape
+    (x0, y0), (x1, y1) = stroke
+    xa, xb = int(w / 2 + min(x0, x1)) - margin, int(w / 2 + max(x0, x1)) + margin
+    ya, yb = int(h / 2 + min(y0, y1)) - margin, int(h / 2 + max(y0, y1)) + margin
+    return int(changed[max(ya, 0): yb, max(xa, 0): xb].sum()), int(changed.sum())
+
+
+# Two tabs render in software on 2 cores: small pages (fewer pixels, faster input) and short strokes, above and
+# below the sphere's centre (the control panel covers the right of the view).
+SMALL = {"width": 960, "height": 600}
+STROKE_A = ((-70.0, -50.0), (10.0, -40.0))
+STROKE_B = ((-70.0, 50.0), (10.0, 60.0))
+
+
+@pytest.mark.parametrize("annotator", ["mesh"], indirect=True)
+def test_two_tabs_see_each_others_edits(annotator: Any, new_page: Callable[..., Any]) -> None:
+    """Two browser tabs (separate contexts, like two users) on one scan (a 2.5k-vertex sphere) see each other's
+    edits, and none is lost.
+
+    Tab A paints a stroke through its page: the label store changes and tab B's canvas changes where A painted.
+    Then tab B paints a second stroke below it: tab A's canvas changes there, the store keeps A's vertices and adds
+    B's, and the journal holds the two strokes in order under the two tabs' client ids.
+    """
+    app = annotator
+    iid = app.settings.active_id
+    tab_a, tab_b = new_page(SMALL), new_page(SMALL)
+    open_viser_pages([tab_a, tab_b], app.url)
+    wait_until(lambda: len(app.server.get_clients()) >= 2, 30, "two connected tabs")
+    b0 = settle_canvas(tab_b)
+
+    # ---- tab A paints; tab B shows it
+    _stroke(tab_a, app, STROKE_A, painted=lambda: bool((app.store.labels == iid).any()))
+    by_a = app.store.labels == iid
+    strokes = _strokes(app)
+    assert len(strokes) == 1, strokes
+    client_a = strokes[0][0]
+    assert np.array_equal(strokes[0][2], np.flatnonzero(by_a))
+    near, total = _seen(b0, settle_canvas(tab_b), STROKE_A)
+    assert near > 50, f"tab B did not show tab A's stroke ({near} pixels changed there, {total} in all)"
+    assert near >= 0.5 * total, f"tab B changed mostly away from tab A's stroke ({near} of {total} pixels)"
+
+    # ---- tab B paints elsewhere; tab A shows it; nothing of A's edit is lost
+    a1 = settle_canvas(tab_a)
+    _stroke(tab_b, app, STROKE_B, painted=lambda: bool(((app.store.labels == iid) & ~by_a).any()))
+    labels = app.store.labels
+    assert (labels[by_a] == iid).all(), "tab B's stroke lost vertices painted by tab A"
+    by_b = (labels == iid) & ~by_a
+    assert by_b.sum() > 0
+    strokes = _strokes(app)
+    assert [c for c, _, _ in strokes][:1] == [client_a] and len(strokes) == 2, strokes
+    assert strokes[1][0] != client_a, "both strokes were journalled under one client id"
+    assert set(np.flatnonzero(by_b)) <= set(strokes[1][2].tolist())
+    near, total = _seen(a1, settle_canvas(tab_a), STROKE_B)
+    assert near > 50, f"tab A did not show tab B's stroke ({near} pixels changed there, {total} in all)"
+    assert near >= 0.5 * total, f"tab A changed mostly away from tab B's stroke ({near} of {total} pixels)"
