@@ -43,6 +43,7 @@ from annotator.io import (
 from annotator.journal import LabelStore
 from annotator.labels import Delta, InstanceInfo, LabelSet
 from annotator.render import Chunks, build_chunks, color_lut, compose_colors, splat_proxy
+from efem_viz.viewer.state import xyz_tuple
 
 if TYPE_CHECKING:
     from viser._messages import LiteralColor  # the colour names `add_notification` accepts
@@ -253,8 +254,8 @@ class AnnotatorApp:
             self.chunk_handles.append(h)
         self.server.scene.on_click(modifier="cmd/ctrl")(self._on_scene_click)
         self.server.scene.on_rect_select(modifier="shift")(self._on_rect)
-        self.server.initial_camera.look_at = _xyz(centre)
-        self.server.initial_camera.position = _xyz(centre + np.array([0.0, -1.0, 0.8]) * extent * 0.8)
+        self.server.initial_camera.look_at = xyz_tuple(centre)
+        self.server.initial_camera.position = xyz_tuple(centre + np.array([0.0, -1.0, 0.8]) * extent * 0.8)
         self.server.initial_camera.up = (0.0, 0.0, 1.0)
 
     def draw_chunks(self, chunk_ids: np.ndarray) -> int:
@@ -902,12 +903,6 @@ class AnnotatorApp:
             self.server.stop()
         finally:
             self.store.close()
-
-
-def _xyz(v: np.ndarray) -> tuple[float, float, float]:
-    """A 3-vector as the float triple viser's camera setters take."""
-    x, y, z = (float(c) for c in v)
-    return x, y, z
 
 
 def _color(i: int) -> tuple[int, int, int]:

@@ -116,10 +116,8 @@ def segment_at_point(
     import torch
 
     torch.set_num_threads(max(1, min(2, torch.get_num_threads())))
-    local_tree = cKDTree(pts[crop])
-    near = np.asarray(local_tree.query_ball_point(centre, max(float(anchor_radius), 0.0)), np.int64)
-    if len(near) == 0:
-        near = np.asarray([int(np.searchsorted(crop, int(vertex)))], np.int64)
+    # crop-local indices within anchor_radius of the click (never empty: the clicked vertex is at distance 0)
+    near = np.flatnonzero(np.linalg.norm(pts[crop] - centre, axis=1) <= max(float(anchor_radius), 0.0))
     res = run_em(sub, pr, cfg, seed=seed, anchor_candidates=near)
     inst = res.instances
     if len(inst) == 0:

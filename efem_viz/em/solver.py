@@ -517,11 +517,8 @@ class _Solver:
                 break
             tree = AvailableTree(self.points, available, crop=cfg.crop)
             full_tree = tree if self.identity else None
-            anchor_mask = self.anchor_mask if ep == 0 else None
-            if anchor_mask is not None and not (anchor_mask & available).any():
-                raise ValueError("none of the anchor candidates is an available scene point")
             anchors, crops = init_crops(self.points, available, n_init, cfg.r_init, self.rng, crop=cfg.crop,
-                                        tree=tree, anchor_mask=anchor_mask)
+                                        tree=tree, anchor_mask=self.anchor_mask if ep == 0 else None)
             ids = self.rec.birth(ep, self.work_idx[anchors], cfg.r_init, cfg.r_err)
             self.rec.start_episode(np.flatnonzero(assigned), len(ids))
             pool = _Pool(ids=ids, rag=crops, w=np.ones(len(crops.idx), np.float32))
