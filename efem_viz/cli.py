@@ -16,6 +16,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "convert-prior": ("efem_viz.prior.convert:ConvertArgs",
                       "convert a released EFEM checkpoint (weights/mugs.pt) + build its +Z-up codebook"),
     "segment": ("efem_viz.em.commands:SegmentArgs", "run EFEM on scenes and save traces + results"),
+    "calibrate-masks": ("efem_viz.em.commands:CalibrateMasksArgs",
+                        "choose a prior's output-mask threshold tau_out on labelled tuning scenes"),
     "evaluate": ("efem_viz.eval.commands:EvaluateArgs", "compute AP / AP50 / AP25 against ground truth"),
 }
 

@@ -7,11 +7,13 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Literal
 
 import tyro
+
+from efem_viz.em.masks import TAU_OUT_CANDIDATES
 
 logger = logging.getLogger(__name__)
 
@@ -118,3 +120,73 @@ class SegmentArgs:
             console.print(f"{len(summary)} scenes, {n_all} instances, {tot:.1f} s total, "
                           f"{tot / len(summary):.1f} s per scene")
         return 1 if failures else 0
+
+
+@dataclass
+class CalibrateMasksArgs:
+    """Choose a prior's output-mask SDF threshold τ_out on labelled tuning scenes (best AP of re-thresholded masks)."""
+
+    results: Annotated[list[Path], tyro.conf.Positional]
+    """`<scene>.efem.npz` results (files and/or folders), computed with --prior."""
+    gt: list[Path] = field(default_factory=list)
+    """Labelled tuning scenes (files and/or folders); results are paired with them by scene name."""
+    prior: str = "mug"
+    """The prior the results were computed with (a name under efem_viz/weights/ or a .pt path)."""
+    candidates: tuple[float, ...] = TAU_OUT_CANDIDATES
+    """Thresholds to try (canonical units)."""
+    classes: tuple[str, ...] = ("mug",)
+    """Evaluated classes (as in `efem-viz evaluate`)."""
+    write: bool = False
+    """Store the chosen value (and the table) in the prior file's metadata; `run_em` then uses it."""
+    json_out: Path | None = None
+    """Also write the calibration table as JSON here."""
+
+    def run(self) -> int:
+        """Print the AP table per threshold; with --write update the prior. Returns 0."""
+        import json
+
+        from efem_viz.data.io import find_scenes, load_scene
+        from efem_viz.em.masks import METADATA_KEY, calibrate_tau_out, prior_tau_out
+        from efem_viz.em.results import RESULT_SUFFIX, EMResult
+        from efem_viz.prior.model import load_prior, resolve_prior_path, save_prior
+
+        if not self.gt:
+            raise ValueError("give the labelled tuning scenes with --gt SCENE... (files or folders)")
+        scenes = {}
+        for p in find_scenes(self.gt):
+            scene = load_scene(p)
+            scenes[scene.name] = scene
+        files: list[Path] = []
+        for r in self.results:
+            if r.is_dir():
+                files += sorted(r.glob(f"*{RESULT_SUFFIX}"))
+            elif r.is_file():
+                files.append(r)
+            else:
+                raise FileNotFoundError(f"results not found: {r}")
+        prior = load_prior(self.prior)
+        runs = []
+        for f in files:
+            res = EMResult.load(f)
+            if res.scene_name not in scenes:
+                logger.info("%s: no labelled scene named %r among --gt; skipped", f, res.scene_name)
+                continue
+            scene = scenes[res.scene_name]
+            if scene.instance is None:
+                raise ValueError(f"scene {scene.name!r} has no ground-truth `instance` labels")
+            runs.append((EMResult.load(f, scene=scene), scene))
+        if not runs:
+            raise ValueError(f"no result among {len(files)} file(s) matches a labelled scene in --gt")
+        cal = calibrate_tau_out(runs, prior, candidates=self.candidates, class_names=self.classes)
+        before = prior_tau_out(prior)
+        print(f"prior {self.prior!r}: tau_out calibrated on {len(runs)} scene(s): {', '.join(cal.scenes)}")
+        print(cal.table())
+        print(f"chosen tau_out {cal.best:g} (prior had {before:g})")
+        if self.json_out is not None:
+            self.json_out.parent.mkdir(parents=True, exist_ok=True)
+            self.json_out.write_text(json.dumps(cal.to_dict(), indent=2))
+        if self.write:
+            path = resolve_prior_path(self.prior)
+            save_prior(prior, path, extra={METADATA_KEY: cal.best, f"{METADATA_KEY}_calibration": cal.to_dict()})
+            print(f"wrote {METADATA_KEY}={cal.best:g} into {path}")
+        return 0

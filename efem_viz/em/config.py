@@ -12,6 +12,11 @@ import json
 from dataclasses import dataclass
 from typing import Any, Literal
 
+DEFAULT_TAU_OUT = 0.04
+"""Output-mask SDF threshold of efem-method.md §3.9.12 for mugs (canonical units)."""
+MAX_TAU_OUT = 0.5
+"""Largest accepted τ_out: half an object size (a larger band would take in the neighbours)."""
+
 PresetName = Literal["synthetic_mugs", "real_mugs", "fast"]
 CropMode = Literal["sphere", "cylinder"]
 
@@ -58,8 +63,10 @@ class EMConfig:
     """Phase-2 duplicate IoU threshold."""
     joint_incl: float = 0.8
     """Phase-2 inclusion ratio threshold (pairwise)."""
-    tau_out: float = 0.04
-    """Output mask SDF threshold (canonical units)."""
+    tau_out: float | None = None
+    """Output mask SDF threshold (canonical units). None = the prior's calibrated value (its metadata
+    `tau_out`, written by `efem-viz calibrate-masks`), else the spec's 0.04; `run_em` resolves it and records
+    the value it used."""
     gamma_out: float = 180.0
     """Output mask normal-angle threshold (degrees; 180 = normals ignored)."""
     stat_tau: float = 0.04
@@ -97,6 +104,11 @@ class EMConfig:
     """Estimate the pose with the prior's codebook in reviews (when it has one); else R = identity."""
 
     # ------------------------------------------------------------------ helpers
+    @property
+    def out_tau(self) -> float:
+        """τ_out in effect: `tau_out`, or the spec's value when it is unresolved (None)."""
+        return DEFAULT_TAU_OUT if self.tau_out is None else float(self.tau_out)
+
     @property
     def num_episodes(self) -> int:
         return len(self.n_init)
@@ -136,6 +148,8 @@ class EMConfig:
                 raise ValueError(f"{nm} must be a pair, got {v}")
         if self.work_voxel is not None and self.work_voxel < 0:
             raise ValueError(f"work_voxel must be >= 0 or None, got {self.work_voxel}")
+        if self.tau_out is not None and not 0.0 < self.tau_out <= MAX_TAU_OUT:
+            raise ValueError(f"tau_out must be in (0, {MAX_TAU_OUT}] or None, got {self.tau_out}")
         if self.n_pcl is not None and self.n_pcl < 1:
             raise ValueError(f"n_pcl must be >= 1, got {self.n_pcl}")
         if self.mesh_resolution < 8:

@@ -235,7 +235,7 @@ def normals_threshold(cfg: EMConfig, tau_d: float) -> float:
     """The largest |d| at which a decoded normal can still matter at a step with SDF truncation `tau_d`."""
     out = [tau_d, cfg.stat_tau]
     if cfg.gamma_out < 180.0:
-        out.append(cfg.tau_out)
+        out.append(cfg.out_tau)
     return float(max(out))
 
 
@@ -376,8 +376,9 @@ def run_em(
     from efem_viz.em.config import preset
     from efem_viz.em.results import EMResult, Instances
 
-    cfg = cfg if cfg is not None else preset("synthetic_mugs")
-    cfg.validate()
+    from efem_viz.em.masks import resolve_config
+
+    cfg = resolve_config(cfg if cfg is not None else preset("synthetic_mugs"), prior)
     for meth in ("encode", "sdf_and_normals", "sdf"):
         if not callable(getattr(prior, meth, None)):
             raise ValueError(f"prior {type(prior).__name__} has no {meth}() method")
@@ -632,7 +633,7 @@ class _Solver:
             full_rag = full_tree.query(pool.latent["center"], cfg.r_err)
             d_full, g_full = decode_rows(
                 self.prior, pool.latent, full_rag, self.full_points, self.full_normals, chunk=cfg.decode_chunk,
-                normals_within=cfg.tau_out if cfg.gamma_out < 180.0 else -1.0)
+                normals_within=cfg.out_tau if cfg.gamma_out < 180.0 else -1.0)
             self.n_queries += len(full_rag.idx)
         self.timer.add("review_coverage", t0)
         for r in range(pool.size):
@@ -684,7 +685,7 @@ class _Solver:
             up_angle = float(np.degrees(np.arccos(np.clip(R_raw[:, 2] @ up, -1.0, 1.0))))
             pose_pass = bool(cfg.up_range[0] <= up_angle <= cfg.up_range[1])
             dsl, gsl = d_full[sl], g_full[sl]
-            m_ok = np.abs(dsl) < cfg.tau_out
+            m_ok = np.abs(dsl) < cfg.out_tau
             if cfg.gamma_out < 180.0:
                 m_ok &= gsl < cfg.gamma_out
             mask = ball[m_ok].astype(np.int32)
