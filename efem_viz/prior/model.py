@@ -12,6 +12,8 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
+import pickle
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
@@ -368,8 +370,40 @@ def resolve_prior_path(name_or_path: str | os.PathLike[str]) -> Path:
     return p
 
 
+def read_checkpoint(path: str | os.PathLike[str], *, allow_pickle: bool = False) -> Any:
+    """``torch.load`` a checkpoint safely: tensors and plain containers only (``weights_only=True``).
+
+    Every file efem-viz writes (priors, training checkpoints) loads this way. A file that needs a full unpickle
+    (which can run arbitrary code) is refused unless ``allow_pickle`` is set.
+
+    Raises:
+        ValueError: the file is not a readable torch checkpoint, or needs a full unpickle without
+            ``allow_pickle``.
+    """
+    path = Path(path)
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as exc:
+        needs_globals = "global" in str(exc).lower() and "Unsupported operand" not in str(exc)
+        if not needs_globals:
+            raise ValueError(f"{path} is not a readable torch checkpoint (corrupt?)") from exc
+        if not allow_pickle:
+            names = re.findall(r"GLOBAL ([\w.]+)", str(exc))
+            raise ValueError(
+                f"{path} holds Python objects beyond tensors and plain containers"
+                f"{' (' + ', '.join(names[:3]) + ')' if names else ''}; loading it means a full unpickle, which can "
+                f"run code. If you trust the file, load it with allow_pickle=True") from exc
+    except (RuntimeError, EOFError, OSError, ValueError) as exc:
+        raise ValueError(f"{path} is not a readable torch checkpoint (corrupt or truncated?): "
+                         f"{str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__}") from exc
+    try:
+        return torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as exc:  # a trusted pickle that still fails to load
+        raise ValueError(f"{path} could not be unpickled: {exc}") from exc
+
+
 def load_prior(name_or_path: str | os.PathLike[str] = "mug", *, device: str | torch.device = "cpu",
-               load_codebook: bool = True) -> ShapePrior:
+               load_codebook: bool = True, allow_pickle: bool = False) -> ShapePrior:
     """Load a prior saved by ``save_prior`` (and its codebook ``<stem>_codebook.npz`` if present).
 
     Also accepts a full training checkpoint (it carries the same ``config``/``state_dict`` keys).
@@ -378,16 +412,18 @@ def load_prior(name_or_path: str | os.PathLike[str] = "mug", *, device: str | to
         name_or_path: A name under ``efem_viz/weights/`` or a ``.pt`` path.
         device: Target device.
         load_codebook: Try to attach the codebook.
+        allow_pickle: Also load files that need a full unpickle (can run code: trusted files only).
 
     Returns:
         The model in eval mode, float32.
 
     Raises:
         FileNotFoundError: If the weights file is missing.
-        ValueError: If the file is not a prior checkpoint.
+        ValueError: If the file is not a prior checkpoint (or is corrupt, or needs a full unpickle without
+            ``allow_pickle``).
     """
     path = resolve_prior_path(name_or_path)
-    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    ckpt = read_checkpoint(path, allow_pickle=allow_pickle)
     if not isinstance(ckpt, dict) or "config" not in ckpt or "state_dict" not in ckpt:
         raise ValueError(f"{path} is not an efem-viz prior checkpoint (keys: "
                          f"{sorted(ckpt) if isinstance(ckpt, dict) else type(ckpt).__name__})")

@@ -493,7 +493,9 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
     if resume_path is not None:
         if not Path(resume_path).is_file():
             raise FileNotFoundError(f"no checkpoint to resume from: {resume_path}")
-        ckpt = torch.load(resume_path, map_location="cpu", weights_only=False)
+        from efem_viz.prior.model import read_checkpoint
+
+        ckpt = read_checkpoint(resume_path)
 
     log.info("loading training data ...")
     train_objs = load_objects(args, "train")
