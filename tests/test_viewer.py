@@ -198,6 +198,7 @@ def test_threshold_filters_instances_without_rerun(app: Any) -> None:
     assert not any(h.visible for h in app.nodes.result_obbs)
     assert not any(h.visible for h in app.nodes.result_axes)
     assert "**0 of" in app.panels.gui_result_info.content
+    assert f"SDF\\| < {app.state.result.config.out_tau:g} (τ_out" in app.panels.gui_result_info.content
     assert not np.array_equal(colors_all, np.array(app.nodes.points.colors))
     assert app.state.result.instances is inst  # a view, not a re-run
     app.set_threshold(0.0)

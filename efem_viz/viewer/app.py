@@ -762,6 +762,7 @@ class ViewerApp:
             self.panels.gui_result_info.content = (
                 f"**{int(keep.sum())} of {keep.size} instances** with confidence ≥ {s.threshold:.2f}"
                 + (f" (max {conf.max():.2f})" if conf.size else "")
+                + f"\n\nmasks: points with decoded \\|SDF\\| < {s.result.config.out_tau:g} (τ_out, canonical units)"
             )
             self._update_gt_panel(keep)
 
