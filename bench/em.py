@@ -71,6 +71,9 @@ def main() -> int:
     ap.add_argument("--skip-accuracy", action="store_true")
     ap.add_argument("--skip-speed", action="store_true")
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "em.json")
+    ap.add_argument("--save-results", type=Path, default=None,
+                    help="also write every accuracy run's scene (.ply) and result (.efem.npz) here, to open them in "
+                         "the viewer (efem-viz view DIR) or re-score them")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
 
@@ -88,7 +91,7 @@ def main() -> int:
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "torch_threads": args.threads,
                     "torch": torch.__version__},
         "prior": {"name": args.prior, "config": prior.config.to_dict(), "has_codebook": prior.codebook is not None,
-                  "metadata": {k: v for k, v in prior.metadata.items() if k in ("iteration", "val_iou")}},
+                  "metadata": {k: v for k, v in prior.metadata.items() if k in ("iteration", "val_iou", "tau_out")}},
         "em_config": json.loads(cfg.to_json()),
         "scene_mode": args.mode,
         "quick": bool(args.quick),
@@ -105,13 +108,21 @@ def main() -> int:
             for i in range(n_scenes):
                 scene = get_scene(config, SEED0 + i, args.mode)
                 res = run_one(scene, prior, cfg)
+                if args.save_results is not None:
+                    from efem_viz.data.io import save_scene
+
+                    args.save_results.mkdir(parents=True, exist_ok=True)
+                    if not (args.save_results / f"{scene.name}.ply").is_file():
+                        save_scene(scene, args.save_results / f"{scene.name}.ply")
+                    res.save(args.save_results / f"{scene.name}.efem.npz")
                 all_timings.append(res.timings)
                 runtimes.append(res.timings["total"])
                 preds.append(prediction_from_instances(res.instances, name=scene.name, class_names=("mug",)))
                 gts.append(SceneGroundTruth.from_scene(scene))
                 one = evaluate([preds[-1]], [gts[-1]], class_names=("mug",))
                 per_scene.append({"scene": scene.name, "points": scene.num_points, "gt": len(scene.instance_ids()),
-                                  "pred": len(res.instances), "ap50": one.ap50, "seconds": res.timings["total"],
+                                  "pred": len(res.instances), "ap": one.ap, "ap50": one.ap50, "ap25": one.ap25,
+                                  "seconds": res.timings["total"],
                                   "cpu_seconds": res.timings["total_cpu"]})
                 cpu_times.append(res.timings["total_cpu"])
                 print(f"  {scene.name:>10}: {scene.num_points:6d} pts, gt {len(scene.instance_ids())}, "
