@@ -206,6 +206,35 @@ def test_threshold_filters_instances_without_rerun(app: Any) -> None:
     assert not any(h.visible for h in app.nodes.result_meshes if h is not None)
 
 
+def test_mask_band_rederives_masks_without_rerun(app: Any, tmp_path: Path) -> None:
+    """The τ_out slider re-derives the masks from the stored latents: wider band ⊇ narrower; colours, GT metrics
+    and exports follow; back at the run's band the run's masks return exactly."""
+    res0 = app.state.result
+    tau0 = res0.config.out_tau
+    assert app.panels.gui_mask_band.value == pytest.approx(tau0) and not app.panels.gui_mask_band.disabled
+    app.set_color_mode("instances")
+    app.set_threshold(0.0)
+    colors0 = np.array(app.nodes.points.colors)
+    assert app.set_mask_band(0.15)
+    res1 = app.state.result
+    assert res1.trace is res0.trace and res1.config.out_tau == pytest.approx(0.15)  # no re-run
+    grew = False
+    for a, b in zip(res0.instances.masks, res1.instances.masks, strict=True):
+        assert set(a.tolist()) <= set(b.tolist())
+        grew |= len(b) > len(a)
+    assert grew, "a band 4x wider must take in more points"
+    assert not np.array_equal(colors0, np.array(app.nodes.points.colors))
+    assert "SDF\\| < 0.15" in app.panels.gui_result_info.content
+    out = app.export_results(tmp_path / "exp")
+    assert out is not None
+    assert app.set_mask_band(tau0)
+    for a, b in zip(res0.instances.masks, app.state.result.instances.masks, strict=True):
+        assert np.array_equal(np.sort(a), np.sort(b))
+    assert np.array_equal(colors0, np.array(app.nodes.points.colors))
+    assert app.set_mask_band(5.0) and app.state.result.config.out_tau == pytest.approx(0.2)  # clamped to the slider
+    assert app.set_mask_band(tau0)
+
+
 def test_bad_scene_shows_error_and_server_stays_up(app: Any) -> None:
     assert app.open_scene("broken") is False
     assert app.state.error is not None and "broken.ply" in app.state.error

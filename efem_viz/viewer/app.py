@@ -11,6 +11,8 @@ connected client; the server stays up.
 
 from __future__ import annotations
 
+import dataclasses
+
 import logging
 import threading
 import time
@@ -22,7 +24,14 @@ import numpy as np
 
 from efem_viz.viewer import state as st
 from efem_viz.viewer.nodes import SceneNodes
-from efem_viz.viewer.panels import COLOR_MODES, NO_PROPOSAL, active_figure, build_panels, pr_figure
+from efem_viz.viewer.panels import (
+    COLOR_MODES,
+    MASK_BAND_RANGE,
+    NO_PROPOSAL,
+    active_figure,
+    build_panels,
+    pr_figure,
+)
 from efem_viz.viewer.state import SceneEntry, ViewerState
 
 logger = logging.getLogger(__name__)
@@ -79,6 +88,10 @@ class ViewerApp:
         self._gt_cache: dict[tuple[int, float], st.GTMetrics] = {}
         self._no_shapes_generation = -1
         self._inspect_weights: np.ndarray | None = None
+        self._mask_dist: tuple[int, Any] | None = None
+        """(generation, InstanceDistances) of the shown result: masks at any τ_out without a re-run."""
+        self._mask_version = 0
+        """Bumped whenever the shown masks change within one result (colour caches key on it)."""
         self._generation = 0
         """Bumped on every scene/result change so stale worker results are dropped."""
 
@@ -196,6 +209,8 @@ class ViewerApp:
         p.gui_max_shapes.on_update(guard(lambda: self.set_max_shapes(int(p.gui_max_shapes.value))))
         p.gui_proposal.on_update(guard(lambda: self.select_proposal(_parse_pid(p.gui_proposal.value))))
         p.gui_threshold.on_update(guard(lambda: self.set_threshold(float(p.gui_threshold.value))))
+        p.gui_mask_band.on_update(
+            guard(lambda: self._submit(self._worker, self.set_mask_band, float(p.gui_mask_band.value))))
         for h in (p.gui_show_meshes, p.gui_show_obbs, p.gui_show_axes):
             h.on_update(
                 guard(
@@ -479,6 +494,9 @@ class ViewerApp:
             p.gui_threshold.max = float(np.ceil(hi * 100.0 + 1e-6) / 100.0 + 0.01)  # the top hides every instance
             s.threshold = float(np.clip(s.threshold, 0.0, p.gui_threshold.max))
             self._gui_set(p.gui_threshold, s.threshold)
+            self._mask_dist = None
+            p.gui_mask_band.disabled = len(result.instances) == 0
+            self._gui_set(p.gui_mask_band, float(np.clip(result.config.out_tau, *MASK_BAND_RANGE)))
             p.gui_run_info.content = f"**Result**: {source} · {T} steps · {len(result.instances.ids)} instances"
             p.gui_active_plot.visible = True
             s.color_mode = "instances"
@@ -766,6 +784,40 @@ class ViewerApp:
             )
             self._update_gt_panel(keep)
 
+    def set_mask_band(self, tau_out: float) -> bool:
+        """Re-derive the output masks at SDF band `tau_out` from the stored latents (no re-run).
+
+        Colours, ground-truth metrics and exports follow; the result's config records the band. Returns False
+        (status line says why) when there is no result or no prior to decode with.
+        """
+        with self._lock:
+            s = self.state
+            if s.result is None or s.scene is None:
+                return False
+            tau = float(np.clip(tau_out, *MASK_BAND_RANGE))
+            self._gui_set(self.panels.gui_mask_band, tau)
+            if abs(tau - s.result.config.out_tau) < 1e-9:
+                return True
+            try:
+                if self._mask_dist is None or self._mask_dist[0] != self._generation:
+                    from efem_viz.em.masks import instance_distances
+
+                    self._set_status("Decoding the instances' final shapes for the mask band …")
+                    self._mask_dist = (self._generation,
+                                       instance_distances(s.result, s.scene, self._prior_for(s.result.trace)))
+                dist = self._mask_dist[1]
+                masks = dist.masks(tau, s.result.config.gamma_out)
+            except (RuntimeError, ValueError) as exc:
+                self._set_status(f"Mask band unavailable: {exc}", error=True)
+                return False
+            inst = dataclasses.replace(s.result.instances, masks=masks)
+            s.result = dataclasses.replace(s.result, instances=inst, config=s.result.config.replace(tau_out=tau))
+            self._gt_cache.clear()
+            self._mask_version += 1
+            self.set_threshold(s.threshold)
+            self._set_status(f"Masks re-derived at τ_out = {tau:g} (run: stored latents, nothing re-run).")
+            return True
+
     def kept_mask(self) -> np.ndarray:
         """(K,) bool: final instances at or above the threshold."""
         res = self.state.result
@@ -842,15 +894,15 @@ class ViewerApp:
         if mode == "instances" and s.result is not None:
             keep = self.kept_mask()
             cols = st.instance_colors(base, s.result.instances, keep)
-            key = ("inst", self._generation, keep.tobytes())
+            key = ("inst", self._generation, self._mask_version, keep.tobytes())
         elif mode == "gt_match" and s.result is not None and s.scene.has_gt and self._gt_metrics_or_none() is not None:
             m = self._gt_metrics()
             cols = st.gt_match_colors(base, m.masks, s.scene.instance, tp=m.tp, fp=m.fp, fn=m.fn)
-            key = ("gt", self._generation, self.kept_mask().tobytes())
+            key = ("gt", self._generation, self._mask_version, self.kept_mask().tobytes())
         elif mode in ("instances", "gt_match") and s.result is not None:
             keep = self.kept_mask()
             cols = st.instance_colors(base, s.result.instances, keep)
-            key = ("inst", self._generation, keep.tobytes())
+            key = ("inst", self._generation, self._mask_version, keep.tobytes())
         elif mode == "weights" and s.selected is not None and self._inspect_weights is not None:
             cols = st.weights_colors(base, self._inspect_weights)
             key = ("w", self._generation, s.selected, s.step)

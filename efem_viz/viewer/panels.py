@@ -14,6 +14,8 @@ import numpy as np
 
 NO_PROPOSAL = "(none)"
 PRESETS = ("fast", "synthetic_mugs", "real_mugs")
+MASK_BAND_RANGE = (0.01, 0.2)
+"""Range of the mask-band slider (τ_out, canonical units)."""
 COLOR_MODES = {
     "scene colours": "rgb",
     "instances": "instances",
@@ -52,6 +54,7 @@ class Panels:
     gui_inspect_info: Any
     gui_dead_info: Any
     gui_threshold: Any
+    gui_mask_band: Any
     gui_show_meshes: Any
     gui_show_obbs: Any
     gui_show_axes: Any
@@ -112,6 +115,10 @@ def build_panels(gui: Any, *, scene_names: list[str], out_dir: str) -> Panels:
 
     with tabs.add_tab("Results"):
         threshold = gui.add_slider("Confidence ≥", 0.0, 1.0, 0.01, 0.0)
+        mask_band = gui.add_slider(
+            "Mask band τ_out", MASK_BAND_RANGE[0], MASK_BAND_RANGE[1], 0.005, 0.04, disabled=True,
+            hint="output masks take the points whose decoded |SDF| is below this (canonical units); re-derived from "
+                 "the stored latents, no re-run")
         show_meshes = gui.add_checkbox("Meshes", True)
         show_obbs = gui.add_checkbox("Boxes (OBB)", True)
         show_axes = gui.add_checkbox("Pose axes", False)
@@ -152,6 +159,7 @@ def build_panels(gui: Any, *, scene_names: list[str], out_dir: str) -> Panels:
         gui_inspect_info=inspect_info,
         gui_dead_info=dead_info,
         gui_threshold=threshold,
+        gui_mask_band=mask_band,
         gui_show_meshes=show_meshes,
         gui_show_obbs=show_obbs,
         gui_show_axes=show_axes,
