@@ -242,6 +242,7 @@ def test_bad_scene_shows_error_and_server_stays_up(app: Any) -> None:
     assert app.state.scene_name == "spheres"  # previous scene kept
     assert app.open_scene("one_sphere") is True
     assert app.state.result is None and app.state.error is None
+    assert app.panels.gui_mask_band.disabled and app.set_mask_band(0.1) is False  # no result: nothing to re-derive
     assert app.load_trace() is False and "No saved trace" in app.state.status
     assert app.open_scene("spheres") is True and app.state.result is not None
     assert app.wait_idle(60)

@@ -507,6 +507,7 @@ class ViewerApp:
 
     def _draw_no_result(self) -> None:
         p = self.panels
+        p.gui_mask_band.disabled = True
         p.gui_step.disabled = True
         p.gui_play.disabled = True
         p.gui_active_plot.visible = False
