@@ -241,3 +241,26 @@ def test_guide_export(viewer: Any, page: Any, tmp_path: Path) -> None:
     page.add_style_tag(content="#webgl-software-rendering { display: none !important; }")
     page.wait_for_timeout(9000)
     _save(page, "viewer_static_demo.png")
+
+
+@guide_only
+def test_real_scene_figures(viewer: Any, page: Any) -> None:
+    """docs/img/efem_<scene>.png: EFEM's result on every real tabletop capture with a saved result, coloured against
+    the annotated ground truth (green TP, red FP, blue FN), at confidence ≥ 0.1 (docs/BENCHMARKS.md)."""
+    names = [e.name for e in viewer.state.entries if e.name.startswith("real_") and e.trace_path.is_file()]
+    if not names:
+        pytest.skip("no real scene with a saved result in the guide folder")
+    current = viewer.state.scene_name
+    _open(page, viewer)
+    page.get_by_role("tab", name="Results").click()
+    for name in names:
+        assert viewer.open_scene(name) and viewer.wait_idle(300)
+        viewer.set_proposal_layers(shapes=False, samples=False)
+        viewer.set_threshold(0.1)
+        viewer.set_color_mode("gt_match")
+        _settle(page)
+        _save(page, f"efem_{name}.png")
+    assert viewer.open_scene(current) and viewer.wait_idle(300)
+    viewer.set_threshold(0.0)
+    viewer.set_color_mode("instances")
+    viewer.set_proposal_layers(shapes=True, samples=True)
