@@ -63,6 +63,7 @@ def sphere_runs() -> dict[str, Any]:
         "offset_prior": offset,
         "exact": run_em(scene, prior, _cfg(), seed=5),
         "thinned": run_em(scene, prior, _cfg(work_voxel=0.012), seed=5),
+        "gated": run_em(scene, prior, _cfg(gamma_out=60.0), seed=5),
         "offset": run_em(scene, offset, _offset_cfg(), seed=5),
     }
 
@@ -111,13 +112,13 @@ def test_run_records_the_prior_tau_out_and_masks_follow_it(sphere_runs: dict[str
 
 
 # ---------------------------------------------------------------------------------------------- re-derivation
-@pytest.mark.parametrize("key", ["exact", "thinned", "offset"])
+@pytest.mark.parametrize("key", ["exact", "thinned", "gated", "offset"])
 def test_rederived_masks_equal_the_run_at_its_own_threshold(sphere_runs: dict[str, Any], key: str) -> None:
     res: EMResult = sphere_runs[key]
     prior = sphere_runs["offset_prior" if key == "offset" else "prior"]
     dist = instance_distances(res, sphere_runs["scene"], prior)
     assert len(dist.idx) == len(res.instances) >= 2
-    for got, want in zip(dist.masks(res.config.out_tau), res.instances.masks, strict=True):
+    for got, want in zip(dist.masks(res.config.out_tau, res.config.gamma_out), res.instances.masks, strict=True):
         assert np.array_equal(np.sort(got), np.sort(want))
     # wider thresholds only add points
     for small, big in zip(dist.masks(0.03), dist.masks(0.08), strict=True):

@@ -96,7 +96,7 @@ def instance_distances(result: "EMResult", scene: "Scene", prior: Any, *,
         scene: the scene it ran on (same number of points).
         prior: the prior it ran with.
         normals_within: compute normal angles for entries with |d| ≤ this (None: only when the run's config
-            gates masks by normals, up to the largest candidate threshold).
+            gates masks by normals, then up to the largest accepted τ_out).
 
     Raises:
         ValueError: the scene does not match the result.
@@ -111,7 +111,7 @@ def instance_distances(result: "EMResult", scene: "Scene", prior: Any, *,
     if len(inst) == 0:
         return InstanceDistances([], [], [])
     if normals_within is None:
-        normals_within = max(TAU_OUT_CANDIDATES) if cfg.gamma_out < 180.0 else -1.0
+        normals_within = MAX_TAU_OUT if cfg.gamma_out < 180.0 else -1.0
     points = np.ascontiguousarray(scene.points, np.float32)
     normals = np.ascontiguousarray(scene.normals, np.float32)
     episodes = trace.prop_episode[np.asarray(inst.ids, np.int64)]

@@ -374,9 +374,8 @@ def run_em(
         EMCancelled: `cancel` was set.
     """
     from efem_viz.em.config import preset
-    from efem_viz.em.results import EMResult, Instances
-
     from efem_viz.em.masks import resolve_config
+    from efem_viz.em.results import EMResult, Instances
 
     cfg = resolve_config(cfg if cfg is not None else preset("synthetic_mugs"), prior)
     for meth in ("encode", "sdf_and_normals", "sdf"):

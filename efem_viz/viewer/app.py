@@ -12,7 +12,6 @@ connected client; the server stays up.
 from __future__ import annotations
 
 import dataclasses
-
 import logging
 import threading
 import time
@@ -816,7 +815,7 @@ class ViewerApp:
             self._gt_cache.clear()
             self._mask_version += 1
             self.set_threshold(s.threshold)
-            self._set_status(f"Masks re-derived at τ_out = {tau:g} (run: stored latents, nothing re-run).")
+            self._set_status(f"Masks re-derived at τ_out = {tau:g} from the stored latents; nothing was re-run.")
             return True
 
     def kept_mask(self) -> np.ndarray:
