@@ -197,6 +197,11 @@ def test_calibrate_masks_cli_writes_the_prior_metadata(tmp_path: Path, capsys: p
     out = tmp_path / "out"
     assert cli.main(["segment", str(sp), "--prior", str(pt), "--out", str(out), "--preset", "fast",
                      "--proposals", "8"]) == 0
+    assert EMResult.load(out / "one.efem.npz").config.tau_out == DEFAULT_TAU_OUT  # no calibration yet: the spec's
+    assert cli.main(["segment", str(sp), "--prior", str(pt), "--out", str(tmp_path / "o2"), "--preset", "fast",
+                     "--proposals", "8", "--tau-out", "0.07"]) == 0
+    assert EMResult.load(tmp_path / "o2" / "one.efem.npz").config.tau_out == 0.07  # explicit band
+    assert cli.main(["segment", str(sp), "--prior", str(pt), "--out", str(tmp_path / "o3"), "--tau-out", "0.9"]) == 1
     assert cli.main(["calibrate-masks", str(out), "--gt", str(sp), "--prior", str(pt), "--classes", "sphere"]) == 0
     assert "tau_out" in capsys.readouterr().out
     assert "tau_out" not in load_prior(pt).metadata  # without --write nothing changes

@@ -34,6 +34,8 @@ class SegmentArgs:
     """Override the number of proposals (first episode)."""
     work_voxel: float | None = None
     """Run EM on a thinned working set (one point per cell of this size, m); masks stay full resolution."""
+    tau_out: float | None = None
+    """Output-mask SDF band (canonical units); default: the prior's calibrated value (`calibrate-masks`), else 0.04."""
     seed: int = 0
     """Random seed (anchors, samples); the same seed replays the same run."""
     device: str = "cpu"
@@ -76,6 +78,8 @@ class SegmentArgs:
             cfg = cfg.with_proposals(int(self.proposals))
         if self.work_voxel is not None:
             cfg = cfg.replace(work_voxel=float(self.work_voxel) or None)
+        if self.tau_out is not None:
+            cfg = cfg.replace(tau_out=float(self.tau_out))
         prior = load_prior(self.prior, device=self.device)
         if prior.codebook is None:
             console.print(f"[yellow]prior {self.prior!r} has no codebook: poses fall back to identity[/]")
