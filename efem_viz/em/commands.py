@@ -178,7 +178,8 @@ class CalibrateMasksArgs:
             scene = scenes[res.scene_name]
             if scene.instance is None:
                 raise ValueError(f"scene {scene.name!r} has no ground-truth `instance` labels")
-            runs.append((EMResult.load(f, scene=scene), scene))
+            res.trace.bind(scene)  # raises ValueError when the result was computed on another point set
+            runs.append((res, scene))
         if not runs:
             raise ValueError(f"no result among {len(files)} file(s) matches a labelled scene in --gt")
         cal = calibrate_tau_out(runs, prior, candidates=self.candidates, class_names=self.classes)

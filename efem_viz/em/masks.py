@@ -114,28 +114,20 @@ def instance_distances(result: "EMResult", scene: "Scene", prior: Any, *,
         normals_within = MAX_TAU_OUT if cfg.gamma_out < 180.0 else -1.0
     points = np.ascontiguousarray(scene.points, np.float32)
     normals = np.ascontiguousarray(scene.normals, np.float32)
+    lats = [trace.latent(int(pid), trace.last_step(int(pid))) for pid in inst.ids]
     episodes = trace.prop_episode[np.asarray(inst.ids, np.int64)]
-    rows: dict[str, list[np.ndarray]] = {}
-    idx_lists: list[np.ndarray] = [np.zeros(0, np.int64)] * len(inst)
-    for ep in np.unique(episodes):
+    balls: list[np.ndarray] = [np.zeros(0, np.int64)] * len(inst)
+    for ep in np.unique(episodes):  # neighbourhoods among the points available in each instance's episode
         tree = AvailableTree(points, trace.available_mask(int(ep)), crop=cfg.crop)
         ks = np.flatnonzero(episodes == ep)
-        lat = [trace.latent(int(inst.ids[k]), trace.last_step(int(inst.ids[k]))) for k in ks]
-        rag = tree.query(np.stack([np.asarray(x["center"], np.float64) for x in lat]), cfg.r_err)
+        nb = tree.query(np.stack([np.asarray(lats[k]["center"], np.float64) for k in ks]), cfg.r_err)
         for j, k in enumerate(ks):
-            idx_lists[k] = rag.idx[rag.row_slice(j)]
-        for x in lat:
-            for key, v in x.items():
-                rows.setdefault(key, []).append(np.asarray(v))
-    order = np.concatenate([np.flatnonzero(episodes == ep) for ep in np.unique(episodes)])
-    lat_all = {key: np.stack(v)[np.argsort(order)] for key, v in rows.items()}
-    lengths = np.array([len(i) for i in idx_lists], np.int64)
-    offsets = np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64)
-    flat = np.concatenate(idx_lists).astype(np.int64) if len(idx_lists) else np.zeros(0, np.int64)
-    d, g = decode_rows(prior, lat_all, Ragged(flat, offsets), points, normals, chunk=cfg.decode_chunk,
-                       normals_within=normals_within)
-    split = offsets[1:-1]
-    return InstanceDistances(list(np.split(flat, split)), list(np.split(d, split)), list(np.split(g, split)))
+            balls[k] = nb.idx[nb.row_slice(j)]
+    rag = Ragged.from_lists(balls)
+    lat_all = {key: np.stack([np.asarray(x[key]) for x in lats]) for key in lats[0]}
+    d, g = decode_rows(prior, lat_all, rag, points, normals, chunk=cfg.decode_chunk, normals_within=normals_within)
+    split = rag.offsets[1:-1]
+    return InstanceDistances(list(np.split(rag.idx, split)), list(np.split(d, split)), list(np.split(g, split)))
 
 
 @dataclass(frozen=True)
