@@ -166,6 +166,19 @@ def test_load_rejects_other_files(tmp_path: Path) -> None:
         EMResult.load(bad)
     with pytest.raises(FileNotFoundError):
         EMResult.load(tmp_path / "missing.efem.npz")
+    # corrupt, truncated or single-array files: a ValueError naming the file, never a raw numpy/zip error
+    good = tmp_path / "good.npz"
+    np.savez_compressed(good, kind=np.array("efem-result"), a=np.arange(100_000))
+    single = tmp_path / "single.efem.npz"
+    np.save(single.with_suffix(".npy"), np.zeros(3))
+    single.write_bytes(single.with_suffix(".npy").read_bytes())
+    cases = {"garbage": b"not a result\n", "empty": b"", "truncated": good.read_bytes()[:400],
+             "single": single.read_bytes()}
+    for name, content in cases.items():
+        f = tmp_path / f"{name}.efem.npz"
+        f.write_bytes(content)
+        with pytest.raises(ValueError, match=f"{name}.efem.npz"):
+            EMResult.load(f)
 
 
 def test_working_set_run_records_full_resolution_indices() -> None:

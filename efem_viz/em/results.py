@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
@@ -337,14 +338,25 @@ class EMResult:
         p = Path(path)
         if not p.is_file():
             raise FileNotFoundError(f"EFEM result not found: {p}")
-        with np.load(p, allow_pickle=False) as z:
+        try:
+            z = np.load(p, allow_pickle=False)
+        except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
+            raise ValueError(f"{p} is not a readable EFEM result (corrupt or truncated .npz?): "
+                             f"{type(exc).__name__}") from exc
+        if not isinstance(z, np.lib.npyio.NpzFile):
+            raise ValueError(f"{p} is not an EFEM result file (a single array, not an .npz archive)")
+        with z:
             if "kind" not in z.files or str(z["kind"]) != "efem-result":
                 raise ValueError(f"{p} is not an EFEM result file (keys: {sorted(z.files)[:8]}...)")
             ver = int(z["schema_version"])
             if ver != RESULT_SCHEMA_VERSION:
                 raise ValueError(
                     f"{p}: unsupported result schema_version {ver} (expected {RESULT_SCHEMA_VERSION})")
-            data = {k: z[k] for k in z.files}
+            try:
+                data = {k: z[k] for k in z.files}
+            except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
+                raise ValueError(f"{p}: a member of the result archive is unreadable (corrupt?): "
+                                 f"{type(exc).__name__}") from exc
         if scene is not None and scene.num_points != int(data["num_points"]):
             raise ValueError(f"{p} was computed on {int(data['num_points'])} points but scene {scene.name!r} has "
                              f"{scene.num_points}")
