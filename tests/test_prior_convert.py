@@ -305,6 +305,17 @@ def test_pickle_fallback_needs_the_flag(tmp_path: Path) -> None:
     assert load_prior(out).config.widths == TINY["widths"]
 
 
+def test_corrupt_release_is_reported_as_corrupt(tmp_path: Path) -> None:
+    src = write_released(tmp_path, random_prior(TINY))
+    bad = tmp_path / "mugs_truncated.pt"
+    bad.write_bytes(src.read_bytes()[: src.stat().st_size // 2])
+    for allow in (False, True):  # a corrupt file is not a pickle question: no --allow-pickle hint, no unpickling
+        with pytest.raises(ValueError, match="corrupt or truncated") as info:
+            convert_released_checkpoint(bad, tmp_path / "out.pt", release="mugs", allow_pickle=allow, **TINY_KW)
+        assert "--allow-pickle" not in str(info.value)
+    assert not (tmp_path / "out.pt").exists()
+
+
 def test_plausibility_check_runs_and_warns(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     src = write_released(tmp_path, random_prior(TINY))  # no release in the name: assumed mugs, with a warning
     kw = {k: v for k, v in TINY_KW.items() if k != "check"}

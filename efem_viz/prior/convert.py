@@ -48,7 +48,6 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import pickle
 import re
 import time
 from dataclasses import dataclass
@@ -122,9 +121,9 @@ def load_released_state_dict(src: str | Path, *,
                              allow_pickle: bool = False) -> tuple[dict[str, Any], dict[str, Any]]:
     """Read a released checkpoint's ``model_state_dict``.
 
-    The file is first read with ``torch.load(weights_only=True)``, which cannot run code. Only if that fails and
-    ``allow_pickle`` is set is it unpickled in full (a pickle can run arbitrary code: do this only for files
-    you trust).
+    The file is read with `read_checkpoint`: ``torch.load(weights_only=True)``, which cannot run code. Only if
+    the file needs Python objects beyond tensors and ``allow_pickle`` is set is it unpickled in full (a pickle
+    can run arbitrary code: do this only for files you trust).
 
     Args:
         src: The released ``.pt`` file (e.g. ``weights/mugs.pt``).
@@ -136,24 +135,22 @@ def load_released_state_dict(src: str | Path, *,
 
     Raises:
         FileNotFoundError: If ``src`` does not exist.
-        ValueError: If the weights-only load fails without ``allow_pickle``, or the file is not a released
+        ValueError: If the file is corrupt, needs a full unpickle without ``allow_pickle``, or is not a released
             checkpoint.
     """
     import torch
+
+    from efem_viz.prior.model import read_checkpoint
 
     src = Path(src)
     if not src.is_file():
         raise FileNotFoundError(f"released checkpoint not found: {src}")
     try:
-        ckpt = torch.load(src, map_location="cpu", weights_only=True)
-    except (pickle.UnpicklingError, RuntimeError, AttributeError, TypeError, ValueError, EOFError) as exc:
-        if not allow_pickle:
-            raise ValueError(
-                f"{src}: the safe weights-only load failed ({type(exc).__name__}: {str(exc).splitlines()[0]}). "
-                "If you trust this file, retry with allow_pickle=True (CLI: --allow-pickle); a pickle can run "
-                "arbitrary code") from exc
-        logger.warning("%s: weights-only load failed; unpickling in full because allow_pickle is set", src)
-        ckpt = torch.load(src, map_location="cpu", weights_only=False)
+        ckpt = read_checkpoint(src, allow_pickle=allow_pickle)
+    except ValueError as exc:
+        if allow_pickle or "allow_pickle" not in str(exc):
+            raise
+        raise ValueError(f"{exc} (CLI: efem-viz convert-prior ... --allow-pickle)") from exc
     if not isinstance(ckpt, dict) or "model_state_dict" not in ckpt:
         keys = sorted(map(str, ckpt)) if isinstance(ckpt, dict) else type(ckpt).__name__
         hint = " (this looks like an efem-viz prior already)" if isinstance(ckpt, dict) and "config" in ckpt else ""
