@@ -13,7 +13,7 @@ import pytest
 from efem_viz.em import EMConfig, EMResult, preset, run_em
 from efem_viz.em.analytic import make_sphere_prior, make_sphere_scene
 from efem_viz.em.config import DEFAULT_TAU_OUT
-from efem_viz.em.masks import calibrate_tau_out, instance_distances, prior_tau_out, resolve_config
+from efem_viz.em.masks import calibrate_tau_out, choose_tau_out, instance_distances, prior_tau_out, resolve_config
 from efem_viz.eval import evaluate_scene
 
 OFFSET = 0.05
@@ -147,8 +147,10 @@ def test_calibration_finds_the_wider_band_an_offset_prior_needs(sphere_runs: dic
     row = dict(zip(cal.taus, cal.ap50, strict=True))
     assert row[0.04] < 0.5 and row[cal.best] == pytest.approx(1.0)
     assert cal.best > OFFSET  # the band must reach past the offset surface
-    assert cal.ap[cal.taus.index(cal.best)] == max(cal.ap)
-    assert "<- best" in cal.table() and cal.scenes == (scene.name,)
+    chosen = cal.taus.index(cal.best)
+    assert cal.ap[chosen] >= max(cal.ap) - cal.tolerance and cal.tolerance == 0.005
+    assert all(a < max(cal.ap) - cal.tolerance for a in cal.ap[:chosen])  # nothing tighter ties with the best
+    assert "<- chosen" in cal.table() and cal.scenes == (scene.name,)
 
 
 def test_calibration_row_at_the_run_threshold_is_the_run_itself(sphere_runs: dict[str, Any]) -> None:
@@ -165,6 +167,21 @@ def test_calibration_ties_choose_the_smaller_threshold(sphere_runs: dict[str, An
     cal = calibrate_tau_out([(res, scene)], sphere_runs["prior"], candidates=(0.0401, 0.04),
                             class_names=SPHERE)
     assert cal.ap[0] == cal.ap[1] and cal.best == 0.04
+
+
+def test_choose_tau_out_prefers_the_tighter_band_within_the_tolerance() -> None:
+    taus = (0.03, 0.04, 0.06, 0.07, 0.10)
+    ap = (0.581, 0.621, 0.664, 0.671, 0.673)  # the shape of a real calibration table: a plateau from 0.07 on
+    assert choose_tau_out(taus, ap) == 0.07  # 0.671 is within half a point of 0.673; 0.664 is not
+    assert choose_tau_out(taus, ap, tolerance=0.0) == 0.10  # plain argmax
+    assert choose_tau_out(taus, ap, tolerance=0.01) == 0.06
+    assert choose_tau_out(taus, ap, tolerance=1.0) == 0.03
+    assert choose_tau_out((0.04, 0.05), (0.5, 0.5), tolerance=0.0) == 0.04  # exact ties: the smaller
+    for bad in [((), ()), ((0.04,), (0.5, 0.6))]:
+        with pytest.raises(ValueError, match="one AP per candidate"):
+            choose_tau_out(*bad)
+    with pytest.raises(ValueError, match="tolerance"):
+        choose_tau_out(taus, ap, tolerance=-0.1)
 
 
 def test_calibration_bad_inputs(sphere_runs: dict[str, Any]) -> None:

@@ -128,7 +128,8 @@ class SegmentArgs:
 
 @dataclass
 class CalibrateMasksArgs:
-    """Choose a prior's output-mask SDF threshold τ_out on labelled tuning scenes (best AP of re-thresholded masks)."""
+    """Choose a prior's output-mask SDF threshold τ_out on labelled tuning scenes (the smallest within --tolerance of
+    the best AP of re-thresholded masks)."""
 
     results: Annotated[list[Path], tyro.conf.Positional]
     """`<scene>.efem.npz` results (files and/or folders), computed with --prior."""
@@ -140,6 +141,8 @@ class CalibrateMasksArgs:
     """Thresholds to try (canonical units)."""
     classes: tuple[str, ...] = ("mug",)
     """Evaluated classes (as in `efem-viz evaluate`)."""
+    tolerance: float = 0.5
+    """AP points below the best that still count as a tie; ties go to the smaller (tighter) threshold."""
     write: bool = False
     """Store the chosen value (and the table) in the prior file's metadata; `run_em` then uses it."""
     json_out: Path | None = None
@@ -182,7 +185,8 @@ class CalibrateMasksArgs:
             runs.append((res, scene))
         if not runs:
             raise ValueError(f"no result among {len(files)} file(s) matches a labelled scene in --gt")
-        cal = calibrate_tau_out(runs, prior, candidates=self.candidates, class_names=self.classes)
+        cal = calibrate_tau_out(runs, prior, candidates=self.candidates, class_names=self.classes,
+                                tolerance=self.tolerance / 100.0)
         before = prior_tau_out(prior)
         print(f"prior {self.prior!r}: tau_out calibrated on {len(runs)} scene(s): {', '.join(cal.scenes)}")
         print(cal.table())

@@ -132,7 +132,8 @@ def instance_distances(result: "EMResult", scene: "Scene", prior: Any, *,
 
 @dataclass(frozen=True)
 class MaskCalibration:
-    """AP of re-thresholded masks per candidate τ_out, and the chosen one (best AP, ties: the smaller)."""
+    """AP of re-thresholded masks per candidate τ_out, and the chosen one (the smallest within `tolerance` of the best
+    AP)."""
 
     taus: tuple[float, ...]
     ap: tuple[float, ...]
@@ -140,6 +141,8 @@ class MaskCalibration:
     ap25: tuple[float, ...]
     best: float
     scenes: tuple[str, ...]
+    tolerance: float = 0.0
+    """AP (fraction) below the best that counted as a tie."""
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able form (lists)."""
@@ -148,9 +151,23 @@ class MaskCalibration:
     def table(self) -> str:
         lines = ["tau_out      AP   AP50   AP25"]
         for t, a, a50, a25 in zip(self.taus, self.ap, self.ap50, self.ap25, strict=True):
-            mark = "  <- best" if t == self.best else ""
+            mark = "  <- chosen" if t == self.best else ""
             lines.append(f"{t:7.3f} {a * 100:6.1f} {a50 * 100:6.1f} {a25 * 100:6.1f}{mark}")
         return "\n".join(lines)
+
+
+def choose_tau_out(taus: Sequence[float], ap: Sequence[float], tolerance: float = 0.005) -> float:
+    """The smallest of `taus` (ascending) whose AP is within `tolerance` of the best AP.
+
+    Raises:
+        ValueError: empty or mismatched inputs, or a negative or non-finite tolerance.
+    """
+    if not len(taus) or len(taus) != len(ap):
+        raise ValueError(f"need one AP per candidate, got {len(taus)} candidates and {len(ap)} APs")
+    if not (np.isfinite(tolerance) and tolerance >= 0.0):
+        raise ValueError(f"tolerance must be a finite number >= 0, got {tolerance}")
+    a = np.round(np.asarray(ap, np.float64), 9)
+    return float(taus[int(np.flatnonzero(a >= a.max() - tolerance)[0])])
 
 
 def calibrate_tau_out(
@@ -159,14 +176,21 @@ def calibrate_tau_out(
     *,
     candidates: Sequence[float] = TAU_OUT_CANDIDATES,
     class_names: Sequence[str] = ("mug",),
+    tolerance: float = 0.005,
 ) -> MaskCalibration:
-    """Choose τ_out for `prior` on labelled tuning scenes: the candidate with the best AP (IoU 0.50:0.95).
+    """Choose τ_out for `prior` on labelled tuning scenes: the smallest candidate whose AP (IoU 0.50:0.95) is within
+    `tolerance` of the best.
+
+    A few tuning scenes cannot tell AP differences of a few tenths of a point apart, and a wider band only adds
+    risk (masks spreading into touching objects), so near-ties go to the tighter band, the one closer to the
+    method's own value.
 
     Args:
         runs: (result, labelled scene) pairs, every result computed with `prior`.
         prior: the shape prior.
         candidates: thresholds to try (canonical units, each in (0, 0.5]).
         class_names: evaluated classes (instances take class 1 with one class).
+        tolerance: AP (as a fraction, 0.005 = half a point) below the best that still counts as a tie.
 
     Raises:
         ValueError: no runs, a scene without ground truth, a mismatched pair or a bad candidate.
@@ -193,6 +217,6 @@ def calibrate_tau_out(
         ap.append(float(ev.ap))
         ap50.append(float(ev.ap50))
         ap25.append(float(ev.ap25))
-    best = taus[int(np.argmax(np.round(ap, 9)))]  # argmax takes the first (smallest) of equal values
+    best = choose_tau_out(taus, ap, tolerance)
     return MaskCalibration(taus=taus, ap=tuple(ap), ap50=tuple(ap50), ap25=tuple(ap25), best=best,
-                           scenes=tuple(scene.name for _, scene in runs))
+                           scenes=tuple(scene.name for _, scene in runs), tolerance=float(tolerance))
