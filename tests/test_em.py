@@ -282,7 +282,7 @@ def _shipped_prior_or_skip() -> object:
 
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason="issue 4's bar (every mug at IoU >= 0.7) is not met by the CPU-trained prior: "
-                   "measured per-mug best IoU 0.654 / 0.726 / 0.836 (iteration-21000 prior, its tau_out 0.06). "
+                   "measured per-mug best IoU 0.586 / 0.928 / 0.877 (iteration-29000 prior, its tau_out 0.07). "
                    "strict: once it passes, drop this marker")
 def test_trained_prior_finds_mugs() -> None:
     prior = _shipped_prior_or_skip()
@@ -297,11 +297,12 @@ def test_trained_prior_finds_mugs() -> None:
 def test_shipped_prior_regression_each_mug_found_once() -> None:
     """EM regression with the prior as shipped now (always runs; tolerances set from its measured behaviour).
 
-    Measured with the iteration-21000 prior (session 3; calibrated val IoU 0.525 on 1-12 views; its calibrated
-    output band tau_out = 0.06), fast preset, 100 proposals, seed 0: 3 instances with confidences 0.81 / 0.80 /
-    0.36, one per mug; per-mug best IoU 0.654 / 0.726 / 0.836; AP50 = AP25 = 1, AP 0.49.
-    The bars (about 0.1 IoU below the measurement): every mug covered at IoU >= 0.55, AP50 = 1 (each mug's best match
-    outranks every false positive), and the instances with confidence >= 0.1 each claim a different mug.
+    Measured with the iteration-29000 prior (session 4; calibrated IoU 0.556 on 96 validation mugs, 1-12 views; its
+    calibrated output band tau_out = 0.07), fast preset, 100 proposals, seed 0: 3 instances with confidences 0.55 /
+    0.52 / 0.93, one per mug; per-mug best IoU 0.586 / 0.928 / 0.877; AP50 = AP25 = 1, AP 0.70. (Session 3's
+    iteration-21000 prior: 0.654 / 0.726 / 0.836, AP 0.49.)
+    The bars (about 0.09 IoU below the weakest measurement): every mug covered at IoU >= 0.5, AP50 = 1 (each mug's
+    best match outranks every false positive), and the instances with confidence >= 0.1 each claim a different mug.
     `test_trained_prior_finds_mugs` holds the issue's IoU >= 0.7 bar.
     """
     from efem_viz.eval import evaluate_scene
@@ -311,8 +312,8 @@ def test_shipped_prior_regression_each_mug_found_once() -> None:
     res = run_em(scene, prior, preset("fast").replace(n_init=(100,)), seed=0)
     m = ious(res.instances, scene.instance)
     assert m.shape[1] == 3 and 3 <= m.shape[0] <= 5, f"expected 3-5 instances for 3 mugs, got {m.shape[0]}"
-    assert res.config.tau_out == pytest.approx(0.06), "the shipped prior's calibrated mask band"
-    assert (m.max(axis=0) >= 0.55).all(), f"per-mug best IoU {np.round(m.max(axis=0), 3)}"
+    assert res.config.tau_out == pytest.approx(0.07), "the shipped prior's calibrated mask band"
+    assert (m.max(axis=0) >= 0.5).all(), f"per-mug best IoU {np.round(m.max(axis=0), 3)}"
     confident = res.instances.confidence >= 0.1
     claimed = m[confident].argmax(axis=1)
     assert len(set(claimed.tolist())) == len(claimed), "two confident instances claim the same mug"
