@@ -190,6 +190,8 @@ def test_calibration_bad_inputs(sphere_runs: dict[str, Any]) -> None:
         calibrate_tau_out([], prior)
     with pytest.raises(ValueError, match="candidate"):
         calibrate_tau_out([(res, scene)], prior, candidates=(0.04, 0.9), class_names=SPHERE)
+    with pytest.raises(ValueError, match="tolerance"):
+        calibrate_tau_out([(res, scene)], prior, class_names=SPHERE, tolerance=float("nan"))
     with pytest.raises(ValueError, match="no ground-truth instance of the classes"):
         calibrate_tau_out([(res, scene)], prior, class_names=("mug",))
     unlabelled = dataclasses.replace(scene, instance=None)

@@ -25,7 +25,7 @@ from efem_viz.prior.convert import (
     map_released_keys,
     release_from_filename,
 )
-from efem_viz.prior.model import PriorConfig, ShapePrior, load_prior
+from efem_viz.prior.model import PickleRequired, PriorConfig, ShapePrior, load_prior
 
 TINY: dict[str, Any] = {"widths": (8, 8, 16, 16), "down_blocks": (2,), "down_factors": (2,), "latent_dim": 16,
                         "center_hidden": 8, "n_pcl": 64, "k": 8, "decoder_hidden": 32, "decoder_blocks": 2}
@@ -299,7 +299,7 @@ def test_not_a_released_file_and_overwrite(tmp_path: Path) -> None:
 
 def test_pickle_fallback_needs_the_flag(tmp_path: Path) -> None:
     src = write_released(tmp_path, random_prior(TINY), args=argparse.Namespace(lr=1e-4))  # not weights-only
-    with pytest.raises(ValueError, match="allow_pickle"):
+    with pytest.raises(PickleRequired, match="allow_pickle.*--allow-pickle"):
         convert_released_checkpoint(src, tmp_path / "out.pt", release="mugs", **TINY_KW)
     out = convert_released_checkpoint(src, tmp_path / "out.pt", release="mugs", allow_pickle=True, **TINY_KW)
     assert load_prior(out).config.widths == TINY["widths"]

@@ -193,10 +193,12 @@ def calibrate_tau_out(
         tolerance: AP (as a fraction, 0.005 = half a point) below the best that still counts as a tie.
 
     Raises:
-        ValueError: no runs, a scene without ground truth, a mismatched pair or a bad candidate.
+        ValueError: no runs, a scene without ground truth, a mismatched pair, a bad candidate or tolerance.
     """
     from efem_viz.eval import SceneGroundTruth, evaluate, prediction_from_instances
 
+    if not (np.isfinite(tolerance) and tolerance >= 0.0):  # checked before the decoding, not after it
+        raise ValueError(f"tolerance must be a finite number >= 0, got {tolerance}")
     if not runs:
         raise ValueError("calibrate_tau_out needs at least one (result, labelled scene) pair")
     taus = tuple(sorted({float(t) for t in candidates}))

@@ -140,17 +140,15 @@ def load_released_state_dict(src: str | Path, *,
     """
     import torch
 
-    from efem_viz.prior.model import read_checkpoint
+    from efem_viz.prior.model import PickleRequired, read_checkpoint
 
     src = Path(src)
     if not src.is_file():
         raise FileNotFoundError(f"released checkpoint not found: {src}")
     try:
         ckpt = read_checkpoint(src, allow_pickle=allow_pickle)
-    except ValueError as exc:
-        if allow_pickle or "allow_pickle" not in str(exc):
-            raise
-        raise ValueError(f"{exc} (CLI: efem-viz convert-prior ... --allow-pickle)") from exc
+    except PickleRequired as exc:
+        raise PickleRequired(f"{exc} (CLI: efem-viz convert-prior ... --allow-pickle)") from exc
     if not isinstance(ckpt, dict) or "model_state_dict" not in ckpt:
         keys = sorted(map(str, ckpt)) if isinstance(ckpt, dict) else type(ckpt).__name__
         hint = " (this looks like an efem-viz prior already)" if isinstance(ckpt, dict) and "config" in ckpt else ""

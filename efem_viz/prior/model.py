@@ -370,6 +370,11 @@ def resolve_prior_path(name_or_path: str | os.PathLike[str]) -> Path:
     return p
 
 
+class PickleRequired(ValueError):
+    """A checkpoint that loads only by a full unpickle (it holds Python objects beyond tensors), refused because
+    ``allow_pickle`` was not set. Callers with their own opt-in switch can catch this to name it."""
+
+
 def read_checkpoint(path: str | os.PathLike[str], *, allow_pickle: bool = False) -> Any:
     """``torch.load`` a checkpoint safely: tensors and plain containers only (``weights_only=True``).
 
@@ -377,8 +382,8 @@ def read_checkpoint(path: str | os.PathLike[str], *, allow_pickle: bool = False)
     (which can run arbitrary code) is refused unless ``allow_pickle`` is set.
 
     Raises:
-        ValueError: the file is not a readable torch checkpoint, or needs a full unpickle without
-            ``allow_pickle``.
+        PickleRequired: the file needs a full unpickle and ``allow_pickle`` is not set.
+        ValueError: the file is not a readable torch checkpoint.
     """
     path = Path(path)
     try:
@@ -389,7 +394,7 @@ def read_checkpoint(path: str | os.PathLike[str], *, allow_pickle: bool = False)
             raise ValueError(f"{path} is not a readable torch checkpoint (corrupt?)") from exc
         if not allow_pickle:
             names = re.findall(r"GLOBAL ([\w.]+)", str(exc))
-            raise ValueError(
+            raise PickleRequired(
                 f"{path} holds Python objects beyond tensors and plain containers"
                 f"{' (' + ', '.join(names[:3]) + ')' if names else ''}; loading it means a full unpickle, which can "
                 f"run code. If you trust the file, load it with allow_pickle=True") from exc
