@@ -230,6 +230,10 @@ def test_calibrate_masks_cli_writes_the_prior_metadata(tmp_path: Path, capsys: p
     back = load_prior(pt)
     assert back.metadata["tau_out"] in (0.05, 0.07) and back.metadata["iteration"] == 7
     assert back.metadata["tau_out_calibration"]["taus"] == [0.05, 0.07] and js.is_file()
+    assert cli.main(["calibrate-masks", str(out), "--gt", str(sp), "--prior", str(pt), "--write", "--classes", "sphere",
+                     "--tolerance", "-1"]) != 0  # refused before anything is decoded or written
+    assert "--tolerance must be" in capsys.readouterr().err
+    assert load_prior(pt).metadata["tau_out"] == back.metadata["tau_out"]
     for k, v in prior.state_dict().items():  # the weights are untouched
         assert torch.equal(v, back.state_dict()[k])
     # errors: no --gt, no matching scene

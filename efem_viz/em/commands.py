@@ -6,6 +6,7 @@ Imported lazily by the CLI dispatcher; torch is only imported inside `run`.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -159,6 +160,8 @@ class CalibrateMasksArgs:
 
         if not self.gt:
             raise ValueError("give the labelled tuning scenes with --gt SCENE... (files or folders)")
+        if not (math.isfinite(self.tolerance) and self.tolerance >= 0.0):
+            raise ValueError(f"--tolerance must be a number of AP points >= 0, got {self.tolerance}")
         scenes = {}
         for p in find_scenes(self.gt):
             scene = load_scene(p)
