@@ -18,13 +18,16 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import hashlib
 import json
 import logging
 import os
 import struct
 import threading
 import time
+import zipfile
 import zlib
+from glob import escape as glob_escape
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator
@@ -44,6 +47,9 @@ log = logging.getLogger(__name__)
 
 MAGIC = b"EFJ1"
 _HEAD = struct.Struct("<4sII")
+RECORD_KINDS = ("base", "snapshot", "do", "undo", "redo")
+"""``base``: the first record, full labels + table + scan identity; ``snapshot``: a full state written after a
+recovery or an accepted scan change (replay restarts from the newest full state); ``do``/``undo``/``redo``: edits."""
 
 
 class JournalError(ValueError):
@@ -83,7 +89,7 @@ class Record:
     seq: int
     """1-based sequence number (the base record is 0)."""
     kind: str
-    """"base", "do", "undo" or "redo"."""
+    """One of `RECORD_KINDS`."""
     header: dict[str, Any]
     """The JSON header (label, time, client, table changes, scan identity...)."""
     arrays: dict[str, np.ndarray]
@@ -150,11 +156,25 @@ def record_to_delta(r: Record) -> Delta:
 class Journal:
     """An append-only, fsynced record file, held with an exclusive lock (one writer process per journal).
 
+    Opening verifies every record (length, CRC, decodable header) and repairs the file:
+
+    - a torn last record (a crash during append) is moved aside to ``<journal>.torn-<ms>`` and truncated away;
+    - damage in the middle (a flipped byte, a garbage run) does not end the read: the reader resynchronises on the
+      next record magic, keeps every record that verifies, copies the whole damaged file to
+      ``<journal>.damaged-<ms>`` and rewrites the journal atomically with the verified records only;
+    - a record whose sequence number repeats an earlier one (a failed append that was retried by an old version)
+      supersedes the earlier ones from that number on.
+
+    What was found is in `damage` (empty for a clean file); `gaps` lists the sequence numbers that are missing.
+
+    Appends never leave a partial record behind: a failed write or fsync truncates the file back to the end of
+    the last good record and raises, so the edit is refused and later appends land on a clean file.
+
     Args:
         path: the journal file (created when missing).
 
     Raises:
-        JournalError: another process holds the journal.
+        JournalError: another process holds the journal, or it is a symbolic link.
     """
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
@@ -174,59 +194,119 @@ class Journal:
             ) from None
         except ImportError:  # pragma: no cover - non-POSIX
             pass
-        self.records: list[Record] = list(self._read_and_repair())
-        self._f = open(self.path, "ab")
+        self.damage: list[str] = []
+        """One line per problem found and repaired when the journal was opened."""
+        self.damaged_bytes = 0
+        self.aside: Path | None = None
+        """Where damaged bytes (or the whole damaged file) were kept, if anywhere."""
+        try:
+            self.records: list[Record] = self._read_and_repair()
+            self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+        except BaseException:
+            self._lock_file.close()
+            raise
+        self._end = os.fstat(self._fd).st_size
         self.next_seq = (self.records[-1].seq + 1) if self.records else 0
         self.bytes_written = 0
+        self.broken: str | None = None
+        """Set when a failed append could not be undone: no further appends are accepted."""
 
-    def _read_and_repair(self) -> Iterator[Record]:
+    @property
+    def gaps(self) -> list[int]:
+        """Sequence numbers missing between the first verified record (or 0) and the last one."""
+        seqs = [r.seq for r in self.records]
+        missing: list[int] = []
+        prev = -1
+        for s in seqs:
+            missing.extend(range(prev + 1, s))
+            prev = s
+        return missing
+
+    def _read_and_repair(self) -> list[Record]:
         if not self.path.exists():
-            return
+            return []
         data = self.path.read_bytes()
+        out: list[tuple[Record, int, int]] = []  # (record, start offset, end offset)
+        bad: list[tuple[int, int]] = []  # damaged byte ranges
         off = 0
-        good_end = 0
-        out: list[Record] = []
-        while off + _HEAD.size <= len(data):
-            magic, length, crc = _HEAD.unpack_from(data, off)
-            start = off + _HEAD.size
-            if magic != MAGIC or start + length > len(data):
-                break
-            payload = data[start : start + length]
-            if zlib.crc32(payload) != crc:
-                break
-            try:
-                header, arrays = _decode(payload)
-            except (ValueError, KeyError, json.JSONDecodeError, struct.error) as exc:
-                log.warning("journal %s: undecodable record at byte %d: %s", self.path, off, exc)
-                break
-            out.append(Record(int(header.pop("seq")), str(header.pop("kind")), header, arrays))
-            off = start + length
-            good_end = off
-        if good_end < len(data):
-            torn = self.path.with_name(f"{self.path.name}.torn-{int(time.time() * 1000)}")
-            torn.write_bytes(data[good_end:])
+        while off < len(data):
+            rec = _parse_at(data, off)
+            if rec is None:
+                nxt = data.find(MAGIC, off + 1)
+                end = len(data) if nxt < 0 else nxt
+                bad.append((off, end))
+                off = end
+                continue
+            r, end = rec
+            while out and out[-1][0].seq >= r.seq:  # a retried append: the later record wins
+                dropped = out.pop()[0]
+                self.damage.append(f"record {dropped.seq} ({dropped.kind}) was superseded by a later copy")
+            out.append((r, off, end))
+            off = end
+        records = [r for r, _, _ in out]
+        if not bad and not self.damage:
+            return records
+        stamp = int(time.time() * 1000)
+        self.damaged_bytes = sum(e - s for s, e in bad)
+        tail_only = not self.damage and len(bad) == 1 and bad[0][1] == len(data)
+        if tail_only:
+            good_end = bad[0][0]
+            self.aside = self.path.with_name(f"{self.path.name}.torn-{stamp}")
+            self.aside.write_bytes(data[good_end:])
             with open(self.path, "r+b") as f:
                 f.truncate(good_end)
                 f.flush()
                 os.fsync(f.fileno())
-            log.warning(
-                "journal %s: dropped an incomplete last record (%d bytes, kept in %s) — the edit in flight "
-                "when the annotator stopped",
-                self.path,
-                len(data) - good_end,
-                torn.name,
+            self.damage.append(
+                f"an incomplete last record ({len(data) - good_end} bytes) was dropped: the edit in flight when "
+                f"the annotator stopped (kept in {self.aside.name})"
             )
-        yield from out
+            log.warning("journal %s: %s", self.path, self.damage[-1])
+            return records
+        self.aside = self.path.with_name(f"{self.path.name}.damaged-{stamp}")
+        self.aside.write_bytes(data)
+        for s, e in bad:
+            self.damage.append(f"{e - s} damaged bytes at offset {s} could not be verified")
+        clean = b"".join(data[s:e] for _, s, e in out)
+        atomic_write_bytes(self.path, lambda f: f.write(clean))
+        log.warning(
+            "journal %s was damaged: kept %d verified records, the damaged file is kept in %s (%s)",
+            self.path, len(records), self.aside.name, "; ".join(self.damage),
+        )
+        return records
 
     def append(self, kind: str, header: dict[str, Any], arrays: dict[str, np.ndarray] | None = None) -> int:
-        """Append one record and fsync it; returns its sequence number."""
+        """Append one record and fsync it; returns its sequence number.
+
+        Raises:
+            JournalError: the write or the fsync failed (disk full, I/O error); the journal is left exactly as it
+                was before the call, and nothing was recorded.
+        """
+        if self.broken:
+            raise JournalError(self.broken)
         seq = self.next_seq
         h = {"seq": seq, "kind": kind, "time": time.time(), **header}
         payload = _encode(h, arrays or {})
         rec = _HEAD.pack(MAGIC, len(payload), zlib.crc32(payload)) + payload
-        self._f.write(rec)
-        self._f.flush()
-        os.fsync(self._f.fileno())
+        try:
+            view = memoryview(rec)
+            while view:
+                n = _os_write(self._fd, view)
+                view = view[n:]
+            _os_fsync(self._fd)
+        except OSError as exc:
+            why = exc.strerror or str(exc)
+            try:
+                os.ftruncate(self._fd, self._end)
+                _os_fsync(self._fd)
+            except OSError as exc2:
+                self.broken = (
+                    f"the journal {self.path.name} could not be written ({why}) nor repaired "
+                    f"({exc2.strerror or exc2}); restart the annotator once the disk is writable"
+                )
+                raise JournalError(self.broken) from exc
+            raise JournalError(f"the edit was not saved: cannot write the journal ({why}); nothing changed") from exc
+        self._end += len(rec)
         self.bytes_written += len(rec)
         self.next_seq += 1
         self.records.append(Record(seq, kind, {k: v for k, v in h.items() if k not in ("seq", "kind")}, arrays or {}))
@@ -234,9 +314,36 @@ class Journal:
 
     def close(self) -> None:
         with contextlib.suppress(Exception):
-            self._f.close()
+            os.close(self._fd)
         with contextlib.suppress(Exception):
             self._lock_file.close()
+
+
+# Indirection for fault injection in tests (a full disk, an I/O error); production code uses the os functions.
+_os_write = os.write
+_os_fsync = os.fsync
+
+
+def _parse_at(data: bytes, off: int) -> tuple[Record, int] | None:
+    """The record starting at byte `off` and its end offset, or None when it does not verify."""
+    if off + _HEAD.size > len(data):
+        return None
+    magic, length, crc = _HEAD.unpack_from(data, off)
+    start = off + _HEAD.size
+    if magic != MAGIC or start + length > len(data):
+        return None
+    payload = data[start : start + length]
+    if zlib.crc32(payload) != crc:
+        return None
+    try:
+        header, arrays = _decode(payload)
+        seq = int(header.pop("seq"))
+        kind = str(header.pop("kind"))
+    except (ValueError, KeyError, TypeError, UnicodeDecodeError, struct.error):
+        return None
+    if seq < 0 or kind not in RECORD_KINDS:
+        return None
+    return Record(seq, kind, header, arrays), start + length
 
 
 # ---------------------------------------------------------------------------------------------- label file
@@ -255,7 +362,7 @@ def write_label_file(
         labels: (N,) int32.
         table: instance table.
         seq: the last journal sequence number included.
-        scan_id: scan identity (vertex count, file name) checked on load.
+        scan_id: scan identity (vertex count, file name, content hash) checked on load.
     """
 
     def writer(f: Any) -> None:
@@ -277,21 +384,133 @@ def read_label_file(path: str | os.PathLike[str], n: int) -> tuple[np.ndarray, d
     Raises:
         JournalError: unreadable, or written for a scan with another vertex count.
     """
+    labels, table, seq, _ = read_label_file_with_scan(path, n)
+    return labels, table, seq
+
+
+def read_label_file_with_scan(
+    path: str | os.PathLike[str], n: int
+) -> tuple[np.ndarray, dict[int, InstanceInfo], int, dict[str, Any]]:
+    """`read_label_file` plus the scan identity the file was written for ({} when it records none)."""
     try:
         with np.load(path, allow_pickle=False) as z:
             labels = np.asarray(z["instance"])
             table_raw = json.loads(str(z["instances_json"])) if "instances_json" in z else {}
             seq = int(z["journal_seq"]) if "journal_seq" in z else -1
-    except (OSError, ValueError, KeyError, json.JSONDecodeError) as exc:
+            scan = json.loads(str(z["scan_json"])) if "scan_json" in z else {}
+    except (OSError, ValueError, KeyError, TypeError, EOFError, json.JSONDecodeError, zipfile.BadZipFile) as exc:
         raise JournalError(f"cannot read label file {path}: {exc}") from exc
-    if labels.shape != (n,):
-        raise JournalError(f"label file {path} has {labels.shape} labels, but the scan has {n} vertices")
+    if labels.shape != (n,) or not np.issubdtype(labels.dtype, np.integer) or (labels.size and labels.min() < 0):
+        raise JournalError(
+            f"label file {path} has {labels.shape} {labels.dtype} labels, but the scan has {n} vertices"
+        )
+    if not isinstance(scan, dict):
+        scan = {}
     table = {k: v for k, v in table_from_json(table_raw).items() if v is not None}
-    return labels.astype(np.int32), table, seq
+    return labels.astype(np.int32), table, seq, scan
+
+
+def scan_fingerprint(points: np.ndarray, faces: np.ndarray | None = None) -> str:
+    """Content hash of a scan's geometry (vertex positions and faces), recorded in the journal.
+
+    Args:
+        points: (N, 3) vertex positions (hashed as little-endian float32).
+        faces: (M, 3) vertex indices, or None.
+
+    Returns:
+        "blake2b:<32 hex digits>".
+    """
+    h = hashlib.blake2b(digest_size=16)
+    pts = np.ascontiguousarray(points, dtype="<f4")
+    h.update(struct.pack("<Q", pts.shape[0]))
+    h.update(memoryview(pts).cast("B"))
+    if faces is not None and len(faces):
+        h.update(b"faces")
+        h.update(memoryview(np.ascontiguousarray(faces, dtype="<i4")).cast("B"))
+    return "blake2b:" + h.hexdigest()
+
+
+def remove_stale_temp_files(folder: str | os.PathLike[str], stem: str) -> list[Path]:
+    """Delete temporary files that an interrupted atomic write of ours left for `stem` in `folder`.
+
+    `efem_viz.data.io.atomic_write` names its temporary files ``.<destination stem>.<random>.tmp<suffix>``; a
+    kill -9 during a write leaves one behind. Call this only while holding the scan's journal lock (no other
+    annotator writes these names then).
+
+    Args:
+        folder: a folder the annotator writes into.
+        stem: the scan's file stem.
+
+    Returns:
+        The files removed.
+    """
+    removed: list[Path] = []
+    d = Path(folder)
+    if not d.is_dir():
+        return removed
+    for p in d.glob(f".{glob_escape(stem)}.*"):
+        if ".tmp" in p.name and p.is_file() and not p.is_symlink():
+            with contextlib.suppress(OSError):
+                p.unlink()
+                removed.append(p)
+    if removed:
+        log.info("removed %d stale temporary files in %s", len(removed), d)
+    return removed
 
 
 # ---------------------------------------------------------------------------------------------- the store
 Listener = Callable[[Delta, str], None]
+ProblemListener = Callable[[str | None], None]
+
+
+@dataclass(frozen=True)
+class RecoveryReport:
+    """What reopening a damaged session recovered and what it could not (shown to the user in the GUI)."""
+
+    start: str
+    """The state replay started from, e.g. "checkpoint (record 8)" or "journal base record"."""
+    replayed: int
+    """Edit records applied on top of the start state."""
+    damage: tuple[str, ...]
+    """Problems found in the journal and the label file, one line each."""
+    lost: tuple[int, ...]
+    """Sequence numbers of records whose effect is not in the recovered labels (unverifiable, after the start)."""
+    skipped: tuple[str, ...]
+    """Verified records that could not be replayed, and why."""
+    aside: tuple[str, ...]
+    """Files where damaged bytes were kept."""
+
+    @property
+    def complete(self) -> bool:
+        """True when every acknowledged edit is in the recovered labels."""
+        return not self.lost and not self.skipped
+
+    def summary(self) -> str:
+        """A few lines for the user."""
+        head = (
+            f"Recovered from {self.start} + {self.replayed} edit records: "
+            + ("nothing was lost." if self.complete else "some edits could not be recovered.")
+        )
+        lines = [head, *self.damage]
+        if self.lost:
+            lines.append(f"not recovered: journal records {_ranges(self.lost)} (damaged)")
+        lines.extend(f"not recovered: {s}" for s in self.skipped)
+        if self.aside:
+            lines.append("damaged bytes kept in " + ", ".join(self.aside))
+        return "\n".join(lines)
+
+
+def _ranges(seqs: tuple[int, ...]) -> str:
+    out: list[str] = []
+    start = prev = seqs[0]
+    for s in seqs[1:]:
+        if s == prev + 1:
+            prev = s
+            continue
+        out.append(f"{start}" if start == prev else f"{start}-{prev}")
+        start = prev = s
+    out.append(f"{start}" if start == prev else f"{start}-{prev}")
+    return ", ".join(out)
 
 
 class LabelStore:
@@ -302,10 +521,12 @@ class LabelStore:
         journal_path: `<out>/<stem>.journal`.
         label_path: `<out>/<stem>.labels.npz` (checkpoint).
         scan_id: scan identity stored in the journal's base record and checked on reopen
-            (must contain "num_vertices").
+            (vertex count, and a `content_hash` from `scan_fingerprint` when given).
         initial_labels: (N,) labels for a *new* session (ignored when a journal exists).
         initial_instances: table for a new session.
         autosave_delay: seconds to wait after an edit before rewriting the label file (0 = write synchronously).
+        accept_scan_mismatch: resume a journal whose recorded content hash differs from this scan's (the user
+            says it is the same scan, e.g. re-exported); the new identity is recorded.
 
     Raises:
         JournalError: journal belongs to another scan, or is in use by another process.
@@ -321,15 +542,23 @@ class LabelStore:
         initial_labels: np.ndarray | None = None,
         initial_instances: list[InstanceInfo] | None = None,
         autosave_delay: float = 0.5,
+        accept_scan_mismatch: bool = False,
     ) -> None:
         self.n = int(num_vertices)
         self.lock = threading.RLock()
         self.label_path = Path(label_path)
-        self.scan_id = {"num_vertices": self.n, **(scan_id or {})}
+        self.scan_id = {**(scan_id or {}), "num_vertices": self.n}
         self.autosave_delay = float(autosave_delay)
+        self.accept_scan_mismatch = bool(accept_scan_mismatch)
         self.listeners: list[Listener] = []
+        self.problem_listeners: list[ProblemListener] = []
+        """Called with a one-line message when an autosave fails, and with None when saving works again."""
+        self.problem: str | None = None
+        """The current autosave problem, None when the checkpoint is up to date or saving works."""
         self.last_save_s = 0.0
         self.resumed = False
+        self.recovery: RecoveryReport | None = None
+        """Set when reopening found damage or a newer checkpoint than the journal; None for a clean resume."""
         self.journal = Journal(journal_path)
         try:
             self.labelset = self._recover(initial_labels, initial_instances)
@@ -342,89 +571,160 @@ class LabelStore:
         self._saver = threading.Thread(target=self._autosave_loop, name="annotator-autosave", daemon=True)
         if self.autosave_delay > 0:
             self._saver.start()
-        self.save_now()
+        try:
+            self.save_now()
+        except OSError as exc:
+            self._set_problem(f"the checkpoint {self.label_path.name} could not be written ({exc}); every edit is "
+                              "still in the journal")
 
     # ------------------------------------------------------------------ recovery
-    def _recover(self, initial_labels: np.ndarray | None, initial_instances: list[InstanceInfo] | None) -> LabelSet:
-        recs = self.journal.records
-        if not recs:
-            ls = LabelSet(self.n, initial_labels, initial_instances)
-            # An existing checkpoint without a journal (journal deleted by hand): start from the checkpoint.
-            if self.label_path.exists():
-                try:
-                    lab, table, _ = read_label_file(self.label_path, self.n)
-                    ls = LabelSet(self.n, lab, table.values())
-                    log.warning("no journal next to %s: resuming from the label file alone", self.label_path)
-                    self.resumed = True
-                except JournalError as exc:
-                    raise JournalError(
-                        f"{exc}; refusing to overwrite it — move it away or choose another --out"
-                    ) from exc
-            lab, table = ls.snapshot()
-            self.journal.append(
-                "base",
-                {"scan": self.scan_id, "table": table_to_json(table)},
-                {"labels": lab},
-            )
-            return ls
-        base = recs[0]
-        if base.kind != "base":
-            raise JournalError(f"journal {self.journal.path} does not start with a base record")
-        jn = int(base.header.get("scan", {}).get("num_vertices", -1))
+    def _check_scan(self, recorded: dict[str, Any], where: str) -> None:
+        jn = int(recorded.get("num_vertices", -1))
         if jn != self.n:
             raise JournalError(
-                f"journal {self.journal.path} belongs to a scan with {jn} vertices, this scan has {self.n}; "
-                "choose another --out directory"
+                f"{where} belongs to a scan with {jn} vertices, this scan has {self.n}; choose another --out directory"
             )
-        self.resumed = True
-        # Start state: the checkpoint when it is valid, else the base record.
-        start_seq = 0
-        base_table = {k: v for k, v in table_from_json(base.header.get("table", {})).items() if v is not None}
-        ls = LabelSet(self.n, base.arrays["labels"], base_table.values())
+        have, want = recorded.get("content_hash"), self.scan_id.get("content_hash")
+        if have and want and have != want:
+            if self.accept_scan_mismatch:
+                log.warning("%s was written for different scan content (%s, now %s); resuming as asked",
+                            where, have, want)
+                return
+            raise JournalError(
+                f"{where} was labelled on a different scan: same vertex count ({self.n}) but other geometry "
+                f"(content hash {have[:20]}…, this scan {want[:20]}…); its labels would land on the wrong points. "
+                "Choose another --out, or pass --accept-scan-mismatch if this really is the same scan"
+            )
+
+    def _recover(self, initial_labels: np.ndarray | None, initial_instances: list[InstanceInfo] | None) -> LabelSet:
+        j = self.journal
+        recs = j.records
+        ck: tuple[np.ndarray, dict[int, InstanceInfo], int] | None = None
+        ck_problem = ""
         if self.label_path.exists():
             try:
-                lab, table, seq = read_label_file(self.label_path, self.n)
-                if 0 <= seq <= recs[-1].seq:
-                    ls = LabelSet(self.n, lab, table.values())
-                    start_seq = seq
-                else:
-                    log.warning("label file %s is newer than the journal; replaying the journal", self.label_path)
+                lab, table, seq, scan = read_label_file_with_scan(self.label_path, self.n)
+                self._check_scan({**scan, "num_vertices": self.n}, f"label file {self.label_path}")
+                ck = (lab, table, seq)
             except JournalError as exc:
-                log.warning("%s; replaying the whole journal instead", exc)
+                if not recs:
+                    raise JournalError(f"{exc}; refusing to overwrite it — move it away or choose another --out") from exc
+                ck_problem = f"the checkpoint could not be used ({exc})"
+                log.warning("%s; replaying the journal instead", exc)
+        if not recs and not j.damage:
+            ls = LabelSet(self.n, initial_labels, initial_instances)
+            if ck is not None:  # an existing checkpoint without a journal (journal deleted by hand)
+                ls = LabelSet(self.n, ck[0], ck[1].values())
+                log.warning("no journal next to %s: resuming from the label file alone", self.label_path)
+                self.resumed = True
+            lab, table = ls.snapshot()
+            j.append("base", {"scan": self.scan_id, "table": table_to_json(table)}, {"labels": lab})
+            return ls
+        # The scan identity: the newest full-state record's, else the checkpoint's check above.
+        states = [r for r in recs if r.kind in ("base", "snapshot")]
+        for r in reversed(states):
+            if "scan" in r.header:
+                self._check_scan(r.header["scan"], f"journal {j.path}")
+                break
+        self.resumed = True
+        # Start from the newest valid full state: a base/snapshot record or the checkpoint (never an older one).
+        start_seq, start_name = -1, ""
+        ls: LabelSet | None = None
+        if states:
+            r = states[-1]
+            table = {k: v for k, v in table_from_json(r.header.get("table", {})).items() if v is not None}
+            ls = LabelSet(self.n, r.arrays["labels"], table.values())
+            start_seq, start_name = r.seq, ("journal base record" if r.kind == "base" else f"snapshot record {r.seq}")
+        if ck is not None and ck[2] >= 0 and ck[2] > start_seq:
+            ls = LabelSet(self.n, ck[0], ck[1].values())
+            start_seq, start_name = ck[2], f"checkpoint (record {ck[2]})"
+        if ls is None:
+            raise JournalError(
+                f"journal {j.path} is damaged beyond recovery (no verifiable full state, no usable checkpoint); "
+                f"the damaged file is kept in {j.aside}"
+            )
+        newest = max([r.seq for r in recs], default=-1)
+        j.next_seq = max(j.next_seq, start_seq + 1, newest + 1)
         # Rebuild history over all records with the same stack logic as LabelSet; apply to the labels only the
-        # records after the checkpoint.
+        # records after the start state. History cannot be undone across a missing record: stacks restart there.
         undo: list[Delta] = []
         redo: list[Delta] = []
-        for r in recs[1:]:
+        skipped: list[str] = []
+        replayed = 0
+        prev = -1
+        for r in recs:
+            if r.seq != prev + 1:
+                undo.clear()
+                redo.clear()
+            prev = r.seq
             apply_now = r.seq > start_seq
+            if r.kind in ("base", "snapshot"):
+                if apply_now:  # cannot happen (the newest full state is the start), kept for safety
+                    table = {k: v for k, v in table_from_json(r.header.get("table", {})).items() if v is not None}
+                    ls = LabelSet(self.n, r.arrays["labels"], table.values())
+                continue
             if r.kind == "do":
-                d = record_to_delta(r)
+                try:
+                    d = record_to_delta(r)
+                except (KeyError, ValueError, TypeError) as exc:
+                    skipped.append(f"record {r.seq}: unreadable edit ({exc})")
+                    undo.clear()
+                    redo.clear()
+                    continue
                 if apply_now:
-                    ls._apply_raw(d)
+                    d = _force_apply(ls, d)
+                    replayed += 1
                 undo.append(d)
                 redo.clear()
             elif r.kind in ("undo", "redo"):
                 src, dst = (undo, redo) if r.kind == "undo" else (redo, undo)
                 if not src:
-                    raise JournalError(f"journal {self.journal.path}: {r.kind} record {r.seq} with empty history")
+                    if apply_now:
+                        skipped.append(f"record {r.seq}: {r.kind} of an edit in the damaged part")
+                    continue
                 group = src[-1].group
                 while src:
                     d = src.pop()
                     if apply_now:
-                        ls._apply_raw(d.inverse() if r.kind == "undo" else d)
+                        _force_apply(ls, d.inverse() if r.kind == "undo" else d)
                     dst.append(d)
                     if not group or not src or src[-1].group != group:
                         break
-            else:
-                raise JournalError(f"journal {self.journal.path}: unknown record kind {r.kind!r}")
+                if apply_now:
+                    replayed += 1
         ls.undo_stack = undo
         ls.redo_stack = redo
+        lost = tuple(s for s in j.gaps if s > start_seq)
+        damage = list(j.damage)
+        if ck_problem:
+            damage.append(ck_problem)
+        ck_newer = ck is not None and ck[2] > newest
+        if ck_newer:
+            damage.append(f"the journal ends at record {newest}, the checkpoint holds records up to {ck[2]}: "
+                          "resumed from the checkpoint")
+        if damage or lost or skipped:
+            self.recovery = RecoveryReport(
+                start=start_name,
+                replayed=replayed,
+                damage=tuple(damage),
+                lost=lost,
+                skipped=tuple(skipped),
+                aside=(j.aside.name,) if j.aside is not None else (),
+            )
+            log.warning("journal %s recovery:\n%s", j.path.name, self.recovery.summary())
+        # Make the journal alone reproduce the recovered state, whatever happens to the checkpoint later: a full
+        # snapshot when replaying it would not (records missing since its newest full state, skipped records, a
+        # newer checkpoint), or when the scan identity changed on purpose.
+        last_state = states[-1].seq if states else -1
+        scan_changed = self.accept_scan_mismatch and bool(states) and (
+            states[-1].header.get("scan", {}).get("content_hash") != self.scan_id.get("content_hash")
+        )
+        if skipped or ck_newer or scan_changed or any(g > last_state for g in j.gaps):
+            lab, table = ls.snapshot()
+            j.append("snapshot", {"scan": self.scan_id, "table": table_to_json(table)}, {"labels": lab})
         log.info(
-            "resumed %s: %d journal records, checkpoint at %d, %d undoable edits",
-            self.journal.path.name,
-            len(recs),
-            start_seq,
-            len(undo),
+            "resumed %s: %d journal records, start %s, %d undoable edits",
+            j.path.name, len(recs), start_name, len(undo),
         )
         return ls
 
@@ -440,6 +740,9 @@ class LabelStore:
 
         Returns:
             The applied delta, or None when it changed nothing (nothing is journalled then).
+
+        Raises:
+            JournalError: the journal could not be written (the edit is not applied).
         """
         with self.lock:
             d = build(self.labelset)
@@ -477,7 +780,11 @@ class LabelStore:
 
     def _changed(self, d: Delta, how: str) -> None:
         if self.autosave_delay <= 0:
-            self.save_now()
+            try:
+                self.save_now()
+            except OSError as exc:
+                self._set_problem(f"autosave of {self.label_path.name} failed ({exc}); every edit is still in "
+                                  "the journal")
         else:
             self._dirty.set()
         for fn in list(self.listeners):
@@ -487,8 +794,24 @@ class LabelStore:
                 log.exception("label listener %r failed", fn)
 
     # ------------------------------------------------------------------ saving
+    def _set_problem(self, msg: str | None) -> None:
+        if msg == self.problem:
+            return
+        self.problem = msg
+        if msg:
+            log.error("%s", msg)
+        for fn in list(self.problem_listeners):
+            try:
+                fn(msg)
+            except Exception:
+                log.exception("problem listener %r failed", fn)
+
     def save_now(self) -> float:
-        """Rewrite the label file now (atomic); returns seconds taken. No-op when already up to date."""
+        """Rewrite the label file now (atomic); returns seconds taken. No-op when already up to date.
+
+        Raises:
+            OSError: the file could not be written (the journal still holds every edit).
+        """
         with self.lock:
             seq = self.journal.next_seq - 1
             if seq == self._saved_seq:
@@ -500,6 +823,8 @@ class LabelStore:
         with self.lock:
             self._saved_seq = max(self._saved_seq, seq)
             self.last_save_s = dt
+        if self.problem:
+            self._set_problem(None)
         return dt
 
     def _autosave_loop(self) -> None:
@@ -510,14 +835,20 @@ class LabelStore:
             self._dirty.clear()
             try:
                 self.save_now()
-            except Exception:
-                log.exception("autosave of %s failed (the journal still has every edit)", self.label_path)
+            except Exception as exc:
+                self._set_problem(f"autosave of {self.label_path.name} failed ({exc}); every edit is still in "
+                                  "the journal, retrying")
+                self._dirty.set()  # retry after the next delay
+                time.sleep(max(1.0, self.autosave_delay))
 
     def close(self) -> None:
         """Final save, stop the autosave thread, release the journal."""
         self._closed.set()
         try:
             self.save_now()
+        except OSError as exc:
+            log.error("final save of %s failed (%s); the journal holds every edit and is replayed next time",
+                      self.label_path, exc)
         finally:
             self.journal.close()
 
@@ -529,3 +860,17 @@ class LabelStore:
     def snapshot(self) -> tuple[np.ndarray, dict[int, InstanceInfo]]:
         with self.lock:
             return self.labelset.snapshot()
+
+
+def _force_apply(ls: LabelSet, d: Delta) -> Delta:
+    """Apply a replayed delta even when an unrecoverable earlier record changed the same vertices.
+
+    The `after` values are absolute, so they are set as recorded; `before` is taken from the current labels (so
+    counts stay right). Returns the delta as applied (== `d` when nothing was missing).
+    """
+    if len(d.idx):
+        cur = ls.labels[d.idx]
+        if not np.array_equal(cur, d.before):
+            d = dataclasses.replace(d, before=cur.astype(np.int32))
+    ls._apply_raw(d)
+    return d

@@ -1,0 +1,286 @@
+"""Journal recovery and write failures (issue 13, items 1-4), at the `LabelStore` level.
+
+A damaged record in the middle of the journal, a checkpoint newer than the journal, a failed append (ENOSPC on
+write, EIO on fsync), a different scan with the same vertex count, autosave failures and stale temp files.
+The same guarantees are checked on the full `efem-annotate` CLI in tests/test_annotator_cli_reliability.py.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import annotator.journal as journal_mod
+from annotator.journal import (
+    MAGIC,
+    JournalError,
+    LabelStore,
+    read_label_file,
+    remove_stale_temp_files,
+    scan_fingerprint,
+)
+
+N = 500
+
+
+def _store(tmp: Path, n: int = N, **kw) -> LabelStore:
+    kw.setdefault("autosave_delay", 0)
+    return LabelStore(n, journal_path=tmp / "s.journal", label_path=tmp / "s.labels.npz", **kw)
+
+
+def _nine_edits(s: LabelStore) -> None:
+    """Records 1-9: two instances, then seven paints over disjoint ranges."""
+    s.do(lambda ls: ls.create_instance(category="mug"))  # 1
+    s.do(lambda ls: ls.create_instance(category="bowl"))  # 2
+    for k in range(7):  # 3..9
+        s.do(lambda ls, k=k: ls.paint(np.arange(50 * k, 50 * k + 40), 1 + k % 2))
+
+
+def _record_offsets(path: Path) -> list[int]:
+    data = path.read_bytes()
+    offs, off = [], 0
+    while True:
+        off = data.find(MAGIC, off)
+        if off < 0:
+            return offs
+        offs.append(off)
+        off += 1
+
+
+def _flip_byte_in_record(path: Path, k: int) -> None:
+    offs = _record_offsets(path)
+    data = bytearray(path.read_bytes())
+    data[offs[k] + 40] ^= 0xFF  # inside the payload: the CRC fails
+    path.write_bytes(bytes(data))
+
+
+def test_bad_middle_record_with_newer_checkpoint_loses_nothing(tmp_path: Path) -> None:
+    s = _store(tmp_path, autosave_delay=60)
+    _nine_edits(s)
+    s.save_now()  # checkpoint at record 9... then one more edit only in the journal
+    s.do(lambda ls: ls.paint(np.arange(450, 470), 2))  # 10
+    final = s.labels.copy()
+    ck_before = read_label_file(tmp_path / "s.labels.npz", N)[2]
+    s.journal.close()
+    assert ck_before == 9
+    _flip_byte_in_record(tmp_path / "s.journal", 4)
+    damaged = (tmp_path / "s.journal").read_bytes()
+    s2 = _store(tmp_path)
+    assert np.array_equal(s2.labels, final), "every acknowledged edit must survive"
+    rep = s2.recovery
+    assert rep is not None and rep.complete and rep.start == "checkpoint (record 9)"
+    assert "nothing was lost" in rep.summary() and "damaged" in rep.summary()
+    # the damaged bytes are kept aside; the checkpoint was never replaced by an older state
+    aside = list(tmp_path.glob("s.journal.damaged-*"))
+    assert len(aside) == 1 and aside[0].read_bytes() == damaged
+    assert read_label_file(tmp_path / "s.labels.npz", N)[2] >= 10
+    # later edits land and survive; the journal alone (checkpoint deleted) gives the same state
+    s2.do(lambda ls: ls.paint(np.arange(480, 490), 1))
+    final2 = s2.labels.copy()
+    s2.close()
+    os.unlink(tmp_path / "s.labels.npz")
+    s3 = _store(tmp_path)
+    assert np.array_equal(s3.labels, final2)
+    assert s3.recovery is None, "a repaired journal reopens cleanly"
+    s3.close()
+
+
+def test_bad_middle_record_without_checkpoint_keeps_every_verified_record(tmp_path: Path) -> None:
+    s = _store(tmp_path)
+    _nine_edits(s)
+    final = s.labels.copy()
+    s.journal.close()
+    os.unlink(tmp_path / "s.labels.npz")
+    _flip_byte_in_record(tmp_path / "s.journal", 4)  # record 4 = the paint of vertices 50..89
+    s2 = _store(tmp_path)
+    rep = s2.recovery
+    assert rep is not None and rep.lost == (4,) and not rep.complete
+    assert "journal records 4" in rep.summary()
+    expect = final.copy()
+    expect[50:90] = 0
+    assert np.array_equal(s2.labels, expect), "records 5-9 must be replayed, only record 4 is lost"
+    # undo works inside the history after the damage, never across it
+    assert len(s2.labelset.undo_stack) == 5
+    s2.close()
+
+
+def test_checkpoint_newer_than_a_truncated_journal_wins(tmp_path: Path) -> None:
+    s = _store(tmp_path)
+    _nine_edits(s)
+    final = s.labels.copy()
+    s.close()
+    jp = tmp_path / "s.journal"
+    offs = _record_offsets(jp)
+    with open(jp, "r+b") as f:
+        f.truncate(offs[4])  # records 4-9 gone
+    s2 = _store(tmp_path)
+    assert np.array_equal(s2.labels, final)
+    assert s2.recovery is not None and s2.recovery.complete
+    assert s2.journal.next_seq > 9, "sequence numbers must never be reused"
+    s2.do(lambda ls: ls.paint(np.arange(490, 495), 1))
+    final2 = s2.labels.copy()
+    s2.close()
+    os.unlink(tmp_path / "s.labels.npz")
+    s3 = _store(tmp_path)
+    assert np.array_equal(s3.labels, final2)
+    s3.close()
+
+
+def test_retried_record_with_a_repeated_seq_supersedes_the_old_copy(tmp_path: Path) -> None:
+    """An old version left a complete copy of a failed append before its retry: the retry (the edit the user
+    saw applied) wins."""
+    s = _store(tmp_path)
+    s.do(lambda ls: ls.create_instance())
+    s.do(lambda ls: ls.paint(np.arange(0, 10), 1))  # seq 2: becomes the phantom
+    s.journal.close()
+    jp = tmp_path / "s.journal"
+    offs = _record_offsets(jp)
+    phantom = jp.read_bytes()[offs[2]:]
+    with open(jp, "r+b") as f:
+        f.truncate(offs[2])
+    os.unlink(tmp_path / "s.labels.npz")
+    s = _store(tmp_path)
+    s.do(lambda ls: ls.paint(np.arange(100, 120), 1))  # the real seq 2
+    s.journal.close()
+    data = jp.read_bytes()
+    jp.write_bytes(data[:offs[2]] + phantom + data[offs[2]:])
+    os.unlink(tmp_path / "s.labels.npz")
+    s2 = _store(tmp_path)
+    assert s2.labelset.count(1) == 20 and s2.labels[100] == 1 and s2.labels[0] == 0
+    s2.close()
+
+
+class _Faults:
+    """Replaces the journal's os.write/os.fsync while `on`: "write" writes half a record then fails with `err`;
+    "fsync" fails the fsync that follows a write (the repair's fsync works); "fsync_all" fails every fsync."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch, where: str, err: int) -> None:
+        self.on = False
+        self.where, self.err = where, err
+        real_write, real_fsync = os.write, os.fsync
+
+        self.after_write = False
+
+        def write(fd: int, data) -> int:
+            self.after_write = True
+            if self.on and self.where == "write":
+                real_write(fd, bytes(data[: len(data) // 2]))  # a partial record reaches the file
+                raise OSError(self.err, os.strerror(self.err))
+            return real_write(fd, data)
+
+        def fsync(fd: int) -> None:
+            after_write, self.after_write = self.after_write, False
+            if self.on and (self.where == "fsync_all" or (self.where == "fsync" and after_write)):
+                raise OSError(self.err, os.strerror(self.err))
+            real_fsync(fd)
+
+        monkeypatch.setattr(journal_mod, "_os_write", write)
+        monkeypatch.setattr(journal_mod, "_os_fsync", fsync)
+
+
+@pytest.mark.parametrize(("where", "err"), [("write", errno.ENOSPC), ("fsync", errno.EIO)])
+def test_failed_append_leaves_the_journal_as_it_was(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, where: str, err: int
+) -> None:
+    faults = _Faults(monkeypatch, where, err)
+    s = _store(tmp_path)
+    s.do(lambda ls: ls.create_instance())
+    s.do(lambda ls: ls.paint(np.arange(0, 10), 1))
+    size = (tmp_path / "s.journal").stat().st_size
+    before = s.labels.copy()
+    faults.on = True
+    for _ in range(3):
+        with pytest.raises(JournalError, match="not saved"):
+            s.do(lambda ls: ls.paint(np.arange(10, 20), 1))
+        assert np.array_equal(s.labels, before), "a refused edit is not applied"
+        assert (tmp_path / "s.journal").stat().st_size == size, "no partial record may stay behind"
+    faults.on = False
+    for k in range(3):  # later edits land and survive
+        s.do(lambda ls, k=k: ls.paint(np.arange(100 + 10 * k, 110 + 10 * k), 1))
+    s.undo()
+    final = s.labels.copy()
+    s.close()
+    os.unlink(tmp_path / "s.labels.npz")
+    s2 = _store(tmp_path)
+    assert s2.recovery is None, "the journal has no damage to report"
+    assert np.array_equal(s2.labels, final)
+    assert s2.labelset.count(1) == 30
+    s2.close()
+
+
+def test_unrepairable_append_failure_blocks_further_edits(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    faults = _Faults(monkeypatch, "fsync_all", errno.EIO)
+    s = _store(tmp_path)
+    s.do(lambda ls: ls.create_instance())
+    faults.on = True
+    with pytest.raises(JournalError):
+        s.do(lambda ls: ls.paint([1], 1))  # the repair's fsync fails too
+    faults.on = False
+    with pytest.raises(JournalError, match="restart"):
+        s.do(lambda ls: ls.paint([2], 1))
+    s.close()
+
+
+def test_same_vertex_count_other_geometry_is_refused(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    pts = rng.normal(size=(N, 3)).astype(np.float32)
+    moved = pts[rng.permutation(N)] + np.float32(5.0)
+    h1, h2 = scan_fingerprint(pts), scan_fingerprint(moved)
+    assert h1 != h2 and h1 == scan_fingerprint(pts.astype(np.float64))
+    s = _store(tmp_path, scan_id={"content_hash": h1})
+    s.do(lambda ls: ls.create_instance())
+    s.do(lambda ls: ls.paint(np.arange(0, 100), 1))
+    s.close()
+    before = (tmp_path / "s.journal").read_bytes()
+    with pytest.raises(JournalError, match="different scan.*--accept-scan-mismatch"):
+        _store(tmp_path, scan_id={"content_hash": h2})
+    assert (tmp_path / "s.journal").read_bytes() == before
+    # the label file alone (journal deleted) is checked too
+    os.rename(tmp_path / "s.journal", tmp_path / "s.journal.bak")
+    with pytest.raises(JournalError, match="different scan"):
+        _store(tmp_path, scan_id={"content_hash": h2})
+    os.rename(tmp_path / "s.journal.bak", tmp_path / "s.journal")
+    # on purpose: resumes, and records the new identity so the next open needs no flag
+    s2 = _store(tmp_path, scan_id={"content_hash": h2}, accept_scan_mismatch=True)
+    assert s2.labelset.count(1) == 100
+    s2.close()
+    s3 = _store(tmp_path, scan_id={"content_hash": h2})
+    assert s3.labelset.count(1) == 100
+    s3.close()
+
+
+def test_autosave_failure_is_reported_and_cleared(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    seen: list[str | None] = []
+    s = _store(tmp_path)
+    s.problem_listeners.append(seen.append)
+    real = journal_mod.write_label_file
+    fail = {"on": True}
+
+    def write_label_file(*a, **kw):
+        if fail["on"]:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(*a, **kw)
+
+    monkeypatch.setattr(journal_mod, "write_label_file", write_label_file)
+    s.do(lambda ls: ls.create_instance())  # the edit itself is journalled and kept
+    assert s.labelset.instances and s.problem and "No space left" in s.problem
+    assert seen and seen[-1] == s.problem
+    fail["on"] = False
+    s.do(lambda ls: ls.paint([1, 2], 1))
+    assert s.problem is None and seen[-1] is None
+    s.close()
+
+
+def test_stale_temp_files_of_this_scan_are_removed(tmp_path: Path) -> None:
+    (tmp_path / ".scan.labels.ab12cd.tmp.ply").write_bytes(b"")
+    (tmp_path / ".scan.labels.x.tmp.npz").write_bytes(b"")
+    keep = [tmp_path / ".scan2.labels.q.tmp.ply", tmp_path / "scan.labels.ply", tmp_path / ".scan.notes"]
+    for p in keep:
+        p.write_bytes(b"x")
+    removed = remove_stale_temp_files(tmp_path, "scan")
+    assert len(removed) == 2
+    assert all(p.exists() for p in keep)
