@@ -30,6 +30,9 @@ class AnnotateArgs:
     """Refuse scans with more vertices than this."""
     autosave_delay: float = 0.5
     """Seconds between an edit and the checkpoint rewrite (the journal is written before every edit returns)."""
+    accept_scan_mismatch: bool = False
+    """Resume a session whose journal was written for other scan geometry with the same vertex count (e.g. the
+    same scan re-exported). Without it such a session is refused, so labels never land on the wrong points."""
 
     def run(self) -> int:
         from annotator.app import AnnotatorApp
@@ -42,7 +45,10 @@ class AnnotateArgs:
             port=self.port,
             max_points=self.max_points,
             autosave_delay=self.autosave_delay,
+            accept_scan_mismatch=self.accept_scan_mismatch,
         )
+        if app.store.recovery is not None:
+            print("efem-annotate: " + app.store.recovery.summary().replace("\n", "\n  "), flush=True)
         print(f"efem-annotate: {app.scan_path.name} ({app.n:,} vertices) at {app.url}  — Ctrl+C to quit", flush=True)
         print(f"  autosave: {app.work_dir}", flush=True)
         try:
@@ -56,17 +62,17 @@ class AnnotateArgs:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the `efem-annotate` console script."""
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    args = tyro.cli(AnnotateArgs, args=sys.argv[1:] if argv is None else argv, prog="efem-annotate")
-    from annotator.io import LabelIOError
-    from annotator.journal import JournalError
+    """Entry point of the `efem-annotate` console script.
 
-    try:
-        return args.run()
-    except (LabelIOError, JournalError, FileNotFoundError, PermissionError, ValueError) as exc:
-        print(f"efem-annotate: error: {exc}", file=sys.stderr)
-        return 1
+    Errors print one line `efem-annotate: error: ...` on stderr and exit 1 (LabelIOError and JournalError are
+    ValueErrors); `--debug` (or EFEM_DEBUG=1) shows the traceback instead.
+    """
+    from efem_viz.cli import pop_debug_flag, run_reporting_errors
+
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    rest, debug = pop_debug_flag(list(sys.argv[1:] if argv is None else argv))
+    args = tyro.cli(AnnotateArgs, args=rest, prog="efem-annotate")
+    return run_reporting_errors("efem-annotate", args.run, debug=debug)
 
 
 if __name__ == "__main__":

@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import importlib
 import logging
+import os
 import sys
+from collections.abc import Callable
+from pathlib import Path
 
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "view": ("efem_viz.viewer.commands:ViewArgs", "open the viewer on scenes / folders (default: sample_scenes/)"),
@@ -29,9 +32,113 @@ def _usage() -> str:
     return "\n".join(lines)
 
 
+DEBUG_FLAG = "--debug"
+"""Global flag (before or after the subcommand): show the traceback of an error instead of its one-line message."""
+DEBUG_ENV = "EFEM_DEBUG"
+"""Environment variable with the same effect as --debug (any value but empty or 0)."""
+EXPECTED_ERRORS: tuple[type[BaseException], ...] = (ValueError, OSError, KeyError, ImportError)
+"""Errors that mean bad input or a bad environment (the project's own error types are ValueErrors): reported as
+`<prog>: error: <message>`. Anything else is a bug and is reported with a hint to rerun with --debug."""
+EXIT_ERROR = 1
+"""Exit status of a command that failed (argument parsing errors exit 2, as with argparse)."""
+EXIT_INTERRUPTED = 130
+"""Exit status after Ctrl+C (128 + SIGINT)."""
+
+
+def pop_debug_flag(args: list[str]) -> tuple[list[str], bool]:
+    """Remove `--debug` from command-line arguments (so subcommands must not define a `--debug` of their own).
+
+    Args:
+        args: arguments of a command (after the program name).
+
+    Returns:
+        The arguments without `--debug` (up to a `--` separator, after which nothing is touched) and whether
+        debugging was asked for, by the flag or by EFEM_DEBUG.
+    """
+    debug = os.environ.get(DEBUG_ENV, "").strip() not in ("", "0")
+    out: list[str] = []
+    for i, a in enumerate(args):
+        if a == "--":
+            out += args[i:]
+            break
+        if a == DEBUG_FLAG:
+            debug = True
+        else:
+            out.append(a)
+    return out, debug
+
+
+def error_message(exc: BaseException) -> str:
+    """One line for an exception: its message with line breaks folded; OSErrors as `<reason>: <file>`, KeyErrors as
+    `missing key '<k>'`."""
+    if isinstance(exc, OSError) and exc.strerror:
+        files = [str(f) for f in (exc.filename, exc.filename2) if f is not None]
+        msg = f"{exc.strerror}: {' -> '.join(files)}" if files else exc.strerror
+    elif isinstance(exc, KeyError) and len(exc.args) == 1:
+        msg = f"missing key {exc.args[0]!r}"
+    else:
+        msg = str(exc)
+    return " ".join(msg.split()) or type(exc).__name__
+
+
+def run_reporting_errors(prog: str, command: Callable[[], int | None], *, debug: bool = False) -> int:
+    """Run a command and turn its errors into one line on stderr (the traceback only with `debug`).
+
+    Args:
+        prog: the program name the message starts with (`efem-viz evaluate`).
+        command: runs the command; returns its exit status (None = 0).
+        debug: re-raise instead, so that Python prints the traceback.
+
+    Returns:
+        The command's exit status; EXIT_ERROR after an error, EXIT_INTERRUPTED after Ctrl+C. A `SystemExit` (tyro's
+        argument errors, `--help`) passes through.
+    """
+    try:
+        return int(command() or 0)
+    except KeyboardInterrupt:
+        if debug:
+            raise
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except EXPECTED_ERRORS as exc:
+        if debug:
+            raise
+        print(f"{prog}: error: {error_message(exc)}", file=sys.stderr)
+        return EXIT_ERROR
+    except Exception as exc:  # a bug: still one line, with the way to see more
+        if debug:
+            raise
+        print(f"{prog}: internal error: {type(exc).__name__}: {error_message(exc)} "
+              f"(rerun with {DEBUG_FLAG} for the traceback)", file=sys.stderr)
+        return EXIT_ERROR
+
+
+def check_output_file(path: str | os.PathLike[str], *, option: str) -> Path:
+    """Refuse an output file path that cannot be a file (an existing folder), before any work is done.
+
+    Args:
+        path: where a command will write a file.
+        option: the option that named it, for the message (`--json-out`).
+
+    Returns:
+        The path.
+
+    Raises:
+        ValueError: `path` is an existing directory.
+    """
+    p = Path(path)
+    if p.is_dir():
+        raise ValueError(f"{option} {p} is a folder; give a file path such as {p / 'result.json'}")
+    return p
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the `efem-viz` console script."""
-    args = list(sys.argv[1:] if argv is None else argv)
+    """Entry point of the `efem-viz` console script.
+
+    `efem-viz [--debug] COMMAND ARGS...`; errors print one line `efem-viz COMMAND: error: ...` on stderr and exit 1
+    (2 for argument errors, 130 after Ctrl+C); `--debug` (or EFEM_DEBUG=1) shows the traceback instead.
+    """
+    args, debug = pop_debug_flag(list(sys.argv[1:] if argv is None else argv))
     if not args or args[0] in ("-h", "--help", "help"):
         print(_usage())
         return 0
@@ -39,19 +146,18 @@ def main(argv: list[str] | None = None) -> int:
     if name not in SUBCOMMANDS:
         print(f"efem-viz: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
         return 2
-    import tyro
+    prog = f"efem-viz {name}"
 
-    target = SUBCOMMANDS[name][0]
-    module_name, cls_name = target.split(":")
-    cls = getattr(importlib.import_module(module_name), cls_name)
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    parsed = tyro.cli(cls, args=rest, prog=f"efem-viz {name}")
-    try:
+    def command() -> int:
+        import tyro
+
+        module_name, cls_name = SUBCOMMANDS[name][0].split(":")
+        cls = getattr(importlib.import_module(module_name), cls_name)
+        logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+        parsed = tyro.cli(cls, args=rest, prog=prog)
         return int(parsed.run() or 0)
-    except (ValueError, FileNotFoundError, FileExistsError, PermissionError) as exc:
-        print(f"efem-viz {name}: error: {exc}", file=sys.stderr)
-        return 1
 
+    return run_reporting_errors(prog, command, debug=debug)
 
 if __name__ == "__main__":
     sys.exit(main())

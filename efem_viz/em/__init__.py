@@ -6,7 +6,7 @@ Light at import time (no torch): the solver imports torch inside its functions.
 from __future__ import annotations
 
 from efem_viz.em.config import PRESETS, EMConfig, preset, schedule
-from efem_viz.em.results import EMResult, Instances
+from efem_viz.em.results import EMResult, Instances, ResultFileError
 from efem_viz.em.solver import EMCancelled, StepInfo, run_em
 from efem_viz.em.trace import DeathEvent, EMTrace, ProposalView
 
@@ -19,6 +19,7 @@ __all__ = [
     "EMTrace",
     "Instances",
     "ProposalView",
+    "ResultFileError",
     "StepInfo",
     "preset",
     "run_em",

@@ -162,10 +162,16 @@ class CalibrateMasksArgs:
             raise ValueError("give the labelled tuning scenes with --gt SCENE... (files or folders)")
         if not (math.isfinite(self.tolerance) and self.tolerance >= 0.0):
             raise ValueError(f"--tolerance must be a number of AP points >= 0, got {self.tolerance}")
+        if self.json_out is not None:
+            from efem_viz.cli import check_output_file
+
+            check_output_file(self.json_out, option="--json-out")
         scenes = {}
+        scene_paths: dict[str, Path] = {}
         for p in find_scenes(self.gt):
             scene = load_scene(p)
             scenes[scene.name] = scene
+            scene_paths[scene.name] = p
         files: list[Path] = []
         for r in self.results:
             if r.is_dir():
@@ -174,9 +180,8 @@ class CalibrateMasksArgs:
                 files.append(r)
             else:
                 raise FileNotFoundError(f"results not found: {r}")
-        prior = load_prior(self.prior)
         runs = []
-        for f in files:
+        for f in files:  # every result is checked (EMResult.load validates it) before the prior is loaded
             res = EMResult.load(f)
             if res.scene_name not in scenes:
                 logger.info("%s: no labelled scene named %r among --gt; skipped", f, res.scene_name)
@@ -184,10 +189,14 @@ class CalibrateMasksArgs:
             scene = scenes[res.scene_name]
             if scene.instance is None:
                 raise ValueError(f"scene {scene.name!r} has no ground-truth `instance` labels")
-            res.trace.bind(scene)  # raises ValueError when the result was computed on another point set
+            if res.num_points != scene.num_points:
+                raise ValueError(f"{f} was computed on {res.num_points} points but the labelled scene "
+                                 f"{scene_paths[scene.name]} has {scene.num_points}")
+            res.trace.bind(scene)
             runs.append((res, scene))
         if not runs:
             raise ValueError(f"no result among {len(files)} file(s) matches a labelled scene in --gt")
+        prior = load_prior(self.prior)
         cal = calibrate_tau_out(runs, prior, candidates=self.candidates, class_names=self.classes,
                                 tolerance=self.tolerance / 100.0)
         before = prior_tau_out(prior)
@@ -195,8 +204,9 @@ class CalibrateMasksArgs:
         print(cal.table())
         print(f"chosen tau_out {cal.best:g} (prior had {before:g})")
         if self.json_out is not None:
-            self.json_out.parent.mkdir(parents=True, exist_ok=True)
-            self.json_out.write_text(json.dumps(cal.to_dict(), indent=2))
+            from efem_viz.data.io import atomic_write_text
+
+            atomic_write_text(self.json_out, json.dumps(cal.to_dict(), indent=2))
         if self.write:
             path = resolve_prior_path(self.prior)
             save_prior(prior, path, extra={METADATA_KEY: cal.best, f"{METADATA_KEY}_calibration": cal.to_dict()})

@@ -11,6 +11,7 @@ import json
 import logging
 import os
 import zipfile
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
@@ -331,9 +332,19 @@ class EMResult:
     def load(cls, path: str | os.PathLike[str], *, scene: "Scene | None" = None, prior: Any = None) -> "EMResult":
         """Read a file written by `save`; optionally bind the scene and prior for `trace.view` replays.
 
+        The file is checked before anything is built from it (`validate_result_arrays`): every key `save` writes is
+        present, shapes and dtypes agree, confidences are finite and in [0, 1], and mask, face and proposal indices
+        are in range.
+
+        Args:
+            path: a `<scene>.efem.npz` file.
+            scene: the scene the result was computed on (its point count must equal the stored `num_points`).
+            prior: the prior it ran with (for re-deriving weights and meshes).
+
         Raises:
             FileNotFoundError: missing file.
-            ValueError: not an EFEM result, or an unsupported schema version.
+            ResultFileError: (a ValueError, naming the file) not an EFEM result, an unsupported schema version, a
+                missing key or an inconsistent or out-of-range array; or `scene` has another number of points.
         """
         p = Path(path)
         if not p.is_file():
@@ -341,33 +352,192 @@ class EMResult:
         try:
             z = np.load(p, allow_pickle=False)
         except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
-            raise ValueError(f"{p} is not a readable EFEM result (corrupt or truncated .npz?): "
-                             f"{type(exc).__name__}") from exc
+            raise ResultFileError(f"{p} is not a readable EFEM result (corrupt or truncated .npz?): "
+                                  f"{type(exc).__name__}") from exc
         if not isinstance(z, np.lib.npyio.NpzFile):
-            raise ValueError(f"{p} is not an EFEM result file (a single array, not an .npz archive)")
+            raise ResultFileError(f"{p} is not an EFEM result file (a single array, not an .npz archive)")
         with z:
-            if "kind" not in z.files or str(z["kind"]) != "efem-result":
-                raise ValueError(f"{p} is not an EFEM result file (keys: {sorted(z.files)[:8]}...)")
-            ver = int(z["schema_version"])
-            if ver != RESULT_SCHEMA_VERSION:
-                raise ValueError(
-                    f"{p}: unsupported result schema_version {ver} (expected {RESULT_SCHEMA_VERSION})")
             try:
+                kind = str(z["kind"]) if "kind" in z.files else None
+                if kind != "efem-result":
+                    raise ResultFileError(f"{p} is not an EFEM result file (keys: {sorted(z.files)[:8]}...)")
+                if "schema_version" not in z.files:
+                    raise ResultFileError(f"{p}: not a complete EFEM result: key 'schema_version' missing")
+                ver = _scalar_int(z["schema_version"], "schema_version", p)
+                if ver != RESULT_SCHEMA_VERSION:
+                    raise ResultFileError(
+                        f"{p}: unsupported result schema_version {ver} (this build reads {RESULT_SCHEMA_VERSION})")
+                missing = [k for k in REQUIRED_RESULT_KEYS if k not in z.files]
+                if missing:
+                    raise ResultFileError(f"{p}: not a complete EFEM result: missing {', '.join(missing)}")
                 data = {k: z[k] for k in z.files}
             except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
-                raise ValueError(f"{p}: a member of the result archive is unreadable (corrupt?): "
-                                 f"{type(exc).__name__}") from exc
-        if scene is not None and scene.num_points != int(data["num_points"]):
-            raise ValueError(f"{p} was computed on {int(data['num_points'])} points but scene {scene.name!r} has "
-                             f"{scene.num_points}")
-        trace = EMTrace.from_npz_dict(data)
+                if isinstance(exc, ResultFileError):
+                    raise
+                raise ResultFileError(f"{p}: a member of the result archive is unreadable (corrupt?): "
+                                      f"{type(exc).__name__}") from exc
+        num_points = validate_result_arrays(data, path=p)
+        if scene is not None and scene.num_points != num_points:
+            raise ResultFileError(f"{p} was computed on {num_points} points but scene {scene.name!r} has "
+                                  f"{scene.num_points}")
+        try:
+            config = EMConfig.from_json(str(data["config_json"]))
+        except (ValueError, TypeError, KeyError) as exc:  # JSONDecodeError is a ValueError
+            raise ResultFileError(f"{p}: config_json is not a valid EMConfig: {exc}") from exc
+        try:
+            timings = json.loads(str(data["timings_json"]))
+        except ValueError as exc:
+            raise ResultFileError(f"{p}: timings_json is not valid JSON: {exc}") from exc
+        if not isinstance(timings, dict):
+            raise ResultFileError(f"{p}: timings_json must hold a JSON object, got {type(timings).__name__}")
+        try:
+            trace = EMTrace.from_npz_dict(data)
+        except (ValueError, TypeError, KeyError, IndexError) as exc:
+            raise ResultFileError(f"{p}: unreadable trace: {_describe(exc)}") from exc
+        n_props = int(len(trace.prop_episode))
+        ids = np.asarray(data["instances/ids"])
+        if len(ids) and (int(ids.min()) < 0 or int(ids.max()) >= n_props):
+            raise ResultFileError(f"{p}: instance proposal ids span [{int(ids.min())}, {int(ids.max())}] but the "
+                                  f"trace has {n_props} proposals")
         trace.bind(scene, prior)
         return cls(
             trace=trace,
             instances=Instances.from_npz_dict(data),
-            config=EMConfig.from_json(str(data["config_json"])),
-            timings=json.loads(str(data["timings_json"])),
+            config=config,
+            timings=timings,
             scene_name=str(data["scene_name"]),
-            num_points=int(data["num_points"]),
-            seed=int(data["seed"]),
+            num_points=num_points,
+            seed=_scalar_int(data["seed"], "seed", p),
         )
+
+
+class ResultFileError(ValueError):
+    """A `<scene>.efem.npz` that cannot be used (not a result, missing keys, inconsistent or out-of-range arrays).
+
+    The message names the file and the problem, and is meant for the user.
+    """
+
+
+_INSTANCE_KEYS: tuple[str, ...] = (
+    "ids", "confidence", "category", "R", "center", "scale", "obb_center", "obb_axes", "obb_half_extents",
+    "coverage", "stationary", "db_sim", "masks", "masks_offsets", "mesh_vertices", "mesh_vertices_offsets",
+    "mesh_faces", "mesh_faces_offsets",
+)
+_TRACE_SCALAR_KEYS: tuple[str, ...] = (
+    "schema_version", "config_json", "num_points", "timings_json", "work_idx", "has_work_idx", "work_min_size",
+)
+REQUIRED_RESULT_KEYS: tuple[str, ...] = (
+    "schema_version", "kind", "scene_name", "num_points", "seed", "config_json", "timings_json",
+    *(f"instances/{k}" for k in _INSTANCE_KEYS),
+    *(f"trace/{k}" for k in _TRACE_SCALAR_KEYS),
+    *(f"trace/{k}" for k in EMTrace._ARRAY_FIELDS),
+)
+"""Every key `EMResult.save` writes (schema 1); `EMResult.load` refuses a file without one of them."""
+
+
+def _describe(exc: BaseException) -> str:
+    """One line for an exception (a KeyError's repr'd key becomes "missing key 'k'")."""
+    if isinstance(exc, KeyError) and exc.args:
+        return f"missing key {exc.args[0]!r}"
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
+def _scalar_int(value: Any, key: str, path: Path) -> int:
+    """The integer held by a 0-d (or 1-element) integer array; ResultFileError otherwise."""
+    a = np.asarray(value)
+    if a.size != 1 or a.dtype.kind not in "iu":
+        raise ResultFileError(f"{path}: {key} must be one integer, got {a.dtype} array of shape {a.shape}")
+    return int(a.reshape(()))
+
+
+def validate_result_arrays(data: Mapping[str, Any], *, path: str | os.PathLike[str]) -> int:
+    """Check the arrays of a `<scene>.efem.npz` (as read by `np.load`) before they are used.
+
+    Checks the top-level scalars (`num_points` a non-negative integer equal to `trace/num_points`; the names and
+    JSON texts strings) and the instances: every per-instance array has K rows and the documented trailing shape
+    and dtype kind, the ragged offsets are (K+1,) non-decreasing from 0 to the length of their values, confidences
+    are finite and in [0, 1], mask indices lie in [0, num_points), mesh faces index their own instance's vertices;
+    and the trace's point indices (`rev_mask`, `episode_unavailable`, `work_idx`) lie in [0, num_points).
+
+    Args:
+        data: key -> array, with every key of `REQUIRED_RESULT_KEYS`.
+        path: the file, for the messages.
+
+    Returns:
+        num_points.
+
+    Raises:
+        ResultFileError: (a ValueError) naming the file and the first problem found.
+    """
+    p = Path(path)
+
+    def fail(msg: str) -> ResultFileError:
+        return ResultFileError(f"{p}: {msg}")
+
+    missing = [k for k in REQUIRED_RESULT_KEYS if k not in data]
+    if missing:
+        raise fail(f"not a complete EFEM result: missing {', '.join(missing)}")
+    for key in ("scene_name", "config_json", "timings_json", "trace/config_json", "trace/timings_json"):
+        a = np.asarray(data[key])
+        if a.size != 1 or a.dtype.kind not in "US":
+            raise fail(f"{key} must be one string, got {a.dtype} array of shape {a.shape}")
+    num_points = _scalar_int(data["num_points"], "num_points", p)
+    if num_points < 0:
+        raise fail(f"num_points must be >= 0, got {num_points}")
+    trace_n = _scalar_int(data["trace/num_points"], "trace/num_points", p)
+    if trace_n != num_points:
+        raise fail(f"num_points {num_points} disagrees with trace/num_points {trace_n}")
+
+    g = lambda k: np.asarray(data["instances/" + k])  # noqa: E731
+    ids = g("ids")
+    if ids.ndim != 1 or ids.dtype.kind not in "iu":
+        raise fail(f"instances/ids must be (K,) integers, got {ids.dtype} {ids.shape}")
+    k = int(len(ids))
+    # key -> (trailing shape, dtype kinds, may be empty instead of K rows)
+    per_instance: dict[str, tuple[tuple[int, ...], str, bool]] = {
+        "confidence": ((), "f", False), "category": ((), "US", False), "R": ((3, 3), "f", False),
+        "center": ((3,), "f", False), "scale": ((), "f", False), "obb_center": ((3,), "f", False),
+        "obb_axes": ((3, 3), "f", False), "obb_half_extents": ((3,), "f", False),
+        "coverage": ((), "f", True), "stationary": ((), "f", True), "db_sim": ((), "f", True),
+    }
+    for key, (tail, kinds, may_be_empty) in per_instance.items():
+        a = g(key)
+        shapes = [(k, *tail)] + ([(0, *tail)] if may_be_empty else [])
+        if a.shape not in shapes or a.dtype.kind not in kinds:
+            raise fail(f"instances/{key} must be {' or '.join(map(str, shapes))} ({kinds!r} dtype kind) for "
+                       f"{k} instances, got {a.dtype} {a.shape}")
+    conf = g("confidence").astype(np.float64)
+    bad = np.flatnonzero(~(np.isfinite(conf) & (conf >= 0.0) & (conf <= 1.0)))
+    if len(bad):
+        raise fail(f"instance {int(bad[0])} has confidence {conf[bad[0]]} (must be finite and in [0, 1]; "
+                   f"{len(bad)} bad of {k})")
+
+    def ragged(key: str, tail: tuple[int, ...], kinds: str) -> tuple[np.ndarray, np.ndarray]:
+        values, offs = g(key), g(f"{key}_offsets")
+        if values.shape[1:] != tail or values.ndim != 1 + len(tail) or values.dtype.kind not in kinds:
+            want = "(n,)" if not tail else f"(n, {', '.join(map(str, tail))})"
+            raise fail(f"instances/{key} must be {want} ({kinds!r} dtype kind), got {values.dtype} {values.shape}")
+        if offs.shape != (k + 1,) or offs.dtype.kind not in "iu":
+            raise fail(f"instances/{key}_offsets must be ({k + 1},) integers for {k} instances, got "
+                       f"{offs.dtype} {offs.shape}")
+        if int(offs[0]) != 0 or (np.diff(offs) < 0).any() or int(offs[-1]) != len(values):
+            raise fail(f"instances/{key}_offsets must rise from 0 to {len(values)} (the length of "
+                       f"instances/{key}), got [{int(offs[0])} ... {int(offs[-1])}]")
+        return values, offs
+
+    masks, _ = ragged("masks", (), "iu")
+    if len(masks) and (int(masks.min()) < 0 or int(masks.max()) >= num_points):
+        raise fail(f"mask point indices span [{int(masks.min())}, {int(masks.max())}], outside "
+                   f"[0, num_points = {num_points})")
+    _, v_off = ragged("mesh_vertices", (3,), "f")
+    faces, f_off = ragged("mesh_faces", (3,), "iu")
+    if len(faces):
+        n_verts = np.repeat(np.diff(v_off), np.diff(f_off))[:, None]
+        if (faces < 0).any() or (faces >= n_verts).any():
+            raise fail("instances/mesh_faces index vertices outside their own instance's mesh")
+    for key in ("rev_mask", "episode_unavailable", "work_idx"):
+        a = np.asarray(data["trace/" + key])
+        if a.size and (a.dtype.kind not in "iu" or int(a.min()) < 0 or int(a.max()) >= num_points):
+            raise fail(f"trace/{key} must hold point indices in [0, num_points = {num_points}), got "
+                       f"{a.dtype} in [{a.min()}, {a.max()}]")
+    return num_points

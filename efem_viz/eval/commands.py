@@ -46,12 +46,18 @@ class EvaluateArgs:
 
         if not self.gt:
             raise SceneError("give the labelled scenes with --gt SCENE... (files or folders)")
+        if self.json_out is not None:
+            from efem_viz.cli import check_output_file
+
+            check_output_file(self.json_out, option="--json-out")
         gts = []
+        gt_paths: dict[str, Path] = {}
         for p in find_scenes(self.gt):
             scene = load_scene(p)
             if scene.instance is None:
                 raise SceneError(f"{p} has no ground-truth `instance` labels")
             gts.append(SceneGroundTruth.from_scene(scene))
+            gt_paths[scene.name] = p
         if not self.results.is_dir():
             raise SceneError(f"{self.results}: not a folder")
         efem_files = sorted(self.results.glob("*.efem.npz"))
@@ -65,14 +71,22 @@ class EvaluateArgs:
             from efem_viz.eval.ap import prediction_from_instances
 
             preds = []
+            gt_points = {g.name: g.num_points for g in gts}
             for efem_file in efem_files:
                 res = EMResult.load(efem_file)
                 name = efem_file.name[: -len(".efem.npz")]
+                if name in gt_points and res.num_points != gt_points[name]:
+                    raise SceneError(f"{efem_file} was computed on {res.num_points} points but the ground-truth "
+                                     f"scene {gt_paths[name]} has {gt_points[name]}")
                 preds.append(prediction_from_instances(res.instances, name=name, class_names=self.classes))
         else:
             preds = load_scannet_predictions(self.results)
         if not preds:
             raise SceneError(f"{self.results}: no predictions found (<scene>.txt or <scene>.efem.npz)")
+        for pred in preds:  # a NaN would sort anywhere and silently change the AP
+            conf = np.asarray(pred.confidences, np.float64)
+            if not np.isfinite(conf).all():
+                raise SceneError(f"{self.results}: scene {pred.name!r} has a non-finite prediction confidence")
         if self.threshold > 0:
             preds = [
                 ScenePrediction(

@@ -1,0 +1,298 @@
+"""Damaged `<scene>.efem.npz` files and bad CLI arguments: a ValueError naming the file on load, and one line on
+stderr (never a traceback unless `--debug`) from `efem-viz evaluate` / `calibrate-masks` and `efem-annotate`.
+
+The results come from a bundled sample (`sample_scenes/syn_pile_0.efem.npz`, copied and damaged in tmp_path), so
+no test here runs EM. Most cases call `efem_viz.cli.main` in-process; a few run the real console
+entry in a subprocess to show what a user sees.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from efem_viz.em.results import REQUIRED_RESULT_KEYS, EMResult, ResultFileError
+
+REPO = Path(__file__).resolve().parents[1]
+SAMPLE = "syn_pile_0"
+"""The smallest bundled scene with a saved result (19,656 points)."""
+
+
+@pytest.fixture(scope="module")
+def sample(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """The sample result's arrays, its ground truth saved as a fast-loading .npz, and its point count."""
+    from efem_viz.data.io import load_scene, save_scene
+
+    base = tmp_path_factory.mktemp("sample")
+    scene = load_scene(REPO / "sample_scenes" / f"{SAMPLE}.ply")
+    assert scene.instance is not None
+    gt = save_scene(scene, base / "gt" / f"{SAMPLE}.npz")
+    with np.load(REPO / "sample_scenes" / f"{SAMPLE}.efem.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    return {"arrays": arrays, "gt": gt, "n": scene.num_points}
+
+
+def write_result(folder: Path, arrays: dict[str, np.ndarray], damage: Callable[[dict[str, np.ndarray]], None]) -> Path:
+    """`<folder>/syn_pile_0.efem.npz` holding the sample's arrays after `damage(arrays)` (on a copy)."""
+    data = dict(arrays)
+    damage(data)
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"{SAMPLE}.efem.npz"
+    np.savez(path, **data)  # type: ignore[arg-type]
+    return path
+
+
+def drop(key: str) -> Callable[[dict[str, np.ndarray]], None]:
+    def go(d: dict[str, np.ndarray]) -> None:
+        del d[key]
+    return go
+
+
+def setter(key: str, value: Any) -> Callable[[dict[str, np.ndarray]], None]:
+    return lambda d: d.__setitem__(key, np.asarray(value))
+
+
+def edit(key: str, fn: Callable[[np.ndarray], None]) -> Callable[[dict[str, np.ndarray]], None]:
+    """Damage a copy of one array in place with `fn`."""
+    def go(d: dict[str, np.ndarray]) -> None:
+        a = np.array(d[key])
+        fn(a)
+        d[key] = a
+    return go
+
+
+def nan_first_confidence(a: np.ndarray) -> None:
+    a[0] = np.nan
+
+
+def mask_index_at_num_points(n: int) -> Callable[[np.ndarray], None]:
+    def go(a: np.ndarray) -> None:
+        a[3] = n
+    return go
+
+
+def negative_mask_index(a: np.ndarray) -> None:
+    a[0] = -1
+
+
+def wrong_num_points(n: int) -> Callable[[dict[str, np.ndarray]], None]:
+    """A self-consistent file computed on n points (masks still in range): only the ground truth can catch it."""
+    def go(d: dict[str, np.ndarray]) -> None:
+        d["num_points"] = np.array(n, np.int64)
+        d["trace/num_points"] = np.array(n, np.int64)
+    return go
+
+
+def damages(n: int) -> dict[str, tuple[Callable[[dict[str, np.ndarray]], None], str]]:
+    """Case name -> (damage, a regex the error message must match)."""
+    return {
+        "no config_json": (drop("config_json"), "config_json"),
+        "no num_points": (drop("num_points"), "num_points"),
+        "no schema_version": (drop("schema_version"), "schema_version"),
+        "no masks": (drop("instances/masks"), "instances/masks"),
+        "no mask offsets": (drop("instances/masks_offsets"), "instances/masks_offsets"),
+        "no trace config": (drop("trace/config_json"), "trace/config_json"),
+        "unknown schema": (setter("schema_version", np.int32(99)), "schema_version 99"),
+        "nan confidence": (edit("instances/confidence", nan_first_confidence), "confidence nan"),
+        "confidence > 1": (edit("instances/confidence", lambda a: a.__setitem__(1, 1.5)), "confidence 1.5"),
+        "mask index = num_points": (edit("instances/masks", mask_index_at_num_points(n)), "outside"),
+        "negative mask index": (edit("instances/masks", negative_mask_index), "outside"),
+        "num_points vs trace": (setter("num_points", np.int64(n + 7)), "disagrees"),
+        "short confidence": (lambda d: d.__setitem__("instances/confidence", d["instances/confidence"][:-1]),
+                             "instances/confidence must be"),
+        "bad offsets": (edit("instances/masks_offsets", lambda a: a.__setitem__(-1, a[-1] + 5)), "offsets"),
+        "face index": (edit("instances/mesh_faces", lambda a: a.__setitem__((0, 0), 10**6)), "mesh_faces"),
+        "proposal id": (edit("instances/ids", lambda a: a.__setitem__(0, 10**6)), "proposal ids"),
+        "config not json": (setter("config_json", "{not json"), "config_json"),
+        "float num_points": (setter("num_points", 1.5), "num_points must be one integer"),
+    }
+
+
+# ---------------------------------------------------------------------------------------------- EMResult.load
+def test_the_sample_result_loads_unchanged(sample: dict[str, Any], tmp_path: Path) -> None:
+    path = write_result(tmp_path, sample["arrays"], lambda d: None)
+    res = EMResult.load(path)
+    assert res.num_points == sample["n"] and len(res.instances) == len(sample["arrays"]["instances/ids"])
+
+
+def test_load_refuses_each_damage_naming_the_file(sample: dict[str, Any], tmp_path: Path) -> None:
+    for i, (case, (damage, pattern)) in enumerate(damages(sample["n"]).items()):
+        path = write_result(tmp_path / f"c{i}", sample["arrays"], damage)
+        with pytest.raises(ResultFileError) as info:
+            EMResult.load(path)
+        msg = str(info.value)
+        assert str(path) in msg and "\n" not in msg, case
+        assert re.search(pattern, msg), f"{case}: {msg}"
+        assert isinstance(info.value, ValueError)
+
+
+def test_load_refuses_every_missing_required_key(sample: dict[str, Any], tmp_path: Path) -> None:
+    assert set(REQUIRED_RESULT_KEYS) <= set(sample["arrays"]), "the writer writes every required key"
+    for key in REQUIRED_RESULT_KEYS:
+        path = write_result(tmp_path, sample["arrays"], drop(key))
+        with pytest.raises(ValueError, match=str(path)) as info:
+            EMResult.load(path)
+        # the key is named, except where the file no longer says it is a result at all
+        assert key in str(info.value) or (key == "kind" and "not an EFEM result" in str(info.value)), key
+
+
+# ---------------------------------------------------------------------------------------------- in-process CLI
+def one_error_line(capsys: pytest.CaptureFixture[str], prog: str) -> str:
+    err = capsys.readouterr().err
+    lines = err.splitlines()
+    assert len(lines) == 1 and "Traceback" not in err, err
+    assert lines[0].startswith(f"{prog}: error: "), err
+    return lines[0]
+
+
+@pytest.mark.parametrize("command", ["evaluate", "calibrate-masks"])
+def test_cli_refuses_damaged_results_in_one_line(command: str, sample: dict[str, Any], tmp_path: Path,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    from efem_viz import cli
+
+    n = sample["n"]
+    cases = damages(n)
+    cases["wrong num_points"] = (wrong_num_points(n + 3), f"{n + 3} points .* has {n}")
+    cases["fewer num_points"] = (wrong_num_points(n - 1), f"{n - 1}|outside")
+    for i, (case, (damage, pattern)) in enumerate(cases.items()):
+        folder = tmp_path / f"c{i}"
+        path = write_result(folder, sample["arrays"], damage)
+        out = tmp_path / f"c{i}.json"
+        before = sorted(folder.iterdir())
+        rc = cli.main([command, str(folder if command == "evaluate" else path), "--gt", str(sample["gt"]),
+                       "--json-out", str(out)])
+        line = one_error_line(capsys, f"efem-viz {command}")
+        assert rc == 1, case
+        assert f"{SAMPLE}.efem.npz" in line, f"{case}: {line}"
+        assert re.search(pattern, line), f"{case}: {line}"
+        assert not out.exists() and sorted(folder.iterdir()) == before, f"{case}: something was written"
+
+
+def test_evaluate_accepts_the_undamaged_copy(sample: dict[str, Any], tmp_path: Path,
+                                             capsys: pytest.CaptureFixture[str]) -> None:
+    from efem_viz import cli
+
+    folder = tmp_path / "ok"
+    write_result(folder, sample["arrays"], lambda d: None)
+    out = tmp_path / "ev.json"
+    assert cli.main(["evaluate", str(folder), "--gt", str(sample["gt"]), "--json-out", str(out)]) == 0
+    assert out.is_file()
+
+
+@pytest.mark.parametrize("command", ["evaluate", "calibrate-masks"])
+def test_json_out_a_folder_is_refused_before_any_work(command: str, sample: dict[str, Any], tmp_path: Path,
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    from efem_viz import cli
+
+    folder = tmp_path / "res"
+    write_result(folder, sample["arrays"], lambda d: None)
+    target = tmp_path / "a_folder"
+    target.mkdir()
+    rc = cli.main([command, str(folder), "--gt", str(sample["gt"]), "--json-out", str(target)])
+    line = one_error_line(capsys, f"efem-viz {command}")
+    assert rc == 1 and "--json-out" in line and "folder" in line
+    assert list(target.iterdir()) == [] and capsys.readouterr().out == ""
+
+
+def test_missing_paths_are_one_line(sample: dict[str, Any], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from efem_viz import cli
+
+    nope = tmp_path / "nope"
+    for args in (["evaluate", str(nope), "--gt", str(sample["gt"])],
+                 ["evaluate", str(tmp_path), "--gt", str(nope)],
+                 ["calibrate-masks", str(nope), "--gt", str(sample["gt"])],
+                 ["calibrate-masks", str(tmp_path), "--gt", str(nope / "x.ply")]):
+        assert cli.main(args) == 1, args
+        assert "nope" in one_error_line(capsys, f"efem-viz {args[0]}")
+
+
+def test_debug_flag_reraises(sample: dict[str, Any], tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from efem_viz import cli
+
+    folder = tmp_path / "res"
+    write_result(folder, sample["arrays"], drop("config_json"))
+    args = [str(folder), "--gt", str(sample["gt"])]
+    with pytest.raises(ResultFileError, match="config_json"):
+        cli.main(["--debug", "evaluate", *args])
+    with pytest.raises(ResultFileError):
+        cli.main(["evaluate", *args, "--debug"])  # after the subcommand too
+    monkeypatch.setenv("EFEM_DEBUG", "1")
+    with pytest.raises(ResultFileError):
+        cli.main(["evaluate", *args])
+    monkeypatch.setenv("EFEM_DEBUG", "0")
+    assert cli.main(["evaluate", *args]) == 1
+
+
+def test_run_reporting_errors_classes(capsys: pytest.CaptureFixture[str]) -> None:
+    from efem_viz.cli import EXIT_INTERRUPTED, run_reporting_errors
+
+    def raiser(exc: BaseException) -> Callable[[], int]:
+        def go() -> int:
+            raise exc
+        return go
+
+    cases: list[tuple[BaseException, int, str]] = [
+        (IsADirectoryError(21, "Is a directory", "/x/out.json"), 1, "p: error: Is a directory: /x/out.json"),
+        (KeyError("config_json"), 1, "p: error: missing key 'config_json'"),
+        (ValueError("two\n  lines"), 1, "p: error: two lines"),
+        (FileNotFoundError("scene not found: a.ply"), 1, "p: error: scene not found: a.ply"),
+        (ModuleNotFoundError("No module named 'viser'"), 1, "p: error: No module named 'viser'"),
+        (KeyboardInterrupt(), EXIT_INTERRUPTED, "p: interrupted"),
+        (RuntimeError("boom"), 1, "p: internal error: RuntimeError: boom (rerun with --debug for the traceback)"),
+    ]
+    for exc, rc, line in cases:
+        assert run_reporting_errors("p", raiser(exc)) == rc
+        assert capsys.readouterr().err == line + "\n"
+        with pytest.raises(type(exc)):
+            run_reporting_errors("p", raiser(exc), debug=True)
+    with pytest.raises(SystemExit):  # tyro's argument errors and --help pass through
+        run_reporting_errors("p", raiser(SystemExit(2)))
+    assert run_reporting_errors("p", lambda: None) == 0
+
+
+def test_annotator_errors_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    pytest.importorskip("viser")
+    from annotator.__main__ import main
+
+    missing = tmp_path / "missing.ply"
+    assert main([str(missing), "--port", "0"]) == 1
+    assert "missing.ply" in one_error_line(capsys, "efem-annotate")
+    with pytest.raises(ValueError, match="no such file"):  # LabelIOError
+        main([str(missing), "--port", "0", "--debug"])
+
+
+# ---------------------------------------------------------------------------------------------- real processes
+def run_cli(*args: str) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    env.pop("EFEM_DEBUG", None)
+    return subprocess.run([sys.executable, "-m", "efem_viz.cli", *args], capture_output=True, text=True, cwd=REPO,
+                          env=env, timeout=120)
+
+
+def test_console_errors_have_no_traceback(sample: dict[str, Any], tmp_path: Path) -> None:
+    nan = write_result(tmp_path / "nan", sample["arrays"], edit("instances/confidence", nan_first_confidence))
+    no_cfg = write_result(tmp_path / "nocfg", sample["arrays"], drop("config_json"))
+    (tmp_path / "dir").mkdir()
+    gt = str(sample["gt"])
+    cases = [
+        (["evaluate", str(nan.parent), "--gt", gt, "--json-out", str(tmp_path / "a.json")], "confidence nan"),
+        (["calibrate-masks", str(no_cfg), "--gt", gt, "--json-out", str(tmp_path / "b.json")], "config_json"),
+        (["evaluate", str(REPO / "sample_scenes"), "--gt", str(REPO / "sample_scenes" / f"{SAMPLE}.ply"),
+          "--no-strict", "--json-out", str(tmp_path / "dir")], "--json-out"),
+    ]
+    for args, needle in cases:
+        proc = run_cli(*args)
+        lines = proc.stderr.splitlines()
+        assert proc.returncode == 1 and len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+        assert lines[0].startswith(f"efem-viz {args[0]}: error: ") and needle in lines[0], proc.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dir", "nan", "nocfg"] and not any((tmp_path / "dir").iterdir())
+    proc = run_cli("--debug", "calibrate-masks", str(no_cfg), "--gt", gt)
+    assert proc.returncode == 1 and "Traceback" in proc.stderr and "ResultFileError" in proc.stderr
