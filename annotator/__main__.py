@@ -21,15 +21,19 @@ class AnnotateArgs:
     """Labels to start from (PLY `instance`, NPZ, ScanNet .aggregation.json / .segs.json, EFEM .efem.npz).
     Ignored when the output folder already has a journal for this scan (the session resumes)."""
     out: Path | None = None
-    """Output folder for the journal, autosave checkpoint and exports (default: the current directory)."""
+    """Output folder for the journal, autosave checkpoint and exports (default: the current directory). Exports
+    are written only inside it."""
     host: str = "127.0.0.1"
-    """Bind address. The default serves this machine only; use 0.0.0.0 deliberately."""
+    """Bind address. The default serves this machine only; 0.0.0.0 serves anyone on the network who has the
+    printed URL (it carries the access token)."""
     port: int = 8081
     """TCP port (a busy port is replaced by the next free one; the real URL is printed)."""
     max_points: int = 2_000_000
     """Refuse scans with more vertices than this."""
     autosave_delay: float = 0.5
     """Seconds between an edit and the checkpoint rewrite (the journal is written before every edit returns)."""
+    token: str | None = None
+    """Access token to require (default: a fresh random one, printed in the URL). At least 16 characters."""
     accept_scan_mismatch: bool = False
     """Resume a session whose journal was written for other scan geometry with the same vertex count (e.g. the
     same scan re-exported). Without it such a session is refused, so labels never land on the wrong points."""
@@ -46,12 +50,19 @@ class AnnotateArgs:
             max_points=self.max_points,
             autosave_delay=self.autosave_delay,
             accept_scan_mismatch=self.accept_scan_mismatch,
+            token=self.token,
         )
-        if app.store.recovery is not None:
-            print("efem-annotate: " + app.store.recovery.summary().replace("\n", "\n  "), flush=True)
-        print(f"efem-annotate: {app.scan_path.name} ({app.n:,} vertices) at {app.url}  — Ctrl+C to quit", flush=True)
-        print(f"  autosave: {app.work_dir}", flush=True)
         try:
+            if app.store.recovery is not None:
+                print("efem-annotate: " + app.store.recovery.summary().replace("\n", "\n  "), flush=True)
+            warning = app.access.exposure_warning
+            if warning:
+                print(f"efem-annotate: {warning}", file=sys.stderr, flush=True)
+            print(f"efem-annotate: {app.scan_path.name} ({app.n:,} vertices) at {app.url}  — Ctrl+C to quit",
+                  flush=True)
+            if app.local_url != app.url:
+                print(f"  on this machine: {app.local_url}", flush=True)
+            print(f"  autosave: {app.work_dir}", flush=True)
             while True:
                 time.sleep(1.0)
         except KeyboardInterrupt:

@@ -27,7 +27,6 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Literal
 
 import numpy as np
-import viser
 
 from annotator import selection as sel
 from annotator.io import (
@@ -40,9 +39,18 @@ from annotator.io import (
     save_labels_ply,
     save_scannet,
 )
-from annotator.journal import LabelStore
+from annotator.journal import LabelStore, remove_stale_temp_files, scan_fingerprint
 from annotator.labels import Delta, InstanceInfo, LabelSet
 from annotator.render import Chunks, build_chunks, color_lut, compose_colors, splat_proxy
+from efem_viz.viewer.guard import start_server
+from efem_viz.viewer.inputs import (
+    ClientValueError,
+    read_bool,
+    read_choice,
+    read_number,
+    read_rgb,
+    read_text,
+)
 from efem_viz.viewer.state import xyz_tuple
 
 if TYPE_CHECKING:
@@ -53,6 +61,8 @@ log = logging.getLogger(__name__)
 Tool = Literal["brush", "erase", "grow", "fill", "pick", "segment"]
 TOOLS: tuple[str, ...] = ("brush", "erase", "grow", "fill", "pick", "segment")
 TOOL_KEYS: dict[str, str] = {"brush": "B", "erase": "E", "grow": "G", "fill": "F", "pick": "I", "segment": "S"}
+MAX_NAME = 200
+"""Longest instance name / category accepted from a client."""
 NO_OPTIONS: tuple[str, ...] = ("(none)",)
 """Dropdown options while a list is empty (typed `str` so that the handles accept real options later)."""
 
@@ -112,12 +122,14 @@ class AnnotatorApp:
             already holds a journal for this scan: the session resumes instead).
         out_dir: where the journal, checkpoint and exports go (default: the current working directory). The
             journal and checkpoint live in `<out>/<stem>.annotate/`; read-only folders are refused.
-        host: bind address (127.0.0.1 by default: local only).
+        host: bind address (127.0.0.1 by default: local only). Every bind needs the access token (`url`).
         port: TCP port (0 = any free port).
         max_points: refuse scans with more vertices.
         autosave_delay: seconds between an edit and the checkpoint rewrite (the journal is always immediate).
         chunk_size: points per drawn chunk.
         efem_result: an `<scene>.efem.npz` to import as pre-labels at start (optional).
+        accept_scan_mismatch: resume a journal written for other geometry with the same vertex count.
+        token: the server's access token (None = a fresh random one; see `efem_viz.viewer.guard`).
 
     Raises:
         LabelIOError: the scan or labels cannot be read; JournalError: the journal belongs to another scan.
@@ -134,6 +146,8 @@ class AnnotatorApp:
         max_points: int = 2_000_000,
         autosave_delay: float = 0.5,
         chunk_size: int = 16384,
+        accept_scan_mismatch: bool = False,
+        token: str | None = None,
     ) -> None:
         t0 = time.perf_counter()
         self.scan_path = Path(scan_path).resolve()
@@ -175,11 +189,19 @@ class AnnotatorApp:
             self.n,
             journal_path=journal_path,
             label_path=self.work_dir / f"{self.stem}.labels.npz",
-            scan_id={"name": self.scan_path.name, "num_vertices": self.n},
+            scan_id={
+                "name": self.scan_path.name,
+                "num_vertices": self.n,
+                "content_hash": scan_fingerprint(self.scene.points, self.scene.faces),
+            },
             initial_labels=None if initial is None else initial.labels,
             initial_instances=None if initial is None else initial.instances,
             autosave_delay=autosave_delay,
+            accept_scan_mismatch=accept_scan_mismatch,
         )
+        # We hold the scan's journal lock now: temp files of an interrupted write of ours are stale.
+        for folder in {self.out_dir, self.work_dir}:
+            remove_stale_temp_files(folder, self.stem)
         self.geom = sel.ScanGeometry(self.scene.points, self.scene.normals, faces=self.scene.faces)
         self.chunks: Chunks = build_chunks(self.scene.points, max_chunk=chunk_size)
         self.settings = ToolSettings(radius=max(0.005, 0.02 * float(np.linalg.norm(np.ptp(self.scene.points, axis=0)))))
@@ -197,7 +219,7 @@ class AnnotatorApp:
             self.settings.active_id = max(ls.instances)
 
         try:
-            self.server = viser.ViserServer(host=host, port=port, verbose=False)
+            self.server, self.access = start_server(host=host, port=port, token=token)
         except BaseException:
             self.store.close()
             raise
@@ -210,16 +232,25 @@ class AnnotatorApp:
             self.store.close()
             raise
         self.store.listeners.append(self._on_labels_changed)
+        self.store.problem_listeners.append(self._on_store_problem)
+        self.server.on_client_connect(self._greet)
         self._worker = threading.Thread(target=self._edit_loop, name="annotator-edits", daemon=True)
         self._worker.start()
-        threading.Thread(target=self.geom.warm_up, name="annotator-warmup", daemon=True).start()
+        self._warmup = threading.Thread(target=self.geom.warm_up, name="annotator-warmup", daemon=True)
+        self._warmup.start()
         self.open_s = time.perf_counter() - t0
         log.info("opened %s: %d vertices, %d chunks, %.2f s", self.scan_path.name, self.n, self.chunks.count, self.open_s)
 
     # ================================================================== drawing
     @property
     def url(self) -> str:
-        return f"http://{self.server.get_host()}:{self.server.get_port()}"
+        """The URL to open, with the access token (the machine's address for a 0.0.0.0 bind; the real port)."""
+        return self.access.url
+
+    @property
+    def local_url(self) -> str:
+        """The URL from this machine (127.0.0.1 for loopback and 0.0.0.0 binds), with the token."""
+        return self.access.local_url
 
     def _draw_scan(self) -> None:
         pts = self.scene.points
@@ -358,18 +389,40 @@ class AnnotatorApp:
             self.gui_seg_accept = gui.add_button("Accept segment preview", disabled=True)
             self.gui_seg_cancel = gui.add_button("Discard segment preview", disabled=True)
 
-        # ---- callbacks: read values into settings, call the action methods
-        def read_settings(_: Any = None) -> None:
+        # ---- callbacks: read values into settings, call the action methods. Client values pass the checks of
+        # efem_viz.viewer.inputs (clamped to the declared slider range, dropdown options only, bounded text).
+        wb = self._gui_write_back
+
+        # (setting, control, kind, display units per setting unit)
+        specs: tuple[tuple[str, Any, str, float], ...] = (
+            ("tool", self.gui_tool, "choice", 1.0),
+            ("radius", self.gui_radius, "number", 100.0),
+            ("brush_max_angle_deg", self.gui_brush_angle, "number", 1.0),
+            ("grow_angle_deg", self.gui_grow_angle, "number", 1.0),
+            ("grow_distance", self.gui_grow_dist, "number", 100.0),
+            ("grow_min_height", self.gui_grow_height, "number", 100.0),
+            ("only_unlabelled", self.gui_only_unlabelled, "bool", 1.0),
+            ("box_facing", self.gui_box_facing, "choice", 1.0),
+        )
+
+        def read_settings(event: Any = None) -> None:
             if getattr(self._tls, 'syncing', False):
                 return
-            s.tool = str(self.gui_tool.value)
-            s.radius = float(self.gui_radius.value) / 100.0
-            s.brush_max_angle_deg = float(self.gui_brush_angle.value)
-            s.grow_angle_deg = float(self.gui_grow_angle.value)
-            s.grow_distance = float(self.gui_grow_dist.value) / 100.0
-            s.grow_min_height = float(self.gui_grow_height.value) / 100.0
-            s.only_unlabelled = bool(self.gui_only_unlabelled.value)
-            s.box_facing = str(self.gui_box_facing.value)
+            for name, handle, kind, scale in specs:
+                try:
+                    if kind == "number":
+                        value: Any = read_number(handle, write_back=wb) / scale
+                    elif kind == "choice":
+                        value = read_choice(handle)
+                    else:
+                        value = read_bool(handle)
+                except ClientValueError as exc:  # keep this setting; show it again where the bad value was
+                    log.warning("refused: %s", exc)
+                    self.notify("Not done", str(exc), client=getattr(event, "client", None), color="red")
+                    old = getattr(s, name)
+                    wb(handle, round(old * scale, 6) if kind == "number" else old)
+                    continue
+                setattr(s, name, value)
 
         for h in (self.gui_tool, self.gui_radius, self.gui_brush_angle, self.gui_grow_angle, self.gui_grow_dist,
                   self.gui_grow_height, self.gui_only_unlabelled, self.gui_box_facing):
@@ -383,25 +436,32 @@ class AnnotatorApp:
 
             return cb
 
-        self.gui_active.on_update(guarded(lambda: self.set_active(_id_of(self.gui_active.value))))
-        self.gui_name.on_update(guarded(lambda: self._update_active(name=str(self.gui_name.value))))
-        self.gui_category.on_update(guarded(lambda: self._update_active(category=str(self.gui_category.value))))
-        self.gui_color.on_update(guarded(lambda: self._update_active(color=tuple(int(c) for c in self.gui_color.value))))
-        self.gui_visible.on_update(guarded(lambda: self._update_active(visible=bool(self.gui_visible.value))))
-        self.gui_locked.on_update(guarded(lambda: self._update_active(locked=bool(self.gui_locked.value))))
-        self.gui_new.on_click(guarded(lambda: self.new_instance(category=str(self.gui_category.value) or "object")))
-        self.gui_merge.on_click(guarded(lambda: self.merge([self.settings.active_id], _id_of(self.gui_merge_into.value))))
+        def text(h: Any) -> str:
+            return read_text(h, max_len=MAX_NAME)
+
+        self.gui_active.on_update(guarded(lambda: self.set_active(_id_of(read_choice(self.gui_active)))))
+        self.gui_name.on_update(guarded(lambda: self._update_active(name=text(self.gui_name))))
+        self.gui_category.on_update(guarded(lambda: self._update_active(category=text(self.gui_category))))
+        self.gui_color.on_update(guarded(lambda: self._update_active(color=read_rgb(self.gui_color, write_back=wb))))
+        self.gui_visible.on_update(guarded(lambda: self._update_active(visible=read_bool(self.gui_visible))))
+        self.gui_locked.on_update(guarded(lambda: self._update_active(locked=read_bool(self.gui_locked))))
+        self.gui_new.on_click(guarded(lambda: self.new_instance(category=text(self.gui_category) or "object")))
+        self.gui_merge.on_click(
+            guarded(lambda: self.merge([self.settings.active_id], _id_of(read_choice(self.gui_merge_into)))))
         self.gui_delete.on_click(guarded(lambda: self.delete_instance(self.settings.active_id)))
         self.gui_undo.on_click(guarded(lambda: self.undo()))
         self.gui_redo.on_click(guarded(lambda: self.redo()))
         self.gui_export_ply.on_click(guarded(lambda: self.export("ply")))
         self.gui_export_npz.on_click(guarded(lambda: self.export("npz")))
         self.gui_export_scannet.on_click(guarded(lambda: self.export("scannet")))
-        self.gui_import.on_click(guarded(lambda: self.import_labels(str(self.gui_import_path.value))))
-        self.gui_efem_import.on_click(guarded(lambda: self.import_efem(str(self.gui_efem_path.value))))
-        self.gui_accept.on_click(guarded(lambda: self.review_prelabel(_id_of(self.gui_prelabel.value), "accept")))
-        self.gui_reject.on_click(guarded(lambda: self.review_prelabel(_id_of(self.gui_prelabel.value), "reject")))
-        self.gui_accept_merge.on_click(guarded(lambda: self.review_prelabel(_id_of(self.gui_prelabel.value), "merge")))
+        self.gui_import.on_click(guarded(lambda: self.import_labels(read_text(self.gui_import_path))))
+        self.gui_efem_import.on_click(guarded(lambda: self.import_efem(read_text(self.gui_efem_path))))
+        self.gui_accept.on_click(
+            guarded(lambda: self.review_prelabel(_id_of(read_choice(self.gui_prelabel)), "accept")))
+        self.gui_reject.on_click(
+            guarded(lambda: self.review_prelabel(_id_of(read_choice(self.gui_prelabel)), "reject")))
+        self.gui_accept_merge.on_click(
+            guarded(lambda: self.review_prelabel(_id_of(read_choice(self.gui_prelabel)), "merge")))
         self.gui_seg_accept.on_click(guarded(lambda: self.accept_segment()))
         self.gui_seg_cancel.on_click(guarded(lambda: self.discard_segment()))
 
@@ -410,7 +470,7 @@ class AnnotatorApp:
             cmd = gui.add_command(f"Tool: {tool}", hotkey=key)  # type: ignore[arg-type]
             cmd.on_trigger(guarded(lambda t=tool: self.set_tool(t)))
         gui.add_command("New instance", hotkey="N").on_trigger(
-            guarded(lambda: self.new_instance(category=str(self.gui_category.value) or "object")))
+            guarded(lambda: self.new_instance(category=read_text(self.gui_category, max_len=MAX_NAME) or "object")))
         gui.add_command("Hide / show active instance", hotkey="H").on_trigger(
             guarded(lambda: self._toggle_active("visible")))
         gui.add_command("Lock / unlock active instance", hotkey="L").on_trigger(
@@ -418,6 +478,15 @@ class AnnotatorApp:
         gui.add_command("Undo", hotkey="Z", modifier="cmd/ctrl").on_trigger(guarded(lambda: self.undo()))
         gui.add_command("Redo", hotkey="Y", modifier="cmd/ctrl").on_trigger(guarded(lambda: self.redo()))
         self._refresh_panel()
+
+    def _gui_write_back(self, handle: Any, value: Any) -> None:
+        """Show the value actually used (a clamped client value) in every client, without re-reading it."""
+        prev = getattr(self._tls, "syncing", False)
+        self._tls.syncing = True
+        try:
+            handle.value = value
+        finally:
+            self._tls.syncing = prev
 
     def _instance_options(self) -> tuple[str, ...]:
         ls = self.store.labelset
@@ -462,12 +531,43 @@ class AnnotatorApp:
             self.gui_history.content = (
                 f"{n_undo} undoable, {n_redo} redoable\n\n" + "\n".join(f"- {h}" for h in self.stats.history)
             )
-            self.gui_status.content = (
-                f"Autosave: `{self.store.label_path.name}` + journal in `{self.work_dir}`  \n"
-                f"last edit: {self.stats.last_edit_bytes / 1024:.0f} KiB sent, {self.stats.last_edit_ms:.0f} ms"
-            )
+            self.gui_status.content = self._status_markdown()
         finally:
             self._tls.syncing = False
+
+    def _status_markdown(self) -> str:
+        """Autosave state for the panel: problems first (an autosave failure, what a recovery could not restore)."""
+        parts: list[str] = []
+        if self.store.problem:
+            parts.append(f"**⚠ {self.store.problem}**")
+        if self.store.journal.broken:
+            parts.append(f"**⚠ {self.store.journal.broken}**")
+        rec = self.store.recovery
+        if rec is not None:
+            mark = "Recovered" if rec.complete else "**⚠ Recovered with losses**"
+            parts.append(f"{mark} at start:  \n" + "  \n".join(rec.summary().splitlines()))
+        parts.append(
+            f"Autosave: `{self.store.label_path.name}` + journal in `{self.work_dir}`  \n"
+            f"last edit: {self.stats.last_edit_bytes / 1024:.0f} KiB sent, {self.stats.last_edit_ms:.0f} ms"
+        )
+        return "\n\n".join(parts)
+
+    def _on_store_problem(self, msg: str | None) -> None:
+        """An autosave failed (msg) or works again (None): tell every client, not only the terminal."""
+        if msg:
+            self.notify("Autosave failed", msg, color="red")
+        else:
+            self.notify("Autosave works again", "the checkpoint is up to date", color="green")
+        self._refresh_panel()
+
+    def _greet(self, client: Any) -> None:
+        """A newly connected client hears about a recovery or a standing autosave problem."""
+        rec = self.store.recovery
+        if rec is not None:
+            self.notify("Session recovered" if rec.complete else "Session recovered with losses", rec.summary(),
+                        client=client, color="yellow" if rec.complete else "red")
+        if self.store.problem:
+            self.notify("Autosave failed", self.store.problem, client=client, color="red")
 
     def _run_reporting(self, fn: Callable[[], Any], client: Any = None) -> Any:
         """Run an action; a refused action (bad input) becomes a notification, never a crash."""
@@ -652,13 +752,20 @@ class AnnotatorApp:
 
     # ---- files
     def _safe_path(self, name: str, *, what: str) -> Path:
-        p = resolve_inside(name, self.roots, what=what)
+        """A path to write: it must resolve inside the output folder chosen at start (relative = below it)."""
+        p = resolve_inside(name, [self.out_dir], what=what)
         if p == self.scan_path:
             raise LabelIOError(f"refusing to write {what} over the source scan {p}")
         return p
 
     def export(self, fmt: Literal["ply", "npz", "scannet"], *, directory: str | None = None) -> list[Path]:
-        """Write the labels to `<out>/<stem>.labels.ply|.labels.npz` or ScanNet JSON; returns the paths."""
+        """Write the labels to `<out>/<stem>.labels.ply|.labels.npz` or ScanNet JSON; returns the paths.
+
+        Args:
+            fmt: "ply", "npz" or "scannet".
+            directory: a folder inside the output folder (relative paths are taken below it); default: the
+                output folder. Anything resolving elsewhere (`..`, the scan's folder, symlinks out) is refused.
+        """
         d = self._safe_path(directory, what="export directory") if directory else self.out_dir
         labels, table = self.store.snapshot()
         if fmt == "ply":
@@ -743,7 +850,7 @@ class AnnotatorApp:
         """
         from annotator.assist import segment_at_point
 
-        prior_name = str(self.gui_prior.value) or "mug"
+        prior_name = read_choice(self.gui_prior)
 
         def job() -> np.ndarray:
             t0 = time.perf_counter()
@@ -789,7 +896,7 @@ class AnnotatorApp:
             raise ValueError("no segment preview to accept: Ctrl+click with the segment tool first")
         idx = self.pending_segment
         self.set_preview(None)
-        self.new_instance(category=str(self.gui_prior.value) or "object")
+        self.new_instance(category=read_choice(self.gui_prior) or "object")
         return self.paint(idx)
 
     def discard_segment(self) -> None:
@@ -836,7 +943,12 @@ class AnnotatorApp:
                 self._edits.task_done()
 
     def handle_event(self, kind: str, event: Any) -> None:
-        """Process one viser event (click, rect or drag); runs on the edit thread (tests may call it directly)."""
+        """Process one viser event (click, rect or drag); runs on the edit thread (tests may call it directly).
+
+        Raises:
+            ClientValueError: the event carries non-finite or malformed coordinates (a scripted client).
+        """
+        _check_event(kind, event)
         cid = f"client{getattr(event, 'client_id', '?')}"
         if kind == "click":
             self.click(np.asarray(event.ray_origin), np.asarray(event.ray_direction), client=cid)
@@ -903,6 +1015,40 @@ class AnnotatorApp:
             self.server.stop()
         finally:
             self.store.close()
+            # A Ctrl+C right after start must not exit while open3d builds its ray-casting scene in the warm-up
+            # thread (open3d then reports leaks and the process exits with status 1).
+            self._warmup.join(timeout=60)
+            self._worker.join(timeout=10)
+
+
+def _finite(value: Any, n: int, what: str) -> None:
+    try:
+        a = np.asarray(value, np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise ClientValueError(f"{what}: expected {n} numbers") from None
+    if a.shape != (n,) or not np.isfinite(a).all():
+        raise ClientValueError(f"{what}: expected {n} finite numbers")
+
+
+def _check_event(kind: str, event: Any) -> None:
+    """Refuse scene events whose coordinates no browser produces (NaN, inf, wrong length)."""
+    if kind == "click":
+        _finite(event.ray_origin, 3, "click ray origin")
+        _finite(event.ray_direction, 3, "click ray direction")
+    elif kind == "rect":
+        _finite(event.screen_min, 2, "box corner")
+        _finite(event.screen_max, 2, "box corner")
+        cam = event.client.camera
+        _finite(cam.position, 3, "camera position")
+        _finite(cam.wxyz, 4, "camera orientation")
+        _finite((cam.fov, cam.aspect), 2, "camera fov/aspect")
+        if not (0.0 < float(cam.fov) < np.pi and float(cam.aspect) > 0.0):
+            raise ClientValueError("camera fov/aspect out of range")
+    elif kind == "drag":
+        _finite(event.start_position, 3, "drag start")
+        if event.phase != "start":
+            _finite(event.end_position, 3, "drag position")
+            _finite(event.client.camera.position, 3, "camera position")
 
 
 def _color(i: int) -> tuple[int, int, int]:

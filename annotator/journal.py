@@ -30,7 +30,7 @@ import zlib
 from glob import escape as glob_escape
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Callable
 
 import numpy as np
 
@@ -423,10 +423,10 @@ def scan_fingerprint(points: np.ndarray, faces: np.ndarray | None = None) -> str
     h = hashlib.blake2b(digest_size=16)
     pts = np.ascontiguousarray(points, dtype="<f4")
     h.update(struct.pack("<Q", pts.shape[0]))
-    h.update(memoryview(pts).cast("B"))
+    h.update(pts.tobytes())
     if faces is not None and len(faces):
         h.update(b"faces")
-        h.update(memoryview(np.ascontiguousarray(faces, dtype="<i4")).cast("B"))
+        h.update(np.ascontiguousarray(faces, dtype="<i4").tobytes())
     return "blake2b:" + h.hexdigest()
 
 
@@ -698,9 +698,10 @@ class LabelStore:
         damage = list(j.damage)
         if ck_problem:
             damage.append(ck_problem)
-        ck_newer = ck is not None and ck[2] > newest
+        ck_seq = ck[2] if ck is not None else -1
+        ck_newer = ck_seq > newest
         if ck_newer:
-            damage.append(f"the journal ends at record {newest}, the checkpoint holds records up to {ck[2]}: "
+            damage.append(f"the journal ends at record {newest}, the checkpoint holds records up to {ck_seq}: "
                           "resumed from the checkpoint")
         if damage or lost or skipped:
             self.recovery = RecoveryReport(

@@ -17,11 +17,20 @@ import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Literal, Sequence
 
 import numpy as np
 
 from efem_viz.viewer import state as st
+from efem_viz.viewer.inputs import (
+    ClientValueError,
+    read_bool,
+    read_choice,
+    read_int,
+    read_number,
+    read_text,
+    resolve_inside_root,
+)
 from efem_viz.viewer.nodes import SceneNodes
 from efem_viz.viewer.panels import (
     COLOR_MODES,
@@ -50,7 +59,12 @@ class ViewerApp:
         prior: a `ShapePrior`, or None to load `prior_name` lazily when first needed (decoding, runs).
         prior_name: name for `efem_viz.prior.load_prior`.
         open_first: open the first scene at start (and its saved trace when present).
-        out_dir: default export folder.
+        out_dir: the output root: every export from the GUI goes into this folder or below it (a folder typed
+            into the GUI must resolve inside it); the static demo defaults to `<out_dir>/static/<scene>/`.
+        token: the server's access token (None = a fresh random one; see `efem_viz.viewer.guard`).
+
+    Raises:
+        GuardUnavailableError: the access guard cannot be attached to this viser (nothing is served).
     """
 
     def __init__(
@@ -63,12 +77,15 @@ class ViewerApp:
         prior_name: str = "mug",
         open_first: bool = True,
         out_dir: str | Path = "efem_out",
+        token: str | None = None,
     ) -> None:
-        import viser
+        from efem_viz.viewer.guard import start_server
 
         self.state = ViewerState()
         self.state.entries = st.discover_scenes(list(paths) if paths else [DEFAULT_SCENE_DIR])
         self._roots = [Path(p).expanduser().resolve() for p in (paths or [DEFAULT_SCENE_DIR])]
+        self.out_root = Path(out_dir).expanduser().resolve()
+        """Exports from the GUI stay inside this folder (fixed at start)."""
         self._prior = prior
         self._prior_name = prior_name
         self._prior_error: str | None = None
@@ -94,13 +111,13 @@ class ViewerApp:
         self._generation = 0
         """Bumped on every scene/result change so stale worker results are dropped."""
 
-        self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        self.server, self.access = start_server(host=host, port=port, token=token)
         self.server.gui.configure_theme(control_width="large", dark_mode=False, show_logo=False)
         self.server.scene.set_up_direction("+z")
         self.nodes = SceneNodes(self.server.scene)
         self.nodes.on_shape_click = self._on_shape_click
         self.panels = build_panels(
-            self.server.gui, scene_names=[e.name for e in self.state.entries], out_dir=str(out_dir)
+            self.server.gui, scene_names=[e.name for e in self.state.entries], out_dir=str(self.out_root)
         )
         self._wire()
         self.server.on_client_connect(self._on_connect)
@@ -114,10 +131,13 @@ class ViewerApp:
     # ================================================================== lifecycle
     @property
     def url(self) -> str:
-        """The real URL (after viser may have moved to a free port)."""
-        host = self.server.get_host()
-        shown = "127.0.0.1" if host in ("0.0.0.0", "") else host
-        return f"http://{shown}:{self.server.get_port()}"
+        """The URL to open, with the access token (the machine's address for a 0.0.0.0 bind; the real port)."""
+        return self.access.url
+
+    @property
+    def local_url(self) -> str:
+        """The URL from this machine (127.0.0.1 for loopback and 0.0.0.0 binds), with the token."""
+        return self.access.local_url
 
     def stop(self) -> None:
         """Stop playback, cancel a run, shut the workers and the server down."""
@@ -176,7 +196,10 @@ class ViewerApp:
 
     # ================================================================== wiring (callbacks stay thin)
     def _wire(self) -> None:
+        """Connect the controls to the actions. Every client value is read through `efem_viz.viewer.inputs`
+        (clamped to the control's declared range, checked against its options), never used raw."""
         p = self.panels
+        wb = self._gui_set  # shows a clamped value in every client without re-entering the callback
 
         def guard(fn: Callable[[], object]) -> Callable[[Any], None]:
             def cb(_event: Any) -> None:
@@ -185,41 +208,70 @@ class ViewerApp:
                         return
                 try:
                     fn()
+                except ClientValueError as exc:  # a value no control can produce: one line, no traceback
+                    self._set_status(str(exc), error=True)
                 except Exception as exc:  # noqa: BLE001
                     logger.exception("callback failed")
                     self._set_status(f"error: {exc}", error=True)
 
             return cb
 
-        p.gui_scene.on_update(guard(lambda: self._submit(self._worker, self.open_scene, p.gui_scene.value)))
-        p.gui_display.on_update(guard(lambda: self.set_display(p.gui_display.value)))
-        p.gui_color.on_update(guard(lambda: self.set_color_mode(COLOR_MODES[p.gui_color.value])))
-        p.gui_point_size.on_update(guard(lambda: self.set_point_size(float(p.gui_point_size.value) / 1000.0)))
+        p.gui_scene.on_update(guard(lambda: self._submit(self._worker, self.open_scene, read_choice(p.gui_scene))))
+        p.gui_display.on_update(guard(lambda: self.set_display(read_choice(p.gui_display))))
+        p.gui_color.on_update(guard(lambda: self.set_color_mode(COLOR_MODES[read_choice(p.gui_color)])))
+        p.gui_point_size.on_update(
+            guard(lambda: self.set_point_size(read_number(p.gui_point_size, write_back=wb) / 1000.0)))
         p.gui_run.on_click(
-            guard(lambda: self.start_run(preset=p.gui_preset.value, proposals=int(p.gui_proposals.value), seed=int(p.gui_seed.value)))
+            guard(lambda: self.start_run(preset=read_choice(p.gui_preset),
+                                         proposals=read_int(p.gui_proposals, write_back=wb),
+                                         seed=read_int(p.gui_seed, write_back=wb)))
         )
         p.gui_cancel.on_click(guard(self.cancel_run))
         p.gui_load.on_click(guard(lambda: self._submit(self._worker, self.load_trace)))
-        p.gui_step.on_update(guard(lambda: self.set_step(int(p.gui_step.value))))
+        p.gui_step.on_update(guard(lambda: self.set_step(read_int(p.gui_step))))
         p.gui_play.on_click(guard(self.toggle_play))
-        p.gui_speed.on_update(guard(lambda: setattr(self.state, "speed", float(p.gui_speed.value))))
-        p.gui_show_shapes.on_update(guard(lambda: self.set_proposal_layers(shapes=bool(p.gui_show_shapes.value))))
-        p.gui_show_samples.on_update(guard(lambda: self.set_proposal_layers(samples=bool(p.gui_show_samples.value))))
-        p.gui_max_shapes.on_update(guard(lambda: self.set_max_shapes(int(p.gui_max_shapes.value))))
-        p.gui_proposal.on_update(guard(lambda: self.select_proposal(_parse_pid(p.gui_proposal.value))))
-        p.gui_threshold.on_update(guard(lambda: self.set_threshold(float(p.gui_threshold.value))))
+        p.gui_speed.on_update(guard(lambda: setattr(self.state, "speed", read_number(p.gui_speed, write_back=wb))))
+        p.gui_show_shapes.on_update(guard(lambda: self.set_proposal_layers(shapes=read_bool(p.gui_show_shapes))))
+        p.gui_show_samples.on_update(guard(lambda: self.set_proposal_layers(samples=read_bool(p.gui_show_samples))))
+        p.gui_max_shapes.on_update(guard(lambda: self.set_max_shapes(read_int(p.gui_max_shapes, write_back=wb))))
+        p.gui_proposal.on_update(guard(lambda: self.select_proposal(_parse_pid(read_choice(p.gui_proposal)))))
+        p.gui_threshold.on_update(guard(lambda: self.set_threshold(read_number(p.gui_threshold))))
         p.gui_mask_band.on_update(
-            guard(lambda: self._submit(self._worker, self.set_mask_band, float(p.gui_mask_band.value))))
+            guard(lambda: self._submit(self._worker, self.set_mask_band, read_number(p.gui_mask_band))))
         for h in (p.gui_show_meshes, p.gui_show_obbs, p.gui_show_axes):
             h.on_update(
                 guard(
                     lambda: self.set_result_layers(
-                        meshes=bool(p.gui_show_meshes.value), obbs=bool(p.gui_show_obbs.value), axes=bool(p.gui_show_axes.value)
+                        meshes=read_bool(p.gui_show_meshes), obbs=read_bool(p.gui_show_obbs),
+                        axes=read_bool(p.gui_show_axes)
                     )
                 )
             )
-        p.gui_export_results.on_click(guard(lambda: self._submit(self._worker, self.export_results, p.gui_out_dir.value)))
-        p.gui_export_static.on_click(guard(lambda: self._submit(self._worker, self.export_static, None)))
+        p.gui_export_results.on_click(guard(lambda: self.export_from_gui("results")))
+        p.gui_export_static.on_click(guard(lambda: self.export_from_gui("static")))
+
+    def gui_out_folder(self) -> Path:
+        """The folder in the GUI's "Output folder" field, resolved inside the output root chosen at start.
+
+        Raises:
+            ClientValueError: the field names a place outside the output root (`..`, another absolute path, a
+                symlink pointing out), or is not a usable path.
+        """
+        return resolve_inside_root(read_text(self.panels.gui_out_dir), self.out_root, what="output folder")
+
+    def export_from_gui(self, kind: Literal["results", "static"]) -> Future[Any] | None:
+        """The Export buttons: results into the GUI's output folder, the static demo into
+        `<output folder>/static/<scene>/`; both confined to the output root. Returns the job's Future.
+
+        Raises:
+            ClientValueError: the output folder field is outside the output root.
+        """
+        folder = self.gui_out_folder()
+        if kind == "results":
+            return self._submit(self._worker, self.export_results, folder)
+        scene = self.state.scene
+        target = folder / "static" / _safe_name(scene.name) if scene is not None else None
+        return self._submit(self._worker, self.export_static, target)
 
     def _gui_set(self, handle: Any, value: Any) -> None:
         """Set a GUI value without re-entering our own callback."""
@@ -912,7 +964,8 @@ class ViewerApp:
 
     # ================================================================== 7. export
     def export_results(self, out_dir: str | Path) -> Path | None:
-        """Write the thresholded result: ScanNet layout + coloured PLY under `out_dir`."""
+        """Write the thresholded result: ScanNet layout + coloured PLY under `out_dir` (a Python caller's choice;
+        the GUI button goes through `export_from_gui`, confined to the output root)."""
         from efem_viz.viewer.export import export_results
 
         s = self.state
@@ -925,14 +978,19 @@ class ViewerApp:
         return out
 
     def export_static(self, out_dir: str | Path | None = None) -> Path | None:
-        """Write the static demo page `static/<scene>/index.html` (final result + playback of the steps)."""
+        """Write the static demo page `<out_dir>/index.html` (final result + playback of the steps).
+
+        Args:
+            out_dir: the page's folder (a Python caller's choice); None = `<output root>/static/<scene>/`, never
+                the installed package or the checkout. The GUI button goes through `export_from_gui`.
+        """
         from efem_viz.viewer.export import export_static_demo
 
         s = self.state
         if s.result is None or s.scene is None:
             self._set_status("Nothing to export: load or run a result first.", error=True)
             return None
-        target = Path(out_dir) if out_dir is not None else REPO_ROOT / "static" / _safe_name(s.scene.name)
+        target = Path(out_dir) if out_dir is not None else self.out_root / "static" / _safe_name(s.scene.name)
         try:
             prior = self._prior_for(s.result.trace)
         except RuntimeError as exc:

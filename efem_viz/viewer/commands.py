@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,13 +20,16 @@ class ViewArgs:
     paths: tyro.conf.Positional[tuple[Path, ...]] = field(default_factory=tuple)
     """Scene files and/or folders. Only scene files inside these paths can be opened."""
     host: str = "127.0.0.1"
-    """Interface to bind. The default keeps the viewer private to this machine; use 0.0.0.0 to share it."""
+    """Interface to bind. The default keeps the viewer private to this machine; 0.0.0.0 shares it with anyone on
+    the network who has the printed URL (it carries the access token)."""
     port: int = 8080
     """Port (a busy port is replaced by the next free one; the real URL is printed)."""
     prior: str = "mug"
     """Shape prior used for runs and for decoding shapes."""
     out_dir: Path = Path("efem_out")
-    """Default folder for exported results."""
+    """Output root: exports from the GUI (results, static demo) go into this folder or below it, nowhere else."""
+    token: str | None = None
+    """Access token to require (default: a fresh random one, printed in the URL). At least 16 characters."""
 
     def run(self) -> int:
         """Start the server, print its URL, serve until Ctrl+C."""
@@ -35,9 +39,16 @@ class ViewArgs:
         for p in paths:
             if not Path(p).exists():
                 raise FileNotFoundError(f"no such scene file or folder: {p}")
-        app = ViewerApp(paths, host=self.host, port=self.port, prior_name=self.prior, out_dir=self.out_dir)
-        print(f"efem-viz viewer: {app.url}  ({len(app.state.entries)} scenes; Ctrl+C to stop)", flush=True)
+        app = ViewerApp(paths, host=self.host, port=self.port, prior_name=self.prior, out_dir=self.out_dir,
+                        token=self.token)
         try:
+            warning = app.access.exposure_warning
+            if warning:
+                print(f"efem-viz viewer: {warning}", file=sys.stderr, flush=True)
+            print(f"efem-viz viewer: {app.url}  ({len(app.state.entries)} scenes; Ctrl+C to stop)", flush=True)
+            if app.local_url != app.url:
+                print(f"  on this machine: {app.local_url}", flush=True)
+            print(f"  exports go to: {app.out_root}", flush=True)
             while True:
                 time.sleep(3600)
         except KeyboardInterrupt:

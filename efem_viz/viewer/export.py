@@ -1,7 +1,7 @@
 """Exports from the viewer: results (ScanNet layout + coloured PLY) and a static, self-contained demo page.
 
 The static demo is recorded with viser's scene serializer on a private, short-lived server bound to 127.0.0.1
-(port 0): the scan, then one frame per EM step (sampled points of the live proposals, coloured by id, the decoded
+(port 0, behind the access guard; its token is shown to no one): the scan, then one frame per EM step (sampled points of the live proposals, coloured by id, the decoded
 shapes of the best few when the prior is given, and a caption with the phase and the number of active proposals), then the final result (instance colours, meshes, boxes).
 `as_html()` inlines the viser client and the zstd-compressed recording, so `index.html` opens from file:// with a
 playback bar (pause, scrub, speed, loop) and needs nothing else.
@@ -90,7 +90,7 @@ def export_static_demo(
     Returns:
         Path of the written `index.html`.
     """
-    import viser
+    from efem_viz.viewer.guard import start_server
 
     out = Path(out_dir).expanduser()
     out.mkdir(parents=True, exist_ok=True)
@@ -107,7 +107,7 @@ def export_static_demo(
     caption_pos = (float((lo[0] + hi[0]) / 2), float((lo[1] + hi[1]) / 2), float(hi[2] + 0.08 * diag))
 
     n_shapes = 0
-    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    server, _ = start_server(host="127.0.0.1", port=0)  # guarded too: its token is never shown to anyone
     try:
         ser = server.get_scene_serializer()
         api = server.scene
@@ -220,14 +220,15 @@ def export_static_demo(
 
 def main(argv: list[str] | None = None) -> int:
     """`python -m efem_viz.viewer.export SCENE [--prior mug] [--threshold T] [--out DIR]`: write a static demo of
-    a scene and its saved `<scene>.efem.npz` (default output: `static/<scene>/` of the repository)."""
+    a scene and its saved `<scene>.efem.npz` (default output: `./static/<scene>/` in the current directory, never
+    inside the installed package)."""
     import argparse
 
     ap = argparse.ArgumentParser(prog="python -m efem_viz.viewer.export", description=main.__doc__)
     ap.add_argument("scene", type=Path, help="scene file; its result <scene>.efem.npz must lie next to it")
     ap.add_argument("--prior", default="mug", help="prior for the decoded shapes ('' = none)")
     ap.add_argument("--threshold", type=float, default=0.0, help="confidence threshold of the final instances")
-    ap.add_argument("--out", type=Path, default=None, help="output folder (default: static/<scene>/)")
+    ap.add_argument("--out", type=Path, default=None, help="output folder (default: ./static/<scene>/)")
     args = ap.parse_args(argv)
     from efem_viz.data.io import load_scene
     from efem_viz.em import EMResult
@@ -240,9 +241,7 @@ def main(argv: list[str] | None = None) -> int:
         from efem_viz.prior import load_prior
 
         prior = load_prior(args.prior)
-    out = args.out or Path(__file__).resolve().parents[2] / "static" / "".join(
-        c if c.isalnum() or c in "-_." else "_" for c in scene.name
-    )
+    out = args.out or Path.cwd() / "static" / "".join(c if c.isalnum() or c in "-_." else "_" for c in scene.name)
     index = export_static_demo(scene, result, out, threshold=args.threshold, prior=prior)
     print(index)
     return 0

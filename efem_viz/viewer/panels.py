@@ -73,7 +73,7 @@ def build_panels(gui: Any, *, scene_names: list[str], out_dir: str) -> Panels:
     Args:
         gui: `server.gui`.
         scene_names: dropdown options of the scene browser.
-        out_dir: default export folder.
+        out_dir: the output root (exports from the GUI stay inside it).
     """
     import plotly.graph_objects as go
 
@@ -127,9 +127,9 @@ def build_panels(gui: Any, *, scene_names: list[str], out_dir: str) -> Panels:
         pr_plot = gui.add_plotly(go.Figure(), aspect=1.3, visible=False)
 
     with tabs.add_tab("Export"):
-        out = gui.add_text("Output folder", out_dir)
+        out = gui.add_text("Output folder", out_dir, hint=f"inside {out_dir} (the output folder chosen at start)")
         export_results = gui.add_button("Export results", hint="ScanNet layout + coloured PLY")
-        export_static = gui.add_button("Export static demo", hint="static/<scene>/index.html")
+        export_static = gui.add_button("Export static demo", hint="<output folder>/static/<scene>/index.html")
         export_info = gui.add_markdown("")
 
     return Panels(

@@ -1,0 +1,185 @@
+"""Reading values that clients send: every GUI value that feeds computation passes one of these helpers.
+
+A browser's GUI limits (slider ranges, the options of a dropdown) are only hints: any client can send any value
+over the WebSocket. The helpers here re-check a control's value on the server against what the server declared
+for that control (`min`/`max` of sliders and numbers, `options` of dropdowns; `efem_viz.viewer.guard` keeps
+clients from rewriting those): numbers are clamped into range and must be finite, choices must be one of the
+options, text is bounded, colours are 0-255 triples. Paths typed into the GUI must resolve inside a folder chosen
+at start (`resolve_inside_root`).
+
+Out-of-range numbers are clamped (and the clamped value is written back through `write_back`, so every client
+shows what is used); values that cannot be used (NaN, text in a number, an unknown option) raise
+`ClientValueError` with one line for the status line.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from pathlib import Path
+from typing import Any, Callable
+
+logger = logging.getLogger(__name__)
+
+MAX_TEXT = 1024
+"""Longest text accepted from a text field (names, categories, paths)."""
+
+WriteBack = Callable[[Any, Any], None]
+"""`write_back(handle, value)`: show the value actually used in the GUI (the app's own quiet setter)."""
+
+
+class ClientValueError(ValueError):
+    """A value from a client that cannot be used (the message is one line for the user)."""
+
+
+def _label(handle: Any) -> str:
+    return str(getattr(handle, "label", "") or "value")
+
+
+def _fix(handle: Any, value: Any, write_back: WriteBack | None) -> None:
+    logger.info("%s: client value %r replaced by %r", _label(handle), handle.value, value)
+    if write_back is not None:
+        write_back(handle, value)
+
+
+def read_number(handle: Any, *, write_back: WriteBack | None = None) -> float:
+    """The finite value of a slider / number control, clamped to its declared `min`/`max`.
+
+    Args:
+        handle: a viser slider or number handle (or anything with `value`, optional `min`, `max`, `label`).
+        write_back: called with the clamped value when it differs from the sent one.
+
+    Returns:
+        The value as a float, within [min, max] where those are declared.
+
+    Raises:
+        ClientValueError: not a number, NaN or infinite.
+    """
+    raw = handle.value
+    if isinstance(raw, bool):
+        raise ClientValueError(f"{_label(handle)}: expected a number, got {raw!r}")
+    try:
+        x = float(raw)
+    except (TypeError, ValueError, OverflowError):
+        raise ClientValueError(f"{_label(handle)}: expected a number, got {raw!r}") from None
+    if not math.isfinite(x):
+        raise ClientValueError(f"{_label(handle)}: {raw!r} is not a finite number")
+    lo, hi = getattr(handle, "min", None), getattr(handle, "max", None)
+    y = x
+    if lo is not None and y < float(lo):
+        y = float(lo)
+    if hi is not None and y > float(hi):
+        y = float(hi)
+    if y != x:
+        _fix(handle, type(raw)(y) if isinstance(raw, int) else y, write_back)
+    return y
+
+
+def read_int(handle: Any, *, write_back: WriteBack | None = None) -> int:
+    """`read_number`, rounded to the nearest integer inside the declared range.
+
+    Raises:
+        ClientValueError: not a number, NaN or infinite.
+    """
+    x = read_number(handle)
+    lo, hi = getattr(handle, "min", None), getattr(handle, "max", None)
+    n = int(round(x))
+    if lo is not None and n < lo:
+        n = math.ceil(lo)
+    if hi is not None and n > hi:
+        n = math.floor(hi)
+    if n != handle.value:
+        _fix(handle, n, write_back)
+    return n
+
+
+def read_choice(handle: Any) -> str:
+    """The value of a dropdown, checked to be one of its (server-declared) options.
+
+    Raises:
+        ClientValueError: the value is not one of the options.
+    """
+    value = handle.value
+    options = tuple(getattr(handle, "options", ()))
+    if not isinstance(value, str) or value not in options:
+        shown = value if len(str(value)) <= 60 else str(value)[:57] + "..."
+        raise ClientValueError(f"{_label(handle)}: {shown!r} is not one of the options")
+    return value
+
+
+def read_bool(handle: Any) -> bool:
+    """The value of a checkbox.
+
+    Raises:
+        ClientValueError: not a boolean.
+    """
+    value = handle.value
+    if not isinstance(value, bool):
+        raise ClientValueError(f"{_label(handle)}: expected true/false, got {value!r}")
+    return value
+
+
+def read_text(handle: Any, *, max_len: int = MAX_TEXT) -> str:
+    """The value of a text field: a string of at most `max_len` characters without NUL.
+
+    Raises:
+        ClientValueError: not a string, too long, or containing NUL.
+    """
+    value = handle.value
+    if not isinstance(value, str):
+        raise ClientValueError(f"{_label(handle)}: expected text, got {type(value).__name__}")
+    if len(value) > max_len:
+        raise ClientValueError(f"{_label(handle)}: text longer than {max_len} characters")
+    if "\x00" in value:
+        raise ClientValueError(f"{_label(handle)}: text contains a NUL character")
+    return value
+
+
+def read_rgb(handle: Any, *, write_back: WriteBack | None = None) -> tuple[int, int, int]:
+    """The value of a colour control: three integers clamped to 0-255.
+
+    Raises:
+        ClientValueError: not three finite numbers.
+    """
+    value = handle.value
+    try:
+        parts = [float(c) for c in value]
+    except (TypeError, ValueError):
+        raise ClientValueError(f"{_label(handle)}: expected an RGB colour, got {value!r}") from None
+    if len(parts) != 3 or not all(math.isfinite(c) for c in parts):
+        raise ClientValueError(f"{_label(handle)}: expected three finite RGB components, got {value!r}")
+    rgb = tuple(int(min(max(round(c), 0), 255)) for c in parts)
+    if rgb != tuple(value):
+        _fix(handle, rgb, write_back)
+    return rgb  # type: ignore[return-value]
+
+
+def resolve_inside_root(text: str | os.PathLike[str], root: str | os.PathLike[str], *, what: str = "path") -> Path:
+    """Resolve a client-given path inside `root` (relative paths are taken relative to `root`).
+
+    Args:
+        text: the path typed into the GUI.
+        root: the folder chosen at start (e.g. the viewer's `--out-dir`).
+        what: noun for the error message ("output folder").
+
+    Returns:
+        The resolved absolute path, `root` itself or below it.
+
+    Raises:
+        ClientValueError: empty, NUL, a `..` component, or a path that resolves outside `root` (an absolute path
+            elsewhere, or a symlink pointing out).
+    """
+    s = os.fspath(text).strip()
+    if not s or "\x00" in s:
+        raise ClientValueError(f"invalid {what}: {s!r}")
+    if len(s) > MAX_TEXT:
+        raise ClientValueError(f"invalid {what}: longer than {MAX_TEXT} characters")
+    p = Path(s).expanduser()
+    if ".." in p.parts:
+        raise ClientValueError(f"refusing {what} {s!r}: '..' is not allowed")
+    r = Path(root).expanduser().resolve()
+    resolved = (p if p.is_absolute() else r / p).resolve()
+    if resolved != r and r not in resolved.parents:
+        raise ClientValueError(f"refusing {what} {s!r}: it resolves to {resolved}, outside the output folder {r}")
+    return resolved

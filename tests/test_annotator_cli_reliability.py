@@ -1,0 +1,192 @@
+"""Reliability of the full `efem-annotate` CLI, driven by a scripted WebSocket client (tests/viser_client.py).
+
+An edit counts as acknowledged when the server has sent the instance table that shows it: that is all a user
+ever sees. Checked here, on the real process:
+- kill -9 at random moments during painting and undo: the restarted CLI shows the last acknowledged table, or the
+  one after it (the edit in flight may have reached the journal before its table was sent);
+- injected ENOSPC on the journal write path (a `sitecustomize` wrapping `os.write` for `*.journal` files while a
+  flag file exists): each refused edit says "Not done" in the GUI and changes nothing; after space comes back,
+  later edits land and survive a clean Ctrl+C and restart.
+"""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+sys.path.insert(0, str(Path(__file__).parent))
+from viser_client import JOURNAL_FAULTS_SITECUSTOMIZE as FAULTS  # noqa: E402
+from viser_client import AnnotateProcess as Cli  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def scan(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    p = tmp_path_factory.mktemp("scan") / "ball.ply"
+    trimesh.creation.icosphere(subdivisions=4, radius=0.1).export(p)  # 2562 vertices
+    return p
+
+
+def _spots(scan: Path, n: int) -> list[np.ndarray]:
+    """n well-separated vertex directions of the ball (farthest-point order, deterministic)."""
+    v = np.asarray(trimesh.load(scan, process=False).vertices)
+    v = v / np.linalg.norm(v, axis=1, keepdims=True)
+    chosen = [0]
+    d = np.linalg.norm(v - v[0], axis=1)
+    for _ in range(n - 1):
+        k = int(np.argmax(d))
+        chosen.append(k)
+        d = np.minimum(d, np.linalg.norm(v - v[k], axis=1))
+    return [v[k] for k in chosen]
+
+
+def _script(scan: Path, n: int) -> list[tuple]:
+    spots = _spots(scan, n)
+    steps: list[tuple] = [("new",)]
+    for k in range(n):
+        steps.append(("paint", spots[k]))
+        if k % 4 == 3:
+            steps.append(("undo",))
+    return steps
+
+
+def test_kill_9_at_random_moments_loses_no_acknowledged_edit(scan: Path, tmp_path: Path) -> None:
+    steps = _script(scan, 14)
+    ref = Cli(scan, tmp_path / "ref")
+    tables = [ref.table()] + [ref.edit(s) for s in steps]
+    assert ref.stop() == 0
+    rng = np.random.default_rng(13)
+    for trial in range(3):
+        out = tmp_path / f"kill{trial}"
+        cli = Cli(scan, out)
+        stop_after = int(rng.integers(3, len(steps) - 1))
+        acked = 0
+        for s in steps[:stop_after]:
+            assert cli.edit(s) == tables[acked + 1], "the scripted run must be deterministic"
+            acked += 1
+        # one more edit goes out, and the process dies at a random moment while it is handled
+        cli.edit(steps[stop_after], expect_change=False)
+        time.sleep(float(rng.uniform(0.0, 0.05)))
+        cli.kill()
+        again = Cli(scan, out)
+        seen = again.table()
+        assert seen in (tables[acked], tables[acked + 1]), f"trial {trial}: acked {acked}, recovered:\n{seen}"
+        # and the session goes on: the next edits land
+        assert again.stop() == 0
+
+
+def test_disk_full_on_the_journal_refuses_edits_then_later_edits_survive(scan: Path, tmp_path: Path) -> None:
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "sitecustomize.py").write_text(FAULTS)
+    flag = tmp_path / "disk-full"
+    env = {"PYTHONPATH_FIRST": str(site), "EFEM_TEST_FAULT_FILE": str(flag)}
+    spots = _spots(scan, 9)
+    out = tmp_path / "out"
+    cli = Cli(scan, out, env)
+    cli.edit(("new",))
+    for k in range(3):
+        cli.edit(("paint", spots[k]))
+    good = cli.table()
+    flag.write_text("full")
+    for k in range(3, 6):
+        n_notes = len(cli.client.notifications)
+        cli.edit(("paint", spots[k]), expect_change=False)
+        cli.must(lambda n=n_notes: len(cli.client.notifications) > n)
+        assert any("No space left" in t for t in cli.client.notification_texts()[n_notes:])
+        time.sleep(0.2)
+        assert cli.table() == good, "a refused edit must not show as applied"
+    flag.unlink()
+    for k in range(6, 9):
+        cli.edit(("paint", spots[k]))
+    final = cli.table()
+    journal = next(out.glob("*.annotate/*.journal"))
+    assert cli.stop() == 0
+    again = Cli(scan, out)
+    assert again.table() == final
+    assert not list(journal.parent.glob("*.damaged-*")) and not list(journal.parent.glob("*.torn-*")), \
+        "a failed append must leave no partial record behind"
+    assert "Recovered" not in again.client.markdown("Autosave") + "".join(again.lines)
+    assert again.stop() == 0
+
+
+def test_damaged_journal_is_reported_in_the_gui(scan: Path, tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    cli = Cli(scan, out)
+    spots = _spots(scan, 6)
+    cli.edit(("new",))
+    for k in range(6):
+        cli.edit(("paint", spots[k]))
+    final = cli.table()
+    assert cli.stop() == 0
+    journal = next(out.glob("*.annotate/*.journal"))
+    data = bytearray(journal.read_bytes())
+    offs = [m.start() for m in re.finditer(b"EFJ1", bytes(data))]
+    data[offs[3] + 40] ^= 0xFF
+    journal.write_bytes(bytes(data))
+    again = Cli(scan, out)
+    assert again.table() == final, "the checkpoint covers the damaged record: nothing is lost"
+    again.must(lambda: any("recovered" in t.lower() for t in again.client.notification_texts()))
+    status = next((c["props"].get("_markdown", "") for c in again.client.components.values()
+                   if "Recovered" in str(c["props"].get("_markdown", ""))), "")
+    assert "nothing was lost" in status and "damaged" in status
+    assert again.stop() == 0
+
+
+@pytest.fixture()
+def small_disk(tmp_path: Path):
+    """A real 2 MiB tmpfs (skipped where mounting is not allowed)."""
+    mnt = tmp_path / "disk"
+    mnt.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(mnt)], capture_output=True)
+    if r.returncode != 0:
+        pytest.skip("cannot mount a tmpfs here: " + r.stderr.decode(errors="replace").strip())
+    try:
+        yield mnt
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
+
+
+def _fill(disk: Path) -> Path:
+    filler = disk / "filler"
+    try:
+        with open(filler, "wb", buffering=0) as f:
+            while True:
+                f.write(b"\0" * 4096)
+    except OSError:
+        pass
+    return filler
+
+
+def test_real_full_disk_shows_in_the_gui_and_loses_nothing(scan: Path, small_disk: Path) -> None:
+    """No injection: the output folder is on a real filesystem that fills up. Appends that still fit in the
+    journal's last page land (and are kept); the checkpoint rewrite fails at once, which the GUI must say."""
+    spots = _spots(scan, 14)
+    out = small_disk / "out"
+    cli = Cli(scan, out)
+    cli.edit(("new",))
+    for k in range(2):
+        cli.edit(("paint", spots[k]))
+    filler = _fill(small_disk)
+    n_notes = len(cli.client.notifications)
+    for k in range(2, 10):
+        cli.edit(("paint", spots[k]), expect_change=False)
+        time.sleep(0.3)
+    cli.must(lambda: any("Autosave failed" in t for t in cli.client.notification_texts()[n_notes:]))
+    assert "No space left" in " ".join(cli.client.notification_texts()[n_notes:])
+    assert "⚠" in cli.client.markdown("**⚠"), "the status panel shows the standing problem"
+    filler.unlink()
+    for k in range(10, 14):
+        cli.edit(("paint", spots[k]))
+    cli.must(lambda: any("works again" in t for t in cli.client.notification_texts()))
+    final = cli.table()
+    assert cli.stop() == 0
+    again = Cli(scan, out)
+    assert again.table() == final, "every edit the GUI showed survives"
+    assert again.stop() == 0

@@ -1,0 +1,499 @@
+"""Server security of the viewer and the annotator (issue 13, items 5-8), against the real apps on port 0.
+
+5. Cross-site WebSocket hijacking: a foreign `Origin`, a missing or wrong token are refused with HTTP 403; the
+   printed URL (token in the query) and the cookie its page load sets are accepted. Also on the full CLI process.
+6. A 0.0.0.0 bind warns in one line and prints a URL other machines can use (with the token).
+7. Values a client sends over the WebSocket (bypassing the GUI's limits) are clamped/validated on the server.
+8. Exports from the GUI stay inside the output folder chosen at start.
+"""
+
+from __future__ import annotations
+
+import http.client
+import math
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any, Iterator
+
+import numpy as np
+import pytest
+import trimesh
+
+sys.path.insert(0, str(Path(__file__).parent))
+from viser_client import RawClient, handshake_status, wait_for, ws_url  # noqa: E402
+
+from annotator.app import AnnotatorApp  # noqa: E402
+from annotator.io import LabelIOError  # noqa: E402
+from efem_viz.viewer import guard  # noqa: E402
+from efem_viz.viewer.inputs import (  # noqa: E402
+    ClientValueError,
+    read_choice,
+    read_int,
+    read_number,
+    read_rgb,
+    read_text,
+    resolve_inside_root,
+)
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+# ---------------------------------------------------------------------------------------------- fixtures
+@pytest.fixture()
+def scan(tmp_path: Path) -> Path:
+    p = tmp_path / "scans" / "ball.ply"
+    p.parent.mkdir()
+    trimesh.creation.icosphere(subdivisions=3, radius=0.1).export(p)  # 642 vertices
+    return p
+
+
+@pytest.fixture()
+def annotator(scan: Path, tmp_path: Path) -> Iterator[AnnotatorApp]:
+    a = AnnotatorApp(scan, out_dir=tmp_path / "out", port=0, autosave_delay=0)
+    yield a
+    a.close()
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A sphere scene with its saved EM result (analytic prior: exact, fast)."""
+    import torch
+
+    from efem_viz import em
+    from efem_viz.data.io import save_scene
+    from efem_viz.em import analytic
+
+    torch.set_num_threads(1)
+    d = tmp_path_factory.mktemp("scenes")
+    scene = analytic.make_sphere_scene(seed=0, spacing=0.012, name="spheres")
+    save_scene(scene, d / "spheres.ply")
+    cfg = em.preset("fast").with_proposals(8).replace(min_size=30)
+    em.run_em(scene, analytic.make_sphere_prior(), cfg, seed=0).save(d / "spheres.efem.npz")
+    return d
+
+
+@pytest.fixture()
+def viewer(scene_dir: Path, tmp_path: Path) -> Iterator[Any]:
+    from efem_viz.em import analytic
+    from efem_viz.viewer.app import ViewerApp
+
+    a = ViewerApp([scene_dir], port=0, prior=analytic.make_sphere_prior(), out_dir=tmp_path / "exports")
+    assert a.wait_idle(60)
+    yield a
+    a.stop()
+
+
+def _http_get(url: str, *, cookie: str | None = None, origin: str | None = None,
+              host: str | None = None) -> tuple[int, dict[str, str], bytes]:
+    m = re.match(r"http://([^/]+)(/.*)?$", url)
+    assert m, url
+    conn = http.client.HTTPConnection(m.group(1), timeout=10)
+    headers = {}
+    if cookie:
+        headers["Cookie"] = cookie
+    if origin:
+        headers["Origin"] = origin
+    if host:
+        headers["Host"] = host
+    conn.request("GET", m.group(2) or "/", headers=headers)
+    r = conn.getresponse()
+    body = r.read()
+    conn.close()
+    return r.status, dict(r.getheaders()), body
+
+
+def _base(url: str) -> str:
+    return url.split("/?", 1)[0]
+
+
+# ============================================================================ 5. origin + token (pure policy)
+def _h(**kw: str) -> Any:
+    data = {k.replace("_", "-").title(): v for k, v in kw.items()}
+    return SimpleNamespace(get=lambda k, d=None: data.get(k, d),
+                           get_all=lambda k: [data[k]] if k in data else [])
+
+
+def test_policy_refuses_foreign_origin_rebinding_and_missing_token() -> None:
+    tok = guard.new_token()
+    pol = guard.AccessPolicy(token=tok, bind_host="127.0.0.1")
+    ok = f"/?token={tok}"
+    assert pol.refusal(path=ok, headers=_h(host="127.0.0.1:8080"), local_port=8080) is None
+    # loopback names are one origin
+    assert pol.refusal(path=ok, headers=_h(host="127.0.0.1:8080", origin="http://localhost:8080"),
+                       local_port=8080) is None
+    assert pol.refusal(path=ok, headers=_h(host="[::1]:8080", origin="http://127.0.0.1:8080"), local_port=8080) is None
+    assert "cross-origin" in pol.refusal(path=ok, headers=_h(host="127.0.0.1:8080", origin="http://evil.example"),
+                                         local_port=8080)
+    assert "cross-origin" in pol.refusal(path=ok, headers=_h(host="127.0.0.1:8080", origin="http://localhost:9999"),
+                                         local_port=8080)  # another local server's page
+    assert "cross-origin" in pol.refusal(path=ok, headers=_h(host="127.0.0.1:8080", origin="null"), local_port=8080)
+    assert "loopback" in pol.refusal(path=ok, headers=_h(host="evil.example:8080", origin="http://evil.example:8080"),
+                                     local_port=8080)  # DNS rebinding
+    assert "token" in pol.refusal(path="/", headers=_h(host="127.0.0.1:8080"), local_port=8080)
+    # an SSH tunnel / port forward: the browser's origin is the forwarded port, the server listens on another
+    assert pol.refusal(path=ok, headers=_h(host="localhost:9000", origin="http://localhost:9000"), local_port=8080) is None
+    assert "cross-origin" in pol.refusal(path=ok, headers=_h(host="localhost:9000", origin="http://localhost:8080"),
+                                         local_port=8080)
+    assert "token" in pol.refusal(path="/?token=" + "x" * 32, headers=_h(host="127.0.0.1:8080"), local_port=8080)
+    cookie = f"other=1; {pol.cookie_for(8080)}={tok}"
+    assert pol.refusal(path="/", headers=_h(host="127.0.0.1:8080", cookie=cookie), local_port=8080) is None
+    # the cookie of the server on another port does not open this one
+    assert "token" in pol.refusal(path="/", headers=_h(host="127.0.0.1:8080", cookie=f"{pol.cookie_for(8081)}={tok}"),
+                                  local_port=8080)
+    with pytest.raises(ValueError):
+        guard.AccessPolicy(token="short", bind_host="127.0.0.1")
+    # a network bind accepts the machine's own name as Host, still only same-origin pages and the token
+    net = guard.AccessPolicy(token=tok, bind_host="0.0.0.0")
+    assert net.refusal(path=ok, headers=_h(host="10.1.2.3:8080", origin="http://10.1.2.3:8080"), local_port=8080) is None
+    assert "cross-origin" in net.refusal(path=ok, headers=_h(host="10.1.2.3:8080", origin="http://evil.example"),
+                                         local_port=8080)
+    assert "token" in net.refusal(path="/", headers=_h(host="10.1.2.3:8080"), local_port=8080)
+
+
+# ============================================================================ 5. against the real apps
+def _check_ws_guard(url: str, port: int, token: str) -> None:
+    base = "ws://127.0.0.1:%d" % port
+    own = f"http://127.0.0.1:{port}"
+    assert handshake_status(base + "/", origin=own) == 403, "no token"
+    assert handshake_status(base + "/?token=wrong-token-wrong-token-wrong", origin=own) == 403, "wrong token"
+    assert handshake_status(ws_url(url), origin="http://evil.example") == 403, "foreign origin with the token"
+    assert handshake_status(ws_url(url), origin=f"http://127.0.0.1:{port + 1}") == 403, "other local port"
+    assert handshake_status(ws_url(url), origin=own) == 101, "the printed URL"
+    assert handshake_status(ws_url(url), origin=f"http://localhost:{port}") == 101, "localhost = 127.0.0.1"
+    assert handshake_status(ws_url(url)) == 101, "a script without Origin, with the token"
+    # what the browser does: load the page (query token) → cookie → WebSocket on the bare URL with the cookie
+    status, headers, body = _http_get(url)
+    assert status == 200 and b"<html" in body[:400].lower()
+    cookie = headers["Set-Cookie"].split(";", 1)[0]
+    assert "HttpOnly" in headers["Set-Cookie"] and "SameSite=Strict" in headers["Set-Cookie"]
+    assert handshake_status(base, origin=own, cookie=cookie) == 101
+    assert handshake_status(base, origin="http://evil.example", cookie=cookie) == 403
+    # plain HTTP needs the token too (the page, any file)
+    assert _http_get(_base(url) + "/")[0] == 403
+    assert _http_get(_base(url) + "/index.html", cookie=cookie)[0] == 200
+    assert _http_get(url, host=f"evil.example:{port}")[0] == 403
+
+
+def test_viewer_refuses_foreign_origin_and_missing_token(viewer: Any) -> None:
+    assert re.fullmatch(r"http://127\.0\.0\.1:\d+/\?token=[\w-]{32}", viewer.url), viewer.url
+    _check_ws_guard(viewer.url, viewer.server.get_port(), viewer.access.token)
+
+
+def test_annotator_refuses_foreign_origin_and_missing_token(annotator: AnnotatorApp) -> None:
+    assert re.fullmatch(r"http://127\.0\.0\.1:\d+/\?token=[\w-]{32}", annotator.url), annotator.url
+    _check_ws_guard(annotator.url, annotator.server.get_port(), annotator.access.token)
+
+
+def test_a_refused_client_cannot_drive_the_annotator(annotator: AnnotatorApp) -> None:
+    """Delete via a hostile page: refused at the handshake, the instance survives."""
+    from websockets.exceptions import InvalidStatus
+
+    iid = annotator.new_instance(category="mug")
+    with pytest.raises(InvalidStatus):
+        RawClient(ws_url(annotator.url), origin="http://evil.example")
+    assert iid in annotator.store.labelset.instances
+    with RawClient(annotator.url) as c:  # the token holder can
+        assert wait_for(lambda: len(annotator.server.get_clients()) == 1)
+        c.press(annotator.gui_delete)
+        assert wait_for(lambda: iid not in annotator.store.labelset.instances)
+
+
+def test_guard_fails_loudly_when_the_hook_point_is_gone(monkeypatch: pytest.MonkeyPatch) -> None:
+    """If viser stops opening its socket through the hooked `serve`, nothing is served unguarded."""
+    import websockets.asyncio.server as ws_server
+
+    guard._install_serve_hook()
+    assert guard._original_serve is not None
+    monkeypatch.setattr(ws_server, "serve", guard._original_serve)  # viser now bypasses the wrapper
+    monkeypatch.setattr(guard, "_install_serve_hook", lambda: None)
+    with pytest.raises(guard.GuardUnavailableError, match="refusing to serve unguarded"):
+        guard.start_server(host="127.0.0.1", port=0)
+
+
+def test_client_cannot_rewrite_control_bounds(annotator: AnnotatorApp) -> None:
+    """viser applies any property a client sends; the guard keeps only `value`, so bounds stay the server's."""
+    with RawClient(annotator.url) as c:
+        assert wait_for(lambda: len(annotator.server.get_clients()) == 1)
+        c.set_gui(annotator.gui_radius, max=1e9, min=-1e9, value=1e6)
+        c.set_gui(annotator.gui_tool, options=("brush", "rm"), value="rm")
+        c.set_gui(annotator.gui_delete, disabled=True)
+        assert wait_for(lambda: abs(annotator.settings.radius - 0.20) < 1e-9)
+        assert annotator.gui_radius.max == 20.0 and annotator.gui_radius.min == pytest.approx(0.1)
+        assert tuple(annotator.gui_tool.options) == ("brush", "erase", "grow", "fill", "pick", "segment")
+        assert annotator.gui_delete.disabled is False
+        assert annotator.settings.tool == "brush"
+        c.send({"type": "ShareUrlRequest"})  # would open a public tunnel to this server
+        time.sleep(0.2)
+        assert annotator.server._share_tunnel is None
+    from viser import _messages
+
+    assert _messages.ShareUrlRequest not in annotator.server._websock_server._incoming_handlers
+
+
+# ============================================================================ 5./6. the CLI processes
+def _start_cli(args: list[str], *, until: str = "  autosave:") -> tuple[subprocess.Popen[str], list[str]]:
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
+    env["PYTHONPATH"] = os.pathsep.join(p for p in [str(REPO), os.environ.get("PYTHONPATH", "")] if p)
+    proc = subprocess.Popen([sys.executable, *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env=env)
+    lines: list[str] = []
+    end = time.monotonic() + 90
+    assert proc.stdout is not None
+    while time.monotonic() < end:
+        line = proc.stdout.readline()
+        if not line:
+            break
+        lines.append(line)
+        if line.startswith(until):
+            return proc, lines
+    proc.kill()
+    raise AssertionError("the CLI printed no URL:\n" + "".join(lines))
+
+
+def _stop_cli(proc: subprocess.Popen[str]) -> int:
+    proc.send_signal(signal.SIGINT)
+    try:
+        return proc.wait(30)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        return proc.wait(10)
+
+
+def test_annotate_cli_prints_a_tokenised_url_and_guards_it(scan: Path, tmp_path: Path) -> None:
+    proc, lines = _start_cli(["-m", "annotator", str(scan), "--out", str(tmp_path / "o"), "--port", "0"])
+    try:
+        url = re.search(r" at (http://\S+)", "".join(lines)).group(1)  # type: ignore[union-attr]
+        port = int(re.search(r":(\d+)/", url).group(1))  # type: ignore[union-attr]
+        assert "?token=" in url and url.startswith("http://127.0.0.1:")
+        assert not any("warning" in ln.lower() for ln in lines), "a loopback bind needs no warning"
+        assert handshake_status(f"ws://127.0.0.1:{port}/", origin=f"http://127.0.0.1:{port}") == 403
+        assert handshake_status(ws_url(url), origin="http://evil.example") == 403
+        assert handshake_status(ws_url(url), origin=f"http://127.0.0.1:{port}") == 101
+    finally:
+        assert _stop_cli(proc) == 0
+
+
+def test_annotate_cli_on_all_interfaces_warns_and_prints_a_reachable_url(scan: Path, tmp_path: Path) -> None:
+    proc, lines = _start_cli(["-m", "annotator", str(scan), "--out", str(tmp_path / "o"), "--port", "0",
+                              "--host", "0.0.0.0"])
+    try:
+        text = "".join(lines)
+        warnings = [ln for ln in lines if "warning" in ln.lower()]
+        assert len(warnings) == 1 and "anyone on the network" in warnings[0], text
+        url = re.search(r" at (http://\S+)", text).group(1)  # type: ignore[union-attr]
+        host = re.match(r"http://([^:/]+):", url).group(1)  # type: ignore[union-attr]
+        assert host == guard.reachable_host("0.0.0.0") and host not in ("0.0.0.0", ""), url
+        assert "?token=" in url
+        assert re.search(r"on this machine: http://127\.0\.0\.1:\d+/\?token=", text), text
+        assert handshake_status(ws_url(url), origin=_base(url)) == 101, "reachable at the printed address"
+        assert handshake_status(ws_url(_base(url)), origin=_base(url)) == 403, "still needs the token"
+    finally:
+        assert _stop_cli(proc) == 0
+
+
+def test_viewer_on_all_interfaces_warns_and_prints_a_reachable_url(
+    scene_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from efem_viz.viewer import commands
+
+    def interrupt(_s: float) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(commands.time, "sleep", interrupt)  # serve "until Ctrl+C": at once
+    args = commands.ViewArgs(paths=(scene_dir / "spheres.ply",), host="0.0.0.0", port=0, prior="",
+                             out_dir=tmp_path / "o")
+    assert args.run() == 0
+    out = capsys.readouterr()
+    warn = [ln for ln in out.err.splitlines() if "warning" in ln]
+    assert len(warn) == 1 and "anyone on the network" in warn[0], out.err
+    url = re.search(r"viewer: (http://\S+)", out.out).group(1)  # type: ignore[union-attr]
+    assert url.startswith(f"http://{guard.reachable_host('0.0.0.0')}:") and "?token=" in url
+    assert "127.0.0.1" not in url or guard.reachable_host("0.0.0.0") == "127.0.0.1"
+    assert re.search(r"on this machine: http://127\.0\.0\.1:\d+/\?token=", out.out)
+
+
+def test_loopback_app_urls_have_the_real_port_and_no_warning(annotator: AnnotatorApp) -> None:
+    assert annotator.access.exposure_warning is None
+    assert f":{annotator.server.get_port()}/" in annotator.url
+    assert annotator.local_url == annotator.url
+
+
+# ============================================================================ 7. values from clients
+class _H(SimpleNamespace):
+    pass
+
+
+def test_read_helpers_clamp_and_reject() -> None:
+    h = _H(label="Brush radius (cm)", value=1e6, min=0.1, max=20.0)
+    fixed: list[Any] = []
+    assert read_number(h, write_back=lambda _h, v: fixed.append(v)) == 20.0 and fixed == [20.0]
+    h.value = -5.0
+    assert read_number(h) == pytest.approx(0.1)
+    for bad in (math.nan, math.inf, -math.inf, "abc", None, True):
+        h.value = bad
+        with pytest.raises(ClientValueError, match="Brush radius"):
+            read_number(h)
+    n = _H(label="Proposals", value=50_000_000, min=1, max=2000)
+    assert read_int(n) == 2000
+    n.value = 0
+    assert read_int(n) == 1
+    free = _H(label="x", value=1e300)  # no declared bounds: finite is enough
+    assert read_number(free) == 1e300
+    d = _H(label="Tool", value="rm -rf", options=("brush", "erase"))
+    with pytest.raises(ClientValueError, match="not one of the options"):
+        read_choice(d)
+    d.value = "erase"
+    assert read_choice(d) == "erase"
+    t = _H(label="Name", value="x" * 5000)
+    with pytest.raises(ClientValueError, match="longer"):
+        read_text(t)
+    t.value = "a\x00b"
+    with pytest.raises(ClientValueError, match="NUL"):
+        read_text(t)
+    c = _H(label="Colour", value=(300, -4, 7))
+    assert read_rgb(c) == (255, 0, 7)
+    c.value = (1, 2)
+    with pytest.raises(ClientValueError):
+        read_rgb(c)
+
+
+def test_annotator_clamps_a_raw_brush_radius_before_painting(annotator: AnnotatorApp) -> None:
+    """The 1e6 cm brush: sent raw over the WebSocket, the click paints with the slider's maximum (20 cm)."""
+    from annotator import selection as sel
+
+    big = trimesh.creation.box(extents=(2.0, 2.0, 0.02)).subdivide().subdivide().subdivide()
+    assert big is not None
+    iid = annotator.new_instance(category="mug")
+    with RawClient(annotator.url) as c:
+        assert wait_for(lambda: len(annotator.server.get_clients()) == 1)
+        c.set_gui(annotator.gui_radius, value=1e6)
+        assert wait_for(lambda: annotator.settings.radius == pytest.approx(0.20))
+        assert wait_for(lambda: annotator.gui_radius.value == 20.0), "the clamped value is shown to every client"
+        c.set_gui(annotator.gui_brush_angle, value=float("nan"))  # refused: the setting stays
+        c.set_gui(annotator.gui_grow_dist, value=-1e9)
+        assert wait_for(lambda: annotator.settings.grow_distance == pytest.approx(0.01))
+        assert annotator.settings.brush_max_angle_deg == 180.0
+        c.set_gui(annotator.gui_tool, value="no-such-tool")
+        time.sleep(0.2)
+        assert annotator.settings.tool == "brush"
+    # the computation sees the clamped radius: a click paints exactly the 20 cm ball
+    hit = sel.pick(annotator.geom, np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, -1.0]))
+    assert hit is not None
+    annotator.click(np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, -1.0]))
+    expect = sel.brush(annotator.geom, hit[1], 0.20)
+    assert np.array_equal(np.flatnonzero(annotator.store.labels == iid), np.sort(expect))
+
+
+def test_annotator_refuses_non_finite_scene_events(annotator: AnnotatorApp) -> None:
+    annotator.new_instance()
+    ev = SimpleNamespace(ray_origin=(0.0, 0.0, math.nan), ray_direction=(0.0, 0.0, -1.0), client_id=1)
+    with pytest.raises(ClientValueError):
+        annotator.handle_event("click", ev)
+    assert not (annotator.store.labels > 0).any()
+
+
+def test_annotator_text_fields_are_bounded(annotator: AnnotatorApp) -> None:
+    iid = annotator.new_instance(category="mug")
+    with RawClient(annotator.url) as c:
+        assert wait_for(lambda: len(annotator.server.get_clients()) == 1)
+        c.set_gui(annotator.gui_name, value="n" * 100_000)
+        time.sleep(0.3)
+        assert len(annotator.store.labelset.info(iid).name) < 300
+        c.set_gui(annotator.gui_name, value="cup A")
+        assert wait_for(lambda: annotator.store.labelset.info(iid).name == "cup A")
+
+
+def test_viewer_clamps_raw_proposals_and_rejects_nan(viewer: Any) -> None:
+    """50,000,000 proposals sent raw (GUI max 2000): the run gets 2000; a NaN point size changes nothing."""
+    calls: list[dict[str, Any]] = []
+    viewer.start_run = lambda **kw: calls.append(kw)  # the wired callback looks the method up at call time
+    p = viewer.panels
+    size_before = viewer.state.point_size
+    with RawClient(viewer.url) as c:
+        assert wait_for(lambda: len(viewer.server.get_clients()) == 1)
+        c.set_gui(p.gui_proposals, value=50_000_000)
+        c.set_gui(p.gui_seed, value=-7)
+        c.set_gui(p.gui_preset, value="../../etc")
+        time.sleep(0.2)
+        c.press(p.gui_run)
+        assert wait_for(lambda: "not one of the options" in (viewer.state.error or ""))
+        assert not calls, "an unknown preset is refused before anything runs"
+        c.set_gui(p.gui_preset, value="fast")
+        time.sleep(0.1)
+        c.press(p.gui_run)
+        assert wait_for(lambda: bool(calls))
+        assert calls[0] == {"preset": "fast", "proposals": 2000, "seed": 0}
+        assert wait_for(lambda: p.gui_proposals.value == 2000)
+        c.set_gui(p.gui_point_size, value=float("nan"))
+        assert wait_for(lambda: "finite" in (viewer.state.error or ""))
+        assert viewer.state.point_size == size_before
+        c.set_gui(p.gui_max_shapes, value=10**9)
+        assert wait_for(lambda: viewer.state.max_shapes == 64)
+        c.set_gui(p.gui_speed, value=1e9)
+        assert wait_for(lambda: viewer.state.speed == 10.0)
+
+
+# ============================================================================ 8. exports stay in the output root
+def test_viewer_gui_exports_stay_inside_the_output_root(viewer: Any, tmp_path: Path) -> None:
+    root = viewer.out_root
+    assert root == (tmp_path / "exports").resolve()
+    assert viewer.open_scene("spheres") and viewer.state.result is not None
+    outside = tmp_path / "elsewhere"
+    outside.mkdir()
+    root.mkdir(parents=True, exist_ok=True)
+    os.symlink(outside, root / "link")
+    for bad in ("../escape", str(outside), "/etc", "link/sub", "sub/../../x"):
+        viewer._gui_set(viewer.panels.gui_out_dir, bad)
+        with pytest.raises(ClientValueError, match="refusing output folder|not allowed"):
+            viewer.export_from_gui("results")
+        with pytest.raises(ClientValueError):
+            viewer.export_from_gui("static")
+    assert not any(outside.iterdir())
+    viewer._gui_set(viewer.panels.gui_out_dir, "run1")
+    fut = viewer.export_from_gui("results")
+    assert fut is not None and fut.result(60) == root / "run1"
+    assert (root / "run1" / "spheres_instances.ply").is_file()
+
+
+def test_viewer_static_demo_defaults_into_the_output_root(viewer: Any, tmp_path: Path) -> None:
+    """"Export static demo" writes <output folder>/static/<scene>/, never into the checkout or the package."""
+    assert viewer.open_scene("spheres")
+    before = {p: p.stat().st_mtime for p in (REPO / "static").rglob("*") if p.is_file()} if (REPO / "static").exists() else {}
+    fut = viewer.export_from_gui("static")  # the field holds the root itself
+    assert fut is not None
+    index = fut.result(120)
+    assert index == viewer.out_root / "static" / "spheres" / "index.html" and index.is_file()
+    after = {p: p.stat().st_mtime for p in (REPO / "static").rglob("*") if p.is_file()} if (REPO / "static").exists() else {}
+    assert before == after, "nothing in the checkout's static/ changed"
+
+
+def test_resolve_inside_root_refuses_escapes(tmp_path: Path) -> None:
+    root = tmp_path / "root"
+    (root / "a").mkdir(parents=True)
+    os.symlink(tmp_path, root / "up")
+    assert resolve_inside_root("a", root) == (root / "a").resolve()
+    assert resolve_inside_root(str(root), root) == root.resolve()
+    assert resolve_inside_root("new/dir", root) == (root / "new" / "dir").resolve()
+    for bad in ("..", "a/../..", "/tmp", "up", "up/x", "", "a\x00b"):
+        with pytest.raises(ClientValueError):
+            resolve_inside_root(bad, root)
+
+
+def test_annotator_exports_only_into_the_output_folder(annotator: AnnotatorApp, scan: Path, tmp_path: Path) -> None:
+    annotator.new_instance()
+    annotator.paint(np.arange(10))
+    out = annotator.out_dir
+    (out / "sub").mkdir()
+    os.symlink(tmp_path, out / "escape")
+    for bad in (str(scan.parent), "../scans", str(tmp_path), "escape", "/tmp"):
+        with pytest.raises(LabelIOError):
+            annotator.export("ply", directory=bad)
+    assert [p.name for p in annotator.export("npz", directory="sub")] == ["ball.labels.npz"]
+    assert (out / "sub" / "ball.labels.npz").is_file()
+    assert sorted(p.name for p in scan.parent.iterdir()) == ["ball.ply"], "nothing written next to the scan"
