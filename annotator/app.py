@@ -16,6 +16,7 @@ Interaction (see docs/ANNOTATOR.md):
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import queue
@@ -59,8 +60,11 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 Tool = Literal["brush", "erase", "grow", "fill", "pick", "segment"]
-TOOLS: tuple[str, ...] = ("brush", "erase", "grow", "fill", "pick", "segment")
-TOOL_KEYS: dict[str, str] = {"brush": "B", "erase": "E", "grow": "G", "fill": "F", "pick": "I", "segment": "S"}
+TOOLS: tuple[str, ...] = ("brush", "erase", "grow", "fill", "pick", "segment", "lasso")
+TOOL_KEYS: dict[str, str] = {"brush": "B", "erase": "E", "grow": "G", "fill": "F", "pick": "I", "segment": "S",
+                             "lasso": "O"}
+MAX_LASSO_POINTS = 500
+"""Most outline points one lasso may have (a client cannot grow it without bound)."""
 MAX_NAME = 200
 """Longest instance name / category accepted from a client."""
 NO_OPTIONS: tuple[str, ...] = ("(none)",)
@@ -210,6 +214,11 @@ class AnnotatorApp:
         """(N,) bool mask drawn highlighted (click-to-segment preview), or None."""
         self.pending_segment: np.ndarray | None = None
         self._strokes: dict[int, _Stroke] = {}
+        self._lasso_points: list[tuple[float, float]] = []
+        """Lasso outline in [0, 1] screen coordinates of `_lasso_camera`."""
+        self._lasso_world: list[np.ndarray] = []
+        self._lasso_camera: tuple[np.ndarray, np.ndarray, float, float] | None = None
+        self._lasso_handle: Any = None
         self._edits: queue.Queue[tuple[str, Any]] = queue.Queue()
         self._tls = threading.local()
         self._draw_lock = threading.Lock()
@@ -349,6 +358,9 @@ class AnnotatorApp:
             self.gui_only_unlabelled = gui.add_checkbox("Only unlabelled vertices", s.only_unlabelled)
             self.gui_box_facing = gui.add_dropdown("Box select", ("front", "all"), initial_value="front",
                                                    hint="Shift+drag a box; front = vertices facing the camera")
+            self.gui_lasso_apply = gui.add_button("Apply lasso (Enter)", disabled=True,
+                                                  hint="Lasso tool: Ctrl/Cmd+click the outline, then apply")
+            self.gui_lasso_clear = gui.add_button("Clear lasso", disabled=True)
         with gui.add_folder("Instances"):
             self.gui_active = gui.add_dropdown("Active", self._instance_options() or NO_OPTIONS)
             self.gui_name = gui.add_text("Name", "")
@@ -464,6 +476,9 @@ class AnnotatorApp:
             guarded(lambda: self.review_prelabel(_id_of(read_choice(self.gui_prelabel)), "merge")))
         self.gui_seg_accept.on_click(guarded(lambda: self.accept_segment()))
         self.gui_seg_cancel.on_click(guarded(lambda: self.discard_segment()))
+        self.gui_lasso_apply.on_click(guarded(lambda: self.apply_lasso()))
+        self.gui_lasso_clear.on_click(guarded(lambda: self.clear_lasso()))
+        gui.add_command("Apply lasso", hotkey="Enter").on_trigger(guarded(lambda: self.apply_lasso()))  # type: ignore[arg-type]
 
         # ---- hotkeys
         for tool, key in TOOL_KEYS.items():
@@ -750,6 +765,73 @@ class AnnotatorApp:
                              facing="front" if self.settings.box_facing == "front" else "all")
         return self.paint(idx, erase=self.settings.tool == "erase", client=client)
 
+    def lasso(
+        self,
+        *,
+        position: np.ndarray,
+        wxyz: np.ndarray,
+        fov: float,
+        aspect: float,
+        polygon: np.ndarray,
+        client: str = "",
+    ) -> Delta | None:
+        """Lasso select with a camera: vertices inside a screen outline, painted with the active instance (erased
+        with the erase tool); `Box select: front/all` decides whether hidden sides are taken too."""
+        idx = sel.lasso_select(self.geom, position=position, wxyz=wxyz, fov=fov, aspect=aspect, polygon=polygon,
+                               facing="front" if self.settings.box_facing == "front" else "all")
+        return self.paint(idx, erase=self.settings.tool == "erase", client=client)
+
+    def add_lasso_point(self, event: Any) -> int:
+        """Lasso tool: a Ctrl/Cmd+click adds a screen point to the outline (the camera of the first point is used).
+
+        Returns:
+            The number of outline points so far.
+        """
+        cam = event.client.camera
+        pts = self._lasso_points
+        if not pts:
+            self._lasso_camera = (np.asarray(cam.position, np.float64), np.asarray(cam.wxyz, np.float64),
+                                  float(cam.fov), float(cam.aspect))
+        if len(pts) >= MAX_LASSO_POINTS:
+            raise ClientValueError(f"a lasso has at most {MAX_LASSO_POINTS} points")
+        u, v = (float(x) for x in event.screen_pos[0])
+        pts.append((min(max(u, 0.0), 1.0), min(max(v, 0.0), 1.0)))
+        origin = np.asarray(event.ray_origin, np.float64)
+        direction = np.asarray(event.ray_direction, np.float64)
+        self._lasso_world.append(origin + 0.05 * direction / max(float(np.linalg.norm(direction)), 1e-9))
+        self._draw_lasso()
+        return len(pts)
+
+    def apply_lasso(self, *, client: str = "") -> Delta | None:
+        """Select inside the outline drawn with the lasso tool, then clear it."""
+        if len(self._lasso_points) < 3 or self._lasso_camera is None:
+            raise ValueError(f"the lasso has {len(self._lasso_points)} points; Ctrl/Cmd+click at least 3")
+        position, wxyz, fov, aspect = self._lasso_camera
+        polygon = np.asarray(self._lasso_points, np.float64)
+        self.clear_lasso()
+        return self.lasso(position=position, wxyz=wxyz, fov=fov, aspect=aspect, polygon=polygon, client=client)
+
+    def clear_lasso(self) -> None:
+        self._lasso_points.clear()
+        self._lasso_world.clear()
+        self._lasso_camera = None
+        self._draw_lasso()
+
+    def _draw_lasso(self) -> None:
+        n = len(self._lasso_points)
+        if n >= 2:
+            w = np.asarray(self._lasso_world, np.float32)
+            seg = np.stack([w, np.roll(w, -1, axis=0)], axis=1)
+            self._lasso_handle = self.server.scene.add_line_segments("/annotator/lasso", seg, colors=(255, 200, 0),
+                                                                     line_width=2.0)
+        elif self._lasso_handle is not None:
+            with contextlib.suppress(Exception):
+                self._lasso_handle.remove()
+            self._lasso_handle = None
+        with contextlib.suppress(Exception):
+            self.gui_lasso_apply.disabled = n < 3
+            self.gui_lasso_clear.disabled = n == 0
+
     # ---- files
     def _safe_path(self, name: str, *, what: str) -> Path:
         """A path to write: it must resolve inside the output folder chosen at start (relative = below it)."""
@@ -950,7 +1032,9 @@ class AnnotatorApp:
         """
         _check_event(kind, event)
         cid = f"client{getattr(event, 'client_id', '?')}"
-        if kind == "click":
+        if kind == "click" and self.settings.tool == "lasso":
+            self.add_lasso_point(event)
+        elif kind == "click":
             self.click(np.asarray(event.ray_origin), np.asarray(event.ray_direction), client=cid)
         elif kind == "rect":
             cam = event.client.camera

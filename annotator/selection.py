@@ -434,3 +434,60 @@ def box_select(
         view = geom.points.astype(np.float64) - np.asarray(position, np.float64)
         inside &= np.einsum("ij,ij->i", view, geom.normals.astype(np.float64)) < 0
     return np.flatnonzero(inside).astype(np.int32)
+
+
+def points_in_polygon(uv: np.ndarray, polygon: np.ndarray) -> np.ndarray:
+    """Even-odd test of 2D points against a closed polygon (vectorised over points, looped over edges).
+
+    Args:
+        uv: (N, 2) points.
+        polygon: (P, 2) vertices, P >= 3, in order (the last connects to the first).
+
+    Returns:
+        (N,) bool, True inside.
+    """
+    poly = np.asarray(polygon, np.float64).reshape(-1, 2)
+    if len(poly) < 3:
+        raise ValueError(f"a lasso needs at least 3 points, got {len(poly)}")
+    x, y = uv[:, 0], uv[:, 1]
+    inside = np.zeros(len(uv), bool)
+    for (x0, y0), (x1, y1) in zip(poly, np.roll(poly, -1, axis=0)):
+        crosses = (y0 > y) != (y1 > y)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xc = x0 + (y - y0) * (x1 - x0) / (y1 - y0)
+        inside ^= crosses & (x < xc)
+    return inside
+
+
+def lasso_select(
+    geom: ScanGeometry,
+    *,
+    position: np.ndarray,
+    wxyz: np.ndarray,
+    fov: float,
+    aspect: float,
+    polygon: np.ndarray,
+    facing: Literal["front", "all"] = "front",
+) -> np.ndarray:
+    """Vertices whose projection falls inside a screen polygon (lasso), like `box_select` with any outline.
+
+    Args:
+        geom: the scan.
+        position, wxyz, fov, aspect: the client camera (see `project`).
+        polygon: (P, 2) outline in [0, 1] screen coordinates (OpenCV: (0,0) top-left), P >= 3.
+        facing: "front" keeps only vertices whose normal faces the camera; "all" selects through the object.
+
+    Returns:
+        (K,) int32 sorted vertex indices.
+    """
+    poly = np.asarray(polygon, np.float64).reshape(-1, 2)
+    if not np.isfinite(poly).all():
+        raise ValueError("lasso points must be finite")
+    uv, z = project(geom.points, position=position, wxyz=wxyz, fov=fov, aspect=aspect)
+    lo, hi = poly.min(axis=0), poly.max(axis=0)
+    cand = np.flatnonzero((z > 1e-6) & np.all((uv >= lo) & (uv <= hi), axis=1))
+    keep = cand[points_in_polygon(uv[cand], poly)]
+    if facing == "front" and len(keep):
+        view = geom.points[keep].astype(np.float64) - np.asarray(position, np.float64)
+        keep = keep[np.einsum("ij,ij->i", view, geom.normals[keep].astype(np.float64)) < 0]
+    return np.sort(keep).astype(np.int32)

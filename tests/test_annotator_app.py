@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from annotator import selection as sel
 from annotator.app import AnnotatorApp
 from annotator.io import LabelIOError, load_labels
 from efem_viz.data.io import load_scene, save_scene
@@ -353,3 +354,26 @@ def test_read_only_output_folder_is_refused(tmp_path: Path, mesh_path: Path) -> 
         assert list(ro.iterdir()) == []
     finally:
         ro.chmod(0o755)
+
+
+def test_lasso_tool_outline_by_clicks_then_apply(app: AnnotatorApp) -> None:
+    """Lasso: Ctrl+clicks add screen points with the client camera, Apply paints the inside, one undo step."""
+    app.new_instance(category="mug")
+    app.set_tool("lasso")
+    client = _client()  # looking straight down at the ball from z = 1
+    outline = [(0.45, 0.45), (0.55, 0.45), (0.55, 0.55), (0.45, 0.55)]
+    for uv in outline:
+        app.handle_event("click", SimpleNamespace(client_id=7, client=client, ray_origin=(0.0, 0.0, 1.0),
+                                                  ray_direction=(0.0, 0.0, -1.0), screen_pos=(uv,)))
+    assert app.store.labelset.count(app.settings.active_id) == 0, "clicks only draw the outline"
+    assert not app.gui_lasso_apply.disabled
+    app.apply_lasso()
+    idx = sel.lasso_select(app.geom, position=client.camera.position, wxyz=client.camera.wxyz,
+                           fov=float(client.camera.fov), aspect=1.0, polygon=np.array(outline))
+    n = app.store.labelset.count(app.settings.active_id)
+    assert n == len(idx) > 20
+    assert app.gui_lasso_apply.disabled and not app._lasso_points
+    with pytest.raises(ValueError, match="at least 3"):
+        app.apply_lasso()
+    app.undo()
+    assert app.store.labelset.count(app.settings.active_id) == 0

@@ -164,3 +164,43 @@ def test_region_grow_on_fresh_point_cloud_does_not_deadlock() -> None:
     t.join(timeout=30)
     assert not t.is_alive(), "region_grow deadlocked on a fresh point-cloud geometry"
     assert len(out[0]) > 1
+
+
+def test_points_in_polygon_matches_a_naive_loop() -> None:
+    from annotator.selection import points_in_polygon
+
+    rng = np.random.default_rng(3)
+    poly = np.array([[0.1, 0.1], [0.9, 0.2], [0.5, 0.5], [0.8, 0.9], [0.2, 0.7]])  # concave
+    uv = rng.uniform(0, 1, size=(400, 2))
+
+    def naive(p: np.ndarray) -> bool:
+        inside = False
+        for i in range(len(poly)):
+            (x0, y0), (x1, y1) = poly[i], poly[(i + 1) % len(poly)]
+            if (y0 > p[1]) != (y1 > p[1]) and p[0] < x0 + (p[1] - y0) * (x1 - x0) / (y1 - y0):
+                inside = not inside
+        return inside
+
+    assert points_in_polygon(uv, poly).tolist() == [naive(p) for p in uv]
+    assert points_in_polygon(np.array([[0.3, 0.4], [0.75, 0.5]]), poly).tolist() == [True, False]  # the notch is out
+    with pytest.raises(ValueError):
+        points_in_polygon(uv, poly[:2])
+
+
+def test_lasso_select_equals_box_select_for_a_rectangle_and_respects_facing() -> None:
+    from annotator.selection import ScanGeometry, box_select, lasso_select
+
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-0.5, 0.5, size=(3000, 3)).astype(np.float32)
+    nrm = np.tile(np.array([[0, 0, 1]], np.float32), (3000, 1))
+    nrm[::2] *= -1
+    g = ScanGeometry(pts, nrm)
+    cam = dict(position=np.array([0.0, 0.0, 2.0]), wxyz=np.array([0.0, 1.0, 0.0, 0.0]), fov=np.deg2rad(60),
+               aspect=1.0)
+    rect = np.array([[0.3, 0.35], [0.7, 0.35], [0.7, 0.6], [0.3, 0.6]])
+    for facing in ("front", "all"):
+        a = lasso_select(g, polygon=rect, facing=facing, **cam)
+        b = box_select(g, screen_min=(0.3, 0.35), screen_max=(0.7, 0.6), facing=facing, **cam)
+        assert np.array_equal(a, b) and len(a) > 0
+    tri = lasso_select(g, polygon=rect[:3], facing="all", **cam)
+    assert 0 < len(tri) < len(lasso_select(g, polygon=rect, facing="all", **cam))
