@@ -8,14 +8,24 @@
 Prints medians and writes bench/results/io.json. `--only` runs just the named format rows (no RGB-D import)
 and updates those rows in an existing io.json measured at the same `--points`.
 
+3. `--normals N [N ...]` runs only the point-cloud-without-normals benchmark (issue 13 item 10): a binary PLY
+   of N points on a random surface (a wavy table plus 8 spheres, 1 mm noise, seed 0) and no normals; each
+   measurement runs in a fresh 1-thread process (so peak RSS is its own): `info` = `load_scene` + `summary`
+   (what `efem-viz info` does), `normals` = that plus reading `scene.normals`. `--root DIR` measures another
+   checkout (e.g. the previous commit unpacked with `git archive HEAD | tar -x -C DIR`). Results go to the
+   "normals" record of io.json, keyed by root label and N.
+
 Usage: python bench/io.py [--points 200000] [--repeats 3] [--only ".ply ascii" ".ply ascii mesh"]
+       python bench/io.py --normals 550000 2000000 [--root /tmp/before --label before]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
+import subprocess
 import sys
 import tempfile
 import time
@@ -36,7 +46,18 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--only", nargs="+", metavar="ROW", default=None,
                     help="format rows to run, e.g. '.ply ascii' '.ply ascii mesh'; skips the RGB-D import")
+    ap.add_argument("--normals", nargs="+", type=int, metavar="N", default=None,
+                    help="only the bare-point-cloud benchmark (info time vs normals time) at these sizes")
+    ap.add_argument("--root", type=Path, default=ROOT, help="with --normals: the checkout to measure")
+    ap.add_argument("--label", default="current", help="with --normals: the name of this run in io.json")
+    ap.add_argument("--child", nargs=3, metavar=("ROOT", "PLY", "MODE"), help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.child is not None:
+        _normals_child(*args.child)
+        return
+    if args.normals is not None:
+        _bench_normals(args.normals, root=args.root, label=args.label)
+        return
     try:
         import torch
 
@@ -109,6 +130,73 @@ def main() -> None:
             out = previous
     atomic_write_text(res, json.dumps(out, indent=1))
     print(f"\nwrote {res}")
+
+
+def random_surface(n: int, seed: int = 0) -> np.ndarray:
+    """(n, 3) float32 points: half on a wavy 2 x 2 m table, half on 8 spheres of 0.1 m above it, 1 mm noise."""
+    rng = np.random.default_rng(seed)
+    m = n // 2
+    uv = rng.uniform(-1, 1, (m, 2))
+    table = np.c_[uv, 0.05 * np.sin(4 * uv[:, 0]) * np.cos(3 * uv[:, 1])]
+    k = n - m
+    centres = rng.uniform(-0.8, 0.8, (8, 2))
+    d = rng.normal(size=(k, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    spheres = np.c_[centres[rng.integers(0, 8, k)], np.full(k, 0.2)] + 0.1 * d
+    return (np.concatenate([table, spheres]) + 0.001 * rng.standard_normal((n, 3))).astype(np.float32)
+
+
+def _bench_normals(sizes: list[int], *, root: Path, label: str) -> None:
+    """Time and peak RSS of `info` and of `info` + normals on bare point clouds, one fresh process each."""
+    import plyfile
+
+    out: dict = {"platform": platform.platform(), "threads": 1, "root": str(root), "runs": {}}
+    print(f"bare point cloud PLY (no normals), {label} ({root}), 1 thread, fresh process per row")
+    print(f"{'points':>10}{'mode':>9}{'time s':>10}{'peak MB':>10}")
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    with tempfile.TemporaryDirectory() as tmp:
+        for n in sizes:
+            pts = random_surface(n)
+            v = np.empty(n, [("x", "f4"), ("y", "f4"), ("z", "f4")])
+            v["x"], v["y"], v["z"] = pts.T
+            ply = Path(tmp) / f"surface_{n}.ply"
+            plyfile.PlyData([plyfile.PlyElement.describe(v, "vertex")]).write(str(ply))
+            for mode in ("info", "normals"):
+                proc = subprocess.run(
+                    [sys.executable, __file__, "--child", str(root), str(ply), mode],
+                    capture_output=True, text=True, env=env,
+                )
+                if proc.returncode != 0:
+                    raise SystemExit(proc.stderr[-2000:])
+                rec = json.loads(proc.stdout.strip().splitlines()[-1])
+                out["runs"][f"{n} {mode}"] = rec
+                print(f"{n:>10,}{mode:>9}{rec['time_s']:>10.2f}{rec['peak_mb']:>10.0f}")
+    res = ROOT / "bench" / "results" / "io.json"
+    from efem_viz.data.io import atomic_write_text
+
+    record = json.loads(res.read_text()) if res.is_file() else {}
+    record.setdefault("normals", {})[label] = out
+    atomic_write_text(res, json.dumps(record, indent=1))
+    print(f"\nwrote {res}")
+
+
+def _normals_child(root: str, ply: str, mode: str) -> None:
+    """One measurement in this (fresh) process: print {"time_s", "peak_mb"} as JSON."""
+    import resource
+
+    sys.path.insert(0, root)
+    for name in [m for m in sys.modules if m == "efem_viz" or m.startswith("efem_viz.")]:
+        del sys.modules[name]  # measure `root`'s code, not this checkout's
+    from efem_viz.data.io import load_scene
+
+    t0 = time.perf_counter()
+    scene = load_scene(ply, max_points=10_000_000)
+    scene.summary()
+    if mode == "normals":
+        np.asarray(scene.normals).sum()
+    dt = time.perf_counter() - t0
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(json.dumps({"time_s": dt, "peak_mb": peak}))
 
 
 def _grid_mesh(scene_cls, n: int, rng: np.random.Generator):

@@ -335,11 +335,22 @@ def test_extra_elements_are_read_past(tmp_path: Path) -> None:
         load_scene(write(tmp_path, "bad_edge.ply", bad))
 
 
-def test_trailing_data_after_the_last_element_is_ignored(tmp_path: Path) -> None:
-    s = assert_matches_plyfile(
-        write(tmp_path, "trail.ply", ply(QUAD, faces="3 0 1 2\n") + "\n\ngarbage here\n")
-    )
+def test_trailing_blank_lines_are_fine_but_extra_rows_are_refused(tmp_path: Path) -> None:
+    """Issue 13 item 12: rows beyond the header's counts used to load silently (the header lied about them)."""
+    s = assert_matches_plyfile(write(tmp_path, "blank.ply", ply(QUAD, faces="3 0 1 2\n") + "\n \t\n\r\n"))
     assert s.faces.shape == (1, 3)
+    cases = {
+        "garbage": (ply(QUAD, faces="3 0 1 2\n") + "\n\ngarbage here\n", r"line 18 .*'garbage here'"),
+        "extra face": (ply(QUAD, faces="3 0 1 2\n") + "3 0 2 3\n", r"\(vertex 4, face 1\).*line 16 .*'3 0 2 3'"),
+        "extra vertex, no faces": (ply(QUAD, n=3), r"\(vertex 3\).*line 12 .*'0 1 0'"),
+        "CR line ends": (ply(QUAD, faces="3 0 1 2\n").replace("\n", "\r") + "3 0 2 3", r"line 16 .*'3 0 2 3'"),
+    }
+    for case, (text, pattern) in cases.items():
+        p = write(tmp_path, "extra.ply", text)
+        for loader in (load_scene, load_plyfile):  # both body readers
+            with pytest.raises(SceneError, match="more rows than its header declares.*" + pattern) as info:
+                loader(p)
+            assert str(p) in str(info.value), case
 
 
 # ---------------------------------------------------------------------------------------------- fallbacks

@@ -289,3 +289,14 @@ def test_mesh_with_face_colours_keeps_them(tmp_path: Path, suffix: str) -> None:
     s = load_scene(p)
     assert s.faces is not None and len(s.faces) == 12
     assert np.array_equal(s.colors, np.tile([200, 30, 40], (s.num_points, 1)))  # not the default grey
+
+
+def test_glb_mesh_keeps_its_stored_normals(tmp_path: Path) -> None:
+    """The file's NORMAL attribute survives loading (trimesh's copy() used to drop it: face normals came back)."""
+    m = mesh_scene(subdivisions=1)
+    rng = np.random.default_rng(0)
+    custom = m.replace(normals=m.normals + 0.5 * rng.normal(size=m.normals.shape))
+    save_scene(custom, tmp_path / "n.glb")
+    back = load_scene(tmp_path / "n.glb")
+    assert not back.normals_pending
+    np.testing.assert_allclose(back.normals, custom.normals, atol=1e-5)

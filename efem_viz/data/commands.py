@@ -19,7 +19,10 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class InfoArgs:
-    """Print what scene files contain: points, faces, bounds, ground-truth labels, categories, provenance."""
+    """Print what scene files contain: points, faces, bounds, normals, ground-truth labels, categories, provenance.
+
+    Reads each file once and never estimates normals (a file without them says so), so it stays fast on large
+    bare point clouds."""
 
     scenes: Annotated[list[Path], tyro.conf.Positional]
     """Scene files (.ply/.obj/.off/.glb/.npz) and/or folders of them."""
@@ -49,6 +52,8 @@ class InfoArgs:
                 continue
             summary = scene.summary()
             summary["file"] = str(path)
+            # never estimate normals here: that is the slow part of loading a bare point cloud, and info needs none
+            summary["normals"] = "estimated on use" if scene.normals_pending else "stored"
             if self.json:
                 print(json.dumps(summary, default=str))
                 continue
@@ -63,6 +68,7 @@ class InfoArgs:
             table.add_row("extent (m)", _vec(summary["extent"]))
             colours = "grey (none)" if bool((scene.colors == 180).all()) else "per point"
             table.add_row("colours", colours)
+            table.add_row("normals", "in the file" if summary["normals"] == "stored" else "none (estimated on use)")
             if scene.instance is None:
                 table.add_row("ground truth", "none")
             else:

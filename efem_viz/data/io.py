@@ -40,7 +40,7 @@ import warnings
 import zlib
 from itertools import islice
 from pathlib import Path
-from typing import Any, Callable, Iterable, cast
+from typing import Any, Callable, Iterable, Iterator, NamedTuple, cast
 
 import numpy as np
 
@@ -57,6 +57,10 @@ _CATEGORIES_COMMENT = "efem_categories"
 _PROVENANCE_COMMENT = "efem_provenance"
 _GLB_EXTRAS_KEY = "efem"
 _MAX_GLB_LABEL = 2**24  # float32 represents every integer up to 2^24 exactly
+
+MAX_FACES_PER_POINT = 4
+"""A file may declare at most this many faces per allowed point (`max_points`): a closed triangle mesh has about
+2 faces per vertex, so only a corrupt or hostile header goes past 4 (checked before anything is allocated)."""
 
 
 # ---------------------------------------------------------------------------------------------- atomic write
@@ -194,8 +198,14 @@ def load_scene(
 ) -> Scene:
     """Load a scene (mesh or point cloud) from .ply, .obj, .off, .glb or .npz.
 
-    Missing normals are estimated (face normals for meshes, open3d PCA normals oriented consistently for point
-    clouds); missing colours become grey.
+    Missing normals are estimated on first use of `Scene.normals` (area-weighted face normals for meshes, PCA
+    normals oriented consistently for point clouds; `Scene.normals_pending` tells), so a caller that never
+    reads them (`efem-viz info`) never pays for them; missing colours become grey.
+
+    Hostile or corrupt files fail with one `SceneError` in time and memory bounded by the file's real size:
+    every count a header declares (PLY elements, OFF counts, GLB accessors, NPZ array headers) is checked
+    against the bytes the file holds, `max_points` and `MAX_FACES_PER_POINT` before anything is allocated for
+    it, and an ASCII PLY or OFF with data rows beyond its header's counts is refused.
 
     Args:
         path: the scene file.
@@ -206,8 +216,10 @@ def load_scene(
         The validated `Scene` (world frame, metres, +Z up).
 
     Raises:
-        SceneError: missing file, a directory, unknown suffix, corrupt or truncated file, empty scene, NaN/Inf,
-            mismatched array lengths, non-integer labels, more than `max_points` points. The message names the path.
+        SceneError: missing file, a directory, unknown suffix, corrupt or truncated file, a header count the
+            file cannot hold, rows beyond the header's counts, empty scene, NaN/Inf, mismatched array lengths,
+            non-integer labels, more than `max_points` points or `MAX_FACES_PER_POINT * max_points` faces. The
+            message names the path.
     """
     p = Path(path)
     if not p.exists():
@@ -279,7 +291,72 @@ def _npz_kwargs(data: Any) -> dict[str, Any]:
     return out
 
 
+_NPZ_ROWS_PER_POINT = {"points": 1, "normals": 1, "colors": 1, "instance": 1, "faces": MAX_FACES_PER_POINT}
+"""Rows a native scene array may have per allowed point (`max_points`)."""
+_NPZ_BYTES_PER_ROW = 64
+"""Bytes a scene array may take per allowed row (float64 points are 24, RGBA float64 colours 32)."""
+_NPZ_OTHER_BYTES = 256 << 20
+"""Bytes any other array (an RGB-D frame's depth and colour images, names, JSON) may take, at least."""
+
+
+def _check_npz(p: Path, max_points: int) -> None:
+    """Check every array header of an `.npz` against the archive and the limits before numpy allocates.
+
+    `np.load` allocates an array's full size from its `.npy` header before reading the data, so a header
+    claiming 10^12 points would cost memory (or raise MemoryError) before the file is found short. Each
+    member's claimed size must equal the bytes the zip directory says it holds (zipfile never inflates more
+    than that), and scene arrays must fit `max_points`.
+
+    Raises:
+        SceneError: not a zip archive; a header that disagrees with its member's size; an array over the limits.
+    """
+    import zipfile
+
+    try:
+        zf = zipfile.ZipFile(p)
+    except (zipfile.BadZipFile, OSError) as exc:
+        raise SceneError(f"{p}: not a valid .npz (zip) archive ({exc})") from exc
+    with zf:
+        for info in zf.infolist():
+            if not info.filename.endswith(".npy"):
+                continue
+            key = info.filename[: -len(".npy")]
+            try:
+                with zf.open(info) as fh:
+                    version = np.lib.format.read_magic(fh)
+                    read = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
+                        np.lib.format.read_array_header_2_0
+                    shape, _, dtype = read(fh)
+                    header_len = fh.tell()
+            except (ValueError, OSError, zipfile.BadZipFile, EOFError, zlib.error) as exc:
+                raise SceneError(f"{p}: array {key!r} has a corrupt .npy header ({exc})") from exc
+            if dtype.hasobject:
+                continue  # np.load(allow_pickle=False) refuses it with its own message
+            nbytes = int(np.prod(shape, dtype=object)) * dtype.itemsize if shape else dtype.itemsize
+            held = info.file_size - header_len
+            if nbytes != held:
+                raise SceneError(
+                    f"{p}: array {key!r} claims shape {tuple(shape)} {dtype} ({nbytes:,} bytes) but the archive "
+                    f"holds {held:,} bytes for it (corrupt or truncated file)"
+                )
+            if key in _NPZ_ROWS_PER_POINT:
+                rows_limit = _NPZ_ROWS_PER_POINT[key] * max(max_points, 1)
+                rows = int(shape[0]) if shape else 1
+                if rows > rows_limit or nbytes > _NPZ_BYTES_PER_ROW * rows_limit:
+                    what = "points" if key != "faces" else "faces"
+                    raise SceneError(
+                        f"{p}: array {key!r} has shape {tuple(shape)} {dtype}: more {what} than the limit of "
+                        f"{rows_limit:,} (max_points {max_points:,}); downsample it or raise max_points"
+                    )
+            elif nbytes > max(_NPZ_OTHER_BYTES, _NPZ_BYTES_PER_ROW * max_points):
+                raise SceneError(
+                    f"{p}: array {key!r} has shape {tuple(shape)} {dtype} ({nbytes:,} bytes), larger than any "
+                    "scene or RGB-D frame this reader accepts"
+                )
+
+
 def _load_npz(p: Path, max_points: int) -> dict[str, Any]:
+    _check_npz(p, max_points)
     with np.load(p, allow_pickle=False) as data:
         keys = set(data.files)
         rgbd_frame = "schema_version" not in keys and "K" in keys and bool({"depth_mm", "depth"} & keys)
@@ -305,31 +382,235 @@ def _parse_categories(text: str) -> dict[int, str]:
         raise SceneError(f"category ids must be integers: {exc}") from exc
 
 
-def _ply_vertex_count(p: Path) -> int | None:
-    """Vertex count from a PLY header without reading the body (None when the header is unreadable)."""
+_PLY_HEADER_LIMIT = 4 << 20
+"""Bytes searched for a PLY `end_header` line: a longer header is refused rather than parsed without checks."""
+_PLY_SIZES = {"char": 1, "int8": 1, "uchar": 1, "uint8": 1, "short": 2, "int16": 2, "ushort": 2, "uint16": 2,
+              "int": 4, "int32": 4, "uint": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+_FACE_LISTS = ("vertex_indices", "vertex_index")
+_ASCII_SPACE = b" \t\n\r\x0b\x0c"
+
+
+class _PlyElementHead(NamedTuple):
+    """One `element` of a PLY header, as far as bounds checks need it."""
+
+    name: str
+    count: int
+    scalar_sizes: tuple[int, ...]
+    """Byte size of each scalar property."""
+    lists: tuple[tuple[str, int, int], ...]
+    """(name, length-type size, value-type size) of each list property."""
+
+    def min_bytes(self) -> int:
+        """Fewest bytes one binary row can take."""
+        return sum(self.scalar_sizes) + sum(ls + self._min_len(name) * vs for name, ls, vs in self.lists)
+
+    def _min_len(self, list_name: str) -> int:
+        return 3 if self.name == "face" and list_name in _FACE_LISTS else 0
+
+
+class _PlyHead(NamedTuple):
+    """A PLY header: format, elements in file order, and where the body starts."""
+
+    ascii: bool
+    elements: tuple[_PlyElementHead, ...]
+    body_offset: int
+    header_lines: int
+
+
+def _read_ply_head(p: Path) -> _PlyHead | None:
+    """Parse a PLY header for the bounds checks, reading at most `_PLY_HEADER_LIMIT` bytes.
+
+    Returns None for what the readers report themselves (not a PLY file, an unknown format, type or keyword):
+    plyfile then gives its own message.
+
+    Raises:
+        SceneError: no `end_header` within `_PLY_HEADER_LIMIT` bytes, or a negative element count.
+    """
     with open(p, "rb") as fh:
-        head = fh.read(1 << 16)
-    end = head.find(b"end_header")
-    if not head.startswith(b"ply") or end < 0:
+        head = fh.read(_PLY_HEADER_LIMIT)
+    if not head.startswith(b"ply"):
         return None
-    m = re.search(rb"^element\s+vertex\s+(\d+)", head[:end], flags=re.MULTILINE)
-    return int(m.group(1)) if m else None
+    # the header's line ending is the one after "ply" (LF, CR or CRLF), as plyfile reads it
+    nl = b"\r\n" if head[3:5] == b"\r\n" else head[3:4]
+    if nl not in (b"\n", b"\r", b"\r\n"):
+        return None
+    fmt: str | None = None
+    elements: list[list[Any]] = []
+    pos = 0
+    n_lines = 0
+    while True:
+        end = head.find(nl, pos)
+        if end < 0:
+            if len(head) >= _PLY_HEADER_LIMIT:
+                raise SceneError(
+                    f"{p}: PLY header has no 'end_header' line in its first {_PLY_HEADER_LIMIT >> 20} MiB "
+                    "(corrupt file, or not a PLY file)"
+                )
+            return None  # plyfile reports the missing end_header
+        line = head[pos:end].strip()
+        pos = end + len(nl)
+        n_lines += 1
+        words = line.split()
+        if not words:
+            continue
+        key = words[0]
+        if key == b"end_header":
+            break
+        if key == b"format" and len(words) >= 2:
+            fmt = words[1].decode("ascii", "replace")
+        elif key == b"element":
+            if len(words) != 3:
+                return None
+            try:
+                count = int(words[2])
+            except ValueError:
+                return None
+            name = words[1].decode("ascii", "replace")
+            if count < 0:
+                raise SceneError(f"{p}: PLY header gives element {name!r} a negative count ({count})")
+            elements.append([name, count, [], []])
+        elif key == b"property":
+            if not elements:
+                return None
+            types = [w.decode("ascii", "replace") for w in words[1:]]
+            if len(types) == 4 and types[0] == "list" and types[1] in _PLY_SIZES and types[2] in _PLY_SIZES:
+                elements[-1][3].append((types[3], _PLY_SIZES[types[1]], _PLY_SIZES[types[2]]))
+            elif len(types) == 2 and types[0] in _PLY_SIZES:
+                elements[-1][2].append(_PLY_SIZES[types[0]])
+            else:
+                return None
+    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        return None
+    elts = tuple(_PlyElementHead(n, c, tuple(sc), tuple(ls)) for n, c, sc, ls in elements)
+    return _PlyHead(fmt == "ascii", elts, pos, n_lines)
+
+
+def _check_ply_counts(p: Path, head: _PlyHead, max_points: int) -> None:
+    """Refuse a PLY header whose element counts the file cannot hold, before any reader allocates for them.
+
+    Vertex and face counts are checked against `max_points` (and `MAX_FACES_PER_POINT`); every element's
+    count against the body: a binary row takes at least its scalars' bytes plus each list's length (and 3
+    vertex indices for a face); an ASCII row takes at least one line. Time: a header parse, plus one chunked
+    newline count of an ASCII body; memory: one 4 MiB chunk.
+
+    Raises:
+        SceneError: the first element that does not fit, named, with the numbers.
+    """
+    counts = {e.name: e.count for e in head.elements}
+    n_vertex = counts.get("vertex", 0)
+    if n_vertex > max_points:
+        raise SceneError(
+            f"{p} has {n_vertex:,} points, more than the limit of {max_points:,}; downsample it or raise max_points"
+        )
+    max_faces = MAX_FACES_PER_POINT * max(max_points, 1)
+    if counts.get("face", 0) > max_faces:
+        raise SceneError(
+            f"{p}: PLY header declares {counts['face']:,} faces, more than the limit of {max_faces:,} "
+            f"({MAX_FACES_PER_POINT} per allowed point; corrupt header, or raise max_points)"
+        )
+    size = p.stat().st_size
+    body = max(size - head.body_offset, 0)
+    if head.ascii:
+        n_lines = _count_lines(p, head.body_offset)
+        row0 = 0
+        for e in head.elements:
+            if row0 + e.count > n_lines:
+                raise SceneError(
+                    f"{p}: ASCII PLY file is truncated: element {e.name!r} has {e.count:,} rows in the header "
+                    f"but the file ends after {max(n_lines - row0, 0):,} of them "
+                    "(was it cut short while copying or writing?)"
+                )
+            row0 += e.count
+        return
+    need = 0
+    for e in head.elements:
+        need += e.count * e.min_bytes()
+        if need > body:
+            per_row = e.min_bytes()
+            raise SceneError(
+                f"{p}: binary PLY file is truncated or its header is wrong: element {e.name!r} has {e.count:,} "
+                f"rows in the header ({per_row} bytes each at least), but the file holds {body:,} bytes after the "
+                f"header, not the {need:,} the elements up to {e.name!r} need"
+            )
+
+
+def _iter_body_lines(p: Path, offset: int, chunk: int = 4 << 20) -> Iterator[bytes]:
+    """The bytes after `offset` in chunks, CR and CRLF turned into LF (a CR that ends a chunk waits for the next)."""
+    with open(p, "rb") as fh:
+        fh.seek(offset)
+        carry = b""
+        while True:
+            block = fh.read(chunk)
+            if not block:
+                if carry:
+                    yield b"\n"
+                return
+            block = carry + block
+            carry = b""
+            if block.endswith(b"\r"):
+                block, carry = block[:-1], b"\r"
+            if b"\r" in block:
+                block = block.replace(b"\r\n", b"\n").replace(b"\r", b"\n")
+            yield block
+
+
+def _count_lines(p: Path, offset: int) -> int:
+    """Lines after `offset` as plyfile's text reader sees them (LF, CR or CRLF; a last line without newline)."""
+    n, last = 0, b"\n"
+    for block in _iter_body_lines(p, offset):
+        n += block.count(b"\n")
+        last = block[-1:]
+    return n + (0 if last == b"\n" else 1)
+
+
+def _check_ply_no_extra_rows(p: Path, head: _PlyHead) -> None:
+    """Refuse an ASCII PLY body with data after the rows its header declares (blank lines and spaces are fine).
+
+    Raises:
+        SceneError: names the first extra line (its number in the file and its text) and the header's counts.
+    """
+    rows = sum(e.count for e in head.elements)
+    seen = 0  # body lines ended before the current block
+    for block in _iter_body_lines(p, head.body_offset):
+        start = 0
+        n = block.count(b"\n")
+        if seen < rows:
+            if seen + n < rows:
+                seen += n
+                continue
+            ends = np.flatnonzero(np.frombuffer(block, np.uint8) == 10)
+            start = int(ends[rows - seen - 1]) + 1
+            n -= rows - seen
+            seen = rows
+        rest = block[start:]
+        if not rest.translate(None, _ASCII_SPACE):
+            seen += n
+            continue
+        lines = rest.split(b"\n")
+        k = next(i for i, ln in enumerate(lines) if ln.strip(_ASCII_SPACE))
+        counts = ", ".join(f"{e.name} {e.count:,}" for e in head.elements)
+        text = lines[k].strip(_ASCII_SPACE)[:60].decode("ascii", "replace")
+        line_no = head.header_lines + seen + k + 1
+        raise SceneError(
+            f"{p}: ASCII PLY file has more rows than its header declares ({counts}): line {line_no:,} after "
+            f"them holds {text!r}; fix the element counts in the header or remove the extra rows"
+        )
 
 
 def _load_ply(p: Path, max_points: int) -> dict[str, Any]:
     import plyfile
 
-    n_header = _ply_vertex_count(p)
-    if n_header is not None and n_header > max_points:
-        raise SceneError(
-            f"{p} has {n_header:,} points, more than the limit of {max_points:,}; downsample it or raise max_points"
-        )
+    head = _read_ply_head(p)
+    if head is not None:
+        _check_ply_counts(p, head, max_points)
     ply, tri_faces = _read_ply_fast(p)
     polys: tuple[np.ndarray, np.ndarray] | None = None
     if ply is None:
         ply, polys = _read_ply_ascii(p)
     if ply is None:
         ply = plyfile.PlyData.read(str(p))
+    if head is not None and head.ascii:  # after the rows parsed: a bad row is the better message
+        _check_ply_no_extra_rows(p, head)
     names = [e.name for e in ply.elements]
     if "vertex" not in names:
         raise SceneError(f"{p}: PLY file has no 'vertex' element (elements: {names})")
@@ -789,7 +1070,7 @@ def _from_trimesh(geom: Any, p: Path) -> dict[str, Any]:
     out["points"] = np.asarray(geom.vertices)
     faces = np.asarray(geom.faces)
     out["faces"] = faces if faces.size else None
-    if faces.size or "vertex_normals" in geom._cache:
+    if "vertex_normals" in geom._cache:  # stored in the file; otherwise the Scene derives them on first use
         nrm = np.asarray(geom.vertex_normals)
         if len(nrm) == len(geom.vertices) and np.isfinite(nrm).all():
             out["normals"] = nrm
@@ -808,9 +1089,27 @@ def _from_trimesh(geom: Any, p: Path) -> dict[str, Any]:
     return out
 
 
+def _obj_vertex_count(p: Path, chunk: int = 4 << 20) -> int:
+    """Number of `v` lines of an OBJ file, counted in chunks (C speed, one chunk of memory)."""
+    n = 0
+    prev = b"\n"  # the last two bytes of the previous chunk: a 3-byte match may straddle the boundary
+    with open(p, "rb") as fh:
+        while block := fh.read(chunk):
+            data = prev[-2:] + block
+            n += data.count(b"\nv ") + data.count(b"\nv\t") + data.count(b"\rv ") + data.count(b"\rv\t")
+            prev = data
+    return n
+
+
 def _load_obj(p: Path, max_points: int) -> dict[str, Any]:
     import trimesh
 
+    n_v = _obj_vertex_count(p)
+    if n_v > max_points:
+        raise SceneError(
+            f"{p} has {n_v:,} vertices ('v' lines), more than the limit of {max_points:,}; downsample it or raise "
+            "max_points"
+        )
     geom = trimesh.load(str(p), file_type="obj", process=False, maintain_order=True)
     if isinstance(geom, trimesh.Scene):
         if not geom.geometry:
@@ -855,10 +1154,23 @@ def _load_off(p: Path, max_points: int) -> dict[str, Any]:
     if len(rest) < 2:
         raise SceneError(f"{p}: OFF count line must hold 'n_vertices n_faces [n_edges]', got {rest}")
     nv, nf = int(rest[0]), int(rest[1])
+    if nv < 0 or nf < 0:
+        raise SceneError(f"{p}: OFF count line gives negative counts ({nv} vertices, {nf} faces)")
     if nv > max_points:
         raise SceneError(f"{p} has {nv:,} points, more than the limit of {max_points:,}")
+    if nf > MAX_FACES_PER_POINT * max(max_points, 1):
+        raise SceneError(
+            f"{p}: OFF header declares {nf:,} faces, more than the limit of {MAX_FACES_PER_POINT * max_points:,} "
+            f"({MAX_FACES_PER_POINT} per allowed point; corrupt header, or raise max_points)"
+        )
     if len(lines) < idx + nv + nf:
         raise SceneError(f"{p}: OFF file is truncated: expected {nv} vertices and {nf} faces after the header")
+    if len(lines) > idx + nv + nf:
+        raise SceneError(
+            f"{p}: OFF file has more rows than its header declares ({nv:,} vertices, {nf:,} faces): "
+            f"{len(lines) - idx - nv - nf:,} more non-empty lines, the first {lines[idx + nv + nf][:60]!r}; "
+            "fix the counts or remove the extra rows"
+        )
     vrows = [ln.split() for ln in lines[idx : idx + nv]]
     ncol = min(len(r) for r in vrows) if vrows else 3
     vals = np.asarray([r[:ncol] for r in vrows], dtype=np.float64)
@@ -885,9 +1197,101 @@ def _load_off(p: Path, max_points: int) -> dict[str, Any]:
     return out
 
 
+_GLTF_COMPONENTS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
+_GLTF_ITEMSIZE = {5120: 1, 5121: 1, 5122: 2, 5123: 2, 5125: 4, 5126: 4}
+
+
+def _check_glb(p: Path, max_points: int) -> None:
+    """Check a GLB's chunk lengths and accessor counts against the file and `max_points` before trimesh reads it.
+
+    trimesh allocates a zero array of an accessor's full `count` when the accessor has no buffer view, and
+    builds meshes of the positions' counts; a corrupt header could ask for any size. What trimesh reports well
+    itself (a wrong magic number, JSON it cannot parse) is left to it.
+
+    Raises:
+        SceneError: a chunk or buffer view that runs past the file, an accessor that runs past its buffer view
+            (or, without one, is larger than any scene), more vertex positions than `max_points`.
+    """
+    import struct
+
+    size = p.stat().st_size
+    with open(p, "rb") as fh:
+        head = fh.read(20)
+        if len(head) < 20 or head[:4] != b"glTF":
+            return
+        _, length, json_len, json_type = struct.unpack("<IIII", head[4:])
+        if length > size:
+            raise SceneError(f"{p}: GLB header says the file has {length:,} bytes, but it has {size:,} (truncated)")
+        if json_type != 0x4E4F534A:  # "JSON"
+            return
+        if 20 + json_len > size:
+            raise SceneError(f"{p}: GLB JSON chunk of {json_len:,} bytes runs past the end of the file ({size:,})")
+        try:
+            gltf = json.loads(fh.read(json_len))
+        except (ValueError, UnicodeDecodeError):
+            return
+        bin_head = fh.read(8)  # the JSON chunk's length includes its padding
+    if not isinstance(gltf, dict):
+        return
+    bin_len = struct.unpack("<I", bin_head[:4])[0] if len(bin_head) == 8 else 0
+    if bin_len > max(size - 28 - json_len, 0):
+        raise SceneError(f"{p}: GLB binary chunk of {bin_len:,} bytes runs past the end of the file ({size:,})")
+    buffers = gltf.get("buffers", []) or []
+    views = gltf.get("bufferViews", []) or []
+    try:
+        for i, view in enumerate(views):
+            buf = buffers[int(view.get("buffer", 0))]
+            buf_len = int(buf.get("byteLength", 0))
+            if "uri" not in buf and buf_len > bin_len:
+                raise SceneError(f"{p}: GLB buffer {view.get('buffer', 0)} claims {buf_len:,} bytes, but the "
+                                 f"binary chunk holds {bin_len:,}")
+            if int(view.get("byteOffset", 0)) + int(view["byteLength"]) > buf_len:
+                raise SceneError(f"{p}: GLB bufferView {i} runs past the end of its buffer ({buf_len:,} bytes)")
+        n_positions = 0
+        position_ids = {
+            int(prim["attributes"]["POSITION"])
+            for mesh in gltf.get("meshes", []) or []
+            for prim in mesh.get("primitives", []) or []
+            if "POSITION" in (prim.get("attributes") or {})
+        }
+        for i, acc in enumerate(gltf.get("accessors", []) or []):
+            count = int(acc["count"])
+            comps = _GLTF_COMPONENTS[acc["type"]]
+            itemsize = _GLTF_ITEMSIZE[int(acc["componentType"])]
+            if count < 0:
+                raise SceneError(f"{p}: GLB accessor {i} has a negative count ({count})")
+            if i in position_ids:
+                n_positions += count
+            if "bufferView" in acc:
+                view = views[int(acc["bufferView"])]
+                elem = comps * itemsize
+                stride = int(view.get("byteStride", elem)) or elem
+                need = int(acc.get("byteOffset", 0)) + ((count - 1) * stride + elem if count else 0)
+                if need > int(view["byteLength"]):
+                    raise SceneError(
+                        f"{p}: GLB accessor {i} claims {count:,} items ({need:,} bytes), more than its bufferView "
+                        f"holds ({int(view['byteLength']):,} bytes): corrupt file"
+                    )
+            elif count * comps > 16 * max(max_points, 1):
+                raise SceneError(
+                    f"{p}: GLB accessor {i} has no data but claims {count:,} items, more than any scene this "
+                    f"reader accepts (max_points {max_points:,})"
+                )
+    except SceneError:
+        raise
+    except (KeyError, IndexError, TypeError, ValueError, AttributeError):
+        return  # a malformed glTF structure: trimesh reports it
+    if n_positions > max_points:
+        raise SceneError(
+            f"{p} has {n_positions:,} vertex positions, more than the limit of {max_points:,}; downsample it or "
+            "raise max_points"
+        )
+
+
 def _load_glb(p: Path, max_points: int) -> dict[str, Any]:
     import trimesh
 
+    _check_glb(p, max_points)
     loaded = trimesh.load(str(p), file_type="glb", process=False)
     extras: dict[str, Any] = {}
     if isinstance(loaded, trimesh.Scene):
@@ -898,8 +1302,12 @@ def _load_glb(p: Path, max_points: int) -> dict[str, Any]:
         if len(geoms) == 1 and len(loaded.graph.nodes_geometry) == 1:
             node = loaded.graph.nodes_geometry[0]
             T, gname = loaded.graph[node]
-            geom = loaded.geometry[gname].copy()
+            src = loaded.geometry[gname]
+            geom = src.copy()  # copy() drops trimesh's cached vertex normals: the file's NORMAL attribute
             geom.apply_transform(T)
+            if isinstance(src, trimesh.Trimesh) and "vertex_normals" in src._cache:
+                nrm = np.asarray(src.vertex_normals, np.float64) @ np.linalg.inv(np.asarray(T)[:3, :3])
+                geom.vertex_normals = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
         else:
             geom = loaded.to_geometry()
     else:
@@ -915,10 +1323,11 @@ def _load_glb(p: Path, max_points: int) -> dict[str, Any]:
         if key in attrs:
             out["instance"] = np.asarray(attrs[key]).reshape(-1)
             break
+    n_pts = len(out.get("points", ()))  # packed arrays hold one row per point: inflate no more than that
     if "instance_zb64" in extras and "instance" not in out:
-        out["instance"] = _unpack_array(extras["instance_zb64"], np.int32)
-    if "normals_zb64" in extras and "normals" not in out:
-        out["normals"] = _unpack_array(extras["normals_zb64"], np.float32).reshape(-1, 3)  # world frame
+        out["instance"] = _unpack_array(extras["instance_zb64"], np.int32, max_items=n_pts)
+    if "normals_zb64" in extras and "normals" not in out:  # world frame
+        out["normals"] = _unpack_array(extras["normals_zb64"], np.float32, max_items=3 * n_pts).reshape(-1, 3)
     if "categories" in extras:
         out["categories"] = {int(k): str(v) for k, v in dict(extras["categories"]).items()}
     if "provenance" in extras:
@@ -930,8 +1339,18 @@ def _pack_array(a: np.ndarray) -> str:
     return base64.b64encode(zlib.compress(np.ascontiguousarray(a).tobytes(), 6)).decode("ascii")
 
 
-def _unpack_array(s: str, dtype: Any) -> np.ndarray:
-    return np.frombuffer(zlib.decompress(base64.b64decode(s)), dtype=dtype).copy()
+def _unpack_array(s: str, dtype: Any, *, max_items: int) -> np.ndarray:
+    """Inverse of `_pack_array`, inflating at most `max_items` items (a zlib bomb stops there).
+
+    Raises:
+        SceneError: the data inflates to more than `max_items` items.
+    """
+    limit = max(int(max_items), 0) * np.dtype(dtype).itemsize
+    z = zlib.decompressobj()
+    raw = z.decompress(base64.b64decode(s), limit + 1)
+    if len(raw) > limit or z.unconsumed_tail:
+        raise SceneError(f"packed array inflates to more than {max_items:,} items of {np.dtype(dtype)}")
+    return np.frombuffer(raw, dtype=dtype).copy()
 
 
 # ---------------------------------------------------------------------------------------------- save

@@ -8,10 +8,14 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import threading
 from dataclasses import dataclass, field
-from typing import Any, Mapping
+from typing import TYPE_CHECKING, Any, Mapping, cast, overload
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from efem_viz.geometry.normals import NormalsProgress
 
 SCENE_SCHEMA_VERSION = 1
 DEFAULT_MAX_POINTS = 5_000_000
@@ -20,6 +24,75 @@ DEFAULT_MAX_POINTS = 5_000_000
 
 class SceneError(ValueError):
     """Raised for invalid scene data or files, with a message meant for the user."""
+
+
+class PendingNormals:
+    """Normals not estimated yet: the inputs of `estimate_normals` for a scene, computed on first use.
+
+    A `Scene` built without normals holds one of these until `scene.normals` (or `scene.compute_normals`) is
+    read; then the estimate replaces it. Commands that never look at normals (`efem-viz info`) never pay for
+    them. Picklable; the arrays are the scene's own (no copies).
+    """
+
+    __slots__ = ("points", "faces")
+
+    def __init__(self, points: np.ndarray, faces: np.ndarray | None) -> None:
+        """Args: points: (N, 3) float32, world frame. faces: (M, 3) int32 or None."""
+        self.points = points
+        self.faces = faces
+
+    def __getstate__(self) -> tuple[np.ndarray, np.ndarray | None]:
+        return self.points, self.faces
+
+    def __setstate__(self, state: tuple[np.ndarray, np.ndarray | None]) -> None:
+        self.points, self.faces = state
+
+    def compute(self, on_progress: "NormalsProgress | None" = None) -> np.ndarray:
+        """(N, 3) float32 unit normals: mesh vertex normals, or oriented PCA normals for a point cloud."""
+        from efem_viz.geometry.normals import estimate_normals
+
+        nrm = estimate_normals(self.points, faces=self.faces, on_progress=on_progress)
+        return np.ascontiguousarray(nrm, dtype=np.float32)
+
+
+_NORMALS_LOCK = threading.Lock()  # one estimate at a time (a viewer thread and the EM worker may both ask)
+
+
+class _LazyNormals:
+    """Data descriptor for `Scene.normals`: stores an array or a `PendingNormals`, always returns an array.
+
+    Class access raises AttributeError, so the dataclass sees no default and the field stays a required
+    positional argument, as before. The frozen dataclass's `__init__` sets the value through `__set__`;
+    `scene.normals = x` still raises `FrozenInstanceError`.
+    """
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self._name = name
+
+    @overload
+    def __get__(self, obj: None, owner: type | None = None) -> "_LazyNormals": ...
+    @overload
+    def __get__(self, obj: object, owner: type | None = None) -> np.ndarray: ...
+    def __get__(self, obj: object | None, owner: type | None = None) -> "np.ndarray | _LazyNormals":
+        if obj is None:
+            raise AttributeError(self._name)  # no class-level default for the dataclass
+        value = obj.__dict__[self._name]
+        if isinstance(value, PendingNormals):
+            value = _resolve_normals(obj, self._name, None)
+        return value
+
+    def __set__(self, obj: object, value: "np.ndarray | PendingNormals") -> None:
+        obj.__dict__[self._name] = value
+
+
+def _resolve_normals(obj: object, name: str, on_progress: "NormalsProgress | None") -> np.ndarray:
+    """Estimate pending normals once (under a lock), store them on `obj` and return them."""
+    with _NORMALS_LOCK:
+        value = obj.__dict__[name]
+        if isinstance(value, PendingNormals):
+            value = value.compute(on_progress)
+            obj.__dict__[name] = value
+        return value
 
 
 @dataclass(frozen=True)
@@ -33,8 +106,12 @@ class Scene:
     """Human-readable scene name (usually the file stem)."""
     points: np.ndarray
     """(N, 3) float32, world frame, metres, +Z up."""
-    normals: np.ndarray
-    """(N, 3) float32 unit normals, oriented outward / toward the sensor."""
+    if TYPE_CHECKING:  # type checkers see a plain required field; at run time a descriptor fills it lazily
+        normals: np.ndarray
+    else:
+        normals: np.ndarray = _LazyNormals()
+    """(N, 3) float32 unit normals, oriented outward / toward the sensor. Estimated on first access when the
+    scene was created without them (see `normals_pending`)."""
     colors: np.ndarray
     """(N, 3) uint8 RGB."""
     faces: np.ndarray | None = None
@@ -63,12 +140,13 @@ class Scene:
         provenance: Mapping[str, Any] | None = None,
         max_points: int = DEFAULT_MAX_POINTS,
     ) -> "Scene":
-        """Validate arrays, convert dtypes, fill missing normals (open3d) and colours (grey).
+        """Validate arrays, convert dtypes, fill missing colours (grey); missing normals are estimated lazily.
 
         Args:
             name: scene name.
             points: (N, 3) float, world frame, metres.
-            normals: (N, 3) float or None (then estimated with open3d and oriented consistently).
+            normals: (N, 3) float or None: then estimated on first access of `Scene.normals` (mesh vertex
+                normals, or PCA normals oriented consistently; `efem_viz.geometry.normals.estimate_normals`).
             colors: (N, 3) uint8, or float in [0, 1], or None (grey).
             faces: (M, 3) int or None.
             instance: (N,) integer labels or None.
@@ -106,10 +184,10 @@ class Scene:
                         f"scene {name!r}: face indices must lie in [0, {n}), got [{fcs.min()}, {fcs.max()}]"
                     )
                 fcs = np.ascontiguousarray(fcs, dtype=np.int32)
+        pts32 = np.ascontiguousarray(pts, dtype=np.float32)
+        nrm: np.ndarray | PendingNormals
         if normals is None:
-            from efem_viz.geometry.normals import estimate_normals
-
-            nrm = estimate_normals(pts, faces=fcs)
+            nrm = PendingNormals(pts32, fcs)
         else:
             nrm = _as_points(normals, "normals")
             if nrm.shape[0] != n:
@@ -118,6 +196,7 @@ class Scene:
                 raise SceneError(f"scene {name!r}: normals contain NaN or Inf")
             lens = np.linalg.norm(nrm, axis=1, keepdims=True)
             nrm = np.where(lens > 1e-12, nrm / np.maximum(lens, 1e-12), np.array([0, 0, 1], np.float32))
+            nrm = np.ascontiguousarray(nrm, dtype=np.float32)
         col = _as_colors(colors, n, name)
         inst: np.ndarray | None = None
         if instance is not None:
@@ -140,8 +219,8 @@ class Scene:
         prov = dict(provenance or {})
         return cls(
             name=str(name),
-            points=np.ascontiguousarray(pts, dtype=np.float32),
-            normals=np.ascontiguousarray(nrm, dtype=np.float32),
+            points=pts32,
+            normals=cast(np.ndarray, nrm),  # a PendingNormals is resolved by the `normals` descriptor
             colors=col,
             faces=fcs,
             instance=inst,
@@ -149,6 +228,28 @@ class Scene:
             up="+z",
             provenance=prov,
         )
+
+    # ------------------------------------------------------------------ normals
+    @property
+    def normals_pending(self) -> bool:
+        """True while the normals are still to be estimated (the scene was created without them)."""
+        return isinstance(self.__dict__["normals"], PendingNormals)
+
+    def compute_normals(self, *, on_progress: "NormalsProgress | None" = None) -> np.ndarray:
+        """The normals, estimating them now if pending, with progress reports (for a CLI progress line).
+
+        Args:
+            on_progress: called as `estimate_normals` documents: ("pca", points done, N), ("orient", step, 3).
+
+        Returns:
+            (N, 3) float32 unit normals, the same array `Scene.normals` returns from then on.
+        """
+        return _resolve_normals(self, "normals", on_progress)
+
+    def _normals_or_none(self) -> np.ndarray | None:
+        """The stored normals, or None while pending (copies then re-estimate them only if needed)."""
+        value = self.__dict__["normals"]
+        return None if isinstance(value, PendingNormals) else value
 
     # ------------------------------------------------------------------ properties
     @property
@@ -180,7 +281,7 @@ class Scene:
         return Scene.create(
             self.name,
             self.points,
-            normals=self.normals,
+            normals=self._normals_or_none(),  # same points and faces: pending normals stay pending
             colors=self.colors,
             faces=self.faces,
             instance=instance,
@@ -191,7 +292,9 @@ class Scene:
 
     def replace(self, **changes: Any) -> "Scene":
         """dataclasses.replace, re-validated."""
-        d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "normals"}
+        # pending normals stay pending: they are estimated from the (possibly new) points and faces on use
+        d["normals"] = self._normals_or_none()
         d.update(changes)
         d.pop("up", None)
         name = d.pop("name")
