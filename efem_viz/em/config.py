@@ -102,6 +102,17 @@ class EMConfig:
     """Points sampled per proposal per M-step; None = the prior's training size."""
     pose_retrieval: bool = True
     """Estimate the pose with the prior's codebook in reviews (when it has one); else R = identity."""
+    refine_steps: int = 0
+    """Test-time latent refinement (efem_viz/em/refine.py): gradient steps fitting each proposal's latent to its
+    M-step samples through the decoder, regularised toward the encoder's code; 0 = off (the paper's method)."""
+    refine_at: Literal["every_step", "review_steps"] = "every_step"
+    """When to refine: every EM step, or only in the last step of each phase (the steps the reviews use)."""
+    refine_max_pool: int = 64
+    """Refine only in steps with at most this many live proposals (most die in the first steps)."""
+    refine_lr: float = 0.05
+    """Refinement step size (canonical units)."""
+    refine_reg: float = 0.01
+    """Refinement pull toward the encoder's code."""
 
     # ------------------------------------------------------------------ helpers
     @property
@@ -152,6 +163,10 @@ class EMConfig:
             raise ValueError(f"tau_out must be in (0, {MAX_TAU_OUT}] or None, got {self.tau_out}")
         if self.n_pcl is not None and self.n_pcl < 1:
             raise ValueError(f"n_pcl must be >= 1, got {self.n_pcl}")
+        if self.refine_at not in ("every_step", "review_steps"):
+            raise ValueError(f"refine_at must be 'every_step' or 'review_steps', got {self.refine_at!r}")
+        if self.refine_steps < 0 or self.refine_max_pool < 0 or self.refine_lr <= 0 or self.refine_reg < 0:
+            raise ValueError("refine_steps and refine_max_pool must be >= 0, refine_lr > 0, refine_reg >= 0")
         if self.mesh_resolution < 8:
             raise ValueError(f"mesh_resolution must be >= 8, got {self.mesh_resolution}")
         if self.encode_batch < 1 or self.decode_chunk < 1 or self.n_store < 1:

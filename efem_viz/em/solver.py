@@ -566,6 +566,13 @@ class _Solver:
         t0 = self.timer.add("m_step", t0)
         latent = encode_samples(self.prior, self.points[samples], batch=cfg.encode_batch)
         self.n_encoded += len(samples)
+        review_step = t in (cfg.t1 - 1, cfg.steps_per_episode - 1)
+        if cfg.refine_steps > 0 and pool.size <= cfg.refine_max_pool and (cfg.refine_at == "every_step"
+                                                                          or review_step):
+            from efem_viz.em.refine import RefineSettings, refine_latents
+
+            latent, _ = refine_latents(self.prior, latent, self.points[samples],
+                                       RefineSettings(steps=cfg.refine_steps, lr=cfg.refine_lr, reg=cfg.refine_reg))
         t0 = self.timer.add("encode", t0)
         rag = tree.query(latent["center"], cfg.r_err)
         t0 = self.timer.add("neighbourhood", t0)
