@@ -516,7 +516,7 @@ class AnnotatorApp:
             table = ls.instances
             counts = ls.counts()
             progress = ls.progress()
-            n_undo, n_redo = len(ls.undo_stack), len(ls.redo_stack)
+            n_undo, n_redo = _undo_steps(ls.undo_stack), _undo_steps(ls.redo_stack)
         opts = tuple(f"{k}: {v.name}" for k, v in table.items()) or NO_OPTIONS
         self._tls.syncing = True
         try:
@@ -1103,6 +1103,17 @@ class AnnotatorApp:
             # thread (open3d then reports leaks and the process exits with status 1).
             self._warmup.join(timeout=60)
             self._worker.join(timeout=10)
+
+
+def _undo_steps(stack: list[Delta]) -> int:
+    """Undo steps on a stack: adjacent deltas of one stroke group count once (what one Ctrl+Z undoes)."""
+    steps = 0
+    prev = None
+    for d in stack:
+        if not d.group or d.group != prev:
+            steps += 1
+        prev = d.group
+    return steps
 
 
 def _finite(value: Any, n: int, what: str) -> None:

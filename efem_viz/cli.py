@@ -132,6 +132,16 @@ def check_output_file(path: str | os.PathLike[str], *, option: str) -> Path:
     return p
 
 
+def _version() -> str:
+    """The installed package version (the source tree's when not installed)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("efem-viz")
+    except PackageNotFoundError:  # pragma: no cover - running from a source tree without installing
+        return "unknown (not installed)"
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the `efem-viz` console script.
 
@@ -141,6 +151,9 @@ def main(argv: list[str] | None = None) -> int:
     args, debug = pop_debug_flag(list(sys.argv[1:] if argv is None else argv))
     if not args or args[0] in ("-h", "--help", "help"):
         print(_usage())
+        return 0
+    if args[0] in ("--version", "-V", "version"):
+        print(f"efem-viz {_version()}")
         return 0
     name, rest = args[0], args[1:]
     if name not in SUBCOMMANDS:

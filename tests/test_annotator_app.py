@@ -65,7 +65,10 @@ def test_drag_stroke_paints_only_touched_chunks_and_undoes_as_one(app: Annotator
     assert pts[:, 2].min() > 0.045 and pts[:, 0].max() > 0.05  # along the stroke over the top of the ball
     sent = app.stats.bytes_sent - sent0
     assert 0 < sent < 3 * app.n  # partial update: fewer bytes than resending every colour
+    # the history panel counts what Ctrl+Z undoes: the new instance and the stroke, not 1 + 5 dabs
+    assert app.gui_history.content.startswith("2 undoable, 0 redoable")
     assert len(app.undo()) == 5  # start + 3 updates + end undo together
+    assert app.gui_history.content.startswith("1 undoable, 1 redoable")
     assert (app.store.labels == iid).sum() == 0
 
 

@@ -296,3 +296,12 @@ def test_console_errors_have_no_traceback(sample: dict[str, Any], tmp_path: Path
     assert sorted(p.name for p in tmp_path.iterdir()) == ["dir", "nan", "nocfg"] and not any((tmp_path / "dir").iterdir())
     proc = run_cli("--debug", "calibrate-masks", str(no_cfg), "--gt", gt)
     assert proc.returncode == 1 and "Traceback" in proc.stderr and "ResultFileError" in proc.stderr
+
+
+def test_version_flag(capsys: pytest.CaptureFixture[str]) -> None:
+    from importlib.metadata import version
+
+    from efem_viz.cli import main
+
+    assert main(["--version"]) == 0
+    assert capsys.readouterr().out.strip() == f"efem-viz {version('efem-viz')}"
