@@ -440,3 +440,47 @@ def test_export_command_writes_a_demo(scene_dir: Path, tmp_path: Path, capsys: p
     index = tmp_path / "demo" / "index.html"
     assert index.is_file() and str(index) in capsys.readouterr().out
     assert index.stat().st_size < 20_000_000
+
+
+def test_results_folder_is_searched_and_refreshed(scene_dir: Path, prior: Any, tmp_path: Path) -> None:
+    """`view SCENES --results DIR`: a scene's result in a segment output folder is found; one written after the
+    scene was opened is found too, and the scene panel says so once it is loaded."""
+    import shutil
+
+    from efem_viz.viewer.app import ViewerApp
+
+    scenes, results = tmp_path / "scenes", tmp_path / "results"
+    scenes.mkdir()
+    results.mkdir()
+    shutil.copy(scene_dir / "spheres.ply", scenes / "spheres.ply")
+    a = ViewerApp([scenes], port=0, prior=prior, open_first=False, results=[results])
+    try:
+        assert a.open_scene("spheres") and a.wait_idle(60)
+        assert "saved trace: none" in a.panels.gui_info.content
+        assert not a.load_trace()
+        shutil.copy(scene_dir / "spheres.efem.npz", results / "spheres.efem.npz")  # e.g. segment --out results
+        assert a.state.entry("spheres").trace_path == (results / "spheres.efem.npz").resolve()
+        assert a.load_trace() and a.wait_idle(60)
+        assert a.state.result is not None
+        assert "saved trace: `spheres.efem.npz`" in a.panels.gui_info.content
+    finally:
+        a.stop()
+
+
+def test_a_results_folder_alone_lists_its_segment_outputs(scene_dir: Path, prior: Any, tmp_path: Path) -> None:
+    import shutil
+
+    from efem_viz.viewer.app import ViewerApp
+
+    out = tmp_path / "out"
+    out.mkdir()
+    shutil.copy(scene_dir / "spheres.ply", out / "spheres.seg.ply")  # what segment writes beside the result
+    shutil.copy(scene_dir / "spheres.efem.npz", out / "spheres.efem.npz")
+    a = ViewerApp([], port=0, prior=prior, open_first=False, results=[out])
+    try:
+        assert [e.name for e in a.state.entries] == ["spheres.seg"]
+        assert a.state.entries[0].trace_path == (out / "spheres.efem.npz").resolve()
+    finally:
+        a.stop()
+    with pytest.raises(FileNotFoundError, match="results folder"):
+        ViewerApp([scene_dir], port=0, prior=prior, results=[tmp_path / "nope"])

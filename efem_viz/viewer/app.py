@@ -62,6 +62,9 @@ class ViewerApp:
         out_dir: the output root: every export from the GUI goes into this folder or below it (a folder typed
             into the GUI must resolve inside it); the static demo defaults to `<out_dir>/static/<scene>/`.
         token: the server's access token (None = a fresh random one; see `efem_viz.viewer.guard`).
+        results: folders of saved results (`<scene>.efem.npz`, e.g. `efem-viz segment --out DIR`), searched after
+            each scene's own folder; with no `paths`, the scenes are the scene files in these folders (segment's
+            `<scene>.seg.ply`).
 
     Raises:
         GuardUnavailableError: the access guard cannot be attached to this viser (nothing is served).
@@ -78,12 +81,14 @@ class ViewerApp:
         open_first: bool = True,
         out_dir: str | Path = "efem_out",
         token: str | None = None,
+        results: Sequence[str | Path] = (),
     ) -> None:
         from efem_viz.viewer.guard import start_server
 
         self.state = ViewerState()
-        self.state.entries = st.discover_scenes(list(paths) if paths else [DEFAULT_SCENE_DIR])
-        self._roots = [Path(p).expanduser().resolve() for p in (paths or [DEFAULT_SCENE_DIR])]
+        scene_paths = list(paths) if paths else (list(results) if results else [DEFAULT_SCENE_DIR])
+        self.state.entries = st.discover_scenes(scene_paths, result_dirs=list(results))
+        self._roots = [Path(p).expanduser().resolve() for p in [*scene_paths, *results]]
         self.out_root = Path(out_dir).expanduser().resolve()
         """Exports from the GUI stay inside this folder (fixed at start)."""
         self._prior = prior
@@ -437,6 +442,9 @@ class ViewerApp:
         try:
             result = EMResult.load(p)
             self.set_result(result, source=str(p.name))
+            scene = s.scene
+            if scene is not None:
+                self.panels.gui_info.content = scene_info_markdown(scene, s.entry(s.scene_name))
         except Exception as exc:  # noqa: BLE001 - corrupt file, other scene's result: show, stay up
             logger.exception("loading %s failed", p)
             self._set_status(f"Could not load {p.name}: {exc}", error=True)

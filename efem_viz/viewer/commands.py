@@ -30,17 +30,23 @@ class ViewArgs:
     """Output root: exports from the GUI (results, static demo) go into this folder or below it, nowhere else."""
     token: str | None = None
     """Access token to require (default: a fresh random one, printed in the URL). At least 16 characters."""
+    results: tuple[Path, ...] = ()
+    """Folders of saved results (`efem-viz segment --out DIR`): each scene's `<scene>.efem.npz` is looked for there
+    after its own folder. Without scene paths, the scenes are the scene files in these folders."""
 
     def run(self) -> int:
         """Start the server, print its URL, serve until Ctrl+C."""
         from efem_viz.viewer.app import DEFAULT_SCENE_DIR, ViewerApp
 
-        paths = list(self.paths) or [DEFAULT_SCENE_DIR]
+        paths = list(self.paths) or ([] if self.results else [DEFAULT_SCENE_DIR])
         for p in paths:
             if not Path(p).exists():
                 raise FileNotFoundError(f"no such scene file or folder: {p}")
+        for d in self.results:
+            if not Path(d).is_dir():
+                raise FileNotFoundError(f"no such results folder: {d}")
         app = ViewerApp(paths, host=self.host, port=self.port, prior_name=self.prior, out_dir=self.out_dir,
-                        token=self.token)
+                        token=self.token, results=self.results)
         try:
             warning = app.access.exposure_warning
             if warning:

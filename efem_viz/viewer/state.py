@@ -23,6 +23,8 @@ SCENE_SUFFIXES = (".ply", ".obj", ".off", ".glb", ".npz")
 TRACE_SUFFIX = ".efem.npz"
 LABELS_INFIX = ".labels"
 """`<scene>.labels.ply` is an annotated copy of `<scene>.ply` (annotator output) and may share its result."""
+SEG_INFIX = ".seg"
+"""`<scene>.seg.ply` is `efem-viz segment`'s coloured copy of `<scene>` and shares its result."""
 
 ColorMode = Literal["rgb", "instances", "gt_match", "weights", "proposals"]
 DisplayMode = Literal["points", "mesh"]
@@ -49,18 +51,25 @@ class SceneEntry:
     name: str
     path: Path
     root: Path
+    result_dirs: tuple[Path, ...] = ()
+    """Folders of saved results (`efem-viz view --results DIR`, e.g. a `segment --out` folder) searched after the
+    scene's own folder."""
 
     @property
     def trace_path(self) -> Path:
-        """The saved result to open with this scene: `<scene>.efem.npz` next to it, or, for an annotated copy
-        `<base>.labels.ply` without its own result, the result of `<base>` (same points, labels added)."""
-        own = trace_path_for(self.path)
+        """The saved result to open with this scene, looked up when asked (a result written meanwhile is found):
+        `<scene>.efem.npz` next to it, then in each results folder; for an annotated copy `<base>.labels.ply` or a
+        `segment` output `<base>.seg.ply`, the result of `<base>` (same points). When none exists, the path next
+        to the scene (where a run would be saved)."""
         stem = self.path.name[: -len(self.path.suffix)] if self.path.suffix else self.path.name
-        if not own.is_file() and stem.endswith(LABELS_INFIX):
-            base = self.path.with_name(stem[: -len(LABELS_INFIX)] + TRACE_SUFFIX)
-            if base.is_file():
-                return base
-        return own
+        stems = [stem] + [stem[: -len(infix)] for infix in (LABELS_INFIX, SEG_INFIX) if stem.endswith(infix)]
+        folders = [self.path.parent, *self.result_dirs]
+        for base in stems:
+            for d in folders:
+                cand = d / (base + TRACE_SUFFIX)
+                if cand.is_file():
+                    return cand
+        return trace_path_for(self.path)
 
 
 def trace_path_for(scene_path: Path) -> Path:
@@ -92,7 +101,12 @@ def is_inside(path: Path, roots: Sequence[Path]) -> bool:
     return False
 
 
-def discover_scenes(paths: Sequence[str | os.PathLike[str]], *, recursive: bool = False) -> list[SceneEntry]:
+def discover_scenes(
+    paths: Sequence[str | os.PathLike[str]],
+    *,
+    recursive: bool = False,
+    result_dirs: Sequence[str | os.PathLike[str]] = (),
+) -> list[SceneEntry]:
     """List the scene files given directly or found inside the given folders.
 
     Only files inside the given paths are returned (symlinks are resolved and anything that points outside is
@@ -102,6 +116,7 @@ def discover_scenes(paths: Sequence[str | os.PathLike[str]], *, recursive: bool 
         paths: scene files and/or folders.
         recursive: also search sub-folders of the given folders (default: like `efem_viz.data.io.find_scenes`,
             only the folder itself).
+        result_dirs: folders of saved results to look in for each scene's `<scene>.efem.npz`.
 
     Returns:
         Entries sorted by name, with unique names.
@@ -109,6 +124,12 @@ def discover_scenes(paths: Sequence[str | os.PathLike[str]], *, recursive: bool 
     Raises:
         FileNotFoundError: a given path does not exist.
     """
+    rdirs: list[Path] = []
+    for d in result_dirs:
+        dd = Path(d).expanduser()
+        if not dd.is_dir():
+            raise FileNotFoundError(f"results folder does not exist: {dd}")
+        rdirs.append(dd.resolve())
     roots: list[Path] = []
     for p in paths:
         pp = Path(p).expanduser()
@@ -141,7 +162,7 @@ def discover_scenes(paths: Sequence[str | os.PathLike[str]], *, recursive: bool 
             name = f"{base} ({k})"
             k += 1
         used.add(name)
-        entries.append(SceneEntry(name=name, path=rc, root=root))
+        entries.append(SceneEntry(name=name, path=rc, root=root, result_dirs=tuple(rdirs)))
     entries.sort(key=lambda e: e.name)
     return entries
 
