@@ -284,6 +284,8 @@ class Journal:
         """
         if self.broken:
             raise JournalError(self.broken)
+        if self._fd < 0:
+            raise JournalError(f"the journal {self.path.name} is closed (the annotator is shutting down)")
         seq = self.next_seq
         h = {"seq": seq, "kind": kind, "time": time.time(), **header}
         payload = _encode(h, arrays or {})
@@ -313,8 +315,10 @@ class Journal:
         return seq
 
     def close(self) -> None:
-        with contextlib.suppress(Exception):
-            os.close(self._fd)
+        fd, self._fd = self._fd, -1
+        if fd >= 0:
+            with contextlib.suppress(Exception):
+                os.close(fd)
         with contextlib.suppress(Exception):
             self._lock_file.close()
 

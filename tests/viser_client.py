@@ -298,8 +298,16 @@ class AnnotateProcess:
         assert self.url, "".join(self.lines)
         self.t_url = time.monotonic() - self.t_start
         """Seconds from process start to the printed URL (scan loaded, journal recovered, GUI built)."""
+        # keep reading the output: a full pipe would block the server's logging (and then the server)
+        self._drain = threading.Thread(target=self._read_rest, daemon=True)
+        self._drain.start()
         self.client = ViserClient(self.url)
         self.client.set_value("Brush radius (cm)", 2.0)
+
+    def _read_rest(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self.lines.append(line)
 
     def table(self) -> str:
         """The instance table as the server last sent it (the markdown that says how much is labelled)."""
@@ -345,7 +353,24 @@ class AnnotateProcess:
         self.proc.kill()
         self.proc.wait(10)
 
-    def stop(self) -> int:
+    def stop(self, timeout: float = 90.0) -> int:
+        """Ctrl+C, as a user stops it; returns the exit status.
+
+        Raises:
+            AssertionError: it did not exit within `timeout` (killed then; its last output is in the message).
+        """
         self.client.close()
         self.proc.send_signal(signal.SIGINT)
-        return self.proc.wait(30)
+        try:
+            return self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            stacks = ""
+            try:  # where it hangs, when py-spy is installed
+                stacks = subprocess.run(["py-spy", "dump", "--pid", str(self.proc.pid)], capture_output=True,
+                                        text=True, timeout=30).stdout
+            except (OSError, subprocess.SubprocessError):
+                pass
+            self.lines.append(stacks)
+            self.proc.kill()
+            self.proc.wait(10)
+            raise AssertionError(f"efem-annotate ignored Ctrl+C for {timeout:.0f} s:\n" + "".join(self.lines[-30:])) from None
