@@ -823,7 +823,7 @@ class AnnotatorApp:
             w = np.asarray(self._lasso_world, np.float32)
             seg = np.stack([w, np.roll(w, -1, axis=0)], axis=1)
             self._lasso_handle = self.server.scene.add_line_segments("/annotator/lasso", seg, colors=(255, 200, 0),
-                                                                     line_width=2.0)
+                                                                     thickness=2.0, thickness_units="screen")
         elif self._lasso_handle is not None:
             with contextlib.suppress(Exception):
                 self._lasso_handle.remove()

@@ -28,7 +28,7 @@ import trimesh
 sys.path.insert(0, str(Path(__file__).parent))
 from viser_client import RawClient, handshake_status, wait_for, ws_url  # noqa: E402
 
-from annotator.app import AnnotatorApp  # noqa: E402
+from annotator.app import TOOLS, AnnotatorApp  # noqa: E402
 from annotator.io import LabelIOError  # noqa: E402
 from efem_viz.viewer import guard  # noqa: E402
 from efem_viz.viewer.inputs import (  # noqa: E402
@@ -225,7 +225,7 @@ def test_client_cannot_rewrite_control_bounds(annotator: AnnotatorApp) -> None:
         c.set_gui(annotator.gui_delete, disabled=True)
         assert wait_for(lambda: abs(annotator.settings.radius - 0.20) < 1e-9)
         assert annotator.gui_radius.max == 20.0 and annotator.gui_radius.min == pytest.approx(0.1)
-        assert tuple(annotator.gui_tool.options) == ("brush", "erase", "grow", "fill", "pick", "segment")
+        assert tuple(annotator.gui_tool.options) == TOOLS
         assert annotator.gui_delete.disabled is False
         assert annotator.settings.tool == "brush"
         c.send({"type": "ShareUrlRequest"})  # would open a public tunnel to this server
