@@ -14,6 +14,7 @@ Note: rebuilt on 2026-12-01 after an accidental overwrite, from how tests/test_a
 
 from __future__ import annotations
 
+import atexit
 import os
 import re
 import signal
@@ -284,6 +285,7 @@ class AnnotateProcess:
         )
         self.lines: list[str] = []
         self.url = ""
+        atexit.register(self._kill_if_running)  # a failing test must not leave servers behind
         end = time.monotonic() + timeout
         assert self.proc.stdout is not None
         while time.monotonic() < end:
@@ -303,6 +305,10 @@ class AnnotateProcess:
         self._drain.start()
         self.client = ViserClient(self.url)
         self.client.set_value("Brush radius (cm)", 2.0)
+
+    def _kill_if_running(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
 
     def _read_rest(self) -> None:
         assert self.proc.stdout is not None
