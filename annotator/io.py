@@ -98,6 +98,12 @@ def _table_rows(table: Mapping[int, InstanceInfo] | Iterable[InstanceInfo]) -> l
     return sorted(table, key=lambda i: i.id)
 
 
+def _one_line(exc: BaseException) -> str:
+    """`Type: message` of an exception on one line, cut to 300 characters."""
+    text = " ".join(str(exc).split())
+    return f"{type(exc).__name__}: {text[:300]}" if text else type(exc).__name__
+
+
 def _check_labels(labels: np.ndarray, n: int, path: Path) -> np.ndarray:
     lab = np.asarray(labels)
     if lab.ndim != 1 or lab.shape[0] != n:
@@ -194,11 +200,23 @@ def save_scannet(
 def _read_ply_labels(p: Path, n: int) -> LabelData:
     import plyfile
 
+    from efem_viz.data.io import _check_ply_counts, _read_ply_head
+    from efem_viz.data.scene import DEFAULT_MAX_POINTS, SceneError
+
+    try:
+        # the scene reader's bounds checks: a header count the file cannot hold fails before plyfile allocates
+        head = _read_ply_head(p)
+        if head is not None:
+            _check_ply_counts(p, head, max(n, DEFAULT_MAX_POINTS))
+    except SceneError as exc:
+        raise LabelIOError(str(exc)) from exc
     try:
         ply = plyfile.PlyData.read(str(p))
         v = ply["vertex"].data
+    except MemoryError:
+        raise
     except Exception as exc:  # plyfile raises many types on corrupt input
-        raise LabelIOError(f"{p}: could not read PLY ({type(exc).__name__}: {exc})") from exc
+        raise LabelIOError(f"{p}: could not read PLY ({_one_line(exc)})") from exc
     props = v.dtype.names or ()
     key = next((k for k in ("instance", "instance_id", "objectId", "label") if k in props), None)
     if key is None:
@@ -220,28 +238,56 @@ def _read_ply_labels(p: Path, n: int) -> LabelData:
     return LabelData(labels, _complete(labels, rows, cats))
 
 
+def _check_npz_headers(p: Path, n: int) -> None:
+    """The scene reader's `.npz` check: every array header agrees with the bytes its member holds (so numpy never
+    allocates what a corrupt header claims)."""
+    from efem_viz.data.io import _check_npz
+    from efem_viz.data.scene import DEFAULT_MAX_POINTS, SceneError
+
+    try:
+        _check_npz(p, max(n, DEFAULT_MAX_POINTS))
+    except SceneError as exc:
+        raise LabelIOError(str(exc)) from exc
+
+
 def _read_npz_labels(p: Path, n: int) -> LabelData:
+    _check_npz_headers(p, n)
+    cats_text: str | None = None
     try:
         with np.load(p, allow_pickle=False) as z:
             keys = set(z.files)
-    except (OSError, ValueError) as exc:
-        raise LabelIOError(f"{p}: could not read NPZ ({exc})") from exc
-    if "instances_json" in keys:
+            if "instances_json" in keys:
+                instance = None
+            elif "instance" not in keys:
+                raise LabelIOError(f"{p}: NPZ has no 'instance' array (has {sorted(keys)})")
+            else:
+                instance = np.asarray(z["instance"])
+                cats_text = str(z["categories_json"]) if "categories_json" in keys else None
+    except LabelIOError:
+        raise
+    except MemoryError:
+        raise
+    except Exception as exc:  # zipfile, zlib and numpy raise many types on a corrupt archive
+        raise LabelIOError(f"{p}: could not read NPZ ({_one_line(exc)})") from exc
+    if instance is None:
         try:
             labels, table, _ = read_label_file(p, n)
-        except ValueError as exc:
-            raise LabelIOError(str(exc)) from exc
+        except MemoryError:
+            raise
+        except Exception as exc:  # JournalError (a ValueError) names the file; others are corrupt members
+            msg = " ".join(str(exc).split()) if isinstance(exc, ValueError) else _one_line(exc)
+            raise LabelIOError(msg if str(p) in msg else f"{p}: {msg}") from exc
         return LabelData(_check_labels(labels, n, p), _complete(labels, list(table.values())))
-    if "instance" not in keys:
-        raise LabelIOError(f"{p}: NPZ has no 'instance' array (has {sorted(keys)})")
-    with np.load(p, allow_pickle=False) as z:
-        labels = _check_labels(z["instance"], n, p)
-        cats: dict[int, str] = {}
-        if "categories_json" in keys:
-            try:
-                cats = {int(k): str(v) for k, v in json.loads(str(z["categories_json"])).items()}
-            except (ValueError, TypeError) as exc:
-                log.warning("%s: ignoring unreadable categories (%s)", p, exc)
+    labels = _check_labels(instance, n, p)
+    cats: dict[int, str] = {}
+    if cats_text is not None:
+        try:
+            raw = json.loads(cats_text)
+            if not isinstance(raw, dict):
+                raise TypeError(f"a JSON object was expected, got {type(raw).__name__}")
+            cats = {int(k): str(v) for k, v in raw.items()}
+        except (ValueError, TypeError) as exc:
+            log.warning("%s: ignoring unreadable categories (%s)", p, exc)
     return LabelData(labels, _complete(labels, [], cats))
 
 
@@ -249,32 +295,43 @@ def _read_scannet(p: Path, n: int) -> LabelData:
     name = p.name
     stem = name[: -len(".aggregation.json")] if name.endswith(".aggregation.json") else name[: -len(".segs.json")]
     agg_p = p.with_name(stem + ".aggregation.json")
+    segs_p = p.with_name(stem + ".segs.json")
     try:
         agg = json.loads(agg_p.read_text(encoding="utf-8"))
+        if not isinstance(agg, dict):
+            raise TypeError(f"{agg_p.name} holds a JSON {type(agg).__name__}, not an object")
         segs_name = agg.get("segmentsFile") or f"{stem}.segs.json"
-        segs_p = p.with_name(Path(str(segs_name)).name)  # never follow a path inside the file
-        if not segs_p.exists():
-            segs_p = p.with_name(stem + ".segs.json")
+        named = p.with_name(Path(str(segs_name)).name)  # never follow a path inside the file
+        if named.exists():
+            segs_p = named
         segs = json.loads(segs_p.read_text(encoding="utf-8"))
+        if not isinstance(segs, dict):
+            raise TypeError(f"{segs_p.name} holds a JSON {type(segs).__name__}, not an object")
         seg_idx = np.asarray(segs["segIndices"])
         groups = agg["segGroups"]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise LabelIOError(f"{p}: could not read ScanNet segs/aggregation pair ({type(exc).__name__}: {exc})") from exc
+        if not isinstance(groups, list):
+            raise TypeError(f"segGroups is a JSON {type(groups).__name__}, not a list")
+    except (OSError, ValueError, KeyError, TypeError, RecursionError) as exc:
+        raise LabelIOError(f"{p}: could not read ScanNet segs/aggregation pair ({_one_line(exc)})") from exc
     if seg_idx.ndim != 1 or len(seg_idx) != n:
         raise LabelIOError(f"{segs_p}: has {seg_idx.shape} segIndices, the scan has {n} vertices")
     if not np.issubdtype(seg_idx.dtype, np.integer):
         raise LabelIOError(f"{segs_p}: segIndices must be integers, got {seg_idx.dtype}")
     labels = np.zeros(n, np.int32)
     rows: list[InstanceInfo] = []
-    for g in groups:
+    for k, g in enumerate(groups):
         try:
-            iid = int(g.get("objectId", g.get("id"))) + 1
+            if not isinstance(g, dict):
+                raise TypeError(f"a JSON {type(g).__name__}, not an object")
+            raw_id: Any = g.get("objectId", g.get("id"))  # None (neither key) fails int() as a TypeError
+            iid = int(raw_id) + 1
             segments = np.asarray([int(s) for s in g["segments"]], np.int64)
             cat = str(g.get("label", "object"))
-        except (KeyError, TypeError, ValueError) as exc:
-            raise LabelIOError(f"{agg_p}: malformed segGroup {g!r} ({exc})") from exc
-        if iid <= 0:
-            raise LabelIOError(f"{agg_p}: objectId must be >= 0, got {iid - 1}")
+        except (KeyError, TypeError, ValueError, OverflowError) as exc:
+            raise LabelIOError(f"{agg_p}: malformed segGroups[{k}] {repr(g)[:80]} ({_one_line(exc)})") from exc
+        if not 0 < iid <= np.iinfo(np.int32).max:
+            raise LabelIOError(f"{agg_p}: segGroups[{k}] objectId must be in [0, {np.iinfo(np.int32).max - 1}], "
+                               f"got {iid - 1}")
         labels[np.isin(seg_idx, segments)] = iid
         rows.append(InstanceInfo(iid, str(g.get("name", f"{cat} {iid}")), category=cat, color=instance_color(iid)))
     return LabelData(labels, _complete(labels, rows))
@@ -287,10 +344,20 @@ def _read_efem(p: Path, n: int, *, threshold: float = 0.0) -> LabelData:
         raise LabelIOError(f"{p}: EFEM results need efem_viz.em.EMResult, which is not available ({exc})") from exc
     try:
         res = EMResult.load(p)
+    except MemoryError:
+        raise
+    except Exception as exc:  # the result loader raises its own errors; all mean "cannot use this file"
+        msg = " ".join(str(exc).split())
+        if isinstance(exc, (ValueError, OSError)) and str(p) in msg:  # ResultFileError names the file already
+            raise LabelIOError(f"could not load EFEM result: {msg}") from exc
+        raise LabelIOError(f"{p}: could not load EFEM result ({_one_line(exc)})") from exc
+    if res.num_points != n:
+        raise LabelIOError(f"{p}: the EFEM result was computed on {res.num_points} points, the scan has {n} vertices")
+    try:
         inst = res.instances.above(threshold) if threshold > 0 else res.instances
         labels = np.asarray(inst.label_array(n), np.int32)
-    except Exception as exc:  # the result loader raises its own errors; all mean "cannot use this file"
-        raise LabelIOError(f"{p}: could not load EFEM result ({type(exc).__name__}: {exc})") from exc
+    except (ValueError, IndexError) as exc:
+        raise LabelIOError(f"{p}: could not use the EFEM result ({_one_line(exc)})") from exc
     labels = _check_labels(labels, n, p)
     rows: list[InstanceInfo] = []
     conf: dict[int, float] = {}

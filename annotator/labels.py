@@ -69,7 +69,7 @@ class InstanceInfo:
         try:
             iid = int(d["id"])
             color = tuple(int(c) for c in d.get("color", instance_color(iid)))
-        except (KeyError, TypeError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError, OverflowError) as exc:  # OverflowError: int(inf)
             raise ValueError(f"malformed instance record {dict(d)!r}: {exc}") from exc
         if iid <= 0:
             raise ValueError(f"instance ids must be positive, got {iid}")

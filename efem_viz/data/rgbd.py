@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,6 +23,8 @@ log = logging.getLogger(__name__)
 
 REAL_TABLETOP_LICENSE = "MIT, UOIS example images, (c) 2019 Chris Xie"
 """Licence line of the frames in `shared/data/real_tabletop` (the UOIS project's example images)."""
+MAX_FRAME_SPAN_M = 1000.0
+"""A frame whose back-projected points span more than this (metres) has absurd intrinsics and is refused."""
 
 
 def load_rgbd_npz(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -36,24 +39,33 @@ def load_rgbd_npz(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray,
         `(rgb (H, W, 3) uint8 or None, depth_m (H, W) float32 metres with 0 = invalid, K (3, 3) float64)`.
 
     Raises:
-        SceneError: missing file or arrays, wrong shapes.
+        SceneError: missing file or arrays, a corrupt archive (an array header that disagrees with its member's
+            bytes is refused before numpy allocates), wrong shapes or dtypes.
     """
+    from efem_viz.data.io import _check_npz
+    from efem_viz.data.scene import DEFAULT_MAX_POINTS
+
     p = Path(path)
     if not p.is_file():
-        raise SceneError(f"{p}: no such file")
+        raise SceneError(f"{p} is a directory, not an RGB-D frame" if p.is_dir() else f"{p}: no such file")
+    _check_npz(p, DEFAULT_MAX_POINTS)  # the scene reader's header check: names the file
     try:
         with np.load(p, allow_pickle=False) as d:
             data = {k: np.array(d[k]) for k in d.keys()}
+    except MemoryError:
+        raise
     except Exception as exc:
-        raise SceneError(f"{p}: could not read the RGB-D .npz ({type(exc).__name__}: {exc})") from exc
+        text = " ".join(str(exc).split())[:300]
+        raise SceneError(f"{p}: could not read the RGB-D .npz ({type(exc).__name__}: {text})") from exc
     if "K" not in data:
         raise SceneError(f"{p}: RGB-D .npz needs an intrinsics array 'K' (has {sorted(data)})")
-    if "depth_mm" in data:
-        depth_m = data["depth_mm"].astype(np.float32) / 1000.0
-    elif "depth" in data:
-        depth_m = data["depth"].astype(np.float32)
-    else:
+    key = "depth_mm" if "depth_mm" in data else "depth" if "depth" in data else None
+    if key is None:
         raise SceneError(f"{p}: RGB-D .npz needs 'depth_mm' (uint16 mm) or 'depth' (float m) (has {sorted(data)})")
+    for k in (key, "K", "rgb"):
+        if k in data and data[k].dtype.kind not in ("biu" if k == "rgb" else "biuf"):
+            raise SceneError(f"{p}: RGB-D array {k!r} must be numeric, got dtype {data[k].dtype}")
+    depth_m = data[key].astype(np.float32) / (1000.0 if key == "depth_mm" else 1.0)
     rgb = data.get("rgb")
     K = np.asarray(data["K"], dtype=np.float64)
     _check_inputs(depth_m, K, rgb, where=str(p))
@@ -64,7 +76,8 @@ def _check_inputs(depth_m: np.ndarray, K: np.ndarray, rgb: np.ndarray | None, *,
     if depth_m.ndim != 2:
         raise SceneError(f"{where}: depth must be (H, W), got {depth_m.shape}")
     if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise SceneError(f"{where}: K must be a (3, 3) pinhole matrix with fx, fy > 0, got {K.tolist()}")
+        shown = K.tolist() if K.size <= 9 else f"shape {K.shape}"
+        raise SceneError(f"{where}: K must be a (3, 3) pinhole matrix with fx, fy > 0, got {shown}")
     if rgb is not None and (rgb.ndim != 3 or rgb.shape[:2] != depth_m.shape or rgb.shape[2] not in (3, 4)):
         raise SceneError(f"{where}: rgb of shape {rgb.shape} does not match depth {depth_m.shape}")
 
@@ -313,9 +326,14 @@ def import_rgbd(
     if rgb is not None:
         rgb = np.asarray(rgb)
     _check_inputs(depth_m, K, rgb, where=name)
-    pts_cam, pix = backproject(depth_m, K, max_depth=max_depth)
+    with np.errstate(over="ignore", invalid="ignore"):
+        pts_cam, pix = backproject(depth_m, K, max_depth=max_depth)
     if len(pts_cam) < 1000:
         raise SceneError(f"{name}: only {len(pts_cam)} valid depth readings within {max_depth} m")
+    span = float(np.ptp(pts_cam, axis=0).max())
+    if not span < MAX_FRAME_SPAN_M:  # NaN/Inf too: Open3D's voxel grid fails on such clouds with a RuntimeError
+        raise SceneError(f"{name}: the depth image and K = {np.round(K, 3).tolist()} put the points {span:.3g} m "
+                         f"apart (more than {MAX_FRAME_SPAN_M:g} m): not a camera's intrinsics")
     colors = (
         rgb.reshape(-1, rgb.shape[2])[pix, :3].astype(np.float64) / 255.0
         if rgb is not None
@@ -382,10 +400,21 @@ def import_rgbd_file(
     max_depth: float = 2.5,
     seed: int = 0,
 ) -> Scene:
-    """`load_rgbd_npz` + `import_rgbd`, recording the source file in the provenance."""
+    """`load_rgbd_npz` + `import_rgbd`, recording the source file in the provenance.
+
+    Raises:
+        SceneError: what either raises, the message naming the file.
+    """
     p = Path(path)
     rgb, depth_m, K = load_rgbd_npz(p)
-    return import_rgbd(
-        depth_m, K, rgb, name=name or p.stem, voxel=voxel, max_depth=max_depth, seed=seed,
-        provenance={"source_file": p.name},
-    )
+    try:
+        return import_rgbd(
+            depth_m, K, rgb, name=name or p.stem, voxel=voxel, max_depth=max_depth, seed=seed,
+            provenance={"source_file": p.name},
+        )
+    except SceneError as exc:  # the import names the scene; the caller needs the file
+        msg = str(exc)
+        raise SceneError(msg if str(p) in msg else f"{p}: {msg}") from exc
+    except RuntimeError as exc:  # Open3D's errors: coloured, over several lines
+        text = " ".join(re.sub(r"\x1b\[[0-9;]*m", "", str(exc)).split())[:300]
+        raise SceneError(f"{p}: could not import the RGB-D frame ({text})") from exc

@@ -214,7 +214,12 @@ class Scene:
                     )
             if inst_raw.min() < 0:
                 raise SceneError(f"scene {name!r}: instance labels must be >= 0 (0 = unlabelled)")
+            if inst_raw.max() > np.iinfo(np.int32).max:
+                raise SceneError(f"scene {name!r}: instance label {inst_raw.max()} does not fit int32")
             inst = np.ascontiguousarray(inst_raw, dtype=np.int32)
+        if not isinstance(categories or {}, Mapping) or not isinstance(provenance or {}, Mapping):
+            raise SceneError(f"scene {name!r}: categories and provenance must be mappings, got "
+                             f"{type(categories).__name__} and {type(provenance).__name__}")
         cats = {int(k): str(v) for k, v in (categories or {}).items()}
         prov = dict(provenance or {})
         return cls(

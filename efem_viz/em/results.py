@@ -343,12 +343,17 @@ class EMResult:
 
         Raises:
             FileNotFoundError: missing file.
-            ResultFileError: (a ValueError, naming the file) not an EFEM result, an unsupported schema version, a
-                missing key or an inconsistent or out-of-range array; or `scene` has another number of points.
+            ResultFileError: (a ValueError, naming the file) a directory, not an EFEM result, a corrupt archive
+                (an array header that disagrees with its member's bytes is refused before numpy allocates), an
+                unsupported schema version, a missing key or an inconsistent or out-of-range array; or `scene` has
+                another number of points.
         """
         p = Path(path)
         if not p.is_file():
+            if p.is_dir():
+                raise ResultFileError(f"{p} is a directory, not an EFEM result file")
             raise FileNotFoundError(f"EFEM result not found: {p}")
+        _check_npz_headers(p)
         try:
             z = np.load(p, allow_pickle=False)
         except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
@@ -371,11 +376,13 @@ class EMResult:
                 if missing:
                     raise ResultFileError(f"{p}: not a complete EFEM result: missing {', '.join(missing)}")
                 data = {k: z[k] for k in z.files}
-            except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
-                if isinstance(exc, ResultFileError):
-                    raise
+            except ResultFileError:
+                raise
+            except MemoryError:
+                raise
+            except Exception as exc:  # zipfile, zlib and numpy raise many types on a corrupt member
                 raise ResultFileError(f"{p}: a member of the result archive is unreadable (corrupt?): "
-                                      f"{type(exc).__name__}") from exc
+                                      f"{_describe(exc)[:300]} ({type(exc).__name__})") from exc
         num_points = validate_result_arrays(data, path=p)
         if scene is not None and scene.num_points != num_points:
             raise ResultFileError(f"{p} was computed on {num_points} points but scene {scene.name!r} has "
@@ -433,6 +440,22 @@ REQUIRED_RESULT_KEYS: tuple[str, ...] = (
     *(f"trace/{k}" for k in EMTrace._ARRAY_FIELDS),
 )
 """Every key `EMResult.save` writes (schema 1); `EMResult.load` refuses a file without one of them."""
+
+
+def _check_npz_headers(p: Path) -> None:
+    """Every array header of the archive agrees with the bytes its member holds, before numpy allocates for it
+    (the scene reader's check, `efem_viz.data.io._check_npz`, without its scene size limits)."""
+    from efem_viz.data.io import _check_npz
+    from efem_viz.data.scene import SceneError
+
+    try:
+        _check_npz(p, 1 << 40)
+    except SceneError as exc:
+        msg = str(exc)
+        if "not a valid .npz" in msg:
+            raise ResultFileError(f"{p} is not a readable EFEM result (corrupt or truncated .npz?): "
+                                  f"{msg.split(': ', 1)[-1]}") from exc
+        raise ResultFileError(msg) from exc
 
 
 def _describe(exc: BaseException) -> str:

@@ -304,32 +304,62 @@ class Codebook:
 
         Raises:
             FileNotFoundError: missing file.
-            ValueError: not a codebook, or an unsupported schema version.
+            ValueError: naming the file: not a codebook, a corrupt archive (an array header that disagrees with
+                its member's bytes is refused before numpy allocates), an unsupported schema version, arrays of
+                the wrong shape or dtype, or NaN/Inf values.
         """
         import json
+
+        from efem_viz.data.io import _check_npz
+        from efem_viz.data.scene import SceneError
 
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"codebook not found: {path}")
         try:
+            _check_npz(path, 1 << 40)
+        except SceneError as exc:
+            raise ValueError(str(exc)) from exc
+        try:
             with np.load(path, allow_pickle=False) as z:
                 data = {k: z[k] for k in z.files}
-        except (OSError, ValueError) as exc:
-            raise ValueError(f"{path} is not a readable codebook npz: {exc}") from exc
+        except MemoryError:
+            raise
+        except Exception as exc:  # zipfile, zlib and numpy raise many types on a corrupt archive
+            raise ValueError(f"{path} is not a readable codebook npz: {type(exc).__name__}: "
+                             f"{' '.join(str(exc).split())[:300]}") from exc
         if "schema_version" not in data:
-            raise ValueError(f"{path} is not an efem-viz codebook (no schema_version; keys {sorted(data)})")
-        version = int(data.pop("schema_version"))
+            raise ValueError(f"{path} is not an efem-viz codebook (no schema_version; keys {sorted(data)[:12]})")
+        sv = data.pop("schema_version")
+        if sv.size != 1 or sv.dtype.kind not in "iu":
+            raise ValueError(f"{path}: codebook schema_version must be one integer, got {sv.dtype} {sv.shape}")
+        version = int(sv.reshape(()))
         if version != CODEBOOK_SCHEMA_VERSION:
             raise ValueError(f"{path}: codebook schema_version {version} is not supported "
                              f"(expected {CODEBOOK_SCHEMA_VERSION}); rebuild it with "
                              "`efem-viz build-codebook`")
-        meta = json.loads(str(data.pop("meta_json"))) if "meta_json" in data else {}
+        try:
+            meta = json.loads(str(data.pop("meta_json"))) if "meta_json" in data else {}
+        except (ValueError, RecursionError) as exc:
+            raise ValueError(f"{path}: codebook meta_json is not valid JSON ({exc})") from exc
+        if not isinstance(meta, dict):
+            raise ValueError(f"{path}: codebook meta_json must hold a JSON object, got {type(meta).__name__}")
         required = {"ids", "z_so3", "z_inv", "scale", "center", "pcl", "proj", "basis", "eigvals",
                     "bbox_center", "bbox_half", "class_id", "input_idx"}
         missing = required - set(data)
         if missing:
             raise ValueError(f"{path}: codebook lacks arrays {sorted(missing)}")
-        return cls(meta=meta, **{k: data[k] for k in data if k in cls.__dataclass_fields__})
+        for k in sorted(required):
+            a = data[k]
+            kinds = "iu" if k in ("ids", "class_id", "input_idx") else "f"
+            if a.dtype.kind not in kinds:
+                raise ValueError(f"{path}: codebook array {k!r} has dtype {a.dtype} ({kinds!r} dtype kind expected)")
+            if kinds == "f" and not np.isfinite(a).all():
+                raise ValueError(f"{path}: codebook array {k!r} holds NaN or Inf values")
+        try:
+            return cls(meta=meta, **{k: data[k] for k in required})
+        except ValueError as exc:
+            raise ValueError(f"{path}: {exc}") from exc
 
 
 def _sample_surface(mesh: trimesh.Trimesh, n: int, rng: np.random.Generator) -> np.ndarray:

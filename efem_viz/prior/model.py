@@ -89,6 +89,11 @@ class PriorConfig:
                              "differ in length")
         if self.k < 1 or self.latent_dim < 1 or self.decoder_hidden < 1 or self.decoder_blocks < 0:
             raise ValueError(f"bad PriorConfig sizes: {self}")
+        floats = {"scale_factor": self.scale_factor, "negative_slope": self.negative_slope,
+                  "decoder_proj_gain": self.decoder_proj_gain, "decoder_inv_gain": self.decoder_inv_gain}
+        bad = {k: v for k, v in floats.items() if not (isinstance(v, (int, float)) and np.isfinite(v))}
+        if bad:
+            raise ValueError(f"PriorConfig values must be finite numbers, got {bad}")
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-able dict (tuples become lists)."""
@@ -398,9 +403,11 @@ def read_checkpoint(path: str | os.PathLike[str], *, allow_pickle: bool = False)
                 f"{path} holds Python objects beyond tensors and plain containers"
                 f"{' (' + ', '.join(names[:3]) + ')' if names else ''}; loading it means a full unpickle, which can "
                 f"run code. If you trust the file, load it with allow_pickle=True") from exc
-    except (RuntimeError, EOFError, OSError, ValueError) as exc:
+    except MemoryError:
+        raise
+    except Exception as exc:  # torch's zip reader and weights-only unpickler raise many types on a corrupt file
         raise ValueError(f"{path} is not a readable torch checkpoint (corrupt or truncated?): "
-                         f"{str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__}") from exc
+                         f"{str(exc).splitlines()[0][:200] if str(exc).strip() else type(exc).__name__}") from exc
     try:
         return torch.load(path, map_location="cpu", weights_only=False)
     except Exception as exc:  # a trusted pickle that still fails to load
@@ -430,13 +437,19 @@ def load_prior(name_or_path: str | os.PathLike[str] = "mug", *, device: str | to
     path = resolve_prior_path(name_or_path)
     ckpt = read_checkpoint(path, allow_pickle=allow_pickle)
     if not isinstance(ckpt, dict) or "config" not in ckpt or "state_dict" not in ckpt:
-        raise ValueError(f"{path} is not an efem-viz prior checkpoint (keys: "
-                         f"{sorted(ckpt) if isinstance(ckpt, dict) else type(ckpt).__name__})")
-    config = PriorConfig.from_dict(ckpt["config"])
+        keys = sorted(map(str, ckpt))[:12] if isinstance(ckpt, dict) else type(ckpt).__name__
+        raise ValueError(f"{path} is not an efem-viz prior checkpoint (keys: {keys})")
+    config, state = _checked_prior_parts(ckpt, path)
     name = str(ckpt.get("name") or path.stem)
+    meta = ckpt.get("metadata") or {}
+    if not isinstance(meta, dict):
+        raise ValueError(f"{path}: prior metadata must be a dict, got {type(meta).__name__}")
     prior = ShapePrior(config, name=name)
-    prior.load_state_dict(ckpt["state_dict"])
-    prior.metadata = dict(ckpt.get("metadata") or {})
+    try:
+        prior.load_state_dict(state)
+    except RuntimeError as exc:  # a dtype torch cannot copy into a float parameter
+        raise ValueError(f"{path}: the weights do not load: {' '.join(str(exc).split())[:300]}") from exc
+    prior.metadata = dict(meta)
     prior.eval().to(device)
     if load_codebook:
         cb_path = path.with_name(f"{path.stem}_codebook.npz")
@@ -453,6 +466,40 @@ def load_prior(name_or_path: str | os.PathLike[str] = "mug", *, device: str | to
                     log.warning("codebook %s was built from other weights than %s; not attached (rebuild it with "
                                 "`efem-viz build-codebook --prior %s`)", cb_path, path, path)
     return prior
+
+
+def _checked_prior_parts(ckpt: dict[str, Any], path: Path) -> tuple[PriorConfig, dict[str, torch.Tensor]]:
+    """The config and state dict of a checkpoint, checked before any layer is allocated.
+
+    The network is first built on the meta device (no memory), so a config with absurd sizes costs nothing; the
+    stored tensors must then have exactly its parameter names and shapes and finite values.
+
+    Raises:
+        ValueError: naming `path` and the first problem.
+    """
+    raw, state = ckpt["config"], ckpt["state_dict"]
+    if not isinstance(raw, dict):
+        raise ValueError(f"{path}: prior config must be a dict, got {type(raw).__name__}")
+    if not isinstance(state, dict) or not all(isinstance(k, str) and isinstance(v, torch.Tensor)
+                                              for k, v in state.items()):
+        raise ValueError(f"{path}: state_dict must map parameter names to tensors")
+    try:
+        config = PriorConfig.from_dict(raw)
+        with torch.device("meta"):
+            want = {k: tuple(v.shape) for k, v in ShapePrior(config).state_dict().items()}
+    except (TypeError, ValueError, OverflowError, RuntimeError, IndexError, KeyError) as exc:
+        raise ValueError(f"{path}: invalid prior config: {' '.join(str(exc).split())[:300]}") from exc
+    got = {k: tuple(v.shape) for k, v in state.items()}
+    if got != want:
+        missing = sorted(set(want) - set(got))
+        unexpected = sorted(set(got) - set(want))
+        wrong = [f"{k} {got[k]} (expected {want[k]})" for k in want if k in got and got[k] != want[k]]
+        raise ValueError(f"{path}: the weights do not fit the stored config: missing {missing[:3]}, unexpected "
+                         f"{unexpected[:3]}, wrong shape {wrong[:2]}")
+    for k, v in state.items():
+        if v.is_complex() or (v.is_floating_point() and not bool(torch.isfinite(v).all())):
+            raise ValueError(f"{path}: weight {k!r} holds {'complex' if v.is_complex() else 'NaN or Inf'} values")
+    return config, state
 
 
 def count_parameters(module: nn.Module) -> int:
