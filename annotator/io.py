@@ -241,11 +241,11 @@ def _read_ply_labels(p: Path, n: int) -> LabelData:
 def _check_npz_headers(p: Path, n: int) -> None:
     """The scene reader's `.npz` check: every array header agrees with the bytes its member holds (so numpy never
     allocates what a corrupt header claims)."""
-    from efem_viz.data.io import _check_npz
+    from efem_viz.data.io import check_npz_headers
     from efem_viz.data.scene import DEFAULT_MAX_POINTS, SceneError
 
     try:
-        _check_npz(p, max(n, DEFAULT_MAX_POINTS))
+        check_npz_headers(p, max(n, DEFAULT_MAX_POINTS))
     except SceneError as exc:
         raise LabelIOError(str(exc)) from exc
 

@@ -663,10 +663,7 @@ class LabelStore:
             prev = r.seq
             apply_now = r.seq > start_seq
             if r.kind in ("base", "snapshot"):
-                if apply_now:  # cannot happen (the newest full state is the start), kept for safety
-                    table = {k: v for k, v in table_from_json(r.header.get("table", {})).items() if v is not None}
-                    ls = LabelSet(self.n, r.arrays["labels"], table.values())
-                continue
+                continue  # full states: the newest one (or a newer checkpoint) is the start state
             if r.kind == "do":
                 try:
                     d = record_to_delta(r)

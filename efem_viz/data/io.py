@@ -36,7 +36,9 @@ import logging
 import os
 import re
 import tempfile
+import tokenize
 import warnings
+import zipfile
 import zlib
 from itertools import islice
 from pathlib import Path
@@ -299,7 +301,16 @@ _NPZ_OTHER_BYTES = 256 << 20
 """Bytes any other array (an RGB-D frame's depth and colour images, names, JSON) may take, at least."""
 
 
-def _check_npz(p: Path, max_points: int) -> None:
+NPY_HEADER_ERRORS: tuple[type[BaseException], ...] = (
+    ValueError, OSError, EOFError, SyntaxError, NotImplementedError, tokenize.TokenError, zlib.error,
+    zipfile.BadZipFile,
+)
+"""What reading a damaged `.npy` header inside a zip raises: numpy's parser (ValueError, SyntaxError and
+tokenize.TokenError from its literal parsing), zipfile (BadZipFile; NotImplementedError for an unsupported "zip
+file version"), zlib and the file itself."""
+
+
+def check_npz_headers(p: Path, max_points: int) -> None:
     """Check every array header of an `.npz` against the archive and the limits before numpy allocates.
 
     `np.load` allocates an array's full size from its `.npy` header before reading the data, so a header
@@ -310,7 +321,6 @@ def _check_npz(p: Path, max_points: int) -> None:
     Raises:
         SceneError: not a zip archive; a header that disagrees with its member's size; an array over the limits.
     """
-    import zipfile
 
     try:
         zf = zipfile.ZipFile(p)
@@ -328,7 +338,7 @@ def _check_npz(p: Path, max_points: int) -> None:
                         np.lib.format.read_array_header_2_0
                     shape, _, dtype = read(fh)
                     header_len = fh.tell()
-            except Exception as exc:  # numpy's header parser also raises tokenize.TokenError, zipfile NotImplementedError
+            except NPY_HEADER_ERRORS as exc:
                 raise SceneError(f"{p}: array {key!r} has a corrupt .npy header ({exc})") from exc
             if dtype.hasobject:
                 continue  # np.load(allow_pickle=False) refuses it with its own message
@@ -356,7 +366,7 @@ def _check_npz(p: Path, max_points: int) -> None:
 
 
 def _load_npz(p: Path, max_points: int) -> dict[str, Any]:
-    _check_npz(p, max_points)
+    check_npz_headers(p, max_points)
     with np.load(p, allow_pickle=False) as data:
         keys = set(data.files)
         rgbd_frame = "schema_version" not in keys and "K" in keys and bool({"depth_mm", "depth"} & keys)

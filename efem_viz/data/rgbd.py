@@ -42,13 +42,13 @@ def load_rgbd_npz(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray,
         SceneError: missing file or arrays, a corrupt archive (an array header that disagrees with its member's
             bytes is refused before numpy allocates), wrong shapes or dtypes.
     """
-    from efem_viz.data.io import _check_npz
+    from efem_viz.data.io import check_npz_headers
     from efem_viz.data.scene import DEFAULT_MAX_POINTS
 
     p = Path(path)
     if not p.is_file():
         raise SceneError(f"{p} is a directory, not an RGB-D frame" if p.is_dir() else f"{p}: no such file")
-    _check_npz(p, DEFAULT_MAX_POINTS)  # the scene reader's header check: names the file
+    check_npz_headers(p, DEFAULT_MAX_POINTS)  # the scene reader's header check: names the file
     try:
         with np.load(p, allow_pickle=False) as d:
             data = {k: np.array(d[k]) for k in d.keys()}

@@ -444,12 +444,12 @@ REQUIRED_RESULT_KEYS: tuple[str, ...] = (
 
 def _check_npz_headers(p: Path) -> None:
     """Every array header of the archive agrees with the bytes its member holds, before numpy allocates for it
-    (the scene reader's check, `efem_viz.data.io._check_npz`, without its scene size limits)."""
-    from efem_viz.data.io import _check_npz
+    (the scene reader's check, `efem_viz.data.io.check_npz_headers`, without its scene size limits)."""
+    from efem_viz.data.io import check_npz_headers
     from efem_viz.data.scene import SceneError
 
     try:
-        _check_npz(p, 1 << 40)
+        check_npz_headers(p, 1 << 40)
     except SceneError as exc:
         msg = str(exc)
         if "not a valid .npz" in msg:

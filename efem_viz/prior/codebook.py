@@ -310,14 +310,14 @@ class Codebook:
         """
         import json
 
-        from efem_viz.data.io import _check_npz
+        from efem_viz.data.io import check_npz_headers
         from efem_viz.data.scene import SceneError
 
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"codebook not found: {path}")
         try:
-            _check_npz(path, 1 << 40)
+            check_npz_headers(path, 1 << 40)
         except SceneError as exc:
             raise ValueError(str(exc)) from exc
         try:
