@@ -2,28 +2,34 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from efem_viz.em.config import EMConfig, preset, schedule
-from efem_viz.em.proposals import (
+from efem_viz.em.config import EMConfig, preset, resolve_for_prior, schedule
+from efem_viz.em.proposals import AvailableTree, Ragged, init_crops, lookup, sample_independent, sample_joint
+from efem_viz.em.rules import (
     REASON_DUPLICATE,
+    REASON_INCLUDED,
     REASON_TOO_SMALL,
-    AvailableTree,
-    Ragged,
     find_duplicates,
     find_inclusions,
     find_too_small,
-    init_crops,
-    lookup,
-    sample_independent,
-    sample_joint,
+    STEP_RULES,
+    Kill,
+    StepContext,
+    StepRule,
+    apply_step_rules,
+    first_failed_review,
+    reason_names,
     set_matrix,
 )
 from efem_viz.em.solver import confidence
+from efem_viz.prior.config import CategorySettings, category_settings
 from efem_viz.em.trace import energy_weights
 
 N = 100
@@ -157,6 +163,7 @@ def test_inclusion_kills_the_included_set_with_partner_and_ratio() -> None:
     kills = find_inclusions(sets_from([big, small]), 0.8)
     assert [(k.row, k.partner) for k in kills] == [(1, 0)]
     assert kills[0].ratio == pytest.approx(10 / 11, abs=1e-5)
+    assert kills[0].reason == REASON_INCLUDED  # its own reason, no longer filed as a duplicate
 
 
 def test_inclusion_kill_takes_effect_immediately() -> None:
@@ -166,6 +173,62 @@ def test_inclusion_kill_takes_effect_immediately() -> None:
     assert [(k.row, k.partner) for k in kills] == [(0, 1)]
     # inactive rows are never partners
     assert find_inclusions(sets_from([a, a]), 0.8, active=np.array([True, False])) == []
+
+
+# ---------------------------------------------------------------------------------------------- registry
+def _ctx(phase: int, inliers: list[int], rows: list[list[int]], stationary: list[float]) -> StepContext:
+    rag = Ragged.from_lists([np.array(r, np.int64) for r in rows])
+    return StepContext(phase=phase, cfg=preset("fast"), inliers=np.array(inliers), stationary=np.array(stationary),
+                       d=np.zeros(len(rag.idx), np.float32), rag=rag, n_points=N, min_size=3,
+                       owner=np.zeros(len(rows), np.int64))
+
+
+def test_step_rules_run_in_order_and_each_kill_hides_the_row_from_later_rules() -> None:
+    a, b = list(range(0, 20)), list(range(0, 19))
+    small = list(range(40, 42))
+    # phase 1: row 2 is too small; rows 0 and 1 are duplicates (IoU 0.95): the better-scored row 1 survives
+    ctx = _ctx(1, [20, 19, 2], [a, b, small], [0.1, 0.9, 1.0])
+    kills = apply_step_rules(ctx)
+    assert [(k.row, k.reason) for k in kills] == [(2, REASON_TOO_SMALL), (0, REASON_DUPLICATE)]
+    assert ctx.active.tolist() == [False, True, False]
+    # phase 2 with a duplicate threshold above 1: no duplicate, but b lies inside a (19/19 > 0.8)
+    ctx = _ctx(2, [20, 19], [a, b], [0.1, 0.9])
+    ctx.cfg = ctx.cfg.replace(joint_dup_iou=1.01)
+    assert [(k.row, k.partner, k.reason) for k in apply_step_rules(ctx)] == [(0, 1, REASON_INCLUDED)]
+
+
+def test_a_registered_rule_runs_and_its_reason_enters_the_name_table() -> None:
+    def odd_rows(ctx: StepContext) -> list[Kill]:
+        return [Kill(int(r), "odd") for r in np.flatnonzero(ctx.active) if r % 2]
+
+    rules = (*STEP_RULES, StepRule("odd", odd_rows))
+    ctx = _ctx(1, [10, 10, 10], [[1, 2], [30, 31], [60, 61]], [0.5, 0.5, 0.5])
+    assert [(k.row, k.reason) for k in apply_step_rules(ctx, rules)] == [(1, "odd")]
+    names = reason_names(rules)
+    assert names[-1] == "survive" and "odd" in names and len(set(names)) == len(names)
+    with pytest.raises(ValueError, match="survive"):
+        reason_names((StepRule("survive", odd_rows),))
+
+    def kills_dead_row(ctx: StepContext) -> list[Kill]:
+        return [Kill(0, "again")]
+
+    ctx = _ctx(1, [0, 10], [[1], [2]], [0.5, 0.5])  # row 0 dies as too small first
+    with pytest.raises(ValueError, match="already dead"):
+        apply_step_rules(ctx, (*STEP_RULES, StepRule("again", kills_dead_row)))
+
+
+def test_review_rules_first_failure_wins() -> None:
+    from efem_viz.em.rules import ReviewRecord
+
+    z3 = np.zeros(3)
+    rec = ReviewRecord(step=0, phase=1, proposal_id=0, R=np.eye(3), R_raw=np.eye(3), scale_sel=1.0, db_sim=0.0,
+                       coverage=0.5, radii=np.array([0.2, 0.1]), scale_pass=False, up_angle=30.0, pose_pass=False,
+                       obb_center=z3, obb_axes=np.eye(3), obb_half_extents=z3, mask=np.zeros(0, np.int32),
+                       mesh_vertices=np.zeros((0, 3)), mesh_faces=np.zeros((0, 3), np.int32),
+                       neighbours=np.zeros(0, np.int32))
+    assert first_failed_review(rec, None) == ("scale-fail", 0.2)
+    assert first_failed_review(rec._replace(scale_pass=True), None) == ("pose-fail", 30.0)
+    assert first_failed_review(rec._replace(scale_pass=True, pose_pass=True), None) is None
 
 
 # ---------------------------------------------------------------------------------------------- schedule
@@ -191,18 +254,51 @@ def test_schedule_synthetic_mugs_keeps_tau_d_and_phase2_uses_end_values() -> Non
 
 
 def test_presets_follow_the_spec_table() -> None:
-    syn, real, fast = preset("synthetic_mugs"), preset("real_mugs"), preset("fast")
+    syn, real, fast = preset("synthetic"), preset("real"), preset("fast")
+    assert preset("synthetic_mugs") == syn and preset("real_mugs") == real  # the old names still work
     assert syn.n_init == (400,) and syn.r_init == 0.07 and syn.r_err == 0.11 and syn.min_size == 300
     assert (syn.stat_tau, syn.stat_gamma, syn.cov_tau, syn.cov_gamma) == (0.04, 45.0, 0.04, 45.0)
     assert (real.stat_tau, real.stat_gamma, real.cov_tau, real.cov_gamma) == (0.03, 30.0, 0.03, 30.0)
-    assert real.scale_horizontal == (0.03, 0.08) and real.scale_height == (0.015, 0.10)
-    assert syn.scale_horizontal == (0.03, 0.13) and syn.scale_height == (0.015, 0.30)
+    # sizes are the category's, per capture domain: the presets leave them to the prior
+    assert real.scale_horizontal is None and syn.scale_height is None and real.domain == "real"
+    mug = category_settings("mug")
+    real_mug, syn_mug = resolve_for_prior(real, _Named("mug")), resolve_for_prior(syn, _Named("mug"))
+    assert real_mug.scale_horizontal == (0.03, 0.08) and real_mug.scale_height == (0.015, 0.10)
+    assert syn_mug.scale_horizontal == (0.03, 0.13) and syn_mug.scale_height == (0.015, 0.30)
+    assert syn_mug.up_range == mug.up_range == (0.0, 180.0) and syn_mug.tau_out == 0.04
+    # an explicit value in the config wins over the category's
+    assert resolve_for_prior(real.replace(scale_horizontal=(0.01, 0.5)), _Named("mug")).scale_horizontal == (0.01, 0.5)
+    # an unknown category checks no size; metadata can carry its settings
+    free = resolve_for_prior(syn, _Named("teapot"))
+    assert free.scale_horizontal == (0.0, float("inf"))
+    meta = {"category": CategorySettings("teapot", scale_horizontal=(0.05, 0.2)).to_dict(), "tau_out": 0.06}
+    tea = resolve_for_prior(syn, _Named("teapot", meta))
+    assert tea.scale_horizontal == (0.05, 0.2) and tea.tau_out == 0.06 and tea.scale_height == (0.0, float("inf"))
     assert (syn.t1, syn.t2, syn.omega, syn.joint_incl) == (15, 5, 1e-4, 0.8)
     assert 50 <= fast.n_init[0] <= 100
     with pytest.raises(ValueError, match="unknown EM preset"):
         preset("chairs")
     assert EMConfig.from_json(real.to_json()) == real
     assert syn.with_proposals(64).n_init == (64,)
+
+
+class _Named:
+    """The part of a prior that the config resolution reads: a name and metadata."""
+
+    def __init__(self, name: str, metadata: dict | None = None) -> None:
+        self.name = name
+        self.metadata = metadata or {}
+
+
+def test_category_settings_round_trip_and_validation() -> None:
+    cat = category_settings("mug", {"tau_out": 0.07})
+    back = CategorySettings.from_dict(json.loads(json.dumps(cat.to_dict())))
+    assert back == cat and back.sizes("real") == ((0.03, 0.08), (0.015, 0.10))
+    assert CategorySettings.from_dict(CategorySettings("x").to_dict()).scale_height == (0.0, float("inf"))
+    for bad in ({"name": "x", "scale_height": [0.2, 0.1]}, {"name": "x", "colour": 1},
+                {"name": "x", "domain_sizes": {"mars": [[0, 1], [0, 1]]}}, {"name": ""}):
+        with pytest.raises(ValueError):
+            CategorySettings.from_dict(bad)
 
 
 # ---------------------------------------------------------------------------------------------- energies

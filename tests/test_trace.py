@@ -9,7 +9,7 @@ import pytest
 
 from efem_viz.em import EMResult, preset, run_em
 from efem_viz.em.analytic import make_sphere_prior, make_sphere_scene
-from efem_viz.em.proposals import REASONS
+from efem_viz.em.rules import reason_names
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +51,7 @@ def test_events_are_complete_and_ordered(run: tuple) -> None:
     ev = tr.events()
     assert len(ev) == tr.num_proposals  # every proposal dies or is accepted
     assert [e.step for e in ev] == sorted(e.step for e in ev)
-    assert {e.reason for e in ev} <= set(REASONS)
+    assert {e.reason for e in ev} <= set(reason_names()) and tr.reason_names == reason_names()
     accepted = [e.proposal_id for e in ev if e.reason == "survive"]
     assert sorted(accepted) == sorted(res.instances.ids.tolist())
     for e in ev:
@@ -69,14 +69,14 @@ def test_reviews_recorded_at_phase_ends(run: tuple) -> None:
     assert set(np.unique(tr.rev_step).tolist()) <= {5, 8}
     for pid in res.instances.ids:
         recs = tr.reviews(int(pid))
-        assert [r["phase"] for r in recs] == [1, 2]
+        assert [r.phase for r in recs] == [1, 2]
         final = recs[-1]
-        assert final["scale_pass"] and final["pose_pass"]
+        assert final.scale_pass and final.pose_pass
         k = int(np.flatnonzero(res.instances.ids == pid)[0])
-        assert np.array_equal(final["mask"], res.instances.masks[k])
-        assert len(final["mesh_faces"]) > 0
+        assert np.array_equal(final.mask, res.instances.masks[k])
+        assert len(final.mesh_faces) > 0
         # float16 relative vertices are accurate to well under a millimetre
-        assert np.abs(final["mesh_vertices"] - res.instances.mesh_vertices[k]).max() < 1e-3
+        assert np.abs(final.mesh_vertices - res.instances.mesh_vertices[k]).max() < 1e-3
 
 
 def test_confidence_matches_recorded_scores(run: tuple) -> None:
@@ -85,36 +85,36 @@ def test_confidence_matches_recorded_scores(run: tuple) -> None:
     for k, pid in enumerate(res.instances.ids):
         last = tr.last_step(int(pid))
         r = tr.row_of(int(pid), last)
-        cov = tr.reviews(int(pid))[-1]["coverage"]
+        cov = tr.reviews(int(pid))[-1].coverage
         expect = tr.row_stationary[r] * min(cov, 0.4) / 0.4
         assert res.instances.confidence[k] == pytest.approx(expect, rel=1e-5)
 
 
 def test_weights_rederivation_matches_recorded_inliers(run: tuple) -> None:
     _, _, res = run
-    tr = res.trace
+    tr, rp = res.trace, res.replay
     pid = int(res.instances.ids[0])
     for t in range(tr.num_steps):
-        w = tr.weights_out(pid, t, full_resolution=False)
+        w = rp.weights_out(pid, t, full_resolution=False)
         r = tr.row_of(pid, t)
         # inliers pass both truncations (weight ≥ exp(−α_D τ_D − α_N τ_N)); outliers get ≤ exp(−100)
         assert int((w > 1e-30).sum()) == int(tr.row_inliers[r])
     # the first step's input weights are the crop mask around the anchor
-    w0 = tr.weights_in(pid, 0)
+    w0 = rp.weights_in(pid, 0)
     assert set(np.unique(w0).tolist()) <= {0.0, 1.0}
     anchor = tr.prop_anchor[pid]
-    pts = tr._points()
+    pts = rp.points()
     inside = np.linalg.norm(pts - pts[anchor], axis=1) < tr.prop_r_init[pid]
     assert np.array_equal(w0 > 0, inside)
     # later input weights are the previous step's output weights
-    assert np.array_equal(tr.weights_in(pid, 3), tr.weights_out(pid, 2))
+    assert np.array_equal(rp.weights_in(pid, 3), rp.weights_out(pid, 2))
 
 
 def test_view_contents_and_dead_proposals(run: tuple) -> None:
     scene, _, res = run
-    tr = res.trace
+    tr, rp = res.trace, res.replay
     pid = int(res.instances.ids[0])
-    v = tr.view(pid, 2)
+    v = rp.view(pid, 2)
     assert v.weights.shape == (scene.num_points,) and v.weights.dtype == np.float32
     assert np.array_equal(v.sampled_points, scene.points[v.sample_idx])
     assert v.alive and v.death is not None and v.death[1] == "survive"
@@ -122,14 +122,14 @@ def test_view_contents_and_dead_proposals(run: tuple) -> None:
     assert set(v.schedule) == {"alpha_d", "tau_d", "alpha_n", "tau_n"}
     # sampled points carry positive input weight (they were drawn from it)
     assert (v.weights[v.sample_idx] > 0).all()
-    assert tr.view(pid, 2) is v  # cached
+    assert rp.view(pid, 2) is v  # cached
     dead = [e for e in tr.events() if e.reason == "proposal too small"]
     assert dead
     e = dead[0]
-    dv = tr.view(e.proposal_id, tr.num_steps - 1, mesh=False)
+    dv = rp.view(e.proposal_id, tr.num_steps - 1, mesh=False)
     assert not dv.alive and dv.step == e.step and dv.death[1] == "proposal too small"
     with pytest.raises(ValueError, match="out of range"):
-        tr.view(10_000, 0)
+        rp.view(10_000, 0)
 
 
 def test_save_load_round_trip(run: tuple, tmp_path: Path) -> None:
@@ -146,11 +146,11 @@ def test_save_load_round_trip(run: tuple, tmp_path: Path) -> None:
     assert np.array_equal(back.instances.confidence, res.instances.confidence)
     assert all(np.array_equal(a, b) for a, b in zip(back.instances.masks, res.instances.masks))
     with pytest.raises(ValueError, match="needs the shape prior|no scene bound"):
-        back.trace.view(int(res.instances.ids[0]), 1)
-    back.trace.bind(scene, prior)
+        back.replay.view(int(res.instances.ids[0]), 1)
+    back.bind(scene, prior)
     pid = int(res.instances.ids[-1])
     for step in (0, 4, res.trace.num_steps - 1):
-        v1, v2 = res.trace.view(pid, step, mesh=False), back.trace.view(pid, step, mesh=False)
+        v1, v2 = res.replay.view(pid, step, mesh=False), back.replay.view(pid, step, mesh=False)
         assert np.array_equal(v1.weights, v2.weights)
         assert np.array_equal(v1.sample_idx, v2.sample_idx)
         assert v1.scores.keys() == v2.scores.keys() and v1.death == v2.death
@@ -197,8 +197,8 @@ def test_working_set_run_records_full_resolution_indices() -> None:
     assert (~np.isin(allmask, tr.work_idx)).any()
     pid = int(res.instances.ids[0])
     t = tr.num_steps - 1
-    w_work = tr.weights_out(pid, t, full_resolution=False)
-    w_full = tr.weights_out(pid, t)
+    w_work = res.replay.weights_out(pid, t, full_resolution=False)
+    w_full = res.replay.weights_out(pid, t)
     assert int((w_work > 1e-30).sum()) == int(tr.row_inliers[tr.row_of(pid, t)])
     on = np.zeros(scene.num_points, bool)
     on[tr.work_idx] = True
@@ -211,7 +211,7 @@ def test_load_binds_scene_and_checks_size(run: tuple, tmp_path: Path) -> None:
     path = res.save(tmp_path / "r.efem.npz")
     back = EMResult.load(path, scene=scene, prior=prior)
     pid = int(res.instances.ids[0])
-    assert np.array_equal(back.trace.view(pid, 1, mesh=False).weights, res.trace.view(pid, 1, mesh=False).weights)
+    assert np.array_equal(back.replay.view(pid, 1, mesh=False).weights, res.replay.view(pid, 1, mesh=False).weights)
     other = make_sphere_scene(seed=99, radii=(0.05,))
     with pytest.raises(ValueError, match="points"):
         EMResult.load(path, scene=other)

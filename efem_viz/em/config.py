@@ -10,23 +10,32 @@ from __future__ import annotations
 import dataclasses
 import json
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
-DEFAULT_TAU_OUT = 0.04
-"""Output-mask SDF threshold of efem-method.md §3.9.12 for mugs (canonical units)."""
-MAX_TAU_OUT = 0.5
-"""Largest accepted τ_out: half an object size (a larger band would take in the neighbours)."""
+from efem_viz.prior.config import DEFAULT_TAU_OUT, DOMAINS, MAX_TAU_OUT, CategorySettings, prior_category
 
-PresetName = Literal["synthetic_mugs", "real_mugs", "fast"]
+if TYPE_CHECKING:
+    from efem_viz.prior.config import ShapePriorLike
+
+__all__ = ["DEFAULT_TAU_OUT", "MAX_TAU_OUT", "PRESETS", "EMConfig", "PresetName", "preset", "resolve_for_prior",
+           "schedule"]
+
+PresetName = Literal["synthetic", "real", "fast"]
+"""Solver presets: the capture domain's settings; category settings (sizes, τ_out) come with each prior."""
+PRESET_ALIASES: dict[str, str] = {"synthetic_mugs": "synthetic", "real_mugs": "real"}
+"""Names of the presets before they lost the category (still accepted by `preset`)."""
 CropMode = Literal["sphere", "cylinder"]
+Domain = Literal["synthetic", "real"]
 
 
 @dataclass(frozen=True)
 class EMConfig:
     """Every knob of the EFEM solver. Build one with `preset(name)` and adjust with `.replace(...)`."""
 
-    name: str = "synthetic_mugs"
+    name: str = "synthetic"
     """Preset this config was derived from (informational)."""
+    domain: Domain = "synthetic"
+    """Capture domain: chooses each category's size ranges (`CategorySettings.sizes`)."""
     n_init: tuple[int, ...] = (400,)
     """Proposals initialised per episode; the number of episodes is len(n_init)."""
     crop: CropMode = "sphere"
@@ -64,9 +73,9 @@ class EMConfig:
     joint_incl: float = 0.8
     """Phase-2 inclusion ratio threshold (pairwise)."""
     tau_out: float | None = None
-    """Output mask SDF threshold (canonical units). None = the prior's calibrated value (its metadata
-    `tau_out`, written by `efem-viz calibrate-masks`), else the spec's 0.04; `run_em` resolves it and records
-    the value it used."""
+    """Output mask SDF threshold (canonical units). None = the prior's (its category's `tau_out`, i.e. the
+    metadata `tau_out` written by `efem-viz calibrate-masks`, else the spec's 0.04); `run_em` resolves it per
+    prior and records the value it used."""
     gamma_out: float = 180.0
     """Output mask normal-angle threshold (degrees; 180 = normals ignored)."""
     stat_tau: float = 0.04
@@ -79,12 +88,13 @@ class EMConfig:
     """Coverage normal-angle threshold (degrees)."""
     cov_cap: float = 0.4
     """Coverage saturation in the confidence: conf = s_stat · min(cov, cap) / cap."""
-    scale_horizontal: tuple[float, float] = (0.03, 0.13)
-    """Allowed range of the horizontal radius max ‖Q̃_xy‖ of the completed shape (m)."""
-    scale_height: tuple[float, float] = (0.015, 0.30)
-    """Allowed range of the half-height max |Q̃_z| of the completed shape (m)."""
-    up_range: tuple[float, float] = (0.0, 180.0)
-    """Allowed angle between the canonical up axis R[:, 2] and world +Z (degrees)."""
+    scale_horizontal: tuple[float, float] | None = None
+    """Allowed range of the horizontal radius max ‖Q̃_xy‖ of the completed shape (m); None = the prior's
+    category sizes for `domain`."""
+    scale_height: tuple[float, float] | None = None
+    """Allowed range of the half-height max |Q̃_z| of the completed shape (m); None = the category's."""
+    up_range: tuple[float, float] | None = None
+    """Allowed angle between the canonical up axis R[:, 2] and world +Z (degrees); None = the category's."""
     n_store: int = 5000
     """Surface samples drawn on each review mesh."""
     mesh_resolution: int = 40
@@ -155,8 +165,10 @@ class EMConfig:
             raise ValueError(f"need t1, t2 >= 0 and t1 + t2 > 0, got t1={self.t1} t2={self.t2}")
         for nm in ("alpha_d", "tau_d", "alpha_n", "tau_n", "scale_horizontal", "scale_height", "up_range"):
             v = getattr(self, nm)
-            if len(v) != 2:
+            if v is not None and len(v) != 2:
                 raise ValueError(f"{nm} must be a pair, got {v}")
+        if self.domain not in DOMAINS:
+            raise ValueError(f"domain must be one of {DOMAINS}, got {self.domain!r}")
         if self.work_voxel is not None and self.work_voxel < 0:
             raise ValueError(f"work_voxel must be >= 0 or None, got {self.work_voxel}")
         if self.tau_out is not None and not 0.0 < self.tau_out <= MAX_TAU_OUT:
@@ -208,17 +220,16 @@ def schedule(cfg: EMConfig, t: int) -> tuple[float, float, float, float]:
     return lerp(cfg.alpha_d), lerp(cfg.tau_d), lerp(cfg.alpha_n), lerp(cfg.tau_n)
 
 
-_SYNTHETIC_MUGS = EMConfig()
+_SYNTHETIC = EMConfig()
 
-_REAL_MUGS = EMConfig(
-    name="real_mugs",
+_REAL = EMConfig(
+    name="real",
+    domain="real",
     tau_d=(0.1, 0.07),
     stat_tau=0.03,
     stat_gamma=30.0,
     cov_tau=0.03,
     cov_gamma=30.0,
-    scale_horizontal=(0.03, 0.08),
-    scale_height=(0.015, 0.10),
 )
 
 _FAST = EMConfig(
@@ -233,17 +244,47 @@ def preset(name: str) -> EMConfig:
     """A named solver config.
 
     Args:
-        name: "synthetic_mugs" (§3.12 synthetic mugs), "real_mugs" (§3.12 real mugs, also the demo config) or
-            "fast" (synthetic-mug thresholds with 80 proposals and cheaper reviews, for tests and
-            interactive runs).
+        name: "synthetic" (§3.12 synthetic scenes), "real" (§3.12 real captures, also the demo config) or
+            "fast" (synthetic settings with 80 proposals and cheaper reviews, for tests and interactive runs);
+            the old names "synthetic_mugs" and "real_mugs" are accepted.
 
     Raises:
         ValueError: unknown name.
     """
-    table = {"synthetic_mugs": _SYNTHETIC_MUGS, "real_mugs": _REAL_MUGS, "fast": _FAST}
-    if name not in table:
+    table = {"synthetic": _SYNTHETIC, "real": _REAL, "fast": _FAST}
+    key = PRESET_ALIASES.get(name, name)
+    if key not in table:
         raise ValueError(f"unknown EM preset {name!r}; choose one of {sorted(table)}")
-    return table[name]
+    return table[key]
 
 
-PRESETS: tuple[str, ...] = ("synthetic_mugs", "real_mugs", "fast")
+PRESETS: tuple[str, ...] = ("synthetic", "real", "fast")
+"""Preset names, in the order the apps list them."""
+
+
+def resolve_for_prior(cfg: EMConfig, prior: "ShapePriorLike | Any") -> EMConfig:
+    """`cfg` with the fields it leaves to the prior (τ_out, size ranges, up range) filled from the prior's
+    category settings for `cfg.domain`; explicit values in `cfg` win. Validated.
+
+    Args:
+        cfg: solver config.
+        prior: a prior (its `category`, or its name and metadata, see `prior_category`).
+    """
+    cfg.validate()
+    cat = prior_category(prior)
+    return cfg.replace(**category_fields(cfg, cat))
+
+
+def category_fields(cfg: EMConfig, cat: CategorySettings) -> dict[str, Any]:
+    """The per-category values `cfg` leaves unset (None), taken from `cat` for `cfg.domain`."""
+    horiz, height = cat.sizes(cfg.domain)
+    out: dict[str, Any] = {}
+    if cfg.tau_out is None:
+        out["tau_out"] = cat.out_tau
+    if cfg.scale_horizontal is None:
+        out["scale_horizontal"] = horiz
+    if cfg.scale_height is None:
+        out["scale_height"] = height
+    if cfg.up_range is None:
+        out["up_range"] = cat.up_range
+    return out

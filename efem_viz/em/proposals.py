@@ -1,9 +1,9 @@
-"""The proposal pool's sparse bookkeeping: neighbourhoods, M-step sampling and per-step eliminations.
+"""The proposal pool's sparse bookkeeping: neighbourhoods and M-step sampling (eliminations: em/rules.py).
 
 Everything here is plain NumPy/SciPy and works on *ragged rows*: proposal r owns the scene-point indices
 `idx[offsets[r]:offsets[r+1]]` (its crop or E-step neighbourhood) with one value per entry (weights, SDF).
 Weights outside a row are zero by definition, so cost scales with the neighbourhood sizes, never with P × N.
-Rows are always in increasing proposal-id order. References: efem-method.md §3.3, §3.4 and §3.8.
+Rows are always in increasing proposal-id order. References: efem-method.md §3.3 and §3.4.
 """
 
 from __future__ import annotations
@@ -11,22 +11,11 @@ from __future__ import annotations
 import itertools
 import logging
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Sequence
+from typing import Sequence
 
 import numpy as np
 
-if TYPE_CHECKING:
-    import scipy.sparse as sp
-
 logger = logging.getLogger(__name__)
-
-REASON_TOO_SMALL = "proposal too small"
-REASON_DUPLICATE = "duplicated or included"
-REASON_SCALE = "scale-fail"
-REASON_POSE = "pose-fail"
-REASON_SURVIVE = "survive"
-REASONS: tuple[str, ...] = (REASON_TOO_SMALL, REASON_DUPLICATE, REASON_SCALE, REASON_POSE, REASON_SURVIVE)
-
 
 @dataclass(frozen=True)
 class Ragged:
@@ -340,120 +329,6 @@ def sample_joint(
         logger.warning("joint M-step: %d proposals claimed no point; each gets its best background point",
                        len(empty_rows))
     return _categorical_rows(rag, w * claimed, m, rng, fallback), claimed
-
-
-def set_matrix(rag: Ragged, mask: np.ndarray, n_points: int) -> sp.csr_matrix:
-    """(P, N) scipy.sparse CSR boolean matrix of the entries where `mask` holds (e.g. |d| < δ_dup)."""
-    import scipy.sparse as sp
-
-    mask = np.asarray(mask, bool)
-    row = rag.row[mask]
-    col = rag.idx[mask]
-    data = np.ones(len(row), np.float32)
-    return sp.csr_matrix((data, (row, col)), shape=(rag.num_rows, int(n_points)))
-
-
-def overlap_counts(sets: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray]:
-    """Pairwise intersection sizes of sparse sets.
-
-    Args:
-        sets: (P, N) scipy.sparse matrix with 0/1 entries.
-
-    Returns:
-        inter (P, P) float64 |B_i ∩ B_k| and sizes (P,) float64 |B_i|.
-    """
-    gram = (sets @ sets.T).toarray().astype(np.float64)
-    sizes = np.asarray(sets.sum(axis=1)).ravel().astype(np.float64)
-    return gram, sizes
-
-
-@dataclass(frozen=True)
-class Kill:
-    """One elimination: row `row` dies because of `partner` (row index, or -1) with overlap `ratio`."""
-
-    row: int
-    reason: str
-    partner: int = -1
-    ratio: float = float("nan")
-
-
-def find_too_small(inlier_counts: np.ndarray, min_size: int) -> list[Kill]:
-    """§3.8a: rows with fewer than `min_size` inliers."""
-    counts = np.asarray(inlier_counts)
-    return [Kill(int(r), REASON_TOO_SMALL, -1, float(counts[r])) for r in np.flatnonzero(counts < min_size)]
-
-
-def find_duplicates(
-    sets: sp.csr_matrix,
-    scores: np.ndarray,
-    iou_threshold: float,
-    *,
-    active: np.ndarray | None = None,
-) -> list[Kill]:
-    """§3.8b duplicate removal over sparse sets, rows visited in order (= increasing proposal id).
-
-    For each still-active row i, the group is {k active : IoU(B_i, B_k) ≥ θ} (i included when B_i is not
-    empty); if it has more than one member, only the member with the highest score survives (argmax within the group,
-    ties to the lowest row), the others die with that winner as partner.
-
-    Args:
-        sets: (P, N) sparse 0/1 matrix of the sets B_i.
-        scores: (P,) stationary scores.
-        iou_threshold: θ_iou.
-        active: (P,) bool rows that take part (default all).
-
-    Returns:
-        The kills in the order they happen; `ratio` is IoU(killed, winner).
-    """
-    inter, sizes = overlap_counts(sets)
-    p = len(sizes)
-    alive = np.ones(p, bool) if active is None else np.asarray(active, bool).copy()
-    union = sizes[:, None] + sizes[None, :] - inter
-    iou = inter / (union + 1e-6)
-    scores = np.asarray(scores, np.float64)
-    kills: list[Kill] = []
-    for i in range(p):
-        if not alive[i]:
-            continue
-        group = np.flatnonzero(alive & (iou[i] >= iou_threshold))
-        if len(group) <= 1:
-            continue
-        winner = int(group[np.argmax(scores[group])])
-        for k in group:
-            if k != winner:
-                alive[k] = False
-                kills.append(Kill(int(k), REASON_DUPLICATE, winner, float(iou[k, winner])))
-    return kills
-
-
-def find_inclusions(
-    sets: sp.csr_matrix,
-    threshold: float,
-    *,
-    active: np.ndarray | None = None,
-) -> list[Kill]:
-    """§3.8c pairwise inclusion: row i dies if |B_i ∩ B_k| / |B_i| > θ for a single other active k.
-
-    Rows are visited in order and a kill takes effect immediately (later rows no longer see it).
-
-    Returns:
-        The kills; `partner` is the k of the largest overlap and `ratio` that overlap.
-    """
-    inter, sizes = overlap_counts(sets)
-    p = len(sizes)
-    alive = np.ones(p, bool) if active is None else np.asarray(active, bool).copy()
-    kills: list[Kill] = []
-    for i in range(p):
-        if not alive[i]:
-            continue
-        ratio = inter[i] / (sizes[i] + 1e-6)
-        ratio = np.where(alive, ratio, -1.0)
-        ratio[i] = -1.0
-        k = int(np.argmax(ratio)) if p > 1 else -1
-        if k >= 0 and ratio[k] > threshold:
-            alive[i] = False
-            kills.append(Kill(i, REASON_DUPLICATE, k, float(ratio[k])))
-    return kills
 
 
 def lookup(rag: Ragged, rows: np.ndarray, idx: np.ndarray) -> np.ndarray:

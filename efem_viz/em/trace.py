@@ -7,8 +7,8 @@ anchor, r_init, r_err, first step) and death (step, reason, partner, ratio). Sto
 phase) and proposal: pose, OBB, coverage, codebook similarity, scale radii, up angle, pass flags, the
 tentative mask and the mesh (vertices float16 relative to Θ_c, faces int32).
 
-Not stored: the weights over the scene and the decoded shapes. `EMTrace.view` re-derives them from the stored
-latents with the same code the solver uses (`energy_weights`), and caches the result (LRU). The weights that
+Not stored: the weights over the scene and the decoded shapes. `em.replay.TraceReplay.view` re-derives them
+from the stored latents with the same code the solver uses (`energy_weights`), and caches the result (LRU). The weights that
 produced step t's samples are `W_out` of step t−1; at the first step of an episode they are the crop mask.
 """
 
@@ -16,32 +16,28 @@ from __future__ import annotations
 
 import json
 import logging
-from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, ClassVar, NamedTuple
 
 import numpy as np
 
 from efem_viz.em.config import EMConfig
-from efem_viz.em.proposals import REASONS, AvailableTree
+from efem_viz.em.rules import LEGACY_REASONS, REASON_SURVIVE, ReviewRecord, reason_names
 
 if TYPE_CHECKING:
     import trimesh
 
-    from efem_viz.data.scene import Scene
 
 logger = logging.getLogger(__name__)
 
 TRACE_SCHEMA_VERSION = 1
-_NEED_PRIOR = "re-deriving weights needs the shape prior: pass prior= or trace.bind(prior=...)"
-_NEED_SCENE = "this trace has no scene bound: call trace.bind(scene) with the scene it was run on"
 
 
 class DeathEvent(NamedTuple):
-    """A proposal's termination (`reason` one of proposals.REASONS; `survive` = accepted).
+    """A proposal's termination (`reason` one of the trace's `reason_names`; `survive` = accepted).
 
     `ratio` depends on the reason: the inlier count ("proposal too small"), the IoU or inclusion ratio with
-    `partner` ("duplicated or included"), the largest scale radius in metres ("scale-fail"), the up-axis angle
+    `partner` ("duplicated", "included"), the largest scale radius in metres ("scale-fail"), the up-axis angle
     in degrees ("pose-fail"), or the confidence ("survive"). `partner` is −1 unless a duplicate/inclusion.
     """
 
@@ -81,6 +77,8 @@ class ProposalView(NamedTuple):
     alive: bool
     death: tuple[int, str, int, float] | None
     latent: dict[str, np.ndarray]
+    category: str = ""
+    """Category of the proposal's prior ("" for traces that predate category tables)."""
 
 
 def energy_weights(
@@ -130,9 +128,10 @@ def _offsets(lengths: list[int] | np.ndarray) -> np.ndarray:
     return out
 
 
-@dataclass
+@dataclass(frozen=True)
 class EMTrace:
-    """The recorded EM run. Arrays only (+ the config); bind a scene (and prior) to re-derive views.
+    """The recorded EM run: frozen arrays (+ the config and name tables). `em.replay.TraceReplay` binds it to
+    the scene and prior(s) to re-derive weights and views.
 
     Step arrays have length T (global steps), row arrays one entry per (step, live proposal), proposal arrays
     one entry per proposal id (ids are 0..P−1 in creation order), review arrays one entry per (review,
@@ -184,7 +183,7 @@ class EMTrace:
     death_step: np.ndarray
     """(P,) int32 global step of death (acceptance counts as the episode's last step); −1 = never decided."""
     death_reason: np.ndarray
-    """(P,) int8 index into proposals.REASONS; −1 = none."""
+    """(P,) int8 index into `reason_names`; −1 = none."""
     death_partner: np.ndarray
     """(P,) int32 partner proposal id (duplicates/inclusions), else −1."""
     death_ratio: np.ndarray
@@ -231,12 +230,12 @@ class EMTrace:
     work_min_size: int = 0
     """min_size applied on the working set."""
     timings: dict[str, float] = field(default_factory=dict)
-    # ---- runtime-only (not saved)
-    _scene_points: np.ndarray | None = field(default=None, repr=False)
-    _scene_normals: np.ndarray | None = field(default=None, repr=False)
-    _prior: Any = field(default=None, repr=False)
-    _cache: "OrderedDict[tuple[Any, ...], ProposalView]" = field(default_factory=OrderedDict, repr=False)
-    cache_size: int = 32
+    reason_names: tuple[str, ...] = LEGACY_REASONS
+    """Names of the death codes (saved with the trace; traces older than the table use `LEGACY_REASONS`)."""
+    prop_prior: np.ndarray | None = None
+    """(P,) int8 index into `prior_names` of each proposal's prior (None = a single-prior run)."""
+    prior_names: tuple[str, ...] = ()
+    """Category names of the priors of the solve, in order (empty for traces older than multi-prior runs)."""
 
     # ------------------------------------------------------------------ basic queries
     @property
@@ -254,7 +253,7 @@ class EMTrace:
 
     def rows(self, step: int) -> slice:
         """Row slice of a global step."""
-        self._check_step(step)
+        self.check_step(step)
         return slice(int(self.row_offsets[step]), int(self.row_offsets[step + 1]))
 
     def alive(self, step: int) -> np.ndarray:
@@ -269,7 +268,7 @@ class EMTrace:
             DeathEvent(
                 int(self.death_step[i]),
                 int(i),
-                REASONS[int(self.death_reason[i])],
+                self.reason_names[int(self.death_reason[i])],
                 int(self.death_partner[i]),
                 float(self.death_ratio[i]),
             )
@@ -278,13 +277,13 @@ class EMTrace:
 
     def death(self, proposal_id: int) -> tuple[int, str, int, float] | None:
         """(step, reason, partner, ratio) of a proposal, or None."""
-        self._check_id(proposal_id)
+        self.check_id(proposal_id)
         r = int(self.death_reason[proposal_id])
         if r < 0:
             return None
         return (
             int(self.death_step[proposal_id]),
-            REASONS[r],
+            self.reason_names[r],
             int(self.death_partner[proposal_id]),
             float(self.death_ratio[proposal_id]),
         )
@@ -300,7 +299,7 @@ class EMTrace:
 
     def last_step(self, proposal_id: int) -> int:
         """The last global step the proposal took part in (−1 if none)."""
-        self._check_id(proposal_id)
+        self.check_id(proposal_id)
         steps = np.flatnonzero(self.row_id == proposal_id)
         if len(steps) == 0:
             return -1
@@ -314,67 +313,54 @@ class EMTrace:
         return {"R": self.row_R[r], "inv": self.row_inv[r], "center": self.row_center[r],
                 "scale": self.row_scale[r]}
 
-    def reviews(self, proposal_id: int) -> list[dict[str, Any]]:
-        """All review records of a proposal (0, 1 or 2), as dicts (mesh arrays in world coordinates)."""
+    def reviews(self, proposal_id: int) -> list[ReviewRecord]:
+        """All review records of a proposal (0, 1 or 2); mesh vertices in world coordinates."""
         out = []
         for v in np.flatnonzero(self.rev_id == proposal_id):
             out.append(self.review_record(int(v)))
         return out
 
-    def review_record(self, v: int) -> dict[str, Any]:
-        """One review record as a dict."""
+    def review_record(self, v: int) -> ReviewRecord:
+        """Review record `v` (mesh vertices in world coordinates)."""
         verts = _ragged_get(self.rev_mesh_vertices, self.rev_mesh_vertex_offsets, v).astype(np.float32)
         pid = int(self.rev_id[v])
         step = int(self.rev_step[v])
         r = self.row_of(pid, step)
         center = self.row_center[r] if r is not None else np.zeros(3, np.float32)
-        return {
-            "step": step,
-            "phase": int(self.rev_phase[v]),
-            "proposal_id": pid,
-            "R": self.rev_R[v],
-            "R_raw": self.rev_R_raw[v],
-            "scale_sel": float(self.rev_scale_sel[v]),
-            "db_sim": float(self.rev_db_sim[v]),
-            "coverage": float(self.rev_coverage[v]),
-            "radii": self.rev_radii[v],
-            "scale_pass": bool(self.rev_scale_pass[v]),
-            "up_angle": float(self.rev_up_angle[v]),
-            "pose_pass": bool(self.rev_pose_pass[v]),
-            "obb_center": self.rev_obb_center[v],
-            "obb_axes": self.rev_obb_axes[v],
-            "obb_half_extents": self.rev_obb_half[v],
-            "mask": _ragged_get(self.rev_mask, self.rev_mask_offsets, v),
-            "mesh_vertices": verts + center[None, :],
-            "mesh_faces": _ragged_get(self.rev_mesh_faces, self.rev_mesh_face_offsets, v),
-            "neighbours": _ragged_get(self.rev_neighbours, self.rev_neighbour_offsets, v),
-        }
+        return ReviewRecord(
+            step=step,
+            phase=int(self.rev_phase[v]),
+            proposal_id=pid,
+            R=self.rev_R[v],
+            R_raw=self.rev_R_raw[v],
+            scale_sel=float(self.rev_scale_sel[v]),
+            db_sim=float(self.rev_db_sim[v]),
+            coverage=float(self.rev_coverage[v]),
+            radii=self.rev_radii[v],
+            scale_pass=bool(self.rev_scale_pass[v]),
+            up_angle=float(self.rev_up_angle[v]),
+            pose_pass=bool(self.rev_pose_pass[v]),
+            obb_center=self.rev_obb_center[v],
+            obb_axes=self.rev_obb_axes[v],
+            obb_half_extents=self.rev_obb_half[v],
+            mask=_ragged_get(self.rev_mask, self.rev_mask_offsets, v),
+            mesh_vertices=verts + center[None, :],
+            mesh_faces=_ragged_get(self.rev_mesh_faces, self.rev_mesh_face_offsets, v),
+            neighbours=_ragged_get(self.rev_neighbours, self.rev_neighbour_offsets, v),
+            prior=self.prior_index(pid),
+        )
 
-    def _check_step(self, step: int) -> None:
+    def check_step(self, step: int) -> None:
+        """Raise ValueError unless 0 <= step < num_steps."""
         if not 0 <= int(step) < self.num_steps:
             raise ValueError(f"step {step} out of range [0, {self.num_steps})")
 
-    def _check_id(self, proposal_id: int) -> None:
+    def check_id(self, proposal_id: int) -> None:
+        """Raise ValueError unless the proposal id exists."""
         if not 0 <= int(proposal_id) < self.num_proposals:
             raise ValueError(f"proposal id {proposal_id} out of range [0, {self.num_proposals})")
 
     # ------------------------------------------------------------------ re-derivation
-    def bind(self, scene: "Scene | None" = None, prior: Any = None) -> "EMTrace":
-        """Attach the scene (points/normals) and/or the prior used by `view`. Returns self."""
-        if scene is not None:
-            if scene.num_points != self.num_points:
-                raise ValueError(
-                    f"scene {scene.name!r} has {scene.num_points} points but the trace was recorded on "
-                    f"{self.num_points}"
-                )
-            self._scene_points = np.asarray(scene.points, np.float32)
-            self._scene_normals = np.asarray(scene.normals, np.float32)
-            self._cache.clear()
-        if prior is not None:
-            self._prior = prior
-            self._cache.clear()
-        return self
-
     def available_mask(self, episode: int) -> np.ndarray:
         """(N,) bool points available during an episode."""
         avail = np.ones(self.num_points, bool)
@@ -388,150 +374,23 @@ class EMTrace:
         m[self.work_idx] = True
         return m
 
-    def weights_in(
-        self, proposal_id: int, step: int, prior: Any = None, *, full_resolution: bool = True
-    ) -> np.ndarray:
-        """(N,) float32 weights that produced the samples of (proposal, step) (= W_out of step − 1).
-
-        With `full_resolution=False` only the EM working set carries weights (exactly what the solver sampled
-        from); with True every available point of the ball gets the same formula (identical on the working
-        set), which is what a viewer should paint.
-        """
-        r = self.row_of(proposal_id, step)
-        if r is None:
-            raise ValueError(f"proposal {proposal_id} did not take part in step {step}")
-        pts = self._points()
-        ep = int(self.step_episode[step])
-        avail = self.available_mask(ep)
+    def replay_mask(self, episode: int, *, full_resolution: bool = True) -> np.ndarray:
+        """(N,) bool points a replay of `episode` decodes over: the available ones (on the working set only
+        when `full_resolution` is False)."""
+        avail = self.available_mask(episode)
         if not full_resolution and (wm := self._work_mask()) is not None:
             avail &= wm
-        w = np.zeros(self.num_points, np.float32)
-        if int(self.step_local[step]) == 0:
-            tree = AvailableTree(pts, avail, crop=self.config.crop)
-            anchor = pts[int(self.prop_anchor[proposal_id])][None]
-            rag = tree.query(anchor, float(self.prop_r_init[proposal_id]))
-            w[rag.idx] = 1.0
-            return w
-        return self.weights_out(proposal_id, step - 1, prior, full_resolution=full_resolution)
+        return avail
 
-    def weights_out(self, proposal_id: int, step: int, prior: Any = None, *, full_resolution: bool = True
-                    ) -> np.ndarray:
-        """(N,) float32 weights produced by the E-step of (proposal, step), re-derived from its latent."""
-        from efem_viz.em.solver import decode_rows, normals_threshold
+    def prior_index(self, proposal_id: int) -> int:
+        """Index of the proposal's prior in the run (0 for one-prior runs)."""
+        self.check_id(proposal_id)
+        return 0 if self.prop_prior is None else int(self.prop_prior[proposal_id])
 
-        pri = prior if prior is not None else self._prior
-        if pri is None:
-            raise ValueError(_NEED_PRIOR)
-        r = self.row_of(proposal_id, step)
-        if r is None:
-            raise ValueError(f"proposal {proposal_id} did not take part in step {step}")
-        pts, nrm = self._points(), self._normals()
-        avail = self.available_mask(int(self.step_episode[step]))
-        if not full_resolution and (wm := self._work_mask()) is not None:
-            avail &= wm
-        tree = AvailableTree(pts, avail, crop=self.config.crop)
-        rag = tree.query(self.row_center[r][None], float(self.prop_r_err[proposal_id]))
-        lat = {k: v[None] for k, v in self.latent(proposal_id, step).items()}
-        lat["scale"] = np.asarray(lat["scale"]).reshape(1)
-        a_d, t_d, a_n, t_n = (float(v) for v in self.schedule[step])
-        sched = (a_d, t_d, a_n, t_n)
-        d, gamma = decode_rows(pri, lat, rag, pts, nrm, chunk=self.config.decode_chunk,
-                               normals_within=normals_threshold(self.config, sched[1]))
-        wk, _ = energy_weights(d, gamma, sched, out_value=self.config.out_value)
-        w = np.zeros(self.num_points, np.float32)
-        w[rag.idx] = wk
-        return w
-
-    def view(self, proposal_id: int, step: int, prior: Any = None, *, mesh: bool = True,
-             full_resolution: bool = True) -> ProposalView:
-        """Everything the inspector shows for (proposal, step), re-derived from the stored latent and cached.
-
-        If the proposal died before `step`, the record of its death step is shown (alive=False).
-
-        Args:
-            proposal_id: the proposal.
-            step: global step.
-            prior: the shape prior (default: the one bound with `bind` / by `run_em`); needed for weights after
-                an episode's first step and for meshes.
-            mesh: extract the decoded shape (a few hundred ms).
-            full_resolution: weights on every point of the ball (True) or only on the EM working set.
-
-        Raises:
-            ValueError: unknown id/step, the proposal was not born yet, or scene/prior missing.
-        """
-        self._check_id(proposal_id)
-        self._check_step(step)
-        pri = prior if prior is not None else self._prior
-        key = (int(proposal_id), int(step), id(pri), bool(mesh), bool(full_resolution))
-        if key in self._cache:
-            self._cache.move_to_end(key)
-            return self._cache[key]
-        birth = int(self.prop_birth_step[proposal_id])
-        if step < birth:
-            raise ValueError(f"proposal {proposal_id} is born at step {birth}, not yet alive at step {step}")
-        last = self.last_step(proposal_id)
-        shown = min(int(step), last)
-        r = self.row_of(proposal_id, shown)
-        assert r is not None
-        weights = (
-            self.weights_in(proposal_id, shown, pri, full_resolution=full_resolution)
-            if pri is not None or int(self.step_local[shown]) == 0
-            else None
-        )
-        if weights is None:
-            raise ValueError(_NEED_PRIOR)
-        samples = self.row_samples[r]
-        dead = self.death(proposal_id)
-        alive = not (dead is not None and dead[1] != "survive" and dead[0] <= step)
-        scores: dict[str, float] = {
-            "stationary": float(self.row_stationary[r]),
-            "inliers": float(self.row_inliers[r]),
-        }
-        for v in np.flatnonzero((self.rev_id == proposal_id) & (self.rev_step == shown)):
-            scores.update(
-                coverage=float(self.rev_coverage[v]),
-                db_sim=float(self.rev_db_sim[v]),
-                radius_horizontal=float(self.rev_radii[v, 0]),
-                half_height=float(self.rev_radii[v, 1]),
-                up_angle=float(self.rev_up_angle[v]),
-                scale_pass=float(self.rev_scale_pass[v]),
-                pose_pass=float(self.rev_pose_pass[v]),
-            )
-        sch = self.schedule[shown]
-        lat = self.latent(proposal_id, shown)
-        mesh_obj = None
-        if mesh and pri is not None:
-            from efem_viz.em.solver import mesh_of_latent
-
-            mesh_obj = mesh_of_latent(pri, lat, resolution=self.config.mesh_resolution)
-        view = ProposalView(
-            proposal_id=int(proposal_id),
-            step=shown,
-            weights=weights,
-            sample_idx=samples,
-            sampled_points=self._points()[samples],
-            mesh=mesh_obj,
-            scores=scores,
-            schedule={"alpha_d": float(sch[0]), "tau_d": float(sch[1]), "alpha_n": float(sch[2]),
-                      "tau_n": float(sch[3])},
-            alive=alive,
-            death=dead,
-            latent=lat,
-        )
-        self._cache[key] = view
-        while len(self._cache) > self.cache_size:
-            self._cache.popitem(last=False)
-        return view
-
-    def _points(self) -> np.ndarray:
-        if self._scene_points is None:
-            raise ValueError(_NEED_SCENE)
-        return self._scene_points
-
-    def _normals(self) -> np.ndarray:
-        if self._scene_normals is None:
-            raise ValueError(_NEED_SCENE)
-        return self._scene_normals
+    def category_of(self, proposal_id: int) -> str:
+        """Category name of the proposal's prior ("" when the trace predates category tables)."""
+        names = self.prior_names
+        return names[self.prior_index(proposal_id)] if names else ""
 
     # ------------------------------------------------------------------ persistence
     _ARRAY_FIELDS: ClassVar[tuple[str, ...]] = (
@@ -557,6 +416,10 @@ class EMTrace:
                                     else np.zeros(0, np.int32))
         out[prefix + "has_work_idx"] = np.array(self.work_idx is not None)
         out[prefix + "work_min_size"] = np.array(self.work_min_size, np.int64)
+        out[prefix + "reason_names_json"] = np.array(json.dumps(list(self.reason_names)))
+        out[prefix + "prior_names_json"] = np.array(json.dumps(list(self.prior_names)))
+        if self.prop_prior is not None:
+            out[prefix + "prop_prior"] = np.asarray(self.prop_prior, np.int8)
         return out
 
     @classmethod
@@ -575,6 +438,25 @@ class EMTrace:
             raise ValueError(f"trace is missing arrays: {missing}")
         # Any, not ndarray: typed as arrays, **arrays could (for pyright) fill the non-array fields too
         arrays: dict[str, Any] = {k: np.asarray(data[prefix + k]) for k in cls._ARRAY_FIELDS}
+        reasons = LEGACY_REASONS
+        if prefix + "reason_names_json" in keys:
+            reasons = _name_table(data[prefix + "reason_names_json"], "reason_names")
+            if REASON_SURVIVE not in reasons:
+                raise ValueError(f"trace reason table {reasons} has no {REASON_SURVIVE!r}")
+        codes = arrays["death_reason"]
+        if len(codes) and (int(codes.max()) >= len(reasons) or int(codes.min()) < -1):
+            raise ValueError(f"trace death codes span [{int(codes.min())}, {int(codes.max())}] but its reason "
+                             f"table has {len(reasons)} names")
+        prior_names: tuple[str, ...] = ()
+        if prefix + "prior_names_json" in keys:
+            prior_names = _name_table(data[prefix + "prior_names_json"], "prior_names")
+        prop_prior = np.asarray(data[prefix + "prop_prior"]) if prefix + "prop_prior" in keys else None
+        if prop_prior is not None:
+            n_prop = len(arrays["prop_anchor"])
+            if (prop_prior.shape != (n_prop,) or prop_prior.dtype.kind not in "iu"
+                    or (n_prop and (int(prop_prior.min()) < 0 or int(prop_prior.max()) >= len(prior_names)))):
+                raise ValueError(f"trace prop_prior {prop_prior.dtype} {prop_prior.shape} does not index its "
+                                 f"{len(prior_names)} priors for {n_prop} proposals")
         return cls(
             config=EMConfig.from_json(str(np.asarray(data[prefix + "config_json"]))),
             num_points=int(np.asarray(data[prefix + "num_points"])),
@@ -582,6 +464,9 @@ class EMTrace:
             work_idx=np.asarray(data[prefix + "work_idx"]) if bool(np.asarray(data[prefix + "has_work_idx"]))
             else None,
             work_min_size=int(np.asarray(data[prefix + "work_min_size"])),
+            reason_names=reasons,
+            prop_prior=prop_prior,
+            prior_names=prior_names,
             **arrays,
         )
 
@@ -590,12 +475,29 @@ class EMTrace:
         return int(sum(np.asarray(getattr(self, k)).nbytes for k in self._ARRAY_FIELDS))
 
 
+def _name_table(raw: Any, what: str) -> tuple[str, ...]:
+    """A saved JSON list of names, validated."""
+    try:
+        names = json.loads(str(np.asarray(raw)))
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"trace {what} is not a JSON list: {exc}") from exc
+    if not isinstance(names, list) or not all(isinstance(x, str) for x in names) or len(names) > 127:
+        raise ValueError(f"trace {what} must be a list of at most 127 names, got {str(names)[:80]}")
+    return tuple(names)
+
+
 class TraceRecorder:
     """Builds an `EMTrace` while the solver runs (append-only lists, concatenated at the end)."""
 
     def __init__(self, config: EMConfig, num_points: int, *, work_idx: np.ndarray | None = None,
-                 work_min_size: int | None = None) -> None:
+                 work_min_size: int | None = None, reasons: tuple[str, ...] | None = None,
+                 prior_names: tuple[str, ...] = ()) -> None:
         self.config = config
+        self.reasons = tuple(reasons) if reasons is not None else reason_names()
+        if REASON_SURVIVE not in self.reasons:
+            raise ValueError(f"the reason table must contain {REASON_SURVIVE!r}, got {self.reasons}")
+        self.prior_names = tuple(prior_names)
+        self.owner: list[int] = []
         self.num_points = int(num_points)
         full = work_idx is None or len(work_idx) == num_points
         self.work_idx = None if full else np.asarray(work_idx, np.int32)
@@ -619,10 +521,12 @@ class TraceRecorder:
         if not self.active_count:
             self.active_count.append(int(initial_count))
 
-    def birth(self, episode: int, anchors: np.ndarray, r_init: float, r_err: float) -> np.ndarray:
-        """Register proposals; returns their ids."""
+    def birth(self, episode: int, anchors: np.ndarray, r_init: float, r_err: float,
+              owner: np.ndarray | None = None) -> np.ndarray:
+        """Register proposals (`owner`: (n,) prior index of each, default 0); returns their ids."""
         start = len(self.props["anchor"])
         n = len(anchors)
+        self.owner.extend(int(o) for o in (owner if owner is not None else np.zeros(n, np.int64)))
         self.props["episode"].extend([episode] * n)
         self.props["anchor"].extend(int(a) for a in anchors)
         self.props["r_init"].extend([r_init] * n)
@@ -668,12 +572,14 @@ class TraceRecorder:
     ) -> None:
         if int(proposal_id) in self.deaths:
             raise ValueError(f"proposal {proposal_id} died twice")
-        code = REASONS.index(reason)
+        if reason not in self.reasons:
+            raise ValueError(f"reason {reason!r} is not in this run's reason table {self.reasons}")
+        code = self.reasons.index(reason)
         self.deaths[int(proposal_id)] = (int(step), code, int(partner), float(ratio), self._order)
         self._order += 1
 
-    def review(self, record: dict[str, Any]) -> None:
-        self.reviews.append(record)
+    def review(self, record: ReviewRecord) -> None:
+        self.reviews.append(record._asdict())
 
     def finish(self, timings: dict[str, float] | None = None) -> EMTrace:
         """Concatenate everything into an `EMTrace`."""
@@ -775,4 +681,7 @@ class TraceRecorder:
             work_idx=self.work_idx,
             work_min_size=self.work_min_size,
             timings=dict(timings or {}),
+            reason_names=self.reasons,
+            prop_prior=np.array(self.owner, np.int8) if len(self.prior_names) > 1 else None,
+            prior_names=self.prior_names,
         )

@@ -10,20 +10,25 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from efem_viz.prior.model import Latent as Latent, PriorConfig as PriorConfig, ShapePrior as ShapePrior
+    from efem_viz.prior.config import CategorySettings as CategorySettings, PriorConfig as PriorConfig
+    from efem_viz.prior.config import ShapePriorLike as ShapePriorLike
+    from efem_viz.prior.model import Latent as Latent, ShapePrior as ShapePrior
     from efem_viz.prior.convert import convert_released_checkpoint as convert_released_checkpoint
-    from efem_viz.prior.model import load_prior as load_prior, save_prior as save_prior
+    from efem_viz.prior.model import load_prior as load_prior, load_priors as load_priors, save_prior as save_prior
 
 _LAZY = {
     "Latent": "efem_viz.prior.model",
-    "PriorConfig": "efem_viz.prior.model",
+    "PriorConfig": "efem_viz.prior.config",
+    "CategorySettings": "efem_viz.prior.config",
+    "ShapePriorLike": "efem_viz.prior.config",
+    "load_priors": "efem_viz.prior.model",
     "ShapePrior": "efem_viz.prior.model",
     "load_prior": "efem_viz.prior.model",
     "save_prior": "efem_viz.prior.model",
     "convert_released_checkpoint": "efem_viz.prior.convert",
 }
 
-__all__ = ["Latent", "PriorConfig", "ShapePrior", "convert_released_checkpoint", "load_prior", "save_prior"]
+__all__ = ["CategorySettings", "Latent", "PriorConfig", "ShapePriorLike", "load_priors", "ShapePrior", "convert_released_checkpoint", "load_prior", "save_prior"]
 
 
 def __getattr__(name: str) -> Any:

@@ -25,7 +25,7 @@ from efem_viz.prior.vn_layers import (
 )
 
 if TYPE_CHECKING:
-    from efem_viz.prior.model import PriorConfig
+    from efem_viz.prior.config import PriorConfig
 
 
 class EncoderOutput(NamedTuple):

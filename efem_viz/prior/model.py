@@ -9,19 +9,19 @@ latents are cast to it.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import os
 import pickle
 import re
-from dataclasses import dataclass
 from pathlib import Path
+from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 import torch
 from torch import nn
 
+from efem_viz.prior.config import CategorySettings, PriorConfig, category_settings
 from efem_viz.prior.decoder import SDFDecoder
 from efem_viz.prior.encoder import VNDGCNNEncoder
 
@@ -32,91 +32,6 @@ log = logging.getLogger(__name__)
 
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
 CHECKPOINT_FORMAT = "efem-viz-prior/1"
-
-
-@dataclass
-class PriorConfig:
-    """Architecture of a shape prior (defaults = the released mug model, efem-method.md §1.3)."""
-
-    widths: tuple[int, ...] = (32, 32, 64, 64, 128, 256, 512)
-    """Output width of every backbone block (the number of entries is the depth)."""
-    k: int = 16
-    """Neighbours of the dynamic feature-space kNN graph."""
-    n_pcl: int = 512
-    """Encoder input size used in training / by the solver."""
-    down_blocks: tuple[int, ...] = (2, 4, 5)
-    """Blocks preceded by farthest-point down-sampling."""
-    down_factors: tuple[int, ...] = (2, 4, 4)
-    """Down-sampling factor for each entry of ``down_blocks``."""
-    global_from: int = 2
-    """First block with global-context fusion."""
-    attention_blocks: tuple[int, ...] = ()
-    """Blocks that aggregate with VN attention instead of the mean (chairs: 2..6)."""
-    att_head_dim: int = 16
-    """Channels per attention head."""
-    latent_dim: int = 256
-    """Latent width L (rows of Θ_R, length of Θ_inv)."""
-    center_hidden: int = 128
-    """Hidden width of the centre-head residual block."""
-    scale_factor: float = 64000.0
-    """σ: fixed multiplier of the Θ_s head (set once at init so Θ_s ≈ 1 for unit objects)."""
-    center_times_sigma: bool = False
-    """Multiply δ by σ (the kit4cates prior does)."""
-    negative_slope: float = 0.2
-    """VN-LeakyReLU negative slope."""
-    decoder_hidden: int = 256
-    """Decoder MLP width."""
-    decoder_blocks: int = 5
-    """Decoder residual blocks."""
-    use_qnorm: bool = True
-    """Feed ‖q‖ to the decoder."""
-    decoder_proj_gain: float = 1.0
-    """Multiplier of the projections ``Θ_R q`` in φ (released models: 1). ChNorm makes each row of Θ_R about
-    ``1/√L`` long, so the raw projections are small; ``√L`` gives them unit scale. A pure reparameterisation
-    of ``fc_in`` (invariance is unaffected); it did not speed up early training in our CPU runs."""
-    decoder_inv_gain: float = 1.0
-    """Multiplier of Θ_inv in φ (released models: 1; each entry is ~``1/L``, so ``L`` gives unit scale)."""
-
-    def __post_init__(self) -> None:
-        self.widths = tuple(int(w) for w in self.widths)
-        self.down_blocks = tuple(int(b) for b in self.down_blocks)
-        self.down_factors = tuple(int(f) for f in self.down_factors)
-        self.attention_blocks = tuple(int(b) for b in self.attention_blocks)
-        if not self.widths or min(self.widths) < 1:
-            raise ValueError(f"widths must be a non-empty tuple of positive ints, got {self.widths}")
-        if len(self.down_blocks) != len(self.down_factors):
-            raise ValueError(f"down_blocks {self.down_blocks} and down_factors {self.down_factors} "
-                             "differ in length")
-        if self.k < 1 or self.latent_dim < 1 or self.decoder_hidden < 1 or self.decoder_blocks < 0:
-            raise ValueError(f"bad PriorConfig sizes: {self}")
-        floats = {"scale_factor": self.scale_factor, "negative_slope": self.negative_slope,
-                  "decoder_proj_gain": self.decoder_proj_gain, "decoder_inv_gain": self.decoder_inv_gain}
-        bad = {k: v for k, v in floats.items() if not (isinstance(v, (int, float)) and np.isfinite(v))}
-        if bad:
-            raise ValueError(f"PriorConfig values must be finite numbers, got {bad}")
-
-    def to_dict(self) -> dict[str, Any]:
-        """Plain JSON-able dict (tuples become lists)."""
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> PriorConfig:
-        """Inverse of ``to_dict``; unknown keys raise ``ValueError``."""
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise ValueError(f"unknown PriorConfig keys: {sorted(unknown)}")
-        return cls(**d)
-
-    def points_per_block(self) -> list[int]:
-        """Number of points after each block for an input of ``n_pcl`` points."""
-        n, out = self.n_pcl, []
-        down = dict(zip(self.down_blocks, self.down_factors))
-        for b in range(len(self.widths)):
-            if b in down:
-                n = max(1, n // down[b])
-            out.append(n)
-        return out
 
 
 class Latent(NamedTuple):
@@ -201,6 +116,16 @@ class ShapePrior(nn.Module):
         c = self.config
         self.decoder = SDFDecoder(c.latent_dim, c.decoder_hidden, c.decoder_blocks, use_qnorm=c.use_qnorm,
                                   proj_gain=c.decoder_proj_gain, inv_gain=c.decoder_inv_gain)
+
+    @property
+    def n_pcl(self) -> int:
+        """Points per encoded set (the training size)."""
+        return int(self.config.n_pcl)
+
+    @property
+    def category(self) -> CategorySettings:
+        """Category settings (metadata "category"/"tau_out", else the known settings of its name)."""
+        return category_settings(self.name, self.metadata)
 
     @property
     def dtype(self) -> torch.dtype:
@@ -466,6 +391,44 @@ def load_prior(name_or_path: str | os.PathLike[str] = "mug", *, device: str | to
                     log.warning("codebook %s was built from other weights than %s; not attached (rebuild it with "
                                 "`efem-viz build-codebook --prior %s`)", cb_path, path, path)
     return prior
+
+
+ANALYTIC_PRIORS: tuple[str, ...] = ("sphere",)
+"""Prior names that need no weights file (closed-form priors in efem_viz/prior/analytic.py)."""
+
+
+def load_priors(specs: Sequence[str | os.PathLike[str]], *, device: str | torch.device = "cpu") -> list[Any]:
+    """Load the priors of a multi-category solve (`run_em(scene, priors=...)`), each once.
+
+    Args:
+        specs: each a name under ``efem_viz/weights/`` (``"mug"``), a ``.pt`` path, or ``"sphere"`` (the
+            analytic sphere prior of efem_viz/prior/analytic.py).
+        device: target device.
+
+    Returns:
+        The priors in the order given (each satisfies `ShapePriorLike`).
+
+    Raises:
+        ValueError: no specs, the same spec twice, or two priors with the same category name.
+        FileNotFoundError: a weights file is missing.
+    """
+    if not specs:
+        raise ValueError("give at least one prior")
+    seen = [str(s) for s in specs]
+    if len(set(seen)) != len(seen):
+        raise ValueError(f"a prior is given twice: {seen}")
+    out: list[Any] = []
+    for spec in specs:
+        if str(spec) in ANALYTIC_PRIORS:
+            from efem_viz.prior.analytic import make_sphere_prior
+
+            out.append(make_sphere_prior().to(device))
+        else:
+            out.append(load_prior(spec, device=device))
+    names = [p.category.name for p in out]
+    if len(set(names)) != len(names):
+        raise ValueError(f"two priors share a category name: {names}; give each prior its own category")
+    return out
 
 
 def _checked_prior_parts(ckpt: dict[str, Any], path: Path) -> tuple[PriorConfig, dict[str, torch.Tensor]]:

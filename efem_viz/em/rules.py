@@ -1,0 +1,338 @@
+"""Elimination rules of the EFEM solver (efem-method.md §3.8 and §3.9), registered in one place.
+
+Two kinds of rule:
+- `StepRule`: runs after every EM step on the live proposals of the pool (too small, duplicate, inclusion);
+  it sees a `StepContext` and returns `Kill`s. Rules run in list order; a kill takes effect for the rules
+  after it.
+- `ReviewRule`: runs on each proposal's `ReviewRecord` at the end of each phase (scale check, pose check);
+  the first rule that fails kills the proposal.
+
+`run_em(..., step_rules=..., review_rules=...)` takes other lists (see examples/add_elimination_rule.py). Each
+rule's `reason` is the name a death is recorded under; a trace saves the table of reason names it used
+(`reason_names`), so its int8 codes stay readable whatever rules a later build registers. Traces written
+before the table existed decode with `LEGACY_REASONS`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import TYPE_CHECKING, Any, NamedTuple
+
+import numpy as np
+
+from efem_viz.em.proposals import Ragged
+
+if TYPE_CHECKING:
+    import scipy.sparse as sp
+
+    from efem_viz.em.config import EMConfig
+
+REASON_TOO_SMALL = "proposal too small"
+REASON_DUPLICATE = "duplicated"
+REASON_INCLUDED = "included"
+REASON_SCALE = "scale-fail"
+REASON_POSE = "pose-fail"
+REASON_SURVIVE = "survive"
+LEGACY_REASONS: tuple[str, ...] = ("proposal too small", "duplicated or included", "scale-fail", "pose-fail",
+                                   "survive")
+"""The reason codes of traces saved before the name table (inclusions were recorded as duplicates)."""
+
+
+def set_matrix(rag: Ragged, mask: np.ndarray, n_points: int) -> sp.csr_matrix:
+    """(P, N) scipy.sparse CSR boolean matrix of the entries where `mask` holds (e.g. |d| < δ_dup)."""
+    import scipy.sparse as sp
+
+    mask = np.asarray(mask, bool)
+    row = rag.row[mask]
+    col = rag.idx[mask]
+    data = np.ones(len(row), np.float32)
+    return sp.csr_matrix((data, (row, col)), shape=(rag.num_rows, int(n_points)))
+
+
+def overlap_counts(sets: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray]:
+    """Pairwise intersection sizes of sparse sets.
+
+    Args:
+        sets: (P, N) scipy.sparse matrix with 0/1 entries.
+
+    Returns:
+        inter (P, P) float64 |B_i ∩ B_k| and sizes (P,) float64 |B_i|.
+    """
+    gram = (sets @ sets.T).toarray().astype(np.float64)
+    sizes = np.asarray(sets.sum(axis=1)).ravel().astype(np.float64)
+    return gram, sizes
+
+
+@dataclass(frozen=True)
+class Kill:
+    """One elimination: row `row` dies because of `partner` (row index, or -1) with overlap `ratio`."""
+
+    row: int
+    reason: str
+    partner: int = -1
+    ratio: float = float("nan")
+
+
+def find_too_small(inlier_counts: np.ndarray, min_size: int) -> list[Kill]:
+    """§3.8a: rows with fewer than `min_size` inliers."""
+    counts = np.asarray(inlier_counts)
+    return [Kill(int(r), REASON_TOO_SMALL, -1, float(counts[r])) for r in np.flatnonzero(counts < min_size)]
+
+
+def find_duplicates(
+    sets: sp.csr_matrix,
+    scores: np.ndarray,
+    iou_threshold: float,
+    *,
+    active: np.ndarray | None = None,
+) -> list[Kill]:
+    """§3.8b duplicate removal over sparse sets, rows visited in order (= increasing proposal id).
+
+    For each still-active row i, the group is {k active : IoU(B_i, B_k) ≥ θ} (i included when B_i is not
+    empty); if it has more than one member, only the member with the highest score survives (argmax within the group,
+    ties to the lowest row), the others die with that winner as partner.
+
+    Args:
+        sets: (P, N) sparse 0/1 matrix of the sets B_i.
+        scores: (P,) stationary scores.
+        iou_threshold: θ_iou.
+        active: (P,) bool rows that take part (default all).
+
+    Returns:
+        The kills in the order they happen; `ratio` is IoU(killed, winner).
+    """
+    inter, sizes = overlap_counts(sets)
+    p = len(sizes)
+    alive = np.ones(p, bool) if active is None else np.asarray(active, bool).copy()
+    union = sizes[:, None] + sizes[None, :] - inter
+    iou = inter / (union + 1e-6)
+    scores = np.asarray(scores, np.float64)
+    kills: list[Kill] = []
+    for i in range(p):
+        if not alive[i]:
+            continue
+        group = np.flatnonzero(alive & (iou[i] >= iou_threshold))
+        if len(group) <= 1:
+            continue
+        winner = int(group[np.argmax(scores[group])])
+        for k in group:
+            if k != winner:
+                alive[k] = False
+                kills.append(Kill(int(k), REASON_DUPLICATE, winner, float(iou[k, winner])))
+    return kills
+
+
+def find_inclusions(
+    sets: sp.csr_matrix,
+    threshold: float,
+    *,
+    active: np.ndarray | None = None,
+) -> list[Kill]:
+    """§3.8c pairwise inclusion: row i dies if |B_i ∩ B_k| / |B_i| > θ for a single other active k.
+
+    Rows are visited in order and a kill takes effect immediately (later rows no longer see it).
+
+    Returns:
+        The kills; `partner` is the k of the largest overlap and `ratio` that overlap.
+    """
+    inter, sizes = overlap_counts(sets)
+    p = len(sizes)
+    alive = np.ones(p, bool) if active is None else np.asarray(active, bool).copy()
+    kills: list[Kill] = []
+    for i in range(p):
+        if not alive[i]:
+            continue
+        ratio = inter[i] / (sizes[i] + 1e-6)
+        ratio = np.where(alive, ratio, -1.0)
+        ratio[i] = -1.0
+        k = int(np.argmax(ratio)) if p > 1 else -1
+        if k >= 0 and ratio[k] > threshold:
+            alive[i] = False
+            kills.append(Kill(i, REASON_INCLUDED, k, float(ratio[k])))
+    return kills
+
+
+# ---------------------------------------------------------------------------------------------- step rules
+@dataclass
+class StepContext:
+    """What a step rule sees: the pool after an E-step (rows in increasing proposal id).
+
+    Attributes:
+        phase: 1 = independent, 2 = joint.
+        cfg: solver config.
+        inliers: (P,) int inlier counts.
+        stationary: (P,) float stationary scores.
+        d: (K,) canonical SDF over `rag`.
+        rag: the rows' E-step neighbourhoods (working-set indices).
+        n_points: size of the working set.
+        min_size: the "too small" threshold on the working set.
+        owner: (P,) int prior of each row (index into the solve's priors).
+        active: (P,) bool rows still alive; the runner clears the rows each rule kills.
+    """
+
+    phase: int
+    cfg: "EMConfig"
+    inliers: np.ndarray
+    stationary: np.ndarray
+    d: np.ndarray
+    rag: Ragged
+    n_points: int
+    min_size: int
+    owner: np.ndarray
+    active: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+
+    def __post_init__(self) -> None:
+        if len(self.active) != len(self.inliers):
+            self.active = np.ones(len(self.inliers), bool)
+
+    @cached_property
+    def sets(self) -> "sp.csr_matrix":
+        """(P, N) sparse sets {j : |d_ij| < δ_dup} of every row (built once per step, on first use)."""
+        return set_matrix(self.rag, np.abs(self.d) < self.cfg.dup_sdf, self.n_points)
+
+
+@dataclass(frozen=True)
+class StepRule:
+    """A per-step elimination rule.
+
+    Attributes:
+        reason: the name its deaths are recorded under.
+        find: the rule: StepContext → kills (rows of the context; must only kill active rows).
+        phases: the phases it runs in.
+        needs_pair: run only while more than one row is active (pairwise rules).
+    """
+
+    reason: str
+    find: Callable[[StepContext], list[Kill]]
+    phases: tuple[int, ...] = (1, 2)
+    needs_pair: bool = False
+
+
+def _too_small(ctx: StepContext) -> list[Kill]:
+    return find_too_small(ctx.inliers, ctx.min_size)
+
+
+def _duplicates(ctx: StepContext) -> list[Kill]:
+    thr = ctx.cfg.dup_iou if ctx.phase == 1 else ctx.cfg.joint_dup_iou
+    return find_duplicates(ctx.sets, ctx.stationary, thr, active=ctx.active)
+
+
+def _inclusions(ctx: StepContext) -> list[Kill]:
+    return find_inclusions(ctx.sets, ctx.cfg.joint_incl, active=ctx.active)
+
+
+STEP_RULES: tuple[StepRule, ...] = (
+    StepRule(REASON_TOO_SMALL, _too_small),
+    StepRule(REASON_DUPLICATE, _duplicates, needs_pair=True),
+    StepRule(REASON_INCLUDED, _inclusions, phases=(2,), needs_pair=True),
+)
+"""The method's per-step rules (§3.8a-c), in the order they run."""
+
+
+def apply_step_rules(ctx: StepContext, rules: Sequence[StepRule] = STEP_RULES) -> list[Kill]:
+    """Run the rules of `ctx.phase` in order; returns every kill (`ctx.active` updated in place)."""
+    kills: list[Kill] = []
+    for rule in rules:
+        if ctx.phase not in rule.phases or (rule.needs_pair and ctx.active.sum() <= 1):
+            continue
+        found = rule.find(ctx)
+        for k in found:
+            if not ctx.active[k.row]:
+                raise ValueError(f"rule {rule.reason!r} killed row {k.row}, which was already dead")
+            if k.reason != rule.reason:
+                k = Kill(k.row, rule.reason, k.partner, k.ratio)
+            ctx.active[k.row] = False
+            kills.append(k)
+    return kills
+
+
+# ---------------------------------------------------------------------------------------------- review rules
+class ReviewRecord(NamedTuple):
+    """One proposal's review at the end of a phase (§3.9); what the trace stores per review.
+
+    Arrays are in the world frame; the mesh is relative to Θ_c (`mesh_vertices` + Θ_c = world) when it comes
+    from the solver; `EMTrace.review_record` returns it in world coordinates.
+    """
+
+    step: int
+    """Global step of the review."""
+    phase: int
+    """Phase it ends (1 or 2)."""
+    proposal_id: int
+    R: np.ndarray
+    """(3, 3) pose used for the box: columns = canonical axes in the world frame."""
+    R_raw: np.ndarray
+    """(3, 3) pose from retrieval before the up-axis snap."""
+    scale_sel: float
+    """Codebook scale of the retrieved neighbours."""
+    db_sim: float
+    """Codebook similarity (NaN without a codebook)."""
+    coverage: float
+    """Fraction of completed-shape samples explained by observed points."""
+    radii: np.ndarray
+    """(2,) horizontal radius and half-height of the completed shape (m)."""
+    scale_pass: bool
+    up_angle: float
+    """Angle between the canonical up axis and world +Z (degrees)."""
+    pose_pass: bool
+    obb_center: np.ndarray
+    obb_axes: np.ndarray
+    obb_half_extents: np.ndarray
+    mask: np.ndarray
+    """(n,) int32 scene indices of the tentative output mask."""
+    mesh_vertices: np.ndarray
+    mesh_faces: np.ndarray
+    neighbours: np.ndarray
+    """Codebook ids of the retrieved neighbours."""
+    prior: int = 0
+    """Index of the proposal's prior in the solve."""
+
+
+@dataclass(frozen=True)
+class ReviewRule:
+    """A review check: `check(record, cfg)` → (passed, ratio recorded with the death)."""
+
+    reason: str
+    check: Callable[[ReviewRecord, Any], tuple[bool, float]]
+
+
+def _scale_check(rec: ReviewRecord, cfg: Any) -> tuple[bool, float]:
+    return bool(rec.scale_pass), float(np.max(rec.radii))
+
+
+def _pose_check(rec: ReviewRecord, cfg: Any) -> tuple[bool, float]:
+    return bool(rec.pose_pass), float(rec.up_angle)
+
+
+REVIEW_RULES: tuple[ReviewRule, ...] = (
+    ReviewRule(REASON_SCALE, _scale_check),
+    ReviewRule(REASON_POSE, _pose_check),
+)
+"""The method's review checks (§3.9): the completed shape's size, then its up axis."""
+
+
+def first_failed_review(rec: ReviewRecord, cfg: Any, rules: Sequence[ReviewRule] = REVIEW_RULES
+                        ) -> tuple[str, float] | None:
+    """(reason, ratio) of the first review rule the record fails, or None when it passes them all."""
+    for rule in rules:
+        ok, ratio = rule.check(rec, cfg)
+        if not ok:
+            return rule.reason, ratio
+    return None
+
+
+def reason_names(step_rules: Sequence[StepRule] = STEP_RULES,
+                 review_rules: Sequence[ReviewRule] = REVIEW_RULES) -> tuple[str, ...]:
+    """The reason-name table of a run with these rules (its int8 death codes index it; "survive" last)."""
+    names: list[str] = []
+    for r in (*step_rules, *review_rules):
+        if r.reason == REASON_SURVIVE:
+            raise ValueError(f"a rule cannot be named {REASON_SURVIVE!r}")
+        if r.reason not in names:
+            names.append(r.reason)
+    names.append(REASON_SURVIVE)
+    if len(names) > 127:
+        raise ValueError(f"too many distinct rule reasons ({len(names)}): the trace stores int8 codes")
+    return tuple(names)

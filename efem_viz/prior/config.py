@@ -1,0 +1,321 @@
+"""What a shape prior is to the rest of efem-viz: its architecture config, its category settings and the
+`ShapePriorLike` protocol that the solver, the viewer and the annotator type against.
+
+Torch-free at import time. A prior is anything with `encode`, `sdf`, `sdf_and_normals`, `codebook`, `n_pcl`,
+`name` and `category` (see `ShapePriorLike`): the trained `ShapePrior` (prior/model.py) and the analytic
+`SpherePrior` (prior/analytic.py) both are.
+
+Category settings (the object sizes the scale check accepts, the up-axis range, the output-mask band τ_out)
+travel with the prior: read from its metadata key "category" when present, else from `KNOWN_CATEGORIES` by
+the prior's name; τ_out comes from the metadata key "tau_out" written by `efem-viz calibrate-masks`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from efem_viz.prior.codebook import Codebook
+
+logger = logging.getLogger(__name__)
+
+Range = tuple[float, float]
+
+DEFAULT_TAU_OUT = 0.04
+"""Output-mask SDF threshold of efem-method.md §3.9.12 (canonical units) for a prior that was not calibrated."""
+MAX_TAU_OUT = 0.5
+"""Largest accepted τ_out: half an object size (a larger band would take in the neighbours)."""
+TAU_OUT_KEY = "tau_out"
+"""Metadata key of a prior's calibrated τ_out."""
+CATEGORY_KEY = "category"
+"""Metadata key of a prior's category settings (a dict, see `CategorySettings.to_dict`)."""
+DOMAINS: tuple[str, ...] = ("synthetic", "real")
+"""Capture domains a category may give its own sizes for (the solver's presets choose one)."""
+
+
+@dataclass
+class PriorConfig:
+    """Architecture of a shape prior (defaults = the released mug model, efem-method.md §1.3)."""
+
+    widths: tuple[int, ...] = (32, 32, 64, 64, 128, 256, 512)
+    """Output width of every backbone block (the number of entries is the depth)."""
+    k: int = 16
+    """Neighbours of the dynamic feature-space kNN graph."""
+    n_pcl: int = 512
+    """Encoder input size used in training / by the solver."""
+    down_blocks: tuple[int, ...] = (2, 4, 5)
+    """Blocks preceded by farthest-point down-sampling."""
+    down_factors: tuple[int, ...] = (2, 4, 4)
+    """Down-sampling factor for each entry of ``down_blocks``."""
+    global_from: int = 2
+    """First block with global-context fusion."""
+    attention_blocks: tuple[int, ...] = ()
+    """Blocks that aggregate with VN attention instead of the mean (chairs: 2..6)."""
+    att_head_dim: int = 16
+    """Channels per attention head."""
+    latent_dim: int = 256
+    """Latent width L (rows of Θ_R, length of Θ_inv)."""
+    center_hidden: int = 128
+    """Hidden width of the centre-head residual block."""
+    scale_factor: float = 64000.0
+    """σ: fixed multiplier of the Θ_s head (set once at init so Θ_s ≈ 1 for unit objects)."""
+    center_times_sigma: bool = False
+    """Multiply δ by σ (the kit4cates prior does)."""
+    negative_slope: float = 0.2
+    """VN-LeakyReLU negative slope."""
+    decoder_hidden: int = 256
+    """Decoder MLP width."""
+    decoder_blocks: int = 5
+    """Decoder residual blocks."""
+    use_qnorm: bool = True
+    """Feed ‖q‖ to the decoder."""
+    decoder_proj_gain: float = 1.0
+    """Multiplier of the projections ``Θ_R q`` in φ (released models: 1). ChNorm makes each row of Θ_R about
+    ``1/√L`` long, so the raw projections are small; ``√L`` gives them unit scale. A pure reparameterisation
+    of ``fc_in`` (invariance is unaffected); it did not speed up early training in our CPU runs."""
+    decoder_inv_gain: float = 1.0
+    """Multiplier of Θ_inv in φ (released models: 1; each entry is ~``1/L``, so ``L`` gives unit scale)."""
+
+    def __post_init__(self) -> None:
+        self.widths = tuple(int(w) for w in self.widths)
+        self.down_blocks = tuple(int(b) for b in self.down_blocks)
+        self.down_factors = tuple(int(f) for f in self.down_factors)
+        self.attention_blocks = tuple(int(b) for b in self.attention_blocks)
+        if not self.widths or min(self.widths) < 1:
+            raise ValueError(f"widths must be a non-empty tuple of positive ints, got {self.widths}")
+        if len(self.down_blocks) != len(self.down_factors):
+            raise ValueError(f"down_blocks {self.down_blocks} and down_factors {self.down_factors} "
+                             "differ in length")
+        if self.k < 1 or self.latent_dim < 1 or self.decoder_hidden < 1 or self.decoder_blocks < 0:
+            raise ValueError(f"bad PriorConfig sizes: {self}")
+        floats = {"scale_factor": self.scale_factor, "negative_slope": self.negative_slope,
+                  "decoder_proj_gain": self.decoder_proj_gain, "decoder_inv_gain": self.decoder_inv_gain}
+        bad = {k: v for k, v in floats.items() if not (isinstance(v, (int, float)) and np.isfinite(v))}
+        if bad:
+            raise ValueError(f"PriorConfig values must be finite numbers, got {bad}")
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-able dict (tuples become lists)."""
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> PriorConfig:
+        """Inverse of ``to_dict``; unknown keys raise ``ValueError``."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(d) - names
+        if unknown:
+            raise ValueError(f"unknown PriorConfig keys: {sorted(unknown)}")
+        return cls(**d)
+
+    def points_per_block(self) -> list[int]:
+        """Number of points after each block for an input of ``n_pcl`` points."""
+        n, out = self.n_pcl, []
+        down = dict(zip(self.down_blocks, self.down_factors))
+        for b in range(len(self.widths)):
+            if b in down:
+                n = max(1, n // down[b])
+            out.append(n)
+        return out
+
+
+@dataclass(frozen=True)
+class CategorySettings:
+    """Per-category settings of the solver's reviews, carried by the prior (not by the solver presets).
+
+    Sizes are measured on the completed shape in its canonical frame (+Z up): the horizontal radius
+    max ‖Q̃_xy‖ and the half-height max |Q̃_z|, in metres.
+    """
+
+    name: str
+    """Category name given to the instances this prior finds (e.g. "mug")."""
+    scale_horizontal: Range = (0.0, math.inf)
+    """Allowed horizontal radius of a completed shape (m)."""
+    scale_height: Range = (0.0, math.inf)
+    """Allowed half-height of a completed shape (m)."""
+    up_range: Range = (0.0, 180.0)
+    """Allowed angle between the canonical up axis and world +Z (degrees)."""
+    domain_sizes: Mapping[str, tuple[Range, Range]] = field(default_factory=dict)
+    """Per capture domain ("synthetic", "real"): (scale_horizontal, scale_height) replacing the defaults."""
+    tau_out: float | None = None
+    """Output-mask SDF band (canonical units); None = `DEFAULT_TAU_OUT`."""
+
+    def __post_init__(self) -> None:
+        if not str(self.name):
+            raise ValueError("a category needs a non-empty name")
+        for nm in ("scale_horizontal", "scale_height", "up_range"):
+            _check_range(nm, getattr(self, nm))
+        for dom, sizes in self.domain_sizes.items():
+            if dom not in DOMAINS:
+                raise ValueError(f"unknown capture domain {dom!r} in category {self.name!r}; use one of {DOMAINS}")
+            if len(sizes) != 2:
+                raise ValueError(f"domain_sizes[{dom!r}] must be (scale_horizontal, scale_height), got {sizes}")
+            _check_range(f"domain_sizes[{dom!r}][0]", sizes[0])
+            _check_range(f"domain_sizes[{dom!r}][1]", sizes[1])
+        if self.tau_out is not None and not 0.0 < float(self.tau_out) <= MAX_TAU_OUT:
+            raise ValueError(f"tau_out must be in (0, {MAX_TAU_OUT}] or None, got {self.tau_out}")
+
+    @property
+    def out_tau(self) -> float:
+        """τ_out in effect."""
+        return DEFAULT_TAU_OUT if self.tau_out is None else float(self.tau_out)
+
+    def sizes(self, domain: str) -> tuple[Range, Range]:
+        """(scale_horizontal, scale_height) for a capture domain (its own sizes, else the defaults)."""
+        if domain in self.domain_sizes:
+            h, v = self.domain_sizes[domain]
+            return (float(h[0]), float(h[1])), (float(v[0]), float(v[1]))
+        return self.scale_horizontal, self.scale_height
+
+    def replace(self, **changes: Any) -> CategorySettings:
+        """A copy with some fields changed (validated)."""
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able dict (infinite bounds as None)."""
+        def enc(r: Range) -> list[float | None]:
+            return [None if not math.isfinite(float(x)) else float(x) for x in r]
+
+        return {
+            "name": self.name,
+            "scale_horizontal": enc(self.scale_horizontal),
+            "scale_height": enc(self.scale_height),
+            "up_range": enc(self.up_range),
+            "domain_sizes": {d: [enc(h), enc(v)] for d, (h, v) in self.domain_sizes.items()},
+            "tau_out": self.tau_out,
+        }
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> CategorySettings:
+        """Inverse of `to_dict`; unknown keys or bad values raise ValueError."""
+        if not isinstance(d, Mapping):
+            raise ValueError(f"category settings must be a dict, got {type(d).__name__}")
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"unknown category settings keys: {sorted(unknown)}")
+
+        def dec(r: Any, nm: str) -> Range:
+            try:
+                lo, hi = r
+                return (float(lo) if lo is not None else 0.0, float(hi) if hi is not None else math.inf)
+            except (TypeError, ValueError) as exc:
+                raise ValueError(f"category {nm} must be a pair of numbers, got {r!r}") from exc
+
+        kw: dict[str, Any] = {"name": str(d.get("name", ""))}
+        for nm in ("scale_horizontal", "scale_height", "up_range"):
+            if nm in d:
+                kw[nm] = dec(d[nm], nm)
+        sizes = d.get("domain_sizes") or {}
+        if not isinstance(sizes, Mapping):
+            raise ValueError(f"category domain_sizes must be a dict, got {type(sizes).__name__}")
+        kw["domain_sizes"] = {str(k): (dec(v[0], f"{k} horizontal"), dec(v[1], f"{k} height"))
+                              for k, v in sizes.items()}
+        if d.get("tau_out") is not None:
+            kw["tau_out"] = float(d["tau_out"])
+        return cls(**kw)
+
+
+def _check_range(name: str, r: Any) -> None:
+    if len(r) != 2 or any(np.isnan(float(x)) for x in r) or float(r[0]) > float(r[1]) or float(r[0]) < 0:
+        raise ValueError(f"{name} must be a pair 0 <= lo <= hi, got {r}")
+
+
+KNOWN_CATEGORIES: dict[str, CategorySettings] = {
+    "mug": CategorySettings(
+        name="mug",
+        scale_horizontal=(0.03, 0.13),
+        scale_height=(0.015, 0.30),
+        domain_sizes={"real": ((0.03, 0.08), (0.015, 0.10))},
+    ),
+    "sphere": CategorySettings(name="sphere", scale_horizontal=(0.03, 0.13), scale_height=(0.03, 0.13)),
+}
+"""Settings of the categories efem-viz ships priors for, used when a prior's metadata carries none. Mug sizes:
+synthetic scenes scale objects over a wide range; real mugs lie within 3-8 cm radius and 20 cm height."""
+
+
+@runtime_checkable
+class ShapePriorLike(Protocol):
+    """What the solver, the trace replay, the viewer and the annotator need of a shape prior.
+
+    `encode` maps (B, M, 3) world points to a batched `Latent` (torch); `sdf(x, latent)` gives canonical SDF
+    values of (G, L, 3) world queries, one latent per batch row; `sdf_and_normals` also returns unit normals
+    (world frame). The tensors live on the prior's device and dtype (those of its first parameter).
+    """
+
+    name: str
+    """Display name (also the default category name)."""
+    codebook: Codebook | None
+    """Pose-retrieval codebook, or None (poses fall back to identity)."""
+    metadata: dict[str, Any]
+    """Free-form metadata: "tau_out", "category", training provenance."""
+
+    @property
+    def n_pcl(self) -> int:
+        """Points per encoded set (the encoder's training size)."""
+        ...
+
+    @property
+    def category(self) -> CategorySettings:
+        """The category settings of this prior."""
+        ...
+
+    def encode(self, points: Any) -> Any:
+        ...
+
+    def sdf(self, x: Any, latent: Any) -> Any:
+        ...
+
+    def sdf_and_normals(self, x: Any, latent: Any) -> tuple[Any, Any]:
+        ...
+
+
+def category_settings(name: str, metadata: Mapping[str, Any] | None = None) -> CategorySettings:
+    """The category settings of a prior from its name and metadata.
+
+    Metadata "category" (a dict) wins over `KNOWN_CATEGORIES[name]`; an unknown category without metadata
+    gets unbounded sizes (logged). Metadata "tau_out" (the calibrated band) fills `tau_out`; a bad value is
+    logged and ignored.
+
+    Args:
+        name: the prior's name.
+        metadata: the prior's metadata dict, or None.
+
+    Raises:
+        ValueError: malformed "category" metadata.
+    """
+    meta = metadata if isinstance(metadata, Mapping) else {}
+    raw = meta.get(CATEGORY_KEY)
+    if raw is not None:
+        cat = CategorySettings.from_dict(raw)
+    elif name in KNOWN_CATEGORIES:
+        cat = KNOWN_CATEGORIES[name]
+    else:
+        logger.info("prior %r has no category settings: object sizes are not checked", name)
+        cat = CategorySettings(name=str(name) or "object")
+    tau = meta.get(TAU_OUT_KEY)
+    if tau is not None:
+        try:
+            value = float(tau)
+        except (TypeError, ValueError):
+            value = float("nan")
+        if 0.0 < value <= MAX_TAU_OUT:  # also rejects NaN
+            cat = cat.replace(tau_out=value)
+        else:
+            logger.warning("prior metadata %s=%r is not in (0, %s]; using %s", TAU_OUT_KEY, tau, MAX_TAU_OUT,
+                           cat.out_tau)
+    return cat
+
+
+def prior_category(prior: Any) -> CategorySettings:
+    """`prior.category` when the prior has one, else the settings from its name and metadata."""
+    cat = getattr(prior, "category", None)
+    if isinstance(cat, CategorySettings):
+        return cat
+    return category_settings(str(getattr(prior, "name", "object")), getattr(prior, "metadata", None))
