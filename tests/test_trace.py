@@ -215,3 +215,33 @@ def test_load_binds_scene_and_checks_size(run: tuple, tmp_path: Path) -> None:
     other = make_sphere_scene(seed=99, radii=(0.05,))
     with pytest.raises(ValueError, match="points"):
         EMResult.load(path, scene=other)
+
+
+def test_traces_saved_before_the_name_table_still_read() -> None:
+    from efem_viz.em.rules import LEGACY_REASONS
+
+    root = Path(__file__).resolve().parents[1] / "sample_scenes"
+    res = EMResult.load(root / "syn_z_0.efem.npz")
+    assert res.trace.reason_names == LEGACY_REASONS and res.trace.prior_names == ()
+    reasons = {e.reason for e in res.trace.events()}
+    assert "survive" in reasons and reasons <= set(LEGACY_REASONS)
+    assert res.trace.category_of(int(res.instances.ids[0])) == ""
+
+
+def test_a_custom_rule_is_recorded_under_its_name_and_survives_a_round_trip(tmp_path: Path) -> None:
+    from efem_viz.em.rules import STEP_RULES, Kill, StepContext, StepRule
+
+    def low_stationary(ctx: StepContext) -> list[Kill]:
+        if ctx.phase != 1:
+            return []
+        return [Kill(int(r), "low stationary", -1, float(ctx.stationary[r]))
+                for r in np.flatnonzero(ctx.active & (ctx.stationary < 0.2))]
+
+    scene = make_sphere_scene(seed=3, radii=(0.05, 0.045))
+    cfg = preset("fast").replace(n_init=(24,), t1=3, t2=1, end_step=2)
+    res = run_em(scene, make_sphere_prior(), cfg, seed=2,
+                 step_rules=(*STEP_RULES, StepRule("low stationary", low_stationary)))
+    assert "low stationary" in res.trace.reason_names
+    back = EMResult.load(res.save(tmp_path))
+    assert back.trace.reason_names == res.trace.reason_names
+    assert [tuple(e) for e in back.trace.events()] == [tuple(e) for e in res.trace.events()]

@@ -82,7 +82,12 @@ class TraceReplay:
         """The prior that owns a proposal: `prior` when given (one-prior runs), else the bound one; or None."""
         k = self.trace.prior_index(proposal_id)
         if prior is not None and not isinstance(prior, (list, tuple)):
-            return prior if len(self.trace.prior_names) <= 1 else None
+            if len(self.trace.prior_names) <= 1:
+                return prior
+            from efem_viz.prior.config import prior_category
+
+            # one prior given for a multi-prior run: it serves the proposals of its own category
+            return prior if prior_category(prior).name == self.trace.prior_names[k] else None
         priors = tuple(prior) if prior is not None else self._priors
         return None if priors is None else priors[k]
 
@@ -158,8 +163,8 @@ class TraceReplay:
         Args:
             proposal_id: the proposal.
             step: global step.
-            prior: the shape prior of a one-prior run (default: the bound one); needed for weights after an
-                episode's first step and for meshes.
+            prior: a prior overriding the bound one(s) (in a multi-prior run it serves only the proposals of
+                its own category); needed for weights after an episode's first step and for meshes.
             mesh: extract the decoded shape (a few hundred ms).
             full_resolution: weights on every point of the ball (True) or only on the EM working set.
 
@@ -182,7 +187,7 @@ class TraceReplay:
         assert r is not None
         if pri is None and int(tr.step_local[shown]) != 0:
             raise ValueError(NEED_PRIOR)
-        weights = self.weights_in(proposal_id, shown, pri, full_resolution=full_resolution)
+        weights = self.weights_in(proposal_id, shown, prior, full_resolution=full_resolution)
         samples = tr.row_samples[r]
         dead = tr.death(proposal_id)
         alive = not (dead is not None and dead[1] != "survive" and dead[0] <= step)

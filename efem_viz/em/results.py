@@ -11,7 +11,7 @@ import json
 import logging
 import os
 import zipfile
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
@@ -19,7 +19,9 @@ from typing import TYPE_CHECKING, Any, cast
 import numpy as np
 
 from efem_viz.em.config import EMConfig
+from efem_viz.em.replay import TraceReplay
 from efem_viz.em.trace import EMTrace
+from efem_viz.prior.config import CategorySettings
 
 if TYPE_CHECKING:
     import trimesh
@@ -43,16 +45,17 @@ def _split(values: np.ndarray, offsets: np.ndarray) -> list[np.ndarray]:
     return [values[int(offsets[i]) : int(offsets[i + 1])] for i in range(len(offsets) - 1)]
 
 
-def _palette(k: int) -> np.ndarray:
-    """(k, 3) uint8 distinct colours (golden-ratio hues)."""
-    import colorsys
+def confidence_mask(confidence: np.ndarray | Sequence[float], threshold: float) -> np.ndarray:
+    """The one confidence-threshold rule of efem-viz: keep an instance when its confidence ≥ `threshold`.
 
-    out = np.zeros((k, 3), np.uint8)
-    for i in range(k):
-        h = (0.13 + i * 0.618033988749895) % 1.0
-        r, g, b = colorsys.hsv_to_rgb(h, 0.75, 0.95)
-        out[i] = (int(r * 255), int(g * 255), int(b * 255))
-    return out
+    Args:
+        confidence: (K,) confidences.
+        threshold: the threshold (the viewer's slider, `--threshold` of the exports, AP's operating point).
+
+    Returns:
+        (K,) bool.
+    """
+    return np.asarray(confidence, np.float64).reshape(-1) >= float(threshold)
 
 
 @dataclass(frozen=True)
@@ -98,11 +101,12 @@ class Instances:
 
     @classmethod
     def empty(cls) -> "Instances":
-        return cls.from_rows([], category="object")
+        return cls.from_rows([])
 
     @classmethod
-    def from_rows(cls, rows: list[dict[str, Any]], *, category: str) -> "Instances":
-        """Build from the solver's accepted review records."""
+    def from_rows(cls, rows: list[dict[str, Any]], *, category: str = "object") -> "Instances":
+        """Build from the solver's accepted review records (`ReviewRecord` fields plus "confidence",
+        "stationary", "center", "scale" and "category"; `category` is used for rows without one)."""
         k = len(rows)
 
         def arr(key: str, shape: tuple[int, ...], dtype: Any) -> np.ndarray:
@@ -116,7 +120,8 @@ class Instances:
             ids=np.array([int(r["proposal_id"]) for r in rows], np.int64),
             masks=[np.asarray(r["mask"], np.int32) for r in rows],
             confidence=np.array([r["confidence"] for r in rows], np.float32),
-            category=np.array([category] * k, dtype=object).astype(str) if k else np.zeros(0, dtype="<U1"),
+            category=(np.array([str(r.get("category", category)) for r in rows], dtype=object).astype(str) if k
+                      else np.zeros(0, dtype="<U1")),
             mesh_vertices=verts,
             mesh_faces=[np.asarray(r["mesh_faces"], np.int32).reshape(-1, 3) for r in rows],
             R=arr("R", (3, 3), np.float32),
@@ -155,7 +160,11 @@ class Instances:
 
     def above(self, threshold: float) -> "Instances":
         """Instances with confidence ≥ threshold (a view on the stored result; nothing is re-run)."""
-        return self.select(self.confidence >= float(threshold))
+        return self.select(confidence_mask(self.confidence, threshold))
+
+    def kept(self, threshold: float) -> np.ndarray:
+        """(K,) bool: which instances a confidence threshold keeps (see `confidence_mask`)."""
+        return confidence_mask(self.confidence, threshold)
 
     def label_array(self, n_points: int) -> np.ndarray:
         """(N,) int32 per-point label: k + 1 for the k-th instance, 0 = none; on overlap the higher confidence
@@ -280,11 +289,12 @@ class Instances:
             path: destination `.ply`.
             threshold: only instances with confidence ≥ threshold are coloured.
         """
+        from efem_viz.colors import instance_colors
         from efem_viz.data.io import save_scene
 
         inst = self.above(threshold)
         labels = inst.label_array(scene.num_points)
-        pal = _palette(len(inst))
+        pal = instance_colors(np.arange(1, len(inst) + 1))  # label id L gets instance_colors([L]), as in every app
         colors = (np.asarray(scene.colors).astype(np.float32) * 0.35 + 90).astype(np.uint8)
         sel = labels > 0
         colors[sel] = pal[labels[sel] - 1]
@@ -304,6 +314,24 @@ class EMResult:
     scene_name: str
     num_points: int
     seed: int = 0
+    categories: tuple[CategorySettings, ...] = ()
+    """The settings each prior of the solve ran with, in prior order (τ_out resolved); empty for results saved
+    before multi-prior solves."""
+    replay: TraceReplay | None = field(default=None, repr=False, compare=False)
+    """The trace bound to its scene and prior(s) (set by `run_em`, `load` and `bind`; not saved)."""
+
+    def __post_init__(self) -> None:
+        if self.replay is None:
+            self.replay = TraceReplay(self.trace)
+
+    def bind(self, scene: "Scene | None" = None, prior: Any = None) -> TraceReplay:
+        """Bind the scene and/or prior(s) for replays (`result.replay.view(...)`); returns the replay.
+
+        Raises:
+            ValueError: the scene has another number of points than the run, or the wrong number of priors.
+        """
+        assert self.replay is not None
+        return self.replay.bind(scene, prior)
 
     def save(self, path: str | os.PathLike[str]) -> Path:
         """Write `<scene>.efem.npz` (compressed, atomic). A directory path gets `<dir>/<scene>.efem.npz`."""
@@ -320,6 +348,7 @@ class EMResult:
             "seed": np.array(self.seed, np.int64),
             "config_json": np.array(self.config.to_json()),
             "timings_json": np.array(json.dumps(self.timings)),
+            "categories_json": np.array(json.dumps([c.to_dict() for c in self.categories])),
         }
         data.update(self.trace.to_npz_dict())
         data.update(self.instances.to_npz_dict())
@@ -330,7 +359,7 @@ class EMResult:
 
     @classmethod
     def load(cls, path: str | os.PathLike[str], *, scene: "Scene | None" = None, prior: Any = None) -> "EMResult":
-        """Read a file written by `save`; optionally bind the scene and prior for `trace.view` replays.
+        """Read a file written by `save`; optionally bind the scene and prior(s) for replays (`result.replay`).
 
         The file is checked before anything is built from it (`validate_result_arrays`): every key `save` writes is
         present, shapes and dtypes agree, confidences are finite and in [0, 1], and mask, face and proposal indices
@@ -406,7 +435,15 @@ class EMResult:
         if len(ids) and (int(ids.min()) < 0 or int(ids.max()) >= n_props):
             raise ResultFileError(f"{p}: instance proposal ids span [{int(ids.min())}, {int(ids.max())}] but the "
                                   f"trace has {n_props} proposals")
-        trace.bind(scene, prior)
+        categories: tuple[CategorySettings, ...] = ()
+        if "categories_json" in data:
+            try:
+                raw = json.loads(str(data["categories_json"]))
+                if not isinstance(raw, list):
+                    raise ValueError(f"a JSON list is expected, got {type(raw).__name__}")
+                categories = tuple(CategorySettings.from_dict(c) for c in raw)
+            except (ValueError, TypeError) as exc:
+                raise ResultFileError(f"{p}: categories_json is not a list of category settings: {exc}") from exc
         return cls(
             trace=trace,
             instances=Instances.from_npz_dict(data),
@@ -415,6 +452,8 @@ class EMResult:
             scene_name=str(data["scene_name"]),
             num_points=num_points,
             seed=_scalar_int(data["seed"], "seed", p),
+            categories=categories,
+            replay=TraceReplay(trace, scene, prior),
         )
 
 

@@ -14,14 +14,15 @@ if TYPE_CHECKING:
     from efem_viz.prior.config import ShapePriorLike as ShapePriorLike
     from efem_viz.prior.model import Latent as Latent, ShapePrior as ShapePrior
     from efem_viz.prior.convert import convert_released_checkpoint as convert_released_checkpoint
-    from efem_viz.prior.model import load_prior as load_prior, load_priors as load_priors, save_prior as save_prior
+    from efem_viz.prior.model import load_prior as load_prior, save_prior as save_prior
+    from efem_viz.prior.registry import load_priors as load_priors
 
 _LAZY = {
     "Latent": "efem_viz.prior.model",
     "PriorConfig": "efem_viz.prior.config",
     "CategorySettings": "efem_viz.prior.config",
     "ShapePriorLike": "efem_viz.prior.config",
-    "load_priors": "efem_viz.prior.model",
+    "load_priors": "efem_viz.prior.registry",
     "ShapePrior": "efem_viz.prior.model",
     "load_prior": "efem_viz.prior.model",
     "save_prior": "efem_viz.prior.model",

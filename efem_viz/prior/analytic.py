@@ -140,15 +140,11 @@ def make_sphere_scene(
     inst = [np.zeros(len(table_pts), np.int32)]
     keep = np.ones(len(table_pts), bool)
     for k, c in enumerate(centers):
-        r = c[2]
-        keep &= np.linalg.norm(table_pts[:, :2] - c[:2], axis=1) > r * 0.3
-        n = int(4 * np.pi * r * r / spacing**2)
-        v = rng.normal(size=(n, 3))
-        v /= np.linalg.norm(v, axis=1, keepdims=True)
-        v = v[v[:, 2] > -0.8]
-        pts.append(c + r * v)
-        nrm.append(v)
-        inst.append(np.full(len(v), k + 1, np.int32))
+        keep &= np.linalg.norm(table_pts[:, :2] - c[:2], axis=1) > c[2] * 0.3
+        p_k, n_k = sphere_samples(c, float(c[2]), spacing, rng)
+        pts.append(p_k)
+        nrm.append(n_k)
+        inst.append(np.full(len(p_k), k + 1, np.int32))
     pts[0], nrm[0], inst[0] = pts[0][keep], nrm[0][keep], inst[0][keep]
     return Scene.create(
         name,
@@ -159,3 +155,97 @@ def make_sphere_scene(
         provenance={"generator": "efem_viz.prior.analytic.make_sphere_scene", "seed": seed,
                     "radii": list(radii)},
     )
+
+
+def sphere_samples(center: np.ndarray, radius: float, spacing: float, rng: np.random.Generator
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Points (n, 3) and outward normals of a sphere resting on a table, as a scan sees it (the part below
+    z = centre − 0.8 r, hidden by the table contact, is left out); about one point per `spacing`²."""
+    n = int(4 * np.pi * radius * radius / spacing**2)
+    v = rng.normal(size=(n, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    v = v[v[:, 2] > -0.8]
+    return np.asarray(center) + radius * v, v
+
+
+def add_spheres(scene: Any, radii: Any, *, centers_xy: Any = None, spacing: float = 0.004, seed: int = 0,
+                category: str = "sphere") -> Any:
+    """A copy of a tabletop scene (table at z = 0, +Z up) with spheres resting on the table, labelled as new
+    ground-truth instances: a scene with two kinds of object for multi-prior solves.
+
+    Args:
+        scene: a `Scene` (its `instance` labels, if any, are kept; the spheres get the next ids).
+        radii: (S,) sphere radii (m).
+        centers_xy: (S, 2) sphere centres on the table (m); None = free places found by a seeded random search
+            (no scene point above the table within r + 1.5 cm, inside the table's extent).
+        spacing: approximate point spacing on the spheres (m).
+        seed: sampling seed.
+        category: category name of the new instances.
+
+    Returns:
+        The new `Scene` (colours of the added points mid-grey).
+
+    Raises:
+        ValueError: mismatched centres and radii, a sphere that overlaps a point of the scene above the table, or
+            no free place found.
+    """
+    from efem_viz.data.scene import Scene
+
+    r = np.asarray(radii, np.float64).reshape(-1)
+    rng = np.random.default_rng(seed)
+    pts, nrm = np.asarray(scene.points, np.float64), np.asarray(scene.normals, np.float64)
+    if centers_xy is None:
+        xy = _free_places(pts, r, rng)
+    else:
+        xy = np.asarray(centers_xy, np.float64).reshape(-1, 2)
+    if len(xy) != len(r) or not len(r) or (r <= 0).any():
+        raise ValueError(f"need one positive radius per centre, got {len(xy)} centres and radii {r.tolist()}")
+    inst = (np.asarray(scene.instance, np.int32) if scene.instance is not None
+            else np.zeros(len(pts), np.int32))
+    cats = dict(scene.categories or {})
+    keep = np.ones(len(pts), bool)
+    new_p, new_n, new_i = [], [], []
+    next_id = int(inst.max()) + 1 if len(inst) else 1
+    for k, (c_xy, rk) in enumerate(zip(xy, r)):
+        c = np.r_[c_xy, rk]
+        near = np.linalg.norm(pts - c, axis=1) < rk + 0.01
+        if (near & (pts[:, 2] > 0.01)).any():
+            raise ValueError(f"sphere {k} at {c_xy.tolist()} (r={rk}) overlaps an object of the scene")
+        keep &= np.linalg.norm(pts[:, :2] - c_xy, axis=1) > rk * 0.3
+        p_k, n_k = sphere_samples(c, float(rk), spacing, rng)
+        new_p.append(p_k)
+        new_n.append(n_k)
+        new_i.append(np.full(len(p_k), next_id + k, np.int32))
+        cats[next_id + k] = category
+    colors = np.concatenate([np.asarray(scene.colors)[keep],
+                             np.full((sum(len(p) for p in new_p), 3), 160, np.uint8)])
+    return Scene.create(
+        f"{scene.name}+spheres",
+        np.concatenate([pts[keep], *new_p]).astype(np.float32),
+        normals=np.concatenate([nrm[keep], *new_n]).astype(np.float32),
+        colors=colors,
+        instance=np.concatenate([inst[keep], *new_i]),
+        categories=cats,
+        provenance={**dict(scene.provenance or {}), "added_spheres": {"centers_xy": xy.tolist(),
+                                                                     "radii": r.tolist(), "seed": seed}},
+    )
+
+
+def _free_places(pts: np.ndarray, radii: np.ndarray, rng: np.random.Generator, *, tries: int = 4000) -> np.ndarray:
+    """(S, 2) table positions where spheres of these radii touch no raised point and no other new sphere."""
+    from efem_viz._typeshims import cKDTree
+
+    raised = pts[pts[:, 2] > 0.01]
+    tree = cKDTree(raised[:, :2]) if len(raised) else None
+    lo, hi = pts[:, :2].min(axis=0), pts[:, :2].max(axis=0)
+    out: list[np.ndarray] = []
+    for rk in radii:
+        for _ in range(tries):
+            c = rng.uniform(lo + rk, hi - rk)
+            clear = tree is None or not tree.query_ball_point(c, rk + 0.015)
+            if clear and all(np.linalg.norm(c - o) > rk + ro + 0.02 for o, ro in zip(out, radii)):
+                out.append(c)
+                break
+        else:
+            raise ValueError(f"no free place on the table for a sphere of radius {rk} m")
+    return np.asarray(out).reshape(-1, 2)

@@ -14,7 +14,6 @@ import os
 import pickle
 import re
 from pathlib import Path
-from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
@@ -391,44 +390,6 @@ def load_prior(name_or_path: str | os.PathLike[str] = "mug", *, device: str | to
                     log.warning("codebook %s was built from other weights than %s; not attached (rebuild it with "
                                 "`efem-viz build-codebook --prior %s`)", cb_path, path, path)
     return prior
-
-
-ANALYTIC_PRIORS: tuple[str, ...] = ("sphere",)
-"""Prior names that need no weights file (closed-form priors in efem_viz/prior/analytic.py)."""
-
-
-def load_priors(specs: Sequence[str | os.PathLike[str]], *, device: str | torch.device = "cpu") -> list[Any]:
-    """Load the priors of a multi-category solve (`run_em(scene, priors=...)`), each once.
-
-    Args:
-        specs: each a name under ``efem_viz/weights/`` (``"mug"``), a ``.pt`` path, or ``"sphere"`` (the
-            analytic sphere prior of efem_viz/prior/analytic.py).
-        device: target device.
-
-    Returns:
-        The priors in the order given (each satisfies `ShapePriorLike`).
-
-    Raises:
-        ValueError: no specs, the same spec twice, or two priors with the same category name.
-        FileNotFoundError: a weights file is missing.
-    """
-    if not specs:
-        raise ValueError("give at least one prior")
-    seen = [str(s) for s in specs]
-    if len(set(seen)) != len(seen):
-        raise ValueError(f"a prior is given twice: {seen}")
-    out: list[Any] = []
-    for spec in specs:
-        if str(spec) in ANALYTIC_PRIORS:
-            from efem_viz.prior.analytic import make_sphere_prior
-
-            out.append(make_sphere_prior().to(device))
-        else:
-            out.append(load_prior(spec, device=device))
-    names = [p.category.name for p in out]
-    if len(set(names)) != len(names):
-        raise ValueError(f"two priors share a category name: {names}; give each prior its own category")
-    return out
 
 
 def _checked_prior_parts(ckpt: dict[str, Any], path: Path) -> tuple[PriorConfig, dict[str, torch.Tensor]]:
