@@ -27,7 +27,7 @@ LatentArrays = dict[str, np.ndarray]
 """A latent (or a batch of them) as numpy arrays: "R", "inv", "center", "scale"."""
 
 
-def latent_from_numpy(prior: Any, lat: dict[str, np.ndarray]) -> Any:
+def latent_from_numpy(prior: "ShapePriorLike", lat: dict[str, np.ndarray]) -> Any:
     """A torch `Latent` on the prior's device and dtype from numpy arrays R (P,C,3), inv (P,C), center (P,3),
     scale (P,)."""
     import torch
@@ -44,7 +44,7 @@ def latent_from_numpy(prior: Any, lat: dict[str, np.ndarray]) -> Any:
     )
 
 
-def prior_device(prior: Any) -> Any:
+def prior_device(prior: "ShapePriorLike") -> Any:
     """The device of the prior's first parameter (CPU for a prior without parameters)."""
     try:
         return next(prior.parameters()).device
@@ -52,7 +52,7 @@ def prior_device(prior: Any) -> Any:
         return "cpu"
 
 
-def prior_dtype(prior: Any) -> Any:
+def prior_dtype(prior: "ShapePriorLike") -> Any:
     """The dtype of the prior's first parameter (float32 for a prior without parameters)."""
     import torch
 
@@ -63,7 +63,7 @@ def prior_dtype(prior: Any) -> Any:
 
 
 def decode_rows(
-    prior: Any,
+    prior: "ShapePriorLike",
     latent: Any,
     rag: Ragged,
     points: np.ndarray,
@@ -123,7 +123,7 @@ def decode_rows(
 
 
 def _decode_padded(
-    prior: Any,
+    prior: "ShapePriorLike",
     latent: Any,
     idx: np.ndarray,
     row: np.ndarray,
@@ -190,7 +190,7 @@ def normals_threshold(cfg: EMConfig, tau_d: float) -> float:
     return float(max(out))
 
 
-def encode_samples(prior: Any, pts: np.ndarray, *, batch: int = 30) -> dict[str, np.ndarray]:
+def encode_samples(prior: "ShapePriorLike", pts: np.ndarray, *, batch: int = 30) -> dict[str, np.ndarray]:
     """Encode (P, M, 3) world point sets in chunks of `batch`; returns numpy latent arrays (float32)."""
     import torch
 
@@ -208,7 +208,7 @@ def encode_samples(prior: Any, pts: np.ndarray, *, batch: int = 30) -> dict[str,
     return {k: np.concatenate(v) for k, v in parts.items()}
 
 
-def mesh_of_latent(prior: Any, lat: dict[str, np.ndarray], *, resolution: int = 32) -> "trimesh.Trimesh":
+def mesh_of_latent(prior: "ShapePriorLike", lat: dict[str, np.ndarray], *, resolution: int = 32) -> "trimesh.Trimesh":
     """World-frame mesh of one latent (dict of arrays R (C,3), inv (C,), center (3,), scale ()).
 
     Uses `efem_viz.prior.meshing.extract_mesh` (coarse-to-fine from resolution/2).
@@ -221,7 +221,7 @@ def mesh_of_latent(prior: Any, lat: dict[str, np.ndarray], *, resolution: int = 
 
 
 # ---------------------------------------------------------------------------------------------- several priors
-def latent_width(prior: Any) -> int:
+def latent_width(prior: "ShapePriorLike") -> int:
     """C, the number of rows of the prior's Θ_R (its config's `latent_dim`, else measured by one encode)."""
     width = getattr(getattr(prior, "config", None), "latent_dim", None)
     if isinstance(width, (int, np.integer)) and int(width) > 0:
@@ -264,7 +264,7 @@ class PriorTable:
     @classmethod
     def of(cls, priors: "Sequence[ShapePriorLike] | ShapePriorLike") -> PriorTable:
         """A table of one prior or a sequence of priors."""
-        seq = tuple(priors) if isinstance(priors, (list, tuple)) else (priors,)
+        seq: tuple[Any, ...] = tuple(priors) if isinstance(priors, (list, tuple)) else (priors,)
         if not seq:
             raise ValueError("need at least one prior")
         return cls(priors=seq, widths=tuple(latent_width(p) for p in seq))

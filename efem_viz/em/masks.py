@@ -19,13 +19,14 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from efem_viz.prior.config import MAX_TAU_OUT
 
 if TYPE_CHECKING:
+    from efem_viz.prior.config import PriorArg
     from efem_viz.data.scene import Scene
     from efem_viz.em.results import EMResult
 
@@ -57,7 +58,7 @@ class InstanceDistances:
         return out
 
 
-def instance_distances(result: "EMResult", scene: "Scene", prior: Any, *,
+def instance_distances(result: "EMResult", scene: "Scene", prior: "PriorArg", *,
                        normals_within: float | None = None) -> InstanceDistances:
     """Decode the final latent of every accepted instance of `result` over its neighbourhood in `scene`.
 

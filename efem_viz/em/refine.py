@@ -18,9 +18,12 @@ tests/test_equivariance.py checks it in float64.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from efem_viz.prior.model import ShapePrior
 
 
 @dataclass(frozen=True)
@@ -42,7 +45,7 @@ class RefineSettings:
 
 
 def refine_latents(
-    prior: Any,
+    prior: "ShapePrior",
     latent: dict[str, np.ndarray],
     samples: np.ndarray,
     settings: RefineSettings,

@@ -19,6 +19,7 @@ from efem_viz.em.proposals import AvailableTree
 from efem_viz.em.trace import EMTrace, ProposalView, energy_weights
 
 if TYPE_CHECKING:
+    from efem_viz.prior.config import PriorArg
     from efem_viz.data.scene import Scene
     from efem_viz.prior.config import ShapePriorLike
 
@@ -78,7 +79,7 @@ class TraceReplay:
         """The bound priors, in the run's order, or None."""
         return self._priors
 
-    def prior_of(self, proposal_id: int, prior: Any = None) -> Any:
+    def prior_of(self, proposal_id: int, prior: "PriorArg | None" = None) -> Any:
         """The prior that owns a proposal: `prior` when given (one-prior runs), else the bound one; or None."""
         k = self.trace.prior_index(proposal_id)
         if prior is not None and not isinstance(prior, (list, tuple)):
@@ -104,7 +105,7 @@ class TraceReplay:
         return self._normals
 
     # ------------------------------------------------------------------ re-derived views
-    def weights_in(self, proposal_id: int, step: int, prior: Any = None, *, full_resolution: bool = True
+    def weights_in(self, proposal_id: int, step: int, prior: "PriorArg | None" = None, *, full_resolution: bool = True
                    ) -> np.ndarray:
         """(N,) float32 weights that produced the samples of (proposal, step) (= W_out of step − 1).
 
@@ -126,7 +127,7 @@ class TraceReplay:
         w[rag.idx] = 1.0
         return w
 
-    def weights_out(self, proposal_id: int, step: int, prior: Any = None, *, full_resolution: bool = True
+    def weights_out(self, proposal_id: int, step: int, prior: "PriorArg | None" = None, *, full_resolution: bool = True
                     ) -> np.ndarray:
         """(N,) float32 weights produced by the E-step of (proposal, step), re-derived from its latent."""
         from efem_viz.em.decoding import decode_rows, latent_width, normals_threshold, trim_latent
@@ -154,7 +155,7 @@ class TraceReplay:
         w[rag.idx] = wk
         return w
 
-    def view(self, proposal_id: int, step: int, prior: Any = None, *, mesh: bool = True,
+    def view(self, proposal_id: int, step: int, prior: "PriorArg | None" = None, *, mesh: bool = True,
              full_resolution: bool = True) -> ProposalView:
         """Everything the inspector shows for (proposal, step), re-derived from the stored latent and cached.
 

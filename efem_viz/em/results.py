@@ -24,6 +24,7 @@ from efem_viz.em.trace import EMTrace
 from efem_viz.prior.config import CategorySettings
 
 if TYPE_CHECKING:
+    from efem_viz.prior.config import PriorArg
     import trimesh
 
     from efem_viz.data.scene import Scene
@@ -294,7 +295,7 @@ class Instances:
 
         inst = self.above(threshold)
         labels = inst.label_array(scene.num_points)
-        pal = instance_colors(np.arange(1, len(inst) + 1))  # label id L gets instance_colors([L]), as in every app
+        pal = instance_colors(inst.ids)  # colour of the proposal id, as in the viewer and the annotator's import
         colors = (np.asarray(scene.colors).astype(np.float32) * 0.35 + 90).astype(np.uint8)
         sel = labels > 0
         colors[sel] = pal[labels[sel] - 1]
@@ -324,7 +325,7 @@ class EMResult:
         if self.replay is None:
             self.replay = TraceReplay(self.trace)
 
-    def bind(self, scene: "Scene | None" = None, prior: Any = None) -> TraceReplay:
+    def bind(self, scene: "Scene | None" = None, prior: "PriorArg | None" = None) -> TraceReplay:
         """Bind the scene and/or prior(s) for replays (`result.replay.view(...)`); returns the replay.
 
         Raises:
@@ -358,7 +359,7 @@ class EMResult:
         return atomic_write(p, lambda t: np.savez_compressed(t, **kwds))
 
     @classmethod
-    def load(cls, path: str | os.PathLike[str], *, scene: "Scene | None" = None, prior: Any = None) -> "EMResult":
+    def load(cls, path: str | os.PathLike[str], *, scene: "Scene | None" = None, prior: "PriorArg | None" = None) -> "EMResult":
         """Read a file written by `save`; optionally bind the scene and prior(s) for replays (`result.replay`).
 
         The file is checked before anything is built from it (`validate_result_arrays`): every key `save` writes is

@@ -49,6 +49,8 @@ from efem_viz.em.rules import (
 from efem_viz.em.trace import TraceRecorder, energy_weights
 
 if TYPE_CHECKING:
+    import trimesh
+
     from efem_viz.data.scene import Scene
     from efem_viz.em.results import EMResult
     from efem_viz.prior.config import ShapePriorLike
@@ -495,14 +497,12 @@ class _Solver:
     def _review(
         self, pool: _Pool, full_tree: AvailableTree, step: int, phase: int
     ) -> dict[int, ReviewRecord]:
-        from efem_viz.geometry.obb import oriented_box
-        from efem_viz.geometry.sampling import sample_surface
-
+        """§3.9 at the end of a phase: every live proposal's completed shape, pose, box, coverage, size and up
+        checks and tentative mask (a `ReviewRecord` each); the review rules kill the failures."""
         cfg = self.cfg
         assert pool.latent is not None and pool.d is not None and pool.gamma is not None
         records: dict[int, ReviewRecord] = {}
         keep = np.ones(pool.size, bool)
-        up = np.array([0.0, 0.0, 1.0])
         t0 = time.perf_counter()
         if self.identity:
             full_rag, d_full, g_full = pool.rag, pool.d, pool.gamma
@@ -517,53 +517,23 @@ class _Solver:
             self._check_cancel()
             pid = int(pool.ids[r])
             k = int(pool.owner[r])
-            prior, cfg_k = self.table.priors[k], self.cfgs[k]
+            cfg_k = self.cfgs[k]
             lat = self.table.latent_of(k, {key: v[r] for key, v in pool.latent.items()})
-            center = lat["center"].astype(np.float64)
-            scale = float(lat["scale"])
             t0 = time.perf_counter()
-            if np.isfinite(center).all() and np.isfinite(scale) and scale > 0:
-                mesh = mesh_of_latent(prior, lat, resolution=cfg.mesh_resolution)
-            else:  # a degenerate latent has no shape (it fails the scale check below)
-                import trimesh
-
-                mesh = trimesh.Trimesh()
-                center = np.nan_to_num(center)
-                scale = 1.0
-            if len(mesh.faces) and np.isfinite(np.asarray(mesh.vertices)).all():
-                surf = sample_surface(mesh, cfg.n_store, seed=self.seed * 1_000_003 + pid)
-                Q = surf.points - center
-                fnorm = surf.normals
-            else:
-                Q = np.zeros((cfg.n_store, 3))
-                fnorm = np.zeros((cfg.n_store, 3))
+            mesh, Q, fnorm, center, scale = self._completed_shape(k, lat, pid)
             t0 = self.timer.add("review_mesh", t0)
             R, R_raw, s_sel, db_sim, nbrs = self._pose(k, lat, Q, fnorm)
             t0 = self.timer.add("review_pose", t0)
+            from efem_viz.geometry.obb import oriented_box
+
             obb = oriented_box(Q + center, center, R)
-            # coverage: completed-shape samples explained by observed points of the ball around Θ_c
             sl = full_rag.row_slice(r)
             ball = full_rag.idx[sl]
-            cov = 0.0
-            if len(ball) and np.any(Q):
-                from efem_viz._typeshims import cKDTree
-
-                dist, j = cKDTree(self.full_points[ball]).query(Q + center)
-                dist_c = dist * (s_sel / scale)
-                cosang = np.clip((fnorm * self.full_normals[ball][j]).sum(1), -1.0, 1.0)
-                ang = np.degrees(np.arccos(cosang))
-                cov = float(np.mean((dist_c <= cfg.cov_tau) & (ang <= cfg.cov_gamma)))
-            Qt = Q @ R
-            radii = np.array([np.linalg.norm(Qt[:, :2], axis=1).max(), np.abs(Qt[:, 2]).max()])
-            h_rng, v_rng, up_rng = cfg_k.scale_horizontal, cfg_k.scale_height, cfg_k.up_range
-            assert h_rng is not None and v_rng is not None and up_rng is not None  # resolved per prior
-            scale_pass = bool(h_rng[0] <= radii[0] <= h_rng[1] and v_rng[0] <= radii[1] <= v_rng[1])
-            up_angle = float(np.degrees(np.arccos(np.clip(R_raw[:, 2] @ up, -1.0, 1.0))))
-            pose_pass = bool(up_rng[0] <= up_angle <= up_rng[1])
-            dsl, gsl = d_full[sl], g_full[sl]
-            m_ok = np.abs(dsl) < cfg_k.out_tau
+            cov = self._coverage(ball, Q, center, fnorm, s_sel / scale)
+            radii, scale_pass, up_angle, pose_pass = _size_and_up(Q, R, R_raw, cfg_k)
+            m_ok = np.abs(d_full[sl]) < cfg_k.out_tau
             if cfg.gamma_out < 180.0:
-                m_ok &= gsl < cfg.gamma_out
+                m_ok &= g_full[sl] < cfg.gamma_out
             rec = ReviewRecord(
                 step=step, phase=phase, proposal_id=pid, R=R, R_raw=R_raw, scale_sel=s_sel, db_sim=db_sim,
                 coverage=cov, radii=radii, scale_pass=scale_pass, up_angle=up_angle, pose_pass=pose_pass,
@@ -583,6 +553,45 @@ class _Solver:
             pool.keep(np.flatnonzero(keep))
         return records
 
+    def _completed_shape(self, k: int, lat: LatentArrays, pid: int
+                         ) -> tuple["trimesh.Trimesh", np.ndarray, np.ndarray, np.ndarray, float]:
+        """Prior k's mesh of a latent and `cfg.n_store` surface samples Q (relative to Θ_c) with their normals;
+        returns (mesh, Q, normals, Θ_c, Θ_s). A degenerate latent (non-finite, Θ_s ≤ 0) has an empty mesh and
+        all-zero samples (it fails the size check)."""
+        from efem_viz.geometry.sampling import sample_surface
+
+        cfg = self.cfg
+        center = lat["center"].astype(np.float64)
+        scale = float(lat["scale"])
+        if np.isfinite(center).all() and np.isfinite(scale) and scale > 0:
+            mesh = mesh_of_latent(self.table.priors[k], lat, resolution=cfg.mesh_resolution)
+        else:
+            import trimesh
+
+            mesh = trimesh.Trimesh()
+            center = np.nan_to_num(center)
+            scale = 1.0
+        if len(mesh.faces) and np.isfinite(np.asarray(mesh.vertices)).all():
+            surf = sample_surface(mesh, cfg.n_store, seed=self.seed * 1_000_003 + pid)
+            return mesh, surf.points - center, surf.normals, center, scale
+        return mesh, np.zeros((cfg.n_store, 3)), np.zeros((cfg.n_store, 3)), center, scale
+
+    def _coverage(self, ball: np.ndarray, Q: np.ndarray, center: np.ndarray, normals: np.ndarray,
+                  to_canonical: float) -> float:
+        """Fraction of completed-shape samples (Q + Θ_c, world) explained by an observed point of the ball:
+        nearest distance (canonical units: × `to_canonical`) ≤ cov_tau and normal angle ≤ cov_gamma. 0 for an
+        empty ball or a shape without samples."""
+        cfg = self.cfg
+        if not len(ball) or not np.any(Q):
+            return 0.0
+        from efem_viz._typeshims import cKDTree
+
+        dist, j = cKDTree(self.full_points[ball]).query(Q + center)
+        dist_c = dist * to_canonical
+        cosang = np.clip((normals * self.full_normals[ball][j]).sum(1), -1.0, 1.0)
+        ang = np.degrees(np.arccos(cosang))
+        return float(np.mean((dist_c <= cfg.cov_tau) & (ang <= cfg.cov_gamma)))
+
     def _pose(
         self, k: int, lat: LatentArrays, Q: np.ndarray, fnorm: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, float, float, np.ndarray]:
@@ -601,6 +610,19 @@ class _Solver:
                  else self.ref_scales[k])
         R = np.asarray(est.R, np.float64)
         return R, np.asarray(est.R_raw, np.float64), s_sel, float(est.score_db_sim), np.asarray(est.neighbour_ids)
+
+
+def _size_and_up(Q: np.ndarray, R: np.ndarray, R_raw: np.ndarray, cfg: EMConfig
+                 ) -> tuple[np.ndarray, bool, float, bool]:
+    """§3.9 size and up checks of a completed shape: (radii = (horizontal radius, half-height) in its
+    canonical frame, within the size ranges?, angle of the canonical up axis to world +Z, within the up range?)."""
+    Qt = Q @ R
+    radii = np.array([np.linalg.norm(Qt[:, :2], axis=1).max(), np.abs(Qt[:, 2]).max()])
+    h_rng, v_rng, up_rng = cfg.scale_horizontal, cfg.scale_height, cfg.up_range
+    assert h_rng is not None and v_rng is not None and up_rng is not None  # resolved per prior
+    scale_pass = bool(h_rng[0] <= radii[0] <= h_rng[1] and v_rng[0] <= radii[1] <= v_rng[1])
+    up_angle = float(np.degrees(np.arccos(np.clip(R_raw[:, 2] @ np.array([0.0, 0.0, 1.0]), -1.0, 1.0))))
+    return radii, scale_pass, up_angle, bool(up_rng[0] <= up_angle <= up_rng[1])
 
 
 def _n_pcl(prior: Any) -> int:

@@ -15,9 +15,9 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, Union, runtime_checkable
 
 import numpy as np
 
@@ -246,7 +246,8 @@ class ShapePriorLike(Protocol):
 
     `encode` maps (B, M, 3) world points to a batched `Latent` (torch); `sdf(x, latent)` gives canonical SDF
     values of (G, L, 3) world queries, one latent per batch row; `sdf_and_normals` also returns unit normals
-    (world frame). The tensors live on the prior's device and dtype (those of its first parameter).
+    (world frame). The tensors live on the prior's device and dtype (those of its first parameter). Priors are
+    torch modules (`parameters`, `to`, `eval`, `train`).
     """
 
     name: str
@@ -269,11 +270,28 @@ class ShapePriorLike(Protocol):
     def encode(self, points: Any) -> Any:
         ...
 
+    def parameters(self) -> Iterator[Any]:
+        """Its tensors (a torch module's); the first one sets the device and dtype of every call."""
+        ...
+
+    def to(self, device: Any) -> Any:
+        ...
+
+    def eval(self) -> Any:
+        ...
+
+    def train(self, mode: bool = True) -> Any:
+        ...
+
     def sdf(self, x: Any, latent: Any) -> Any:
         ...
 
     def sdf_and_normals(self, x: Any, latent: Any) -> tuple[Any, Any]:
         ...
+
+
+PriorArg = Union[ShapePriorLike, Sequence[ShapePriorLike]]
+"""One prior, or the priors of a multi-category solve in their order."""
 
 
 def category_settings(name: str, metadata: Mapping[str, Any] | None = None) -> CategorySettings:
