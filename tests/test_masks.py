@@ -11,9 +11,11 @@ import numpy as np
 import pytest
 
 from efem_viz.em import EMConfig, EMResult, preset, run_em
-from efem_viz.em.analytic import make_sphere_prior, make_sphere_scene
-from efem_viz.em.config import DEFAULT_TAU_OUT
-from efem_viz.em.masks import calibrate_tau_out, choose_tau_out, instance_distances, prior_tau_out, resolve_config
+from efem_viz.prior.analytic import make_sphere_prior, make_sphere_scene
+from efem_viz.em.config import DEFAULT_TAU_OUT, resolve_for_prior
+from efem_viz.em.masks import instance_distances
+from efem_viz.eval.calibrate import calibrate_tau_out, choose_tau_out
+from efem_viz.prior.config import prior_category
 from efem_viz.eval import evaluate_scene
 
 OFFSET = 0.05
@@ -71,14 +73,14 @@ def sphere_runs() -> dict[str, Any]:
 # ---------------------------------------------------------------------------------------------- config
 def test_tau_out_resolves_from_the_prior_or_the_spec() -> None:
     prior = make_sphere_prior()
-    assert resolve_config(_cfg(), prior).tau_out == DEFAULT_TAU_OUT  # no metadata: the spec's 0.04
+    assert resolve_for_prior(_cfg(), prior).tau_out == DEFAULT_TAU_OUT  # no metadata: the spec's 0.04
     prior.metadata = {"tau_out": 0.07}
-    assert prior_tau_out(prior) == 0.07
-    assert resolve_config(_cfg(), prior).tau_out == 0.07
-    assert resolve_config(_cfg(tau_out=0.05), prior).tau_out == 0.05  # an explicit value wins
+    assert prior_category(prior).out_tau == 0.07
+    assert resolve_for_prior(_cfg(), prior).tau_out == 0.07
+    assert resolve_for_prior(_cfg(tau_out=0.05), prior).tau_out == 0.05  # an explicit value wins
     for bad in (float("nan"), -1.0, 0.0, 3.0, "wide", None):
         prior.metadata = {"tau_out": bad}
-        assert prior_tau_out(prior) == DEFAULT_TAU_OUT
+        assert prior_category(prior).out_tau == DEFAULT_TAU_OUT
 
 
 def test_tau_out_validation_and_json_round_trip() -> None:

@@ -51,7 +51,7 @@ def test_corrupt_files_give_a_clear_error(tmp_path: Path, content: bytes) -> Non
 def test_corrupt_prior_through_the_cli_is_an_error_message(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from efem_viz import cli
     from efem_viz.data.io import save_scene
-    from efem_viz.em.analytic import make_sphere_scene
+    from efem_viz.prior.analytic import make_sphere_scene
 
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"\x00" * 64)

@@ -67,7 +67,7 @@ def scene_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
     from efem_viz import em
     from efem_viz.data.io import save_scene
-    from efem_viz.em import analytic
+    from efem_viz.prior import analytic
 
     torch.set_num_threads(1)
     d = tmp_path_factory.mktemp("scenes")
@@ -80,7 +80,7 @@ def scene_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture()
 def viewer(scene_dir: Path, tmp_path: Path) -> Iterator[Any]:
-    from efem_viz.em import analytic
+    from efem_viz.prior import analytic
     from efem_viz.viewer.app import ViewerApp
 
     a = ViewerApp([scene_dir], port=0, prior=analytic.make_sphere_prior(), out_dir=tmp_path / "exports")
@@ -220,11 +220,12 @@ def test_client_cannot_rewrite_control_bounds(annotator: AnnotatorApp) -> None:
     """viser applies any property a client sends; the guard keeps only `value`, so bounds stay the server's."""
     with RawClient(annotator.url) as c:
         assert wait_for(lambda: len(annotator.server.get_clients()) == 1)
-        c.set_gui(annotator.gui_radius, max=1e9, min=-1e9, value=1e6)
+        c.set_gui(annotator.gui_controls["radius"], max=1e9, min=-1e9, value=1e6)
         c.set_gui(annotator.gui_tool, options=("brush", "rm"), value="rm")
         c.set_gui(annotator.gui_delete, disabled=True)
         assert wait_for(lambda: abs(annotator.settings.radius - 0.20) < 1e-9)
-        assert annotator.gui_radius.max == 20.0 and annotator.gui_radius.min == pytest.approx(0.1)
+        radius = annotator.gui_controls["radius"]
+        assert radius.max == 20.0 and radius.min == pytest.approx(0.1)
         assert tuple(annotator.gui_tool.options) == TOOLS
         assert annotator.gui_delete.disabled is False
         assert annotator.settings.tool == "brush"
@@ -372,11 +373,11 @@ def test_annotator_clamps_a_raw_brush_radius_before_painting(annotator: Annotato
     iid = annotator.new_instance(category="mug")
     with RawClient(annotator.url) as c:
         assert wait_for(lambda: len(annotator.server.get_clients()) == 1)
-        c.set_gui(annotator.gui_radius, value=1e6)
+        c.set_gui(annotator.gui_controls["radius"], value=1e6)
         assert wait_for(lambda: annotator.settings.radius == pytest.approx(0.20))
-        assert wait_for(lambda: annotator.gui_radius.value == 20.0), "the clamped value is shown to every client"
-        c.set_gui(annotator.gui_brush_angle, value=float("nan"))  # refused: the setting stays
-        c.set_gui(annotator.gui_grow_dist, value=-1e9)
+        assert wait_for(lambda: annotator.gui_controls["radius"].value == 20.0), "the clamped value is shown to all"
+        c.set_gui(annotator.gui_controls["brush_max_angle_deg"], value=float("nan"))  # refused: the setting stays
+        c.set_gui(annotator.gui_controls["grow_distance"], value=-1e9)
         assert wait_for(lambda: annotator.settings.grow_distance == pytest.approx(0.01))
         assert annotator.settings.brush_max_angle_deg == 180.0
         c.set_gui(annotator.gui_tool, value="no-such-tool")

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from efem_viz.em import EMResult, preset, run_em
-from efem_viz.em.analytic import make_sphere_prior, make_sphere_scene
+from efem_viz.prior.analytic import make_sphere_prior, make_sphere_scene
 from efem_viz.em.rules import reason_names
 
 
