@@ -5,18 +5,21 @@ the label store (`annotator.journal.LabelStore`, one lock, journal first), and t
 touched chunks (`draw_chunks`). Every action the GUI offers is also a public method (`paint_stroke`, `click`,
 `box`, `new_instance`, `undo`, ...) so tests and scripts drive the same code paths without a browser.
 
-Interaction (see docs/ANNOTATOR.md):
-* Ctrl/Cmd + left-drag on the scan: brush (or erase) stroke; one stroke = one undo step.
-* Ctrl/Cmd + click: the active tool at the clicked point (brush dab, erase dab, region grow, fill, pick instance,
-  segment with the shape prior).
-* Shift + drag a rectangle: box select, painted with the active instance (erased with the erase tool).
-* Hotkeys (also in the Ctrl/Cmd+K palette): B brush, E erase, G grow, F fill, I pick, S segment, N new instance,
-  H hide/show active, L lock/unlock active, Ctrl+Z undo, Ctrl+Y redo.
+Interaction (see docs/ANNOTATOR.md). The tools are the entries of a table (`annotator.tools.DEFAULT_TOOLS`, or
+the `tools=` given): the Tool dropdown, the hotkeys, the help, the controls shown and what each gesture does are
+read from it; this module has no per-tool branches.
+* Ctrl/Cmd + left-drag on the scan: a stroke with a stroke tool (brush, erase); one stroke = one undo step. Other
+  tools act once where the drag starts.
+* Ctrl/Cmd + click: the active tool at the clicked point (`Tool.apply_at`, or `Tool.on_click` for the lasso).
+* Shift + drag a rectangle: box select, painted with the active instance (erased with an erasing tool).
+* Hotkeys (also in the Ctrl/Cmd+K palette): each tool's, N new instance, H hide/show active, L lock/unlock active,
+  Ctrl+Z undo, Ctrl+Y redo.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import os
 import queue
@@ -25,7 +28,7 @@ import time
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Literal
+from typing import TYPE_CHECKING, Any, Callable, Iterator, Literal, Sequence
 
 import numpy as np
 
@@ -42,9 +45,22 @@ from annotator.io import (
 )
 from annotator.journal import LabelStore, remove_stale_temp_files, scan_fingerprint
 from annotator.labels import Delta, InstanceInfo, LabelSet
+from annotator.lasso import LassoCamera, LassoOutline
 from annotator.render import Chunks, build_chunks, color_lut, compose_colors, splat_proxy
-from efem_viz.viewer.guard import start_server
-from efem_viz.viewer.inputs import (
+from annotator.tools import (
+    DEFAULT_TOOLS,
+    TOOLS,
+    Control,
+    Hit,
+    Tool,
+    all_controls,
+    check_tools,
+    help_markdown,
+    shown_settings,
+)
+from efem_viz.geometry.transforms import xyz_tuple
+from efem_viz.serve.guard import start_server
+from efem_viz.serve.inputs import (
     ClientValueError,
     read_bool,
     read_choice,
@@ -52,19 +68,15 @@ from efem_viz.viewer.inputs import (
     read_rgb,
     read_text,
 )
-from efem_viz.viewer.state import xyz_tuple
 
 if TYPE_CHECKING:
+    from viser import GuiButtonHandle, GuiInputHandle
     from viser._messages import LiteralColor  # the colour names `add_notification` accepts
 
 log = logging.getLogger(__name__)
 
-Tool = Literal["brush", "erase", "grow", "fill", "pick", "segment"]
-TOOLS: tuple[str, ...] = ("brush", "erase", "grow", "fill", "pick", "segment", "lasso")
-TOOL_KEYS: dict[str, str] = {"brush": "B", "erase": "E", "grow": "G", "fill": "F", "pick": "I", "segment": "S",
-                             "lasso": "O"}
-MAX_LASSO_POINTS = 500
-"""Most outline points one lasso may have (a client cannot grow it without bound)."""
+__all__ = ["TOOLS", "AnnotatorApp", "ToolSettings"]
+
 MAX_NAME = 200
 """Longest instance name / category accepted from a client."""
 NO_OPTIONS: tuple[str, ...] = ("(none)",)
@@ -76,7 +88,7 @@ class ToolSettings:
     """What the tool controls say; read from the GUI, never read by compute code directly."""
 
     tool: str = "brush"
-    """Active tool, one of TOOLS."""
+    """Name of the active tool (an entry of the app's tool table, `annotator.tools`)."""
     radius: float = 0.01
     """Brush radius, metres."""
     brush_max_angle_deg: float = 180.0
@@ -94,6 +106,8 @@ class ToolSettings:
     """Box select: "front" (vertices facing the camera) or "all"."""
     active_id: int = 0
     """Active instance id (0 = none yet)."""
+    extra: dict[str, Any] = field(default_factory=dict)
+    """Settings of added tools' controls that have no field here (`annotator.tools.Control.setting` → value)."""
 
 
 @dataclass
@@ -115,6 +129,8 @@ class _Stroke:
     last: np.ndarray
     normal: np.ndarray
     erase: bool
+    source: str = ""
+    """Label of the tool that paints the stroke (history)."""
 
 
 class AnnotatorApp:
@@ -133,7 +149,9 @@ class AnnotatorApp:
         chunk_size: points per drawn chunk.
         efem_result: an `<scene>.efem.npz` to import as pre-labels at start (optional).
         accept_scan_mismatch: resume a journal written for other geometry with the same vertex count.
-        token: the server's access token (None = a fresh random one; see `efem_viz.viewer.guard`).
+        token: the server's access token (None = a fresh random one; see `efem_viz.serve.guard`).
+        tools: the tool table (`annotator.tools.Tool` entries, toolbar order; default `DEFAULT_TOOLS`). The first
+            one is active at start.
 
     Raises:
         LabelIOError: the scan or labels cannot be read; JournalError: the journal belongs to another scan.
@@ -152,8 +170,12 @@ class AnnotatorApp:
         chunk_size: int = 16384,
         accept_scan_mismatch: bool = False,
         token: str | None = None,
+        tools: Sequence[Tool] = DEFAULT_TOOLS,
     ) -> None:
         t0 = time.perf_counter()
+        self.tools: tuple[Tool, ...] = tuple(tools)
+        """The tool table the toolbar, hotkeys, help and gestures read."""
+        self._tool_of = check_tools(self.tools)
         self.scan_path = Path(scan_path).resolve()
         self.scene = load_scan(self.scan_path, max_points=max_points)
         self.n = self.scene.num_points
@@ -208,16 +230,15 @@ class AnnotatorApp:
             remove_stale_temp_files(folder, self.stem)
         self.geom = sel.ScanGeometry(self.scene.points, self.scene.normals, faces=self.scene.faces)
         self.chunks: Chunks = build_chunks(self.scene.points, max_chunk=chunk_size)
-        self.settings = ToolSettings(radius=max(0.005, 0.02 * float(np.linalg.norm(np.ptp(self.scene.points, axis=0)))))
+        self.settings = ToolSettings(tool=self.tools[0].name,
+                                     radius=max(0.005, 0.02 * float(np.linalg.norm(np.ptp(self.scene.points, axis=0)))))
         self.stats = Stats()
         self.preview: np.ndarray | None = None
         """(N,) bool mask drawn highlighted (click-to-segment preview), or None."""
         self.pending_segment: np.ndarray | None = None
         self._strokes: dict[int, _Stroke] = {}
-        self._lasso_points: list[tuple[float, float]] = []
-        """Lasso outline in [0, 1] screen coordinates of `_lasso_camera`."""
-        self._lasso_world: list[np.ndarray] = []
-        self._lasso_camera: tuple[np.ndarray, np.ndarray, float, float] | None = None
+        self.lasso_outline = LassoOutline()
+        """The lasso tool's outline (screen points of one view)."""
         self._lasso_handle: Any = None
         self._edits: queue.Queue[tuple[str, Any]] = queue.Queue()
         self._tls = threading.local()
@@ -342,25 +363,20 @@ class AnnotatorApp:
         gui = self.server.gui
         s = self.settings
         with gui.add_folder("Tools"):
-            self.gui_tool = gui.add_dropdown("Tool", TOOLS, initial_value=s.tool,
+            self.gui_tool = gui.add_dropdown("Tool", tuple(t.name for t in self.tools), initial_value=s.tool,
                                              hint="Ctrl/Cmd+drag paints; Ctrl/Cmd+click applies the tool")
-            self.gui_radius = gui.add_slider("Brush radius (cm)", min=0.1, max=20.0, step=0.1,
-                                             initial_value=round(100 * s.radius, 1))
-            self.gui_brush_angle = gui.add_slider("Brush normal limit (deg)", min=5, max=180, step=5, initial_value=180,
-                                                  hint="paint only surface facing like the hit point; 180 = off")
-            self.gui_grow_angle = gui.add_slider("Grow: max normal change (deg)", min=1, max=90, step=1,
-                                                 initial_value=s.grow_angle_deg)
-            self.gui_grow_dist = gui.add_slider("Grow: max distance (cm)", min=1, max=200, step=1,
-                                                initial_value=round(100 * s.grow_distance))
-            self.gui_grow_height = gui.add_slider("Grow: min height (cm)", min=0.0, max=10.0, step=0.1,
-                                                  initial_value=0.0,
-                                                  hint="keep fills above the table (z = 0 in imported tabletop scans); 0 = off")
-            self.gui_only_unlabelled = gui.add_checkbox("Only unlabelled vertices", s.only_unlabelled)
-            self.gui_box_facing = gui.add_dropdown("Box select", ("front", "all"), initial_value="front",
-                                                   hint="Shift+drag a box; front = vertices facing the camera")
-            self.gui_lasso_apply = gui.add_button("Apply lasso (Enter)", disabled=True,
-                                                  hint="Lasso tool: Ctrl/Cmd+click the outline, then apply")
-            self.gui_lasso_clear = gui.add_button("Clear lasso", disabled=True)
+            self.gui_tool_help = gui.add_markdown("")
+            """The active tool's hotkey and help line."""
+            self.gui_controls: dict[str, GuiInputHandle[Any]] = {
+                c.setting: self._add_control(c) for c in all_controls(self.tools)
+            }
+            """The tools' setting controls by setting name (`annotator.tools.Control`)."""
+            self.gui_tool_buttons: dict[str, GuiButtonHandle] = {}
+            """The tools' buttons by command key (`annotator.tools.ToolCommand`)."""
+            for t in self.tools:
+                for cmd in t.commands:
+                    label = f"{cmd.label} ({cmd.hotkey})" if cmd.hotkey else cmd.label
+                    self.gui_tool_buttons[cmd.key] = gui.add_button(label, disabled=cmd.disabled, hint=cmd.hint)
         with gui.add_folder("Instances"):
             self.gui_active = gui.add_dropdown("Active", self._instance_options() or NO_OPTIONS)
             self.gui_name = gui.add_text("Name", "")
@@ -402,42 +418,36 @@ class AnnotatorApp:
             self.gui_seg_cancel = gui.add_button("Discard segment preview", disabled=True)
 
         # ---- callbacks: read values into settings, call the action methods. Client values pass the checks of
-        # efem_viz.viewer.inputs (clamped to the declared slider range, dropdown options only, bounded text).
+        # efem_viz.serve.inputs (clamped to the declared slider range, dropdown options only, bounded text).
         wb = self._gui_write_back
 
-        # (setting, control, kind, display units per setting unit)
-        specs: tuple[tuple[str, Any, str, float], ...] = (
-            ("tool", self.gui_tool, "choice", 1.0),
-            ("radius", self.gui_radius, "number", 100.0),
-            ("brush_max_angle_deg", self.gui_brush_angle, "number", 1.0),
-            ("grow_angle_deg", self.gui_grow_angle, "number", 1.0),
-            ("grow_distance", self.gui_grow_dist, "number", 100.0),
-            ("grow_min_height", self.gui_grow_height, "number", 100.0),
-            ("only_unlabelled", self.gui_only_unlabelled, "bool", 1.0),
-            ("box_facing", self.gui_box_facing, "choice", 1.0),
-        )
+        controls = {c.setting: c for c in all_controls(self.tools)}
 
         def read_settings(event: Any = None) -> None:
             if getattr(self._tls, 'syncing', False):
                 return
-            for name, handle, kind, scale in specs:
+            try:
+                s.tool = read_choice(self.gui_tool)
+            except ClientValueError as exc:
+                self._refuse(exc, event, self.gui_tool, s.tool)
+            for name, handle in self.gui_controls.items():
+                c = controls[name]
                 try:
-                    if kind == "number":
-                        value: Any = read_number(handle, write_back=wb) / scale
-                    elif kind == "choice":
+                    if c.kind == "slider":
+                        value: Any = read_number(handle, write_back=wb) / c.scale
+                    elif c.kind == "dropdown":
                         value = read_choice(handle)
                     else:
                         value = read_bool(handle)
                 except ClientValueError as exc:  # keep this setting; show it again where the bad value was
-                    log.warning("refused: %s", exc)
-                    self.notify("Not done", str(exc), client=getattr(event, "client", None), color="red")
-                    old = getattr(s, name)
-                    wb(handle, round(old * scale, 6) if kind == "number" else old)
+                    old = self._setting(name)
+                    self._refuse(exc, event, handle, round(old * c.scale, 6) if c.kind == "slider" else old)
                     continue
-                setattr(s, name, value)
+                self._set_setting(name, value)
+            self._show_tool()
 
-        for h in (self.gui_tool, self.gui_radius, self.gui_brush_angle, self.gui_grow_angle, self.gui_grow_dist,
-                  self.gui_grow_height, self.gui_only_unlabelled, self.gui_box_facing):
+        self.gui_tool.on_update(read_settings)
+        for h in self.gui_controls.values():
             h.on_update(read_settings)
 
         def guarded(fn: Callable[..., Any]) -> Callable[[Any], None]:
@@ -476,14 +486,18 @@ class AnnotatorApp:
             guarded(lambda: self.review_prelabel(_id_of(read_choice(self.gui_prelabel)), "merge")))
         self.gui_seg_accept.on_click(guarded(lambda: self.accept_segment()))
         self.gui_seg_cancel.on_click(guarded(lambda: self.discard_segment()))
-        self.gui_lasso_apply.on_click(guarded(lambda: self.apply_lasso()))
-        self.gui_lasso_clear.on_click(guarded(lambda: self.clear_lasso()))
-        gui.add_command("Apply lasso", hotkey="Enter").on_trigger(guarded(lambda: self.apply_lasso()))  # type: ignore[arg-type]
+        for t in self.tools:  # the tools' buttons and hotkeys
+            gui.add_command(f"Tool: {t.label}", hotkey=t.hotkey).on_trigger(  # type: ignore[arg-type]
+                guarded(lambda name=t.name: self.set_tool(name)))
+            for cmd in t.commands:
+                def run(cmd: Any = cmd) -> object:
+                    return cmd.run(self)
 
-        # ---- hotkeys
-        for tool, key in TOOL_KEYS.items():
-            cmd = gui.add_command(f"Tool: {tool}", hotkey=key)  # type: ignore[arg-type]
-            cmd.on_trigger(guarded(lambda t=tool: self.set_tool(t)))
+                self.gui_tool_buttons[cmd.key].on_click(guarded(run))
+                if cmd.hotkey:
+                    gui.add_command(cmd.label, hotkey=cmd.hotkey).on_trigger(guarded(run))  # type: ignore[arg-type]
+
+        # ---- the app's own hotkeys (annotator.tools.RESERVED_HOTKEYS)
         gui.add_command("New instance", hotkey="N").on_trigger(
             guarded(lambda: self.new_instance(category=read_text(self.gui_category, max_len=MAX_NAME) or "object")))
         gui.add_command("Hide / show active instance", hotkey="H").on_trigger(
@@ -492,7 +506,57 @@ class AnnotatorApp:
             guarded(lambda: self._toggle_active("locked")))
         gui.add_command("Undo", hotkey="Z", modifier="cmd/ctrl").on_trigger(guarded(lambda: self.undo()))
         gui.add_command("Redo", hotkey="Y", modifier="cmd/ctrl").on_trigger(guarded(lambda: self.redo()))
+        with gui.add_folder("Help", expand_by_default=False):
+            self.gui_help = gui.add_markdown(help_markdown(self.tools))
+        self._show_tool()
         self._refresh_panel()
+
+    # ---- tool table → GUI
+    @property
+    def tool(self) -> Tool:
+        """The active tool's entry."""
+        return self._tool_of[self.settings.tool]
+
+    def _add_control(self, c: Control) -> GuiInputHandle[Any]:
+        """Create a setting control; a setting with a `ToolSettings` field starts at its value."""
+        gui = self.server.gui
+        initial: Any = c.initial
+        if hasattr(self.settings, c.setting):
+            initial = getattr(self.settings, c.setting)
+            if c.kind == "slider":
+                digits = max(0, -int(np.floor(np.log10(c.step)))) if c.step < 1 else 0
+                initial = round(float(initial) * c.scale, digits)
+        else:
+            self.settings.extra.setdefault(c.setting, initial / c.scale if c.kind == "slider" else initial)
+        if c.kind == "slider":
+            return gui.add_slider(c.label, min=c.min, max=c.max, step=c.step, initial_value=initial, hint=c.hint)
+        if c.kind == "dropdown":
+            return gui.add_dropdown(c.label, c.options, initial_value=str(initial), hint=c.hint)
+        return gui.add_checkbox(c.label, bool(initial), hint=c.hint)
+
+    def _setting(self, name: str) -> Any:
+        return getattr(self.settings, name) if hasattr(self.settings, name) else self.settings.extra[name]
+
+    def _set_setting(self, name: str, value: Any) -> None:
+        if hasattr(self.settings, name):
+            setattr(self.settings, name, value)
+        else:
+            self.settings.extra[name] = value
+
+    def _refuse(self, exc: ClientValueError, event: Any, handle: Any, old: Any) -> None:
+        """A client value no control can produce: say so to that client and show the kept value again."""
+        log.warning("refused: %s", exc)
+        self.notify("Not done", str(exc), client=getattr(event, "client", None), color="red")
+        self._gui_write_back(handle, old)
+
+    def _show_tool(self) -> None:
+        """Show the active tool's controls and help line; hide the other tools' controls."""
+        t = self.tool
+        shown = shown_settings(t)
+        for name, h in self.gui_controls.items():
+            h.visible = name in shown
+        self.gui_tool_help.content = f"**{t.hotkey}** {t.label}: {t.help}"
+        self.gui_help.content = help_markdown(self.tools, t.name)
 
     def _gui_write_back(self, handle: Any, value: Any) -> None:
         """Show the value actually used (a clamped client value) in every client, without re-reading it."""
@@ -540,8 +604,13 @@ class AnnotatorApp:
                 flags = ("hidden " if not v.visible else "") + ("locked" if v.locked else "")
                 mark = " ◀" if k == self.settings.active_id else ""
                 rows.append(f"| {k}{mark} | {v.name} | {v.category} | {counts.get(k, 0):,} | {flags} |")
+            per_cat: dict[str, list[int]] = {}
+            for k, v in table.items():
+                per_cat.setdefault(v.category, []).append(counts.get(k, 0))
+            cats = " · ".join(f"{c}: {len(n)} ({sum(n):,} vertices)" for c, n in per_cat.items())
             self.gui_table.content = (
-                f"**{100 * progress:.1f}%** of {self.n:,} vertices labelled\n\n" + "\n".join(rows)
+                f"**{100 * progress:.1f}%** of {self.n:,} vertices labelled"
+                + (f"\n\nper category: {cats}" if cats else "") + "\n\n" + "\n".join(rows)
             )
             self.gui_history.content = (
                 f"{n_undo} undoable, {n_redo} redoable\n\n" + "\n".join(f"- {h}" for h in self.stats.history)
@@ -605,14 +674,16 @@ class AnnotatorApp:
 
     # ================================================================== actions (GUI callbacks call these)
     def set_tool(self, tool: str) -> None:
-        if tool not in TOOLS:
-            raise ValueError(f"unknown tool {tool!r}; tools: {TOOLS}")
+        """Make a tool of the table active (its controls and help are shown)."""
+        if tool not in self._tool_of:
+            raise ValueError(f"unknown tool {tool!r}; tools: {tuple(self._tool_of)}")
         self.settings.tool = tool
         self._tls.syncing = True
         try:
             self.gui_tool.value = tool
         finally:
             self._tls.syncing = False
+        self._show_tool()
 
     def set_active(self, instance_id: int) -> None:
         """Make an instance the one brushes paint."""
@@ -664,13 +735,33 @@ class AnnotatorApp:
         return iid
 
     def paint(self, idx: np.ndarray, *, erase: bool = False, group: str = "", client: str = "") -> Delta | None:
-        """Paint vertices `idx` with the active instance (or erase them); one journalled edit."""
+        """Paint vertices `idx` with the active instance (or erase them); one journalled edit.
+
+        Inside a gesture the edit's label names the tool ("paint 1,234 → mug 1 (Region grow)"), as the history
+        panel and the journal show it.
+        """
+        source = getattr(self._tls, "source", "")
+
+        def tagged(d: Delta) -> Delta:
+            return dataclasses.replace(d, label=f"{d.label} ({source})") if source else d
+
         if erase:
-            return self.store.do(lambda ls: ls.erase(idx), client=client, group=group)
+            return self.store.do(lambda ls: tagged(ls.erase(idx)), client=client, group=group)
         iid = self._require_active()
         return self.store.do(
-            lambda ls: ls.paint(idx, iid, overwrite=not self.settings.only_unlabelled), client=client, group=group
+            lambda ls: tagged(ls.paint(idx, iid, overwrite=not self.settings.only_unlabelled)), client=client,
+            group=group,
         )
+
+    @contextlib.contextmanager
+    def _edit_source(self, source: str) -> Iterator[None]:
+        """Edits made in this thread inside the block are labelled with `source` (a tool or gesture name)."""
+        prev = getattr(self._tls, "source", "")
+        self._tls.source = source
+        try:
+            yield
+        finally:
+            self._tls.source = prev
 
     def _brush_normal(self, vertex: int) -> tuple[np.ndarray | None, float | None]:
         lim = self.settings.brush_max_angle_deg
@@ -733,20 +824,23 @@ class AnnotatorApp:
         if hit is None:
             return None
         v, pos = hit
-        tool = self.settings.tool
-        if tool in ("brush", "erase"):
-            nrm, lim = self._brush_normal(v)
-            idx = sel.brush(self.geom, pos, self.settings.radius, normal=nrm, max_normal_angle_deg=lim)
-            self.paint(idx, erase=tool == "erase", client=client)
-        elif tool == "grow":
-            self.grow(v, client=client)
-        elif tool == "fill":
-            self.fill(v, client=client)
-        elif tool == "pick":
-            self.pick_instance(v)
-        elif tool == "segment":
-            self.segment_at(v)
+        tool = self.tool
+        if tool.apply_at is not None:
+            with self._edit_source(tool.label):
+                tool.apply_at(self, Hit(int(v), np.asarray(pos), client))
         return v
+
+    def dab(self, vertex: int, position: np.ndarray, *, erase: bool, client: str = "") -> Delta | None:
+        """One brush (or erase) dab of the current radius at a surface point.
+
+        Args:
+            vertex: the scan vertex at the point (its normal limits the brush when a normal limit is set).
+            position: (3,) float, the point on the surface, world frame.
+            erase: erase instead of painting the active instance.
+        """
+        nrm, lim = self._brush_normal(int(vertex))
+        idx = sel.brush(self.geom, position, self.settings.radius, normal=nrm, max_normal_angle_deg=lim)
+        return self.paint(idx, erase=erase, client=client)
 
     def box(
         self,
@@ -763,7 +857,8 @@ class AnnotatorApp:
         idx = sel.box_select(self.geom, position=position, wxyz=wxyz, fov=fov, aspect=aspect,
                              screen_min=screen_min, screen_max=screen_max,
                              facing="front" if self.settings.box_facing == "front" else "all")
-        return self.paint(idx, erase=self.settings.tool == "erase", client=client)
+        with self._edit_source("box select"):
+            return self.paint(idx, erase=self.tool.erase, client=client)
 
     def lasso(
         self,
@@ -779,58 +874,54 @@ class AnnotatorApp:
         with the erase tool); `Box select: front/all` decides whether hidden sides are taken too."""
         idx = sel.lasso_select(self.geom, position=position, wxyz=wxyz, fov=fov, aspect=aspect, polygon=polygon,
                                facing="front" if self.settings.box_facing == "front" else "all")
-        return self.paint(idx, erase=self.settings.tool == "erase", client=client)
+        with self._edit_source("lasso"):
+            return self.paint(idx, erase=self.tool.erase, client=client)
 
     def add_lasso_point(self, event: Any) -> int:
         """Lasso tool: a Ctrl/Cmd+click adds a screen point to the outline (the camera of the first point is used).
 
         Returns:
             The number of outline points so far.
+
+        Raises:
+            ClientValueError: the outline already has `annotator.lasso.MAX_LASSO_POINTS` points.
         """
         cam = event.client.camera
-        pts = self._lasso_points
-        if not pts:
-            self._lasso_camera = (np.asarray(cam.position, np.float64), np.asarray(cam.wxyz, np.float64),
-                                  float(cam.fov), float(cam.aspect))
-        if len(pts) >= MAX_LASSO_POINTS:
-            raise ClientValueError(f"a lasso has at most {MAX_LASSO_POINTS} points")
-        u, v = (float(x) for x in event.screen_pos[0])
-        pts.append((min(max(u, 0.0), 1.0), min(max(v, 0.0), 1.0)))
-        origin = np.asarray(event.ray_origin, np.float64)
-        direction = np.asarray(event.ray_direction, np.float64)
-        self._lasso_world.append(origin + 0.05 * direction / max(float(np.linalg.norm(direction)), 1e-9))
+        camera = LassoCamera(np.asarray(cam.position, np.float64), np.asarray(cam.wxyz, np.float64), float(cam.fov),
+                             float(cam.aspect))
+        try:
+            n = self.lasso_outline.add(event.screen_pos[0], ray_origin=event.ray_origin,
+                                       ray_direction=event.ray_direction, camera=camera)
+        except ValueError as exc:
+            raise ClientValueError(str(exc)) from None
         self._draw_lasso()
-        return len(pts)
+        return n
 
     def apply_lasso(self, *, client: str = "") -> Delta | None:
         """Select inside the outline drawn with the lasso tool, then clear it."""
-        if len(self._lasso_points) < 3 or self._lasso_camera is None:
-            raise ValueError(f"the lasso has {len(self._lasso_points)} points; Ctrl/Cmd+click at least 3")
-        position, wxyz, fov, aspect = self._lasso_camera
-        polygon = np.asarray(self._lasso_points, np.float64)
+        camera, polygon = self.lasso_outline.polygon()
         self.clear_lasso()
-        return self.lasso(position=position, wxyz=wxyz, fov=fov, aspect=aspect, polygon=polygon, client=client)
+        return self.lasso(position=camera.position, wxyz=camera.wxyz, fov=camera.fov, aspect=camera.aspect,
+                          polygon=polygon, client=client)
 
     def clear_lasso(self) -> None:
-        self._lasso_points.clear()
-        self._lasso_world.clear()
-        self._lasso_camera = None
+        self.lasso_outline.clear()
         self._draw_lasso()
 
     def _draw_lasso(self) -> None:
-        n = len(self._lasso_points)
-        if n >= 2:
-            w = np.asarray(self._lasso_world, np.float32)
-            seg = np.stack([w, np.roll(w, -1, axis=0)], axis=1)
+        n = len(self.lasso_outline)
+        seg = self.lasso_outline.segments()
+        if seg is not None:
             self._lasso_handle = self.server.scene.add_line_segments("/annotator/lasso", seg, colors=(255, 200, 0),
                                                                      thickness=2.0, thickness_units="screen")
         elif self._lasso_handle is not None:
             with contextlib.suppress(Exception):
                 self._lasso_handle.remove()
             self._lasso_handle = None
-        with contextlib.suppress(Exception):
-            self.gui_lasso_apply.disabled = n < 3
-            self.gui_lasso_clear.disabled = n == 0
+        buttons = getattr(self, "gui_tool_buttons", {})  # the lasso's buttons (absent from a table without it)
+        for key, disabled in (("lasso_apply", n < 3), ("lasso_clear", n == 0)):
+            if key in buttons:
+                buttons[key].disabled = disabled
 
     # ---- files
     def _safe_path(self, name: str, *, what: str) -> Path:
@@ -1032,8 +1123,10 @@ class AnnotatorApp:
         """
         _check_event(kind, event)
         cid = f"client{getattr(event, 'client_id', '?')}"
-        if kind == "click" and self.settings.tool == "lasso":
-            self.add_lasso_point(event)
+        on_click = self.tool.on_click
+        if kind == "click" and on_click is not None:
+            with self._edit_source(self.tool.label):
+                on_click(self, event)
         elif kind == "click":
             self.click(np.asarray(event.ray_origin), np.asarray(event.ray_direction), client=cid)
         elif kind == "rect":
@@ -1046,26 +1139,25 @@ class AnnotatorApp:
         self.server.flush()
 
     def _drag(self, event: Any, cid: str) -> None:
-        tool = self.settings.tool
-        erase = tool == "erase"
+        tool = self.tool
         key = int(event.client_id)
         if event.phase == "start":
-            if tool not in ("brush", "erase"):
-                # Other tools act once at the grabbed point.
-                start = np.asarray(event.start_position, np.float32)
-                v = int(self.geom.tree.query(start)[1])
-                {"grow": lambda: self.grow(v, client=cid), "fill": lambda: self.fill(v, client=cid),
-                 "pick": lambda: self.pick_instance(v), "segment": lambda: self.segment_at(v)}[tool]()
-                return
             start = np.asarray(event.start_position, np.float32)
             v = int(self.geom.tree.query(start)[1])
+            if not tool.stroke:
+                # Other tools act once at the grabbed point (a tool without `apply_at` ignores drags).
+                if tool.apply_at is not None:
+                    with self._edit_source(tool.label):
+                        tool.apply_at(self, Hit(v, start, cid))
+                return
             p = self.scene.points[v] if self.geom.is_mesh is False else start
             stroke = _Stroke(group=uuid.uuid4().hex[:12], last=np.asarray(p, np.float32), normal=self.geom.normals[v],
-                             erase=erase)
+                             erase=tool.erase, source=tool.label)
             self._strokes[key] = stroke
             nrm, lim = self._brush_normal(v)
             idx = sel.brush(self.geom, stroke.last, self.settings.radius, normal=nrm, max_normal_angle_deg=lim)
-            self.paint(idx, erase=erase, group=stroke.group, client=cid)
+            with self._edit_source(stroke.source):
+                self.paint(idx, erase=stroke.erase, group=stroke.group, client=cid)
             return
         stroke = self._strokes.get(key)
         if stroke is None:
@@ -1081,7 +1173,8 @@ class AnnotatorApp:
         nrm, lim = self._brush_normal(v)
         idx = sel.brush_segment(self.geom, stroke.last, pos, self.settings.radius, normal=nrm, max_normal_angle_deg=lim)
         stroke.last = np.asarray(pos, np.float32)
-        self.paint(idx, erase=stroke.erase, group=stroke.group, client=cid)
+        with self._edit_source(stroke.source):
+            self.paint(idx, erase=stroke.erase, group=stroke.group, client=cid)
 
     def wait_idle(self, timeout: float = 10.0) -> None:
         """Block until queued viser events are processed (tests)."""

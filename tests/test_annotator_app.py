@@ -11,7 +11,8 @@ import pytest
 import trimesh
 
 from annotator import selection as sel
-from annotator.app import AnnotatorApp
+from annotator.app import TOOLS, AnnotatorApp
+from annotator.tools import DEFAULT_TOOLS, Control, Hit, Tool, check_tools
 from annotator.io import LabelIOError, load_labels
 from efem_viz.data.io import load_scene, save_scene
 from efem_viz.data.scene import Scene
@@ -276,9 +277,10 @@ def test_bad_startup_inputs(tmp_path: Path, mesh_path: Path) -> None:
 @pytest.fixture(scope="module")
 def spheres(tmp_path_factory: pytest.TempPathFactory):
     """A sphere tabletop scene with a saved EFEM result from the real solver and the analytic sphere prior."""
-    em = pytest.importorskip("efem_viz.em", reason="efem_viz.em not importable")
-    analytic = pytest.importorskip("efem_viz.em.analytic", reason="efem_viz.em.analytic not importable")
     import torch
+
+    from efem_viz import em
+    from efem_viz.prior import analytic
 
     torch.set_num_threads(1)
     d = tmp_path_factory.mktemp("spheres")
@@ -369,14 +371,123 @@ def test_lasso_tool_outline_by_clicks_then_apply(app: AnnotatorApp) -> None:
         app.handle_event("click", SimpleNamespace(client_id=7, client=client, ray_origin=(0.0, 0.0, 1.0),
                                                   ray_direction=(0.0, 0.0, -1.0), screen_pos=(uv,)))
     assert app.store.labelset.count(app.settings.active_id) == 0, "clicks only draw the outline"
-    assert not app.gui_lasso_apply.disabled
+    assert not app.gui_tool_buttons["lasso_apply"].disabled
     app.apply_lasso()
     idx = sel.lasso_select(app.geom, position=client.camera.position, wxyz=client.camera.wxyz,
                            fov=float(client.camera.fov), aspect=1.0, polygon=np.array(outline))
     n = app.store.labelset.count(app.settings.active_id)
     assert n == len(idx) > 20
-    assert app.gui_lasso_apply.disabled and not app._lasso_points
+    assert app.gui_tool_buttons["lasso_apply"].disabled and not app.lasso_outline.points
     with pytest.raises(ValueError, match="at least 3"):
         app.apply_lasso()
     app.undo()
     assert app.store.labelset.count(app.settings.active_id) == 0
+
+
+def test_tool_table_drives_toolbar_controls_help_and_history(app: AnnotatorApp) -> None:
+    """The toolbar, the controls shown, the help and the history lines all come from the tool table."""
+    assert tuple(app.gui_tool.options) == TOOLS == tuple(t.name for t in DEFAULT_TOOLS)
+    assert app.settings.tool == "brush" and "**B** Brush" in app.gui_tool_help.content
+    assert app.gui_controls["radius"].visible and not app.gui_controls["grow_angle_deg"].visible
+    assert app.gui_controls["box_facing"].visible  # box select works with every tool
+    app.gui_tool.value = "grow"  # as a browser does: the dropdown's callback switches the tool
+    assert app.settings.tool == "grow"
+    assert app.gui_controls["grow_angle_deg"].visible and not app.gui_controls["radius"].visible
+    assert "**G** Region grow" in app.gui_tool_help.content
+    assert "- ▶ **G** Region grow" in app.gui_help.content and "- **O** Lasso" in app.gui_help.content
+    app.new_instance(category="mug")
+    app.settings.grow_angle_deg, app.settings.grow_distance = 60, 0.05
+    app.click(np.array([0, 0, 1.0]), np.array([0, 0, -1.0]))
+    assert app.stats.history[0].endswith("(Region grow)")
+    app.handle_event("rect", SimpleNamespace(client_id=3, client=_client(), screen_min=(0.4, 0.4),
+                                             screen_max=(0.6, 0.6)))
+    assert app.stats.history[0].endswith("(box select)")
+    app.set_tool("pick")
+    assert not any(app.gui_controls[k].visible for k in ("radius", "grow_angle_deg", "grow_min_height"))
+    with pytest.raises(ValueError, match="unknown tool"):
+        app.set_tool("rm")
+
+
+def test_a_new_tool_is_one_entry_plus_its_function(mesh_path: Path, tmp_path: Path) -> None:
+    """An added tool (with a setting of its own) gets its dropdown option, control, help line and click."""
+    ball = Control("ball_radius", "Ball radius (cm)", "slider", 3.0, min=1.0, max=10.0, step=0.5, scale=100.0)
+
+    def paint_ball(host: AnnotatorApp, hit: Hit) -> None:
+        r = float(host.settings.extra["ball_radius"])
+        host.paint(np.asarray(host.geom.tree.query_ball_point(hit.position, r), np.int64), client=hit.client)
+
+    tools = (*DEFAULT_TOOLS, Tool("ball", "Ball", "P", "click paints a ball", controls=(ball,), apply_at=paint_ball))
+    a = AnnotatorApp(mesh_path, out_dir=tmp_path / "o", port=0, autosave_delay=0, tools=tools)
+    try:
+        assert a.gui_tool.options[-1] == "ball" and "**P** Ball" in a.gui_help.content
+        assert a.settings.extra["ball_radius"] == pytest.approx(0.03) and not a.gui_controls["ball_radius"].visible
+        a.set_tool("ball")
+        assert a.gui_controls["ball_radius"].visible
+        a.gui_controls["ball_radius"].value = 5.0  # cm in the GUI, metres in the setting
+        assert a.settings.extra["ball_radius"] == pytest.approx(0.05)
+        iid = a.new_instance()
+        v = a.click(np.array([0, 0, 1.0]), np.array([0, 0, -1.0]))
+        assert v is not None
+        painted = np.flatnonzero(a.store.labels == iid)
+        assert len(painted) > 10
+        assert np.linalg.norm(a.scene.points[painted] - a.scene.points[v], axis=1).max() <= 0.05 + 1e-6
+        assert a.stats.history[0].endswith("(Ball)")
+    finally:
+        a.close()
+    with pytest.raises(ValueError, match="hotkey .b. is taken by .brush."):
+        check_tools((*DEFAULT_TOOLS, Tool("bad", "Bad", "b", "clashes with the brush")))
+    with pytest.raises(ValueError, match="two tools"):
+        check_tools((*DEFAULT_TOOLS, DEFAULT_TOOLS[0]))
+    with pytest.raises(ValueError, match="hotkey 'N'"):
+        check_tools((Tool("new", "New", "N", "the app's new-instance key"),))
+
+
+def test_efem_prelabels_carry_their_categories(spheres) -> None:
+    """Pre-labels of a result with two categories (a joint solve over two priors) keep each instance's category
+    in the instance table, and the panel counts instances per category."""
+    import dataclasses
+
+    from efem_viz.em import EMResult
+
+    d, scene, _ = spheres
+    res = EMResult.load(d / "spheres.efem.npz")
+    k_all = len(res.instances)
+    assert k_all >= 2
+    cats = np.array(["mug"] + ["sphere"] * (k_all - 1))
+    dataclasses.replace(res, instances=dataclasses.replace(res.instances, category=cats)).save(d / "two.efem.npz")
+    a = AnnotatorApp(d / "spheres.ply", out_dir=d / "out_cats", port=0, autosave_delay=0)
+    try:
+        a.store.do(lambda ls: ls.replace_all(np.zeros(a.n, np.int32), []))  # start unlabelled (file has GT)
+        ids = a.import_efem("two.efem.npz")
+        got = sorted(a.store.labelset.info(i).category for i in ids)
+        assert got == sorted(cats.tolist())[: len(got)] and "mug" in got and "sphere" in got
+        assert all(a.store.labelset.info(i).name == f"{a.store.labelset.info(i).category} (EFEM)" for i in ids)
+        n_sphere = got.count("sphere")
+        assert "per category: " in a.gui_table.content
+        assert "mug: 1 (" in a.gui_table.content and f"sphere: {n_sphere} (" in a.gui_table.content
+        assert "| mug |" in a.gui_table.content
+    finally:
+        a.close()
+
+
+def test_lasso_outline_clamps_limits_and_closes() -> None:
+    from annotator.lasso import LassoCamera, LassoOutline
+
+    cam = LassoCamera(np.zeros(3), np.array([1.0, 0, 0, 0]), 0.8, 1.5)
+    other = LassoCamera(np.ones(3), np.array([0.0, 1, 0, 0]), 0.5, 1.0)
+    o = LassoOutline(max_points=3)
+    assert o.segments() is None
+    o.add((1.5, -0.2), ray_origin=np.zeros(3), ray_direction=np.array([0.0, 0.0, -2.0]), camera=cam)
+    assert o.points == [(1.0, 0.0)] and np.allclose(o.world[0], [0, 0, -0.05])  # clamped; 5 cm along the ray
+    with pytest.raises(ValueError, match="at least 3"):
+        o.polygon()
+    o.add((0.2, 0.2), ray_origin=np.zeros(3), ray_direction=np.array([1.0, 0, 0]), camera=other)
+    o.add((0.5, 0.9), ray_origin=np.zeros(3), ray_direction=np.array([0.0, 1, 0]), camera=other)
+    seg = o.segments()
+    assert seg is not None and seg.shape == (3, 2, 3) and np.allclose(seg[-1, 1], seg[0, 0])  # closed
+    camera, poly = o.polygon()
+    assert camera is cam and poly.shape == (3, 2)  # the first click's view
+    with pytest.raises(ValueError, match="at most 3"):
+        o.add((0.1, 0.1), ray_origin=np.zeros(3), ray_direction=np.array([1.0, 0, 0]), camera=cam)
+    o.clear()
+    assert len(o) == 0 and o.camera is None

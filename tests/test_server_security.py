@@ -30,8 +30,8 @@ from viser_client import RawClient, handshake_status, wait_for, ws_url  # noqa: 
 
 from annotator.app import TOOLS, AnnotatorApp  # noqa: E402
 from annotator.io import LabelIOError  # noqa: E402
-from efem_viz.viewer import guard  # noqa: E402
-from efem_viz.viewer.inputs import (  # noqa: E402
+from efem_viz.serve import guard  # noqa: E402
+from efem_viz.serve.inputs import (  # noqa: E402
     ClientValueError,
     read_choice,
     read_int,

@@ -13,10 +13,11 @@ from typing import Any, Iterator
 import numpy as np
 import pytest
 
+from efem_viz import em
+from efem_viz.colors import instance_colors
+from efem_viz.prior import analytic
 from efem_viz.viewer import state as st
-
-em = pytest.importorskip("efem_viz.em", reason="efem_viz.em not importable yet")
-analytic = pytest.importorskip("efem_viz.em.analytic", reason="efem_viz.em.analytic not importable yet")
+from efem_viz.viewer.panels import slider_marks
 
 
 # ---------------------------------------------------------------------------------------------- fixtures
@@ -84,7 +85,7 @@ def test_discover_scenes_only_inside_given_paths(tmp_path: Path) -> None:
 
 
 def test_palette_heatmap_and_marks() -> None:
-    cols = st.palette([3, 4, 5, 3])
+    cols = instance_colors([3, 4, 5, 3])
     assert cols.dtype == np.uint8 and cols.shape == (4, 3)
     assert (cols[0] == cols[3]).all() and len({tuple(c) for c in cols[:3]}) == 3
     h = st.heatmap(np.array([0.0, 1.0, np.nan]), vmin=0.0, vmax=1.0)
@@ -125,9 +126,9 @@ def test_saved_trace_loads_automatically(app: Any) -> None:
     assert s.result is not None and s.result_source == "spheres.efem.npz"
     T = s.result.trace.num_steps
     assert app.panels.gui_step.max == T - 1 and s.step == T - 1
-    marks = dict(app.panels.gui_step.marks)
+    marks = dict(slider_marks(app.panels.gui_step))  # the marks the browser shows (the slider's `_marks` prop)
     assert marks[0].startswith("P1") and any("R" in v for v in marks.values())
-    assert len(app.nodes.result_meshes) == len(s.result.instances)
+    assert len(app.nodes.results.meshes) == len(s.result.instances)
     assert app.panels.gui_active_plot.visible
 
 
@@ -169,7 +170,7 @@ def test_inspect_proposal_shows_fig_s9_views(app: Any) -> None:
     assert app.wait_idle(60)
     assert app.state.color_mode == "weights"
     assert {"crop", "samples", "shape"} <= set(app.nodes.inspect)
-    view = trace.view(pid, 2, app.prior())
+    view = app.state.result.replay.view(pid, 2, app.prior())
     assert np.asarray(app.nodes.inspect["samples"].points).shape[0] == len(view.sampled_points)
     colors = np.asarray(app.nodes.points.colors)
     assert not np.array_equal(colors, app.state.scene.colors)
@@ -191,19 +192,115 @@ def test_threshold_filters_instances_without_rerun(app: Any) -> None:
     inst = app.state.result.instances
     app.set_result_layers(meshes=True, obbs=True, axes=True)
     app.set_threshold(0.0)
-    vis_all = [h.visible for h in app.nodes.result_obbs]
+    vis_all = [h.visible for h in app.nodes.results.obbs]
     assert all(vis_all) and len(vis_all) == len(inst)
     colors_all = np.array(app.nodes.points.colors)
     app.set_threshold(float(np.max(inst.confidence)) + 0.001)
-    assert not any(h.visible for h in app.nodes.result_obbs)
-    assert not any(h.visible for h in app.nodes.result_axes)
+    assert not any(h.visible for h in app.nodes.results.obbs)
+    assert not any(h.visible for h in app.nodes.results.axes)
+    assert not any(h.visible for h in app.nodes.results.labels)
     assert "**0 of" in app.panels.gui_result_info.content
     assert f"SDF\\| < {app.state.result.config.out_tau:g} (τ_out" in app.panels.gui_result_info.content
     assert not np.array_equal(colors_all, np.array(app.nodes.points.colors))
     assert app.state.result.instances is inst  # a view, not a re-run
     app.set_threshold(0.0)
     app.set_result_layers(meshes=False, obbs=True, axes=False)
-    assert not any(h.visible for h in app.nodes.result_meshes if h is not None)
+    assert not any(h.visible for h in app.nodes.results.meshes if h is not None)
+
+
+def test_several_categories_in_labels_legend_counts_and_inspector(app: Any) -> None:
+    """A result with two categories (as a joint solve over two priors gives): the scene labels, the legend, the
+    per-category counts and the inspector name each instance's category; the threshold updates the counts."""
+    import dataclasses
+
+    from efem_viz.viewer.legend import category_color
+
+    res = app.state.result
+    inst = res.instances
+    k_all = len(inst)
+    assert k_all >= 2, "the sphere scene gives several instances"
+    cats = np.array(["mug"] + ["sphere"] * (k_all - 1))
+    app.set_result(dataclasses.replace(res, instances=dataclasses.replace(inst, category=cats)), source="two priors")
+    try:
+        app.set_result_layers(meshes=True, obbs=True, axes=False)
+        app.set_threshold(0.0)
+        assert f"mug: 1 of 1 · sphere: {k_all - 1} of {k_all - 1}" in app.panels.gui_result_info.content
+        assert f"{k_all} instances (mug 1 · sphere {k_all - 1})" in app.panels.gui_run_info.content
+        texts = [h.text for h in app.nodes.results.labels]
+        assert texts[0] == f"mug #{int(inst.ids[0])} · {float(inst.confidence[0]):.2f}"
+        assert all(t.startswith("sphere #") for t in texts[1:])
+        assert all(h.visible for h in app.nodes.results.labels)
+        legend = app.panels.gui_legend.content
+        mug, sphere = st.hex_color(category_color("mug")), st.hex_color(category_color("sphere"))
+        assert mug != sphere
+        assert legend.count(f'color:{mug}">mug</b>') == 1 and legend.count(f'color:{sphere}">sphere</b>') == k_all - 1
+        for pid, col in zip(inst.ids, instance_colors(inst.ids)):  # each row's swatch has its instance's colour
+            assert f'<span style="color:{st.hex_color(col)}">&#9632;</span> #{int(pid)} ' in legend
+        # A threshold just above the mug's confidence: the counts, legend rows and labels follow.
+        conf = np.asarray(inst.confidence, float)
+        app.set_threshold(float(conf[0]) + 1e-4)
+        kept = conf >= app.state.threshold
+        n_sphere = int(kept[1:].sum())
+        assert f"mug: 0 of 1 · sphere: {n_sphere} of {k_all - 1}" in app.panels.gui_result_info.content
+        assert app.panels.gui_legend.content.count("&#9632;") == int(kept.sum())
+        assert [h.visible for h in app.nodes.results.labels] == kept.tolist()
+        app.set_threshold(0.0)
+        app.set_step(app.state.num_steps - 1)
+        app.select_proposal(int(inst.ids[0])).result(timeout=60)
+        assert app.wait_idle(60)
+        assert "final instance: **mug**" in app.panels.gui_inspect_info.content
+        app.select_proposal(None)
+    finally:
+        assert app.load_trace() and app.wait_idle(60)
+    assert app.state.result_source == "spheres.efem.npz"
+
+
+def test_static_demo_draws_results_with_the_viewers_functions(
+    app: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The static demo draws the final instances through `nodes.add_result_nodes`, as the live viewer does."""
+    from efem_viz.viewer import export, nodes
+    from efem_viz.viewer.legend import instance_label
+
+    calls: list[tuple[Any, bool, nodes.ResultNodes]] = []
+    real = nodes.add_result_nodes
+
+    def spy(api: Any, instances: Any, *, visible: bool) -> nodes.ResultNodes:
+        out = real(api, instances, visible=visible)
+        calls.append((instances, visible, out))
+        return out
+
+    monkeypatch.setattr(export, "add_result_nodes", spy)
+    inst = app.state.result.instances
+    conf = np.asarray(inst.confidence, float)
+    thr = float(np.sort(conf)[len(conf) // 2])
+    export.export_static_demo(app.state.scene, app.state.result, tmp_path / "demo", threshold=thr)
+    (shown, visible, out), = calls
+    assert visible and np.array_equal(shown.ids, inst.ids[conf >= thr]) and len(shown) >= 1
+    assert [h.text for h in out.labels] == [instance_label(shown, k) for k in range(len(shown))]
+    live = [h for h in app.nodes.results.meshes if h is not None]
+    demo = [h for h in out.meshes if h is not None]
+    assert live and demo and {h.opacity for h in live} == {h.opacity for h in demo} == {nodes.RESULT_MESH_OPACITY}
+    k = int(np.flatnonzero(conf >= thr)[0])  # the same instance: same box colour and pose axes in both
+    assert np.array_equal(np.asarray(out.obbs[0].colors), np.asarray(app.nodes.results.obbs[k].colors))
+    assert out.axes[0].axes_length == pytest.approx(app.nodes.results.axes[k].axes_length)
+    assert np.allclose(out.axes[0].wxyz, app.nodes.results.axes[k].wxyz)
+
+
+def test_legend_escapes_names_from_files() -> None:
+    from types import SimpleNamespace
+
+    from efem_viz.viewer.legend import category_counts, legend_html, result_summary_markdown
+
+    inst = SimpleNamespace(ids=np.array([3, 4]), confidence=np.array([0.9, 0.2]),
+                           category=np.array(["<img src=x onerror=alert(1)>", "cup_*x*"]))
+    html = legend_html(inst, np.array([True, True]))
+    assert "<img" not in html and "&lt;img" in html
+    assert html.index("#3") < html.index("#4")  # highest confidence first
+    assert legend_html(inst, np.array([False, False])) == ""
+    md = result_summary_markdown(inst, np.array([True, False]), threshold=0.5, out_tau=0.04)
+    assert "**1 of 2 instances**" in md and "cup\\_\\*x\\*: 0 of 1" in md and "\\<img" in md
+    assert category_counts(["b", "a", "b"]) == {"b": 2, "a": 1}
 
 
 def test_mask_band_rederives_masks_without_rerun(app: Any, tmp_path: Path) -> None:
@@ -303,11 +400,6 @@ def test_export_results_and_static_demo(app: Any, tmp_path: Path) -> None:
 
 
 def test_ground_truth_panel(app: Any) -> None:
-    pytest.importorskip("efem_viz.eval", reason="efem_viz.eval not importable yet")
-    from efem_viz import eval as ev
-
-    if not hasattr(ev, "match_instances") or not hasattr(ev, "evaluate_instances"):
-        pytest.skip("efem_viz.eval has no match_instances/evaluate_instances yet")
     app.set_threshold(0.0)
     app.set_color_mode("gt_match")
     m = app._gt_metrics()

@@ -17,12 +17,13 @@ import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
-from typing import Any, Callable, Literal, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Literal, Sequence
 
 import numpy as np
 
+from efem_viz.colors import instance_colors
 from efem_viz.viewer import state as st
-from efem_viz.viewer.inputs import (
+from efem_viz.serve.inputs import (
     ClientValueError,
     read_bool,
     read_choice,
@@ -31,7 +32,8 @@ from efem_viz.viewer.inputs import (
     read_text,
     resolve_inside_root,
 )
-from efem_viz.viewer.nodes import SceneNodes
+from efem_viz.viewer.legend import category_summary, legend_html, result_summary_markdown
+from efem_viz.viewer.nodes import SceneNodes, decode_shape, default_view, proposal_samples
 from efem_viz.viewer.panels import (
     COLOR_MODES,
     MASK_BAND_RANGE,
@@ -39,14 +41,29 @@ from efem_viz.viewer.panels import (
     active_figure,
     build_panels,
     pr_figure,
+    set_figure,
+    set_slider_marks,
 )
-from efem_viz.viewer.state import SceneEntry, ViewerState
+from efem_viz.viewer.state import ViewerState
+from efem_viz.viewer.texts import (
+    deaths_markdown,
+    gt_markdown,
+    inspect_markdown,
+    md_escape,
+    parse_pid,
+    proposal_options,
+    safe_name,
+    scene_info_markdown,
+    step_markdown,
+)
+
+if TYPE_CHECKING:
+    from efem_viz.prior.config import ShapePriorLike
 
 logger = logging.getLogger(__name__)
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_SCENE_DIR = REPO_ROOT / "sample_scenes"
-MAX_DEAD_LISTED = 40
 
 
 class ViewerApp:
@@ -61,7 +78,7 @@ class ViewerApp:
         open_first: open the first scene at start (and its saved trace when present).
         out_dir: the output root: every export from the GUI goes into this folder or below it (a folder typed
             into the GUI must resolve inside it); the static demo defaults to `<out_dir>/static/<scene>/`.
-        token: the server's access token (None = a fresh random one; see `efem_viz.viewer.guard`).
+        token: the server's access token (None = a fresh random one; see `efem_viz.serve.guard`).
         results: folders of saved results (`<scene>.efem.npz`, e.g. `efem-viz segment --out DIR`), searched after
             each scene's own folder; with no `paths`, the scenes are the scene files in these folders (segment's
             `<scene>.seg.ply`).
@@ -76,14 +93,14 @@ class ViewerApp:
         *,
         host: str = "127.0.0.1",
         port: int = 8080,
-        prior: Any = None,
+        prior: ShapePriorLike | None = None,
         prior_name: str = "mug",
         open_first: bool = True,
         out_dir: str | Path = "efem_out",
         token: str | None = None,
         results: Sequence[str | Path] = (),
     ) -> None:
-        from efem_viz.viewer.guard import start_server
+        from efem_viz.serve.guard import start_server
 
         self.state = ViewerState()
         scene_paths = list(paths) if paths else (list(results) if results else [DEFAULT_SCENE_DIR])
@@ -91,7 +108,7 @@ class ViewerApp:
         self._roots = [Path(p).expanduser().resolve() for p in [*scene_paths, *results]]
         self.out_root = Path(out_dir).expanduser().resolve()
         """Exports from the GUI stay inside this folder (fixed at start)."""
-        self._prior = prior
+        self._prior: ShapePriorLike | None = prior
         self._prior_name = prior_name
         self._prior_error: str | None = None
         self._lock = threading.RLock()
@@ -201,7 +218,7 @@ class ViewerApp:
 
     # ================================================================== wiring (callbacks stay thin)
     def _wire(self) -> None:
-        """Connect the controls to the actions. Every client value is read through `efem_viz.viewer.inputs`
+        """Connect the controls to the actions. Every client value is read through `efem_viz.serve.inputs`
         (clamped to the control's declared range, checked against its options), never used raw."""
         p = self.panels
         wb = self._gui_set  # shows a clamped value in every client without re-entering the callback
@@ -239,7 +256,7 @@ class ViewerApp:
         p.gui_show_shapes.on_update(guard(lambda: self.set_proposal_layers(shapes=read_bool(p.gui_show_shapes))))
         p.gui_show_samples.on_update(guard(lambda: self.set_proposal_layers(samples=read_bool(p.gui_show_samples))))
         p.gui_max_shapes.on_update(guard(lambda: self.set_max_shapes(read_int(p.gui_max_shapes, write_back=wb))))
-        p.gui_proposal.on_update(guard(lambda: self.select_proposal(_parse_pid(read_choice(p.gui_proposal)))))
+        p.gui_proposal.on_update(guard(lambda: self.select_proposal(parse_pid(read_choice(p.gui_proposal)))))
         p.gui_threshold.on_update(guard(lambda: self.set_threshold(read_number(p.gui_threshold))))
         p.gui_mask_band.on_update(
             guard(lambda: self._submit(self._worker, self.set_mask_band, read_number(p.gui_mask_band))))
@@ -275,7 +292,7 @@ class ViewerApp:
         if kind == "results":
             return self._submit(self._worker, self.export_results, folder)
         scene = self.state.scene
-        target = folder / "static" / _safe_name(scene.name) if scene is not None else None
+        target = folder / "static" / safe_name(scene.name) if scene is not None else None
         return self._submit(self._worker, self.export_static, target)
 
     def _gui_set(self, handle: Any, value: Any) -> None:
@@ -295,7 +312,7 @@ class ViewerApp:
         return any(r.is_file() and rp == st.trace_path_for(r) for r in self._roots)
 
     # ================================================================== prior
-    def prior(self) -> Any:
+    def prior(self) -> ShapePriorLike:
         """The shape prior (loaded on first use). Raises RuntimeError with the reason when unavailable."""
         if self._prior is None:
             if self._prior_error is not None:
@@ -309,7 +326,7 @@ class ViewerApp:
                 raise RuntimeError(self._prior_error) from exc
         return self._prior
 
-    def _prior_for(self, trace: Any) -> Any:
+    def _prior_for(self, trace: Any) -> ShapePriorLike:
         """The prior, checked against the latent size recorded in the trace.
 
         Raises:
@@ -382,18 +399,15 @@ class ViewerApp:
 
     def _frame_cameras(self, scene: Any) -> None:
         """Point the initial camera (new clients, "Reset View") and every connected camera at the scene."""
-        lo, hi = scene.bounds
-        center = (lo + hi) / 2.0
-        diag = float(np.linalg.norm(hi - lo)) or 1.0
-        position = center + diag * np.array([0.5, -0.95, 0.85])
+        look_at, position = default_view(*scene.bounds)
         cam = self.server.initial_camera
-        cam.look_at = st.xyz_tuple(center)
-        cam.position = st.xyz_tuple(position)
+        cam.look_at = look_at
+        cam.position = position
         cam.up = (0.0, 0.0, 1.0)
         for client in list(self.server.get_clients().values()):
             try:
-                client.camera.look_at = st.xyz_tuple(center)
-                client.camera.position = st.xyz_tuple(position)
+                client.camera.look_at = look_at
+                client.camera.position = position
             except Exception:  # noqa: BLE001 - a client may disconnect meanwhile
                 pass
 
@@ -526,15 +540,15 @@ class ViewerApp:
             self._inspect_weights = None
             s = self.state
             trace = result.trace
-            if s.scene is not None and hasattr(trace, "bind"):
-                trace.bind(s.scene)  # raises ValueError when the result belongs to another scene
+            if s.scene is not None and hasattr(result, "bind"):
+                result.bind(s.scene)  # raises ValueError when the result belongs to another scene
             s.result, s.result_source, s.selected = result, source, None
             T = int(trace.num_steps)
             s.step = max(T - 1, 0)
             p = self.panels
             marks = st.phase_marks(np.asarray(trace.phase))
             p.gui_step.max = max(T - 1, 1)
-            p.gui_step.marks = tuple((m.step, m.label) for m in marks) or None
+            set_slider_marks(p.gui_step, [(m.step, m.label) for m in marks])
             p.gui_step.disabled = T == 0
             p.gui_play.disabled = T == 0
             self._gui_set(p.gui_step, s.step)
@@ -556,7 +570,11 @@ class ViewerApp:
             self._mask_dist = None
             p.gui_mask_band.disabled = len(result.instances) == 0
             self._gui_set(p.gui_mask_band, float(np.clip(result.config.out_tau, *MASK_BAND_RANGE)))
-            p.gui_run_info.content = f"**Result**: {source} · {T} steps · {len(result.instances.ids)} instances"
+            counts = md_escape(category_summary(result.instances.category))
+            p.gui_run_info.content = (
+                f"**Result**: {source} · {T} steps · {len(result.instances.ids)} instances"
+                + (f" ({counts})" if counts else "")
+            )
             p.gui_active_plot.visible = True
             s.color_mode = "instances"
             self._gui_set(p.gui_color, "instances")
@@ -575,6 +593,7 @@ class ViewerApp:
         p.gui_inspect_info.content = ""
         p.gui_dead_info.content = ""
         p.gui_result_info.content = ""
+        p.gui_legend.content = ""
         p.gui_gt_info.content = ""
         p.gui_run_info.content = ""
         self._gui_set(p.gui_proposal, NO_PROPOSAL)
@@ -606,19 +625,11 @@ class ViewerApp:
         if not s.show_samples or drawn.size == 0:
             self.nodes.hide_samples()
             return
-        pts_list, col_list = [], []
-        cols = st.palette(drawn)
-        for k, pid in enumerate(drawn):
-            idx = st.sample_indices(trace, int(pid), t)
-            if idx is None or idx.size == 0:
-                continue
-            idx = np.unique(idx)
-            pts_list.append(s.scene.points[idx])
-            col_list.append(np.repeat(cols[k : k + 1], idx.size, axis=0))
-        if not pts_list:
+        pts, cols = proposal_samples(trace, t, drawn, s.scene.points)
+        if not len(pts):
             self.nodes.hide_samples()
             return
-        self.nodes.draw_samples(np.concatenate(pts_list), np.concatenate(col_list))
+        self.nodes.draw_samples(pts, cols)
 
     def _draw_shapes(self, t: int, drawn: np.ndarray) -> None:
         s = self.state
@@ -630,8 +641,6 @@ class ViewerApp:
 
     def _decode_shapes(self, keys: list[tuple[int, int]], generation: int) -> None:
         """Worker: decode the shapes of (proposal, step) pairs from their stored latents and send each once."""
-        from efem_viz.em.solver import mesh_of_latent
-
         try:
             prior = self._prior_for(self.state.result.trace)
         except RuntimeError as exc:
@@ -644,24 +653,22 @@ class ViewerApp:
                     continue  # the user moved on (decoded again when asked) or it is already there
                 trace = self.state.result.trace
                 latent = trace.latent(pid, t)
-                resolution = int(getattr(trace.config, "mesh_resolution", 40))
-            mesh = mesh_of_latent(prior, latent, resolution=resolution)
+            shape = decode_shape(prior, latent, resolution=trace.config.mesh_resolution)
             with self._lock:
                 if generation != self._generation:
                     return
-                if mesh is not None and len(getattr(mesh, "faces", ())):
-                    dead = st.is_dead_at(trace, pid, t)
-                    self.nodes.add_shape(pid, t, np.asarray(mesh.vertices), np.asarray(mesh.faces), dead=dead)
+                if shape is not None:
+                    self.nodes.add_shape(pid, t, *shape, dead=st.is_dead_at(trace, pid, t))
                 if self.state.step == t and self.state.show_shapes:
                     ids, scores = st.alive_table(trace, t)
                     drawn = st.top_n(ids, scores, self.state.max_shapes)
                     self.nodes.show_shapes([(int(p_), t) for p_ in drawn])
 
-    def _view(self, pid: int, t: int, prior: Any) -> Any:
+    def _view(self, pid: int, t: int, prior: ShapePriorLike | None) -> Any:
         key = (int(pid), int(t))
         v = self._view_cache.get(key)
         if v is None or (prior is not None and getattr(v, "mesh", None) is None):
-            v = self.state.result.trace.view(int(pid), int(t), prior, mesh=prior is not None)
+            v = self.state.result.replay.view(int(pid), int(t), prior, mesh=prior is not None)
             self._view_cache[key] = v
             if len(self._view_cache) > 256:
                 self._view_cache.pop(next(iter(self._view_cache)))
@@ -672,31 +679,17 @@ class ViewerApp:
         phase = int(np.asarray(trace.phase)[t]) if len(trace.phase) else 0
         sched = np.asarray(trace.schedule)[t] if len(trace.schedule) else np.zeros(4)
         active = np.asarray(trace.active_count)
-        p.gui_step_info.content = (
-            f"**Step {t}** / {int(trace.num_steps) - 1} · phase {phase} · **{len(ids)} alive** "
-            f"(of {int(active[0]) if active.size else 0} initial)\n\n"
-            f"α_D={sched[0]:.3g} · τ_D={sched[1]:.3g} · α_N={sched[2]:.3g} · τ_N={sched[3]:.3g}"
-        )
-        p.gui_active_plot.figure = active_figure(
+        p.gui_step_info.content = step_markdown(t, int(trace.num_steps), phase=phase, alive=len(ids),
+                                                initial=int(active[0]) if active.size else 0, schedule=sched)
+        set_figure(p.gui_active_plot, active_figure(
             active, [(m.step, m.label) for m in st.phase_marks(np.asarray(trace.phase))], t
-        )
-        order = st.top_n(ids, scores, len(ids))
-        score_of = dict(zip(np.asarray(ids).tolist(), np.asarray(scores).tolist()))
-        options = [NO_PROPOSAL] + [f"#{int(i)}  (score {score_of[int(i)]:.3f})" for i in order]
-        if self.state.selected is not None and int(self.state.selected) not in score_of:
-            options.append(f"#{int(self.state.selected)}  (dead)")
-        p.gui_proposal.options = tuple(options)
+        ))
+        options = proposal_options(ids, scores, selected=self.state.selected)
+        p.gui_proposal.options = options
         sel = self.state.selected
-        current = next((o for o in options if _parse_pid(o) == sel), NO_PROPOSAL)
+        current = next((o for o in options if parse_pid(o) == sel), NO_PROPOSAL)
         self._gui_set(p.gui_proposal, current)
-        deaths = [d for d in st.deaths(trace) if d.step <= t]
-        lines = [f"**Terminated by step {t}: {len(deaths)}**", ""]
-        for d in sorted(deaths, key=lambda d: (-d.step, d.pid))[:MAX_DEAD_LISTED]:
-            extra = f" (partner #{d.partner}, ratio {d.ratio:.2f})" if d.partner is not None and d.partner >= 0 else ""
-            lines.append(f"- #{d.pid}: {d.reason} at step {d.step}{extra}")
-        if len(deaths) > MAX_DEAD_LISTED:
-            lines.append(f"- … {len(deaths) - MAX_DEAD_LISTED} more")
-        p.gui_dead_info.content = "\n".join(lines)
+        p.gui_dead_info.content = deaths_markdown(st.deaths(trace), t)
 
     def play(self) -> None:
         """Start playback from the current step (from 0 when at the end)."""
@@ -761,7 +754,7 @@ class ViewerApp:
                 self._gui_set(self.panels.gui_proposal, NO_PROPOSAL)
                 return None
             opts = self.panels.gui_proposal.options
-            cur = next((o for o in opts if _parse_pid(o) == int(pid)), None)
+            cur = next((o for o in opts if parse_pid(o) == int(pid)), None)
             if cur is None:
                 cur = f"#{int(pid)}"
                 self.panels.gui_proposal.options = tuple(opts) + (cur,)
@@ -803,7 +796,7 @@ class ViewerApp:
         near = np.flatnonzero(np.linalg.norm(scene.points - center[None], axis=1) <= r_err)
         crop_cols = st.heatmap(w[near], vmin=0.0, vmax=1.0)
         mesh = getattr(view, "mesh", None)
-        col = st.palette([pid])[0] if view.alive else st.DEAD_COLOR  # red once terminated (paper Fig. S9)
+        col = instance_colors([pid])[0] if view.alive else st.DEAD_COLOR  # red once terminated (paper Fig. S9)
         self.nodes.draw_inspector(
             crop_points=scene.points[near],
             crop_colors=crop_cols,
@@ -822,7 +815,7 @@ class ViewerApp:
         self.draw_point_colors()
         self.nodes.set_display(s.display, recolored=True)
         self._show_results()
-        self.panels.gui_inspect_info.content = inspect_markdown(pid, t, view)
+        self.panels.gui_inspect_info.content = inspect_markdown(pid, t, view, instances=s.result.instances)
 
     # ================================================================== 5./6. results and ground truth
     def set_threshold(self, threshold: float) -> None:
@@ -836,12 +829,11 @@ class ViewerApp:
             keep = self.kept_mask()
             self._show_results()
             self.draw_point_colors()
-            conf = np.asarray(s.result.instances.confidence, float)
-            self.panels.gui_result_info.content = (
-                f"**{int(keep.sum())} of {keep.size} instances** with confidence ≥ {s.threshold:.2f}"
-                + (f" (max {conf.max():.2f})" if conf.size else "")
-                + f"\n\nmasks: points with decoded \\|SDF\\| < {s.result.config.out_tau:g} (τ_out, canonical units)"
+            inst = s.result.instances
+            self.panels.gui_result_info.content = result_summary_markdown(
+                inst, keep, threshold=s.threshold, out_tau=s.result.config.out_tau
             )
+            self.panels.gui_legend.content = legend_html(inst, keep)
             self._update_gt_panel(keep)
 
     def set_mask_band(self, tau_out: float) -> bool:
@@ -883,7 +875,7 @@ class ViewerApp:
         res = self.state.result
         if res is None:
             return np.zeros(0, bool)
-        return np.asarray(res.instances.confidence, float) >= self.state.threshold
+        return res.instances.kept(self.state.threshold)
 
     def set_result_layers(self, *, meshes: bool, obbs: bool, axes: bool) -> None:
         with self._lock:
@@ -916,12 +908,8 @@ class ViewerApp:
             p.gui_gt_info.content = f"_Ground-truth evaluation failed: {exc}_"
             p.gui_pr_plot.visible = False
             return
-        p.gui_gt_info.content = (
-            f"**Ground truth** ({len(s.scene.instance_ids())} objects) at confidence ≥ {s.threshold:.2f}: "
-            f"TP {len(metrics.tp)} · FP {len(metrics.fp)} · FN {len(metrics.fn)}\n\n"
-            f"AP {metrics.ap:.3f} · AP50 {metrics.ap50:.3f} · AP25 {metrics.ap25:.3f}"
-        )
-        p.gui_pr_plot.figure = pr_figure(metrics.curves, point=metrics.point)
+        p.gui_gt_info.content = gt_markdown(len(s.scene.instance_ids()), s.threshold, metrics)
+        set_figure(p.gui_pr_plot, pr_figure(metrics.curves, point=metrics.point))
         p.gui_pr_plot.visible = True
 
     def _gt_metrics(self) -> st.GTMetrics:
@@ -998,7 +986,7 @@ class ViewerApp:
         if s.result is None or s.scene is None:
             self._set_status("Nothing to export: load or run a result first.", error=True)
             return None
-        target = Path(out_dir) if out_dir is not None else self.out_root / "static" / _safe_name(s.scene.name)
+        target = Path(out_dir) if out_dir is not None else self.out_root / "static" / safe_name(s.scene.name)
         try:
             prior = self._prior_for(s.result.trace)
         except RuntimeError as exc:
@@ -1009,81 +997,3 @@ class ViewerApp:
         self.panels.gui_export_info.content = f"Static demo written to `{out}`"
         self._set_status(f"Exported static demo to {out}.")
         return out
-
-
-# ====================================================================== markdown helpers
-def _parse_pid(option: str) -> int | None:
-    if not option or option == NO_PROPOSAL or not option.startswith("#"):
-        return None
-    try:
-        return int(option[1:].split()[0])
-    except ValueError:
-        return None
-
-
-def _safe_name(name: str) -> str:
-    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name) or "scene"
-
-
-def scene_info_markdown(scene: Any, entry: SceneEntry) -> str:
-    """Info panel text: counts, bounds, ground truth, provenance."""
-    summ = scene.summary()
-    lo, hi = summ["bounds_min"], summ["bounds_max"]
-    lines = [
-        f"**{scene.name}** — {summ['kind']}",
-        f"- points: {summ['points']:,}" + (f" · faces: {summ['faces']:,}" if summ["faces"] else ""),
-        f"- bounds: [{lo[0]:.3f}, {lo[1]:.3f}, {lo[2]:.3f}] → [{hi[0]:.3f}, {hi[1]:.3f}, {hi[2]:.3f}] m",
-        f"- extent: {summ['extent'][0]:.3f} × {summ['extent'][1]:.3f} × {summ['extent'][2]:.3f} m",
-    ]
-    if scene.has_gt:
-        cats = ", ".join(f"{k}: {v}" for k, v in summ.get("categories", {}).items())
-        lines.append(f"- ground truth: {len(scene.instance_ids())} instances ({cats}), {summ.get('labelled_points', 0):,} labelled points")
-    else:
-        lines.append("- ground truth: none")
-    lines.append(f"- file: `{entry.path.name}`")
-    prov = summ.get("provenance") or {}
-    if prov:
-        items = list(prov.items())[:8]
-        lines.append("- provenance: " + "; ".join(f"{k}={_short(v)}" for k, v in items))
-    trace = entry.trace_path
-    lines.append(f"- saved trace: {'`' + trace.name + '`' if trace.is_file() else 'none'}")
-    return "\n".join(lines)
-
-
-def _short(v: Any, n: int = 60) -> str:
-    s = str(v)
-    return s if len(s) <= n else s[: n - 1] + "…"
-
-
-def inspect_markdown(pid: int, t: int, view: Any) -> str:
-    """Inspector text: state, scores and schedule values of a proposal at a step."""
-    lines = [f"**Proposal #{pid} at step {t}** — {'alive' if view.alive else 'terminated'}"]
-    death = getattr(view, "death", None)
-    if death is not None:
-        d_step, reason, partner, ratio = (list(death) + [None] * 4)[:4]
-        extra = ""
-        if partner is not None and int(partner) >= 0:
-            extra = f", partner #{int(partner)}" + (f", ratio {float(ratio):.2f}" if ratio is not None else "")
-        lines.append(f"- death: **{reason}** at step {d_step}{extra}")
-    for name, val in dict(getattr(view, "scores", {}) or {}).items():
-        lines.append(f"- {name}: {_fmt(val)}")
-    sched = dict(getattr(view, "schedule", {}) or {})
-    if sched:
-        lines.append("- schedule: " + " · ".join(f"{k}={_fmt(v)}" for k, v in sched.items()))
-    lines.append(f"- sampled points: {len(np.asarray(view.sample_idx))}")
-    mesh = getattr(view, "mesh", None)
-    if mesh is None:
-        lines.append("- decoded shape: not available (no matching prior)")
-    elif not len(mesh.faces):
-        lines.append("- decoded shape: **empty** (the SDF has no zero crossing on the meshing grid)")
-    else:
-        lines.append(f"- decoded shape: {len(mesh.vertices):,} vertices")
-    return "\n".join(lines)
-
-
-def _fmt(v: Any) -> str:
-    try:
-        f = float(v)
-    except (TypeError, ValueError):
-        return str(v)
-    return f"{int(f)}" if f.is_integer() and abs(f) < 1e9 else f"{f:.4g}"

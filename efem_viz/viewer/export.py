@@ -2,7 +2,9 @@
 
 The static demo is recorded with viser's scene serializer on a private, short-lived server bound to 127.0.0.1
 (port 0, behind the access guard; its token is shown to no one): the scan, then one frame per EM step (sampled points of the live proposals, coloured by id, the decoded
-shapes of the best few when the prior is given, and a caption with the phase and the number of active proposals), then the final result (instance colours, meshes, boxes).
+shapes of the best few when the prior is given, and a caption with the phase and the number of active proposals), then
+the final result (instance colours, meshes, boxes, pose axes and category labels, drawn by the same
+`efem_viz.viewer.nodes` functions as the live viewer).
 `as_html()` inlines the viser client and the zstd-compressed recording, so `index.html` opens from file:// with a
 playback bar (pause, scrub, speed, loop) and needs nothing else.
 """
@@ -12,12 +14,25 @@ from __future__ import annotations
 import json
 import logging
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from efem_viz.viewer import state as st
-from efem_viz.viewer.nodes import obb_segments, rotation_to_wxyz
+from efem_viz.viewer.legend import category_summary
+from efem_viz.viewer.nodes import (
+    add_result_nodes,
+    add_sample_cloud,
+    add_shape_mesh,
+    decode_shape,
+    default_point_size,
+    default_view,
+    proposal_samples,
+    scene_diagonal,
+)
+
+if TYPE_CHECKING:
+    from efem_viz.prior.config import ShapePriorLike
 
 logger = logging.getLogger(__name__)
 
@@ -68,7 +83,7 @@ def export_static_demo(
     step_seconds: float = 0.6,
     final_seconds: float = 3.0,
     seed: int = 0,
-    prior: Any = None,
+    prior: ShapePriorLike | None = None,
     shapes_per_step: int = 4,
 ) -> Path:
     """Record a static demo page: the scan, a playback of the EM steps, and the final result.
@@ -90,7 +105,7 @@ def export_static_demo(
     Returns:
         Path of the written `index.html`.
     """
-    from efem_viz.viewer.guard import start_server
+    from efem_viz.serve.guard import start_server
 
     out = Path(out_dir).expanduser()
     out.mkdir(parents=True, exist_ok=True)
@@ -99,11 +114,12 @@ def export_static_demo(
     rng = np.random.default_rng(seed)
     keep = np.sort(rng.choice(n, size=max_points, replace=False)) if n > max_points else np.arange(n)
     lo, hi = pts.min(axis=0), pts.max(axis=0)
-    diag = float(np.linalg.norm(hi - lo)) or 1.0
-    psize = max(diag * 0.004, 1e-4)
+    diag = scene_diagonal(lo, hi)
+    psize = default_point_size(diag)
     trace = result.trace
     T = int(trace.num_steps)
-    inst = result.instances.above(float(threshold))
+    kept = result.instances.kept(float(threshold))
+    inst = result.instances.select(kept)
     caption_pos = (float((lo[0] + hi[0]) / 2), float((lo[1] + hi[1]) / 2), float(hi[2] + 0.08 * diag))
 
     n_shapes = 0
@@ -112,10 +128,8 @@ def export_static_demo(
         ser = server.get_scene_serializer()
         api = server.scene
         api.set_up_direction("+z")
-        center = (lo + hi) / 2.0
         cam = server.initial_camera  # recorded: the page opens looking at the scene
-        cam.look_at = st.xyz_tuple(center)
-        cam.position = st.xyz_tuple(center + diag * np.array([0.5, -0.95, 0.85]))
+        cam.look_at, cam.position = default_view(lo, hi)
         cam.up = (0.0, 0.0, 1.0)
         cloud = api.add_point_cloud(
             "/scene/points", points=pts[keep], colors=st.dim(scene.colors[keep]), point_size=psize, point_shape="rounded"
@@ -125,76 +139,28 @@ def export_static_demo(
         for t in range(T):
             ids, scores = st.alive_table(trace, t)
             drawn = st.top_n(ids, scores, max_proposals)
-            cols = st.palette(drawn)
-            p_list, c_list = [], []
-            for k, pid in enumerate(drawn):
-                idx = st.sample_indices(trace, int(pid), t)
-                if idx is None or idx.size == 0:
-                    continue
-                idx = np.unique(idx)
-                p_list.append(pts[idx])
-                c_list.append(np.repeat(cols[k : k + 1], idx.size, axis=0))
-            if p_list:
-                api.add_point_cloud(
-                    "/em/samples",
-                    points=np.concatenate(p_list),
-                    colors=np.concatenate(c_list),
-                    point_size=psize * 1.6,
-                    point_shape="circle",
-                )
+            s_pts, s_cols = proposal_samples(trace, t, drawn, pts)
+            if len(s_pts):
+                add_sample_cloud(api, s_pts, s_cols, point_size=psize)
             api.remove_by_name("/em/shapes")
             if prior is not None and shapes_per_step > 0:
-                from efem_viz.em.solver import mesh_of_latent
-
-                res = int(getattr(trace.config, "mesh_resolution", 32))
                 for pid in drawn[:shapes_per_step]:
-                    mesh = mesh_of_latent(prior, trace.latent(int(pid), t), resolution=res)
-                    if mesh is None or not len(mesh.faces):
+                    shape = decode_shape(prior, trace.latent(int(pid), t), resolution=trace.config.mesh_resolution)
+                    if shape is None:
                         continue
                     n_shapes += 1
-                    dead = st.is_dead_at(trace, int(pid), t)
-                    col = st.DEAD_COLOR if dead else st.palette([int(pid)])[0]
-                    api.add_mesh_simple(
-                        f"/em/shapes/p{int(pid)}",
-                        vertices=np.asarray(mesh.vertices, np.float32),
-                        faces=np.asarray(mesh.faces, np.int32),
-                        color=st.rgb_tuple(col),
-                        opacity=0.85,
-                    )
+                    add_shape_mesh(api, f"/em/shapes/p{int(pid)}", *shape, pid=int(pid),
+                                   dead=st.is_dead_at(trace, int(pid), t))
             phase = int(np.asarray(trace.phase)[t])
             api.add_label("/caption", text=f"step {t}/{T - 1} · phase {phase} · {len(ids)} active", position=caption_pos)
             ser.insert_sleep(step_seconds)
         api.remove_by_name("/em")
-        kept = np.asarray(result.instances.confidence, float) >= float(threshold)
         cloud.colors = st.instance_colors(scene.colors, result.instances, kept)[keep]  # same colours as the meshes
-        ids_all = np.asarray(inst.ids).reshape(-1)
-        pal = st.palette(ids_all)
-        for k in range(ids_all.shape[0]):
-            col = st.rgb_tuple(pal[k])
-            if k < len(inst.mesh_vertices) and inst.mesh_vertices[k] is not None and len(inst.mesh_faces[k]):
-                api.add_mesh_simple(
-                    f"/results/mesh/k{k}",
-                    vertices=np.asarray(inst.mesh_vertices[k], np.float32),
-                    faces=np.asarray(inst.mesh_faces[k], np.int32),
-                    color=col,
-                    opacity=0.75,
-                )
-            api.add_line_segments(
-                f"/results/obb/k{k}",
-                points=obb_segments(inst.obb_center[k], inst.obb_axes[k], inst.obb_half_extents[k]),
-                colors=col,
-                thickness=2.0,
-                thickness_units="screen",
-            )
-            api.add_frame(
-                f"/results/axes/k{k}",
-                wxyz=tuple(rotation_to_wxyz(inst.R[k])),
-                position=st.xyz_tuple(np.asarray(inst.center[k]).reshape(3)),
-                axes_length=float(np.max(inst.obb_half_extents[k])) * 1.2,
-                axes_radius=float(np.max(inst.obb_half_extents[k])) * 0.05,
-            )
+        add_result_nodes(api, inst, visible=True)  # as the live viewer draws them (meshes, boxes, axes, labels)
+        counts = category_summary(inst.category)
         api.add_label(
-            "/caption", text=f"result: {ids_all.shape[0]} objects (confidence ≥ {threshold:.2f})", position=caption_pos
+            "/caption", text=f"result: {len(inst)} objects" + (f" ({counts})" if counts else "")
+            + f", confidence ≥ {threshold:.2f}", position=caption_pos,
         )
         ser.insert_sleep(final_seconds)
         html = ser.as_html()
@@ -235,7 +201,7 @@ def main(argv: list[str] | None = None) -> int:
 
     scene = load_scene(args.scene)
     result = EMResult.load(st.trace_path_for(args.scene))
-    result.trace.bind(scene)
+    result.bind(scene)
     prior = None
     if args.prior:
         from efem_viz.prior import load_prior

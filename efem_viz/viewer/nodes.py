@@ -7,7 +7,11 @@ only resend colours (uint8) or flip visibility. Node paths:
 * `/em/samples` — sampled points of the drawn proposals at the current step, coloured by id;
 * `/em/shapes/p<id>_t<step>` — decoded shapes (one mesh per proposal and step, cached and re-shown);
 * `/inspect/...` — the four Fig. S9 views of the inspected proposal, laid out beside the scene;
-* `/results/mesh/k<i>`, `/results/obb/k<i>`, `/results/axes/k<i>` — final instances (threshold = visibility).
+* `/results/mesh/k<i>`, `/results/obb/k<i>`, `/results/axes/k<i>`, `/results/label/k<i>` — final instances
+  (threshold = visibility; the label names the category).
+
+The `add_*` functions draw on any `SceneApi` with the constants below; the live viewer (`SceneNodes`) and the
+static demo (`efem_viz.viewer.export`) both draw through them, so the two look the same.
 """
 
 from __future__ import annotations
@@ -15,54 +19,217 @@ from __future__ import annotations
 import logging
 from collections import OrderedDict
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
-from efem_viz.viewer.state import DEAD_COLOR, palette
+from efem_viz.colors import instance_colors
+from efem_viz.geometry.transforms import rotation_to_quat_wxyz, xyz_tuple
+from efem_viz.viewer.legend import instance_label, result_colors
+from efem_viz.viewer.state import DEAD_COLOR, rgb_tuple, sample_indices
+
+if TYPE_CHECKING:
+    from viser import (
+        FrameHandle,
+        GlbHandle,
+        LabelHandle,
+        LineSegmentsHandle,
+        MeshHandle,
+        PointCloudHandle,
+        SceneApi,
+        SceneNodeHandle,
+    )
+
+    from efem_viz.prior.config import ShapePriorLike
 
 logger = logging.getLogger(__name__)
 
-OBB_EDGES = np.array(
-    [[0, 1], [1, 3], [3, 2], [2, 0], [4, 5], [5, 7], [7, 6], [6, 4], [0, 4], [1, 5], [2, 6], [3, 7]], np.int64
-)
-"""Edges of a box whose corners are indexed by bits (x, y, z) = (i & 1, i >> 1 & 1, i >> 2 & 1)."""
+POINT_SIZE_OF_DIAGONAL = 0.004
+"""Default scan point size, as a fraction of the scene's bounding-box diagonal."""
+SAMPLE_SIZE = 1.6
+"""Sampled points are drawn this many times the scan's point size."""
+SHAPE_OPACITY = 0.85
+"""Opacity of the decoded per-step shapes."""
+RESULT_MESH_OPACITY = 0.8
+"""Opacity of the final instances' meshes."""
+OBB_THICKNESS_PX = 2.0
+"""Line width of the boxes, screen pixels."""
+AXES_LENGTH_OF_EXTENT = 1.2
+"""Pose axes are this many times the box's largest half extent long."""
+AXES_RADIUS_OF_LENGTH = 0.04
+"""Pose axes radius, as a fraction of their length."""
+VIEW_DIRECTION = np.array([0.5, -0.95, 0.85])
+"""Initial camera offset from the scene centre, in scene diagonals (looking down at the table from the front)."""
 
 
-def obb_corners(center: np.ndarray, axes: np.ndarray, half_extents: np.ndarray) -> np.ndarray:
-    """Corners of an oriented box.
+def scene_diagonal(lo: np.ndarray, hi: np.ndarray) -> float:
+    """Length of the bounding-box diagonal from corner `lo` to `hi` ((3,) world); 1 for an empty box."""
+    return float(np.linalg.norm(np.asarray(hi) - np.asarray(lo))) or 1.0
+
+
+def default_point_size(diagonal: float) -> float:
+    """Scan point size (world units) for a scene of this bounding-box diagonal (`POINT_SIZE_OF_DIAGONAL` of it)."""
+    return max(float(diagonal) * POINT_SIZE_OF_DIAGONAL, 1e-4)
+
+
+def default_view(lo: np.ndarray, hi: np.ndarray) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+    """(look_at, position) of the initial camera for a scene with bounds `lo`, `hi` ((3,) world, +Z up)."""
+    center = (np.asarray(lo) + np.asarray(hi)) / 2.0
+    return xyz_tuple(center), xyz_tuple(center + scene_diagonal(lo, hi) * VIEW_DIRECTION)
+
+
+def proposal_samples(
+    trace: Any, step: int, drawn: np.ndarray, points: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The points sampled by some proposals at one step, each coloured by its proposal id.
 
     Args:
-        center: (3,) float, world frame.
-        axes: (3, 3) float, columns are the box axes in world.
-        half_extents: (3,) float half sizes along those axes.
+        trace: the run's `EMTrace`.
+        step: EM step.
+        drawn: (D,) int proposal ids to draw.
+        points: (N, 3) float32 scene points, world frame.
 
     Returns:
-        (8, 3) float32 corners, indexed by bits as in `OBB_EDGES`.
+        (S, 3) float32 points and (S, 3) uint8 colours (S = 0 when none of them sampled anything).
     """
-    signs = np.array([[(i & 1) * 2 - 1, ((i >> 1) & 1) * 2 - 1, ((i >> 2) & 1) * 2 - 1] for i in range(8)], float)
-    c = np.asarray(center, float).reshape(3)
-    a = np.asarray(axes, float).reshape(3, 3)
-    h = np.asarray(half_extents, float).reshape(3)
-    return (c[None] + (signs * h[None]) @ a.T).astype(np.float32)
+    cols = instance_colors(drawn)
+    pts_list, col_list = [], []
+    for k, pid in enumerate(np.asarray(drawn).reshape(-1)):
+        idx = sample_indices(trace, int(pid), int(step))
+        if idx is None or idx.size == 0:
+            continue
+        idx = np.unique(idx)
+        pts_list.append(np.asarray(points)[idx])
+        col_list.append(np.repeat(cols[k : k + 1], idx.size, axis=0))
+    if not pts_list:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
+    return np.concatenate(pts_list).astype(np.float32), np.concatenate(col_list).astype(np.uint8)
 
 
-def obb_segments(center: np.ndarray, axes: np.ndarray, half_extents: np.ndarray) -> np.ndarray:
-    """(12, 2, 3) float32 line segments of an oriented box (see `obb_corners`)."""
-    corners = obb_corners(center, axes, half_extents)
-    return corners[OBB_EDGES].astype(np.float32)
+def decode_shape(prior: ShapePriorLike, latent: Any, *, resolution: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """World-frame mesh of a stored latent, or None when its SDF has no zero crossing on the grid.
+
+    Args:
+        prior: the run's shape prior.
+        latent: `EMTrace.latent(pid, step)`.
+        resolution: meshing grid (the run's `EMConfig.mesh_resolution`).
+
+    Returns:
+        (V, 3) float32 vertices and (F, 3) int32 faces, or None.
+    """
+    from efem_viz.em.decoding import mesh_of_latent
+
+    mesh = mesh_of_latent(prior, latent, resolution=int(resolution))
+    if mesh is None or not len(getattr(mesh, "faces", ())):
+        return None
+    return np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32)
 
 
-def rotation_to_wxyz(R: np.ndarray) -> np.ndarray:
-    """(4,) float64 unit quaternion (w, x, y, z) of a rotation matrix (a reflection is flipped to proper first)."""
-    from scipy.spatial.transform import Rotation
+def add_sample_cloud(
+    api: SceneApi, points: np.ndarray, colors: np.ndarray, *, point_size: float, visible: bool = True
+) -> PointCloudHandle:
+    """`/em/samples`: the sampled points of the drawn proposals ((S, 3) float32 world, (S, 3) uint8)."""
+    return api.add_point_cloud(
+        "/em/samples",
+        points=np.asarray(points, np.float32),
+        colors=np.asarray(colors, np.uint8),
+        point_size=point_size * SAMPLE_SIZE,
+        point_shape="circle",
+        visible=visible,
+    )
 
-    m = np.asarray(R, np.float64).reshape(3, 3)
-    if np.linalg.det(m) < 0:
-        m = m.copy()
-        m[:, 0] *= -1.0
-    xyzw = Rotation.from_matrix(m).as_quat()
-    return np.array([xyzw[3], xyzw[0], xyzw[1], xyzw[2]])
+
+def add_shape_mesh(
+    api: SceneApi, name: str, vertices: np.ndarray, faces: np.ndarray, *, pid: int, dead: bool, visible: bool = True
+) -> MeshHandle:
+    """A decoded proposal shape: coloured by proposal id, red (`DEAD_COLOR`) once terminated.
+
+    Args:
+        api: `server.scene`.
+        name: node path.
+        vertices: (V, 3) float32 world.
+        faces: (F, 3) int32.
+        pid: proposal id (its colour).
+        dead: the proposal is terminated at the shown step.
+        visible: initial visibility.
+    """
+    color = DEAD_COLOR if dead else instance_colors([pid])[0]
+    return api.add_mesh_simple(
+        name,
+        vertices=np.asarray(vertices, np.float32),
+        faces=np.asarray(faces, np.int32),
+        color=rgb_tuple(color),
+        opacity=SHAPE_OPACITY,
+        visible=visible,
+    )
+
+
+def instance_label_position(instances: Any, k: int) -> tuple[float, float, float]:
+    """Just above the top of instance k's box (world frame)."""
+    c = np.asarray(instances.obb_center[k], np.float64).reshape(3)
+    axes = np.asarray(instances.obb_axes[k], np.float64).reshape(3, 3)
+    h = np.asarray(instances.obb_half_extents[k], np.float64).reshape(3)
+    top = float(np.abs(axes[2]) @ h)  # the box's half height along world z
+    return xyz_tuple(c + np.array([0.0, 0.0, top * 1.15]))
+
+
+@dataclass
+class ResultNodes:
+    """Scene handles of the final instances, one entry per instance (in the order of the `Instances`)."""
+
+    meshes: list[MeshHandle | None] = field(default_factory=list)
+    """`/results/mesh/k<i>` (None: the instance has no mesh)."""
+    obbs: list[LineSegmentsHandle] = field(default_factory=list)
+    """`/results/obb/k<i>`."""
+    axes: list[FrameHandle] = field(default_factory=list)
+    """`/results/axes/k<i>`: the pose."""
+    labels: list[LabelHandle] = field(default_factory=list)
+    """`/results/label/k<i>`: category, id and confidence (`instance_label`)."""
+
+
+def add_result_nodes(api: SceneApi, instances: Any, *, visible: bool) -> ResultNodes:
+    """Draw every final instance: its mesh, box, pose axes and label, in its palette colour.
+
+    The live viewer draws them hidden and switches visibility with the threshold; the static demo draws the
+    instances above its threshold visible. Both go through here, so they look the same.
+
+    Args:
+        api: `server.scene`.
+        instances: `efem_viz.em.Instances` (ids, category, confidence, mesh_vertices/mesh_faces lists, R,
+            center, obb_half_extents and `obb(k)`).
+        visible: initial visibility of every node.
+    """
+    out = ResultNodes()
+    ids = np.asarray(instances.ids).reshape(-1)
+    cols = result_colors(instances)
+    for k in range(ids.shape[0]):
+        col = rgb_tuple(cols[k])
+        verts = instances.mesh_vertices[k] if k < len(instances.mesh_vertices) else None
+        faces = instances.mesh_faces[k] if k < len(instances.mesh_faces) else None
+        if verts is not None and faces is not None and len(faces):
+            out.meshes.append(api.add_mesh_simple(
+                f"/results/mesh/k{k}", vertices=np.asarray(verts, np.float32), faces=np.asarray(faces, np.int32),
+                color=col, opacity=RESULT_MESH_OPACITY, visible=visible,
+            ))
+        else:
+            out.meshes.append(None)
+        half = np.asarray(instances.obb_half_extents[k], np.float64).reshape(3)
+        seg = instances.obb(k).line_segments().astype(np.float32)  # (12, 2, 3) world
+        out.obbs.append(api.add_line_segments(
+            f"/results/obb/k{k}", points=seg, colors=col, thickness=OBB_THICKNESS_PX, thickness_units="screen",
+            visible=visible,
+        ))
+        length = max(float(np.max(half)) * AXES_LENGTH_OF_EXTENT, 1e-3)
+        w, x, y, z = (float(v) for v in rotation_to_quat_wxyz(np.asarray(instances.R[k], np.float64)))
+        out.axes.append(api.add_frame(
+            f"/results/axes/k{k}", wxyz=(w, x, y, z), position=xyz_tuple(np.asarray(instances.center[k]).reshape(3)),
+            axes_length=length, axes_radius=length * AXES_RADIUS_OF_LENGTH, visible=visible,
+        ))
+        out.labels.append(api.add_label(
+            f"/results/label/k{k}", text=instance_label(instances, k),
+            position=instance_label_position(instances, k), visible=visible,
+        ))
+    return out
 
 
 @dataclass
@@ -73,18 +240,20 @@ class SceneNodes:
         scene_api: `server.scene` (a `viser.SceneApi`).
     """
 
-    scene_api: Any
-    point_size: float = 0.004
-    points: Any = None
-    mesh: Any = None
-    samples: Any = None
-    shapes: "OrderedDict[tuple[int, int], Any]" = field(default_factory=OrderedDict)
-    inspect: dict[str, Any] = field(default_factory=dict)
-    result_meshes: list[Any] = field(default_factory=list)
-    result_obbs: list[Any] = field(default_factory=list)
-    result_axes: list[Any] = field(default_factory=list)
+    scene_api: SceneApi
+    point_size: float = POINT_SIZE_OF_DIAGONAL
+    points: PointCloudHandle | None = None
+    """`/scene/points`: the scan (carries every recolouring)."""
+    mesh: GlbHandle | None = None
+    """`/scene/mesh`: the scan's mesh (mesh scenes only)."""
+    samples: PointCloudHandle | None = None
+    shapes: OrderedDict[tuple[int, int], MeshHandle] = field(default_factory=OrderedDict)
+    """Decoded shapes by (proposal id, step), least recently shown first."""
+    inspect: dict[str, SceneNodeHandle] = field(default_factory=dict)
+    results: ResultNodes = field(default_factory=ResultNodes)
+    """The final instances (see `add_result_nodes`)."""
     max_cached_shapes: int = 256
-    on_shape_click: Any = None
+    on_shape_click: Callable[[int], None] | None = None
     """Called with the proposal id when a decoded shape is clicked in the browser (or None)."""
     _colors_key: int | None = None
     _extent: float = 1.0
@@ -101,9 +270,7 @@ class SceneNodes:
         self.points = self.mesh = self.samples = None
         self.shapes.clear()
         self.inspect.clear()
-        self.result_meshes.clear()
-        self.result_obbs.clear()
-        self.result_axes.clear()
+        self.results = ResultNodes()
         self._colors_key = None
 
     def draw_scene(self, scene: Any, *, display: str = "points", point_size: float | None = None) -> None:
@@ -117,9 +284,9 @@ class SceneNodes:
         self.clear()
         pts = np.asarray(scene.points, np.float32)
         lo, hi = pts.min(axis=0), pts.max(axis=0)
-        diag = float(np.linalg.norm(hi - lo)) or 1.0
+        diag = scene_diagonal(lo, hi)
         self._extent = diag
-        self.point_size = float(point_size) if point_size else max(diag * 0.004, 1e-4)
+        self.point_size = float(point_size) if point_size else default_point_size(diag)
         self._bounds = np.stack([lo, hi]).astype(np.float64)
         self.points = self.scene_api.add_point_cloud(
             "/scene/points",
@@ -180,14 +347,7 @@ class SceneNodes:
             if self.samples is not None:
                 self.samples.visible = False
             return
-        self.samples = self.scene_api.add_point_cloud(
-            "/em/samples",
-            points=np.asarray(points, np.float32),
-            colors=np.asarray(colors, np.uint8),
-            point_size=self.point_size * 1.6,
-            point_shape="circle",
-            visible=visible,
-        )
+        self.samples = add_sample_cloud(self.scene_api, points, colors, point_size=self.point_size, visible=visible)
 
     def hide_samples(self) -> None:
         if self.samples is not None:
@@ -209,15 +369,8 @@ class SceneNodes:
         key = (int(pid), int(step))
         if key in self.shapes:
             return
-        color = DEAD_COLOR if dead else palette([pid])[0]
-        h = self.scene_api.add_mesh_simple(
-            f"/em/shapes/p{int(pid)}_t{int(step)}",
-            vertices=np.asarray(vertices, np.float32),
-            faces=np.asarray(faces, np.int32),
-            color=tuple(int(c) for c in color),
-            opacity=0.85,
-            visible=False,
-        )
+        h = add_shape_mesh(self.scene_api, f"/em/shapes/p{int(pid)}_t{int(step)}", vertices, faces, pid=int(pid),
+                           dead=dead, visible=False)
         if self.on_shape_click is not None:
             callback = self.on_shape_click
 
@@ -294,7 +447,7 @@ class SceneNodes:
         for k, title in ((1, "weights (crop)"), (2, "sampled points"), (3, "decoded shape")):
             pos = c + offs[k] + np.array([0.0, 0.0, 1.15 * radius], np.float32)
             self.inspect[f"label{k}"] = api.add_label(
-                f"/inspect/label{k}", text=f"{label}: {title}", position=tuple(float(v) for v in pos)
+                f"/inspect/label{k}", text=f"{label}: {title}", position=xyz_tuple(pos)
             )
         if crop_points.shape[0]:
             self.inspect["crop"] = api.add_point_cloud(
@@ -308,7 +461,7 @@ class SceneNodes:
             self.inspect["samples"] = api.add_point_cloud(
                 "/inspect/samples",
                 points=np.asarray(sampled_points, np.float32) + offs[2],
-                colors=tuple(int(v) for v in np.asarray(sample_color).reshape(3)),
+                colors=rgb_tuple(np.asarray(sample_color).reshape(3)),
                 point_size=ps,
                 point_shape="circle",
             )
@@ -317,7 +470,7 @@ class SceneNodes:
                 "/inspect/shape",
                 vertices=np.asarray(mesh_vertices, np.float32) + offs[3],
                 faces=np.asarray(mesh_faces, np.int32),
-                color=tuple(int(v) for v in np.asarray(sample_color).reshape(3)),
+                color=rgb_tuple(np.asarray(sample_color).reshape(3)),
             )
 
     def clear_inspector(self) -> None:
@@ -330,64 +483,31 @@ class SceneNodes:
 
     # ------------------------------------------------------------------ results
     def draw_results(self, instances: Any) -> None:
-        """Send the final instances once: a mesh, an OBB and pose axes each (all hidden until `show_results`).
+        """Send the final instances once: mesh, box, pose axes and label each (all hidden until `show_results`).
 
         Args:
-            instances: `efem_viz.em.Instances` (ids, mesh_vertices/mesh_faces lists, R, center, scale, obb_*).
+            instances: `efem_viz.em.Instances` (see `add_result_nodes`).
         """
         try:
             self.scene_api.remove_by_name("/results")
         except Exception:  # noqa: BLE001
             pass
-        self.result_meshes.clear()
-        self.result_obbs.clear()
-        self.result_axes.clear()
-        ids = np.asarray(instances.ids).reshape(-1)
-        cols = palette(ids)
-        api = self.scene_api
-        for k in range(ids.shape[0]):
-            col = tuple(int(c) for c in cols[k])
-            verts = instances.mesh_vertices[k] if k < len(instances.mesh_vertices) else None
-            faces = instances.mesh_faces[k] if k < len(instances.mesh_faces) else None
-            if verts is not None and faces is not None and len(faces):
-                self.result_meshes.append(
-                    api.add_mesh_simple(
-                        f"/results/mesh/k{k}",
-                        vertices=np.asarray(verts, np.float32),
-                        faces=np.asarray(faces, np.int32),
-                        color=col,
-                        opacity=0.8,
-                        visible=False,
-                    )
-                )
-            else:
-                self.result_meshes.append(None)
-            seg = obb_segments(instances.obb_center[k], instances.obb_axes[k], instances.obb_half_extents[k])
-            self.result_obbs.append(
-                api.add_line_segments(
-                    f"/results/obb/k{k}", points=seg, colors=col, thickness=2.0, thickness_units="screen", visible=False
-                )
-            )
-            size = float(np.max(instances.obb_half_extents[k])) * 1.2 if len(instances.obb_half_extents) else 0.05
-            self.result_axes.append(
-                api.add_frame(
-                    f"/results/axes/k{k}",
-                    wxyz=tuple(rotation_to_wxyz(instances.R[k])),
-                    position=tuple(float(v) for v in np.asarray(instances.center[k]).reshape(3)),
-                    axes_length=max(size, 1e-3),
-                    axes_radius=max(size, 1e-3) * 0.04,
-                    visible=False,
-                )
-            )
+        self.results = add_result_nodes(self.scene_api, instances, visible=False)
 
     def show_results(self, keep: np.ndarray, *, show_meshes: bool, show_obbs: bool, show_axes: bool) -> int:
         """Set result visibility from a (K,) bool mask (instances above the threshold) and the layer toggles.
 
+        The labels go with the boxes: both mark where the instances are, and neither hides the points.
+
         Returns:
             The number of visibility flags that changed (each is a tiny message).
         """
+        r = self.results
+        layers: tuple[tuple[Sequence[SceneNodeHandle | None], bool], ...] = (
+            (r.meshes, show_meshes), (r.obbs, show_obbs), (r.labels, show_obbs), (r.axes, show_axes)
+        )
         changed = 0
-        for handles, on in ((self.result_meshes, show_meshes), (self.result_obbs, show_obbs), (self.result_axes, show_axes)):
+        for handles, on in layers:
             for k, h in enumerate(handles):
                 if h is None:
                     continue

@@ -8,12 +8,29 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any, Sequence, cast
 
 import numpy as np
 
-NO_PROPOSAL = "(none)"
-PRESETS = ("fast", "synthetic_mugs", "real_mugs")
+if TYPE_CHECKING:
+    import plotly.graph_objects as go
+    from viser import (
+        GuiApi,
+        GuiButtonHandle,
+        GuiCheckboxHandle,
+        GuiDropdownHandle,
+        GuiHtmlHandle,
+        GuiMarkdownHandle,
+        GuiNumberHandle,
+        GuiPlotlyHandle,
+        GuiSliderHandle,
+        GuiTextHandle,
+    )
+    from viser._gui_handles import GuiProgressBarHandle  # not re-exported by viser 1.1
+
+NO_PROPOSAL: str = "(none)"
+PRESETS: tuple[str, ...] = ("fast", "synthetic_mugs", "real_mugs")
+DISPLAYS: tuple[str, ...] = ("points", "mesh")
 MASK_BAND_RANGE = (0.01, 0.2)
 """Range of the mask-band slider (τ_out, canonical units)."""
 COLOR_MODES = {
@@ -26,48 +43,62 @@ COLOR_MODES = {
 
 @dataclass
 class Panels:
-    """All GUI handles of the viewer. Names start with `gui_`."""
+    """All GUI handles of the viewer, grouped as the tabs show them. Names start with `gui_`."""
 
-    gui_status: Any
-    gui_scene: Any
-    gui_display: Any
-    gui_color: Any
-    gui_point_size: Any
-    gui_info: Any
-    gui_preset: Any
-    gui_proposals: Any
-    gui_seed: Any
-    gui_run: Any
-    gui_cancel: Any
-    gui_load: Any
-    gui_progress: Any
-    gui_run_info: Any
-    gui_step: Any
-    gui_play: Any
-    gui_speed: Any
-    gui_step_info: Any
-    gui_active_plot: Any
-    gui_show_shapes: Any
-    gui_show_samples: Any
-    gui_max_shapes: Any
-    gui_proposal: Any
-    gui_inspect_info: Any
-    gui_dead_info: Any
-    gui_threshold: Any
-    gui_mask_band: Any
-    gui_show_meshes: Any
-    gui_show_obbs: Any
-    gui_show_axes: Any
-    gui_result_info: Any
-    gui_gt_info: Any
-    gui_pr_plot: Any
-    gui_out_dir: Any
-    gui_export_results: Any
-    gui_export_static: Any
-    gui_export_info: Any
+    gui_status: GuiMarkdownHandle
+    """Status line above the tabs (errors start with a warning sign)."""
+    # ---- Scene tab
+    gui_scene: GuiDropdownHandle[str]
+    gui_display: GuiDropdownHandle[str]
+    gui_color: GuiDropdownHandle[str]
+    """Options are the keys of `COLOR_MODES`."""
+    gui_point_size: GuiSliderHandle[float]
+    """Millimetres."""
+    gui_info: GuiMarkdownHandle
+    # ---- Run tab
+    gui_preset: GuiDropdownHandle[str]
+    gui_proposals: GuiNumberHandle[int]
+    gui_seed: GuiNumberHandle[int]
+    gui_run: GuiButtonHandle
+    gui_cancel: GuiButtonHandle
+    gui_load: GuiButtonHandle
+    gui_progress: GuiProgressBarHandle
+    gui_run_info: GuiMarkdownHandle
+    # ---- Timeline tab
+    gui_step: GuiSliderHandle[int]
+    gui_play: GuiButtonHandle
+    gui_speed: GuiSliderHandle[float]
+    """Steps per second."""
+    gui_step_info: GuiMarkdownHandle
+    gui_active_plot: GuiPlotlyHandle
+    # ---- Proposals tab
+    gui_show_shapes: GuiCheckboxHandle
+    gui_show_samples: GuiCheckboxHandle
+    gui_max_shapes: GuiSliderHandle[int]
+    gui_proposal: GuiDropdownHandle[str]
+    """Options are `NO_PROPOSAL` and "#<id>  (score …)" / "#<id>  (dead)"."""
+    gui_inspect_info: GuiMarkdownHandle
+    gui_dead_info: GuiMarkdownHandle
+    # ---- Results tab
+    gui_threshold: GuiSliderHandle[float]
+    gui_mask_band: GuiSliderHandle[float]
+    gui_show_meshes: GuiCheckboxHandle
+    gui_show_obbs: GuiCheckboxHandle
+    gui_show_axes: GuiCheckboxHandle
+    gui_result_info: GuiMarkdownHandle
+    """Instances kept by the threshold, with counts per category."""
+    gui_legend: GuiHtmlHandle
+    """One line per shown instance: colour swatch, id, category, confidence."""
+    gui_gt_info: GuiMarkdownHandle
+    gui_pr_plot: GuiPlotlyHandle
+    # ---- Export tab
+    gui_out_dir: GuiTextHandle
+    gui_export_results: GuiButtonHandle
+    gui_export_static: GuiButtonHandle
+    gui_export_info: GuiMarkdownHandle
 
 
-def build_panels(gui: Any, *, scene_names: list[str], out_dir: str) -> Panels:
+def build_panels(gui: GuiApi, *, scene_names: list[str], out_dir: str) -> Panels:
     """Create every control under `gui` (a `viser.GuiApi`), grouped in tabs.
 
     Args:
@@ -83,7 +114,7 @@ def build_panels(gui: Any, *, scene_names: list[str], out_dir: str) -> Panels:
     with tabs.add_tab("Scene"):
         opts = tuple(scene_names) if scene_names else ("(no scenes)",)
         scene = gui.add_dropdown("Scene", opts, initial_value=opts[0], hint="scenes inside the paths given")
-        display = gui.add_dropdown("Display", ("points", "mesh"), initial_value="points")
+        display = gui.add_dropdown("Display", DISPLAYS, initial_value="points")
         color = gui.add_dropdown("Colour", tuple(COLOR_MODES), initial_value="scene colours")
         point_size = gui.add_slider("Point size (mm)", 0.5, 20.0, 0.5, 4.0)
         info = gui.add_markdown("")
@@ -123,6 +154,7 @@ def build_panels(gui: Any, *, scene_names: list[str], out_dir: str) -> Panels:
         show_obbs = gui.add_checkbox("Boxes (OBB)", True)
         show_axes = gui.add_checkbox("Pose axes", False)
         result_info = gui.add_markdown("")
+        legend = gui.add_html("")
         gt_info = gui.add_markdown("")
         pr_plot = gui.add_plotly(go.Figure(), aspect=1.3, visible=False)
 
@@ -164,6 +196,7 @@ def build_panels(gui: Any, *, scene_names: list[str], out_dir: str) -> Panels:
         gui_show_obbs=show_obbs,
         gui_show_axes=show_axes,
         gui_result_info=result_info,
+        gui_legend=legend,
         gui_gt_info=gt_info,
         gui_pr_plot=pr_plot,
         gui_out_dir=out,
@@ -185,6 +218,33 @@ class PlotlyJSON:
 
     def to_json(self) -> str:
         return json.dumps(self.spec, separators=(",", ":"))
+
+
+def set_slider_marks(handle: GuiSliderHandle[int], marks: Sequence[tuple[int, str]]) -> None:
+    """Replace the labelled marks under a slider (the timeline's phase marks), in every client.
+
+    viser 1.1 takes `marks=` only in `add_slider`; its handle has no public `marks` property (assigning one only
+    sets a Python attribute that never reaches a browser). The marks live in the handle's `_marks` prop, which
+    the handle sends on assignment like any other prop.
+
+    Args:
+        handle: the slider.
+        marks: (value, label) pairs; empty = no marks.
+    """
+    from viser._messages import GuiSliderMark
+
+    handle._marks = tuple(GuiSliderMark(value=float(v), label=str(lab)) for v, lab in marks) or None
+
+
+def slider_marks(handle: GuiSliderHandle[int]) -> tuple[tuple[int, str], ...]:
+    """The (value, label) marks a slider shows (what `set_slider_marks` set)."""
+    return tuple((int(m.value), str(m.label)) for m in (handle._marks or ()))
+
+
+def set_figure(handle: GuiPlotlyHandle, figure: PlotlyJSON) -> None:
+    """Show `figure` in a plot handle. The handle is typed for `go.Figure` but calls only `to_json()` on it,
+    which `PlotlyJSON` provides (the cast says so to the type checker; nothing is converted)."""
+    handle.figure = cast("go.Figure", figure)
 
 
 def active_figure(active_count: np.ndarray, marks: list[tuple[int, str]], step: int) -> PlotlyJSON:

@@ -16,11 +16,11 @@ from typing import Any, Literal, Sequence
 
 import numpy as np
 
+from efem_viz import colors
+from efem_viz.data.io import RESULT_SUFFIX, find_scenes
+
 logger = logging.getLogger(__name__)
 
-SCENE_SUFFIXES = (".ply", ".obj", ".off", ".glb", ".npz")
-"""File suffixes the scene browser lists (`.efem.npz` results are excluded)."""
-TRACE_SUFFIX = ".efem.npz"
 LABELS_INFIX = ".labels"
 """`<scene>.labels.ply` is an annotated copy of `<scene>.ply` (annotator output) and may share its result."""
 SEG_INFIX = ".seg"
@@ -66,7 +66,7 @@ class SceneEntry:
         folders = [self.path.parent, *self.result_dirs]
         for base in stems:
             for d in folders:
-                cand = d / (base + TRACE_SUFFIX)
+                cand = d / (base + RESULT_SUFFIX)
                 if cand.is_file():
                     return cand
         return trace_path_for(self.path)
@@ -79,14 +79,9 @@ def trace_path_for(scene_path: Path) -> Path:
         scene_path: a scene file such as `sample_scenes/mugs_01.ply`.
     """
     name = scene_path.name
-    if name.endswith(TRACE_SUFFIX):
+    if name.endswith(RESULT_SUFFIX):
         return scene_path
-    return scene_path.with_name(scene_path.stem + TRACE_SUFFIX)
-
-
-def _is_scene_file(p: Path) -> bool:
-    low = p.name.lower()
-    return low.endswith(SCENE_SUFFIXES) and not low.endswith(TRACE_SUFFIX) and not low.startswith(".")
+    return scene_path.with_name(scene_path.stem + RESULT_SUFFIX)
 
 
 def is_inside(path: Path, roots: Sequence[Path]) -> bool:
@@ -109,20 +104,22 @@ def discover_scenes(
 ) -> list[SceneEntry]:
     """List the scene files given directly or found inside the given folders.
 
-    Only files inside the given paths are returned (symlinks are resolved and anything that points outside is
+    The folders are walked by `efem_viz.data.io.find_scenes` (the CLI's walk: same files, same errors). Only
+    files inside the given paths are returned (symlinks are resolved and anything that points outside is
     dropped), so the viewer never opens a file the user did not hand it.
 
     Args:
         paths: scene files and/or folders.
-        recursive: also search sub-folders of the given folders (default: like `efem_viz.data.io.find_scenes`,
-            only the folder itself).
+        recursive: also search sub-folders of the given folders (default: only the folder itself).
         result_dirs: folders of saved results to look in for each scene's `<scene>.efem.npz`.
 
     Returns:
         Entries sorted by name, with unique names.
 
     Raises:
-        FileNotFoundError: a given path does not exist.
+        FileNotFoundError: a results folder or a given path does not exist (for a scene path the
+            `efem_viz.data.io.ScenePathNotFoundError`, also a `SceneError`).
+        SceneError: a file given explicitly is not a scene file (an EFEM result, an unknown suffix).
     """
     rdirs: list[Path] = []
     for d in result_dirs:
@@ -130,21 +127,12 @@ def discover_scenes(
         if not dd.is_dir():
             raise FileNotFoundError(f"results folder does not exist: {dd}")
         rdirs.append(dd.resolve())
-    roots: list[Path] = []
-    for p in paths:
-        pp = Path(p).expanduser()
-        if not pp.exists():
-            raise FileNotFoundError(f"scene path does not exist: {pp}")
-        roots.append(pp.resolve())
+    given = [Path(p).expanduser() for p in paths]
+    roots = [g.resolve() for g in given]
     found: list[tuple[Path, Path]] = []
     seen: set[Path] = set()
-    for root in roots:
-        if root.is_file():
-            candidates = [root]
-        else:
-            it = root.rglob("*") if recursive else root.glob("*")
-            candidates = sorted(c for c in it if c.is_file() and _is_scene_file(c))
-        for c in candidates:
+    for g, root in zip(given, roots):
+        for c in find_scenes(g, recursive=recursive):
             rc = c.resolve()
             if rc in seen or not is_inside(rc, roots):
                 continue
@@ -168,32 +156,6 @@ def discover_scenes(
 
 
 # ---------------------------------------------------------------------------------------------- colours
-def palette(ids: np.ndarray | Sequence[int]) -> np.ndarray:
-    """Distinct, stable colours per integer id (golden-ratio hue walk).
-
-    Args:
-        ids: (K,) integer ids.
-
-    Returns:
-        (K, 3) uint8 RGB; the same id always gets the same colour.
-    """
-    ids_arr = np.asarray(ids, dtype=np.int64).reshape(-1)
-    h = (ids_arr * 0.618033988749895 + 0.13) % 1.0
-    s = 0.65 + 0.25 * ((ids_arr * 7) % 3) / 2.0
-    v = 0.95 - 0.2 * ((ids_arr * 5) % 2)
-    return _hsv_to_rgb(h, s, v)
-
-
-def _hsv_to_rgb(h: np.ndarray, s: np.ndarray, v: np.ndarray) -> np.ndarray:
-    i = np.floor(h * 6.0).astype(np.int64) % 6
-    f = h * 6.0 - np.floor(h * 6.0)
-    p, q, t = v * (1 - s), v * (1 - s * f), v * (1 - s * (1 - f))
-    r = np.choose(i, [v, q, p, p, t, v])
-    g = np.choose(i, [t, v, v, q, p, p])
-    b = np.choose(i, [p, p, t, v, v, q])
-    return np.clip(np.round(np.stack([r, g, b], axis=-1) * 255), 0, 255).astype(np.uint8).reshape(-1, 3)
-
-
 _HEAT_STOPS = np.array([0.0, 0.25, 0.5, 0.75, 1.0])
 _HEAT_RGB = np.array(
     [[48, 18, 59], [40, 130, 240], [60, 220, 120], [250, 185, 40], [180, 20, 20]], dtype=np.float64
@@ -255,7 +217,7 @@ def label_colors(base: np.ndarray, labels: np.ndarray, *, ids_to_color: dict[int
     Args:
         base: (N, 3) uint8 scene colours.
         labels: (N,) int labels, 0 = unassigned.
-        ids_to_color: optional fixed colour per label id (else `palette`).
+        ids_to_color: optional fixed colour per label id (else `efem_viz.colors.instance_colors` of the id).
 
     Returns:
         (N, 3) uint8.
@@ -266,7 +228,7 @@ def label_colors(base: np.ndarray, labels: np.ndarray, *, ids_to_color: dict[int
     out = dim(base)
     ids = np.unique(lab[lab > 0])
     if ids.size:
-        cols = palette(ids) if ids_to_color is None else np.stack([ids_to_color[int(i)] for i in ids])
+        cols = colors.instance_colors(ids) if ids_to_color is None else np.stack([ids_to_color[int(i)] for i in ids])
         lut_idx = np.searchsorted(ids, lab)
         mask = lab > 0
         out[mask] = cols[lut_idx[mask]]
@@ -274,7 +236,8 @@ def label_colors(base: np.ndarray, labels: np.ndarray, *, ids_to_color: dict[int
 
 
 def instance_colors(base: np.ndarray, instances: Any, keep: np.ndarray) -> np.ndarray:
-    """Colour the points of the kept instances, each with `palette(proposal id)` (the colour of its mesh and box).
+    """Colour the points of the kept instances, each with `efem_viz.colors.instance_colors` of its proposal id
+    (the colour of its mesh, box and legend swatch, of the coloured PLY export and of the annotator's EFEM import).
 
     Args:
         base: (N, 3) uint8 scene colours.
@@ -286,7 +249,7 @@ def instance_colors(base: np.ndarray, instances: Any, keep: np.ndarray) -> np.nd
     """
     shown = instances.select(np.asarray(keep, bool))
     labels = shown.label_array(base.shape[0])  # k + 1 for the k-th shown instance
-    cols = palette(np.asarray(shown.ids))
+    cols = colors.instance_colors(np.asarray(shown.ids))
     return label_colors(base, labels, ids_to_color={k + 1: cols[k] for k in range(len(cols))})
 
 
@@ -333,12 +296,6 @@ def rgb_tuple(rgb: np.ndarray | Sequence[int]) -> tuple[int, int, int]:
     """A uint8 RGB colour as the int triple viser's `color` arguments take."""
     r, g, b = (int(c) for c in rgb)
     return r, g, b
-
-
-def xyz_tuple(v: np.ndarray | Sequence[float]) -> tuple[float, float, float]:
-    """A 3-vector as the float triple viser's `position`/`look_at` arguments take."""
-    x, y, z = (float(c) for c in v)
-    return x, y, z
 
 
 # ---------------------------------------------------------------------------------------------- timeline
@@ -551,8 +508,7 @@ def gt_metrics(instances: Any, scene: Any, threshold: float) -> GTMetrics:
     """
     from efem_viz.eval import DEFAULT_CLASS_NAMES, evaluate_instances, match_instances
 
-    keep = np.asarray(instances.confidence, np.float64) >= float(threshold)
-    shown = instances.select(keep)
+    shown = instances.above(float(threshold))
     masks = [np.asarray(m, np.int64) for m in shown.masks]
     tp, fp, fn = match_instances(masks, scene.instance, iou=0.5, confidences=np.asarray(shown.confidence))
     cats = sorted({str(v) for v in dict(scene.categories).values()})

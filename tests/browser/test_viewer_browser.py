@@ -43,11 +43,11 @@ def viewer(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
         yield app
         app.stop()
         return
-    em = pytest.importorskip("efem_viz.em", reason="efem_viz.em not importable yet")
-    analytic = pytest.importorskip("efem_viz.em.analytic", reason="efem_viz.em.analytic not importable yet")
     import torch
 
+    from efem_viz import em
     from efem_viz.data.io import save_scene
+    from efem_viz.prior import analytic
 
     torch.set_num_threads(1)
     d = tmp_path_factory.mktemp("browser_scenes")
@@ -113,6 +113,7 @@ def test_step_slider_changes_view(viewer: Any, page: Any) -> None:
     page.get_by_role("tab", name="Timeline").click()
     slider = page.get_by_role("slider").first
     slider.wait_for(timeout=20_000)
+    page.get_by_text("P1", exact=True).first.wait_for(timeout=20_000)  # the phase marks reach the browser
     before = _settle(page)
     last = viewer.state.step
     slider.focus()
@@ -136,6 +137,9 @@ def test_threshold_changes_view(viewer: Any, page: Any) -> None:
     slider.wait_for(timeout=20_000)
     viewer.set_proposal_layers(shapes=False, samples=False)  # only the final instances on screen
     viewer.set_threshold(0.0)
+    # the legend names each instance's category, in the category's colour
+    legend = page.locator("b", has_text="sphere")
+    wait_until(lambda: legend.count() == len(viewer.state.result.instances), 20, "one legend row per instance")
     before = _settle(page)
     _save(page, "viewer_results.png")
     slider.focus()

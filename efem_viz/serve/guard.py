@@ -20,7 +20,7 @@ bind. `start_server` opens a `viser.ViserServer` whose every HTTP request and We
 
 Refused requests get HTTP 403 with a one-line reason. The server also drops every client GUI update that touches
 anything but a control's `value` (viser lets a client rewrite `min`, `max`, `options` or `disabled` of any control),
-so the bounds that `efem_viz.viewer.inputs` clamps to are the ones the server declared, and ignores clients' requests
+so the bounds that `efem_viz.serve.inputs` clamps to are the ones the server declared, and ignores clients' requests
 to open a public viser share tunnel.
 
 Hook point (viser 1.1.1, websockets 16): viser opens its socket with `websockets.asyncio.server.serve(...,

@@ -2,7 +2,7 @@
 
 A browser's GUI limits (slider ranges, the options of a dropdown) are only hints: any client can send any value
 over the WebSocket. The helpers here re-check a control's value on the server against what the server declared
-for that control (`min`/`max` of sliders and numbers, `options` of dropdowns; `efem_viz.viewer.guard` keeps
+for that control (`min`/`max` of sliders and numbers, `options` of dropdowns; `efem_viz.serve.guard` keeps
 clients from rewriting those): numbers are clamped into range and must be finite, choices must be one of the
 options, text is bounded, colours are 0-255 triples. Paths typed into the GUI must resolve inside a folder chosen
 at start (`resolve_inside_root`).

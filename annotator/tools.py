@@ -1,0 +1,296 @@
+"""The annotator's tool registry: one `Tool` entry per tool, read by the toolbar, hotkeys, help text and GUI.
+
+A tool is a name, a label, a hotkey, one line of help, the setting controls it shows while active, and what it
+does: `apply_at` acts on the surface point under a Ctrl/Cmd+click (and at the start of a Ctrl/Cmd+drag, unless the
+tool paints strokes), `on_click` takes the raw click instead (the lasso needs the screen position and camera),
+and `commands` are buttons with optional hotkeys (the lasso's Apply and Clear). The app (`annotator.app`) builds
+its GUI from `DEFAULT_TOOLS` (or the `tools=` it is given) and dispatches every gesture through the active entry;
+it has no per-tool branches. Adding a tool is one `Tool` entry plus its functions:
+
+```python
+def paint_ball(host, hit):  # everything within 3 cm of the click becomes the active instance
+    idx = np.asarray(host.geom.tree.query_ball_point(hit.position, 0.03), np.int64)
+    host.paint(idx, client=hit.client)
+
+AnnotatorApp(scan, tools=(*DEFAULT_TOOLS, Tool("ball", "Ball", "P", "click paints a 3 cm ball", apply_at=paint_ball)))
+```
+
+Box select (Shift + drag) is a gesture of every tool; `erase` tools erase with it instead of painting. The
+controls in `GESTURE_CONTROLS` (box select's and painting's) are always shown.
+
+Pure: no viser import (the tests of the tool table run without a server).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Callable, Literal, Protocol, Sequence
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from annotator.app import ToolSettings
+    from annotator.labels import Delta
+    from annotator.selection import ScanGeometry
+
+
+class ToolHost(Protocol):
+    """What a tool's functions may use of the app (`annotator.app.AnnotatorApp` provides it)."""
+
+    settings: ToolSettings
+    geom: ScanGeometry
+
+    def paint(self, idx: np.ndarray, *, erase: bool = False, group: str = "", client: str = "") -> Delta | None:
+        """Paint vertices with the active instance (or erase them); one journalled edit."""
+        ...
+
+    def dab(self, vertex: int, position: np.ndarray, *, erase: bool, client: str = "") -> Delta | None:
+        """One brush dab at a surface point."""
+        ...
+
+    def grow(self, seed: int, *, client: str = "") -> Delta | None:
+        """Region grow from a vertex."""
+        ...
+
+    def fill(self, seed: int, *, client: str = "") -> Delta | None:
+        """Bucket fill from a vertex."""
+        ...
+
+    def pick_instance(self, vertex: int) -> int:
+        """Make the instance under a vertex active."""
+        ...
+
+    def segment_at(self, vertex: int, *, wait: bool = False) -> np.ndarray | None:
+        """Click-to-segment with the shape prior."""
+        ...
+
+    def add_lasso_point(self, event: Any) -> int:
+        """Add a screen point to the lasso outline."""
+        ...
+
+    def apply_lasso(self, *, client: str = "") -> Delta | None:
+        """Select inside the lasso outline."""
+        ...
+
+    def clear_lasso(self) -> None:
+        """Drop the lasso outline."""
+        ...
+
+
+@dataclass(frozen=True)
+class Hit:
+    """Where a gesture met the scan."""
+
+    vertex: int
+    """The scan vertex at (nearest to) the hit."""
+    position: np.ndarray
+    """(3,) float, the hit point on the surface, world frame."""
+    client: str = ""
+    """Who did it (journal attribution), e.g. "client3"."""
+
+
+@dataclass(frozen=True)
+class Control:
+    """A setting control of the Tools panel. Its value is read into `ToolSettings.<setting>` (or into
+    `ToolSettings.extra[setting]` for a setting `ToolSettings` has no field for), checked as
+    `efem_viz.serve.inputs` checks every client value."""
+
+    setting: str
+    """Name of the setting (and the key of the control in `AnnotatorApp.gui_controls`)."""
+    label: str
+    """Label in the panel."""
+    kind: Literal["slider", "checkbox", "dropdown"]
+    initial: float | bool | str
+    """Initial value in display units, for a setting without a `ToolSettings` field (a field's value is shown
+    instead)."""
+    min: float = 0.0
+    max: float = 1.0
+    step: float = 1.0
+    scale: float = 1.0
+    """Display units per setting unit (100 for a setting in metres shown in cm)."""
+    options: tuple[str, ...] = ()
+    """Dropdown options."""
+    hint: str | None = None
+
+
+@dataclass(frozen=True)
+class ToolCommand:
+    """A button of a tool (in the Tools panel, with an optional hotkey in the Ctrl/Cmd+K palette)."""
+
+    key: str
+    """Key of the button in `AnnotatorApp.gui_tool_buttons`."""
+    label: str
+    run: Callable[[ToolHost], object]
+    hotkey: str | None = None
+    """Key of the palette command (e.g. "Enter"); None = button only."""
+    hint: str | None = None
+    disabled: bool = False
+    """Initial state (the app enables it when it applies, e.g. once a lasso has 3 points)."""
+
+
+@dataclass(frozen=True)
+class Tool:
+    """One annotator tool: what the toolbar, the hotkeys, the help and the gestures need to know."""
+
+    name: str
+    """Identifier: the Tool dropdown's option and `ToolSettings.tool`."""
+    label: str
+    """Human name (help text, palette command "Tool: <label>")."""
+    hotkey: str
+    """Single key that activates the tool."""
+    help: str
+    """One line: what a click (or drag) does with this tool."""
+    controls: tuple[Control, ...] = ()
+    """Setting controls shown while the tool is active (besides `GESTURE_CONTROLS`)."""
+    apply_at: Callable[[ToolHost, Hit], object] | None = None
+    """Ctrl/Cmd+click on the surface (and the start of a drag when not `stroke`); None = nothing."""
+    on_click: Callable[[ToolHost, Any], object] | None = None
+    """Takes the raw viser click event instead of `apply_at` (needs the screen position / camera)."""
+    stroke: bool = False
+    """Ctrl/Cmd+drag paints a stroke along the surface (one undo step)."""
+    erase: bool = False
+    """Strokes, box and lasso selections erase instead of painting the active instance."""
+    commands: tuple[ToolCommand, ...] = field(default=())
+    """Buttons (and hotkeys) of the tool."""
+
+
+RESERVED_HOTKEYS = ("N", "H", "L")
+"""Hotkeys of the app's own commands (new instance, hide, lock); Ctrl+Z / Ctrl+Y take a modifier."""
+
+
+# ---------------------------------------------------------------------------------------------- controls
+RADIUS = Control("radius", "Brush radius (cm)", "slider", 1.0, min=0.1, max=20.0, step=0.1, scale=100.0)
+NORMAL_LIMIT = Control("brush_max_angle_deg", "Brush normal limit (deg)", "slider", 180, min=5, max=180, step=5,
+                       hint="paint only surface facing like the hit point; 180 = off")
+GROW_ANGLE = Control("grow_angle_deg", "Grow: max normal change (deg)", "slider", 20.0, min=1, max=90, step=1)
+GROW_DISTANCE = Control("grow_distance", "Grow: max distance (cm)", "slider", 15, min=1, max=200, step=1, scale=100.0)
+MIN_HEIGHT = Control("grow_min_height", "Grow: min height (cm)", "slider", 0.0, min=0.0, max=10.0, step=0.1,
+                     scale=100.0, hint="keep fills above the table (z = 0 in imported tabletop scans); 0 = off")
+ONLY_UNLABELLED = Control("only_unlabelled", "Only unlabelled vertices", "checkbox", False)
+BOX_FACING = Control("box_facing", "Box select", "dropdown", "front", options=("front", "all"),
+                     hint="Shift+drag a box; front = vertices facing the camera")
+GESTURE_CONTROLS: tuple[Control, ...] = (ONLY_UNLABELLED, BOX_FACING)
+"""Shown whatever the tool: box select (Shift+drag) works with every tool, and any tool's paint may be limited to
+unlabelled vertices."""
+
+
+# ---------------------------------------------------------------------------------------------- tool functions
+def _brush(host: ToolHost, hit: Hit) -> object:
+    return host.dab(hit.vertex, hit.position, erase=False, client=hit.client)
+
+
+def _erase(host: ToolHost, hit: Hit) -> object:
+    return host.dab(hit.vertex, hit.position, erase=True, client=hit.client)
+
+
+def _grow(host: ToolHost, hit: Hit) -> object:
+    return host.grow(hit.vertex, client=hit.client)
+
+
+def _fill(host: ToolHost, hit: Hit) -> object:
+    return host.fill(hit.vertex, client=hit.client)
+
+
+def _pick(host: ToolHost, hit: Hit) -> object:
+    return host.pick_instance(hit.vertex)
+
+
+def _segment(host: ToolHost, hit: Hit) -> object:
+    return host.segment_at(hit.vertex)
+
+
+def _lasso_point(host: ToolHost, event: Any) -> object:
+    return host.add_lasso_point(event)
+
+
+DEFAULT_TOOLS: tuple[Tool, ...] = (
+    Tool("brush", "Brush", "B", "drag paints the active instance; click paints a dab",
+         controls=(RADIUS, NORMAL_LIMIT), apply_at=_brush, stroke=True),
+    Tool("erase", "Erase", "E", "drag (or click) clears labels; box and lasso erase too",
+         controls=(RADIUS, NORMAL_LIMIT), apply_at=_erase, stroke=True, erase=True),
+    Tool("grow", "Region grow", "G", "click grows the active instance over smooth surface from the point",
+         controls=(GROW_ANGLE, GROW_DISTANCE, MIN_HEIGHT), apply_at=_grow),
+    Tool("fill", "Fill", "F", "click gives the connected region of the clicked label to the active instance",
+         controls=(MIN_HEIGHT,), apply_at=_fill),
+    Tool("pick", "Pick instance", "I", "click makes the instance under the cursor active", apply_at=_pick),
+    Tool("segment", "Click to segment", "S", "click runs EFEM with the shape prior (EFEM assist) and previews the "
+         "object", apply_at=_segment),
+    Tool("lasso", "Lasso", "O", "each click adds an outline point; Enter applies (paints, or erases)",
+         on_click=_lasso_point,
+         commands=(
+             ToolCommand("lasso_apply", "Apply lasso (Enter)", lambda h: h.apply_lasso(), hotkey="Enter",
+                         hint="Lasso tool: Ctrl/Cmd+click the outline, then apply", disabled=True),
+             ToolCommand("lasso_clear", "Clear lasso", lambda h: h.clear_lasso(), disabled=True),
+         )),
+)
+"""The annotator's tools, in toolbar order."""
+
+TOOLS: tuple[str, ...] = tuple(t.name for t in DEFAULT_TOOLS)
+"""Names of the default tools (the Tool dropdown's options)."""
+
+
+def check_tools(tools: Sequence[Tool]) -> dict[str, Tool]:
+    """The tools by name, after checking the table: unique names, hotkeys and command keys; a control per
+    setting name (two tools sharing a setting share the `Control`).
+
+    Raises:
+        ValueError: a duplicate, an empty table, or a hotkey the app uses itself (`RESERVED_HOTKEYS`).
+    """
+    if not tools:
+        raise ValueError("the annotator needs at least one tool")
+    by_name: dict[str, Tool] = {}
+    keys: dict[str, str] = {k: "the app" for k in RESERVED_HOTKEYS}
+    controls: dict[str, Control] = {c.setting: c for c in GESTURE_CONTROLS}
+    commands: set[str] = set()
+    for t in tools:
+        if t.name in by_name:
+            raise ValueError(f"two tools are named {t.name!r}")
+        if t.hotkey.upper() in keys:
+            raise ValueError(f"tool {t.name!r}: hotkey {t.hotkey!r} is taken by {keys[t.hotkey.upper()]!r}")
+        keys[t.hotkey.upper()] = t.name
+        for c in t.controls:
+            if controls.setdefault(c.setting, c) != c:
+                raise ValueError(f"tool {t.name!r}: setting {c.setting!r} has two different controls")
+        for cmd in t.commands:
+            if cmd.key in commands:
+                raise ValueError(f"tool {t.name!r}: command key {cmd.key!r} is used twice")
+            commands.add(cmd.key)
+            if cmd.hotkey is not None:
+                if cmd.hotkey.upper() in keys:
+                    raise ValueError(f"tool {t.name!r}: hotkey {cmd.hotkey!r} is taken by {keys[cmd.hotkey.upper()]!r}")
+                keys[cmd.hotkey.upper()] = f"{t.name}: {cmd.label}"
+        by_name[t.name] = t
+    return by_name
+
+
+def all_controls(tools: Sequence[Tool]) -> tuple[Control, ...]:
+    """Every control of the tools (each once, in order of first use), then `GESTURE_CONTROLS`."""
+    seen: dict[str, Control] = {}
+    for t in tools:
+        for c in t.controls:
+            seen.setdefault(c.setting, c)
+    for c in GESTURE_CONTROLS:
+        seen.setdefault(c.setting, c)
+    return tuple(seen.values())
+
+
+def shown_settings(tool: Tool) -> frozenset[str]:
+    """Settings whose controls are shown while `tool` is active."""
+    return frozenset(c.setting for c in (*tool.controls, *GESTURE_CONTROLS))
+
+
+def help_markdown(tools: Sequence[Tool], active: str | None = None) -> str:
+    """The tools' help: one line per tool with its hotkey, the active one in bold, then the gestures.
+
+    Args:
+        tools: the tool table.
+        active: name of the active tool (marked), or None.
+    """
+    lines = []
+    for t in tools:
+        text = f"**{t.hotkey}** {t.label}: {t.help}"
+        lines.append(f"- ▶ {text}" if t.name == active else f"- {text}")
+    lines.append("")
+    lines.append("Ctrl/Cmd+click applies the tool, Ctrl/Cmd+drag paints with brush/erase, Shift+drag box-selects. "
+                 "N new instance · H hide · L lock · Ctrl+Z / Ctrl+Y undo / redo")
+    return "\n".join(lines)

@@ -1,0 +1,114 @@
+"""What the viewer says about the final instances: their colours, scene labels, category counts and the legend.
+
+Pure functions of an `efem_viz.em.Instances` (no viser): the live viewer and the static demo both draw their
+instance nodes with `result_colors` and `instance_label`, and the Results tab shows `result_summary_markdown` and
+`legend_html`. A result may hold several categories (one per prior of a joint solve, e.g. "mug" and "sphere"):
+each category has one colour (`category_color`, stable across scenes and runs) for its name in the legend, while
+each instance keeps its own colour (the one of its points, mesh and box) for its swatch.
+"""
+
+from __future__ import annotations
+
+import html
+import zlib
+from typing import Any, Sequence
+
+import numpy as np
+
+from efem_viz.colors import instance_colors
+from efem_viz.viewer.state import hex_color
+from efem_viz.viewer.texts import md_escape
+
+MAX_LEGEND_ROWS = 40
+"""The legend lists at most this many instances (highest confidence first), then says how many more."""
+
+
+def result_colors(instances: Any) -> np.ndarray:
+    """(K, 3) uint8 colour of each instance: `instance_colors` of its proposal id (points, mesh, box, swatch).
+
+    Args:
+        instances: `efem_viz.em.Instances` (ids (K,)).
+    """
+    return instance_colors(np.asarray(instances.ids).reshape(-1))
+
+
+def category_color(category: str) -> tuple[int, int, int]:
+    """The colour of a category name: `instance_colors` of the name's CRC-32, so the same name has the same
+    colour in every scene and run (independent of which other categories a result holds)."""
+    r, g, b = (int(c) for c in instance_colors([zlib.crc32(str(category).encode("utf-8")) & 0x7FFFFFFF])[0])
+    return r, g, b
+
+
+def instance_label(instances: Any, k: int) -> str:
+    """Text of instance k's label in the scene: category, proposal id and confidence (e.g. "mug #12 · 0.87")."""
+    return f"{instances.category[k]} #{int(instances.ids[k])} · {float(instances.confidence[k]):.2f}"
+
+
+def category_counts(categories: Sequence[str] | np.ndarray) -> dict[str, int]:
+    """Instances per category, in order of first appearance.
+
+    Args:
+        categories: (K,) str, e.g. `Instances.category[keep]`.
+    """
+    out: dict[str, int] = {}
+    for c in np.asarray(categories, dtype=str).reshape(-1).tolist():
+        out[c] = out.get(c, 0) + 1
+    return out
+
+
+def category_summary(categories: Sequence[str] | np.ndarray) -> str:
+    """Plain text "mug 2 · sphere 1" of `category_counts` ("" for no instances)."""
+    return " · ".join(f"{c} {k}" for c, k in category_counts(categories).items())
+
+
+def result_summary_markdown(instances: Any, keep: np.ndarray, *, threshold: float, out_tau: float) -> str:
+    """The Results tab's summary: how many instances the threshold keeps, per category, and the mask band.
+
+    Args:
+        instances: `efem_viz.em.Instances` (confidence (K,), category (K,)).
+        keep: (K,) bool, the instances kept by the threshold (`Instances.kept`).
+        threshold: the confidence threshold.
+        out_tau: the output masks' SDF band τ_out (canonical units).
+    """
+    keep = np.asarray(keep, bool).reshape(-1)
+    conf = np.asarray(instances.confidence, float)
+    lines = [
+        f"**{int(keep.sum())} of {keep.size} instances** with confidence ≥ {threshold:.2f}"
+        + (f" (max {conf.max():.2f})" if conf.size else "")
+    ]
+    all_counts = category_counts(np.asarray(instances.category, dtype=str))
+    if all_counts:
+        kept_counts = category_counts(np.asarray(instances.category, dtype=str)[keep])
+        lines.append(" · ".join(f"{md_escape(c)}: {kept_counts.get(c, 0)} of {n}" for c, n in all_counts.items()))
+    lines.append(f"masks: points with decoded \\|SDF\\| < {out_tau:g} (τ_out, canonical units)")
+    return "\n\n".join(lines)
+
+
+def legend_html(instances: Any, keep: np.ndarray) -> str:
+    """The instance legend: one row per kept instance (highest confidence first) with its colour swatch, id,
+    category (in the category's colour) and confidence. Text from the result file is escaped.
+
+    Args:
+        instances: `efem_viz.em.Instances`.
+        keep: (K,) bool, the instances kept by the threshold.
+
+    Returns:
+        An HTML fragment ("" when no instance is kept).
+    """
+    keep = np.asarray(keep, bool).reshape(-1)
+    idx = np.flatnonzero(keep)
+    if idx.size == 0:
+        return ""
+    conf = np.asarray(instances.confidence, float)
+    order = idx[np.argsort(-conf[idx], kind="stable")]
+    cols = result_colors(instances)
+    rows = []
+    for k in order[:MAX_LEGEND_ROWS]:
+        cat = str(instances.category[k])
+        rows.append(
+            f'<div><span style="color:{hex_color(cols[k])}">&#9632;</span> #{int(instances.ids[k])} '
+            f'<b style="color:{hex_color(category_color(cat))}">{html.escape(cat)}</b> {conf[k]:.2f}</div>'
+        )
+    if order.size > MAX_LEGEND_ROWS:
+        rows.append(f"<div>… {order.size - MAX_LEGEND_ROWS} more</div>")
+    return '<div style="font-size:0.85em;line-height:1.5">' + "".join(rows) + "</div>"
