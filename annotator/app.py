@@ -1240,7 +1240,7 @@ def _check_event(kind: str, event: Any) -> None:
 
 
 def _color(i: int) -> tuple[int, int, int]:
-    from annotator.labels import instance_color
+    from efem_viz.colors import instance_color
 
     return instance_color(i)
 

@@ -11,13 +11,16 @@ from __future__ import annotations
 import logging
 import re
 import threading
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+if TYPE_CHECKING:
+    from efem_viz.prior.config import ShapePriorLike
+
 log = logging.getLogger(__name__)
 
-_PRIORS: dict[str, Any] = {}
+_PRIORS: dict[str, ShapePriorLike] = {}
 _PRIOR_LOCK = threading.Lock()
 
 
@@ -32,7 +35,7 @@ def available_priors() -> list[str]:
     return names
 
 
-def get_prior(name: str) -> Any:
+def get_prior(name: str) -> ShapePriorLike:
     """Load (once) and return a shipped shape prior by *name* (`efem_viz.prior.load_prior`).
 
     Only names of files in `efem_viz/weights/` are accepted, never paths: a prior file is a pickle, and GUI
@@ -61,7 +64,7 @@ def segment_at_point(
     vertex: int,
     *,
     prior_name: str = "mug",
-    prior: Any = None,
+    prior: ShapePriorLike | None = None,
     crop_radius: float = 0.16,
     anchor_radius: float = 0.03,
     n_proposals: int = 12,

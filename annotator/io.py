@@ -29,11 +29,13 @@ from typing import Any, Iterable, Mapping, cast
 import numpy as np
 
 from annotator.journal import read_label_file, write_label_file
-from annotator.labels import InstanceInfo, instance_color, table_from_json, table_to_json
+from annotator.labels import InstanceInfo, table_from_json, table_to_json
+from efem_viz.colors import instance_color
+from efem_viz.data.io import RESULT_SUFFIX
 
 log = logging.getLogger(__name__)
 
-LABEL_SUFFIXES = (".labels.ply", ".labels.npz", ".ply", ".npz", ".aggregation.json", ".segs.json", ".efem.npz")
+LABEL_SUFFIXES = (".labels.ply", ".labels.npz", ".ply", ".npz", ".aggregation.json", ".segs.json", RESULT_SUFFIX)
 
 
 class LabelIOError(ValueError):
@@ -241,7 +243,7 @@ def _read_ply_labels(p: Path, n: int) -> LabelData:
 def _check_npz_headers(p: Path, n: int) -> None:
     """The scene reader's `.npz` check: every array header agrees with the bytes its member holds (so numpy never
     allocates what a corrupt header claims)."""
-    from efem_viz.data.io import check_npz_headers
+    from efem_viz.data.npz import check_npz_headers
     from efem_viz.data.scene import DEFAULT_MAX_POINTS, SceneError
 
     try:
@@ -361,13 +363,15 @@ def _read_efem(p: Path, n: int, *, threshold: float = 0.0) -> LabelData:
     labels = _check_labels(labels, n, p)
     rows: list[InstanceInfo] = []
     conf: dict[int, float] = {}
-    # `label_array` numbers instances by position: the k-th instance is label k + 1.
+    # `label_array` numbers instances by position: the k-th instance is label k + 1; its colour is the one of its
+    # proposal id, as in the viewer and the coloured PLY export (`efem_viz.colors`).
     for k in range(len(inst.confidence)):
         iid = k + 1
         cat = str(np.asarray(inst.category)[k]) if len(np.asarray(inst.category)) > k else "object"
         c = float(np.asarray(inst.confidence)[k])
         conf[iid] = c
-        rows.append(InstanceInfo(iid, f"efem {cat} {iid}", category=cat, color=instance_color(iid), note=f"EFEM confidence {c:.3f}"))
+        color = instance_color(int(np.asarray(inst.ids)[k]))
+        rows.append(InstanceInfo(iid, f"efem {cat} {iid}", category=cat, color=color, note=f"EFEM confidence {c:.3f}"))
     return LabelData(labels, _complete(labels, rows), conf)
 
 
@@ -389,7 +393,7 @@ def load_labels(path: str | os.PathLike[str], num_vertices: int) -> LabelData:
     if p.stat().st_size == 0:
         raise LabelIOError(f"{p}: file is empty (0 bytes)")
     name = p.name.lower()
-    if name.endswith(".efem.npz"):
+    if name.endswith(RESULT_SUFFIX):
         return _read_efem(p, num_vertices)
     if name.endswith(".ply"):
         return _read_ply_labels(p, num_vertices)

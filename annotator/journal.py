@@ -42,6 +42,7 @@ from annotator.labels import (
     table_from_json,
     table_to_json,
 )
+from efem_viz.data.io import atomic_write, atomic_write_bytes
 
 log = logging.getLogger(__name__)
 
@@ -54,31 +55,6 @@ recovery or an accepted scan change (replay restarts from the newest full state)
 
 class JournalError(ValueError):
     """A journal or label file that cannot be used (wrong scan, corrupt, locked by another process)."""
-
-
-# ---------------------------------------------------------------------------------------------- atomic files
-def atomic_write_bytes(path: str | os.PathLike[str], writer: Callable[[Any], None]) -> None:
-    """Write a file atomically with `efem_viz.data.io.atomic_write` (temp file in the same directory, fsync,
-    rename, directory fsync), handing `writer` an open binary file object.
-
-    Args:
-        path: destination; an existing symlink at `path` is refused (never replaced or written through).
-        writer: called with a binary file object open for writing.
-
-    Raises:
-        JournalError: `path` is a symlink.
-    """
-    from efem_viz.data.io import atomic_write
-
-    p = Path(path)
-    if p.is_symlink():
-        raise JournalError(f"refusing to overwrite {p}: it is a symbolic link")
-
-    def write(tmp: Path) -> None:
-        with open(tmp, "wb") as f:
-            writer(f)
-
-    atomic_write(p, write)
 
 
 # ---------------------------------------------------------------------------------------------- records
@@ -268,7 +244,7 @@ class Journal:
         for s, e in bad:
             self.damage.append(f"{e - s} damaged bytes at offset {s} could not be verified")
         clean = b"".join(data[s:e] for _, s, e in out)
-        atomic_write_bytes(self.path, lambda f: f.write(clean))
+        atomic_write_bytes(self.path, clean)
         log.warning(
             "journal %s was damaged: kept %d verified records, the damaged file is kept in %s (%s)",
             self.path, len(records), self.aside.name, "; ".join(self.damage),
@@ -361,25 +337,33 @@ def write_label_file(
 ) -> None:
     """Atomically write the checkpoint label file (NPZ, uncompressed: fast for 1M+ vertices).
 
+    Written with `efem_viz.data.io.atomic_write` (temp file in the same directory, fsync, rename, fsync of the
+    directory; nothing is left behind on failure).
+
     Args:
         path: destination `.npz`.
         labels: (N,) int32.
         table: instance table.
         seq: the last journal sequence number included.
         scan_id: scan identity (vertex count, file name, content hash) checked on load.
+
+    Raises:
+        ValueError: `path` is a symbolic link (never replaced or written through).
+        OSError: the file could not be written.
     """
 
-    def writer(f: Any) -> None:
-        np.savez(
-            f,
-            schema_version=np.array(LABELS_SCHEMA_VERSION, np.int32),
-            instance=np.ascontiguousarray(labels, np.int32),
-            instances_json=np.array(json.dumps(table_to_json(table))),
-            journal_seq=np.array(seq, np.int64),
-            scan_json=np.array(json.dumps(scan_id)),
-        )
+    def writer(tmp: Path) -> None:
+        with open(tmp, "wb") as f:  # a file object: np.savez must not append ".npz" to the temporary name
+            np.savez(
+                f,
+                schema_version=np.array(LABELS_SCHEMA_VERSION, np.int32),
+                instance=np.ascontiguousarray(labels, np.int32),
+                instances_json=np.array(json.dumps(table_to_json(table))),
+                journal_seq=np.array(seq, np.int64),
+                scan_json=np.array(json.dumps(scan_id)),
+            )
 
-    atomic_write_bytes(path, writer)
+    atomic_write(path, writer)
 
 
 def read_label_file(path: str | os.PathLike[str], n: int) -> tuple[np.ndarray, dict[int, InstanceInfo], int]:

@@ -13,30 +13,15 @@ protected: paint, erase and fill leave them alone (one cannot change what one ca
 
 from __future__ import annotations
 
-import colorsys
 import dataclasses
 from dataclasses import dataclass, field
 from typing import Any, Iterable, Mapping
 
 import numpy as np
 
+from efem_viz.colors import instance_color
+
 LABELS_SCHEMA_VERSION = 1
-
-
-def instance_color(instance_id: int) -> tuple[int, int, int]:
-    """A distinct, deterministic RGB colour for an instance id (golden-ratio hue walk).
-
-    Args:
-        instance_id: positive instance id.
-
-    Returns:
-        (r, g, b) uint8 values.
-    """
-    h = (0.13 + 0.618033988749895 * int(instance_id)) % 1.0
-    s = 0.75 if instance_id % 2 else 0.9
-    v = 0.95 if instance_id % 3 else 0.8
-    r, g, b = colorsys.hsv_to_rgb(h, s, v)
-    return (int(round(r * 255)), int(round(g * 255)), int(round(b * 255)))
 
 
 @dataclass(frozen=True)

@@ -14,6 +14,8 @@ from typing import Literal
 
 import numpy as np
 
+from efem_viz.geometry.transforms import quat_wxyz_to_rotation
+
 log = logging.getLogger(__name__)
 
 
@@ -366,18 +368,6 @@ def fill_same_label(geom: ScanGeometry, seed: int, labels: np.ndarray, *, max_an
 
 
 # ---------------------------------------------------------------------------------------------- box select
-def quat_wxyz_to_matrix(wxyz: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation matrix from a unit quaternion (w, x, y, z)."""
-    w, x, y, z = (np.asarray(wxyz, np.float64) / np.linalg.norm(wxyz)).tolist()
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
 def project(
     points: np.ndarray, *, position: np.ndarray, wxyz: np.ndarray, fov: float, aspect: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -393,7 +383,7 @@ def project(
     Returns:
         (uv (N, 2) float64 in [0, 1] screen coordinates (0,0) = top-left, depth (N,) float64 along +Z).
     """
-    R = quat_wxyz_to_matrix(wxyz)
+    R = quat_wxyz_to_rotation(wxyz)
     pc = (np.asarray(points, np.float64) - np.asarray(position, np.float64)) @ R  # world → camera
     z = pc[:, 2]
     f = 0.5 / np.tan(0.5 * float(fov))  # focal length in units of the image height

@@ -94,9 +94,8 @@ def evaluate_object(prior: Any, gt: Any, *, has_handle: bool, rng: np.random.Gen
     import trimesh
 
     from efem_viz.geometry.transforms import random_rotation, rotation_angle_deg
-    from efem_viz.prior import meshing
     from efem_viz.prior.data import PrepConfig, render_views
-    from efem_viz.prior.meshing import extract_mesh
+    from efem_viz.prior.meshing import MeshStats, extract_mesh
     from efem_viz.prior.pose import estimate_pose
 
     cam = PrepConfig(n_views=1, n_top_views=1, resolution=128)
@@ -111,10 +110,11 @@ def evaluate_object(prior: Any, gt: Any, *, has_handle: bool, rng: np.random.Gen
     with torch.no_grad():
         lat = prior.encode(torch.as_tensor(xw, dtype=torch.float32)[None])
     t0 = time.perf_counter()
+    mesh_stats = MeshStats()
     mesh_w = extract_mesh(prior, lat, resolution=args.resolution, coarse=args.coarse, world=True,
-                          max_faces=args.max_faces)
+                          max_faces=args.max_faces, stats=mesh_stats)
     t_mesh = time.perf_counter() - t0
-    queries = int(meshing.LAST_STATS.get("queries", 0))
+    queries = mesh_stats.queries
     rec: dict[str, Any] = {"name": name, "handle": has_handle, "view_points": len(view),
                            "elevation_deg": float(elev[0]), "scale": s, "t_mesh_s": t_mesh,
                            "mesh_queries": queries, "faces": len(mesh_w.faces)}

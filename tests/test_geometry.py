@@ -24,6 +24,7 @@ from efem_viz.geometry.transforms import (
     rotation_about_axis,
     rotation_angle_deg,
     rotation_to_quat_wxyz,
+    xyz_tuple,
 )
 
 seeds = st.integers(min_value=0, max_value=2**31 - 1)
@@ -64,6 +65,27 @@ def test_quaternion_known_values_and_edge_angles() -> None:
         R = rotation_about_axis(axis, np.pi)
         np.testing.assert_allclose(quat_wxyz_to_rotation(rotation_to_quat_wxyz(R)), R, atol=1e-10)
     np.testing.assert_allclose(rotation_to_quat_wxyz(np.eye(3)), [1, 0, 0, 0])
+
+
+def test_xyz_tuple() -> None:
+    t = xyz_tuple(np.array([1, 2.5, -3], np.float32))
+    assert t == (1.0, 2.5, -3.0) and all(type(c) is float for c in t)
+    assert xyz_tuple([0, 0, 1]) == (0.0, 0.0, 1.0)
+    with pytest.raises(ValueError):
+        xyz_tuple([1.0, 2.0])
+
+
+def test_box_select_camera_uses_the_one_quaternion_convention() -> None:
+    """The annotator's camera projection rotates with `quat_wxyz_to_rotation` (R_world_camera, OpenCV axes)."""
+    from annotator.selection import project
+
+    R = random_rotation(3)
+    q = rotation_to_quat_wxyz(R)
+    pos = np.array([0.1, -0.2, 0.3])
+    pts_cam = np.array([[0.0, 0.0, 2.0], [0.5, -0.25, 1.0]])  # camera frame: +Z forward
+    uv, depth = project(pts_cam @ R.T + pos, position=pos, wxyz=q, fov=np.pi / 2, aspect=2.0)
+    np.testing.assert_allclose(depth, [2.0, 1.0], atol=1e-12)
+    np.testing.assert_allclose(uv, [[0.5, 0.5], [0.5 + 0.5 * 0.5 / 2.0, 0.5 - 0.5 * 0.25]], atol=1e-12)
 
 
 @settings(max_examples=30, deadline=None)

@@ -6,8 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from efem_viz.prior import meshing
-from efem_viz.prior.meshing import extract_mesh, mesh_from_sdf_fn, sdf_grid
+from efem_viz.prior.meshing import MeshStats, extract_mesh, mesh_from_sdf_fn, sdf_grid
 from efem_viz.prior.model import Latent, PriorConfig, ShapePrior
 
 torch.set_num_threads(1)
@@ -62,9 +61,11 @@ def test_box_volume() -> None:
 
 def test_coarse_to_fine_equals_dense() -> None:
     fn = sphere_sdf(0.37)
-    dense, _ = sdf_grid(fn, resolution=64, coarse=None)
-    grid, stats = sdf_grid(fn, resolution=64, coarse=16)
-    assert stats["queries"] < 0.25 * stats["dense_queries"]
+    dense = sdf_grid(fn, resolution=64, coarse=None)
+    stats = MeshStats()
+    grid = sdf_grid(fn, resolution=64, coarse=16, stats=stats)
+    assert stats.queries < 0.25 * stats.dense_queries
+    assert stats.levels == 2 and len(stats.active_cells) == 2
     # identical near the surface (exactly evaluated), same sign everywhere
     near = np.abs(dense) < 0.05
     np.testing.assert_allclose(grid[near], dense[near], atol=1e-6)
@@ -96,22 +97,27 @@ def test_decimation_and_padding() -> None:
     np.testing.assert_allclose(clipped.bounds, [[-0.5] * 3, [0.5] * 3], atol=0.02)
 
 
-def test_sample_surface_points_lie_on_mesh_with_outward_normals() -> None:
-    mesh = mesh_from_sdf_fn(sphere_sdf(0.4), resolution=32, coarse=8, max_faces=None)
-    pts, nrm = meshing.sample_surface(mesh, 500, seed=1)
-    assert pts.shape == nrm.shape == (500, 3)
-    np.testing.assert_allclose(np.linalg.norm(pts, axis=1), 0.4, atol=0.01)
-    assert (np.sum(pts * nrm, axis=1) > 0.9 * 0.4).all()
-    a, b = meshing.sample_surface(mesh, 50, seed=3)[0], meshing.sample_surface(mesh, 50, seed=3)[0]
-    np.testing.assert_array_equal(a, b)
-    empty = mesh_from_sdf_fn(lambda p: np.ones(len(p)), resolution=8, coarse=None)
-    e_pts, e_nrm = meshing.sample_surface(empty, 7)
-    assert e_pts.shape == (7, 3) and not e_pts.any() and not e_nrm.any()
+def test_stats_are_per_call_and_thread_safe() -> None:
+    from concurrent.futures import ThreadPoolExecutor
+
+    def run(radius: float) -> tuple[int, MeshStats]:
+        st = MeshStats()
+        mesh = mesh_from_sdf_fn(sphere_sdf(radius), resolution=32, coarse=8, max_faces=None, stats=st)
+        return len(mesh.faces), st
+
+    radii = [0.2, 0.45, 0.3, 0.6]
+    with ThreadPoolExecutor(2) as pool:
+        out = list(pool.map(run, radii))
+    assert [st.faces for _, st in out] == [n for n, _ in out]
+    assert len({n for n, _ in out}) == len(radii)  # different spheres: each call kept its own counters
+    assert all(st.dense_queries == 33**3 and st.t_mc > 0 for _, st in out)
 
 
 def test_empty_and_invalid() -> None:
-    empty = mesh_from_sdf_fn(lambda p: np.ones(len(p)), resolution=16, coarse=8)
+    st = MeshStats(faces=7)
+    empty = mesh_from_sdf_fn(lambda p: np.ones(len(p)), resolution=16, coarse=8, stats=st)
     assert len(empty.faces) == 0 and len(empty.vertices) == 0
+    assert st.faces == 0 and st.queries > 0 and st.t_mc == 0.0
     with pytest.raises(ValueError, match="power of two"):
         sdf_grid(sphere_sdf(0.3), resolution=48, coarse=32)
     with pytest.raises(ValueError, match="non-finite"):
@@ -150,8 +156,10 @@ def test_extract_mesh_world_mapping() -> None:
     np.testing.assert_allclose(world.vertices, ref.vertices * (0.25 / 1.5) + [0.5, -0.2, 1.0], atol=1e-9)
     # unbatched latent and the codebook-free default reference scale (1.0)
     unb = Latent(lat.R[0], lat.inv[0], lat.center[0], lat.scale[0])
-    m = extract_mesh(prior, unb, resolution=32, coarse=8, world=True, max_faces=None)
+    stats = MeshStats()
+    m = extract_mesh(prior, unb, resolution=32, coarse=8, world=True, max_faces=None, stats=stats)
     np.testing.assert_allclose(np.linalg.norm(m.vertices - [0.5, -0.2, 1.0], axis=1), 0.3 * 0.25, atol=0.005)
-    assert meshing.LAST_STATS["queries"] < meshing.LAST_STATS["dense_queries"]
+    assert 0 < stats.queries < stats.dense_queries == 33**3
+    assert stats.faces == len(m.faces) and stats.t_eval > 0
     with pytest.raises(ValueError, match="single latent"):
         extract_mesh(prior, Latent.cat([lat, lat]))

@@ -11,7 +11,9 @@ import pytest
 import trimesh
 
 from efem_viz.data.io import (
+    ScenePathNotFoundError,
     atomic_write,
+    atomic_write_bytes,
     atomic_write_text,
     find_scenes,
     load_scene,
@@ -234,6 +236,25 @@ def test_atomic_write(tmp_path: Path) -> None:
     # np.savez keeps the name (no doubled .npz)
     atomic_write(tmp_path / "a.npz", lambda t: np.savez(t, x=np.arange(3)))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.npz", "sub"]
+    # an existing file keeps its permissions; bytes payloads take the same path
+    os.chmod(target, 0o640)
+    assert atomic_write_bytes(target, b"two") == target
+    assert target.read_bytes() == b"two" and stat.S_IMODE(target.stat().st_mode) == 0o640
+
+
+def test_atomic_write_refuses_symlinks(tmp_path: Path) -> None:
+    victim = tmp_path / "victim.txt"
+    victim.write_text("keep me")
+    link = tmp_path / "link.txt"
+    os.symlink(victim, link)
+    for write in (lambda: atomic_write_text(link, "x"), lambda: atomic_write_bytes(link, b"x"),
+                  lambda: save_scene(cloud_scene(n=20), tmp_path / "link.ply")):
+        if not (tmp_path / "link.ply").is_symlink():
+            os.symlink(victim, tmp_path / "link.ply")
+        with pytest.raises(ValueError, match="symbolic link"):
+            write()
+    assert victim.read_text() == "keep me" and link.is_symlink()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["link.ply", "link.txt", "victim.txt"]  # no temporaries
 
 
 def test_find_scenes(tmp_path: Path) -> None:
@@ -254,8 +275,20 @@ def test_find_scenes(tmp_path: Path) -> None:
     assert [p.name for p in find_scenes([extra, d, d / "b.ply"])] == ["x.off", "a.npz", "b.ply", "c.glb"]
     with pytest.raises(SceneError, match="no such"):
         find_scenes([tmp_path / "nope"])
+    with pytest.raises(FileNotFoundError, match="no such"):  # the same error, for the viewer's discover_scenes
+        find_scenes([tmp_path / "nope"])
+    assert issubclass(ScenePathNotFoundError, SceneError) and issubclass(ScenePathNotFoundError, FileNotFoundError)
     with pytest.raises(SceneError, match="result"):
         find_scenes([d / "a.efem.npz"])
+    with pytest.raises(SceneError, match="unknown scene format"):
+        find_scenes([d / "notes.txt"])
+    # recursive walks sub-folders (sorted by path); a hidden file named explicitly is kept
+    assert [p.relative_to(d).as_posix() for p in find_scenes(d, recursive=True)] == [
+        "a.npz", "b.ply", "c.glb", "nested/z.ply"]
+    assert find_scenes(d / ".hidden.ply") == [d / ".hidden.ply"]
+    # a symlink to a file already listed is a duplicate
+    os.symlink(d / "b.ply", d / "0link.ply")
+    assert [p.name for p in find_scenes(d)] == ["0link.ply", "a.npz", "c.glb"]
 
 
 def test_info_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

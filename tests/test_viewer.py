@@ -576,3 +576,47 @@ def test_a_results_folder_alone_lists_its_segment_outputs(scene_dir: Path, prior
         a.stop()
     with pytest.raises(FileNotFoundError, match="results folder"):
         ViewerApp([scene_dir], port=0, prior=prior, results=[tmp_path / "nope"])
+
+
+def test_a_two_prior_result_decodes_and_inspects_each_proposal_with_its_own_prior(tmp_path: Path) -> None:
+    """A joint solve over the mug and the sphere prior: the viewer (started with the mug prior) decodes the shapes
+    and inspects the proposals of both categories, loading the sphere prior by its category name."""
+    import torch
+
+    from efem_viz.data.io import load_scene, save_scene
+    from efem_viz.prior import load_priors
+    from efem_viz.viewer.app import ViewerApp
+
+    torch.set_num_threads(1)
+    root = Path(__file__).resolve().parents[1] / "sample_scenes"
+    scene = analytic.add_spheres(load_scene(root / "syn_z_0.ply"), [0.045], seed=0)
+    scene = scene.replace(name="mixed")
+    mug, sphere = load_priors(["mug", "sphere"])
+    cfg = em.preset("fast").replace(n_init=(12,), t1=3, t2=1, end_step=2)
+    res = em.run_em(scene, priors=[mug, sphere], cfg=cfg, seed=0)
+    save_scene(scene, tmp_path / "mixed.ply")
+    res.save(tmp_path / "mixed.efem.npz")
+    app = ViewerApp([tmp_path], port=0, prior=mug, open_first=False)
+    try:
+        assert app.open_scene("mixed") and app.wait_idle(60)
+        tr = app.state.result.trace
+        assert tr.prior_names == ("mug", "sphere")
+        t = tr.num_steps - 1
+        for kind in ("mug", "sphere"):
+            alive = [int(p) for p in tr.alive(t) if tr.category_of(int(p)) == kind]
+            assert alive, f"no {kind} proposal alive at the last step"
+            fut = app.select_proposal(alive[0])
+            assert fut is not None
+            fut.result(timeout=120)
+            assert app.wait_idle(60)
+            assert "shape" in app.nodes.inspect, f"no decoded shape for the {kind} proposal"
+            if kind == "sphere":  # decoded with the sphere prior: a sphere of radius Θ_s / 2 (drawn shifted aside)
+                lat = tr.latent(alive[0], t)
+                v = np.asarray(app.nodes.inspect["shape"].vertices, np.float64)
+                r = np.linalg.norm(v - v.mean(axis=0), axis=1)
+                assert np.allclose(r, float(lat["scale"]) / 2, rtol=0.05), "sphere proposal decoded by another prior"
+        app.set_step(t)
+        assert app.wait_idle(120)
+        assert any(app.nodes.has_shape(int(p), t) for p in tr.alive(t)), "no proposal shape decoded"
+    finally:
+        app.stop()

@@ -36,9 +36,7 @@ import logging
 import os
 import re
 import tempfile
-import tokenize
 import warnings
-import zipfile
 import zlib
 from itertools import islice
 from pathlib import Path
@@ -46,7 +44,8 @@ from typing import Any, Callable, Iterable, Iterator, NamedTuple, cast
 
 import numpy as np
 
-from efem_viz.data.scene import DEFAULT_MAX_POINTS, SCENE_SCHEMA_VERSION, Scene, SceneError
+from efem_viz.data.npz import check_npz_headers
+from efem_viz.data.scene import DEFAULT_MAX_POINTS, MAX_FACES_PER_POINT, SCENE_SCHEMA_VERSION, Scene, SceneError
 
 log = logging.getLogger(__name__)
 
@@ -60,18 +59,18 @@ _PROVENANCE_COMMENT = "efem_provenance"
 _GLB_EXTRAS_KEY = "efem"
 _MAX_GLB_LABEL = 2**24  # float32 represents every integer up to 2^24 exactly
 
-MAX_FACES_PER_POINT = 4
-"""A file may declare at most this many faces per allowed point (`max_points`): a closed triangle mesh has about
-2 faces per vertex, so only a corrupt or hostile header goes past 4 (checked before anything is allocated)."""
 
 
 # ---------------------------------------------------------------------------------------------- atomic write
 def atomic_write(path: str | os.PathLike[str], writer: Callable[[Path], Any]) -> Path:
     """Write a file atomically: `writer(tmp_path)` writes a temporary file in the same directory, then rename.
 
-    The temporary file keeps the destination's suffix (so writers that infer the format from the name, or that
-    append `.npz`, behave), is fsynced, and then replaces `path` with `os.replace` (atomic on POSIX and Windows).
-    On any error the temporary file is removed and `path` is left untouched.
+    The one atomic write of efem-viz and the annotator. The temporary file (``.<stem>.<random>.tmp<suffix>``)
+    keeps the destination's suffix (so writers that infer the format from the name, or that append `.npz`,
+    behave), is fsynced, gets the destination's permissions, and then replaces `path` with `os.replace` (atomic on
+    POSIX and Windows); the directory is fsynced after the rename so that the rename itself survives a power
+    cut (best effort: not every platform can). On any error the temporary file is removed and `path` is left
+    untouched. An existing symbolic link at `path` is refused: it is never replaced or written through.
 
     Args:
         path: destination file; its parent directory is created if missing.
@@ -79,8 +78,13 @@ def atomic_write(path: str | os.PathLike[str], writer: Callable[[Path], Any]) ->
 
     Returns:
         The destination path.
+
+    Raises:
+        ValueError: `path` is a symbolic link.
     """
     dest = Path(path)
+    if dest.is_symlink():
+        raise ValueError(f"refusing to overwrite {dest}: it is a symbolic link")
     dest.parent.mkdir(parents=True, exist_ok=True)
     suffix = "".join(dest.suffixes[-2:]) if dest.name.endswith(RESULT_SUFFIX) else dest.suffix
     fd, tmp_name = tempfile.mkstemp(prefix=f".{dest.stem}.", suffix=".tmp" + suffix, dir=dest.parent)
@@ -129,52 +133,64 @@ def _umask() -> int:
 
 
 def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
-    """`atomic_write` for a bytes payload."""
+    """`atomic_write` of a bytes payload (same guarantees and errors)."""
     return atomic_write(path, lambda p: p.write_bytes(data))
 
 
 def atomic_write_text(path: str | os.PathLike[str], text: str) -> Path:
-    """`atomic_write` for a UTF-8 text payload."""
+    """`atomic_write` of a UTF-8 text payload (same guarantees and errors)."""
     return atomic_write(path, lambda p: p.write_text(text, encoding="utf-8"))
 
 
 # ---------------------------------------------------------------------------------------------- discovery
+class ScenePathNotFoundError(SceneError, FileNotFoundError):
+    """A scene path that does not exist: both a `SceneError` (a user error the CLI reports in one line) and a
+    `FileNotFoundError` (what the viewer's `discover_scenes` documents)."""
+
+
 def is_scene_file(path: str | os.PathLike[str]) -> bool:
     """True for a file name with a scene suffix that is not an EFEM result (`*.efem.npz`) or a hidden file."""
     p = Path(path)
-    name = p.name.lower()
-    return (
-        not name.startswith(".")
-        and not name.endswith(RESULT_SUFFIX)
-        and p.suffix.lower() in SCENE_SUFFIXES
-    )
+    return not p.name.startswith(".") and _has_scene_suffix(p)
 
 
-def find_scenes(paths: str | os.PathLike[str] | Iterable[str | os.PathLike[str]]) -> list[Path]:
-    """Scene files among the given files and directories.
+def _has_scene_suffix(p: Path) -> bool:
+    return not p.name.lower().endswith(RESULT_SUFFIX) and p.suffix.lower() in SCENE_SUFFIXES
 
-    Directories are listed (not recursively), keeping files with a scene suffix, sorted by name, skipping EFEM
-    result files (`*.efem.npz`) and hidden files. Files given explicitly are kept (in the order given) if they
-    have a scene suffix. Duplicates are removed.
+
+def find_scenes(
+    paths: str | os.PathLike[str] | Iterable[str | os.PathLike[str]], *, recursive: bool = False
+) -> list[Path]:
+    """Scene files among the given files and directories: the one folder walk of efem-viz (the CLI commands and
+    the viewer's `discover_scenes` list scenes with it).
+
+    Directories are listed (sub-folders too with `recursive`), keeping the files `is_scene_file` accepts (a
+    scene suffix, not an EFEM result `*.efem.npz`, not hidden), sorted by path (by name within a folder). Files
+    given explicitly are kept (in the order given) when they have a scene suffix and are not results (a hidden
+    file named explicitly is kept). `~` is expanded. Duplicates (the same file after resolving symlinks) are
+    removed; the paths are returned as found, not resolved.
 
     Args:
         paths: one path or several: files and/or directories.
+        recursive: also list the sub-folders of the given directories.
 
     Returns:
         Scene file paths.
 
     Raises:
-        SceneError: a path does not exist, or a file given explicitly is not a scene file.
+        ScenePathNotFoundError: a path does not exist (a `SceneError` and a `FileNotFoundError`).
+        SceneError: a file given explicitly is an EFEM result or has no scene suffix.
     """
     items = [paths] if isinstance(paths, (str, os.PathLike)) else list(paths)
     out: list[Path] = []
     seen: set[Path] = set()
     for item in items:
-        p = Path(item)
+        p = Path(item).expanduser()
         if p.is_dir():
-            found = sorted((c for c in p.iterdir() if c.is_file() and is_scene_file(c)), key=lambda c: c.name)
+            it = p.rglob("*") if recursive else p.iterdir()
+            found = sorted(c for c in it if c.is_file() and is_scene_file(c))
         elif p.is_file():
-            if not is_scene_file(p):
+            if not _has_scene_suffix(p):
                 if p.name.lower().endswith(RESULT_SUFFIX):
                     raise SceneError(f"{p} is an EFEM result file, not a scene")
                 raise SceneError(
@@ -182,7 +198,7 @@ def find_scenes(paths: str | os.PathLike[str] | Iterable[str | os.PathLike[str]]
                 )
             found = [p]
         else:
-            raise SceneError(f"{p}: no such file or directory")
+            raise ScenePathNotFoundError(f"{p}: no such file or directory")
         for f in found:
             key = f.resolve()
             if key not in seen:
@@ -291,78 +307,6 @@ def _npz_kwargs(data: Any) -> dict[str, Any]:
     if "provenance_json" in keys:
         out["provenance"] = json.loads(str(np.asarray(data["provenance_json"])))
     return out
-
-
-_NPZ_ROWS_PER_POINT = {"points": 1, "normals": 1, "colors": 1, "instance": 1, "faces": MAX_FACES_PER_POINT}
-"""Rows a native scene array may have per allowed point (`max_points`)."""
-_NPZ_BYTES_PER_ROW = 64
-"""Bytes a scene array may take per allowed row (float64 points are 24, RGBA float64 colours 32)."""
-_NPZ_OTHER_BYTES = 256 << 20
-"""Bytes any other array (an RGB-D frame's depth and colour images, names, JSON) may take, at least."""
-
-
-NPY_HEADER_ERRORS: tuple[type[BaseException], ...] = (
-    ValueError, OSError, EOFError, SyntaxError, NotImplementedError, tokenize.TokenError, zlib.error,
-    zipfile.BadZipFile,
-)
-"""What reading a damaged `.npy` header inside a zip raises: numpy's parser (ValueError, SyntaxError and
-tokenize.TokenError from its literal parsing), zipfile (BadZipFile; NotImplementedError for an unsupported "zip
-file version"), zlib and the file itself."""
-
-
-def check_npz_headers(p: Path, max_points: int) -> None:
-    """Check every array header of an `.npz` against the archive and the limits before numpy allocates.
-
-    `np.load` allocates an array's full size from its `.npy` header before reading the data, so a header
-    claiming 10^12 points would cost memory (or raise MemoryError) before the file is found short. Each
-    member's claimed size must equal the bytes the zip directory says it holds (zipfile never inflates more
-    than that), and scene arrays must fit `max_points`.
-
-    Raises:
-        SceneError: not a zip archive; a header that disagrees with its member's size; an array over the limits.
-    """
-
-    try:
-        zf = zipfile.ZipFile(p)
-    except (zipfile.BadZipFile, OSError, NotImplementedError, ValueError) as exc:  # NotImplementedError: "zip file version"
-        raise SceneError(f"{p}: not a valid .npz (zip) archive ({exc})") from exc
-    with zf:
-        for info in zf.infolist():
-            if not info.filename.endswith(".npy"):
-                continue
-            key = info.filename[: -len(".npy")]
-            try:
-                with zf.open(info) as fh:
-                    version = np.lib.format.read_magic(fh)
-                    read = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
-                        np.lib.format.read_array_header_2_0
-                    shape, _, dtype = read(fh)
-                    header_len = fh.tell()
-            except NPY_HEADER_ERRORS as exc:
-                raise SceneError(f"{p}: array {key!r} has a corrupt .npy header ({exc})") from exc
-            if dtype.hasobject:
-                continue  # np.load(allow_pickle=False) refuses it with its own message
-            nbytes = int(np.prod(shape, dtype=object)) * dtype.itemsize if shape else dtype.itemsize
-            held = info.file_size - header_len
-            if nbytes != held:
-                raise SceneError(
-                    f"{p}: array {key!r} claims shape {tuple(shape)} {dtype} ({nbytes:,} bytes) but the archive "
-                    f"holds {held:,} bytes for it (corrupt or truncated file)"
-                )
-            if key in _NPZ_ROWS_PER_POINT:
-                rows_limit = _NPZ_ROWS_PER_POINT[key] * max(max_points, 1)
-                rows = int(shape[0]) if shape else 1
-                if rows > rows_limit or nbytes > _NPZ_BYTES_PER_ROW * rows_limit:
-                    what = "points" if key != "faces" else "faces"
-                    raise SceneError(
-                        f"{p}: array {key!r} has shape {tuple(shape)} {dtype}: more {what} than the limit of "
-                        f"{rows_limit:,} (max_points {max_points:,}); downsample it or raise max_points"
-                    )
-            elif nbytes > max(_NPZ_OTHER_BYTES, _NPZ_BYTES_PER_ROW * max_points):
-                raise SceneError(
-                    f"{p}: array {key!r} has shape {tuple(shape)} {dtype} ({nbytes:,} bytes), larger than any "
-                    "scene or RGB-D frame this reader accepts"
-                )
 
 
 def _load_npz(p: Path, max_points: int) -> dict[str, Any]:

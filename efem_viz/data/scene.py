@@ -20,6 +20,9 @@ if TYPE_CHECKING:
 SCENE_SCHEMA_VERSION = 1
 DEFAULT_MAX_POINTS = 5_000_000
 """Default limit on the number of points a scene may hold (configurable per call)."""
+MAX_FACES_PER_POINT = 4
+"""A file may declare at most this many faces per allowed point (`max_points`): a closed triangle mesh has about
+2 faces per vertex, so only a corrupt or hostile header goes past 4 (checked before anything is allocated)."""
 
 
 class SceneError(ValueError):

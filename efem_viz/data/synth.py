@@ -33,6 +33,8 @@ from typing import TYPE_CHECKING, Any, Literal, Sequence, cast
 
 import numpy as np
 
+from efem_viz.geometry.transforms import rotation_to_quat_wxyz
+
 if TYPE_CHECKING:
     import trimesh
 
@@ -258,7 +260,7 @@ def _simulate(
                     max(float(o.mesh.volume) * 2000.0, 0.02),
                     shape,
                     basePosition=pos,
-                    baseOrientation=_matrix_to_quat_xyzw(R),
+                    baseOrientation=np.roll(rotation_to_quat_wxyz(R), -1).tolist(),  # pybullet: xyzw
                     physicsClientId=cid,
                 )
                 pb.changeDynamics(
@@ -307,13 +309,6 @@ def _settle(
         if not moving:
             break
     return steps
-
-
-def _matrix_to_quat_xyzw(R: np.ndarray) -> list[float]:
-    from efem_viz.geometry.transforms import rotation_to_quat_wxyz
-
-    w, x, y, z = (float(v) for v in rotation_to_quat_wxyz(R))
-    return [x, y, z, w]
 
 
 # ====================================================================================== checks

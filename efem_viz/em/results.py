@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any, cast
 import numpy as np
 
 from efem_viz.em.config import EMConfig
+from efem_viz.data.io import RESULT_SUFFIX
 from efem_viz.em.replay import TraceReplay
 from efem_viz.em.trace import EMTrace
 from efem_viz.prior.config import CategorySettings
@@ -32,7 +33,6 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 RESULT_SCHEMA_VERSION = 1
-RESULT_SUFFIX = ".efem.npz"
 
 
 def _offsets(lengths: list[int]) -> np.ndarray:
@@ -484,8 +484,8 @@ REQUIRED_RESULT_KEYS: tuple[str, ...] = (
 
 def _check_npz_headers(p: Path) -> None:
     """Every array header of the archive agrees with the bytes its member holds, before numpy allocates for it
-    (the scene reader's check, `efem_viz.data.io.check_npz_headers`, without its scene size limits)."""
-    from efem_viz.data.io import check_npz_headers
+    (the scene reader's check, `efem_viz.data.npz.check_npz_headers`, without its scene size limits)."""
+    from efem_viz.data.npz import check_npz_headers
     from efem_viz.data.scene import SceneError
 
     try:

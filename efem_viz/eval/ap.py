@@ -14,6 +14,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from efem_viz.em.results import confidence_mask
 from efem_viz.eval.matching import (
     DEFAULT_CLASS_NAMES,
     MIN_REGION_SIZE,
@@ -306,7 +307,7 @@ def evaluate_scene(
     conf = np.asarray(confidences, dtype=np.float64).reshape(-1)
     if len(conf) != len(pred_masks):
         raise ValueError(f"{len(pred_masks)} masks but {len(conf)} confidences")
-    keep = np.flatnonzero(conf >= threshold)
+    keep = np.flatnonzero(confidence_mask(conf, threshold))
     lab = None if labels is None else np.asarray(labels).reshape(-1)[keep]
     pred = ScenePrediction(name=name, masks=[pred_masks[int(i)] for i in keep], confidences=conf[keep],
                            labels=lab)
@@ -326,7 +327,7 @@ def prediction_from_instances(
     Categories not in `class_names` get class 0 and are not evaluated; with one class every instance is class 1.
     """
     conf = np.asarray(instances.confidence, dtype=np.float64).reshape(-1)
-    keep = np.flatnonzero(conf >= threshold)
+    keep = np.flatnonzero(confidence_mask(conf, threshold))
     cats = np.asarray(getattr(instances, "category", np.array([], dtype=str)))
     lookup = {n: k + 1 for k, n in enumerate(class_names)}
     if len(class_names) == 1:

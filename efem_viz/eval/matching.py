@@ -12,10 +12,12 @@ from typing import Any, Iterator, Mapping, Sequence
 
 import numpy as np
 
+from efem_viz.prior.config import DEFAULT_PRIOR
+
 MIN_REGION_SIZE = 100
 """Ground-truth instances and predictions with fewer points are not evaluated (§5.1, §5.2)."""
-DEFAULT_CLASS_NAMES: tuple[str, ...] = ("mug",)
-"""Default evaluated classes: a single mug class (id 1)."""
+DEFAULT_CLASS_NAMES: tuple[str, ...] = (DEFAULT_PRIOR,)
+"""Default evaluated classes: the shipped prior's category (id 1)."""
 
 
 @dataclass(frozen=True)

@@ -9,6 +9,7 @@ Pure NumPy; no torch.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 
@@ -26,6 +27,7 @@ __all__ = [
     "rotation_about_axis",
     "rotation_angle_deg",
     "rotation_to_quat_wxyz",
+    "xyz_tuple",
 ]
 
 
@@ -145,6 +147,22 @@ def rotation_to_quat_wxyz(R: np.ndarray) -> np.ndarray:
     out /= np.linalg.norm(out, axis=1, keepdims=True)
     out[out[:, 0] < 0] *= -1.0
     return out.reshape(R.shape[:-2] + (4,))
+
+
+def xyz_tuple(v: np.ndarray | Sequence[float]) -> tuple[float, float, float]:
+    """A 3-vector as a plain float triple (what viser's `position`/`look_at`/`up` arguments take).
+
+    Args:
+        v: (3,) float, any frame.
+
+    Returns:
+        (x, y, z) Python floats.
+
+    Raises:
+        ValueError: `v` does not hold exactly three values.
+    """
+    x, y, z = (float(c) for c in v)
+    return x, y, z
 
 
 def project_to_so3(M: np.ndarray) -> np.ndarray:

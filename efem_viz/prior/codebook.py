@@ -1,4 +1,5 @@
-"""Pose codebook ("database") of a shape prior (efem-method.md §2.8) and the `build-codebook` command.
+"""Pose codebook ("database") of a shape prior (efem-method.md §2.8); `efem-viz build-codebook` is
+`efem_viz.prior.commands.BuildCodebookArgs`.
 
 For every training object we store its latent (Θ_R, Θ_inv, Θ_s, Θ_c), a noisy canonical surface cloud and a
 rotation-invariant version of Θ_R, and we answer k-nearest-neighbour queries on three feature spaces
@@ -15,7 +16,7 @@ spec's "proper centre", not the release's raw offset δ); the stored cloud is `n
 in float16 (default 2000 instead of the release's 5000, to keep the shipped file small); kNN indices are
 scipy cKDTrees built on the fly after loading.
 
-This module's top is light (no torch): the CLI dispatcher imports it.
+This module's top is light (no torch).
 """
 
 from __future__ import annotations
@@ -28,6 +29,8 @@ from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 
+from efem_viz.geometry.sampling import sample_surface
+
 if TYPE_CHECKING:
     import trimesh
 
@@ -37,7 +40,6 @@ logger = logging.getLogger(__name__)
 
 __all__ = [
     "CODEBOOK_SCHEMA_VERSION",
-    "BuildCodebookArgs",
     "Codebook",
     "build_codebook",
     "latent_to_numpy",
@@ -310,7 +312,7 @@ class Codebook:
         """
         import json
 
-        from efem_viz.data.io import check_npz_headers
+        from efem_viz.data.npz import check_npz_headers
         from efem_viz.data.scene import SceneError
 
         path = Path(path)
@@ -360,20 +362,6 @@ class Codebook:
             return cls(meta=meta, **{k: data[k] for k in required})
         except ValueError as exc:
             raise ValueError(f"{path}: {exc}") from exc
-
-
-def _sample_surface(mesh: trimesh.Trimesh, n: int, rng: np.random.Generator) -> np.ndarray:
-    """(n, 3) area-uniform surface samples drawn with `rng` (vectorised barycentric sampling)."""
-    tri = np.asarray(mesh.triangles, dtype=np.float64)
-    area = np.asarray(mesh.area_faces, dtype=np.float64)
-    if len(tri) == 0 or not area.sum() > 0:
-        raise ValueError("cannot sample the surface of an empty mesh")
-    face = rng.choice(len(tri), size=n, p=area / area.sum())
-    u = rng.random((n, 2))
-    flip = u.sum(axis=1) > 1.0
-    u[flip] = 1.0 - u[flip]
-    a, b, c = tri[face, 0], tri[face, 1], tri[face, 2]
-    return a + u[:, :1] * (b - a) + u[:, 1:] * (c - a)
 
 
 def build_codebook(
@@ -430,7 +418,7 @@ def build_codebook(
             ids.append(pos)
         if normalise:
             mesh = normalize_mesh(mesh)
-        pts = _sample_surface(mesh, n_store, rng) + rng.normal(0.0, noise, size=(n_store, 3))
+        pts = sample_surface(mesh, n_store, seed=rng, empty="raise").points + rng.normal(0.0, noise, size=(n_store, 3))
         clouds.append(pts.astype(np.float16))  # encode exactly what is stored
         input_idx.append(rng.integers(0, n_store, size=n_pcl))
     pcl = np.stack(clouds)
@@ -475,46 +463,3 @@ def build_codebook(
             "built_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         },
     )
-
-
-@dataclass
-class BuildCodebookArgs:
-    """Build the pose codebook of a trained prior from its training-split procedural objects."""
-
-    prior: str = "mug"
-    """Prior weights: a .pt path, or a name under efem_viz/weights/ ("mug" = efem_viz/weights/mug.pt)."""
-    out: Path | None = None
-    """Output .npz (default: `<prior stem>_codebook.npz` next to the weights, which `load_prior` picks up)."""
-    count: int = 150
-    """Number of training-split objects (the first `count` seeds of the split)."""
-    category: str = "mug"
-    """Procedural category of the training objects."""
-    n_store: int = 2000
-    """Stored noisy surface points per object (float16)."""
-    noise: float = 0.01
-    """Gaussian noise σ on the stored points (canonical units; training uses 0.01 for mugs)."""
-    seed: int = 0
-    """RNG seed of the surface sampling."""
-
-    def run(self) -> int:
-        """Build and save; returns the process exit code."""
-        from efem_viz.data.procedural import split_seeds
-        from efem_viz.prior.model import load_prior, resolve_prior_path
-
-        if self.count < 1:
-            raise ValueError(f"--count must be >= 1, got {self.count}")
-        weights = resolve_prior_path(self.prior)
-        out = self.out if self.out is not None else weights.with_name(f"{weights.stem}_codebook.npz")
-        t0 = time.perf_counter()
-        prior = load_prior(weights, load_codebook=False)
-        seeds = list(split_seeds(self.category, "train"))[: self.count]
-        cb = build_codebook(
-            prior, seeds, n_store=self.n_store, noise=self.noise, seed=self.seed, category=self.category
-        )
-        path = cb.save(out)
-        logger.info(
-            "codebook: %d entries, C=%d, n_store=%d, mean scale %.4f -> %s (%.1f kB, %.1f s)",
-            len(cb), cb.latent_dim, cb.n_store, cb.mean_scale, path, path.stat().st_size / 1024,
-            time.perf_counter() - t0,
-        )
-        return 0

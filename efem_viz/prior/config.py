@@ -36,6 +36,8 @@ TAU_OUT_KEY = "tau_out"
 """Metadata key of a prior's calibrated τ_out."""
 CATEGORY_KEY = "category"
 """Metadata key of a prior's category settings (a dict, see `CategorySettings.to_dict`)."""
+DEFAULT_PRIOR = "mug"
+"""The prior efem-viz ships weights for (efem_viz/weights/mug.pt): the default of every `--prior`."""
 DOMAINS: tuple[str, ...] = ("synthetic", "real")
 """Capture domains a category may give its own sizes for (the solver's presets choose one)."""
 

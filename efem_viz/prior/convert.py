@@ -41,7 +41,7 @@ exceptions (details in docs/INTERFACES.md):
 A plausibility check encodes a unit-size procedural mug in float64 after conversion and warns when Θ_s is far
 from 1 or |δ| is implausible; its numbers are stored in the metadata (``conversion_check``).
 
-This module's top is light (no torch): the CLI dispatcher imports it.
+This module's top is light (no torch). `efem-viz convert-prior` is `efem_viz.prior.commands.ConvertArgs`.
 """
 
 from __future__ import annotations
@@ -50,11 +50,8 @@ import hashlib
 import logging
 import re
 import time
-from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any, Literal, Mapping
-
-import tyro
+from typing import TYPE_CHECKING, Any, Literal, Mapping
 
 if TYPE_CHECKING:
     from efem_viz.prior.model import PriorConfig, ShapePrior
@@ -63,7 +60,6 @@ logger = logging.getLogger(__name__)
 
 __all__ = [
     "RELEASES",
-    "ConvertArgs",
     "ReleaseName",
     "convert_released_checkpoint",
     "infer_released_config",
@@ -266,7 +262,7 @@ def infer_released_config(
     Raises:
         ValueError: If a key needed for inference is missing or malformed, or the schedule cannot be known.
     """
-    from efem_viz.prior.model import PriorConfig
+    from efem_viz.prior.config import PriorConfig
 
     if release not in RELEASES:
         raise ValueError(f"unknown release {release!r}; known: {sorted(RELEASES)}")
@@ -355,11 +351,11 @@ def _plausibility_check(prior: ShapePrior) -> dict[str, float]:
     import torch
 
     from efem_viz.data.procedural import make_shape
-    from efem_viz.prior.codebook import _sample_surface
+    from efem_viz.geometry.sampling import sample_surface
     from efem_viz.prior.data import normalize_mesh
 
     mesh = normalize_mesh(make_shape("mug", 0))
-    pts = _sample_surface(mesh, int(prior.config.n_pcl), np.random.default_rng(0))
+    pts = sample_surface(mesh, int(prior.config.n_pcl), seed=np.random.default_rng(0), empty="raise").points
     net = copy.deepcopy(prior).double()
     with torch.no_grad():
         x = torch.as_tensor(pts, dtype=torch.float64)[None]
@@ -506,72 +502,3 @@ def _convert(src: str | Path, dst: str | Path, *, name: str | None, release: Rel
                 src, release, info["epoch"], path, list(config.widths), list(config.attention_blocks),
                 config.latent_dim, config.n_pcl, config.center_times_sigma)
     return path, release
-
-
-@dataclass
-class ConvertArgs:
-    """Convert a released EFEM shape prior (weights/mugs.pt, chairs.pt or kit4cates.pt of github.com/JiahuiLei/EFEM)
-    into an efem-viz prior, then build its pose codebook.
-
-    The released priors use a +Y-up canonical frame, efem-viz +Z up. The networks are SO(3)-equivariant, so the
-    weights are copied unchanged, but the released codebooks (cache/*.npz) cannot be used: the codebook is rebuilt
-    here from efem-viz's +Z-up procedural meshes (`--category`), exactly as `efem-viz build-codebook` does.
-    """
-
-    src: Annotated[Path, tyro.conf.Positional]
-    """The released checkpoint (a pickled dict with model_state_dict, keys network_dict.encoder./decoder.)."""
-    out: Path | None = None
-    """Output prior file (default: `<src stem>_efemviz.pt` next to src). Use it with `--prior PATH`."""
-    name: str | None = None
-    """Display name of the prior (default: mug, chair or kit4cates)."""
-    release: Literal["auto", "mugs", "chairs", "kit4cates"] = "auto"
-    """Which released prior (auto: from the file name, else mugs, or chairs if it has attention blocks). Sets the
-    input size, down-sampling and whether the centre offset is multiplied by σ (kit4cates only)."""
-    center_times_sigma: bool | None = None
-    """Override: multiply the centre offset δ by σ (default: from the release)."""
-    n_pcl: int | None = None
-    """Override: encoder input size (default: 512 mugs/kit4cates, 1024 chairs)."""
-    down_blocks: tuple[int, ...] | None = None
-    """Override: down-sampled blocks (released: 2 4 5; needed for non-released depths)."""
-    down_factors: tuple[int, ...] | None = None
-    """Override: their down-sampling factors (released: 2 4 4, chairs 4 4 4)."""
-    allow_pickle: bool = False
-    """If the safe weights-only load fails, unpickle the file in full. A pickle can run code: trusted files only."""
-    overwrite: bool = False
-    """Replace an existing output file."""
-    codebook: bool = True
-    """Build the pose codebook after converting (`--no-codebook`: only convert)."""
-    count: int = 150
-    """Codebook: number of training-split procedural objects."""
-    category: str | None = None
-    """Codebook: procedural category (default: mug for mugs and kit4cates; chairs have no procedural category, so
-    the codebook is skipped unless one is given)."""
-    n_store: int = 2000
-    """Codebook: stored noisy surface points per object."""
-    noise: float = 0.01
-    """Codebook: Gaussian noise σ on the stored points (canonical units)."""
-    seed: int = 0
-    """Codebook: RNG seed of the surface sampling."""
-
-    def run(self) -> int:
-        """Convert, then build the codebook; returns the process exit code."""
-        from efem_viz.prior.codebook import BuildCodebookArgs
-
-        release = None if self.release == "auto" else self.release
-        out = self.out if self.out is not None else self.src.with_name(f"{self.src.stem}_efemviz.pt")
-        path, release = _convert(
-            self.src, out, name=self.name, release=release, center_times_sigma=self.center_times_sigma,
-            n_pcl=self.n_pcl, down_blocks=self.down_blocks, down_factors=self.down_factors, k=16,
-            att_head_dim=16, scale_factor=64000.0, allow_pickle=self.allow_pickle, overwrite=self.overwrite,
-            check=True,
-        )
-        if not self.codebook:
-            logger.info("--no-codebook: build it later with `efem-viz build-codebook --prior %s`", path)
-            return 0
-        category = self.category if self.category is not None else RELEASES[release]["category"]
-        if category is None:
-            logger.warning("no procedural category for the %s prior: codebook skipped. Build one from your own "
-                           "+Z-up meshes with efem_viz.prior.codebook.build_codebook, or pass --category", release)
-            return 0
-        return BuildCodebookArgs(prior=str(path), out=None, count=self.count, category=category,
-                                 n_store=self.n_store, noise=self.noise, seed=self.seed).run()

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
@@ -31,13 +32,35 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["LAST_STATS", "extract_mesh", "mesh_from_sdf_fn", "sample_surface", "sdf_grid", "simplify_mesh"]
+__all__ = ["MeshStats", "extract_mesh", "mesh_from_sdf_fn", "sdf_grid", "simplify_mesh"]
 
 SdfFn = Callable[[np.ndarray], np.ndarray]
 
 
-LAST_STATS: dict[str, Any] = {}
-"""Counters of the most recent `mesh_from_sdf_fn` call in this process (queries, active cells, timings)."""
+@dataclass
+class MeshStats:
+    """Counters and timings of one meshing call, filled in place by the call it is passed to (`stats=`).
+
+    One object per call, so concurrent meshing (viewer workers, batch runs) never mixes counters. `sdf_grid`
+    fills the counters, `mesh_from_sdf_fn` and `extract_mesh` the timings and `faces` too.
+    """
+
+    queries: int = 0
+    """SDF evaluations made."""
+    dense_queries: int = 0
+    """Evaluations a dense grid would make, `(resolution + 1)³`."""
+    levels: int = 0
+    """Refinement levels after the coarse grid."""
+    active_cells: list[int] = field(default_factory=list)
+    """Cells refined at each level."""
+    t_eval: float = 0.0
+    """Seconds spent evaluating the grid."""
+    t_mc: float = 0.0
+    """Seconds of marching cubes."""
+    t_simplify: float = 0.0
+    """Seconds of decimation."""
+    faces: int = 0
+    """Faces of the returned mesh."""
 
 
 def _upsample2(v: np.ndarray) -> np.ndarray:
@@ -88,7 +111,8 @@ def sdf_grid(
     coarse: int | None = 32,
     lipschitz: float = 1.0,
     batch: int = 65536,
-) -> tuple[np.ndarray, dict[str, Any]]:
+    stats: MeshStats | None = None,
+) -> np.ndarray:
     """SDF samples on a `(resolution+1)³` lattice over `[−half_extent, half_extent]³`, coarse-to-fine.
 
     Args:
@@ -99,10 +123,10 @@ def sdf_grid(
         lipschitz: also refine same-sign cells whose smallest corner |sdf| < `lipschitz` × half the cell
             diagonal (1 = exact for a true SDF; 0 = the release's pure sign-change rule).
         batch: points per `fn` call.
+        stats: filled in place with `queries`, `dense_queries`, `levels` and `active_cells` (optional).
 
     Returns:
-        values (R+1, R+1, R+1) float32 SDF (exact where evaluated, interpolated elsewhere) indexed [x, y, z],
-        and a stats dict (`queries`, `dense_queries`, `levels`, `active_cells`).
+        (R+1, R+1, R+1) float32 SDF values (exact where evaluated, interpolated elsewhere) indexed [x, y, z].
     """
     if resolution < 2:
         raise ValueError(f"resolution must be >= 2, got {resolution}")
@@ -156,13 +180,12 @@ def sdf_grid(
             v[mask] = evaluate(_grid_points(lo, h, new_idx))
         queries += len(new_idx)
         levels += 1
-    stats = {
-        "queries": int(queries),
-        "dense_queries": int((resolution + 1) ** 3),
-        "levels": levels,
-        "active_cells": active_counts,
-    }
-    return v, stats
+    if stats is not None:
+        stats.queries = int(queries)
+        stats.dense_queries = int((resolution + 1) ** 3)
+        stats.levels = levels
+        stats.active_cells = active_counts
+    return v
 
 
 def simplify_mesh(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
@@ -217,6 +240,7 @@ def mesh_from_sdf_fn(
     lipschitz: float = 1.0,
     max_faces: int | None = 5000,
     batch: int = 65536,
+    stats: MeshStats | None = None,
 ) -> trimesh.Trimesh:
     """Watertight triangle mesh of the zero level set of an SDF inside a cube.
 
@@ -232,6 +256,7 @@ def mesh_from_sdf_fn(
         lipschitz: see `sdf_grid`.
         max_faces: decimate to at most this many faces (None = keep marching-cubes output).
         batch: points per `fn` call.
+        stats: filled in place with this call's counters and timings (optional; see `MeshStats`).
 
     Returns:
         trimesh.Trimesh in the cube's frame (empty when the level set does not cross the grid).
@@ -239,17 +264,18 @@ def mesh_from_sdf_fn(
     import trimesh
     from skimage.measure import marching_cubes
 
+    st = MeshStats() if stats is None else stats
     t0 = time.perf_counter()
-    v, stats = sdf_grid(
-        fn, half_extent=half_extent, resolution=resolution, coarse=coarse, lipschitz=lipschitz, batch=batch
+    v = sdf_grid(
+        fn, half_extent=half_extent, resolution=resolution, coarse=coarse, lipschitz=lipschitz, batch=batch,
+        stats=st,
     )
     t1 = time.perf_counter()
     logit = -v
     if not np.isfinite(logit).all():
         raise ValueError("sdf fn returned non-finite values")
     if not (logit.max() > 0 and logit.min() < 0):
-        LAST_STATS.clear()
-        LAST_STATS.update(stats, t_eval=t1 - t0, t_mc=0.0, t_simplify=0.0, faces=0)
+        st.t_eval, st.t_mc, st.t_simplify, st.faces = t1 - t0, 0.0, 0.0, 0
         return trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64), process=False)
     h = 2.0 * half_extent / resolution
     # samples exactly on the level set make marching cubes emit duplicate vertices (holes after welding);
@@ -267,41 +293,9 @@ def mesh_from_sdf_fn(
     if max_faces is not None:
         mesh = simplify_mesh(mesh, max_faces)
     t3 = time.perf_counter()
-    LAST_STATS.clear()
-    LAST_STATS.update(stats, t_eval=t1 - t0, t_mc=t2 - t1, t_simplify=t3 - t2, faces=len(mesh.faces))
-    logger.debug("mesh_from_sdf_fn: %s", dict(LAST_STATS))
+    st.t_eval, st.t_mc, st.t_simplify, st.faces = t1 - t0, t2 - t1, t3 - t2, len(mesh.faces)
+    logger.debug("mesh_from_sdf_fn: %s", st)
     return mesh
-
-
-def sample_surface(
-    mesh: trimesh.Trimesh, n: int, *, seed: int | np.random.Generator = 0
-) -> tuple[np.ndarray, np.ndarray]:
-    """`n` area-uniform surface samples with their face normals (spec §3.9 step 2).
-
-    An empty mesh yields all-zero samples and normals (the release's convention; `estimate_pose` then returns an
-    identity pose with score 0).
-
-    Args:
-        mesh: triangle mesh (any frame).
-        n: number of samples (>= 0).
-        seed: integer seed or Generator.
-
-    Returns:
-        points (n, 3) float64 and unit face normals (n, 3) float64, in the mesh's frame.
-    """
-    if n < 0:
-        raise ValueError(f"n must be >= 0, got {n}")
-    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
-    area = np.asarray(mesh.area_faces, dtype=np.float64) if len(mesh.faces) else np.zeros(0)
-    if len(area) == 0 or not area.sum() > 0:
-        return np.zeros((n, 3)), np.zeros((n, 3))
-    face = rng.choice(len(area), size=n, p=area / area.sum())
-    u = rng.random((n, 2))
-    flip = u.sum(axis=1) > 1.0
-    u[flip] = 1.0 - u[flip]
-    tri = np.asarray(mesh.triangles, dtype=np.float64)[face]
-    pts = tri[:, 0] + u[:, :1] * (tri[:, 1] - tri[:, 0]) + u[:, 1:] * (tri[:, 2] - tri[:, 0])
-    return pts, np.asarray(mesh.face_normals, dtype=np.float64)[face]
 
 
 def _reference_scale(prior: Any) -> float:
@@ -336,6 +330,7 @@ def extract_mesh(
     batch: int = 4096,
     reference_scale: float | None = None,
     clip_ball: bool = True,
+    stats: MeshStats | None = None,
 ) -> trimesh.Trimesh:
     """Mesh of one latent's shape (efem-method.md §3.9.1).
 
@@ -354,6 +349,7 @@ def extract_mesh(
         clip_ball: intersect the shape with the ball of radius `half_extent` (a unit-size object around Θ_c
             fits in it in any orientation); this removes what the decoder extrapolates in the cube's corners,
             far outside the [−0.55, 0.55]³ training queries.
+        stats: filled in place with the meshing counters and timings (optional; see `MeshStats`).
 
     Returns:
         trimesh.Trimesh (float64 vertices; empty if the decoded shape does not cross the cube).
@@ -395,6 +391,7 @@ def extract_mesh(
         lipschitz=lipschitz,
         max_faces=max_faces,
         batch=batch,
+        stats=stats,
     )
     if world and len(mesh.vertices):
         scale = float(np.asarray(torch.as_tensor(lat.scale).detach().cpu(), dtype=np.float64).reshape(-1)[0])

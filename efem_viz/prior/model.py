@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from efem_viz.prior.config import CategorySettings, PriorConfig, category_settings
+from efem_viz.prior.config import DEFAULT_PRIOR, CategorySettings, PriorConfig, category_settings
 from efem_viz.prior.decoder import SDFDecoder
 from efem_viz.prior.encoder import VNDGCNNEncoder
 
@@ -338,7 +338,7 @@ def read_checkpoint(path: str | os.PathLike[str], *, allow_pickle: bool = False)
         raise ValueError(f"{path} could not be unpickled: {exc}") from exc
 
 
-def load_prior(name_or_path: str | os.PathLike[str] = "mug", *, device: str | torch.device = "cpu",
+def load_prior(name_or_path: str | os.PathLike[str] = DEFAULT_PRIOR, *, device: str | torch.device = "cpu",
                load_codebook: bool = True, allow_pickle: bool = False) -> ShapePrior:
     """Load a prior saved by ``save_prior`` (and its codebook ``<stem>_codebook.npz`` if present).
 

@@ -163,7 +163,7 @@ class TrainArgs:
     # ----------------------------------------------------------------------------------------------- resolved
     def prior_config(self) -> PriorConfig:
         """The architecture: preset + overrides."""
-        from efem_viz.prior.model import PriorConfig
+        from efem_viz.prior.config import PriorConfig
 
         if self.preset not in PRESETS:
             raise ValueError(f"unknown preset {self.preset!r}; known: {sorted(PRESETS)}")
@@ -506,7 +506,7 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
     if ckpt is not None:
-        from efem_viz.prior.model import PriorConfig
+        from efem_viz.prior.config import PriorConfig
 
         cfg = PriorConfig.from_dict(ckpt["config"])
     else:

@@ -111,6 +111,7 @@ class ViewerApp:
         self._prior: ShapePriorLike | None = prior
         self._prior_name = prior_name
         self._prior_error: str | None = None
+        self._run_priors: dict[tuple[str, ...], list[ShapePriorLike]] = {}
         self._lock = threading.RLock()
         self._quiet = False
         self._worker = ThreadPoolExecutor(1, thread_name_prefix="efem-viewer-work")
@@ -326,12 +327,19 @@ class ViewerApp:
                 raise RuntimeError(self._prior_error) from exc
         return self._prior
 
-    def _prior_for(self, trace: Any) -> ShapePriorLike:
-        """The prior, checked against the latent size recorded in the trace.
+    def _prior_for(self, trace: Any, pid: int | None = None) -> ShapePriorLike:
+        """The prior of a trace's proposal `pid` (one-prior runs: the viewer's prior, checked against the latent
+        size recorded in the trace; multi-prior runs: the prior of the proposal's category, loaded by name).
 
         Raises:
-            RuntimeError: no prior, or one whose latent size differs from the trace's (another prior's run).
+            RuntimeError: no prior, one whose latent size differs from the trace's (another prior's run), or a
+                multi-prior run asked without `pid`.
         """
+        names = tuple(getattr(trace, "prior_names", ()) or ())
+        if len(names) > 1:
+            if pid is None:
+                raise RuntimeError(f"this run used several priors {list(names)}: shapes are decoded per proposal")
+            return self._priors_named(names)[trace.prior_index(int(pid))]
         prior = self.prior()
         c_trace = int(np.asarray(trace.row_R).shape[1]) if len(trace.row_R) else None
         cfg = getattr(prior, "config", None)
@@ -343,6 +351,30 @@ class ViewerApp:
                 "prior used for the run (--prior)"
             )
         return prior
+
+    def _run_prior_arg(self, trace: Any) -> ShapePriorLike | list[ShapePriorLike]:
+        """The prior, or the list of priors of a multi-prior run (what `instance_distances` takes)."""
+        names = tuple(getattr(trace, "prior_names", ()) or ())
+        return self._priors_named(names) if len(names) > 1 else self._prior_for(trace)
+
+    def _priors_named(self, names: tuple[str, ...]) -> list[ShapePriorLike]:
+        """The priors of a multi-prior run by category name (the viewer's own prior where the name matches),
+        loaded once. Raises RuntimeError when one is unavailable."""
+        cached = self._run_priors.get(names)
+        if cached is not None:
+            return cached
+        from efem_viz.prior.config import prior_category
+        from efem_viz.prior.registry import load_priors
+
+        own = {prior_category(self._prior).name: self._prior} if self._prior is not None else {}
+        try:
+            missing = [n for n in names if n not in own]
+            loaded = dict(zip(missing, load_priors(missing))) if missing else {}
+        except (OSError, ValueError) as exc:
+            raise RuntimeError(f"the priors of this run {list(names)} are unavailable: {exc}") from exc
+        out = [own.get(n) or loaded[n] for n in names]
+        self._run_priors[names] = out
+        return out
 
     # ================================================================== 1. scenes
     def open_scene(self, name: str) -> bool:
@@ -641,18 +673,22 @@ class ViewerApp:
 
     def _decode_shapes(self, keys: list[tuple[int, int]], generation: int) -> None:
         """Worker: decode the shapes of (proposal, step) pairs from their stored latents and send each once."""
-        try:
-            prior = self._prior_for(self.state.result.trace)
-        except RuntimeError as exc:
-            self._no_shapes_generation = generation  # say it once, do not retry on every step
-            self._set_status(f"Decoded shapes unavailable: {exc}", error=True)
-            return
+        from efem_viz.em.decoding import latent_width, trim_latent
+
         for pid, t in keys:
             with self._lock:
                 if generation != self._generation or self.state.step != t or self.nodes.has_shape(pid, t):
                     continue  # the user moved on (decoded again when asked) or it is already there
                 trace = self.state.result.trace
                 latent = trace.latent(pid, t)
+            try:
+                prior = self._prior_for(trace, pid)
+            except RuntimeError as exc:
+                self._no_shapes_generation = generation  # say it once, do not retry on every step
+                self._set_status(f"Decoded shapes unavailable: {exc}", error=True)
+                return
+            if trace.prop_prior is not None:  # latents of a multi-prior run are padded to the widest prior
+                latent = trim_latent(latent, latent_width(prior))
             shape = decode_shape(prior, latent, resolution=trace.config.mesh_resolution)
             with self._lock:
                 if generation != self._generation:
@@ -772,7 +808,7 @@ class ViewerApp:
 
     def _inspect_job(self, pid: int, t: int, generation: int) -> None:
         try:
-            prior = self._prior_for(self.state.result.trace)
+            prior = self._prior_for(self.state.result.trace, pid)
         except RuntimeError as exc:
             prior = None  # the first step of an episode still has weights (the crop); later steps need the prior
             logger.info("inspecting without a prior: %s", exc)
@@ -856,7 +892,7 @@ class ViewerApp:
 
                     self._set_status("Decoding the instances' final shapes for the mask band …")
                     self._mask_dist = (self._generation,
-                                       instance_distances(s.result, s.scene, self._prior_for(s.result.trace)))
+                                       instance_distances(s.result, s.scene, self._run_prior_arg(s.result.trace)))
                 dist = self._mask_dist[1]
                 masks = dist.masks(tau, s.result.config.gamma_out)
             except (RuntimeError, ValueError) as exc:
