@@ -68,7 +68,7 @@ def segment_at_point(
     crop_radius: float = 0.16,
     anchor_radius: float = 0.03,
     n_proposals: int = 12,
-    preset_name: str = "real_mugs",
+    preset_name: str = "real",
     seed: int = 0,
     **overrides: Any,
 ) -> np.ndarray:

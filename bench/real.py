@@ -13,7 +13,7 @@ Split (fixed before any tuning, so that changes are judged on frames they were n
 Per configuration and seed: AP / AP50 for the mug class pooled over each split, mugs found at IoU >= 0.5, and per
 frame the category under the most confident instance (a mug, or the can / bowl / cup it sits on).
 
-Usage: python bench/real.py [--preset synthetic_mugs] [--proposals 400] [--seeds 0 1 2] [--tag NAME]
+Usage: python bench/real.py [--preset synthetic] [--proposals 400] [--seeds 0 1 2] [--tag NAME]
        [--set key=value ...]  (EMConfig overrides, e.g. --set min_size=150)
 Writes bench/results/real_<tag>.json. Run with 2 torch threads on a quiet machine.
 """
@@ -103,7 +103,7 @@ def analyse(scene: Any, instances: Any) -> dict[str, Any]:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--prior", default="mug")
-    ap.add_argument("--preset", default="synthetic_mugs")
+    ap.add_argument("--preset", default="synthetic")
     ap.add_argument("--proposals", type=int, default=400)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--frames", type=int, nargs="+", default=list(TUNE + JUDGE))

@@ -416,6 +416,8 @@ def test_two_prior_result_round_trips_and_replays_with_each_prior(mixed_run: tup
         t = res.trace.last_step(pid)
         w = back.replay.weights_out(pid, t, full_resolution=False)
         assert int((w > 1e-30).sum()) == int(res.trace.row_inliers[res.trace.row_of(pid, t)])
+        # the live replay (trace as recorded) and the replay of the saved file decode the same bytes
+        assert np.array_equal(res.replay.weights_out(pid, t, full_resolution=False), w)
     with pytest.raises(ValueError, match="prior"):
         back.bind(prior=load_priors(["mug"])[0])
 

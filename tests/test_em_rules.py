@@ -178,7 +178,8 @@ def test_inclusion_kill_takes_effect_immediately() -> None:
 # ---------------------------------------------------------------------------------------------- registry
 def _ctx(phase: int, inliers: list[int], rows: list[list[int]], stationary: list[float]) -> StepContext:
     rag = Ragged.from_lists([np.array(r, np.int64) for r in rows])
-    return StepContext(phase=phase, cfg=preset("fast"), inliers=np.array(inliers), stationary=np.array(stationary),
+    return StepContext(phase=phase, step=0, local_step=0 if phase == 1 else 15, cfg=preset("fast"),
+                       inliers=np.array(inliers), stationary=np.array(stationary),
                        d=np.zeros(len(rag.idx), np.float32), rag=rag, n_points=N, min_size=3,
                        owner=np.zeros(len(rows), np.int64))
 
@@ -241,12 +242,12 @@ def test_review_rules_first_failure_wins() -> None:
         (15, (30.0, 0.07, 0.006, 60.0)),
     ],
 )
-def test_schedule_real_mugs(t: int, expected: tuple[float, ...]) -> None:
-    assert schedule(preset("real_mugs"), t) == pytest.approx(expected)
+def test_schedule_real(t: int, expected: tuple[float, ...]) -> None:
+    assert schedule(preset("real"), t) == pytest.approx(expected)
 
 
-def test_schedule_synthetic_mugs_keeps_tau_d_and_phase2_uses_end_values() -> None:
-    cfg = preset("synthetic_mugs")
+def test_schedule_synthetic_keeps_tau_d_and_phase2_uses_end_values() -> None:
+    cfg = preset("synthetic")
     assert schedule(cfg, 5)[1] == pytest.approx(0.1)
     long = cfg.replace(end_step=30)  # phase 2 must use the end values even if annealing is not finished
     assert schedule(long, 15) == pytest.approx((30.0, 0.1, 0.006, 60.0))

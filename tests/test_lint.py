@@ -16,6 +16,7 @@ def test_ruff_is_clean() -> None:
     if shutil.which("ruff") is None and subprocess.run([sys.executable, "-m", "ruff", "--version"],
                                                        capture_output=True).returncode != 0:
         pytest.fail("ruff is not installed: run `bash scripts/setup.sh --test`")
-    out = subprocess.run([sys.executable, "-m", "ruff", "check", "efem_viz", "annotator", "tests", "bench"],
-                         cwd=ROOT, capture_output=True, text=True, timeout=120)
+    paths = ["efem_viz", "annotator", "tests", "bench", "examples"]
+    out = subprocess.run([sys.executable, "-m", "ruff", "check", *paths], cwd=ROOT, capture_output=True,
+                         text=True, timeout=120)
     assert out.returncode == 0, out.stdout + out.stderr

@@ -318,8 +318,9 @@ class EMResult:
     categories: tuple[CategorySettings, ...] = ()
     """The settings each prior of the solve ran with, in prior order (τ_out resolved); empty for results saved
     before multi-prior solves."""
-    replay: TraceReplay | None = field(default=None, repr=False, compare=False)
-    """The trace bound to its scene and prior(s) (set by `run_em`, `load` and `bind`; not saved)."""
+    replay: TraceReplay = field(default=cast("TraceReplay", None), repr=False, compare=False)
+    """The trace bound to its scene and prior(s) (`run_em` and `load` bind what they have, `bind` the rest; not
+    saved). Always set: a result built without one gets an unbound replay."""
 
     def __post_init__(self) -> None:
         if self.replay is None:
@@ -331,7 +332,6 @@ class EMResult:
         Raises:
             ValueError: the scene has another number of points than the run, or the wrong number of priors.
         """
-        assert self.replay is not None
         return self.replay.bind(scene, prior)
 
     def save(self, path: str | os.PathLike[str]) -> Path:

@@ -161,6 +161,8 @@ class StepContext:
 
     Attributes:
         phase: 1 = independent, 2 = joint.
+        step: global step index (over all episodes).
+        local_step: step within the episode (0 .. t1 + t2 − 1; phase 2 starts at `cfg.t1`).
         cfg: solver config.
         inliers: (P,) int inlier counts.
         stationary: (P,) float stationary scores.
@@ -173,6 +175,8 @@ class StepContext:
     """
 
     phase: int
+    step: int
+    local_step: int
     cfg: "EMConfig"
     inliers: np.ndarray
     stationary: np.ndarray

@@ -394,7 +394,7 @@ class _Solver:
                 self._check_cancel()
                 phase = 1 if t < cfg.t1 else 2
                 step = self._em_step(pool, tree, ep, t, phase)
-                self._eliminate(pool, step, phase)
+                self._eliminate(pool, step, t, phase)
                 if (phase == 1 and t == cfg.t1 - 1) or (phase == 2 and t == cfg.steps_per_episode - 1):
                     if full_tree is None:
                         full_tree = AvailableTree(self.full_points, available_full, crop=cfg.crop)
@@ -480,10 +480,11 @@ class _Solver:
         return out
 
     # ------------------------------------------------------------------ eliminations (§3.8)
-    def _eliminate(self, pool: _Pool, step: int, phase: int) -> None:
+    def _eliminate(self, pool: _Pool, step: int, local: int, phase: int) -> None:
         t0 = time.perf_counter()
         assert pool.inliers is not None and pool.d is not None and pool.stationary is not None
-        ctx = StepContext(phase=phase, cfg=self.cfg, inliers=pool.inliers, stationary=pool.stationary, d=pool.d,
+        ctx = StepContext(phase=phase, step=step, local_step=local, cfg=self.cfg, inliers=pool.inliers,
+                          stationary=pool.stationary, d=pool.d,
                           rag=pool.rag, n_points=self.n, min_size=self.min_size, owner=pool.owner)
         kills = apply_step_rules(ctx, self.step_rules)
         for k in kills:

@@ -595,7 +595,8 @@ class TraceRecorder:
 
         def cat(key: str, shape: tuple[int, ...], dtype: Any) -> np.ndarray:
             parts = [r[key] for r in self.rows if len(r["id"])]
-            return np.concatenate(parts).astype(dtype) if parts else np.zeros((0, *shape), dtype)
+            # C order: a live replay and the replay of the saved trace then decode identical bytes
+            return np.ascontiguousarray(np.concatenate(parts).astype(dtype)) if parts else np.zeros((0, *shape), dtype)
 
         death_step = np.full(n_prop, -1, np.int32)
         death_reason = np.full(n_prop, -1, np.int8)

@@ -7,21 +7,27 @@ The one place that knows every kind of prior, so that prior/model.py (trained pr
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from efem_viz.prior.model import load_prior
 
-ANALYTIC_PRIORS: tuple[str, ...] = ("sphere",)
-"""Prior names that need no weights file (closed-form priors in efem_viz/prior/analytic.py)."""
+def _sphere() -> Any:
+    from efem_viz.prior.analytic import make_sphere_prior
+
+    return make_sphere_prior()
+
+
+ANALYTIC_PRIORS: dict[str, Callable[[], Any]] = {"sphere": _sphere}
+"""Closed-form priors by name (no weights file): name → factory. Register a new one here."""
 
 
 def load_priors(specs: Sequence[str | os.PathLike[str]], *, device: str = "cpu") -> list[Any]:
     """Load the priors of a multi-category solve (`run_em(scene, priors=...)`), each once.
 
     Args:
-        specs: each a name under ``efem_viz/weights/`` (``"mug"``), a ``.pt`` path, or ``"sphere"`` (the
-            analytic sphere prior of efem_viz/prior/analytic.py).
+        specs: each a name of `ANALYTIC_PRIORS` (``"sphere"``, efem_viz/prior/analytic.py), a name under
+            ``efem_viz/weights/`` (``"mug"``) or a ``.pt`` path.
         device: target device.
 
     Returns:
@@ -38,10 +44,9 @@ def load_priors(specs: Sequence[str | os.PathLike[str]], *, device: str = "cpu")
         raise ValueError(f"a prior is given twice: {seen}")
     out: list[Any] = []
     for spec in specs:
-        if str(spec) in ANALYTIC_PRIORS:
-            from efem_viz.prior.analytic import make_sphere_prior
-
-            out.append(make_sphere_prior().to(device))
+        factory = ANALYTIC_PRIORS.get(str(spec))
+        if factory is not None:
+            out.append(factory().to(device))
         else:
             out.append(load_prior(spec, device=device))
     names = [p.category.name for p in out]

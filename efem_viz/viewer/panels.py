@@ -12,6 +12,8 @@ from typing import TYPE_CHECKING, Any, Sequence, cast
 
 import numpy as np
 
+from efem_viz.em import config as em_config
+
 if TYPE_CHECKING:
     import plotly.graph_objects as go
     from viser import (
@@ -29,7 +31,7 @@ if TYPE_CHECKING:
     from viser._gui_handles import GuiProgressBarHandle  # not re-exported by viser 1.1
 
 NO_PROPOSAL: str = "(none)"
-PRESETS: tuple[str, ...] = ("fast", "synthetic_mugs", "real_mugs")
+PRESETS: tuple[str, ...] = ("fast", *(p for p in em_config.PRESETS if p != "fast"))
 DISPLAYS: tuple[str, ...] = ("points", "mesh")
 MASK_BAND_RANGE = (0.01, 0.2)
 """Range of the mask-band slider (τ_out, canonical units)."""
