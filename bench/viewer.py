@@ -59,7 +59,7 @@ def make_default(tmp: Path, *, spacing: float, proposals: int, seed: int) -> tup
     """A ~100k-point sphere scene and its saved EM result (real solver, analytic prior)."""
     from efem_viz.data.io import save_scene
     from efem_viz.em import preset, run_em
-    from efem_viz.em.analytic import make_sphere_prior, make_sphere_scene
+    from efem_viz.prior.analytic import make_sphere_prior, make_sphere_scene
 
     scene = make_sphere_scene(seed=seed, spacing=spacing, radii=(0.05, 0.045, 0.055), name="bench_spheres")
     prior = make_sphere_prior()
@@ -98,7 +98,7 @@ def main() -> int:
         scene_path = args.scene.resolve()
         prior = None
         if args.prior is None:
-            from efem_viz.em.analytic import make_sphere_prior
+            from efem_viz.prior.analytic import make_sphere_prior
 
             prior = make_sphere_prior()
     app = ViewerApp([scene_path], port=0, prior=prior, prior_name=args.prior or "mug", open_first=False)

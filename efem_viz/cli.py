@@ -18,7 +18,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "build-codebook": ("efem_viz.prior.commands:BuildCodebookArgs", "build the pose codebook of a prior"),
     "convert-prior": ("efem_viz.prior.commands:ConvertArgs",
                       "convert a released EFEM checkpoint (weights/mugs.pt) + build its +Z-up codebook"),
-    "segment": ("efem_viz.em.commands:SegmentArgs", "run EFEM on scenes and save traces + results"),
+    "segment": ("efem_viz.batch.commands:SegmentArgs", "run EFEM on scenes and save traces + results"),
     "calibrate-masks": ("efem_viz.eval.commands:CalibrateMasksArgs",
                         "choose a prior's output-mask threshold tau_out on labelled tuning scenes"),
     "evaluate": ("efem_viz.eval.commands:EvaluateArgs", "compute AP / AP50 / AP25 against ground truth"),

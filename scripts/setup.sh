@@ -28,7 +28,7 @@ if ! $PY -c "import torch" >/dev/null 2>&1; then
   $PY -m pip install -q torch==2.13.0
 fi
 EXTRA=""
-[[ $WITH_TEST == 1 ]] && EXTRA="[test]"
+[[ $WITH_TEST == 1 ]] && EXTRA="[test,ray]"  # ray: tests/test_batch.py runs the Ray backend (fails, never skips, without it)
 if ! $PY -c "import efem_viz, annotator" >/dev/null 2>&1 || [[ $WITH_TEST == 1 ]]; then
   echo "[setup] pip install -e .${EXTRA}"
 fi

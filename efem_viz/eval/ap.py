@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 import warnings
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -20,6 +20,7 @@ from efem_viz.eval.matching import (
     MIN_REGION_SIZE,
     ClassMatches,
     SceneGroundTruth,
+    SceneOverlaps,
     ScenePrediction,
     match_scene_class,
     scene_overlaps,
@@ -229,15 +230,56 @@ def evaluate(
     extra = sorted(set(pred_by) - set(gt_by))
     if extra:
         log.warning("ignoring predictions for %d scenes without ground truth: %s", len(extra), extra[:10])
-    overlaps = []
-    for name in sorted(gt_by):
-        g = gt_by[name]
-        p = pred_by.get(name) or ScenePrediction(name=name, masks=[], confidences=np.zeros(0))
-        if decimals is not None:
-            p = ScenePrediction(
-                name=p.name, masks=p.masks, confidences=np.round(p.confidences, decimals), labels=p.labels
-            )
-        overlaps.append(scene_overlaps(p, g, class_names=names, min_region_size=min_region_size))
+    overlaps = {
+        name: overlaps_of(pred_by.get(name), gt_by[name], class_names=names, min_region_size=min_region_size,
+                          decimals=decimals)
+        for name in sorted(gt_by)
+    }
+    return evaluate_overlaps(overlaps, class_names=names, min_region_size=min_region_size,
+                             scannet_flag=scannet_flag)
+
+
+def overlaps_of(
+    pred: ScenePrediction | None,
+    gt: SceneGroundTruth,
+    *,
+    class_names: Sequence[str] = DEFAULT_CLASS_NAMES,
+    min_region_size: int = MIN_REGION_SIZE,
+    decimals: int | None = CONFIDENCE_DECIMALS,
+) -> SceneOverlaps:
+    """The overlaps of one scene's predictions (None = it has none) with its ground truth: everything AP needs of
+    the scene, a few numbers per instance pair, so large datasets are scored one scene at a time
+    (`evaluate_overlaps`).
+
+    Raises:
+        ValueError: mask lengths differ from the GT.
+    """
+    p = pred or ScenePrediction(name=gt.name, masks=[], confidences=np.zeros(0))
+    if decimals is not None:
+        p = ScenePrediction(name=p.name, masks=p.masks, confidences=np.round(p.confidences, decimals), labels=p.labels)
+    return scene_overlaps(p, gt, class_names=tuple(str(c) for c in class_names), min_region_size=min_region_size)
+
+
+def evaluate_overlaps(
+    overlaps: Mapping[str, SceneOverlaps],
+    *,
+    class_names: Sequence[str] = DEFAULT_CLASS_NAMES,
+    min_region_size: int = MIN_REGION_SIZE,
+    scannet_flag: bool = False,
+) -> EvalResult:
+    """Instance AP from per-scene overlaps (`overlaps_of`), scenes taken in name order: `evaluate` without the
+    masks, so that a folder of any size is scored in the memory of one scene.
+
+    Args:
+        overlaps: scene name → its overlaps, computed with the same `class_names` and `min_region_size`.
+        class_names: the evaluated classes.
+        min_region_size: as in `evaluate`.
+        scannet_flag: as in `evaluate`.
+    """
+    names = tuple(str(c) for c in class_names)
+    if not names:
+        raise ValueError("class_names is empty")
+    ordered = [overlaps[k] for k in sorted(overlaps)]
     C, T = len(names), len(IOU_THRESHOLDS)
     ap_table = np.full((C, T), np.nan)
     rc_table = np.full((C, T), np.nan)
@@ -247,7 +289,7 @@ def evaluate(
     for t, tau in enumerate(IOU_THRESHOLDS):
         for c in range(C):
             acc = ClassMatches()
-            for ov in overlaps:
+            for ov in ordered:
                 match_scene_class(
                     ov, c + 1, float(tau), acc, min_region_size=min_region_size, scannet_flag=scannet_flag
                 )
@@ -273,7 +315,7 @@ def evaluate(
         n_gt=n_gt,
         n_pred=n_pred,
         pr=pr,
-        scenes=sorted(gt_by),
+        scenes=sorted(overlaps),
     )
 
 

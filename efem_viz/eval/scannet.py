@@ -56,33 +56,48 @@ def load_scannet_predictions(path: str | os.PathLike[str]) -> list[ScenePredicti
     Raises:
         ValueError: missing folder or mask, malformed line.
     """
+    return [load_scannet_prediction(txt) for txt in scannet_prediction_files(path).values()]
+
+
+def scannet_prediction_files(path: str | os.PathLike[str]) -> dict[str, Path]:
+    """Scene name → `<scene>.txt` of a ScanNet-format prediction folder (or its `scannet/` or `scannet_format/`
+    subfolder), sorted by name; nothing is read.
+
+    Raises:
+        ValueError: not a folder.
+    """
     root = Path(path)
     if not root.is_dir():
         raise ValueError(f"{root}: not a folder of ScanNet-format predictions")
     base = _scannet_dir(root)
-    out = []
-    for txt in sorted(base.glob("*.txt")):
-        masks, labels, confs = [], [], []
-        for ln_no, line in enumerate(txt.read_text(encoding="utf-8").splitlines(), start=1):
-            if not line.strip():
-                continue
-            parts = line.split()
-            where = f"{txt}:{ln_no}"
-            if len(parts) != 3:
-                raise ValueError(f"{where}: expected '<mask path> <class id> <confidence>', got {line!r}")
-            try:
-                label, conf = int(parts[1]), float(parts[2])
-            except ValueError as exc:
-                raise ValueError(f"{where}: bad class id or confidence in {line!r}") from exc
-            masks.append(_read_mask(base, parts[0], where))
-            labels.append(label)
-            confs.append(conf)
-        out.append(
-            ScenePrediction(
-                name=txt.stem, masks=masks, confidences=np.asarray(confs, np.float64), labels=np.asarray(labels, np.int64)
-            )
-        )
-    return out
+    return {txt.stem: txt for txt in sorted(base.glob("*.txt"))}
+
+
+def load_scannet_prediction(txt: Path) -> ScenePrediction:
+    """Read one `<scene>.txt` of the ScanNet layout and its masks (paths relative to its folder).
+
+    Raises:
+        ValueError: missing mask, malformed line.
+    """
+    base = txt.parent
+    masks, labels, confs = [], [], []
+    for ln_no, line in enumerate(txt.read_text(encoding="utf-8").splitlines(), start=1):
+        if not line.strip():
+            continue
+        parts = line.split()
+        where = f"{txt}:{ln_no}"
+        if len(parts) != 3:
+            raise ValueError(f"{where}: expected '<mask path> <class id> <confidence>', got {line!r}")
+        try:
+            label, conf = int(parts[1]), float(parts[2])
+        except ValueError as exc:
+            raise ValueError(f"{where}: bad class id or confidence in {line!r}") from exc
+        masks.append(_read_mask(base, parts[0], where))
+        labels.append(label)
+        confs.append(conf)
+    return ScenePrediction(
+        name=txt.stem, masks=masks, confidences=np.asarray(confs, np.float64), labels=np.asarray(labels, np.int64)
+    )
 
 
 def write_scannet_predictions(

@@ -1,0 +1,96 @@
+"""`efem-viz segment`: run EFEM on scenes and write `<scene>.efem.npz`, the ScanNet export and a coloured PLY.
+
+A thin CLI over the batch runner (`efem_viz.batch.run_batch`): one scene or hundreds, in this process, a local
+process pool or on Ray, resumable. Imported lazily by the CLI dispatcher; torch is only imported by the workers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated
+
+import tyro
+
+from efem_viz.em.config import PresetName
+
+
+@dataclass
+class SegmentArgs:
+    """Segment scanned scenes with EFEM (unsupervised, shape-prior EM) and record the full trace: one scene or a batch of
+    hundreds, in this process (default), a local process pool (--workers N) or on Ray (--ray, --ray-address).
+    Resumable: scenes whose valid results of the same settings are in --out are skipped (see docs/BATCH.md)."""
+
+    scenes: Annotated[list[Path], tyro.conf.Positional]
+    """Scene files (.ply/.obj/.off/.glb/.npz) and/or folders of them."""
+    prior: tyro.conf.UseAppendAction[list[str]] = field(default_factory=list)
+    """Shape prior (repeat for several categories in one solve): a name under efem_viz/weights/, "sphere" (the
+    analytic sphere) or a .pt path. Default: mug."""
+    out: Path = Path("results")
+    """Output folder: <scene>.efem.npz, scannet/<scene>.txt + scannet/pred_mask/, <scene>.seg.ply, batch.json."""
+    preset: PresetName = "synthetic"
+    """Solver configuration (efem-method.md §3.12); category sizes and τ_out come with each prior."""
+    proposals: int | None = None
+    """Override the number of proposals (first episode)."""
+    work_voxel: float | None = None
+    """Run EM on a thinned working set (one point per cell of this size, m); masks stay full resolution."""
+    tau_out: float | None = None
+    """Output-mask SDF band (canonical units); default: the prior's calibrated value (`calibrate-masks`), else 0.04."""
+    seed: int = 0
+    """Random seed (anchors, samples); the same seed replays the same run, on every backend."""
+    device: str = "cpu"
+    """cpu or cuda."""
+    threshold: float = 0.0
+    """Confidence threshold for the coloured PLY (the .efem.npz keeps every instance)."""
+    scannet: bool = True
+    """Write the ScanNet benchmark layout under <out>/scannet/."""
+    ply: bool = True
+    """Write <scene>.seg.ply coloured by predicted instance."""
+    threads: int | None = None
+    """torch CPU threads per worker (default: local, torch's choice; process, the CPUs split between the workers;
+    ray, 1 per actor)."""
+    backend: str = "auto"
+    """Where scenes run: a name registered in efem_viz.batch.registry.BACKENDS (local, process, ray, ...) or auto
+    = ray with --ray/--ray-address, process with --workers > 1, else local."""
+    workers: int | None = None
+    """Parallel workers (process: processes, default the CPU count; ray: actors, default cluster CPUs // threads)."""
+    ray: bool = False
+    """Run on Ray, started locally for this batch (pip install 'efem-viz[ray]')."""
+    ray_address: str | None = None
+    """Run on an existing Ray cluster at this address ("auto", HOST:6379 or ray://HOST:10001)."""
+    ray_cpus: int | None = None
+    """CPUs of the Ray started by --ray (default: workers × threads, else this machine's CPUs)."""
+    force: bool = False
+    """Recompute scenes that already have valid results in --out."""
+    scene_timeout: float | None = None
+    """Give up on a scene after this many seconds of solving (reported failed; the batch goes on)."""
+
+    def backend_name(self) -> str:
+        """The backend `--backend auto` resolves to."""
+        if self.backend != "auto":
+            return self.backend
+        if self.ray or self.ray_address:
+            return "ray"
+        return "process" if (self.workers or 1) > 1 else "local"
+
+    def run(self) -> int:
+        """Segment every scene; returns 0 when every scene has a valid result, 1 otherwise."""
+        from rich.console import Console
+
+        from efem_viz.batch import BackendOptions, BatchJob, make_backend, run_batch
+        from efem_viz.batch.console import RichBatchDisplay
+
+        job = BatchJob.create(
+            priors=tuple(self.prior or ["mug"]), preset=self.preset, proposals=self.proposals,
+            work_voxel=self.work_voxel, tau_out=self.tau_out, seed=self.seed, device=self.device,
+            threads=self.threads, threshold=self.threshold, scannet=self.scannet, ply=self.ply,
+            timeout_s=self.scene_timeout,
+        )
+        name = self.backend_name()
+        if name != "ray" and (self.ray or self.ray_address or self.ray_cpus):
+            raise ValueError(f"--ray/--ray-address/--ray-cpus need the ray backend, not --backend {name}")
+        backend = make_backend(name, BackendOptions(workers=self.workers, ray_address=self.ray_address,
+                                                    ray_cpus=self.ray_cpus))
+        with RichBatchDisplay(Console()) as display:
+            report = run_batch(job, self.scenes, self.out, backend=backend, force=self.force, observer=display)
+        return 0 if report.passed else 1

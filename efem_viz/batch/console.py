@@ -1,0 +1,123 @@
+"""The CLI's view of a batch: one rich progress bar over the scenes (with ETA), one line per scene a local worker is
+solving (its EM steps), a line per finished scene and a summary table at the end.
+
+CLI layer only (`efem-viz segment`): library code reports through `BatchObserver` and logging, never prints.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from rich.console import Console
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    TaskID,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
+from rich.table import Table
+
+from efem_viz.batch.events import BatchObserver
+from efem_viz.batch.job import BATCH_FILE, SceneOutcome, SceneTask, WorkerInfo
+
+if TYPE_CHECKING:
+    from efem_viz.batch.runner import BatchPlan, BatchReport
+
+TABLE_ROWS = 40
+"""The summary table lists every scene up to this many; beyond, the failed ones and the totals (batch.json has all)."""
+
+
+class RichBatchDisplay(BatchObserver):
+    """Progress and summary of a batch on a rich console. Use as a context manager around `run_batch`.
+
+    Args:
+        console: where to draw.
+    """
+
+    def __init__(self, console: Console | None = None) -> None:
+        self.console = console or Console()
+        self.progress = Progress(
+            TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+            TextColumn("{task.fields[info]}"), TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn(),
+            console=self.console, transient=False,
+        )
+        self.overall: TaskID | None = None
+        self.rows: dict[str, TaskID] = {}
+        self.counts = {"ok": 0, "failed": 0}
+        self.out = ""
+
+    def __enter__(self) -> RichBatchDisplay:
+        self.progress.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.progress.stop()
+
+    # ------------------------------------------------------------------ events
+    def on_plan(self, plan: BatchPlan) -> None:
+        self.out = str(plan.out)
+        skipped = f", {len(plan.skipped)} skipped (valid results in {plan.out})" if plan.skipped else ""
+        self.console.print(f"{plan.total} scene(s): {len(plan.tasks)} to segment{skipped}")
+        self.overall = self.progress.add_task("scenes", total=len(plan.tasks), info="")
+
+    def on_worker(self, info: WorkerInfo) -> None:
+        self.console.print(f"[dim]{info.worker} ready on {info.host} (pid {info.pid}, {info.threads} thread(s), "
+                           f"priors {info.prior_load_s:.1f} s, {info.rss_mb:.0f} MiB)[/]")
+
+    def on_start(self, task: SceneTask, worker: str) -> None:
+        row = self.rows.get(worker)
+        if row is None:
+            self.rows[worker] = self.progress.add_task(f"{worker} {task.name}", total=None, info="loading")
+        else:
+            self.progress.reset(row, total=None, description=f"{worker} {task.name}", info="loading", visible=True)
+
+    def on_step(self, task: SceneTask, worker: str, step: int, total: int, text: str) -> None:
+        row = self.rows.get(worker)
+        if row is not None:
+            self.progress.update(row, total=total, completed=step, info=text)
+
+    def on_done(self, outcome: SceneOutcome) -> None:
+        self.counts["ok" if outcome.status == "ok" else "failed"] += 1
+        if self.overall is not None:
+            info = f"ok {self.counts['ok']}" + (f"  [red]failed {self.counts['failed']}[/]" if self.counts["failed"]
+                                                 else "")
+            self.progress.update(self.overall, advance=1, info=info)
+        row = self.rows.get(outcome.worker)
+        if row is not None:
+            self.progress.update(row, visible=False)
+        if outcome.status == "ok":
+            self.console.print(f"{outcome.name}: {outcome.instances} instances in {outcome.seconds:.1f} s "
+                               f"({outcome.worker})")
+        else:
+            self.console.print(f"[red]{outcome.name}: failed: {outcome.error}[/]")
+
+    def on_finish(self, report: BatchReport) -> None:
+        self.progress.stop()
+        self.console.print(summary_table(report))
+        c = report.counts()
+        pending = f", {c['pending']} not run" if c["pending"] else ""
+        self.console.print(f"{report.plan.total} scene(s): {c['ok']} ok, {c['skipped']} skipped, {c['failed']} "
+                           f"failed{pending} in {report.wall_s:.1f} s; record: {report.plan.out / BATCH_FILE}")
+
+
+def summary_table(report: BatchReport, *, max_rows: int = TABLE_ROWS) -> Table:
+    """Scene, status, instances, points, seconds and error of each scene (only the failed ones for big batches)."""
+    rows = report.outcomes if len(report.outcomes) <= max_rows else report.failed()
+    title = "batch summary" if rows is report.outcomes else (
+        f"batch summary: the {len(rows)} failed of {len(report.outcomes)} scenes (all in {BATCH_FILE})")
+    table = Table(title=title, title_justify="left")
+    for col in ("scene", "status", "instances", "points", "seconds", "worker", "error"):
+        table.add_column(col, justify="right" if col in ("instances", "points", "seconds") else "left")
+    style = {"ok": "green", "skipped": "cyan", "failed": "red"}
+    for o in rows:
+        table.add_row(o.name, f"[{style[o.status]}]{o.status}[/]", "" if o.instances < 0 else str(o.instances),
+                      "" if o.points < 0 else f"{o.points:,}", f"{o.seconds:.1f}", o.worker, o.error[:120])
+    ok = [o for o in report.outcomes if o.status == "ok"]
+    if ok:
+        total = sum(o.seconds for o in ok)
+        table.add_row(f"{len(ok)} computed", "", str(sum(o.instances for o in ok)), "", f"{total:.1f}", "",
+                      f"{total / len(ok):.1f} s per scene", style="bold")
+    return table

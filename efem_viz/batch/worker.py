@@ -1,0 +1,156 @@
+"""One batch worker: loads the priors once, then segments scenes one at a time and writes their outputs.
+
+Every backend runs this same class (in the driver process, in a pool process, or in a Ray actor), which is why the
+same job and seed give the same files whatever the backend. A scene that cannot be read, or whose solve raises,
+becomes a failed `SceneOutcome` with a one-line error; the worker stays usable for the next scene.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import resource
+import socket
+import sys
+import threading
+import time
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+from efem_viz.batch.job import BatchJob, SceneOutcome, SceneTask, WorkerInfo
+
+if TYPE_CHECKING:
+    from efem_viz.em.solver import StepInfo
+    from efem_viz.prior.config import ShapePriorLike
+
+logger = logging.getLogger(__name__)
+
+StepCallback = Callable[["StepInfo"], None]
+"""Called after every EM step of the scene being solved (progress)."""
+
+
+def peak_rss_mb() -> float:
+    """This process's peak resident memory (MiB)."""
+    kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return kib / (1024.0 * 1024.0) if sys.platform == "darwin" else kib / 1024.0
+
+
+def current_rss_mb() -> float:
+    """This process's resident memory now (MiB; the peak where /proc is not available)."""
+    try:
+        with open("/proc/self/statm", encoding="ascii") as fh:
+            pages = int(fh.read().split()[1])
+        return pages * os.sysconf("SC_PAGE_SIZE") / (1024.0 * 1024.0)
+    except (OSError, ValueError, IndexError):
+        return peak_rss_mb()
+
+
+def one_line(exc: BaseException) -> str:
+    """`Type: message` on one line (for outcomes and `batch.json`)."""
+    msg = " ".join(str(exc).split())
+    return f"{type(exc).__name__}: {msg}" if msg else type(exc).__name__
+
+
+class SceneWorker:
+    """Segments scenes of one job; the priors are loaded once, when the worker is built.
+
+    Args:
+        job: the batch job.
+        worker: this worker's id (for outcomes and logs).
+
+    Raises:
+        ValueError, FileNotFoundError: a prior cannot be loaded (that is a job error, not a scene failure).
+    """
+
+    def __init__(self, job: BatchJob, *, worker: str = "local") -> None:
+        t0 = time.perf_counter()
+        import torch
+
+        if job.threads:  # torch intra-op threads of this worker (the job's, after the backend's defaults)
+            torch.set_num_threads(int(job.threads))
+        from efem_viz.prior.registry import ANALYTIC_PRIORS, load_priors
+
+        self.job = job
+        self.worker = worker
+        self.cfg = job.config()
+        self.fingerprint = job.fingerprint()
+        t1 = time.perf_counter()
+        self.priors: list[ShapePriorLike] = load_priors(list(job.priors), device=job.device)
+        self.prior_load_s = time.perf_counter() - t1
+        for spec, prior in zip(job.priors, self.priors):
+            if getattr(prior, "codebook", None) is None and spec not in ANALYTIC_PRIORS:
+                logger.warning("prior %r has no codebook: poses fall back to identity", spec)
+        self.info = WorkerInfo(
+            worker=worker, host=socket.gethostname(), pid=os.getpid(), threads=int(torch.get_num_threads()),
+            start_s=time.perf_counter() - t0, prior_load_s=self.prior_load_s, rss_mb=current_rss_mb(),
+        )
+        self.scenes_done = 0
+
+    def process(self, task: SceneTask, *, on_step: StepCallback | None = None) -> SceneOutcome:
+        """Segment one scene and write its outputs (`<name>.efem.npz` last).
+
+        A result file already at `task.result_path` is removed first: the planner only hands out scenes whose
+        result is missing or stale, and a stale result must not survive next to this run's other outputs if the
+        run is killed.
+
+        Args:
+            task: the scene.
+            on_step: progress callback (after every EM step).
+
+        Returns:
+            The outcome ("ok" or "failed"; never raises for a scene's own problems).
+        """
+        from efem_viz.data.io import load_scene
+        from efem_viz.em.solver import EMCancelled, run_em
+
+        t0 = time.perf_counter()
+        c0 = time.process_time()
+        load_s = solve_s = 0.0
+        cancel = threading.Event()
+        timer: threading.Timer | None = None
+        fp = self.fingerprint
+
+        def failed(msg: str, points: int = -1) -> SceneOutcome:
+            logger.warning("%s: failed: %s", task.name, msg)
+            return SceneOutcome(name=task.name, path=str(task.path), status="failed", points=points,
+                                seconds=time.perf_counter() - t0, error=msg, worker=self.worker, load_s=load_s,
+                                solve_s=solve_s, rss_mb=peak_rss_mb(), fingerprint=fp,
+                                cpu_s=time.process_time() - c0)
+
+        points = -1
+        try:
+            task.result_path.unlink(missing_ok=True)
+            scene = load_scene(task.path)
+            points = scene.num_points
+            t1 = time.perf_counter()
+            load_s = t1 - t0
+            if self.job.timeout_s is not None:
+                timer = threading.Timer(float(self.job.timeout_s), cancel.set)
+                timer.daemon = True
+                timer.start()
+            result = run_em(scene, cfg=self.cfg, priors=self.priors, seed=self.job.seed, device=self.job.device,
+                            on_step=on_step, cancel=cancel)
+            t2 = time.perf_counter()
+            solve_s = t2 - t1
+            if self.job.ply:
+                result.instances.to_colored_ply(scene, task.ply_path, threshold=self.job.threshold)
+            if self.job.scannet:
+                result.instances.to_scannet(task.scannet_path.parent, task.name, scene.num_points)
+            result.save(task.result_path)  # last: the commit record of the scene
+            write_s = time.perf_counter() - t2
+        except EMCancelled:
+            return failed(f"timed out after {self.job.timeout_s:g} s (--scene-timeout)", points)
+        except (KeyboardInterrupt, SystemExit):
+            raise
+        except Exception as exc:  # a bad scene or a failing solve is this scene's failure, not the batch's
+            logger.debug("%s failed", task.name, exc_info=True)
+            return failed(one_line(exc), points)
+        finally:
+            if timer is not None:
+                timer.cancel()
+        self.scenes_done += 1
+        return SceneOutcome(
+            name=task.name, path=str(task.path), status="ok", instances=len(result.instances), points=points,
+            seconds=time.perf_counter() - t0, worker=self.worker, load_s=load_s, solve_s=solve_s, write_s=write_s,
+            rss_mb=peak_rss_mb(), fingerprint=fp, cpu_s=time.process_time() - c0,
+        )
