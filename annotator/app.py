@@ -68,6 +68,8 @@ from efem_viz.serve.inputs import (
     read_rgb,
     read_text,
 )
+from efem_viz.data.io import RESULT_SUFFIX
+from efem_viz.prior.config import DEFAULT_PRIOR
 
 if TYPE_CHECKING:
     from viser import GuiButtonHandle, GuiInputHandle
@@ -380,7 +382,7 @@ class AnnotatorApp:
         with gui.add_folder("Instances"):
             self.gui_active = gui.add_dropdown("Active", self._instance_options() or NO_OPTIONS)
             self.gui_name = gui.add_text("Name", "")
-            self.gui_category = gui.add_text("Category", "mug")
+            self.gui_category = gui.add_text("Category", DEFAULT_PRIOR)
             self.gui_color = gui.add_rgb("Colour", (255, 0, 0))
             self.gui_new = gui.add_button("New instance (N)")
             self.gui_visible = gui.add_checkbox("Visible", True)
@@ -402,7 +404,7 @@ class AnnotatorApp:
             self.gui_import_path = gui.add_text("Import labels from", "", hint="path inside the scan or output folder")
             self.gui_import = gui.add_button("Import labels (undoable)")
         with gui.add_folder("EFEM assist", expand_by_default=False):
-            default_efem = self.scan_path.with_name(self.stem + ".efem.npz")
+            default_efem = self.scan_path.with_name(self.stem + RESULT_SUFFIX)
             self.gui_efem_path = gui.add_text("EFEM result", default_efem.name if default_efem.exists() else "")
             self.gui_efem_import = gui.add_button("Import EFEM pre-labels")
             self.gui_prelabel = gui.add_dropdown("Pre-label", NO_OPTIONS)
@@ -411,9 +413,9 @@ class AnnotatorApp:
             self.gui_accept_merge = gui.add_button("Merge into active")
             from annotator.assist import available_priors
 
-            priors = tuple(available_priors()) or ("mug",)
+            priors = tuple(available_priors()) or (DEFAULT_PRIOR,)
             self.gui_prior = gui.add_dropdown("Prior for Segment tool", priors,
-                                              initial_value="mug" if "mug" in priors else priors[0])
+                                              initial_value=DEFAULT_PRIOR if DEFAULT_PRIOR in priors else priors[0])
             self.gui_seg_accept = gui.add_button("Accept segment preview", disabled=True)
             self.gui_seg_cancel = gui.add_button("Discard segment preview", disabled=True)
 
@@ -966,8 +968,8 @@ class AnnotatorApp:
         """Import an EFEM result as unreviewed pre-label instances on unlabelled vertices; returns their ids."""
         p = resolve_inside(path, self.roots, what="EFEM result")
         data = load_labels(p, self.n)
-        if not p.name.endswith(".efem.npz"):
-            raise LabelIOError(f"{p.name} is not an EFEM result (*.efem.npz)")
+        if not p.name.endswith(RESULT_SUFFIX):
+            raise LabelIOError(f"{p.name} is not an EFEM result (*{RESULT_SUFFIX})")
         return self.add_prelabels(data, source=p.name)
 
     def add_prelabels(self, data: LabelData, *, source: str) -> list[int]:

@@ -14,6 +14,7 @@ import threading
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from efem_viz.prior.config import DEFAULT_PRIOR
 
 if TYPE_CHECKING:
     from efem_viz.prior.config import ShapePriorLike
@@ -63,7 +64,7 @@ def segment_at_point(
     scene: Any,
     vertex: int,
     *,
-    prior_name: str = "mug",
+    prior_name: str = DEFAULT_PRIOR,
     prior: ShapePriorLike | None = None,
     crop_radius: float = 0.16,
     anchor_radius: float = 0.03,

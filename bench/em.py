@@ -129,7 +129,7 @@ def main() -> int:
                     args.save_results.mkdir(parents=True, exist_ok=True)
                     if not (args.save_results / f"{scene.name}.ply").is_file():
                         save_scene(scene, args.save_results / f"{scene.name}.ply")
-                    res.save(args.save_results / f"{scene.name}.efem.npz")
+                    res.save(args.save_results)  # <dir>/<scene>.efem.npz
                 all_timings.append(res.timings)
                 runtimes.append(res.timings["total"])
                 preds.append(prediction_from_instances(res.instances, name=scene.name, class_names=("mug",)))

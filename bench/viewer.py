@@ -57,7 +57,7 @@ class ByteCounter:
 
 def make_default(tmp: Path, *, spacing: float, proposals: int, seed: int) -> tuple[Path, Any]:
     """A ~100k-point sphere scene and its saved EM result (real solver, analytic prior)."""
-    from efem_viz.data.io import save_scene
+    from efem_viz.data.io import RESULT_SUFFIX, save_scene
     from efem_viz.em import preset, run_em
     from efem_viz.prior.analytic import make_sphere_prior, make_sphere_scene
 
@@ -70,7 +70,7 @@ def make_default(tmp: Path, *, spacing: float, proposals: int, seed: int) -> tup
     result = run_em(scene, prior, cfg, seed=seed)
     logging.info("run_em: %.1f s, %d steps, %d instances", time.perf_counter() - t0, result.trace.num_steps,
                  len(result.instances))
-    result.save(tmp / "bench_spheres.efem.npz")
+    result.save(tmp / f"bench_spheres{RESULT_SUFFIX}")
     return path, prior
 
 

@@ -72,7 +72,7 @@ class ThreadBackend:
 
         if not tasks:
             return
-        if job.threads:
+        if job.threads:  # torch threads are per process; each SceneWorker sets the same value again
             torch.set_num_threads(int(job.threads))
         todo: queue.SimpleQueue[SceneTask] = queue.SimpleQueue()
         for t in tasks:
@@ -81,7 +81,7 @@ class ThreadBackend:
 
         def body(wid: str) -> None:
             try:
-                worker = SceneWorker(job, worker=wid, set_threads=False)
+                worker = SceneWorker(job, worker=wid)
             except Exception as exc:  # a prior that does not load: the whole batch cannot run
                 msgs.put(("error", one_line(exc)))
                 return

@@ -13,6 +13,7 @@ from typing import Annotated
 import tyro
 
 from efem_viz.em.config import PresetName
+from efem_viz.prior.config import DEFAULT_PRIOR
 
 
 @dataclass
@@ -81,7 +82,7 @@ class SegmentArgs:
         from efem_viz.batch.console import RichBatchDisplay
 
         job = BatchJob.create(
-            priors=tuple(self.prior or ["mug"]), preset=self.preset, proposals=self.proposals,
+            priors=tuple(self.prior or [DEFAULT_PRIOR]), preset=self.preset, proposals=self.proposals,
             work_voxel=self.work_voxel, tau_out=self.tau_out, seed=self.seed, device=self.device,
             threads=self.threads, threshold=self.threshold, scannet=self.scannet, ply=self.ply,
             timeout_s=self.scene_timeout,

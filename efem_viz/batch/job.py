@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
 from efem_viz.data.io import RESULT_SUFFIX
+from efem_viz.prior.config import DEFAULT_PRIOR
 
 if TYPE_CHECKING:
     from efem_viz.em.config import EMConfig
@@ -52,7 +53,7 @@ class BatchJob:
     with the same settings.
     """
 
-    priors: tuple[str, ...] = ("mug",)
+    priors: tuple[str, ...] = (DEFAULT_PRIOR,)
     """Prior specs for `efem_viz.prior.registry.load_priors`: a name under efem_viz/weights/, "sphere", or a .pt path
     (made absolute, so workers started elsewhere find it)."""
     preset: str = "synthetic"

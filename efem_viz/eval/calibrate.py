@@ -24,6 +24,7 @@ from efem_viz.em.masks import instance_distances
 from efem_viz.eval.ap import evaluate, prediction_from_instances
 from efem_viz.eval.matching import SceneGroundTruth
 from efem_viz.prior.config import MAX_TAU_OUT
+from efem_viz.prior.config import DEFAULT_PRIOR
 
 if TYPE_CHECKING:
     from efem_viz.data.scene import Scene
@@ -93,7 +94,7 @@ def calibrate_tau_out(
     prior: Any,
     *,
     candidates: Sequence[float] = TAU_OUT_CANDIDATES,
-    class_names: Sequence[str] = ("mug",),
+    class_names: Sequence[str] = (DEFAULT_PRIOR,),
     tolerance: float = 0.005,
 ) -> MaskCalibration:
     """Choose τ_out for `prior` on labelled tuning scenes: the smallest candidate whose AP (IoU 0.50:0.95) is within

@@ -60,6 +60,7 @@ class EvaluateArgs:
             from efem_viz.cli import check_output_file
 
             check_output_file(self.json_out, option="--json-out")
+        gt_files = find_scenes(self.gt)  # missing paths are reported first, before anything is read
         if not self.results.is_dir():
             raise SceneError(f"{self.results}: not a folder")
         # hidden files are temporaries of interrupted writes (a killed batch), never results. `.efem.npz` results
@@ -78,7 +79,7 @@ class EvaluateArgs:
         # instance pair) are computed, so a folder of any size is scored in the memory of its largest scene
         overlaps: dict[str, SceneOverlaps] = {}
         gt_paths: dict[str, Path] = {}
-        for p in find_scenes(self.gt):
+        for p in gt_files:
             scene = load_scene(p)
             if scene.instance is None:
                 raise SceneError(f"{p} has no ground-truth `instance` labels")
@@ -168,11 +169,11 @@ class CalibrateMasksArgs:
     """`<scene>.efem.npz` results (files and/or folders), computed with --prior."""
     gt: list[Path] = field(default_factory=list)
     """Labelled tuning scenes (files and/or folders); results are paired with them by scene name."""
-    prior: str = "mug"
+    prior: str = DEFAULT_PRIOR
     """The prior the results were computed with (a name under efem_viz/weights/ or a .pt path)."""
     candidates: tuple[float, ...] = TAU_OUT_CANDIDATES
     """Thresholds to try (canonical units)."""
-    classes: tuple[str, ...] = ("mug",)
+    classes: tuple[str, ...] = (DEFAULT_PRIOR,)
     """Evaluated classes (as in `efem-viz evaluate`)."""
     tolerance: float = 0.5
     """AP points below the best that still count as a tie; ties go to the smaller (tighter) threshold."""

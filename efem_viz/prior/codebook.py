@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING, Any, Sequence
 import numpy as np
 
 from efem_viz.geometry.sampling import sample_surface
+from efem_viz.prior.config import DEFAULT_PRIOR
 
 if TYPE_CHECKING:
     import trimesh
@@ -371,7 +372,7 @@ def build_codebook(
     n_store: int = 2000,
     noise: float = 0.01,
     seed: int = 0,
-    category: str = "mug",
+    category: str = DEFAULT_PRIOR,
     normalise: bool = True,
     batch: int = 16,
 ) -> Codebook:

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import tyro
+from efem_viz.prior.config import DEFAULT_PRIOR
 
 logger = logging.getLogger(__name__)
 
@@ -24,13 +25,13 @@ __all__ = ["BuildCodebookArgs", "ConvertArgs"]
 class BuildCodebookArgs:
     """Build the pose codebook of a trained prior from its training-split procedural objects."""
 
-    prior: str = "mug"
+    prior: str = DEFAULT_PRIOR
     """Prior weights: a .pt path, or a name under efem_viz/weights/ ("mug" = efem_viz/weights/mug.pt)."""
     out: Path | None = None
     """Output .npz (default: `<prior stem>_codebook.npz` next to the weights, which `load_prior` picks up)."""
     count: int = 150
     """Number of training-split objects (the first `count` seeds of the split)."""
-    category: str = "mug"
+    category: str = DEFAULT_PRIOR
     """Procedural category of the training objects."""
     n_store: int = 2000
     """Stored noisy surface points per object (float16)."""

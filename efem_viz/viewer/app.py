@@ -56,6 +56,7 @@ from efem_viz.viewer.texts import (
     scene_info_markdown,
     step_markdown,
 )
+from efem_viz.prior.config import DEFAULT_PRIOR
 
 if TYPE_CHECKING:
     from efem_viz.prior.config import ShapePriorLike
@@ -94,7 +95,7 @@ class ViewerApp:
         host: str = "127.0.0.1",
         port: int = 8080,
         prior: ShapePriorLike | None = None,
-        prior_name: str = "mug",
+        prior_name: str = DEFAULT_PRIOR,
         open_first: bool = True,
         out_dir: str | Path = "efem_out",
         token: str | None = None,

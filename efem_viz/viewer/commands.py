@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import tyro
+from efem_viz.prior.config import DEFAULT_PRIOR
 
 logger = logging.getLogger(__name__)
 
@@ -24,7 +25,7 @@ class ViewArgs:
     the network who has the printed URL (it carries the access token)."""
     port: int = 8080
     """Port (a busy port is replaced by the next free one; the real URL is printed)."""
-    prior: str = "mug"
+    prior: str = DEFAULT_PRIOR
     """Shape prior used for runs and for decoding shapes."""
     out_dir: Path = Path("efem_out")
     """Output root: exports from the GUI (results, static demo) go into this folder or below it, nowhere else."""
