@@ -72,23 +72,9 @@ def resolve_inside(path: str | os.PathLike[str], roots: Iterable[str | os.PathLi
         LabelIOError: empty path, NUL bytes, or the resolved path escapes every root (`..`, absolute paths
             elsewhere, symlinks pointing out).
     """
-    s = os.fspath(path)
-    if not s or "\x00" in s:
-        raise LabelIOError(f"invalid {what}: {s!r}")
-    root_list = [Path(r).resolve() for r in roots]
-    if not root_list:
-        raise LabelIOError("no allowed directories configured")
-    p = Path(s).expanduser()
-    if not p.is_absolute():
-        p = root_list[0] / p
-    resolved = p.resolve()
-    for r in root_list:
-        if resolved == r or r in resolved.parents:
-            return resolved
-    raise LabelIOError(
-        f"refusing {what} {s!r}: it resolves to {resolved}, outside the allowed directories "
-        f"{[str(r) for r in root_list]}"
-    )
+    from efem_viz.serve.inputs import resolve_inside as _resolve
+
+    return _resolve(path, roots, what=what, error=LabelIOError)
 
 
 # ---------------------------------------------------------------------------------------------- helpers

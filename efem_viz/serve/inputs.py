@@ -18,7 +18,7 @@ import logging
 import math
 import os
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterable
 
 logger = logging.getLogger(__name__)
 
@@ -155,31 +155,55 @@ def read_rgb(handle: Any, *, write_back: WriteBack | None = None) -> tuple[int, 
     return rgb  # type: ignore[return-value]
 
 
-def resolve_inside_root(text: str | os.PathLike[str], root: str | os.PathLike[str], *, what: str = "path") -> Path:
-    """Resolve a client-given path inside `root` (relative paths are taken relative to `root`).
+def resolve_inside(
+    text: str | os.PathLike[str],
+    roots: Iterable[str | os.PathLike[str]],
+    *,
+    what: str = "path",
+    allow_dotdot: bool = True,
+    error: type[ValueError] = ClientValueError,
+) -> Path:
+    """Resolve a user- or client-given path (following symlinks) and check that it lies inside one of `roots`: the
+    one path-confinement rule of both apps. Relative paths are taken relative to the first root.
 
     Args:
-        text: the path typed into the GUI.
-        root: the folder chosen at start (e.g. the viewer's `--out-dir`).
-        what: noun for the error message ("output folder").
+        text: the path typed into the GUI or given on the command line.
+        roots: the allowed folders (the folders the app was given at start).
+        what: noun for the error message ("output folder", "label file").
+        allow_dotdot: accept `..` components when the result still resolves inside a root.
+        error: the ValueError subclass to raise (each app's own error type).
 
     Returns:
-        The resolved absolute path, `root` itself or below it.
+        The resolved absolute path, a root itself or below one.
 
     Raises:
-        ClientValueError: empty, NUL, a `..` component, or a path that resolves outside `root` (an absolute path
-            elsewhere, or a symlink pointing out).
+        `error`: empty, NUL, longer than `MAX_TEXT`, a `..` component when not allowed, no roots, or a path that
+            resolves outside every root (an absolute path elsewhere, or a symlink pointing out).
     """
     s = os.fspath(text).strip()
     if not s or "\x00" in s:
-        raise ClientValueError(f"invalid {what}: {s!r}")
+        raise error(f"invalid {what}: {s!r}")
     if len(s) > MAX_TEXT:
-        raise ClientValueError(f"invalid {what}: longer than {MAX_TEXT} characters")
+        raise error(f"invalid {what}: longer than {MAX_TEXT} characters")
+    root_list = [Path(r).expanduser().resolve() for r in roots]
+    if not root_list:
+        raise error("no allowed directories configured")
     p = Path(s).expanduser()
-    if ".." in p.parts:
-        raise ClientValueError(f"refusing {what} {s!r}: '..' is not allowed")
-    r = Path(root).expanduser().resolve()
-    resolved = (p if p.is_absolute() else r / p).resolve()
-    if resolved != r and r not in resolved.parents:
-        raise ClientValueError(f"refusing {what} {s!r}: it resolves to {resolved}, outside the output folder {r}")
-    return resolved
+    if not allow_dotdot and ".." in p.parts:
+        raise error(f"refusing {what} {s!r}: '..' is not allowed")
+    resolved = (p if p.is_absolute() else root_list[0] / p).resolve()
+    for r in root_list:
+        if resolved == r or r in resolved.parents:
+            return resolved
+    where = f"the folder {root_list[0]}" if len(root_list) == 1 else f"the allowed folders {[str(r) for r in root_list]}"
+    raise error(f"refusing {what} {s!r}: it resolves to {resolved}, outside {where}")
+
+
+def resolve_inside_root(text: str | os.PathLike[str], root: str | os.PathLike[str], *, what: str = "path") -> Path:
+    """Resolve a client-given path inside `root` (relative paths are taken relative to `root`; no `..`).
+
+    Raises:
+        ClientValueError: see `resolve_inside`.
+    """
+    return resolve_inside(text, [root], what=what, allow_dotdot=False)
+
