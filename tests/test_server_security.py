@@ -307,7 +307,7 @@ def test_viewer_on_all_interfaces_warns_and_prints_a_reachable_url(
         raise KeyboardInterrupt
 
     monkeypatch.setattr(commands.time, "sleep", interrupt)  # serve "until Ctrl+C": at once
-    args = commands.ViewArgs(paths=(scene_dir / "spheres.ply",), host="0.0.0.0", port=0, prior="",
+    args = commands.ViewArgs(paths=(scene_dir / "spheres.ply",), host="0.0.0.0", port=0, prior=[],
                              out_dir=tmp_path / "o")
     assert args.run() == 0
     out = capsys.readouterr()

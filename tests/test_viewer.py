@@ -620,3 +620,36 @@ def test_a_two_prior_result_decodes_and_inspects_each_proposal_with_its_own_prio
         assert any(app.nodes.has_shape(int(p), t) for p in tr.alive(t)), "no proposal shape decoded"
     finally:
         app.stop()
+
+
+def test_a_run_started_in_the_viewer_solves_over_the_extra_priors(tmp_path: Path) -> None:
+    """`efem-viz view --prior sphere --prior mug`: the Run button solves jointly over both priors; the result names
+    both categories and the viewer decodes the proposals of each with its own prior."""
+    import torch
+
+    from efem_viz.data.io import load_scene, save_scene
+    from efem_viz.viewer.app import ViewerApp
+
+    torch.set_num_threads(1)
+    root = Path(__file__).resolve().parents[1] / "sample_scenes"
+    scene = analytic.add_spheres(load_scene(root / "syn_z_0.ply"), [0.045], seed=1).replace(name="mixed_run")
+    save_scene(scene, tmp_path / "mixed_run.ply")
+    app = ViewerApp([tmp_path], port=0, prior=analytic.make_sphere_prior(), prior_name="sphere", run_priors=["mug"],
+                    open_first=False)
+    try:
+        assert app.open_scene("mixed_run") and app.wait_idle(60)
+        fut = app.start_run(preset="fast", proposals=12, seed=0)
+        assert fut is not None
+        fut.result(timeout=300)
+        assert app.wait_idle(120)
+        res = app.state.result
+        assert res is not None and res.trace.prior_names == ("sphere", "mug")
+        assert set(res.instances.category) <= {"sphere", "mug"} and len(set(res.trace.prior_names)) == 2
+        t = res.trace.num_steps - 1
+        mug_pid = next(int(p) for p in res.trace.alive(t) if res.trace.category_of(int(p)) == "mug")
+        fut = app.select_proposal(mug_pid)
+        assert fut is not None
+        fut.result(timeout=120)
+        assert app.wait_idle(60) and "shape" in app.nodes.inspect
+    finally:
+        app.stop()

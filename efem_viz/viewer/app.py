@@ -96,6 +96,7 @@ class ViewerApp:
         port: int = 8080,
         prior: ShapePriorLike | None = None,
         prior_name: str = DEFAULT_PRIOR,
+        run_priors: Sequence[str] = (),
         open_first: bool = True,
         out_dir: str | Path = "efem_out",
         token: str | None = None,
@@ -111,8 +112,12 @@ class ViewerApp:
         """Exports from the GUI stay inside this folder (fixed at start)."""
         self._prior: ShapePriorLike | None = prior
         self._prior_name = prior_name
+        self._extra_run_priors = tuple(str(n) for n in run_priors)
+        """More priors for runs started here: a joint solve over the prior and these (their names or .pt paths)."""
         self._prior_error: str | None = None
-        self._run_priors: dict[tuple[str, ...], list[ShapePriorLike]] = {}
+        self._known_priors: dict[str, ShapePriorLike] = {}
+        """Priors by category name (decoding multi-prior runs)."""
+        self._loaded_run_priors: list[ShapePriorLike] | None = None
         self._lock = threading.RLock()
         self._quiet = False
         self._worker = ThreadPoolExecutor(1, thread_name_prefix="efem-viewer-work")
@@ -353,29 +358,41 @@ class ViewerApp:
             )
         return prior
 
+    def _joint_priors(self, prior: ShapePriorLike) -> list[ShapePriorLike] | None:
+        """The priors of a run started here: None for the one prior, else [prior, *the extra run priors] (loaded
+        once; they are then also the priors that decode the proposals of their categories)."""
+        if not self._extra_run_priors:
+            return None
+        from efem_viz.prior.config import prior_category
+        from efem_viz.prior.registry import load_priors
+
+        if self._loaded_run_priors is None:
+            self._loaded_run_priors = load_priors(list(self._extra_run_priors))
+            for p in self._loaded_run_priors:
+                self._known_priors.setdefault(prior_category(p).name, p)
+        return [prior, *self._loaded_run_priors]
+
     def _run_prior_arg(self, trace: Any) -> ShapePriorLike | list[ShapePriorLike]:
         """The prior, or the list of priors of a multi-prior run (what `instance_distances` takes)."""
         names = tuple(getattr(trace, "prior_names", ()) or ())
         return self._priors_named(names) if len(names) > 1 else self._prior_for(trace)
 
     def _priors_named(self, names: tuple[str, ...]) -> list[ShapePriorLike]:
-        """The priors of a multi-prior run by category name (the viewer's own prior where the name matches),
-        loaded once. Raises RuntimeError when one is unavailable."""
-        cached = self._run_priors.get(names)
-        if cached is not None:
-            return cached
+        """The priors of a multi-prior run by category name: the viewer's own prior and its run priors where the
+        name matches, the others loaded by name once. Raises RuntimeError when one is unavailable."""
         from efem_viz.prior.config import prior_category
         from efem_viz.prior.registry import load_priors
 
-        own = {prior_category(self._prior).name: self._prior} if self._prior is not None else {}
-        try:
-            missing = [n for n in names if n not in own]
-            loaded = dict(zip(missing, load_priors(missing))) if missing else {}
-        except (OSError, ValueError) as exc:
-            raise RuntimeError(f"the priors of this run {list(names)} are unavailable: {exc}") from exc
-        out = [own.get(n) or loaded[n] for n in names]
-        self._run_priors[names] = out
-        return out
+        if self._prior is not None:
+            self._known_priors.setdefault(prior_category(self._prior).name, self._prior)
+        missing = [n for n in names if n not in self._known_priors]
+        if missing:
+            try:
+                for n, p in zip(missing, load_priors(missing)):
+                    self._known_priors[n] = p
+            except (OSError, ValueError) as exc:
+                raise RuntimeError(f"the priors of this run {list(names)} are unavailable: {exc}") from exc
+        return [self._known_priors[n] for n in names]
 
     # ================================================================== 1. scenes
     def open_scene(self, name: str) -> bool:
@@ -529,6 +546,7 @@ class ViewerApp:
                 cfg = cfg.with_proposals(int(proposals))
             self._set_status(f"Running EFEM ({preset}, {cfg.n_init[0]} proposals, seed {seed}) …")
             prior = self.prior()
+            priors = self._joint_priors(prior)
 
             def on_step(info: Any) -> None:
                 frac = 100.0 * (int(info.step) + 1) / max(int(info.num_steps), 1)
@@ -538,7 +556,10 @@ class ViewerApp:
                     f"{int(info.active)} active · {float(info.elapsed_s):.1f} s"
                 )
 
-            result = run_em(scene, prior, cfg, seed=int(seed), on_step=on_step, cancel=self._cancel)
+            if priors is None:
+                result = run_em(scene, prior, cfg, seed=int(seed), on_step=on_step, cancel=self._cancel)
+            else:
+                result = run_em(scene, cfg=cfg, priors=priors, seed=int(seed), on_step=on_step, cancel=self._cancel)
         except EMCancelled:
             self._set_status("Run cancelled.")
             return None

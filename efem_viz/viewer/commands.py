@@ -25,8 +25,9 @@ class ViewArgs:
     the network who has the printed URL (it carries the access token)."""
     port: int = 8080
     """Port (a busy port is replaced by the next free one; the real URL is printed)."""
-    prior: str = DEFAULT_PRIOR
-    """Shape prior used for runs and for decoding shapes."""
+    prior: tyro.conf.UseAppendAction[list[str]] = field(default_factory=list)
+    """Shape prior used for runs and for decoding shapes (default mug); repeat it for runs over several categories
+    (`--prior mug --prior sphere`: a joint solve, the first prior is the viewer's)."""
     out_dir: Path = Path("efem_out")
     """Output root: exports from the GUI (results, static demo) go into this folder or below it, nowhere else."""
     token: str | None = None
@@ -46,8 +47,9 @@ class ViewArgs:
         for d in self.results:
             if not Path(d).is_dir():
                 raise FileNotFoundError(f"no such results folder: {d}")
-        app = ViewerApp(paths, host=self.host, port=self.port, prior_name=self.prior, out_dir=self.out_dir,
-                        token=self.token, results=self.results)
+        priors = list(self.prior) or [DEFAULT_PRIOR]
+        app = ViewerApp(paths, host=self.host, port=self.port, prior_name=priors[0], run_priors=priors[1:],
+                        out_dir=self.out_dir, token=self.token, results=self.results)
         try:
             warning = app.access.exposure_warning
             if warning:
