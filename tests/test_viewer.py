@@ -6,6 +6,8 @@ sphere prior (exact, fast, no trained weights), saved next to the scene file lik
 
 from __future__ import annotations
 
+import json
+
 import os
 from pathlib import Path
 from typing import Any, Iterator
@@ -618,6 +620,13 @@ def test_a_two_prior_result_decodes_and_inspects_each_proposal_with_its_own_prio
         app.set_step(t)
         assert app.wait_idle(120)
         assert any(app.nodes.has_shape(int(p), t) for p in tr.alive(t)), "no proposal shape decoded"
+        # the static demo decodes the shapes of both categories, each with its prior
+        from efem_viz.viewer.export import export_static_demo
+
+        index = export_static_demo(app.state.scene, app.state.result, tmp_path / "demo", prior=[mug, sphere],
+                                   shapes_per_step=2)
+        meta = json.loads((index.parent / "meta.json").read_text())
+        assert meta["decoded_shapes"] > 0
     finally:
         app.stop()
 

@@ -19,12 +19,34 @@ from efem_viz.em.proposals import AvailableTree
 from efem_viz.em.trace import EMTrace, ProposalView, energy_weights
 
 if TYPE_CHECKING:
-    from efem_viz.prior.config import PriorArg
     from efem_viz.data.scene import Scene
-    from efem_viz.prior.config import ShapePriorLike
+    from efem_viz.prior.config import PriorArg, ShapePriorLike
 
 NEED_PRIOR = "re-deriving weights and shapes needs the shape prior: pass prior= or result.bind(prior=...)"
 NEED_SCENE = "this replay has no scene bound: call result.bind(scene) with the scene the run was on"
+
+
+def prior_latent(trace: EMTrace, proposal_id: int, step: int, priors: "PriorArg") -> tuple[Any, dict[str, np.ndarray]]:
+    """(the prior that owns a proposal, its latent at `step` trimmed to that prior's code width): what decoding a
+    stored latent needs, for one-prior and multi-prior runs alike.
+
+    Args:
+        trace: the run.
+        proposal_id: the proposal.
+        step: a step it took part in.
+        priors: the run's prior, or its priors in the run's order.
+
+    Raises:
+        ValueError: the proposal did not take part in `step`, or `priors` does not match the run.
+    """
+    from efem_viz.em.decoding import latent_width, trim_latent
+
+    seq: tuple[Any, ...] = tuple(priors) if isinstance(priors, (list, tuple)) else (priors,)
+    if len(seq) != max(1, len(trace.prior_names)):
+        raise ValueError(f"the run used {max(1, len(trace.prior_names))} prior(s), got {len(seq)}")
+    prior = seq[trace.prior_index(proposal_id)]
+    lat = trace.latent(proposal_id, step)
+    return prior, (trim_latent(lat, latent_width(prior)) if trace.prop_prior is not None else lat)
 
 
 class TraceReplay:

@@ -695,22 +695,19 @@ class ViewerApp:
 
     def _decode_shapes(self, keys: list[tuple[int, int]], generation: int) -> None:
         """Worker: decode the shapes of (proposal, step) pairs from their stored latents and send each once."""
-        from efem_viz.em.decoding import latent_width, trim_latent
+        from efem_viz.em.replay import prior_latent
 
         for pid, t in keys:
             with self._lock:
                 if generation != self._generation or self.state.step != t or self.nodes.has_shape(pid, t):
                     continue  # the user moved on (decoded again when asked) or it is already there
                 trace = self.state.result.trace
-                latent = trace.latent(pid, t)
             try:
-                prior = self._prior_for(trace, pid)
+                prior, latent = prior_latent(trace, pid, t, self._run_prior_arg(trace))
             except RuntimeError as exc:
                 self._no_shapes_generation = generation  # say it once, do not retry on every step
                 self._set_status(f"Decoded shapes unavailable: {exc}", error=True)
                 return
-            if trace.prop_prior is not None:  # latents of a multi-prior run are padded to the widest prior
-                latent = trim_latent(latent, latent_width(prior))
             shape = decode_shape(prior, latent, resolution=trace.config.mesh_resolution)
             with self._lock:
                 if generation != self._generation:
@@ -1046,7 +1043,7 @@ class ViewerApp:
             return None
         target = Path(out_dir) if out_dir is not None else self.out_root / "static" / safe_name(s.scene.name)
         try:
-            prior = self._prior_for(s.result.trace)
+            prior = self._run_prior_arg(s.result.trace)
         except RuntimeError as exc:
             prior = None
             logger.info("static demo without decoded shapes: %s", exc)

@@ -13,11 +13,13 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from efem_viz.em.replay import prior_latent
 from efem_viz.viewer import state as st
 from efem_viz.viewer.legend import category_summary
 from efem_viz.viewer.nodes import (
@@ -83,7 +85,7 @@ def export_static_demo(
     step_seconds: float = 0.6,
     final_seconds: float = 3.0,
     seed: int = 0,
-    prior: ShapePriorLike | None = None,
+    prior: ShapePriorLike | Sequence[ShapePriorLike] | None = None,
     shapes_per_step: int = 4,
 ) -> Path:
     """Record a static demo page: the scan, a playback of the EM steps, and the final result.
@@ -98,7 +100,8 @@ def export_static_demo(
         step_seconds: playback time per EM step.
         final_seconds: time the final result stays before the loop restarts.
         seed: subsampling seed.
-        prior: the shape prior of the run; when given, the decoded shapes of the `shapes_per_step` best live
+        prior: the shape prior of the run (its priors in order for a multi-prior run); when given, the decoded
+            shapes of the `shapes_per_step` best live
             proposals are part of every step (decoded here, about 0.3 s each with the mug prior on a CPU).
         shapes_per_step: see `prior`.
 
@@ -145,7 +148,8 @@ def export_static_demo(
             api.remove_by_name("/em/shapes")
             if prior is not None and shapes_per_step > 0:
                 for pid in drawn[:shapes_per_step]:
-                    shape = decode_shape(prior, trace.latent(int(pid), t), resolution=trace.config.mesh_resolution)
+                    pri, lat = prior_latent(trace, int(pid), t, prior)
+                    shape = decode_shape(pri, lat, resolution=trace.config.mesh_resolution)
                     if shape is None:
                         continue
                     n_shapes += 1
@@ -202,11 +206,12 @@ def main(argv: list[str] | None = None) -> int:
     scene = load_scene(args.scene)
     result = EMResult.load(st.trace_path_for(args.scene))
     result.bind(scene)
-    prior = None
+    prior: Any = None
     if args.prior:
-        from efem_viz.prior import load_prior
+        from efem_viz.prior import load_priors
 
-        prior = load_prior(args.prior)
+        names = list(result.trace.prior_names) or [args.prior]  # a multi-prior run names its priors
+        prior = load_priors(names) if len(names) > 1 else load_priors([args.prior])[0]
     out = args.out or Path.cwd() / "static" / "".join(c if c.isalnum() or c in "-_." else "_" for c in scene.name)
     index = export_static_demo(scene, result, out, threshold=args.threshold, prior=prior)
     print(index)
