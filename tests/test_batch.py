@@ -218,6 +218,18 @@ def test_resume_skips_only_complete_results_of_the_same_job(local_run: tuple[Pat
     reseeded = BatchJob.create(**{**MUG_JOB, "seed": 2})
     assert "seed 1" in plan_batch(reseeded, [mug_scenes], out).reasons["mug_8"]
 
+    elsewhere = tmp_path / "elsewhere"  # another scene file with the same name is not the scene of the result
+    elsewhere.mkdir()
+    shutil.copy(mug_scenes / "mug_8.ply", elsewhere / "mug_8.ply")
+    assert "another scene file" in plan_batch(job, [elsewhere], out).reasons["mug_8"]
+    scene8 = mug_scenes / "mug_8.ply"
+    st8 = scene8.stat()
+    try:  # the same file, edited since its result was made
+        os.utime(scene8, ns=(st8.st_atime_ns, st8.st_mtime_ns + 10**9))
+        assert "changed" in plan_batch(job, [mug_scenes], out).reasons["mug_8"]
+    finally:
+        os.utime(scene8, ns=(st8.st_atime_ns, st8.st_mtime_ns))
+
     twin = tmp_path / "twin"
     twin.mkdir()
     shutil.copy(mug_scenes / "mug_3.ply", twin / "mug_3.ply")
@@ -403,3 +415,20 @@ def test_outcome_records_round_trip() -> None:
     assert SceneOutcome.from_dict({**o.to_dict(), "future_key": 1}) == o
     with pytest.raises(ValueError, match="status"):
         SceneOutcome.from_dict({**o.to_dict(), "status": "maybe"})
+
+
+def test_console_shows_scene_names_and_errors_verbatim() -> None:
+    """Rich markup in a scene name or an error (`[b]`, `[/data/x]`) is shown as text and never stops the batch."""
+    import io
+
+    from rich.console import Console
+
+    from efem_viz.batch.console import RichBatchDisplay
+    from efem_viz.batch.job import SceneOutcome
+
+    buf = io.StringIO()
+    display = RichBatchDisplay(Console(file=buf, width=200))
+    display.on_done(SceneOutcome(name="room[b]x", path="/s/room[b]x.ply", status="failed",
+                                 error="cannot read [/data/x]"))
+    text = buf.getvalue()
+    assert "room[b]x" in text and "[/data/x]" in text

@@ -420,6 +420,8 @@ def test_two_prior_result_round_trips_and_replays_with_each_prior(mixed_run: tup
         assert np.array_equal(res.replay.weights_out(pid, t, full_resolution=False), w)
     with pytest.raises(ValueError, match="prior"):
         back.bind(prior=load_priors(["mug"])[0])
+    with pytest.raises(ValueError, match="in this order"):  # a swapped list must not decode mugs with the sphere
+        back.bind(prior=load_priors(["sphere", "mug"]))
 
 
 def test_run_em_prior_arguments_are_checked() -> None:

@@ -297,7 +297,8 @@ def test_category_settings_round_trip_and_validation() -> None:
     assert back == cat and back.sizes("real") == ((0.03, 0.08), (0.015, 0.10))
     assert CategorySettings.from_dict(CategorySettings("x").to_dict()).scale_height == (0.0, float("inf"))
     for bad in ({"name": "x", "scale_height": [0.2, 0.1]}, {"name": "x", "colour": 1},
-                {"name": "x", "domain_sizes": {"mars": [[0, 1], [0, 1]]}}, {"name": ""}):
+                {"name": "x", "domain_sizes": {"mars": [[0, 1], [0, 1]]}}, {"name": ""},
+                {"name": "x", "domain_sizes": {"real": [[0, 1]]}}, {"name": "x", "domain_sizes": {"real": 5}}):
         with pytest.raises(ValueError):
             CategorySettings.from_dict(bad)
 

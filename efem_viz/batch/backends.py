@@ -216,12 +216,15 @@ class ProcessBackend:
         return {"backend": self.name, "workers": self.workers, "start_method": "spawn"}
 
     def resolve_job(self, job: BatchJob) -> BatchJob:
+        self._auto_threads = job.threads is None
         if job.threads is None:
             return dataclasses.replace(job, threads=max(1, cpu_count() // self.workers))
         return job
 
     def run(self, job: BatchJob, tasks: Sequence[SceneTask], events: BatchObserver) -> Iterator[SceneOutcome]:
         ctx = mp.get_context("spawn")
+        if getattr(self, "_auto_threads", False) and tasks:  # the CPUs go to the processes that actually start
+            job = dataclasses.replace(job, threads=max(1, cpu_count() // min(self.workers, len(tasks))))
         pending: deque[SceneTask] = deque(tasks)
         slots: list[_Slot] = []
         counter = [0]
@@ -240,10 +243,15 @@ class ProcessBackend:
 
         def hand_out(slot: _Slot) -> None:
             if slot.ready and slot.task is None and pending:
-                slot.task = pending.popleft()
-                slot.sent = time.perf_counter()
-                slot.conn.send(slot.task)
-                events.on_start(slot.task, slot.worker)
+                task = pending.popleft()
+                try:
+                    slot.conn.send(task)
+                except OSError:  # the worker died after its last message: the scene waits for another worker
+                    pending.appendleft(task)
+                    slot.ready = False
+                    return
+                slot.task, slot.sent = task, time.perf_counter()
+                events.on_start(task, slot.worker)
 
         try:
             for _ in range(min(self.workers, len(pending))):

@@ -9,6 +9,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
@@ -64,15 +65,17 @@ class RichBatchDisplay(BatchObserver):
         self.overall = self.progress.add_task("scenes", total=len(plan.tasks), info="")
 
     def on_worker(self, info: WorkerInfo) -> None:
-        self.console.print(f"[dim]{info.worker} ready on {info.host} (pid {info.pid}, {info.threads} thread(s), "
+        self.console.print(f"[dim]{escape(info.worker)} ready on {escape(info.host)} (pid {info.pid}, {info.threads} thread(s), "
                            f"priors {info.prior_load_s:.1f} s, {info.rss_mb:.0f} MiB)[/]")
 
     def on_start(self, task: SceneTask, worker: str) -> None:
         row = self.rows.get(worker)
         if row is None:
-            self.rows[worker] = self.progress.add_task(f"{worker} {task.name}", total=None, info="loading")
+            self.rows[worker] = self.progress.add_task(f"{escape(worker)} {escape(task.name)}", total=None,
+                                                       info="loading")
         else:
-            self.progress.reset(row, total=None, description=f"{worker} {task.name}", info="loading", visible=True)
+            self.progress.reset(row, total=None, description=f"{escape(worker)} {escape(task.name)}", info="loading",
+                                visible=True)
 
     def on_step(self, task: SceneTask, worker: str, step: int, total: int, text: str) -> None:
         row = self.rows.get(worker)
@@ -89,10 +92,10 @@ class RichBatchDisplay(BatchObserver):
         if row is not None:
             self.progress.update(row, visible=False)
         if outcome.status == "ok":
-            self.console.print(f"{outcome.name}: {outcome.instances} instances in {outcome.seconds:.1f} s "
-                               f"({outcome.worker})")
+            self.console.print(f"{escape(outcome.name)}: {outcome.instances} instances in {outcome.seconds:.1f} s "
+                               f"({escape(outcome.worker)})")
         else:
-            self.console.print(f"[red]{outcome.name}: failed: {outcome.error}[/]")
+            self.console.print(f"[red]{escape(outcome.name)}: failed: {escape(outcome.error)}[/]")
 
     def on_finish(self, report: BatchReport) -> None:
         self.progress.stop()
@@ -113,8 +116,9 @@ def summary_table(report: BatchReport, *, max_rows: int = TABLE_ROWS) -> Table:
         table.add_column(col, justify="right" if col in ("instances", "points", "seconds") else "left")
     style = {"ok": "green", "skipped": "cyan", "failed": "red"}
     for o in rows:
-        table.add_row(o.name, f"[{style[o.status]}]{o.status}[/]", "" if o.instances < 0 else str(o.instances),
-                      "" if o.points < 0 else f"{o.points:,}", f"{o.seconds:.1f}", o.worker, o.error[:120])
+        table.add_row(escape(o.name), f"[{style[o.status]}]{o.status}[/]", "" if o.instances < 0 else str(o.instances),
+                      "" if o.points < 0 else f"{o.points:,}", f"{o.seconds:.1f}", escape(o.worker),
+                      escape(o.error[:120]))
     ok = [o for o in report.outcomes if o.status == "ok"]
     if ok:
         total = sum(o.seconds for o in ok)

@@ -162,6 +162,15 @@ def prior_identity(spec: str) -> str:
     return f"{path.name}:{h.hexdigest()[:16]}"
 
 
+def scene_stamp(path: Path) -> str:
+    """`<bytes>:<mtime ns>` of a scene file ("" when it cannot be read): a result is only reused for the same file."""
+    try:
+        st = path.stat()
+    except OSError:
+        return ""
+    return f"{st.st_size}:{st.st_mtime_ns}"
+
+
 @dataclass(frozen=True)
 class SceneTask:
     """One scene to segment.
@@ -234,6 +243,8 @@ class SceneOutcome:
     fingerprint: str = ""
     wall_s: float = 0.0
     cpu_s: float = 0.0
+    scene_stamp: str = ""
+    """Size and modification time of the scene file the result was computed from (`scene_stamp`)."""
 
     @property
     def passed(self) -> bool:

@@ -53,6 +53,7 @@ from efem_viz.batch.job import (
     SceneTask,
     WorkerInfo,
     scene_name_of,
+    scene_stamp,
 )
 
 logger = logging.getLogger(__name__)
@@ -188,7 +189,7 @@ def plan_batch(
             rec = records[name]
             skipped.append(SceneOutcome(name=name, path=str(task.path), status="skipped", instances=rec.instances,
                                         points=rec.points, seconds=rec.seconds, worker=rec.worker,
-                                        fingerprint=fp))
+                                        fingerprint=fp, scene_stamp=rec.scene_stamp))
             continue
         if task.result_path.exists():
             reasons[name] = why
@@ -219,6 +220,10 @@ def _why_not_done(task: SceneTask, job: BatchJob, fp: str, record: SceneOutcome 
         return f"no record in {BATCH_FILE}"
     if record.fingerprint != fp:
         return "made with other settings (config, priors, seed or threshold)"
+    if Path(record.path) != task.path:
+        return f"made from another scene file ({record.path})"
+    if record.scene_stamp != scene_stamp(task.path):
+        return "the scene file changed since its result was made"
     if job.ply and not task.ply_path.is_file():
         return f"{task.ply_path.name} missing"
     if job.scannet and not task.scannet_path.is_file():

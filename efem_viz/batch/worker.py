@@ -17,7 +17,7 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from efem_viz.batch.job import BatchJob, SceneOutcome, SceneTask, WorkerInfo
+from efem_viz.batch.job import BatchJob, SceneOutcome, SceneTask, WorkerInfo, scene_stamp
 
 if TYPE_CHECKING:
     from efem_viz.em.solver import StepInfo
@@ -105,6 +105,7 @@ class SceneWorker:
 
         t0 = time.perf_counter()
         c0 = time.process_time()
+        stamp = scene_stamp(task.path)  # before reading it: a file changed during the solve is redone next time
         load_s = solve_s = 0.0
         cancel = threading.Event()
         timer: threading.Timer | None = None
@@ -119,7 +120,9 @@ class SceneWorker:
 
         points = -1
         try:
-            task.result_path.unlink(missing_ok=True)
+            # a recompute that fails must not leave the previous run's outputs looking current
+            for stale in (task.result_path, task.ply_path, task.scannet_path):
+                stale.unlink(missing_ok=True)
             scene = load_scene(task.path)
             points = scene.num_points
             t1 = time.perf_counter()
@@ -152,5 +155,5 @@ class SceneWorker:
         return SceneOutcome(
             name=task.name, path=str(task.path), status="ok", instances=len(result.instances), points=points,
             seconds=time.perf_counter() - t0, worker=self.worker, load_s=load_s, solve_s=solve_s, write_s=write_s,
-            rss_mb=peak_rss_mb(), fingerprint=fp, cpu_s=time.process_time() - c0,
+            rss_mb=peak_rss_mb(), fingerprint=fp, cpu_s=time.process_time() - c0, scene_stamp=stamp,
         )

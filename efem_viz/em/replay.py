@@ -26,6 +26,27 @@ NEED_PRIOR = "re-deriving weights and shapes needs the shape prior: pass prior= 
 NEED_SCENE = "this replay has no scene bound: call result.bind(scene) with the scene the run was on"
 
 
+def run_priors(trace: EMTrace, priors: "PriorArg") -> tuple[Any, ...]:
+    """The priors given for a run, checked against it: as many as it used and, for a multi-prior run, each with the
+    category name the trace recorded at its position (so a swapped list cannot decode one category with another's
+    prior).
+
+    Raises:
+        ValueError: wrong number of priors, or a category name out of place.
+    """
+    seq: tuple[Any, ...] = tuple(priors) if isinstance(priors, (list, tuple)) else (priors,)
+    names = trace.prior_names
+    if len(seq) != max(1, len(names)):
+        raise ValueError(f"the run used {max(1, len(names))} prior(s) {list(names)}, got {len(seq)}")
+    if len(names) > 1:
+        from efem_viz.prior.config import prior_category
+
+        got = [prior_category(p).name for p in seq]
+        if got != list(names):
+            raise ValueError(f"the run's priors are {list(names)} in this order, got {got}")
+    return seq
+
+
 def prior_latent(trace: EMTrace, proposal_id: int, step: int, priors: "PriorArg") -> tuple[Any, dict[str, np.ndarray]]:
     """(the prior that owns a proposal, its latent at `step` trimmed to that prior's code width): what decoding a
     stored latent needs, for one-prior and multi-prior runs alike.
@@ -41,10 +62,7 @@ def prior_latent(trace: EMTrace, proposal_id: int, step: int, priors: "PriorArg"
     """
     from efem_viz.em.decoding import latent_width, trim_latent
 
-    seq: tuple[Any, ...] = tuple(priors) if isinstance(priors, (list, tuple)) else (priors,)
-    if len(seq) != max(1, len(trace.prior_names)):
-        raise ValueError(f"the run used {max(1, len(trace.prior_names))} prior(s), got {len(seq)}")
-    prior = seq[trace.prior_index(proposal_id)]
+    prior = run_priors(trace, priors)[trace.prior_index(proposal_id)]
     lat = trace.latent(proposal_id, step)
     return prior, (trim_latent(lat, latent_width(prior)) if trace.prop_prior is not None else lat)
 
@@ -84,11 +102,7 @@ class TraceReplay:
             self._normals = np.asarray(scene.normals, np.float32)
             self._cache.clear()
         if prior is not None:
-            priors = tuple(prior) if isinstance(prior, (list, tuple)) else (prior,)
-            want = max(1, len(self.trace.prior_names))
-            if len(priors) != want:
-                raise ValueError(f"the run used {want} prior(s) {list(self.trace.prior_names)}, got {len(priors)}")
-            self._priors = priors
+            self._priors = run_priors(self.trace, prior)
             self._cache.clear()
         return self
 
@@ -111,7 +125,7 @@ class TraceReplay:
 
             # one prior given for a multi-prior run: it serves the proposals of its own category
             return prior if prior_category(prior).name == self.trace.prior_names[k] else None
-        priors = tuple(prior) if prior is not None else self._priors
+        priors = run_priors(self.trace, prior) if prior is not None else self._priors
         return None if priors is None else priors[k]
 
     def points(self) -> np.ndarray:

@@ -450,7 +450,13 @@ class EMTrace:
         prior_names: tuple[str, ...] = ()
         if prefix + "prior_names_json" in keys:
             prior_names = _name_table(data[prefix + "prior_names_json"], "prior_names")
+        if len(set(prior_names)) != len(prior_names) or len(set(reasons)) != len(reasons) or "" in reasons:
+            raise ValueError(f"trace name tables must hold distinct names, got priors {list(prior_names)}, "
+                             f"reasons {list(reasons)}")
         prop_prior = np.asarray(data[prefix + "prop_prior"]) if prefix + "prop_prior" in keys else None
+        if (prop_prior is not None) != (len(prior_names) > 1):
+            raise ValueError(f"trace has {len(prior_names)} prior name(s) but "
+                             f"{'a' if prop_prior is not None else 'no'} per-proposal prior table")
         if prop_prior is not None:
             n_prop = len(arrays["prop_anchor"])
             if (prop_prior.shape != (n_prop,) or prop_prior.dtype.kind not in "iu"

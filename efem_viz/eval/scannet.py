@@ -70,7 +70,8 @@ def scannet_prediction_files(path: str | os.PathLike[str]) -> dict[str, Path]:
     if not root.is_dir():
         raise ValueError(f"{root}: not a folder of ScanNet-format predictions")
     base = _scannet_dir(root)
-    return {txt.stem: txt for txt in sorted(base.glob("*.txt"))}
+    # hidden files are temporaries of interrupted writes, never predictions
+    return {txt.stem: txt for txt in sorted(base.glob("*.txt")) if not txt.name.startswith(".")}
 
 
 def load_scannet_prediction(txt: Path) -> ScenePrediction:
@@ -84,7 +85,7 @@ def load_scannet_prediction(txt: Path) -> ScenePrediction:
     for ln_no, line in enumerate(txt.read_text(encoding="utf-8").splitlines(), start=1):
         if not line.strip():
             continue
-        parts = line.split()
+        parts = line.rsplit(maxsplit=2)  # a scene name (in the mask path) may hold spaces
         where = f"{txt}:{ln_no}"
         if len(parts) != 3:
             raise ValueError(f"{where}: expected '<mask path> <class id> <confidence>', got {line!r}")

@@ -217,8 +217,12 @@ class CategorySettings:
         sizes = d.get("domain_sizes") or {}
         if not isinstance(sizes, Mapping):
             raise ValueError(f"category domain_sizes must be a dict, got {type(sizes).__name__}")
-        kw["domain_sizes"] = {str(k): (dec(v[0], f"{k} horizontal"), dec(v[1], f"{k} height"))
-                              for k, v in sizes.items()}
+        domain: dict[str, tuple[Range, Range]] = {}
+        for k, v in sizes.items():
+            if not isinstance(v, (list, tuple)) or len(v) != 2:
+                raise ValueError(f"category domain_sizes[{k!r}] must be [horizontal, height] ranges, got {v!r}")
+            domain[str(k)] = (dec(v[0], f"{k} horizontal"), dec(v[1], f"{k} height"))
+        kw["domain_sizes"] = domain
         if d.get("tau_out") is not None:
             kw["tau_out"] = float(d["tau_out"])
         return cls(**kw)
