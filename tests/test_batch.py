@@ -432,3 +432,17 @@ def test_console_shows_scene_names_and_errors_verbatim() -> None:
                                  error="cannot read [/data/x]"))
     text = buf.getvalue()
     assert "room[b]x" in text and "[/data/x]" in text
+
+
+@pytest.mark.slow
+def test_ray_job_that_no_node_can_host_fails_in_one_line(tmp_path: Path) -> None:
+    """Actors asking for more CPUs than the cluster has would wait forever: the CLI says so and exits 1."""
+    from efem_viz.prior.analytic import make_sphere_scene
+
+    scene = tmp_path / "s.ply"
+    save_scene(make_sphere_scene(seed=0, spacing=0.012, radii=(0.05,)), scene)
+    proc = subprocess.run([sys.executable, "-m", "efem_viz.cli", "segment", str(scene), "--out", str(tmp_path / "o"),
+                           "--prior", "sphere", "--ray", "--ray-cpus", "1", "--threads", "2"],
+                          capture_output=True, text=True, timeout=240)
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    assert "asks for 2 CPU(s)" in proc.stderr and "cluster has 1" in proc.stderr, proc.stderr

@@ -115,9 +115,15 @@ class RayBackend:
                          object_store_memory=LOCAL_OBJECT_STORE_BYTES)
             started_here = True
         try:
-            cpus = int(ray.cluster_resources().get("CPU", 1))
-            n_actors = min(len(tasks), self.options.workers or max(1, cpus // threads))
+            resources = ray.cluster_resources()
+            cpus = int(resources.get("CPU", 1))
             gpus = 1 if str(job.device).startswith("cuda") else 0
+            # an actor that no node can host would wait forever: refuse the job in one line instead
+            if threads > cpus:
+                raise BatchError(f"each Ray worker asks for {threads} CPU(s) (--threads) but the cluster has {cpus}")
+            if gpus and float(resources.get("GPU", 0)) < 1:
+                raise BatchError("--device cuda needs a GPU in the Ray cluster, which has none")
+            n_actors = min(len(tasks), self.options.workers or max(1, cpus // threads))
             actor_cls = ray.remote(num_cpus=threads, num_gpus=gpus, max_restarts=0)(_RayWorker)
             pending: deque[SceneTask] = deque(tasks)
 
