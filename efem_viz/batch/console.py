@@ -6,6 +6,7 @@ CLI layer only (`efem-viz segment`): library code reports through `BatchObserver
 
 from __future__ import annotations
 
+import time
 from typing import TYPE_CHECKING
 
 from rich.console import Console
@@ -27,6 +28,9 @@ from efem_viz.batch.job import BATCH_FILE, SceneOutcome, SceneTask, WorkerInfo
 if TYPE_CHECKING:
     from efem_viz.batch.runner import BatchPlan, BatchReport
 
+PLAIN_STEP_EVERY_S = 10.0
+"""When the console is not a terminal (a log file, a pipe), a scene's EM progress is printed as a plain line at
+most this often (and at its last step): rich draws no live bars there."""
 TABLE_ROWS = 40
 """The summary table lists every scene up to this many; beyond, the failed ones and the totals (batch.json has all)."""
 
@@ -38,8 +42,11 @@ class RichBatchDisplay(BatchObserver):
         console: where to draw.
     """
 
-    def __init__(self, console: Console | None = None) -> None:
+    def __init__(self, console: Console | None = None, *, plain_every_s: float = PLAIN_STEP_EVERY_S) -> None:
         self.console = console or Console()
+        self.plain = not self.console.is_terminal
+        self.plain_every_s = float(plain_every_s)
+        self._last_plain: dict[str, float] = {}
         self.progress = Progress(
             TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
             TextColumn("{task.fields[info]}"), TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn(),
@@ -69,6 +76,9 @@ class RichBatchDisplay(BatchObserver):
                            f"priors {info.prior_load_s:.1f} s, {info.rss_mb:.0f} MiB)[/]")
 
     def on_start(self, task: SceneTask, worker: str) -> None:
+        if self.plain:
+            self.console.print(f"{escape(task.name)}: started ({escape(worker)})")
+            self._last_plain[worker] = time.monotonic()
         row = self.rows.get(worker)
         if row is None:
             self.rows[worker] = self.progress.add_task(f"{escape(worker)} {escape(task.name)}", total=None,
@@ -78,6 +88,11 @@ class RichBatchDisplay(BatchObserver):
                                 visible=True)
 
     def on_step(self, task: SceneTask, worker: str, step: int, total: int, text: str) -> None:
+        if self.plain:
+            now = time.monotonic()
+            if step >= total or now - self._last_plain.get(worker, -float("inf")) >= self.plain_every_s:
+                self._last_plain[worker] = now
+                self.console.print(f"{escape(task.name)}: step {step}/{total}  {escape(text)} ({escape(worker)})")
         row = self.rows.get(worker)
         if row is not None:
             self.progress.update(row, total=total, completed=step, info=text)

@@ -64,6 +64,16 @@ class EMConfig:
     """Energy U of a truncated term."""
     min_size: int = 300
     """A proposal with fewer inliers than this dies ("proposal too small")."""
+    min_size_on: Literal["inliers", "band"] = "inliers"
+    """What `min_size` counts: the E-step inliers (|d| ≤ τ_D and normal angle ≤ τ_N; the method) or the
+    SDF-band support |d| ≤ τ_D (normals ignored: depth noise tilts normals, not distances)."""
+    min_size_spacing: float | None = None
+    """Reference point spacing (m) at which `min_size` holds; each proposal's threshold then scales with
+    (reference / median nearest-neighbour spacing of its band points)², i.e. `min_size` becomes a surface
+    area. None = an absolute count (the method)."""
+    m_step_replace: bool = True
+    """M-step draws with replacement (the method). False: without replacement while a proposal has at least
+    n_pcl weighted points (a smaller support is drawn whole, then topped up with replacement)."""
     dup_sdf: float = 0.04
     """δ_dup: the duplicate/inclusion sets are {j : |d_ij| < δ_dup} (canonical units)."""
     dup_iou: float = 0.7
@@ -173,6 +183,10 @@ class EMConfig:
             raise ValueError(f"work_voxel must be >= 0 or None, got {self.work_voxel}")
         if self.tau_out is not None and not 0.0 < self.tau_out <= MAX_TAU_OUT:
             raise ValueError(f"tau_out must be in (0, {MAX_TAU_OUT}] or None, got {self.tau_out}")
+        if self.min_size_on not in ("inliers", "band"):
+            raise ValueError(f"min_size_on must be 'inliers' or 'band', got {self.min_size_on!r}")
+        if self.min_size_spacing is not None and not (0.0 < self.min_size_spacing < 1.0):
+            raise ValueError(f"min_size_spacing must be in (0, 1) m or None, got {self.min_size_spacing}")
         if self.n_pcl is not None and self.n_pcl < 1:
             raise ValueError(f"n_pcl must be >= 1, got {self.n_pcl}")
         if self.refine_at not in ("every_step", "review_steps"):

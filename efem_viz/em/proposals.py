@@ -237,6 +237,7 @@ def sample_independent(
     rng: np.random.Generator,
     *,
     fallback: np.ndarray,
+    replace: bool = True,
 ) -> np.ndarray:
     """Phase-1 M-step sampling (§3.4): Bernoulli(w/(w+ω)) masks, then M categorical draws ∝ w·b per row.
 
@@ -247,13 +248,39 @@ def sample_independent(
         omega: background weight ω.
         rng: NumPy generator.
         fallback: (F,) int scene indices drawn uniformly for rows without weight (available points).
+        replace: False = draws without replacement where a row has enough weighted entries
+            (`EMConfig.m_step_replace`).
 
     Returns:
         (P, m) int64 scene indices.
     """
     w = np.asarray(w, np.float64)
     keep = rng.random(len(w)) < w / (w + omega)
-    return _categorical_rows(rag, w * keep, m, rng, fallback)
+    out = _categorical_rows(rag, w * keep, m, rng, fallback)
+    if not replace:
+        _without_replacement(rag, w * keep, out, rng)
+    return out
+
+
+def _without_replacement(rag: Ragged, w: np.ndarray, out: np.ndarray, rng: np.random.Generator) -> None:
+    """Redraw each row of ``out`` without replacement ∝ ``w`` (Efraimidis-Spirakis keys u^(1/w)).
+
+    A row with fewer positive-weight entries than its draws keeps all of them once and its remaining draws
+    from ``out`` (the categorical draws with replacement). Rows without weight keep their fallback draws.
+    """
+    m = out.shape[1]
+    for r in range(rag.num_rows):
+        sl = rag.row_slice(r)
+        wr = w[sl]
+        pos = np.flatnonzero(wr > 0)
+        if len(pos) == 0:
+            continue
+        keys = np.log(rng.random(len(pos))) / wr[pos]
+        if len(pos) >= m:
+            top = pos[np.argpartition(-keys, m - 1)[:m]]
+            out[r] = rag.idx[sl][top]
+        else:
+            out[r, :len(pos)] = rag.idx[sl][pos]
 
 
 def sample_joint(

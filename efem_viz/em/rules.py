@@ -75,10 +75,61 @@ class Kill:
     ratio: float = float("nan")
 
 
-def find_too_small(inlier_counts: np.ndarray, min_size: int) -> list[Kill]:
-    """§3.8a: rows with fewer than `min_size` inliers."""
+def find_too_small(inlier_counts: np.ndarray, min_size: "int | float | np.ndarray") -> list[Kill]:
+    """§3.8a: rows with fewer than `min_size` inliers (`min_size` one number, or one per row)."""
     counts = np.asarray(inlier_counts)
-    return [Kill(int(r), REASON_TOO_SMALL, -1, float(counts[r])) for r in np.flatnonzero(counts < min_size)]
+    return [Kill(int(r), REASON_TOO_SMALL, -1, float(counts[r]))
+            for r in np.flatnonzero(counts < np.asarray(min_size))]
+
+
+def size_counts(cfg: "EMConfig", inliers: np.ndarray, d: np.ndarray, rag: Ragged, min_size: int,
+                tau_d: float, *, spacing: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """What the "too small" rule compares, per row: (counts, thresholds).
+
+    ``cfg.min_size_on`` picks the count (inliers, or the SDF-band support |d| ≤ ``tau_d``);
+    ``cfg.min_size_spacing`` makes the threshold density-relative: ``min_size`` × (reference spacing / median
+    nearest-neighbour spacing of the row's band points)², so it asks for the same surface area at any density.
+
+    Args:
+        cfg: Solver config.
+        inliers: (P,) inlier counts.
+        d: (K,) canonical SDF over ``rag``.
+        rag: The rows' neighbourhoods.
+        min_size: The absolute threshold (on the working set).
+        tau_d: This step's SDF truncation τ_D.
+        spacing: (N,) nearest-neighbour spacing of every point (needed with ``min_size_spacing``).
+
+    Returns:
+        (P,) float counts and (P,) float thresholds.
+    """
+    p = rag.num_rows
+    band = np.abs(np.asarray(d)) <= tau_d
+    if cfg.min_size_on == "band":
+        counts = np.bincount(rag.row[band], minlength=p).astype(np.float64)
+    else:
+        counts = np.asarray(inliers, np.float64)
+    thr = np.full(p, float(min_size))
+    if cfg.min_size_spacing is not None:
+        if spacing is None:
+            raise ValueError("min_size_spacing needs the points' spacing")
+        for r in range(p):
+            sl = rag.row_slice(r)
+            sp_r = spacing[rag.idx[sl][band[sl]]]
+            if len(sp_r):
+                ratio = cfg.min_size_spacing / max(float(np.median(sp_r)), 1e-6)
+                thr[r] = float(min_size) * ratio * ratio
+    return counts, thr
+
+
+def point_spacing(points: np.ndarray) -> np.ndarray:
+    """(N,) distance of every point to its nearest other point (m)."""
+    from efem_viz._typeshims import cKDTree
+
+    pts = np.asarray(points, np.float64)
+    if len(pts) < 2:
+        return np.zeros(len(pts))
+    dist, _ = cKDTree(pts).query(pts, k=2)
+    return np.asarray(dist[:, 1], np.float64)
 
 
 def find_duplicates(
@@ -171,6 +222,8 @@ class StepContext:
         n_points: size of the working set.
         min_size: the "too small" threshold on the working set.
         owner: (P,) int prior of each row (index into the solve's priors).
+        tau_d: this step's SDF truncation τ_D (for `cfg.min_size_on` = "band").
+        spacing: (N,) nearest-neighbour spacing of the working set (for `cfg.min_size_spacing`), or None.
         active: (P,) bool rows still alive; the runner clears the rows each rule kills.
     """
 
@@ -186,6 +239,8 @@ class StepContext:
     min_size: int
     owner: np.ndarray
     active: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    tau_d: float = float("inf")
+    spacing: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if len(self.active) != len(self.inliers):
@@ -215,7 +270,8 @@ class StepRule:
 
 
 def _too_small(ctx: StepContext) -> list[Kill]:
-    return find_too_small(ctx.inliers, ctx.min_size)
+    counts, thr = size_counts(ctx.cfg, ctx.inliers, ctx.d, ctx.rag, ctx.min_size, ctx.tau_d, spacing=ctx.spacing)
+    return find_too_small(counts, thr)
 
 
 def _duplicates(ctx: StepContext) -> list[Kill]:

@@ -328,6 +328,7 @@ class _Solver:
         self.on_step = on_step
         self.cancel = cancel
         self.m = int(cfg.n_pcl or max(_n_pcl(p) for p in table.priors))
+        self._spacing: np.ndarray | None = None
         prior_names = tuple(c.name for c in (_category(p) for p in table.priors))
         self.rec = TraceRecorder(cfg, self.n_full, work_idx=self.work_idx, work_min_size=self.min_size,
                                  reasons=reason_names(self.step_rules, self.review_rules),
@@ -345,6 +346,17 @@ class _Solver:
         if not self.identity and cfg.work_voxel:  # a thinned working set implies work_voxel > 0
             logger.info("%s: EM on a %.1f mm working set of %d of %d points (min_size %d -> %d)", name,
                         cfg.work_voxel * 1000, self.n, self.n_full, cfg.min_size, self.min_size)
+
+    @property
+    def spacing(self) -> np.ndarray | None:
+        """Nearest-neighbour spacing of the working set (computed once, only for `cfg.min_size_spacing`)."""
+        if self.cfg.min_size_spacing is None:
+            return None
+        if self._spacing is None:
+            from efem_viz.em.rules import point_spacing
+
+            self._spacing = point_spacing(self.points)
+        return self._spacing
 
     def _anchor_mask(self, points: np.ndarray, candidates: np.ndarray) -> np.ndarray:
         """(n,) bool over the working set: the candidates, or (thinned set) the kept point nearest to each."""
@@ -425,7 +437,8 @@ class _Solver:
         fallback = tree.avail_idx
         t0 = time.perf_counter()
         if phase == 1 or pool.stationary is None:
-            samples = sample_independent(pool.rag, pool.w, self.m, cfg.omega, self.rng, fallback=fallback)
+            samples = sample_independent(pool.rag, pool.w, self.m, cfg.omega, self.rng, fallback=fallback,
+                                         replace=cfg.m_step_replace)
         else:
             samples, _ = sample_joint(pool.rag, pool.w, pool.stationary, self.m, cfg.omega, self.rng,
                                       fallback=fallback)
@@ -485,7 +498,8 @@ class _Solver:
         assert pool.inliers is not None and pool.d is not None and pool.stationary is not None
         ctx = StepContext(phase=phase, step=step, local_step=local, cfg=self.cfg, inliers=pool.inliers,
                           stationary=pool.stationary, d=pool.d,
-                          rag=pool.rag, n_points=self.n, min_size=self.min_size, owner=pool.owner)
+                          rag=pool.rag, n_points=self.n, min_size=self.min_size, owner=pool.owner,
+                          tau_d=schedule(self.cfg, local)[1], spacing=self.spacing)
         kills = apply_step_rules(ctx, self.step_rules)
         for k in kills:
             partner = int(pool.ids[k.partner]) if k.partner >= 0 else -1

@@ -3,7 +3,8 @@
 Per object (canonical frame: +Z up, bounding-box centre at the origin, longest side 1) we cache in an npz:
 ``uni`` (Nu, 4) uniform queries in ``[-0.55, 0.55]³`` + SDF, ``nss`` (Nn, 4) near-surface queries + SDF,
 ``surface`` (Ns, 3) dense surface samples, ``views`` (V, 3) back-projected depth-view hits with
-``view_offsets`` (12 + 1) and ``view_elev_deg`` (12,). SDF comes from
+``view_offsets`` (12 + 1), ``view_elev_deg`` (12,), ``view_eyes`` (12, 3) camera centres and ``view_cos`` (V,)
+the cosine of the incidence angle of every hit (for the depth-sensor model, `sensor_cloud`). SDF comes from
 ``open3d.t.geometry.RaycastingScene.compute_signed_distance`` (negative inside; needs watertight meshes).
 
 Depth views (deviation from §2.1, documented in the training report): views 0-7 look from above (elevation
@@ -22,7 +23,7 @@ import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, cast
+from typing import TYPE_CHECKING, Any, Literal, cast
 
 import numpy as np
 
@@ -31,7 +32,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-CACHE_VERSION = 2
+CACHE_VERSION = 3
+_CACHE_KEYS = ("uni", "nss", "surface", "views", "view_offsets", "view_elev_deg", "view_eyes", "view_cos")
 MESH_SUFFIXES = (".obj", ".ply", ".off", ".glb", ".gltf", ".stl")
 
 
@@ -78,6 +80,11 @@ class ObjectData:
     """(n_views + 1,) int64 offsets into ``views``."""
     view_elev_deg: np.ndarray
     """(n_views,) camera elevation of every view."""
+    view_eyes: np.ndarray | None = None
+    """(n_views, 3) camera centre of every view (None in hand-built objects: the sensor model then uses the
+    direction from the view's mean elevation)."""
+    view_cos: np.ndarray | None = None
+    """(V,) |cos| of the incidence angle of every view hit (None: taken as 1)."""
 
     @property
     def z_bottom(self) -> float:
@@ -127,6 +134,21 @@ class SampleConfig:
     """Half-size range of the table patch."""
     centroid_noise: float = 0.05
     """Std of the centroid augmentation (§2.4)."""
+    sensor_p: float = 0.0
+    """Probability that an example is a depth-sensor view (`sensor_cloud`) instead of `input_cloud`'s union of
+    views with isotropic noise (0 = the training inputs of the priors up to session 6)."""
+    sensor_scale: tuple[float, float] = (0.5, 2.0)
+    """Range of the multiplier k of the sensor's noise model."""
+    sensor_distance: tuple[float, float] = (0.4, 1.2)
+    """Camera distance range, metres."""
+    sensor_fx: tuple[float, float] = (430.0, 615.0)
+    """Focal length range, pixels."""
+    object_size: tuple[float, float] = (0.09, 0.14)
+    """Metric size of the object's longest side (metres per canonical unit)."""
+    p_few_views: float = 0.8
+    """Probability that a sensor example unites 1-2 views (else 3-12)."""
+    density: tuple[int, int] = (300, 3000)
+    """Visible points a sensor example keeps before ``n_pcl`` are drawn from them with replacement."""
 
 
 # ---------------------------------------------------------------------------------------------- meshes
@@ -175,7 +197,7 @@ def _view_elevations(cfg: PrepConfig, rng: np.random.Generator) -> np.ndarray:
 
 
 def render_views(mesh: trimesh.Trimesh, cfg: PrepConfig, *, rng: np.random.Generator,
-                 scene: Any = None) -> tuple[list[np.ndarray], np.ndarray]:
+                 scene: Any = None, details: dict[str, Any] | None = None) -> tuple[list[np.ndarray], np.ndarray]:
     """Ray-cast depth views and back-project the hits (canonical frame).
 
     Args:
@@ -183,6 +205,8 @@ def render_views(mesh: trimesh.Trimesh, cfg: PrepConfig, *, rng: np.random.Gener
         cfg: Camera settings.
         rng: Random generator (azimuths, elevations, distances, subsets).
         scene: Optional prebuilt RaycastingScene.
+        details: If given, filled with ``eyes`` ((n_views, 3) camera centres) and ``cos`` (list of (n_i,)
+            |cos| of the incidence angle of every kept hit).
 
     Returns:
         (list of (n_i, 3) float32 hit points per view, (n_views,) elevations in degrees).
@@ -192,6 +216,7 @@ def render_views(mesh: trimesh.Trimesh, cfg: PrepConfig, *, rng: np.random.Gener
     scene = scene if scene is not None else _raycasting_scene(mesh)
     elev = _view_elevations(cfg, rng)
     out = []
+    eyes, coss = [], []
     for e in elev:
         az = rng.uniform(0.0, 2.0 * np.pi)
         d = rng.uniform(*cfg.distance)
@@ -201,13 +226,23 @@ def render_views(mesh: trimesh.Trimesh, cfg: PrepConfig, *, rng: np.random.Gener
                                          eye=o3d_tensor(eye.astype(np.float32)),
                                          up=o3d_tensor([0.0, 0.0, 1.0]),
                                          width_px=cfg.resolution, height_px=cfg.resolution)
-        t = scene.cast_rays(rays)["t_hit"].numpy().reshape(-1)
+        ans = scene.cast_rays(rays)
+        t = ans["t_hit"].numpy().reshape(-1)
+        nrm = ans["primitive_normals"].numpy().reshape(-1, 3)
         r = rays.numpy().reshape(-1, 6)
         hit = np.isfinite(t)
         pts = r[hit, :3] + r[hit, 3:] * t[hit, None]
+        d = r[hit, 3:] / np.maximum(np.linalg.norm(r[hit, 3:], axis=1, keepdims=True), 1e-12)
+        cos = np.abs((d * nrm[hit]).sum(1))
         if len(pts) > cfg.max_view_points:
-            pts = pts[rng.choice(len(pts), cfg.max_view_points, replace=False)]
+            keep = rng.choice(len(pts), cfg.max_view_points, replace=False)
+            pts, cos = pts[keep], cos[keep]
         out.append(pts.astype(np.float32))
+        eyes.append(eye)
+        coss.append(cos.astype(np.float32))
+    if details is not None:
+        details["eyes"] = np.asarray(eyes, np.float32).reshape(-1, 3)
+        details["cos"] = coss
     return out, elev.astype(np.float32)
 
 
@@ -239,7 +274,8 @@ def prepare_object(mesh: trimesh.Trimesh, *, name: str, cfg: PrepConfig, seed: i
     base = surf[cfg.n_surface:]
     sig = np.asarray(cfg.near_sigmas, np.float32)[np.arange(cfg.n_near) % len(cfg.near_sigmas)]
     nss = (base + rng.normal(size=base.shape).astype(np.float32) * sig[:, None]).astype(np.float32)
-    views, elev = render_views(m, cfg, rng=rng, scene=scene)
+    det: dict[str, Any] = {}
+    views, elev = render_views(m, cfg, rng=rng, scene=scene, details=det)
     if sum(len(v) for v in views) == 0:
         raise ValueError(f"object {name}: no depth view hits the mesh")
     offsets = np.concatenate([[0], np.cumsum([len(v) for v in views])]).astype(np.int64)
@@ -251,6 +287,8 @@ def prepare_object(mesh: trimesh.Trimesh, *, name: str, cfg: PrepConfig, seed: i
         views=np.concatenate(views, axis=0),
         view_offsets=offsets,
         view_elev_deg=elev,
+        view_eyes=det["eyes"],
+        view_cos=np.concatenate(det["cos"]) if det["cos"] else np.zeros(0, np.float32),
     )
 
 
@@ -274,13 +312,11 @@ def load_or_prepare(source: tuple[str, Callable[[], trimesh.Trimesh]], *, cache_
     if path.is_file():
         try:
             with np.load(path) as z:
-                return ObjectData(name=name, **{k: z[k] for k in ("uni", "nss", "surface", "views",
-                                                                  "view_offsets", "view_elev_deg")})
+                return ObjectData(name=name, **{k: z[k] for k in _CACHE_KEYS})
         except (OSError, KeyError, ValueError) as exc:
             log.warning("ignoring unreadable cache %s (%s)", path, exc)
     obj = prepare_object(factory(), name=name, cfg=cfg, seed=seed)
-    _save_npz_atomic(path, {k: getattr(obj, k) for k in ("uni", "nss", "surface", "views", "view_offsets",
-                                                           "view_elev_deg")})
+    _save_npz_atomic(path, {k: getattr(obj, k) for k in _CACHE_KEYS})
     return obj
 
 
@@ -347,6 +383,141 @@ def input_cloud(obj: ObjectData, cfg: SampleConfig, rng: np.random.Generator) ->
         pts = obj.surface
     sel = rng.integers(0, len(pts), cfg.n_pcl)
     return (pts[sel] + rng.normal(0.0, cfg.noise_std, (cfg.n_pcl, 3))).astype(np.float32)
+
+
+SensorKind = Literal["kinect", "realsense", "isotropic"]
+SENSOR_KINDS: tuple[SensorKind, ...] = ("kinect", "realsense", "isotropic")
+
+
+@dataclass(frozen=True)
+class SensorModel:
+    """Depth noise of an RGB-D camera, in metres (one home: training inputs and the stability bench).
+
+    ``kinect``: axial σ_z = k·(1.2 + 1.9 (z − 0.4)²) mm plus an incidence term 0.1 mm/√z · θ²/(π/2 − θ)²
+    (Nguyen, Izadi, Lovell 2012). ``realsense``: σ_z = k·3.7 z² mm (D435 RMS, Intel's D400 tuning guide) plus
+    the same incidence term. Both: depth quantised to ``quant_px`` of disparity (Δz = z²·q/(f·B)), lateral
+    jitter of ``jitter_px`` pixels, dropout of hits at grazing incidence beyond ``grazing_deg``.
+    ``isotropic``: Gaussian noise of σ = k mm on every axis (nothing else).
+    """
+
+    kind: SensorKind = "realsense"
+    k: float = 1.0
+    """Multiplier of the noise model (isotropic: σ in mm)."""
+    fx: float = 600.0
+    """Focal length, pixels."""
+    baseline: float | None = None
+    """Stereo / projector baseline in metres (None: 0.075 kinect, 0.05 realsense)."""
+    quant_px: float = 1.0 / 8.0
+    """Disparity quantisation step, pixels (0: none)."""
+    jitter_px: float = 0.5
+    """Lateral jitter, pixels."""
+    grazing_deg: float = 75.0
+    """Incidence angle above which hits start to drop out (all gone at 90°)."""
+
+    def axial_sigma(self, z: np.ndarray, theta: np.ndarray) -> np.ndarray:
+        """Axial noise std (metres) at depth ``z`` (metres) and incidence angle ``theta`` (radians)."""
+        z = np.maximum(np.asarray(z, np.float64), 0.05)
+        th = np.clip(np.asarray(theta, np.float64), 0.0, np.deg2rad(80.0))  # beyond: dropped mostly
+        base = 1.2 + 1.9 * (z - 0.4) ** 2 if self.kind == "kinect" else 3.7 * z * z
+        inc = 0.1 / np.sqrt(z) * th * th / (np.pi / 2 - th) ** 2
+        return self.k * (base + inc) * 1e-3
+
+    def apply(self, pts: np.ndarray, eye: np.ndarray, cos: np.ndarray | None,
+              rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """Noisy measurement of exact hits ``pts`` (n, 3, metres) seen from camera centre ``eye`` (3,).
+
+        Args:
+            pts: Exact surface hits, metres.
+            eye: Camera centre, metres (the optical axis points from it to the hits' centroid).
+            cos: (n,) |cos| of each hit's incidence angle (None: 1).
+            rng: Random generator.
+
+        Returns:
+            (m, 3) noisy points (float64) and the (n,) bool mask of the hits that were kept (not dropped).
+        """
+        pts = np.asarray(pts, np.float64).reshape(-1, 3)
+        n = len(pts)
+        if n == 0:
+            return pts, np.zeros(0, bool)
+        if self.kind == "isotropic":
+            return pts + rng.normal(0.0, self.k * 1e-3, pts.shape), np.ones(n, bool)
+        c = np.ones(n) if cos is None else np.clip(np.asarray(cos, np.float64).reshape(-1), 0.0, 1.0)
+        theta = np.arccos(c)
+        keep = rng.random(n) >= np.clip((np.rad2deg(theta) - self.grazing_deg) / (90.0 - self.grazing_deg),
+                                        0.0, 1.0)
+        pts, theta = pts[keep], theta[keep]
+        eye = np.asarray(eye, np.float64).reshape(3)
+        ray = pts - eye
+        rng_d = np.linalg.norm(ray, axis=1, keepdims=True)
+        u = ray / np.maximum(rng_d, 1e-12)
+        axis = pts.mean(0) - eye
+        axis /= max(float(np.linalg.norm(axis)), 1e-12)
+        z = ray @ axis
+        cos_ax = np.maximum(u @ axis, 0.2)
+        zn = z + rng.normal(0.0, 1.0, len(z)) * self.axial_sigma(z, theta)
+        base = self.baseline if self.baseline is not None else (0.075 if self.kind == "kinect" else 0.05)
+        if self.quant_px > 0:
+            step = np.maximum(zn, 0.05) ** 2 * self.quant_px / (self.fx * base)
+            phase = rng.random()  # where the quantisation levels sit
+            zn = (np.round(zn / step + phase) - phase) * step
+        out = pts + u * ((zn - z) / cos_ax)[:, None]
+        if self.jitter_px > 0:
+            lat = rng.normal(0.0, 1.0, out.shape) * (self.jitter_px * np.maximum(z, 0.05) / self.fx)[:, None]
+            lat -= (lat * u).sum(1, keepdims=True) * u  # perpendicular to the ray
+            out = out + lat
+        return out, keep
+
+
+def random_sensor(cfg: SampleConfig, rng: np.random.Generator) -> SensorModel:
+    """A randomised Kinect-class or RealSense-class sensor (``cfg``'s ranges)."""
+    kind: SensorKind = "kinect" if rng.random() < 0.5 else "realsense"
+    return SensorModel(kind=kind, k=float(rng.uniform(*cfg.sensor_scale)), fx=float(rng.uniform(*cfg.sensor_fx)))
+
+
+def sensor_cloud(obj: ObjectData, cfg: SampleConfig, rng: np.random.Generator, *,
+                 sensor: SensorModel | None = None, n_views: int | None = None,
+                 distance: float | None = None, size: float | None = None) -> np.ndarray:
+    """Partial input cloud as a depth sensor sees the object (canonical frame, ``n_pcl`` points).
+
+    Mostly one or two views (``p_few_views``), each measured by ``sensor`` (default: `random_sensor`) from a
+    camera ``distance`` metres away (default: ``sensor_distance``) along the cached view's direction, the
+    object ``size`` metres long (default: ``object_size``); then ``density`` visible points are kept and
+    ``n_pcl`` drawn from them with replacement, as the solver's M-step draws.
+
+    Deviation: the hits come from the cached ray-cast views (camera 0.9-1.3 object sizes away), so the
+    visible part is that of a close camera; the noise is that of the metric camera distance.
+    """
+    n_all = len(obj.view_offsets) - 1
+    n_top = int(np.sum(obj.view_elev_deg >= 30.0 - 1e-3))
+    pool = n_top if (n_top > 0 and rng.random() < cfg.p_top_only) else n_all
+    if n_views is None:
+        n_views = int(rng.integers(1, 3)) if rng.random() < cfg.p_few_views else int(rng.integers(3, n_all + 1))
+    sensor = sensor if sensor is not None else random_sensor(cfg, rng)
+    size = float(size if size is not None else rng.uniform(*cfg.object_size))
+    outs: list[np.ndarray] = []
+    ids = rng.choice(pool, n_views, replace=False) if n_views <= pool else rng.integers(0, pool, n_views)
+    for i in ids:
+        pts = obj.view(int(i))
+        if len(pts) == 0:
+            continue
+        lo, hi = int(obj.view_offsets[i]), int(obj.view_offsets[i + 1])
+        cos = obj.view_cos[lo:hi] if obj.view_cos is not None and len(obj.view_cos) >= hi else None
+        if obj.view_eyes is not None and len(obj.view_eyes) > i:
+            direction = np.asarray(obj.view_eyes[i], np.float64)
+        else:
+            el = np.deg2rad(float(obj.view_elev_deg[i]))
+            direction = np.array([np.cos(el), 0.0, np.sin(el)])
+        direction /= max(float(np.linalg.norm(direction)), 1e-12)
+        d = float(distance if distance is not None else rng.uniform(*cfg.sensor_distance))
+        noisy, _ = sensor.apply(pts * size, direction * d, cos, rng)
+        outs.append(noisy / size)
+    pts_all = np.concatenate(outs, axis=0) if outs else np.zeros((0, 3))
+    if len(pts_all) == 0:
+        pts_all = obj.surface.astype(np.float64)
+    m = int(rng.integers(cfg.density[0], cfg.density[1] + 1))
+    if len(pts_all) > m:
+        pts_all = pts_all[rng.choice(len(pts_all), m, replace=False)]
+    return pts_all[rng.integers(0, len(pts_all), cfg.n_pcl)].astype(np.float32)
 
 
 def _remove_balls(pcl: np.ndarray, n_remove: int, cfg: SampleConfig, rng: np.random.Generator) -> np.ndarray:
@@ -460,7 +631,10 @@ def make_example(obj: ObjectData, cfg: SampleConfig, rng: np.random.Generator, *
     """
     uni = obj.uni[rng.integers(0, len(obj.uni), cfg.n_query_uniform)]
     nss = obj.nss[rng.integers(0, len(obj.nss), cfg.n_query_near)]
-    pcl = input_cloud(obj, cfg, rng)
+    if cfg.sensor_p > 0 and rng.random() < cfg.sensor_p:
+        pcl = sensor_cloud(obj, cfg, rng)
+    else:
+        pcl = input_cloud(obj, cfg, rng)
     if augment:
         pcl = augment_v1(pcl, obj, uni, others, cfg, rng)
     return pcl, np.concatenate([uni, nss], axis=0)

@@ -121,6 +121,19 @@ class TrainArgs:
     min_views: int = 4
     """Fewest depth views in an input cloud (spec: 4 for mugs; 1 also trains single-view inputs, as real RGB-D
     frames are). Validation inputs are drawn with the same setting."""
+    sensor_p: float = 0.0
+    """Probability that a training example is a depth-sensor view (`prior.data.sensor_cloud`: 1-2 views
+    mostly, Kinect/RealSense axial noise ×U(0.5, 2), quantisation, jitter, grazing dropout, 300-3000 visible
+    points). 0 = the isotropic-noise inputs of earlier sessions. Validation then also reports ``sensor_*``
+    metrics on fixed sensor inputs and selects the export by them."""
+    fixed_point_p: float = 0.0
+    """Probability that an example is re-encoded from the model's own SDF-band inliers of its input (as one EM
+    M-step would), so that one step cannot shrink a good fit (issue 21)."""
+    fixed_point_tau: float = 0.05
+    """SDF band (canonical units) of the fixed-point inliers."""
+    snapshot_every: int = 0
+    """Also save the model (not the optimiser) to <out_dir>/snap_<iteration>.pt every this many iterations,
+    for selection by the stability bench (0: off)."""
     reset_best: bool = False
     """On resume, forget the best validation IoU so far (use when the validation inputs change, e.g. a new
     --min-views): the next validation exports."""
@@ -180,7 +193,7 @@ class TrainArgs:
 
         if self.min_views < 1:
             raise ValueError(f"min_views must be >= 1 (got {self.min_views})")
-        return SampleConfig(n_pcl=n_pcl, p_table=self.p_table, min_views=self.min_views)
+        return SampleConfig(n_pcl=n_pcl, p_table=self.p_table, min_views=self.min_views, sensor_p=self.sensor_p)
 
     def resolved_out_dir(self) -> Path:
         """``out_dir`` or ``runs/<category>``."""
@@ -306,11 +319,11 @@ def compute_losses(prior: ShapePrior, pcl: torch.Tensor, queries: torch.Tensor, 
 
 
 def validate(prior: ShapePrior, objs: list[ObjectData], cfg: SampleConfig, *, seed: int,
-             n_queries: int = 10000, batch: int = 8) -> dict[str, float]:
+             n_queries: int = 10000, batch: int = 8, sensor: bool = False) -> dict[str, float]:
     """Mean volumetric IoU on the first ``n_queries`` uniform queries of each object (§2.7).
 
     Inputs are random depth views + noise with a fixed seed (the same inputs every validation), no
-    augmentation, no centroid noise.
+    augmentation, no centroid noise; ``sensor=True`` draws them with the depth-sensor model instead.
 
     Also calibrates an iso offset ``c ∈ [0, 0.06]``: the constant that maximises the mean IoU of
     ``sdf − c < 0`` (a thin-walled shape is first learnt as a slightly positive shell; shifting the level set
@@ -322,10 +335,10 @@ def validate(prior: ShapePrior, objs: list[ObjectData], cfg: SampleConfig, *, se
     """
     import torch
 
-    from efem_viz.prior.data import input_cloud
+    from efem_viz.prior.data import input_cloud, sensor_cloud
 
     rng = np.random.default_rng(seed)
-    clouds = np.stack([input_cloud(o, cfg, rng) for o in objs])
+    clouds = np.stack([sensor_cloud(o, cfg, rng) if sensor else input_cloud(o, cfg, rng) for o in objs])
     ious, cerr, scales, l1, preds, gts = [], [], [], [], [], []
     with torch.no_grad():
         for s in range(0, len(objs), batch):
@@ -355,6 +368,45 @@ def validate(prior: ShapePrior, objs: list[ObjectData], cfg: SampleConfig, *, se
     return {"iou": float(np.mean(ious)), "iou_min": float(np.min(ious)), "iou_cal": best_iou,
             "iso_offset": best_c, "center_err": float(np.mean(cerr)), "scale": float(np.mean(scales)),
             "sdf_l1": float(np.mean(l1))}
+
+
+def fixed_point_inputs(prior: ShapePrior, pcl: np.ndarray, rng: np.random.Generator, *, p: float,
+                       tau: float) -> np.ndarray:
+    """Replace a fraction ``p`` of the input clouds by the model's own SDF-band inliers (fixed-point examples).
+
+    For each chosen cloud: encode it, keep the points with |sdf| ≤ ``tau`` and draw ``N`` points from them with
+    replacement, as one EM M-step re-samples what a fit explains. The target SDF stays the whole object, so
+    the model learns that re-encoding what it explains must give the same shape and scale. Clouds with fewer
+    than a quarter of their points in the band stay as they were.
+
+    Args:
+        prior: The model (evaluated under no_grad, in eval mode; its mode is restored).
+        pcl: (B, N, 3) input clouds.
+        rng: Random generator.
+        p: Probability per cloud.
+        tau: SDF band, canonical units.
+
+    Returns:
+        (B, N, 3) float32 clouds (a new array).
+    """
+    import torch
+
+    out = np.array(pcl, np.float32, copy=True)
+    pick = np.flatnonzero(rng.random(len(out)) < p)
+    if len(pick) == 0:
+        return out
+    was_training = prior.training
+    prior.eval()
+    with torch.no_grad():
+        x = torch.as_tensor(out[pick], dtype=prior.dtype, device=prior.device)
+        d = prior.sdf(x, prior.encode(x)).abs().cpu().numpy()
+    prior.train(was_training)
+    n = out.shape[1]
+    for row, b in enumerate(pick):
+        ins = np.flatnonzero(d[row] <= tau)
+        if len(ins) >= n // 4:
+            out[b] = out[b][ins[rng.integers(0, len(ins), n)]]
+    return out
 
 
 def with_iso_offset(prior: ShapePrior, offset: float) -> ShapePrior:
@@ -443,14 +495,15 @@ def _report(args: TrainArgs, prior: ShapePrior, state: _State, *, sec_per_iter: 
              f"- **best validation IoU {state.best_iou:.4f} at iteration {state.best_iteration}** "
              f"(exported model; {'iso-offset calibrated' if args.calibrate_iso else 'raw'} IoU)", "",
              "| iteration | wall min | val IoU | min IoU | calibrated IoU (offset) | Θ_c error | mean Θ_s "
-             "| SDF L1 | train loss |",
-             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "| SDF L1 | train loss | sensor inputs: calibrated IoU, Θ_s |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for v in state.val_curve:
         cal = f"{v['iou_cal']:.4f} ({v['iso_offset']:.4f})" if "iou_cal" in v else "–"
         lines.append(f"| {v['iteration']} | {v['wall_s'] / 60:.1f} | {v['iou']:.4f} | {v['iou_min']:.3f} | "
                      f"{cal} | "
                      f"{v['center_err']:.4f} | {v['scale']:.3f} | {v['sdf_l1']:.4f} | "
-                     f"{v.get('train_loss', 0):.4f} |")
+                     f"{v.get('train_loss', 0):.4f} | "
+                     + (f"{v['sensor_iou_cal']:.4f}, {v['sensor_scale']:.3f} |" if "sensor_iou_cal" in v else "– |"))
     _write_text_atomic(Path(f"{stem}_training_report.md"), "\n".join(lines) + "\n")
 
 
@@ -559,19 +612,25 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
         prior.eval()
         t0 = time.monotonic()
         m = validate(prior, val_objs, scfg, seed=args.seed + 99)
+        if args.sensor_p > 0:
+            ms = validate(prior, val_objs, scfg, seed=args.seed + 98, sensor=True)
+            m.update({f"sensor_{k}": v for k, v in ms.items()})
         prior.train()
         m.update(iteration=state.iteration, wall_s=wall0 + (time.monotonic() - t_loop),
                  train_loss=float(np.mean(running)) if running else float("nan"),
                  val_time_s=round(time.monotonic() - t0, 2))
         state.val_curve.append(m)
-        log.info("val @%d: IoU %.4f (min %.3f; calibrated %.4f at c=%.4f) |Θc| %.4f Θs %.3f L1 %.4f [%.1fs]",
+        log.info("val @%d: IoU %.4f (min %.3f; calibrated %.4f at c=%.4f) |Θc| %.4f Θs %.3f L1 %.4f [%.1fs]%s",
                  state.iteration, m["iou"], m["iou_min"], m["iou_cal"], m["iso_offset"], m["center_err"],
-                 m["scale"], m["sdf_l1"], m["val_time_s"])
-        score = m["iou_cal"] if args.calibrate_iso else m["iou"]
+                 m["scale"], m["sdf_l1"], m["val_time_s"],
+                 f"; sensor inputs: calibrated IoU {m['sensor_iou_cal']:.4f} Θs {m['sensor_scale']:.3f}"
+                 if "sensor_iou_cal" in m else "")
+        key = "iou_cal" if args.calibrate_iso else "iou"
+        score = m[f"sensor_{key}"] if args.sensor_p > 0 else m[key]
         if score > state.best_iou:
             state.best_iou, state.best_iteration = score, state.iteration
             trained_on = str(args.meshes) if args.meshes is not None else f"procedural:{args.category}"
-            offset = m["iso_offset"] if args.calibrate_iso else 0.0
+            offset = m["sensor_iso_offset" if args.sensor_p > 0 else "iso_offset"] if args.calibrate_iso else 0.0
             save_prior(with_iso_offset(prior, offset), export,
                        extra={"iteration": state.iteration, "val_iou": score, "val_iou_raw": m["iou"],
                               "iso_offset": offset, "val_metrics": m, "trained_on": trained_on,
@@ -620,6 +679,8 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
 
         pcl_np, q_np = make_batch([train_objs[i] for i in idx], scfg, rng, others=train_objs, augment=True)
         noise_np = rng.normal(0.0, scfg.centroid_noise, (args.batch_size, 3))
+        if args.fixed_point_p > 0:
+            pcl_np = fixed_point_inputs(prior, pcl_np, rng, p=args.fixed_point_p, tau=args.fixed_point_tau)
         pcl = torch.as_tensor(pcl_np, dtype=prior.dtype, device=prior.device)
         q = torch.as_tensor(q_np, dtype=prior.dtype, device=prior.device)
         noise = torch.as_tensor(noise_np, dtype=prior.dtype, device=prior.device)
@@ -656,6 +717,8 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
                          else float("nan")})
         if state.iteration % args.val_every == 0:
             do_validation()
+        if args.snapshot_every > 0 and state.iteration % args.snapshot_every == 0:
+            save_prior(prior, out_dir / f"snap_{state.iteration}.pt", extra={"iteration": state.iteration})
         if time.monotonic() - last_ckpt >= args.ckpt_every_min * 60:
             do_checkpoint()
     restore_handlers()
