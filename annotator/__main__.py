@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import logging
 import sys
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,36 +38,36 @@ class AnnotateArgs:
     same scan re-exported). Without it such a session is refused, so labels never land on the wrong points."""
 
     def run(self) -> int:
+        """Open the scan, print the URL, serve until Ctrl+C / SIGTERM (`efem_viz.serve.lifecycle`)."""
         from annotator.app import AnnotatorApp
+        from efem_viz.serve.lifecycle import stop_signals, wait_for_stop
 
-        app = AnnotatorApp(
-            self.scan,
-            labels_path=self.labels,
-            out_dir=self.out,
-            host=self.host,
-            port=self.port,
-            max_points=self.max_points,
-            autosave_delay=self.autosave_delay,
-            accept_scan_mismatch=self.accept_scan_mismatch,
-            token=self.token,
-        )
-        try:
-            if app.store.recovery is not None:
-                print("efem-annotate: " + app.store.recovery.summary().replace("\n", "\n  "), flush=True)
-            warning = app.access.exposure_warning
-            if warning:
-                print(f"efem-annotate: {warning}", file=sys.stderr, flush=True)
-            print(f"efem-annotate: {app.scan_path.name} ({app.n:,} vertices) at {app.url}  — Ctrl+C to quit",
-                  flush=True)
-            if app.local_url != app.url:
-                print(f"  on this machine: {app.local_url}", flush=True)
-            print(f"  autosave: {app.work_dir}", flush=True)
-            while True:
-                time.sleep(1.0)
-        except KeyboardInterrupt:
-            pass
-        finally:
-            app.close()
+        with stop_signals("efem-annotate"):  # before loading: Ctrl+C stops a long load too
+            app = AnnotatorApp(
+                self.scan,
+                labels_path=self.labels,
+                out_dir=self.out,
+                host=self.host,
+                port=self.port,
+                max_points=self.max_points,
+                autosave_delay=self.autosave_delay,
+                accept_scan_mismatch=self.accept_scan_mismatch,
+                token=self.token,
+            )
+            try:
+                if app.store.recovery is not None:
+                    print("efem-annotate: " + app.store.recovery.summary().replace("\n", "\n  "), flush=True)
+                warning = app.access.exposure_warning
+                if warning:
+                    print(f"efem-annotate: {warning}", file=sys.stderr, flush=True)
+                print(f"efem-annotate: {app.scan_path.name} ({app.n:,} vertices) at {app.url}  — Ctrl+C to quit",
+                      flush=True)
+                if app.local_url != app.url:
+                    print(f"  on this machine: {app.local_url}", flush=True)
+                print(f"  autosave: {app.work_dir}", flush=True)
+                wait_for_stop()
+            finally:
+                app.close()
         return 0
 
 

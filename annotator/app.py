@@ -12,8 +12,11 @@ read from it; this module has no per-tool branches.
   tools act once where the drag starts.
 * Ctrl/Cmd + click: the active tool at the clicked point (`Tool.apply_at`, or `Tool.on_click` for the lasso).
 * Shift + drag a rectangle: box select, painted with the active instance (erased with an erasing tool).
-* Hotkeys (also in the Ctrl/Cmd+K palette): each tool's, N new instance, H hide/show active, L lock/unlock active,
-  Ctrl+Z undo, Ctrl+Y redo.
+* Hotkeys (also in the Ctrl/Cmd+K palette): each tool's, and the app's own (`annotator.tools.APP_KEYS`: N new
+  instance, Tab / Shift+Tab next / previous instance, H hide/show, L lock/unlock, [ / ] brush size, Ctrl+Z undo,
+  Ctrl+Y redo, ? the cheat sheet). They are viser palette commands, which the browser matches on the key typed.
+* Errors: a refused action (bad input) and a failing one (a bug) both reach the user who acted as a notification
+  (`_run_reporting`), not only the log.
 """
 
 from __future__ import annotations
@@ -48,12 +51,16 @@ from annotator.labels import Delta, InstanceInfo, LabelSet
 from annotator.lasso import LassoCamera, LassoOutline
 from annotator.render import Chunks, build_chunks, color_lut, compose_colors, splat_proxy
 from annotator.tools import (
+    APP_KEYS,
+    BRUSH_STEP,
     DEFAULT_TOOLS,
+    RADIUS,
     TOOLS,
     Control,
     Hit,
     Tool,
     all_controls,
+    cheat_sheet_markdown,
     check_tools,
     help_markdown,
     shown_settings,
@@ -72,7 +79,8 @@ from efem_viz.data.io import RESULT_SUFFIX
 from efem_viz.prior.config import DEFAULT_PRIOR
 
 if TYPE_CHECKING:
-    from viser import GuiButtonHandle, GuiInputHandle
+    from viser import ClientHandle, GuiButtonHandle, GuiInputHandle, SceneClickEvent
+    from viser._gui_handles import GuiModalHandle  # not re-exported by viser 1.1
     from viser._messages import LiteralColor  # the colour names `add_notification` accepts
 
 log = logging.getLogger(__name__)
@@ -242,6 +250,10 @@ class AnnotatorApp:
         self.lasso_outline = LassoOutline()
         """The lasso tool's outline (screen points of one view)."""
         self._lasso_handle: Any = None
+        self.cheat_sheets: dict[int, GuiModalHandle] = {}
+        """The open `?` cheat-sheet overlays, by client id (under `_sheet_lock`: keys and buttons run on viser's
+        worker threads)."""
+        self._sheet_lock = threading.Lock()
         self._edits: queue.Queue[tuple[str, Any]] = queue.Queue()
         self._tls = threading.local()
         self._draw_lock = threading.Lock()
@@ -266,6 +278,7 @@ class AnnotatorApp:
         self.store.listeners.append(self._on_labels_changed)
         self.store.problem_listeners.append(self._on_store_problem)
         self.server.on_client_connect(self._greet)
+        self.server.on_client_disconnect(self._forget_client)
         self._worker = threading.Thread(target=self._edit_loop, name="annotator-edits", daemon=True)
         self._worker.start()
         self._warmup = threading.Thread(target=self.geom.warm_up, name="annotator-warmup", daemon=True)
@@ -499,15 +512,25 @@ class AnnotatorApp:
                 if cmd.hotkey:
                     gui.add_command(cmd.label, hotkey=cmd.hotkey).on_trigger(guarded(run))  # type: ignore[arg-type]
 
-        # ---- the app's own hotkeys (annotator.tools.RESERVED_HOTKEYS)
-        gui.add_command("New instance", hotkey="N").on_trigger(
-            guarded(lambda: self.new_instance(category=read_text(self.gui_category, max_len=MAX_NAME) or "object")))
-        gui.add_command("Hide / show active instance", hotkey="H").on_trigger(
-            guarded(lambda: self._toggle_active("visible")))
-        gui.add_command("Lock / unlock active instance", hotkey="L").on_trigger(
-            guarded(lambda: self._toggle_active("locked")))
-        gui.add_command("Undo", hotkey="Z", modifier="cmd/ctrl").on_trigger(guarded(lambda: self.undo()))
-        gui.add_command("Redo", hotkey="Y", modifier="cmd/ctrl").on_trigger(guarded(lambda: self.redo()))
+        # ---- the app's own hotkeys: the table annotator.tools.APP_KEYS, each action bound to a method here
+        actions: dict[str, Callable[[Any], None]] = {
+            "new_instance": guarded(
+                lambda: self.new_instance(category=read_text(self.gui_category, max_len=MAX_NAME) or "object")),
+            "next_instance": guarded(lambda: self.cycle_active(+1)),
+            "previous_instance": guarded(lambda: self.cycle_active(-1)),
+            "toggle_visible": guarded(lambda: self._toggle_active("visible")),
+            "toggle_locked": guarded(lambda: self._toggle_active("locked")),
+            "brush_smaller": guarded(lambda: self.resize_brush(1.0 / BRUSH_STEP)),
+            "brush_larger": guarded(lambda: self.resize_brush(BRUSH_STEP)),
+            "undo": guarded(lambda: self.undo()),
+            "redo": guarded(lambda: self.redo()),
+            "cheat_sheet": lambda event: self._run_reporting(lambda: self.toggle_cheat_sheet(event.client),
+                                                             event.client),
+        }
+        for k in APP_KEYS:
+            for key, modifier in k.bindings:
+                gui.add_command(k.label, hotkey=key, modifier=modifier).on_trigger(  # type: ignore[arg-type]
+                    actions[k.action])
         with gui.add_folder("Help", expand_by_default=False):
             self.gui_help = gui.add_markdown(help_markdown(self.tools))
         self._show_tool()
@@ -655,14 +678,32 @@ class AnnotatorApp:
         if self.store.problem:
             self.notify("Autosave failed", self.store.problem, client=client, color="red")
 
+    def _forget_client(self, client: ClientHandle) -> None:
+        """A client left: drop what the app kept for it (its cheat-sheet overlay)."""
+        with self._sheet_lock:
+            self.cheat_sheets.pop(client.client_id, None)
+
     def _run_reporting(self, fn: Callable[[], Any], client: Any = None) -> Any:
-        """Run an action; a refused action (bad input) becomes a notification, never a crash."""
+        """Run an action for a client (a GUI callback, a hotkey, a scene gesture); errors become a notification to
+        that client (all clients when None), never a crash and never only a log line.
+
+        A refused action (bad input: ValueError, KeyError, OSError) says why ("Not done"); anything else is a bug
+        and is logged with its traceback and shown as "Error" with its type and message.
+
+        Returns:
+            What `fn` returned, or None after an error.
+        """
         try:
             return fn()
         except (ValueError, KeyError, OSError) as exc:
             msg = str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc)
             log.warning("refused: %s", msg)
             self.notify("Not done", msg, client=client, color="red")
+            return None
+        except Exception as exc:  # noqa: BLE001 - a bug in a tool: the user must hear of it, the server stays up
+            log.exception("action failed")
+            self.notify("Error", f"that did not work: {type(exc).__name__}: {exc} (the server log has the details)",
+                        client=client, color="red")
             return None
 
     def notify(self, title: str, body: str, *, client: Any = None, color: LiteralColor | None = None) -> None:
@@ -692,6 +733,71 @@ class AnnotatorApp:
         self.store.labelset.info(instance_id)  # KeyError when unknown
         self.settings.active_id = int(instance_id)
         self._refresh_panel()
+
+    def cycle_active(self, step: int = 1) -> int:
+        """Make the next (`step` = 1) or previous (-1) instance by id active, wrapping around; returns its id.
+
+        Raises:
+            ValueError: there is no instance yet.
+        """
+        ids = sorted(self.store.labelset.instances)
+        if not ids:
+            raise ValueError("no instances yet: N creates one")
+        current = self.settings.active_id
+        if current in ids:
+            nxt = ids[(ids.index(current) + step) % len(ids)]
+        else:  # none active (or it was deleted): start at the first (last going back)
+            nxt = ids[0] if step > 0 else ids[-1]
+        self.set_active(nxt)
+        return nxt
+
+    def resize_brush(self, factor: float) -> float:
+        """Multiply the brush radius by `factor` (the `[` / `]` keys), by at least one step of its slider and within
+        the slider's range; the slider shows the new value. Returns the radius in metres."""
+        control = next((c for c in all_controls(self.tools) if c.setting == "radius"), RADIUS)
+        shown = self.settings.radius * control.scale
+        target = shown * float(factor)
+        snapped = round(round(target / control.step) * control.step, 6)
+        if factor > 1.0:
+            snapped = max(snapped, shown + control.step)
+        elif factor < 1.0:
+            snapped = min(snapped, shown - control.step)
+        snapped = round(min(max(snapped, control.min), control.max), 6)
+        self.settings.radius = snapped / control.scale
+        handle = self.gui_controls.get("radius")
+        if handle is not None:
+            self._gui_write_back(handle, snapped)
+        return self.settings.radius
+
+    def toggle_cheat_sheet(self, client: ClientHandle | None) -> bool:
+        """Open the keyboard cheat sheet (`?`) over one client's view, or close it when open; True when open now.
+
+        Args:
+            client: the client that pressed the key (None: every connected client).
+        """
+        targets = [client] if client is not None else list(self.server.get_clients().values())
+        opened = False
+        for c in targets:
+            with self._sheet_lock:
+                modal = self.cheat_sheets.pop(c.client_id, None)
+                if modal is not None:
+                    modal.close()
+                    continue
+                modal = c.gui.add_modal("Keyboard shortcuts")
+                with modal:
+                    c.gui.add_markdown(cheat_sheet_markdown(self.tools))
+                    close = c.gui.add_button("Close (?)")
+                self.cheat_sheets[c.client_id] = modal
+                opened = True
+
+            def on_close(_event: Any, c: ClientHandle = c, modal: GuiModalHandle = modal) -> None:
+                with self._sheet_lock:
+                    if self.cheat_sheets.get(c.client_id) is modal:
+                        del self.cheat_sheets[c.client_id]
+                        modal.close()
+
+            close.on_click(on_close)
+        return opened
 
     def new_instance(self, *, category: str = "object", name: str | None = None, client: str = "") -> int:
         """Create an instance and make it active; returns its id."""
@@ -879,20 +985,24 @@ class AnnotatorApp:
         with self._edit_source("lasso"):
             return self.paint(idx, erase=self.tool.erase, client=client)
 
-    def add_lasso_point(self, event: Any) -> int:
+    def add_lasso_point(self, event: SceneClickEvent) -> int:
         """Lasso tool: a Ctrl/Cmd+click adds a screen point to the outline (the camera of the first point is used).
+
+        Args:
+            event: the click as viser delivers it (`screen_pos` is one (u, v) pair; its client's camera is read).
 
         Returns:
             The number of outline points so far.
 
         Raises:
-            ClientValueError: the outline already has `annotator.lasso.MAX_LASSO_POINTS` points.
+            ClientValueError: the outline already has `annotator.lasso.MAX_LASSO_POINTS` points, or the click has no
+                usable screen position.
         """
         cam = event.client.camera
         camera = LassoCamera(np.asarray(cam.position, np.float64), np.asarray(cam.wxyz, np.float64), float(cam.fov),
                              float(cam.aspect))
         try:
-            n = self.lasso_outline.add(event.screen_pos[0], ray_origin=event.ray_origin,
+            n = self.lasso_outline.add(event.screen_pos, ray_origin=event.ray_origin,
                                        ray_direction=event.ray_direction, camera=camera)
         except ValueError as exc:
             raise ClientValueError(str(exc)) from None
@@ -1225,6 +1335,7 @@ def _check_event(kind: str, event: Any) -> None:
     if kind == "click":
         _finite(event.ray_origin, 3, "click ray origin")
         _finite(event.ray_direction, 3, "click ray direction")
+        _finite(event.screen_pos, 2, "click screen position")
     elif kind == "rect":
         _finite(event.screen_min, 2, "box corner")
         _finite(event.screen_max, 2, "box corner")

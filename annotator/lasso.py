@@ -46,12 +46,19 @@ class LassoOutline:
         return len(self.points)
 
     def add(
-        self, screen_pos: Sequence[float], *, ray_origin: np.ndarray, ray_direction: np.ndarray, camera: LassoCamera
+        self,
+        screen_pos: Sequence[float] | Sequence[Sequence[float]],
+        *,
+        ray_origin: Sequence[float] | np.ndarray,
+        ray_direction: Sequence[float] | np.ndarray,
+        camera: LassoCamera,
     ) -> int:
         """Add a clicked point (clamped to the screen); the camera is kept from the first point.
 
         Args:
-            screen_pos: (u, v) of the click in [0, 1].
+            screen_pos: (u, v) of the click in [0, 1], OpenCV image coordinates: what a browser click delivers as
+                `viser.SceneClickEvent.screen_pos` (the legacy `ScenePointerEvent`'s one-point `((u, v),)` is
+                taken too).
             ray_origin: (3,) world origin of the click's ray.
             ray_direction: (3,) world direction of the click's ray.
             camera: the client's camera at this click.
@@ -60,13 +67,14 @@ class LassoOutline:
             The number of outline points.
 
         Raises:
-            ValueError: the outline already has `max_points` points.
+            ValueError: the outline already has `max_points` points, or `screen_pos` is not one finite (u, v).
         """
         if len(self.points) >= self.max_points:
             raise ValueError(f"a lasso has at most {self.max_points} points")
+        uv = _screen_point(screen_pos)
         if not self.points:
             self.camera = camera
-        u, v = (float(x) for x in screen_pos)
+        u, v = uv
         self.points.append((min(max(u, 0.0), 1.0), min(max(v, 0.0), 1.0)))
         origin = np.asarray(ray_origin, np.float64)
         direction = np.asarray(ray_direction, np.float64)
@@ -95,3 +103,18 @@ class LassoOutline:
             return None
         w = np.asarray(self.world, np.float32)
         return np.stack([w, np.roll(w, -1, axis=0)], axis=1)
+
+
+def _screen_point(screen_pos: Sequence[float] | Sequence[Sequence[float]]) -> tuple[float, float]:
+    """(u, v) from a click's screen position: a pair, or a single pair wrapped once (legacy pointer events).
+
+    Raises:
+        ValueError: anything else (a box's two corners, NaN, text).
+    """
+    try:
+        a = np.asarray(screen_pos, np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise ValueError(f"a click's screen position must be (u, v), got {screen_pos!r}") from None
+    if a.shape != (2,) or not np.isfinite(a).all():
+        raise ValueError(f"a click's screen position must be two finite numbers (u, v), got {screen_pos!r}")
+    return float(a[0]), float(a[1])

@@ -154,8 +154,41 @@ class Tool:
     """Buttons (and hotkeys) of the tool."""
 
 
-RESERVED_HOTKEYS = ("N", "H", "L")
-"""Hotkeys of the app's own commands (new instance, hide, lock); Ctrl+Z / Ctrl+Y take a modifier."""
+@dataclass(frozen=True)
+class AppKey:
+    """A hotkey of the app's own commands (not a tool's). The palette commands, the help line and the `?` cheat
+    sheet are read from `APP_KEYS`; `annotator.app.AnnotatorApp` binds each `action` to one of its methods."""
+
+    action: str
+    """What the key does, as the app names it ("undo", "next_instance", ...)."""
+    label: str
+    """Palette command and cheat-sheet text."""
+    shown: str
+    """The key as the help shows it ("Ctrl+Z", "Tab")."""
+    bindings: tuple[tuple[str, str | None], ...]
+    """(viser hotkey, modifier) pairs that trigger it. Keys are matched on the character typed, so "?" is bound
+    both with and without Shift (it takes Shift on most layouts)."""
+
+
+APP_KEYS: tuple[AppKey, ...] = (
+    AppKey("new_instance", "New instance", "N", (("N", None),)),
+    AppKey("next_instance", "Next instance (make it active)", "Tab", (("tab", None),)),
+    AppKey("previous_instance", "Previous instance (make it active)", "Shift+Tab", (("tab", "shift"),)),
+    AppKey("toggle_visible", "Hide / show active instance", "H", (("H", None),)),
+    AppKey("toggle_locked", "Lock / unlock active instance", "L", (("L", None),)),
+    AppKey("brush_smaller", "Smaller brush", "[", (("[", None),)),
+    AppKey("brush_larger", "Larger brush", "]", (("]", None),)),
+    AppKey("undo", "Undo", "Ctrl+Z", (("Z", "cmd/ctrl"),)),
+    AppKey("redo", "Redo", "Ctrl+Y", (("Y", "cmd/ctrl"),)),
+    AppKey("cheat_sheet", "Keyboard shortcuts (this sheet)", "?", (("?", None), ("?", "shift"))),
+)
+"""The app's own hotkeys, in help order."""
+
+RESERVED_HOTKEYS: tuple[str, ...] = tuple(dict.fromkeys(
+    key.upper() for k in APP_KEYS for key, modifier in k.bindings if modifier in (None, "shift")))
+"""Keys the app's own commands take (tools and tool commands may not use them); Ctrl+Z / Ctrl+Y take a modifier."""
+BRUSH_STEP = 1.25
+"""`[` / `]` divide / multiply the brush radius by this (at least one slider step, within the slider's range)."""
 
 
 # ---------------------------------------------------------------------------------------------- controls
@@ -218,7 +251,7 @@ DEFAULT_TOOLS: tuple[Tool, ...] = (
     Tool("lasso", "Lasso", "O", "each click adds an outline point; Enter applies (paints, or erases)",
          on_click=_lasso_point,
          commands=(
-             ToolCommand("lasso_apply", "Apply lasso (Enter)", lambda h: h.apply_lasso(), hotkey="Enter",
+             ToolCommand("lasso_apply", "Apply lasso", lambda h: h.apply_lasso(), hotkey="Enter",
                          hint="Lasso tool: Ctrl/Cmd+click the outline, then apply", disabled=True),
              ToolCommand("lasso_clear", "Clear lasso", lambda h: h.clear_lasso(), disabled=True),
          )),
@@ -292,5 +325,34 @@ def help_markdown(tools: Sequence[Tool], active: str | None = None) -> str:
         lines.append(f"- ▶ {text}" if t.name == active else f"- {text}")
     lines.append("")
     lines.append("Ctrl/Cmd+click applies the tool, Ctrl/Cmd+drag paints with brush/erase, Shift+drag box-selects. "
-                 "N new instance · H hide · L lock · Ctrl+Z / Ctrl+Y undo / redo")
+                 + " · ".join(f"{k.shown} {_short(k.label)}" for k in APP_KEYS))
     return "\n".join(lines)
+
+
+GESTURES: tuple[tuple[str, str], ...] = (
+    ("Ctrl/Cmd + click", "apply the active tool at the point (the lasso adds an outline point)"),
+    ("Ctrl/Cmd + drag", "paint a stroke (brush, erase); other tools act where the drag starts"),
+    ("Shift + drag", "box select (paints the active instance; erases with an erasing tool)"),
+    ("Ctrl/Cmd + K", "command palette: every command and its key"),
+)
+"""Mouse gestures and the palette, for the cheat sheet."""
+
+
+def cheat_sheet_markdown(tools: Sequence[Tool]) -> str:
+    """The `?` overlay: every key of the tools, their commands and the app (`APP_KEYS`), then the gestures.
+
+    Args:
+        tools: the tool table.
+    """
+    rows = [f"| **{t.hotkey}** | {t.label} tool: {t.help} |" for t in tools]
+    rows += [f"| **{c.hotkey}** | {c.label.removesuffix(f' ({c.hotkey})')} ({t.label} tool) |"
+             for t in tools for c in t.commands if c.hotkey]
+    rows += [f"| **{k.shown}** | {k.label} |" for k in APP_KEYS]
+    rows += [f"| **{g}** | {what} |" for g, what in GESTURES]
+    return "\n".join(["| key | does |", "|---|---|", *rows,
+                      "", "Keys act when no text field has the focus (click the 3-D view first)."])
+
+
+def _short(label: str) -> str:
+    """A palette label shortened for the one-line help ("Hide / show active instance" → "hide / show")."""
+    return label.split(" (", 1)[0].replace(" active instance", "").lower()

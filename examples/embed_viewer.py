@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import tempfile
-import time
 from pathlib import Path
 from typing import Any
 
@@ -55,6 +54,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from efem_viz.data.io import save_scene
     from efem_viz.em import EMResult, preset, run_em
+    from efem_viz.serve.lifecycle import stop_signals, wait_for_stop
     from efem_viz.viewer.app import ViewerApp
 
     torch.set_num_threads(args.threads)
@@ -112,8 +112,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"  {name}")
         if args.serve:
             print(f"serving {app.url} (Ctrl+C stops)")
-            while True:
-                time.sleep(1.0)
+            with stop_signals("embed_viewer"):  # Ctrl+C / SIGTERM stop it, also when started in the background
+                wait_for_stop()
     except KeyboardInterrupt:
         pass
     finally:

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import signal
+from typing import Callable
+
 import numpy as np
 import trimesh
 
@@ -23,3 +26,20 @@ def mesh_scene(seed: int = 0, *, subdivisions: int = 2) -> Scene:
         categories={1: "mug", 2: "bowl", 3: "mug"},
         provenance={"source": "test", "seed": seed, "nested": {"a": [1, 2]}},
     )
+
+
+def server_signals(*, sigint_ignored: bool = False) -> Callable[[], None]:
+    """A `preexec_fn` for the server processes tests start: SIGINT and SIGTERM at their default disposition, so that
+    the servers stop on them even when the test run itself was started in the background of a non-interactive
+    shell (which starts it, and every child, with SIGINT ignored).
+
+    Args:
+        sigint_ignored: start the child with SIGINT ignored instead (what such a background start gives the
+            servers; the servers must stop on SIGINT all the same).
+    """
+
+    def preexec() -> None:
+        signal.signal(signal.SIGINT, signal.SIG_IGN if sigint_ignored else signal.SIG_DFL)
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+    return preexec

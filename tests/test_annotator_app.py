@@ -9,6 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import trimesh
+from viser import SceneClickEvent
 
 from annotator import selection as sel
 from annotator.app import TOOLS, AnnotatorApp
@@ -361,6 +362,12 @@ def test_read_only_output_folder_is_refused(tmp_path: Path, mesh_path: Path) -> 
         ro.chmod(0o755)
 
 
+def _click(uv: tuple[float, float], client: SimpleNamespace, client_id: int = 7) -> SceneClickEvent:
+    """A Ctrl+click as viser delivers it to `scene.on_click` callbacks: its own event type, one (u, v) pair."""
+    return SceneClickEvent(client=client, client_id=client_id, ray_origin=(0.0, 0.0, 1.0),  # type: ignore[arg-type]
+                           ray_direction=(0.0, 0.0, -1.0), screen_pos=uv, modifier="cmd/ctrl")
+
+
 def test_lasso_tool_outline_by_clicks_then_apply(app: AnnotatorApp) -> None:
     """Lasso: Ctrl+clicks add screen points with the client camera, Apply paints the inside, one undo step."""
     app.new_instance(category="mug")
@@ -368,8 +375,8 @@ def test_lasso_tool_outline_by_clicks_then_apply(app: AnnotatorApp) -> None:
     client = _client()  # looking straight down at the ball from z = 1
     outline = [(0.45, 0.45), (0.55, 0.45), (0.55, 0.55), (0.45, 0.55)]
     for uv in outline:
-        app.handle_event("click", SimpleNamespace(client_id=7, client=client, ray_origin=(0.0, 0.0, 1.0),
-                                                  ray_direction=(0.0, 0.0, -1.0), screen_pos=(uv,)))
+        app.handle_event("click", _click(uv, client))
+    assert app.lasso_outline.points == outline
     assert app.store.labelset.count(app.settings.active_id) == 0, "clicks only draw the outline"
     assert not app.gui_tool_buttons["lasso_apply"].disabled
     app.apply_lasso()
@@ -382,6 +389,75 @@ def test_lasso_tool_outline_by_clicks_then_apply(app: AnnotatorApp) -> None:
         app.apply_lasso()
     app.undo()
     assert app.store.labelset.count(app.settings.active_id) == 0
+
+
+def test_lasso_takes_the_legacy_pointer_shape_and_refuses_bad_screen_positions(app: AnnotatorApp) -> None:
+    """The legacy `ScenePointerEvent` shape ((u, v),) adds a point too; a position no click has is refused."""
+    from efem_viz.serve.inputs import ClientValueError
+
+    app.set_tool("lasso")
+    legacy = SimpleNamespace(client_id=7, client=_client(), ray_origin=(0.0, 0.0, 1.0), ray_direction=(0.0, 0.0, -1.0),
+                             screen_pos=((0.4, 0.6),))
+    app.handle_event("click", legacy)
+    assert app.lasso_outline.points == [(0.4, 0.6)]
+    for bad in (0.5, ((0.1, 0.1), (0.9, 0.9)), (float("nan"), 0.5)):
+        with pytest.raises(ClientValueError):
+            app.handle_event("click", SimpleNamespace(**{**vars(legacy), "screen_pos": bad}))
+    assert len(app.lasso_outline) == 1
+
+
+def test_a_failing_tool_tells_the_user(mesh_path: Path, tmp_path: Path) -> None:
+    """A bug in a tool's click (any exception) reaches the clicking client as an "Error" notification, and the
+    edit thread keeps working: the next click of another tool still paints."""
+
+    def broken(host: AnnotatorApp, event: object) -> None:
+        raise TypeError("'float' object is not iterable")
+
+    tools = (*DEFAULT_TOOLS, Tool("broken", "Broken", "K", "raises", on_click=broken))
+    a = AnnotatorApp(mesh_path, out_dir=tmp_path / "o", port=0, autosave_delay=0, tools=tools)
+    notes: list[tuple[str, str, object]] = []
+    a.notify = lambda title, body, *, client=None, color=None: notes.append((title, body, client))  # type: ignore[method-assign]
+    try:
+        a.set_tool("broken")
+        client = _client()
+        a._on_scene_click(_click((0.5, 0.5), client))  # as viser calls it: queued for the edit thread
+        a.wait_idle()
+        assert [(t, c) for t, _, c in notes] == [("Error", client)]
+        assert "TypeError" in notes[0][1] and "not iterable" in notes[0][1]
+        iid = a.new_instance()
+        a.set_tool("brush")
+        a._on_scene_click(_click((0.5, 0.5), client))
+        a.wait_idle()
+        assert int((a.store.labels == iid).sum()) > 0
+    finally:
+        a.close()
+
+
+def test_app_keys_next_instance_and_brush_size(app: AnnotatorApp) -> None:
+    """Tab / Shift+Tab cycle the active instance (wrapping); [ / ] scale the brush by at least one slider step,
+    within the slider's range, and the slider shows it."""
+    from annotator.tools import APP_KEYS, BRUSH_STEP, RADIUS
+
+    with pytest.raises(ValueError, match="no instances"):
+        app.cycle_active(1)
+    a, b, c = (app.new_instance() for _ in range(3))
+    assert app.settings.active_id == c
+    assert [app.cycle_active(1) for _ in range(3)] == [a, b, c]
+    assert [app.cycle_active(-1) for _ in range(2)] == [b, a]
+    app.settings.radius = 0.01
+    assert app.resize_brush(BRUSH_STEP) == pytest.approx(0.012)  # 1 cm x 1.25, on the slider's 0.1 cm steps
+    assert app.gui_controls["radius"].value == pytest.approx(1.2)
+    assert app.resize_brush(1 / BRUSH_STEP) == pytest.approx(0.01)
+    app.settings.radius = RADIUS.min / RADIUS.scale
+    assert app.resize_brush(BRUSH_STEP) == pytest.approx((RADIUS.min + RADIUS.step) / RADIUS.scale)  # one step
+    assert app.resize_brush(1 / BRUSH_STEP) == pytest.approx(RADIUS.min / RADIUS.scale)
+    assert app.resize_brush(1 / BRUSH_STEP) == pytest.approx(RADIUS.min / RADIUS.scale)  # stays in range
+    app.settings.radius = RADIUS.max / RADIUS.scale
+    assert app.resize_brush(BRUSH_STEP) == pytest.approx(RADIUS.max / RADIUS.scale)
+    assert app.gui_controls["radius"].value == pytest.approx(RADIUS.max)
+    assert {k.shown for k in APP_KEYS} >= {"[", "]", "Tab", "?"}
+    for k in APP_KEYS:
+        assert k.shown in app.gui_help.content
 
 
 def test_tool_table_drives_toolbar_controls_help_and_history(app: AnnotatorApp) -> None:
@@ -440,6 +516,9 @@ def test_a_new_tool_is_one_entry_plus_its_function(mesh_path: Path, tmp_path: Pa
         check_tools((*DEFAULT_TOOLS, DEFAULT_TOOLS[0]))
     with pytest.raises(ValueError, match="hotkey 'N'"):
         check_tools((Tool("new", "New", "N", "the app's new-instance key"),))
+    for key in ("[", "]", "?", "Tab"):
+        with pytest.raises(ValueError, match="is taken by 'the app'"):
+            check_tools((Tool("k", "K", key, "an app key"),))
 
 
 def test_efem_prelabels_carry_their_categories(spheres) -> None:

@@ -26,6 +26,7 @@ import pytest
 import trimesh
 
 sys.path.insert(0, str(Path(__file__).parent))
+from helpers import server_signals  # noqa: E402
 from viser_client import RawClient, handshake_status, wait_for, ws_url  # noqa: E402
 
 from annotator.app import TOOLS, AnnotatorApp  # noqa: E402
@@ -242,7 +243,7 @@ def _start_cli(args: list[str], *, until: str = "  autosave:") -> tuple[subproce
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
     env["PYTHONPATH"] = os.pathsep.join(p for p in [str(REPO), os.environ.get("PYTHONPATH", "")] if p)
     proc = subprocess.Popen([sys.executable, *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            env=env)
+                            env=env, preexec_fn=server_signals())
     lines: list[str] = []
     end = time.monotonic() + 90
     assert proc.stdout is not None
@@ -301,12 +302,13 @@ def test_annotate_cli_on_all_interfaces_warns_and_prints_a_reachable_url(scan: P
 def test_viewer_on_all_interfaces_warns_and_prints_a_reachable_url(
     scene_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
+    from efem_viz.serve import lifecycle
     from efem_viz.viewer import commands
 
     def interrupt(_s: float) -> None:
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(commands.time, "sleep", interrupt)  # serve "until Ctrl+C": at once
+    monkeypatch.setattr(lifecycle.time, "sleep", interrupt)  # serve "until Ctrl+C": at once
     args = commands.ViewArgs(paths=(scene_dir / "spheres.ply",), host="0.0.0.0", port=0, prior=[],
                              out_dir=tmp_path / "o")
     assert args.run() == 0

@@ -30,6 +30,7 @@ import msgspec.msgpack
 import viser
 import zstandard
 from websockets.exceptions import InvalidStatus
+from helpers import server_signals
 from websockets.sync.client import ClientConnection, connect
 
 SUBPROTOCOL = f"viser-v{viser.__version__}"
@@ -270,10 +271,12 @@ class AnnotateProcess:
         env_extra: extra environment; PYTHONPATH_FIRST is put in front of PYTHONPATH (e.g. a fault-injecting
             sitecustomize).
         args: extra CLI arguments.
+        sigint_ignored: start it with SIGINT ignored, as a background job of a non-interactive shell is (by
+            default SIGINT and SIGTERM are reset to their defaults, whatever this test run inherited).
     """
 
     def __init__(self, scan: Path, out: Path, env_extra: dict[str, str] | None = None,
-                 args: tuple[str, ...] = (), timeout: float = 120.0) -> None:
+                 args: tuple[str, ...] = (), timeout: float = 120.0, *, sigint_ignored: bool = False) -> None:
         self.t_start = time.monotonic()
         env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1", **(env_extra or {}))
         env["PYTHONPATH"] = os.pathsep.join(p for p in [env.get("PYTHONPATH_FIRST", ""), str(REPO),
@@ -282,6 +285,7 @@ class AnnotateProcess:
             [sys.executable, "-m", "annotator", str(scan), "--out", str(out), "--port", "0",
              "--autosave-delay", "0.05", *args],
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
+            preexec_fn=server_signals(sigint_ignored=sigint_ignored),
         )
         self.lines: list[str] = []
         self.url = ""
@@ -359,14 +363,20 @@ class AnnotateProcess:
         self.proc.kill()
         self.proc.wait(10)
 
-    def stop(self, timeout: float = 90.0) -> int:
-        """Ctrl+C, as a user stops it; returns the exit status.
+    def stop(self, timeout: float = 90.0, *, sig: signal.Signals = signal.SIGINT, keep_client: bool = False) -> int:
+        """Ctrl+C (or `sig`), as a user stops it; returns the exit status.
+
+        Args:
+            timeout: seconds to wait for the exit (only catches a hang).
+            sig: the signal to send (SIGTERM: what a service manager sends).
+            keep_client: leave the client connected while the server stops (as a browser tab stays open).
 
         Raises:
             AssertionError: it did not exit within `timeout` (killed then; its last output is in the message).
         """
-        self.client.close()
-        self.proc.send_signal(signal.SIGINT)
+        if not keep_client:
+            self.client.close()
+        self.proc.send_signal(sig)
         try:
             return self.proc.wait(timeout)
         except subprocess.TimeoutExpired:
@@ -379,4 +389,5 @@ class AnnotateProcess:
             self.lines.append(stacks)
             self.proc.kill()
             self.proc.wait(10)
-            raise AssertionError(f"efem-annotate ignored Ctrl+C for {timeout:.0f} s:\n" + "".join(self.lines[-30:])) from None
+            raise AssertionError(f"efem-annotate ignored {sig.name} for {timeout:.0f} s:\n"
+                                 + "".join(self.lines[-30:])) from None

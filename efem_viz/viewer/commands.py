@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import logging
 import sys
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -37,7 +36,8 @@ class ViewArgs:
     after its own folder. Without scene paths, the scenes are the scene files in these folders."""
 
     def run(self) -> int:
-        """Start the server, print its URL, serve until Ctrl+C."""
+        """Start the server, print its URL, serve until Ctrl+C / SIGTERM (`efem_viz.serve.lifecycle`)."""
+        from efem_viz.serve.lifecycle import stop_signals, wait_for_stop
         from efem_viz.viewer.app import DEFAULT_SCENE_DIR, ViewerApp
 
         paths = list(self.paths) or ([] if self.results else [DEFAULT_SCENE_DIR])
@@ -48,20 +48,18 @@ class ViewArgs:
             if not Path(d).is_dir():
                 raise FileNotFoundError(f"no such results folder: {d}")
         priors = list(self.prior) or [DEFAULT_PRIOR]
-        app = ViewerApp(paths, host=self.host, port=self.port, prior_name=priors[0], run_priors=priors[1:],
-                        out_dir=self.out_dir, token=self.token, results=self.results)
-        try:
-            warning = app.access.exposure_warning
-            if warning:
-                print(f"efem-viz viewer: {warning}", file=sys.stderr, flush=True)
-            print(f"efem-viz viewer: {app.url}  ({len(app.state.entries)} scenes; Ctrl+C to stop)", flush=True)
-            if app.local_url != app.url:
-                print(f"  on this machine: {app.local_url}", flush=True)
-            print(f"  exports go to: {app.out_root}", flush=True)
-            while True:
-                time.sleep(3600)
-        except KeyboardInterrupt:
-            pass
-        finally:
-            app.stop()
+        with stop_signals("efem-viz view"):  # before loading: Ctrl+C stops a long load too
+            app = ViewerApp(paths, host=self.host, port=self.port, prior_name=priors[0], run_priors=priors[1:],
+                            out_dir=self.out_dir, token=self.token, results=self.results)
+            try:
+                warning = app.access.exposure_warning
+                if warning:
+                    print(f"efem-viz viewer: {warning}", file=sys.stderr, flush=True)
+                print(f"efem-viz viewer: {app.url}  ({len(app.state.entries)} scenes; Ctrl+C to stop)", flush=True)
+                if app.local_url != app.url:
+                    print(f"  on this machine: {app.local_url}", flush=True)
+                print(f"  exports go to: {app.out_root}", flush=True)
+                wait_for_stop()
+            finally:
+                app.stop()
         return 0

@@ -2,6 +2,9 @@
 
 A Ctrl+left-drag across the scan (a mesh, and a point cloud) in the page must paint vertices: the label store changes, and the canvas
 changes colour where the stroke went. Two tabs on one scan see each other's strokes, and the store keeps both.
+Tools and keys are driven only by playwright mouse and keyboard events, their effect checked on the server: the
+lasso (O, Ctrl+clicks, Enter), a failing tool's error shown in the page, [ / ] brush size, Tab / Shift+Tab active
+instance, ? cheat sheet.
 With EFEM_SAVE_SCREENSHOTS=1 screenshots go to docs/img/ for the guide.
 """
 
@@ -176,3 +179,156 @@ def test_two_tabs_see_each_others_edits(annotator: Any, new_page: Callable[..., 
     near, total = _seen(a1, settle_canvas(tab_a), STROKE_B)
     assert near > 50, f"tab A did not show tab B's stroke ({near} pixels changed there, {total} in all)"
     assert near >= 0.5 * total, f"tab A changed mostly away from tab B's stroke ({near} of {total} pixels)"
+
+
+# ============================================================================ tools and keys, by real input events
+def _centre(page: Any) -> tuple[float, float, dict[str, float]]:
+    box = page.locator("canvas").first.bounding_box()
+    assert box is not None
+    return box["x"] + box["width"] / 2, box["y"] + box["height"] / 2, box
+
+
+def _ctrl_click(page: Any, x: float, y: float) -> None:
+    page.keyboard.down("Control")
+    try:
+        page.mouse.click(x, y)
+    finally:
+        page.keyboard.up("Control")
+
+
+def _open(app: Any, page: Any) -> None:
+    open_viser_pages([page], app.url)
+    wait_until(lambda: len(app.server.get_clients()) > 0, 30, "client connection")
+
+
+@pytest.mark.parametrize("annotator", ["mesh"], indirect=True)
+def test_lasso_by_ctrl_clicks_then_enter_paints_inside(annotator: Any, new_page: Callable[..., Any]) -> None:
+    """O picks the lasso; four Ctrl+clicks on the canvas make a 4-point outline at the clicked screen positions;
+    Enter paints exactly the vertices inside it (as seen by the first click's camera); one undo step.
+
+    (Before the fix every click failed on the server with "'float' object is not iterable", and Enter said "the
+    lasso has 0 points".)"""
+    from annotator import selection as sel
+
+    app = annotator
+    iid = app.settings.active_id
+    page = new_page(SMALL)
+    _open(app, page)
+    page.keyboard.press("o")
+    wait_until(lambda: app.settings.tool == "lasso", 10, "the lasso tool (O)")
+    cx, cy, box = _centre(page)
+    corners = [(cx - 40, cy - 35), (cx + 40, cy - 35), (cx + 40, cy + 35), (cx - 40, cy + 35)]
+    for k, (x, y) in enumerate(corners):
+        _ctrl_click(page, x, y)
+        wait_until(lambda k=k: len(app.lasso_outline) == k + 1, 10, f"lasso point {k + 1} on the server")
+    expect = [((x - box["x"]) / box["width"], (y - box["y"]) / box["height"]) for x, y in corners]
+    assert np.allclose(app.lasso_outline.points, expect, atol=0.01), (app.lasso_outline.points, expect)
+    camera, polygon = app.lasso_outline.polygon()
+    assert int((app.store.labels == iid).sum()) == 0, "clicks only draw the outline"
+    page.keyboard.press("Enter")
+    # the edit is done (labels, redraw, history) when its history line is there
+    wait_until(lambda: app.stats.history[0].endswith("(lasso)"), 10, "the lasso's paint (Enter)")
+    inside = sel.lasso_select(app.geom, position=camera.position, wxyz=camera.wxyz, fov=camera.fov,
+                              aspect=camera.aspect, polygon=polygon, facing="front")
+    painted = np.flatnonzero(app.store.labels == iid)
+    assert len(painted) > 10 and np.array_equal(painted, np.sort(inside))
+    assert len(app.lasso_outline) == 0
+    assert page.get_by_text("that did not work").count() == 0
+    app.undo()
+    assert int((app.store.labels == iid).sum()) == 0
+
+
+def test_a_failing_tool_shows_its_error_in_the_page(tmp_path: Path, new_page: Callable[..., Any]) -> None:
+    """An exception inside a tool's click reaches the person who clicked: a notification in the page names it."""
+    import trimesh
+
+    from annotator.app import AnnotatorApp
+    from annotator.tools import DEFAULT_TOOLS, Tool
+
+    def broken(host: Any, event: Any) -> None:
+        raise TypeError("'float' object is not iterable")
+
+    scan = tmp_path / "ball.ply"
+    trimesh.creation.icosphere(subdivisions=3, radius=0.15).export(scan)
+    app = AnnotatorApp(scan, out_dir=tmp_path / "out", port=0, autosave_delay=0,
+                       tools=(*DEFAULT_TOOLS, Tool("broken", "Broken", "K", "raises on click", on_click=broken)))
+    try:
+        page = new_page(SMALL)
+        _open(app, page)
+        page.keyboard.press("k")
+        wait_until(lambda: app.settings.tool == "broken", 10, "the broken tool (K)")
+        cx, cy, _ = _centre(page)
+        _ctrl_click(page, cx, cy)
+        page.get_by_text("TypeError: 'float' object is not iterable", exact=False).first.wait_for(timeout=15_000)
+    finally:
+        app.close()
+
+
+@pytest.fixture(scope="module")
+def keyed(browser: Any, tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Any, Any]]:
+    """One annotator (a 642-vertex sphere) and one page on it, shared by the hotkey tests (each leaves the page as it
+    found it: no overlay open, focus on the page)."""
+    import trimesh
+
+    from annotator.app import AnnotatorApp
+
+    d = tmp_path_factory.mktemp("keys")
+    trimesh.creation.icosphere(subdivisions=3, radius=0.15).export(d / "ball.ply")
+    app = AnnotatorApp(d / "ball.ply", out_dir=d / "out", port=0, autosave_delay=0)
+    context = browser.new_context(viewport=SMALL)
+    page = context.new_page()
+    page.set_default_timeout(30_000)
+    try:
+        _open(app, page)
+        yield app, page
+    finally:
+        context.close()
+        app.close()
+
+
+def test_bracket_keys_resize_the_brush(keyed: tuple[Any, Any]) -> None:
+    """] makes the brush larger, [ smaller: the radius the tools use changes, and the slider shows it."""
+    app, page = keyed
+    r0 = app.settings.radius
+    page.keyboard.press("]")
+    wait_until(lambda: app.settings.radius > r0, 10, "a larger brush (])")
+    r1 = app.settings.radius
+    assert app.gui_controls["radius"].value == pytest.approx(100 * r1)
+    page.keyboard.press("[")
+    page.keyboard.press("[")
+    wait_until(lambda: app.settings.radius < r0, 10, "a smaller brush ([ [)")
+    assert app.gui_controls["radius"].value == pytest.approx(100 * app.settings.radius)
+
+
+def test_tab_makes_the_next_instance_active(keyed: tuple[Any, Any]) -> None:
+    """Tab makes the next instance active (wrapping around), Shift+Tab the previous one; the Active dropdown follows."""
+    app, page = keyed
+    ids = [app.new_instance(category="mug") for _ in range(3)]
+    first = min(app.store.labelset.instances)
+    assert app.settings.active_id == ids[-1]
+    page.keyboard.press("Tab")
+    wait_until(lambda: app.settings.active_id == first, 10, "the first instance active (Tab wraps)")
+    page.keyboard.press("Tab")
+    second = sorted(app.store.labelset.instances)[1]
+    wait_until(lambda: app.settings.active_id == second, 10, "the next instance active (Tab)")
+    assert str(app.gui_active.value).startswith(f"{second}:")
+    page.keyboard.press("Shift+Tab")
+    wait_until(lambda: app.settings.active_id == first, 10, "the previous instance active (Shift+Tab)")
+
+
+def test_question_mark_toggles_the_cheat_sheet(keyed: tuple[Any, Any]) -> None:
+    """? (Shift+/ on a US keyboard) opens the keyboard cheat sheet over this page, ? again closes it; so does its
+    Close button."""
+    app, page = keyed
+    sheet = page.get_by_text("Smaller brush", exact=True)
+    page.keyboard.press("Shift+Slash")
+    wait_until(lambda: len(app.cheat_sheets) == 1, 10, "the cheat sheet open on the server (?)")
+    sheet.wait_for(state="visible", timeout=15_000)
+    page.keyboard.press("Shift+Slash")
+    wait_until(lambda: not app.cheat_sheets, 10, "the cheat sheet closed on the server (? again)")
+    sheet.wait_for(state="detached", timeout=15_000)
+    page.keyboard.press("?")  # a layout where ? needs no Shift
+    wait_until(lambda: len(app.cheat_sheets) == 1, 10, "the cheat sheet open again")
+    page.get_by_role("button", name="Close (?)").click()
+    wait_until(lambda: not app.cheat_sheets, 10, "the cheat sheet closed by its button")
+    sheet.wait_for(state="detached", timeout=15_000)
