@@ -183,3 +183,11 @@ def test_batch_console_prints_progress_lines_when_not_a_terminal(tmp_path) -> No
     for s in range(1, 21):
         d2.on_step(task, "w", s, 20, "x")
     assert buf2.getvalue().count("step ") == 1 and "step 20/20" in buf2.getvalue()
+
+
+def test_m_step_of_a_proposal_whose_ball_is_empty_falls_back_to_available_points() -> None:
+    """A proposal whose E-step ball held no point (all rows empty) draws from the fallback, not an IndexError."""
+    rag = Ragged(np.zeros(0, np.int64), np.zeros(2, np.int64))
+    out = sample_independent(rag, np.zeros(0, np.float32), 8, 1e-4, np.random.default_rng(0),
+                             fallback=np.arange(10, 20))
+    assert out.shape == (1, 8) and set(out[0]) <= set(range(10, 20))

@@ -71,6 +71,9 @@ class EMConfig:
     """Reference point spacing (m) at which `min_size` holds; each proposal's threshold then scales with
     (reference / median nearest-neighbour spacing of its band points)², i.e. `min_size` becomes a surface
     area. None = an absolute count (the method)."""
+    trust_scale: float | None = None
+    """Trust region on Θ_s: a proposal's scale may not fall below (1 − trust_scale) × the largest Θ_s it had
+    in earlier steps of the episode (the shrink spiral of noisy scans); None = off (the method)."""
     m_step_replace: bool = True
     """M-step draws with replacement (the method). False: without replacement while a proposal has at least
     n_pcl weighted points (a smaller support is drawn whole, then topped up with replacement)."""
@@ -187,6 +190,8 @@ class EMConfig:
             raise ValueError(f"min_size_on must be 'inliers' or 'band', got {self.min_size_on!r}")
         if self.min_size_spacing is not None and not (0.0 < self.min_size_spacing < 1.0):
             raise ValueError(f"min_size_spacing must be in (0, 1) m or None, got {self.min_size_spacing}")
+        if self.trust_scale is not None and not (0.0 <= self.trust_scale < 1.0):
+            raise ValueError(f"trust_scale must be in [0, 1) or None, got {self.trust_scale}")
         if self.n_pcl is not None and self.n_pcl < 1:
             raise ValueError(f"n_pcl must be >= 1, got {self.n_pcl}")
         if self.refine_at not in ("every_step", "review_steps"):

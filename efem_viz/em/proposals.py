@@ -203,9 +203,9 @@ def _categorical_rows(
     wn = np.where(ok[row], w64 / np.where(tot > 0, tot, 1.0)[row], 0.0)
     cs = np.cumsum(wn)
     start, end = rag.offsets[:-1], rag.offsets[1:]
-    base = np.where(start > 0, cs[np.maximum(start - 1, 0)], 0.0)
     u = rng.random((p, m))
     if ok.any():
+        base = np.where(start > 0, cs[np.maximum(start - 1, 0)], 0.0)
         rows_ok = np.flatnonzero(ok)
         target = base[rows_ok, None] + u[rows_ok]
         pos = np.searchsorted(cs, target, side="right")

@@ -128,6 +128,7 @@ class _Pool:
     latent: LatentArrays | None = None
     stationary: np.ndarray | None = None  # (P,)
     inliers: np.ndarray | None = None  # (P,)
+    scale_max: np.ndarray | None = None  # (P,) largest Θ_s so far (EMConfig.trust_scale)
 
     @property
     def size(self) -> int:
@@ -149,6 +150,8 @@ class _Pool:
             self.stationary = self.stationary[rows]
         if self.inliers is not None:
             self.inliers = self.inliers[rows]
+        if self.scale_max is not None:
+            self.scale_max = self.scale_max[rows]
 
 
 class _Timer:
@@ -449,6 +452,8 @@ class _Solver:
         if cfg.refine_steps > 0 and pool.size <= cfg.refine_max_pool and (cfg.refine_at == "every_step"
                                                                           or review_step):
             latent = self._refine(latent, self.points[samples], pool.owner)
+        if cfg.trust_scale is not None:
+            latent = _trust_scale(latent, pool, cfg.trust_scale)
         t0 = self.timer.add("encode", t0)
         rag = tree.query(latent["center"], cfg.r_err)
         t0 = self.timer.add("neighbourhood", t0)
@@ -625,6 +630,17 @@ class _Solver:
                  else self.ref_scales[k])
         R = np.asarray(est.R, np.float64)
         return R, np.asarray(est.R_raw, np.float64), s_sel, float(est.score_db_sim), np.asarray(est.neighbour_ids)
+
+
+def _trust_scale(latent: LatentArrays, pool: _Pool, trust: float) -> LatentArrays:
+    """Θ_s ≥ (1 − trust) × the row's largest Θ_s so far (Θ_R is scale-free, so only Θ_s changes)."""
+    s = np.asarray(latent["scale"], np.float32)
+    if pool.scale_max is not None and len(pool.scale_max) == len(s):
+        s = np.maximum(s, (1.0 - trust) * pool.scale_max).astype(np.float32)
+        pool.scale_max = np.maximum(pool.scale_max, s)
+    else:
+        pool.scale_max = s.copy()
+    return {**latent, "scale": s}
 
 
 def _size_and_up(Q: np.ndarray, R: np.ndarray, R_raw: np.ndarray, cfg: EMConfig
