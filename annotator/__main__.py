@@ -75,12 +75,15 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of the `efem-annotate` console script.
 
     Errors print one line `efem-annotate: error: ...` on stderr and exit 1 (LabelIOError and JournalError are
-    ValueErrors); `--debug` (or EFEM_DEBUG=1) shows the traceback instead.
+    ValueErrors); `--debug` (or EFEM_DEBUG=1) shows the traceback instead. `--version` prints the version.
     """
-    from efem_viz.cli import pop_debug_flag, run_reporting_errors
+    from efem_viz.cli import package_version, pop_debug_flag, run_reporting_errors
 
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     rest, debug = pop_debug_flag(list(sys.argv[1:] if argv is None else argv))
+    if rest and rest[0] in ("--version", "-V"):
+        print(f"efem-annotate {package_version()}")
+        return 0
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     args = tyro.cli(AnnotateArgs, args=rest, prog="efem-annotate")
     return run_reporting_errors("efem-annotate", args.run, debug=debug)
 

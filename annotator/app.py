@@ -14,7 +14,10 @@ read from it; this module has no per-tool branches.
 * Shift + drag a rectangle: box select, painted with the active instance (erased with an erasing tool).
 * Hotkeys (also in the Ctrl/Cmd+K palette): each tool's, and the app's own (`annotator.tools.APP_KEYS`: N new
   instance, Tab / Shift+Tab next / previous instance, H hide/show, L lock/unlock, [ / ] brush size, Ctrl+Z undo,
-  Ctrl+Y redo, ? the cheat sheet). They are viser palette commands, which the browser matches on the key typed.
+  Ctrl+Y redo, R reset view, ? the cheat sheet). They are viser palette commands, which the browser matches on
+  the key typed. None is one of W/A/S/D/Q/E: viser's client flies the camera with those.
+* Camera: every client starts on the fitted view; R puts it back; a camera that leaves the scan (viser's W/A/S/D
+  keys after a pause) is put back by `efem_viz.serve.camera.CameraGuard`. A click that misses the scan says so.
 * Errors: a refused action (bad input) and a failing one (a bug) both reach the user who acted as a notification
   (`_run_reporting`), not only the log.
 """
@@ -23,6 +26,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import html
 import logging
 import os
 import queue
@@ -47,7 +51,7 @@ from annotator.io import (
     save_scannet,
 )
 from annotator.journal import LabelStore, remove_stale_temp_files, scan_fingerprint
-from annotator.labels import Delta, InstanceInfo, LabelSet
+from annotator.labels import Delta, InstanceInfo, LabelSet, prelabel_note, unreviewed_prelabels
 from annotator.lasso import LassoCamera, LassoOutline
 from annotator.render import Chunks, build_chunks, color_lut, compose_colors, splat_proxy
 from annotator.tools import (
@@ -66,6 +70,7 @@ from annotator.tools import (
     shown_settings,
 )
 from efem_viz.geometry.transforms import xyz_tuple
+from efem_viz.serve.camera import CameraGuard, View
 from efem_viz.serve.guard import start_server
 from efem_viz.serve.inputs import (
     ClientValueError,
@@ -99,6 +104,9 @@ class ToolSettings:
 
     tool: str = "brush"
     """Name of the active tool (an entry of the app's tool table, `annotator.tools`)."""
+    category: str = "object"
+    """Category of new instances (N, *New instance*): the one the user chose last (typed into *Category*), or of
+    the scan's labels when it has some."""
     radius: float = 0.01
     """Brush radius, metres."""
     brush_max_angle_deg: float = 180.0
@@ -112,6 +120,8 @@ class ToolSettings:
     tabletop scans), metres; 0 = off."""
     only_unlabelled: bool = False
     """Paint/grow/box change only unlabelled vertices."""
+    labels_only: bool = False
+    """The labels-only view: unlabelled vertices drawn in a faint grey (`annotator.render.compose_colors`)."""
     box_facing: str = "front"
     """Box select: "front" (vertices facing the camera) or "all"."""
     active_id: int = 0
@@ -246,6 +256,11 @@ class AnnotatorApp:
         self.preview: np.ndarray | None = None
         """(N,) bool mask drawn highlighted (click-to-segment preview), or None."""
         self.pending_segment: np.ndarray | None = None
+        self._segment_lock = threading.Lock()
+        self._segment_cancel: threading.Event | None = None
+        """Set to cancel the click-to-segment run in progress (None: none runs)."""
+        self._prelabel_cursor: int | None = None
+        """The pre-label Next / Previous went to last (None: not used yet)."""
         self._strokes: dict[int, _Stroke] = {}
         self.lasso_outline = LassoOutline()
         """The lasso tool's outline (screen points of one view)."""
@@ -261,6 +276,7 @@ class AnnotatorApp:
         ls = self.store.labelset
         if ls.instances:
             self.settings.active_id = max(ls.instances)
+            self.settings.category = ls.instances[self.settings.active_id].category or "object"
 
         try:
             self.server, self.access = start_server(host=host, port=port, token=token)
@@ -323,16 +339,20 @@ class AnnotatorApp:
             h = self.server.scene.add_point_cloud(
                 f"/scan/labels/chunk_{c:04d}",
                 points=pts[m],
-                colors=compose_colors(self.scene.colors[m], labels[m], lut, show),
+                colors=compose_colors(self.scene.colors[m], labels[m], lut, show,
+                                      dim_unlabelled=self.settings.labels_only),
                 point_size=self.point_size,
                 point_shape="circle",
             )
             self.chunk_handles.append(h)
         self.server.scene.on_click(modifier="cmd/ctrl")(self._on_scene_click)
         self.server.scene.on_rect_select(modifier="shift")(self._on_rect)
-        self.server.initial_camera.look_at = xyz_tuple(centre)
-        self.server.initial_camera.position = xyz_tuple(centre + np.array([0.0, -1.0, 0.8]) * extent * 0.8)
-        self.server.initial_camera.up = (0.0, 0.0, 1.0)
+        self.home_view = View(look_at=xyz_tuple(centre),
+                              position=xyz_tuple(centre + np.array([0.0, -1.0, 0.8]) * extent * 0.8))
+        """The fitted view: where every client starts, and where R (reset view) puts the camera."""
+        self.camera_guard = CameraGuard(self.server, self.home_view, pts.min(axis=0), pts.max(axis=0),
+                                        hint="R (reset view) brings it back any time.")
+        """Puts a camera that left the scan back on `home_view` (see `efem_viz.serve.camera`)."""
 
     def draw_chunks(self, chunk_ids: np.ndarray) -> int:
         """Recompute and send the colours of some chunks; returns the payload bytes sent."""
@@ -343,7 +363,8 @@ class AnnotatorApp:
             for c in np.asarray(chunk_ids, np.int64):
                 m = self.chunks.members(int(c))
                 hl = None if self.preview is None else self.preview[m]
-                cols = compose_colors(self.scene.colors[m], labels[m], lut, show, highlight=hl)
+                cols = compose_colors(self.scene.colors[m], labels[m], lut, show, highlight=hl,
+                                      dim_unlabelled=self.settings.labels_only)
                 self.chunk_handles[int(c)].colors = cols
                 sent += cols.nbytes
             self.stats.bytes_sent += sent
@@ -361,7 +382,8 @@ class AnnotatorApp:
                 if (d.table_before.get(int(k)) is None) != (d.table_after.get(int(k)) is None)
                 or (d.table_before.get(int(k)) and d.table_after.get(int(k))
                     and (d.table_before[int(k)].color != d.table_after[int(k)].color  # type: ignore[union-attr]
-                         or d.table_before[int(k)].visible != d.table_after[int(k)].visible))  # type: ignore[union-attr]
+                         or d.table_before[int(k)].visible != d.table_after[int(k)].visible  # type: ignore[union-attr]
+                         or d.table_before[int(k)].unreviewed != d.table_after[int(k)].unreviewed))  # type: ignore[union-attr]
             ]
             if visual:
                 mask = np.isin(self.store.labels, np.array(visual, np.int32))
@@ -392,12 +414,18 @@ class AnnotatorApp:
                 for cmd in t.commands:
                     label = f"{cmd.label} ({cmd.hotkey})" if cmd.hotkey else cmd.label
                     self.gui_tool_buttons[cmd.key] = gui.add_button(label, disabled=cmd.disabled, hint=cmd.hint)
+            self.gui_seg_progress = gui.add_progress_bar(0.0, visible=False)
+            """Click-to-segment's progress (EM steps done), shown while it runs."""
         with gui.add_folder("Instances"):
             self.gui_active = gui.add_dropdown("Active", self._instance_options() or NO_OPTIONS)
             self.gui_name = gui.add_text("Name", "")
-            self.gui_category = gui.add_text("Category", DEFAULT_PRIOR)
+            self.gui_category = gui.add_text("Category", self.settings.category,
+                                             hint="the active instance's category; new instances (N) take the "
+                                                  "one chosen last")
             self.gui_color = gui.add_rgb("Colour", (255, 0, 0))
             self.gui_new = gui.add_button("New instance (N)")
+            self.gui_labels_only = gui.add_checkbox("Labels only", False,
+                                                    hint="dim unlabelled vertices, so what is labelled stands out")
             self.gui_visible = gui.add_checkbox("Visible", True)
             self.gui_locked = gui.add_checkbox("Locked", False)
             self.gui_merge_into = gui.add_dropdown("Merge active into", self._instance_options() or NO_OPTIONS)
@@ -420,10 +448,17 @@ class AnnotatorApp:
             default_efem = self.scan_path.with_name(self.stem + RESULT_SUFFIX)
             self.gui_efem_path = gui.add_text("EFEM result", default_efem.name if default_efem.exists() else "")
             self.gui_efem_import = gui.add_button("Import EFEM pre-labels")
-            self.gui_prelabel = gui.add_dropdown("Pre-label", NO_OPTIONS)
+            self.gui_prelabel = gui.add_dropdown("Pre-label", NO_OPTIONS,
+                                                 hint="unreviewed pre-labels, most confident first (drawn pale)")
+            self.gui_prelabel_prev = gui.add_button("◀ Previous pre-label", hint="select it and fly to it")
+            self.gui_prelabel_next = gui.add_button("Next pre-label ▶", hint="select it and fly to it")
             self.gui_accept = gui.add_button("Accept")
             self.gui_reject = gui.add_button("Reject")
             self.gui_accept_merge = gui.add_button("Merge into active")
+            self.gui_prelabel_cut = gui.add_slider("Pre-label cut", min=0.0, max=1.0, step=0.01, initial_value=0.5,
+                                                   hint="confidence that the bulk buttons below split at")
+            self.gui_accept_above = gui.add_button("Accept all ≥ cut")
+            self.gui_reject_below = gui.add_button("Reject all < cut", color="red")
             from annotator.assist import available_priors
 
             priors = tuple(available_priors()) or (DEFAULT_PRIOR,)
@@ -478,11 +513,12 @@ class AnnotatorApp:
 
         self.gui_active.on_update(guarded(lambda: self.set_active(_id_of(read_choice(self.gui_active)))))
         self.gui_name.on_update(guarded(lambda: self._update_active(name=text(self.gui_name))))
-        self.gui_category.on_update(guarded(lambda: self._update_active(category=text(self.gui_category))))
+        self.gui_category.on_update(guarded(lambda: self.choose_category(text(self.gui_category))))
         self.gui_color.on_update(guarded(lambda: self._update_active(color=read_rgb(self.gui_color, write_back=wb))))
         self.gui_visible.on_update(guarded(lambda: self._update_active(visible=read_bool(self.gui_visible))))
+        self.gui_labels_only.on_update(guarded(lambda: self.set_labels_only(read_bool(self.gui_labels_only))))
         self.gui_locked.on_update(guarded(lambda: self._update_active(locked=read_bool(self.gui_locked))))
-        self.gui_new.on_click(guarded(lambda: self.new_instance(category=text(self.gui_category) or "object")))
+        self.gui_new.on_click(guarded(lambda: self.new_instance(category=self.settings.category)))
         self.gui_merge.on_click(
             guarded(lambda: self.merge([self.settings.active_id], _id_of(read_choice(self.gui_merge_into)))))
         self.gui_delete.on_click(guarded(lambda: self.delete_instance(self.settings.active_id)))
@@ -499,8 +535,18 @@ class AnnotatorApp:
             guarded(lambda: self.review_prelabel(_id_of(read_choice(self.gui_prelabel)), "reject")))
         self.gui_accept_merge.on_click(
             guarded(lambda: self.review_prelabel(_id_of(read_choice(self.gui_prelabel)), "merge")))
+        self.gui_accept_above.on_click(guarded(lambda: self.review_prelabels(
+            read_number(self.gui_prelabel_cut, write_back=wb), "accept")))
+        self.gui_reject_below.on_click(guarded(lambda: self.review_prelabels(
+            read_number(self.gui_prelabel_cut, write_back=wb), "reject")))
+        self.gui_prelabel_next.on_click(
+            lambda event: self._run_reporting(lambda: self.step_prelabel(+1, client=event.client), event.client))
+        self.gui_prelabel_prev.on_click(
+            lambda event: self._run_reporting(lambda: self.step_prelabel(-1, client=event.client), event.client))
         self.gui_seg_accept.on_click(guarded(lambda: self.accept_segment()))
         self.gui_seg_cancel.on_click(guarded(lambda: self.discard_segment()))
+        command_keys: dict[str, list[str]] = {}
+        """Command hotkeys → the labels of the commands (of different tools) that use them."""
         for t in self.tools:  # the tools' buttons and hotkeys
             gui.add_command(f"Tool: {t.label}", hotkey=t.hotkey).on_trigger(  # type: ignore[arg-type]
                 guarded(lambda name=t.name: self.set_tool(name)))
@@ -510,12 +556,15 @@ class AnnotatorApp:
 
                 self.gui_tool_buttons[cmd.key].on_click(guarded(run))
                 if cmd.hotkey:
-                    gui.add_command(cmd.label, hotkey=cmd.hotkey).on_trigger(guarded(run))  # type: ignore[arg-type]
+                    command_keys.setdefault(cmd.hotkey, []).append(cmd.label)
+        for key, labels in command_keys.items():  # a command hotkey acts for the active tool
+            gui.add_command(" / ".join(labels), hotkey=key).on_trigger(  # type: ignore[arg-type]
+                lambda event, key=key: self._run_reporting(lambda: self.run_tool_hotkey(key), event.client))
 
         # ---- the app's own hotkeys: the table annotator.tools.APP_KEYS, each action bound to a method here
         actions: dict[str, Callable[[Any], None]] = {
             "new_instance": guarded(
-                lambda: self.new_instance(category=read_text(self.gui_category, max_len=MAX_NAME) or "object")),
+                lambda: self.new_instance(category=self.settings.category)),
             "next_instance": guarded(lambda: self.cycle_active(+1)),
             "previous_instance": guarded(lambda: self.cycle_active(-1)),
             "toggle_visible": guarded(lambda: self._toggle_active("visible")),
@@ -526,6 +575,7 @@ class AnnotatorApp:
             "redo": guarded(lambda: self.redo()),
             "cheat_sheet": lambda event: self._run_reporting(lambda: self.toggle_cheat_sheet(event.client),
                                                              event.client),
+            "reset_view": lambda event: self._run_reporting(lambda: self.reset_view(event.client), event.client),
         }
         for k in APP_KEYS:
             for key, modifier in k.bindings:
@@ -575,11 +625,14 @@ class AnnotatorApp:
         self._gui_write_back(handle, old)
 
     def _show_tool(self) -> None:
-        """Show the active tool's controls and help line; hide the other tools' controls."""
+        """Show the active tool's controls, buttons and help line; hide the other tools' controls and buttons."""
         t = self.tool
         shown = shown_settings(t)
         for name, h in self.gui_controls.items():
             h.visible = name in shown
+        mine = {cmd.key for cmd in t.commands}
+        for key, button in self.gui_tool_buttons.items():
+            button.visible = key in mine
         self.gui_tool_help.content = f"**{t.hotkey}** {t.label}: {t.help}"
         self.gui_help.content = help_markdown(self.tools, t.name)
 
@@ -614,8 +667,12 @@ class AnnotatorApp:
             self.gui_active.options = opts
             self.gui_merge_into.options = opts
             self.gui_active.value = _option_for(opts, self.settings.active_id)
-            pre = tuple(f"{k}: {v.name}" for k, v in table.items() if "unreviewed" in v.note) or NO_OPTIONS
+            pre = tuple(f"{k}: {table[k].name} · {table[k].confidence:.2f}"
+                        for k in unreviewed_prelabels(table)) or NO_OPTIONS
+            current = str(self.gui_prelabel.value).split(":", 1)[0]
             self.gui_prelabel.options = pre
+            if current.isdigit() and current in {o.split(":", 1)[0] for o in pre}:  # keep the one under review
+                self.gui_prelabel.value = _option_for(pre, int(current))
             info = table.get(self.settings.active_id)
             if info is not None:
                 self.gui_name.value = info.name
@@ -626,13 +683,17 @@ class AnnotatorApp:
             self.gui_progress.value = round(100.0 * progress, 2)
             rows = ["| id | name | category | vertices | flags |", "|---:|---|---|---:|---|"]
             for k, v in table.items():
-                flags = ("hidden " if not v.visible else "") + ("locked" if v.locked else "")
+                flags = ("hidden " if not v.visible else "") + ("locked " if v.locked else "")
+                if v.unreviewed:
+                    flags += f"pre-label {v.confidence:.2f}"
                 mark = " ◀" if k == self.settings.active_id else ""
-                rows.append(f"| {k}{mark} | {v.name} | {v.category} | {counts.get(k, 0):,} | {flags} |")
-            per_cat: dict[str, list[int]] = {}
+                rows.append(f"| {k} {_swatch(v.color)}{mark} | {_md(v.name)} | {_md(v.category)} | "
+                            f"{counts.get(k, 0):,} | {flags} |")
+            per_cat: dict[str, list[tuple[int, tuple[int, int, int]]]] = {}
             for k, v in table.items():
-                per_cat.setdefault(v.category, []).append(counts.get(k, 0))
-            cats = " · ".join(f"{c}: {len(n)} ({sum(n):,} vertices)" for c, n in per_cat.items())
+                per_cat.setdefault(v.category, []).append((counts.get(k, 0), v.color))
+            cats = " · ".join(f"{''.join(_swatch(col) for _, col in n)} {_md(c)}: {len(n)} "
+                              f"({sum(c_ for c_, _ in n):,} vertices)" for c, n in per_cat.items())
             self.gui_table.content = (
                 f"**{100 * progress:.1f}%** of {self.n:,} vertices labelled"
                 + (f"\n\nper category: {cats}" if cats else "") + "\n\n" + "\n".join(rows)
@@ -670,7 +731,9 @@ class AnnotatorApp:
         self._refresh_panel()
 
     def _greet(self, client: Any) -> None:
-        """A newly connected client hears about a recovery or a standing autosave problem."""
+        """A newly connected client: its camera is watched (`camera_guard`), and it hears about a recovery or a
+        standing autosave problem."""
+        self.camera_guard.attach(client)
         rec = self.store.recovery
         if rec is not None:
             self.notify("Session recovered" if rec.complete else "Session recovered with losses", rec.summary(),
@@ -682,6 +745,7 @@ class AnnotatorApp:
         """A client left: drop what the app kept for it (its cheat-sheet overlay)."""
         with self._sheet_lock:
             self.cheat_sheets.pop(client.client_id, None)
+        self.camera_guard.forget(client)
 
     def _run_reporting(self, fn: Callable[[], Any], client: Any = None) -> Any:
         """Run an action for a client (a GUI callback, a hotkey, a scene gesture); errors become a notification to
@@ -769,6 +833,18 @@ class AnnotatorApp:
             self._gui_write_back(handle, snapped)
         return self.settings.radius
 
+    def run_tool_hotkey(self, key: str) -> object:
+        """A command hotkey (Enter, Esc): run the active tool's command with that key; nothing when it has none
+        (the key may be meant for something else in the page)."""
+        for cmd in self.tool.commands:
+            if cmd.hotkey is not None and cmd.hotkey.upper() == key.upper():
+                return cmd.run(self)
+        return None
+
+    def reset_view(self, client: ClientHandle | None = None) -> None:
+        """Put a client's camera (every client's when None) back on the fitted view of the scan (R)."""
+        self.camera_guard.reset(client)
+
     def toggle_cheat_sheet(self, client: ClientHandle | None) -> bool:
         """Open the keyboard cheat sheet (`?`) over one client's view, or close it when open; True when open now.
 
@@ -798,6 +874,20 @@ class AnnotatorApp:
 
             close.on_click(on_close)
         return opened
+
+    def set_labels_only(self, on: bool) -> None:
+        """The labels-only view (unlabelled vertices dimmed) on or off; every chunk is redrawn."""
+        self.settings.labels_only = bool(on)
+        self._gui_write_back(self.gui_labels_only, self.settings.labels_only)
+        self.draw_chunks(np.arange(self.chunks.count))
+
+    def choose_category(self, category: str) -> None:
+        """The user typed a category: the active instance takes it, and so do new instances from now on."""
+        category = category.strip()
+        if not category:
+            return
+        self.settings.category = category
+        self._update_active(category=category)
 
     def new_instance(self, *, category: str = "object", name: str | None = None, client: str = "") -> int:
         """Create an instance and make it active; returns its id."""
@@ -846,12 +936,19 @@ class AnnotatorApp:
         """Paint vertices `idx` with the active instance (or erase them); one journalled edit.
 
         Inside a gesture the edit's label names the tool ("paint 1,234 → mug 1 (Region grow)"), as the history
-        panel and the journal show it.
+        panel and the journal show it; a paint that relabels vertices of other instances says how many ("paint
+        1,234 → mug 1, 56 taken from other instances (Brush)": *Only unlabelled vertices* keeps them).
         """
         source = getattr(self._tls, "source", "")
 
         def tagged(d: Delta) -> Delta:
-            return dataclasses.replace(d, label=f"{d.label} ({source})") if source else d
+            label = d.label
+            taken = 0 if erase else int(np.count_nonzero(d.before > 0))
+            if taken:
+                label += f", {taken:,} taken from other instances"
+            if source:
+                label += f" ({source})"
+            return d if label == d.label else dataclasses.replace(d, label=label)
 
         if erase:
             return self.store.do(lambda ls: tagged(ls.erase(idx)), client=client, group=group)
@@ -1090,7 +1187,7 @@ class AnnotatorApp:
         order = sorted((r for r in data.instances if (data.labels == r.id).any()),
                        key=lambda r: -conf.get(r.id, 0.0))
         for row in order:
-            note = f"unreviewed; from {source}" + (f"; confidence {conf[row.id]:.3f}" if row.id in conf else "")
+            note = prelabel_note(source, conf.get(row.id))
             d = self.store.do(lambda ls, row=row, note=note: ls.create_instance(category=row.category,
                                                                                 name=f"{row.category} (EFEM)"),
                               group=group)
@@ -1103,22 +1200,83 @@ class AnnotatorApp:
         self._refresh_panel()
         return new_ids
 
-    def review_prelabel(self, instance_id: int, action: Literal["accept", "reject", "merge"]) -> None:
-        """Accept (keep as a real instance), reject (delete) or merge (into the active instance) a pre-label."""
+    def review_prelabel(self, instance_id: int, action: Literal["accept", "reject", "merge"], *,
+                        group: str = "") -> None:
+        """Accept (keep as a real instance), reject (delete) or merge (into the active instance) a pre-label.
+
+        Args:
+            instance_id: the pre-label.
+            action: what to do with it.
+            group: undo group (reviews of one group undo together).
+        """
         info = self.store.labelset.info(instance_id)
         if action == "accept":
             self.store.do(lambda ls: ls.update_instance(instance_id, note=info.note.replace("unreviewed", "accepted"),
-                                                        name=info.name.replace(" (EFEM)", "")))
+                                                        name=info.name.replace(" (EFEM)", "")), group=group)
         elif action == "reject":
-            self.store.do(lambda ls: ls.delete_instance(instance_id))
+            self.store.do(lambda ls: ls.delete_instance(instance_id), group=group)
         elif action == "merge":
             target = self._require_active()
             if target == instance_id:
                 raise ValueError("choose another active instance to merge this pre-label into")
-            self.store.do(lambda ls: ls.merge([instance_id], target))
+            self.store.do(lambda ls: ls.merge([instance_id], target), group=group)
         else:
             raise ValueError(f"unknown review action {action!r}")
         self._refresh_panel()
+
+    def review_prelabels(self, cut: float, action: Literal["accept", "reject"]) -> list[int]:
+        """Bulk review: accept every unreviewed pre-label with confidence ≥ `cut`, or reject every one below it;
+        one undo step. Returns the instance ids reviewed."""
+        if action not in ("accept", "reject"):
+            raise ValueError(f"unknown bulk review action {action!r}")
+        table = self.store.labelset.instances
+        ids = [k for k in unreviewed_prelabels(table)
+               if (table[k].confidence >= cut) == (action == "accept")]
+        group = uuid.uuid4().hex[:12]
+        for iid in ids:
+            self.review_prelabel(iid, action, group=group)
+        self._refresh_panel()
+        self.notify("Pre-labels", f"{'accepted' if action == 'accept' else 'rejected'} {len(ids)} pre-label(s) "
+                    f"with confidence {'≥' if action == 'accept' else '<'} {cut:.2f} (one undo step)")
+        return ids
+
+    def step_prelabel(self, step: int, *, client: ClientHandle | None = None) -> int:
+        """Select the next (`step` = 1) or previous (-1) unreviewed pre-label in the dropdown's order (most
+        confident first, wrapping around; the first press goes to the first / last one) and fly the client's camera
+        to it; returns its id.
+
+        Raises:
+            ValueError: no unreviewed pre-label is left.
+        """
+        ids = unreviewed_prelabels(self.store.labelset.instances)
+        if not ids:
+            raise ValueError("no unreviewed pre-labels: import an EFEM result first")
+        current = str(self.gui_prelabel.value).split(":", 1)[0]
+        started = self._prelabel_cursor is not None
+        here = ids.index(int(current)) if started and current.isdigit() and int(current) in ids else (
+            -1 if step > 0 else 0)
+        iid = ids[(here + step) % len(ids)]
+        self._prelabel_cursor = iid
+        self._gui_write_back(self.gui_prelabel, _option_for(tuple(self.gui_prelabel.options), iid))
+        self.fly_to(np.flatnonzero(self.store.labels == iid), client)
+        return iid
+
+    def fly_to(self, idx: np.ndarray, client: ClientHandle | None = None) -> None:
+        """Point a client's camera (every client's when None) at some vertices: their box, seen from the fitted
+        view's direction, filling about half the view."""
+        idx = np.asarray(idx, np.int64)
+        if idx.size == 0:
+            return
+        pts = self.scene.points[idx]
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        home = self.home_view
+        direction = np.subtract(home.position, home.look_at)
+        direction /= float(np.linalg.norm(direction)) or 1.0
+        scan_diag = float(np.linalg.norm(np.ptp(self.scene.points, axis=0))) or 1.0
+        size = max(float(np.linalg.norm(hi - lo)), 0.05 * scan_diag)  # a tiny object: not closer than this
+        centre = (lo + hi) / 2.0
+        self.camera_guard.place(View(xyz_tuple(centre), xyz_tuple(centre + FLY_TO_DISTANCE * size * direction)),
+                                client)
 
     def segment_at(self, vertex: int, *, wait: bool = False) -> np.ndarray | None:
         """Click-to-segment: run EFEM seeded near a vertex with the chosen prior and preview the mask.
@@ -1133,13 +1291,34 @@ class AnnotatorApp:
         Returns:
             With `wait`, (K,) int32 vertex indices of the proposed mask (also kept in `pending_segment`); else None.
         """
-        from annotator.assist import segment_at_point
+        from annotator import assist
+        from efem_viz.em.solver import EMCancelled
 
         prior_name = read_choice(self.gui_prior)
+        with self._segment_lock:
+            if self._segment_cancel is not None:
+                raise ValueError("still segmenting the last click: wait for its preview, or Esc cancels it")
+            cancel = self._segment_cancel = threading.Event()
+        self.gui_seg_progress.value = 0.0
+        self.gui_seg_progress.visible = True
+        self._enable_segment_buttons()
 
-        def job() -> np.ndarray:
+        def on_step(info: Any) -> None:
+            self.gui_seg_progress.value = round(100.0 * (info.step + 1) / max(info.num_steps, 1), 1)
+
+        def job() -> np.ndarray | None:
             t0 = time.perf_counter()
-            mask_idx = segment_at_point(self.scene, int(vertex), prior_name=prior_name)
+            try:
+                mask_idx = assist.segment_at_point(self.scene, int(vertex), prior_name=prior_name, on_step=on_step,
+                                                   cancel=cancel)
+            except EMCancelled:
+                self.notify("Segmenting cancelled", f"the segmentation around vertex {vertex} was stopped")
+                return None
+            finally:
+                with self._segment_lock:
+                    self._segment_cancel = None
+                self.gui_seg_progress.visible = False
+                self._enable_segment_buttons()
             self.set_preview(mask_idx)
             if len(mask_idx) == 0:
                 self.notify("No object found", f"EFEM with prior {prior_name!r} accepted no proposal around vertex "
@@ -1147,14 +1326,31 @@ class AnnotatorApp:
                             "label it with the brush / region grow")
             else:
                 self.notify("Segment preview", f"{len(mask_idx):,} vertices in {time.perf_counter() - t0:.1f} s: "
-                            "Accept or Discard in the EFEM assist panel")
+                            "Enter (Accept segment) paints it as a new instance, Esc discards it")
             return mask_idx
 
         if wait:
             return job()
-        self.notify("Segmenting", f"EFEM with prior {prior_name!r} around vertex {vertex}...")
+        self.notify("Segmenting", f"EFEM with prior {prior_name!r} around vertex {vertex}... (Esc cancels)")
         threading.Thread(target=lambda: self._run_reporting(job), name="annotator-segment", daemon=True).start()
         return None
+
+    @property
+    def segmenting(self) -> bool:
+        """Whether a click-to-segment run is in progress."""
+        with self._segment_lock:
+            return self._segment_cancel is not None
+
+    def _enable_segment_buttons(self) -> None:
+        """Accept needs a preview; Discard a preview or a run to cancel (both the Tools and EFEM assist ones)."""
+        has = self.pending_segment is not None
+        self.gui_seg_accept.disabled = not has
+        self.gui_seg_cancel.disabled = not has
+        buttons = getattr(self, "gui_tool_buttons", {})
+        if "segment_accept" in buttons:
+            buttons["segment_accept"].disabled = not has
+        if "segment_discard" in buttons:
+            buttons["segment_discard"].disabled = not (has or self.segmenting)
 
     def set_preview(self, idx: np.ndarray | None) -> None:
         """Highlight a proposed mask (None clears it) without touching the labels."""
@@ -1171,9 +1367,7 @@ class AnnotatorApp:
             if m is not None:
                 touched = np.union1d(touched, self.chunks.touched(np.flatnonzero(m)))
         self.draw_chunks(touched)
-        has = self.pending_segment is not None
-        self.gui_seg_accept.disabled = not has
-        self.gui_seg_cancel.disabled = not has
+        self._enable_segment_buttons()
 
     def accept_segment(self) -> Delta | None:
         """Paint the previewed segment as a new instance (category from the prior name)."""
@@ -1185,6 +1379,12 @@ class AnnotatorApp:
         return self.paint(idx)
 
     def discard_segment(self) -> None:
+        """Drop the segment preview; while a segmentation runs, cancel it (Esc)."""
+        with self._segment_lock:
+            running = self._segment_cancel
+        if running is not None:
+            running.set()
+            return
         self.set_preview(None)
 
     # ================================================================== viser events
@@ -1240,7 +1440,9 @@ class AnnotatorApp:
             with self._edit_source(self.tool.label):
                 on_click(self, event)
         elif kind == "click":
-            self.click(np.asarray(event.ray_origin), np.asarray(event.ray_direction), client=cid)
+            v = self.click(np.asarray(event.ray_origin), np.asarray(event.ray_direction), client=cid)
+            if v is None and self.tool.apply_at is not None:
+                self.notify("Missed the scan", MISSED_SCAN, client=getattr(event, "client", None), color="yellow")
         elif kind == "rect":
             cam = event.client.camera
             self.box(position=np.asarray(cam.position), wxyz=np.asarray(cam.wxyz), fov=float(cam.fov),
@@ -1308,6 +1510,28 @@ class AnnotatorApp:
             # thread (open3d then reports leaks and the process exits with status 1).
             self._warmup.join(timeout=60)
             self._worker.join(timeout=10)
+
+
+FLY_TO_DISTANCE = 1.8
+"""Fly-to puts the camera this many diagonals of the object's box away from its centre."""
+MISSED_SCAN = ("Nothing of the scan is under the cursor, so the tool did nothing: Ctrl/Cmd+click on the scan. If "
+               "the scan is out of sight or tiny, R (reset view) fits it to the view.")
+"""What a Ctrl/Cmd+click that misses the scan tells the user."""
+
+
+def _swatch(color: Sequence[int]) -> str:
+    """A square in an instance's colour (the instance table and the per-category line show which colour is which)."""
+    r, g, b = (int(c) for c in color)
+    return f'<span style="color:#{r:02x}{g:02x}{b:02x}">■</span>'
+
+
+def _md(text: str) -> str:
+    """Text from a label file or the GUI, safe in the panel's markdown: HTML escaped (viser renders raw HTML in
+    markdown), table pipes and markdown emphasis neutralised."""
+    out = html.escape(str(text), quote=False)
+    for ch in "\\|*_`[]":
+        out = out.replace(ch, "\\" + ch)
+    return out
 
 
 def _undo_steps(stack: list[Delta]) -> int:

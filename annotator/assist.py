@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 import re
 import threading
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 from efem_viz.prior.config import DEFAULT_PRIOR
@@ -71,6 +71,8 @@ def segment_at_point(
     n_proposals: int = 12,
     preset_name: str = "real",
     seed: int = 0,
+    on_step: Callable[[Any], None] | None = None,
+    cancel: threading.Event | None = None,
     **overrides: Any,
 ) -> np.ndarray:
     """Segment the object under a vertex with EFEM restricted to a crop around it.
@@ -85,6 +87,8 @@ def segment_at_point(
         n_proposals: proposals initialised (all anchored inside the crop).
         preset_name: `efem_viz.em.preset` name the config starts from.
         seed: EM seed.
+        on_step: called with `efem_viz.em.StepInfo` after every EM step (progress).
+        cancel: when set, EM stops at its next check and `efem_viz.em.solver.EMCancelled` is raised.
         **overrides: further `EMConfig` fields (e.g. min_size=30 for small test objects).
 
     Returns:
@@ -122,7 +126,7 @@ def segment_at_point(
     torch.set_num_threads(max(1, min(2, torch.get_num_threads())))
     # crop-local indices within anchor_radius of the click (never empty: the clicked vertex is at distance 0)
     near = np.flatnonzero(np.linalg.norm(pts[crop] - centre, axis=1) <= max(float(anchor_radius), 0.0))
-    res = run_em(sub, pr, cfg, seed=seed, anchor_candidates=near)
+    res = run_em(sub, pr, cfg, seed=seed, anchor_candidates=near, on_step=on_step, cancel=cancel)
     inst = res.instances
     if len(inst) == 0:
         return np.zeros(0, np.int32)

@@ -14,6 +14,7 @@ protected: paint, erase and fill leave them alone (one cannot change what one ca
 from __future__ import annotations
 
 import dataclasses
+import re
 from dataclasses import dataclass, field
 from typing import Any, Iterable, Mapping
 
@@ -74,6 +75,28 @@ class InstanceInfo:
     def protected(self) -> bool:
         """True when edits must leave this instance's vertices alone (locked or hidden)."""
         return self.locked or not self.visible
+
+    @property
+    def unreviewed(self) -> bool:
+        """An EFEM pre-label nobody has reviewed yet (its note starts with "unreviewed", `prelabel_note`)."""
+        return self.note.startswith("unreviewed")
+
+    @property
+    def confidence(self) -> float:
+        """A pre-label's EFEM confidence, read from its note (`prelabel_note`); 0 when the note has none."""
+        m = re.search(r"confidence (-?[0-9]+(?:\.[0-9]+)?)", self.note)
+        return float(m.group(1)) if m else 0.0
+
+
+def prelabel_note(source: str, confidence: float | None) -> str:
+    """The note of a new pre-label: "unreviewed; from <source>[; confidence 0.873]" (Accept turns "unreviewed"
+    into "accepted")."""
+    return f"unreviewed; from {source}" + (f"; confidence {confidence:.3f}" if confidence is not None else "")
+
+
+def unreviewed_prelabels(table: Mapping[int, InstanceInfo]) -> list[int]:
+    """Ids of the unreviewed pre-labels of an instance table, most confident first (ties: lower id first)."""
+    return sorted((k for k, v in table.items() if v.unreviewed), key=lambda k: (-table[k].confidence, k))
 
 
 @dataclass(frozen=True)

@@ -85,15 +85,23 @@ def color_lut(instances: Mapping[int, InstanceInfo], top: int) -> tuple[np.ndarr
 
     Returns:
         (lut (top+1, 3) uint8 instance colours, show (top+1,) bool: draw the label colour, i.e. the id is > 0,
-        known and visible).
+        known and visible). Unreviewed EFEM pre-labels get a pale version of their colour (`PRELABEL_PALE`), so
+        that what nobody has checked yet stands apart from accepted and hand-made instances.
     """
     size = max(int(top), max(instances, default=0)) + 1
     lut = np.zeros((size, 3), np.uint8)
     show = np.zeros(size, bool)
     for k, info in instances.items():
-        lut[k] = info.color
+        col = np.asarray(info.color, np.float32)
+        lut[k] = np.round(col + PRELABEL_PALE * (255.0 - col)) if info.unreviewed else col
         show[k] = info.visible
     return lut, show
+
+
+PRELABEL_PALE = 0.55
+"""Unreviewed pre-labels are drawn in their colour blended this far toward white."""
+UNLABELLED_DIM = 0.8
+"""The labels-only view draws unlabelled vertices in their grey shade blended this far toward light grey."""
 
 
 def compose_colors(
@@ -104,6 +112,7 @@ def compose_colors(
     *,
     alpha: float = 0.7,
     highlight: np.ndarray | None = None,
+    dim_unlabelled: bool = False,
 ) -> np.ndarray:
     """Display colours: label colour blended over the scan colour where labelled and visible.
 
@@ -113,6 +122,8 @@ def compose_colors(
         lut, show: from `color_lut`.
         alpha: label colour weight in [0, 1].
         highlight: (K,) bool vertices drawn bright white-ish (preview of a proposal), or None.
+        dim_unlabelled: the labels-only view: vertices drawn without a label colour become a faint grey
+            (`UNLABELLED_DIM`), so what is labelled stands out.
 
     Returns:
         (K, 3) uint8.
@@ -120,6 +131,10 @@ def compose_colors(
     lab = np.minimum(labels, len(lut) - 1)
     m = show[lab] & (labels > 0) & (labels < len(lut))
     out = base.copy()
+    if dim_unlabelled and (~m).any():
+        lum = base[~m].astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)
+        grey = np.round(lum * (1 - UNLABELLED_DIM) + 235.0 * UNLABELLED_DIM).astype(np.uint8)
+        out[~m] = grey[:, None]
     if m.any():
         a = np.float32(alpha)
         out[m] = (a * lut[lab[m]].astype(np.float32) + (1 - a) * base[m].astype(np.float32)).astype(np.uint8)

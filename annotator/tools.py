@@ -18,6 +18,9 @@ AnnotatorApp(scan, tools=(*DEFAULT_TOOLS, Tool("ball", "Ball", "P", "click paint
 Box select (Shift + drag) is a gesture of every tool; `erase` tools erase with it instead of painting. The
 controls in `GESTURE_CONTROLS` (box select's and painting's) are always shown.
 
+Hotkeys are single keys that neither the app (`APP_KEYS`) nor viser's browser client uses: W/A/S/D/Q/E move
+viser's camera whatever the page does with them (`efem_viz.serve.camera`), so erase is X and segment is C.
+
 Pure: no viser import (the tests of the tool table run without a server).
 """
 
@@ -27,6 +30,8 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Callable, Literal, Protocol, Sequence
 
 import numpy as np
+
+from efem_viz.serve.camera import VISER_CAMERA_KEYS
 
 if TYPE_CHECKING:
     from annotator.app import ToolSettings
@@ -62,6 +67,14 @@ class ToolHost(Protocol):
 
     def segment_at(self, vertex: int, *, wait: bool = False) -> np.ndarray | None:
         """Click-to-segment with the shape prior."""
+        ...
+
+    def accept_segment(self) -> Delta | None:
+        """Paint the previewed segment as a new instance."""
+        ...
+
+    def discard_segment(self) -> None:
+        """Drop the segment preview (or cancel the segmentation running)."""
         ...
 
     def add_lasso_point(self, event: Any) -> int:
@@ -122,7 +135,8 @@ class ToolCommand:
     label: str
     run: Callable[[ToolHost], object]
     hotkey: str | None = None
-    """Key of the palette command (e.g. "Enter"); None = button only."""
+    """Key of the palette command (e.g. "Enter"); None = button only. It acts for the active tool: two tools may
+    give their commands the same key (Enter applies the lasso, and accepts a segment preview)."""
     hint: str | None = None
     disabled: bool = False
     """Initial state (the app enables it when it applies, e.g. once a lasso has 3 points)."""
@@ -180,6 +194,7 @@ APP_KEYS: tuple[AppKey, ...] = (
     AppKey("brush_larger", "Larger brush", "]", (("]", None),)),
     AppKey("undo", "Undo", "Ctrl+Z", (("Z", "cmd/ctrl"),)),
     AppKey("redo", "Redo", "Ctrl+Y", (("Y", "cmd/ctrl"),)),
+    AppKey("reset_view", "Reset view (fit the scan)", "R", (("R", None),)),
     AppKey("cheat_sheet", "Keyboard shortcuts (this sheet)", "?", (("?", None), ("?", "shift"))),
 )
 """The app's own hotkeys, in help order."""
@@ -239,15 +254,21 @@ def _lasso_point(host: ToolHost, event: Any) -> object:
 DEFAULT_TOOLS: tuple[Tool, ...] = (
     Tool("brush", "Brush", "B", "drag paints the active instance; click paints a dab",
          controls=(RADIUS, NORMAL_LIMIT), apply_at=_brush, stroke=True),
-    Tool("erase", "Erase", "E", "drag (or click) clears labels; box and lasso erase too",
+    Tool("erase", "Erase", "X", "drag (or click) clears labels; box and lasso erase too",
          controls=(RADIUS, NORMAL_LIMIT), apply_at=_erase, stroke=True, erase=True),
     Tool("grow", "Region grow", "G", "click grows the active instance over smooth surface from the point",
          controls=(GROW_ANGLE, GROW_DISTANCE, MIN_HEIGHT), apply_at=_grow),
     Tool("fill", "Fill", "F", "click gives the connected region of the clicked label to the active instance",
          controls=(MIN_HEIGHT,), apply_at=_fill),
     Tool("pick", "Pick instance", "I", "click makes the instance under the cursor active", apply_at=_pick),
-    Tool("segment", "Click to segment", "S", "click runs EFEM with the shape prior (EFEM assist) and previews the "
-         "object", apply_at=_segment),
+    Tool("segment", "Click to segment", "C", "click runs EFEM with the shape prior (EFEM assist) and previews the "
+         "object; Enter accepts it, Esc discards it (or cancels the run)", apply_at=_segment,
+         commands=(
+             ToolCommand("segment_accept", "Accept segment", lambda h: h.accept_segment(), hotkey="Enter",
+                         hint="paint the previewed object as a new instance", disabled=True),
+             ToolCommand("segment_discard", "Discard segment", lambda h: h.discard_segment(), hotkey="Escape",
+                         hint="drop the preview, or cancel the segmentation running", disabled=True),
+         )),
     Tool("lasso", "Lasso", "O", "each click adds an outline point; Enter applies (paints, or erases)",
          on_click=_lasso_point,
          commands=(
@@ -267,31 +288,42 @@ def check_tools(tools: Sequence[Tool]) -> dict[str, Tool]:
     setting name (two tools sharing a setting share the `Control`).
 
     Raises:
-        ValueError: a duplicate, an empty table, or a hotkey the app uses itself (`RESERVED_HOTKEYS`).
+        ValueError: a duplicate, an empty table, a hotkey the app uses itself (`RESERVED_HOTKEYS`), or one of
+            the keys that move viser's camera in the browser (`efem_viz.serve.camera.VISER_CAMERA_KEYS`).
     """
     if not tools:
         raise ValueError("the annotator needs at least one tool")
     by_name: dict[str, Tool] = {}
     keys: dict[str, str] = {k: "the app" for k in RESERVED_HOTKEYS}
+    keys.update({k: "viser's camera (the browser client moves the camera with W/A/S/D/Q/E)"
+                 for k in VISER_CAMERA_KEYS})
+    command_keys: dict[str, str] = {}
+    """Command hotkeys → the first command that uses it (commands of different tools may share one)."""
     controls: dict[str, Control] = {c.setting: c for c in GESTURE_CONTROLS}
     commands: set[str] = set()
     for t in tools:
         if t.name in by_name:
             raise ValueError(f"two tools are named {t.name!r}")
-        if t.hotkey.upper() in keys:
-            raise ValueError(f"tool {t.name!r}: hotkey {t.hotkey!r} is taken by {keys[t.hotkey.upper()]!r}")
+        if t.hotkey.upper() in keys or t.hotkey.upper() in command_keys:
+            taken = keys.get(t.hotkey.upper()) or command_keys[t.hotkey.upper()]
+            raise ValueError(f"tool {t.name!r}: hotkey {t.hotkey!r} is taken by {taken!r}")
         keys[t.hotkey.upper()] = t.name
         for c in t.controls:
             if controls.setdefault(c.setting, c) != c:
                 raise ValueError(f"tool {t.name!r}: setting {c.setting!r} has two different controls")
+        own: set[str] = set()
         for cmd in t.commands:
             if cmd.key in commands:
                 raise ValueError(f"tool {t.name!r}: command key {cmd.key!r} is used twice")
             commands.add(cmd.key)
             if cmd.hotkey is not None:
-                if cmd.hotkey.upper() in keys:
-                    raise ValueError(f"tool {t.name!r}: hotkey {cmd.hotkey!r} is taken by {keys[cmd.hotkey.upper()]!r}")
-                keys[cmd.hotkey.upper()] = f"{t.name}: {cmd.label}"
+                key = cmd.hotkey.upper()
+                if key in keys:
+                    raise ValueError(f"tool {t.name!r}: hotkey {cmd.hotkey!r} is taken by {keys[key]!r}")
+                if key in own:
+                    raise ValueError(f"tool {t.name!r}: two commands have the hotkey {cmd.hotkey!r}")
+                own.add(key)
+                command_keys.setdefault(key, f"{t.name}: {cmd.label}")
         by_name[t.name] = t
     return by_name
 

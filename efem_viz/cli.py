@@ -132,8 +132,8 @@ def check_output_file(path: str | os.PathLike[str], *, option: str) -> Path:
     return p
 
 
-def _version() -> str:
-    """The installed package version (the source tree's when not installed)."""
+def package_version() -> str:
+    """The installed package version (`--version` of both console scripts)."""
     from importlib.metadata import PackageNotFoundError, version
 
     try:
@@ -153,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
         print(_usage())
         return 0
     if args[0] in ("--version", "-V", "version"):
-        print(f"efem-viz {_version()}")
+        print(f"efem-viz {package_version()}")
         return 0
     name, rest = args[0], args[1:]
     if name not in SUBCOMMANDS:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -431,6 +432,238 @@ def test_a_failing_tool_tells_the_user(mesh_path: Path, tmp_path: Path) -> None:
         assert int((a.store.labels == iid).sum()) > 0
     finally:
         a.close()
+
+
+def test_no_hotkey_flies_the_camera() -> None:
+    """No key of the tools, their commands or the app is one that viser's browser client binds to camera motion
+    (W/A/S/D/Q/E: pressing erase's E or segment's S also flew the camera, after a pause tens of metres), and a
+    tool table that takes one is refused."""
+    from annotator.tools import APP_KEYS
+    from efem_viz.serve.camera import VISER_CAMERA_KEYS
+
+    keys = [t.hotkey for t in DEFAULT_TOOLS] + [c.hotkey for t in DEFAULT_TOOLS for c in t.commands if c.hotkey]
+    keys += [key for k in APP_KEYS for key, _ in k.bindings]
+    assert not {k.upper() for k in keys} & set(VISER_CAMERA_KEYS), keys
+    assert {t.name: t.hotkey for t in DEFAULT_TOOLS}["erase"] == "X"
+    assert {t.name: t.hotkey for t in DEFAULT_TOOLS}["segment"] == "C"
+    for key in ("w", "E", "s"):
+        with pytest.raises(ValueError, match="viser's camera"):
+            check_tools((Tool("k", "K", key, "a camera key"),))
+
+
+def test_a_click_that_misses_the_scan_says_so(app: AnnotatorApp) -> None:
+    """A Ctrl/Cmd+click whose ray misses the scan (a camera thrown off the scan) tells the clicking user, with how
+    to get the scan back (R), instead of doing nothing silently; R (`reset_view`) puts that client's camera on the
+    fitted view."""
+    notes: list[tuple[str, str, object]] = []
+    app.notify = lambda title, body, *, client=None, color=None: notes.append((title, body, client))  # type: ignore[method-assign]
+    client = _client()
+    for tool in ("segment", "brush"):
+        app.set_tool(tool)
+        miss = SimpleNamespace(ray_origin=(0.0, 5.0, 1.0), ray_direction=(0.0, 0.0, 1.0), screen_pos=((0.1, 0.1),),
+                               client=client, client_id=3)
+        app.handle_event("click", miss)
+        assert notes and notes[-1][0] == "Missed the scan" and notes[-1][2] is client, notes
+        assert "R (reset view)" in notes[-1][1]
+    n = len(notes)
+    app.new_instance()
+    hit = SimpleNamespace(ray_origin=(0.0, 0.0, 1.0), ray_direction=(0.0, 0.0, -1.0), screen_pos=((0.5, 0.5),),
+                          client=client, client_id=3)
+    app.handle_event("click", hit)
+    assert len(notes) == n  # a hit says nothing
+    placed: list[object] = []
+    app.camera_guard.reset = lambda c=None: placed.append(c)  # type: ignore[method-assign]
+    app.reset_view(client)  # type: ignore[arg-type]
+    assert placed == [client]
+
+
+def test_instance_table_shows_colours_and_escapes_names(app: AnnotatorApp) -> None:
+    """The instance table and the per-category line show each instance's colour (which colour is which), and a
+    name from a label file cannot inject HTML or break the table (viser renders raw HTML in markdown)."""
+    iid = app.new_instance(category="bowl", name="<img src=x onerror=alert(1)>|two")
+    app.update_instance(iid, color=(255, 0, 16))
+    content = app.gui_table.content
+    assert f"| {iid} " in content and '<span style="color:#ff0010">■</span>' in content
+    assert "<img" not in content and "&lt;img src=x onerror=alert(1)&gt;\\|two" in content
+    assert '■</span> bowl: 1 (' in content
+
+
+def test_new_instances_take_the_category_chosen_last(app: AnnotatorApp) -> None:
+    """N makes an "object" until the user chooses a category (not "mug N", category mug); a category typed into
+    the panel renames the active instance's category and is what the next N takes."""
+    first = app.new_instance(category=app.settings.category)  # what N and the New instance button do
+    assert app.store.labelset.info(first).category == "object"
+    app.gui_category.value = "bowl"  # the user types a category for the active instance, as a browser does
+    assert app.store.labelset.info(first).category == "bowl" and app.settings.category == "bowl"
+    app.gui_new.value = True  # the New instance button, as a browser presses it
+    second = app.settings.active_id
+    assert second != first and app.store.labelset.info(second).category == "bowl"
+    assert app.gui_category.value == "bowl"
+
+
+def test_painting_over_other_instances_says_how_many_were_taken(app: AnnotatorApp) -> None:
+    """A paint that relabels another instance's vertices says so in the history (and the journal); with *Only
+    unlabelled vertices* nothing is taken and nothing is said."""
+    a = app.new_instance()
+    app.paint(np.arange(100))
+    app.new_instance()
+    app.paint(np.arange(60, 160))
+    assert app.stats.history[0].endswith(", 40 taken from other instances"), app.stats.history[0]
+    assert int((app.store.labels == a).sum()) == 60
+    app.settings.only_unlabelled = True
+    app.paint(np.arange(0, 200))
+    assert "taken" not in app.stats.history[0] and int((app.store.labels == a).sum()) == 60
+
+
+def test_prelabel_review_by_confidence_in_bulk_and_one_by_one(app: AnnotatorApp) -> None:
+    """EFEM pre-labels: the dropdown lists them most confident first with their confidence, the table flags them,
+    they are drawn pale until reviewed; Next / Previous select one and fly the camera to it; Accept all ≥ cut and
+    Reject all < cut review many in one undo step."""
+    from annotator.io import LabelData
+    from annotator.labels import InstanceInfo
+    from annotator.render import color_lut
+
+    z = app.scene.points[:, 2]
+    labels = np.select([z > 0.06, z < -0.06, np.abs(z) < 0.02], [1, 2, 3], 0).astype(np.int32)
+    rows = [InstanceInfo(i, f"p{i}", category="mug", color=(200, 0, 0)) for i in (1, 2, 3)]
+    ids = app.add_prelabels(LabelData(labels, rows, confidence={1: 0.9, 2: 0.3, 3: 0.6}), source="x.efem.npz")
+    table = app.store.labelset.instances
+    conf = {i: table[i].confidence for i in ids}
+    assert sorted(conf.values(), reverse=True) == [0.9, 0.6, 0.3]
+    opts = list(app.gui_prelabel.options)
+    assert [float(o.rsplit("· ", 1)[1]) for o in opts] == [0.9, 0.6, 0.3]
+    assert "pre-label 0.90" in app.gui_table.content
+    lut, _ = color_lut(table, max(ids))
+    own = {i: list(table[i].color) for i in ids}
+    assert all(lut[i].tolist() != own[i] and (lut[i] >= np.array(own[i])).all() for i in ids)  # paler
+
+    flown: list[object] = []
+    app.camera_guard.place = lambda view, client=None: flown.append(view)  # type: ignore[method-assign]
+    first = app.step_prelabel(+1)
+    assert first == _id_of_option(opts[0]) and str(app.gui_prelabel.value) == opts[0]
+    members = app.scene.points[app.store.labels == first]
+    assert np.allclose(flown[-1].look_at, (members.min(0) + members.max(0)) / 2, atol=1e-5)  # type: ignore[attr-defined]
+    assert app.step_prelabel(+1) == _id_of_option(opts[1])
+    assert app.step_prelabel(-1) == first and app.step_prelabel(-1) == _id_of_option(opts[2])  # wraps around
+
+    sent = app.stats.chunks_sent
+    accepted = app.review_prelabels(0.5, "accept")
+    assert sorted(accepted) == sorted(i for i in ids if conf[i] >= 0.5)
+    assert all(not app.store.labelset.info(i).unreviewed for i in accepted)
+    assert app.stats.chunks_sent > sent  # redrawn in their full colour
+    lut, _ = color_lut(app.store.labelset.instances, max(ids))
+    assert all(lut[i].tolist() == own[i] for i in accepted)
+    assert list(app.gui_prelabel.options) == [opts[2]]
+    app.undo()  # one step undoes the bulk accept
+    assert all(app.store.labelset.info(i).unreviewed for i in accepted)
+    rejected = app.review_prelabels(0.5, "reject")
+    assert rejected == [i for i in ids if conf[i] < 0.5] and rejected[0] not in app.store.labelset.instances
+
+
+def _id_of_option(option: str) -> int:
+    return int(option.split(":", 1)[0])
+
+
+def test_labels_only_view_dims_unlabelled_vertices(app: AnnotatorApp) -> None:
+    """*Labels only* draws unlabelled vertices in a faint grey (labelled ones keep their colour), and off again
+    restores the scan's colours; the labels do not change."""
+    iid = app.new_instance()
+    app.paint(np.arange(50))
+    labels = app.store.labels.copy()
+
+    def drawn() -> np.ndarray:
+        out = np.zeros((app.n, 3), np.uint8)
+        for c, h in enumerate(app.chunk_handles):
+            out[app.chunks.members(c)] = np.asarray(h.colors)
+        return out
+
+    before = drawn()
+    app.gui_labels_only.value = True  # as a browser ticks it
+    assert app.settings.labels_only
+    on = drawn()
+    rest = on[labels == 0]
+    assert (rest[:, 0] == rest[:, 1]).all() and (rest[:, 1] == rest[:, 2]).all() and rest.min() >= 180
+    assert np.array_equal(on[labels == iid], before[labels == iid])
+    app.set_labels_only(False)
+    assert np.array_equal(drawn(), before) and np.array_equal(app.store.labels, labels)
+
+
+def test_click_to_segment_progress_cancel_and_enter_esc(app: AnnotatorApp, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Click-to-segment shows its progress (EM steps) next to the tools; Esc cancels a run, Enter accepts the
+    preview and Esc discards it, both with the segment tool's buttons in the Tools panel (Enter still applies the
+    lasso when the lasso is the active tool)."""
+    import annotator.assist as assist
+    from efem_viz.em.solver import EMCancelled
+
+    seen: list[float] = []
+    started = threading.Event()
+
+    def fake(scene: object, vertex: int, *, prior_name: str, on_step: object, cancel: threading.Event) -> np.ndarray:
+        for i in range(4):
+            on_step(SimpleNamespace(step=i, num_steps=4))  # type: ignore[operator]
+            seen.append(float(app.gui_seg_progress.value))
+        started.set()
+        if vertex == 0:  # "a long run": until cancelled
+            assert cancel.wait(30), "never cancelled"
+            raise EMCancelled("cancelled")
+        return np.arange(40, dtype=np.int32)
+
+    monkeypatch.setattr(assist, "segment_at_point", fake)
+    notes: list[str] = []
+    app.notify = lambda title, body, *, client=None, color=None: notes.append(title)  # type: ignore[method-assign]
+    app.set_tool("segment")
+    buttons = app.gui_tool_buttons
+    assert buttons["segment_accept"].visible and not buttons["lasso_apply"].visible
+    assert buttons["segment_accept"].disabled and buttons["segment_discard"].disabled
+
+    # a run, cancelled with Esc
+    app.segment_at(0)
+    assert started.wait(30) and app.segmenting and app.gui_seg_progress.visible
+    assert not buttons["segment_discard"].disabled
+    with pytest.raises(ValueError, match="still segmenting"):
+        app.segment_at(5)
+    app.run_tool_hotkey("Escape")
+    deadline = time.monotonic() + 30
+    while app.segmenting and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert not app.segmenting and not app.gui_seg_progress.visible and "Segmenting cancelled" in notes
+    assert app.pending_segment is None and buttons["segment_discard"].disabled
+
+    # a run to the end: progress up to 100 %, Enter accepts
+    seen.clear()
+    assert app.segment_at(3, wait=True) is not None
+    assert seen == [25.0, 50.0, 75.0, 100.0] and not app.gui_seg_progress.visible
+    assert not buttons["segment_accept"].disabled
+    app.set_tool("lasso")
+    with pytest.raises(ValueError):
+        app.run_tool_hotkey("Enter")  # the lasso's Enter (no outline yet), not the segment's
+    assert app.pending_segment is not None
+    app.set_tool("segment")
+    app.run_tool_hotkey("enter")
+    new = app.settings.active_id
+    assert np.array_equal(np.flatnonzero(app.store.labels == new), np.arange(40)) and app.pending_segment is None
+
+    # Esc discards a preview
+    app.segment_at(3, wait=True)
+    app.run_tool_hotkey("Escape")
+    assert app.pending_segment is None and app.preview is None
+    assert app.run_tool_hotkey("X") is None  # a key no command of the active tool has: nothing
+
+
+def test_tool_command_hotkeys_act_for_the_active_tool() -> None:
+    """Commands of different tools may share a hotkey (it acts for the active tool); one tool may not give two
+    commands the same key, and a tool's own hotkey may not be a command's."""
+    from annotator.tools import ToolCommand
+
+    def cmd(key: str, hotkey: str) -> ToolCommand:
+        return ToolCommand(key, key, lambda h: None, hotkey=hotkey)
+
+    check_tools((Tool("a", "A", "J", "", commands=(cmd("a1", "Enter"),)),
+                 Tool("b", "B", "K", "", commands=(cmd("b1", "Enter"),))))
+    with pytest.raises(ValueError, match="two commands"):
+        check_tools((Tool("a", "A", "J", "", commands=(cmd("a1", "Enter"), cmd("a2", "enter"))),))
+    with pytest.raises(ValueError, match="taken by"):
+        check_tools((Tool("a", "A", "J", "", commands=(cmd("a1", "P"),)), Tool("p", "P", "P", "")))
 
 
 def test_app_keys_next_instance_and_brush_size(app: AnnotatorApp) -> None:

@@ -304,3 +304,99 @@ def test_version_flag(capsys: pytest.CaptureFixture[str]) -> None:
 
     assert main(["--version"]) == 0
     assert capsys.readouterr().out.strip() == f"efem-viz {version('efem-viz')}"
+
+
+# ---------------------------------------------------------------------------------------------- issue 22, item 5
+def test_view_refuses_what_it_cannot_show_before_serving(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    """`efem-viz view corrupt.ply` (and a folder without scenes, a scene over --max-points) says why in one line and
+    exits 1 without starting a server (it used to serve "(1 scenes)" and only log a warning)."""
+    from efem_viz import cli
+    from efem_viz.data.io import save_scene
+    from efem_viz.viewer import app as viewer_app
+
+    started: list[object] = []
+
+    def no_server(*args: object, **kwargs: object) -> None:
+        started.append(args)
+        raise AssertionError("a server was started")
+
+    monkeypatch.setattr(viewer_app.ViewerApp, "__init__", no_server)
+    corrupt = tmp_path / "corrupt.ply"
+    corrupt.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 1000\nproperty float x\nend_header\n\x00")
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    (empty / "notes.txt").write_text("no scenes here\n")
+    big = tmp_path / "big"
+    big.mkdir()
+    import trimesh
+
+    from efem_viz.data.scene import Scene
+
+    save_scene(Scene.create("ball", trimesh.creation.icosphere(subdivisions=2).vertices), big / "ball.ply")
+    for args, needle in (([str(corrupt)], "corrupt.ply"), ([str(empty)], "no scene files"),
+                         ([str(big / "ball.ply"), "--max-points", "100"], "--max-points")):
+        assert cli.main(["view", *args, "--port", "0"]) == 1, args
+        assert needle in one_error_line(capsys, "efem-viz view"), args
+    assert started == []
+
+
+def test_efem_annotate_version(capsys: pytest.CaptureFixture[str]) -> None:
+    """`efem-annotate --version` prints the version (it said "Missing value for argument 'scan'")."""
+    from importlib.metadata import version
+
+    from annotator.__main__ import main
+
+    assert main(["--version"]) == 0
+    assert capsys.readouterr().out.strip() == f"efem-annotate {version('efem-viz')}"
+
+
+def test_the_point_limit_message_names_the_flag(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A scan over the limit is refused with the option that raises it, `--max-points` (the message said "raise
+    max_points"), from every reader."""
+    import trimesh
+
+    from annotator.__main__ import main
+    from efem_viz.data.io import load_scene, save_scene
+    from efem_viz.data.scene import Scene, SceneError
+
+    m = trimesh.creation.icosphere(subdivisions=2)  # 162 vertices
+    scene = Scene.create("ball", m.vertices, faces=m.faces)
+    paths = [save_scene(scene, tmp_path / f"ball.{ext}") for ext in ("ply", "npz", "obj", "off", "glb")]
+    for p in paths:
+        with pytest.raises(SceneError) as info:
+            load_scene(p, max_points=100)
+        assert "--max-points" in str(info.value) and "raise max_points" not in str(info.value), (p, info.value)
+    with pytest.raises(SceneError, match="--max-points"):
+        Scene.create("ball", m.vertices, max_points=100)
+    assert main([str(paths[0]), "--max-points", "100", "--port", "0", "--out", str(tmp_path / "o")]) == 1
+    line = one_error_line(capsys, "efem-annotate")
+    assert "more than the limit of 100" in line and "--max-points" in line
+
+
+def test_info_calls_a_segment_outputs_labels_predictions(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`efem-viz info` on `<scene>.seg.ply` (segment's output, its `instance` = predictions) says "predicted
+    instances", never "ground truth"; its JSON says no ground truth. A scene with real labels still says ground
+    truth."""
+    import json
+
+    import trimesh
+
+    from efem_viz import cli
+    from efem_viz.data.io import save_scene
+    from efem_viz.data.scene import Scene
+
+    m = trimesh.creation.icosphere(subdivisions=2)
+    labels = (np.arange(len(m.vertices)) % 3).astype(np.int32)
+    scene = Scene.create("ball", m.vertices, faces=m.faces, instance=labels, categories={1: "mug", 2: "mug"})
+    seg = save_scene(scene, tmp_path / "ball.seg.ply")
+    gt = save_scene(scene, tmp_path / "gt" / "ball.ply")
+    assert cli.main(["info", str(seg)]) == 0
+    out = capsys.readouterr().out
+    assert "predicted instances" in out and "ground truth" not in out, out
+    assert cli.main(["info", str(seg), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["has_ground_truth"] is False and summary["labels"].startswith("predicted")
+    assert cli.main(["info", str(gt)]) == 0
+    out = capsys.readouterr().out
+    assert "ground truth" in out and "predicted" not in out

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from efem_viz.data.io import load_scene
-from efem_viz.data.rgbd import import_rgbd, load_rgbd_npz
+from efem_viz.data.rgbd import REAL_TABLETOP_LICENSE, import_rgbd, load_rgbd_npz
 from efem_viz.data.scene import Scene, SceneError
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_tabletop"
@@ -164,11 +164,36 @@ def test_cli_depth_png_and_npy(tmp_path: Path) -> None:
     assert main(["import-rgbd", "--depth", str(tmp_path / "d.npy"), "--out", str(tmp_path / "y.ply")]) == 1
 
 
+def test_an_imported_frame_carries_only_the_licence_given(tmp_path: Path) -> None:
+    """A user's frame is not stamped with the UOIS licence of the bundled frames: `import-rgbd` records the licence
+    given with --licence, or none; the points do not depend on it (bench/real.py's scan hashes stay valid)."""
+    import json
+
+    from efem_viz.cli import main
+
+    depth, K, _ = render_synthetic()
+    np.savez(tmp_path / "frame.npz", depth_mm=np.round(depth * 1000).astype(np.uint16), K=K)
+    assert main(["import-rgbd", str(tmp_path / "frame.npz"), "--out", str(tmp_path / "plain.ply")]) == 0
+    plain = load_scene(tmp_path / "plain.ply")
+    assert "licence" not in plain.provenance and "UOIS" not in json.dumps(dict(plain.provenance), default=str)
+    assert plain.provenance["source_file"] == "frame.npz"
+    mine = "CC0-1.0, (c) 2026 A. Person"
+    assert main(["import-rgbd", str(tmp_path / "frame.npz"), "--out", str(tmp_path / "mine.ply"),
+                 "--licence", mine]) == 0
+    given = load_scene(tmp_path / "mine.ply")
+    assert given.provenance["licence"] == mine
+    np.testing.assert_array_equal(given.points, plain.points)
+    assert "licence" not in load_scene(tmp_path / "frame.npz").provenance  # a frame opened directly: none either
+    s = import_rgbd(depth, K, name="uois", licence=REAL_TABLETOP_LICENSE)
+    assert s.provenance["licence"] == REAL_TABLETOP_LICENSE
+    np.testing.assert_array_equal(s.points, import_rgbd(depth, K, name="uois").points)
+
+
 @pytest.mark.skipif(not REAL.is_dir(), reason="shared real_tabletop frames not available")
 def test_real_frame_table_flat_and_upright() -> None:
     rgb, depth, K = load_rgbd_npz(REAL / "image_0000.npz")
     assert rgb.shape == (480, 640, 3) and depth.dtype == np.float32 and K.shape == (3, 3)
-    scene = import_rgbd(depth, K, rgb, name="real0")
+    scene = import_rgbd(depth, K, rgb, name="real0", licence=REAL_TABLETOP_LICENSE)
     nz, mean_abs_z = table_plane_stats(scene)
     assert nz > 0.99 and mean_abs_z < 0.005
     z = scene.points[:, 2]

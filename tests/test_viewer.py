@@ -162,6 +162,79 @@ def test_step_change_updates_samples_shapes_and_lists(app: Any) -> None:
     app.set_max_shapes(8)
 
 
+def test_show_one_em_step_or_the_final_result(app: Any) -> None:
+    """The Show switch: "EM step" shows only that step (decoded shapes, samples, scene colours; no final box,
+    label or mesh), "Result" only the final instances (no step shape or samples). The timeline shows a step, the
+    threshold the result. (At step 3 the final boxes, labels and TP/FP/FN colours sat on the step's shapes.)"""
+    s = app.state
+    inst_nodes = app.nodes.results
+    app.set_color_mode("instances")
+    app.set_threshold(0.0)
+    assert s.view_mode == "result" and app.panels.gui_view_mode.value.startswith("Result")
+    assert all(h.visible for h in inst_nodes.obbs) and all(h.visible for h in inst_nodes.labels)
+    assert not _visible_shapes(app) and not (app.nodes.samples is not None and app.nodes.samples.visible)
+    result_colours = np.array(app.nodes.points.colors)
+    assert not np.array_equal(result_colours, s.scene.colors)
+
+    app.panels.gui_step.value = 2  # moving the timeline, as a browser does: that step only
+    assert app.wait_idle(60)
+    assert s.view_mode == "step" and s.step == 2 and app.panels.gui_view_mode.value.startswith("EM step")
+    assert not any(h.visible for group in (inst_nodes.obbs, inst_nodes.labels, inst_nodes.axes) for h in group)
+    assert not any(h.visible for h in inst_nodes.meshes if h is not None)
+    assert _visible_shapes(app) and all(t == 2 for _, t in _visible_shapes(app))
+    assert app.nodes.samples is not None and app.nodes.samples.visible
+    assert np.array_equal(np.array(app.nodes.points.colors), s.scene.colors)
+
+    app.panels.gui_view_mode.value = "Result (final instances)"  # the Show dropdown
+    assert s.view_mode == "result" and s.step == 2
+    assert not _visible_shapes(app) and not app.nodes.samples.visible
+    assert all(h.visible for h in inst_nodes.obbs)
+    assert np.array_equal(np.array(app.nodes.points.colors), result_colours)
+    app.set_view_mode("step")
+    assert app.wait_idle(60)
+    assert _visible_shapes(app) and not any(h.visible for h in inst_nodes.obbs)
+    with pytest.raises(ValueError, match="view mode"):
+        app.set_view_mode("both")
+    app.set_threshold(0.0)
+    assert s.view_mode == "result"
+
+
+def test_colour_keys_tp_fp_boxes_and_grey_background(app: Any) -> None:
+    """Each colouring has its key under the Colour control: TP / FP / FN swatches (and the boxes turn green / red
+    as TP / FP), the weight heat map's colour bar, the instance colours' grey; scene colours have none. Points no
+    shown prediction covers are grey, so a scan colour cannot read as a prediction's."""
+    from efem_viz.viewer.legend import color_key_html
+
+    s = app.state
+    app.set_threshold(0.0)
+    app.set_color_mode("gt_match")
+    key = app.panels.gui_color_key.content
+    assert key == color_key_html("gt_match") and all(w in key for w in ("TP", "FP", "FN", "grey"))
+    m = app._gt_metrics()
+    kept = np.flatnonzero(app.kept_mask())
+    boxes = app.nodes.results.box_colors
+    for k in m.tp:
+        assert boxes[kept[k]] == tuple(int(c) for c in st.TP_COLOR)
+    for k in m.fp:
+        assert boxes[kept[k]] == tuple(int(c) for c in st.FP_COLOR)
+    assert m.tp or m.fp
+    colours = np.array(app.nodes.points.colors)
+    covered = np.zeros(s.scene.num_points, bool)
+    for mask in m.masks:
+        covered[np.asarray(mask)] = True
+    covered |= np.isin(s.scene.instance, m.fn)
+    rest = colours[~covered]
+    assert len(rest) and (rest[:, 0] == rest[:, 1]).all() and (rest[:, 1] == rest[:, 2]).all()
+    app.set_color_mode("instances")
+    assert "grey" in app.panels.gui_color_key.content and "TP" not in app.panels.gui_color_key.content
+    own = [tuple(int(v) for v in c) for c in app.nodes.results.colors]
+    assert app.nodes.results.box_colors == own  # the boxes' own colours again
+    app.set_color_mode("rgb")
+    assert app.panels.gui_color_key.content == ""
+    assert "linear-gradient" in color_key_html("weights")
+    app.set_color_mode("instances")
+
+
 def test_inspect_proposal_shows_fig_s9_views(app: Any) -> None:
     trace = app.state.result.trace
     app.set_step(2)
@@ -171,6 +244,7 @@ def test_inspect_proposal_shows_fig_s9_views(app: Any) -> None:
     fut.result(timeout=60)
     assert app.wait_idle(60)
     assert app.state.color_mode == "weights"
+    assert "linear-gradient" in app.panels.gui_color_key.content  # the heat map's colour bar
     assert {"crop", "samples", "shape"} <= set(app.nodes.inspect)
     view = app.state.result.replay.view(pid, 2, app.prior())
     assert np.asarray(app.nodes.inspect["samples"].points).shape[0] == len(view.sampled_points)
@@ -423,6 +497,30 @@ def test_view_args_defaults() -> None:
         ViewArgs(paths=(Path("/nonexistent/dir"),)).run()
 
 
+def test_exports_default_to_the_user_data_folder(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Without --out-dir the viewer's exports go to `view/` in the user's data folder, never into the working
+    directory (run from the checkout, `./efem_out` landed in `git status`)."""
+    import sys
+
+    from efem_viz.serve.outputs import default_output_dir
+    from efem_viz.viewer.app import ViewerApp
+    from efem_viz.viewer.commands import ViewArgs
+
+    repo = Path(__file__).resolve().parents[1]
+    assert ViewArgs().out_dir is None
+    assert not default_output_dir("view").resolve().is_relative_to(repo)
+    if sys.platform.startswith("linux"):
+        monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "data"))
+        assert default_output_dir("view") == tmp_path / "data" / "efem-viz" / "view"
+    monkeypatch.chdir(repo)
+    a = ViewerApp([tmp_path], port=0, open_first=False)
+    try:
+        assert a.out_root == default_output_dir("view").resolve()
+        assert not a.out_root.is_relative_to(repo)
+    finally:
+        a.stop()
+
+
 def test_single_file_path_reads_its_saved_result_only(scene_dir: Path, prior: Any) -> None:
     from efem_viz.viewer.app import ViewerApp
 
@@ -459,8 +557,10 @@ def test_prior_mismatch_is_reported_once(scene_dir: Path) -> None:
     try:
         assert a.open_scene("spheres")
         assert a.wait_idle(60)
+        a.set_step(1)  # the result view decodes no step shape; a step does
+        assert a.wait_idle(60)
         assert "latent size" in (a.state.error or "")
-        a.set_step(1)
+        a.set_step(2)
         assert a.wait_idle(60)
         assert not a.nodes.shapes  # nothing decoded with the wrong prior, and no retry per step
         assert a.nodes.samples is not None and a.nodes.samples.visible  # the rest of the timeline works

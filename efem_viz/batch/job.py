@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
-from efem_viz.data.io import RESULT_SUFFIX
+from efem_viz.data.io import RESULT_SUFFIX, SEG_SUFFIX  # SEG_SUFFIX: the coloured PLY written per scene
 from efem_viz.prior.config import DEFAULT_PRIOR
 
 if TYPE_CHECKING:
@@ -29,8 +29,6 @@ BATCH_SCHEMA_VERSION = 1
 """Version of `batch.json` and of the job fingerprint (bump when either changes meaning)."""
 BATCH_FILE = "batch.json"
 """The batch record written beside the results."""
-SEG_SUFFIX = ".seg.ply"
-"""Suffix of the coloured PLY written per scene."""
 SCANNET_DIR = "scannet"
 """Sub-folder of the ScanNet benchmark layout."""
 

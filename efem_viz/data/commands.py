@@ -36,7 +36,7 @@ class InfoArgs:
         from rich.console import Console
         from rich.table import Table
 
-        from efem_viz.data.io import find_scenes, load_scene
+        from efem_viz.data.io import find_scenes, holds_predictions, load_scene
 
         console = Console()
         paths = find_scenes(self.scenes)
@@ -52,6 +52,11 @@ class InfoArgs:
                 continue
             summary = scene.summary()
             summary["file"] = str(path)
+            predicted = holds_predictions(path)
+            labels_name = "predicted instances" if predicted else "ground truth"
+            if predicted:  # a segment output: its labels are the predictions, never ground truth
+                summary["has_ground_truth"] = False
+                summary["labels"] = "predicted (efem-viz segment output)"
             # never estimate normals here: that is the slow part of loading a bare point cloud, and info needs none
             summary["normals"] = "estimated on use" if scene.normals_pending else "stored"
             if self.json:
@@ -70,10 +75,10 @@ class InfoArgs:
             table.add_row("colours", colours)
             table.add_row("normals", "in the file" if summary["normals"] == "stored" else "none (estimated on use)")
             if scene.instance is None:
-                table.add_row("ground truth", "none")
+                table.add_row(labels_name, "none")
             else:
                 table.add_row(
-                    "ground truth",
+                    labels_name,
                     f"{len(summary.get('instances', {}))} instances, "
                     f"{summary.get('labelled_points', 0):,} labelled points",
                 )
@@ -86,7 +91,7 @@ class InfoArgs:
                 table.add_row(f"provenance.{key}", str(val))
             console.print(table)
             if scene.instance is not None and summary.get("instances"):
-                inst = Table(title="instances", title_justify="left")
+                inst = Table(title=labels_name if predicted else "instances", title_justify="left")
                 inst.add_column("id", justify="right")
                 inst.add_column("category")
                 inst.add_column("points", justify="right")
@@ -134,6 +139,9 @@ class ImportRgbdArgs:
     """Keep points up to this height above the table, metres."""
     seed: int = 0
     """RANSAC seed."""
+    licence: str | None = None
+    """The frame's licence, recorded in the scene's provenance (e.g. "CC-BY-4.0, (c) 2025 A. Person"); default:
+    none is recorded."""
 
     def run(self) -> int:
         """Import the frame and save it; returns 0."""
@@ -168,6 +176,7 @@ class ImportRgbdArgs:
             max_depth=self.max_depth,
             max_height=self.max_height,
             seed=self.seed,
+            licence=self.licence,
             provenance={"source_file": source.name},
         )
         save_scene(scene, self.out)

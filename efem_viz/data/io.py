@@ -45,7 +45,15 @@ from typing import Any, Callable, Iterable, Iterator, NamedTuple, cast
 import numpy as np
 
 from efem_viz.data.npz import check_npz_headers
-from efem_viz.data.scene import DEFAULT_MAX_POINTS, MAX_FACES_PER_POINT, SCENE_SCHEMA_VERSION, Scene, SceneError
+from efem_viz.data.scene import (
+    DEFAULT_MAX_POINTS,
+    LIMIT_FLAG_HINT,
+    MAX_FACES_PER_POINT,
+    SCENE_SCHEMA_VERSION,
+    TOO_MANY_POINTS_HINT,
+    Scene,
+    SceneError,
+)
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +61,15 @@ SCENE_SUFFIXES: tuple[str, ...] = (".ply", ".obj", ".off", ".glb", ".npz")
 """File suffixes `load_scene` understands (lower case)."""
 RESULT_SUFFIX = ".efem.npz"
 """Suffix of EFEM result files (`EMResult.save`); `find_scenes` skips them."""
+SEG_SUFFIX = ".seg.ply"
+"""Suffix of `efem-viz segment`'s scene copies coloured by prediction: their per-vertex `instance` property holds
+the *predicted* instances, not ground truth (`holds_predictions`)."""
+
+
+def holds_predictions(path: str | os.PathLike[str]) -> bool:
+    """Whether a scene file's instance labels are predictions (a `segment` output, `SEG_SUFFIX`), not ground
+    truth."""
+    return Path(path).name.endswith(SEG_SUFFIX)
 
 _CATEGORIES_COMMENT = "efem_categories"
 _PROVENANCE_COMMENT = "efem_provenance"
@@ -454,13 +471,13 @@ def _check_ply_counts(p: Path, head: _PlyHead, max_points: int) -> None:
     n_vertex = counts.get("vertex", 0)
     if n_vertex > max_points:
         raise SceneError(
-            f"{p} has {n_vertex:,} points, more than the limit of {max_points:,}; downsample it or raise max_points"
+            f"{p} has {n_vertex:,} points, more than the limit of {max_points:,}; {TOO_MANY_POINTS_HINT}"
         )
     max_faces = MAX_FACES_PER_POINT * max(max_points, 1)
     if counts.get("face", 0) > max_faces:
         raise SceneError(
             f"{p}: PLY header declares {counts['face']:,} faces, more than the limit of {max_faces:,} "
-            f"({MAX_FACES_PER_POINT} per allowed point; corrupt header, or raise max_points)"
+            f"({MAX_FACES_PER_POINT} per allowed point; corrupt header, or {LIMIT_FLAG_HINT})"
         )
     size = p.stat().st_size
     body = max(size - head.body_offset, 0)
@@ -1099,8 +1116,7 @@ def _load_obj(p: Path, max_points: int) -> dict[str, Any]:
     n_v = _obj_vertex_count(p)
     if n_v > max_points:
         raise SceneError(
-            f"{p} has {n_v:,} vertices ('v' lines), more than the limit of {max_points:,}; downsample it or raise "
-            "max_points"
+            f"{p} has {n_v:,} vertices ('v' lines), more than the limit of {max_points:,}; {TOO_MANY_POINTS_HINT}"
         )
     _check_obj_indices(p)
     geom = trimesh.load(str(p), file_type="obj", process=False, maintain_order=True)
@@ -1150,11 +1166,11 @@ def _load_off(p: Path, max_points: int) -> dict[str, Any]:
     if nv < 0 or nf < 0:
         raise SceneError(f"{p}: OFF count line gives negative counts ({nv} vertices, {nf} faces)")
     if nv > max_points:
-        raise SceneError(f"{p} has {nv:,} points, more than the limit of {max_points:,}")
+        raise SceneError(f"{p} has {nv:,} points, more than the limit of {max_points:,}; {TOO_MANY_POINTS_HINT}")
     if nf > MAX_FACES_PER_POINT * max(max_points, 1):
         raise SceneError(
             f"{p}: OFF header declares {nf:,} faces, more than the limit of {MAX_FACES_PER_POINT * max_points:,} "
-            f"({MAX_FACES_PER_POINT} per allowed point; corrupt header, or raise max_points)"
+            f"({MAX_FACES_PER_POINT} per allowed point; corrupt header, or {LIMIT_FLAG_HINT})"
         )
     if len(lines) < idx + nv + nf:
         raise SceneError(f"{p}: OFF file is truncated: expected {nv} vertices and {nf} faces after the header")
@@ -1276,8 +1292,8 @@ def _check_glb(p: Path, max_points: int) -> None:
         return  # a malformed glTF structure: trimesh reports it
     if n_positions > max_points:
         raise SceneError(
-            f"{p} has {n_positions:,} vertex positions, more than the limit of {max_points:,}; downsample it or "
-            "raise max_points"
+            f"{p} has {n_positions:,} vertex positions, more than the limit of {max_points:,}; "
+            f"{TOO_MANY_POINTS_HINT}"
         )
 
 

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from efem_viz.data.scene import MAX_FACES_PER_POINT, SceneError
+from efem_viz.data.scene import MAX_FACES_PER_POINT, TOO_MANY_POINTS_HINT, SceneError
 
 _NPZ_ROWS_PER_POINT = {"points": 1, "normals": 1, "colors": 1, "instance": 1, "faces": MAX_FACES_PER_POINT}
 """Rows a native scene array may have per allowed point (`max_points`)."""
@@ -76,7 +76,7 @@ def check_npz_headers(p: Path, max_points: int) -> None:
                     what = "points" if key != "faces" else "faces"
                     raise SceneError(
                         f"{p}: array {key!r} has shape {tuple(shape)} {dtype}: more {what} than the limit of "
-                        f"{rows_limit:,} (max_points {max_points:,}); downsample it or raise max_points"
+                        f"{rows_limit:,} (point limit {max_points:,}); {TOO_MANY_POINTS_HINT}"
                     )
             elif nbytes > max(_NPZ_OTHER_BYTES, _NPZ_BYTES_PER_ROW * max_points):
                 raise SceneError(

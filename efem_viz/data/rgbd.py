@@ -22,7 +22,8 @@ from efem_viz.data.scene import Scene, SceneError
 log = logging.getLogger(__name__)
 
 REAL_TABLETOP_LICENSE = "MIT, UOIS example images, (c) 2019 Chris Xie"
-"""Licence line of the frames in `shared/data/real_tabletop` (the UOIS project's example images)."""
+"""Licence line of the frames in `shared/data/real_tabletop` (the UOIS project's example images), which the bundled
+real sample scenes carry. An import records it only when asked to (`licence=`): a user's frame is theirs."""
 MAX_FRAME_SPAN_M = 1000.0
 """A frame whose back-projected points span more than this (metres) has absurd intrinsics and is refused."""
 
@@ -288,6 +289,7 @@ def import_rgbd(
     below: float = 0.015,
     margin: float = 0.02,
     seed: int = 0,
+    licence: str | None = None,
     provenance: dict[str, Any] | None = None,
 ) -> Scene:
     """Turn one RGB-D frame into a tabletop `Scene` (table at z = 0, +Z up, objects above).
@@ -309,11 +311,13 @@ def import_rgbd(
         below: keep points down to this depth under the table (sensor noise), metres.
         margin: grow the table outline by this much, metres.
         seed: RANSAC seed.
+        licence: the frame's licence, recorded as `provenance["licence"]` (e.g. `REAL_TABLETOP_LICENSE` for the
+            UOIS frames); None records none (the frame's owner knows its terms).
         provenance: extra provenance entries (e.g. the source file).
 
     Returns:
         The Scene; `provenance` holds the intrinsics, the plane (camera frame), the camera pose in the scene
-        frame (`T_world_camera`, 4x4), the plane residual and the licence of the real frames.
+        frame (`T_world_camera`, 4x4), the plane residual and the licence when one was given.
 
     Raises:
         SceneError: bad shapes, too few valid depth readings, no plane found.
@@ -381,8 +385,9 @@ def import_rgbd(
         "max_depth_m": max_depth,
         "max_height_m": max_height,
         "seed": seed,
-        "licence": REAL_TABLETOP_LICENSE,
     }
+    if licence is not None:
+        prov["licence"] = str(licence)
     prov.update(provenance or {})
     scene = Scene.create(name, pts, normals=normals, colors=cols, provenance=prov)
     log.info(
@@ -399,8 +404,9 @@ def import_rgbd_file(
     voxel: float = 0.004,
     max_depth: float = 2.5,
     seed: int = 0,
+    licence: str | None = None,
 ) -> Scene:
-    """`load_rgbd_npz` + `import_rgbd`, recording the source file in the provenance.
+    """`load_rgbd_npz` + `import_rgbd`, recording the source file (and the licence, when given) in the provenance.
 
     Raises:
         SceneError: what either raises, the message naming the file.
@@ -409,7 +415,7 @@ def import_rgbd_file(
     rgb, depth_m, K = load_rgbd_npz(p)
     try:
         return import_rgbd(
-            depth_m, K, rgb, name=name or p.stem, voxel=voxel, max_depth=max_depth, seed=seed,
+            depth_m, K, rgb, name=name or p.stem, voxel=voxel, max_depth=max_depth, seed=seed, licence=licence,
             provenance={"source_file": p.name},
         )
     except SceneError as exc:  # the import names the scene; the caller needs the file

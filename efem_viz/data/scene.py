@@ -23,6 +23,11 @@ DEFAULT_MAX_POINTS = 5_000_000
 MAX_FACES_PER_POINT = 4
 """A file may declare at most this many faces per allowed point (`max_points`): a closed triangle mesh has about
 2 faces per vertex, so only a corrupt or hostile header goes past 4 (checked before anything is allocated)."""
+LIMIT_FLAG_HINT = "raise the limit with --max-points"
+"""How a user raises the point limit: the option of the commands that read scenes (efem-viz view / info,
+efem-annotate). Ends every "more than the limit" message."""
+TOO_MANY_POINTS_HINT = f"downsample it, or {LIMIT_FLAG_HINT}"
+"""The end of every "more points than the limit" message."""
 
 
 class SceneError(ValueError):
@@ -167,7 +172,7 @@ class Scene:
         if n > max_points:
             raise SceneError(
                 f"scene {name!r} has {n:,} points, more than the limit of {max_points:,}; "
-                "downsample it or raise max_points"
+                f"{TOO_MANY_POINTS_HINT}"
             )
         if not np.isfinite(pts).all():
             bad = int((~np.isfinite(pts)).any(axis=1).sum())

@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any, Callable, Literal, Sequence
 import numpy as np
 
 from efem_viz.colors import instance_colors
+from efem_viz.data.scene import DEFAULT_MAX_POINTS
 from efem_viz.viewer import state as st
 from efem_viz.serve.inputs import (
     ClientValueError,
@@ -32,11 +33,14 @@ from efem_viz.serve.inputs import (
     read_text,
     resolve_inside_root,
 )
-from efem_viz.viewer.legend import category_summary, legend_html, result_summary_markdown
-from efem_viz.viewer.nodes import SceneNodes, decode_shape, default_view, proposal_samples
+from efem_viz.viewer.legend import category_summary, color_key_html, legend_html, result_summary_markdown
+from efem_viz.serve.camera import CameraGuard, fitted_view
+from efem_viz.serve.outputs import default_output_dir
+from efem_viz.viewer.nodes import VIEW_DIRECTION, SceneNodes, decode_shape, proposal_samples
 from efem_viz.viewer.panels import (
     COLOR_MODES,
     MASK_BAND_RANGE,
+    VIEW_MODES,
     NO_PROPOSAL,
     active_figure,
     build_panels,
@@ -64,7 +68,21 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
-DEFAULT_SCENE_DIR = REPO_ROOT / "sample_scenes"
+BUNDLED_SCENE_DIR = Path(__file__).resolve().parents[1] / "sample_scenes"
+"""The sample scenes an installed efem-viz carries (`efem_viz/sample_scenes/`, copied from the checkout's
+`sample_scenes/` when the wheel is built: setup.py)."""
+CHECKOUT_SCENE_DIR = REPO_ROOT / "sample_scenes"
+"""The sample scenes of a source checkout."""
+
+
+def default_scene_dir() -> Path:
+    """Where `efem-viz view` without arguments finds its demo: the bundled samples of an install, else the
+    checkout's `sample_scenes/` (which may be missing: the caller says so)."""
+    return BUNDLED_SCENE_DIR if BUNDLED_SCENE_DIR.is_dir() else CHECKOUT_SCENE_DIR
+
+
+DEFAULT_SCENE_DIR = default_scene_dir()
+"""`default_scene_dir()` at import."""
 
 
 class ViewerApp:
@@ -79,10 +97,12 @@ class ViewerApp:
         open_first: open the first scene at start (and its saved trace when present).
         out_dir: the output root: every export from the GUI goes into this folder or below it (a folder typed
             into the GUI must resolve inside it); the static demo defaults to `<out_dir>/static/<scene>/`.
+            Default: `view/` in the user's data folder (`efem_viz.serve.outputs`), never the working directory.
         token: the server's access token (None = a fresh random one; see `efem_viz.serve.guard`).
         results: folders of saved results (`<scene>.efem.npz`, e.g. `efem-viz segment --out DIR`), searched after
             each scene's own folder; with no `paths`, the scenes are the scene files in these folders (segment's
             `<scene>.seg.ply`).
+        max_points: refuse scenes with more points than this.
 
     Raises:
         GuardUnavailableError: the access guard cannot be attached to this viser (nothing is served).
@@ -98,17 +118,21 @@ class ViewerApp:
         prior_name: str = DEFAULT_PRIOR,
         run_priors: Sequence[str] = (),
         open_first: bool = True,
-        out_dir: str | Path = "efem_out",
+        out_dir: str | Path | None = None,
         token: str | None = None,
         results: Sequence[str | Path] = (),
+        max_points: int = DEFAULT_MAX_POINTS,
     ) -> None:
         from efem_viz.serve.guard import start_server
+
+        self.max_points = int(max_points)
+        """Scenes with more points are refused (shown as an error; the server stays up)."""
 
         self.state = ViewerState()
         scene_paths = list(paths) if paths else (list(results) if results else [DEFAULT_SCENE_DIR])
         self.state.entries = st.discover_scenes(scene_paths, result_dirs=list(results))
         self._roots = [Path(p).expanduser().resolve() for p in [*scene_paths, *results]]
-        self.out_root = Path(out_dir).expanduser().resolve()
+        self.out_root = Path(out_dir if out_dir is not None else default_output_dir("view")).expanduser().resolve()
         """Exports from the GUI stay inside this folder (fixed at start)."""
         self._prior: ShapePriorLike | None = prior
         self._prior_name = prior_name
@@ -143,6 +167,11 @@ class ViewerApp:
         self.server, self.access = start_server(host=host, port=port, token=token)
         self.server.gui.configure_theme(control_width="large", dark_mode=False, show_logo=False)
         self.server.scene.set_up_direction("+z")
+        unit = (np.full(3, -0.5), np.full(3, 0.5))  # until a scene opens
+        self.camera_guard = CameraGuard(self.server, fitted_view(*unit, direction=VIEW_DIRECTION), *unit,
+                                        hint="Reset view (Scene tab) brings it back any time.")
+        """Fits every browser's camera to the open scene and puts back a camera that left it
+        (`efem_viz.serve.camera`)."""
         self.nodes = SceneNodes(self.server.scene)
         self.nodes.on_shape_click = self._on_shape_click
         self.panels = build_panels(
@@ -150,6 +179,7 @@ class ViewerApp:
         )
         self._wire()
         self.server.on_client_connect(self._on_connect)
+        self.server.on_client_disconnect(self.camera_guard.forget)
         if open_first and self.state.entries:
             for e in self.state.entries:  # the first scene that opens (a bad file only shows its error)
                 if self.open_scene(e.name):
@@ -220,6 +250,7 @@ class ViewerApp:
                     pass
 
     def _on_connect(self, client: Any) -> None:
+        self.camera_guard.attach(client)
         if self.state.error:
             client.add_notification("efem-viz", self.state.error, color="red", auto_close_seconds=8.0)
 
@@ -257,6 +288,7 @@ class ViewerApp:
         )
         p.gui_cancel.on_click(guard(self.cancel_run))
         p.gui_load.on_click(guard(lambda: self._submit(self._worker, self.load_trace)))
+        p.gui_view_mode.on_update(guard(lambda: self.set_view_mode(VIEW_MODES[read_choice(p.gui_view_mode)])))
         p.gui_step.on_update(guard(lambda: self.set_step(read_int(p.gui_step))))
         p.gui_play.on_click(guard(self.toggle_play))
         p.gui_speed.on_update(guard(lambda: setattr(self.state, "speed", read_number(p.gui_speed, write_back=wb))))
@@ -276,6 +308,7 @@ class ViewerApp:
                     )
                 )
             )
+        p.gui_reset_view.on_click(lambda event: self.reset_view(event.client))
         p.gui_export_results.on_click(guard(lambda: self.export_from_gui("results")))
         p.gui_export_static.on_click(guard(lambda: self.export_from_gui("static")))
 
@@ -401,7 +434,7 @@ class ViewerApp:
         Returns:
             True on success; on failure the error is shown in the GUI and the previous scene stays.
         """
-        from efem_viz.data.io import load_scene
+        from efem_viz.data.io import holds_predictions, load_scene
 
         try:
             entry = self.state.entry(name)
@@ -413,7 +446,9 @@ class ViewerApp:
             return False
         self._set_status(f"Loading {entry.name} …")
         try:
-            scene = load_scene(entry.path)
+            scene = load_scene(entry.path, max_points=self.max_points)
+            if holds_predictions(entry.path) and scene.instance is not None:
+                scene = scene.with_labels(None, {})  # a segment output's labels are its predictions: no ground truth
         except Exception as exc:  # noqa: BLE001 - SceneError, OSError, parser errors: show, stay up
             self._set_status(f"Could not open {entry.path.name}: {exc}", error=True)
             if self.state.scene_name is not None:
@@ -429,6 +464,7 @@ class ViewerApp:
             s = self.state
             s.scene_name, s.scene, s.result, s.result_source = entry.name, scene, None, ""
             s.step, s.selected, s.color_mode = 0, None, "rgb"
+            self._set_view_mode("result")
             if scene.is_mesh and s.display == "points":
                 s.display = "mesh"
             elif not scene.is_mesh:
@@ -448,18 +484,13 @@ class ViewerApp:
         return True
 
     def _frame_cameras(self, scene: Any) -> None:
-        """Point the initial camera (new clients, "Reset View") and every connected camera at the scene."""
-        look_at, position = default_view(*scene.bounds)
-        cam = self.server.initial_camera
-        cam.look_at = look_at
-        cam.position = position
-        cam.up = (0.0, 0.0, 1.0)
-        for client in list(self.server.get_clients().values()):
-            try:
-                client.camera.look_at = look_at
-                client.camera.position = position
-            except Exception:  # noqa: BLE001 - a client may disconnect meanwhile
-                pass
+        """Point the initial camera (new clients, "Reset view") and every connected camera at the scene."""
+        lo, hi = scene.bounds
+        self.camera_guard.set_scene(fitted_view(lo, hi, direction=VIEW_DIRECTION), lo, hi)
+
+    def reset_view(self, client: Any = None) -> None:
+        """Put one browser's camera (every browser's when None) on the view that fits the open scene."""
+        self.camera_guard.reset(client)
 
     def set_display(self, display: str) -> None:
         """'points' or 'mesh'."""
@@ -467,7 +498,7 @@ class ViewerApp:
             raise ValueError(f"display must be 'points' or 'mesh', got {display!r}")
         with self._lock:
             self.state.display = display  # type: ignore[assignment]
-            self.nodes.set_display(display, recolored=self.state.color_mode != "rgb")
+            self.nodes.set_display(display, recolored=self._recolored())
 
     def set_point_size(self, size_m: float) -> None:
         with self._lock:
@@ -483,8 +514,10 @@ class ViewerApp:
             self.state.color_mode = mode  # type: ignore[assignment]
             label = next(k for k, v in COLOR_MODES.items() if v == mode)
             self._gui_set(self.panels.gui_color, label)
+            if mode in ("instances", "gt_match"):
+                self._show_result_view()  # colours of the final instances: show the result
             self.draw_point_colors()
-            self.nodes.set_display(self.state.display, recolored=mode != "rgb")
+            self.nodes.set_display(self.state.display, recolored=self._recolored())
             self._show_results()
 
     # ================================================================== 2. results: load / run
@@ -632,7 +665,7 @@ class ViewerApp:
             p.gui_active_plot.visible = True
             s.color_mode = "instances"
             self._gui_set(p.gui_color, "instances")
-            self.set_step(s.step)
+            self.set_step(s.step, view_mode="result")
             self.set_threshold(s.threshold)
             self._set_status(f"Loaded result: {source}.")
 
@@ -654,13 +687,52 @@ class ViewerApp:
         p.gui_proposal.options = (NO_PROPOSAL,)
 
     # ================================================================== 3. timeline
-    def set_step(self, step: int) -> None:
+    def set_view_mode(self, mode: str) -> None:
+        """Show one EM step ("step": its decoded shapes and samples, no final instances) or the final instances
+        ("result": meshes, boxes, labels and their colours, no step layers)."""
+        if mode not in VIEW_MODES.values():
+            raise ValueError(f"unknown view mode {mode!r}; expected one of {sorted(VIEW_MODES.values())}")
+        with self._lock:
+            self._set_view_mode(mode)  # type: ignore[arg-type]
+            if self.state.result is not None:
+                self.set_step(self.state.step, view_mode=self.state.view_mode)
+                self._show_results()
+                self.draw_point_colors()
+                self.nodes.set_display(self.state.display, recolored=self._recolored())
+
+    def _show_result_view(self) -> None:
+        """Switch to the result view when a step is shown (the step's layers step aside)."""
+        if self.state.view_mode != "result" and self.state.result is not None:
+            self.set_step(self.state.step, view_mode="result")
+
+    def _set_view_mode(self, mode: st.ViewMode) -> None:
+        """Record the mode and show it in the Show dropdown (no redraw)."""
+        self.state.view_mode = mode
+        self._gui_set(self.panels.gui_view_mode, next(k for k, v in VIEW_MODES.items() if v == mode))
+
+    def _recolored(self) -> bool:
+        """Whether the points carry other colours than the scene's (the mesh display then overlays them)."""
+        s = self.state
+        if s.color_mode == "weights":
+            return True
+        return s.color_mode != "rgb" and s.view_mode == "result"
+
+    def set_step(self, step: int, *, view_mode: st.ViewMode = "step") -> None:
         """Show EM step `step`: proposals alive then (samples now, decoded shapes as they arrive), the dead list,
-        the inspected proposal's views and the active-count plot marker. Cheap; decoding runs in the worker."""
+        the inspected proposal's views and the active-count plot marker. Cheap; decoding runs in the worker.
+
+        Args:
+            step: the EM step (clamped to the trace).
+            view_mode: "step" (the default: moving the timeline shows that step only) or "result" (update the
+                timeline and panels but keep showing the final instances).
+        """
         with self._lock:
             s = self.state
             if s.result is None:
                 return
+            was = s.view_mode
+            if view_mode != was:
+                self._set_view_mode(view_mode)
             T = s.num_steps
             t = int(np.clip(step, 0, max(T - 1, 0)))
             s.step = t
@@ -673,10 +745,14 @@ class ViewerApp:
             self._update_step_panels(trace, t, ids, scores)
             if s.selected is not None:
                 self._request_inspect(s.selected, t)
+            if view_mode != was:  # the other layers step aside
+                self._show_results()
+                self.draw_point_colors()
+                self.nodes.set_display(s.display, recolored=self._recolored())
 
     def _draw_samples(self, trace: Any, t: int, drawn: np.ndarray) -> None:
         s = self.state
-        if not s.show_samples or drawn.size == 0:
+        if not s.show_samples or drawn.size == 0 or s.view_mode != "step":
             self.nodes.hide_samples()
             return
         pts, cols = proposal_samples(trace, t, drawn, s.scene.points)
@@ -687,7 +763,7 @@ class ViewerApp:
 
     def _draw_shapes(self, t: int, drawn: np.ndarray) -> None:
         s = self.state
-        keys = [(int(pid), t) for pid in drawn] if s.show_shapes else []
+        keys = [(int(pid), t) for pid in drawn] if s.show_shapes and s.view_mode == "step" else []
         self.nodes.show_shapes(keys)
         missing = [k for k in keys if not self.nodes.has_shape(*k)]
         if missing and self._no_shapes_generation != self._generation:
@@ -714,7 +790,7 @@ class ViewerApp:
                     return
                 if shape is not None:
                     self.nodes.add_shape(pid, t, *shape, dead=st.is_dead_at(trace, pid, t))
-                if self.state.step == t and self.state.show_shapes:
+                if self.state.step == t and self.state.show_shapes and self.state.view_mode == "step":
                     ids, scores = st.alive_table(trace, t)
                     drawn = st.top_n(ids, scores, self.state.max_shapes)
                     self.nodes.show_shapes([(int(p_), t) for p_ in drawn])
@@ -881,6 +957,7 @@ class ViewerApp:
             self._gui_set(self.panels.gui_threshold, s.threshold)
             if s.result is None:
                 return
+            self._show_result_view()  # the threshold filters the final instances: show them
             keep = self.kept_mask()
             self._show_results()
             self.draw_point_colors()
@@ -936,14 +1013,18 @@ class ViewerApp:
         with self._lock:
             s = self.state
             s.show_meshes, s.show_obbs, s.show_axes = bool(meshes), bool(obbs), bool(axes)
+            self._show_result_view()
             self._show_results()
 
     def _show_results(self) -> None:
         """Result layers per the toggles and the threshold; meshes step aside while the points carry a weight heat
         map or the TP/FP/FN colours (they would hide them)."""
         s = self.state
+        keep = self.kept_mask()
+        if s.view_mode != "result":  # one EM step on screen: no final instance over it
+            keep = np.zeros_like(keep)
         self.nodes.show_results(
-            self.kept_mask(),
+            keep,
             show_meshes=s.show_meshes and s.color_mode in ("rgb", "instances"),
             show_obbs=s.show_obbs,
             show_axes=s.show_axes,
@@ -994,24 +1075,40 @@ class ViewerApp:
         mode = s.color_mode
         cols: np.ndarray
         key: Any
-        if mode == "instances" and s.result is not None:
+        shown = "rgb"  # the colouring in effect: its key is shown under the Colour control
+        boxes: np.ndarray | None = None
+        if mode in ("instances", "gt_match") and s.view_mode != "result":
+            cols, key = base, ("rgb", id(base))  # one EM step on screen: no final instance colours
+        elif mode == "instances" and s.result is not None:
             keep = self.kept_mask()
             cols = st.instance_colors(base, s.result.instances, keep)
             key = ("inst", self._generation, self._mask_version, keep.tobytes())
+            shown = "instances"
         elif mode == "gt_match" and s.result is not None and s.scene.has_gt and self._gt_metrics_or_none() is not None:
             m = self._gt_metrics()
             cols = st.gt_match_colors(base, m.masks, s.scene.instance, tp=m.tp, fp=m.fp, fn=m.fn)
             key = ("gt", self._generation, self._mask_version, self.kept_mask().tobytes())
+            shown = "gt_match"
+            boxes = np.array(self.nodes.results.colors, np.uint8, copy=True)
+            kept = np.flatnonzero(self.kept_mask())  # the metrics index the kept instances
+            for ks, colour in ((m.tp, st.TP_COLOR), (m.fp, st.FP_COLOR)):
+                for k in ks:
+                    if int(k) < kept.size and kept[int(k)] < len(boxes):
+                        boxes[kept[int(k)]] = colour
         elif mode in ("instances", "gt_match") and s.result is not None:
             keep = self.kept_mask()
             cols = st.instance_colors(base, s.result.instances, keep)
             key = ("inst", self._generation, self._mask_version, keep.tobytes())
+            shown = "instances"
         elif mode == "weights" and s.selected is not None and self._inspect_weights is not None:
             cols = st.weights_colors(base, self._inspect_weights)
             key = ("w", self._generation, s.selected, s.step)
+            shown = "weights"
         else:
             cols, key = base, ("rgb", id(base))
         self.nodes.set_point_colors(cols, key=key)
+        self.nodes.set_box_colors(boxes)
+        self.panels.gui_color_key.content = color_key_html(shown)
 
     # ================================================================== 7. export
     def export_results(self, out_dir: str | Path) -> Path | None:

@@ -8,6 +8,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import tyro
+
+from efem_viz.data.scene import DEFAULT_MAX_POINTS, SceneError
 from efem_viz.prior.config import DEFAULT_PRIOR
 
 logger = logging.getLogger(__name__)
@@ -15,7 +17,7 @@ logger = logging.getLogger(__name__)
 
 @dataclass
 class ViewArgs:
-    """Open the EFEM viewer in the browser on scenes (files or folders; default: the bundled sample_scenes/)."""
+    """Open the EFEM viewer in the browser on scenes (files or folders; default: the sample scenes)."""
 
     paths: tyro.conf.Positional[tuple[Path, ...]] = field(default_factory=tuple)
     """Scene files and/or folders. Only scene files inside these paths can be opened."""
@@ -27,30 +29,39 @@ class ViewArgs:
     prior: tyro.conf.UseAppendAction[list[str]] = field(default_factory=list)
     """Shape prior used for runs and for decoding shapes (default mug); repeat it for runs over several categories
     (`--prior mug --prior sphere`: a joint solve, the first prior is the viewer's)."""
-    out_dir: Path = Path("efem_out")
-    """Output root: exports from the GUI (results, static demo) go into this folder or below it, nowhere else."""
+    out_dir: Path | None = None
+    """Output root: exports from the GUI (results, static demo) go into this folder or below it, nowhere else
+    (default: `view/` in the user's data folder, e.g. ~/.local/share/efem-viz/view; printed at start)."""
     token: str | None = None
     """Access token to require (default: a fresh random one, printed in the URL). At least 16 characters."""
     results: tuple[Path, ...] = ()
     """Folders of saved results (`efem-viz segment --out DIR`): each scene's `<scene>.efem.npz` is looked for there
     after its own folder. Without scene paths, the scenes are the scene files in these folders."""
+    max_points: int = DEFAULT_MAX_POINTS
+    """Refuse scenes with more points than this."""
 
     def run(self) -> int:
         """Start the server, print its URL, serve until Ctrl+C / SIGTERM (`efem_viz.serve.lifecycle`)."""
         from efem_viz.serve.lifecycle import stop_signals, wait_for_stop
-        from efem_viz.viewer.app import DEFAULT_SCENE_DIR, ViewerApp
+        from efem_viz.serve.outputs import default_output_dir
+        from efem_viz.viewer.app import ViewerApp, default_scene_dir
 
-        paths = list(self.paths) or ([] if self.results else [DEFAULT_SCENE_DIR])
-        for p in paths:
-            if not Path(p).exists():
-                raise FileNotFoundError(f"no such scene file or folder: {p}")
-        for d in self.results:
-            if not Path(d).is_dir():
-                raise FileNotFoundError(f"no such results folder: {d}")
-        priors = list(self.prior) or [DEFAULT_PRIOR]
+        if self.paths or self.results:
+            paths = list(self.paths)
+        else:
+            samples = default_scene_dir()
+            if not samples.is_dir():
+                raise FileNotFoundError(
+                    f"no sample scenes in this install (looked in {samples}): give scene files or folders "
+                    "(efem-viz view SCENE.ply ...; efem-viz generate makes some), or run it from a checkout of "
+                    "the project, whose sample_scenes/ it opens")
+            paths = [samples]
         with stop_signals("efem-viz view"):  # before loading: Ctrl+C stops a long load too
+            check_view_inputs(paths, self.results, max_points=self.max_points)
+            priors = list(self.prior) or [DEFAULT_PRIOR]
+            out_dir = self.out_dir if self.out_dir is not None else default_output_dir("view")
             app = ViewerApp(paths, host=self.host, port=self.port, prior_name=priors[0], run_priors=priors[1:],
-                            out_dir=self.out_dir, token=self.token, results=self.results)
+                            out_dir=out_dir, token=self.token, results=self.results, max_points=self.max_points)
             try:
                 warning = app.access.exposure_warning
                 if warning:
@@ -63,3 +74,30 @@ class ViewArgs:
             finally:
                 app.stop()
         return 0
+
+
+def check_view_inputs(paths: list[Path], results: tuple[Path, ...], *, max_points: int) -> None:
+    """Refuse what the viewer could not show, before a server starts (one line, like every other command): a
+    missing path or results folder, a scene file named on the command line that does not load, or paths holding
+    no scene file at all. (A bad file found in a folder is shown in the viewer instead.)
+
+    Raises:
+        FileNotFoundError: a path or results folder does not exist.
+        SceneError: a named file is not a readable scene (the loader's message names the file and the reason), or
+            no scene file was found.
+    """
+    from efem_viz.data.io import load_scene
+    from efem_viz.viewer.state import discover_scenes
+
+    for p in paths:
+        if not Path(p).exists():
+            raise FileNotFoundError(f"no such scene file or folder: {p}")
+    for d in results:
+        if not Path(d).is_dir():
+            raise FileNotFoundError(f"no such results folder: {d}")
+    entries = discover_scenes(paths, result_dirs=list(results))
+    if not entries:
+        raise SceneError(f"no scene files in {', '.join(str(p) for p in [*paths, *results])}")
+    for p in paths:
+        if Path(p).is_file():
+            load_scene(Path(p), max_points=max_points)

@@ -1,5 +1,7 @@
 """What the viewer says about the final instances: their colours, scene labels, category counts and the legend.
 
+`color_key_html` is the key of the point colours of each colour mode (TP/FP/FN, the weight colour bar).
+
 Pure functions of an `efem_viz.em.Instances` (no viser): the live viewer and the static demo both draw their
 instance nodes with `result_colors` and `instance_label`, and the Results tab shows `result_summary_markdown` and
 `legend_html`. A result may hold several categories (one per prior of a joint solve, e.g. "mug" and "sphere"):
@@ -16,7 +18,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from efem_viz.colors import instance_colors
-from efem_viz.viewer.state import hex_color
+from efem_viz.viewer.state import FN_COLOR, FP_COLOR, HEAT_RGB, HEAT_STOPS, TP_COLOR, dim, hex_color
 from efem_viz.viewer.texts import md_escape
 
 MAX_LEGEND_ROWS = 40
@@ -112,3 +114,43 @@ def legend_html(instances: Any, keep: np.ndarray) -> str:
     if order.size > MAX_LEGEND_ROWS:
         rows.append(f"<div>… {order.size - MAX_LEGEND_ROWS} more</div>")
     return '<div style="font-size:0.85em;line-height:1.5">' + "".join(rows) + "</div>"
+
+
+GREY_SWATCH = hex_color(dim(np.array([[128, 128, 128]], np.uint8))[0])
+"""The grey of points that no shown prediction covers (`efem_viz.viewer.state.dim`)."""
+
+
+def _swatch(color: str, text: str) -> str:
+    return f'<div><span style="color:{color}">&#9632;</span> {text}</div>'
+
+
+def color_key_html(mode: str) -> str:
+    """The key of the point colours in a colour mode, shown under the Colour control.
+
+    Args:
+        mode: the colour mode in effect: "gt_match" (TP / FP / FN, boxes too), "instances", "weights" (the
+            inspected proposal's weight heat map: a colour bar) or "rgb" (scene colours: no key).
+
+    Returns:
+        An HTML fragment ("" for scene colours).
+    """
+    if mode == "gt_match":
+        rows = [
+            _swatch(hex_color(TP_COLOR), "<b>TP</b>: a prediction matched to a ground-truth object (IoU ≥ 0.5)"),
+            _swatch(hex_color(FP_COLOR), "<b>FP</b>: a prediction that matches none"),
+            _swatch(hex_color(FN_COLOR), "<b>FN</b>: a ground-truth object no prediction found"),
+            _swatch(GREY_SWATCH, "grey: no prediction (boxes are green / red as TP / FP)"),
+        ]
+    elif mode == "instances":
+        rows = [_swatch(GREY_SWATCH, "grey: no instance shown; each instance in its colour (legend: Results tab)")]
+    elif mode == "weights":
+        stops = ", ".join(f"{hex_color(c)} {100 * p:.0f}%" for c, p in zip(HEAT_RGB.astype(np.uint8), HEAT_STOPS))
+        rows = [
+            f'<div style="height:0.8em;border-radius:2px;background:linear-gradient(to right, {stops})"></div>',
+            '<div style="display:flex;justify-content:space-between"><span>0</span>'
+            "<span>weight of the point in the inspected proposal</span><span>1</span></div>",
+            _swatch(GREY_SWATCH, "grey: weight ≤ 0.001"),
+        ]
+    else:
+        return ""
+    return '<div class="efem-color-key" style="font-size:0.85em;line-height:1.5">' + "".join(rows) + "</div>"

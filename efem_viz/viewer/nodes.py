@@ -25,6 +25,7 @@ import numpy as np
 
 from efem_viz.colors import instance_colors
 from efem_viz.geometry.transforms import rotation_to_quat_wxyz, xyz_tuple
+from efem_viz.serve.camera import fitted_view
 from efem_viz.viewer.legend import instance_label, result_colors
 from efem_viz.viewer.state import DEAD_COLOR, rgb_tuple, sample_indices
 
@@ -73,9 +74,10 @@ def default_point_size(diagonal: float) -> float:
 
 
 def default_view(lo: np.ndarray, hi: np.ndarray) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
-    """(look_at, position) of the initial camera for a scene with bounds `lo`, `hi` ((3,) world, +Z up)."""
-    center = (np.asarray(lo) + np.asarray(hi)) / 2.0
-    return xyz_tuple(center), xyz_tuple(center + scene_diagonal(lo, hi) * VIEW_DIRECTION)
+    """(look_at, position) of the initial camera for a scene with bounds `lo`, `hi` ((3,) world, +Z up): the
+    live viewer's fitted view (`efem_viz.serve.camera.fitted_view` from `VIEW_DIRECTION`)."""
+    view = fitted_view(lo, hi, direction=VIEW_DIRECTION)
+    return view.look_at, view.position
 
 
 def proposal_samples(
@@ -185,6 +187,10 @@ class ResultNodes:
     """`/results/axes/k<i>`: the pose."""
     labels: list[LabelHandle] = field(default_factory=list)
     """`/results/label/k<i>`: category, id and confidence (`instance_label`)."""
+    colors: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.uint8))
+    """(K, 3) uint8: each instance's own colour (`result_colors`)."""
+    box_colors: list[tuple[int, int, int]] = field(default_factory=list)
+    """The colour each box is drawn in now (its own, or green / red in the TP/FP/FN mode)."""
 
 
 def add_result_nodes(api: SceneApi, instances: Any, *, visible: bool) -> ResultNodes:
@@ -199,9 +205,9 @@ def add_result_nodes(api: SceneApi, instances: Any, *, visible: bool) -> ResultN
             center, obb_half_extents and `obb(k)`).
         visible: initial visibility of every node.
     """
-    out = ResultNodes()
     ids = np.asarray(instances.ids).reshape(-1)
     cols = result_colors(instances)
+    out = ResultNodes(colors=cols, box_colors=[rgb_tuple(c) for c in cols])
     for k in range(ids.shape[0]):
         col = rgb_tuple(cols[k])
         verts = instances.mesh_vertices[k] if k < len(instances.mesh_vertices) else None
@@ -493,6 +499,21 @@ class SceneNodes:
         except Exception:  # noqa: BLE001
             pass
         self.results = add_result_nodes(self.scene_api, instances, visible=False)
+
+    def set_box_colors(self, colors: np.ndarray | None) -> int:
+        """Colour the boxes: (K, 3) uint8 one colour per instance (the TP/FP/FN mode), or None for each
+        instance's own colour. Only boxes whose colour changes are resent; returns how many."""
+        r = self.results
+        want = r.colors if colors is None else np.asarray(colors, np.uint8).reshape(-1, 3)
+        changed = 0
+        for k, h in enumerate(r.obbs):
+            col = rgb_tuple(want[k])
+            if k < len(r.box_colors) and r.box_colors[k] == col:
+                continue
+            h.colors = np.broadcast_to(np.array(col, np.uint8), (12, 2, 3)).copy()
+            r.box_colors[k] = col
+            changed += 1
+        return changed
 
     def show_results(self, keep: np.ndarray, *, show_meshes: bool, show_obbs: bool, show_axes: bool) -> int:
         """Set result visibility from a (K,) bool mask (instances above the threshold) and the layer toggles.

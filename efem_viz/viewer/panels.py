@@ -35,6 +35,11 @@ PRESETS: tuple[str, ...] = ("fast", *(p for p in em_config.PRESETS if p != "fast
 DISPLAYS: tuple[str, ...] = ("points", "mesh")
 MASK_BAND_RANGE = (0.01, 0.2)
 """Range of the mask-band slider (τ_out, canonical units)."""
+VIEW_MODES = {
+    "Result (final instances)": "result",
+    "EM step (that step only)": "step",
+}
+"""Options of the Show dropdown → `ViewerState.view_mode`."""
 COLOR_MODES = {
     "scene colours": "rgb",
     "instances": "instances",
@@ -54,8 +59,12 @@ class Panels:
     gui_display: GuiDropdownHandle[str]
     gui_color: GuiDropdownHandle[str]
     """Options are the keys of `COLOR_MODES`."""
+    gui_color_key: GuiHtmlHandle
+    """The key of the point colours (`efem_viz.viewer.legend.color_key_html`)."""
     gui_point_size: GuiSliderHandle[float]
     """Millimetres."""
+    gui_reset_view: GuiButtonHandle
+    """Puts the clicking browser's camera back on the view that fits the scene."""
     gui_info: GuiMarkdownHandle
     # ---- Run tab
     gui_preset: GuiDropdownHandle[str]
@@ -67,6 +76,8 @@ class Panels:
     gui_progress: GuiProgressBarHandle
     gui_run_info: GuiMarkdownHandle
     # ---- Timeline tab
+    gui_view_mode: GuiDropdownHandle[str]
+    """Options are the keys of `VIEW_MODES`."""
     gui_step: GuiSliderHandle[int]
     gui_play: GuiButtonHandle
     gui_speed: GuiSliderHandle[float]
@@ -118,7 +129,9 @@ def build_panels(gui: GuiApi, *, scene_names: list[str], out_dir: str) -> Panels
         scene = gui.add_dropdown("Scene", opts, initial_value=opts[0], hint="scenes inside the paths given")
         display = gui.add_dropdown("Display", DISPLAYS, initial_value="points")
         color = gui.add_dropdown("Colour", tuple(COLOR_MODES), initial_value="scene colours")
+        color_key = gui.add_html("")
         point_size = gui.add_slider("Point size (mm)", 0.5, 20.0, 0.5, 4.0)
+        reset_view = gui.add_button("Reset view", hint="fit the scene in this browser's view")
         info = gui.add_markdown("")
 
     with tabs.add_tab("Run"):
@@ -132,6 +145,8 @@ def build_panels(gui: GuiApi, *, scene_names: list[str], out_dir: str) -> Panels
         run_info = gui.add_markdown("")
 
     with tabs.add_tab("Timeline"):
+        view_mode = gui.add_dropdown("Show", tuple(VIEW_MODES), initial_value=next(iter(VIEW_MODES)),
+                                     hint="one EM step (its decoded shapes and samples) or the final instances")
         step = gui.add_slider("Step", 0, 1, 1, 0, disabled=True)
         play = gui.add_button("Play", disabled=True)
         speed = gui.add_slider("Speed (steps/s)", 0.5, 10.0, 0.5, 2.0)
@@ -171,7 +186,9 @@ def build_panels(gui: GuiApi, *, scene_names: list[str], out_dir: str) -> Panels
         gui_scene=scene,
         gui_display=display,
         gui_color=color,
+        gui_color_key=color_key,
         gui_point_size=point_size,
+        gui_reset_view=reset_view,
         gui_info=info,
         gui_preset=preset,
         gui_proposals=proposals,
@@ -181,6 +198,7 @@ def build_panels(gui: GuiApi, *, scene_names: list[str], out_dir: str) -> Panels
         gui_load=load,
         gui_progress=progress,
         gui_run_info=run_info,
+        gui_view_mode=view_mode,
         gui_step=step,
         gui_play=play,
         gui_speed=speed,

@@ -28,6 +28,8 @@ SEG_INFIX = ".seg"
 
 ColorMode = Literal["rgb", "instances", "gt_match", "weights", "proposals"]
 DisplayMode = Literal["points", "mesh"]
+ViewMode = Literal["step", "result"]
+"""What the 3-D view shows of a result: one EM step (its decoded shapes and samples) or the final instances."""
 
 # Colours for the ground-truth comparison (uint8 RGB).
 TP_COLOR = np.array([46, 180, 80], np.uint8)
@@ -156,8 +158,9 @@ def discover_scenes(
 
 
 # ---------------------------------------------------------------------------------------------- colours
-_HEAT_STOPS = np.array([0.0, 0.25, 0.5, 0.75, 1.0])
-_HEAT_RGB = np.array(
+HEAT_STOPS = np.array([0.0, 0.25, 0.5, 0.75, 1.0])
+"""Positions of the `heatmap` ramp's colours (`HEAT_RGB`) in [0, 1]."""
+HEAT_RGB = np.array(
     [[48, 18, 59], [40, 130, 240], [60, 220, 120], [250, 185, 40], [180, 20, 20]], dtype=np.float64
 )  # turbo-like: dark blue -> blue -> green -> orange -> red
 
@@ -178,7 +181,7 @@ def heatmap(values: np.ndarray, *, vmin: float = 0.0, vmax: float | None = None)
     hi = float(v[finite].max()) if vmax is None and finite.any() else (vmax if vmax is not None else 1.0)
     hi = max(hi, vmin + 1e-12)
     x = np.clip((np.where(finite, v, vmin) - vmin) / (hi - vmin), 0.0, 1.0)
-    out = np.stack([np.interp(x, _HEAT_STOPS, _HEAT_RGB[:, c]) for c in range(3)], axis=1)
+    out = np.stack([np.interp(x, HEAT_STOPS, HEAT_RGB[:, c]) for c in range(3)], axis=1)
     out = np.round(out).astype(np.uint8)
     out[~finite] = BACKGROUND_COLOR
     return out
@@ -206,9 +209,12 @@ def weights_colors(base: np.ndarray, weights: np.ndarray, *, floor: float = 1e-3
 
 
 def dim(base: np.ndarray, *, amount: float = 0.55) -> np.ndarray:
-    """(N, 3) uint8 colours blended toward light grey so that overlays stand out."""
-    b = base.astype(np.float32)
-    return np.round(b * (1 - amount) + 215.0 * amount).astype(np.uint8)
+    """(N, 3) uint8 grey shades of the scene colours (their luminance, blended toward light grey), so that
+    overlays stand out and no scan colour can read as a prediction's colour; the shading of the scan stays."""
+    b = np.asarray(base).astype(np.float32).reshape(-1, 3)
+    lum = b @ np.array([0.299, 0.587, 0.114], np.float32)
+    grey = np.round(lum * (1 - amount) + 215.0 * amount).astype(np.uint8)
+    return np.repeat(grey[:, None], 3, axis=1)
 
 
 def label_colors(base: np.ndarray, labels: np.ndarray, *, ids_to_color: dict[int, np.ndarray] | None = None) -> np.ndarray:
@@ -374,6 +380,10 @@ class ViewerState:
     """Where `result` came from: a file path, or 'run (seed=..)'."""
     step: int = 0
     """Current EM step on the timeline (0 .. num_steps-1)."""
+    view_mode: ViewMode = "result"
+    """"step": only step `step` (decoded shapes, samples; points in scene colours unless a proposal's weights);
+    "result": only the final instances (meshes, boxes, labels, instance or TP/FP/FN colours). Moving the
+    timeline shows a step; the threshold, the result layers and the instance colours show the result."""
     playing: bool = False
     speed: float = 2.0
     """Playback speed in steps per second."""

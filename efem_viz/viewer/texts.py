@@ -10,6 +10,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from efem_viz.data.io import holds_predictions
 from efem_viz.viewer.panels import NO_PROPOSAL
 from efem_viz.viewer.state import Death, GTMetrics, SceneEntry, top_n
 
@@ -114,6 +115,8 @@ def scene_info_markdown(scene: Any, entry: SceneEntry) -> str:
         lines.append(f"- ground truth: {len(scene.instance_ids())} instances ({cats}), {summ.get('labelled_points', 0):,} labelled points")
     else:
         lines.append("- ground truth: none")
+    if holds_predictions(entry.path):
+        lines.append("- the file's labels are predictions (`efem-viz segment` output), not ground truth")
     lines.append(f"- file: `{entry.path.name}`")
     prov = summ.get("provenance") or {}
     if prov:

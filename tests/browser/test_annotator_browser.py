@@ -332,3 +332,73 @@ def test_question_mark_toggles_the_cheat_sheet(keyed: tuple[Any, Any]) -> None:
     page.get_by_role("button", name="Close (?)").click()
     wait_until(lambda: not app.cheat_sheets, 10, "the cheat sheet closed by its button")
     sheet.wait_for(state="detached", timeout=15_000)
+
+
+# ============================================================================ camera (issue 22, item 4)
+def _camera(app: Any) -> tuple[Any, np.ndarray, np.ndarray]:
+    """(client handle, position, look-at) of the page's camera as the server last heard it."""
+    handle = next(iter(app.server.get_clients().values()))
+    return handle, np.array(handle.camera.position), np.array(handle.camera.look_at)
+
+
+def test_tool_hotkeys_leave_the_camera_alone(keyed: tuple[Any, Any]) -> None:
+    """Each tool's hotkey, held down for a while as a person might, switches the tool and never moves the camera.
+
+    (viser's client flies the camera while W/A/S/D/Q/E are held, and a key pressed after a pause throws it tens of
+    metres: erase was E and segment S, so picking either flew the camera off the scan.)"""
+    from annotator.tools import DEFAULT_TOOLS
+
+    app, page = keyed
+    handle, pos0, look0 = _camera(app)
+    seen: list[tuple[np.ndarray, np.ndarray]] = []
+    handle.camera.on_update(lambda cam: seen.append((np.array(cam.position), np.array(cam.look_at))))
+    diag = float(np.linalg.norm(np.ptp(app.scene.points, axis=0)))
+    order = [t for t in DEFAULT_TOOLS if t.name != app.settings.tool] + [
+        t for t in DEFAULT_TOOLS if t.name == app.settings.tool]
+    for t in order:
+        page.wait_for_timeout(600)  # idle first: the first frame after a pause spans it
+        page.keyboard.down(t.hotkey.lower())
+        try:
+            wait_until(lambda t=t: app.settings.tool == t.name, 10, f"the {t.name} tool ({t.hotkey})")
+            page.wait_for_timeout(400)  # held: frames are drawn meanwhile
+        finally:
+            page.keyboard.up(t.hotkey.lower())
+    page.wait_for_timeout(1500)  # camera messages (20 Hz) of any motion have arrived
+    moved = [float(max(np.linalg.norm(p - pos0), np.linalg.norm(q - look0))) for p, q in seen]
+    assert max(moved, default=0.0) < 1e-3 * diag, f"a tool hotkey moved the camera by up to {max(moved):.3f} m"
+    assert not app.camera_guard.resets, app.camera_guard.resets
+
+
+def test_camera_thrown_off_the_scan_comes_back(keyed: tuple[Any, Any]) -> None:
+    """W held after a pause throws viser's camera off the scan: the server puts it back and says so in the page; R
+    then puts it exactly on the fitted view."""
+    from efem_viz.serve.camera import view_lost
+
+    app, page = keyed
+    handle, _, _ = _camera(app)
+    lo, hi = app.scene.points.min(axis=0), app.scene.points.max(axis=0)
+    page.wait_for_timeout(1000)
+    page.keyboard.down("w")
+    try:
+        wait_until(lambda: app.camera_guard.resets.get(handle.client_id, 0) >= 1, 60, "the camera put back")
+    finally:
+        page.keyboard.up("w")
+    page.get_by_text("View reset", exact=True).first.wait_for(timeout=15_000)
+    wait_until(lambda: not view_lost(handle.camera.look_at, lo, hi), 15, "the camera back at the scan")
+    page.keyboard.press("r")
+    home = app.home_view
+    wait_until(lambda: np.allclose(handle.camera.look_at, home.look_at, atol=1e-4)
+               and np.allclose(handle.camera.position, home.position, atol=1e-4), 15, "the fitted view (R)")
+
+
+def test_a_click_off_the_scan_says_so(keyed: tuple[Any, Any]) -> None:
+    """With the segment tool (C), a Ctrl+click beside the scan tells the user that it missed the scan (it used to
+    do nothing, silently)."""
+    app, page = keyed
+    page.keyboard.press("c")
+    wait_until(lambda: app.settings.tool == "segment", 10, "the segment tool (C)")
+    app.reset_view()
+    _, _, box = _centre(page)
+    _ctrl_click(page, box["x"] + 0.12 * box["width"], box["y"] + 0.88 * box["height"])
+    page.get_by_text("Missed the scan", exact=True).first.wait_for(timeout=15_000)
+    assert app.pending_segment is None

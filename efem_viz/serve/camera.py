@@ -1,0 +1,233 @@
+"""The camera of both browser apps: the view that fits the scene, "Reset view", and a guard that brings a camera
+back when it has left the scene.
+
+Why the guard: viser's browser client (1.1.1, `CameraControls.tsx`) moves the camera while W/A/S/D/Q/E are held
+(truck / forward / elevate at 2 scene units per second; the arrow keys orbit) and scales each step by the frame's
+time step. Frames are drawn on demand, so the first frame after an idle period spans the whole pause: a quick tap
+after ten idle seconds throws the camera and its look-at point about 20 m away, and a tabletop scan is left as a
+thin strip (or out of sight) where clicks miss it. The server cannot switch these keys off (viser has no option
+for it), so
+
+* the apps use none of `VISER_CAMERA_KEYS` as a hotkey (`annotator.tools.check_tools` refuses them), and
+* `CameraGuard` watches every client's camera: when its look-at point leaves the scene's box grown by
+  `LOST_MARGIN` scene diagonals (no view a person chooses on purpose looks at a point that far from the scan),
+  the camera is put back on the fitted view and that client is told why and how to get the view back (R).
+
+Usage (what the apps do):
+
+```python
+guard = CameraGuard(server, fitted_view(lo, hi, direction=(0.5, -0.95, 0.85)), lo, hi)
+server.on_client_connect(guard.attach)
+guard.set_scene(fitted_view(lo2, hi2), lo2, hi2)   # another scene: every camera is fitted to it
+guard.reset(client)                                 # the "Reset view" command
+```
+
+No viser import: the guard works on the server and client handles it is given.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import numpy as np
+
+from efem_viz.geometry.transforms import xyz_tuple
+
+log = logging.getLogger(__name__)
+
+VISER_CAMERA_KEYS: tuple[str, ...] = ("W", "A", "S", "D", "Q", "E")
+"""Letter keys that viser's browser client binds to camera motion (by key position: `KeyW` ... `KeyE`), whatever
+the page does with them; a hotkey on one of them would also fly the camera. (The arrow keys orbit.)"""
+LOST_MARGIN = 2.0
+"""A camera whose look-at point is farther than this many scene diagonals outside the scene's box has left it."""
+NOTIFY_EVERY_S = 5.0
+"""At most one "view reset" notification per client in this many seconds (a held key keeps pushing it out)."""
+
+Vec3 = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class View:
+    """A camera placement, world frame (+Z up)."""
+
+    look_at: Vec3
+    """The point looked at (the orbit centre)."""
+    position: Vec3
+    """The camera centre."""
+    up: Vec3 = (0.0, 0.0, 1.0)
+    """The up direction."""
+
+
+def fitted_view(lo: Sequence[float] | np.ndarray, hi: Sequence[float] | np.ndarray, *,
+                direction: Sequence[float] | np.ndarray = (0.5, -0.95, 0.85)) -> View:
+    """The view that shows a whole scene: looking at its box centre from `direction` (in scene diagonals).
+
+    Args:
+        lo: (3,) min corner of the scene's box, world frame.
+        hi: (3,) max corner, world frame.
+        direction: (3,) camera offset from the centre, in scene diagonals (default: down at the table from the
+            front, as the viewer opens scenes).
+
+    Raises:
+        ValueError: a corner is not 3 finite numbers.
+    """
+    lo_a, hi_a = np.asarray(lo, np.float64).reshape(-1), np.asarray(hi, np.float64).reshape(-1)
+    if lo_a.shape != (3,) or hi_a.shape != (3,) or not (np.isfinite(lo_a).all() and np.isfinite(hi_a).all()):
+        raise ValueError(f"scene box corners must be 3 finite numbers each, got {lo_a} and {hi_a}")
+    centre = (lo_a + hi_a) / 2.0
+    diagonal = float(np.linalg.norm(hi_a - lo_a)) or 1.0
+    return View(xyz_tuple(centre), xyz_tuple(centre + diagonal * np.asarray(direction, np.float64)))
+
+
+def view_lost(look_at: Sequence[float] | np.ndarray, lo: Sequence[float] | np.ndarray,
+              hi: Sequence[float] | np.ndarray, *, margin: float = LOST_MARGIN) -> bool:
+    """Whether a camera looking at `look_at` has left the scene: the point lies more than `margin` scene diagonals
+    outside the box [`lo`, `hi`] (a non-finite point has left it too).
+
+    Args:
+        look_at: (3,) the camera's look-at point, world frame.
+        lo: (3,) min corner of the scene's box, world frame.
+        hi: (3,) max corner, world frame.
+        margin: allowed distance outside the box, in scene diagonals.
+    """
+    p = np.asarray(look_at, np.float64).reshape(3)
+    if not np.isfinite(p).all():
+        return True
+    lo_a, hi_a = np.asarray(lo, np.float64).reshape(3), np.asarray(hi, np.float64).reshape(3)
+    diagonal = float(np.linalg.norm(hi_a - lo_a)) or 1.0
+    outside = np.maximum(np.maximum(lo_a - p, p - hi_a), 0.0)
+    return bool(np.linalg.norm(outside) > margin * diagonal)
+
+
+def place_camera(camera: Any, view: View) -> None:
+    """Put a client's camera (a viser `CameraHandle`) on a view.
+
+    The position is set before the look-at point: viser's position setter moves the look-at point along with the
+    camera, so the other order would leave the camera looking past the scene.
+    """
+    camera.up_direction = view.up
+    camera.position = view.position
+    camera.look_at = view.look_at
+
+
+class CameraGuard:
+    """Fits every client's camera to the scene and brings it back when it leaves the scene (see the module doc).
+
+    Args:
+        server: the viser server (its `initial_camera` is the fitted view: new clients and viser's own *Reset View*).
+        view: the fitted view of the scene.
+        lo: (3,) min corner of the scene's box, world frame.
+        hi: (3,) max corner, world frame.
+        margin: `LOST_MARGIN` (scene diagonals outside the box).
+        hint: the last sentence of the notification (how to get the fitted view back).
+    """
+
+    def __init__(self, server: Any, view: View, lo: Sequence[float] | np.ndarray, hi: Sequence[float] | np.ndarray,
+                 *, margin: float = LOST_MARGIN, hint: str = "Reset view brings it back any time.") -> None:
+        self.server = server
+        self.margin = float(margin)
+        self.hint = hint
+        self.resets: dict[int, int] = {}
+        """Times each client's camera was brought back because it had left the scene, by client id."""
+        self._lock = threading.Lock()
+        self._notified: dict[int, float] = {}
+        self.view = view
+        self.lo = xyz_tuple(lo)
+        self.hi = xyz_tuple(hi)
+        self._set_initial()
+
+    def _set_initial(self) -> None:
+        cam = self.server.initial_camera
+        cam.up = self.view.up
+        cam.position = self.view.position
+        cam.look_at = self.view.look_at
+
+    def attach(self, client: Any) -> None:
+        """Watch a client's camera (call it from `server.on_client_connect`)."""
+        client.camera.on_update(lambda camera, client=client: self.check(client, camera))
+
+    def forget(self, client: Any) -> None:
+        """Drop what the guard kept about a client that left (call it from `server.on_client_disconnect`)."""
+        with self._lock:
+            self._notified.pop(int(getattr(client, "client_id", -1)), None)
+
+    def set_scene(self, view: View, lo: Sequence[float] | np.ndarray, hi: Sequence[float] | np.ndarray, *,
+                  move_clients: bool = True) -> None:
+        """Another scene: its fitted view becomes the initial camera, and (with `move_clients`) every connected
+        camera is put on it."""
+        with self._lock:
+            self.view, self.lo, self.hi = view, xyz_tuple(lo), xyz_tuple(hi)
+        self._set_initial()
+        if move_clients:
+            for client in list(self.server.get_clients().values()):
+                self._place(client)
+
+    def reset(self, client: Any = None) -> None:
+        """Put one client's camera (every client's when None) on the fitted view (the *Reset view* command)."""
+        targets = [client] if client is not None else list(self.server.get_clients().values())
+        for c in targets:
+            self._place(c)
+
+    def place(self, view: View, client: Any = None) -> None:
+        """Put one client's camera (every client's when None) on another view (fly to an object); a view that
+        looks at a point outside the scene is refused.
+
+        Raises:
+            ValueError: `view.look_at` has left the scene (`view_lost`).
+        """
+        with self._lock:
+            lo, hi = self.lo, self.hi
+        if view_lost(view.look_at, lo, hi, margin=self.margin):
+            raise ValueError(f"refusing a view that looks at {view.look_at}, outside the scene")
+        targets = [client] if client is not None else list(self.server.get_clients().values())
+        for c in targets:
+            self._place(c, view)
+
+    def check(self, client: Any, camera: Any) -> bool:
+        """A client's camera moved: bring it back when it has left the scene. Returns True when it was reset."""
+        with self._lock:
+            lo, hi = self.lo, self.hi
+        try:
+            look_at = np.asarray(camera.look_at, np.float64)
+        except Exception:  # noqa: BLE001 - no camera state yet
+            return False
+        if not view_lost(look_at, lo, hi, margin=self.margin):
+            return False
+        cid = int(getattr(client, "client_id", -1))
+        with self._lock:
+            self.resets[cid] = self.resets.get(cid, 0) + 1
+            now = time.monotonic()
+            tell = now - self._notified.get(cid, -np.inf) >= NOTIFY_EVERY_S
+            if tell:
+                self._notified[cid] = now
+        log.info("client %s: camera looked at %s, outside the scene: view reset", cid, np.round(look_at, 2).tolist())
+        self._place(client)
+        if tell:
+            self._notify(client)
+        return True
+
+    def _place(self, client: Any, view: View | None = None) -> None:
+        if view is None:
+            with self._lock:
+                view = self.view
+        try:
+            with client.atomic():
+                place_camera(client.camera, view)
+            client.flush()
+        except Exception:  # noqa: BLE001 - a client may disconnect meanwhile
+            log.debug("could not place the camera of %r", client, exc_info=True)
+
+    def _notify(self, client: Any) -> None:
+        try:
+            client.add_notification(
+                "View reset",
+                "The camera had left the scene (W/A/S/D/Q/E move viser's camera, and a key pressed after a pause "
+                f"can throw it far away), so it was put back. {self.hint}",
+                auto_close_seconds=8.0, color="yellow")
+        except Exception:  # noqa: BLE001 - a client may disconnect meanwhile
+            log.debug("notification to %r failed", client, exc_info=True)
+

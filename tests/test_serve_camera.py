@@ -1,0 +1,133 @@
+"""The apps' camera (`efem_viz.serve.camera`): the fitted view, "lost" cameras, and the guard that brings a camera
+back, driven through a real viser server by a scripted client that sends the camera messages a browser sends."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+import pytest
+from viser_client import ViserClient, wait_for
+
+from efem_viz.serve.camera import LOST_MARGIN, VISER_CAMERA_KEYS, CameraGuard, fitted_view, view_lost
+
+LO, HI = np.array([-0.15, -0.15, 0.0]), np.array([0.15, 0.15, 0.3])
+
+
+def _camera_message(look_at: tuple[float, float, float], position: tuple[float, float, float]) -> dict[str, Any]:
+    """A ViewerCameraMessage as the browser sends it after moving the camera (orientation is not read here)."""
+    return {"type": "ViewerCameraMessage", "wxyz": (1.0, 0.0, 0.0, 0.0), "position": position, "fov": 1.0,
+            "near": 0.01, "far": 100.0, "image_height": 480, "image_width": 640, "look_at": look_at,
+            "up_direction": (0.0, 0.0, 1.0)}
+
+
+def test_fitted_view_and_lost_cameras() -> None:
+    """The fitted view looks at the box centre from one diagonal along the direction; a look-at point is lost only
+    beyond `LOST_MARGIN` diagonals outside the box (or when not finite)."""
+    v = fitted_view(LO, HI, direction=(0.0, -1.0, 0.0))
+    diag = float(np.linalg.norm(HI - LO))
+    assert np.allclose(v.look_at, (LO + HI) / 2) and np.allclose(v.position, (LO + HI) / 2 + [0, -diag, 0])
+    assert v.up == (0.0, 0.0, 1.0)
+    assert not view_lost(v.look_at, LO, HI)
+    assert not view_lost(HI + [0, 0, 0.99 * LOST_MARGIN * diag], LO, HI)  # far above the scan, still near
+    assert view_lost(HI + [0, 0, 1.01 * LOST_MARGIN * diag], LO, HI)
+    assert view_lost((20.0, 0.0, 0.0), LO, HI)  # what a W tap after a 10 s pause does (2 m/s)
+    assert view_lost((np.nan, 0.0, 0.0), LO, HI)
+    with pytest.raises(ValueError, match="finite"):
+        fitted_view((0, 0, np.inf), HI)
+    assert set(VISER_CAMERA_KEYS) == {"W", "A", "S", "D", "Q", "E"}
+
+
+@pytest.fixture()
+def guarded() -> Iterator[tuple[Any, CameraGuard, ViserClient]]:
+    """A bare viser server with a guard for the box LO-HI and one scripted client (with a button, which
+    `ViserClient` waits for)."""
+    import viser
+
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    try:
+        guard = CameraGuard(server, fitted_view(LO, HI), LO, HI, hint="R resets it.")
+        server.on_client_connect(guard.attach)
+        server.gui.add_button("ok")
+        client = ViserClient(f"ws://127.0.0.1:{server.get_port()}")
+        try:
+            assert wait_for(lambda: len(server.get_clients()) == 1, 30), "the client did not connect"
+            yield server, guard, client
+        finally:
+            client.close()
+    finally:
+        server.stop()
+
+
+def test_a_camera_that_left_the_scene_is_put_back_with_a_word(guarded: tuple[Any, CameraGuard, ViserClient]) -> None:
+    """A camera message looking 20 m away (a W tap after a pause in viser's client) puts that client's camera back
+    on the fitted view, exactly (position and look-at), and tells it why; a camera moved near the scene is left
+    alone."""
+    server, guard, client = guarded
+    handle = next(iter(server.get_clients().values()))
+    view = guard.view
+    # near the scene: nothing happens
+    client.send(_camera_message((0.1, 0.0, 0.1), (0.1, -0.8, 0.6)))
+    assert wait_for(lambda: np.allclose(handle.camera.look_at, (0.1, 0.0, 0.1)), 10)
+    assert guard.resets == {}
+    # thrown away: put back
+    client.send(_camera_message((0.0, 20.0, 0.1), (0.0, 19.2, 0.6)))
+    assert wait_for(lambda: guard.resets.get(handle.client_id) == 1, 10), guard.resets
+    assert np.allclose(handle.camera.look_at, view.look_at), (handle.camera.look_at, view.look_at)
+    assert np.allclose(handle.camera.position, view.position), (handle.camera.position, view.position)
+    assert wait_for(lambda: any(t.startswith("View reset:") and "R resets it." in t
+                                for t in client.notification_texts()), 10), client.notification_texts()
+
+
+def test_reset_and_another_scene_place_every_camera_exactly(guarded: tuple[Any, CameraGuard, ViserClient]) -> None:
+    """`reset` and `set_scene` put the camera on the view exactly: viser's position setter drags the look-at point
+    along, so setting the look-at first (what the viewer did on a scene change) left the camera looking past the
+    scene."""
+    server, guard, client = guarded
+    handle = next(iter(server.get_clients().values()))
+    client.send(_camera_message((0.05, 0.05, 0.05), (0.3, -0.5, 0.4)))
+    assert wait_for(lambda: np.allclose(handle.camera.look_at, (0.05, 0.05, 0.05)), 10)
+    guard.reset(handle)
+    assert np.allclose(handle.camera.look_at, guard.view.look_at)
+    assert np.allclose(handle.camera.position, guard.view.position)
+    lo2, hi2 = LO + 5.0, HI + 5.0
+    other = fitted_view(lo2, hi2)
+    guard.set_scene(other, lo2, hi2)
+    assert np.allclose(handle.camera.look_at, other.look_at) and np.allclose(handle.camera.position, other.position)
+    assert np.allclose(server.initial_camera.look_at, other.look_at)
+    assert not view_lost(handle.camera.look_at, lo2, hi2)
+
+
+def test_the_viewer_fits_every_camera_on_a_scene_change(tmp_path: Path) -> None:
+    """Opening another scene in the viewer puts each connected browser's camera on that scene's fitted view (the
+    look-at point at its centre), and *Reset view* puts a moved camera back."""
+    from efem_viz.data.io import save_scene
+    from efem_viz.prior import analytic
+    from efem_viz.viewer.app import ViewerApp
+
+    save_scene(analytic.make_sphere_scene(seed=0, spacing=0.02, radii=(0.05,), name="a"), tmp_path / "a.ply")
+    far = analytic.make_sphere_scene(seed=1, spacing=0.02, radii=(0.05,), name="b")
+    save_scene(far.replace(points=far.points + np.float32(3.0)), tmp_path / "b.ply")
+    app = ViewerApp([tmp_path], port=0, prior=analytic.make_sphere_prior(), open_first=False,
+                    out_dir=tmp_path / "out")
+    try:
+        client = ViserClient(app.url)
+        try:
+            assert wait_for(lambda: len(app.server.get_clients()) == 1, 30)
+            handle = next(iter(app.server.get_clients().values()))
+            for name in ("a", "b"):
+                assert app.open_scene(name)
+                lo, hi = app.state.scene.bounds
+                view = fitted_view(lo, hi, direction=(0.5, -0.95, 0.85))
+                assert np.allclose(handle.camera.look_at, view.look_at, atol=1e-5), (name, handle.camera.look_at)
+                assert np.allclose(handle.camera.position, view.position, atol=1e-5), name
+            client.send(_camera_message((3.1, 3.0, 3.0), (3.5, 2.0, 4.0)))
+            assert wait_for(lambda: np.allclose(handle.camera.look_at, (3.1, 3.0, 3.0)), 10)
+            client.click("Reset view")
+            assert wait_for(lambda: np.allclose(handle.camera.look_at, view.look_at, atol=1e-5), 10)
+        finally:
+            client.close()
+    finally:
+        app.stop()
+
