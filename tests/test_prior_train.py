@@ -230,3 +230,31 @@ def test_sigterm_stops_cleanly_with_a_final_checkpoint(tmp_path: Path, cache_dir
     assert ck["state"]["iteration"] == 3
     resumed = train(_args(tmp_path, cache_dir, iterations=5, val_every=100, resume=True))
     assert resumed["iteration"] == 5
+
+
+def test_sensor_and_fixed_point_training_runs_and_reports_sensor_metrics(tmp_path: Path, cache_dir: Path) -> None:
+    """--sensor-p / --fixed-point-p / --snapshot-every: the run trains, validates on sensor inputs too (and selects
+    by them), writes snapshots; fixed-point inputs are drawn from the cloud's own points."""
+    import torch
+
+    from efem_viz.prior.model import ShapePrior
+    from efem_viz.prior.train import fixed_point_inputs, train
+
+    args = _args(tmp_path, cache_dir, sensor_p=0.75, fixed_point_p=0.5, snapshot_every=10, iterations=20,
+                 val_every=10)
+    res = train(args)
+    assert res["iteration"] == 20
+    v = res["val_curve"][-1]
+    assert "sensor_iou_cal" in v and 0.0 <= v["sensor_iou_cal"] <= 1.0
+    assert (tmp_path / "run" / "snap_10.pt").is_file() and (tmp_path / "run" / "snap_20.pt").is_file()
+    prior = ShapePrior(args.prior_config())
+    pcl = np.random.default_rng(0).normal(size=(3, prior.config.n_pcl, 3)).astype(np.float32) * 0.3
+    # a band that holds every point: chosen clouds are re-drawn from their own points; p = 0 changes nothing
+    out = fixed_point_inputs(prior, pcl, np.random.default_rng(1), p=1.0, tau=1e9)
+    assert out.shape == pcl.shape and not np.array_equal(out, pcl)
+    for b in range(3):
+        assert {tuple(r) for r in out[b]} <= {tuple(r) for r in pcl[b]}
+    assert np.array_equal(fixed_point_inputs(prior, pcl, np.random.default_rng(1), p=0.0, tau=1e9), pcl)
+    # a band that holds no point leaves the clouds as they were
+    assert np.array_equal(fixed_point_inputs(prior, pcl, np.random.default_rng(1), p=1.0, tau=-1.0), pcl)
+    assert torch.is_grad_enabled()
