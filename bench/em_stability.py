@@ -153,7 +153,6 @@ def real_objects(frames: tuple[int, ...]) -> list[dict[str, Any]]:
 def probe_object(item: dict[str, Any], prior: Any, cfg: Any, *, anchors: int, rng: np.random.Generator
                  ) -> dict[str, Any]:
     """Oracle track + anchor-ball tracks of one object."""
-    from efem_viz.em.config import schedule
     from efem_viz.em.probe import track_proposal
 
     scene, mask = item["scene"], item["mask"]
@@ -167,7 +166,6 @@ def probe_object(item: dict[str, Any], prior: Any, cfg: Any, *, anchors: int, rn
                          "inliers0": tr.inliers[0], "inliers": tr.inliers[-1],
                          "scale_ratio0": tr.scale[0] / item["size"], "scale_ratio": tr.scale[-1] / item["size"],
                          "alive": tr.alive, "iou": tr.output_iou}
-        _ = schedule
     runs = []
     idx = np.flatnonzero(mask)
     for a in range(anchors):
