@@ -40,7 +40,7 @@ class AnnotateArgs:
     def run(self) -> int:
         """Open the scan, print the URL, serve until Ctrl+C / SIGTERM (`efem_viz.serve.lifecycle`)."""
         from annotator.app import AnnotatorApp
-        from efem_viz.serve.lifecycle import stop_signals, wait_for_stop
+        from efem_viz.serve.lifecycle import announce, stop_signals, wait_for_stop
 
         with stop_signals("efem-annotate"):  # before loading: Ctrl+C stops a long load too
             app = AnnotatorApp(
@@ -57,14 +57,9 @@ class AnnotateArgs:
             try:
                 if app.store.recovery is not None:
                     print("efem-annotate: " + app.store.recovery.summary().replace("\n", "\n  "), flush=True)
-                warning = app.access.exposure_warning
-                if warning:
-                    print(f"efem-annotate: {warning}", file=sys.stderr, flush=True)
-                print(f"efem-annotate: {app.scan_path.name} ({app.n:,} vertices) at {app.url}  — Ctrl+C to quit",
-                      flush=True)
-                if app.local_url != app.url:
-                    print(f"  on this machine: {app.local_url}", flush=True)
-                print(f"  autosave: {app.work_dir}", flush=True)
+                announce("efem-annotate", f"{app.scan_path.name} ({app.n:,} vertices) at {app.url}  — Ctrl+C to quit",
+                         url=app.url, local_url=app.local_url, exposure_warning=app.access.exposure_warning,
+                         details=(f"autosave: {app.work_dir}",))
                 wait_for_stop()
             finally:
                 app.close()

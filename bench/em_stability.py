@@ -57,6 +57,7 @@ def render_single_view(mesh: Any, level: str, rng: np.random.Generator, *, name:
 
     from efem_viz._typeshims import o3d_tensor
     from efem_viz.data.rgbd import import_rgbd
+    from efem_viz.data.synth import look_at
     from efem_viz.prior.data import SensorModel
 
     m = mesh.copy()
@@ -74,12 +75,8 @@ def render_single_view(mesh: Any, level: str, rng: np.random.Generator, *, name:
     az = rng.uniform(0, 2 * np.pi)
     target = np.array([0.0, 0.0, (m.bounds[1, 2]) / 2])
     eye = target + dist * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-    f_ = target - eye
-    f_ /= np.linalg.norm(f_)
-    right = np.cross(f_, [0, 0, 1.0])
-    right /= np.linalg.norm(right)
-    down = np.cross(f_, right)
-    Rwc = np.stack([right, down, f_], axis=1)
+    Rwc = look_at(eye, target)[:3, :3]  # columns: right, down, forward
+    f_ = Rwc[:, 2]
     w, h, fx = 640, 480, 600.0
     K = np.array([[fx, 0, (w - 1) / 2], [0, fx, (h - 1) / 2], [0, 0, 1.0]])
     u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))

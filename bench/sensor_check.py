@@ -67,7 +67,7 @@ def analyse_frame(path: Path, seed: int = 0) -> dict[str, Any]:
     n2 = vt[2] if vt[2] @ (-c0) > 0 else -vt[2]
     res = (q - c0) @ n2
     real = {"bins": _per_bin(q[:, 2], res), "flying": _flying_fraction(depth),
-            "spacing_mm": _spacing_mm(q, rng)}
+            "spacing_mm": _spacing_mm(q)}
     # generated: the exact plane depth along each table pixel's ray, measured by the sensor model
     u = q / np.linalg.norm(q, axis=1, keepdims=True)
     t = (c0 @ n2) / (u @ n2)  # the ray u·t meets the plane n2·x = n2·c0
@@ -78,18 +78,16 @@ def analyse_frame(path: Path, seed: int = 0) -> dict[str, Any]:
         model = SensorModel(kind=kind, k=1.0, fx=float(K[0, 0]))  # type: ignore[arg-type]
         noisy, keep = model.apply(exact, np.zeros(3), cos, rng)
         r = (noisy - c0) @ n2
-        gen[kind] = {"bins": _per_bin(noisy[:, 2], r), "spacing_mm": _spacing_mm(noisy, rng),
+        gen[kind] = {"bins": _per_bin(noisy[:, 2], r), "spacing_mm": _spacing_mm(noisy),
                      "kept": float(keep.mean())}
     return {"frame": path.parent.name + "/" + path.name, "fx": float(K[0, 0]), "real": real, "generated": gen,
             "plane_rms_mm": 1e3 * plane.residual_rms}
 
 
-def _spacing_mm(p: np.ndarray, rng: np.random.Generator) -> float:
-    from scipy.spatial import cKDTree
+def _spacing_mm(p: np.ndarray) -> float:
+    from efem_viz.geometry.knn import point_spacing
 
-    s = p[rng.choice(len(p), min(len(p), 3000), replace=False)]
-    dist, _ = cKDTree(p).query(s, k=2)
-    return float(1e3 * np.median(dist[:, 1]))
+    return float(1e3 * np.median(point_spacing(p)))
 
 
 def svg_plot(series: list[tuple[str, str, list[tuple[float, float]], bool]], path: Path, *, title: str) -> None:

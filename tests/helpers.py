@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import signal
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -26,6 +27,14 @@ def mesh_scene(seed: int = 0, *, subdivisions: int = 2) -> Scene:
         categories={1: "mug", 2: "bowl", 3: "mug"},
         provenance={"source": "test", "seed": seed, "nested": {"a": [1, 2]}},
     )
+
+
+def ball_scan(folder: Path) -> Path:
+    """Write a 642-vertex icosphere scan (radius 0.1 m) to ``folder/scans/ball.ply`` (the servers' test scan)."""
+    p = folder / "scans" / "ball.ply"
+    p.parent.mkdir(parents=True, exist_ok=True)
+    trimesh.creation.icosphere(subdivisions=3, radius=0.1).export(p)
+    return p
 
 
 def server_signals(*, sigint_ignored: bool = False) -> Callable[[], None]:

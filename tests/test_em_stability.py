@@ -10,7 +10,8 @@ import pytest
 
 from efem_viz.em.config import preset
 from efem_viz.em.proposals import Ragged, sample_independent
-from efem_viz.em.rules import REASON_TOO_SMALL, StepContext, apply_step_rules, point_spacing, size_counts
+from efem_viz.em.rules import REASON_TOO_SMALL, StepContext, apply_step_rules, size_counts
+from efem_viz.geometry.knn import point_spacing
 from efem_viz.prior.data import SampleConfig, SensorModel, sensor_cloud
 
 

@@ -26,7 +26,7 @@ import pytest
 import trimesh
 
 sys.path.insert(0, str(Path(__file__).parent))
-from helpers import server_signals  # noqa: E402
+from helpers import ball_scan, server_signals  # noqa: E402
 from viser_client import RawClient, handshake_status, wait_for, ws_url  # noqa: E402
 
 from annotator.app import TOOLS, AnnotatorApp  # noqa: E402
@@ -48,10 +48,7 @@ REPO = Path(__file__).resolve().parents[1]
 # ---------------------------------------------------------------------------------------------- fixtures
 @pytest.fixture()
 def scan(tmp_path: Path) -> Path:
-    p = tmp_path / "scans" / "ball.ply"
-    p.parent.mkdir()
-    trimesh.creation.icosphere(subdivisions=3, radius=0.1).export(p)  # 642 vertices
-    return p
+    return ball_scan(tmp_path)
 
 
 @pytest.fixture()

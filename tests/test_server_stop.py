@@ -21,10 +21,9 @@ from typing import Iterator
 
 import numpy as np
 import pytest
-import trimesh
 
 sys.path.insert(0, str(Path(__file__).parent))
-from helpers import server_signals  # noqa: E402
+from helpers import ball_scan, server_signals  # noqa: E402
 from viser_client import AnnotateProcess, ViserClient  # noqa: E402
 
 from efem_viz.serve.lifecycle import EXIT_FORCED, stop_signals, wait_for_stop  # noqa: E402
@@ -103,10 +102,7 @@ def test_a_second_signal_during_a_stuck_shutdown_exits_at_once(tmp_path: Path) -
 
 @pytest.fixture()
 def ball(tmp_path: Path) -> Path:
-    p = tmp_path / "scans" / "ball.ply"
-    p.parent.mkdir()
-    trimesh.creation.icosphere(subdivisions=3, radius=0.1).export(p)  # 642 vertices
-    return p
+    return ball_scan(tmp_path)
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])

@@ -383,7 +383,8 @@ class Camera:
     height: int
 
 
-def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
+def look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """(4, 4) camera-to-world pose of an OpenCV camera at ``eye`` looking at ``target`` (+Z world up)."""
     f = target - eye
     f /= np.linalg.norm(f)
     right = np.cross(f, [0.0, 0.0, 1.0])
@@ -407,7 +408,7 @@ def _make_cameras(
         horiz = TABLE_HALF * math.sqrt(2) * rng.uniform(0.9, 1.05)
         eye = np.array([horiz * math.cos(az), horiz * math.sin(az), rng.uniform(0.45, 0.6)])
         tgt = target + np.array([*rng.uniform(-0.02, 0.02, 2), 0.0])
-        cams.append(Camera(K, _look_at(eye, tgt), w, h))
+        cams.append(Camera(K, look_at(eye, tgt), w, h))
     return cams
 
 

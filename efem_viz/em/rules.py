@@ -121,16 +121,6 @@ def size_counts(cfg: "EMConfig", inliers: np.ndarray, d: np.ndarray, rag: Ragged
     return counts, thr
 
 
-def point_spacing(points: np.ndarray) -> np.ndarray:
-    """(N,) distance of every point to its nearest other point (m)."""
-    from efem_viz._typeshims import cKDTree
-
-    pts = np.asarray(points, np.float64)
-    if len(pts) < 2:
-        return np.zeros(len(pts))
-    dist, _ = cKDTree(pts).query(pts, k=2)
-    return np.asarray(dist[:, 1], np.float64)
-
 
 def find_duplicates(
     sets: sp.csr_matrix,

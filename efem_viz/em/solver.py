@@ -356,7 +356,7 @@ class _Solver:
         if self.cfg.min_size_spacing is None:
             return None
         if self._spacing is None:
-            from efem_viz.em.rules import point_spacing
+            from efem_viz.geometry.knn import point_spacing
 
             self._spacing = point_spacing(self.points)
         return self._spacing

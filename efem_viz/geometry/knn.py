@@ -1,8 +1,10 @@
-"""Brute-force k-nearest neighbours (batched, torch), in any feature dimension."""
+"""Nearest neighbours: brute-force k-NN (batched, torch, any feature dimension) and point spacing (KD-tree)."""
 
 from __future__ import annotations
 
 from typing import TYPE_CHECKING
+
+import numpy as np
 
 if TYPE_CHECKING:
     import torch
@@ -34,3 +36,14 @@ def knn_indices(query: torch.Tensor, ref: torch.Tensor, k: int) -> torch.Tensor:
         r = ref.detach()
         d2 = (q * q).sum(-1, keepdim=True) - 2.0 * q @ r.transpose(1, 2) + (r * r).sum(-1)[:, None, :]
         return d2.topk(k, dim=-1, largest=False).indices
+
+
+def point_spacing(points: np.ndarray) -> np.ndarray:
+    """(N,) distance of every point to its nearest other point (m)."""
+    from efem_viz._typeshims import cKDTree
+
+    pts = np.asarray(points, np.float64)
+    if len(pts) < 2:
+        return np.zeros(len(pts))
+    dist, _ = cKDTree(pts).query(pts, k=2)
+    return np.asarray(dist[:, 1], np.float64)

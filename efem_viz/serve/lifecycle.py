@@ -95,6 +95,28 @@ def stop_signals(prog: str) -> Iterator[None]:
             signal.signal(s, h if h is not None else signal.SIG_DFL)
 
 
+def announce(prog: str, headline: str, *, url: str, local_url: str, exposure_warning: str | None = None,
+             details: tuple[str, ...] = ()) -> None:
+    """What both servers print at start: the exposure warning (stderr), ``prog: headline at URL``, the local URL
+    when it differs, and indented detail lines.
+
+    Args:
+        prog: program name ("efem-annotate").
+        headline: what is served, followed by the URL (e.g. "scan.ply (1,234 vertices) at <url>").
+        url: the URL with the access token (already in ``headline``; compared with ``local_url``).
+        local_url: the URL on this machine.
+        exposure_warning: the access guard's warning when the server is reachable from other machines.
+        details: further lines ("autosave: ...").
+    """
+    if exposure_warning:
+        print(f"{prog}: {exposure_warning}", file=sys.stderr, flush=True)
+    print(f"{prog}: {headline}", flush=True)
+    if local_url != url:
+        print(f"  on this machine: {local_url}", flush=True)
+    for line in details:
+        print(f"  {line}", flush=True)
+
+
 def wait_for_stop(*, stop_event: threading.Event | None = None) -> None:
     """Serve until Ctrl+C / SIGTERM (a KeyboardInterrupt; use inside `stop_signals`) or until `stop_event` is set;
     returns normally either way (the caller closes its app in `finally`).

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import logging
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -42,7 +41,7 @@ class ViewArgs:
 
     def run(self) -> int:
         """Start the server, print its URL, serve until Ctrl+C / SIGTERM (`efem_viz.serve.lifecycle`)."""
-        from efem_viz.serve.lifecycle import stop_signals, wait_for_stop
+        from efem_viz.serve.lifecycle import announce, stop_signals, wait_for_stop
         from efem_viz.serve.outputs import default_output_dir
         from efem_viz.viewer.app import ViewerApp, default_scene_dir
 
@@ -63,13 +62,9 @@ class ViewArgs:
             app = ViewerApp(paths, host=self.host, port=self.port, prior_name=priors[0], run_priors=priors[1:],
                             out_dir=out_dir, token=self.token, results=self.results, max_points=self.max_points)
             try:
-                warning = app.access.exposure_warning
-                if warning:
-                    print(f"efem-viz viewer: {warning}", file=sys.stderr, flush=True)
-                print(f"efem-viz viewer: {app.url}  ({len(app.state.entries)} scenes; Ctrl+C to stop)", flush=True)
-                if app.local_url != app.url:
-                    print(f"  on this machine: {app.local_url}", flush=True)
-                print(f"  exports go to: {app.out_root}", flush=True)
+                announce("efem-viz viewer", f"{app.url}  ({len(app.state.entries)} scenes; Ctrl+C to stop)",
+                         url=app.url, local_url=app.local_url, exposure_warning=app.access.exposure_warning,
+                         details=(f"exports go to: {app.out_root}",))
                 wait_for_stop()
             finally:
                 app.stop()
