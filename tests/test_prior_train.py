@@ -258,3 +258,30 @@ def test_sensor_and_fixed_point_training_runs_and_reports_sensor_metrics(tmp_pat
     # a band that holds no point leaves the clouds as they were
     assert np.array_equal(fixed_point_inputs(prior, pcl, np.random.default_rng(1), p=1.0, tau=-1.0), pcl)
     assert torch.is_grad_enabled()
+
+
+def test_init_from_a_prior_with_a_frozen_decoder_trains_only_the_encoder(tmp_path: Path, cache_dir: Path) -> None:
+    """--init-from starts a new run (iteration 0, fresh optimiser) from a saved prior's weights; --freeze-decoder
+    leaves the decoder bit-identical while the encoder moves."""
+    first = _args(tmp_path / "a", cache_dir, iterations=4, val_every=100, calibrate_iso=False)
+    train(first)
+    start = load_prior(first.resolved_export(), load_codebook=False)
+    args = _args(tmp_path / "b", cache_dir, iterations=5, val_every=100, init_from=first.resolved_export(),
+                 freeze_decoder=True, calibrate_iso=False, sensor_p=0.5)
+    res = train(args)
+    assert res["iteration"] == 5 and res["val_curve"][0]["iteration"] == 0
+    ck = torch.load(tmp_path / "b" / "run" / "last.pt", weights_only=False)
+    after = ck["state_dict"]
+    before = start.state_dict()
+    dec = [k for k in before if k.startswith("decoder.")]
+    enc = [k for k in before if k.startswith("encoder.")]
+    assert dec and enc
+    assert all(torch.equal(before[k], after[k]) for k in dec)
+    assert any(not torch.equal(before[k], after[k]) for k in enc)
+    # the first validation (iteration 0) is the initial prior's: same IoU as that prior on the same inputs
+    from efem_viz.prior.train import load_objects, validate
+
+    start.eval()
+    ref = validate(start, load_objects(args, "val"), args.sample_config(start.config.n_pcl), seed=args.seed + 99)
+    assert res["val_curve"][0]["iou"] == pytest.approx(ref["iou"])
+    assert load_prior(args.resolved_export(), load_codebook=False).metadata["init_from"] == str(first.resolved_export())

@@ -116,6 +116,12 @@ class TrainArgs:
     """Continue from <out_dir>/last.pt (or --resume-from)."""
     resume_from: Path | None = None
     """Explicit checkpoint to resume from (implies --resume)."""
+    init_from: Path | None = None
+    """Start a new run (iteration 0, fresh optimiser, this run's schedule) from the weights of a saved prior,
+    e.g. the shipped ``efem_viz/weights/mug.pt`` (fine-tuning). Ignored on resume."""
+    freeze_decoder: bool = False
+    """Train the encoder only: the decoder (the shape space, its level set and the codebook's meaning) stays
+    as it was. With --init-from, for fine-tuning the encoder's response to sensor inputs (issue 21)."""
     p_table: float = 0.3
     """Probability of the table-plane augmentation."""
     min_views: int = 4
@@ -564,9 +570,22 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
         cfg = PriorConfig.from_dict(ckpt["config"])
     else:
         cfg = args.prior_config()
+    init: ShapePrior | None = None
+    if ckpt is None and args.init_from is not None:
+        from efem_viz.prior.model import load_prior
+
+        init = load_prior(args.init_from, load_codebook=False)
+        cfg = init.config
     prior = ShapePrior(cfg, name=args.category).to(args.device)
+    if init is not None:
+        prior.load_state_dict(init.state_dict())
+        prior.metadata = {**dict(init.metadata or {}), "init_from": str(args.init_from)}
+        log.info("initialised from %s", args.init_from)
     scfg = args.sample_config(cfg.n_pcl)
-    opt = torch.optim.Adam(prior.parameters(), lr=args.lr)
+    if args.freeze_decoder:
+        for prm in prior.decoder.parameters():
+            prm.requires_grad_(False)
+    opt = torch.optim.Adam([prm for prm in prior.parameters() if prm.requires_grad], lr=args.lr)
     state = _State()
     if ckpt is not None:
         prior.load_state_dict(ckpt["state_dict"])
@@ -580,7 +599,7 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
             log.info("--reset-best: forgetting best val IoU %.4f (iteration %d)", state.best_iou,
                      state.best_iteration)
             state.best_iou, state.best_iteration = -1.0, -1
-    else:
+    elif init is None:
         calib_rng = np.random.default_rng(args.seed + 7)
         from efem_viz.prior.data import input_cloud
 
@@ -688,7 +707,7 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
         opt.zero_grad(set_to_none=True)
         losses["loss"].backward()
         gn_e = float(torch.nn.utils.clip_grad_norm_(enc_params, 4.0))
-        gn_d = float(torch.nn.utils.clip_grad_norm_(dec_params, 4.0))
+        gn_d = 0.0 if args.freeze_decoder else float(torch.nn.utils.clip_grad_norm_(dec_params, 4.0))
         opt.step()
         state.iteration += 1
         done_here += 1
