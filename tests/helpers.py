@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import signal
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 import trimesh
@@ -52,3 +52,27 @@ def server_signals(*, sigint_ignored: bool = False) -> Callable[[], None]:
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
     return preexec
+
+
+def expanded_prior(path: Path, config: Any, *, name: str = "hostile") -> Path:
+    """Write a prior file whose every weight is a zero-stride view of one stored float (issue 25 item 1).
+
+    The file stays a few KB however large `config` makes the network: ``torch.save`` keeps only the one-element
+    storage, and ``torch.load`` gives back views of the declared shapes.
+
+    Args:
+        path: The ``.pt`` file to write.
+        config: A `PriorConfig`; its parameter names and shapes are those of the file's state dict.
+        name: The stored prior name.
+    """
+    import torch
+
+    from efem_viz.prior.model import CHECKPOINT_FORMAT, ShapePrior
+
+    with torch.device("meta"):
+        shapes = {k: tuple(v.shape) for k, v in ShapePrior(config).state_dict().items()}
+    one = torch.zeros(1)
+    state = {k: one.reshape(()) if not s else one.expand(*s) for k, s in shapes.items()}
+    torch.save({"format": CHECKPOINT_FORMAT, "name": name, "config": config.to_dict(), "state_dict": state,
+                "metadata": {}}, path)
+    return path

@@ -10,6 +10,7 @@ latents are cast to it.
 from __future__ import annotations
 
 import logging
+import math
 import os
 import pickle
 import re
@@ -31,6 +32,13 @@ log = logging.getLogger(__name__)
 
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
 CHECKPOINT_FORMAT = "efem-viz-prior/1"
+MAX_PRIOR_PARAMETERS = 50_000_000
+"""Most parameters a prior file may declare (the shipped mug prior has 0.6M, the released EFEM priors a few M).
+A file declaring more is refused before anything is built: a few KB of zero-stride views can otherwise declare
+billions of weights that the loader would allocate and copy (issue 25)."""
+MAX_PRIOR_BLOCKS = 256
+"""Most encoder blocks (``widths`` entries) and decoder blocks a prior file may declare (the shipped priors use
+7 and 2-5): bounds the cost of building the network on the meta device to count its parameters."""
 
 
 class Latent(NamedTuple):
@@ -395,8 +403,10 @@ def load_prior(name_or_path: str | os.PathLike[str] = DEFAULT_PRIOR, *, device: 
 def _checked_prior_parts(ckpt: dict[str, Any], path: Path) -> tuple[PriorConfig, dict[str, torch.Tensor]]:
     """The config and state dict of a checkpoint, checked before any layer is allocated.
 
-    The network is first built on the meta device (no memory), so a config with absurd sizes costs nothing; the
-    stored tensors must then have exactly its parameter names and shapes and finite values.
+    The network is first built on the meta device (no memory), so a config with absurd sizes costs nothing; its
+    parameter count must be at most `MAX_PRIOR_PARAMETERS`. The stored tensors must then have exactly its
+    parameter names and shapes, each own exactly its bytes (no expanded or shared views: a few stored bytes cannot
+    stand for many weights), and hold finite values.
 
     Raises:
         ValueError: naming `path` and the first problem.
@@ -409,10 +419,18 @@ def _checked_prior_parts(ckpt: dict[str, Any], path: Path) -> tuple[PriorConfig,
         raise ValueError(f"{path}: state_dict must map parameter names to tensors")
     try:
         config = PriorConfig.from_dict(raw)
+        depth = max(len(config.widths), int(config.decoder_blocks))
+        if depth > MAX_PRIOR_BLOCKS:
+            raise ValueError(f"{len(config.widths)} encoder and {config.decoder_blocks} decoder blocks "
+                             f"(at most {MAX_PRIOR_BLOCKS} each)")
         with torch.device("meta"):
             want = {k: tuple(v.shape) for k, v in ShapePrior(config).state_dict().items()}
     except (TypeError, ValueError, OverflowError, RuntimeError, IndexError, KeyError) as exc:
         raise ValueError(f"{path}: invalid prior config: {' '.join(str(exc).split())[:300]}") from exc
+    declared = sum(math.prod(s) for s in want.values())
+    if declared > MAX_PRIOR_PARAMETERS:
+        raise ValueError(f"{path}: the stored config declares {declared:,} parameters, more than the "
+                         f"{MAX_PRIOR_PARAMETERS:,} a prior may have (refused before loading it)")
     got = {k: tuple(v.shape) for k, v in state.items()}
     if got != want:
         missing = sorted(set(want) - set(got))
@@ -420,6 +438,11 @@ def _checked_prior_parts(ckpt: dict[str, Any], path: Path) -> tuple[PriorConfig,
         wrong = [f"{k} {got[k]} (expected {want[k]})" for k in want if k in got and got[k] != want[k]]
         raise ValueError(f"{path}: the weights do not fit the stored config: missing {missing[:3]}, unexpected "
                          f"{unexpected[:3]}, wrong shape {wrong[:2]}")
+    for k, v in state.items():  # each tensor must own exactly its bytes: no zero-stride or shared views
+        stored = v.untyped_storage().nbytes()
+        if not v.is_contiguous() or v.storage_offset() != 0 or stored != v.numel() * v.element_size():
+            raise ValueError(f"{path}: weight {k!r} {tuple(v.shape)} is stored as a view of {stored:,} bytes "
+                             f"(a plain tensor of this shape holds {v.numel() * v.element_size():,})")
     for k, v in state.items():
         if v.is_complex() or (v.is_floating_point() and not bool(torch.isfinite(v).all())):
             raise ValueError(f"{path}: weight {k!r} holds {'complex' if v.is_complex() else 'NaN or Inf'} values")
