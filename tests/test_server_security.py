@@ -16,6 +16,7 @@ import re
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from types import SimpleNamespace
@@ -27,13 +28,14 @@ import trimesh
 
 sys.path.insert(0, str(Path(__file__).parent))
 from helpers import ball_scan, server_signals  # noqa: E402
-from viser_client import RawClient, handshake_status, wait_for, ws_url  # noqa: E402
+from viser_client import RawClient, ViserClient, handshake_status, wait_for, ws_url  # noqa: E402
 
 from annotator.app import TOOLS, AnnotatorApp  # noqa: E402
 from annotator.io import LabelIOError  # noqa: E402
 from efem_viz.serve import guard  # noqa: E402
 from efem_viz.serve.inputs import (  # noqa: E402
     ClientValueError,
+    confine_writes,
     read_choice,
     read_int,
     read_number,
@@ -264,6 +266,46 @@ def _stop_cli(proc: subprocess.Popen[str]) -> int:
         return proc.wait(10)
 
 
+class ViewCLI(SimpleNamespace):
+    """A running `efem-viz view` process: `proc`, `url` (as printed), `root` (its output root), `lines` (everything
+    it printed, stdout and stderr, read on a thread), `client()` (a new connected `ViserClient`)."""
+
+    def client(self) -> ViserClient:
+        return ViserClient(self.url)
+
+    def log(self) -> str:
+        return "".join(self.lines)
+
+
+@pytest.fixture(scope="module")
+def view_cli(scene_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[ViewCLI]:
+    """The real `efem-viz view` CLI on the sphere scene (its saved result loads with it), on port 0."""
+    root = tmp_path_factory.mktemp("view-out") / "root"
+    proc, lines = _start_cli(["-m", "efem_viz.cli", "view", str(scene_dir / "spheres.ply"), "--port", "0",
+                              "--out-dir", str(root)], until="  exports go to:")
+    url = re.search(r"viewer: (http://\S+)", "".join(lines)).group(1)  # type: ignore[union-attr]
+    assert proc.stdout is not None
+    reader = threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True)  # type: ignore[arg-type]
+    reader.start()
+    try:
+        yield ViewCLI(proc=proc, url=url, root=root.resolve(), lines=lines)
+    finally:
+        assert _stop_cli(proc) == 0
+        reader.join(10)
+
+
+def _notified(c: ViserClient, needle: str, *, before: int = 0) -> str:
+    """The first notification after the first `before` ones that contains `needle` (waits for it)."""
+    found: list[str] = []
+
+    def seen() -> bool:
+        found[:] = [t for t in c.notification_texts()[before:] if needle in t]
+        return bool(found)
+
+    assert c.wait_for(seen, 60), f"no notification with {needle!r}: {c.notification_texts()}"
+    return found[0]
+
+
 def test_annotate_cli_prints_a_tokenised_url_and_guards_it(scan: Path, tmp_path: Path) -> None:
     proc, lines = _start_cli(["-m", "annotator", str(scan), "--out", str(tmp_path / "o"), "--port", "0"])
     try:
@@ -459,6 +501,69 @@ def test_viewer_gui_exports_stay_inside_the_output_root(viewer: Any, tmp_path: P
     fut = viewer.export_from_gui("results")
     assert fut is not None and fut.result(60) == root / "run1"
     assert (root / "run1" / "spheres_instances.ply").is_file()
+
+
+def test_view_cli_export_refuses_links_inside_the_output_root(view_cli: ViewCLI, tmp_path: Path) -> None:
+    """Issue 25 item 2, on the real CLI: the typed folder is inside the root, but a link below it leads out (a
+    `pred_mask` folder link; a file link at the last file written). Refused before anything is written."""
+    root = view_cli.root
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (outside / "victim.txt").write_text("keep me\n")
+    (root / "trap").mkdir(parents=True)
+    os.symlink(outside, root / "trap" / "pred_mask")  # a folder link
+    (root / "trap2" / "pred_mask").mkdir(parents=True)
+    os.symlink(outside / "victim.txt", root / "trap2" / "spheres.txt")  # a file link, written after the masks
+    os.symlink(root / "trap", root / "trap3")  # a folder link that stays inside the root leads out further down
+    c = view_cli.client()
+    try:
+        for folder, link in (("trap", "pred_mask"), ("trap2", "spheres.txt"), ("trap3", "pred_mask")):
+            n = len(c.notification_texts())
+            c.set_value("Output folder", folder)
+            c.click("Export results")
+            text = _notified(c, "refusing export", before=n)
+            assert link in text and "nothing was written" in text, text
+            assert "\n" not in text.split(": ", 1)[1].strip(), "one line"
+        assert sorted(p.name for p in outside.iterdir()) == ["victim.txt"]
+        assert (outside / "victim.txt").read_text() == "keep me\n"
+        assert [p.name for p in (root / "trap2").rglob("*")] in (["pred_mask", "spheres.txt"],
+                                                                 ["spheres.txt", "pred_mask"])
+        assert not list((root / "trap2" / "pred_mask").iterdir()), "no mask written before the refusal"
+        # the same export into a plain folder works (the refusals above were the links, not the harness)
+        c.set_value("Output folder", "plain")
+        c.click("Export results")
+        assert c.wait_for(lambda: (root / "plain" / "spheres_instances.ply").is_file(), 60)
+        assert list((root / "plain" / "pred_mask").glob("spheres_*.txt"))
+    finally:
+        c.close()
+    assert "Traceback" not in view_cli.log()
+
+
+def test_export_writes_exactly_the_files_it_checks(viewer: Any, tmp_path: Path) -> None:
+    """`results_files` (what the confinement check looks at) is what `export_results` writes."""
+    from efem_viz.viewer.export import export_results, results_files
+
+    assert viewer.open_scene("spheres") and viewer.state.result is not None
+    s = viewer.state
+    out = tmp_path / "exp"
+    export_results(s.result, s.scene, out, threshold=s.threshold, root=tmp_path)
+    planned = results_files(s.result, s.scene, out, threshold=s.threshold)
+    assert len(planned) > 4, "some masks"
+    assert sorted(planned) == sorted([out, *out.rglob("*")])
+
+
+def test_confine_writes_follows_every_link(tmp_path: Path) -> None:
+    root = tmp_path / "root"
+    (root / "d").mkdir(parents=True)
+    os.symlink(tmp_path, root / "up")
+    os.symlink(root / "d", root / "inner")  # a folder link inside the root: fine
+    (root / "d" / "f.txt").write_text("x")
+    os.symlink(root / "d" / "f.txt", root / "d" / "flink.txt")  # a file link: atomic writes would stop at it
+    assert confine_writes(["d", root / "inner" / "new.txt", root / "d" / "f.txt"], root) == [
+        (root / "d").resolve(), (root / "d" / "new.txt").resolve(), (root / "d" / "f.txt").resolve()]
+    for bad in (root / "up" / "x.txt", root / "up", root / "d" / "flink.txt", root / ".." / "x", tmp_path / "x"):
+        with pytest.raises(ClientValueError, match="nothing was written"):
+            confine_writes([root / "d" / "ok.txt", bad], root)
 
 
 def test_viewer_static_demo_defaults_into_the_output_root(viewer: Any, tmp_path: Path) -> None:

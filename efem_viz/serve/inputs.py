@@ -5,7 +5,8 @@ over the WebSocket. The helpers here re-check a control's value on the server ag
 for that control (`min`/`max` of sliders and numbers, `options` of dropdowns; `efem_viz.serve.guard` keeps
 clients from rewriting those): numbers are clamped into range and must be finite, choices must be one of the
 options, text is bounded, colours are 0-255 triples. Paths typed into the GUI must resolve inside a folder chosen
-at start (`resolve_inside_root`).
+at start (`resolve_inside_root`), and so must every folder and file an export then writes there (`confine_writes`:
+a symbolic link inside the output folder cannot lead a write out of it).
 
 Out-of-range numbers are clamped (and the clamped value is written back through `write_back`, so every client
 shows what is used); values that cannot be used (NaN, text in a number, an unknown option) raise
@@ -207,3 +208,42 @@ def resolve_inside_root(text: str | os.PathLike[str], root: str | os.PathLike[st
     """
     return resolve_inside(text, [root], what=what, allow_dotdot=False)
 
+
+
+def confine_writes(
+    paths: Iterable[str | os.PathLike[str]],
+    root: str | os.PathLike[str],
+    *,
+    what: str = "export",
+    error: type[ValueError] = ClientValueError,
+) -> list[Path]:
+    """Check, before anything is written, that every folder and file an export will write lies inside `root`
+    after following symbolic links (`resolve_inside`), and that no file it will write is itself a symbolic link.
+
+    The output folder alone is not enough: a link further down (a sub-folder such as `pred_mask/`, or one file)
+    can point outside. A file-level link is refused even when it points inside `root`: atomic writes never write
+    through a link, so the export would stop half-way. A folder that is a link into `root` is accepted.
+
+    Args:
+        paths: the folders and files the export will create or replace (absolute, or relative to `root`).
+        root: the output root chosen at start.
+        what: noun for the error message.
+        error: the ValueError subclass to raise.
+
+    Returns:
+        The resolved paths, in the given order.
+
+    Raises:
+        `error`: naming the first path that resolves outside `root` or is a link to a file.
+    """
+    out = []
+    for p in paths:
+        path = Path(p) if Path(p).is_absolute() else Path(root).expanduser().resolve() / p
+        try:
+            resolved = resolve_inside(path, [root], what=f"{what} path", error=error)
+        except error as exc:
+            raise error(f"{exc}; nothing was written") from None
+        if path.is_symlink() and not path.is_dir():
+            raise error(f"refusing {what}: {path} is a symbolic link (to {resolved}); nothing was written")
+        out.append(resolved)
+    return out

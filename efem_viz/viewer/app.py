@@ -224,6 +224,9 @@ class ViewerApp:
         def guarded() -> Any:
             try:
                 return fn(*args, **kw)
+            except ClientValueError as exc:  # a refused value or path: one line, no traceback
+                self._set_status(str(exc), error=True)
+                raise
             except Exception as exc:  # noqa: BLE001 - shown in the GUI, server stays up
                 logger.exception("viewer job %s failed", getattr(fn, "__name__", fn))
                 self._set_status(f"{getattr(fn, '__name__', 'job')} failed: {exc}", error=True)
@@ -330,10 +333,10 @@ class ViewerApp:
         """
         folder = self.gui_out_folder()
         if kind == "results":
-            return self._submit(self._worker, self.export_results, folder)
+            return self._submit(self._worker, self.export_results, folder, root=self.out_root)
         scene = self.state.scene
         target = folder / "static" / safe_name(scene.name) if scene is not None else None
-        return self._submit(self._worker, self.export_static, target)
+        return self._submit(self._worker, self.export_static, target, root=self.out_root)
 
     def _gui_set(self, handle: Any, value: Any) -> None:
         """Set a GUI value without re-entering our own callback."""
@@ -1111,26 +1114,33 @@ class ViewerApp:
         self.panels.gui_color_key.content = color_key_html(shown)
 
     # ================================================================== 7. export
-    def export_results(self, out_dir: str | Path) -> Path | None:
+    def export_results(self, out_dir: str | Path, *, root: Path | None = None) -> Path | None:
         """Write the thresholded result: ScanNet layout + coloured PLY under `out_dir` (a Python caller's choice;
-        the GUI button goes through `export_from_gui`, confined to the output root)."""
+        the GUI button goes through `export_from_gui`, confined to the output root).
+
+        Args:
+            out_dir: the export folder.
+            root: when given, every folder and file written must resolve inside it (links followed), checked
+                before anything is written.
+        """
         from efem_viz.viewer.export import export_results
 
         s = self.state
         if s.result is None or s.scene is None:
             self._set_status("Nothing to export: load or run a result first.", error=True)
             return None
-        out = export_results(s.result, s.scene, Path(out_dir), threshold=s.threshold)
+        out = export_results(s.result, s.scene, Path(out_dir), threshold=s.threshold, root=root)
         self.panels.gui_export_info.content = f"Results written to `{out}`"
         self._set_status(f"Exported results to {out}.")
         return out
 
-    def export_static(self, out_dir: str | Path | None = None) -> Path | None:
+    def export_static(self, out_dir: str | Path | None = None, *, root: Path | None = None) -> Path | None:
         """Write the static demo page `<out_dir>/index.html` (final result + playback of the steps).
 
         Args:
             out_dir: the page's folder (a Python caller's choice); None = `<output root>/static/<scene>/`, never
                 the installed package or the checkout. The GUI button goes through `export_from_gui`.
+            root: as in `export_results`.
         """
         from efem_viz.viewer.export import export_static_demo
 
@@ -1145,7 +1155,7 @@ class ViewerApp:
             prior = None
             logger.info("static demo without decoded shapes: %s", exc)
         self._set_status(f"Exporting the static demo of {s.scene.name} …")
-        out = export_static_demo(s.scene, s.result, target, threshold=s.threshold, prior=prior)
+        out = export_static_demo(s.scene, s.result, target, threshold=s.threshold, prior=prior, root=root)
         self.panels.gui_export_info.content = f"Static demo written to `{out}`"
         self._set_status(f"Exported static demo to {out}.")
         return out

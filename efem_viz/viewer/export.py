@@ -45,7 +45,24 @@ def _atomic_write_text(path: Path, text: str) -> Path:
     return Path(atomic_write_text(path, text))
 
 
-def export_results(result: Any, scene: Any, out_dir: Path, *, threshold: float = 0.0) -> Path:
+def results_files(result: Any, scene: Any, out_dir: Path, *, threshold: float = 0.0) -> list[Path]:
+    """The folders and files `export_results` writes, in order: the folder, `pred_mask/`, one mask file per
+    instance (the ScanNet layout of `Instances.to_scannet`), `<scene>.txt` and `<scene>_instances.ply`.
+
+    Args:
+        result: `efem_viz.em.EMResult`.
+        scene: the `Scene` it was computed on.
+        out_dir: the export folder.
+        threshold: confidence threshold.
+    """
+    out = Path(out_dir).expanduser()
+    n = len(result.instances.above(float(threshold)))
+    masks = [out / "pred_mask" / f"{scene.name}_{k:03d}.txt" for k in range(n)]
+    return [out, out / "pred_mask", *masks, out / f"{scene.name}.txt", out / f"{scene.name}_instances.ply"]
+
+
+def export_results(result: Any, scene: Any, out_dir: Path, *, threshold: float = 0.0,
+                   root: Path | None = None) -> Path:
     """Write the instances with confidence ≥ threshold in the ScanNet benchmark layout and as a coloured PLY.
 
     Args:
@@ -53,21 +70,29 @@ def export_results(result: Any, scene: Any, out_dir: Path, *, threshold: float =
         scene: the `Scene` it was computed on.
         out_dir: folder (created); gets `<scene>.txt`, `pred_mask/…` and `<scene>_instances.ply`.
         threshold: confidence threshold.
+        root: when given (the viewer's output root), every folder and file written must lie inside it after
+            following symbolic links (`efem_viz.serve.inputs.confine_writes`), checked before anything is
+            written.
 
     Returns:
         The output folder.
 
     Raises:
         ValueError: the result does not match the scene (mask indices out of range).
+        ClientValueError: a path the export would write leaves `root` (nothing was written).
     """
     out = Path(out_dir).expanduser()
-    out.mkdir(parents=True, exist_ok=True)
+    if root is not None:
+        from efem_viz.serve.inputs import confine_writes
+
+        confine_writes(results_files(result, scene, out, threshold=threshold), root, what="export")
     inst = result.instances.above(float(threshold))
     n = scene.num_points
     for k, m in enumerate(inst.masks):
         m = np.asarray(m)
         if m.size and (m.min() < 0 or m.max() >= n):
             raise ValueError(f"instance {k} has point indices outside [0, {n}): the result does not match {scene.name!r}")
+    out.mkdir(parents=True, exist_ok=True)
     inst.to_scannet(out, scene.name, n)
     inst.to_colored_ply(scene, out / f"{scene.name}_instances.ply")
     logger.info("exported %d instances of %s to %s", len(inst.ids), scene.name, out)
@@ -87,6 +112,7 @@ def export_static_demo(
     seed: int = 0,
     prior: ShapePriorLike | Sequence[ShapePriorLike] | None = None,
     shapes_per_step: int = 4,
+    root: Path | None = None,
 ) -> Path:
     """Record a static demo page: the scan, a playback of the EM steps, and the final result.
 
@@ -104,13 +130,22 @@ def export_static_demo(
             shapes of the `shapes_per_step` best live
             proposals are part of every step (decoded here, about 0.3 s each with the mug prior on a CPU).
         shapes_per_step: see `prior`.
+        root: when given (the viewer's output root), the folder and both files must lie inside it after following
+            symbolic links, checked before anything is recorded or written (see `export_results`).
 
     Returns:
         Path of the written `index.html`.
+
+    Raises:
+        ClientValueError: a path the export would write leaves `root` (nothing was written).
     """
     from efem_viz.serve.guard import start_server
 
     out = Path(out_dir).expanduser()
+    if root is not None:
+        from efem_viz.serve.inputs import confine_writes
+
+        confine_writes([out, out / "index.html", out / "meta.json"], root, what="static demo export")
     out.mkdir(parents=True, exist_ok=True)
     pts = np.asarray(scene.points, np.float32)
     n = pts.shape[0]
