@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import logging
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -73,12 +72,13 @@ def main(argv: list[str] | None = None) -> int:
     ValueErrors); `--debug` (or EFEM_DEBUG=1) shows the traceback instead. `--version` prints the version.
     """
     from efem_viz.cli import package_version, pop_debug_flag, run_reporting_errors
+    from efem_viz.terminal import log_to_terminal
 
     rest, debug = pop_debug_flag(list(sys.argv[1:] if argv is None else argv))
     if rest and rest[0] in ("--version", "-V"):
         print(f"efem-annotate {package_version()}")
         return 0
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    log_to_terminal()
     args = tyro.cli(AnnotateArgs, args=rest, prog="efem-annotate")
     return run_reporting_errors("efem-annotate", args.run, debug=debug)
 

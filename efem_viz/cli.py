@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import importlib
-import logging
 import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
+
+from efem_viz.terminal import log_to_terminal, terminal_text
 
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "view": ("efem_viz.viewer.commands:ViewArgs", "open the viewer on scenes / folders (default: sample_scenes/)"),
@@ -70,7 +71,7 @@ def pop_debug_flag(args: list[str]) -> tuple[list[str], bool]:
 
 def error_message(exc: BaseException) -> str:
     """One line for an exception: its message with line breaks folded; OSErrors as `<reason>: <file>`, KeyErrors as
-    `missing key '<k>'`."""
+    `missing key '<k>'`; other control characters escaped (`terminal_text`)."""
     if isinstance(exc, OSError) and exc.strerror:
         files = [str(f) for f in (exc.filename, exc.filename2) if f is not None]
         msg = f"{exc.strerror}: {' -> '.join(files)}" if files else exc.strerror
@@ -78,7 +79,7 @@ def error_message(exc: BaseException) -> str:
         msg = f"missing key {exc.args[0]!r}"
     else:
         msg = str(exc)
-    return " ".join(msg.split()) or type(exc).__name__
+    return terminal_text(" ".join(msg.split())) or type(exc).__name__
 
 
 def run_reporting_errors(prog: str, command: Callable[[], int | None], *, debug: bool = False) -> int:
@@ -166,7 +167,7 @@ def main(argv: list[str] | None = None) -> int:
 
         module_name, cls_name = SUBCOMMANDS[name][0].split(":")
         cls = getattr(importlib.import_module(module_name), cls_name)
-        logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+        log_to_terminal()
         parsed = tyro.cli(cls, args=rest, prog=prog)
         return int(parsed.run() or 0)
 

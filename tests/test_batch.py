@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -446,3 +447,34 @@ def test_ray_job_that_no_node_can_host_fails_in_one_line(tmp_path: Path) -> None
                           capture_output=True, text=True, timeout=240)
     assert proc.returncode == 1, proc.stdout + proc.stderr
     assert "asks for 2 CPU(s)" in proc.stderr and "cluster has 1" in proc.stderr, proc.stderr
+
+
+def test_control_characters_in_scene_names_reach_the_console_escaped(tmp_path: Path) -> None:
+    """Issue 25 item 3, on the real CLI: an ESC sequence and a newline in scene file names (one scene that
+    segments, one that fails) are printed as visible escapes, in the console lines, the summary table and the log."""
+    from efem_viz.prior.analytic import make_sphere_scene
+
+    src = tmp_path / "in"
+    src.mkdir()
+    good = "ok\x1b[2J\nFAKE LINE A"
+    save_scene(make_sphere_scene(seed=0, spacing=0.012, radii=(0.05,)), src / f"{good}.ply")
+    (src / "bad\x1b]0;title\x07\rFAKE LINE B.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex 9\n"
+                                                                 b"property float x\nend_header\n1\n")
+    env = dict(os.environ, OMP_NUM_THREADS="1", COLUMNS="400")
+    proc = subprocess.run([sys.executable, "-m", "efem_viz.cli", "segment", str(src), "--out", str(tmp_path / "o"),
+                           "--prior", "sphere"], capture_output=True, text=True, timeout=600, env=env)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 1, out  # one scene failed
+    assert not any(c in out for c in "\x1b\x07\r"), "no raw ESC, BEL or CR"
+    assert not any(line.lstrip("│ ").startswith("FAKE") for line in out.splitlines()), "no line starts in a name"
+    assert re.search(r"^ok\\x1b\[2J\\nFAKE LINE A: \d+ instances in ", proc.stdout, re.M), proc.stdout
+    assert re.search(r"^│ ok\\x1b\[2J\\nFAKE LINE A +│ ok ", proc.stdout, re.M), "the summary table"
+    assert "bad\\x1b]0;title\\x07\\rFAKE LINE B: failed" in proc.stdout
+    assert "bad\\x1b]0;title\\x07\\rFAKE LINE B: failed" in proc.stderr  # the worker's log line
+
+
+def test_terminal_text_escapes_controls_only() -> None:
+    from efem_viz.terminal import terminal_text
+
+    assert terminal_text("mug_01 café 杯 [b]") == "mug_01 café 杯 [b]"
+    assert terminal_text("a\x1b[2Jb\nc\rd\te\x7f\x9b\u202ef") == "a\\x1b[2Jb\\nc\\rd\\te\\x7f\\x9b\\u202ef"

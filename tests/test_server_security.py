@@ -28,7 +28,7 @@ import trimesh
 
 sys.path.insert(0, str(Path(__file__).parent))
 from helpers import ball_scan, server_signals  # noqa: E402
-from viser_client import RawClient, ViserClient, handshake_status, wait_for, ws_url  # noqa: E402
+from viser_client import AnnotateProcess, RawClient, ViserClient, handshake_status, wait_for, ws_url  # noqa: E402
 
 from annotator.app import TOOLS, AnnotatorApp  # noqa: E402
 from annotator.io import LabelIOError  # noqa: E402
@@ -42,6 +42,7 @@ from efem_viz.serve.inputs import (  # noqa: E402
     read_rgb,
     read_text,
     resolve_inside_root,
+    uncastable_value,
 )
 
 REPO = Path(__file__).resolve().parents[1]
@@ -537,6 +538,78 @@ def test_view_cli_export_refuses_links_inside_the_output_root(view_cli: ViewCLI,
     finally:
         c.close()
     assert "Traceback" not in view_cli.log()
+
+
+def test_view_cli_refuses_control_characters_and_uncastable_values(view_cli: ViewCLI) -> None:
+    """Issue 25 item 3, on the real CLI: a newline in the output-folder field, and NaN / infinity / text sent for
+    integer controls, are refused with one-line notices and one log line each; no traceback in the server log."""
+    root = view_cli.root
+    c = view_cli.client()
+    try:
+        n = len(c.notification_texts())
+        c.set_value("Output folder", "run\nx")
+        c.click("Export results")
+        text = _notified(c, "control character", before=n)
+        assert "Output folder" in text and "\\n" in text, text
+        assert not list(root.glob("run*"))
+        for label, bad in (("Proposals", math.nan), ("Seed", math.inf), ("Proposals", "many"),
+                           ("Max shapes drawn", math.nan)):
+            n = len(c.notification_texts())
+            c.set_value(label, bad)
+            text = _notified(c, "Value refused", before=n)
+            assert label in text and "expected a finite integer" in text, text
+    finally:
+        c.close()
+    log = view_cli.log()
+    assert "Traceback" not in log and "cannot convert" not in log, log[-3000:]
+    assert log.count("refused a client's value") == 4
+
+
+def test_annotate_cli_refuses_a_nan_colour_without_a_traceback(scan: Path, tmp_path: Path) -> None:
+    """Issue 25 item 3: a NaN (or text, or an overflow) sent for the colour control: one-line notice, one log line
+    each, no traceback."""
+    proc = AnnotateProcess(scan, tmp_path / "o")
+    try:
+        proc.edit(("new",))
+        c = proc.client
+        for bad in ([math.nan, 0, 0], "red", [1e400, 0, 0]):
+            n = len(c.notification_texts())
+            c.set_value("Colour", bad)
+            text = _notified(c, "Value refused", before=n)
+            assert text.count("\n") == 0 and "Colour" in text, text
+    finally:
+        assert proc.stop() == 0
+    log = "".join(proc.lines)
+    assert "Traceback" not in log and "cannot convert" not in log, log[-3000:]
+    assert log.count("refused a client's value for 'Colour'") == 3
+
+
+def test_an_uncastable_value_leaves_the_control_as_it_was(viewer: Any) -> None:
+    p = viewer.panels
+    with RawClient(viewer.url) as c:
+        assert wait_for(lambda: len(viewer.server.get_clients()) == 1)
+        c.set_gui(p.gui_seed, value=math.nan)
+        c.set_gui(p.gui_proposals, value=math.inf)
+        c.set_gui(p.gui_seed, value=5)  # a later good value still lands
+        assert wait_for(lambda: p.gui_seed.value == 5)
+    assert p.gui_proposals.value == 100
+
+
+def test_read_text_refuses_control_characters() -> None:
+    for bad, shown in (("run\nx", "\\n"), ("a\x1b[2J", "\\x1b"), ("a\x00b", "NUL"), ("a\rb", "\\r")):
+        with pytest.raises(ClientValueError, match="control character") as err:
+            read_text(_H(label="Output folder", value=bad))
+        assert shown in str(err.value) and "\n" not in str(err.value)
+    assert read_text(_H(label="Name", value="cup A — café 杯")) == "cup A — café 杯"
+
+
+def test_uncastable_values_are_named() -> None:
+    assert uncastable_value(100, 5.0) is None and uncastable_value(100, "12") is None
+    assert uncastable_value(1.0, math.nan) is None, "a float control casts NaN; read_number refuses it"
+    assert uncastable_value((255, 0, 0), [1, 2, 3]) is None
+    for current, bad in ((100, math.nan), (100, math.inf), (100, "many"), (100, None), ((255, 0, 0), [math.nan, 0, 0]),
+                         ((255, 0, 0), "red"), ((255, 0, 0), 7)):
+        assert uncastable_value(current, bad), (current, bad)
 
 
 def test_export_writes_exactly_the_files_it_checks(viewer: Any, tmp_path: Path) -> None:

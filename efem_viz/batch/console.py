@@ -24,6 +24,7 @@ from rich.table import Table
 
 from efem_viz.batch.events import BatchObserver
 from efem_viz.batch.job import BATCH_FILE, SceneOutcome, SceneTask, WorkerInfo
+from efem_viz.terminal import terminal_text
 
 if TYPE_CHECKING:
     from efem_viz.batch.runner import BatchPlan, BatchReport
@@ -33,6 +34,13 @@ PLAIN_STEP_EVERY_S = 10.0
 most this often (and at its last step): rich draws no live bars there."""
 TABLE_ROWS = 40
 """The summary table lists every scene up to this many; beyond, the failed ones and the totals (batch.json has all)."""
+
+
+def _shown(text: object) -> str:
+    """Text from outside (scene and file names, worker ids, error messages) as the console prints it: control
+    characters escaped (`efem_viz.terminal.terminal_text`: an ESC or newline in a file name stays visible and
+    inert), then rich markup escaped."""
+    return escape(terminal_text(str(text)))
 
 
 class RichBatchDisplay(BatchObserver):
@@ -67,24 +75,24 @@ class RichBatchDisplay(BatchObserver):
     # ------------------------------------------------------------------ events
     def on_plan(self, plan: BatchPlan) -> None:
         self.out = str(plan.out)
-        skipped = f", {len(plan.skipped)} skipped (valid results in {plan.out})" if plan.skipped else ""
+        skipped = f", {len(plan.skipped)} skipped (valid results in {_shown(plan.out)})" if plan.skipped else ""
         self.console.print(f"{plan.total} scene(s): {len(plan.tasks)} to segment{skipped}")
         self.overall = self.progress.add_task("scenes", total=len(plan.tasks), info="")
 
     def on_worker(self, info: WorkerInfo) -> None:
-        self.console.print(f"[dim]{escape(info.worker)} ready on {escape(info.host)} (pid {info.pid}, {info.threads} thread(s), "
+        self.console.print(f"[dim]{_shown(info.worker)} ready on {_shown(info.host)} (pid {info.pid}, {info.threads} thread(s), "
                            f"priors {info.prior_load_s:.1f} s, {info.rss_mb:.0f} MiB)[/]")
 
     def on_start(self, task: SceneTask, worker: str) -> None:
         if self.plain:
-            self.console.print(f"{escape(task.name)}: started ({escape(worker)})")
+            self.console.print(f"{_shown(task.name)}: started ({_shown(worker)})")
             self._last_plain[worker] = time.monotonic()
         row = self.rows.get(worker)
         if row is None:
-            self.rows[worker] = self.progress.add_task(f"{escape(worker)} {escape(task.name)}", total=None,
+            self.rows[worker] = self.progress.add_task(f"{_shown(worker)} {_shown(task.name)}", total=None,
                                                        info="loading")
         else:
-            self.progress.reset(row, total=None, description=f"{escape(worker)} {escape(task.name)}", info="loading",
+            self.progress.reset(row, total=None, description=f"{_shown(worker)} {_shown(task.name)}", info="loading",
                                 visible=True)
 
     def on_step(self, task: SceneTask, worker: str, step: int, total: int, text: str) -> None:
@@ -92,7 +100,7 @@ class RichBatchDisplay(BatchObserver):
             now = time.monotonic()
             if step >= total or now - self._last_plain.get(worker, -float("inf")) >= self.plain_every_s:
                 self._last_plain[worker] = now
-                self.console.print(f"{escape(task.name)}: step {step}/{total}  {escape(text)} ({escape(worker)})")
+                self.console.print(f"{_shown(task.name)}: step {step}/{total}  {_shown(text)} ({_shown(worker)})")
         row = self.rows.get(worker)
         if row is not None:
             self.progress.update(row, total=total, completed=step, info=text)
@@ -107,10 +115,10 @@ class RichBatchDisplay(BatchObserver):
         if row is not None:
             self.progress.update(row, visible=False)
         if outcome.status == "ok":
-            self.console.print(f"{escape(outcome.name)}: {outcome.instances} instances in {outcome.seconds:.1f} s "
-                               f"({escape(outcome.worker)})")
+            self.console.print(f"{_shown(outcome.name)}: {outcome.instances} instances in {outcome.seconds:.1f} s "
+                               f"({_shown(outcome.worker)})")
         else:
-            self.console.print(f"[red]{escape(outcome.name)}: failed: {escape(outcome.error)}[/]")
+            self.console.print(f"[red]{_shown(outcome.name)}: failed: {_shown(outcome.error)}[/]")
 
     def on_finish(self, report: BatchReport) -> None:
         self.progress.stop()
@@ -118,7 +126,7 @@ class RichBatchDisplay(BatchObserver):
         c = report.counts()
         pending = f", {c['pending']} not run" if c["pending"] else ""
         self.console.print(f"{report.plan.total} scene(s): {c['ok']} ok, {c['skipped']} skipped, {c['failed']} "
-                           f"failed{pending} in {report.wall_s:.1f} s; record: {report.plan.out / BATCH_FILE}")
+                           f"failed{pending} in {report.wall_s:.1f} s; record: {_shown(report.plan.out / BATCH_FILE)}")
 
 
 def summary_table(report: BatchReport, *, max_rows: int = TABLE_ROWS) -> Table:
@@ -131,9 +139,9 @@ def summary_table(report: BatchReport, *, max_rows: int = TABLE_ROWS) -> Table:
         table.add_column(col, justify="right" if col in ("instances", "points", "seconds") else "left")
     style = {"ok": "green", "skipped": "cyan", "failed": "red"}
     for o in rows:
-        table.add_row(escape(o.name), f"[{style[o.status]}]{o.status}[/]", "" if o.instances < 0 else str(o.instances),
-                      "" if o.points < 0 else f"{o.points:,}", f"{o.seconds:.1f}", escape(o.worker),
-                      escape(o.error[:120]))
+        table.add_row(_shown(o.name), f"[{style[o.status]}]{o.status}[/]", "" if o.instances < 0 else str(o.instances),
+                      "" if o.points < 0 else f"{o.points:,}", f"{o.seconds:.1f}", _shown(o.worker),
+                      _shown(o.error[:120]))
     ok = [o for o in report.outcomes if o.status == "ok"]
     if ok:
         total = sum(o.seconds for o in ok)

@@ -20,8 +20,9 @@ bind. `start_server` opens a `viser.ViserServer` whose every HTTP request and We
 
 Refused requests get HTTP 403 with a one-line reason. The server also drops every client GUI update that touches
 anything but a control's `value` (viser lets a client rewrite `min`, `max`, `options` or `disabled` of any control),
-so the bounds that `efem_viz.serve.inputs` clamps to are the ones the server declared, and ignores clients' requests
-to open a public viser share tunnel.
+so the bounds that `efem_viz.serve.inputs` clamps to are the ones the server declared; drops a value viser could not
+cast to its control's type (a NaN for an integer or colour control: `inputs.uncastable_value`) with one log line
+instead of a traceback; and ignores clients' requests to open a public viser share tunnel.
 
 Hook point (viser 1.1.1, websockets 16): viser opens its socket with `websockets.asyncio.server.serve(...,
 process_request=<its static file server>)`. While `start_server` constructs a `ViserServer` (under a lock), the
@@ -284,14 +285,46 @@ def _only_value_updates(_client_id: Any, message: Any) -> None:
             logger.warning("dropped a client's update of GUI properties %s (only values may change)", dropped)
 
 
+def _castable_values(server: viser.ViserServer, handles: dict[Any, Any]) -> Callable[[Any, Any], None]:
+    """A GuiUpdateMessage filter that drops a value viser could not cast to its control's type
+    (`efem_viz.serve.inputs.uncastable_value`: a NaN for an integer or colour control), with one log line and a
+    notification to the client that sent it, instead of viser's traceback."""
+    from efem_viz.serve.inputs import uncastable_value
+
+    def drop_uncastable(client_id: Any, message: Any) -> None:
+        updates = getattr(message, "updates", None)
+        handle = handles.get(getattr(message, "uuid", None))
+        if not isinstance(updates, dict) or "value" not in updates or handle is None:
+            return
+        impl = getattr(handle, "_impl", None)
+        why = uncastable_value(getattr(impl, "value", None), updates["value"])
+        if why is None:
+            return
+        del updates["value"]
+        label = str(getattr(handle, "label", "") or "control")
+        logger.warning("refused a client's value for %r: %s", label, why)
+        client = server.get_clients().get(client_id)
+        if client is not None:
+            try:
+                client.add_notification("Value refused", f"{label}: {why}", color="red", auto_close_seconds=8.0)
+            except Exception:  # noqa: BLE001 - the client may be gone
+                pass
+
+    return drop_uncastable
+
+
 def _install_update_filter(server: viser.ViserServer) -> None:
-    """Run `_only_value_updates` before viser's own GuiUpdateMessage handler; drop the share-tunnel handlers."""
+    """Run `_only_value_updates` and `_castable_values` before viser's own GuiUpdateMessage handler; drop the
+    share-tunnel handlers."""
     from viser import _messages
 
     handlers = getattr(getattr(server, "_websock_server", None), "_incoming_handlers", None)
     if not isinstance(handlers, dict) or _messages.GuiUpdateMessage not in handlers:
         raise GuardUnavailableError("viser's GUI update handler was not found; cannot filter client updates")
-    handlers[_messages.GuiUpdateMessage].insert(0, _only_value_updates)
+    inputs = getattr(getattr(server, "gui", None), "_gui_input_handle_from_uuid", None)
+    if not isinstance(inputs, dict):
+        raise GuardUnavailableError("viser's GUI handle table was not found; cannot check client values")
+    handlers[_messages.GuiUpdateMessage][0:0] = [_only_value_updates, _castable_values(server, inputs)]
     # viser lets any client ask the server to open a public share tunnel (share.viser.studio): never.
     for cls in (getattr(_messages, "ShareUrlRequest", None), getattr(_messages, "ShareUrlDisconnect", None)):
         if cls is not None:

@@ -18,6 +18,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import unicodedata
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
@@ -122,19 +123,57 @@ def read_bool(handle: Any) -> bool:
 
 
 def read_text(handle: Any, *, max_len: int = MAX_TEXT) -> str:
-    """The value of a text field: a string of at most `max_len` characters without NUL.
+    """The value of a text field: one line of at most `max_len` characters, without control characters.
+
+    Every text field of the apps is a single line (names, categories, paths); a newline, ESC or NUL in one can
+    only come from a client bypassing the GUI, and would reach file names, logs and terminals.
 
     Raises:
-        ClientValueError: not a string, too long, or containing NUL.
+        ClientValueError: not a string, too long, or containing a control character (NUL, newline, ESC, ...).
     """
     value = handle.value
     if not isinstance(value, str):
         raise ClientValueError(f"{_label(handle)}: expected text, got {type(value).__name__}")
     if len(value) > max_len:
         raise ClientValueError(f"{_label(handle)}: text longer than {max_len} characters")
-    if "\x00" in value:
-        raise ClientValueError(f"{_label(handle)}: text contains a NUL character")
+    bad = next((c for c in value if unicodedata.category(c) == "Cc"), None)
+    if bad is not None:
+        name = "NUL" if bad == "\x00" else bad.encode("unicode_escape").decode("ascii")
+        raise ClientValueError(f"{_label(handle)}: text contains a control character ({name}); not used")
     return value
+
+
+def uncastable_value(current: Any, value: Any) -> str | None:
+    """Why a client's `value` cannot take the type of a control's `current` value, or None when it can.
+
+    viser casts every value a client sends to the type of the control's current value (`int(value)` for an integer
+    control, element-wise for a colour) before any callback runs, so a NaN, an infinity or text sent for an integer
+    or colour control fails inside viser, with a traceback in the server log. `efem_viz.serve.guard` drops such
+    values first, with this one-line reason. (A NaN for a float control casts; `read_number` refuses it.)
+
+    Args:
+        current: the control's current value (its type is the control's).
+        value: the value the client sent.
+    """
+    if isinstance(current, tuple) and current:
+        typ: type = type(current[0])
+        if isinstance(value, (str, bytes)) or not isinstance(value, (list, tuple)):
+            return f"expected {len(current)} values, got {_short(value)}"
+        items = list(value)
+    else:
+        typ, items = type(current), [value]
+    for v in items:
+        try:
+            typ(v)
+        except (TypeError, ValueError, OverflowError, ArithmeticError):
+            kind = {int: "a finite integer", float: "a number"}.get(typ, typ.__name__)
+            return f"expected {kind}, got {_short(value)}"
+    return None
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
 
 
 def read_rgb(handle: Any, *, write_back: WriteBack | None = None) -> tuple[int, int, int]:

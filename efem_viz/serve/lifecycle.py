@@ -40,6 +40,8 @@ import time
 from types import FrameType
 from typing import Iterator
 
+from efem_viz.terminal import terminal_text
+
 logger = logging.getLogger(__name__)
 
 STOP_SIGNALS: tuple[signal.Signals, ...] = (signal.SIGINT, signal.SIGTERM)
@@ -98,7 +100,7 @@ def stop_signals(prog: str) -> Iterator[None]:
 def announce(prog: str, headline: str, *, url: str, local_url: str, exposure_warning: str | None = None,
              details: tuple[str, ...] = ()) -> None:
     """What both servers print at start: the exposure warning (stderr), ``prog: headline at URL``, the local URL
-    when it differs, and indented detail lines.
+    when it differs, and indented detail lines; control characters escaped (`efem_viz.terminal.terminal_text`).
 
     Args:
         prog: program name ("efem-annotate").
@@ -109,12 +111,12 @@ def announce(prog: str, headline: str, *, url: str, local_url: str, exposure_war
         details: further lines ("autosave: ...").
     """
     if exposure_warning:
-        print(f"{prog}: {exposure_warning}", file=sys.stderr, flush=True)
-    print(f"{prog}: {headline}", flush=True)
+        print(f"{prog}: {terminal_text(exposure_warning)}", file=sys.stderr, flush=True)
+    print(f"{prog}: {terminal_text(headline)}", flush=True)  # the headline names the scan: any bytes
     if local_url != url:
         print(f"  on this machine: {local_url}", flush=True)
     for line in details:
-        print(f"  {line}", flush=True)
+        print(f"  {terminal_text(line)}", flush=True)
 
 
 def wait_for_stop(*, stop_event: threading.Event | None = None) -> None:

@@ -1,0 +1,56 @@
+"""Text from outside (file and scene names, error messages) as the command line prints it.
+
+A file name may hold any byte but `/` and NUL: an ESC sequence in one can clear the screen or recolour the
+terminal, a newline or CR can fake a line of output, a bidirectional override can reorder what is shown. Rich
+markup escaping does not cover these. `terminal_text` is the one such rule of the CLI output: the one-line error
+messages (`efem_viz.cli.error_message`), the log lines of both command lines (`log_to_terminal`), the batch console,
+and the start-up lines of both servers.
+"""
+
+from __future__ import annotations
+
+import logging
+import unicodedata
+
+BIDI_CONTROLS = frozenset("\u202a\u202b\u202c\u202d\u202e\u2066\u2067\u2068\u2069")
+"""Unicode bidirectional embedding, override and isolate characters (escaped like control characters)."""
+
+
+def terminal_text(text: str) -> str:
+    """`text` with control characters (ESC, newline, CR, backspace, DEL, C1 ...) and bidirectional overrides shown
+    as Python escapes (`\\x1b`, `\\n`, `\\u202e`); everything else, non-ASCII letters included, unchanged.
+
+    Args:
+        text: any text, e.g. a scene file name.
+
+    Returns:
+        Text that prints as one inert line.
+    """
+    if text.isprintable():
+        return text
+    return "".join(c.encode("unicode_escape").decode("ascii")
+                   if unicodedata.category(c) == "Cc" or c in BIDI_CONTROLS else c for c in text)
+
+
+class TerminalFormatter(logging.Formatter):
+    """A log formatter whose messages pass `terminal_text` (a scene name in a warning cannot reach the terminal
+    raw); tracebacks (`--debug`, `logger.exception`) keep their lines."""
+
+    def formatMessage(self, record: logging.LogRecord) -> str:  # noqa: N802 - logging's name
+        return terminal_text(super().formatMessage(record))
+
+
+LOG_FORMAT = "%(levelname)s %(name)s: %(message)s"
+"""The command lines' log line."""
+
+
+def log_to_terminal(level: int = logging.INFO) -> None:
+    """Set up the root logger of a command-line program (`efem-viz`, `efem-annotate`): `LOG_FORMAT` on stderr through
+    `TerminalFormatter`. Like `logging.basicConfig`, does nothing when the root logger already has handlers."""
+    root = logging.getLogger()
+    if root.handlers:
+        return
+    handler = logging.StreamHandler()
+    handler.setFormatter(TerminalFormatter(LOG_FORMAT))
+    root.addHandler(handler)
+    root.setLevel(level)
