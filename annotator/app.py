@@ -714,7 +714,8 @@ class AnnotatorApp:
             parts.append(f"**⚠ {self.store.journal.broken}**")
         rec = self.store.recovery
         if rec is not None:
-            mark = "Recovered" if rec.complete else "**⚠ Recovered with losses**"
+            mark = ("Recovered" if rec.verified_complete else "**⚠ Recovered with losses**" if not rec.complete
+                    else "**⚠ Recovered, not everything verifiable**")
             parts.append(f"{mark} at start:  \n" + "  \n".join(rec.summary().splitlines()))
         parts.append(
             f"Autosave: `{self.store.label_path.name}` + journal in `{self.work_dir}`  \n"
@@ -736,8 +737,9 @@ class AnnotatorApp:
         self.camera_guard.attach(client)
         rec = self.store.recovery
         if rec is not None:
-            self.notify("Session recovered" if rec.complete else "Session recovered with losses", rec.summary(),
-                        client=client, color="yellow" if rec.complete else "red")
+            title = ("Session recovered" if rec.verified_complete else "Session recovered with losses"
+                     if not rec.complete else "Session recovered, not everything verifiable")
+            self.notify(title, rec.summary(), client=client, color="yellow" if rec.complete else "red")
         if self.store.problem:
             self.notify("Autosave failed", self.store.problem, client=client, color="red")
 

@@ -175,6 +175,9 @@ class Journal:
         self.damaged_bytes = 0
         self.aside: Path | None = None
         """Where damaged bytes (or the whole damaged file) were kept, if anywhere."""
+        self.torn_at: int | None = None
+        """Byte offset of an incomplete last record that was dropped (None: the journal ended on a whole record).
+        A crash during an append leaves one, but so does a file cut short: what followed cannot be known."""
         try:
             self.records: list[Record] = self._read_and_repair()
             self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
@@ -233,9 +236,10 @@ class Journal:
                 f.truncate(good_end)
                 f.flush()
                 os.fsync(f.fileno())
+            self.torn_at = good_end
             self.damage.append(
-                f"an incomplete last record ({len(data) - good_end} bytes) was dropped: the edit in flight when "
-                f"the annotator stopped (kept in {self.aside.name})"
+                f"the journal ended in an incomplete record at byte {good_end:,} ({len(data) - good_end:,} bytes, "
+                f"dropped; kept in {self.aside.name})"
             )
             log.warning("journal %s: %s", self.path, self.damage[-1])
             return records
@@ -467,22 +471,40 @@ class RecoveryReport:
     """Verified records that could not be replayed, and why."""
     aside: tuple[str, ...]
     """Files where damaged bytes were kept."""
+    verified: str = ""
+    """What was checked and found intact, e.g. "12 journal records (0-11, checksums match); checkpoint: missing"."""
+    unverified: tuple[str, ...] = ()
+    """What cannot be verified from the files left, one line each (e.g. whether edits followed a journal that ends
+    in an incomplete record, when no checkpoint holds them)."""
 
     @property
     def complete(self) -> bool:
-        """True when every acknowledged edit is in the recovered labels."""
+        """True when no edit is known to be missing: no damaged record after the start state, none skipped. (Edits
+        that left no trace cannot be known: see `unverified`.)"""
         return not self.lost and not self.skipped
 
+    @property
+    def verified_complete(self) -> bool:
+        """True when no edit is known to be missing and nothing was left unverifiable."""
+        return self.complete and not self.unverified
+
     def summary(self) -> str:
-        """A few lines for the user."""
-        head = (
-            f"Recovered from {self.start} + {self.replayed} edit records: "
-            + ("nothing was lost." if self.complete else "some edits could not be recovered.")
-        )
-        lines = [head, *self.damage]
+        """A few lines for the user: what was recovered, what was verified, the damage, what was lost, and what
+        cannot be verified. It claims no more than the files show: never that nothing was lost."""
+        if not self.complete:
+            verdict = "some edits could not be recovered."
+        elif self.unverified:
+            verdict = "every verified edit was restored, but not everything can be verified (below)."
+        else:
+            verdict = "no edit recorded in the journal or the checkpoint is missing."
+        lines = [f"Recovered from {self.start} + {self.replayed} edit records replayed from the journal: {verdict}"]
+        if self.verified:
+            lines.append(f"verified: {self.verified}")
+        lines.extend(self.damage)
         if self.lost:
             lines.append(f"not recovered: journal records {_ranges(self.lost)} (damaged)")
         lines.extend(f"not recovered: {s}" for s in self.skipped)
+        lines.extend(f"cannot be verified: {s}" for s in self.unverified)
         if self.aside:
             lines.append("damaged bytes kept in " + ", ".join(self.aside))
         return "\n".join(lines)
@@ -689,6 +711,17 @@ class LabelStore:
             damage.append(f"the journal ends at record {newest}, the checkpoint holds records up to {ck_seq}: "
                           "resumed from the checkpoint")
         if damage or lost or skipped:
+            seqs = [r.seq for r in recs]
+            checkpoint = (f"holds records up to {ck_seq}" if ck is not None
+                          else "unreadable" if ck_problem else f"missing ({self.label_path.name})")
+            unverified: list[str] = []
+            if j.torn_at is not None and ck_seq <= newest:
+                unverified.append(
+                    f"whether edits followed record {newest}: a crash during an edit leaves an incomplete last "
+                    "record (that edit was never acknowledged), but so does a journal cut short, and then every "
+                    "later edit is gone; "
+                    + ("there is no checkpoint to compare with" if ck is None else
+                       f"the checkpoint holds nothing newer (record {ck_seq})"))
             self.recovery = RecoveryReport(
                 start=start_name,
                 replayed=replayed,
@@ -696,6 +729,9 @@ class LabelStore:
                 lost=lost,
                 skipped=tuple(skipped),
                 aside=(j.aside.name,) if j.aside is not None else (),
+                verified=(f"{len(seqs)} journal records ({_ranges(tuple(seqs))}, checksums match)" if seqs
+                          else "no journal record") + f"; checkpoint: {checkpoint}",
+                unverified=tuple(unverified),
             )
             log.warning("journal %s recovery:\n%s", j.path.name, self.recovery.summary())
         # Make the journal alone reproduce the recovered state, whatever happens to the checkpoint later: a full

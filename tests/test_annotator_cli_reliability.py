@@ -135,8 +135,40 @@ def test_damaged_journal_is_reported_in_the_gui(scan: Path, tmp_path: Path) -> N
     again.must(lambda: any("recovered" in t.lower() for t in again.client.notification_texts()))
     status = next((c["props"].get("_markdown", "") for c in again.client.components.values()
                    if "Recovered" in str(c["props"].get("_markdown", ""))), "")
-    assert "nothing was lost" in status and "damaged" in status
+    assert "no edit recorded in the journal or the checkpoint is missing" in status and "damaged" in status
+    assert "nothing was lost" not in status
     assert again.stop() == 0
+
+
+def test_a_journal_cut_short_without_checkpoint_is_not_called_lossless(scan: Path, tmp_path: Path) -> None:
+    """Issue 25 item 4 on the real CLI: after a session, the journal is cut to half its bytes and the checkpoint
+    deleted. Fewer vertices come back, and the GUI says what was verified and what cannot be, never that nothing
+    was lost."""
+    out = tmp_path / "out"
+    cli = Cli(scan, out)
+    cli.edit(("new",))
+    for spot in _spots(scan, 8):
+        cli.edit(("paint", spot))
+    labelled = sum(cli.counts().values())
+    assert cli.stop() == 0
+    journal = next(out.glob("*.annotate/*.journal"))
+    next(out.glob("*.annotate/*.labels.npz")).unlink()
+    data = journal.read_bytes()
+    offs = [m.start() for m in re.finditer(b"EFJ1", data)]
+    half = len(data) // 2 + (7 if len(data) // 2 in offs else 0)
+    torn_at = max(o for o in offs if o < half)
+    journal.write_bytes(data[:half])
+    again = Cli(scan, out)
+    try:
+        assert sum(again.counts().values()) < labelled, "the cut really lost edits"
+        again.must(lambda: any("not everything verifiable" in t for t in again.client.notification_texts()))
+        status = again.client.markdown("**⚠ Recovered")
+        for text in (status, next(t for t in again.client.notification_texts() if "verifiable" in t)):
+            assert "nothing was lost" not in text and "no edit recorded" not in text
+            assert f"incomplete record at byte {torn_at:,}" in text and "checkpoint: missing" in text
+            assert "cannot be verified" in text and "journal cut short" in text
+    finally:
+        assert again.stop() == 0
 
 
 @pytest.fixture()

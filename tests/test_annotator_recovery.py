@@ -73,7 +73,9 @@ def test_bad_middle_record_with_newer_checkpoint_loses_nothing(tmp_path: Path) -
     assert np.array_equal(s2.labels, final), "every acknowledged edit must survive"
     rep = s2.recovery
     assert rep is not None and rep.complete and rep.start == "checkpoint (record 9)"
-    assert "nothing was lost" in rep.summary() and "damaged" in rep.summary()
+    assert "no edit recorded in the journal or the checkpoint is missing" in rep.summary()
+    assert "damaged" in rep.summary() and "nothing was lost" not in rep.summary()
+    assert rep.verified_complete and "checkpoint: holds records up to 9" in rep.summary()
     # the damaged bytes are kept aside; the checkpoint was never replaced by an older state
     aside = list(tmp_path.glob("s.journal.damaged-*"))
     assert len(aside) == 1 and aside[0].read_bytes() == damaged
@@ -284,3 +286,50 @@ def test_stale_temp_files_of_this_scan_are_removed(tmp_path: Path) -> None:
     removed = remove_stale_temp_files(tmp_path, "scan")
     assert len(removed) == 2
     assert all(p.exists() for p in keep)
+
+
+def test_truncated_journal_without_checkpoint_says_what_it_cannot_verify(tmp_path: Path) -> None:
+    """Issue 25 item 4: the journal cut to half its bytes and the checkpoint deleted. The store cannot know how
+    many edits followed the cut: the notice says what was verified (the records replayed, where the journal ended,
+    that the checkpoint is missing) and what cannot be verified, and never that nothing was lost."""
+    s = _store(tmp_path)
+    _nine_edits(s)
+    s.close()
+    jp = tmp_path / "s.journal"
+    offs = _record_offsets(jp)
+    half = jp.stat().st_size // 2
+    if half in offs:  # land inside a record, as a cut anywhere almost always does
+        half += 7
+    torn_at = max(o for o in offs if o < half)
+    kept = offs.index(torn_at)  # whole records before the cut: the base record and kept - 1 edits
+    with open(jp, "r+b") as f:
+        f.truncate(half)
+    os.unlink(tmp_path / "s.labels.npz")
+    s2 = _store(tmp_path)
+    rep = s2.recovery
+    assert rep is not None
+    text = rep.summary()
+    assert "nothing was lost" not in text and "no edit recorded" not in text
+    assert rep.complete and not rep.verified_complete, "nothing known missing, but not everything verifiable"
+    assert f"+ {kept - 1} edit records replayed" in text
+    assert f"{kept} journal records (0-{kept - 1}, checksums match)" in text
+    assert f"incomplete record at byte {torn_at:,}" in text
+    assert "checkpoint: missing" in text and "no checkpoint to compare with" in text
+    assert f"cannot be verified: whether edits followed record {kept - 1}" in text
+    assert s2.journal.next_seq == kept
+    s2.close()
+
+
+def test_torn_tail_with_a_current_checkpoint_still_cannot_vouch_for_later_edits(tmp_path: Path) -> None:
+    s = _store(tmp_path)
+    _nine_edits(s)
+    s.save_now()
+    s.journal.close()
+    jp = tmp_path / "s.journal"
+    with open(jp, "ab") as f:  # half of a record after record 9
+        f.write(b"EFJ1\x00\x10\x00\x00garbage")
+    s2 = _store(tmp_path)
+    text = s2.recovery.summary() if s2.recovery else ""
+    assert "checkpoint: holds records up to 9" in text and "checkpoint holds nothing newer (record 9)" in text
+    assert "nothing was lost" not in text
+    s2.close()
