@@ -125,10 +125,23 @@ def test_policy_refuses_foreign_origin_rebinding_and_missing_token() -> None:
     pol = guard.AccessPolicy(token=tok, bind_host="127.0.0.1")
     ok = f"/?token={tok}"
     assert pol.refusal(path=ok, headers=_h(host="127.0.0.1:8080"), local_port=8080) is None
-    # loopback names are one origin
+    # the printed origin, and localhost for a printed 127.0.0.1; the Host may be any loopback name
+    assert pol.origin_hosts == {"127.0.0.1", "localhost"}
     assert pol.refusal(path=ok, headers=_h(host="127.0.0.1:8080", origin="http://localhost:8080"),
                        local_port=8080) is None
     assert pol.refusal(path=ok, headers=_h(host="[::1]:8080", origin="http://127.0.0.1:8080"), local_port=8080) is None
+    # other loopback aliases are other origins (issue 25 item 5): another local user's server can listen there
+    for alias in ("http://127.0.0.2:8080", "http://[::1]:8080", "http://127.1.2.3:8080", "https://127.0.0.1:8080",
+                  "http://127.0.0.1.:8081", "http://0.0.0.0:8080"):
+        for host in ("127.0.0.1:8080", alias.split("//")[1]):
+            why = pol.refusal(path=ok, headers=_h(host=host, origin=alias), local_port=8080)
+            assert why is not None, (alias, host)
+            assert "cross-origin" in why or "not a loopback name" in why, (alias, host, why)
+    v6 = guard.AccessPolicy(token=tok, bind_host="::1")
+    assert v6.origin_hosts == {"::1", "localhost"}
+    assert v6.refusal(path=ok, headers=_h(host="[::1]:8080", origin="http://[::1]:8080"), local_port=8080) is None
+    assert "cross-origin" in v6.refusal(path=ok, headers=_h(host="[::1]:8080", origin="http://127.0.0.1:8080"),
+                                        local_port=8080)
     assert "cross-origin" in pol.refusal(path=ok, headers=_h(host="127.0.0.1:8080", origin="http://evil.example"),
                                          local_port=8080)
     assert "cross-origin" in pol.refusal(path=ok, headers=_h(host="127.0.0.1:8080", origin="http://localhost:9999"),
@@ -137,9 +150,9 @@ def test_policy_refuses_foreign_origin_rebinding_and_missing_token() -> None:
     assert "loopback" in pol.refusal(path=ok, headers=_h(host="evil.example:8080", origin="http://evil.example:8080"),
                                      local_port=8080)  # DNS rebinding
     assert "token" in pol.refusal(path="/", headers=_h(host="127.0.0.1:8080"), local_port=8080)
-    # an SSH tunnel / port forward: the browser's origin is the forwarded port, the server listens on another
-    assert pol.refusal(path=ok, headers=_h(host="localhost:9000", origin="http://localhost:9000"), local_port=8080) is None
-    assert "cross-origin" in pol.refusal(path=ok, headers=_h(host="localhost:9000", origin="http://localhost:8080"),
+    # a port forward / SSH tunnel must keep the port: the printed origin is the only one accepted
+    assert pol.refusal(path=ok, headers=_h(host="localhost:8080", origin="http://localhost:8080"), local_port=8080) is None
+    assert "cross-origin" in pol.refusal(path=ok, headers=_h(host="localhost:9000", origin="http://localhost:9000"),
                                          local_port=8080)
     assert "token" in pol.refusal(path="/?token=" + "x" * 32, headers=_h(host="127.0.0.1:8080"), local_port=8080)
     cookie = f"other=1; {pol.cookie_for(8080)}={tok}"
@@ -150,14 +163,48 @@ def test_policy_refuses_foreign_origin_rebinding_and_missing_token() -> None:
     with pytest.raises(ValueError):
         guard.AccessPolicy(token="short", bind_host="127.0.0.1")
     # a network bind accepts the machine's own name as Host, still only same-origin pages and the token
-    net = guard.AccessPolicy(token=tok, bind_host="0.0.0.0")
+    net = guard.AccessPolicy(token=tok, bind_host="0.0.0.0", url_host="10.1.2.3")
+    assert net.origin_hosts == {"10.1.2.3", "127.0.0.1", "localhost"}, "the URL and the 'on this machine' URL"
     assert net.refusal(path=ok, headers=_h(host="10.1.2.3:8080", origin="http://10.1.2.3:8080"), local_port=8080) is None
+    assert "cross-origin" in net.refusal(path=ok, headers=_h(host="myhost:8080", origin="http://myhost:8080"),
+                                         local_port=8080), "a name that resolves here (DNS rebinding) is not printed"
     assert "cross-origin" in net.refusal(path=ok, headers=_h(host="10.1.2.3:8080", origin="http://evil.example"),
                                          local_port=8080)
     assert "token" in net.refusal(path="/", headers=_h(host="10.1.2.3:8080"), local_port=8080)
 
 
 # ============================================================================ 5. against the real apps
+_LOOPBACK_ALIASES = ("http://127.0.0.2:%d", "http://[::1]:%d", "http://127.0.0.1.:%d", "https://127.0.0.1:%d")
+"""Origins that reach the same machine but are not the printed one (issue 25 item 5)."""
+
+
+def _check_printed_origin_only(url: str) -> None:
+    """Raw HTTP and WebSocket requests carrying loopback-alias origins, against a real server: refused (403) with
+    the token; the printed origin and localhost pass."""
+    port = int(re.search(r":(\d+)/", url).group(1))  # type: ignore[union-attr]
+    assert url.startswith(f"http://127.0.0.1:{port}/?token=")
+    for alias in _LOOPBACK_ALIASES:
+        origin = alias % port
+        assert handshake_status(ws_url(url), origin=origin) == 403, origin
+        status, _, body = _http_get(url, origin=origin)
+        assert status == 403 and b"cross-origin" in body, (origin, body[:200])
+        # the alias also as the Host (a page of a server on 127.0.0.2 whose script connects there)
+        assert _http_get(url, origin=origin, host=origin.split("//", 1)[1])[0] == 403, origin
+    for ok in (f"http://127.0.0.1:{port}", f"http://localhost:{port}"):
+        assert handshake_status(ws_url(url), origin=ok) == 101, ok
+        assert _http_get(url, origin=ok)[0] == 200, ok
+
+
+def test_cli_servers_accept_only_the_printed_origin(view_cli: ViewCLI, scan: Path, tmp_path: Path) -> None:
+    """Both CLIs, as started by a user: 127.0.0.2 and [::1] are not 127.0.0.1 (issue 25 item 5)."""
+    _check_printed_origin_only(view_cli.url)
+    proc, lines = _start_cli(["-m", "annotator", str(scan), "--out", str(tmp_path / "o"), "--port", "0"])
+    try:
+        _check_printed_origin_only(re.search(r" at (http://\S+)", "".join(lines)).group(1))  # type: ignore[union-attr]
+    finally:
+        assert _stop_cli(proc) == 0
+
+
 def _check_ws_guard(url: str, port: int, token: str) -> None:
     base = "ws://127.0.0.1:%d" % port
     own = f"http://127.0.0.1:{port}"
@@ -167,6 +214,8 @@ def _check_ws_guard(url: str, port: int, token: str) -> None:
     assert handshake_status(ws_url(url), origin=f"http://127.0.0.1:{port + 1}") == 403, "other local port"
     assert handshake_status(ws_url(url), origin=own) == 101, "the printed URL"
     assert handshake_status(ws_url(url), origin=f"http://localhost:{port}") == 101, "localhost = 127.0.0.1"
+    for alias in _LOOPBACK_ALIASES:
+        assert handshake_status(ws_url(url), origin=alias % port) == 403, alias
     assert handshake_status(ws_url(url)) == 101, "a script without Origin, with the token"
     # what the browser does: load the page (query token) → cookie → WebSocket on the bare URL with the cookie
     status, headers, body = _http_get(url)

@@ -11,10 +11,13 @@ bind. `start_server` opens a `viser.ViserServer` whose every HTTP request and We
   token there). The token is required on every bind, loopback included: on a shared machine any local user can
   reach 127.0.0.1.
 * **Origin.** A browser always sends `Origin` on a WebSocket handshake (and on cross-origin fetches). It must be
-  the page's own origin: the host and port the request was sent to (its `Host` header; loopback names count as
-  one: localhost, 127.0.0.1 and [::1]), so a page of any other site or of another local port is refused, while
-  an SSH tunnel or port forward still works. `Origin: null` (sandboxed frames, file:// pages) is refused.
-  Requests without `Origin` come from non-browser clients and still need the token.
+  exactly an origin the server printed: `http://<host>:<port>` of its URL or of its "on this machine" URL, with
+  `localhost` counted as the same name as 127.0.0.1 (or ::1) when that is what was printed (`AccessPolicy.
+  origin_hosts`). Nothing else counts: not another loopback alias (127.0.0.2, [::1] when 127.0.0.1 was printed:
+  another local user's server can listen there), not another port, not a name that merely resolves here. A port
+  forward or SSH tunnel works when it keeps the port (`ssh -L 8080:127.0.0.1:8080`). `Origin: null` (sandboxed
+  frames, file:// pages) is refused. Requests without `Origin` come from non-browser clients and still need the
+  token.
 * **Host (loopback binds).** `Host` must be a loopback name, which defeats DNS rebinding (a foreign name that
   resolves to 127.0.0.1).
 
@@ -106,27 +109,57 @@ def _host_port(value: str, *, default_port: int | None) -> tuple[str, int | None
     return host.lower().rstrip("."), port if port is not None else default_port
 
 
-def _same_host(a: str, b: str) -> bool:
-    return a == b or (is_loopback(a) and is_loopback(b))
+def _host_name(host: str) -> str:
+    """A host as origins are compared: lower case, no brackets (a trailing dot makes another origin, as in
+    browsers)."""
+    return host.strip().strip("[]").lower()
+
+
+LOCALHOST_SAME_AS = frozenset({"127.0.0.1", "::1", "localhost"})
+"""Printed hosts for which the name `localhost` is the same origin (and 127.0.0.1 for a printed `localhost`): the
+usual way to type the printed loopback URL. Other loopback aliases are other origins."""
 
 
 @dataclass(frozen=True)
 class AccessPolicy:
-    """Who may talk to one server: the token, and the bind address it listens on.
+    """Who may talk to one server: the token, the bind address it listens on, and the origins it printed.
 
     Args:
         token: the server's secret (non-empty).
         bind_host: the address the server binds ("127.0.0.1", "0.0.0.0", ...).
+        url_host: the host of the printed URL (default: `reachable_host(bind_host)`, what `ServerAccess.url`
+            prints).
     """
 
     token: str
     """The per-server secret."""
     bind_host: str
     """The bind address; a loopback bind also requires a loopback `Host` header."""
+    url_host: str = ""
+    """The host of the URL printed at start (filled in from `bind_host` when empty)."""
 
     def __post_init__(self) -> None:
         if not self.token or len(self.token) < 16:
             raise ValueError("the server token must be at least 16 characters")
+        if not self.url_host:
+            object.__setattr__(self, "url_host", reachable_host(self.bind_host))
+
+    @property
+    def local_host(self) -> str:
+        """The host of the "on this machine" URL (`ServerAccess.local_url`)."""
+        return local_host(self.bind_host)
+
+    @property
+    def origin_hosts(self) -> frozenset[str]:
+        """The hosts a browser `Origin` may name (with this server's port): those of the printed URLs, plus
+        `localhost` for a printed 127.0.0.1 or ::1 (and 127.0.0.1 for a printed `localhost`)."""
+        printed = {_host_name(self.url_host), _host_name(self.local_host)}
+        same = set(printed)
+        if printed & LOCALHOST_SAME_AS:
+            same.add("localhost")
+        if "localhost" in printed:
+            same.add("127.0.0.1")
+        return frozenset(same)
 
     def cookie_for(self, port: int) -> str:
         """The cookie name for the server on `port`."""
@@ -147,33 +180,32 @@ class AccessPolicy:
         if not host_header:
             return "no Host header"
         try:
-            req_host, req_port = _host_port(str(host_header), default_port=80)
+            req_host, _ = _host_port(str(host_header), default_port=80)
         except ValueError:
             return f"bad Host header {host_header!r}"
         if is_loopback(self.bind_host) and not is_loopback(req_host):
             return f"Host {host_header!r} is not a loopback name (this server listens on {self.bind_host} only)"
         origin = headers.get("Origin")
         if origin is not None:
-            why = self._origin_refusal(str(origin), req_host, req_port)
+            why = self._origin_refusal(str(origin), local_port)
             if why is not None:
                 return why
         if not self.token_ok(path, headers, local_port):
             return "missing or wrong token: open the URL printed at start (it ends in ?token=...)"
         return None
 
-    def _origin_refusal(self, origin: str, req_host: str, req_port: int | None) -> str | None:
-        """Same origin = the scheme-less host:port the browser sent the request to (the `Host` header), so a
-        port forward or SSH tunnel (localhost:9000 → the server's 8080) still counts as the page's own origin."""
+    def _origin_refusal(self, origin: str, local_port: int) -> str | None:
+        """An `Origin` passes only when it is `http://<host>:<port>` with a host of `origin_hosts` and the port
+        the server listens on (the printed port)."""
         parts = urlsplit(origin.strip())
-        if parts.scheme not in ("http", "https") or not parts.hostname:
+        if parts.scheme != "http" or not parts.hostname:
             return f"cross-origin request (Origin {origin!r})"
         try:
-            o_port = parts.port or (443 if parts.scheme == "https" else 80)
+            o_port = parts.port or 80
         except ValueError:
             return f"bad Origin {origin!r}"
-        o_host = parts.hostname.lower().rstrip(".")
-        if o_port != req_port or not _same_host(o_host, req_host):
-            return f"cross-origin request from {origin}"
+        if o_port != local_port or _host_name(parts.hostname) not in self.origin_hosts or parts.path not in ("", "/"):
+            return f"cross-origin request from {origin} (only the printed origin is accepted)"
         return None
 
     def token_ok(self, path: str, headers: _Headers, local_port: int) -> bool:
@@ -347,17 +379,19 @@ class ServerAccess:
     """The bind address."""
     port: int
     """The real port (viser moves to the next free one when the asked port is busy)."""
+    url_host: str = ""
+    """The host of `url` (the access policy's `url_host`: the origin browsers must come from); empty =
+    `reachable_host(bind_host)`."""
 
     @property
     def url(self) -> str:
         """The URL to open, with the token: the machine's address for a wildcard bind, else the bind address."""
-        return self._url(reachable_host(self.bind_host))
+        return self._url(self.url_host or reachable_host(self.bind_host))
 
     @property
     def local_url(self) -> str:
         """The URL from this machine (127.0.0.1 for wildcard and loopback binds)."""
-        host = "127.0.0.1" if is_wildcard(self.bind_host) else self.bind_host
-        return self._url(host)
+        return self._url(local_host(self.bind_host))
 
     def _url(self, host: str) -> str:
         shown = f"[{host}]" if ":" in host and not host.startswith("[") else host
@@ -373,6 +407,11 @@ class ServerAccess:
             f"warning: listening on {where} (port {self.port}): anyone on the network who has the URL with its "
             "token can view and edit here; bind 127.0.0.1 (the default) to keep it private"
         )
+
+
+def local_host(bind_host: str) -> str:
+    """The host of the URL to use from this machine: 127.0.0.1 for a wildcard bind, else the bind address."""
+    return "127.0.0.1" if is_wildcard(bind_host) else bind_host
 
 
 def reachable_host(bind_host: str) -> str:
@@ -438,7 +477,8 @@ def start_server(*, host: str = "127.0.0.1", port: int = 8080, token: str | None
     except GuardUnavailableError:
         server.stop()
         raise
-    return server, ServerAccess(token=policy.token, bind_host=host, port=int(server.get_port()))
+    return server, ServerAccess(token=policy.token, bind_host=host, port=int(server.get_port()),
+                                url_host=policy.url_host)
 
 
 def _rich_console() -> Any:
