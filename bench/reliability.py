@@ -7,15 +7,23 @@ Every number comes from the real CLI process driven by the scripted WebSocket cl
   once uninterrupted (the reference tables), then N times with a kill -9 at a random moment; the restarted CLI
   must show the last acknowledged table or the next one (the edit in flight). Also counts stale temp files left.
 * damage: a finished session's journal damaged in the middle (with and without a checkpoint), at the end
-  (truncated), or its checkpoint damaged; the restarted CLI's table against the last one shown.
+  (truncated), or its checkpoint damaged, or its edit records cut to half their bytes with the checkpoint deleted; the
+  restarted CLI's table against the last one shown, and what its GUI says.
 * faults: ENOSPC injected on journal writes for a while (a sitecustomize wrapping os.write); refused edits must
   change nothing, later edits must survive a clean stop and restart.
 * load: K clients x M brush clicks at once on a 1M-vertex scan: every edit journalled, each client's edits in
   its sending order, and the latency from send to the first table update after the edit was journalled.
 * fuzz: the loader fuzzer of tests/test_fuzz_loaders.py (inputs per loader, errors by kind, worst time and
   peak memory).
+* hostile-prior (issue 25): `efem-viz segment --prior` on a few-KB prior file declaring a huge decoder as
+  zero-stride views (20,000 and 200,000 wide), and on one with plausible sizes but view weights: exit status,
+  error lines, seconds and peak memory of the CLI process.
+* links (issue 25): the real `efem-viz view` CLI and a scripted client pressing *Export results* into folders of
+  the output root where a link leads out (a `pred_mask` folder link, a file link, a folder link inside the root
+  whose `pred_mask` leads out): refused or not, and files written outside and inside.
 
-Writes bench/results/reliability.json. Usage: `python bench/reliability.py [--kills 20] [--clients 4] [--edits 50]`
+Writes bench/results/reliability.json (sections not run keep their previous results). Usage:
+`python bench/reliability.py [--kills 20] [--clients 4] [--edits 50] [--only hostile-prior links]`
 (1 torch/OMP thread per process).
 """
 
@@ -28,6 +36,7 @@ import platform
 import random
 import re
 import shutil
+import signal
 import statistics
 import sys
 import tempfile
@@ -187,7 +196,7 @@ def bench_damage(tmp: Path, seed: int) -> dict[str, Any]:
     scan = _scene_copy(tmp)
     rays = _rays(scan, 12, seed + 1)
     out: dict[str, Any] = {}
-    for case in ("middle", "middle-no-checkpoint", "end", "checkpoint"):
+    for case in ("middle", "middle-no-checkpoint", "end", "checkpoint", "half-no-checkpoint"):
         d = tmp / f"damage-{case}"
         cli = AnnotateProcess(scan, d)
         cli.edit(("new",))
@@ -206,6 +215,11 @@ def bench_damage(tmp: Path, seed: int) -> dict[str, Any]:
                 ckpt.unlink()
         elif case == "end":
             journal.write_bytes(bytes(data[: offs[len(offs) - 3]]))
+        elif case == "half-no-checkpoint":  # edit records cut to half, inside a record; checkpoint deleted (issue 25)
+            half = offs[1] + (len(data) - offs[1]) // 2
+            half += 7 if half in offs else 0
+            journal.write_bytes(bytes(data[:half]))
+            ckpt.unlink()
         else:
             ckpt.write_bytes(b"PK\x03\x04 not a zip any more")
         again = AnnotateProcess(scan, d)
@@ -213,6 +227,8 @@ def bench_damage(tmp: Path, seed: int) -> dict[str, Any]:
         status = next((m for m in again.client.markdowns() if "Recovered" in m), "")
         out[case] = {
             "recovered_equals_last_shown": seen == final,
+            "vertices_shown_before": sum(_counts(final).values()),
+            "vertices_recovered": sum(_counts(seen).values()),
             "gui_report": status.replace("  \n", " | ")[:400],
             "restart_s": round(again.t_url, 2),
         }
@@ -384,6 +400,121 @@ def bench_fuzz(seconds: float) -> dict[str, Any]:
     return res
 
 
+_HOSTILE_PRIOR_RUN = """
+import json, resource, sys, time
+sys.argv = ["efem-viz"] + json.loads(sys.argv[1])
+import torch  # imported before the clock starts: the time is the refusal's, not Python's start-up
+import efem_viz.batch.commands, efem_viz.prior.model
+from efem_viz import cli
+t = time.perf_counter()
+rc = cli.main(sys.argv[1:])
+print(json.dumps({"rc": rc, "seconds": time.perf_counter() - t,
+                  "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}), file=sys.__stdout__)
+"""
+
+
+def bench_hostile_prior(tmp: Path) -> dict[str, Any]:
+    """`segment --prior` on hostile prior files: one error line, seconds (from the command's start, after the
+    imports) and peak memory of the CLI process."""
+    import dataclasses
+    import subprocess
+
+    from helpers import expanded_prior
+
+    from efem_viz.data.io import save_scene
+    from efem_viz.prior.analytic import make_sphere_scene
+    from efem_viz.prior.config import PriorConfig
+
+    tmp.mkdir(parents=True, exist_ok=True)
+    scene = save_scene(make_sphere_scene(seed=1, radii=(0.05,)), tmp / "one.npz")
+    tiny = PriorConfig(widths=(8, 8, 16, 16), down_blocks=(2,), down_factors=(2,), latent_dim=16, center_hidden=8,
+                       n_pcl=64, k=8, decoder_hidden=32, decoder_blocks=1)
+    cases = {"decoder 20,000 wide": dataclasses.replace(PriorConfig(), decoder_hidden=20_000),
+             "decoder 200,000 wide": dataclasses.replace(PriorConfig(), decoder_hidden=200_000),
+             "plausible sizes, view weights": tiny}
+    out: dict[str, Any] = {}
+    for name, cfg in cases.items():
+        path = expanded_prior(tmp / f"{len(out)}.pt", cfg)
+        args = ["segment", str(scene), "--prior", str(path), "--out", str(tmp / f"out{len(out)}")]
+        r = subprocess.run([sys.executable, "-c", _HOSTILE_PRIOR_RUN, json.dumps(args)], capture_output=True,
+                           text=True, timeout=600, cwd=ROOT)
+        stats = json.loads(r.stdout.strip().splitlines()[-1])
+        errors = [ln for ln in r.stderr.splitlines() if ln.strip()]
+        out[name] = {"file_bytes": path.stat().st_size, "exit": stats["rc"], "error_lines": len(errors),
+                     "message": errors[-1][:300] if errors else "", "seconds": round(stats["seconds"], 3),
+                     "peak_rss_mb": round(stats["peak_rss_mb"])}
+        print(f"hostile prior, {name}: {out[name]}", flush=True)
+    return out
+
+
+def bench_links(tmp: Path) -> dict[str, Any]:
+    """*Export results* on the real viewer CLI into folders where a link below the typed folder leads out."""
+    import subprocess
+
+    from efem_viz import em
+    from efem_viz.data.io import save_scene
+    from efem_viz.prior import analytic
+
+    scenes = tmp / "scenes"
+    scenes.mkdir(parents=True, exist_ok=True)
+    scene = analytic.make_sphere_scene(seed=0, spacing=0.012, name="spheres")
+    save_scene(scene, scenes / "spheres.ply")
+    cfg = em.preset("fast").with_proposals(8).replace(min_size=30)
+    em.run_em(scene, analytic.make_sphere_prior(), cfg, seed=0).save(scenes / "spheres.efem.npz")
+    root, outside = tmp / "root", tmp / "outside"
+    outside.mkdir()
+    (outside / "victim.txt").write_text("keep\n")
+    (root / "trap").mkdir(parents=True)
+    os.symlink(outside, root / "trap" / "pred_mask")
+    (root / "trap2" / "pred_mask").mkdir(parents=True)
+    os.symlink(outside / "victim.txt", root / "trap2" / "spheres.txt")
+    os.symlink(root / "trap", root / "trap3")
+    cases = {"pred_mask is a folder link out": "trap", "<scene>.txt is a file link out": "trap2",
+             "folder link inside the root, pred_mask leads out": "trap3", "plain folder (control)": "plain"}
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
+    proc = subprocess.Popen([sys.executable, "-m", "efem_viz.cli", "view", str(scenes / "spheres.ply"), "--port", "0",
+                             "--out-dir", str(root)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env=env, cwd=ROOT)
+    assert proc.stdout is not None
+    lines: list[str] = []
+    url = ""
+    while not url:
+        line = proc.stdout.readline()
+        if not line:
+            raise RuntimeError("efem-viz view exited:\n" + "".join(lines))
+        lines.append(line)
+        m = re.search(r"viewer: (http://\S+)", line)
+        url = m.group(1) if m else ""
+    threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True).start()  # type: ignore[arg-type]
+    client = ViserClient(url)
+    out: dict[str, Any] = {}
+    try:
+        for name, folder in cases.items():
+            n = len(client.notification_texts())
+            before_in = {p for p in root.rglob("*")}
+            client.set_value("Output folder", folder)
+            client.click("Export results")
+            if folder == "plain":
+                client.wait_for(lambda: (root / "plain" / "spheres_instances.ply").is_file(), 60)
+            else:
+                client.wait_for(lambda n=n: any("refusing" in t for t in client.notification_texts()[n:]), 60)
+            time.sleep(0.5)
+            notes = client.notification_texts()[n:]
+            out[name] = {
+                "refused": any("refusing" in t for t in notes),
+                "files_written_outside": len(list(outside.iterdir())) - 1,
+                "files_written_inside": len({p for p in root.rglob("*")} - before_in),
+                "notice": next((t for t in notes if "refusing" in t), "")[:300],
+            }
+            print(f"links, {name}: {out[name]}", flush=True)
+    finally:
+        client.close()
+        proc.send_signal(signal.SIGINT)
+        proc.wait(60)
+    out["server_log_tracebacks"] = "".join(lines).count("Traceback")
+    return out
+
+
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--kills", type=int, default=20)
@@ -391,7 +522,8 @@ def main() -> int:
     ap.add_argument("--edits", type=int, default=50)
     ap.add_argument("--n-side", type=int, default=1000, help="load test scan: n_side^2 vertices")
     ap.add_argument("--fuzz-seconds", type=float, default=60.0)
-    ap.add_argument("--only", nargs="*", default=["kill", "damage", "faults", "load", "fuzz"])
+    ap.add_argument("--only", nargs="*",
+                    default=["kill", "damage", "faults", "load", "fuzz", "hostile-prior", "links"])
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "reliability.json")
     a = ap.parse_args()
@@ -409,7 +541,13 @@ def main() -> int:
             result["load"] = bench_load(tmp / "l", a.clients, a.edits, a.n_side)
         if "fuzz" in a.only:
             result["fuzz"] = bench_fuzz(a.fuzz_seconds)
+        if "hostile-prior" in a.only:
+            result["hostile_prior"] = bench_hostile_prior(tmp / "p")
+        if "links" in a.only:
+            result["links"] = bench_links(tmp / "x")
     a.out.parent.mkdir(parents=True, exist_ok=True)
+    if a.out.is_file():  # sections not run this time keep their previous results
+        result = {**json.loads(a.out.read_text()), **result}
     from efem_viz.data.io import atomic_write_text
 
     atomic_write_text(a.out, json.dumps(result, indent=1))
