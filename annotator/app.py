@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import html
 import logging
 import os
 import queue
@@ -53,7 +52,7 @@ from annotator.io import (
 from annotator.journal import LabelStore, remove_stale_temp_files, scan_fingerprint
 from annotator.labels import Delta, InstanceInfo, LabelSet, prelabel_note, unreviewed_prelabels
 from annotator.lasso import LassoCamera, LassoOutline
-from annotator.render import Chunks, build_chunks, color_lut, compose_colors, splat_proxy
+from annotator.render import Chunks, build_chunks, color_lut, compose_colors, ring_segments, splat_proxy
 from annotator.tools import (
     APP_KEYS,
     BRUSH_STEP,
@@ -70,8 +69,13 @@ from annotator.tools import (
     shown_settings,
 )
 from efem_viz.geometry.transforms import xyz_tuple
-from efem_viz.serve.camera import CameraGuard, View
+from efem_viz.serve.camera import CameraGuard, View, fly_to_view
 from efem_viz.serve.guard import start_server
+from efem_viz.serve.table import cell as _md
+from efem_viz.serve.table import option_for as _option_for
+from efem_viz.serve.table import option_id as _id_of
+from efem_viz.serve.table import step_row
+from efem_viz.serve.table import swatch as _swatch
 from efem_viz.serve.inputs import (
     ClientValueError,
     read_bool,
@@ -141,6 +145,27 @@ class Stats:
     last_edit_ms: float = 0.0
     edits: int = 0
     history: list[str] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class BrushCursor:
+    """Where the brush cursor is drawn: the ring of the brush radius where the brush last touched the scan
+    (viser 1.1 sends no pointer-move events, so it follows clicks and drags, not the hovering mouse)."""
+
+    position: np.ndarray
+    """(3,) float, the brush position on the surface, world frame."""
+    normal: np.ndarray
+    """(3,) float, the surface normal there."""
+    radius: float
+    """The brush radius the ring shows, metres."""
+    visible: bool
+    """Drawn: the active tool has a brush radius (brush, erase)."""
+
+
+CURSOR_COLOR = (255, 150, 0)
+"""Colour of the brush cursor's ring."""
+CURSOR_THICKNESS_PX = 2.5
+"""Line width of the brush cursor's ring, screen pixels."""
 
 
 @dataclass
@@ -262,6 +287,10 @@ class AnnotatorApp:
         self._prelabel_cursor: int | None = None
         """The pre-label Next / Previous went to last (None: not used yet)."""
         self._strokes: dict[int, _Stroke] = {}
+        self.cursor: BrushCursor | None = None
+        """The brush cursor (None until the brush first touches the scan)."""
+        self._cursor_handle: Any = None
+        self._cursor_lock = threading.Lock()
         self.lasso_outline = LassoOutline()
         """The lasso tool's outline (screen points of one view)."""
         self._lasso_handle: Any = None
@@ -635,6 +664,7 @@ class AnnotatorApp:
             button.visible = key in mine
         self.gui_tool_help.content = f"**{t.hotkey}** {t.label}: {t.help}"
         self.gui_help.content = help_markdown(self.tools, t.name)
+        self._draw_cursor()
 
     def _gui_write_back(self, handle: Any, value: Any) -> None:
         """Show the value actually used (a clamped client value) in every client, without re-reading it."""
@@ -833,6 +863,7 @@ class AnnotatorApp:
         handle = self.gui_controls.get("radius")
         if handle is not None:
             self._gui_write_back(handle, snapped)
+        self._draw_cursor()
         return self.settings.radius
 
     def run_tool_hotkey(self, key: str) -> object:
@@ -989,6 +1020,7 @@ class AnnotatorApp:
         prev = None
         for p in pts:
             v = int(self.geom.tree.query(p)[1])
+            self.move_cursor(p, v)
             nrm, lim = self._brush_normal(v)
             if prev is None:
                 idx = sel.brush(self.geom, p, self.settings.radius, normal=nrm, max_normal_angle_deg=lim)
@@ -1046,8 +1078,45 @@ class AnnotatorApp:
             erase: erase instead of painting the active instance.
         """
         nrm, lim = self._brush_normal(int(vertex))
+        self.move_cursor(position, int(vertex))
         idx = sel.brush(self.geom, position, self.settings.radius, normal=nrm, max_normal_angle_deg=lim)
         return self.paint(idx, erase=erase, client=client)
+
+    # ---- brush cursor
+    def move_cursor(self, position: np.ndarray, vertex: int) -> BrushCursor:
+        """Put the brush cursor (a ring of the brush radius) at a surface point and draw it.
+
+        Args:
+            position: (3,) float, the point on the surface, world frame.
+            vertex: the scan vertex there (its normal orients the ring).
+        """
+        with self._cursor_lock:
+            self.cursor = BrushCursor(np.asarray(position, np.float64).reshape(3).copy(),
+                                      np.asarray(self.geom.normals[int(vertex)], np.float64).reshape(3).copy(),
+                                      self.settings.radius, self._cursor_visible())
+        self._draw_cursor()
+        assert self.cursor is not None
+        return self.cursor
+
+    def _cursor_visible(self) -> bool:
+        """The cursor shows while the active tool has a brush radius among its controls (brush, erase)."""
+        return "radius" in shown_settings(self.tool)
+
+    def _draw_cursor(self) -> None:
+        """Redraw the brush cursor at its position with the current radius (hidden for tools without one)."""
+        with self._cursor_lock:
+            cur = self.cursor
+            if cur is None:
+                return
+            cur = dataclasses.replace(cur, radius=self.settings.radius, visible=self._cursor_visible())
+            self.cursor = cur
+            try:
+                self._cursor_handle = self.server.scene.add_line_segments(
+                    "/annotator/brush_cursor", ring_segments(cur.position, cur.normal, cur.radius),
+                    colors=CURSOR_COLOR, thickness=CURSOR_THICKNESS_PX, thickness_units="screen",
+                    visible=cur.visible)
+            except ValueError:  # a degenerate radius: keep the last ring
+                log.debug("brush cursor not drawn", exc_info=True)
 
     def box(
         self,
@@ -1255,9 +1324,7 @@ class AnnotatorApp:
             raise ValueError("no unreviewed pre-labels: import an EFEM result first")
         current = str(self.gui_prelabel.value).split(":", 1)[0]
         started = self._prelabel_cursor is not None
-        here = ids.index(int(current)) if started and current.isdigit() and int(current) in ids else (
-            -1 if step > 0 else 0)
-        iid = ids[(here + step) % len(ids)]
+        iid = step_row(ids, int(current) if started and current.isdigit() else None, step)
         self._prelabel_cursor = iid
         self._gui_write_back(self.gui_prelabel, _option_for(tuple(self.gui_prelabel.options), iid))
         self.fly_to(np.flatnonzero(self.store.labels == iid), client)
@@ -1270,15 +1337,9 @@ class AnnotatorApp:
         if idx.size == 0:
             return
         pts = self.scene.points[idx]
-        lo, hi = pts.min(axis=0), pts.max(axis=0)
-        home = self.home_view
-        direction = np.subtract(home.position, home.look_at)
-        direction /= float(np.linalg.norm(direction)) or 1.0
         scan_diag = float(np.linalg.norm(np.ptp(self.scene.points, axis=0))) or 1.0
-        size = max(float(np.linalg.norm(hi - lo)), 0.05 * scan_diag)  # a tiny object: not closer than this
-        centre = (lo + hi) / 2.0
-        self.camera_guard.place(View(xyz_tuple(centre), xyz_tuple(centre + FLY_TO_DISTANCE * size * direction)),
-                                client)
+        self.camera_guard.place(fly_to_view(pts.min(axis=0), pts.max(axis=0), home=self.home_view,
+                                            scene_diagonal=scan_diag), client)
 
     def segment_at(self, vertex: int, *, wait: bool = False) -> np.ndarray | None:
         """Click-to-segment: run EFEM seeded near a vertex with the chosen prior and preview the mask.
@@ -1469,6 +1530,7 @@ class AnnotatorApp:
             p = self.scene.points[v] if self.geom.is_mesh is False else start
             stroke = _Stroke(group=uuid.uuid4().hex[:12], last=np.asarray(p, np.float32), normal=self.geom.normals[v],
                              erase=tool.erase, source=tool.label)
+            self.move_cursor(stroke.last, v)
             self._strokes[key] = stroke
             nrm, lim = self._brush_normal(v)
             idx = sel.brush(self.geom, stroke.last, self.settings.radius, normal=nrm, max_normal_angle_deg=lim)
@@ -1486,6 +1548,7 @@ class AnnotatorApp:
         if hit is None:
             return
         v, pos = hit
+        self.move_cursor(pos, v)
         nrm, lim = self._brush_normal(v)
         idx = sel.brush_segment(self.geom, stroke.last, pos, self.settings.radius, normal=nrm, max_normal_angle_deg=lim)
         stroke.last = np.asarray(pos, np.float32)
@@ -1514,26 +1577,9 @@ class AnnotatorApp:
             self._worker.join(timeout=10)
 
 
-FLY_TO_DISTANCE = 1.8
-"""Fly-to puts the camera this many diagonals of the object's box away from its centre."""
 MISSED_SCAN = ("Nothing of the scan is under the cursor, so the tool did nothing: Ctrl/Cmd+click on the scan. If "
                "the scan is out of sight or tiny, R (reset view) fits it to the view.")
 """What a Ctrl/Cmd+click that misses the scan tells the user."""
-
-
-def _swatch(color: Sequence[int]) -> str:
-    """A square in an instance's colour (the instance table and the per-category line show which colour is which)."""
-    r, g, b = (int(c) for c in color)
-    return f'<span style="color:#{r:02x}{g:02x}{b:02x}">■</span>'
-
-
-def _md(text: str) -> str:
-    """Text from a label file or the GUI, safe in the panel's markdown: HTML escaped (viser renders raw HTML in
-    markdown), table pipes and markdown emphasis neutralised."""
-    out = html.escape(str(text), quote=False)
-    for ch in "\\|*_`[]":
-        out = out.replace(ch, "\\" + ch)
-    return out
 
 
 def _undo_steps(stack: list[Delta]) -> int:
@@ -1582,18 +1628,3 @@ def _color(i: int) -> tuple[int, int, int]:
     from efem_viz.colors import instance_color
 
     return instance_color(i)
-
-
-def _id_of(option: str) -> int:
-    """Instance id from a dropdown option "12: mug 12"."""
-    head = str(option).split(":", 1)[0]
-    if not head.strip().isdigit():
-        raise ValueError("no instance selected")
-    return int(head)
-
-
-def _option_for(options: tuple[str, ...], instance_id: int) -> str:
-    for o in options:
-        if o.split(":", 1)[0] == str(instance_id):
-            return o
-    return options[0]

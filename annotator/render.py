@@ -179,3 +179,45 @@ def splat_proxy(
     verts = np.stack([v0, v1, v2], axis=1).reshape(-1, 3).astype(np.float32)
     faces = np.arange(len(verts), dtype=np.int32).reshape(-1, 3)
     return verts, faces
+
+
+CURSOR_SEGMENTS = 48
+"""Segments of the brush cursor's ring."""
+CURSOR_LIFT = 0.2
+"""The brush cursor's ring floats this many radii above the surface along its normal (a ring in the tangent plane
+of a curved surface would otherwise sink into it)."""
+
+
+def ring_segments(center: np.ndarray, normal: np.ndarray, radius: float, *, n: int = CURSOR_SEGMENTS) -> np.ndarray:
+    """A circle of `radius` around `center` in the plane perpendicular to `normal`, lifted `CURSOR_LIFT` radii along
+    it: the brush cursor.
+
+    Args:
+        center: (3,) float, the brush position on the surface, world frame.
+        normal: (3,) float, the surface normal there (any length; a zero normal draws the ring flat, around +Z).
+        radius: ring radius, metres (> 0).
+        n: number of segments (>= 3).
+
+    Returns:
+        (n, 2, 3) float32 line segments, world frame.
+
+    Raises:
+        ValueError: a non-positive or non-finite radius, fewer than 3 segments, or non-finite / wrongly shaped
+            center or normal.
+    """
+    c = np.asarray(center, np.float64).reshape(-1)
+    nrm = np.asarray(normal, np.float64).reshape(-1)
+    if c.shape != (3,) or nrm.shape != (3,) or not (np.isfinite(c).all() and np.isfinite(nrm).all()):
+        raise ValueError(f"center and normal must be 3 finite numbers each, got {c} and {nrm}")
+    if not (np.isfinite(radius) and radius > 0) or n < 3:
+        raise ValueError(f"need a positive radius and at least 3 segments, got {radius} and {n}")
+    length = float(np.linalg.norm(nrm))
+    nrm = nrm / length if length > 1e-12 else np.array([0.0, 0.0, 1.0])
+    ref = np.array([0.0, 0.0, 1.0]) if abs(nrm[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    t1 = np.cross(nrm, ref)
+    t1 /= np.linalg.norm(t1)
+    t2 = np.cross(nrm, t1)
+    ang = np.linspace(0.0, 2.0 * np.pi, n + 1)
+    pts = c + CURSOR_LIFT * radius * nrm + radius * (np.cos(ang)[:, None] * t1 + np.sin(ang)[:, None] * t2)
+    return np.stack([pts[:-1], pts[1:]], axis=1).astype(np.float32)
+

@@ -83,6 +83,38 @@ def fitted_view(lo: Sequence[float] | np.ndarray, hi: Sequence[float] | np.ndarr
     return View(xyz_tuple(centre), xyz_tuple(centre + diagonal * np.asarray(direction, np.float64)))
 
 
+FLY_TO_DISTANCE = 1.8
+"""Fly-to puts the camera this many diagonals of the object's box away from the box centre."""
+FLY_TO_MIN_SIZE = 0.05
+"""Fly-to treats an object smaller than this fraction of the scene diagonal as this big (a tiny object, a single
+vertex: the camera does not come closer than this)."""
+
+
+def fly_to_view(lo: Sequence[float] | np.ndarray, hi: Sequence[float] | np.ndarray, *, home: View,
+                scene_diagonal: float) -> View:
+    """The view that flies to one object (an instance's points or box): looking at its box centre from the
+    direction of `home` (the fitted view), `FLY_TO_DISTANCE` box diagonals away, so that it fills about half the
+    view. Both apps' fly-to buttons use it.
+
+    Args:
+        lo: (3,) min corner of the object's box, world frame.
+        hi: (3,) max corner, world frame.
+        home: the fitted view of the scene (its viewing direction is kept).
+        scene_diagonal: the scene's box diagonal (objects smaller than `FLY_TO_MIN_SIZE` of it count as that big).
+
+    Raises:
+        ValueError: a corner is not 3 finite numbers.
+    """
+    lo_a, hi_a = np.asarray(lo, np.float64).reshape(-1), np.asarray(hi, np.float64).reshape(-1)
+    if lo_a.shape != (3,) or hi_a.shape != (3,) or not (np.isfinite(lo_a).all() and np.isfinite(hi_a).all()):
+        raise ValueError(f"object box corners must be 3 finite numbers each, got {lo_a} and {hi_a}")
+    direction = np.subtract(home.position, home.look_at).astype(np.float64)
+    direction /= float(np.linalg.norm(direction)) or 1.0
+    size = max(float(np.linalg.norm(hi_a - lo_a)), FLY_TO_MIN_SIZE * (float(scene_diagonal) or 1.0))
+    centre = (lo_a + hi_a) / 2.0
+    return View(xyz_tuple(centre), xyz_tuple(centre + FLY_TO_DISTANCE * size * direction), home.up)
+
+
 def view_lost(look_at: Sequence[float] | np.ndarray, lo: Sequence[float] | np.ndarray,
               hi: Sequence[float] | np.ndarray, *, margin: float = LOST_MARGIN) -> bool:
     """Whether a camera looking at `look_at` has left the scene: the point lies more than `margin` scene diagonals
