@@ -33,8 +33,16 @@ from efem_viz.serve.inputs import (
     read_text,
     resolve_inside_root,
 )
-from efem_viz.viewer.legend import category_summary, color_key_html, legend_html, result_summary_markdown
-from efem_viz.serve.camera import CameraGuard, fitted_view
+from efem_viz.viewer.legend import (
+    category_summary,
+    color_key_html,
+    instance_options,
+    instance_table_markdown,
+    legend_html,
+    result_summary_markdown,
+)
+from efem_viz.serve.camera import CameraGuard, fitted_view, fly_to_view
+from efem_viz.serve.table import NO_ROW, option_for, option_id, step_row
 from efem_viz.serve.outputs import default_output_dir
 from efem_viz.viewer.nodes import VIEW_DIRECTION, SceneNodes, decode_shape, proposal_samples
 from efem_viz.viewer.panels import (
@@ -311,6 +319,13 @@ class ViewerApp:
                     )
                 )
             )
+        p.gui_instance.on_update(guard(lambda: self.choose_instance(_row_id(read_choice(p.gui_instance)))))
+        p.gui_instance_visible.on_update(
+            guard(lambda: self.set_instance_visible(self.state.table_row, read_bool(p.gui_instance_visible))))
+        p.gui_fly_to.on_click(
+            lambda event: guard(lambda: self.fly_to_instance(self.state.table_row, client=event.client))(event))
+        p.gui_instance_prev.on_click(lambda event: guard(lambda: self.step_instance(-1, client=event.client))(event))
+        p.gui_instance_next.on_click(lambda event: guard(lambda: self.step_instance(+1, client=event.client))(event))
         p.gui_reset_view.on_click(lambda event: self.reset_view(event.client))
         p.gui_export_results.on_click(guard(lambda: self.export_from_gui("results")))
         p.gui_export_static.on_click(guard(lambda: self.export_from_gui("static")))
@@ -633,6 +648,7 @@ class ViewerApp:
             if s.scene is not None and hasattr(result, "bind"):
                 result.bind(s.scene)  # raises ValueError when the result belongs to another scene
             s.result, s.result_source, s.selected = result, source, None
+            s.hidden, s.table_row = set(), None  # another result: other instances
             T = int(trace.num_steps)
             s.step = max(T - 1, 0)
             p = self.panels
@@ -684,6 +700,7 @@ class ViewerApp:
         p.gui_dead_info.content = ""
         p.gui_result_info.content = ""
         p.gui_legend.content = ""
+        self._update_instance_table()
         p.gui_gt_info.content = ""
         p.gui_run_info.content = ""
         self._gui_set(p.gui_proposal, NO_PROPOSAL)
@@ -966,10 +983,12 @@ class ViewerApp:
             self.draw_point_colors()
             inst = s.result.instances
             self.panels.gui_result_info.content = result_summary_markdown(
-                inst, keep, threshold=s.threshold, out_tau=s.result.config.out_tau
+                inst, keep, threshold=s.threshold, out_tau=s.result.config.out_tau,
+                hidden_by_hand=int((keep & ~self.shown_mask()).sum()),
             )
-            self.panels.gui_legend.content = legend_html(inst, keep)
+            self.panels.gui_legend.content = legend_html(inst, self.shown_mask())
             self._update_gt_panel(keep)
+            self._update_instance_table()
 
     def set_mask_band(self, tau_out: float) -> bool:
         """Re-derive the output masks at SDF band `tau_out` from the stored latents (no re-run).
@@ -1006,11 +1025,127 @@ class ViewerApp:
             return True
 
     def kept_mask(self) -> np.ndarray:
-        """(K,) bool: final instances at or above the threshold."""
+        """(K,) bool: final instances at or above the threshold (what the metrics and exports take)."""
         res = self.state.result
         if res is None:
             return np.zeros(0, bool)
         return res.instances.kept(self.state.threshold)
+
+    def shown_mask(self) -> np.ndarray:
+        """(K,) bool: final instances drawn: at or above the threshold and not hidden in the instance table."""
+        res = self.state.result
+        if res is None:
+            return np.zeros(0, bool)
+        return st.shown_mask(res.instances, self.state.threshold, self.state.hidden)
+
+    # ---------------------------------------------------------------- the instance table
+    def _instance_index(self, pid: int | None) -> int:
+        """Position in the result's instances of proposal id `pid`.
+
+        Raises:
+            ValueError: no result, no instance chosen, or no instance with that id.
+        """
+        res = self.state.result
+        if res is None:
+            raise ValueError("no result: load or run one first")
+        if pid is None:
+            raise ValueError("no instance chosen: pick one in the Instance dropdown")
+        hit = np.flatnonzero(np.asarray(res.instances.ids).reshape(-1) == int(pid))
+        if hit.size == 0:
+            raise ValueError(f"the result has no instance #{int(pid)}")
+        return int(hit[0])
+
+    def choose_instance(self, pid: int | None) -> None:
+        """Choose a row of the instance table (None: none); its *Visible* box and mark follow."""
+        with self._lock:
+            if pid is not None:
+                self._instance_index(pid)
+            self.state.table_row = None if pid is None else int(pid)
+            self._update_instance_table()
+
+    def set_instance_visible(self, pid: int | None, visible: bool) -> None:
+        """Show or hide one final instance (its mesh, box, label and point colours); a view like the threshold.
+
+        Raises:
+            ValueError: no such instance.
+        """
+        with self._lock:
+            self._instance_index(pid)
+            assert pid is not None
+            s = self.state
+            s.table_row = int(pid)
+            if visible:
+                s.hidden.discard(int(pid))
+            else:
+                s.hidden.add(int(pid))
+            self.set_threshold(s.threshold)  # redraw layers, colours, summary, legend and table
+
+    def fly_to_instance(self, pid: int | None, *, client: Any = None) -> None:
+        """Point one browser's camera (every browser's when None) at an instance: the box of its points (of its
+        box when it has none), seen from the fitted view's direction (`efem_viz.serve.camera.fly_to_view`).
+
+        Raises:
+            ValueError: no such instance.
+        """
+        with self._lock:
+            k = self._instance_index(pid)
+            s = self.state
+            inst = s.result.instances
+            mask = np.asarray(inst.masks[k], np.int64)
+            pts = s.scene.points[mask] if mask.size else np.asarray(inst.obb(k).corners, np.float64)
+            lo_s, hi_s = s.scene.bounds
+            view = fly_to_view(pts.min(axis=0), pts.max(axis=0), home=self.camera_guard.view,
+                               scene_diagonal=float(np.linalg.norm(np.subtract(hi_s, lo_s))))
+            s.table_row = int(pid)  # type: ignore[arg-type]
+            self._update_instance_table()
+            below = not bool(inst.kept(s.threshold)[k])
+        self.camera_guard.place(view, client)
+        if below:
+            self._set_status(f"Instance #{int(pid)} (confidence {float(inst.confidence[k]):.2f}) is below the "
+                             f"confidence threshold {s.threshold:.2f}: lower it to see the instance.")
+
+    def step_instance(self, step: int, *, client: Any = None) -> int:
+        """Choose the next (`step` = 1) or previous (-1) row of the instance table (most confident first, wrapping
+        around) and fly to it; returns its proposal id.
+
+        Raises:
+            ValueError: no result or no instance.
+        """
+        with self._lock:
+            res = self.state.result
+            if res is None or len(res.instances) == 0:
+                raise ValueError("no instances: load or run a result first")
+            ids = [option_id(o) for o in instance_options(res.instances)]
+            pid = step_row(ids, self.state.table_row, step)
+        self.fly_to_instance(pid, client=client)
+        return pid
+
+    def _update_instance_table(self) -> None:
+        """Redraw the instance table, its dropdown (options and choice), *Visible* box and buttons."""
+        s = self.state
+        p = self.panels
+        inst = None if s.result is None else s.result.instances
+        if inst is None or len(inst) == 0:
+            p.gui_instance.options = (NO_ROW,)
+            self._gui_set(p.gui_instance, NO_ROW)
+            p.gui_instance_table.content = "_No final instances._" if inst is not None else ""
+            for h in (p.gui_instance_visible, p.gui_fly_to, p.gui_instance_prev, p.gui_instance_next):
+                h.disabled = True
+            return
+        opts = instance_options(inst)
+        if tuple(p.gui_instance.options) != opts:
+            p.gui_instance.options = opts
+        if s.table_row is not None and s.table_row not in {option_id(o) for o in opts}:
+            s.table_row = None
+        self._gui_set(p.gui_instance, option_for(opts, s.table_row) if s.table_row is not None else opts[0])
+        if s.table_row is None:  # the dropdown shows the first row: that is the one chosen
+            s.table_row = option_id(opts[0])
+        self._gui_set(p.gui_instance_visible, s.table_row not in s.hidden)
+        for h in (p.gui_instance_visible, p.gui_fly_to, p.gui_instance_prev, p.gui_instance_next):
+            h.disabled = False
+        metrics = self._gt_metrics_or_none() if s.scene is not None and s.scene.has_gt else None
+        p.gui_instance_table.content = instance_table_markdown(inst, threshold=s.threshold, hidden=s.hidden,
+                                                               metrics=metrics, selected=s.table_row)
 
     def set_result_layers(self, *, meshes: bool, obbs: bool, axes: bool) -> None:
         with self._lock:
@@ -1023,7 +1158,7 @@ class ViewerApp:
         """Result layers per the toggles and the threshold; meshes step aside while the points carry a weight heat
         map or the TP/FP/FN colours (they would hide them)."""
         s = self.state
-        keep = self.kept_mask()
+        keep = self.shown_mask()
         if s.view_mode != "result":  # one EM step on screen: no final instance over it
             keep = np.zeros_like(keep)
         self.nodes.show_results(
@@ -1083,23 +1218,26 @@ class ViewerApp:
         if mode in ("instances", "gt_match") and s.view_mode != "result":
             cols, key = base, ("rgb", id(base))  # one EM step on screen: no final instance colours
         elif mode == "instances" and s.result is not None:
-            keep = self.kept_mask()
+            keep = self.shown_mask()
             cols = st.instance_colors(base, s.result.instances, keep)
             key = ("inst", self._generation, self._mask_version, keep.tobytes())
             shown = "instances"
         elif mode == "gt_match" and s.result is not None and s.scene.has_gt and self._gt_metrics_or_none() is not None:
             m = self._gt_metrics()
-            cols = st.gt_match_colors(base, m.masks, s.scene.instance, tp=m.tp, fp=m.fp, fn=m.fn)
-            key = ("gt", self._generation, self._mask_version, self.kept_mask().tobytes())
+            kept = np.flatnonzero(self.kept_mask())  # the metrics index the kept instances
+            drawn = self.shown_mask()
+            off = {j for j, k in enumerate(kept) if not drawn[k]}  # hidden in the instance table: grey
+            cols = st.gt_match_colors(base, m.masks, s.scene.instance, tp=[j for j in m.tp if j not in off],
+                                      fp=[j for j in m.fp if j not in off], fn=m.fn)
+            key = ("gt", self._generation, self._mask_version, drawn.tobytes())
             shown = "gt_match"
             boxes = np.array(self.nodes.results.colors, np.uint8, copy=True)
-            kept = np.flatnonzero(self.kept_mask())  # the metrics index the kept instances
             for ks, colour in ((m.tp, st.TP_COLOR), (m.fp, st.FP_COLOR)):
                 for k in ks:
                     if int(k) < kept.size and kept[int(k)] < len(boxes):
                         boxes[kept[int(k)]] = colour
         elif mode in ("instances", "gt_match") and s.result is not None:
-            keep = self.kept_mask()
+            keep = self.shown_mask()
             cols = st.instance_colors(base, s.result.instances, keep)
             key = ("inst", self._generation, self._mask_version, keep.tobytes())
             shown = "instances"
@@ -1159,3 +1297,8 @@ class ViewerApp:
         self.panels.gui_export_info.content = f"Static demo written to `{out}`"
         self._set_status(f"Exported static demo to {out}.")
         return out
+
+
+def _row_id(option: str) -> int | None:
+    """The proposal id of an instance-table option (None for `NO_ROW`)."""
+    return None if option == NO_ROW else option_id(option)

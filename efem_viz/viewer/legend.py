@@ -1,6 +1,8 @@
 """What the viewer says about the final instances: their colours, scene labels, category counts and the legend.
 
 `color_key_html` is the key of the point colours of each colour mode (TP/FP/FN, the weight colour bar).
+`instance_table_markdown` and `instance_options` are the Results tab's instance table and the dropdown that names
+its rows (built like the annotator's instance list, from `efem_viz.serve.table`).
 
 Pure functions of an `efem_viz.em.Instances` (no viser): the live viewer and the static demo both draw their
 instance nodes with `result_colors` and `instance_label`, and the Results tab shows `result_summary_markdown` and
@@ -18,11 +20,14 @@ from typing import Any, Sequence
 import numpy as np
 
 from efem_viz.colors import instance_colors
-from efem_viz.viewer.state import FN_COLOR, FP_COLOR, HEAT_RGB, HEAT_STOPS, TP_COLOR, dim, hex_color
+from efem_viz.serve.table import cell, row_option, swatch
+from efem_viz.viewer.state import FN_COLOR, FP_COLOR, HEAT_RGB, HEAT_STOPS, TP_COLOR, GTMetrics, dim, hex_color
 from efem_viz.viewer.texts import md_escape
 
 MAX_LEGEND_ROWS = 40
 """The legend lists at most this many instances (highest confidence first), then says how many more."""
+MAX_TABLE_ROWS = 60
+"""The instance table lists at most this many instances (highest confidence first), then says how many more."""
 
 
 def result_colors(instances: Any) -> np.ndarray:
@@ -63,20 +68,26 @@ def category_summary(categories: Sequence[str] | np.ndarray) -> str:
     return " · ".join(f"{c} {k}" for c, k in category_counts(categories).items())
 
 
-def result_summary_markdown(instances: Any, keep: np.ndarray, *, threshold: float, out_tau: float) -> str:
-    """The Results tab's summary: how many instances the threshold keeps, per category, and the mask band.
+def result_summary_markdown(instances: Any, keep: np.ndarray, *, threshold: float, out_tau: float,
+                            hidden_by_hand: int = 0) -> str:
+    """The Results tab's summary: how many instances the threshold keeps and how many it hides, per category,
+    and the mask band.
 
     Args:
         instances: `efem_viz.em.Instances` (confidence (K,), category (K,)).
         keep: (K,) bool, the instances kept by the threshold (`Instances.kept`).
         threshold: the confidence threshold.
         out_tau: the output masks' SDF band τ_out (canonical units).
+        hidden_by_hand: kept instances hidden in the instance table.
     """
     keep = np.asarray(keep, bool).reshape(-1)
     conf = np.asarray(instances.confidence, float)
+    below = int(keep.size - keep.sum())
     lines = [
         f"**{int(keep.sum())} of {keep.size} instances** with confidence ≥ {threshold:.2f}"
         + (f" (max {conf.max():.2f})" if conf.size else "")
+        + (f" · **{below} hidden** below the cut (the slider at 0 shows them)" if below else "")
+        + (f" · {hidden_by_hand} hidden in the table" if hidden_by_hand else "")
     ]
     all_counts = category_counts(np.asarray(instances.category, dtype=str))
     if all_counts:
@@ -154,3 +165,64 @@ def color_key_html(mode: str) -> str:
     else:
         return ""
     return '<div class="efem-color-key" style="font-size:0.85em;line-height:1.5">' + "".join(rows) + "</div>"
+
+
+def instance_options(instances: Any) -> tuple[str, ...]:
+    """The instance table's dropdown: one option "<id>: <category> · <confidence>" per instance, most confident
+    first (the table's order); `efem_viz.serve.table.option_id` reads the proposal id back."""
+    conf = np.asarray(instances.confidence, float).reshape(-1)
+    order = np.argsort(-conf, kind="stable")
+    return tuple(row_option(int(instances.ids[k]), f"{instances.category[k]} · {conf[k]:.2f}") for k in order)
+
+
+def instance_table_markdown(
+    instances: Any,
+    *,
+    threshold: float,
+    hidden: set[int] | frozenset[int] = frozenset(),
+    metrics: GTMetrics | None = None,
+    selected: int | None = None,
+) -> str:
+    """The instance table: one row per instance, most confident first: id (with its colour), category,
+    confidence, number of points, TP/FP with IoU (with ground truth) and whether it is shown.
+
+    Args:
+        instances: `efem_viz.em.Instances`.
+        threshold: the confidence threshold (rows below it say "below cut").
+        hidden: proposal ids hidden by hand (their rows say "hidden").
+        metrics: the ground-truth comparison at `threshold` (`efem_viz.viewer.state.gt_metrics`; its indices
+            count the instances kept by the threshold), or None without ground truth.
+        selected: the proposal id chosen in the dropdown (its row is marked ◀).
+
+    Returns:
+        Markdown ("" for no instances). Category names from the result file are escaped.
+    """
+    conf = np.asarray(instances.confidence, float).reshape(-1)
+    if conf.size == 0:
+        return ""
+    ids = np.asarray(instances.ids).reshape(-1)
+    kept = instances.kept(float(threshold))
+    slot = np.cumsum(kept) - 1  # index among the kept instances (what the metrics count)
+    tp = set(metrics.tp) if metrics is not None else set()
+    cols = result_colors(instances)
+    head = "| id | category | conf. | points |" + (" GT (IoU) |" if metrics is not None else "") + " shown |"
+    rule = "|---:|---|---:|---:|" + ("---|" if metrics is not None else "") + "---|"
+    rows = [head, rule]
+    order = np.argsort(-conf, kind="stable")
+    for k in order[:MAX_TABLE_ROWS]:
+        pid = int(ids[k])
+        mark = " ◀" if selected is not None and pid == int(selected) else ""
+        shown = "below cut" if not kept[k] else ("hidden" if pid in hidden else "yes")
+        row = (f"| {pid} {swatch(cols[k])}{mark} | {cell(instances.category[k])} | {conf[k]:.2f} | "
+               f"{len(instances.masks[k]):,} |")
+        if metrics is not None:
+            if kept[k]:
+                j = int(slot[k])
+                iou = metrics.ious[j] if j < len(metrics.ious) else float("nan")
+                row += f" {'TP' if j in tp else 'FP'} ({iou:.2f}) |"
+            else:
+                row += " – |"
+        rows.append(row + f" {shown} |")
+    if order.size > MAX_TABLE_ROWS:
+        rows.append(f"\n… {order.size - MAX_TABLE_ROWS} more (least confident) in the dropdown")
+    return "\n".join(rows)

@@ -8,7 +8,9 @@ only resend colours (uint8) or flip visibility. Node paths:
 * `/em/shapes/p<id>_t<step>` — decoded shapes (one mesh per proposal and step, cached and re-shown);
 * `/inspect/...` — the four Fig. S9 views of the inspected proposal, laid out beside the scene;
 * `/results/mesh/k<i>`, `/results/obb/k<i>`, `/results/axes/k<i>`, `/results/label/k<i>` — final instances
-  (threshold = visibility; the label names the category).
+  (threshold = visibility; the label names the category). Labels sit above their boxes and are lifted apart so
+  that the shown ones do not overlap (`efem_viz.viewer.label_layout`); `/results/leaders` links a lifted label
+  to its box.
 
 The `add_*` functions draw on any `SceneApi` with the constants below; the live viewer (`SceneNodes`) and the
 static demo (`efem_viz.viewer.export`) both draw through them, so the two look the same.
@@ -25,7 +27,8 @@ import numpy as np
 
 from efem_viz.colors import instance_colors
 from efem_viz.geometry.transforms import rotation_to_quat_wxyz, xyz_tuple
-from efem_viz.serve.camera import fitted_view
+from efem_viz.serve.camera import View, fitted_view
+from efem_viz.viewer.label_layout import leader_segments, place_labels
 from efem_viz.viewer.legend import instance_label, result_colors
 from efem_viz.viewer.state import DEAD_COLOR, rgb_tuple, sample_indices
 
@@ -61,6 +64,10 @@ AXES_RADIUS_OF_LENGTH = 0.04
 """Pose axes radius, as a fraction of their length."""
 VIEW_DIRECTION = np.array([0.5, -0.95, 0.85])
 """Initial camera offset from the scene centre, in scene diagonals (looking down at the table from the front)."""
+LEADER_COLOR = (90, 90, 90)
+"""Colour of the leader lines from lifted labels down to their boxes."""
+LEADER_THICKNESS_PX = 1.0
+"""Line width of the leader lines, screen pixels."""
 
 
 def scene_diagonal(lo: np.ndarray, hi: np.ndarray) -> float:
@@ -187,27 +194,87 @@ class ResultNodes:
     """`/results/axes/k<i>`: the pose."""
     labels: list[LabelHandle] = field(default_factory=list)
     """`/results/label/k<i>`: category, id and confidence (`instance_label`)."""
+    label_anchors: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    """(K, 3) where each label wants to be: just above its box (`instance_label_position`), world frame."""
+    label_texts: list[str] = field(default_factory=list)
+    """The K label texts."""
+    label_priority: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    """(K,) the confidences: the more confident label keeps its spot when two would overlap."""
+    label_view: View | None = None
+    """The view the labels are laid out for (`efem_viz.viewer.label_layout.place_labels`)."""
+    label_positions: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    """(K, 3) where each label is now, world frame."""
+    laid_out_for: bytes | None = None
+    """The (K,) bool mask of shown labels the current positions were laid out for."""
+    leaders: LineSegmentsHandle | None = None
+    """`/results/leaders`: a line from each lifted, shown label down to its anchor (None: no label is lifted)."""
     colors: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.uint8))
     """(K, 3) uint8: each instance's own colour (`result_colors`)."""
     box_colors: list[tuple[int, int, int]] = field(default_factory=list)
     """The colour each box is drawn in now (its own, or green / red in the TP/FP/FN mode)."""
 
 
-def add_result_nodes(api: SceneApi, instances: Any, *, visible: bool) -> ResultNodes:
+def label_view(instances: Any, view: View | None = None) -> View:
+    """The view the instance labels are laid out for: `view` (the viewer's fitted view of the scene), or without
+    one the fitted view of the instances' boxes from twice `VIEW_DIRECTION`'s distance (the scene holds the
+    boxes and is seen from farther away; laying out for a farther camera only spaces the labels more)."""
+    if view is not None:
+        return view
+    k = len(np.asarray(instances.ids).reshape(-1))
+    if k == 0:
+        return fitted_view(np.full(3, -0.5), np.full(3, 0.5), direction=VIEW_DIRECTION)
+    corners = np.concatenate([np.asarray(instances.obb(i).corners, np.float64).reshape(-1, 3) for i in range(k)])
+    return fitted_view(corners.min(axis=0), corners.max(axis=0), direction=2.0 * VIEW_DIRECTION)
+
+
+def add_leaders(api: SceneApi, anchors: np.ndarray, positions: np.ndarray, *, visible: bool = True
+                ) -> LineSegmentsHandle | None:
+    """`/results/leaders`: one thin line from each lifted label down to its anchor (None, and the node removed,
+    when no label is lifted).
+
+    Args:
+        api: `server.scene`.
+        anchors: (K, 3) float wanted label positions, world frame.
+        positions: (K, 3) float placed label positions, world frame.
+        visible: initial visibility.
+    """
+    seg = leader_segments(anchors, positions)
+    if seg.shape[0] == 0:
+        try:
+            api.remove_by_name("/results/leaders")
+        except Exception:  # noqa: BLE001 - none drawn
+            pass
+        return None
+    return api.add_line_segments("/results/leaders", points=seg, colors=LEADER_COLOR,
+                                 thickness=LEADER_THICKNESS_PX, thickness_units="screen", visible=visible)
+
+
+def add_result_nodes(api: SceneApi, instances: Any, *, visible: bool, view: View | None = None) -> ResultNodes:
     """Draw every final instance: its mesh, box, pose axes and label, in its palette colour.
 
     The live viewer draws them hidden and switches visibility with the threshold; the static demo draws the
-    instances above its threshold visible. Both go through here, so they look the same.
+    instances above its threshold visible. Both go through here, so they look the same. The labels are laid out
+    over all the given instances so that none overlaps another (`efem_viz.viewer.label_layout`); the live viewer
+    lays them out again over the shown ones (`SceneNodes.show_results`).
 
     Args:
         api: `server.scene`.
         instances: `efem_viz.em.Instances` (ids, category, confidence, mesh_vertices/mesh_faces lists, R,
             center, obb_half_extents and `obb(k)`).
         visible: initial visibility of every node.
+        view: the camera the labels must not overlap in (the fitted view of the scene); default `label_view`.
     """
     ids = np.asarray(instances.ids).reshape(-1)
     cols = result_colors(instances)
     out = ResultNodes(colors=cols, box_colors=[rgb_tuple(c) for c in cols])
+    out.label_anchors = np.array([instance_label_position(instances, k) for k in range(ids.shape[0])],
+                                 np.float64).reshape(-1, 3)
+    out.label_texts = [instance_label(instances, k) for k in range(ids.shape[0])]
+    out.label_priority = np.asarray(instances.confidence, np.float64).reshape(-1)
+    out.label_view = label_view(instances, view)
+    out.label_positions = place_labels(out.label_anchors, out.label_texts, view=out.label_view,
+                                       priority=out.label_priority)
+    out.laid_out_for = np.full(ids.shape[0], bool(visible)).tobytes()  # hidden: laid out again when shown
     for k in range(ids.shape[0]):
         col = rgb_tuple(cols[k])
         verts = instances.mesh_vertices[k] if k < len(instances.mesh_vertices) else None
@@ -232,9 +299,10 @@ def add_result_nodes(api: SceneApi, instances: Any, *, visible: bool) -> ResultN
             axes_length=length, axes_radius=length * AXES_RADIUS_OF_LENGTH, visible=visible,
         ))
         out.labels.append(api.add_label(
-            f"/results/label/k{k}", text=instance_label(instances, k),
-            position=instance_label_position(instances, k), visible=visible,
+            f"/results/label/k{k}", text=out.label_texts[k], position=xyz_tuple(out.label_positions[k]),
+            visible=visible, anchor="bottom-center",
         ))
+    out.leaders = add_leaders(api, out.label_anchors, out.label_positions, visible=visible)
     return out
 
 
@@ -498,7 +566,9 @@ class SceneNodes:
             self.scene_api.remove_by_name("/results")
         except Exception:  # noqa: BLE001
             pass
-        self.results = add_result_nodes(self.scene_api, instances, visible=False)
+        lo, hi = self._bounds
+        self.results = add_result_nodes(self.scene_api, instances, visible=False,
+                                        view=fitted_view(lo, hi, direction=VIEW_DIRECTION))
 
     def set_box_colors(self, colors: np.ndarray | None) -> int:
         """Colour the boxes: (K, 3) uint8 one colour per instance (the TP/FP/FN mode), or None for each
@@ -536,4 +606,32 @@ class SceneNodes:
                 if h.visible != vis:
                     h.visible = vis
                     changed += 1
-        return changed
+        return changed + self.lay_out_labels(np.array([h.visible for h in r.labels], bool))
+
+    def lay_out_labels(self, shown: np.ndarray) -> int:
+        """Lay the shown labels out so that none overlaps another (hidden ones take no room), move the labels
+        whose place changed and redraw the leader lines. Nothing is sent when the shown set is unchanged.
+
+        Args:
+            shown: (K,) bool, the labels shown.
+
+        Returns:
+            The number of labels moved.
+        """
+        r = self.results
+        shown = np.asarray(shown, bool).reshape(-1)
+        if r.label_view is None or shown.shape[0] != len(r.labels) or shown.tobytes() == r.laid_out_for:
+            return 0
+        idx = np.flatnonzero(shown)
+        pos = r.label_positions.copy()
+        pos[idx] = place_labels(r.label_anchors[idx], [r.label_texts[i] for i in idx], view=r.label_view,
+                                priority=r.label_priority[idx])
+        moved = 0
+        for k in idx:
+            if not np.allclose(pos[k], r.label_positions[k], rtol=0.0, atol=1e-9):
+                r.labels[k].position = xyz_tuple(pos[k])
+                moved += 1
+        r.label_positions = pos
+        r.laid_out_for = shown.tobytes()
+        r.leaders = add_leaders(self.scene_api, r.label_anchors[idx], pos[idx])
+        return moved

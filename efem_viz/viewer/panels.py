@@ -13,6 +13,8 @@ from typing import TYPE_CHECKING, Any, Sequence, cast
 import numpy as np
 
 from efem_viz.em import config as em_config
+from efem_viz.serve.table import NO_ROW
+from efem_viz.viewer.state import DEFAULT_CONFIDENCE_CUT
 
 if TYPE_CHECKING:
     import plotly.graph_objects as go
@@ -99,7 +101,20 @@ class Panels:
     gui_show_obbs: GuiCheckboxHandle
     gui_show_axes: GuiCheckboxHandle
     gui_result_info: GuiMarkdownHandle
-    """Instances kept by the threshold, with counts per category."""
+    """Instances kept by the threshold, with counts per category, and how many the threshold hides."""
+    gui_instance: GuiDropdownHandle[str]
+    """The instance table's row chooser: options "<id>: <category> · <confidence>" (`legend.instance_options`),
+    or `NO_ROW`."""
+    gui_instance_visible: GuiCheckboxHandle
+    """Shows / hides the chosen instance (a view: metrics and exports follow the threshold)."""
+    gui_fly_to: GuiButtonHandle
+    """Flies the clicking browser's camera to the chosen instance."""
+    gui_instance_prev: GuiButtonHandle
+    """Chooses the previous row and flies to it."""
+    gui_instance_next: GuiButtonHandle
+    """Chooses the next row and flies to it."""
+    gui_instance_table: GuiMarkdownHandle
+    """One row per instance (`legend.instance_table_markdown`)."""
     gui_legend: GuiHtmlHandle
     """One line per shown instance: colour swatch, id, category, confidence."""
     gui_gt_info: GuiMarkdownHandle
@@ -162,7 +177,8 @@ def build_panels(gui: GuiApi, *, scene_names: list[str], out_dir: str) -> Panels
         dead_info = gui.add_markdown("")
 
     with tabs.add_tab("Results"):
-        threshold = gui.add_slider("Confidence ≥", 0.0, 1.0, 0.01, 0.0)
+        threshold = gui.add_slider("Confidence ≥", 0.0, 1.0, 0.01, DEFAULT_CONFIDENCE_CUT,
+                                   hint="instances below this confidence are hidden (a view: nothing is re-run)")
         mask_band = gui.add_slider(
             "Mask band τ_out", MASK_BAND_RANGE[0], MASK_BAND_RANGE[1], 0.005, 0.04, disabled=True,
             hint="output masks take the points whose decoded |SDF| is below this (canonical units); re-derived from "
@@ -171,6 +187,16 @@ def build_panels(gui: GuiApi, *, scene_names: list[str], out_dir: str) -> Panels
         show_obbs = gui.add_checkbox("Boxes (OBB)", True)
         show_axes = gui.add_checkbox("Pose axes", False)
         result_info = gui.add_markdown("")
+        with gui.add_folder("Instance table"):
+            instance = gui.add_dropdown("Instance", (NO_ROW,), initial_value=NO_ROW,
+                                        hint="a row of the table below, most confident first")
+            instance_visible = gui.add_checkbox("Visible", True, disabled=True,
+                                                hint="show or hide the chosen instance (metrics and exports follow "
+                                                     "the confidence threshold only)")
+            fly_to = gui.add_button("Fly to", disabled=True, hint="point this browser's camera at the instance")
+            instance_prev = gui.add_button("◀ Previous", disabled=True, hint="choose the row above and fly to it")
+            instance_next = gui.add_button("Next ▶", disabled=True, hint="choose the row below and fly to it")
+            instance_table = gui.add_markdown("")
         legend = gui.add_html("")
         gt_info = gui.add_markdown("")
         pr_plot = gui.add_plotly(go.Figure(), aspect=1.3, visible=False)
@@ -216,6 +242,12 @@ def build_panels(gui: GuiApi, *, scene_names: list[str], out_dir: str) -> Panels
         gui_show_obbs=show_obbs,
         gui_show_axes=show_axes,
         gui_result_info=result_info,
+        gui_instance=instance,
+        gui_instance_visible=instance_visible,
+        gui_fly_to=fly_to,
+        gui_instance_prev=instance_prev,
+        gui_instance_next=instance_next,
+        gui_instance_table=instance_table,
         gui_legend=legend,
         gui_gt_info=gt_info,
         gui_pr_plot=pr_plot,

@@ -38,6 +38,11 @@ FN_COLOR = np.array([38, 110, 230], np.uint8)
 BACKGROUND_COLOR = np.array([200, 200, 200], np.uint8)
 DEAD_COLOR = np.array([230, 30, 30], np.uint8)
 
+DEFAULT_CONFIDENCE_CUT = 0.05
+"""The confidence threshold a viewer starts with: instances below it are hidden (on real scans EM keeps many
+near-zero-confidence instances that cover the view and say nothing). The Results tab says how many it hides; the
+slider at 0 shows them all."""
+
 
 # ---------------------------------------------------------------------------------------------- scene discovery
 @dataclass(frozen=True)
@@ -393,8 +398,13 @@ class ViewerState:
     """Draw decoded shapes for at most this many live proposals (top by stationary score)."""
     show_shapes: bool = True
     show_samples: bool = True
-    threshold: float = 0.0
+    threshold: float = DEFAULT_CONFIDENCE_CUT
     """Confidence threshold on the final instances (a view, not a re-run)."""
+    hidden: set[int] = field(default_factory=set)
+    """Proposal ids of final instances hidden by hand (the instance table's *Visible* box): a view, like the
+    threshold; the metrics and exports follow the threshold only."""
+    table_row: int | None = None
+    """Proposal id of the instance chosen in the instance table (None: none yet)."""
     display: DisplayMode = "points"
     color_mode: ColorMode = "rgb"
     point_size: float = 0.004
@@ -509,6 +519,46 @@ class GTMetrics:
     curves: list[tuple[str, np.ndarray, np.ndarray]]
     point: tuple[float, float] | None
     """(recall, precision) at IoU 0.5 of the shown predictions."""
+    ious: tuple[float, ...] = ()
+    """Per shown prediction (as `masks`): IoU with its matched ground-truth object for a TP, the best IoU with
+    any ground-truth object for an FP (0 when it touches none)."""
+
+
+def shown_mask(instances: Any, threshold: float, hidden: set[int] | frozenset[int] = frozenset()) -> np.ndarray:
+    """(K,) bool: the final instances drawn: kept by the confidence threshold (`Instances.kept`, the one
+    thresholding rule) and not hidden by hand.
+
+    Args:
+        instances: `efem_viz.em.Instances`.
+        threshold: the confidence threshold.
+        hidden: proposal ids hidden by hand.
+    """
+    keep = instances.kept(float(threshold))
+    if hidden:
+        keep &= ~np.isin(np.asarray(instances.ids).reshape(-1), np.fromiter(hidden, np.int64))
+    return keep
+
+
+def best_ious(pred_masks: Sequence[np.ndarray], gt_instance: np.ndarray) -> np.ndarray:
+    """(K,) float64: each prediction's largest IoU with any ground-truth object (0 when it touches none).
+
+    Args:
+        pred_masks: K index arrays of scene points.
+        gt_instance: (N,) int ground-truth instance ids (0 / negative = background).
+    """
+    gt = np.asarray(gt_instance).astype(np.int64).reshape(-1)
+    ids, counts = np.unique(gt[gt > 0], return_counts=True)
+    out = np.zeros(len(pred_masks))
+    if not len(ids):
+        return out
+    col = np.searchsorted(ids, gt)
+    col[gt <= 0] = -1
+    for k, m in enumerate(pred_masks):
+        m = np.unique(np.asarray(m, np.int64))
+        c = col[m]
+        inter = np.bincount(c[c >= 0], minlength=len(ids)).astype(np.float64)
+        out[k] = float(np.max(inter / (counts + m.size - inter)))
+    return out
 
 
 def gt_metrics(instances: Any, scene: Any, threshold: float) -> GTMetrics:
@@ -520,12 +570,16 @@ def gt_metrics(instances: Any, scene: Any, threshold: float) -> GTMetrics:
 
     shown = instances.above(float(threshold))
     masks = [np.asarray(m, np.int64) for m in shown.masks]
-    tp, fp, fn = match_instances(masks, scene.instance, iou=0.5, confidences=np.asarray(shown.confidence))
+    matched = match_instances(masks, scene.instance, iou=0.5, confidences=np.asarray(shown.confidence))
+    tp, fp, fn = matched
     cats = sorted({str(v) for v in dict(scene.categories).values()})
     class_names = tuple(cats) if cats else DEFAULT_CLASS_NAMES
     res = evaluate_instances(instances, scene, threshold=float(threshold), class_names=class_names)
     n_gt = len(scene.instance_ids())
     point = (len(tp) / max(n_gt, 1), len(tp) / len(masks)) if masks else None
+    ious = best_ious(masks, scene.instance)
+    for k, _gt_id, iou in getattr(matched, "pairs", ()):
+        ious[int(k)] = float(iou)  # a TP: the IoU of its match
     return GTMetrics(
         masks=masks,
         tp=[int(i) for i in tp],
@@ -536,6 +590,7 @@ def gt_metrics(instances: Any, scene: Any, threshold: float) -> GTMetrics:
         ap25=float(res.ap25),
         curves=_pr_curves(res),
         point=point,
+        ious=tuple(float(v) for v in ious),
     )
 
 
