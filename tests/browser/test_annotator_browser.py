@@ -402,3 +402,65 @@ def test_a_click_off_the_scan_says_so(keyed: tuple[Any, Any]) -> None:
     _ctrl_click(page, box["x"] + 0.12 * box["width"], box["y"] + 0.88 * box["height"])
     page.get_by_text("Missed the scan", exact=True).first.wait_for(timeout=15_000)
     assert app.pending_segment is None
+
+
+# ============================================================================ brush cursor and labels-only view (item 13)
+@pytest.mark.parametrize("annotator", ["mesh"], indirect=True)
+def test_brush_cursor_and_labels_only_view(annotator: Any, new_page: Callable[..., Any]) -> None:
+    """A Ctrl+drag paints and leaves the brush cursor (a ring of the brush radius) where the stroke ended; ] makes
+    the ring larger; the eraser keeps it, region grow hides it. A mouse click on *Labels only* dims every unlabelled
+    vertex on the server (the painted ones keep their colour) and the canvas changes; a second click restores."""
+    app = annotator
+    iid = app.settings.active_id
+    page = new_page(SMALL)
+    _open(app, page)
+    assert app.cursor is None
+    _stroke(page, app, STROKE_A, painted=lambda: bool((app.store.labels == iid).any()))
+    wait_until(lambda: app.cursor is not None and app._cursor_handle is not None, 10, "the brush cursor drawn")
+    cur = app.cursor
+    assert cur.visible and app._cursor_handle.visible and cur.radius == pytest.approx(app.settings.radius)
+    painted = np.flatnonzero(app.store.labels == iid)
+    gap = np.min(np.linalg.norm(app.scene.points[painted] - cur.position, axis=1))
+    assert gap <= app.settings.radius, f"the cursor is {gap:.3f} m from the painted vertices"
+    r0 = cur.radius
+    page.keyboard.press("]")
+    wait_until(lambda: app.cursor.radius > r0, 10, "a larger ring (])")
+    seg = np.asarray(app._cursor_handle.points, np.float64)
+    ring = np.linalg.norm(seg[:, 0] - seg[:, 0].mean(axis=0), axis=1).mean()
+    assert ring == pytest.approx(app.settings.radius, rel=1e-3)
+    page.keyboard.press("x")
+    wait_until(lambda: app.settings.tool == "erase", 10, "the erase tool (X)")
+    assert app.cursor.visible
+    page.keyboard.press("g")
+    wait_until(lambda: app.settings.tool == "grow", 10, "the grow tool (G)")
+    wait_until(lambda: not app._cursor_handle.visible, 10, "the ring hidden for region grow")
+    page.keyboard.press("b")
+    wait_until(lambda: app.settings.tool == "brush" and app._cursor_handle.visible, 10, "the ring back (B)")
+
+    def drawn() -> np.ndarray:
+        out = np.zeros((app.n, 3), np.uint8)
+        for c, h in enumerate(app.chunk_handles):
+            out[app.chunks.members(c)] = np.asarray(h.colors)
+        return out
+
+    before_cols, before_img = drawn(), settle_canvas(page)
+    labels = app.store.labels.copy()
+    box = page.get_by_role("checkbox", name="Labels only")
+    box.click()
+    wait_until(lambda: app.settings.labels_only, 10, "the labels-only view on (click)")
+    wait_until(lambda: not np.array_equal(drawn()[labels == 0], before_cols[labels == 0]), 10, "dimmed vertices")
+    on = drawn()
+    rest = on[labels == 0]
+    assert (rest[:, 0] == rest[:, 1]).all() and (rest[:, 1] == rest[:, 2]).all() and rest.min() >= 180
+    assert np.array_equal(on[labels == iid], before_cols[labels == iid])
+    changed = int(changed_mask(settle_canvas(page), before_img, threshold=30).sum())
+    assert changed > 200, f"the canvas barely changed with the labels-only view ({changed} pixels)"
+    if SAVE:
+        page.mouse.move(5, 5)  # no tooltip over the panel
+        page.wait_for_timeout(800)
+        DOCS_IMG.mkdir(parents=True, exist_ok=True)
+        page.screenshot(path=str(DOCS_IMG / "annotator_labels_only.png"))
+    box.click()
+    wait_until(lambda: not app.settings.labels_only, 10, "the labels-only view off (click)")
+    wait_until(lambda: np.array_equal(drawn(), before_cols), 10, "the scan's colours back")
+    assert np.array_equal(app.store.labels, labels)

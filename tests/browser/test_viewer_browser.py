@@ -268,3 +268,72 @@ def test_real_scene_figures(viewer: Any, page: Any) -> None:
     viewer.set_threshold(0.0)
     viewer.set_color_mode("instances")
     viewer.set_proposal_layers(shapes=True, samples=True)
+
+
+# ---------------------------------------------------------------------------------------------- instance table
+def test_instance_table_cut_visibility_and_fly_to(viewer: Any, page: Any) -> None:
+    """The Results tab's instance table is in the page (one row per instance); with the mouse and keyboard only:
+    the confidence cut (slider keys) changes the threshold and the rows it hides, Next ▶ chooses the next row and
+    flies this browser's camera to it, *Visible* off hides that instance on the server, on shows it again, and
+    Fly to flies to the chosen row."""
+    from efem_viz.serve.camera import fly_to_view
+    from efem_viz.viewer.legend import instance_options
+    from efem_viz.viewer.state import DEFAULT_CONFIDENCE_CUT
+
+    _open(page, viewer)
+    viewer.set_threshold(DEFAULT_CONFIDENCE_CUT)
+    inst = viewer.state.result.instances
+    page.get_by_role("tab", name="Results").click()
+    table = page.locator("table", has_text="conf.")
+    table.wait_for(timeout=20_000)
+    wait_until(lambda: table.locator("tbody tr").count() == len(inst), 20, "one table row per instance")
+    assert table.locator("th", has_text="GT (IoU)").count() == 1  # the scene has ground truth
+
+    # ---- the confidence cut: End hides every instance, Home (0) shows them all again
+    slider = page.get_by_role("slider").first
+    slider.focus()
+    page.keyboard.press("End")
+    wait_until(lambda: viewer.state.threshold > float(np.max(inst.confidence)), 20, "the cut above every instance")
+    wait_until(lambda: table.locator("td", has_text="below cut").count() == len(inst), 20, "rows below the cut")
+    assert not viewer.shown_mask().any() and not any(h.visible for h in viewer.nodes.results.labels)
+    page.get_by_text(f"{len(inst)} hidden", exact=False).first.wait_for(timeout=20_000)
+    slider.focus()
+    page.keyboard.press("Home")
+    wait_until(lambda: viewer.state.threshold == 0.0, 20, "the cut at 0")
+    wait_until(lambda: viewer.shown_mask().all(), 20, "every instance shown")
+
+    # ---- Next ▶ chooses a row and flies this browser's camera to it
+    client = next(iter(viewer.server.get_clients().values()))
+    ids = [int(o.split(":", 1)[0]) for o in instance_options(inst)]
+    start = viewer.state.table_row
+    page.get_by_role("button", name="Next ▶").click()
+    nxt = ids[(ids.index(start) + 1) % len(ids)] if start in ids else ids[0]
+    wait_until(lambda: viewer.state.table_row == nxt, 20, "the next row chosen (Next ▶)")
+    k = int(np.flatnonzero(np.asarray(inst.ids) == nxt)[0])
+    pts = viewer.state.scene.points[np.asarray(inst.masks[k])]
+    lo, hi = viewer.state.scene.bounds
+    want = fly_to_view(pts.min(axis=0), pts.max(axis=0), home=viewer.camera_guard.view,
+                       scene_diagonal=float(np.linalg.norm(np.subtract(hi, lo))))
+    wait_until(lambda: np.allclose(client.camera.look_at, want.look_at, atol=1e-3), 20, "the camera at the instance")
+
+    # ---- Visible off / on, by a mouse click on the checkbox
+    visible = page.get_by_role("checkbox", name="Visible")
+    assert visible.is_checked()
+    visible.click()
+    wait_until(lambda: nxt in viewer.state.hidden, 20, "the instance hidden on the server")
+    assert not viewer.shown_mask()[k] and not viewer.nodes.results.labels[k].visible
+    assert not viewer.nodes.results.obbs[k].visible
+    wait_until(lambda: table.locator("td", has_text="hidden").count() == 1, 20, "its row says hidden")
+    visible.click()
+    wait_until(lambda: nxt not in viewer.state.hidden and viewer.shown_mask()[k], 20, "the instance shown again")
+
+    # ---- Fly to: back at the fitted view first, then the button brings the camera to the chosen row again
+    viewer.reset_view(client)
+    wait_until(lambda: np.allclose(client.camera.look_at, viewer.camera_guard.view.look_at, atol=1e-3), 20,
+               "the fitted view")
+    page.get_by_role("button", name="Fly to").click()
+    wait_until(lambda: np.allclose(client.camera.look_at, want.look_at, atol=1e-3), 20, "the camera flown to it")
+    if SAVE:
+        _settle(page)
+        _save(page, "viewer_instance_table.png")
+    viewer.set_threshold(DEFAULT_CONFIDENCE_CUT)
