@@ -272,9 +272,12 @@ def add_result_nodes(api: SceneApi, instances: Any, *, visible: bool, view: View
     out.label_texts = [instance_label(instances, k) for k in range(ids.shape[0])]
     out.label_priority = np.asarray(instances.confidence, np.float64).reshape(-1)
     out.label_view = label_view(instances, view)
-    out.label_positions = place_labels(out.label_anchors, out.label_texts, view=out.label_view,
-                                       priority=out.label_priority)
-    out.laid_out_for = np.full(ids.shape[0], bool(visible)).tobytes()  # hidden: laid out again when shown
+    if visible:
+        out.label_positions = place_labels(out.label_anchors, out.label_texts, view=out.label_view,
+                                           priority=out.label_priority)
+    else:  # laid out over the shown ones when they are shown (`SceneNodes.lay_out_labels`)
+        out.label_positions = out.label_anchors.copy()
+    out.laid_out_for = np.full(ids.shape[0], bool(visible)).tobytes()
     for k in range(ids.shape[0]):
         col = rgb_tuple(cols[k])
         verts = instances.mesh_vertices[k] if k < len(instances.mesh_vertices) else None
