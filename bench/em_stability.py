@@ -57,7 +57,7 @@ def render_single_view(mesh: Any, level: str, rng: np.random.Generator, *, name:
 
     from efem_viz._typeshims import o3d_tensor
     from efem_viz.data.rgbd import import_rgbd
-    from efem_viz.data.synth import look_at
+    from efem_viz.geometry.camera import look_at
     from efem_viz.prior.data import SensorModel
 
     m = mesh.copy()

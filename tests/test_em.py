@@ -3,6 +3,8 @@ progress), result views and exports, the CLI, and a regression on a seeded mug s
 
 from __future__ import annotations
 
+import dataclasses
+
 import threading
 from pathlib import Path
 
@@ -43,6 +45,44 @@ def sphere_run() -> tuple[object, object, EMResult, list[StepInfo]]:
 
 
 # ---------------------------------------------------------------------------------------------- sphere prior
+def test_free_space_check_scales_confidence_and_is_recorded(sphere_run: tuple, tmp_path: Path) -> None:
+    """With a capture camera in the provenance, `seen_through_margin` measures each review's seen-through
+    fraction (near 0 for spheres fitted where they are), records it in the trace (saved and loaded), and
+    multiplies the confidence by (1 − fraction); the run is otherwise the same draw for draw. Without a camera
+    nothing is measured."""
+    from efem_viz.em.results import EMResult
+    from efem_viz.em.solver import confidence
+    from efem_viz.geometry.camera import look_at
+
+    scene, prior, base, _ = sphere_run
+    T = look_at(np.array([0.0, -0.6, 0.45]), np.array([0.0, 0.0, 0.03]))
+    K = [[300.0, 0.0, 159.5], [0.0, 300.0, 119.5], [0.0, 0.0, 1.0]]
+    cam_scene = dataclasses.replace(scene, provenance={**scene.provenance, "K": K, "T_world_camera": T.tolist(),
+                                                       "image_size": [320, 240]})
+    cfg = preset("fast").replace(n_init=(64,), seen_through_margin=0.01)
+    res = run_em(cam_scene, prior, cfg, seed=5)
+    tr = res.trace
+    assert tr.rev_seen_through is not None and len(tr.rev_seen_through) == len(tr.rev_id)
+    assert np.isfinite(tr.rev_seen_through).all() and (tr.rev_seen_through >= 0).all()
+    assert len(res.instances) == len(base.instances)
+    assert np.array_equal(res.instances.ids, base.instances.ids)
+    for k, pid in enumerate(res.instances.ids):
+        rev = tr.reviews(int(pid))[-1]
+        assert rev.seen_through < 0.05
+        want = confidence(float(res.instances.stationary[k]), float(res.instances.coverage[k]),
+                          seen_through=rev.seen_through)
+        assert res.instances.confidence[k] == pytest.approx(want, rel=1e-5)
+        assert res.instances.confidence[k] <= base.instances.confidence[k] + 1e-6
+    path = res.save(tmp_path / "cam.efem.npz")
+    back = EMResult.load(path)
+    assert back.trace.rev_seen_through is not None
+    assert np.array_equal(back.trace.rev_seen_through, tr.rev_seen_through)
+    # no camera: not measured, same confidences as the method
+    plain = run_em(scene, prior, cfg, seed=5)
+    assert plain.trace.rev_seen_through is not None and np.isnan(plain.trace.rev_seen_through).all()
+    assert np.allclose(plain.instances.confidence, base.instances.confidence)
+
+
 def test_sphere_scene_each_object_found_once(sphere_run: tuple) -> None:
     scene, _, res, _ = sphere_run
     m = ious(res.instances, scene.instance)

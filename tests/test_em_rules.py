@@ -230,6 +230,14 @@ def test_review_rules_first_failure_wins() -> None:
     assert first_failed_review(rec, None) == ("scale-fail", 0.2)
     assert first_failed_review(rec._replace(scale_pass=True), None) == ("pose-fail", 30.0)
     assert first_failed_review(rec._replace(scale_pass=True, pose_pass=True), None) is None
+    # the free-space check: unmeasured (NaN) passes; above the config's limit fails with the fraction
+    from efem_viz.em import preset
+
+    cfg = preset("real").replace(seen_through_margin=0.01, max_seen_through=0.2)
+    ok = rec._replace(scale_pass=True, pose_pass=True)
+    assert first_failed_review(ok._replace(seen_through=0.2), cfg) is None
+    assert first_failed_review(ok._replace(seen_through=0.35), cfg) == ("seen-through", 0.35)
+    assert first_failed_review(ok._replace(seen_through=float("nan")), cfg) is None
 
 
 # ---------------------------------------------------------------------------------------------- schedule

@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING, Any, Literal, Sequence, cast
 
 import numpy as np
 
+from efem_viz.geometry.camera import Camera, look_at
 from efem_viz.geometry.transforms import rotation_to_quat_wxyz
 
 if TYPE_CHECKING:
@@ -371,30 +372,6 @@ def contact_report(
 
 
 # ====================================================================================== scanning
-@dataclass(frozen=True)
-class Camera:
-    """A pinhole depth camera (OpenCV convention: x right, y down, z forward)."""
-
-    K: np.ndarray
-    """(3, 3) intrinsics."""
-    T_world_camera: np.ndarray
-    """(4, 4) camera-to-world transform."""
-    width: int
-    height: int
-
-
-def look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """(4, 4) camera-to-world pose of an OpenCV camera at ``eye`` looking at ``target`` (+Z world up)."""
-    f = target - eye
-    f /= np.linalg.norm(f)
-    right = np.cross(f, [0.0, 0.0, 1.0])
-    right /= np.linalg.norm(right)
-    down = np.cross(f, right)
-    T = np.eye(4)
-    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = right, down, f, eye
-    return T
-
-
 def _make_cameras(
     rng: np.random.Generator, target: np.ndarray, *, n_cameras: int, image_size: tuple[int, int]
 ) -> list[Camera]:
@@ -553,14 +530,9 @@ def _fuse_tsdf(
     color = np.zeros((n, 3), np.float32)
     cweight = np.zeros(n, np.float32)
     for fr, cam in zip(frames, cams):
-        R, t = cam.T_world_camera[:3, :3], cam.T_world_camera[:3, 3]
-        pc = (centres - t) @ R  # world -> camera: R^T (x - t)
-        z = np.maximum(pc[:, 2], 1e-6)
-        u = np.round(cam.K[0, 0] * pc[:, 0] / z + cam.K[0, 2])
-        v = np.round(cam.K[1, 1] * pc[:, 1] / z + cam.K[1, 2])
-        ok = (pc[:, 2] > 1e-3) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+        u, v, z, ok = cam.project(centres)
         idx = np.nonzero(ok)[0]
-        ui, vi = u[idx].astype(np.int64), v[idx].astype(np.int64)
+        ui, vi = u[idx], v[idx]
         d = fr.depth[vi, ui].astype(np.float64)
         sdf = d - z[idx]
         use = (d > 0) & (sdf > -trunc)

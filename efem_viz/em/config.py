@@ -74,6 +74,14 @@ class EMConfig:
     trust_scale: float | None = None
     """Trust region on Θ_s: a proposal's scale may not fall below (1 − trust_scale) × the largest Θ_s it had
     in earlier steps of the episode (the shrink spiral of noisy scans); None = off (the method)."""
+    seen_through_margin: float | None = None
+    """Free-space check of single-view frames (scenes whose provenance records the capture camera, as
+    `import-rgbd` writes): a review measures the fraction of the completed shape's surface samples that lie more
+    than this many metres in front of the observed depth on their pixel, where the camera saw through them.
+    The confidence is multiplied by (1 − that fraction) and a review with more than `max_seen_through` fails
+    ("seen-through"). None = off (the method; scenes without a camera are never checked)."""
+    max_seen_through: float = 0.2
+    """Largest seen-through fraction a completed shape may have (with `seen_through_margin`)."""
     m_step_replace: bool = True
     """M-step draws with replacement (the method). False: without replacement while a proposal has at least
     n_pcl weighted points (a smaller support is drawn whole, then topped up with replacement)."""
@@ -190,6 +198,10 @@ class EMConfig:
             raise ValueError(f"min_size_on must be 'inliers' or 'band', got {self.min_size_on!r}")
         if self.min_size_spacing is not None and not (0.0 < self.min_size_spacing < 1.0):
             raise ValueError(f"min_size_spacing must be in (0, 1) m or None, got {self.min_size_spacing}")
+        if self.seen_through_margin is not None and not (0.0 <= self.seen_through_margin < 1.0):
+            raise ValueError(f"seen_through_margin must be in [0, 1) m or None, got {self.seen_through_margin}")
+        if not (0.0 <= self.max_seen_through <= 1.0):
+            raise ValueError(f"max_seen_through must be in [0, 1], got {self.max_seen_through}")
         if self.trust_scale is not None and not (0.0 <= self.trust_scale < 1.0):
             raise ValueError(f"trust_scale must be in [0, 1) or None, got {self.trust_scale}")
         if self.n_pcl is not None and self.n_pcl < 1:

@@ -239,6 +239,8 @@ class TraceReplay:
                 scale_pass=float(tr.rev_scale_pass[v]),
                 pose_pass=float(tr.rev_pose_pass[v]),
             )
+            if tr.rev_seen_through is not None and np.isfinite(tr.rev_seen_through[v]):
+                scores["seen_through"] = float(tr.rev_seen_through[v])
         sch = tr.schedule[shown]
         lat = tr.latent(proposal_id, shown)
         mesh_obj = None

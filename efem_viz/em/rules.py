@@ -15,6 +15,8 @@ before the table existed decode with `LEGACY_REASONS`.
 
 from __future__ import annotations
 
+import math
+
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -34,6 +36,7 @@ REASON_DUPLICATE = "duplicated"
 REASON_INCLUDED = "included"
 REASON_SCALE = "scale-fail"
 REASON_POSE = "pose-fail"
+REASON_SEEN_THROUGH = "seen-through"
 REASON_SURVIVE = "survive"
 LEGACY_REASONS: tuple[str, ...] = ("proposal too small", "duplicated or included", "scale-fail", "pose-fail",
                                    "survive")
@@ -338,6 +341,8 @@ class ReviewRecord(NamedTuple):
     """Codebook ids of the retrieved neighbours."""
     prior: int = 0
     """Index of the proposal's prior in the solve."""
+    seen_through: float = float("nan")
+    """Fraction of the completed shape's surface the capture camera saw through (NaN: not checked)."""
 
 
 @dataclass(frozen=True)
@@ -356,11 +361,19 @@ def _pose_check(rec: ReviewRecord, cfg: Any) -> tuple[bool, float]:
     return bool(rec.pose_pass), float(rec.up_angle)
 
 
+def _seen_through_check(rec: ReviewRecord, cfg: Any) -> tuple[bool, float]:
+    st = float(rec.seen_through)
+    limit = getattr(cfg, "max_seen_through", 1.0) if cfg is not None else 1.0
+    return bool(not math.isfinite(st) or st <= limit), st
+
+
 REVIEW_RULES: tuple[ReviewRule, ...] = (
     ReviewRule(REASON_SCALE, _scale_check),
     ReviewRule(REASON_POSE, _pose_check),
+    ReviewRule(REASON_SEEN_THROUGH, _seen_through_check),
 )
-"""The method's review checks (§3.9): the completed shape's size, then its up axis."""
+"""The review checks: the method's (§3.9: the completed shape's size, then its up axis), then the free-space
+check of single-view frames (`EMConfig.seen_through_margin`; passes when it was not measured)."""
 
 
 def first_failed_review(rec: ReviewRecord, cfg: Any, rules: Sequence[ReviewRule] = REVIEW_RULES

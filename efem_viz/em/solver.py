@@ -14,6 +14,7 @@ draws (on the CPU), so a run is reproducible on any device; the network itself i
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from dataclasses import dataclass
@@ -53,6 +54,7 @@ if TYPE_CHECKING:
 
     from efem_viz.data.scene import Scene
     from efem_viz.em.results import EMResult
+    from efem_viz.geometry.camera import Camera, DepthView
     from efem_viz.prior.config import ShapePriorLike
 
 logger = logging.getLogger(__name__)
@@ -85,11 +87,14 @@ class StepInfo:
     """Episode of this step."""
 
 
-def confidence(stationary: float, coverage: float, *, cap: float = 0.4) -> float:
-    """Final confidence of an accepted proposal: s_stat · min(coverage, cap) / cap (efem-method.md §3.10)."""
+def confidence(stationary: float, coverage: float, *, cap: float = 0.4, seen_through: float = float("nan")) -> float:
+    """Final confidence of an accepted proposal: s_stat · min(coverage, cap) / cap (efem-method.md §3.10), times
+    (1 − seen-through fraction) when the free-space check measured one (`EMConfig.seen_through_margin`)."""
     if not cap > 0:
         raise ValueError(f"coverage cap must be > 0, got {cap}")
-    return float(stationary) * min(float(coverage), cap) / cap
+    conf = float(stationary) * min(float(coverage), cap) / cap
+    st = float(seen_through)
+    return conf * (1.0 - min(max(st, 0.0), 1.0)) if math.isfinite(st) else conf
 
 
 def working_set(points: np.ndarray, voxel: float | None) -> np.ndarray:
@@ -252,9 +257,14 @@ def run_em(
         if hasattr(pr, "eval"):
             pr.eval()
     try:
+        camera = None
+        if run_cfg.seen_through_margin is not None:
+            from efem_viz.geometry.camera import Camera
+
+            camera = Camera.from_provenance(getattr(scene, "provenance", None))
         solver = _Solver(scene.name, points, normals, PriorTable.of(plist), run_cfg, cfgs, seed=seed,
                          on_step=on_step, cancel=cancel, anchor_candidates=anchor_candidates,
-                         step_rules=step_rules, review_rules=review_rules)
+                         step_rules=step_rules, review_rules=review_rules, camera=camera)
         inst_rows = solver.run()
     finally:
         for pr, was in zip(plist, was_training):
@@ -306,6 +316,7 @@ class _Solver:
         anchor_candidates: np.ndarray | None = None,
         step_rules: Sequence[StepRule] = STEP_RULES,
         review_rules: Sequence[ReviewRule] = REVIEW_RULES,
+        camera: Camera | None = None,
     ) -> None:
         self.name = name
         self.full_points = points
@@ -343,6 +354,11 @@ class _Solver:
         self.n_queries = 0
         self.n_encoded = 0
         self.stats: dict[str, float] = {"normal_queries": 0.0}
+        self.depth_view: DepthView | None = None
+        if camera is not None and cfg.seen_through_margin is not None:
+            from efem_viz.geometry.camera import DepthView
+
+            self.depth_view = DepthView.of_points(camera, points)
         self.planned_steps = cfg.num_episodes * cfg.steps_per_episode
         self.ref_scales = [float(cb.mean_scale) if (cb := getattr(p, "codebook", None)) is not None else 1.0
                            for p in table.priors]
@@ -425,7 +441,7 @@ class _Solver:
                 assert pool.stationary is not None and pool.latent is not None
                 rev = last_review[int(pid)]
                 s_stat = float(pool.stationary[r])
-                conf = confidence(s_stat, float(rev.coverage), cap=cfg.cov_cap)
+                conf = confidence(s_stat, float(rev.coverage), cap=cfg.cov_cap, seen_through=rev.seen_through)
                 self.rec.death(int(pid), final_step, REASON_SURVIVE, -1, conf)
                 accepted.append({**rev._asdict(), "confidence": conf, "stationary": s_stat,
                                  "center": pool.latent["center"][r], "scale": float(pool.latent["scale"][r]),
@@ -551,6 +567,9 @@ class _Solver:
             ball = full_rag.idx[sl]
             cov = self._coverage(ball, Q, center, fnorm, s_sel / scale)
             radii, scale_pass, up_angle, pose_pass = _size_and_up(Q, R, R_raw, cfg_k)
+            st = float("nan")
+            if self.depth_view is not None and cfg.seen_through_margin is not None and np.any(Q):
+                st = self.depth_view.seen_through(Q + center, cfg.seen_through_margin)[0]
             m_ok = np.abs(d_full[sl]) < cfg_k.out_tau
             if cfg.gamma_out < 180.0:
                 m_ok &= g_full[sl] < cfg.gamma_out
@@ -561,6 +580,7 @@ class _Solver:
                 mask=ball[m_ok].astype(np.int32),
                 mesh_vertices=(np.asarray(mesh.vertices) - center).astype(np.float32),
                 mesh_faces=np.asarray(mesh.faces, np.int32), neighbours=np.asarray(nbrs, np.int32), prior=k,
+                seen_through=st,
             )
             self.rec.review(rec)
             records[pid] = rec

@@ -236,6 +236,9 @@ class EMTrace:
     """(P,) int8 index into `prior_names` of each proposal's prior (None = a single-prior run)."""
     prior_names: tuple[str, ...] = ()
     """Category names of the priors of the solve, in order (empty for traces older than multi-prior runs)."""
+    rev_seen_through: np.ndarray | None = None
+    """(V,) float32 seen-through fraction of each review's shape (NaN: not checked); None in traces of runs
+    without the free-space check (`EMConfig.seen_through_margin`) and in older traces."""
 
     # ------------------------------------------------------------------ basic queries
     @property
@@ -348,6 +351,8 @@ class EMTrace:
             mesh_faces=_ragged_get(self.rev_mesh_faces, self.rev_mesh_face_offsets, v),
             neighbours=_ragged_get(self.rev_neighbours, self.rev_neighbour_offsets, v),
             prior=self.prior_index(pid),
+            seen_through=(float(self.rev_seen_through[v]) if self.rev_seen_through is not None
+                          else float("nan")),
         )
 
     def check_step(self, step: int) -> None:
@@ -420,6 +425,8 @@ class EMTrace:
         out[prefix + "prior_names_json"] = np.array(json.dumps(list(self.prior_names)))
         if self.prop_prior is not None:
             out[prefix + "prop_prior"] = np.asarray(self.prop_prior, np.int8)
+        if self.rev_seen_through is not None:
+            out[prefix + "rev_seen_through"] = np.asarray(self.rev_seen_through, np.float32)
         return out
 
     @classmethod
@@ -463,6 +470,12 @@ class EMTrace:
                     or (n_prop and (int(prop_prior.min()) < 0 or int(prop_prior.max()) >= len(prior_names)))):
                 raise ValueError(f"trace prop_prior {prop_prior.dtype} {prop_prior.shape} does not index its "
                                  f"{len(prior_names)} priors for {n_prop} proposals")
+        seen = None
+        if prefix + "rev_seen_through" in keys:
+            seen = np.asarray(data[prefix + "rev_seen_through"])
+            if seen.shape != arrays["rev_id"].shape or seen.dtype.kind != "f":
+                raise ValueError(f"trace rev_seen_through {seen.dtype} {seen.shape} does not match its "
+                                 f"{len(arrays['rev_id'])} reviews")
         return cls(
             config=EMConfig.from_json(str(np.asarray(data[prefix + "config_json"]))),
             num_points=int(np.asarray(data[prefix + "num_points"])),
@@ -473,6 +486,7 @@ class EMTrace:
             reason_names=reasons,
             prop_prior=prop_prior,
             prior_names=prior_names,
+            rev_seen_through=seen,
             **arrays,
         )
 
@@ -691,4 +705,6 @@ class TraceRecorder:
             reason_names=self.reasons,
             prop_prior=np.array(self.owner, np.int8) if len(self.prior_names) > 1 else None,
             prior_names=self.prior_names,
+            rev_seen_through=(rv("seen_through", (), np.float32) if self.config.seen_through_margin is not None
+                              else None),
         )

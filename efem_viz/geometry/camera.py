@@ -1,0 +1,120 @@
+"""Pinhole depth cameras: projection, a depth image of a point cloud, and free-space ("seen-through") tests.
+
+One home for the camera model (OpenCV convention: x right, y down, z forward; ``T_world_camera`` maps camera
+coordinates to the world). The scene generator scans with it, and real frames carry one in their provenance
+(`data.rgbd.import_rgbd` writes ``K``, ``image_size`` and ``T_world_camera``).
+
+A single-view depth frame says more than where surfaces are: along every pixel's ray, the space in front of
+the measured depth is empty. A completed shape that puts surface where the camera saw through to something
+behind it (a mug's handle or body over the table, a bowl's far rim in front of the wall) contradicts the frame;
+`DepthView.seen_through` measures the fraction of a shape's surface samples that do.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A pinhole depth camera (OpenCV convention: x right, y down, z forward)."""
+
+    K: np.ndarray
+    """(3, 3) intrinsics."""
+    T_world_camera: np.ndarray
+    """(4, 4) camera-to-world transform."""
+    width: int
+    height: int
+
+    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """World points → pixel column ``u``, row ``v`` (rounded, int64), depth ``z`` (m) and ``ok`` (in front
+        of the camera, z > 1 mm, and inside the image)."""
+        R, t = self.T_world_camera[:3, :3], self.T_world_camera[:3, 3]
+        pc = (np.asarray(points, np.float64) - t) @ R  # world -> camera: R^T (x - t)
+        z = pc[:, 2]
+        zs = np.maximum(z, 1e-6)
+        u = np.round(self.K[0, 0] * pc[:, 0] / zs + self.K[0, 2])
+        v = np.round(self.K[1, 1] * pc[:, 1] / zs + self.K[1, 2])
+        ok = (z > 1e-3) & (u >= 0) & (u < self.width) & (v >= 0) & (v < self.height)
+        u = np.where(ok, u, 0).astype(np.int64)
+        v = np.where(ok, v, 0).astype(np.int64)
+        return u, v, z, ok
+
+    @classmethod
+    def from_provenance(cls, prov: Mapping[str, Any] | None) -> "Camera | None":
+        """The capture camera recorded by `data.rgbd.import_rgbd` (``K``, ``image_size``, ``T_world_camera``),
+        or None when the scene has none (fused or synthetic scans) or the record is malformed."""
+        if not prov:
+            return None
+        try:
+            K = np.asarray(prov["K"], np.float64)
+            T = np.asarray(prov["T_world_camera"], np.float64)
+            w, h = (int(x) for x in prov["image_size"])
+        except (KeyError, TypeError, ValueError):
+            return None
+        if (K.shape != (3, 3) or T.shape != (4, 4) or not np.isfinite(K).all() or not np.isfinite(T).all()
+                or K[0, 0] <= 0 or K[1, 1] <= 0 or not (0 < w <= 16384 and 0 < h <= 16384)):
+            return None
+        R = T[:3, :3]
+        if not np.allclose(R.T @ R, np.eye(3), atol=1e-3):
+            return None
+        return cls(K=K, T_world_camera=T, width=w, height=h)
+
+
+def look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """(4, 4) camera-to-world pose of an OpenCV camera at ``eye`` looking at ``target`` (+Z world up)."""
+    f = target - eye
+    f /= np.linalg.norm(f)
+    right = np.cross(f, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    down = np.cross(f, right)
+    T = np.eye(4)
+    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = right, down, f, eye
+    return T
+
+
+@dataclass(frozen=True)
+class DepthView:
+    """The depth image a camera saw, rebuilt from the scene's points (the nearest point per pixel).
+
+    Scene points are voxel-thinned, so each is splatted over a ``splat × splat`` pixel footprint (a minimum
+    filter): holes between voxels close, and at silhouettes the nearer surface wins, which errs toward "not
+    seen through". Pixels no point reaches (outside the cropped scene, sensor holes) are unknown (``inf``).
+    """
+
+    camera: Camera
+    depth: np.ndarray
+    """(height, width) float64 metres; inf where nothing was observed."""
+
+    @classmethod
+    def of_points(cls, camera: Camera, points: np.ndarray, *, splat: int = 5) -> "DepthView":
+        from scipy.ndimage import minimum_filter
+
+        u, v, z, ok = camera.project(points)
+        depth = np.full((camera.height, camera.width), np.inf)
+        np.minimum.at(depth, (v[ok], u[ok]), z[ok])
+        if splat > 1:
+            depth = minimum_filter(depth, size=int(splat), mode="nearest")
+        return cls(camera=camera, depth=depth)
+
+    def seen_through(self, points: np.ndarray, margin: float) -> tuple[float, float]:
+        """(fraction of the known ``points`` that lie more than ``margin`` metres in front of the observed
+        surface on their pixel — where the camera saw through them —, fraction of ``points`` that are known).
+
+        A point is known when it projects into the image onto an observed pixel. Points behind the observed
+        surface (occluded) or on it agree with the frame. (0, 0) when no point is known.
+        """
+        if not len(points):
+            return 0.0, 0.0
+        u, v, z, ok = self.camera.project(points)
+        d = np.full(len(z), np.inf)
+        d[ok] = self.depth[v[ok], u[ok]]
+        known = np.isfinite(d)
+        n_known = int(known.sum())
+        if n_known == 0:
+            return 0.0, 0.0
+        through = known & (d > z + margin)
+        return float(through.sum()) / n_known, n_known / len(z)

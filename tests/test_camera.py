@@ -1,0 +1,69 @@
+"""Pinhole camera model (geometry/camera.py): projection round trip, provenance parsing, depth view, seen-through."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from efem_viz.data.rgbd import backproject
+from efem_viz.geometry.camera import Camera, DepthView, look_at
+
+K = np.array([[500.0, 0.0, 159.5], [0.0, 500.0, 119.5], [0.0, 0.0, 1.0]])
+
+
+def _camera() -> Camera:
+    return Camera(K=K, T_world_camera=look_at(np.array([0.0, -1.0, 0.6]), np.array([0.0, 0.0, 0.0])),
+                  width=320, height=240)
+
+
+def test_project_inverts_backproject() -> None:
+    cam = _camera()
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(0.5, 2.0, (240, 320))
+    pts_cam, idx = backproject(depth, K)
+    T = cam.T_world_camera
+    world = pts_cam @ T[:3, :3].T + T[:3, 3]
+    u, v, z, ok = cam.project(world)
+    assert ok.all()
+    assert np.array_equal(v * 320 + u, idx)
+    assert np.allclose(z, depth.reshape(-1)[idx])
+    # behind the camera or outside the image: not ok
+    behind = T[:3, 3] - 0.5 * T[:3, 2]
+    far_side = world[:1] + 10.0 * T[:3, 0]
+    assert not cam.project(np.stack([behind, far_side[0]]))[3].any()
+
+
+def test_from_provenance_accepts_an_import_and_refuses_malformed_records() -> None:
+    cam = _camera()
+    prov = {"K": K.tolist(), "T_world_camera": cam.T_world_camera.tolist(), "image_size": [320, 240]}
+    got = Camera.from_provenance(prov)
+    assert got is not None and got.width == 320 and got.height == 240 and np.allclose(got.K, K)
+    assert Camera.from_provenance(None) is None and Camera.from_provenance({}) is None
+    bad = [{**prov, "K": [[1, 2], [3, 4]]}, {**prov, "K": np.full((3, 3), np.nan).tolist()},
+           {**prov, "image_size": [0, 240]}, {**prov, "image_size": "big"},
+           {**prov, "T_world_camera": (2 * np.eye(4)).tolist()}, {**prov, "T_world_camera": None}]
+    for p in bad:
+        assert Camera.from_provenance(p) is None, p
+
+
+def test_seen_through_is_space_in_front_of_the_observed_surface() -> None:
+    """A wall 1 m in front of a camera: shape samples in front of it are seen through, samples on it or behind it
+    are not, samples outside the image or on unobserved pixels are unknown."""
+    cam = Camera(K=K, T_world_camera=np.eye(4), width=320, height=240)
+    g = np.linspace(-0.25, 0.25, 120)
+    xx, yy = np.meshgrid(g, g)
+    wall = np.stack([xx.ravel(), yy.ravel(), np.ones(xx.size)], 1)  # covers |x|,|y| <= 0.25 at z = 1
+    view = DepthView.of_points(cam, wall)
+    assert np.isfinite(view.depth[120, 160]) and view.depth[120, 160] == pytest.approx(1.0)
+    assert np.isinf(view.depth[5, 5])  # beyond the wall's footprint: unobserved
+    inside = np.array([[0.0, 0.0, 0.5], [0.05, 0.0, 0.6], [0.0, 0.05, 0.7], [0.0, 0.0, 0.995],
+                       [0.0, 0.0, 1.0], [0.02, 0.0, 1.3]])
+    frac, known = view.seen_through(inside, 0.01)
+    assert known == 1.0 and frac == pytest.approx(3 / 6)
+    # a looser margin forgives the near-surface sample only
+    assert view.seen_through(inside, 0.35)[0] == pytest.approx(2 / 6)
+    unknown = np.array([[0.0, 0.0, -0.5], [5.0, 0.0, 1.0], [0.6, 0.45, 1.0]])
+    frac, known = view.seen_through(np.vstack([inside[:1], unknown]), 0.01)
+    assert frac == 1.0 and known == pytest.approx(1 / 4)
+    assert view.seen_through(unknown, 0.01) == (0.0, 0.0)
+    assert view.seen_through(np.zeros((0, 3)), 0.01) == (0.0, 0.0)
