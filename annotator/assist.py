@@ -15,14 +15,15 @@ from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 from efem_viz.prior.config import DEFAULT_PRIOR
+from efem_viz.prior.registry import PriorSet
 
 if TYPE_CHECKING:
     from efem_viz.prior.config import ShapePriorLike
 
 log = logging.getLogger(__name__)
 
-_PRIORS: dict[str, ShapePriorLike] = {}
-_PRIOR_LOCK = threading.Lock()
+_PRIORS = PriorSet()
+"""The shipped priors click-to-segment used so far, each loaded once (`efem_viz.prior.registry.PriorSet`)."""
 
 
 def available_priors() -> list[str]:
@@ -37,7 +38,7 @@ def available_priors() -> list[str]:
 
 
 def get_prior(name: str) -> ShapePriorLike:
-    """Load (once) and return a shipped shape prior by *name* (`efem_viz.prior.load_prior`).
+    """Load (once) and return a shipped shape prior by *name* (`PriorSet.get`).
 
     Only names of files in `efem_viz/weights/` are accepted, never paths: a prior file is a pickle, and GUI
     input must not make the server unpickle an arbitrary file.
@@ -47,17 +48,10 @@ def get_prior(name: str) -> ShapePriorLike:
     """
     if not re.fullmatch(r"[A-Za-z0-9_\-]+", name or "") or name not in available_priors():
         raise ValueError(f"unknown shape prior {name!r}; available: {available_priors()}")
-    with _PRIOR_LOCK:
-        if name not in _PRIORS:
-            try:
-                from efem_viz.prior import load_prior  # type: ignore[attr-defined]
-            except ImportError:
-                from efem_viz.prior.model import load_prior
-            try:
-                _PRIORS[name] = load_prior(name)
-            except FileNotFoundError as exc:
-                raise ValueError(f"shape prior {name!r} is not available: {exc}") from exc
-        return _PRIORS[name]
+    try:
+        return _PRIORS.get(name)
+    except FileNotFoundError as exc:
+        raise ValueError(f"shape prior {name!r} is not available: {exc}") from exc
 
 
 def segment_at_point(

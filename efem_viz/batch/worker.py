@@ -68,17 +68,20 @@ class SceneWorker:
 
         if job.threads:  # torch intra-op threads of this worker (the job's, after the backend's defaults)
             torch.set_num_threads(int(job.threads))
-        from efem_viz.prior.registry import ANALYTIC_PRIORS, load_priors
+        from efem_viz.prior.registry import ANALYTIC_PRIORS, PriorSet
 
         self.job = job
         self.worker = worker
         self.cfg = job.config()
         self.fingerprint = job.fingerprint()
         t1 = time.perf_counter()
-        self.priors: list[ShapePriorLike] = load_priors(list(job.priors), device=job.device)
+        self.prior_set = PriorSet.from_specs(list(job.priors), device=job.device)
+        """The job's priors, loaded once (`efem_viz.prior.registry.PriorSet`)."""
+        self.priors: list[ShapePriorLike] = self.prior_set.run_priors() or [self.prior_set.primary()]
+        """The job's priors in the job's order (what `run_em(priors=...)` takes)."""
         self.prior_load_s = time.perf_counter() - t1
         for spec, prior in zip(job.priors, self.priors):
-            if getattr(prior, "codebook", None) is None and spec not in ANALYTIC_PRIORS:
+            if prior.codebook is None and spec not in ANALYTIC_PRIORS:
                 logger.warning("prior %r has no codebook: poses fall back to identity", spec)
         self.info = WorkerInfo(
             worker=worker, host=socket.gethostname(), pid=os.getpid(), threads=int(torch.get_num_threads()),

@@ -15,7 +15,7 @@ if TYPE_CHECKING:
     from efem_viz.prior.model import Latent as Latent, ShapePrior as ShapePrior
     from efem_viz.prior.convert import convert_released_checkpoint as convert_released_checkpoint
     from efem_viz.prior.model import load_prior as load_prior, save_prior as save_prior
-    from efem_viz.prior.registry import load_priors as load_priors
+    from efem_viz.prior.registry import PriorSet as PriorSet, load_priors as load_priors
 
 _LAZY = {
     "Latent": "efem_viz.prior.model",
@@ -23,13 +23,14 @@ _LAZY = {
     "CategorySettings": "efem_viz.prior.config",
     "ShapePriorLike": "efem_viz.prior.config",
     "load_priors": "efem_viz.prior.registry",
+    "PriorSet": "efem_viz.prior.registry",
     "ShapePrior": "efem_viz.prior.model",
     "load_prior": "efem_viz.prior.model",
     "save_prior": "efem_viz.prior.model",
     "convert_released_checkpoint": "efem_viz.prior.convert",
 }
 
-__all__ = ["CategorySettings", "Latent", "PriorConfig", "ShapePriorLike", "load_priors", "ShapePrior", "convert_released_checkpoint", "load_prior", "save_prior"]
+__all__ = ["CategorySettings", "Latent", "PriorConfig", "ShapePriorLike", "PriorSet", "load_priors", "ShapePrior", "convert_released_checkpoint", "load_prior", "save_prior"]
 
 
 def __getattr__(name: str) -> Any:

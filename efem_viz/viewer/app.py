@@ -69,6 +69,7 @@ from efem_viz.viewer.texts import (
     step_markdown,
 )
 from efem_viz.prior.config import DEFAULT_PRIOR
+from efem_viz.prior.registry import PriorSet
 
 if TYPE_CHECKING:
     from efem_viz.prior.config import ShapePriorLike
@@ -101,7 +102,9 @@ class ViewerApp:
         host: interface to bind (default loopback only).
         port: port (0 = a free random port; a busy port is replaced by the next free one, see `url`).
         prior: a `ShapePrior`, or None to load `prior_name` lazily when first needed (decoding, runs).
-        prior_name: name for `efem_viz.prior.load_prior`.
+        prior_name: the prior's spec (`efem_viz.prior.registry.PriorSet`: a name under efem_viz/weights/, "sphere"
+            or a .pt path).
+        run_priors: specs of more priors for runs started here (a joint solve over the prior and these).
         open_first: open the first scene at start (and its saved trace when present).
         out_dir: the output root: every export from the GUI goes into this folder or below it (a folder typed
             into the GUI must resolve inside it); the static demo defaults to `<out_dir>/static/<scene>/`.
@@ -142,14 +145,9 @@ class ViewerApp:
         self._roots = [Path(p).expanduser().resolve() for p in [*scene_paths, *results]]
         self.out_root = Path(out_dir if out_dir is not None else default_output_dir("view")).expanduser().resolve()
         """Exports from the GUI stay inside this folder (fixed at start)."""
-        self._prior: ShapePriorLike | None = prior
-        self._prior_name = prior_name
-        self._extra_run_priors = tuple(str(n) for n in run_priors)
-        """More priors for runs started here: a joint solve over the prior and these (their names or .pt paths)."""
-        self._prior_error: str | None = None
-        self._known_priors: dict[str, ShapePriorLike] = {}
-        """Priors by category name (decoding multi-prior runs)."""
-        self._loaded_run_priors: list[ShapePriorLike] | None = None
+        self.priors = PriorSet(prior_name, prior=prior, extra=run_priors)
+        """This viewer's priors (`efem_viz.prior.registry.PriorSet`): the prior, the extra run priors (a joint solve
+        over the prior and these) and the priors that saved multi-prior runs name, each loaded once."""
         self._lock = threading.RLock()
         self._quiet = False
         self._worker = ThreadPoolExecutor(1, thread_name_prefix="efem-viewer-work")
@@ -372,78 +370,7 @@ class ViewerApp:
     # ================================================================== prior
     def prior(self) -> ShapePriorLike:
         """The shape prior (loaded on first use). Raises RuntimeError with the reason when unavailable."""
-        if self._prior is None:
-            if self._prior_error is not None:
-                raise RuntimeError(self._prior_error)
-            try:
-                from efem_viz.prior import load_prior
-
-                self._prior = load_prior(self._prior_name)
-            except Exception as exc:  # noqa: BLE001
-                self._prior_error = f"shape prior {self._prior_name!r} unavailable: {exc}"
-                raise RuntimeError(self._prior_error) from exc
-        return self._prior
-
-    def _prior_for(self, trace: Any, pid: int | None = None) -> ShapePriorLike:
-        """The prior of a trace's proposal `pid` (one-prior runs: the viewer's prior, checked against the latent
-        size recorded in the trace; multi-prior runs: the prior of the proposal's category, loaded by name).
-
-        Raises:
-            RuntimeError: no prior, one whose latent size differs from the trace's (another prior's run), or a
-                multi-prior run asked without `pid`.
-        """
-        names = tuple(getattr(trace, "prior_names", ()) or ())
-        if len(names) > 1:
-            if pid is None:
-                raise RuntimeError(f"this run used several priors {list(names)}: shapes are decoded per proposal")
-            return self._priors_named(names)[trace.prior_index(int(pid))]
-        prior = self.prior()
-        c_trace = int(np.asarray(trace.row_R).shape[1]) if len(trace.row_R) else None
-        cfg = getattr(prior, "config", None)
-        c_prior = getattr(cfg, "latent_dim", None)
-        if c_trace is not None and c_prior is not None and int(c_prior) != c_trace:
-            raise RuntimeError(
-                f"this trace was recorded with a prior of latent size {c_trace}, but the viewer's prior "
-                f"{getattr(prior, 'name', self._prior_name)!r} has latent size {c_prior}; start the viewer with the "
-                "prior used for the run (--prior)"
-            )
-        return prior
-
-    def _joint_priors(self, prior: ShapePriorLike) -> list[ShapePriorLike] | None:
-        """The priors of a run started here: None for the one prior, else [prior, *the extra run priors] (loaded
-        once; they are then also the priors that decode the proposals of their categories)."""
-        if not self._extra_run_priors:
-            return None
-        from efem_viz.prior.config import prior_category
-        from efem_viz.prior.registry import load_priors
-
-        if self._loaded_run_priors is None:
-            self._loaded_run_priors = load_priors(list(self._extra_run_priors))
-            for p in self._loaded_run_priors:
-                self._known_priors.setdefault(prior_category(p).name, p)
-        return [prior, *self._loaded_run_priors]
-
-    def _run_prior_arg(self, trace: Any) -> ShapePriorLike | list[ShapePriorLike]:
-        """The prior, or the list of priors of a multi-prior run (what `instance_distances` takes)."""
-        names = tuple(getattr(trace, "prior_names", ()) or ())
-        return self._priors_named(names) if len(names) > 1 else self._prior_for(trace)
-
-    def _priors_named(self, names: tuple[str, ...]) -> list[ShapePriorLike]:
-        """The priors of a multi-prior run by category name: the viewer's own prior and its run priors where the
-        name matches, the others loaded by name once. Raises RuntimeError when one is unavailable."""
-        from efem_viz.prior.config import prior_category
-        from efem_viz.prior.registry import load_priors
-
-        if self._prior is not None:
-            self._known_priors.setdefault(prior_category(self._prior).name, self._prior)
-        missing = [n for n in names if n not in self._known_priors]
-        if missing:
-            try:
-                for n, p in zip(missing, load_priors(missing)):
-                    self._known_priors[n] = p
-            except (OSError, ValueError) as exc:
-                raise RuntimeError(f"the priors of this run {list(names)} are unavailable: {exc}") from exc
-        return [self._known_priors[n] for n in names]
+        return self.priors.primary()
 
     # ================================================================== 1. scenes
     def open_scene(self, name: str) -> bool:
@@ -597,7 +524,7 @@ class ViewerApp:
                 cfg = cfg.with_proposals(int(proposals))
             self._set_status(f"Running EFEM ({preset}, {cfg.n_init[0]} proposals, seed {seed}) …")
             prior = self.prior()
-            priors = self._joint_priors(prior)
+            priors = self.priors.run_priors()
 
             def on_step(info: Any) -> None:
                 frac = 100.0 * (int(info.step) + 1) / max(int(info.num_steps), 1)
@@ -799,7 +726,7 @@ class ViewerApp:
                     continue  # the user moved on (decoded again when asked) or it is already there
                 trace = self.state.result.trace
             try:
-                prior, latent = prior_latent(trace, pid, t, self._run_prior_arg(trace))
+                prior, latent = prior_latent(trace, pid, t, self.priors.for_run(trace))
             except RuntimeError as exc:
                 self._no_shapes_generation = generation  # say it once, do not retry on every step
                 self._set_status(f"Decoded shapes unavailable: {exc}", error=True)
@@ -923,7 +850,7 @@ class ViewerApp:
 
     def _inspect_job(self, pid: int, t: int, generation: int) -> None:
         try:
-            prior = self._prior_for(self.state.result.trace, pid)
+            prior = self.priors.for_trace(self.state.result.trace, pid)
         except RuntimeError as exc:
             prior = None  # the first step of an episode still has weights (the crop); later steps need the prior
             logger.info("inspecting without a prior: %s", exc)
@@ -1010,7 +937,7 @@ class ViewerApp:
 
                     self._set_status("Decoding the instances' final shapes for the mask band …")
                     self._mask_dist = (self._generation,
-                                       instance_distances(s.result, s.scene, self._run_prior_arg(s.result.trace)))
+                                       instance_distances(s.result, s.scene, self.priors.for_run(s.result.trace)))
                 dist = self._mask_dist[1]
                 masks = dist.masks(tau, s.result.config.gamma_out)
             except (RuntimeError, ValueError) as exc:
@@ -1288,7 +1215,7 @@ class ViewerApp:
             return None
         target = Path(out_dir) if out_dir is not None else self.out_root / "static" / safe_name(s.scene.name)
         try:
-            prior = self._run_prior_arg(s.result.trace)
+            prior = self.priors.for_run(s.result.trace)
         except RuntimeError as exc:
             prior = None
             logger.info("static demo without decoded shapes: %s", exc)

@@ -241,12 +241,11 @@ def main(argv: list[str] | None = None) -> int:
     scene = load_scene(args.scene)
     result = EMResult.load(st.trace_path_for(args.scene))
     result.bind(scene)
-    prior: Any = None
+    prior: ShapePriorLike | list[ShapePriorLike] | None = None
     if args.prior:
-        from efem_viz.prior import load_priors
+        from efem_viz.prior.registry import PriorSet
 
-        names = list(result.trace.prior_names) or [args.prior]  # a multi-prior run names its priors
-        prior = load_priors(names) if len(names) > 1 else load_priors([args.prior])[0]
+        prior = PriorSet(args.prior).for_run(result.trace)  # a multi-prior run names its priors
     out = args.out or Path.cwd() / "static" / "".join(c if c.isalnum() or c in "-_." else "_" for c in scene.name)
     index = export_static_demo(scene, result, out, threshold=args.threshold, prior=prior)
     print(index)
