@@ -188,14 +188,15 @@ def save_scannet(
 def _read_ply_labels(p: Path, n: int) -> LabelData:
     import plyfile
 
-    from efem_viz.data.io import _check_ply_counts, _read_ply_head
+    from efem_viz.data.formats.common import CATEGORIES_COMMENT, PROVENANCE_COMMENT
+    from efem_viz.data.formats.ply import check_ply_counts, read_ply_header
     from efem_viz.data.scene import DEFAULT_MAX_POINTS, SceneError
 
     try:
         # the scene reader's bounds checks: a header count the file cannot hold fails before plyfile allocates
-        head = _read_ply_head(p)
+        head = read_ply_header(p)
         if head is not None:
-            _check_ply_counts(p, head, max(n, DEFAULT_MAX_POINTS))
+            check_ply_counts(p, head, max(n, DEFAULT_MAX_POINTS))
     except SceneError as exc:
         raise LabelIOError(str(exc)) from exc
     try:
@@ -215,10 +216,10 @@ def _read_ply_labels(p: Path, n: int) -> LabelData:
     for c in list(ply.comments) + list(getattr(ply, "obj_info", [])):
         c = c.strip()
         try:
-            if c.startswith("efem_categories "):
-                cats = {int(k): str(val) for k, val in json.loads(c[len("efem_categories ") :]).items()}
-            elif c.startswith("efem_provenance "):
-                prov = json.loads(c[len("efem_provenance ") :])
+            if c.startswith(CATEGORIES_COMMENT + " "):
+                cats = {int(k): str(val) for k, val in json.loads(c[len(CATEGORIES_COMMENT) + 1 :]).items()}
+            elif c.startswith(PROVENANCE_COMMENT + " "):
+                prov = json.loads(c[len(PROVENANCE_COMMENT) + 1 :])
                 if isinstance(prov, dict) and isinstance(prov.get("annotator_instances"), dict):
                     rows = [r for r in table_from_json(prov["annotator_instances"]).values() if r is not None]
         except (ValueError, TypeError, AttributeError) as exc:

@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 import trimesh
 
-import efem_viz.data.io as scene_io
+import efem_viz.data.formats.ply as ply_format
+from efem_viz.data.formats.common import triangulate, triangulate_flat
 from efem_viz.data.io import load_scene, save_scene
 from efem_viz.data.scene import Scene, SceneError
 from helpers import mesh_scene
@@ -42,7 +43,7 @@ def cloud_scene(seed: int = 1, n: int = 500) -> Scene:
 @contextmanager
 def plyfile_only() -> Iterator[None]:
     """The reader as it was: plyfile parses every ASCII body."""
-    with mock.patch.object(scene_io, "_read_ply_ascii", return_value=(None, None)):
+    with mock.patch.object(ply_format, "_read_ply_ascii", return_value=(None, None)):
         yield
 
 
@@ -52,7 +53,7 @@ def load_plyfile(path: Path, **kw) -> Scene:
 
 
 def uses_numpy_reader(path: Path) -> bool:
-    return scene_io._read_ply_ascii(path)[0] is not None
+    return ply_format._read_ply_ascii(path)[0] is not None
 
 
 def assert_same_scene(a: Scene, b: Scene, *, atol: float = 0.0) -> None:
@@ -82,7 +83,7 @@ def assert_same_tables(path: Path) -> None:
     """The numpy reader's element arrays equal plyfile's, field by field and dtype by dtype."""
     import plyfile
 
-    ply, polys = scene_io._read_ply_ascii(path)
+    ply, polys = ply_format._read_ply_ascii(path)
     assert ply is not None, f"{path.name} fell back to plyfile"
     ref = plyfile.PlyData.read(str(path))
     assert [e.name for e in ply.elements] == [e.name for e in ref.elements]
@@ -241,7 +242,7 @@ def test_property_types_and_16_bit_colour(tmp_path: Path) -> None:
         "1 1 1 0 0 0 0 0 1 0\n"
     )
     s = assert_matches_plyfile(write(tmp_path, "types.ply", ply(rows, props=props)))
-    v = scene_io._read_ply_ascii(tmp_path / "types.ply")[0]["vertex"].data  # doubles stay doubles until Scene
+    v = ply_format._read_ply_ascii(tmp_path / "types.ply")[0]["vertex"].data  # doubles stay doubles until Scene
     assert v["z"][0] == 0.30000000000000004 and v.dtype["u"] == np.uint32 and v["u"][0] == 4294967295
     np.testing.assert_array_equal(s.instance, [1, 2, 0])
     np.testing.assert_array_equal(s.colors[0], [255, 0, 1])
@@ -293,8 +294,8 @@ def test_triangulate_flat_matches_per_polygon_loop() -> None:
     flat = rng.integers(0, 1000, int(lens.sum()))
     polys = np.split(flat, np.cumsum(lens)[:-1])
     naive = [(f[0], f[k], f[k + 1]) for f in polys for k in range(1, len(f) - 1)]
-    np.testing.assert_array_equal(scene_io._triangulate_flat(lens, flat, Path("x")), naive)
-    np.testing.assert_array_equal(scene_io._triangulate(polys, Path("x")), naive)
+    np.testing.assert_array_equal(triangulate_flat(lens, flat, Path("x")), naive)
+    np.testing.assert_array_equal(triangulate(polys, Path("x")), naive)
 
 
 def test_empty_face_element_and_faces_before_vertices(tmp_path: Path) -> None:
@@ -378,7 +379,7 @@ def test_what_numpy_does_not_settle_falls_back_to_plyfile(tmp_path: Path, rows: 
 
 def test_binary_files_are_not_touched(tmp_path: Path) -> None:
     save_scene(cloud_scene(), tmp_path / "b.ply")
-    assert scene_io._read_ply_ascii(tmp_path / "b.ply") == (None, None)
+    assert ply_format._read_ply_ascii(tmp_path / "b.ply") == (None, None)
 
 
 # ---------------------------------------------------------------------------------------------- errors
@@ -442,7 +443,7 @@ def test_errors_are_clear_scene_errors(tmp_path: Path, case: str) -> None:
 
 def test_max_points_is_checked_from_the_header_before_the_body(tmp_path: Path) -> None:
     p = write(tmp_path, "huge.ply", ply("0 0 0\n", n=10**9))
-    with mock.patch.object(scene_io, "_read_ply_ascii", side_effect=AssertionError("body read")):
+    with mock.patch.object(ply_format, "_read_ply_ascii", side_effect=AssertionError("body read")):
         with pytest.raises(SceneError, match="limit"):
             load_scene(p)
     save_scene(cloud_scene(), tmp_path / "c.ply", ascii=True)
