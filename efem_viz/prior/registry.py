@@ -22,10 +22,15 @@ class TraceLike(Protocol):
     """What `PriorSet` reads of a recorded run (`efem_viz.em.trace.EMTrace` is one; typed here by a protocol so
     that prior/ does not import em/, even for type checking)."""
 
-    prior_names: tuple[str, ...]
-    """Category names of the run's priors in the run's order (one or none for a one-prior run)."""
-    row_R: Any
-    """(K, C, 3) Θ_R of every stored latent row: C is the latent size of the prior that made it."""
+    @property
+    def prior_names(self) -> tuple[str, ...]:
+        """Category names of the run's priors in the run's order (one or none for a one-prior run)."""
+        ...
+
+    @property
+    def row_R(self) -> Any:
+        """(K, C, 3) Θ_R of every stored latent row: C is the latent size of the prior that made it."""
+        ...
 
     def prior_index(self, proposal_id: int) -> int:
         """Index into `prior_names` of a proposal's prior."""
