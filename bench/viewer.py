@@ -88,7 +88,7 @@ def main() -> int:
     import torch
 
     torch.set_num_threads(1)
-    from efem_viz.viewer import state as st
+    from efem_viz.viewer import trace_queries as tq
     from efem_viz.viewer.app import ViewerApp
 
     tmpdir = tempfile.TemporaryDirectory()
@@ -185,8 +185,8 @@ def main() -> int:
 
         # Inspecting a proposal (weights re-derived from the stored latent, heat map, crop, samples, shape).
         t_mid = T // 2
-        ids, scores = st.alive_table(trace, t_mid)
-        pid = int(st.top_n(ids, scores, 1)[0])
+        ids, scores = tq.alive_table(trace, t_mid)
+        pid = int(tq.top_n(ids, scores, 1)[0])
         app.set_step(t_mid)
         app.wait_idle(300)
         counter.take()

@@ -60,7 +60,7 @@ def test_palette_is_deterministic_and_distinct() -> None:
 def test_viewer_ply_export_and_annotator_agree(sphere_result: tuple, tmp_path: Path, threshold: float) -> None:
     from annotator.io import _read_efem
     from efem_viz.data.io import load_scene
-    from efem_viz.viewer import state as st
+    from efem_viz import colors as pal
     from efem_viz.viewer.legend import result_colors
 
     scene, res = sphere_result
@@ -73,7 +73,7 @@ def test_viewer_ply_export_and_annotator_agree(sphere_result: tuple, tmp_path: P
     assert len(set(expected.values())) == len(expected)
 
     # viewer: the points of each shown instance, and its mesh/box/swatch colour
-    view = st.instance_colors(scene.colors, inst, inst.kept(threshold))
+    view = pal.instance_point_colors(scene.colors, inst, inst.kept(threshold))
     meshes = result_colors(inst)[inst.kept(threshold)]
     # the coloured PLY export (efem-viz segment --ply, the viewer's export) at the same threshold
     ply = load_scene(inst.to_colored_ply(scene, tmp_path / "seg.ply", threshold=threshold))

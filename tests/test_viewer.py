@@ -18,7 +18,9 @@ import pytest
 from efem_viz import em
 from efem_viz.colors import instance_colors
 from efem_viz.prior import analytic
-from efem_viz.viewer import state as st
+from efem_viz import colors as pal
+from efem_viz.viewer import scenes as sc
+from efem_viz.viewer import trace_queries as tq
 from efem_viz.viewer.panels import slider_marks
 
 
@@ -77,37 +79,37 @@ def test_discover_scenes_only_inside_given_paths(tmp_path: Path) -> None:
     (inside / "notes.txt").write_text("x")
     (outside / "secret.ply").write_text("x")
     os.symlink(outside / "secret.ply", inside / "link.ply")  # points outside: must be dropped
-    entries = st.discover_scenes([inside])
+    entries = sc.discover_scenes([inside])
     assert [e.name for e in entries] == ["a", "b"]
-    assert all(st.is_inside(e.path, [inside.resolve()]) for e in entries)
-    assert not st.is_inside(outside / "secret.ply", [inside.resolve()])
+    assert all(sc.is_inside(e.path, [inside.resolve()]) for e in entries)
+    assert not sc.is_inside(outside / "secret.ply", [inside.resolve()])
     assert entries[0].trace_path.name == "a.efem.npz"
     with pytest.raises(FileNotFoundError):
-        st.discover_scenes([tmp_path / "missing"])
+        sc.discover_scenes([tmp_path / "missing"])
 
 
 def test_palette_heatmap_and_marks() -> None:
     cols = instance_colors([3, 4, 5, 3])
     assert cols.dtype == np.uint8 and cols.shape == (4, 3)
     assert (cols[0] == cols[3]).all() and len({tuple(c) for c in cols[:3]}) == 3
-    h = st.heatmap(np.array([0.0, 1.0, np.nan]), vmin=0.0, vmax=1.0)
+    h = pal.heatmap(np.array([0.0, 1.0, np.nan]), vmin=0.0, vmax=1.0)
     assert h[0, 2] > h[0, 0] and h[1, 0] > h[1, 2]  # cold is blue, hot is red
-    assert (h[2] == st.BACKGROUND_COLOR).all()
-    marks = st.phase_marks(np.array([1, 1, 1, 2, 2]))
+    assert (h[2] == pal.BACKGROUND_COLOR).all()
+    marks = tq.phase_marks(np.array([1, 1, 1, 2, 2]))
     assert [(m.step, m.label) for m in marks] == [(0, "P1"), (2, "R"), (3, "P2"), (4, "R")]
-    ids = st.top_n(np.array([7, 8, 9, 10]), np.array([0.5, np.nan, 0.9, 0.5]), 3)
+    ids = tq.top_n(np.array([7, 8, 9, 10]), np.array([0.5, np.nan, 0.9, 0.5]), 3)
     assert ids.tolist() == [9, 7, 10]
 
 
 def test_weights_and_label_colors() -> None:
     base = np.full((5, 3), 100, np.uint8)
     w = np.array([0.0, 0.0, 0.5, 1.0, 0.0], np.float32)
-    c = st.weights_colors(base, w)
+    c = pal.weights_colors(base, w)
     assert (c[0] == c[1]).all() and not (c[2] == c[0]).all() and not (c[3] == c[2]).all()
-    lab = st.label_colors(base, np.array([0, 2, 2, 5, 0]))
+    lab = pal.label_colors(base, np.array([0, 2, 2, 5, 0]))
     assert (lab[1] == lab[2]).all() and not (lab[1] == lab[3]).all() and (lab[0] == lab[4]).all()
     with pytest.raises(ValueError):
-        st.weights_colors(base, np.zeros(4))
+        pal.weights_colors(base, np.zeros(4))
 
 
 # ---------------------------------------------------------------------------------------------- app: scenes
@@ -138,8 +140,8 @@ def test_step_change_updates_samples_shapes_and_lists(app: Any) -> None:
     trace = app.state.result.trace
     app.set_step(0)
     assert app.wait_idle(60)
-    ids0, _ = st.alive_table(trace, 0)
-    drawn0 = set(st.top_n(*st.alive_table(trace, 0), app.state.max_shapes).tolist())
+    ids0, _ = tq.alive_table(trace, 0)
+    drawn0 = set(tq.top_n(*tq.alive_table(trace, 0), app.state.max_shapes).tolist())
     assert {p for p, t in _visible_shapes(app)} == drawn0 and all(t == 0 for _, t in _visible_shapes(app))
     samples0 = np.array(app.nodes.samples.points)
     assert f"**{len(ids0)} alive**" in app.panels.gui_step_info.content
@@ -148,7 +150,7 @@ def test_step_change_updates_samples_shapes_and_lists(app: Any) -> None:
     assert app.wait_idle(60)
     assert all(t == last for _, t in _visible_shapes(app))
     assert not np.array_equal(samples0, np.array(app.nodes.samples.points))
-    n_dead = len([d for d in st.deaths(trace) if d.step <= last])
+    n_dead = len([d for d in tq.deaths(trace) if d.step <= last])
     assert f"Terminated by step {last}: {n_dead}" in app.panels.gui_dead_info.content
     app.set_step(10_000)  # clamped
     assert app.state.step == last
@@ -214,9 +216,9 @@ def test_colour_keys_tp_fp_boxes_and_grey_background(app: Any) -> None:
     kept = np.flatnonzero(app.kept_mask())
     boxes = app.nodes.results.box_colors
     for k in m.tp:
-        assert boxes[kept[k]] == tuple(int(c) for c in st.TP_COLOR)
+        assert boxes[kept[k]] == tuple(int(c) for c in pal.TP_COLOR)
     for k in m.fp:
-        assert boxes[kept[k]] == tuple(int(c) for c in st.FP_COLOR)
+        assert boxes[kept[k]] == tuple(int(c) for c in pal.FP_COLOR)
     assert m.tp or m.fp
     colours = np.array(app.nodes.points.colors)
     covered = np.zeros(s.scene.num_points, bool)
@@ -238,7 +240,7 @@ def test_colour_keys_tp_fp_boxes_and_grey_background(app: Any) -> None:
 def test_inspect_proposal_shows_fig_s9_views(app: Any) -> None:
     trace = app.state.result.trace
     app.set_step(2)
-    ids, _ = st.alive_table(trace, 2)
+    ids, _ = tq.alive_table(trace, 2)
     pid = int(ids[0])
     fut = app.select_proposal(pid)
     fut.result(timeout=60)
@@ -253,7 +255,7 @@ def test_inspect_proposal_shows_fig_s9_views(app: Any) -> None:
     assert f"Proposal #{pid} at step 2" in app.panels.gui_inspect_info.content
     assert "stationary" in app.panels.gui_inspect_info.content and "alpha_d" in app.panels.gui_inspect_info.content
     # A dead proposal lists its reason.
-    dead = st.deaths(trace)
+    dead = tq.deaths(trace)
     if dead:
         d = dead[0]
         app.set_step(d.step)
@@ -307,11 +309,11 @@ def test_several_categories_in_labels_legend_counts_and_inspector(app: Any) -> N
         assert all(t.startswith("sphere #") for t in texts[1:])
         assert all(h.visible for h in app.nodes.results.labels)
         legend = app.panels.gui_legend.content
-        mug, sphere = st.hex_color(category_color("mug")), st.hex_color(category_color("sphere"))
+        mug, sphere = pal.hex_color(category_color("mug")), pal.hex_color(category_color("sphere"))
         assert mug != sphere
         assert legend.count(f'color:{mug}">mug</b>') == 1 and legend.count(f'color:{sphere}">sphere</b>') == k_all - 1
         for pid, col in zip(inst.ids, instance_colors(inst.ids)):  # each row's swatch has its instance's colour
-            assert f'<span style="color:{st.hex_color(col)}">&#9632;</span> #{int(pid)} ' in legend
+            assert f'<span style="color:{pal.hex_color(col)}">&#9632;</span> #{int(pid)} ' in legend
         # A threshold just above the mug's confidence: the counts, legend rows and labels follow.
         conf = np.asarray(inst.confidence, float)
         app.set_threshold(float(conf[0]) + 1e-4)
@@ -483,7 +485,7 @@ def test_ground_truth_panel(app: Any) -> None:
     assert "AP50" in app.panels.gui_gt_info.content
     colors = np.asarray(app.nodes.points.colors)
     if m.tp:
-        assert (colors[m.masks[m.tp[0]]] == st.TP_COLOR).all()
+        assert (colors[m.masks[m.tp[0]]] == pal.TP_COLOR).all()
     assert app.panels.gui_pr_plot.visible
     app.set_color_mode("instances")
 
@@ -537,7 +539,7 @@ def test_single_file_path_reads_its_saved_result_only(scene_dir: Path, prior: An
 def test_labels_copy_shares_the_base_result(tmp_path: Path) -> None:
     (tmp_path / "scan.ply").write_text("x")
     (tmp_path / "scan.labels.ply").write_text("x")
-    entries = {e.name: e for e in st.discover_scenes([tmp_path])}
+    entries = {e.name: e for e in sc.discover_scenes([tmp_path])}
     assert entries["scan.labels"].trace_path.name == "scan.labels.efem.npz"  # no result yet anywhere
     (tmp_path / "scan.efem.npz").write_text("x")
     assert entries["scan.labels"].trace_path.name == "scan.efem.npz"

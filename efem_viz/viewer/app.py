@@ -21,9 +21,21 @@ from typing import TYPE_CHECKING, Any, Callable, Literal, Sequence
 
 import numpy as np
 
-from efem_viz.colors import instance_colors
+from efem_viz.colors import (
+    DEAD_COLOR,
+    FP_COLOR,
+    TP_COLOR,
+    gt_match_colors,
+    heatmap,
+    instance_colors,
+    instance_point_colors,
+    weights_colors,
+)
 from efem_viz.data.scene import DEFAULT_MAX_POINTS
+from efem_viz.eval.comparison import GTMetrics, gt_metrics
 from efem_viz.viewer import state as st
+from efem_viz.viewer.scenes import discover_scenes, is_inside, trace_path_for
+from efem_viz.viewer.trace_queries import alive_table, deaths, is_dead_at, phase_marks, proposal_center, top_n
 from efem_viz.serve.inputs import (
     ClientValueError,
     read_bool,
@@ -141,7 +153,7 @@ class ViewerApp:
 
         self.state = ViewerState()
         scene_paths = list(paths) if paths else (list(results) if results else [DEFAULT_SCENE_DIR])
-        self.state.entries = st.discover_scenes(scene_paths, result_dirs=list(results))
+        self.state.entries = discover_scenes(scene_paths, result_dirs=list(results))
         self._roots = [Path(p).expanduser().resolve() for p in [*scene_paths, *results]]
         self.out_root = Path(out_dir if out_dir is not None else default_output_dir("view")).expanduser().resolve()
         """Exports from the GUI stay inside this folder (fixed at start)."""
@@ -160,7 +172,7 @@ class ViewerApp:
         self._play_stop = threading.Event()
         self._play_thread: threading.Thread | None = None
         self._view_cache: dict[tuple[int, int], Any] = {}
-        self._gt_cache: dict[tuple[int, float], st.GTMetrics] = {}
+        self._gt_cache: dict[tuple[int, float], GTMetrics] = {}
         self._no_shapes_generation = -1
         self._inspect_weights: np.ndarray | None = None
         self._mask_dist: tuple[int, Any] | None = None
@@ -362,10 +374,10 @@ class ViewerApp:
 
     def _allowed(self, path: Path) -> bool:
         """May the viewer read `path`? Inside a given folder, a given file, or the saved result of a given file."""
-        if st.is_inside(path, self._roots):
+        if is_inside(path, self._roots):
             return True
         rp = path.resolve()
-        return any(r.is_file() and rp == st.trace_path_for(r) for r in self._roots)
+        return any(r.is_file() and rp == trace_path_for(r) for r in self._roots)
 
     # ================================================================== prior
     def prior(self) -> ShapePriorLike:
@@ -386,7 +398,7 @@ class ViewerApp:
         except KeyError as exc:
             self._set_status(str(exc), error=True)
             return False
-        if not st.is_inside(entry.path, self._roots):  # never read outside the given paths
+        if not is_inside(entry.path, self._roots):  # never read outside the given paths
             self._set_status(f"refusing to open {entry.path}: outside the given paths", error=True)
             return False
         self._set_status(f"Loading {entry.name} …")
@@ -516,9 +528,9 @@ class ViewerApp:
     def _run_job(self, preset: str, proposals: int | None, seed: int, generation: int) -> Any:
         from efem_viz.em import EMCancelled, preset as make_preset, run_em
 
-        scene = self.state.scene
         t0 = time.perf_counter()
         try:
+            scene = self.state.require_scene()
             cfg = make_preset(preset)
             if proposals is not None:
                 cfg = cfg.with_proposals(int(proposals))
@@ -579,7 +591,7 @@ class ViewerApp:
             T = int(trace.num_steps)
             s.step = max(T - 1, 0)
             p = self.panels
-            marks = st.phase_marks(np.asarray(trace.phase))
+            marks = phase_marks(np.asarray(trace.phase))
             p.gui_step.max = max(T - 1, 1)
             set_slider_marks(p.gui_step, [(m.step, m.label) for m in marks])
             p.gui_step.disabled = T == 0
@@ -685,8 +697,8 @@ class ViewerApp:
             s.step = t
             self._gui_set(self.panels.gui_step, t)
             trace = s.result.trace
-            ids, scores = st.alive_table(trace, t)
-            drawn = st.top_n(ids, scores, s.max_shapes)
+            ids, scores = alive_table(trace, t)
+            drawn = top_n(ids, scores, s.max_shapes)
             self._draw_samples(trace, t, drawn)
             self._draw_shapes(t, drawn)
             self._update_step_panels(trace, t, ids, scores)
@@ -702,7 +714,7 @@ class ViewerApp:
         if not s.show_samples or drawn.size == 0 or s.view_mode != "step":
             self.nodes.hide_samples()
             return
-        pts, cols = proposal_samples(trace, t, drawn, s.scene.points)
+        pts, cols = proposal_samples(trace, t, drawn, s.require_scene().points)
         if not len(pts):
             self.nodes.hide_samples()
             return
@@ -724,7 +736,7 @@ class ViewerApp:
             with self._lock:
                 if generation != self._generation or self.state.step != t or self.nodes.has_shape(pid, t):
                     continue  # the user moved on (decoded again when asked) or it is already there
-                trace = self.state.result.trace
+                trace = self.state.require_result().trace
             try:
                 prior, latent = prior_latent(trace, pid, t, self.priors.for_run(trace))
             except RuntimeError as exc:
@@ -736,17 +748,17 @@ class ViewerApp:
                 if generation != self._generation:
                     return
                 if shape is not None:
-                    self.nodes.add_shape(pid, t, *shape, dead=st.is_dead_at(trace, pid, t))
+                    self.nodes.add_shape(pid, t, *shape, dead=is_dead_at(trace, pid, t))
                 if self.state.step == t and self.state.show_shapes and self.state.view_mode == "step":
-                    ids, scores = st.alive_table(trace, t)
-                    drawn = st.top_n(ids, scores, self.state.max_shapes)
+                    ids, scores = alive_table(trace, t)
+                    drawn = top_n(ids, scores, self.state.max_shapes)
                     self.nodes.show_shapes([(int(p_), t) for p_ in drawn])
 
     def _view(self, pid: int, t: int, prior: ShapePriorLike | None) -> Any:
         key = (int(pid), int(t))
         v = self._view_cache.get(key)
         if v is None or (prior is not None and getattr(v, "mesh", None) is None):
-            v = self.state.result.replay.view(int(pid), int(t), prior, mesh=prior is not None)
+            v = self.state.require_result().replay.view(int(pid), int(t), prior, mesh=prior is not None)
             self._view_cache[key] = v
             if len(self._view_cache) > 256:
                 self._view_cache.pop(next(iter(self._view_cache)))
@@ -760,14 +772,14 @@ class ViewerApp:
         p.gui_step_info.content = step_markdown(t, int(trace.num_steps), phase=phase, alive=len(ids),
                                                 initial=int(active[0]) if active.size else 0, schedule=sched)
         set_figure(p.gui_active_plot, active_figure(
-            active, [(m.step, m.label) for m in st.phase_marks(np.asarray(trace.phase))], t
+            active, [(m.step, m.label) for m in phase_marks(np.asarray(trace.phase))], t
         ))
         options = proposal_options(ids, scores, selected=self.state.selected)
         p.gui_proposal.options = options
         sel = self.state.selected
         current = next((o for o in options if parse_pid(o) == sel), NO_PROPOSAL)
         self._gui_set(p.gui_proposal, current)
-        p.gui_dead_info.content = deaths_markdown(st.deaths(trace), t)
+        p.gui_dead_info.content = deaths_markdown(deaths(trace), t)
 
     def play(self) -> None:
         """Start playback from the current step (from 0 when at the end)."""
@@ -850,7 +862,7 @@ class ViewerApp:
 
     def _inspect_job(self, pid: int, t: int, generation: int) -> None:
         try:
-            prior = self.priors.for_trace(self.state.result.trace, pid)
+            prior = self.priors.for_trace(self.state.require_result().trace, pid)
         except RuntimeError as exc:
             prior = None  # the first step of an episode still has weights (the crop); later steps need the prior
             logger.info("inspecting without a prior: %s", exc)
@@ -867,14 +879,14 @@ class ViewerApp:
 
     def _draw_inspector(self, pid: int, t: int, view: Any) -> None:
         s = self.state
-        scene = s.scene
+        scene, result = s.require_scene(), s.require_result()
         w = np.asarray(view.weights, np.float32).reshape(-1)
-        r_err = float(s.result.trace.prop_r_err[pid])
-        center = st.proposal_center(s.result.trace, pid, t)
+        r_err = float(result.trace.prop_r_err[pid])
+        center = proposal_center(result.trace, pid, t)
         near = np.flatnonzero(np.linalg.norm(scene.points - center[None], axis=1) <= r_err)
-        crop_cols = st.heatmap(w[near], vmin=0.0, vmax=1.0)
+        crop_cols = heatmap(w[near], vmin=0.0, vmax=1.0)
         mesh = getattr(view, "mesh", None)
-        col = instance_colors([pid])[0] if view.alive else st.DEAD_COLOR  # red once terminated (paper Fig. S9)
+        col = instance_colors([pid])[0] if view.alive else DEAD_COLOR  # red once terminated (paper Fig. S9)
         self.nodes.draw_inspector(
             crop_points=scene.points[near],
             crop_colors=crop_cols,
@@ -893,7 +905,7 @@ class ViewerApp:
         self.draw_point_colors()
         self.nodes.set_display(s.display, recolored=True)
         self._show_results()
-        self.panels.gui_inspect_info.content = inspect_markdown(pid, t, view, instances=s.result.instances)
+        self.panels.gui_inspect_info.content = inspect_markdown(pid, t, view, instances=result.instances)
 
     # ================================================================== 5./6. results and ground truth
     def set_threshold(self, threshold: float) -> None:
@@ -1017,10 +1029,10 @@ class ViewerApp:
         with self._lock:
             k = self._instance_index(pid)
             s = self.state
-            inst = s.result.instances
+            inst, scene = s.require_result().instances, s.require_scene()
             mask = np.asarray(inst.masks[k], np.int64)
-            pts = s.scene.points[mask] if mask.size else np.asarray(inst.obb(k).corners, np.float64)
-            lo_s, hi_s = s.scene.bounds
+            pts = scene.points[mask] if mask.size else np.asarray(inst.obb(k).corners, np.float64)
+            lo_s, hi_s = scene.bounds
             view = fly_to_view(pts.min(axis=0), pts.max(axis=0), home=self.camera_guard.view,
                                scene_diagonal=float(np.linalg.norm(np.subtract(hi_s, lo_s))))
             s.table_row = int(pid)  # type: ignore[arg-type]
@@ -1113,19 +1125,19 @@ class ViewerApp:
         set_figure(p.gui_pr_plot, pr_figure(metrics.curves, point=metrics.point))
         p.gui_pr_plot.visible = True
 
-    def _gt_metrics(self) -> st.GTMetrics:
+    def _gt_metrics(self) -> GTMetrics:
         """Ground-truth metrics of the current result at the current threshold (cached per threshold)."""
         s = self.state
         key = (self._generation, round(float(s.threshold), 6))
         cached = self._gt_cache.get(key)
         if cached is None:
-            cached = st.gt_metrics(s.result.instances, s.scene, s.threshold)
+            cached = gt_metrics(s.require_result().instances, s.require_scene(), s.threshold)
             if len(self._gt_cache) > 64:
                 self._gt_cache.clear()
             self._gt_cache[key] = cached
         return cached
 
-    def _gt_metrics_or_none(self) -> st.GTMetrics | None:
+    def _gt_metrics_or_none(self) -> GTMetrics | None:
         try:
             return self._gt_metrics()
         except Exception:  # noqa: BLE001 - shown in the ground-truth panel
@@ -1146,7 +1158,7 @@ class ViewerApp:
             cols, key = base, ("rgb", id(base))  # one EM step on screen: no final instance colours
         elif mode == "instances" and s.result is not None:
             keep = self.shown_mask()
-            cols = st.instance_colors(base, s.result.instances, keep)
+            cols = instance_point_colors(base, s.result.instances, keep)
             key = ("inst", self._generation, self._mask_version, keep.tobytes())
             shown = "instances"
         elif mode == "gt_match" and s.result is not None and s.scene.has_gt and self._gt_metrics_or_none() is not None:
@@ -1154,22 +1166,24 @@ class ViewerApp:
             kept = np.flatnonzero(self.kept_mask())  # the metrics index the kept instances
             drawn = self.shown_mask()
             off = {j for j, k in enumerate(kept) if not drawn[k]}  # hidden in the instance table: grey
-            cols = st.gt_match_colors(base, m.masks, s.scene.instance, tp=[j for j in m.tp if j not in off],
-                                      fp=[j for j in m.fp if j not in off], fn=m.fn)
+            gt_instance = s.require_scene().instance
+            assert gt_instance is not None  # has_gt
+            cols = gt_match_colors(base, m.masks, gt_instance, tp=[j for j in m.tp if j not in off],
+                                   fp=[j for j in m.fp if j not in off], fn=m.fn)
             key = ("gt", self._generation, self._mask_version, drawn.tobytes())
             shown = "gt_match"
             boxes = np.array(self.nodes.results.colors, np.uint8, copy=True)
-            for ks, colour in ((m.tp, st.TP_COLOR), (m.fp, st.FP_COLOR)):
+            for ks, colour in ((m.tp, TP_COLOR), (m.fp, FP_COLOR)):
                 for k in ks:
                     if int(k) < kept.size and kept[int(k)] < len(boxes):
                         boxes[kept[int(k)]] = colour
         elif mode in ("instances", "gt_match") and s.result is not None:
             keep = self.shown_mask()
-            cols = st.instance_colors(base, s.result.instances, keep)
+            cols = instance_point_colors(base, s.result.instances, keep)
             key = ("inst", self._generation, self._mask_version, keep.tobytes())
             shown = "instances"
         elif mode == "weights" and s.selected is not None and self._inspect_weights is not None:
-            cols = st.weights_colors(base, self._inspect_weights)
+            cols = weights_colors(base, self._inspect_weights)
             key = ("w", self._generation, s.selected, s.step)
             shown = "weights"
         else:

@@ -19,8 +19,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from efem_viz.colors import dim, instance_point_colors
 from efem_viz.em.replay import prior_latent
-from efem_viz.viewer import state as st
+from efem_viz.viewer.scenes import trace_path_for
+from efem_viz.viewer.trace_queries import alive_table, is_dead_at, top_n
 from efem_viz.viewer.legend import category_summary
 from efem_viz.viewer.nodes import (
     add_result_nodes,
@@ -170,13 +172,13 @@ def export_static_demo(
         cam.look_at, cam.position = default_view(lo, hi)
         cam.up = (0.0, 0.0, 1.0)
         cloud = api.add_point_cloud(
-            "/scene/points", points=pts[keep], colors=st.dim(scene.colors[keep]), point_size=psize, point_shape="rounded"
+            "/scene/points", points=pts[keep], colors=dim(scene.colors[keep]), point_size=psize, point_shape="rounded"
         )
         api.add_label("/caption", text=f"{scene.name}: {int(np.asarray(trace.active_count)[0]) if T else 0} proposals", position=caption_pos)
         ser.insert_sleep(step_seconds)
         for t in range(T):
-            ids, scores = st.alive_table(trace, t)
-            drawn = st.top_n(ids, scores, max_proposals)
+            ids, scores = alive_table(trace, t)
+            drawn = top_n(ids, scores, max_proposals)
             s_pts, s_cols = proposal_samples(trace, t, drawn, pts)
             if len(s_pts):
                 add_sample_cloud(api, s_pts, s_cols, point_size=psize)
@@ -189,12 +191,12 @@ def export_static_demo(
                         continue
                     n_shapes += 1
                     add_shape_mesh(api, f"/em/shapes/p{int(pid)}", *shape, pid=int(pid),
-                                   dead=st.is_dead_at(trace, int(pid), t))
+                                   dead=is_dead_at(trace, int(pid), t))
             phase = int(np.asarray(trace.phase)[t])
             api.add_label("/caption", text=f"step {t}/{T - 1} · phase {phase} · {len(ids)} active", position=caption_pos)
             ser.insert_sleep(step_seconds)
         api.remove_by_name("/em")
-        cloud.colors = st.instance_colors(scene.colors, result.instances, kept)[keep]  # same colours as the meshes
+        cloud.colors = instance_point_colors(scene.colors, result.instances, kept)[keep]  # same colours as the meshes
         add_result_nodes(api, inst, visible=True)  # as the live viewer draws them (meshes, boxes, axes, labels)
         counts = category_summary(inst.category)
         api.add_label(
@@ -239,7 +241,7 @@ def main(argv: list[str] | None = None) -> int:
     from efem_viz.em import EMResult
 
     scene = load_scene(args.scene)
-    result = EMResult.load(st.trace_path_for(args.scene))
+    result = EMResult.load(trace_path_for(args.scene))
     result.bind(scene)
     prior: ShapePriorLike | list[ShapePriorLike] | None = None
     if args.prior:

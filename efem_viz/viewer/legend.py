@@ -19,9 +19,9 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from efem_viz.colors import instance_colors
+from efem_viz.colors import FN_COLOR, FP_COLOR, HEAT_RGB, HEAT_STOPS, TP_COLOR, dim, hex_color, instance_colors
+from efem_viz.eval.comparison import GTMetrics
 from efem_viz.serve.table import cell, row_option, swatch
-from efem_viz.viewer.state import FN_COLOR, FP_COLOR, HEAT_RGB, HEAT_STOPS, TP_COLOR, GTMetrics, dim, hex_color
 from efem_viz.viewer.texts import md_escape
 
 MAX_LEGEND_ROWS = 40
@@ -128,7 +128,7 @@ def legend_html(instances: Any, keep: np.ndarray) -> str:
 
 
 GREY_SWATCH = hex_color(dim(np.array([[128, 128, 128]], np.uint8))[0])
-"""The grey of points that no shown prediction covers (`efem_viz.viewer.state.dim`)."""
+"""The grey of points that no shown prediction covers (`efem_viz.colors.dim`)."""
 
 
 def _swatch(color: str, text: str) -> str:
@@ -190,7 +190,7 @@ def instance_table_markdown(
         instances: `efem_viz.em.Instances`.
         threshold: the confidence threshold (rows below it say "below cut").
         hidden: proposal ids hidden by hand (their rows say "hidden").
-        metrics: the ground-truth comparison at `threshold` (`efem_viz.viewer.state.gt_metrics`; its indices
+        metrics: the ground-truth comparison at `threshold` (`efem_viz.eval.comparison.gt_metrics`; its indices
             count the instances kept by the threshold), or None without ground truth.
         selected: the proposal id chosen in the dropdown (its row is marked ◀).
 

@@ -25,12 +25,12 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
-from efem_viz.colors import instance_colors
+from efem_viz.colors import DEAD_COLOR, instance_colors, rgb_tuple
 from efem_viz.geometry.transforms import rotation_to_quat_wxyz, xyz_tuple
 from efem_viz.serve.camera import View, fitted_view
 from efem_viz.viewer.label_layout import leader_segments, place_labels
 from efem_viz.viewer.legend import instance_label, result_colors
-from efem_viz.viewer.state import DEAD_COLOR, rgb_tuple, sample_indices
+from efem_viz.viewer.trace_queries import sample_indices
 
 if TYPE_CHECKING:
     from viser import (

@@ -11,8 +11,10 @@ from typing import Any, Sequence
 import numpy as np
 
 from efem_viz.data.io import holds_predictions
+from efem_viz.eval.comparison import GTMetrics
 from efem_viz.viewer.panels import NO_PROPOSAL
-from efem_viz.viewer.state import Death, GTMetrics, SceneEntry, top_n
+from efem_viz.viewer.scenes import SceneEntry
+from efem_viz.viewer.trace_queries import Death, top_n
 
 MAX_DEAD_LISTED = 40
 """The "terminated" list shows at most this many proposals (latest first)."""
@@ -59,7 +61,7 @@ def gt_markdown(n_objects: int, threshold: float, metrics: GTMetrics) -> str:
     Args:
         n_objects: ground-truth objects in the scene.
         threshold: the confidence threshold of the shown instances.
-        metrics: `state.gt_metrics` of the result at that threshold.
+        metrics: `efem_viz.eval.comparison.gt_metrics` of the result at that threshold.
     """
     return (
         f"**Ground truth** ({n_objects} objects) at confidence ≥ {threshold:.2f}: "

@@ -201,14 +201,14 @@ def test_guide_run_tab(viewer: Any, page: Any, monkeypatch: pytest.MonkeyPatch) 
 
 @guide_only
 def test_guide_proposals_tab(viewer: Any, page: Any) -> None:
-    from efem_viz.viewer import state as st
+    from efem_viz.viewer import trace_queries as tq
 
     _open(page, viewer)
     trace = viewer.state.result.trace
     t = min(2, trace.num_steps - 1)
     viewer.set_step(t)
-    ids, scores = st.alive_table(trace, t)
-    viewer.select_proposal(int(st.top_n(ids, scores, 1)[0])).result(timeout=120)
+    ids, scores = tq.alive_table(trace, t)
+    viewer.select_proposal(int(tq.top_n(ids, scores, 1)[0])).result(timeout=120)
     assert viewer.wait_idle(120)
     page.get_by_role("tab", name="Proposals").click()
     _settle(page)

@@ -1,0 +1,139 @@
+"""What the viewer asks of a recorded run: the proposals of a step and their scores, a proposal's samples and
+centre, the deaths, the timeline's phase marks and the top-N proposals to draw. Plain NumPy over an
+`efem_viz.em.EMTrace`.
+
+These queries belong to the trace (`EMTrace` / `TraceReplay` methods, issue 23 item 2); they wait here, in one
+place, until efem_viz/em/trace.py can take them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from efem_viz.em.trace import EMTrace
+
+
+@dataclass(frozen=True)
+class PhaseMark:
+    """A labelled step on the timeline (phase start or end-of-phase review)."""
+
+    step: int
+    label: str
+
+
+def phase_marks(phase: np.ndarray) -> list[PhaseMark]:
+    """Timeline marks from the per-step phase array.
+
+    Args:
+        phase: (T,) int phase (1 or 2, possibly with episodes repeating the pattern) of each EM step.
+
+    Returns:
+        A mark at step 0 ("P1"), at each phase change ("P<phase>") and a review mark ("R") at the last step of
+        every phase run (the review runs after that step).
+    """
+    ph = np.asarray(phase).reshape(-1)
+    marks: list[PhaseMark] = []
+    if ph.size == 0:
+        return marks
+    marks.append(PhaseMark(0, f"P{int(ph[0])}"))
+    for t in range(1, ph.size):
+        if ph[t] != ph[t - 1]:
+            marks.append(PhaseMark(t - 1, "R"))
+            marks.append(PhaseMark(t, f"P{int(ph[t])}"))
+    marks.append(PhaseMark(int(ph.size - 1), "R"))
+    # Merge marks that fall on the same step: "R|P2".
+    merged: dict[int, str] = {}
+    for m in marks:
+        merged[m.step] = f"{merged[m.step]}|{m.label}" if m.step in merged else m.label
+    return [PhaseMark(s, lab) for s, lab in sorted(merged.items())]
+
+
+def top_n(ids: np.ndarray, scores: np.ndarray, n: int) -> np.ndarray:
+    """The `n` ids with the highest scores (ties broken by id), in descending score order.
+
+    Args:
+        ids: (K,) int proposal ids.
+        scores: (K,) float scores (NaN counts as lowest).
+        n: how many to keep (<= 0 keeps none).
+    """
+    ids_arr = np.asarray(ids).reshape(-1)
+    sc = np.asarray(scores, dtype=np.float64).reshape(-1)
+    if ids_arr.shape != sc.shape:
+        raise ValueError(f"ids {ids_arr.shape} and scores {sc.shape} differ in shape")
+    if n <= 0 or ids_arr.size == 0:
+        return ids_arr[:0]
+    sc = np.where(np.isfinite(sc), sc, -np.inf)
+    order = np.lexsort((ids_arr, -sc))
+    return ids_arr[order[:n]]
+
+
+@dataclass(frozen=True)
+class Death:
+    """A terminated proposal: id, step, reason ("proposal too small", "duplicated or included", ...), partner."""
+
+    pid: int
+    step: int
+    reason: str
+    partner: int | None = None
+    ratio: float | None = None
+
+
+def alive_table(trace: EMTrace, step: int) -> tuple[np.ndarray, np.ndarray]:
+    """Proposals taking part in a step (live at its start) and their stationary scores.
+
+    Args:
+        trace: an `efem_viz.em.EMTrace`.
+        step: global EM step.
+
+    Returns:
+        ((K,) int64 ids, (K,) float64 stationary scores).
+    """
+    rows = trace.rows(int(step))
+    ids = np.asarray(trace.row_id[rows], dtype=np.int64)
+    scores = np.asarray(trace.row_stationary[rows], dtype=np.float64)
+    return ids, scores
+
+
+def sample_indices(trace: EMTrace, pid: int, step: int) -> np.ndarray | None:
+    """(M,) int64 scene-point indices sampled by proposal `pid` at `step` (None when it did not take part)."""
+    r = trace.row_of(int(pid), int(step))
+    return None if r is None else np.asarray(trace.row_samples[r], dtype=np.int64).reshape(-1)
+
+
+def deaths(trace: EMTrace) -> list[Death]:
+    """Every terminated proposal with its step and reason (accepted survivors excluded), in order of death."""
+    out: list[Death] = []
+    for ev in trace.events():
+        reason = str(ev.reason)
+        if reason == "survive":
+            continue
+        partner, ratio = int(ev.partner), float(ev.ratio)
+        out.append(
+            Death(
+                pid=int(ev.proposal_id),
+                step=int(ev.step),
+                reason=reason,
+                partner=None if partner < 0 else partner,
+                ratio=None if not np.isfinite(ratio) else ratio,
+            )
+        )
+    return out
+
+
+def is_dead_at(trace: EMTrace, pid: int, step: int) -> bool:
+    """True when the proposal was terminated (not accepted) at or before `step`."""
+    d = trace.death(int(pid))
+    return d is not None and d[1] != "survive" and int(d[0]) <= int(step)
+
+
+def proposal_center(trace: EMTrace, pid: int, step: int) -> np.ndarray:
+    """(3,) float32 world centre Θ_c of a proposal at a step (its last recorded step if it died before)."""
+    s = min(int(step), int(trace.last_step(int(pid))))
+    r = trace.row_of(int(pid), s)
+    if r is None:
+        raise ValueError(f"proposal {pid} has no record at step {s}")
+    return np.asarray(trace.row_center[r], np.float32).reshape(3)
