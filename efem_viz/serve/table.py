@@ -11,7 +11,7 @@ from __future__ import annotations
 import html
 from typing import Sequence
 
-NO_ROW = "(none)"
+NO_ROW: str = "(none)"
 """The option a row dropdown shows while its table is empty."""
 
 

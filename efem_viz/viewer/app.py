@@ -1035,12 +1035,13 @@ class ViewerApp:
             lo_s, hi_s = scene.bounds
             view = fly_to_view(pts.min(axis=0), pts.max(axis=0), home=self.camera_guard.view,
                                scene_diagonal=float(np.linalg.norm(np.subtract(hi_s, lo_s))))
-            s.table_row = int(pid)  # type: ignore[arg-type]
+            row_id = int(inst.ids[k])
+            s.table_row = row_id
             self._update_instance_table()
             below = not bool(inst.kept(s.threshold)[k])
         self.camera_guard.place(view, client)
         if below:
-            self._set_status(f"Instance #{int(pid)} (confidence {float(inst.confidence[k]):.2f}) is below the "
+            self._set_status(f"Instance #{row_id} (confidence {float(inst.confidence[k]):.2f}) is below the "
                              f"confidence threshold {s.threshold:.2f}: lower it to see the instance.")
 
     def step_instance(self, step: int, *, client: Any = None) -> int:
