@@ -108,7 +108,10 @@ def main() -> int:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--frames", type=int, nargs="+", default=list(TUNE + JUDGE))
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--set", nargs="*", default=[], help="EMConfig overrides key=value (Python literals)")
+    # extend, not store: `--set a=1 --set b=2` keeps both (a plain nargs list kept only the last --set, so runs
+    # before session 8 that passed several --set flags ran with their last override only)
+    ap.add_argument("--set", nargs="+", action="extend", default=[],
+                    help="EMConfig overrides key=value (Python literals); repeat --set or list several")
     ap.add_argument("--tag", default=None)
     a = ap.parse_args()
     import torch
@@ -128,6 +131,7 @@ def main() -> int:
             overrides[k] = v
     cfg = preset(a.preset).with_proposals(a.proposals).replace(**overrides)
     tag = a.tag or f"{a.preset}_{a.proposals}" + "".join(f"_{k}{v}" for k, v in overrides.items())
+    print(f"preset {a.preset}, {a.proposals} proposals, overrides {overrides}", flush=True)
     scenes = {k: load_frame(k) for k in a.frames}
     runs = []
     for seed in a.seeds:
