@@ -1,8 +1,12 @@
 """The EFEM viewer: a thin viser layer over the scene, EM, trace and evaluation code.
 
-Threading: GUI callbacks run on viser's threads. They read handle values into `ViewerState` and either redraw
+The viewer's state and actions live in `efem_viz.viewer.session.ViewerSession` (headless, no viser); this module
+builds the GUI, translates GUI events into session calls and draws the session's state.
+
+Threading: GUI callbacks run on viser's threads. They read handle values, call the session and either redraw
 directly (cheap: colours, visibility) or submit heavy work (loading, EM, decoding shapes, exports) to worker
-threads. One re-entrant lock guards the state and the scene nodes; the workers take it only to publish results.
+threads. One re-entrant lock (the session's) guards the state and the scene nodes; the workers take it only to
+publish results.
 
 Sharing: one state, one scene and one GUI for all browsers (`server.gui` / `server.scene`): every client sees the
 same scene, step, threshold and selection. Errors are shown in the status line and as a notification to every
@@ -11,7 +15,6 @@ connected client; the server stays up.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import threading
 import time
@@ -21,21 +24,10 @@ from typing import TYPE_CHECKING, Any, Callable, Literal, Sequence
 
 import numpy as np
 
-from efem_viz.colors import (
-    DEAD_COLOR,
-    FP_COLOR,
-    TP_COLOR,
-    gt_match_colors,
-    heatmap,
-    instance_colors,
-    instance_point_colors,
-    weights_colors,
-)
 from efem_viz.data.scene import DEFAULT_MAX_POINTS
-from efem_viz.eval.comparison import GTMetrics, gt_metrics
-from efem_viz.viewer import state as st
-from efem_viz.viewer.scenes import discover_scenes, is_inside, trace_path_for
-from efem_viz.viewer.trace_queries import alive_table, deaths, is_dead_at, phase_marks, proposal_center, top_n
+from efem_viz.prior.config import DEFAULT_PRIOR
+from efem_viz.prior.registry import PriorSet
+from efem_viz.serve.camera import CameraGuard, fitted_view, fly_to_view
 from efem_viz.serve.inputs import (
     ClientValueError,
     read_bool,
@@ -45,28 +37,36 @@ from efem_viz.serve.inputs import (
     read_text,
     resolve_inside_root,
 )
+from efem_viz.serve.table import NO_ROW, option_for, option_id
+from efem_viz.viewer import state as st
 from efem_viz.viewer.legend import (
     category_summary,
     color_key_html,
-    instance_options,
     instance_table_markdown,
     legend_html,
     result_summary_markdown,
 )
-from efem_viz.serve.camera import CameraGuard, fitted_view, fly_to_view
-from efem_viz.serve.table import NO_ROW, option_for, option_id, step_row
-from efem_viz.serve.outputs import default_output_dir
-from efem_viz.viewer.nodes import VIEW_DIRECTION, SceneNodes, decode_shape, proposal_samples
+from efem_viz.viewer.nodes import VIEW_DIRECTION, SceneNodes
 from efem_viz.viewer.panels import (
     COLOR_MODES,
     MASK_BAND_RANGE,
-    VIEW_MODES,
     NO_PROPOSAL,
+    VIEW_MODES,
     active_figure,
     build_panels,
     pr_figure,
     set_figure,
     set_slider_marks,
+)
+from efem_viz.viewer.session import (  # noqa: F401 - the scene folders stay importable from here
+    BUNDLED_SCENE_DIR,
+    CHECKOUT_SCENE_DIR,
+    DEFAULT_SCENE_DIR,
+    REPO_ROOT,
+    Inspection,
+    StepView,
+    ViewerSession,
+    default_scene_dir,
 )
 from efem_viz.viewer.state import ViewerState
 from efem_viz.viewer.texts import (
@@ -76,38 +76,24 @@ from efem_viz.viewer.texts import (
     md_escape,
     parse_pid,
     proposal_options,
-    safe_name,
     scene_info_markdown,
     step_markdown,
 )
-from efem_viz.prior.config import DEFAULT_PRIOR
-from efem_viz.prior.registry import PriorSet
+from efem_viz.viewer.trace_queries import deaths, phase_marks
 
 if TYPE_CHECKING:
+    from efem_viz.eval.comparison import GTMetrics
     from efem_viz.prior.config import ShapePriorLike
 
 logger = logging.getLogger(__name__)
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
-BUNDLED_SCENE_DIR = Path(__file__).resolve().parents[1] / "sample_scenes"
-"""The sample scenes an installed efem-viz carries (`efem_viz/sample_scenes/`, copied from the checkout's
-`sample_scenes/` when the wheel is built: setup.py)."""
-CHECKOUT_SCENE_DIR = REPO_ROOT / "sample_scenes"
-"""The sample scenes of a source checkout."""
-
-
-def default_scene_dir() -> Path:
-    """Where `efem-viz view` without arguments finds its demo: the bundled samples of an install, else the
-    checkout's `sample_scenes/` (which may be missing: the caller says so)."""
-    return BUNDLED_SCENE_DIR if BUNDLED_SCENE_DIR.is_dir() else CHECKOUT_SCENE_DIR
-
-
-DEFAULT_SCENE_DIR = default_scene_dir()
-"""`default_scene_dir()` at import."""
-
 
 class ViewerApp:
-    """The viewer application (server, state, panels, nodes, workers).
+    """The viewer application: a viser server, its panels and scene nodes over a `ViewerSession`.
+
+    The session (`efem_viz.viewer.session.ViewerSession`) holds the state and does every action; this class
+    builds the GUI, translates GUI events into session calls, runs the heavy ones in worker threads and draws the
+    session's state.
 
     Args:
         paths: scene files and/or folders; the browser lists only scene files inside them.
@@ -148,19 +134,10 @@ class ViewerApp:
     ) -> None:
         from efem_viz.serve.guard import start_server
 
-        self.max_points = int(max_points)
-        """Scenes with more points are refused (shown as an error; the server stays up)."""
-
-        self.state = ViewerState()
-        scene_paths = list(paths) if paths else (list(results) if results else [DEFAULT_SCENE_DIR])
-        self.state.entries = discover_scenes(scene_paths, result_dirs=list(results))
-        self._roots = [Path(p).expanduser().resolve() for p in [*scene_paths, *results]]
-        self.out_root = Path(out_dir if out_dir is not None else default_output_dir("view")).expanduser().resolve()
-        """Exports from the GUI stay inside this folder (fixed at start)."""
-        self.priors = PriorSet(prior_name, prior=prior, extra=run_priors)
-        """This viewer's priors (`efem_viz.prior.registry.PriorSet`): the prior, the extra run priors (a joint solve
-        over the prior and these) and the priors that saved multi-prior runs name, each loaded once."""
-        self._lock = threading.RLock()
+        self.session = ViewerSession(paths, prior=prior, prior_name=prior_name, run_priors=run_priors,
+                                     out_dir=out_dir, results=results, max_points=max_points)
+        """The headless viewer under this GUI: state and actions."""
+        self._lock = self.session.lock
         self._quiet = False
         self._worker = ThreadPoolExecutor(1, thread_name_prefix="efem-viewer-work")
         self._decoder = ThreadPoolExecutor(1, thread_name_prefix="efem-viewer-decode")
@@ -168,19 +145,8 @@ class ViewerApp:
         """EM runs have their own thread: opening another scene or a trace does not wait for a run."""
         self._pending: set[Future[Any]] = set()
         self._pending_lock = threading.Lock()
-        self._cancel = threading.Event()
         self._play_stop = threading.Event()
         self._play_thread: threading.Thread | None = None
-        self._view_cache: dict[tuple[int, int], Any] = {}
-        self._gt_cache: dict[tuple[int, float], GTMetrics] = {}
-        self._no_shapes_generation = -1
-        self._inspect_weights: np.ndarray | None = None
-        self._mask_dist: tuple[int, Any] | None = None
-        """(generation, InstanceDistances) of the shown result: masks at any τ_out without a re-run."""
-        self._mask_version = 0
-        """Bumped whenever the shown masks change within one result (colour caches key on it)."""
-        self._generation = 0
-        """Bumped on every scene/result change so stale worker results are dropped."""
 
         self.server, self.access = start_server(host=host, port=port, token=token)
         self.server.gui.configure_theme(control_width="large", dark_mode=False, show_logo=False)
@@ -195,6 +161,7 @@ class ViewerApp:
         self.panels = build_panels(
             self.server.gui, scene_names=[e.name for e in self.state.entries], out_dir=str(self.out_root)
         )
+        self.session.on_status = self._show_status
         self._wire()
         self.server.on_client_connect(self._on_connect)
         self.server.on_client_disconnect(self.camera_guard.forget)
@@ -204,6 +171,31 @@ class ViewerApp:
                     break
         elif not self.state.entries:
             self._set_status("No scene files found in the given paths.", error=True)
+
+    # ================================================================== the session's parts
+    @property
+    def state(self) -> ViewerState:
+        """The session's state (`ViewerState`)."""
+        return self.session.state
+
+    @property
+    def priors(self) -> PriorSet:
+        """This viewer's priors (`efem_viz.prior.registry.PriorSet`), each loaded once."""
+        return self.session.priors
+
+    @property
+    def out_root(self) -> Path:
+        """Exports from the GUI stay inside this folder (fixed at start)."""
+        return self.session.out_root
+
+    @property
+    def max_points(self) -> int:
+        """Scenes with more points are refused (shown as an error; the server stays up)."""
+        return self.session.max_points
+
+    def prior(self) -> ShapePriorLike:
+        """The shape prior (loaded on first use). Raises RuntimeError with the reason when unavailable."""
+        return self.session.prior()
 
     # ================================================================== lifecycle
     @property
@@ -219,8 +211,8 @@ class ViewerApp:
     def stop(self) -> None:
         """Stop playback, cancel a run, shut the workers and the server down."""
         self.pause()
-        self._cancel.set()  # a running EM stops at its next step
-        self._generation += 1  # running decode/inspect jobs drop their results
+        self.session.cancel_event.set()  # a running EM stops at its next step
+        self.session.generation += 1  # running decode/inspect jobs drop their results
         for pool in (self._runner, self._worker, self._decoder):
             pool.shutdown(wait=True, cancel_futures=True)
         self.server.stop()
@@ -257,13 +249,14 @@ class ViewerApp:
 
     # ================================================================== status
     def _set_status(self, text: str, *, error: bool = False) -> None:
+        self.session.set_status(text, error=error)
+
+    def _show_status(self, text: str, error: bool) -> None:
+        """The session's status listener: the status line, and a notification to every client for an error."""
         with self._lock:
-            self.state.status = text
-            self.state.error = text if error else None
             icon = "⚠️ " if error else ""
             self.panels.gui_status.content = f"{icon}{text}" if text else ""
         if error:
-            logger.warning("%s", text)
             for client in list(self.server.get_clients().values()):
                 try:
                     client.add_notification("efem-viz", text, color="red", auto_close_seconds=8.0)
@@ -340,29 +333,6 @@ class ViewerApp:
         p.gui_export_results.on_click(guard(lambda: self.export_from_gui("results")))
         p.gui_export_static.on_click(guard(lambda: self.export_from_gui("static")))
 
-    def gui_out_folder(self) -> Path:
-        """The folder in the GUI's "Output folder" field, resolved inside the output root chosen at start.
-
-        Raises:
-            ClientValueError: the field names a place outside the output root (`..`, another absolute path, a
-                symlink pointing out), or is not a usable path.
-        """
-        return resolve_inside_root(read_text(self.panels.gui_out_dir), self.out_root, what="output folder")
-
-    def export_from_gui(self, kind: Literal["results", "static"]) -> Future[Any] | None:
-        """The Export buttons: results into the GUI's output folder, the static demo into
-        `<output folder>/static/<scene>/`; both confined to the output root. Returns the job's Future.
-
-        Raises:
-            ClientValueError: the output folder field is outside the output root.
-        """
-        folder = self.gui_out_folder()
-        if kind == "results":
-            return self._submit(self._worker, self.export_results, folder, root=self.out_root)
-        scene = self.state.scene
-        target = folder / "static" / safe_name(scene.name) if scene is not None else None
-        return self._submit(self._worker, self.export_static, target, root=self.out_root)
-
     def _gui_set(self, handle: Any, value: Any) -> None:
         """Set a GUI value without re-entering our own callback."""
         with self._lock:
@@ -372,18 +342,6 @@ class ViewerApp:
             finally:
                 self._quiet = prev
 
-    def _allowed(self, path: Path) -> bool:
-        """May the viewer read `path`? Inside a given folder, a given file, or the saved result of a given file."""
-        if is_inside(path, self._roots):
-            return True
-        rp = path.resolve()
-        return any(r.is_file() and rp == trace_path_for(r) for r in self._roots)
-
-    # ================================================================== prior
-    def prior(self) -> ShapePriorLike:
-        """The shape prior (loaded on first use). Raises RuntimeError with the reason when unavailable."""
-        return self.priors.primary()
-
     # ================================================================== 1. scenes
     def open_scene(self, name: str) -> bool:
         """Load a scene from the browser list, draw it, and load its saved trace when present.
@@ -391,41 +349,17 @@ class ViewerApp:
         Returns:
             True on success; on failure the error is shown in the GUI and the previous scene stays.
         """
-        from efem_viz.data.io import holds_predictions, load_scene
-
-        try:
-            entry = self.state.entry(name)
-        except KeyError as exc:
-            self._set_status(str(exc), error=True)
-            return False
-        if not is_inside(entry.path, self._roots):  # never read outside the given paths
-            self._set_status(f"refusing to open {entry.path}: outside the given paths", error=True)
-            return False
-        self._set_status(f"Loading {entry.name} …")
-        try:
-            scene = load_scene(entry.path, max_points=self.max_points)
-            if holds_predictions(entry.path) and scene.instance is not None:
-                scene = scene.with_labels(None, {})  # a segment output's labels are its predictions: no ground truth
-        except Exception as exc:  # noqa: BLE001 - SceneError, OSError, parser errors: show, stay up
-            self._set_status(f"Could not open {entry.path.name}: {exc}", error=True)
+        got = self.session.read_scene(name)
+        if got is None:
             if self.state.scene_name is not None:
                 self._gui_set(self.panels.gui_scene, self.state.scene_name)
             return False
+        entry, scene = got
         with self._lock:
             self.pause()
-            if self.state.running:
-                self._cancel.set()  # the run belongs to the previous scene
-            self._generation += 1
-            self._view_cache.clear()
-            self._inspect_weights = None
+            self.session.show_scene(entry, scene)
             s = self.state
-            s.scene_name, s.scene, s.result, s.result_source = entry.name, scene, None, ""
-            s.step, s.selected, s.color_mode = 0, None, "rgb"
             self._set_view_mode("result")
-            if scene.is_mesh and s.display == "points":
-                s.display = "mesh"
-            elif not scene.is_mesh:
-                s.display = "points"
             self.nodes.draw_scene(scene, display=s.display)
             s.point_size = self.nodes.point_size
             self._gui_set(self.panels.gui_scene, entry.name)
@@ -433,17 +367,13 @@ class ViewerApp:
             self._gui_set(self.panels.gui_color, "scene colours")
             self._gui_set(self.panels.gui_point_size, float(np.clip(round(s.point_size * 2000) / 2, 0.5, 20.0)))
             self.panels.gui_info.content = scene_info_markdown(scene, entry)
-            self._frame_cameras(scene)
+            lo, hi = scene.bounds  # the initial camera (new clients, "Reset view") and every connected one
+            self.camera_guard.set_scene(fitted_view(lo, hi, direction=VIEW_DIRECTION), lo, hi)
             self._draw_no_result()
             self._set_status(f"Opened {entry.name} ({scene.num_points:,} points).")
-        if entry.trace_path.is_file() and self._allowed(entry.trace_path):
+        if self.session.saved_result_path() is not None:
             self.load_trace()
         return True
-
-    def _frame_cameras(self, scene: Any) -> None:
-        """Point the initial camera (new clients, "Reset view") and every connected camera at the scene."""
-        lo, hi = scene.bounds
-        self.camera_guard.set_scene(fitted_view(lo, hi, direction=VIEW_DIRECTION), lo, hi)
 
     def reset_view(self, client: Any = None) -> None:
         """Put one browser's camera (every browser's when None) on the view that fits the open scene."""
@@ -451,11 +381,9 @@ class ViewerApp:
 
     def set_display(self, display: str) -> None:
         """'points' or 'mesh'."""
-        if display not in ("points", "mesh"):
-            raise ValueError(f"display must be 'points' or 'mesh', got {display!r}")
         with self._lock:
-            self.state.display = display  # type: ignore[assignment]
-            self.nodes.set_display(display, recolored=self._recolored())
+            self.session.set_display(display)
+            self.nodes.set_display(display, recolored=self.session.recolored())
 
     def set_point_size(self, size_m: float) -> None:
         with self._lock:
@@ -465,133 +393,86 @@ class ViewerApp:
 
     def set_color_mode(self, mode: str) -> None:
         """How the scene points are coloured: 'rgb', 'instances', 'gt_match' or 'weights'."""
-        if mode not in COLOR_MODES.values():
-            raise ValueError(f"unknown colour mode {mode!r}; expected one of {sorted(COLOR_MODES.values())}")
         with self._lock:
-            self.state.color_mode = mode  # type: ignore[assignment]
+            self.session.set_color_mode(mode)
             label = next(k for k, v in COLOR_MODES.items() if v == mode)
             self._gui_set(self.panels.gui_color, label)
             if mode in ("instances", "gt_match"):
                 self._show_result_view()  # colours of the final instances: show the result
             self.draw_point_colors()
-            self.nodes.set_display(self.state.display, recolored=self._recolored())
+            self.nodes.set_display(self.state.display, recolored=self.session.recolored())
             self._show_results()
 
     # ================================================================== 2. results: load / run
     def load_trace(self, path: str | Path | None = None) -> bool:
         """Load `<scene>.efem.npz` (or `path`, which must lie inside the given paths) for the open scene."""
-        from efem_viz.em import EMResult
-
-        s = self.state
-        if s.scene is None or s.scene_name is None:
-            self._set_status("Open a scene first.", error=True)
+        got = self.session.read_result(path)
+        if got is None:
             return False
-        p = Path(path) if path is not None else s.entry(s.scene_name).trace_path
-        if not self._allowed(p):
-            self._set_status(f"refusing to read {p}: outside the given paths", error=True)
-            return False
-        if not p.is_file():
-            self._set_status(f"No saved trace at {p.name}; run EFEM first.", error=True)
-            return False
+        result, name = got
         try:
-            result = EMResult.load(p)
-            self.set_result(result, source=str(p.name))
-            scene = s.scene
-            if scene is not None:
-                self.panels.gui_info.content = scene_info_markdown(scene, s.entry(s.scene_name))
-        except Exception as exc:  # noqa: BLE001 - corrupt file, other scene's result: show, stay up
-            logger.exception("loading %s failed", p)
-            self._set_status(f"Could not load {p.name}: {exc}", error=True)
+            self.set_result(result, source=name)
+            s = self.state
+            if s.scene is not None and s.scene_name is not None:
+                self.panels.gui_info.content = scene_info_markdown(s.scene, s.entry(s.scene_name))
+        except Exception as exc:  # noqa: BLE001 - another scene's result: show, stay up
+            logger.exception("loading %s failed", name)
+            self._set_status(f"Could not load {name}: {exc}", error=True)
             return False
         return True
 
     def start_run(self, *, preset: str = "fast", proposals: int | None = None, seed: int = 0) -> Future[Any] | None:
         """Run EFEM on the open scene in the worker thread (progress bar, cancel). Returns the job's Future."""
         with self._lock:
-            if self.state.running:
-                self._set_status("A run is already in progress.", error=True)
+            generation = self.session.begin_run()
+            if generation is None:
                 return None
-            if self.state.scene is None:
-                self._set_status("Open a scene first.", error=True)
-                return None
-            self.state.running = True
-            self._cancel.clear()
-            p = self.panels
-            p.gui_run.disabled = True
-            p.gui_load.disabled = True
-            p.gui_cancel.disabled = False
+            self._show_running(True)
+        return self._submit(self._runner, self._run_job, preset, proposals, seed, generation)
+
+    def _show_running(self, running: bool) -> None:
+        p = self.panels
+        p.gui_run.disabled = running
+        p.gui_load.disabled = running
+        p.gui_cancel.disabled = not running
+        p.gui_progress.visible = running
+        if running:
             p.gui_progress.value = 0.0
-            p.gui_progress.visible = True
             p.gui_progress.animated = True
-        return self._submit(self._runner, self._run_job, preset, proposals, seed, self._generation)
 
     def _run_job(self, preset: str, proposals: int | None, seed: int, generation: int) -> Any:
-        from efem_viz.em import EMCancelled, preset as make_preset, run_em
-
-        t0 = time.perf_counter()
         try:
-            scene = self.state.require_scene()
-            cfg = make_preset(preset)
-            if proposals is not None:
-                cfg = cfg.with_proposals(int(proposals))
-            self._set_status(f"Running EFEM ({preset}, {cfg.n_init[0]} proposals, seed {seed}) …")
-            prior = self.prior()
-            priors = self.priors.run_priors()
-
-            def on_step(info: Any) -> None:
-                frac = 100.0 * (int(info.step) + 1) / max(int(info.num_steps), 1)
-                self.panels.gui_progress.value = float(np.clip(frac, 0.0, 100.0))
-                self.panels.gui_run_info.content = (
-                    f"step {int(info.step) + 1}/{int(info.num_steps)} · phase {int(info.phase)} · "
-                    f"{int(info.active)} active · {float(info.elapsed_s):.1f} s"
-                )
-
-            if priors is None:
-                result = run_em(scene, prior, cfg, seed=int(seed), on_step=on_step, cancel=self._cancel)
-            else:
-                result = run_em(scene, cfg=cfg, priors=priors, seed=int(seed), on_step=on_step, cancel=self._cancel)
-        except EMCancelled:
-            self._set_status("Run cancelled.")
-            return None
-        except Exception as exc:  # noqa: BLE001
-            self._set_status(f"EFEM run failed: {exc}", error=True)
-            return None
+            result = self.session.run(preset=preset, proposals=proposals, seed=seed, on_step=self._on_run_step,
+                                      show=False, generation=generation)
         finally:
             with self._lock:
-                self.state.running = False
-                p = self.panels
-                p.gui_run.disabled = False
-                p.gui_load.disabled = False
-                p.gui_cancel.disabled = True
-                p.gui_progress.visible = False
-        if generation != self._generation:
-            logger.info("scene changed during the run; result dropped")
+                self._show_running(False)
+        if result is None:
             return None
-        self.set_result(result, source=f"run ({preset}, seed {seed}, {time.perf_counter() - t0:.1f} s)")
+        self.set_result(result, source=self.session.last_run_source)
         return result
+
+    def _on_run_step(self, info: Any) -> None:
+        frac = 100.0 * (int(info.step) + 1) / max(int(info.num_steps), 1)
+        self.panels.gui_progress.value = float(np.clip(frac, 0.0, 100.0))
+        self.panels.gui_run_info.content = (
+            f"step {int(info.step) + 1}/{int(info.num_steps)} · phase {int(info.phase)} · "
+            f"{int(info.active)} active · {float(info.elapsed_s):.1f} s"
+        )
 
     def cancel_run(self) -> None:
         """Ask a running EM to stop at its next step."""
-        self._cancel.set()
-        self._set_status("Cancelling …")
+        self.session.cancel_run()
 
     def set_result(self, result: Any, *, source: str) -> None:
         """Show an EMResult: timeline, proposals at the last step, final instances and ground truth."""
         with self._lock:
             self.pause()
-            self._generation += 1
-            self._view_cache.clear()
-            self._inspect_weights = None
+            self.session.set_result(result, source=source)
             s = self.state
-            trace = result.trace
-            if s.scene is not None and hasattr(result, "bind"):
-                result.bind(s.scene)  # raises ValueError when the result belongs to another scene
-            s.result, s.result_source, s.selected = result, source, None
-            s.hidden, s.table_row = set(), None  # another result: other instances
-            T = int(trace.num_steps)
-            s.step = max(T - 1, 0)
+            T = s.num_steps
             p = self.panels
-            marks = phase_marks(np.asarray(trace.phase))
+            marks = phase_marks(np.asarray(result.trace.phase))
             p.gui_step.max = max(T - 1, 1)
             set_slider_marks(p.gui_step, [(m.step, m.label) for m in marks])
             p.gui_step.disabled = T == 0
@@ -599,20 +480,10 @@ class ViewerApp:
             self._gui_set(p.gui_step, s.step)
             self._gui_set(p.gui_proposal, NO_PROPOSAL)
             self.nodes.clear_inspector()
-            # Remove old per-step shapes and draw the final instances once.
-            for key in list(self.nodes.shapes):
-                h = self.nodes.shapes.pop(key)
-                try:
-                    h.remove()
-                except Exception:  # noqa: BLE001
-                    pass
+            self.nodes.remove_shapes()  # old per-step shapes; the final instances are drawn once
             self.nodes.draw_results(result.instances)
-            conf = np.asarray(result.instances.confidence, float)
-            hi = float(conf.max()) if conf.size else 1.0
-            p.gui_threshold.max = float(np.ceil(hi * 100.0 + 1e-6) / 100.0 + 0.01)  # the top hides every instance
-            s.threshold = float(np.clip(s.threshold, 0.0, p.gui_threshold.max))
+            p.gui_threshold.max = self.session.threshold_max(result)
             self._gui_set(p.gui_threshold, s.threshold)
-            self._mask_dist = None
             p.gui_mask_band.disabled = len(result.instances) == 0
             self._gui_set(p.gui_mask_band, float(np.clip(result.config.out_tau, *MASK_BAND_RANGE)))
             counts = md_escape(category_summary(result.instances.category))
@@ -621,7 +492,6 @@ class ViewerApp:
                 + (f" ({counts})" if counts else "")
             )
             p.gui_active_plot.visible = True
-            s.color_mode = "instances"
             self._gui_set(p.gui_color, "instances")
             self.set_step(s.step, view_mode="result")
             self.set_threshold(s.threshold)
@@ -635,10 +505,8 @@ class ViewerApp:
         p.gui_active_plot.visible = False
         p.gui_pr_plot.visible = False
         p.gui_step_info.content = "_No trace: run EFEM or load a saved trace._"
-        p.gui_inspect_info.content = ""
-        p.gui_dead_info.content = ""
-        p.gui_result_info.content = ""
-        p.gui_legend.content = ""
+        for h in (p.gui_inspect_info, p.gui_dead_info, p.gui_result_info, p.gui_legend):
+            h.content = ""
         self._update_instance_table()
         p.gui_gt_info.content = ""
         p.gui_run_info.content = ""
@@ -649,15 +517,14 @@ class ViewerApp:
     def set_view_mode(self, mode: str) -> None:
         """Show one EM step ("step": its decoded shapes and samples, no final instances) or the final instances
         ("result": meshes, boxes, labels and their colours, no step layers)."""
-        if mode not in VIEW_MODES.values():
-            raise ValueError(f"unknown view mode {mode!r}; expected one of {sorted(VIEW_MODES.values())}")
         with self._lock:
-            self._set_view_mode(mode)  # type: ignore[arg-type]
+            self.session.set_view_mode(mode)
+            self._set_view_mode(self.state.view_mode)
             if self.state.result is not None:
                 self.set_step(self.state.step, view_mode=self.state.view_mode)
                 self._show_results()
                 self.draw_point_colors()
-                self.nodes.set_display(self.state.display, recolored=self._recolored())
+                self.nodes.set_display(self.state.display, recolored=self.session.recolored())
 
     def _show_result_view(self) -> None:
         """Switch to the result view when a step is shown (the step's layers step aside)."""
@@ -666,15 +533,8 @@ class ViewerApp:
 
     def _set_view_mode(self, mode: st.ViewMode) -> None:
         """Record the mode and show it in the Show dropdown (no redraw)."""
-        self.state.view_mode = mode
+        self.session.set_view_mode(mode)
         self._gui_set(self.panels.gui_view_mode, next(k for k, v in VIEW_MODES.items() if v == mode))
-
-    def _recolored(self) -> bool:
-        """Whether the points carry other colours than the scene's (the mesh display then overlays them)."""
-        s = self.state
-        if s.color_mode == "weights":
-            return True
-        return s.color_mode != "rgb" and s.view_mode == "result"
 
     def set_step(self, step: int, *, view_mode: st.ViewMode = "step") -> None:
         """Show EM step `step`: proposals alive then (samples now, decoded shapes as they arrive), the dead list,
@@ -692,29 +552,25 @@ class ViewerApp:
             was = s.view_mode
             if view_mode != was:
                 self._set_view_mode(view_mode)
-            T = s.num_steps
-            t = int(np.clip(step, 0, max(T - 1, 0)))
-            s.step = t
-            self._gui_set(self.panels.gui_step, t)
-            trace = s.result.trace
-            ids, scores = alive_table(trace, t)
-            drawn = top_n(ids, scores, s.max_shapes)
-            self._draw_samples(trace, t, drawn)
-            self._draw_shapes(t, drawn)
-            self._update_step_panels(trace, t, ids, scores)
+            v = self.session.set_step(step)
+            assert v is not None
+            self._gui_set(self.panels.gui_step, v.step)
+            self._draw_samples(v.step, v.drawn)
+            self._draw_shapes(v.step, v.drawn)
+            self._update_step_panels(v)
             if s.selected is not None:
-                self._request_inspect(s.selected, t)
+                self._request_inspect(s.selected, v.step)
             if view_mode != was:  # the other layers step aside
                 self._show_results()
                 self.draw_point_colors()
-                self.nodes.set_display(s.display, recolored=self._recolored())
+                self.nodes.set_display(s.display, recolored=self.session.recolored())
 
-    def _draw_samples(self, trace: Any, t: int, drawn: np.ndarray) -> None:
+    def _draw_samples(self, t: int, drawn: np.ndarray) -> None:
         s = self.state
         if not s.show_samples or drawn.size == 0 or s.view_mode != "step":
             self.nodes.hide_samples()
             return
-        pts, cols = proposal_samples(trace, t, drawn, s.require_scene().points)
+        pts, cols = self.session.samples(drawn, t)
         if not len(pts):
             self.nodes.hide_samples()
             return
@@ -725,56 +581,44 @@ class ViewerApp:
         keys = [(int(pid), t) for pid in drawn] if s.show_shapes and s.view_mode == "step" else []
         self.nodes.show_shapes(keys)
         missing = [k for k in keys if not self.nodes.has_shape(*k)]
-        if missing and self._no_shapes_generation != self._generation:
-            self._submit(self._decoder, self._decode_shapes, missing, self._generation)
+        if missing and self.session.no_shapes_generation != self.session.generation:
+            self._submit(self._decoder, self._decode_shapes, missing, self.session.generation)
 
     def _decode_shapes(self, keys: list[tuple[int, int]], generation: int) -> None:
         """Worker: decode the shapes of (proposal, step) pairs from their stored latents and send each once."""
-        from efem_viz.em.replay import prior_latent
-
+        session = self.session
         for pid, t in keys:
             with self._lock:
-                if generation != self._generation or self.state.step != t or self.nodes.has_shape(pid, t):
+                if generation != session.generation or self.state.step != t or self.nodes.has_shape(pid, t):
                     continue  # the user moved on (decoded again when asked) or it is already there
-                trace = self.state.require_result().trace
             try:
-                prior, latent = prior_latent(trace, pid, t, self.priors.for_run(trace))
+                shape = session.decode_shape(pid, t)
             except RuntimeError as exc:
-                self._no_shapes_generation = generation  # say it once, do not retry on every step
+                session.no_shapes_generation = generation  # say it once, do not retry on every step
                 self._set_status(f"Decoded shapes unavailable: {exc}", error=True)
                 return
-            shape = decode_shape(prior, latent, resolution=trace.config.mesh_resolution)
             with self._lock:
-                if generation != self._generation:
+                if generation != session.generation:
                     return
                 if shape is not None:
-                    self.nodes.add_shape(pid, t, *shape, dead=is_dead_at(trace, pid, t))
+                    self.nodes.add_shape(pid, t, *shape, dead=session.is_dead_at(pid, t))
                 if self.state.step == t and self.state.show_shapes and self.state.view_mode == "step":
-                    ids, scores = alive_table(trace, t)
-                    drawn = top_n(ids, scores, self.state.max_shapes)
-                    self.nodes.show_shapes([(int(p_), t) for p_ in drawn])
+                    v = session.step_view(t)
+                    self.nodes.show_shapes([(int(p_), t) for p_ in (() if v is None else v.drawn)])
 
-    def _view(self, pid: int, t: int, prior: ShapePriorLike | None) -> Any:
-        key = (int(pid), int(t))
-        v = self._view_cache.get(key)
-        if v is None or (prior is not None and getattr(v, "mesh", None) is None):
-            v = self.state.require_result().replay.view(int(pid), int(t), prior, mesh=prior is not None)
-            self._view_cache[key] = v
-            if len(self._view_cache) > 256:
-                self._view_cache.pop(next(iter(self._view_cache)))
-        return v
-
-    def _update_step_panels(self, trace: Any, t: int, ids: np.ndarray, scores: np.ndarray) -> None:
+    def _update_step_panels(self, v: StepView) -> None:
         p = self.panels
+        trace = self.state.require_result().trace
+        t = v.step
         phase = int(np.asarray(trace.phase)[t]) if len(trace.phase) else 0
         sched = np.asarray(trace.schedule)[t] if len(trace.schedule) else np.zeros(4)
         active = np.asarray(trace.active_count)
-        p.gui_step_info.content = step_markdown(t, int(trace.num_steps), phase=phase, alive=len(ids),
+        p.gui_step_info.content = step_markdown(t, int(trace.num_steps), phase=phase, alive=len(v.ids),
                                                 initial=int(active[0]) if active.size else 0, schedule=sched)
         set_figure(p.gui_active_plot, active_figure(
             active, [(m.step, m.label) for m in phase_marks(np.asarray(trace.phase))], t
         ))
-        options = proposal_options(ids, scores, selected=self.state.selected)
+        options = proposal_options(v.ids, v.scores, selected=self.state.selected)
         p.gui_proposal.options = options
         sel = self.state.selected
         current = next((o for o in options if parse_pid(o) == sel), NO_PROPOSAL)
@@ -820,29 +664,27 @@ class ViewerApp:
     # ================================================================== 4. proposals
     def set_max_shapes(self, n: int) -> None:
         with self._lock:
-            self.state.max_shapes = max(int(n), 0)
+            self.session.set_max_shapes(n)
             self.set_step(self.state.step)
 
     def set_proposal_layers(self, *, shapes: bool | None = None, samples: bool | None = None) -> None:
         with self._lock:
-            if shapes is not None:
-                self.state.show_shapes = bool(shapes)
-            if samples is not None:
-                self.state.show_samples = bool(samples)
+            self.session.set_proposal_layers(shapes=shapes, samples=samples)
             self.set_step(self.state.step)
 
     def select_proposal(self, pid: int | None) -> Future[Any] | None:
         """Inspect one proposal (None clears): Fig. S9 views computed in the worker, drawn when ready."""
         with self._lock:
             s = self.state
-            s.selected = None if pid is None else int(pid)
-            if pid is None or s.result is None:
+            was_weights = s.color_mode == "weights"
+            if not self.session.select_proposal(pid):
                 self.nodes.clear_inspector()
                 self.panels.gui_inspect_info.content = ""
-                if s.color_mode == "weights":
-                    self.set_color_mode("instances" if s.result is not None else "rgb")
+                if was_weights:
+                    self.set_color_mode(s.color_mode)
                 self._gui_set(self.panels.gui_proposal, NO_PROPOSAL)
                 return None
+            assert pid is not None
             opts = self.panels.gui_proposal.options
             cur = next((o for o in opts if parse_pid(o) == int(pid)), None)
             if cur is None:
@@ -858,61 +700,46 @@ class ViewerApp:
             self._set_status(f"error: {exc}", error=True)
 
     def _request_inspect(self, pid: int, t: int) -> Future[Any]:
-        return self._submit(self._decoder, self._inspect_job, pid, t, self._generation)
+        return self._submit(self._decoder, self._inspect_job, pid, t, self.session.generation)
 
     def _inspect_job(self, pid: int, t: int, generation: int) -> None:
         try:
-            prior = self.priors.for_trace(self.state.require_result().trace, pid)
-        except RuntimeError as exc:
-            prior = None  # the first step of an episode still has weights (the crop); later steps need the prior
-            logger.info("inspecting without a prior: %s", exc)
-        try:
-            view = self._view(pid, t, prior)
+            ins = self.session.inspect(pid, t)
         except ValueError as exc:
             self._set_status(f"Cannot inspect #{pid} at step {t}: {exc}", error=True)
             return
         with self._lock:
-            s = self.state
-            if generation != self._generation or s.selected != pid or s.step != t:
+            if generation != self.session.generation or not self.session.show_inspection(ins):
                 return
-            self._draw_inspector(pid, t, view)
+            self._draw_inspector(ins)
 
-    def _draw_inspector(self, pid: int, t: int, view: Any) -> None:
+    def _draw_inspector(self, ins: Inspection) -> None:
         s = self.state
-        scene, result = s.require_scene(), s.require_result()
-        w = np.asarray(view.weights, np.float32).reshape(-1)
-        r_err = float(result.trace.prop_r_err[pid])
-        center = proposal_center(result.trace, pid, t)
-        near = np.flatnonzero(np.linalg.norm(scene.points - center[None], axis=1) <= r_err)
-        crop_cols = heatmap(w[near], vmin=0.0, vmax=1.0)
-        mesh = getattr(view, "mesh", None)
-        col = instance_colors([pid])[0] if view.alive else DEAD_COLOR  # red once terminated (paper Fig. S9)
+        mesh = getattr(ins.view, "mesh", None)
         self.nodes.draw_inspector(
-            crop_points=scene.points[near],
-            crop_colors=crop_cols,
-            sampled_points=np.asarray(view.sampled_points, np.float32).reshape(-1, 3),
-            sample_color=col,
+            crop_points=ins.crop_points,
+            crop_colors=ins.crop_colors,
+            sampled_points=ins.sampled_points,
+            sample_color=ins.sample_color,
             mesh_vertices=None if mesh is None else np.asarray(mesh.vertices),
             mesh_faces=None if mesh is None else np.asarray(mesh.faces),
-            center=center,
-            radius=r_err,
-            label=f"#{pid} t={t}",
+            center=ins.center,
+            radius=ins.radius,
+            label=f"#{ins.pid} t={ins.step}",
         )
-        self._inspect_weights = w
-        if s.color_mode != "weights":
-            s.color_mode = "weights"
-            self._gui_set(self.panels.gui_color, "proposal weights")
+        self._gui_set(self.panels.gui_color, "proposal weights")
         self.draw_point_colors()
         self.nodes.set_display(s.display, recolored=True)
         self._show_results()
-        self.panels.gui_inspect_info.content = inspect_markdown(pid, t, view, instances=result.instances)
+        self.panels.gui_inspect_info.content = inspect_markdown(ins.pid, ins.step, ins.view,
+                                                                instances=s.require_result().instances)
 
     # ================================================================== 5./6. results and ground truth
     def set_threshold(self, threshold: float) -> None:
         """Filter the final instances by confidence (visibility + colours only, no re-run)."""
         with self._lock:
             s = self.state
-            s.threshold = float(threshold)
+            self.session.set_threshold(threshold)
             self._gui_set(self.panels.gui_threshold, s.threshold)
             if s.result is None:
                 return
@@ -926,7 +753,7 @@ class ViewerApp:
                 hidden_by_hand=int((keep & ~self.shown_mask()).sum()),
             )
             self.panels.gui_legend.content = legend_html(inst, self.shown_mask())
-            self._update_gt_panel(keep)
+            self._update_gt_panel()
             self._update_instance_table()
 
     def set_mask_band(self, tau_out: float) -> bool:
@@ -939,67 +766,29 @@ class ViewerApp:
             s = self.state
             if s.result is None or s.scene is None:
                 return False
-            tau = float(np.clip(tau_out, *MASK_BAND_RANGE))
-            self._gui_set(self.panels.gui_mask_band, tau)
-            if abs(tau - s.result.config.out_tau) < 1e-9:
-                return True
-            try:
-                if self._mask_dist is None or self._mask_dist[0] != self._generation:
-                    from efem_viz.em.masks import instance_distances
-
-                    self._set_status("Decoding the instances' final shapes for the mask band …")
-                    self._mask_dist = (self._generation,
-                                       instance_distances(s.result, s.scene, self.priors.for_run(s.result.trace)))
-                dist = self._mask_dist[1]
-                masks = dist.masks(tau, s.result.config.gamma_out)
-            except (RuntimeError, ValueError) as exc:
-                self._set_status(f"Mask band unavailable: {exc}", error=True)
+            self._gui_set(self.panels.gui_mask_band, float(np.clip(tau_out, *MASK_BAND_RANGE)))
+            before = self.session.mask_version
+            if not self.session.set_mask_band(tau_out):
                 return False
-            inst = dataclasses.replace(s.result.instances, masks=masks)
-            s.result = dataclasses.replace(s.result, instances=inst, config=s.result.config.replace(tau_out=tau))
-            self._gt_cache.clear()
-            self._mask_version += 1
-            self.set_threshold(s.threshold)
-            self._set_status(f"Masks re-derived at τ_out = {tau:g} from the stored latents; nothing was re-run.")
+            if self.session.mask_version != before:
+                self.set_threshold(s.threshold)
+                tau = s.require_result().config.out_tau
+                self._set_status(f"Masks re-derived at τ_out = {tau:g} from the stored latents; nothing was re-run.")
             return True
 
     def kept_mask(self) -> np.ndarray:
         """(K,) bool: final instances at or above the threshold (what the metrics and exports take)."""
-        res = self.state.result
-        if res is None:
-            return np.zeros(0, bool)
-        return res.instances.kept(self.state.threshold)
+        return self.session.kept_mask()
 
     def shown_mask(self) -> np.ndarray:
         """(K,) bool: final instances drawn: at or above the threshold and not hidden in the instance table."""
-        res = self.state.result
-        if res is None:
-            return np.zeros(0, bool)
-        return st.shown_mask(res.instances, self.state.threshold, self.state.hidden)
+        return self.session.shown_mask()
 
     # ---------------------------------------------------------------- the instance table
-    def _instance_index(self, pid: int | None) -> int:
-        """Position in the result's instances of proposal id `pid`.
-
-        Raises:
-            ValueError: no result, no instance chosen, or no instance with that id.
-        """
-        res = self.state.result
-        if res is None:
-            raise ValueError("no result: load or run one first")
-        if pid is None:
-            raise ValueError("no instance chosen: pick one in the Instance dropdown")
-        hit = np.flatnonzero(np.asarray(res.instances.ids).reshape(-1) == int(pid))
-        if hit.size == 0:
-            raise ValueError(f"the result has no instance #{int(pid)}")
-        return int(hit[0])
-
     def choose_instance(self, pid: int | None) -> None:
         """Choose a row of the instance table (None: none); its *Visible* box and mark follow."""
         with self._lock:
-            if pid is not None:
-                self._instance_index(pid)
-            self.state.table_row = None if pid is None else int(pid)
+            self.session.choose_instance(pid)
             self._update_instance_table()
 
     def set_instance_visible(self, pid: int | None, visible: bool) -> None:
@@ -1009,15 +798,8 @@ class ViewerApp:
             ValueError: no such instance.
         """
         with self._lock:
-            self._instance_index(pid)
-            assert pid is not None
-            s = self.state
-            s.table_row = int(pid)
-            if visible:
-                s.hidden.discard(int(pid))
-            else:
-                s.hidden.add(int(pid))
-            self.set_threshold(s.threshold)  # redraw layers, colours, summary, legend and table
+            self.session.set_instance_visible(pid, visible)
+            self.set_threshold(self.state.threshold)  # redraw layers, colours, summary, legend and table
 
     def fly_to_instance(self, pid: int | None, *, client: Any = None) -> None:
         """Point one browser's camera (every browser's when None) at an instance: the box of its points (of its
@@ -1027,22 +809,13 @@ class ViewerApp:
             ValueError: no such instance.
         """
         with self._lock:
-            k = self._instance_index(pid)
-            s = self.state
-            inst, scene = s.require_result().instances, s.require_scene()
-            mask = np.asarray(inst.masks[k], np.int64)
-            pts = scene.points[mask] if mask.size else np.asarray(inst.obb(k).corners, np.float64)
-            lo_s, hi_s = scene.bounds
-            view = fly_to_view(pts.min(axis=0), pts.max(axis=0), home=self.camera_guard.view,
-                               scene_diagonal=float(np.linalg.norm(np.subtract(hi_s, lo_s))))
-            row_id = int(inst.ids[k])
-            s.table_row = row_id
+            f = self.session.fly_target(pid)
+            view = fly_to_view(f.lo, f.hi, home=self.camera_guard.view, scene_diagonal=f.scene_diagonal)
             self._update_instance_table()
-            below = not bool(inst.kept(s.threshold)[k])
         self.camera_guard.place(view, client)
-        if below:
-            self._set_status(f"Instance #{row_id} (confidence {float(inst.confidence[k]):.2f}) is below the "
-                             f"confidence threshold {s.threshold:.2f}: lower it to see the instance.")
+        if f.below_threshold:
+            self._set_status(f"Instance #{f.pid} (confidence {f.confidence:.2f}) is below the "
+                             f"confidence threshold {self.state.threshold:.2f}: lower it to see the instance.")
 
     def step_instance(self, step: int, *, client: Any = None) -> int:
         """Choose the next (`step` = 1) or previous (-1) row of the instance table (most confident first, wrapping
@@ -1051,12 +824,7 @@ class ViewerApp:
         Raises:
             ValueError: no result or no instance.
         """
-        with self._lock:
-            res = self.state.result
-            if res is None or len(res.instances) == 0:
-                raise ValueError("no instances: load or run a result first")
-            ids = [option_id(o) for o in instance_options(res.instances)]
-            pid = step_row(ids, self.state.table_row, step)
+        pid = self.session.next_instance(step)
         self.fly_to_instance(pid, client=client)
         return pid
 
@@ -1064,33 +832,29 @@ class ViewerApp:
         """Redraw the instance table, its dropdown (options and choice), *Visible* box and buttons."""
         s = self.state
         p = self.panels
-        inst = None if s.result is None else s.result.instances
-        if inst is None or len(inst) == 0:
+        buttons = (p.gui_instance_visible, p.gui_fly_to, p.gui_instance_prev, p.gui_instance_next)
+        opts = self.session.table_options()
+        if not opts:
             p.gui_instance.options = (NO_ROW,)
             self._gui_set(p.gui_instance, NO_ROW)
-            p.gui_instance_table.content = "_No final instances._" if inst is not None else ""
-            for h in (p.gui_instance_visible, p.gui_fly_to, p.gui_instance_prev, p.gui_instance_next):
+            p.gui_instance_table.content = "_No final instances._" if s.result is not None else ""
+            for h in buttons:
                 h.disabled = True
             return
-        opts = instance_options(inst)
+        inst = s.require_result().instances
         if tuple(p.gui_instance.options) != opts:
             p.gui_instance.options = opts
-        if s.table_row is not None and s.table_row not in {option_id(o) for o in opts}:
-            s.table_row = None
         self._gui_set(p.gui_instance, option_for(opts, s.table_row) if s.table_row is not None else opts[0])
-        if s.table_row is None:  # the dropdown shows the first row: that is the one chosen
-            s.table_row = option_id(opts[0])
         self._gui_set(p.gui_instance_visible, s.table_row not in s.hidden)
-        for h in (p.gui_instance_visible, p.gui_fly_to, p.gui_instance_prev, p.gui_instance_next):
+        for h in buttons:
             h.disabled = False
-        metrics = self._gt_metrics_or_none() if s.scene is not None and s.scene.has_gt else None
+        metrics = self.session.gt_metrics_or_none() if s.scene is not None and s.scene.has_gt else None
         p.gui_instance_table.content = instance_table_markdown(inst, threshold=s.threshold, hidden=s.hidden,
                                                                metrics=metrics, selected=s.table_row)
 
     def set_result_layers(self, *, meshes: bool, obbs: bool, axes: bool) -> None:
         with self._lock:
-            s = self.state
-            s.show_meshes, s.show_obbs, s.show_axes = bool(meshes), bool(obbs), bool(axes)
+            self.session.set_result_layers(meshes=meshes, obbs=obbs, axes=axes)
             self._show_result_view()
             self._show_results()
 
@@ -1108,7 +872,7 @@ class ViewerApp:
             show_axes=s.show_axes,
         )
 
-    def _update_gt_panel(self, keep: np.ndarray) -> None:
+    def _update_gt_panel(self) -> None:
         s = self.state
         p = self.panels
         if s.scene is None or not s.scene.has_gt or s.result is None:
@@ -1116,7 +880,7 @@ class ViewerApp:
             p.gui_pr_plot.visible = False
             return
         try:
-            metrics = self._gt_metrics()
+            metrics = self.session.gt_metrics()
         except Exception as exc:  # noqa: BLE001 - evaluation problems must not break the threshold view
             logger.exception("ground-truth evaluation failed")
             p.gui_gt_info.content = f"_Ground-truth evaluation failed: {exc}_"
@@ -1127,117 +891,56 @@ class ViewerApp:
         p.gui_pr_plot.visible = True
 
     def _gt_metrics(self) -> GTMetrics:
-        """Ground-truth metrics of the current result at the current threshold (cached per threshold)."""
-        s = self.state
-        key = (self._generation, round(float(s.threshold), 6))
-        cached = self._gt_cache.get(key)
-        if cached is None:
-            cached = gt_metrics(s.require_result().instances, s.require_scene(), s.threshold)
-            if len(self._gt_cache) > 64:
-                self._gt_cache.clear()
-            self._gt_cache[key] = cached
-        return cached
-
-    def _gt_metrics_or_none(self) -> GTMetrics | None:
-        try:
-            return self._gt_metrics()
-        except Exception:  # noqa: BLE001 - shown in the ground-truth panel
-            return None
+        """Ground-truth metrics of the current result at the current threshold (`ViewerSession.gt_metrics`)."""
+        return self.session.gt_metrics()
 
     def draw_point_colors(self) -> None:
         """Recolour the scene points for the current colour mode (sends only (N,3) uint8)."""
-        s = self.state
-        if s.scene is None:
+        pc = self.session.point_colors(self.nodes.results.colors)
+        if pc is None:
             return
-        base = s.scene.colors
-        mode = s.color_mode
-        cols: np.ndarray
-        key: Any
-        shown = "rgb"  # the colouring in effect: its key is shown under the Colour control
-        boxes: np.ndarray | None = None
-        if mode in ("instances", "gt_match") and s.view_mode != "result":
-            cols, key = base, ("rgb", id(base))  # one EM step on screen: no final instance colours
-        elif mode == "instances" and s.result is not None:
-            keep = self.shown_mask()
-            cols = instance_point_colors(base, s.result.instances, keep)
-            key = ("inst", self._generation, self._mask_version, keep.tobytes())
-            shown = "instances"
-        elif mode == "gt_match" and s.result is not None and s.scene.has_gt and self._gt_metrics_or_none() is not None:
-            m = self._gt_metrics()
-            kept = np.flatnonzero(self.kept_mask())  # the metrics index the kept instances
-            drawn = self.shown_mask()
-            off = {j for j, k in enumerate(kept) if not drawn[k]}  # hidden in the instance table: grey
-            gt_instance = s.require_scene().instance
-            assert gt_instance is not None  # has_gt
-            cols = gt_match_colors(base, m.masks, gt_instance, tp=[j for j in m.tp if j not in off],
-                                   fp=[j for j in m.fp if j not in off], fn=m.fn)
-            key = ("gt", self._generation, self._mask_version, drawn.tobytes())
-            shown = "gt_match"
-            boxes = np.array(self.nodes.results.colors, np.uint8, copy=True)
-            for ks, colour in ((m.tp, TP_COLOR), (m.fp, FP_COLOR)):
-                for k in ks:
-                    if int(k) < kept.size and kept[int(k)] < len(boxes):
-                        boxes[kept[int(k)]] = colour
-        elif mode in ("instances", "gt_match") and s.result is not None:
-            keep = self.shown_mask()
-            cols = instance_point_colors(base, s.result.instances, keep)
-            key = ("inst", self._generation, self._mask_version, keep.tobytes())
-            shown = "instances"
-        elif mode == "weights" and s.selected is not None and self._inspect_weights is not None:
-            cols = weights_colors(base, self._inspect_weights)
-            key = ("w", self._generation, s.selected, s.step)
-            shown = "weights"
-        else:
-            cols, key = base, ("rgb", id(base))
-        self.nodes.set_point_colors(cols, key=key)
-        self.nodes.set_box_colors(boxes)
-        self.panels.gui_color_key.content = color_key_html(shown)
+        self.nodes.set_point_colors(pc.colors, key=pc.key)
+        self.nodes.set_box_colors(pc.boxes)
+        self.panels.gui_color_key.content = color_key_html(pc.shown)
 
     # ================================================================== 7. export
+    def gui_out_folder(self) -> Path:
+        """The folder in the GUI's "Output folder" field, resolved inside the output root chosen at start.
+
+        Raises:
+            ClientValueError: the field names a place outside the output root (`..`, another absolute path, a
+                symlink pointing out), or is not a usable path.
+        """
+        return resolve_inside_root(read_text(self.panels.gui_out_dir), self.out_root, what="output folder")
+
+    def export_from_gui(self, kind: Literal["results", "static"]) -> Future[Any] | None:
+        """The Export buttons: results into the GUI's output folder, the static demo into
+        `<output folder>/static/<scene>/`; both confined to the output root. Returns the job's Future.
+
+        Raises:
+            ClientValueError: the output folder field is outside the output root.
+        """
+        folder = self.gui_out_folder()
+        if kind == "results":
+            return self._submit(self._worker, self.export_results, folder, root=self.out_root)
+        return self._submit(self._worker, self.export_static, self.session.static_target(folder),
+                            root=self.out_root)
+
     def export_results(self, out_dir: str | Path, *, root: Path | None = None) -> Path | None:
         """Write the thresholded result: ScanNet layout + coloured PLY under `out_dir` (a Python caller's choice;
-        the GUI button goes through `export_from_gui`, confined to the output root).
-
-        Args:
-            out_dir: the export folder.
-            root: when given, every folder and file written must resolve inside it (links followed), checked
-                before anything is written.
-        """
-        from efem_viz.viewer.export import export_results
-
-        s = self.state
-        if s.result is None or s.scene is None:
-            self._set_status("Nothing to export: load or run a result first.", error=True)
-            return None
-        out = export_results(s.result, s.scene, Path(out_dir), threshold=s.threshold, root=root)
-        self.panels.gui_export_info.content = f"Results written to `{out}`"
-        self._set_status(f"Exported results to {out}.")
+        the GUI button goes through `export_from_gui`, confined to the output root). See
+        `ViewerSession.export_results`."""
+        out = self.session.export_results(out_dir, root=root)
+        if out is not None:
+            self.panels.gui_export_info.content = f"Results written to `{out}`"
         return out
 
     def export_static(self, out_dir: str | Path | None = None, *, root: Path | None = None) -> Path | None:
-        """Write the static demo page `<out_dir>/index.html` (final result + playback of the steps).
-
-        Args:
-            out_dir: the page's folder (a Python caller's choice); None = `<output root>/static/<scene>/`, never
-                the installed package or the checkout. The GUI button goes through `export_from_gui`.
-            root: as in `export_results`.
-        """
-        from efem_viz.viewer.export import export_static_demo
-
-        s = self.state
-        if s.result is None or s.scene is None:
-            self._set_status("Nothing to export: load or run a result first.", error=True)
-            return None
-        target = Path(out_dir) if out_dir is not None else self.out_root / "static" / safe_name(s.scene.name)
-        try:
-            prior = self.priors.for_run(s.result.trace)
-        except RuntimeError as exc:
-            prior = None
-            logger.info("static demo without decoded shapes: %s", exc)
-        self._set_status(f"Exporting the static demo of {s.scene.name} …")
-        out = export_static_demo(s.scene, s.result, target, threshold=s.threshold, prior=prior, root=root)
-        self.panels.gui_export_info.content = f"Static demo written to `{out}`"
-        self._set_status(f"Exported static demo to {out}.")
+        """Write the static demo page `<out_dir>/index.html` (final result + playback of the steps); None =
+        `<output root>/static/<scene>/`. See `ViewerSession.export_static`."""
+        out = self.session.export_static(out_dir, root=root)
+        if out is not None:
+            self.panels.gui_export_info.content = f"Static demo written to `{out}`"
         return out
 
 

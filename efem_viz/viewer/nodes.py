@@ -433,6 +433,15 @@ class SceneNodes:
     def has_shape(self, pid: int, step: int) -> bool:
         return (int(pid), int(step)) in self.shapes
 
+    def remove_shapes(self) -> None:
+        """Remove every decoded shape (another result: other proposals)."""
+        for key in list(self.shapes):
+            h = self.shapes.pop(key)
+            try:
+                h.remove()
+            except Exception:  # noqa: BLE001 - already gone
+                pass
+
     def add_shape(self, pid: int, step: int, vertices: np.ndarray, faces: np.ndarray, *, dead: bool = False) -> None:
         """Send one decoded shape (once per proposal and step; later steps switch it by visibility).
 

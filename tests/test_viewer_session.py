@@ -1,0 +1,252 @@
+"""The viewer's headless session (`efem_viz.viewer.session.ViewerSession`): every action without viser or a browser.
+
+A bundled sample scene with its precomputed result (and the shipped mug prior, for decoding) covers open, load,
+step, inspect, threshold, mask band, the instance table and the exports; runs use the analytic sphere scene and
+prior (exact, fast, no trained weights).
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+import pytest
+
+from efem_viz.prior import analytic
+from efem_viz.viewer.session import FlyTarget, Inspection, PointColors, StepView, ViewerSession
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLES = ROOT / "sample_scenes"
+SCENE = "syn_z_1"
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ViewerSession]:
+    import torch
+
+    torch.set_num_threads(1)
+    s = ViewerSession([SAMPLES], out_dir=tmp_path_factory.mktemp("out"))
+    assert s.open_scene(SCENE) is not None
+    assert s.load_result() is not None
+    yield s
+
+
+@pytest.fixture(scope="module")
+def sphere_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from efem_viz.data.io import save_scene
+
+    d = tmp_path_factory.mktemp("spheres")
+    save_scene(analytic.make_sphere_scene(seed=0, spacing=0.01, name="spheres"), d / "spheres.ply")
+    return d
+
+
+def test_session_imports_no_viser() -> None:
+    import subprocess
+
+    code = ("import sys; import efem_viz.viewer.session as s; s.ViewerSession; "
+            "assert 'viser' not in sys.modules, sorted(m for m in sys.modules if 'viser' in m)")
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
+
+
+def test_open_scene_from_the_list_and_refusals(tmp_path: Path) -> None:
+    s = ViewerSession([SAMPLES], out_dir=tmp_path)
+    assert SCENE in [e.name for e in s.state.entries]
+    statuses: list[tuple[str, bool]] = []
+    s.on_status = lambda text, error: statuses.append((text, error))
+    assert s.open_scene("no_such_scene") is None and s.state.error and "unknown scene" in s.state.error
+    scene = s.open_scene(SCENE)
+    assert scene is not None and s.state.scene is scene and s.state.scene_name == SCENE
+    assert s.state.result is None and s.state.view_mode == "result" and s.state.color_mode == "rgb"
+    assert statuses[-1] == (f"Opened {SCENE} ({scene.num_points:,} points).", False) and s.state.error is None
+    assert s.saved_result_path() == SAMPLES / f"{SCENE}.efem.npz"
+    assert s.read_result(tmp_path / "elsewhere.efem.npz") is None and "outside the given paths" in str(s.state.error)
+    generation = s.generation
+    assert s.load_result() is not None and s.generation == generation + 1
+
+
+def test_load_result_state(session: ViewerSession) -> None:
+    st = session.state
+    res = st.require_result()
+    assert st.result_source == f"{SCENE}.efem.npz"
+    assert st.step == st.num_steps - 1 and st.color_mode == "instances" and st.selected is None
+    assert 0.0 <= st.threshold <= session.threshold_max(res)
+    assert session.threshold_max(res) > float(np.max(res.instances.confidence))
+
+
+def test_step_through_iterations(session: ViewerSession) -> None:
+    v = session.set_step(0)
+    assert isinstance(v, StepView) and v.step == 0 and session.state.step == 0
+    assert len(v.ids) == len(v.scores) and set(v.drawn.tolist()) <= set(v.ids.tolist())
+    assert len(v.drawn) <= session.state.max_shapes
+    assert session.set_step(10_000).step == session.state.num_steps - 1  # type: ignore[union-attr]
+    session.set_step(0)
+    assert session.next_step().step == 1  # type: ignore[union-attr]
+    session.set_step(session.state.num_steps - 1)
+    assert session.next_step() is None and not session.state.playing  # playback stops at the end
+    session.set_max_shapes(2)
+    assert len(session.step_view(0).drawn) <= 2  # type: ignore[union-attr]
+    session.set_max_shapes(8)
+    session.set_proposal_layers(shapes=False, samples=False)
+    assert not session.state.show_shapes and not session.state.show_samples
+    session.set_proposal_layers(shapes=True, samples=True)
+    v0 = session.step_view(0)
+    assert v0 is not None
+    pts, cols = session.samples(v0.drawn, 0)
+    assert pts.shape[1] == 3 and cols.shape == pts.shape and cols.dtype == np.uint8
+    pid = int(v0.drawn[0])
+    assert session.is_dead_at(pid, 0) is False
+
+
+def test_modes_and_validation(session: ViewerSession) -> None:
+    with pytest.raises(ValueError):
+        session.set_color_mode("rainbow")
+    with pytest.raises(ValueError):
+        session.set_view_mode("movie")
+    with pytest.raises(ValueError):
+        session.set_display("voxels")
+    session.set_view_mode("step")
+    session.set_color_mode("instances")
+    assert not session.recolored()  # a step on screen: scene colours
+    pc = session.point_colors()
+    assert isinstance(pc, PointColors) and pc.shown == "rgb"
+    session.set_view_mode("result")
+    assert session.recolored() and session.point_colors().shown == "instances"  # type: ignore[union-attr]
+    session.set_result_layers(meshes=False, obbs=True, axes=True)
+    assert (session.state.show_meshes, session.state.show_obbs, session.state.show_axes) == (False, True, True)
+    session.set_result_layers(meshes=True, obbs=True, axes=False)
+
+
+def test_threshold_and_ground_truth(session: ViewerSession) -> None:
+    res = session.state.require_result()
+    session.set_threshold(0.0)
+    assert session.kept_mask().all()
+    session.set_threshold(session.threshold_max(res))
+    assert not session.kept_mask().any() and not session.shown_mask().any()
+    session.set_threshold(0.3)
+    np.testing.assert_array_equal(session.kept_mask(), res.instances.kept(0.3))
+    m = session.gt_metrics()
+    assert session.gt_metrics() is m  # cached per threshold
+    assert len(m.tp) + len(m.fp) == int(session.kept_mask().sum())
+    session.set_color_mode("gt_match")
+    boxes = np.zeros((len(res.instances), 3), np.uint8)
+    pc = session.point_colors(boxes)
+    assert pc is not None and pc.shown == "gt_match" and pc.boxes is not None and pc.boxes.shape == boxes.shape
+    assert pc.colors.shape == (session.state.require_scene().num_points, 3)
+    session.set_color_mode("instances")
+
+
+def test_instance_table_actions(session: ViewerSession) -> None:
+    session.set_threshold(0.0)
+    res = session.state.require_result()
+    ids = [int(i) for i in np.asarray(res.instances.ids).reshape(-1)]
+    opts = session.table_options()
+    assert len(opts) == len(ids) and session.state.table_row is not None
+    first = session.state.table_row
+    session.choose_instance(ids[-1])
+    assert session.state.table_row == ids[-1]
+    with pytest.raises(ValueError, match="no instance #"):
+        session.choose_instance(10_000)
+    session.set_instance_visible(ids[0], False)
+    assert ids[0] in session.state.hidden and not session.shown_mask()[0] and session.kept_mask()[0]
+    session.set_instance_visible(ids[0], True)
+    assert not session.state.hidden
+    nxt = session.next_instance(+1)
+    assert nxt in ids
+    target = session.fly_target(nxt)
+    assert isinstance(target, FlyTarget) and target.pid == nxt and session.state.table_row == nxt
+    assert np.all(target.lo <= target.hi) and target.scene_diagonal > 0 and not target.below_threshold
+    session.state.table_row = None
+    session.table_options()
+    assert session.state.table_row == first  # the first row (most confident) when none is chosen
+
+
+def test_inspect_a_proposal(session: ViewerSession) -> None:
+    v = session.set_step(1)
+    assert v is not None
+    pid = int(v.drawn[0])
+    assert session.select_proposal(pid) and session.state.selected == pid
+    ins = session.inspect(pid)
+    assert isinstance(ins, Inspection) and ins.pid == pid and ins.step == 1
+    n = session.state.require_scene().num_points
+    assert ins.weights.shape == (n,) and ins.crop_points.shape == ins.crop_colors.shape
+    assert ins.radius > 0 and ins.sampled_points.shape[1] == 3
+    assert session.show_inspection(ins) and session.state.color_mode == "weights"
+    assert session.point_colors().shown == "weights"  # type: ignore[union-attr]
+    session.set_step(2)
+    assert not session.show_inspection(ins)  # stale: another step
+    assert not session.select_proposal(None) and session.state.color_mode == "instances"
+    shape = session.decode_shape(pid, 1)
+    assert shape is None or (shape[0].shape[1] == 3 and shape[1].shape[1] == 3)
+
+
+def test_mask_band(session: ViewerSession) -> None:
+    res = session.state.require_result()
+    tau0 = float(res.config.out_tau)
+    assert session.set_mask_band(tau0)  # unchanged: nothing re-derived
+    version = session.mask_version
+    assert session.set_mask_band(tau0 * 2)
+    assert session.mask_version == version + 1
+    assert session.state.require_result().config.out_tau == pytest.approx(tau0 * 2)
+    assert session.set_mask_band(tau0)
+    np.testing.assert_array_equal(np.concatenate(session.state.require_result().instances.masks),
+                                  np.concatenate(res.instances.masks))
+
+
+def test_exports(session: ViewerSession, tmp_path: Path) -> None:
+    session.set_threshold(0.3)
+    out = session.export_results(tmp_path / "res")
+    assert out is not None and any(out.rglob("*.txt"))
+    with pytest.raises(Exception):  # noqa: B017 - confinement: outside the root nothing is written
+        session.export_results(tmp_path / "outside", root=tmp_path / "res")
+    assert not (tmp_path / "outside").exists()
+    target = session.static_target()
+    assert target is not None and target.parent == session.out_root / "static"
+    page = session.export_static(tmp_path / "demo")
+    assert page is not None and (tmp_path / "demo" / "index.html").is_file()
+
+
+def test_nothing_to_export_or_run_without_a_scene(tmp_path: Path) -> None:
+    s = ViewerSession([SAMPLES], out_dir=tmp_path)
+    assert s.export_results(tmp_path) is None and "Nothing to export" in str(s.state.error)
+    assert s.run() is None and s.state.error == "Open a scene first."
+    assert s.step_view() is None and s.set_step(3) is None and s.point_colors() is None
+    assert s.kept_mask().size == 0 and s.shown_mask().size == 0
+    with pytest.raises(ValueError):
+        s.next_instance(1)
+
+
+def test_run_efem_with_progress(sphere_dir: Path, tmp_path: Path) -> None:
+    s = ViewerSession([sphere_dir], prior=analytic.make_sphere_prior(), out_dir=tmp_path)
+    assert s.open_scene("spheres") is not None
+    steps: list[Any] = []
+    res = s.run(preset="fast", proposals=8, seed=0, on_step=steps.append)
+    assert res is not None and s.state.result is res and not s.state.running
+    assert s.state.result_source.startswith("run (fast, seed 0, ") and steps
+    assert all(0 <= int(i.step) < int(i.num_steps) for i in steps)
+    again = s.run(preset="fast", proposals=8, seed=0, show=False)
+    assert again is not None and s.state.result is res  # not shown
+    np.testing.assert_array_equal(again.instances.confidence, res.instances.confidence)  # fixed seed: same
+
+
+def test_run_cancel_and_one_at_a_time(sphere_dir: Path, tmp_path: Path) -> None:
+    s = ViewerSession([sphere_dir], prior=analytic.make_sphere_prior(), out_dir=tmp_path)
+    assert s.open_scene("spheres") is not None
+    ticket = s.begin_run()
+    assert ticket is not None and s.state.running
+    assert s.begin_run() is None and s.state.error == "A run is already in progress."
+    s.cancel_run()  # set before the first step: the run stops there
+    done = threading.Event()
+    out: list[Any] = []
+
+    def job() -> None:
+        s.cancel_event.set()
+        out.append(s.run(preset="fast", proposals=8, generation=ticket))
+        done.set()
+
+    threading.Thread(target=job).start()
+    assert done.wait(120)
+    assert out == [None] and not s.state.running and s.state.result is None
+    assert s.state.status == "Run cancelled."
