@@ -16,9 +16,7 @@ connected client; the server stays up.
 from __future__ import annotations
 
 import logging
-import threading
-import time
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Literal, Sequence
 
@@ -37,49 +35,24 @@ from efem_viz.serve.inputs import (
     read_text,
     resolve_inside_root,
 )
-from efem_viz.serve.table import NO_ROW, option_for, option_id
+from efem_viz.serve.table import NO_ROW, option_id
+from efem_viz.viewer import panel_views as pv
+from efem_viz.viewer import scene_views as sv
+from efem_viz.viewer.jobs import Jobs, Player
 from efem_viz.viewer import state as st
-from efem_viz.viewer.legend import (
-    category_summary,
-    color_key_html,
-    instance_table_markdown,
-    legend_html,
-    result_summary_markdown,
-)
+from efem_viz.viewer.legend import color_key_html
 from efem_viz.viewer.nodes import VIEW_DIRECTION, SceneNodes
-from efem_viz.viewer.panels import (
-    COLOR_MODES,
-    MASK_BAND_RANGE,
-    NO_PROPOSAL,
-    VIEW_MODES,
-    active_figure,
-    build_panels,
-    pr_figure,
-    set_figure,
-    set_slider_marks,
-)
+from efem_viz.viewer.panels import COLOR_MODES, MASK_BAND_RANGE, NO_PROPOSAL, VIEW_MODES, build_panels
+from efem_viz.viewer.session import Inspection, ViewerSession
 from efem_viz.viewer.session import (  # noqa: F401 - the scene folders stay importable from here
     BUNDLED_SCENE_DIR,
     CHECKOUT_SCENE_DIR,
     DEFAULT_SCENE_DIR,
     REPO_ROOT,
-    Inspection,
-    StepView,
-    ViewerSession,
     default_scene_dir,
 )
 from efem_viz.viewer.state import ViewerState
-from efem_viz.viewer.texts import (
-    deaths_markdown,
-    gt_markdown,
-    inspect_markdown,
-    md_escape,
-    parse_pid,
-    proposal_options,
-    scene_info_markdown,
-    step_markdown,
-)
-from efem_viz.viewer.trace_queries import deaths, phase_marks
+from efem_viz.viewer.texts import parse_pid, scene_info_markdown
 
 if TYPE_CHECKING:
     from efem_viz.eval.comparison import GTMetrics
@@ -139,14 +112,11 @@ class ViewerApp:
         """The headless viewer under this GUI: state and actions."""
         self._lock = self.session.lock
         self._quiet = False
-        self._worker = ThreadPoolExecutor(1, thread_name_prefix="efem-viewer-work")
-        self._decoder = ThreadPoolExecutor(1, thread_name_prefix="efem-viewer-decode")
-        self._runner = ThreadPoolExecutor(1, thread_name_prefix="efem-viewer-run")
-        """EM runs have their own thread: opening another scene or a trace does not wait for a run."""
-        self._pending: set[Future[Any]] = set()
-        self._pending_lock = threading.Lock()
-        self._play_stop = threading.Event()
-        self._play_thread: threading.Thread | None = None
+        self.jobs = Jobs(on_error=lambda text: self._set_status(text, error=True))
+        """Worker threads (`efem_viz.viewer.jobs`): loads and exports, decoding, EM runs."""
+        self._worker, self._decoder, self._runner = self.jobs.worker, self.jobs.decoder, self.jobs.runner
+        self._submit = self.jobs.submit
+        self._player = Player(self._play_tick, lambda: self.state.speed)
 
         self.server, self.access = start_server(host=host, port=port, token=token)
         self.server.gui.configure_theme(control_width="large", dark_mode=False, show_logo=False)
@@ -213,39 +183,12 @@ class ViewerApp:
         self.pause()
         self.session.cancel_event.set()  # a running EM stops at its next step
         self.session.generation += 1  # running decode/inspect jobs drop their results
-        for pool in (self._runner, self._worker, self._decoder):
-            pool.shutdown(wait=True, cancel_futures=True)
+        self.jobs.shutdown()
         self.server.stop()
 
     def wait_idle(self, timeout: float = 60.0) -> bool:
         """Block until every submitted job (loads, runs, decodes) has finished. Returns False on timeout."""
-        deadline = time.monotonic() + timeout
-        while True:
-            with self._pending_lock:
-                pending = [f for f in self._pending if not f.done()]
-                self._pending = set(pending)
-            if not pending:
-                return True
-            if time.monotonic() > deadline:
-                return False
-            time.sleep(0.01)
-
-    def _submit(self, pool: ThreadPoolExecutor, fn: Callable[..., Any], *args: Any, **kw: Any) -> Future[Any]:
-        def guarded() -> Any:
-            try:
-                return fn(*args, **kw)
-            except ClientValueError as exc:  # a refused value or path: one line, no traceback
-                self._set_status(str(exc), error=True)
-                raise
-            except Exception as exc:  # noqa: BLE001 - shown in the GUI, server stays up
-                logger.exception("viewer job %s failed", getattr(fn, "__name__", fn))
-                self._set_status(f"{getattr(fn, '__name__', 'job')} failed: {exc}", error=True)
-                raise
-
-        fut = pool.submit(guarded)
-        with self._pending_lock:
-            self._pending.add(fut)
-        return fut
+        return self.jobs.wait_idle(timeout)
 
     # ================================================================== status
     def _set_status(self, text: str, *, error: bool = False) -> None:
@@ -399,9 +342,7 @@ class ViewerApp:
             self._gui_set(self.panels.gui_color, label)
             if mode in ("instances", "gt_match"):
                 self._show_result_view()  # colours of the final instances: show the result
-            self.draw_point_colors()
-            self.nodes.set_display(self.state.display, recolored=self.session.recolored())
-            self._show_results()
+            self._redraw_layers()
 
     # ================================================================== 2. results: load / run
     def load_trace(self, path: str | Path | None = None) -> bool:
@@ -427,18 +368,8 @@ class ViewerApp:
             generation = self.session.begin_run()
             if generation is None:
                 return None
-            self._show_running(True)
+            pv.show_running(self.panels, True)
         return self._submit(self._runner, self._run_job, preset, proposals, seed, generation)
-
-    def _show_running(self, running: bool) -> None:
-        p = self.panels
-        p.gui_run.disabled = running
-        p.gui_load.disabled = running
-        p.gui_cancel.disabled = not running
-        p.gui_progress.visible = running
-        if running:
-            p.gui_progress.value = 0.0
-            p.gui_progress.animated = True
 
     def _run_job(self, preset: str, proposals: int | None, seed: int, generation: int) -> Any:
         try:
@@ -446,19 +377,14 @@ class ViewerApp:
                                       show=False, generation=generation)
         finally:
             with self._lock:
-                self._show_running(False)
+                pv.show_running(self.panels, False)
         if result is None:
             return None
         self.set_result(result, source=self.session.last_run_source)
         return result
 
     def _on_run_step(self, info: Any) -> None:
-        frac = 100.0 * (int(info.step) + 1) / max(int(info.num_steps), 1)
-        self.panels.gui_progress.value = float(np.clip(frac, 0.0, 100.0))
-        self.panels.gui_run_info.content = (
-            f"step {int(info.step) + 1}/{int(info.num_steps)} · phase {int(info.phase)} · "
-            f"{int(info.active)} active · {float(info.elapsed_s):.1f} s"
-        )
+        pv.show_run_progress(self.panels, info)
 
     def cancel_run(self) -> None:
         """Ask a running EM to stop at its next step."""
@@ -469,49 +395,16 @@ class ViewerApp:
         with self._lock:
             self.pause()
             self.session.set_result(result, source=source)
-            s = self.state
-            T = s.num_steps
-            p = self.panels
-            marks = phase_marks(np.asarray(result.trace.phase))
-            p.gui_step.max = max(T - 1, 1)
-            set_slider_marks(p.gui_step, [(m.step, m.label) for m in marks])
-            p.gui_step.disabled = T == 0
-            p.gui_play.disabled = T == 0
-            self._gui_set(p.gui_step, s.step)
-            self._gui_set(p.gui_proposal, NO_PROPOSAL)
+            pv.show_result(self.panels, self.session, self._gui_set)
             self.nodes.clear_inspector()
             self.nodes.remove_shapes()  # old per-step shapes; the final instances are drawn once
             self.nodes.draw_results(result.instances)
-            p.gui_threshold.max = self.session.threshold_max(result)
-            self._gui_set(p.gui_threshold, s.threshold)
-            p.gui_mask_band.disabled = len(result.instances) == 0
-            self._gui_set(p.gui_mask_band, float(np.clip(result.config.out_tau, *MASK_BAND_RANGE)))
-            counts = md_escape(category_summary(result.instances.category))
-            p.gui_run_info.content = (
-                f"**Result**: {source} · {T} steps · {len(result.instances.ids)} instances"
-                + (f" ({counts})" if counts else "")
-            )
-            p.gui_active_plot.visible = True
-            self._gui_set(p.gui_color, "instances")
-            self.set_step(s.step, view_mode="result")
-            self.set_threshold(s.threshold)
+            self.set_step(self.state.step, view_mode="result")
+            self.set_threshold(self.state.threshold)
             self._set_status(f"Loaded result: {source}.")
 
     def _draw_no_result(self) -> None:
-        p = self.panels
-        p.gui_mask_band.disabled = True
-        p.gui_step.disabled = True
-        p.gui_play.disabled = True
-        p.gui_active_plot.visible = False
-        p.gui_pr_plot.visible = False
-        p.gui_step_info.content = "_No trace: run EFEM or load a saved trace._"
-        for h in (p.gui_inspect_info, p.gui_dead_info, p.gui_result_info, p.gui_legend):
-            h.content = ""
-        self._update_instance_table()
-        p.gui_gt_info.content = ""
-        p.gui_run_info.content = ""
-        self._gui_set(p.gui_proposal, NO_PROPOSAL)
-        p.gui_proposal.options = (NO_PROPOSAL,)
+        pv.show_no_result(self.panels, self.session, self._gui_set)
 
     # ================================================================== 3. timeline
     def set_view_mode(self, mode: str) -> None:
@@ -522,9 +415,7 @@ class ViewerApp:
             self._set_view_mode(self.state.view_mode)
             if self.state.result is not None:
                 self.set_step(self.state.step, view_mode=self.state.view_mode)
-                self._show_results()
-                self.draw_point_colors()
-                self.nodes.set_display(self.state.display, recolored=self.session.recolored())
+                self._redraw_layers()
 
     def _show_result_view(self) -> None:
         """Switch to the result view when a step is shown (the step's layers step aside)."""
@@ -555,34 +446,14 @@ class ViewerApp:
             v = self.session.set_step(step)
             assert v is not None
             self._gui_set(self.panels.gui_step, v.step)
-            self._draw_samples(v.step, v.drawn)
-            self._draw_shapes(v.step, v.drawn)
-            self._update_step_panels(v)
+            missing = sv.draw_step(self.nodes, self.session, v)
+            if missing and self.session.no_shapes_generation != self.session.generation:
+                self._submit(self._decoder, self._decode_shapes, missing, self.session.generation)
+            pv.show_step(self.panels, self.session, v, self._gui_set)
             if s.selected is not None:
                 self._request_inspect(s.selected, v.step)
             if view_mode != was:  # the other layers step aside
-                self._show_results()
-                self.draw_point_colors()
-                self.nodes.set_display(s.display, recolored=self.session.recolored())
-
-    def _draw_samples(self, t: int, drawn: np.ndarray) -> None:
-        s = self.state
-        if not s.show_samples or drawn.size == 0 or s.view_mode != "step":
-            self.nodes.hide_samples()
-            return
-        pts, cols = self.session.samples(drawn, t)
-        if not len(pts):
-            self.nodes.hide_samples()
-            return
-        self.nodes.draw_samples(pts, cols)
-
-    def _draw_shapes(self, t: int, drawn: np.ndarray) -> None:
-        s = self.state
-        keys = [(int(pid), t) for pid in drawn] if s.show_shapes and s.view_mode == "step" else []
-        self.nodes.show_shapes(keys)
-        missing = [k for k in keys if not self.nodes.has_shape(*k)]
-        if missing and self.session.no_shapes_generation != self.session.generation:
-            self._submit(self._decoder, self._decode_shapes, missing, self.session.generation)
+                self._redraw_layers()
 
     def _decode_shapes(self, keys: list[tuple[int, int]], generation: int) -> None:
         """Worker: decode the shapes of (proposal, step) pairs from their stored latents and send each once."""
@@ -600,30 +471,7 @@ class ViewerApp:
             with self._lock:
                 if generation != session.generation:
                     return
-                if shape is not None:
-                    self.nodes.add_shape(pid, t, *shape, dead=session.is_dead_at(pid, t))
-                if self.state.step == t and self.state.show_shapes and self.state.view_mode == "step":
-                    v = session.step_view(t)
-                    self.nodes.show_shapes([(int(p_), t) for p_ in (() if v is None else v.drawn)])
-
-    def _update_step_panels(self, v: StepView) -> None:
-        p = self.panels
-        trace = self.state.require_result().trace
-        t = v.step
-        phase = int(np.asarray(trace.phase)[t]) if len(trace.phase) else 0
-        sched = np.asarray(trace.schedule)[t] if len(trace.schedule) else np.zeros(4)
-        active = np.asarray(trace.active_count)
-        p.gui_step_info.content = step_markdown(t, int(trace.num_steps), phase=phase, alive=len(v.ids),
-                                                initial=int(active[0]) if active.size else 0, schedule=sched)
-        set_figure(p.gui_active_plot, active_figure(
-            active, [(m.step, m.label) for m in phase_marks(np.asarray(trace.phase))], t
-        ))
-        options = proposal_options(v.ids, v.scores, selected=self.state.selected)
-        p.gui_proposal.options = options
-        sel = self.state.selected
-        current = next((o for o in options if parse_pid(o) == sel), NO_PROPOSAL)
-        self._gui_set(p.gui_proposal, current)
-        p.gui_dead_info.content = deaths_markdown(deaths(trace), t)
+                sv.add_decoded_shape(self.nodes, session, pid, t, shape)
 
     def play(self) -> None:
         """Start playback from the current step (from 0 when at the end)."""
@@ -634,14 +482,12 @@ class ViewerApp:
                 self.set_step(0)
             self.state.playing = True
             self.panels.gui_play.label = "Pause"
-            self._play_stop.clear()
-            self._play_thread = threading.Thread(target=self._play_loop, name="efem-viewer-play", daemon=True)
-            self._play_thread.start()
+            self._player.start()
 
     def pause(self) -> None:
         with self._lock:
             self.state.playing = False
-            self._play_stop.set()
+            self._player.stop()
             self.panels.gui_play.label = "Play"
 
     def toggle_play(self) -> None:
@@ -650,16 +496,16 @@ class ViewerApp:
         else:
             self.play()
 
-    def _play_loop(self) -> None:
-        while not self._play_stop.wait(1.0 / max(self.state.speed, 0.1)):
-            with self._lock:
-                if not self.state.playing or self.state.result is None:
-                    return
-                nxt = self.state.step + 1
-                if nxt >= self.state.num_steps:
-                    self.pause()
-                    return
-                self.set_step(nxt)
+    def _play_tick(self) -> bool:
+        """One playback step; False (and paused at the end) when playback is over."""
+        with self._lock:
+            if not self.state.playing or self.state.result is None:
+                return False
+            if self.state.step + 1 >= self.state.num_steps:
+                self.pause()
+                return False
+            self.set_step(self.state.step + 1)
+            return True
 
     # ================================================================== 4. proposals
     def set_max_shapes(self, n: int) -> None:
@@ -685,12 +531,7 @@ class ViewerApp:
                 self._gui_set(self.panels.gui_proposal, NO_PROPOSAL)
                 return None
             assert pid is not None
-            opts = self.panels.gui_proposal.options
-            cur = next((o for o in opts if parse_pid(o) == int(pid)), None)
-            if cur is None:
-                cur = f"#{int(pid)}"
-                self.panels.gui_proposal.options = tuple(opts) + (cur,)
-            self._gui_set(self.panels.gui_proposal, cur)
+            pv.show_selected_proposal(self.panels, pid, self._gui_set)
             return self._request_inspect(int(pid), s.step)
 
     def _on_shape_click(self, pid: int) -> None:
@@ -714,25 +555,9 @@ class ViewerApp:
             self._draw_inspector(ins)
 
     def _draw_inspector(self, ins: Inspection) -> None:
-        s = self.state
-        mesh = getattr(ins.view, "mesh", None)
-        self.nodes.draw_inspector(
-            crop_points=ins.crop_points,
-            crop_colors=ins.crop_colors,
-            sampled_points=ins.sampled_points,
-            sample_color=ins.sample_color,
-            mesh_vertices=None if mesh is None else np.asarray(mesh.vertices),
-            mesh_faces=None if mesh is None else np.asarray(mesh.faces),
-            center=ins.center,
-            radius=ins.radius,
-            label=f"#{ins.pid} t={ins.step}",
-        )
-        self._gui_set(self.panels.gui_color, "proposal weights")
-        self.draw_point_colors()
-        self.nodes.set_display(s.display, recolored=True)
-        self._show_results()
-        self.panels.gui_inspect_info.content = inspect_markdown(ins.pid, ins.step, ins.view,
-                                                                instances=s.require_result().instances)
+        sv.draw_inspection(self.nodes, ins)
+        pv.show_inspection(self.panels, self.session, ins, self._gui_set)
+        self._redraw_layers()
 
     # ================================================================== 5./6. results and ground truth
     def set_threshold(self, threshold: float) -> None:
@@ -744,17 +569,9 @@ class ViewerApp:
             if s.result is None:
                 return
             self._show_result_view()  # the threshold filters the final instances: show them
-            keep = self.kept_mask()
             self._show_results()
             self.draw_point_colors()
-            inst = s.result.instances
-            self.panels.gui_result_info.content = result_summary_markdown(
-                inst, keep, threshold=s.threshold, out_tau=s.result.config.out_tau,
-                hidden_by_hand=int((keep & ~self.shown_mask()).sum()),
-            )
-            self.panels.gui_legend.content = legend_html(inst, self.shown_mask())
-            self._update_gt_panel()
-            self._update_instance_table()
+            pv.show_threshold(self.panels, self.session, self._gui_set)
 
     def set_mask_band(self, tau_out: float) -> bool:
         """Re-derive the output masks at SDF band `tau_out` from the stored latents (no re-run).
@@ -829,28 +646,7 @@ class ViewerApp:
         return pid
 
     def _update_instance_table(self) -> None:
-        """Redraw the instance table, its dropdown (options and choice), *Visible* box and buttons."""
-        s = self.state
-        p = self.panels
-        buttons = (p.gui_instance_visible, p.gui_fly_to, p.gui_instance_prev, p.gui_instance_next)
-        opts = self.session.table_options()
-        if not opts:
-            p.gui_instance.options = (NO_ROW,)
-            self._gui_set(p.gui_instance, NO_ROW)
-            p.gui_instance_table.content = "_No final instances._" if s.result is not None else ""
-            for h in buttons:
-                h.disabled = True
-            return
-        inst = s.require_result().instances
-        if tuple(p.gui_instance.options) != opts:
-            p.gui_instance.options = opts
-        self._gui_set(p.gui_instance, option_for(opts, s.table_row) if s.table_row is not None else opts[0])
-        self._gui_set(p.gui_instance_visible, s.table_row not in s.hidden)
-        for h in buttons:
-            h.disabled = False
-        metrics = self.session.gt_metrics_or_none() if s.scene is not None and s.scene.has_gt else None
-        p.gui_instance_table.content = instance_table_markdown(inst, threshold=s.threshold, hidden=s.hidden,
-                                                               metrics=metrics, selected=s.table_row)
+        pv.show_instance_table(self.panels, self.session, self._gui_set)
 
     def set_result_layers(self, *, meshes: bool, obbs: bool, axes: bool) -> None:
         with self._lock:
@@ -858,37 +654,14 @@ class ViewerApp:
             self._show_result_view()
             self._show_results()
 
-    def _show_results(self) -> None:
-        """Result layers per the toggles and the threshold; meshes step aside while the points carry a weight heat
-        map or the TP/FP/FN colours (they would hide them)."""
-        s = self.state
-        keep = self.shown_mask()
-        if s.view_mode != "result":  # one EM step on screen: no final instance over it
-            keep = np.zeros_like(keep)
-        self.nodes.show_results(
-            keep,
-            show_meshes=s.show_meshes and s.color_mode in ("rgb", "instances"),
-            show_obbs=s.show_obbs,
-            show_axes=s.show_axes,
-        )
+    def _redraw_layers(self) -> None:
+        """Result layers, point colours and the mesh display's overlay after a mode change."""
+        self._show_results()
+        self.draw_point_colors()
+        self.nodes.set_display(self.state.display, recolored=self.session.recolored())
 
-    def _update_gt_panel(self) -> None:
-        s = self.state
-        p = self.panels
-        if s.scene is None or not s.scene.has_gt or s.result is None:
-            p.gui_gt_info.content = "_No ground truth in this scene._" if s.scene is not None else ""
-            p.gui_pr_plot.visible = False
-            return
-        try:
-            metrics = self.session.gt_metrics()
-        except Exception as exc:  # noqa: BLE001 - evaluation problems must not break the threshold view
-            logger.exception("ground-truth evaluation failed")
-            p.gui_gt_info.content = f"_Ground-truth evaluation failed: {exc}_"
-            p.gui_pr_plot.visible = False
-            return
-        p.gui_gt_info.content = gt_markdown(len(s.scene.instance_ids()), s.threshold, metrics)
-        set_figure(p.gui_pr_plot, pr_figure(metrics.curves, point=metrics.point))
-        p.gui_pr_plot.visible = True
+    def _show_results(self) -> None:
+        sv.show_results(self.nodes, self.session)
 
     def _gt_metrics(self) -> GTMetrics:
         """Ground-truth metrics of the current result at the current threshold (`ViewerSession.gt_metrics`)."""
@@ -896,12 +669,9 @@ class ViewerApp:
 
     def draw_point_colors(self) -> None:
         """Recolour the scene points for the current colour mode (sends only (N,3) uint8)."""
-        pc = self.session.point_colors(self.nodes.results.colors)
-        if pc is None:
-            return
-        self.nodes.set_point_colors(pc.colors, key=pc.key)
-        self.nodes.set_box_colors(pc.boxes)
-        self.panels.gui_color_key.content = color_key_html(pc.shown)
+        shown = sv.draw_point_colors(self.nodes, self.session)
+        if shown is not None:
+            self.panels.gui_color_key.content = color_key_html(shown)
 
     # ================================================================== 7. export
     def gui_out_folder(self) -> Path:
