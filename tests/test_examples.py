@@ -44,6 +44,11 @@ EXPECTED: dict[str, tuple[list[str], list[str]]] = {
          "/scene/points", "/results/mesh/k0", "/inspect/samples"],
         ["spheres.ply", "exported"],
     ),
+    "viewer_session": (
+        ["scenes: [", "opened syn_z_1: ", "live proposals, top [", "threshold 0.3 keeps ", " mug confidence ",
+         "ground truth: ", "exported results to "],
+        ["exported/syn_z_1.txt", "exported/pred_mask"],
+    ),
     "add_annotator_tool": (
         ["'lift'", "**U** Lift", "IoU with true object", "(Lift)", "after undo", "exported "],
         ["syn_z_1_unlabelled.ply", "syn_z_1_unlabelled.labels.ply"],

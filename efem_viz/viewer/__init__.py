@@ -1,4 +1,5 @@
 """The EFEM viewer (viser). Import `efem_viz.viewer.app.ViewerApp` to embed it; `efem-viz view` runs it.
+`efem_viz.viewer.session.ViewerSession` is the same viewer without a GUI (no viser): drive it from a script.
 
 This package is the only place (with annotator/app.py) that imports viser; the import happens inside functions so
 that `import efem_viz.viewer` stays light.

@@ -1,7 +1,7 @@
 """The viewer's state (no viser here): everything the viewer shows, as plain typed values.
 
-The GUI callbacks in `app.py` read handle values into a `ViewerState`, submit heavy work to a worker thread and
-redraw through the `draw_*` functions of `nodes.py`. The pure functions the callbacks use live in their own rooms:
+`ViewerSession` (`viewer/session.py`, headless) owns a `ViewerState` and changes it through its actions; the GUI
+callbacks in `app.py` call those actions (heavy ones in worker threads) and draw the state. The pure functions the callbacks use live in their own rooms:
 colours in `efem_viz.colors`, the ground-truth comparison in `efem_viz.eval.comparison`, scene discovery in
 `viewer/scenes.py`, trace queries and the timeline in `viewer/trace_queries.py`.
 """
