@@ -27,16 +27,11 @@ from efem_viz.prior.config import DEFAULT_PRIOR
 from efem_viz.prior.registry import PriorSet
 from efem_viz.serve.camera import CameraGuard, fitted_view, fly_to_view
 from efem_viz.serve.inputs import (
-    ClientValueError,
-    read_bool,
-    read_choice,
-    read_int,
-    read_number,
     read_text,
     resolve_inside_root,
 )
-from efem_viz.serve.table import NO_ROW, option_id
 from efem_viz.viewer import panel_views as pv
+from efem_viz.viewer.events import wire
 from efem_viz.viewer import scene_views as sv
 from efem_viz.viewer.jobs import Jobs, Player
 from efem_viz.viewer import state as st
@@ -52,7 +47,7 @@ from efem_viz.viewer.session import (  # noqa: F401 - the scene folders stay imp
     default_scene_dir,
 )
 from efem_viz.viewer.state import ViewerState
-from efem_viz.viewer.texts import parse_pid, scene_info_markdown
+from efem_viz.viewer.texts import scene_info_markdown
 
 if TYPE_CHECKING:
     from efem_viz.eval.comparison import GTMetrics
@@ -132,7 +127,7 @@ class ViewerApp:
             self.server.gui, scene_names=[e.name for e in self.state.entries], out_dir=str(self.out_root)
         )
         self.session.on_status = self._show_status
-        self._wire()
+        wire(self)
         self.server.on_client_connect(self._on_connect)
         self.server.on_client_disconnect(self.camera_guard.forget)
         if open_first and self.state.entries:
@@ -211,70 +206,22 @@ class ViewerApp:
         if self.state.error:
             client.add_notification("efem-viz", self.state.error, color="red", auto_close_seconds=8.0)
 
-    # ================================================================== wiring (callbacks stay thin)
-    def _wire(self) -> None:
-        """Connect the controls to the actions. Every client value is read through `efem_viz.serve.inputs`
-        (clamped to the control's declared range, checked against its options), never used raw."""
-        p = self.panels
-        wb = self._gui_set  # shows a clamped value in every client without re-entering the callback
+    # ================================================================== GUI events (`viewer/events.py`)
+    def quiet(self) -> bool:
+        """Whether the app is setting a control itself (its callback then does nothing)."""
+        with self._lock:  # our own programmatic updates set _quiet while holding the lock
+            return self._quiet
 
-        def guard(fn: Callable[[], object]) -> Callable[[Any], None]:
-            def cb(_event: Any) -> None:
-                with self._lock:  # our own programmatic updates set _quiet while holding the lock
-                    if self._quiet:
-                        return
-                try:
-                    fn()
-                except ClientValueError as exc:  # a value no control can produce: one line, no traceback
-                    self._set_status(str(exc), error=True)
-                except Exception as exc:  # noqa: BLE001
-                    logger.exception("callback failed")
-                    self._set_status(f"error: {exc}", error=True)
+    def report_error(self, text: str) -> None:
+        self._set_status(text, error=True)
 
-            return cb
+    def submit_work(self, fn: Callable[..., Any], *args: Any) -> Future[Any]:
+        """Run an action in the worker thread (loads, mask bands, exports)."""
+        return self._submit(self._worker, fn, *args)
 
-        p.gui_scene.on_update(guard(lambda: self._submit(self._worker, self.open_scene, read_choice(p.gui_scene))))
-        p.gui_display.on_update(guard(lambda: self.set_display(read_choice(p.gui_display))))
-        p.gui_color.on_update(guard(lambda: self.set_color_mode(COLOR_MODES[read_choice(p.gui_color)])))
-        p.gui_point_size.on_update(
-            guard(lambda: self.set_point_size(read_number(p.gui_point_size, write_back=wb) / 1000.0)))
-        p.gui_run.on_click(
-            guard(lambda: self.start_run(preset=read_choice(p.gui_preset),
-                                         proposals=read_int(p.gui_proposals, write_back=wb),
-                                         seed=read_int(p.gui_seed, write_back=wb)))
-        )
-        p.gui_cancel.on_click(guard(self.cancel_run))
-        p.gui_load.on_click(guard(lambda: self._submit(self._worker, self.load_trace)))
-        p.gui_view_mode.on_update(guard(lambda: self.set_view_mode(VIEW_MODES[read_choice(p.gui_view_mode)])))
-        p.gui_step.on_update(guard(lambda: self.set_step(read_int(p.gui_step))))
-        p.gui_play.on_click(guard(self.toggle_play))
-        p.gui_speed.on_update(guard(lambda: setattr(self.state, "speed", read_number(p.gui_speed, write_back=wb))))
-        p.gui_show_shapes.on_update(guard(lambda: self.set_proposal_layers(shapes=read_bool(p.gui_show_shapes))))
-        p.gui_show_samples.on_update(guard(lambda: self.set_proposal_layers(samples=read_bool(p.gui_show_samples))))
-        p.gui_max_shapes.on_update(guard(lambda: self.set_max_shapes(read_int(p.gui_max_shapes, write_back=wb))))
-        p.gui_proposal.on_update(guard(lambda: self.select_proposal(parse_pid(read_choice(p.gui_proposal)))))
-        p.gui_threshold.on_update(guard(lambda: self.set_threshold(read_number(p.gui_threshold))))
-        p.gui_mask_band.on_update(
-            guard(lambda: self._submit(self._worker, self.set_mask_band, read_number(p.gui_mask_band))))
-        for h in (p.gui_show_meshes, p.gui_show_obbs, p.gui_show_axes):
-            h.on_update(
-                guard(
-                    lambda: self.set_result_layers(
-                        meshes=read_bool(p.gui_show_meshes), obbs=read_bool(p.gui_show_obbs),
-                        axes=read_bool(p.gui_show_axes)
-                    )
-                )
-            )
-        p.gui_instance.on_update(guard(lambda: self.choose_instance(_row_id(read_choice(p.gui_instance)))))
-        p.gui_instance_visible.on_update(
-            guard(lambda: self.set_instance_visible(self.state.table_row, read_bool(p.gui_instance_visible))))
-        p.gui_fly_to.on_click(
-            lambda event: guard(lambda: self.fly_to_instance(self.state.table_row, client=event.client))(event))
-        p.gui_instance_prev.on_click(lambda event: guard(lambda: self.step_instance(-1, client=event.client))(event))
-        p.gui_instance_next.on_click(lambda event: guard(lambda: self.step_instance(+1, client=event.client))(event))
-        p.gui_reset_view.on_click(lambda event: self.reset_view(event.client))
-        p.gui_export_results.on_click(guard(lambda: self.export_from_gui("results")))
-        p.gui_export_static.on_click(guard(lambda: self.export_from_gui("static")))
+    def gui_set(self, handle: Any, value: Any) -> None:
+        """Set a GUI value without re-entering our own callback."""
+        self._gui_set(handle, value)
 
     def _gui_set(self, handle: Any, value: Any) -> None:
         """Set a GUI value without re-entering our own callback."""
@@ -713,7 +660,3 @@ class ViewerApp:
             self.panels.gui_export_info.content = f"Static demo written to `{out}`"
         return out
 
-
-def _row_id(option: str) -> int | None:
-    """The proposal id of an instance-table option (None for `NO_ROW`)."""
-    return None if option == NO_ROW else option_id(option)

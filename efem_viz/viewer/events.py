@@ -1,0 +1,129 @@
+"""GUI events → viewer actions: connects every control of the `Panels` to one `ViewerApp` method.
+
+Every client value is read through `efem_viz.serve.inputs` (clamped to the control's declared range, checked
+against its options), never used raw. A callback does nothing while the app sets a control itself (`quiet`), and
+an error in it is shown in the status line (the server stays up). `ViewerControls` types what the events call, so
+this module does not import the app. No viser import at run time.
+"""
+
+from __future__ import annotations
+
+import logging
+from concurrent.futures import Future
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Callable, Literal, Protocol
+
+from efem_viz.serve.inputs import ClientValueError, read_bool, read_choice, read_int, read_number
+from efem_viz.serve.table import NO_ROW, option_id
+from efem_viz.viewer.panels import COLOR_MODES, VIEW_MODES
+from efem_viz.viewer.texts import parse_pid
+
+if TYPE_CHECKING:
+    from efem_viz.viewer.panels import Panels
+    from efem_viz.viewer.state import ViewerState, ViewMode
+
+logger = logging.getLogger(__name__)
+
+
+class ViewerControls(Protocol):
+    """The viewer actions the GUI events call (`efem_viz.viewer.app.ViewerApp`)."""
+
+    panels: Panels
+
+    @property
+    def state(self) -> ViewerState: ...
+    def quiet(self) -> bool: ...
+    def report_error(self, text: str) -> None: ...
+    def gui_set(self, handle: Any, value: Any) -> None: ...
+    def submit_work(self, fn: Callable[..., Any], *args: Any) -> Future[Any]: ...
+    def open_scene(self, name: str) -> bool: ...
+    def load_trace(self, path: str | Path | None = None) -> bool: ...
+    def set_display(self, display: str) -> None: ...
+    def set_color_mode(self, mode: str) -> None: ...
+    def set_point_size(self, size_m: float) -> None: ...
+    def start_run(self, *, preset: str = ..., proposals: int | None = ..., seed: int = ...) -> Any: ...
+    def cancel_run(self) -> None: ...
+    def set_view_mode(self, mode: str) -> None: ...
+    def set_step(self, step: int, *, view_mode: ViewMode = ...) -> None: ...
+    def toggle_play(self) -> None: ...
+    def set_proposal_layers(self, *, shapes: bool | None = ..., samples: bool | None = ...) -> None: ...
+    def set_max_shapes(self, n: int) -> None: ...
+    def select_proposal(self, pid: int | None) -> Any: ...
+    def set_threshold(self, threshold: float) -> None: ...
+    def set_mask_band(self, tau_out: float) -> bool: ...
+    def set_result_layers(self, *, meshes: bool, obbs: bool, axes: bool) -> None: ...
+    def choose_instance(self, pid: int | None) -> None: ...
+    def set_instance_visible(self, pid: int | None, visible: bool) -> None: ...
+    def fly_to_instance(self, pid: int | None, *, client: Any = ...) -> None: ...
+    def step_instance(self, step: int, *, client: Any = ...) -> int: ...
+    def reset_view(self, client: Any = ...) -> None: ...
+    def export_from_gui(self, kind: Literal["results", "static"]) -> Any: ...
+
+
+def row_id(option: str) -> int | None:
+    """The proposal id of an instance-table option (None for `NO_ROW`)."""
+    return None if option == NO_ROW else option_id(option)
+
+
+def guarded(app: ViewerControls, fn: Callable[[], object]) -> Callable[[Any], None]:
+    """A callback running `fn` unless the app is setting a control itself; errors go to the status line."""
+    def cb(_event: Any) -> None:
+        if app.quiet():
+            return
+        try:
+            fn()
+        except ClientValueError as exc:  # a value no control can produce: one line, no traceback
+            app.report_error(str(exc))
+        except Exception as exc:  # noqa: BLE001
+            logger.exception("callback failed")
+            app.report_error(f"error: {exc}")
+
+    return cb
+
+
+def wire(app: ViewerControls) -> None:
+    """Connect the controls of `app.panels` to the app's actions."""
+    p = app.panels
+    wb = app.gui_set  # shows a clamped value in every client without re-entering the callback
+
+    def guard(fn: Callable[[], object]) -> Callable[[Any], None]:
+        return guarded(app, fn)
+
+    def layers() -> None:
+        app.set_result_layers(meshes=read_bool(p.gui_show_meshes), obbs=read_bool(p.gui_show_obbs),
+                              axes=read_bool(p.gui_show_axes))
+
+    p.gui_scene.on_update(guard(lambda: app.submit_work(app.open_scene, read_choice(p.gui_scene))))
+    p.gui_display.on_update(guard(lambda: app.set_display(read_choice(p.gui_display))))
+    p.gui_color.on_update(guard(lambda: app.set_color_mode(COLOR_MODES[read_choice(p.gui_color)])))
+    p.gui_point_size.on_update(
+        guard(lambda: app.set_point_size(read_number(p.gui_point_size, write_back=wb) / 1000.0)))
+    p.gui_run.on_click(
+        guard(lambda: app.start_run(preset=read_choice(p.gui_preset),
+                                    proposals=read_int(p.gui_proposals, write_back=wb),
+                                    seed=read_int(p.gui_seed, write_back=wb)))
+    )
+    p.gui_cancel.on_click(guard(app.cancel_run))
+    p.gui_load.on_click(guard(lambda: app.submit_work(app.load_trace)))
+    p.gui_view_mode.on_update(guard(lambda: app.set_view_mode(VIEW_MODES[read_choice(p.gui_view_mode)])))
+    p.gui_step.on_update(guard(lambda: app.set_step(read_int(p.gui_step))))
+    p.gui_play.on_click(guard(app.toggle_play))
+    p.gui_speed.on_update(guard(lambda: setattr(app.state, "speed", read_number(p.gui_speed, write_back=wb))))
+    p.gui_show_shapes.on_update(guard(lambda: app.set_proposal_layers(shapes=read_bool(p.gui_show_shapes))))
+    p.gui_show_samples.on_update(guard(lambda: app.set_proposal_layers(samples=read_bool(p.gui_show_samples))))
+    p.gui_max_shapes.on_update(guard(lambda: app.set_max_shapes(read_int(p.gui_max_shapes, write_back=wb))))
+    p.gui_proposal.on_update(guard(lambda: app.select_proposal(parse_pid(read_choice(p.gui_proposal)))))
+    p.gui_threshold.on_update(guard(lambda: app.set_threshold(read_number(p.gui_threshold))))
+    p.gui_mask_band.on_update(guard(lambda: app.submit_work(app.set_mask_band, read_number(p.gui_mask_band))))
+    for h in (p.gui_show_meshes, p.gui_show_obbs, p.gui_show_axes):
+        h.on_update(guard(layers))
+    p.gui_instance.on_update(guard(lambda: app.choose_instance(row_id(read_choice(p.gui_instance)))))
+    p.gui_instance_visible.on_update(
+        guard(lambda: app.set_instance_visible(app.state.table_row, read_bool(p.gui_instance_visible))))
+    p.gui_fly_to.on_click(
+        lambda event: guard(lambda: app.fly_to_instance(app.state.table_row, client=event.client))(event))
+    p.gui_instance_prev.on_click(lambda event: guard(lambda: app.step_instance(-1, client=event.client))(event))
+    p.gui_instance_next.on_click(lambda event: guard(lambda: app.step_instance(+1, client=event.client))(event))
+    p.gui_reset_view.on_click(lambda event: app.reset_view(event.client))
+    p.gui_export_results.on_click(guard(lambda: app.export_from_gui("results")))
+    p.gui_export_static.on_click(guard(lambda: app.export_from_gui("static")))
