@@ -26,28 +26,17 @@ from efem_viz.data.scene import DEFAULT_MAX_POINTS
 from efem_viz.prior.config import DEFAULT_PRIOR
 from efem_viz.prior.registry import PriorSet
 from efem_viz.serve.camera import CameraGuard, fitted_view, fly_to_view
-from efem_viz.serve.inputs import (
-    read_text,
-    resolve_inside_root,
-)
+from efem_viz.serve.inputs import read_text, resolve_inside_root
 from efem_viz.viewer import panel_views as pv
-from efem_viz.viewer.events import wire
 from efem_viz.viewer import scene_views as sv
-from efem_viz.viewer.jobs import Jobs, Player
 from efem_viz.viewer import state as st
+from efem_viz.viewer.events import wire
+from efem_viz.viewer.jobs import Jobs, Player
 from efem_viz.viewer.legend import color_key_html
 from efem_viz.viewer.nodes import VIEW_DIRECTION, SceneNodes
 from efem_viz.viewer.panels import COLOR_MODES, MASK_BAND_RANGE, NO_PROPOSAL, VIEW_MODES, build_panels
-from efem_viz.viewer.session import Inspection, ViewerSession
-from efem_viz.viewer.session import (  # noqa: F401 - the scene folders stay importable from here
-    BUNDLED_SCENE_DIR,
-    CHECKOUT_SCENE_DIR,
-    DEFAULT_SCENE_DIR,
-    REPO_ROOT,
-    default_scene_dir,
-)
+from efem_viz.viewer.session import DEFAULT_SCENE_DIR, ViewerSession, default_scene_dir  # noqa: F401 - re-export
 from efem_viz.viewer.state import ViewerState
-from efem_viz.viewer.texts import scene_info_markdown
 
 if TYPE_CHECKING:
     from efem_viz.eval.comparison import GTMetrics
@@ -64,22 +53,15 @@ class ViewerApp:
     session's state.
 
     Args:
-        paths: scene files and/or folders; the browser lists only scene files inside them.
+        paths, prior, prior_name, run_priors, results, max_points: the session's (`ViewerSession`): the scenes
+            listed (only scene files inside `paths`), the priors, saved-result folders, the size limit.
         host: interface to bind (default loopback only).
         port: port (0 = a free random port; a busy port is replaced by the next free one, see `url`).
-        prior: a `ShapePrior`, or None to load `prior_name` lazily when first needed (decoding, runs).
-        prior_name: the prior's spec (`efem_viz.prior.registry.PriorSet`: a name under efem_viz/weights/, "sphere"
-            or a .pt path).
-        run_priors: specs of more priors for runs started here (a joint solve over the prior and these).
         open_first: open the first scene at start (and its saved trace when present).
         out_dir: the output root: every export from the GUI goes into this folder or below it (a folder typed
             into the GUI must resolve inside it); the static demo defaults to `<out_dir>/static/<scene>/`.
             Default: `view/` in the user's data folder (`efem_viz.serve.outputs`), never the working directory.
         token: the server's access token (None = a fresh random one; see `efem_viz.serve.guard`).
-        results: folders of saved results (`<scene>.efem.npz`, e.g. `efem-viz segment --out DIR`), searched after
-            each scene's own folder; with no `paths`, the scenes are the scene files in these folders (segment's
-            `<scene>.seg.ply`).
-        max_points: refuse scenes with more points than this.
 
     Raises:
         GuardUnavailableError: the access guard cannot be attached to this viser (nothing is served).
@@ -107,7 +89,7 @@ class ViewerApp:
         """The headless viewer under this GUI: state and actions."""
         self._lock = self.session.lock
         self._quiet = False
-        self.jobs = Jobs(on_error=lambda text: self._set_status(text, error=True))
+        self.jobs = Jobs(on_error=lambda text: self.session.set_status(text, error=True))
         """Worker threads (`efem_viz.viewer.jobs`): loads and exports, decoding, EM runs."""
         self._worker, self._decoder, self._runner = self.jobs.worker, self.jobs.decoder, self.jobs.runner
         self._submit = self.jobs.submit
@@ -135,7 +117,7 @@ class ViewerApp:
                 if self.open_scene(e.name):
                     break
         elif not self.state.entries:
-            self._set_status("No scene files found in the given paths.", error=True)
+            self.session.set_status("No scene files found in the given paths.", error=True)
 
     # ================================================================== the session's parts
     @property
@@ -152,11 +134,6 @@ class ViewerApp:
     def out_root(self) -> Path:
         """Exports from the GUI stay inside this folder (fixed at start)."""
         return self.session.out_root
-
-    @property
-    def max_points(self) -> int:
-        """Scenes with more points are refused (shown as an error; the server stays up)."""
-        return self.session.max_points
 
     def prior(self) -> ShapePriorLike:
         """The shape prior (loaded on first use). Raises RuntimeError with the reason when unavailable."""
@@ -186,9 +163,6 @@ class ViewerApp:
         return self.jobs.wait_idle(timeout)
 
     # ================================================================== status
-    def _set_status(self, text: str, *, error: bool = False) -> None:
-        self.session.set_status(text, error=error)
-
     def _show_status(self, text: str, error: bool) -> None:
         """The session's status listener: the status line, and a notification to every client for an error."""
         with self._lock:
@@ -213,7 +187,7 @@ class ViewerApp:
             return self._quiet
 
     def report_error(self, text: str) -> None:
-        self._set_status(text, error=True)
+        self.session.set_status(text, error=True)
 
     def submit_work(self, fn: Callable[..., Any], *args: Any) -> Future[Any]:
         """Run an action in the worker thread (loads, mask bands, exports)."""
@@ -221,16 +195,14 @@ class ViewerApp:
 
     def gui_set(self, handle: Any, value: Any) -> None:
         """Set a GUI value without re-entering our own callback."""
-        self._gui_set(handle, value)
-
-    def _gui_set(self, handle: Any, value: Any) -> None:
-        """Set a GUI value without re-entering our own callback."""
         with self._lock:
             prev, self._quiet = self._quiet, True
             try:
                 handle.value = value
             finally:
                 self._quiet = prev
+
+    _gui_set = gui_set  # the name callers used before
 
     # ================================================================== 1. scenes
     def open_scene(self, name: str) -> bool:
@@ -242,7 +214,7 @@ class ViewerApp:
         got = self.session.read_scene(name)
         if got is None:
             if self.state.scene_name is not None:
-                self._gui_set(self.panels.gui_scene, self.state.scene_name)
+                self.gui_set(self.panels.gui_scene, self.state.scene_name)
             return False
         entry, scene = got
         with self._lock:
@@ -252,15 +224,15 @@ class ViewerApp:
             self._set_view_mode("result")
             self.nodes.draw_scene(scene, display=s.display)
             s.point_size = self.nodes.point_size
-            self._gui_set(self.panels.gui_scene, entry.name)
-            self._gui_set(self.panels.gui_display, s.display)
-            self._gui_set(self.panels.gui_color, "scene colours")
-            self._gui_set(self.panels.gui_point_size, float(np.clip(round(s.point_size * 2000) / 2, 0.5, 20.0)))
-            self.panels.gui_info.content = scene_info_markdown(scene, entry)
+            self.gui_set(self.panels.gui_scene, entry.name)
+            self.gui_set(self.panels.gui_display, s.display)
+            self.gui_set(self.panels.gui_color, "scene colours")
+            self.gui_set(self.panels.gui_point_size, float(np.clip(round(s.point_size * 2000) / 2, 0.5, 20.0)))
+            pv.show_scene_info(self.panels, self.session)
             lo, hi = scene.bounds  # the initial camera (new clients, "Reset view") and every connected one
             self.camera_guard.set_scene(fitted_view(lo, hi, direction=VIEW_DIRECTION), lo, hi)
             self._draw_no_result()
-            self._set_status(f"Opened {entry.name} ({scene.num_points:,} points).")
+            self.session.set_status(f"Opened {entry.name} ({scene.num_points:,} points).")
         if self.session.saved_result_path() is not None:
             self.load_trace()
         return True
@@ -286,7 +258,7 @@ class ViewerApp:
         with self._lock:
             self.session.set_color_mode(mode)
             label = next(k for k, v in COLOR_MODES.items() if v == mode)
-            self._gui_set(self.panels.gui_color, label)
+            self.gui_set(self.panels.gui_color, label)
             if mode in ("instances", "gt_match"):
                 self._show_result_view()  # colours of the final instances: show the result
             self._redraw_layers()
@@ -300,12 +272,10 @@ class ViewerApp:
         result, name = got
         try:
             self.set_result(result, source=name)
-            s = self.state
-            if s.scene is not None and s.scene_name is not None:
-                self.panels.gui_info.content = scene_info_markdown(s.scene, s.entry(s.scene_name))
+            pv.show_scene_info(self.panels, self.session)
         except Exception as exc:  # noqa: BLE001 - another scene's result: show, stay up
             logger.exception("loading %s failed", name)
-            self._set_status(f"Could not load {name}: {exc}", error=True)
+            self.session.set_status(f"Could not load {name}: {exc}", error=True)
             return False
         return True
 
@@ -320,8 +290,9 @@ class ViewerApp:
 
     def _run_job(self, preset: str, proposals: int | None, seed: int, generation: int) -> Any:
         try:
-            result = self.session.run(preset=preset, proposals=proposals, seed=seed, on_step=self._on_run_step,
-                                      show=False, generation=generation)
+            result = self.session.run(preset=preset, proposals=proposals, seed=seed, show=False,
+                                      on_step=lambda info: pv.show_run_progress(self.panels, info),
+                                      generation=generation)
         finally:
             with self._lock:
                 pv.show_running(self.panels, False)
@@ -329,9 +300,6 @@ class ViewerApp:
             return None
         self.set_result(result, source=self.session.last_run_source)
         return result
-
-    def _on_run_step(self, info: Any) -> None:
-        pv.show_run_progress(self.panels, info)
 
     def cancel_run(self) -> None:
         """Ask a running EM to stop at its next step."""
@@ -342,16 +310,16 @@ class ViewerApp:
         with self._lock:
             self.pause()
             self.session.set_result(result, source=source)
-            pv.show_result(self.panels, self.session, self._gui_set)
+            pv.show_result(self.panels, self.session, self.gui_set)
             self.nodes.clear_inspector()
             self.nodes.remove_shapes()  # old per-step shapes; the final instances are drawn once
             self.nodes.draw_results(result.instances)
             self.set_step(self.state.step, view_mode="result")
             self.set_threshold(self.state.threshold)
-            self._set_status(f"Loaded result: {source}.")
+            self.session.set_status(f"Loaded result: {source}.")
 
     def _draw_no_result(self) -> None:
-        pv.show_no_result(self.panels, self.session, self._gui_set)
+        pv.show_no_result(self.panels, self.session, self.gui_set)
 
     # ================================================================== 3. timeline
     def set_view_mode(self, mode: str) -> None:
@@ -372,7 +340,7 @@ class ViewerApp:
     def _set_view_mode(self, mode: st.ViewMode) -> None:
         """Record the mode and show it in the Show dropdown (no redraw)."""
         self.session.set_view_mode(mode)
-        self._gui_set(self.panels.gui_view_mode, next(k for k, v in VIEW_MODES.items() if v == mode))
+        self.gui_set(self.panels.gui_view_mode, next(k for k, v in VIEW_MODES.items() if v == mode))
 
     def set_step(self, step: int, *, view_mode: st.ViewMode = "step") -> None:
         """Show EM step `step`: proposals alive then (samples now, decoded shapes as they arrive), the dead list,
@@ -392,33 +360,16 @@ class ViewerApp:
                 self._set_view_mode(view_mode)
             v = self.session.set_step(step)
             assert v is not None
-            self._gui_set(self.panels.gui_step, v.step)
+            self.gui_set(self.panels.gui_step, v.step)
             missing = sv.draw_step(self.nodes, self.session, v)
             if missing and self.session.no_shapes_generation != self.session.generation:
-                self._submit(self._decoder, self._decode_shapes, missing, self.session.generation)
-            pv.show_step(self.panels, self.session, v, self._gui_set)
+                self._submit(self._decoder, sv.decode_shapes, self.nodes, self.session, missing,
+                             self.session.generation)
+            pv.show_step(self.panels, self.session, v, self.gui_set)
             if s.selected is not None:
                 self._request_inspect(s.selected, v.step)
             if view_mode != was:  # the other layers step aside
                 self._redraw_layers()
-
-    def _decode_shapes(self, keys: list[tuple[int, int]], generation: int) -> None:
-        """Worker: decode the shapes of (proposal, step) pairs from their stored latents and send each once."""
-        session = self.session
-        for pid, t in keys:
-            with self._lock:
-                if generation != session.generation or self.state.step != t or self.nodes.has_shape(pid, t):
-                    continue  # the user moved on (decoded again when asked) or it is already there
-            try:
-                shape = session.decode_shape(pid, t)
-            except RuntimeError as exc:
-                session.no_shapes_generation = generation  # say it once, do not retry on every step
-                self._set_status(f"Decoded shapes unavailable: {exc}", error=True)
-                return
-            with self._lock:
-                if generation != session.generation:
-                    return
-                sv.add_decoded_shape(self.nodes, session, pid, t, shape)
 
     def play(self) -> None:
         """Start playback from the current step (from 0 when at the end)."""
@@ -475,17 +426,17 @@ class ViewerApp:
                 self.panels.gui_inspect_info.content = ""
                 if was_weights:
                     self.set_color_mode(s.color_mode)
-                self._gui_set(self.panels.gui_proposal, NO_PROPOSAL)
+                self.gui_set(self.panels.gui_proposal, NO_PROPOSAL)
                 return None
             assert pid is not None
-            pv.show_selected_proposal(self.panels, pid, self._gui_set)
+            pv.show_selected_proposal(self.panels, pid, self.gui_set)
             return self._request_inspect(int(pid), s.step)
 
     def _on_shape_click(self, pid: int) -> None:
         try:
             self.select_proposal(pid)
         except Exception as exc:  # noqa: BLE001
-            self._set_status(f"error: {exc}", error=True)
+            self.session.set_status(f"error: {exc}", error=True)
 
     def _request_inspect(self, pid: int, t: int) -> Future[Any]:
         return self._submit(self._decoder, self._inspect_job, pid, t, self.session.generation)
@@ -494,17 +445,14 @@ class ViewerApp:
         try:
             ins = self.session.inspect(pid, t)
         except ValueError as exc:
-            self._set_status(f"Cannot inspect #{pid} at step {t}: {exc}", error=True)
+            self.session.set_status(f"Cannot inspect #{pid} at step {t}: {exc}", error=True)
             return
         with self._lock:
             if generation != self.session.generation or not self.session.show_inspection(ins):
                 return
-            self._draw_inspector(ins)
-
-    def _draw_inspector(self, ins: Inspection) -> None:
-        sv.draw_inspection(self.nodes, ins)
-        pv.show_inspection(self.panels, self.session, ins, self._gui_set)
-        self._redraw_layers()
+            sv.draw_inspection(self.nodes, ins)
+            pv.show_inspection(self.panels, self.session, ins, self.gui_set)
+            self._redraw_layers()
 
     # ================================================================== 5./6. results and ground truth
     def set_threshold(self, threshold: float) -> None:
@@ -512,13 +460,13 @@ class ViewerApp:
         with self._lock:
             s = self.state
             self.session.set_threshold(threshold)
-            self._gui_set(self.panels.gui_threshold, s.threshold)
+            self.gui_set(self.panels.gui_threshold, s.threshold)
             if s.result is None:
                 return
             self._show_result_view()  # the threshold filters the final instances: show them
-            self._show_results()
+            sv.show_results(self.nodes, self.session)
             self.draw_point_colors()
-            pv.show_threshold(self.panels, self.session, self._gui_set)
+            pv.show_threshold(self.panels, self.session, self.gui_set)
 
     def set_mask_band(self, tau_out: float) -> bool:
         """Re-derive the output masks at SDF band `tau_out` from the stored latents (no re-run).
@@ -530,14 +478,12 @@ class ViewerApp:
             s = self.state
             if s.result is None or s.scene is None:
                 return False
-            self._gui_set(self.panels.gui_mask_band, float(np.clip(tau_out, *MASK_BAND_RANGE)))
+            self.gui_set(self.panels.gui_mask_band, float(np.clip(tau_out, *MASK_BAND_RANGE)))
             before = self.session.mask_version
             if not self.session.set_mask_band(tau_out):
                 return False
             if self.session.mask_version != before:
                 self.set_threshold(s.threshold)
-                tau = s.require_result().config.out_tau
-                self._set_status(f"Masks re-derived at τ_out = {tau:g} from the stored latents; nothing was re-run.")
             return True
 
     def kept_mask(self) -> np.ndarray:
@@ -553,7 +499,7 @@ class ViewerApp:
         """Choose a row of the instance table (None: none); its *Visible* box and mark follow."""
         with self._lock:
             self.session.choose_instance(pid)
-            self._update_instance_table()
+            pv.show_instance_table(self.panels, self.session, self.gui_set)
 
     def set_instance_visible(self, pid: int | None, visible: bool) -> None:
         """Show or hide one final instance (its mesh, box, label and point colours); a view like the threshold.
@@ -575,11 +521,8 @@ class ViewerApp:
         with self._lock:
             f = self.session.fly_target(pid)
             view = fly_to_view(f.lo, f.hi, home=self.camera_guard.view, scene_diagonal=f.scene_diagonal)
-            self._update_instance_table()
+            pv.show_instance_table(self.panels, self.session, self.gui_set)
         self.camera_guard.place(view, client)
-        if f.below_threshold:
-            self._set_status(f"Instance #{f.pid} (confidence {f.confidence:.2f}) is below the "
-                             f"confidence threshold {self.state.threshold:.2f}: lower it to see the instance.")
 
     def step_instance(self, step: int, *, client: Any = None) -> int:
         """Choose the next (`step` = 1) or previous (-1) row of the instance table (most confident first, wrapping
@@ -592,23 +535,17 @@ class ViewerApp:
         self.fly_to_instance(pid, client=client)
         return pid
 
-    def _update_instance_table(self) -> None:
-        pv.show_instance_table(self.panels, self.session, self._gui_set)
-
     def set_result_layers(self, *, meshes: bool, obbs: bool, axes: bool) -> None:
         with self._lock:
             self.session.set_result_layers(meshes=meshes, obbs=obbs, axes=axes)
             self._show_result_view()
-            self._show_results()
+            sv.show_results(self.nodes, self.session)
 
     def _redraw_layers(self) -> None:
         """Result layers, point colours and the mesh display's overlay after a mode change."""
-        self._show_results()
+        sv.show_results(self.nodes, self.session)
         self.draw_point_colors()
         self.nodes.set_display(self.state.display, recolored=self.session.recolored())
-
-    def _show_results(self) -> None:
-        sv.show_results(self.nodes, self.session)
 
     def _gt_metrics(self) -> GTMetrics:
         """Ground-truth metrics of the current result at the current threshold (`ViewerSession.gt_metrics`)."""

@@ -30,6 +30,7 @@ from efem_viz.viewer.texts import (
     md_escape,
     parse_pid,
     proposal_options,
+    scene_info_markdown,
     step_markdown,
 )
 from efem_viz.viewer.trace_queries import deaths, phase_marks
@@ -41,6 +42,13 @@ logger = logging.getLogger(__name__)
 
 GuiSet = Callable[[Any, Any], None]
 """Sets a control's value without re-entering the app's callback."""
+
+
+def show_scene_info(p: Panels, session: ViewerSession) -> None:
+    """The Scene tab's description of the open scene (and of its saved result)."""
+    s = session.state
+    if s.scene is not None and s.scene_name is not None:
+        p.gui_info.content = scene_info_markdown(s.scene, s.entry(s.scene_name))
 
 
 def show_running(p: Panels, running: bool) -> None:

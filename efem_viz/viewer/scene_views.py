@@ -37,6 +37,25 @@ def draw_step(nodes: SceneNodes, session: ViewerSession, v: StepView) -> list[tu
     return [k for k in keys if not nodes.has_shape(*k)]
 
 
+def decode_shapes(nodes: SceneNodes, session: ViewerSession, keys: list[tuple[int, int]], generation: int) -> None:
+    """Worker: decode the shapes of (proposal, step) pairs from their stored latents and send each once; stops
+    (and says so once) when there is no prior to decode with."""
+    for pid, t in keys:
+        with session.lock:
+            if generation != session.generation or session.state.step != t or nodes.has_shape(pid, t):
+                continue  # the user moved on (decoded again when asked) or it is already there
+        try:
+            shape = session.decode_shape(pid, t)
+        except RuntimeError as exc:
+            session.no_shapes_generation = generation  # say it once, do not retry on every step
+            session.set_status(f"Decoded shapes unavailable: {exc}", error=True)
+            return
+        with session.lock:
+            if generation != session.generation:
+                return
+            add_decoded_shape(nodes, session, pid, t, shape)
+
+
 def add_decoded_shape(nodes: SceneNodes, session: ViewerSession, pid: int, t: int,
                       shape: tuple[np.ndarray, np.ndarray] | None) -> None:
     """Add one decoded shape (sent once) and re-show the step's shapes when step `t` is still on screen."""

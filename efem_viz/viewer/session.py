@@ -605,6 +605,7 @@ class ViewerSession:
             s.result = dataclasses.replace(s.result, instances=inst, config=s.result.config.replace(tau_out=tau))
             self._gt_cache.clear()
             self.mask_version += 1
+            self.set_status(f"Masks re-derived at τ_out = {tau:g} from the stored latents; nothing was re-run.")
             return True
 
     def kept_mask(self) -> np.ndarray:
@@ -739,7 +740,8 @@ class ViewerSession:
                 s.hidden.add(int(pid))
 
     def fly_target(self, pid: int | None) -> FlyTarget:
-        """Choose instance `pid` in the table and say where a camera should look at it.
+        """Choose instance `pid` in the table and say where a camera should look at it (the status line says so
+        when it is below the threshold).
 
         Raises:
             ValueError: no such instance.
@@ -752,10 +754,14 @@ class ViewerSession:
             pts = scene.points[mask] if mask.size else np.asarray(inst.obb(k).corners, np.float64)
             lo_s, hi_s = scene.bounds
             s.table_row = int(inst.ids[k])
-            return FlyTarget(pid=int(inst.ids[k]), lo=pts.min(axis=0), hi=pts.max(axis=0),
-                             scene_diagonal=float(np.linalg.norm(np.subtract(hi_s, lo_s))),
-                             below_threshold=not bool(inst.kept(s.threshold)[k]),
-                             confidence=float(inst.confidence[k]))
+            target = FlyTarget(pid=int(inst.ids[k]), lo=pts.min(axis=0), hi=pts.max(axis=0),
+                               scene_diagonal=float(np.linalg.norm(np.subtract(hi_s, lo_s))),
+                               below_threshold=not bool(inst.kept(s.threshold)[k]),
+                               confidence=float(inst.confidence[k]))
+        if target.below_threshold:
+            self.set_status(f"Instance #{target.pid} (confidence {target.confidence:.2f}) is below the "
+                            f"confidence threshold {s.threshold:.2f}: lower it to see the instance.")
+        return target
 
     def next_instance(self, step: int) -> int:
         """The proposal id of the next (`step` = 1) or previous (-1) row of the instance table (most confident
