@@ -27,9 +27,7 @@ from efem_viz.prior.config import DEFAULT_PRIOR
 from efem_viz.prior.registry import PriorSet
 from efem_viz.serve.camera import CameraGuard, fitted_view, fly_to_view
 from efem_viz.serve.inputs import read_text, resolve_inside_root
-from efem_viz.viewer import panel_views as pv
-from efem_viz.viewer import scene_views as sv
-from efem_viz.viewer import state as st
+from efem_viz.viewer import panel_views as pv, scene_views as sv, state as st
 from efem_viz.viewer.events import wire
 from efem_viz.viewer.jobs import Jobs, Player
 from efem_viz.viewer.legend import color_key_html
@@ -39,6 +37,8 @@ from efem_viz.viewer.session import DEFAULT_SCENE_DIR, ViewerSession, default_sc
 from efem_viz.viewer.state import ViewerState
 
 if TYPE_CHECKING:
+    from viser import ClientHandle
+    from efem_viz.em.results import EMResult
     from efem_viz.eval.comparison import GTMetrics
     from efem_viz.prior.config import ShapePriorLike
 
@@ -175,7 +175,7 @@ class ViewerApp:
                 except Exception:  # noqa: BLE001 - a client may disconnect meanwhile
                     pass
 
-    def _on_connect(self, client: Any) -> None:
+    def _on_connect(self, client: ClientHandle) -> None:
         self.camera_guard.attach(client)
         if self.state.error:
             client.add_notification("efem-viz", self.state.error, color="red", auto_close_seconds=8.0)
@@ -237,7 +237,7 @@ class ViewerApp:
             self.load_trace()
         return True
 
-    def reset_view(self, client: Any = None) -> None:
+    def reset_view(self, client: ClientHandle | None = None) -> None:
         """Put one browser's camera (every browser's when None) on the view that fits the open scene."""
         self.camera_guard.reset(client)
 
@@ -288,7 +288,7 @@ class ViewerApp:
             pv.show_running(self.panels, True)
         return self._submit(self._runner, self._run_job, preset, proposals, seed, generation)
 
-    def _run_job(self, preset: str, proposals: int | None, seed: int, generation: int) -> Any:
+    def _run_job(self, preset: str, proposals: int | None, seed: int, generation: int) -> EMResult | None:
         try:
             result = self.session.run(preset=preset, proposals=proposals, seed=seed, show=False,
                                       on_step=lambda info: pv.show_run_progress(self.panels, info),
@@ -305,7 +305,7 @@ class ViewerApp:
         """Ask a running EM to stop at its next step."""
         self.session.cancel_run()
 
-    def set_result(self, result: Any, *, source: str) -> None:
+    def set_result(self, result: EMResult, *, source: str) -> None:
         """Show an EMResult: timeline, proposals at the last step, final instances and ground truth."""
         with self._lock:
             self.pause()
@@ -511,7 +511,7 @@ class ViewerApp:
             self.session.set_instance_visible(pid, visible)
             self.set_threshold(self.state.threshold)  # redraw layers, colours, summary, legend and table
 
-    def fly_to_instance(self, pid: int | None, *, client: Any = None) -> None:
+    def fly_to_instance(self, pid: int | None, *, client: ClientHandle | None = None) -> None:
         """Point one browser's camera (every browser's when None) at an instance: the box of its points (of its
         box when it has none), seen from the fitted view's direction (`efem_viz.serve.camera.fly_to_view`).
 
@@ -524,7 +524,7 @@ class ViewerApp:
             pv.show_instance_table(self.panels, self.session, self.gui_set)
         self.camera_guard.place(view, client)
 
-    def step_instance(self, step: int, *, client: Any = None) -> int:
+    def step_instance(self, step: int, *, client: ClientHandle | None = None) -> int:
         """Choose the next (`step` = 1) or previous (-1) row of the instance table (most confident first, wrapping
         around) and fly to it; returns its proposal id.
 
