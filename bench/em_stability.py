@@ -20,7 +20,8 @@ Sets:
 
 Usage: python bench/em_stability.py [--config "NAME=key=value;key=value" ...] [--mugs 8] [--anchors 2]
        [--sets single-view real-tune real-judge] [--levels 0 1 2 3 5 sensor] [--prior PATH] [--tag NAME]
-Configs: "base" (the `real` preset) is always run; each --config adds one (EMConfig overrides on the preset).
+Configs: "base" (the `--preset`, default `real`) is always run; each --config adds one (EMConfig overrides on the
+preset). Since session 8 `real` holds the measured changes; the tables of session 7 used what is now `real_paper`.
 Writes bench/results/em_stability_<tag>.json and prints one table per set. 1 torch thread by default
 (``--threads``), so that it can run beside a training job.
 """

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import json
 
 import numpy as np
@@ -250,8 +252,17 @@ def test_review_rules_first_failure_wins() -> None:
         (15, (30.0, 0.07, 0.006, 60.0)),
     ],
 )
-def test_schedule_real(t: int, expected: tuple[float, ...]) -> None:
-    assert schedule(preset("real"), t) == pytest.approx(expected)
+def test_schedule_real_paper(t: int, expected: tuple[float, ...]) -> None:
+    assert schedule(preset("real_paper"), t) == pytest.approx(expected)
+
+
+def test_real_preset_is_the_paper_one_with_the_measured_changes() -> None:
+    """`real` = §3.12's real settings (`real_paper`) + the session-8 changes for noisy single-view frames."""
+    real, paper = preset("real"), preset("real_paper")
+    assert dataclasses.replace(real, name="real_paper", tau_d=paper.tau_d, tau_n=paper.tau_n, m_step_replace=True,
+                               seen_through_margin=None, max_seen_through=paper.max_seen_through) == paper
+    assert schedule(real, 0) == pytest.approx((3.0, 0.15, 0.003, 180.0))
+    assert not real.m_step_replace and real.seen_through_margin == 0.01 and real.max_seen_through == 0.15
 
 
 def test_schedule_synthetic_keeps_tau_d_and_phase2_uses_end_values() -> None:
@@ -263,8 +274,8 @@ def test_schedule_synthetic_keeps_tau_d_and_phase2_uses_end_values() -> None:
 
 
 def test_presets_follow_the_spec_table() -> None:
-    syn, real, fast = preset("synthetic"), preset("real"), preset("fast")
-    assert preset("synthetic_mugs") == syn and preset("real_mugs") == real  # the old names still work
+    syn, real, fast = preset("synthetic"), preset("real_paper"), preset("fast")
+    assert preset("synthetic_mugs") == syn and preset("real_mugs") == preset("real")  # the old names still work
     assert syn.n_init == (400,) and syn.r_init == 0.07 and syn.r_err == 0.11 and syn.min_size == 300
     assert (syn.stat_tau, syn.stat_gamma, syn.cov_tau, syn.cov_gamma) == (0.04, 45.0, 0.04, 45.0)
     assert (real.stat_tau, real.stat_gamma, real.cov_tau, real.cov_gamma) == (0.03, 30.0, 0.03, 30.0)

@@ -20,7 +20,7 @@ if TYPE_CHECKING:
 __all__ = ["DEFAULT_TAU_OUT", "MAX_TAU_OUT", "PRESETS", "EMConfig", "PresetName", "preset", "resolve_for_prior",
            "schedule"]
 
-PresetName = Literal["synthetic", "real", "fast"]
+PresetName = Literal["synthetic", "real", "real_paper", "fast"]
 """Solver presets: the capture domain's settings; category settings (sizes, τ_out) come with each prior."""
 PRESET_ALIASES: dict[str, str] = {"synthetic_mugs": "synthetic", "real_mugs": "real"}
 """Names of the presets before they lost the category (still accepted by `preset`)."""
@@ -253,8 +253,8 @@ def schedule(cfg: EMConfig, t: int) -> tuple[float, float, float, float]:
 
 _SYNTHETIC = EMConfig()
 
-_REAL = EMConfig(
-    name="real",
+_REAL_PAPER = EMConfig(
+    name="real_paper",
     domain="real",
     tau_d=(0.1, 0.07),
     stat_tau=0.03,
@@ -262,6 +262,21 @@ _REAL = EMConfig(
     cov_tau=0.03,
     cov_gamma=30.0,
 )
+"""§3.12's settings for real captures (the `real` preset up to session 7)."""
+
+_REAL = dataclasses.replace(
+    _REAL_PAPER,
+    name="real",
+    tau_d=(0.15, 0.15),
+    tau_n=(180.0, 180.0),
+    m_step_replace=False,
+    seen_through_margin=0.01,
+    max_seen_through=0.15,
+)
+"""Real single-view depth frames (session 8, measured with bench/em_stability.py, bench/real.py and
+bench/stereo_mug.py; docs/BENCHMARKS.md): §3.12's settings, but the E-step does not truncate on normals (depth
+noise tilts estimated normals, and the truncated points started the shrink spiral), a wider SDF band, M-step
+draws without replacement, and the free-space check of the capture camera."""
 
 _FAST = EMConfig(
     name="fast",
@@ -275,21 +290,22 @@ def preset(name: str) -> EMConfig:
     """A named solver config.
 
     Args:
-        name: "synthetic" (§3.12 synthetic scenes), "real" (§3.12 real captures, also the demo config) or
-            "fast" (synthetic settings with 80 proposals and cheaper reviews, for tests and interactive runs);
-            the old names "synthetic_mugs" and "real_mugs" are accepted.
+        name: "synthetic" (§3.12 synthetic scenes), "real" (single-view real depth frames: §3.12's real
+            settings with the session-8 changes, see `_REAL`; also the demo config), "real_paper" (§3.12's real
+            settings as specified) or "fast" (synthetic settings with 80 proposals and cheaper reviews, for tests
+            and interactive runs); the old names "synthetic_mugs" and "real_mugs" are accepted.
 
     Raises:
         ValueError: unknown name.
     """
-    table = {"synthetic": _SYNTHETIC, "real": _REAL, "fast": _FAST}
+    table = {"synthetic": _SYNTHETIC, "real": _REAL, "real_paper": _REAL_PAPER, "fast": _FAST}
     key = PRESET_ALIASES.get(name, name)
     if key not in table:
         raise ValueError(f"unknown EM preset {name!r}; choose one of {sorted(table)}")
     return table[key]
 
 
-PRESETS: tuple[str, ...] = ("synthetic", "real", "fast")
+PRESETS: tuple[str, ...] = ("synthetic", "real", "real_paper", "fast")
 """Preset names, in the order the apps list them."""
 
 
