@@ -217,7 +217,7 @@ def main() -> int:
     import torch
 
     from efem_viz.em.config import preset
-    from efem_viz.prior.registry import load_prior
+    from efem_viz.prior.model import load_prior
 
     torch.set_num_threads(args.threads)
     prior = load_prior(args.prior or "mug")
