@@ -2,7 +2,9 @@
 
 The solver's rules live in one registry, `efem_viz.em.rules`: `STEP_RULES` run after every EM step on the live
 proposals (too small, duplicated, included) and `REVIEW_RULES` on each proposal's `ReviewRecord` at the end of
-each phase (scale, pose). `run_em(..., step_rules=..., review_rules=...)` takes other lists. This example adds
+each phase (scale, pose, seen-through). Each rule decides from the measures the solver records (`StepContext`,
+`ReviewRecord`; the size and up verdicts are `rules.size_passes` / `rules.up_passes`), so changing a check means
+changing its rule here. `run_em(..., step_rules=..., review_rules=...)` takes other lists. This example adds
 
 - a `StepRule` "stationary near zero": a proposal whose stationary score is below `--min-stationary` explains
   (almost) none of its own samples; it dies now instead of lingering until it is "too small";
@@ -14,7 +16,8 @@ prints the deaths by reason, and shows that the saved trace carries its table of
 death codes read back correctly whatever rules a later build registers (the bundled traces predate the table
 and read with `LEGACY_REASONS`).
 
-Note: `StepContext` does not carry the step index, so a rule cannot say "after step k"; it sees the phase.
+Note: `StepContext` carries the phase, the global step and the step within the episode (`local_step`), so a
+rule can also say "after step k".
 
 Run (about 15 s on one CPU thread with the defaults)::
 

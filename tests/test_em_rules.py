@@ -440,3 +440,29 @@ def test_nan_centre_owns_no_points() -> None:
     tree = AvailableTree(pts, np.ones(200, bool))
     rag = tree.query(np.array([[np.nan, 0, 0], [0, 0, 0]]), 0.5)
     assert rag.lengths[0] == 0 and rag.lengths[1] > 0
+
+
+def test_review_rules_decide_from_the_measures() -> None:
+    """The size and up verdicts are the rules' (issue 23 item 5): with a resolved config the rule decides from the
+    record's radii and up angle, whatever verdict the record carries; without a config it keeps the stored one."""
+    from efem_viz.em.rules import ReviewRecord, size_passes, up_passes
+
+    cfg = resolve_for_prior(preset("real"), _Named("mug"))
+    z3 = np.zeros(3)
+    good_r = np.array([0.05, 0.05])
+    rec = ReviewRecord(step=0, phase=1, proposal_id=0, R=np.eye(3), R_raw=np.eye(3), scale_sel=1.0, db_sim=0.0,
+                       coverage=0.5, radii=good_r, scale_pass=False, up_angle=5.0, pose_pass=False,
+                       obb_center=z3, obb_axes=np.eye(3), obb_half_extents=z3, mask=np.zeros(0, np.int32),
+                       mesh_vertices=np.zeros((0, 3)), mesh_faces=np.zeros((0, 3), np.int32),
+                       neighbours=np.zeros(0, np.int32))
+    assert size_passes(good_r, cfg) and up_passes(5.0, cfg)
+    assert first_failed_review(rec, cfg) is None  # the measures pass: the stale stored flags do not decide
+    assert first_failed_review(rec, None) == ("scale-fail", 0.05)  # no config: the stored verdict
+    big = rec._replace(radii=np.array([0.2, 0.05]), scale_pass=True)
+    assert first_failed_review(big, cfg) == ("scale-fail", 0.2)
+    tilted = rec._replace(up_angle=80.0, pose_pass=True)
+    upright = cfg.replace(up_range=(0.0, 30.0))
+    assert up_passes(80.0, cfg)  # real captures leave the up axis free
+    assert not up_passes(80.0, upright) and first_failed_review(tilted, upright) == ("pose-fail", 80.0)
+    with pytest.raises(ValueError, match="unresolved"):
+        size_passes(good_r, preset("real"))

@@ -353,12 +353,36 @@ class ReviewRule:
     check: Callable[[ReviewRecord, Any], tuple[bool, float]]
 
 
+def size_passes(radii: np.ndarray, cfg: Any) -> bool:
+    """§3.9 size verdict: the completed shape's (horizontal radius, half-height) within the config's resolved
+    ranges (`scale_horizontal`, `scale_height`, metres)."""
+    h_rng, v_rng = cfg.scale_horizontal, cfg.scale_height
+    if h_rng is None or v_rng is None:
+        raise ValueError("size ranges unresolved: resolve the config for its prior first (resolve_for_prior)")
+    return bool(h_rng[0] <= float(radii[0]) <= h_rng[1] and v_rng[0] <= float(radii[1]) <= v_rng[1])
+
+
+def up_passes(up_angle: float, cfg: Any) -> bool:
+    """§3.9 up verdict: the angle between the canonical up axis and world +Z within the config's `up_range`."""
+    rng = cfg.up_range
+    if rng is None:
+        raise ValueError("up range unresolved: resolve the config for its prior first (resolve_for_prior)")
+    return bool(rng[0] <= float(up_angle) <= rng[1])
+
+
+def _resolved(cfg: Any, *names: str) -> bool:
+    return cfg is not None and all(getattr(cfg, n, None) is not None for n in names)
+
+
 def _scale_check(rec: ReviewRecord, cfg: Any) -> tuple[bool, float]:
-    return bool(rec.scale_pass), float(np.max(rec.radii))
+    # the rule decides from the record's measures; a record read back without its config keeps its stored verdict
+    ok = size_passes(rec.radii, cfg) if _resolved(cfg, "scale_horizontal", "scale_height") else bool(rec.scale_pass)
+    return ok, float(np.max(rec.radii))
 
 
 def _pose_check(rec: ReviewRecord, cfg: Any) -> tuple[bool, float]:
-    return bool(rec.pose_pass), float(rec.up_angle)
+    ok = up_passes(rec.up_angle, cfg) if _resolved(cfg, "up_range") else bool(rec.pose_pass)
+    return ok, float(rec.up_angle)
 
 
 def _seen_through_check(rec: ReviewRecord, cfg: Any) -> tuple[bool, float]:

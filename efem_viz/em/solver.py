@@ -46,6 +46,8 @@ from efem_viz.em.rules import (
     apply_step_rules,
     first_failed_review,
     reason_names,
+    size_passes,
+    up_passes,
 )
 from efem_viz.em.trace import TraceRecorder, energy_weights
 
@@ -665,15 +667,14 @@ def _trust_scale(latent: LatentArrays, pool: _Pool, trust: float) -> LatentArray
 
 def _size_and_up(Q: np.ndarray, R: np.ndarray, R_raw: np.ndarray, cfg: EMConfig
                  ) -> tuple[np.ndarray, bool, float, bool]:
-    """§3.9 size and up checks of a completed shape: (radii = (horizontal radius, half-height) in its
-    canonical frame, within the size ranges?, angle of the canonical up axis to world +Z, within the up range?)."""
+    """§3.9 measures of a completed shape and the rules' verdicts on them: (radii = (horizontal radius,
+    half-height) in its canonical frame, `rules.size_passes`, angle of the canonical up axis to world +Z,
+    `rules.up_passes`)."""
     Qt = Q @ R
     radii = np.array([np.linalg.norm(Qt[:, :2], axis=1).max(), np.abs(Qt[:, 2]).max()])
-    h_rng, v_rng, up_rng = cfg.scale_horizontal, cfg.scale_height, cfg.up_range
-    assert h_rng is not None and v_rng is not None and up_rng is not None  # resolved per prior
-    scale_pass = bool(h_rng[0] <= radii[0] <= h_rng[1] and v_rng[0] <= radii[1] <= v_rng[1])
     up_angle = float(np.degrees(np.arccos(np.clip(R_raw[:, 2] @ np.array([0.0, 0.0, 1.0]), -1.0, 1.0))))
-    return radii, scale_pass, up_angle, bool(up_rng[0] <= up_angle <= up_rng[1])
+    # the verdicts are the rules' (em/rules.py); the record keeps them for the trace and the viewer
+    return radii, size_passes(radii, cfg), up_angle, up_passes(up_angle, cfg)
 
 
 def _n_pcl(prior: Any) -> int:
