@@ -31,16 +31,51 @@ from typing import TYPE_CHECKING, Any, Callable, Literal, Protocol, Sequence
 
 import numpy as np
 
+from annotator.lasso import LassoCamera
+from efem_viz.prior.config import DEFAULT_PRIOR
 from efem_viz.serve.camera import VISER_CAMERA_KEYS
 
 if TYPE_CHECKING:
-    from annotator.app import ToolSettings
     from annotator.labels import Delta
     from annotator.selection import ScanGeometry
 
 
+@dataclass
+class ToolSettings:
+    """What the tool controls say; read from the GUI, never read by compute code directly."""
+
+    tool: str = "brush"
+    """Name of the active tool (an entry of the tool table)."""
+    category: str = "object"
+    """Category of new instances (N, *New instance*): the one the user chose last (typed into *Category*), or of
+    the scan's labels when it has some."""
+    radius: float = 0.01
+    """Brush radius, metres."""
+    brush_max_angle_deg: float = 180.0
+    """Brush paints only vertices whose normal is within this angle of the hit normal (180 = no limit)."""
+    grow_angle_deg: float = 20.0
+    """Region grow: maximum normal change across one edge, degrees."""
+    grow_distance: float = 0.15
+    """Region grow: maximum distance from the seed, metres."""
+    grow_min_height: float = 0.0
+    """Region grow and fill never enter points lower than this above z = 0 (the table plane of imported
+    tabletop scans), metres; 0 = off."""
+    only_unlabelled: bool = False
+    """Paint/grow/box change only unlabelled vertices."""
+    labels_only: bool = False
+    """The labels-only view: unlabelled vertices drawn in a faint grey (`annotator.render.compose_colors`)."""
+    box_facing: str = "front"
+    """Box select: "front" (vertices facing the camera) or "all"."""
+    active_id: int = 0
+    """Active instance id (0 = none yet)."""
+    prior: str = DEFAULT_PRIOR
+    """Shape prior of the click-to-segment tool (the *Prior for Segment tool* dropdown)."""
+    extra: dict[str, Any] = field(default_factory=dict)
+    """Settings of added tools' controls that have no field here (`annotator.tools.Control.setting` → value)."""
+
+
 class ToolHost(Protocol):
-    """What a tool's functions may use of the app (`annotator.app.AnnotatorApp` provides it)."""
+    """What a tool's functions may use of their host (`annotator.session.AnnotatorSession` provides it)."""
 
     settings: ToolSettings
     geom: ScanGeometry
@@ -66,7 +101,7 @@ class ToolHost(Protocol):
         ...
 
     def segment_at(self, vertex: int, *, wait: bool = False) -> np.ndarray | None:
-        """Click-to-segment with the shape prior."""
+        """Click-to-segment with the shape prior (`ToolSettings.prior`)."""
         ...
 
     def accept_segment(self) -> Delta | None:
@@ -77,8 +112,10 @@ class ToolHost(Protocol):
         """Drop the segment preview (or cancel the segmentation running)."""
         ...
 
-    def add_lasso_point(self, event: Any) -> int:
-        """Add a screen point to the lasso outline."""
+    def add_lasso_point(self, screen_pos: Sequence[float] | Sequence[Sequence[float]], *,
+                        ray_origin: Sequence[float] | np.ndarray, ray_direction: Sequence[float] | np.ndarray,
+                        camera: LassoCamera) -> int:
+        """Add a clicked screen point (and its camera) to the lasso outline."""
         ...
 
     def apply_lasso(self, *, client: str = "") -> Delta | None:
@@ -247,8 +284,13 @@ def _segment(host: ToolHost, hit: Hit) -> object:
     return host.segment_at(hit.vertex)
 
 
-def _lasso_point(host: ToolHost, event: Any) -> object:
-    return host.add_lasso_point(event)
+def lasso_click(host: ToolHost, event: Any) -> int:
+    """The lasso tool's click: the event's screen point, ray and client camera go to `ToolHost.add_lasso_point`."""
+    cam = event.client.camera
+    camera = LassoCamera(np.asarray(cam.position, np.float64), np.asarray(cam.wxyz, np.float64), float(cam.fov),
+                         float(cam.aspect))
+    return host.add_lasso_point(event.screen_pos, ray_origin=event.ray_origin, ray_direction=event.ray_direction,
+                                camera=camera)
 
 
 DEFAULT_TOOLS: tuple[Tool, ...] = (
@@ -270,7 +312,7 @@ DEFAULT_TOOLS: tuple[Tool, ...] = (
                          hint="drop the preview, or cancel the segmentation running", disabled=True),
          )),
     Tool("lasso", "Lasso", "O", "each click adds an outline point; Enter applies (paints, or erases)",
-         on_click=_lasso_point,
+         on_click=lasso_click,
          commands=(
              ToolCommand("lasso_apply", "Apply lasso", lambda h: h.apply_lasso(), hotkey="Enter",
                          hint="Lasso tool: Ctrl/Cmd+click the outline, then apply", disabled=True),

@@ -1,0 +1,253 @@
+"""The annotator's headless session: every action driven without a browser and without viser."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from annotator.io import LabelData, LabelIOError, load_labels
+from annotator.labels import InstanceInfo
+from annotator.lasso import LassoCamera
+from annotator.session import AnnotatorSession
+from annotator.tools import Hit
+from tests.helpers import ball_scan
+
+TOP_CAMERA = LassoCamera(np.array([0.0, 0.0, 1.0]), np.array([0.0, 1.0, 0.0, 0.0]), float(np.deg2rad(50)), 1.0)
+"""Looking down -Z at the ball from 1 m above (OpenCV camera: wxyz (0, 1, 0, 0) flips y and z)."""
+
+
+@pytest.fixture()
+def session(tmp_path: Path):
+    s = AnnotatorSession(ball_scan(tmp_path), out_dir=tmp_path / "out", autosave_delay=0)
+    yield s
+    s.close()
+
+
+def _top_vertex(s: AnnotatorSession) -> int:
+    return int(np.argmax(s.scene.points[:, 2]))
+
+
+def test_session_imports_without_viser() -> None:
+    code = ("import sys; import annotator.session, annotator.tools, annotator.lasso; "
+            "assert 'viser' not in sys.modules, sorted(m for m in sys.modules if 'viser' in m)")
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=Path(__file__).resolve().parents[1])
+
+
+def test_tools_do_not_import_the_app() -> None:
+    root = Path(__file__).resolve().parents[1] / "annotator"
+    for name in ("tools.py", "lasso.py", "session.py"):
+        text = (root / name).read_text()
+        assert "annotator.app" not in text.replace("`annotator.app", ""), name
+
+
+def test_paint_erase_undo_redo_and_the_journal(session: AnnotatorSession) -> None:
+    with pytest.raises(ValueError, match="no active instance"):
+        session.paint(np.arange(10))
+    changes: list[int] = []
+    session.on_change = lambda: changes.append(1)
+    iid = session.new_instance(category="mug")
+    assert session.settings.active_id == iid and changes
+    d = session.paint(np.arange(10))
+    assert d is not None and d.num_vertices == 10 and (session.store.labels[:10] == iid).all()
+    session.paint(np.arange(5), erase=True)
+    assert (session.store.labels[:5] == 0).all() and (session.store.labels[5:10] == iid).all()
+    session.undo()
+    assert (session.store.labels[:10] == iid).all()
+    session.redo()
+    assert (session.store.labels[:5] == 0).all()
+    journal = session.work_dir / f"{session.stem}.journal"
+    assert journal.exists() and journal.stat().st_size > 0
+
+
+def test_edits_inside_a_tool_name_the_tool(session: AnnotatorSession) -> None:
+    session.new_instance()
+    session.set_tool("grow")
+    v = _top_vertex(session)
+    session.apply_tool(Hit(v, session.scene.points[v]))
+    assert "(Region grow)" in session.store.labelset.undo_stack[-1].label
+
+
+def test_dab_stroke_and_cursor(session: AnnotatorSession) -> None:
+    session.new_instance()
+    session.settings.radius = 0.02
+    drawn: list[int] = []
+    session.on_cursor = lambda: drawn.append(1)
+    v = _top_vertex(session)
+    d = session.dab(v, session.scene.points[v], erase=False)
+    assert d is not None and d.num_vertices > 0 and drawn
+    assert session.cursor is not None and session.cursor.visible and session.cursor.radius == pytest.approx(0.02)
+    session.set_tool("grow")
+    cur = session.refresh_cursor()
+    assert cur is not None and not cur.visible
+    session.set_tool("erase")
+    pts = session.scene.points[session.scene.points[:, 2] > 0.09][:3]
+    assert session.paint_stroke(pts, erase=True) > 0
+
+
+def test_drag_stroke_is_one_undo_step(session: AnnotatorSession) -> None:
+    iid = session.new_instance()
+    session.settings.radius = 0.015
+    session.stroke_start(7, np.array([0.0, 0.0, 0.1]))
+    for x in (0.01, 0.02, 0.03):
+        session.stroke_to(7, np.array([0.0, 0.0, 1.0]), np.array([x, 0.0, 0.5]))
+    session.stroke_to(7, np.array([0.0, 0.0, 1.0]), np.array([0.04, 0.0, 0.5]), end=True)
+    assert not session.strokes
+    painted = int((session.store.labels == iid).sum())
+    assert painted > 0
+    session.undo()
+    assert not (session.store.labels == iid).any()
+
+
+def test_grow_fill_pick_and_min_height(session: AnnotatorSession) -> None:
+    a = session.new_instance()
+    session.settings.grow_distance = 0.05
+    v = _top_vertex(session)
+    d = session.grow(v)
+    assert d is not None and 0 < d.num_vertices < session.n
+    b = session.new_instance()
+    session.settings.grow_min_height = 0.05
+    d2 = session.fill(v)
+    assert d2 is not None and (session.scene.points[d2.idx, 2] >= 0.05).all()
+    assert session.pick_instance(v) == b and session.settings.active_id == b
+    session.cycle_active(1)
+    assert session.settings.active_id == a
+
+
+def test_click_applies_the_active_tool_or_misses(session: AnnotatorSession) -> None:
+    iid = session.new_instance()
+    session.set_tool("brush")
+    v = session.click(np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, -1.0]))
+    assert v is not None and (session.store.labels == iid).any()
+    assert session.click(np.array([5.0, 5.0, 1.0]), np.array([0.0, 0.0, 1.0])) is None
+
+
+def test_box_and_lasso_select_from_a_camera(session: AnnotatorSession) -> None:
+    iid = session.new_instance()
+    d = session.box(position=TOP_CAMERA.position, wxyz=TOP_CAMERA.wxyz, fov=TOP_CAMERA.fov,
+                    aspect=TOP_CAMERA.aspect, screen_min=(0.4, 0.4), screen_max=(0.6, 0.6))
+    assert d is not None and d.num_vertices > 0
+    assert (session.scene.points[d.idx, 2] > 0).all()  # front: the top of the ball only
+    session.undo()
+    lasso_changes: list[int] = []
+    session.on_lasso = lambda: lasso_changes.append(len(session.lasso_outline))
+    for uv in ((0.4, 0.4), (0.6, 0.4), (0.6, 0.6), (0.4, 0.6)):
+        session.add_lasso_point(uv, ray_origin=TOP_CAMERA.position, ray_direction=(0.0, 0.0, -1.0),
+                                camera=TOP_CAMERA)
+    assert lasso_changes == [1, 2, 3, 4]
+    d = session.apply_lasso()
+    assert d is not None and d.num_vertices > 0 and len(session.lasso_outline) == 0
+    assert "(lasso)" in d.label and (session.store.labels[d.idx] == iid).all()
+    with pytest.raises(ValueError, match="at least 3"):
+        session.apply_lasso()
+    with pytest.raises(ValueError):
+        session.add_lasso_point((float("nan"), 0.5), ray_origin=(0, 0, 1), ray_direction=(0, 0, -1),
+                                camera=TOP_CAMERA)
+
+
+def test_instances_update_merge_delete(session: AnnotatorSession) -> None:
+    a = session.new_instance(category="mug")
+    session.paint(np.arange(10))
+    b = session.new_instance(category="bowl")
+    session.paint(np.arange(10, 20))
+    session.choose_category("cup")
+    assert session.store.labelset.info(b).category == "cup" and session.settings.category == "cup"
+    session.toggle_active("visible")
+    assert not session.store.labelset.info(b).visible
+    session.update_instance(a, name="first")
+    assert session.store.labelset.info(a).name == "first"
+    session.merge([b], a)
+    assert session.settings.active_id == a and (session.store.labels[:20] == a).all()
+    session.delete_instance(a)
+    assert not session.store.labels.any()
+
+
+def test_export_import_and_confinement(session: AnnotatorSession, tmp_path: Path) -> None:
+    notes: list[str] = []
+    session.notify = lambda title, body: notes.append(title)
+    iid = session.new_instance(category="mug")
+    session.paint(np.arange(30))
+    ply, = session.export("ply")
+    npz, = session.export("npz")
+    assert session.export("scannet") and notes.count("Exported") == 3
+    assert ply.parent == session.out_dir and load_labels(npz, session.n).labels[:30].tolist() == [iid] * 30
+    with pytest.raises(LabelIOError):
+        session.export("ply", directory="../elsewhere")
+    session.paint(np.arange(30), erase=True)
+    session.import_labels(str(npz))
+    assert (session.store.labels[:30] == iid).all()
+
+
+def test_prelabels_import_and_review(session: AnnotatorSession) -> None:
+    labels = np.zeros(session.n, np.int32)
+    labels[:20], labels[20:50], labels[50:60] = 1, 2, 3
+    rows = [InstanceInfo(k, f"p{k}", category="mug") for k in (1, 2, 3)]
+    data = LabelData(labels, rows, confidence={1: 0.9, 2: 0.3, 3: 0.6})
+    ids = session.add_prelabels(data, source="scan.efem.npz")
+    assert len(ids) == 3 and all(session.store.labelset.info(i).unreviewed for i in ids)
+    first = ids[0]  # most confident first
+    assert session.store.labelset.info(first).confidence == pytest.approx(0.9)
+    session.review_prelabel(first, "accept")
+    assert not session.store.labelset.info(first).unreviewed
+    rejected = session.review_prelabels(0.5, "reject")
+    assert len(rejected) == 1 and rejected[0] not in session.store.labelset.instances
+    session.undo()  # the bulk review is one undo step
+    assert rejected[0] in session.store.labelset.instances
+    session.set_active(first)
+    session.review_prelabel(ids[1], "merge")
+    assert ids[1] not in session.store.labelset.instances
+    with pytest.raises(LabelIOError):
+        session.import_efem("../../etc/passwd")
+
+
+def test_click_to_segment_preview_accept_discard(session: AnnotatorSession,
+                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    import annotator.assist as assist
+
+    def fake(scene: object, vertex: int, *, prior_name: str, on_step: object, cancel: threading.Event) -> np.ndarray:
+        assert prior_name == "bowl"
+        return np.arange(40, dtype=np.int32)
+
+    monkeypatch.setattr(assist, "segment_at_point", fake)
+    progress: list[float | None] = []
+    redrawn: list[int] = []
+    session.on_segment = progress.append
+    session.on_preview = lambda idx: redrawn.append(len(idx))
+    session.settings.prior = "bowl"
+    mask = session.segment_at(5, wait=True)
+    assert mask is not None and len(mask) == 40 and session.preview is not None and session.preview[:40].all()
+    assert progress[0] == 0.0 and None in progress and redrawn == [40] and not session.segmenting
+    d = session.accept_segment()
+    assert d is not None and d.num_vertices == 40 and session.pending_segment is None
+    assert session.store.labelset.info(session.settings.active_id).category == "bowl"
+    session.segment_at(5, wait=True)
+    session.discard_segment()
+    assert session.preview is None
+    with pytest.raises(ValueError, match="no segment preview"):
+        session.accept_segment()
+
+
+def test_resume_keeps_the_labels(tmp_path: Path) -> None:
+    scan = ball_scan(tmp_path)
+    s = AnnotatorSession(scan, out_dir=tmp_path / "out", autosave_delay=0)
+    iid = s.new_instance(category="mug")
+    s.paint(np.arange(25))
+    s.close()
+    s2 = AnnotatorSession(scan, out_dir=tmp_path / "out", autosave_delay=0)
+    try:
+        assert (s2.store.labels[:25] == iid).all() and s2.settings.active_id == iid
+        assert s2.settings.category == "mug"
+    finally:
+        s2.close()
+
+
+def test_brush_resize_and_bad_tool(session: AnnotatorSession) -> None:
+    r0 = session.settings.radius
+    assert session.resize_brush(1.25) > r0
+    assert session.resize_brush(0.8) < session.settings.radius * 1.25 + 1e-9
+    with pytest.raises(ValueError, match="unknown tool"):
+        session.set_tool("nope")
