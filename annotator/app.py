@@ -32,11 +32,12 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence, cast
 
 import numpy as np
 
 from annotator.labels import Delta, unreviewed_prelabels
+from annotator.cheat_sheet import CheatSheets
 from annotator.events import MISSED_SCAN, check_event, coalesce_drag_updates
 from annotator.panel_views import NO_OPTIONS, panel_view, status_markdown
 from annotator.session import AnnotatorSession, BrushCursor, Stroke
@@ -51,7 +52,6 @@ from annotator.tools import (
     Tool,
     ToolSettings,
     all_controls,
-    cheat_sheet_markdown,
     help_markdown,
     lasso_click,
     shown_settings,
@@ -75,7 +75,6 @@ from efem_viz.prior.config import DEFAULT_PRIOR
 
 if TYPE_CHECKING:
     from viser import ClientHandle, GuiButtonHandle, GuiInputHandle, SceneClickEvent
-    from viser._gui_handles import GuiModalHandle  # not re-exported by viser 1.1
     from viser._messages import LiteralColor  # the colour names `add_notification` accepts
 
 log = logging.getLogger(__name__)
@@ -171,10 +170,9 @@ class AnnotatorApp:
         self.stats = Stats()
         self._cursor_handle: Any = None
         self._lasso_handle: Any = None
-        self.cheat_sheets: dict[int, GuiModalHandle] = {}
-        """The open `?` cheat-sheet overlays, by client id (under `_sheet_lock`: keys and buttons run on viser's
-        worker threads)."""
-        self._sheet_lock = threading.Lock()
+        self._sheets = CheatSheets(self.tools)
+        self.cheat_sheets = self._sheets.open
+        """The open `?` cheat-sheet overlays, by client id."""
         self._edits: queue.Queue[tuple[str, Any]] = queue.Queue()
         self._tls = threading.local()
         self._draw_lock = threading.Lock()
@@ -424,10 +422,10 @@ class AnnotatorApp:
                     else:
                         value = read_bool(handle)
                 except ClientValueError as exc:  # keep this setting; show it again where the bad value was
-                    old = self._setting(name)
+                    old = s.value(name)
                     self._refuse(exc, event, handle, round(old * c.scale, 6) if c.kind == "slider" else old)
                     continue
-                self._set_setting(name, value)
+                s.assign(name, value)
             self._show_tool()
 
         self.gui_tool.on_update(read_settings)
@@ -532,29 +530,13 @@ class AnnotatorApp:
 
     def _add_control(self, c: Control) -> GuiInputHandle[Any]:
         """Create a setting control; a setting with a `ToolSettings` field starts at its value."""
-        gui = self.server.gui
-        initial: Any = c.initial
-        if hasattr(self.settings, c.setting):
-            initial = getattr(self.settings, c.setting)
-            if c.kind == "slider":
-                digits = max(0, -int(np.floor(np.log10(c.step)))) if c.step < 1 else 0
-                initial = round(float(initial) * c.scale, digits)
-        else:
-            self.settings.extra.setdefault(c.setting, initial / c.scale if c.kind == "slider" else initial)
+        gui, initial = self.server.gui, self.settings.shown_initial(c)
         if c.kind == "slider":
-            return gui.add_slider(c.label, min=c.min, max=c.max, step=c.step, initial_value=initial, hint=c.hint)
+            return gui.add_slider(c.label, min=c.min, max=c.max, step=c.step, initial_value=cast(float, initial),
+                                  hint=c.hint)
         if c.kind == "dropdown":
             return gui.add_dropdown(c.label, c.options, initial_value=str(initial), hint=c.hint)
         return gui.add_checkbox(c.label, bool(initial), hint=c.hint)
-
-    def _setting(self, name: str) -> Any:
-        return getattr(self.settings, name) if hasattr(self.settings, name) else self.settings.extra[name]
-
-    def _set_setting(self, name: str, value: Any) -> None:
-        if hasattr(self.settings, name):
-            setattr(self.settings, name, value)
-        else:
-            self.settings.extra[name] = value
 
     def _refuse(self, exc: ClientValueError, event: Any, handle: Any, old: Any) -> None:
         """A client value no control can produce: say so to that client and show the kept value again."""
@@ -638,8 +620,7 @@ class AnnotatorApp:
 
     def _forget_client(self, client: ClientHandle) -> None:
         """A client left: drop what the app kept for it (its cheat-sheet overlay)."""
-        with self._sheet_lock:
-            self.cheat_sheets.pop(client.client_id, None)
+        self._sheets.forget(client.client_id)
         self.camera_guard.forget(client)
 
     def _run_reporting(self, fn: Callable[[], Any], client: Any = None) -> Any:
@@ -737,29 +718,7 @@ class AnnotatorApp:
         Args:
             client: the client that pressed the key (None: every connected client).
         """
-        targets = [client] if client is not None else list(self.server.get_clients().values())
-        opened = False
-        for c in targets:
-            with self._sheet_lock:
-                modal = self.cheat_sheets.pop(c.client_id, None)
-                if modal is not None:
-                    modal.close()
-                    continue
-                modal = c.gui.add_modal("Keyboard shortcuts")
-                with modal:
-                    c.gui.add_markdown(cheat_sheet_markdown(self.tools))
-                    close = c.gui.add_button("Close (?)")
-                self.cheat_sheets[c.client_id] = modal
-                opened = True
-
-            def on_close(_event: Any, c: ClientHandle = c, modal: GuiModalHandle = modal) -> None:
-                with self._sheet_lock:
-                    if self.cheat_sheets.get(c.client_id) is modal:
-                        del self.cheat_sheets[c.client_id]
-                        modal.close()
-
-            close.on_click(on_close)
-        return opened
+        return self._sheets.toggle([client] if client is not None else list(self.server.get_clients().values()))
 
     def set_labels_only(self, on: bool) -> None:
         """The labels-only view (unlabelled vertices dimmed) on or off; every chunk is redrawn."""

@@ -73,6 +73,29 @@ class ToolSettings:
     extra: dict[str, Any] = field(default_factory=dict)
     """Settings of added tools' controls that have no field here (`annotator.tools.Control.setting` → value)."""
 
+    def value(self, name: str) -> Any:
+        """A setting by name: a field, else an added tool's (`extra`)."""
+        return getattr(self, name) if hasattr(self, name) else self.extra[name]
+
+    def assign(self, name: str, value: Any) -> None:
+        """Set a setting by name: a field, else an added tool's (`extra`)."""
+        if hasattr(self, name):
+            setattr(self, name, value)
+        else:
+            self.extra[name] = value
+
+    def shown_initial(self, c: Control) -> float | bool | str:
+        """The value a control starts at, in display units: its field's value, else `c.initial` (which becomes
+        the setting's value in `extra`)."""
+        if not hasattr(self, c.setting):
+            self.extra.setdefault(c.setting, float(c.initial) / c.scale if c.kind == "slider" else c.initial)
+            return c.initial
+        initial = getattr(self, c.setting)
+        if c.kind == "slider":
+            digits = max(0, -int(np.floor(np.log10(c.step)))) if c.step < 1 else 0
+            initial = round(float(initial) * c.scale, digits)
+        return initial
+
 
 class ToolHost(Protocol):
     """What a tool's functions may use of their host (`annotator.session.AnnotatorSession` provides it)."""

@@ -251,3 +251,15 @@ def test_brush_resize_and_bad_tool(session: AnnotatorSession) -> None:
     assert session.resize_brush(0.8) < session.settings.radius * 1.25 + 1e-9
     with pytest.raises(ValueError, match="unknown tool"):
         session.set_tool("nope")
+
+
+def test_tool_settings_by_name() -> None:
+    from annotator.tools import GROW_DISTANCE, Control, ToolSettings
+
+    s = ToolSettings()
+    assert s.shown_initial(GROW_DISTANCE) == pytest.approx(15.0)  # 0.15 m shown in cm
+    lift = Control("lift_radius", "Lift radius (cm)", "slider", 15.0, min=1.0, max=30.0, step=0.5, scale=100.0)
+    assert s.shown_initial(lift) == 15.0 and s.value("lift_radius") == pytest.approx(0.15)
+    s.assign("lift_radius", 0.2)
+    s.assign("grow_distance", 0.3)
+    assert s.extra["lift_radius"] == 0.2 and s.grow_distance == 0.3 and s.value("grow_distance") == 0.3
