@@ -2,5 +2,8 @@
 
 Modules: `labels` (label store, pure), `selection` (brush / grow / fill / box, pure), `journal` (append-only
 journal, atomic checkpoint, `LabelStore`), `io` (label formats, scan loading, path safety), `render` (chunks and
-colours), `assist` (click-to-segment with EFEM), `app` (the viser layer; the only module importing viser).
+colours), `assist` (click-to-segment with EFEM), `tools` (the tool table, `ToolSettings`, the `ToolHost` contract),
+`lasso` (the lasso outline), `session` (`AnnotatorSession`: every action, headless; the tools' host), `events` and
+`panel_views` (the app's event checks and panel text, pure), `cheat_sheet`, `app` (the viser layer over the session;
+the only module importing viser).
 """
