@@ -23,7 +23,7 @@ from efem_viz.data.io import RESULT_SUFFIX, SEG_SUFFIX  # SEG_SUFFIX: the colour
 from efem_viz.prior.config import DEFAULT_PRIOR
 
 if TYPE_CHECKING:
-    from efem_viz.em.config import EMConfig
+    from efem_viz.em.config import EMConfig, PresetName
 
 BATCH_SCHEMA_VERSION = 1
 """Version of `batch.json` and of the job fingerprint (bump when either changes meaning)."""
@@ -54,8 +54,8 @@ class BatchJob:
     priors: tuple[str, ...] = (DEFAULT_PRIOR,)
     """Prior specs for `efem_viz.prior.registry.load_priors`: a name under efem_viz/weights/, "sphere", or a .pt path
     (made absolute, so workers started elsewhere find it)."""
-    preset: str = "synthetic"
-    """Solver preset (`efem_viz.em.config.preset`)."""
+    preset: PresetName = "synthetic"
+    """Solver preset (`efem_viz.em.config.preset`; the CLI's `SegmentArgs.preset` is the same type)."""
     proposals: int | None = None
     """Proposals of the first episode (None: the preset's)."""
     work_voxel: float | None = None
