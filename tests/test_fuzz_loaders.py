@@ -1002,14 +1002,15 @@ def format_bad(res: dict[str, Any]) -> str:
 # ---------------------------------------------------------------------------------------------- tests
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="the fuzzer forks one child per input")
 def test_every_loader_gives_a_valid_object_or_one_clear_error() -> None:
-    # 28 inputs per loader (about 30 s on one thread); the budget only guards a slow machine
-    res = run_fuzz(budget_s=38.0, seed=0, per_loader=28)
+    # The work is counted: 28 inputs per loader (about 30 s on a quiet core). The wall-clock budget is only a hang
+    # guard (20× that), so a loaded machine runs the same inputs, slower (issue 25 item 6).
+    res = run_fuzz(budget_s=600.0, seed=0, per_loader=28)
     json.dumps(res)  # bench/reliability.py writes it as JSON
     assert res["bad"]["count"] == 0, format_bad(res)
     for name, st in res["loaders"].items():
         valid = st["by_kind"]["valid"]
         assert valid["ok"] > 0 and valid["clean_error"] == valid["bad"] == 0, (name, "a seed file does not load")
-        assert st["inputs"] >= 14, (name, st["inputs"], "budget too small for this machine?")
+        assert st["inputs"] == 28, (name, st["inputs"], "the hang guard stopped the fuzzer")
     assert res["worst_peak_mb"]["value"] < MEMORY_LIMIT_MB
 
 
