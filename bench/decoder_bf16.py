@@ -1,7 +1,7 @@
 """Profile first (issue 24): does bf16 pay for the shipped prior's decoder and encoder on this CPU, and what does it
 change?
 
-The EM E-step decodes ragged batches of (proposal, scene point) queries with `ShapePrior.sdf(x, latent, index)`;
+The EM E-step decodes (proposal, scene point) queries in padded groups, `ShapePrior.sdf(x (B, Q, 3), latent)`;
 the M-step encodes batches of `n_pcl`-point clouds. This bench times both on the shipped prior, fp32 against
 `torch.autocast("cpu", dtype=torch.bfloat16)`, in one run with the same inputs (real encodings of held-out
 procedural mugs, queries around their surfaces as an E-step sees them), and reports the SDF error bf16 makes:
@@ -58,9 +58,10 @@ def main() -> int:
     per = a.queries // a.proposals
     q = np.concatenate([o.nss[rng.integers(0, len(o.nss), per), :3] for o in objs]).astype(np.float32)
     q += rng.normal(0, 0.01, q.shape).astype(np.float32)
-    # world frame of each latent: x_world = Θ_s · x + Θ_c (the encoder saw canonical clouds)
+    # world frame of each latent: x_world = Θ_s · x + Θ_c (the encoder saw canonical clouds); the solver decodes
+    # rows padded into dense (B, Q, 3) groups (`em/decoding._decode_padded`), i.e. `sdf(x, latent)` batched
     idx = torch.as_tensor(np.repeat(np.arange(a.proposals), per), dtype=torch.int64)
-    xq = torch.as_tensor(q) * lat.scale[idx, None] + lat.center[idx]
+    xq = (torch.as_tensor(q) * lat.scale[idx, None] + lat.center[idx]).reshape(a.proposals, per, 3)
 
     def timed(fn):  # noqa: ANN001, ANN202
         out = fn()  # warm-up
@@ -73,11 +74,11 @@ def main() -> int:
 
     def dec32():  # noqa: ANN202
         with torch.no_grad():
-            return prior.sdf(xq, lat, idx)
+            return prior.sdf(xq, lat)
 
     def dec16():  # noqa: ANN202
         with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
-            return prior.sdf(xq, lat, idx).float()
+            return prior.sdf(xq, lat).float()
 
     def enc32():  # noqa: ANN202
         with torch.no_grad():
