@@ -290,14 +290,16 @@ def test_bracket_keys_resize_the_brush(keyed: tuple[Any, Any]) -> None:
     """] makes the brush larger, [ smaller: the radius the tools use changes, and the slider shows it."""
     app, page = keyed
     r0 = app.settings.radius
+    def slider_shows_radius() -> bool:
+        # the key handler sets the radius, then the slider: wait for both, not for the first alone
+        return app.gui_controls["radius"].value == pytest.approx(100 * app.settings.radius)
+
     page.keyboard.press("]")
-    wait_until(lambda: app.settings.radius > r0, 10, "a larger brush (])")
-    r1 = app.settings.radius
-    assert app.gui_controls["radius"].value == pytest.approx(100 * r1)
+    wait_until(lambda: app.settings.radius > r0 and slider_shows_radius(), 10, "a larger brush (]) on the slider")
     page.keyboard.press("[")
     page.keyboard.press("[")
-    wait_until(lambda: app.settings.radius < r0, 10, "a smaller brush ([ [)")
-    assert app.gui_controls["radius"].value == pytest.approx(100 * app.settings.radius)
+    wait_until(lambda: app.settings.radius < r0 and slider_shows_radius(), 10,
+               "a smaller brush ([ [) on the slider")
 
 
 def test_tab_makes_the_next_instance_active(keyed: tuple[Any, Any]) -> None:
