@@ -46,6 +46,16 @@ sys.path.insert(0, str(ROOT / "bench"))
 LEVELS = ("0", "1", "2", "3", "5", "sensor")
 
 
+def parse_config(spec: str) -> tuple[str, dict[str, Any]]:
+    """``"NAME=key=value;key=value"`` (values are Python literals) -> (NAME, EMConfig overrides)."""
+    name, _, kv = spec.partition("=")
+    changes: dict[str, Any] = {}
+    for part in filter(None, kv.split(";")):
+        k, _, v = part.partition("=")
+        changes[k.strip()] = ast.literal_eval(v.strip())
+    return name, changes
+
+
 # ---------------------------------------------------------------------------------------------- scenes
 def render_single_view(mesh: Any, level: str, rng: np.random.Generator, *, name: str) -> tuple[Any, np.ndarray, float]:
     """One depth frame of ``mesh`` (metres, upright, random yaw) on a table, imported like a real frame.
@@ -224,11 +234,7 @@ def main() -> int:
     base = preset(args.preset)
     configs: dict[str, Any] = {} if args.no_base else {"base": base}
     for spec in args.config:
-        name, _, kv = spec.partition("=")
-        changes = {}
-        for part in filter(None, kv.split(";")):
-            k, _, v = part.partition("=")
-            changes[k.strip()] = ast.literal_eval(v.strip())
+        name, changes = parse_config(spec)
         configs[name] = base.replace(**changes)
     t0 = time.time()
     sets: dict[str, list[dict[str, Any]]] = {}

@@ -13,19 +13,18 @@ Writes bench/results/stereo_mug_<tag>.json.
 from __future__ import annotations
 
 import argparse
-import ast
 import json
 import os
 import platform
 import sys
 import time
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
 FRAME = Path(os.environ.get("EFEM_STEREO_FRAME", ROOT.parent / "shared" / "data" / "pcl_tutorial_mug" / "frame.npz"))
 
 
@@ -46,30 +45,21 @@ def mug_mask(points: np.ndarray, *, above: float = 0.01, link: float = 0.01) -> 
     return out
 
 
-def parse_config(text: str) -> tuple[str, dict[str, Any]]:
-    name, _, body = text.partition("=")
-    kv: dict[str, Any] = {}
-    for part in filter(None, body.split(";")):
-        k, _, v = part.partition("=")
-        try:
-            kv[k.strip()] = ast.literal_eval(v)
-        except (ValueError, SyntaxError):
-            kv[k.strip()] = v
-    return name, kv
-
-
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--prior", default="mug")
     ap.add_argument("--preset", default="real")
     ap.add_argument("--proposals", type=int, default=400)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
-    ap.add_argument("--config", action="append", default=[], help="NAME=key=value;key=value (EMConfig overrides)")
+    ap.add_argument("--config", action="append", default=[],
+                    help="NAME=key=value;key=value (EMConfig overrides, as bench/em_stability.py)")
     ap.add_argument("--no-base", action="store_true", help="skip the unchanged preset")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--tag", default="latest")
     a = ap.parse_args()
     import torch
+
+    from em_stability import parse_config
 
     from efem_viz.data.rgbd import import_rgbd_file
     from efem_viz.em import preset, run_em
@@ -90,11 +80,7 @@ def main() -> int:
             t0 = time.perf_counter()
             res = run_em(scene, prior, cfg, seed=seed)
             conf = np.asarray(res.instances.confidence, np.float64)
-            ious = []
-            for m in res.instances.masks:
-                b = np.zeros(scene.num_points, bool)
-                b[np.asarray(m)] = True
-                ious.append(float((b & gt).sum() / max(1, (b | gt).sum())))
+            ious = [float((b & gt).sum() / max(1, (b | gt).sum())) for b in res.instances.bool_masks(scene.num_points)]
             best = int(np.argmax(ious)) if ious else -1
             rank = int((conf > conf[best]).sum()) + 1 if best >= 0 else None
             row = {"config": name, "overrides": over, "seed": seed, "instances": len(ious),
