@@ -15,8 +15,12 @@ is slower than EM on this machine).
 notes do not say whether the paper's synthetic mug scenes held other objects, so the two sets bracket it) and
 writes bench/results/em_no_distractors.json. The targets stay judged on the default set.
 
+`--config NAME=key=value;...` (repeated) compares solver configs in one run: every scene is run by each config in
+turn, and the table gives AP per configuration and the median seconds of each (issue 24: `--config fp32=
+--config "bf16=matmul_dtype='bfloat16'"`).
+
 Usage: python bench/em.py [--quick] [--prior mug] [--threads 2] [--mode points] [--skip-accuracy]
-       [--no-distractors] [--save-results DIR]
+       [--no-distractors] [--save-results DIR] [--config NAME=... --config NAME=...]
 """
 
 from __future__ import annotations
@@ -26,12 +30,14 @@ import json
 import logging
 import os
 import platform
+import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
+sys.path[:0] = [str(ROOT), str(ROOT / "bench")]  # the checkout's efem_viz; em_stability's config parser
 CACHE = Path(os.environ.get("EFEM_BENCH_CACHE", Path.home() / ".cache" / "efem-viz" / "bench"))
 CONFIGS = ("z", "so3", "pile")
 SEED0 = 7000
@@ -65,6 +71,59 @@ def stage_table(timings: list[dict[str, float]]) -> dict[str, float]:
     return {k: v / total for k, v in tot.items()} | {"other": max(0.0, 1 - sum(tot.values()) / total)}
 
 
+def compare(args: argparse.Namespace, prior: Any, cfgs: dict[str, Any]) -> int:
+    """Accuracy and speed of several solver configs on the same scenes, each scene run by every config in turn
+    (so machine load falls on all of them alike)."""
+    import torch
+
+    from efem_viz.eval import SceneGroundTruth, evaluate, prediction_from_instances
+
+    n_scenes = args.n_scenes or (2 if args.quick else 10)
+    print(f"compare {list(cfgs)}: {n_scenes} scenes x {CONFIGS}, {args.proposals} proposals, preset {args.preset}, "
+          f"{args.threads} threads")
+    per: dict[str, dict[str, Any]] = {n: {"em_config": json.loads(c.to_json()), "accuracy": {}, "seconds": [],
+                                          "cpu_seconds": [], "timings": []} for n, c in cfgs.items()}
+    for config in CONFIGS:
+        preds: dict[str, list[Any]] = {n: [] for n in cfgs}
+        gts = []
+        for i in range(n_scenes):
+            scene = get_scene(config, SEED0 + i, args.mode, distractors=not args.no_distractors)
+            gts.append(SceneGroundTruth.from_scene(scene))
+            line = [f"  {scene.name:>10}:"]
+            for name, c in cfgs.items():
+                res = run_one(scene, prior, c)
+                preds[name].append(prediction_from_instances(res.instances, name=scene.name, class_names=("mug",)))
+                one = evaluate([preds[name][-1]], [gts[-1]], class_names=("mug",))
+                per[name]["seconds"].append(res.timings["total"])
+                per[name]["cpu_seconds"].append(res.timings["total_cpu"])
+                per[name]["timings"].append(res.timings)
+                line.append(f"{name} AP50 {one.ap50 * 100:5.1f} {res.timings['total']:5.1f} s")
+            print("  ".join(line), flush=True)
+        for name in cfgs:
+            ev = evaluate(preds[name], gts, class_names=("mug",))
+            per[name]["accuracy"][config] = {"ap": ev.ap * 100, "ap50": ev.ap50 * 100, "ap25": ev.ap25 * 100}
+            print(f"{config:>5} {name:>10}: AP {ev.ap * 100:5.1f}  AP50 {ev.ap50 * 100:5.1f}  AP25 {ev.ap25 * 100:5.1f}")
+    print(f"{'config':>10} {'median s':>9} {'median cpu s':>13}  " + "  ".join(f"{c:>12}" for c in CONFIGS))
+    for name, r in per.items():
+        r["median_seconds_per_scene"] = float(np.median(r["seconds"]))
+        r["median_cpu_seconds_per_scene"] = float(np.median(r["cpu_seconds"]))
+        r["time_share_by_stage"] = stage_table(r.pop("timings"))
+        print(f"{name:>10} {r['median_seconds_per_scene']:9.1f} {r['median_cpu_seconds_per_scene']:13.1f}  "
+              + "  ".join(f"AP50 {r['accuracy'][c]['ap50']:6.1f}" for c in CONFIGS))
+    out = {"machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "torch_threads": args.threads,
+                       "torch": torch.__version__},
+           "prior": {"name": args.prior, "metadata": {k: v for k, v in prior.metadata.items()
+                                                      if k in ("iteration", "val_iou", "tau_out")}},
+           "scene_mode": args.mode, "distractors": not args.no_distractors, "n_scenes": n_scenes,
+           "proposals": args.proposals, "configs": per}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = args.out.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(out, indent=2, default=float))
+    os.replace(tmp, args.out)
+    print(f"wrote {args.out}")
+    return 0
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="2 scenes per configuration, shorter speed tables")
@@ -85,6 +144,10 @@ def main() -> int:
     ap.add_argument("--save-results", type=Path, default=None,
                     help="also write every accuracy run's scene (.ply) and result (.efem.npz) here, to open them in "
                          "the viewer (efem-viz view DIR) or re-score them")
+    ap.add_argument("--config", action="append", default=None, metavar="NAME=key=value;...",
+                    help="compare solver configs in one run: each scene is run with every config in turn (values are "
+                         "Python literals on top of --preset), e.g. --config fp32= --config "
+                         "\"bf16=matmul_dtype='bfloat16'\"; default: the preset alone")
     args = ap.parse_args()
     if args.out is None:
         args.out = ROOT / "bench" / "results" / ("em_no_distractors.json" if args.no_distractors else "em.json")
@@ -96,9 +159,15 @@ def main() -> int:
     from efem_viz.eval import SceneGroundTruth, evaluate, prediction_from_instances
     from efem_viz.prior.model import load_prior
 
+    from em_stability import parse_config
+
     torch.set_num_threads(args.threads)
     prior = load_prior(args.prior)
     cfg = preset(args.preset).with_proposals(args.proposals).replace(work_voxel=args.work_voxel)
+    variants = dict(parse_config(spec) for spec in (args.config or [f"{args.preset}="]))
+    cfgs = {name: cfg.replace(**changes) for name, changes in variants.items()}
+    if len(cfgs) > 1:
+        return compare(args, prior, cfgs)
     n_scenes = args.n_scenes or (2 if args.quick else 10)
     out: dict[str, Any] = {
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "torch_threads": args.threads,

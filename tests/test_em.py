@@ -361,6 +361,30 @@ def test_shipped_prior_regression_each_mug_found_once() -> None:
     assert ev.ap50 == pytest.approx(1.0), f"AP50 {ev.ap50:.3f} (AP25 {ev.ap25:.3f})"
 
 
+def test_bf16_solve_finds_the_same_mugs_and_replays_in_its_precision(tmp_path: Path) -> None:
+    """EMConfig.matmul_dtype="bfloat16" (issue 24): the regression scene's bars hold, the trace records the
+    precision through a save/load round trip, and replay re-derives each step's inliers in that precision."""
+    from efem_viz.eval import evaluate_scene
+
+    prior = _shipped_prior_or_skip()
+    scene = _mug_scene()
+    res = run_em(scene, prior, preset("fast").replace(n_init=(100,), matmul_dtype="bfloat16"), seed=0)
+    m = ious(res.instances, scene.instance)
+    assert (m.max(axis=0) >= 0.5).all(), f"per-mug best IoU {np.round(m.max(axis=0), 3)}"
+    ev = evaluate_scene([np.asarray(k) for k in res.instances.masks], res.instances.confidence, scene.instance)
+    assert ev.ap50 == pytest.approx(1.0)
+    assert res.config.matmul_dtype == "bfloat16"
+    back = EMResult.load(res.save(tmp_path), scene=scene, prior=prior)
+    assert back.config.matmul_dtype == "bfloat16"
+    tr = back.trace
+    pid = int(back.instances.ids[0])
+    for t in (0, tr.last_step(pid)):
+        w = back.replay.weights_out(pid, t, full_resolution=False)
+        assert int((w > 1e-30).sum()) == int(tr.row_inliers[tr.row_of(pid, t)])
+    with pytest.raises(ValueError, match="matmul_dtype"):
+        preset("fast").replace(matmul_dtype="float16")
+
+
 def test_instances_npz_round_trip_including_empty() -> None:
     for inst in (_toy_instances(), Instances.empty()):
         back = Instances.from_npz_dict(inst.to_npz_dict())

@@ -146,6 +146,19 @@ def test_knn_matches_cdist() -> None:
     assert torch.equal(knn_indices(q, r, 5), ref)
 
 
+def test_knn_keeps_float32_distances_under_bf16_autocast() -> None:
+    """EMConfig.matmul_dtype="bfloat16" runs the encoder under autocast; its k-NN graph must not change: the
+    distance matrix stays float32 (in bf16 many of these neighbours would swap)."""
+    gen = torch.Generator().manual_seed(13)
+    q = torch.randn(3, 64, 48, generator=gen)  # encoder-like: 16 VN channels x 3
+    r = q + 1e-3 * torch.randn(3, 64, 48, generator=gen)
+    ref = torch.cdist(q.double(), r.double()).topk(8, dim=-1, largest=False).indices
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        assert torch.equal(knn_indices(q, r, 8), ref)
+        assert torch.equal(knn_indices(q.bfloat16(), r.bfloat16(), 8),
+                           knn_indices(q.bfloat16().float(), r.bfloat16().float(), 8))
+
+
 # ---------------------------------------------------------------------------------------------------- encoder
 def _check_encoder(model: ShapePrior, seed: int) -> None:
     s, R, t = random_similarity(seed)

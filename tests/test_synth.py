@@ -183,3 +183,70 @@ def test_cli_writes_loadable_ply(tmp_path: Path) -> None:
     s = load_scene(path)
     assert s.has_gt and s.is_mesh
     assert set(s.instance_ids().tolist()) == {1}
+
+
+# ---------------------------------------------------------------------------------------------- tree / box / shelf
+def _structure_meshes(scene: Scene) -> list:
+    from efem_viz.data.structures import piece_mesh
+
+    return [piece_mesh(sp) for sp in scene.provenance["structure"]["pieces"]]
+
+
+@pytest.mark.parametrize("config", ["tree", "box", "shelf"])
+def test_structure_scene_ground_truth_and_structure_is_background(config: str) -> None:
+    """The arrangement configurations: deterministic, every labelled point lies on its mug, the structure's
+    surface is background (0), no object penetrates another or the structure."""
+    s = _scene(config, 2, 3, distractors=False)
+    again = generate_scene(config, seed=2, n_objects=3, distractors=False, **FAST)  # type: ignore[arg-type]
+    assert np.array_equal(s.points, again.points) and np.array_equal(s.instance, again.instance)
+    p = s.provenance
+    assert p["config"] == config and p["structure"]["kind"] == config and p["misplaced_objects"] == 0
+    meshes, fixed = _world_meshes(s), _structure_meshes(s)
+    assert set(s.instance_ids().tolist()) == {1, 2, 3}, "every mug is seen"
+    for o, m in zip(p["objects"], meshes):
+        lab = s.instance == o["instance_id"]
+        assert np.median(_distance_to(m, s.points[lab])) < 0.004
+    d_fix = np.minimum.reduce([_distance_to(q, s.points) for q in fixed])
+    d_obj = np.minimum.reduce([_distance_to(m, s.points) for m in meshes])
+    on_structure = (d_fix < 0.002) & (d_obj > 0.015)
+    assert on_structure.sum() > 50, "the cameras see the structure"
+    assert (s.instance[on_structure] == 0).all(), "structure points must be background"
+    rep = contact_report(meshes, fixed=fixed)
+    assert rep["max_penetration"] <= PENETRATION_TOLERANCE
+    assert rep["max_penetration"] == pytest.approx(p["max_penetration_m"], abs=1e-3)
+
+
+def test_tree_mugs_hang_by_their_handles_tilted() -> None:
+    from efem_viz.data.procedural import handle_hole
+
+    s = _scene("tree", 2, 3, distractors=False)
+    pegs = s.provenance["structure"]["pegs"]
+    tilts = []
+    for o, m in zip(s.provenance["objects"], _world_meshes(s)):
+        T = np.asarray(o["T_world_object"])
+        assert m.bounds[0, 2] > 0.03, "a mug fell off its peg"
+        centre, clearance = handle_hole(make_shape("mug", o["seed"]))
+        c = T[:3, :3] @ centre + T[:3, 3]
+        # some peg's axis passes through the handle opening
+        dist = []
+        for peg in pegs:
+            root, d = np.asarray(peg["root"]), np.asarray(peg["direction"])
+            t = np.clip(np.dot(c - root, d), 0, peg["length"])
+            dist.append(np.linalg.norm(c - (root + t * d)))
+        assert min(dist) < clearance + 0.002, f"mug {o['instance_id']}: no peg through its handle"
+        tilts.append(np.degrees(np.arccos(np.clip(T[2, 2], -1, 1))))
+    assert max(tilts) > 15.0, f"hanging mugs tilt: {np.round(tilts, 1)}"
+
+
+def test_box_objects_inside_walls_and_shelf_levels_used() -> None:
+    s = _scene("box", 2, 3, distractors=False)
+    lo, hi = (np.asarray(v) for v in s.provenance["structure"]["floor"])
+    for m in _world_meshes(s):
+        c = m.vertices.mean(axis=0)[:2]
+        assert np.all(c > lo) and np.all(c < hi), "an object lies outside the box"
+    sh = _scene("shelf", 2, 3, distractors=False)
+    levels = sh.provenance["structure"]["levels"]
+    feet = [m.bounds[0, 2] for m in _world_meshes(sh)]
+    used = {int(np.argmin([abs(f - z) for z in levels])) for f in feet}
+    assert all(min(abs(f - z) for z in levels) < 1e-4 for f in feet), "mugs rest on a level"
+    assert len(used) == min(len(levels), 3), "every level holds a mug"

@@ -481,6 +481,49 @@ def make_mug_with_parts(
     return _finish(mesh, parts, f"mug {seed} ({p.profile}, handle {p.handle})")
 
 
+def handle_hole(mesh: trimesh.Trimesh, *, grid: int = 48) -> tuple[np.ndarray, float] | None:
+    """The opening of a mug's handle: the point of the handle plane (y = 0, canonical frame, handle on +X)
+    farthest from the surface among those enclosed by the handle and the body, where a line along Y passes
+    freely (what a peg through the handle needs).
+
+    Args:
+        mesh: a canonical mug mesh (`make_mug`).
+        grid: candidate points per side of the handle region.
+
+    Returns:
+        (centre (3,), clearance): the hole's centre and its distance to the nearest surface (metres), or None
+        when the mug has no handle opening.
+    """
+    import open3d as o3d
+
+    from efem_viz._typeshims import o3d_tensor
+
+    v = np.asarray(mesh.vertices)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    # the handle region: the +X part beyond the body's axis, over the whole height
+    xs = np.linspace(0.0, hi[0], grid)
+    zs = np.linspace(lo[2], hi[2], grid)
+    gx, gz = np.meshgrid(xs, zs, indexing="ij")
+    cand = np.stack([gx.ravel(), np.zeros(gx.size), gz.ravel()], axis=1).astype(np.float32)
+    rc = o3d.t.geometry.RaycastingScene()
+    rc.add_triangles(o3d_tensor(np.asarray(v, np.float32)), o3d_tensor(np.asarray(mesh.faces, np.uint32)))
+    dist = rc.compute_distance(o3d_tensor(cand)).numpy()
+    inside = rc.compute_occupancy(o3d_tensor(cand)).numpy() > 0
+    reach = float(np.linalg.norm(hi - lo))
+
+    def hits(direction: tuple[float, float, float]) -> np.ndarray:
+        rays = np.concatenate([cand, np.broadcast_to(np.asarray(direction, np.float32), cand.shape)], axis=1)
+        return rc.cast_rays(o3d_tensor(np.ascontiguousarray(rays)))["t_hit"].numpy() < reach
+
+    enclosed = hits((1, 0, 0)) & hits((-1, 0, 0)) & hits((0, 0, 1)) & hits((0, 0, -1))
+    through = ~hits((0, 1, 0)) & ~hits((0, -1, 0))
+    ok = enclosed & through & ~inside
+    if not ok.any():
+        return None
+    best = int(np.argmax(np.where(ok, dist, -1.0)))
+    return cand[best].astype(np.float64), float(dist[best])
+
+
 # ====================================================================================== distractors
 def _hull_parts(mesh: trimesh.Trimesh) -> list[np.ndarray]:
     return [np.asarray(mesh.vertices, np.float64).copy()]

@@ -1,10 +1,16 @@
 """Synthetic tabletop scans with per-point ground truth: procedural mugs (+ distractors) on a table.
 
-Three configurations, as in the EFEM paper's synthetic mug scenes:
+The six configurations of the EFEM paper's synthetic mug scenes:
   * ``"z"``: mugs upright with a random yaw, placed without overlap;
   * ``"so3"``: objects dropped with a random orientation (pybullet) and resting on the table;
   * ``"pile"``: objects dropped one after the other onto the ones already lying there (pybullet), so that
-    they stack, lean on and touch each other.
+    they stack, lean on and touch each other;
+  * ``"tree"``: mugs threaded by their handles on the pegs of a mug tree, then settled by pybullet (they drop
+    onto the pegs and hang tilted); only mugs whose handle opening clears a peg are drawn;
+  * ``"box"``: objects dropped one after the other into an open box whose walls hide part of them;
+  * ``"shelf"``: objects upright on the 2-3 levels of a shelf, partly hidden by the level above; the cameras
+    stand in front of it.
+The supporting structures (`efem_viz.data.structures`) are background (id 0), like the table.
 Physics uses a convex decomposition of every object (`procedural.make_shape_with_parts`); final poses are
 checked for interpenetration with signed distances on the exact meshes (dropped again when above tolerance).
 
@@ -40,12 +46,16 @@ if TYPE_CHECKING:
     import trimesh
 
     from efem_viz.data.scene import Scene
+    from efem_viz.data.structures import Structure
 
 logger = logging.getLogger(__name__)
 
-Config = Literal["z", "so3", "pile"]
+Config = Literal["z", "so3", "pile", "tree", "box", "shelf"]
 Mode = Literal["tsdf", "points"]
-CONFIGS: tuple[str, ...] = ("z", "so3", "pile")
+CONFIGS: tuple[str, ...] = ("z", "so3", "pile", "tree", "box", "shelf")
+"""Scene configurations (their order seeds the generator: append only)."""
+STRUCTURE_CONFIGS: tuple[str, ...] = ("tree", "box", "shelf")
+"""Configurations with a supporting structure (`efem_viz.data.structures`)."""
 
 TABLE_HALF = 0.4
 """Half side of the square table top (metres); the top face is at z = 0."""
@@ -91,6 +101,8 @@ class _Object:
     """Convex collision pieces, canonical frame."""
     color: np.ndarray
     T_world_object: np.ndarray = field(default_factory=lambda: np.eye(4))
+    hole: tuple[np.ndarray, float] | None = None
+    """Mugs of the tree configuration: the handle opening (canonical centre, clearance), see `handle_hole`."""
 
     def world_mesh(self) -> "trimesh.Trimesh":
         m = self.mesh.copy()
@@ -99,17 +111,33 @@ class _Object:
 
 
 def _sample_objects(
-    rng: np.random.Generator, *, n_mugs: int, distractors: bool, split: str
+    rng: np.random.Generator, *, n_mugs: int, distractors: bool, split: str, hole: float | None = None
 ) -> list[_Object]:
-    from efem_viz.data.procedural import make_shape_with_parts, split_seeds
+    """The scene's mugs (labels 1..n) and 0-2 distractors (label 0). With `hole`, only mugs whose handle
+    opening clears that radius (m) are drawn (the tree configuration hangs them on pegs)."""
+    from efem_viz.data.procedural import handle_hole, make_shape_with_parts, split_seeds
 
     seeds = split_seeds("mug", split)  # type: ignore[arg-type]
-    mug_seeds = [int(seeds[i]) for i in rng.choice(len(seeds), size=n_mugs, replace=False)]
+    if hole is None:
+        mug_seeds = [int(seeds[i]) for i in rng.choice(len(seeds), size=n_mugs, replace=False)]
+        holes: list[tuple[np.ndarray, float] | None] = [None] * n_mugs
+    else:
+        mug_seeds, holes = [], []
+        for i in rng.choice(len(seeds), size=min(len(seeds), 20 * n_mugs), replace=False):
+            opening = handle_hole(make_shape_with_parts("mug", int(seeds[i]))[0])
+            if opening is not None and opening[1] >= hole:
+                mug_seeds.append(int(seeds[i]))
+                holes.append(opening)
+                if len(mug_seeds) == n_mugs:
+                    break
+        if len(mug_seeds) < n_mugs:
+            raise RuntimeError(f"only {len(mug_seeds)} of the {split} mugs drawn have a handle opening of "
+                               f"{hole * 1000:.0f} mm")
     objs: list[_Object] = []
     colors = rng.permutation(len(_MUG_COLORS))
     for k, s in enumerate(mug_seeds):
         mesh, parts = make_shape_with_parts("mug", s)
-        objs.append(_Object("mug", s, k + 1, mesh, parts, _MUG_COLORS[colors[k % len(colors)]]))
+        objs.append(_Object("mug", s, k + 1, mesh, parts, _MUG_COLORS[colors[k % len(colors)]], hole=holes[k]))
     if distractors:
         n_d = int(rng.integers(0, 3))
         for _ in range(n_d):
@@ -174,6 +202,119 @@ def _place_upright(objs: list[_Object], rng: np.random.Generator) -> None:
         o.T_world_object = T
 
 
+def _scatter_in(
+    rng: np.random.Generator, radii: Sequence[float], lo: np.ndarray, hi: np.ndarray, *, gap: float = 0.01,
+    keep_out: tuple[np.ndarray, float] | None = None,
+) -> np.ndarray | None:
+    """Non-overlapping disc centres (K, 2) inside the rectangle [lo, hi] (discs wholly inside when they fit),
+    outside the disc `keep_out` (centre, radius); None when rejection sampling finds no room."""
+    centres: list[np.ndarray] = []
+    for r in radii:
+        inset = np.minimum(r, (hi - lo) / 2)
+        for _ in range(400):
+            c = rng.uniform(lo + inset, hi - inset)
+            if keep_out is not None and np.linalg.norm(c - keep_out[0]) < r + keep_out[1] + gap:
+                continue
+            if all(np.linalg.norm(c - q) >= r + rq + gap for q, rq in zip(centres, radii)):
+                centres.append(c)
+                break
+        else:
+            return None
+    return np.array(centres).reshape(len(radii), 2)
+
+
+def _rest_upright(o: _Object, R: np.ndarray, xy: np.ndarray, z: float, foot_centre: np.ndarray) -> None:
+    """Pose `o` with rotation R so that its footprint centre is at xy and its lowest point at height z."""
+    zmin = float((np.asarray(o.mesh.vertices) @ R.T)[:, 2].min())
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = [xy[0] - foot_centre[0], xy[1] - foot_centre[1], z - zmin]
+    o.T_world_object = T
+
+
+def _place_on_shelf(objs: list[_Object], shelf: "Structure", rng: np.random.Generator) -> None:
+    """shelf configuration: upright, random yaw, disjoint footprints; every level gets at least one mug (when
+    there are enough), the rest of the objects go to random levels."""
+    from efem_viz.data.structures import level_to_world
+
+    levels = shelf.levels
+    order = list(rng.permutation(len(levels)))
+    assign = [order[k] if k < len(levels) else int(rng.integers(len(levels))) for k in range(len(objs))]
+    for li, lv in enumerate(levels):
+        members = [k for k, a in enumerate(assign) if a == li]
+        if not members:
+            continue
+        for _ in range(20):
+            rots = [_yaw(float(rng.uniform(0, 2 * np.pi))) for _ in members]
+            foot = [_footprint_radius(objs[k].mesh, R) for k, R in zip(members, rots)]
+            xy = _scatter_in(rng, [r for _, r in foot], lv.lo, lv.hi, gap=0.008)
+            if xy is not None:
+                break
+        else:
+            raise RuntimeError(f"could not place {len(members)} objects on a shelf level without overlap")
+        world_xy = level_to_world(shelf, xy)
+        # the footprint centre turns with the object; the level's frame turns about +Z like the world
+        for k, R, (c, _), p in zip(members, rots, foot, world_xy):
+            _rest_upright(objs[k], R, p, lv.z, c)
+
+
+def _hang_on_tree(objs: list[_Object], tree: "Structure", rng: np.random.Generator) -> None:
+    """tree configuration, start poses: each mug threaded on its own peg (the peg through the middle of its
+    handle opening, 55-75 % out along the peg) and turned about the peg so that its centre of mass hangs
+    below; distractors upright on the table around the base. Physics (`_simulate(layout="hang")`) settles
+    them: the mugs drop onto the pegs, swing and tilt as they hang."""
+    from efem_viz.geometry.transforms import rotation_about_axis, rotation_between
+
+    mugs = [o for o in objs if o.label > 0]
+    pegs = [tree.pegs[i] for i in rng.permutation(len(tree.pegs))[: len(mugs)]]
+    down = np.array([0.0, 0.0, -1.0])
+    for o, peg in zip(mugs, pegs):
+        assert o.hole is not None, "tree mugs are drawn with a handle opening"
+        centre, _ = o.hole
+        d = peg.direction
+        R0 = rotation_between(np.array([0.0, 1.0, 0.0]), d)  # the opening's axis (canonical Y) along the peg
+        v = R0 @ (np.asarray(o.mesh.center_mass, np.float64) - centre)
+        v_perp = v - np.dot(v, d) * d
+        g_perp = down - np.dot(down, d) * d
+        # turn about the peg so that the centre of mass lies below it
+        ang = math.atan2(np.dot(np.cross(v_perp, g_perp), d), np.dot(v_perp, g_perp))
+        R = rotation_about_axis(d, ang) @ R0
+        T = np.eye(4)
+        T[:3, :3] = R
+        T[:3, 3] = peg.point(float(rng.uniform(0.55, 0.75))) - R @ centre
+        o.T_world_object = T
+    others = [o for o in objs if o.label == 0]
+    if others:
+        rots = [_yaw(float(rng.uniform(0, 2 * np.pi))) for _ in others]
+        foot = [_footprint_radius(o.mesh, R) for o, R in zip(others, rots)]
+        reach = max(p.length for p in tree.pegs) + 0.12
+        xy = _scatter_in(rng, [r for _, r in foot], np.full(2, -reach - 0.1), np.full(2, reach + 0.1),
+                         keep_out=(np.zeros(2), reach))
+        if xy is None:
+            raise RuntimeError("no room for the distractors around the mug tree")
+        for o, R, (c, _), p in zip(others, rots, foot, xy):
+            _rest_upright(o, R, p, 0.0, c)
+
+
+def _misplaced(config: str, objs: list[_Object], structure: "Structure | None") -> int:
+    """How many objects did not end where the configuration puts them: tree mugs that fell off their pegs
+    (lowest point within 3 cm of the table, or more than 25 cm from the post), box objects outside the walls."""
+    if structure is None or config not in ("tree", "box"):
+        return 0
+    bad = 0
+    for o in objs:
+        v = np.asarray(o.world_mesh().vertices)
+        if config == "tree" and o.label > 0:
+            centre = v.mean(axis=0)
+            bad += int(v[:, 2].min() < 0.03 or np.linalg.norm(centre[:2]) > 0.25)
+        elif config == "box":
+            assert structure.floor is not None
+            lo, hi = structure.floor
+            c = v.mean(axis=0)[:2]
+            bad += int(np.any(c < lo - 0.005) or np.any(c > hi + 0.005))
+    return bad
+
+
 def _write_parts_obj(parts: Sequence[np.ndarray], path: str, *, shrink: float = 0.0) -> None:
     """Write convex pieces as separate OBJ objects (pybullet makes a compound of their convex hulls).
 
@@ -209,14 +350,20 @@ def _simulate(
     objs: list[_Object],
     rng: np.random.Generator,
     *,
-    layout: Literal["scatter", "pile"],
+    layout: Literal["scatter", "pile", "box", "hang"],
+    statics: Sequence[np.ndarray] = (),
+    floor: tuple[np.ndarray, np.ndarray] | None = None,
+    floor_top: float = 0.0,
     max_seconds: float = 6.0,
 ) -> None:
     """Drop the objects with random orientations (pybullet, DIRECT mode) and store their resting poses.
 
     scatter: all objects at once, each above its own non-overlapping spot. pile: one after the other, just
     above the top of the objects already lying there (near their centre), each settling before the next is
-    dropped, so that they land on and slide against each other.
+    dropped, so that they land on and slide against each other. box: one after the other above a random spot
+    of `floor` (xy rectangle), clear of `floor_top` and of what already lies there. hang: every object starts
+    at its current `T_world_object` (e.g. a mug threaded on a peg) and all settle together. `statics` are
+    convex pieces (world frame) of a fixed structure (a box's walls, a mug tree).
     """
     import pybullet as pb
 
@@ -232,31 +379,45 @@ def _simulate(
         )
         tid = pb.createMultiBody(0, table, basePosition=[0, 0, -0.05], physicsClientId=cid)
         pb.changeDynamics(tid, -1, lateralFriction=0.8, physicsClientId=cid)
-        rots = [_random_rotation(rng) for _ in objs]
         coms = [np.asarray(o.mesh.center_mass, np.float64) for o in objs]
+        if layout == "hang":
+            rots = [o.T_world_object[:3, :3].copy() for o in objs]
+        else:
+            rots = [_random_rotation(rng) for _ in objs]
         radii = [
             float(np.linalg.norm(np.asarray(o.mesh.vertices) - c, axis=1).max()) for o, c in zip(objs, coms)
         ]
         xy = _scatter_xy(rng, radii, gap=0.005) if layout == "scatter" else None
         bodies: list[int] = []
         with tempfile.TemporaryDirectory(prefix="efem_synth_") as tmp:
+            if len(statics):
+                fn = os.path.join(tmp, "structure.obj")
+                _write_parts_obj(list(statics), fn)
+                shape = pb.createCollisionShape(pb.GEOM_MESH, fileName=fn, physicsClientId=cid)
+                sid = pb.createMultiBody(0, shape, basePosition=[0, 0, 0], physicsClientId=cid)
+                pb.changeDynamics(sid, -1, lateralFriction=0.6, physicsClientId=cid)
             for k, (o, R, c) in enumerate(zip(objs, rots, coms)):
                 fn = os.path.join(tmp, f"obj{k}.obj")
                 _write_parts_obj([q - c for q in o.parts], fn, shrink=COLLISION_SHRINK)
                 shape = pb.createCollisionShape(pb.GEOM_MESH, fileName=fn, physicsClientId=cid)
-                if xy is not None:
+                if layout == "hang":
+                    pos = (o.T_world_object[:3, :3] @ c + o.T_world_object[:3, 3]).tolist()
+                elif xy is not None:
                     pos = [xy[k, 0], xy[k, 1], radii[k] + 0.005 + float(rng.uniform(0, 0.02))]
                 else:
-                    # above the centre of the pile so far, just clear of its top
+                    top = floor_top
                     if bodies:
-                        lo_hi = [pb.getAABB(b, physicsClientId=cid) for b in bodies]
+                        top = max(top, max(pb.getAABB(b, physicsClientId=cid)[1][2] for b in bodies))
+                    if layout == "box" and floor is not None:
+                        lo, hi = np.asarray(floor[0], np.float64), np.asarray(floor[1], np.float64)
+                        inset = np.minimum(radii[k], (hi - lo) / 2 - 0.005)
+                        centre = rng.uniform(lo + inset, hi - inset)
+                    elif bodies:  # pile: above the centre of the pile so far, just clear of its top
                         poses = [pb.getBasePositionAndOrientation(b, physicsClientId=cid) for b in bodies]
-                        centre = np.mean([q[0] for q in poses], axis=0)
-                        top = max(h[1][2] for h in lo_hi)
+                        centre = np.mean([q[0] for q in poses], axis=0)[:2] + rng.normal(0.0, 0.015, 2)
                     else:
-                        centre, top = np.zeros(3), 0.0
-                    off = rng.normal(0.0, 0.015, 2)
-                    pos = [centre[0] + off[0], centre[1] + off[1], top + radii[k] + 0.005]
+                        centre = rng.normal(0.0, 0.015, 2)
+                    pos = [centre[0], centre[1], top + radii[k] + 0.005]
                 b = pb.createMultiBody(
                     max(float(o.mesh.volume) * 2000.0, 0.02),
                     shape,
@@ -269,14 +430,14 @@ def _simulate(
                     -1,
                     lateralFriction=0.8,
                     spinningFriction=0.003,
-                    rollingFriction=0.002 if layout == "pile" else 0.0005,
+                    rollingFriction=0.002 if layout in ("pile", "box") else 0.0005,
                     restitution=0.05,
-                    linearDamping=0.3,
-                    angularDamping=0.3,
+                    linearDamping=0.3 if layout != "hang" else 0.6,
+                    angularDamping=0.3 if layout != "hang" else 0.6,
                     physicsClientId=cid,
                 )
                 bodies.append(b)
-                if layout == "pile":
+                if layout in ("pile", "box"):
                     _settle(pb, cid, bodies, max_steps=int(3.0 / dt), min_steps=240)
         _settle(pb, cid, bodies, max_steps=int(max_seconds / dt))
         for o, b, c in zip(objs, bodies, coms):
@@ -314,7 +475,8 @@ def _settle(
 
 # ====================================================================================== checks
 def contact_report(
-    objs_world: Sequence["trimesh.Trimesh"], *, samples: int = 3000, seed: int = 0
+    objs_world: Sequence["trimesh.Trimesh"], *, samples: int = 3000, seed: int = 0,
+    fixed: Sequence["trimesh.Trimesh"] = (),
 ) -> dict[str, Any]:
     """Interpenetration and contact of posed meshes (world frame, table top at z = 0).
 
@@ -322,13 +484,15 @@ def contact_report(
         objs_world: watertight meshes in the world frame.
         samples: surface samples per mesh (plus its vertices) used to probe the others.
         seed: seed of the surface sampling.
+        fixed: watertight pieces of a fixed structure (world frame): objects must not penetrate them; the pieces
+            may overlap each other.
 
     Returns:
-        {"max_penetration": metres (objects into each other or below the table top),
+        {"max_penetration": metres (objects into each other, into the structure, or below the table top),
          "pair_penetration": (K, K) array, [i, j] = deepest point of i inside j,
          "pair_gap": (K, K) array, [i, j] = smallest distance from i's surface to j (0 when touching or
          penetrating; inf when their bounding boxes are more than 1 cm apart),
-         "gap": (K,) distance from each object to the nearest other object or the table top}.
+         "gap": (K,) distance from each object to the nearest other object, structure piece or the table top}.
     """
     import open3d as o3d
     import trimesh
@@ -336,24 +500,26 @@ def contact_report(
     from efem_viz._typeshims import o3d_tensor
 
     k = len(objs_world)
+    meshes = list(objs_world) + list(fixed)
+    n = len(meshes)
     probes = []
-    for i, m in enumerate(objs_world):
+    for i, m in enumerate(meshes):
         # cast: trimesh's inferred return is a union over its optional outputs; these args give (points, faces)
         s, _ = cast("tuple[np.ndarray, np.ndarray]", trimesh.sample.sample_surface(m, samples, seed=seed + i))
         probes.append(np.concatenate([np.asarray(m.vertices), s]).astype(np.float32))
-    pen = np.zeros((k, k))
-    pair_gap = np.full((k, k), np.inf)
-    gap = np.array([max(float(p[:, 2].min()), 0.0) for p in probes])
+    pen = np.zeros((n, n))
+    pair_gap = np.full((n, n), np.inf)
+    gap = np.array([max(float(p[:, 2].min()), 0.0) for p in probes[:k]] + [np.inf] * (n - k))
     table_pen = max([max(-float(p[:, 2].min()), 0.0) for p in probes], default=0.0)
-    for j, mj in enumerate(objs_world):
+    for j, mj in enumerate(meshes):
         scene = o3d.t.geometry.RaycastingScene()
         scene.add_triangles(
             o3d_tensor(np.asarray(mj.vertices, np.float32)),
             o3d_tensor(np.asarray(mj.faces, np.uint32)),
         )
         lo, hi = mj.bounds[0] - 0.01, mj.bounds[1] + 0.01
-        for i in range(k):
-            if i == j:
+        for i in range(n):
+            if i == j or (i >= k and j >= k):
                 continue
             p = probes[i]
             near = np.all((p >= lo) & (p <= hi), axis=1)
@@ -365,25 +531,40 @@ def contact_report(
             gap[i] = min(gap[i], pair_gap[i, j])
     return {
         "max_penetration": float(max(pen.max(initial=0.0), table_pen)),
-        "pair_penetration": pen,
-        "pair_gap": pair_gap,
-        "gap": gap,
+        "pair_penetration": pen[:k, :k],
+        "pair_gap": pair_gap[:k, :k],
+        "gap": gap[:k],
     }
 
 
 # ====================================================================================== scanning
 def _make_cameras(
-    rng: np.random.Generator, target: np.ndarray, *, n_cameras: int, image_size: tuple[int, int]
+    rng: np.random.Generator, target: np.ndarray, *, n_cameras: int, image_size: tuple[int, int],
+    heights: tuple[float, float] = (0.45, 0.6), front: np.ndarray | None = None,
 ) -> list[Camera]:
+    """Depth cameras looking at `target`: around the table at its corners (eye heights drawn from `heights`),
+    or, with a `front` direction (a shelf), spread over ±55° about it, 0.6-0.75 m away, at heights rising
+    through `heights`."""
     w, h = image_size
     f = 525.0 * w / 640.0
     K = np.array([[f, 0.0, (w - 1) / 2], [0.0, f, (h - 1) / 2], [0.0, 0.0, 1.0]])
-    az0 = np.pi / 4 + rng.uniform(-0.15, 0.15)
     cams = []
+    if front is not None:
+        az_f = math.atan2(front[1], front[0])
+        for i in range(n_cameras):
+            frac = i / max(n_cameras - 1, 1)
+            az = az_f + np.deg2rad(-55.0 + 110.0 * frac) + rng.uniform(-0.08, 0.08)
+            dist = rng.uniform(0.6, 0.75)
+            z = heights[0] + (heights[1] - heights[0]) * ((i * 2 + 1) % n_cameras) / n_cameras
+            eye = np.array([target[0] + dist * math.cos(az), target[1] + dist * math.sin(az), z])
+            tgt = target + np.array([*rng.uniform(-0.02, 0.02, 2), 0.0])
+            cams.append(Camera(K, look_at(eye, tgt), w, h))
+        return cams
+    az0 = np.pi / 4 + rng.uniform(-0.15, 0.15)
     for i in range(n_cameras):
         az = az0 + 2 * np.pi * i / n_cameras + rng.uniform(-0.1, 0.1)
         horiz = TABLE_HALF * math.sqrt(2) * rng.uniform(0.9, 1.05)
-        eye = np.array([horiz * math.cos(az), horiz * math.sin(az), rng.uniform(0.45, 0.6)])
+        eye = np.array([horiz * math.cos(az), horiz * math.sin(az), rng.uniform(*heights)])
         tgt = target + np.array([*rng.uniform(-0.02, 0.02, 2), 0.0])
         cams.append(Camera(K, look_at(eye, tgt), w, h))
     return cams
@@ -643,7 +824,9 @@ def generate_scene(
     """Generate one synthetic tabletop scan with per-point instance ground truth.
 
     Args:
-        config: "z" (upright, random yaw), "so3" (dropped with random orientation) or "pile" (stacked).
+        config: "z" (upright, random yaw), "so3" (dropped with random orientation), "pile" (stacked), "tree"
+            (3-6 mugs hanging by their handles on the pegs of a mug tree), "box" (3-6 mugs dropped into an open
+            box) or "shelf" (mugs upright on the 2-3 levels of a shelf); see `efem_viz.data.structures`.
         seed: scene seed; the same arguments give identical arrays.
         n_objects: number of mugs, 1..10 (default: drawn from 3..7 by the seed).
         mode: "tsdf" (fused triangle mesh, vertices are the points) or "points" (merged back-projected depth,
@@ -689,29 +872,57 @@ def generate_scene(
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
     t0 = time.perf_counter()
     rng = np.random.default_rng([int(seed), CONFIGS.index(config), 0x5CE7E])
-    n_mugs = int(rng.integers(3, 8)) if n_objects is None else int(n_objects)
-    objs = _sample_objects(rng, n_mugs=n_mugs, distractors=distractors, split=split)
+    n_mugs = int(rng.integers(3, 7 if config in ("tree", "box") else 8)) if n_objects is None else int(n_objects)
+    structure: Structure | None = None
+    if config in STRUCTURE_CONFIGS:
+        from efem_viz.data.structures import PEG_PLAY, PEG_RADIUS, make_structure
+
+        structure = make_structure(config, rng, n_objects=n_mugs)  # type: ignore[arg-type]
+        if config == "tree" and n_mugs > len(structure.pegs) and n_objects is None:
+            n_mugs = len(structure.pegs)  # one mug per peg
+        elif config == "tree" and n_mugs > len(structure.pegs):
+            logger.warning("scene %s_%d: the tree has %d pegs, hanging %d of the %d mugs", config, seed,
+                           len(structure.pegs), len(structure.pegs), n_mugs)
+            n_mugs = len(structure.pegs)
+        objs = _sample_objects(rng, n_mugs=n_mugs, distractors=distractors, split=split,
+                               hole=PEG_RADIUS + PEG_PLAY if config == "tree" else None)
+    else:
+        objs = _sample_objects(rng, n_mugs=n_mugs, distractors=distractors, split=split)
 
     # ---- poses
     penetration = 0.0
     attempts = 0
+    misplaced = 0
     if config == "z":
         _place_upright(objs, rng)  # disjoint footprints, resting on the table: no contact by construction
         attempts = 1
+    elif config == "shelf":
+        assert structure is not None
+        _place_on_shelf(objs, structure, rng)  # upright on the levels, disjoint footprints: no contact
+        attempts = 1
     else:
-        best: tuple[float, list[np.ndarray]] | None = None
+        best: tuple[tuple[int, float], list[np.ndarray]] | None = None
+        fixed = structure.pieces if structure is not None else []
         for attempts in range(1, 6):
-            _simulate(objs, rng, layout="scatter" if config == "so3" else "pile")
-            rep = contact_report([o.world_mesh() for o in objs])
-            if best is None or rep["max_penetration"] < best[0]:
-                best = (rep["max_penetration"], [o.T_world_object.copy() for o in objs])
-            if rep["max_penetration"] <= PENETRATION_TOLERANCE:
+            if config == "tree":
+                assert structure is not None
+                _hang_on_tree(objs, structure, rng)
+                _simulate(objs, rng, layout="hang", statics=structure.parts())
+            elif config == "box":
+                assert structure is not None
+                _simulate(objs, rng, layout="box", statics=structure.parts(), floor=structure.floor)
+            else:
+                _simulate(objs, rng, layout="scatter" if config == "so3" else "pile")
+            rep = contact_report([o.world_mesh() for o in objs], fixed=fixed)
+            key = (_misplaced(config, objs, structure), rep["max_penetration"])
+            if best is None or key < best[0]:
+                best = (key, [o.T_world_object.copy() for o in objs])
+            if key[0] == 0 and key[1] <= PENETRATION_TOLERANCE:
                 break
-            logger.info(
-                "scene %s_%d: penetration %.4f m, dropping again", config, seed, rep["max_penetration"]
-            )
+            logger.info("scene %s_%d: %d objects misplaced, penetration %.4f m, dropping again", config, seed,
+                        key[0], key[1])
         assert best is not None
-        penetration = best[0]
+        misplaced, penetration = best[0]
         for o, T in zip(objs, best[1]):
             o.T_world_object = T
         if penetration > PENETRATION_TOLERANCE:
@@ -719,6 +930,9 @@ def generate_scene(
                 "scene %s_%d: interpenetration %.1f mm after %d drops (tolerance %.1f mm)",
                 config, seed, penetration * 1e3, attempts, PENETRATION_TOLERANCE * 1e3,
             )  # fmt: skip
+        if misplaced:
+            logger.warning("scene %s_%d: %d objects did not stay %s after %d drops", config, seed, misplaced,
+                           "on their pegs" if config == "tree" else "in the box", attempts)
     t_pose = time.perf_counter()
 
     # ---- ray-casting scene: geometry 0 = table, 1.. = objects
@@ -726,23 +940,38 @@ def generate_scene(
 
     table = trimesh.creation.box(extents=[2 * TABLE_HALF, 2 * TABLE_HALF, TABLE_THICKNESS])
     table.apply_translation([0, 0, -TABLE_THICKNESS / 2])
-    world = [table] + [o.world_mesh() for o in objs]
+    # geometry 0 = table, then the structure's pieces (background too), then the objects
+    fixtures = list(structure.pieces) if structure is not None else []
+    n_fix = 1 + len(fixtures)
+    world = [table] + fixtures + [o.world_mesh() for o in objs]
     rc = o3d.t.geometry.RaycastingScene()
     for m in world:
         rc.add_triangles(
             o3d_tensor(np.asarray(m.vertices, np.float32)),
             o3d_tensor(np.asarray(m.faces, np.uint32)),
         )
-    albedo = np.stack([_TABLE_COLOR] + [o.color for o in objs])
-    obj_lo = np.min([m.bounds[0] for m in world[1:]], axis=0)
-    obj_hi = np.max([m.bounds[1] for m in world[1:]], axis=0)
+    fix_colors = [structure.color] * len(fixtures) if structure is not None else []
+    albedo = np.stack([_TABLE_COLOR] + fix_colors + [o.color for o in objs])
+    obj_lo = np.min([m.bounds[0] for m in world[n_fix:]], axis=0)
+    obj_hi = np.max([m.bounds[1] for m in world[n_fix:]], axis=0)
     margin = 0.04
     crop_lo = np.array([max(obj_lo[0] - margin, -TABLE_HALF), max(obj_lo[1] - margin, -TABLE_HALF), -0.02])
     crop_hi = np.array(
         [min(obj_hi[0] + margin, TABLE_HALF), min(obj_hi[1] + margin, TABLE_HALF), obj_hi[2] + 0.03]
     )
     target = np.array([(obj_lo[0] + obj_hi[0]) / 2, (obj_lo[1] + obj_hi[1]) / 2, 0.04])
-    cams = _make_cameras(rng, target, n_cameras=n_cameras, image_size=image_size)
+    if config == "tree":
+        target[2] = (obj_lo[2] + obj_hi[2]) / 2
+        cams = _make_cameras(rng, target, n_cameras=n_cameras, image_size=image_size, heights=(0.35, 0.6))
+    elif config == "box":
+        cams = _make_cameras(rng, target, n_cameras=n_cameras, image_size=image_size, heights=(0.6, 0.8))
+    elif config == "shelf":
+        assert structure is not None
+        target[2] = (obj_lo[2] + obj_hi[2]) / 2
+        cams = _make_cameras(rng, target, n_cameras=n_cameras, image_size=image_size,
+                             heights=(0.1, obj_hi[2] + 0.2), front=structure.front)
+    else:
+        cams = _make_cameras(rng, target, n_cameras=n_cameras, image_size=image_size)
     frames = [_render(rc, c, albedo, rng, noise=noise, crop_lo=crop_lo, crop_hi=crop_hi) for c in cams]
     visible_px = np.zeros(len(world), np.int64)
     for fr in frames:
@@ -784,7 +1013,7 @@ def generate_scene(
     q = rc.compute_closest_points(o3d_tensor(points.astype(np.float32)))
     gid = q["geometry_ids"].numpy().astype(np.int64)
     dist = np.linalg.norm(q["points"].numpy() - points.astype(np.float32), axis=1)
-    labels_of_geom = np.array([0] + [o.label for o in objs], np.int32)
+    labels_of_geom = np.array([0] * n_fix + [o.label for o in objs], np.int32)
     instance = np.where(dist < label_tolerance, labels_of_geom[gid], 0).astype(np.int32)
     present = set(np.unique(instance[instance > 0]).tolist())
     categories = {o.label: "mug" for o in objs if o.label in present}
@@ -812,7 +1041,7 @@ def generate_scene(
                 "seed": o.seed,
                 "instance_id": o.label,
                 "T_world_object": np.round(o.T_world_object, 6).tolist(),
-                "visible_pixels": int(visible_px[i + 1]),
+                "visible_pixels": int(visible_px[i + n_fix]),
                 "labelled_points": int(counts[o.label]) if o.label > 0 else 0,
             }
             for i, o in enumerate(objs)
@@ -825,6 +1054,9 @@ def generate_scene(
         "max_penetration_m": round(float(penetration), 5),
         "drops": attempts,
     }
+    if structure is not None:
+        provenance["structure"] = structure.describe()
+        provenance["misplaced_objects"] = int(misplaced)
     stages = {
         "poses": round(t_pose - t0, 3),
         "scan": round(t_scan - t_pose, 3),
@@ -867,7 +1099,8 @@ class GenerateArgs:
     """Generate synthetic tabletop scans (procedural mugs on a table) with per-point ground truth."""
 
     config: Config = "z"
-    """Scene configuration: z (upright mugs), so3 (random orientations), pile (stacked, touching)."""
+    """Scene configuration: z (upright mugs), so3 (random orientations), pile (stacked, touching), tree (hanging
+    on a mug tree), box (inside an open box), shelf (on the levels of a shelf)."""
     count: int = 1
     """Number of scenes; scene i uses seed `seed + i`."""
     seed: int = 0

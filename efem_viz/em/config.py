@@ -26,6 +26,8 @@ PRESET_ALIASES: dict[str, str] = {"synthetic_mugs": "synthetic", "real_mugs": "r
 """Names of the presets before they lost the category (still accepted by `preset`)."""
 CropMode = Literal["sphere", "cylinder"]
 Domain = Literal["synthetic", "real"]
+MatmulDtype = Literal["float32", "bfloat16"]
+MATMUL_DTYPES: tuple[str, ...] = ("float32", "bfloat16")
 
 
 @dataclass(frozen=True)
@@ -144,6 +146,11 @@ class EMConfig:
     """Refinement step size (canonical units)."""
     refine_reg: float = 0.01
     """Refinement pull toward the encoder's code."""
+    matmul_dtype: MatmulDtype = "float32"
+    """Precision of the networks' matrix products during the solve: "float32" (the method), or "bfloat16"
+    (`torch.autocast`: the encoder's and decoder's linear layers in bf16, which CPUs with AMX / AVX-512 bf16
+    and GPUs run 2-4× faster; k-NN graphs, SDF values, normals and every energy stay float32). A speed knob:
+    docs/BENCHMARKS.md (issue 24) measures its effect on AP."""
 
     # ------------------------------------------------------------------ helpers
     @property
@@ -212,6 +219,8 @@ class EMConfig:
             raise ValueError("refine_steps and refine_max_pool must be >= 0, refine_lr > 0, refine_reg >= 0")
         if self.mesh_resolution < 8:
             raise ValueError(f"mesh_resolution must be >= 8, got {self.mesh_resolution}")
+        if self.matmul_dtype not in MATMUL_DTYPES:
+            raise ValueError(f"matmul_dtype must be one of {MATMUL_DTYPES}, got {self.matmul_dtype!r}")
         if self.encode_batch < 1 or self.decode_chunk < 1 or self.n_store < 1:
             raise ValueError("encode_batch, decode_chunk and n_store must be >= 1")
 

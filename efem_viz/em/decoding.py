@@ -10,6 +10,7 @@ so one trace holds them all. With a single prior nothing is padded and every cal
 from __future__ import annotations
 
 from collections.abc import Sequence
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -60,6 +61,20 @@ def prior_dtype(prior: "ShapePriorLike") -> Any:
         return next(prior.parameters()).dtype
     except (StopIteration, AttributeError):
         return torch.float32
+
+
+def matmul_precision(dtype: str, prior: "ShapePriorLike | None" = None) -> AbstractContextManager[Any]:
+    """The context in which the solver runs the networks for `EMConfig.matmul_dtype`: `torch.autocast` to
+    bfloat16 on the prior's device type for "bfloat16", a no-op for "float32". Outputs leave the networks as
+    float32 (`decode_rows`, `encode_samples` convert); k-NN graphs stay float32 (`geometry.knn`)."""
+    if dtype == "float32":
+        return nullcontext()
+    if dtype != "bfloat16":
+        raise ValueError(f"matmul_dtype must be 'float32' or 'bfloat16', got {dtype!r}")
+    import torch
+
+    dev_type = torch.device(prior_device(prior)).type if prior is not None else "cpu"
+    return torch.autocast(dev_type, dtype=torch.bfloat16)
 
 
 def decode_rows(

@@ -166,7 +166,7 @@ class TraceReplay:
     def weights_out(self, proposal_id: int, step: int, prior: "PriorArg | None" = None, *, full_resolution: bool = True
                     ) -> np.ndarray:
         """(N,) float32 weights produced by the E-step of (proposal, step), re-derived from its latent."""
-        from efem_viz.em.decoding import decode_rows, latent_width, normals_threshold, trim_latent
+        from efem_viz.em.decoding import decode_rows, latent_width, matmul_precision, normals_threshold, trim_latent
 
         tr = self.trace
         pri = self.prior_of(proposal_id, prior)
@@ -184,8 +184,9 @@ class TraceReplay:
         if tr.prop_prior is not None:
             lat = trim_latent(lat, latent_width(pri))
         sched = tuple(float(v) for v in tr.schedule[step])
-        d, gamma = decode_rows(pri, lat, rag, pts, nrm, chunk=tr.config.decode_chunk,
-                               normals_within=normals_threshold(tr.config, sched[1]))
+        with matmul_precision(tr.config.matmul_dtype, pri):  # the precision the run decoded with
+            d, gamma = decode_rows(pri, lat, rag, pts, nrm, chunk=tr.config.decode_chunk,
+                                   normals_within=normals_threshold(tr.config, sched[1]))
         wk, _ = energy_weights(d, gamma, (sched[0], sched[1], sched[2], sched[3]), out_value=tr.config.out_value)
         w = np.zeros(tr.num_points, np.float32)
         w[rag.idx] = wk
@@ -245,10 +246,11 @@ class TraceReplay:
         lat = tr.latent(proposal_id, shown)
         mesh_obj = None
         if mesh and pri is not None:
-            from efem_viz.em.decoding import latent_width, mesh_of_latent, trim_latent
+            from efem_viz.em.decoding import latent_width, matmul_precision, mesh_of_latent, trim_latent
 
             lat_k = trim_latent(lat, latent_width(pri)) if tr.prop_prior is not None else lat
-            mesh_obj = mesh_of_latent(pri, lat_k, resolution=tr.config.mesh_resolution)
+            with matmul_precision(tr.config.matmul_dtype, pri):
+                mesh_obj = mesh_of_latent(pri, lat_k, resolution=tr.config.mesh_resolution)
         view = ProposalView(
             proposal_id=int(proposal_id),
             step=shown,

@@ -29,6 +29,7 @@ from efem_viz.em.decoding import (
     PriorTable,
     decode_owned_rows,
     encode_rows,
+    matmul_precision,
     mesh_of_latent,
     normals_threshold,
     prior_device,
@@ -267,7 +268,8 @@ def run_em(
         solver = _Solver(scene.name, points, normals, PriorTable.of(plist), run_cfg, cfgs, seed=seed,
                          on_step=on_step, cancel=cancel, anchor_candidates=anchor_candidates,
                          step_rules=step_rules, review_rules=review_rules, camera=camera)
-        inst_rows = solver.run()
+        with matmul_precision(run_cfg.matmul_dtype, plist[0]):
+            inst_rows = solver.run()
     finally:
         for pr, was in zip(plist, was_training):
             if was and hasattr(pr, "train"):

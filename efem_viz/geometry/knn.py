@@ -31,9 +31,11 @@ def knn_indices(query: torch.Tensor, ref: torch.Tensor, k: int) -> torch.Tensor:
                          f"got {tuple(query.shape)} / {tuple(ref.shape)}")
     if not 1 <= k <= ref.shape[1]:
         raise ValueError(f"k must be in [1, {ref.shape[1]}], got {k}")
-    with torch.no_grad():
-        q = query.detach()
-        r = ref.detach()
+    # float32 distances even inside a bf16 autocast region (EMConfig.matmul_dtype): bf16 keeps 8 bits of
+    # mantissa, too few to order neighbours in feature space
+    with torch.no_grad(), torch.autocast(query.device.type, enabled=False):
+        q = query.detach().float() if query.dtype in (torch.bfloat16, torch.float16) else query.detach()
+        r = ref.detach().to(q.dtype)
         d2 = (q * q).sum(-1, keepdim=True) - 2.0 * q @ r.transpose(1, 2) + (r * r).sum(-1)[:, None, :]
         return d2.topk(k, dim=-1, largest=False).indices
 

@@ -88,6 +88,26 @@ def rotation_about_axis(axis: np.ndarray | list[float], angle: float) -> np.ndar
     return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * (K @ K)
 
 
+def rotation_between(a: np.ndarray | Sequence[float], b: np.ndarray | Sequence[float]) -> np.ndarray:
+    """The smallest rotation taking direction `a` to direction `b` (both non-zero, need not be unit length);
+    for opposite directions, a half turn about an axis perpendicular to `a`.
+
+    Returns:
+        (3, 3) float64 rotation matrix R with R â = b̂.
+    """
+    u = np.asarray(a, np.float64).reshape(3)
+    v = np.asarray(b, np.float64).reshape(3)
+    u, v = u / np.linalg.norm(u), v / np.linalg.norm(v)
+    axis = np.cross(u, v)
+    s, c = float(np.linalg.norm(axis)), float(np.dot(u, v))
+    if s < 1e-12:
+        if c > 0:
+            return np.eye(3)
+        perp = np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])
+        return rotation_about_axis(perp, np.pi)
+    return rotation_about_axis(axis, float(np.arctan2(s, c)))
+
+
 def quat_wxyz_to_rotation(q: np.ndarray) -> np.ndarray:
     """Unit quaternion(s), scalar first, to rotation matrices.
 

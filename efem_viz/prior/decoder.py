@@ -79,6 +79,10 @@ class SDFDecoder(nn.Module):
         return m, bias
 
     def _mlp(self, h: torch.Tensor) -> torch.Tensor:
+        if torch.is_autocast_enabled(h.device.type):
+            # keep the residual stream in the autocast dtype: mixed fp32 + bf16 adds cost more than the
+            # matrix products they sit between (bench/decoder_bf16.py)
+            h = h.to(torch.get_autocast_dtype(h.device.type))
         for i in range(self.n_blocks):
             h = getattr(self, f"block{i}")(h)
         return self.fc_out(F.relu(h))[..., 0]
