@@ -232,30 +232,43 @@ def _rest_upright(o: _Object, R: np.ndarray, xy: np.ndarray, z: float, foot_cent
     o.T_world_object = T
 
 
-def _place_on_shelf(objs: list[_Object], shelf: "Structure", rng: np.random.Generator) -> None:
-    """shelf configuration: upright, random yaw, disjoint footprints; every level gets at least one mug (when
-    there are enough), the rest of the objects go to random levels."""
+def _place_on_shelf(objs: list[_Object], shelf: "Structure", rng: np.random.Generator) -> list[_Object]:
+    """shelf configuration: upright, random yaw, disjoint footprints, one object after the other on the level
+    that holds the fewest so far (ties broken at random) where it fits. A distractor that fits nowhere is left
+    out; returns the objects placed.
+
+    Raises:
+        RuntimeError: a mug fits on no level (more mugs than the shelf holds).
+    """
     from efem_viz.data.structures import level_to_world
 
     levels = shelf.levels
-    order = list(rng.permutation(len(levels)))
-    assign = [order[k] if k < len(levels) else int(rng.integers(len(levels))) for k in range(len(objs))]
-    for li, lv in enumerate(levels):
-        members = [k for k, a in enumerate(assign) if a == li]
-        if not members:
-            continue
-        for _ in range(20):
-            rots = [_yaw(float(rng.uniform(0, 2 * np.pi))) for _ in members]
-            foot = [_footprint_radius(objs[k].mesh, R) for k, R in zip(members, rots)]
-            xy = _scatter_in(rng, [r for _, r in foot], lv.lo, lv.hi, gap=0.008)
-            if xy is not None:
+    placed: list[list[tuple[np.ndarray, float]]] = [[] for _ in levels]
+    kept: list[_Object] = []
+    for o in objs:
+        R = _yaw(float(rng.uniform(0, 2 * np.pi)))
+        foot_c, r = _footprint_radius(o.mesh, R)
+        order = sorted(range(len(levels)), key=lambda i: (len(placed[i]), float(rng.uniform())))
+        spot: tuple[int, np.ndarray] | None = None
+        for li in order:
+            lv = levels[li]
+            inset = np.minimum(r, (lv.hi - lv.lo) / 2)
+            for _ in range(300):
+                c = rng.uniform(lv.lo + inset, lv.hi - inset)
+                if all(np.linalg.norm(c - q) >= r + rq + 0.008 for q, rq in placed[li]):
+                    spot = (li, c)
+                    break
+            if spot is not None:
                 break
-        else:
-            raise RuntimeError(f"could not place {len(members)} objects on a shelf level without overlap")
-        world_xy = level_to_world(shelf, xy)
-        # the footprint centre turns with the object; the level's frame turns about +Z like the world
-        for k, R, (c, _), p in zip(members, rots, foot, world_xy):
-            _rest_upright(objs[k], R, p, lv.z, c)
+        if spot is None:
+            if o.label > 0:
+                raise RuntimeError(f"mug {o.label} fits on no level of the shelf ({len(levels)} levels)")
+            continue
+        li, c = spot
+        placed[li].append((c, r))
+        _rest_upright(o, R, level_to_world(shelf, c), levels[li].z, foot_c)
+        kept.append(o)
+    return kept
 
 
 def _hang_on_tree(objs: list[_Object], tree: "Structure", rng: np.random.Generator) -> None:
@@ -878,6 +891,8 @@ def generate_scene(
         from efem_viz.data.structures import PEG_PLAY, PEG_RADIUS, make_structure
 
         structure = make_structure(config, rng, n_objects=n_mugs)  # type: ignore[arg-type]
+        if config == "shelf" and n_objects is None:
+            n_mugs = min(n_mugs, 2 * len(structure.levels))  # two mugs per level always fit
         if config == "tree" and n_mugs > len(structure.pegs) and n_objects is None:
             n_mugs = len(structure.pegs)  # one mug per peg
         elif config == "tree" and n_mugs > len(structure.pegs):
@@ -898,7 +913,7 @@ def generate_scene(
         attempts = 1
     elif config == "shelf":
         assert structure is not None
-        _place_on_shelf(objs, structure, rng)  # upright on the levels, disjoint footprints: no contact
+        objs = _place_on_shelf(objs, structure, rng)  # upright on the levels, disjoint footprints: no contact
         attempts = 1
     else:
         best: tuple[tuple[int, float], list[np.ndarray]] | None = None
