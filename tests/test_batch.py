@@ -478,3 +478,31 @@ def test_terminal_text_escapes_controls_only() -> None:
 
     assert terminal_text("mug_01 café 杯 [b]") == "mug_01 café 杯 [b]"
     assert terminal_text("a\x1b[2Jb\nc\rd\te\x7f\x9b\u202ef") == "a\\x1b[2Jb\\nc\\rd\\te\\x7f\\x9b\\u202ef"
+
+
+def test_solve_knobs_are_declared_once_and_reach_the_job(tmp_path: Path) -> None:
+    """`SolveSettings` holds the solver knobs; `efem-viz segment` and `BatchJob` inherit them (issue 23 item 6), so
+    a new knob (matmul_dtype, issue 24) reaches the solver config and the resume fingerprint with no copy."""
+    from efem_viz.batch.commands import SegmentArgs
+    from efem_viz.em.config import SolveSettings
+
+    knobs = {f.name for f in dataclasses.fields(SolveSettings)}
+    assert {"preset", "proposals", "work_voxel", "tau_out", "matmul_dtype"} <= knobs
+    for cls in (SegmentArgs, BatchJob):
+        assert issubclass(cls, SolveSettings)
+        assert not knobs & set(cls.__dict__.get("__annotations__", {})), f"{cls.__name__} redeclares a knob"
+    args = SegmentArgs(scenes=[tmp_path], matmul_dtype="bfloat16", proposals=12, work_voxel=0.006)
+    job = BatchJob.create(priors=("sphere",), **args.settings())
+    cfg = job.config()
+    assert (cfg.matmul_dtype, cfg.n_init[0], cfg.work_voxel) == ("bfloat16", 12, 0.006)
+    assert job.fingerprint() != BatchJob.create(priors=("sphere",), proposals=12, work_voxel=0.006).fingerprint()
+    with pytest.raises(ValueError, match="matmul_dtype"):
+        BatchJob.create(priors=("sphere",), matmul_dtype="float16")  # type: ignore[arg-type]
+
+
+def test_segment_without_scenes_creates_nothing(tmp_path: Path) -> None:
+    out = tmp_path / "never"
+    proc = subprocess.run([sys.executable, "-m", "efem_viz.cli", "segment", str(tmp_path / "missing.ply"),
+                           "--out", str(out), "--prior", "sphere"], capture_output=True, text=True, timeout=300)
+    assert proc.returncode != 0 and "missing.ply" in proc.stderr
+    assert not out.exists(), "a failed segment left an output folder behind"

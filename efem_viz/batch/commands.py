@@ -12,15 +12,16 @@ from typing import Annotated
 
 import tyro
 
-from efem_viz.em.config import PresetName
+from efem_viz.em.config import SolveSettings
 from efem_viz.prior.config import DEFAULT_PRIOR
 
 
-@dataclass
-class SegmentArgs:
+@dataclass(frozen=True, kw_only=True)
+class SegmentArgs(SolveSettings):
     """Segment scanned scenes with EFEM (unsupervised, shape-prior EM) and record the full trace: one scene or a batch of
     hundreds, in this process (default), a local process pool (--workers N) or on Ray (--ray, --ray-address).
-    Resumable: scenes whose valid results of the same settings are in --out are skipped (see docs/BATCH.md)."""
+    Resumable: scenes whose valid results of the same settings are in --out are skipped (see docs/BATCH.md).
+    The solver knobs (--preset, --proposals, --work-voxel, --tau-out, --matmul-dtype) are `SolveSettings`."""
 
     scenes: Annotated[list[Path], tyro.conf.Positional]
     """Scene files (.ply/.obj/.off/.glb/.npz) and/or folders of them."""
@@ -29,14 +30,6 @@ class SegmentArgs:
     analytic sphere) or a .pt path. Default: mug."""
     out: Path = Path("results")
     """Output folder: <scene>.efem.npz, scannet/<scene>.txt + scannet/pred_mask/, <scene>.seg.ply, batch.json."""
-    preset: PresetName = "synthetic"
-    """Solver configuration (efem-method.md §3.12); category sizes and τ_out come with each prior."""
-    proposals: int | None = None
-    """Override the number of proposals (first episode)."""
-    work_voxel: float | None = None
-    """Run EM on a thinned working set (one point per cell of this size, m); masks stay full resolution."""
-    tau_out: float | None = None
-    """Output-mask SDF band (canonical units); default: the prior's calibrated value (`calibrate-masks`), else 0.04."""
     seed: int = 0
     """Random seed (anchors, samples); the same seed replays the same run, on every backend."""
     device: str = "cpu"
@@ -82,10 +75,9 @@ class SegmentArgs:
         from efem_viz.batch.console import RichBatchDisplay
 
         job = BatchJob.create(
-            priors=tuple(self.prior or [DEFAULT_PRIOR]), preset=self.preset, proposals=self.proposals,
-            work_voxel=self.work_voxel, tau_out=self.tau_out, seed=self.seed, device=self.device,
+            priors=tuple(self.prior or [DEFAULT_PRIOR]), seed=self.seed, device=self.device,
             threads=self.threads, threshold=self.threshold, scannet=self.scannet, ply=self.ply,
-            timeout_s=self.scene_timeout,
+            timeout_s=self.scene_timeout, **self.settings(),
         )
         name = self.backend_name()
         if name != "ray" and (self.ray or self.ray_address or self.ray_cpus):

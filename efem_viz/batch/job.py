@@ -17,13 +17,11 @@ import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal
+from typing import Literal
 
 from efem_viz.data.io import RESULT_SUFFIX, SEG_SUFFIX  # SEG_SUFFIX: the coloured PLY written per scene
+from efem_viz.em.config import SolveSettings
 from efem_viz.prior.config import DEFAULT_PRIOR
-
-if TYPE_CHECKING:
-    from efem_viz.em.config import EMConfig, PresetName
 
 BATCH_SCHEMA_VERSION = 1
 """Version of `batch.json` and of the job fingerprint (bump when either changes meaning)."""
@@ -42,9 +40,10 @@ def scene_name_of(path: str | os.PathLike[str]) -> str:
     return p.name[: -len(p.suffix)] if p.suffix else p.name
 
 
-@dataclass(frozen=True)
-class BatchJob:
-    """Everything a worker needs to segment any scene of the batch (the same for every scene).
+@dataclass(frozen=True, kw_only=True)
+class BatchJob(SolveSettings):
+    """Everything a worker needs to segment any scene of the batch (the same for every scene): the solver knobs
+    (`SolveSettings`: preset, proposals, work_voxel, tau_out, matmul_dtype) and the fields below.
 
     Build one with `BatchJob.create(...)` (it checks the config); `config()` gives the solver config and
     `fingerprint()` identifies the settings that change a result, so a resumed batch only skips results made
@@ -54,14 +53,6 @@ class BatchJob:
     priors: tuple[str, ...] = (DEFAULT_PRIOR,)
     """Prior specs for `efem_viz.prior.registry.load_priors`: a name under efem_viz/weights/, "sphere", or a .pt path
     (made absolute, so workers started elsewhere find it)."""
-    preset: PresetName = "synthetic"
-    """Solver preset (`efem_viz.em.config.preset`; the CLI's `SegmentArgs.preset` is the same type)."""
-    proposals: int | None = None
-    """Proposals of the first episode (None: the preset's)."""
-    work_voxel: float | None = None
-    """Thinned working set cell (m); 0 turns thinning off; None: the preset's."""
-    tau_out: float | None = None
-    """Output-mask SDF band (canonical units); None: each prior's calibrated value."""
     seed: int = 0
     """The seed of every scene (the same seed gives the same result on every backend)."""
     device: str = "cpu"
@@ -98,19 +89,6 @@ class BatchJob:
         job = dataclasses.replace(job, priors=specs)
         job.config()  # validate now, before any worker starts
         return job
-
-    def config(self) -> EMConfig:
-        """The solver config: the preset with this job's overrides (validated)."""
-        from efem_viz.em.config import preset
-
-        cfg = preset(self.preset)
-        if self.proposals is not None:
-            cfg = cfg.with_proposals(int(self.proposals))
-        if self.work_voxel is not None:
-            cfg = cfg.replace(work_voxel=float(self.work_voxel) or None)
-        if self.tau_out is not None:
-            cfg = cfg.replace(tau_out=float(self.tau_out))
-        return cfg
 
     def fingerprint(self) -> str:
         """A hex digest of what decides a scene's result: the solver config, each prior's identity (the weights

@@ -406,6 +406,8 @@ def run_batch(
     events = observer or BatchObserver()
     job = backend.resolve_job(job)
     out_dir = Path(out).expanduser().resolve()
+    if not out_dir.exists():
+        plan_batch(job, scenes, out_dir, force=force)  # bad scene lists fail before the output folder is made
     with folder_lock(out_dir):
         remove_stale_temporaries(out_dir)
         plan = plan_batch(job, scenes, out_dir, force=force)

@@ -17,8 +17,8 @@ from efem_viz.prior.config import DEFAULT_TAU_OUT, DOMAINS, MAX_TAU_OUT, Categor
 if TYPE_CHECKING:
     from efem_viz.prior.config import ShapePriorLike
 
-__all__ = ["DEFAULT_TAU_OUT", "MAX_TAU_OUT", "PRESETS", "EMConfig", "PresetName", "preset", "resolve_for_prior",
-           "schedule"]
+__all__ = ["DEFAULT_TAU_OUT", "MAX_TAU_OUT", "PRESETS", "EMConfig", "PresetName", "SolveSettings", "preset",
+           "resolve_for_prior", "schedule"]
 
 PresetName = Literal["synthetic", "real", "real_paper", "fast"]
 """Solver presets: the capture domain's settings; category settings (sizes, τ_out) come with each prior."""
@@ -240,6 +240,44 @@ class EMConfig:
         cfg = cls(**d)
         cfg.validate()
         return cfg
+
+
+@dataclass(frozen=True, kw_only=True)
+class SolveSettings:
+    """The solver knobs a command or a job sets on top of a preset, declared once: `efem-viz segment`
+    (`SegmentArgs`) and batch jobs (`BatchJob`) inherit these fields, and `config()` builds the `EMConfig`."""
+
+    preset: PresetName = "synthetic"
+    """Solver configuration (efem-method.md §3.12); category sizes and τ_out come with each prior."""
+    proposals: int | None = None
+    """Override the number of proposals (first episode)."""
+    work_voxel: float | None = None
+    """Run EM on a thinned working set (one point per cell of this size, m; 0: every point); masks stay full
+    resolution. None: the preset's."""
+    tau_out: float | None = None
+    """Output-mask SDF band (canonical units); default: the prior's calibrated value (`calibrate-masks`), else 0.04."""
+    matmul_dtype: MatmulDtype = "float32"
+    """Precision of the networks' matrix products: float32 (the method) or bfloat16 (2-4× faster matrix work on
+    CPUs with AMX / AVX-512 bf16; `EMConfig.matmul_dtype`)."""
+
+    def config(self) -> EMConfig:
+        """The solver config: the preset with these overrides (validated).
+
+        Raises:
+            ValueError: an unknown preset or a bad value.
+        """
+        cfg = preset(self.preset)
+        if self.proposals is not None:
+            cfg = cfg.with_proposals(int(self.proposals))
+        if self.work_voxel is not None:
+            cfg = cfg.replace(work_voxel=float(self.work_voxel) or None)
+        if self.tau_out is not None:
+            cfg = cfg.replace(tau_out=float(self.tau_out))
+        return cfg.replace(matmul_dtype=self.matmul_dtype)
+
+    def settings(self) -> dict[str, Any]:
+        """These fields as keyword arguments (to build another `SolveSettings` subclass from them)."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(SolveSettings)}
 
 
 def schedule(cfg: EMConfig, t: int) -> tuple[float, float, float, float]:
