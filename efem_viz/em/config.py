@@ -147,9 +147,10 @@ class EMConfig:
     refine_reg: float = 0.01
     """Refinement pull toward the encoder's code."""
     matmul_dtype: MatmulDtype = "float32"
-    """Precision of the networks' matrix products during the solve: "float32" (the method), or "bfloat16"
+    """Precision of the networks' matrix products in the EM steps: "float32" (the method), or "bfloat16"
     (`torch.autocast`: the encoder's and decoder's linear layers in bf16, which CPUs with AMX / AVX-512 bf16
-    and GPUs run 2-4× faster; k-NN graphs, SDF values, normals and every energy stay float32). A speed knob:
+    and GPUs run 2-4× faster; k-NN graphs, SDF values, normals and every energy stay float32). The reviews
+    (completed meshes, poses, coverage and the output masks) always decode in float32. A speed knob:
     docs/BENCHMARKS.md (issue 24) measures its effect on AP."""
 
     # ------------------------------------------------------------------ helpers

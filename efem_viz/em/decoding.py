@@ -77,6 +77,15 @@ def matmul_precision(dtype: str, prior: "ShapePriorLike | None" = None) -> Abstr
     return torch.autocast(dev_type, dtype=torch.bfloat16)
 
 
+def full_precision(prior: "ShapePriorLike | None" = None) -> AbstractContextManager[Any]:
+    """A region that runs in float32 inside a `matmul_precision("bfloat16")` one (autocast off): the reviews'
+    masks, meshes and coverage, so a bf16 solve's outputs are decoded at full precision."""
+    import torch
+
+    dev_type = torch.device(prior_device(prior)).type if prior is not None else "cpu"
+    return torch.autocast(dev_type, enabled=False)
+
+
 def decode_rows(
     prior: "ShapePriorLike",
     latent: Any,

@@ -246,11 +246,10 @@ class TraceReplay:
         lat = tr.latent(proposal_id, shown)
         mesh_obj = None
         if mesh and pri is not None:
-            from efem_viz.em.decoding import latent_width, matmul_precision, mesh_of_latent, trim_latent
+            from efem_viz.em.decoding import latent_width, mesh_of_latent, trim_latent
 
             lat_k = trim_latent(lat, latent_width(pri)) if tr.prop_prior is not None else lat
-            with matmul_precision(tr.config.matmul_dtype, pri):
-                mesh_obj = mesh_of_latent(pri, lat_k, resolution=tr.config.mesh_resolution)
+            mesh_obj = mesh_of_latent(pri, lat_k, resolution=tr.config.mesh_resolution)  # float32, as reviews
         view = ProposalView(
             proposal_id=int(proposal_id),
             step=shown,

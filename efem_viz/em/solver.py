@@ -29,6 +29,7 @@ from efem_viz.em.decoding import (
     PriorTable,
     decode_owned_rows,
     encode_rows,
+    full_precision,
     matmul_precision,
     mesh_of_latent,
     normals_threshold,
@@ -433,7 +434,8 @@ class _Solver:
                 if (phase == 1 and t == cfg.t1 - 1) or (phase == 2 and t == cfg.steps_per_episode - 1):
                     if full_tree is None:
                         full_tree = AvailableTree(self.full_points, available_full, crop=cfg.crop)
-                    last_review = self._review(pool, full_tree, step, phase)
+                    with full_precision(self.table.priors[0]):  # masks, meshes, coverage in float32
+                        last_review = self._review(pool, full_tree, step, phase)
                 elapsed = time.perf_counter() - self.t_start
                 self.rec.end_step(pool.size, elapsed)
                 if self.on_step is not None:
@@ -544,9 +546,9 @@ class _Solver:
         records: dict[int, ReviewRecord] = {}
         keep = np.ones(pool.size, bool)
         t0 = time.perf_counter()
-        if self.identity:
+        if self.identity and cfg.matmul_dtype == "float32":
             full_rag, d_full, g_full = pool.rag, pool.d, pool.gamma
-        else:  # masks and coverage at the scene's full resolution
+        else:  # masks and coverage at the scene's full resolution, in float32
             full_rag = full_tree.query(pool.latent["center"], cfg.r_err)
             d_full, g_full = decode_owned_rows(
                 self.table, pool.owner, pool.latent, full_rag, self.full_points, self.full_normals,
