@@ -229,6 +229,9 @@ def test_run_efem_with_progress(sphere_dir: Path, tmp_path: Path) -> None:
     again = s.run(preset="fast", proposals=8, seed=0, show=False)
     assert again is not None and s.state.result is res  # not shown
     np.testing.assert_array_equal(again.instances.confidence, res.instances.confidence)  # fixed seed: same
+    bf16 = s.run(preset="fast", proposals=8, seed=0, show=False, matmul_dtype="bfloat16")  # the Run tab's Precision
+    assert bf16 is not None and bf16.config.matmul_dtype == "bfloat16" and res.config.matmul_dtype == "float32"
+    assert s.run(preset="fast", proposals=8, matmul_dtype="float16") is None and "matmul_dtype" in s.state.error
 
 
 def test_run_cancel_and_one_at_a_time(sphere_dir: Path, tmp_path: Path) -> None:

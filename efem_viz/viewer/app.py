@@ -279,18 +279,21 @@ class ViewerApp:
             return False
         return True
 
-    def start_run(self, *, preset: str = "fast", proposals: int | None = None, seed: int = 0) -> Future[Any] | None:
+    def start_run(self, *, preset: str = "fast", proposals: int | None = None, seed: int = 0,
+                  matmul_dtype: str = "float32") -> Future[Any] | None:
         """Run EFEM on the open scene in the worker thread (progress bar, cancel). Returns the job's Future."""
         with self._lock:
             generation = self.session.begin_run()
             if generation is None:
                 return None
             pv.show_running(self.panels, True)
-        return self._submit(self._runner, self._run_job, preset, proposals, seed, generation)
+        return self._submit(self._runner, self._run_job, preset, proposals, seed, generation, matmul_dtype)
 
-    def _run_job(self, preset: str, proposals: int | None, seed: int, generation: int) -> EMResult | None:
+    def _run_job(self, preset: str, proposals: int | None, seed: int, generation: int,
+                 matmul_dtype: str = "float32") -> EMResult | None:
         try:
             result = self.session.run(preset=preset, proposals=proposals, seed=seed, show=False,
+                                      matmul_dtype=matmul_dtype,
                                       on_step=lambda info: pv.show_run_progress(self.panels, info),
                                       generation=generation)
         finally:

@@ -72,6 +72,7 @@ class Panels:
     gui_preset: GuiDropdownHandle[str]
     gui_proposals: GuiNumberHandle[int]
     gui_seed: GuiNumberHandle[int]
+    gui_precision: GuiDropdownHandle[str]
     gui_run: GuiButtonHandle
     gui_cancel: GuiButtonHandle
     gui_load: GuiButtonHandle
@@ -153,6 +154,9 @@ def build_panels(gui: GuiApi, *, scene_names: list[str], out_dir: str) -> Panels
         preset = gui.add_dropdown("Preset", PRESETS, initial_value="fast")
         proposals = gui.add_number("Proposals", 100, min=1, max=2000, step=1)
         seed = gui.add_number("Seed", 0, min=0, max=2**31 - 1, step=1)
+        precision = gui.add_dropdown("Precision", em_config.MATMUL_DTYPES, initial_value="float32",
+                                     hint="bfloat16: the networks' matrix work in bf16, about 1.5x faster on CPUs "
+                                          "with AMX / AVX-512 bf16, AP within a point (docs/BENCHMARKS.md)")
         run = gui.add_button("Run EFEM", hint="run EM on this scene in the background")
         cancel = gui.add_button("Cancel", disabled=True, color="red")
         load = gui.add_button("Load saved trace", hint="<scene>.efem.npz next to the scene file")
@@ -219,6 +223,7 @@ def build_panels(gui: GuiApi, *, scene_names: list[str], out_dir: str) -> Panels
         gui_preset=preset,
         gui_proposals=proposals,
         gui_seed=seed,
+        gui_precision=precision,
         gui_run=run,
         gui_cancel=cancel,
         gui_load=load,

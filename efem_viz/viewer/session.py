@@ -394,13 +394,14 @@ class ViewerSession:
 
     def run(self, *, preset: str = "fast", proposals: int | None = None, seed: int = 0,
             on_step: ProgressCallback | None = None, show: bool = True,
-            generation: int | None = None) -> EMResult | None:
+            generation: int | None = None, matmul_dtype: str = "float32") -> EMResult | None:
         """Run EFEM on the open scene (synchronously; `cancel_run()` from another thread stops it).
 
         Args:
             preset: an `efem_viz.em.preset` name.
             proposals: the initial proposal count (None: the preset's).
             seed: the run's seed.
+            matmul_dtype: `EMConfig.matmul_dtype` ("float32" or "bfloat16").
             on_step: called after each EM step with the solver's step info.
             show: show the result when done (unless the scene changed meanwhile).
             generation: the ticket of a `begin_run()` already called (None: begin here).
@@ -420,7 +421,9 @@ class ViewerSession:
             cfg = make_preset(preset)
             if proposals is not None:
                 cfg = cfg.with_proposals(int(proposals))
-            self.set_status(f"Running EFEM ({preset}, {cfg.n_init[0]} proposals, seed {seed}) …")
+            cfg = cfg.replace(matmul_dtype=matmul_dtype)
+            self.set_status(f"Running EFEM ({preset}, {cfg.n_init[0]} proposals, seed {seed}"
+                            f"{', bf16' if matmul_dtype == 'bfloat16' else ''}) …")
             prior = self.prior()
             priors = self.priors.run_priors()
             if priors is None:

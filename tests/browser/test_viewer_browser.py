@@ -337,3 +337,26 @@ def test_instance_table_cut_visibility_and_fly_to(viewer: Any, page: Any) -> Non
         _settle(page)
         _save(page, "viewer_instance_table.png")
     viewer.set_threshold(DEFAULT_CONFIDENCE_CUT)
+
+
+def test_run_tab_precision_and_run_button(viewer: Any, page: Any) -> None:
+    """The Run tab, with the mouse and keyboard only: choose Precision bfloat16 in its dropdown, type a proposal
+    count, press Run EFEM; the server runs EFEM with those settings (issue 24's knob reaches the solver)."""
+    _open(page, viewer, canvas=False)
+    page.get_by_role("tab", name="Run").click()
+    precision = page.get_by_role("combobox", name="Precision")
+    precision.click()
+    page.get_by_role("option", name="bfloat16").click()
+    wait_until(lambda: viewer.panels.gui_precision.value == "bfloat16", 20, "the dropdown's value on the server")
+    proposals = page.get_by_role("textbox", name="Proposals")
+    proposals.click()
+    page.keyboard.press("Control+A")
+    page.keyboard.type("12")
+    page.keyboard.press("Enter")
+    wait_until(lambda: viewer.panels.gui_proposals.value == 12, 20, "the proposal count on the server")
+    before = viewer.state.result
+    page.get_by_role("button", name="Run EFEM").click()
+    wait_until(lambda: viewer.state.result is not before and viewer.state.result_source.startswith("run"), 90,
+               "the run's result shown")
+    cfg = viewer.state.result.config
+    assert cfg.matmul_dtype == "bfloat16" and cfg.n_init[0] == 12
