@@ -517,10 +517,17 @@ def test_viewer_clamps_raw_proposals_and_rejects_nan(viewer: Any) -> None:
         assert wait_for(lambda: "not one of the options" in (viewer.state.error or ""))
         assert not calls, "an unknown preset is refused before anything runs"
         c.set_gui(p.gui_preset, value="fast")
+        c.set_gui(p.gui_precision, value="float16")  # not one of the Precision options
+        time.sleep(0.1)
+        viewer.state.error = None
+        c.press(p.gui_run)
+        assert wait_for(lambda: "not one of the options" in (viewer.state.error or ""))
+        assert not calls, "an unknown precision is refused before anything runs"
+        c.set_gui(p.gui_precision, value="bfloat16")
         time.sleep(0.1)
         c.press(p.gui_run)
         assert wait_for(lambda: bool(calls))
-        assert calls[0] == {"preset": "fast", "proposals": 2000, "seed": 0}
+        assert calls[0] == {"preset": "fast", "proposals": 2000, "seed": 0, "matmul_dtype": "bfloat16"}
         assert wait_for(lambda: p.gui_proposals.value == 2000)
         c.set_gui(p.gui_point_size, value=float("nan"))
         assert wait_for(lambda: "finite" in (viewer.state.error or ""))
