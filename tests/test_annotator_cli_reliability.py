@@ -56,6 +56,7 @@ def _script(scan: Path, n: int) -> list[tuple]:
     return steps
 
 
+@pytest.mark.slow  # several CLI starts and kills: 15-20 s
 def test_kill_9_at_random_moments_loses_no_acknowledged_edit(scan: Path, tmp_path: Path) -> None:
     steps = _script(scan, 14)
     ref = Cli(scan, tmp_path / "ref")

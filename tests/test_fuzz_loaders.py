@@ -1000,6 +1000,7 @@ def format_bad(res: dict[str, Any]) -> str:
 
 
 # ---------------------------------------------------------------------------------------------- tests
+@pytest.mark.slow  # 28 inputs per loader, each in a forked child: about a minute on two cores
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="the fuzzer forks one child per input")
 def test_every_loader_gives_a_valid_object_or_one_clear_error() -> None:
     # The work is counted: 28 inputs per loader (about 30 s on a quiet core). The wall-clock budget is only a hang
