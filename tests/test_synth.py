@@ -171,6 +171,8 @@ def test_bad_arguments_raise() -> None:
         generate_scene("z", seed=0, split="dev")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="voxel"):
         generate_scene("z", seed=0, voxel=0.0)
+    with pytest.raises(ValueError, match="do not fit on this shelf"):
+        generate_scene("shelf", seed=3, n_objects=10, **FAST)  # type: ignore[arg-type]
 
 
 def test_cli_writes_loadable_ply(tmp_path: Path) -> None:

@@ -238,7 +238,7 @@ def _place_on_shelf(objs: list[_Object], shelf: "Structure", rng: np.random.Gene
     out; returns the objects placed.
 
     Raises:
-        RuntimeError: a mug fits on no level (more mugs than the shelf holds).
+        ValueError: a mug fits on no level (more mugs than the shelf holds).
     """
     from efem_viz.data.structures import level_to_world
 
@@ -262,7 +262,9 @@ def _place_on_shelf(objs: list[_Object], shelf: "Structure", rng: np.random.Gene
                 break
         if spot is None:
             if o.label > 0:
-                raise RuntimeError(f"mug {o.label} fits on no level of the shelf ({len(levels)} levels)")
+                n_mugs = sum(q.label > 0 for q in objs)
+                raise ValueError(f"{n_mugs} mugs do not fit on this shelf's {len(levels)} levels (mug {o.label} "
+                                 f"finds no room); ask for fewer objects")
             continue
         li, c = spot
         placed[li].append((c, r))
