@@ -312,8 +312,9 @@ def test_tab_makes_the_next_instance_active(keyed: tuple[Any, Any]) -> None:
     wait_until(lambda: app.settings.active_id == first, 10, "the first instance active (Tab wraps)")
     page.keyboard.press("Tab")
     second = sorted(app.store.labelset.instances)[1]
-    wait_until(lambda: app.settings.active_id == second, 10, "the next instance active (Tab)")
-    assert str(app.gui_active.value).startswith(f"{second}:")
+    # the key handler sets the active id, then the dropdown: wait for both (reading between the two was a race)
+    wait_until(lambda: app.settings.active_id == second and str(app.gui_active.value).startswith(f"{second}:"), 10,
+               "the next instance active (Tab), shown in the Active dropdown")
     page.keyboard.press("Shift+Tab")
     wait_until(lambda: app.settings.active_id == first, 10, "the previous instance active (Shift+Tab)")
 
