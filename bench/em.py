@@ -73,10 +73,25 @@ def stage_table(timings: list[dict[str, float]]) -> dict[str, float]:
     return {k: v / total for k, v in tot.items()} | {"other": max(0.0, 1 - sum(tot.values()) / total)}
 
 
+def machine(threads: int) -> dict[str, Any]:
+    """What the timings were measured on."""
+    import torch
+
+    return {"platform": platform.platform(), "cpus": os.cpu_count(), "torch_threads": threads,
+            "torch": torch.__version__}
+
+
+def write_json(path: Path, out: dict[str, Any]) -> None:
+    """Write the results atomically and say where."""
+    from efem_viz.data.io import atomic_write_text
+
+    atomic_write_text(path, json.dumps(out, indent=2, default=float))
+    print(f"wrote {path}")
+
+
 def compare(args: argparse.Namespace, prior: Any, cfgs: dict[str, Any]) -> int:
     """Accuracy and speed of several solver configs on the same scenes, each scene run by every config in turn
     (so machine load falls on all of them alike)."""
-    import torch
 
     from efem_viz.eval import SceneGroundTruth, evaluate, prediction_from_instances
 
@@ -112,17 +127,12 @@ def compare(args: argparse.Namespace, prior: Any, cfgs: dict[str, Any]) -> int:
         r["time_share_by_stage"] = stage_table(r.pop("timings"))
         print(f"{name:>10} {r['median_seconds_per_scene']:9.1f} {r['median_cpu_seconds_per_scene']:13.1f}  "
               + "  ".join(f"AP50 {r['accuracy'][c]['ap50']:6.1f}" for c in args.configs))
-    out = {"machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "torch_threads": args.threads,
-                       "torch": torch.__version__},
+    out = {"machine": machine(args.threads),
            "prior": {"name": args.prior, "metadata": {k: v for k, v in prior.metadata.items()
                                                       if k in ("iteration", "val_iou", "tau_out")}},
            "scene_mode": args.mode, "distractors": not args.no_distractors, "n_scenes": n_scenes,
            "proposals": args.proposals, "configs": per}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(out, indent=2, default=float))
-    os.replace(tmp, args.out)
-    print(f"wrote {args.out}")
+    write_json(args.out, out)
     return 0
 
 
@@ -177,8 +187,7 @@ def main() -> int:
         return compare(args, prior, cfgs)
     n_scenes = args.n_scenes or (2 if args.quick else 10)
     out: dict[str, Any] = {
-        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "torch_threads": args.threads,
-                    "torch": torch.__version__},
+        "machine": machine(args.threads),
         "prior": {"name": args.prior, "config": prior.config.to_dict(), "has_codebook": prior.codebook is not None,
                   "metadata": {k: v for k, v in prior.metadata.items() if k in ("iteration", "val_iou", "tau_out")}},
         "em_config": json.loads(cfg.to_json()),
@@ -267,11 +276,7 @@ def main() -> int:
         for k, v in sorted(share.items(), key=lambda kv: -kv[1]):
             if v > 0.005:
                 print(f"  {k:>16}: {v * 100:5.1f} %")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(out, indent=2, default=float))
-    os.replace(tmp, args.out)
-    print(f"wrote {args.out}")
+    write_json(args.out, out)
     return 0
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
@@ -78,9 +79,9 @@ class Structure:
     levels: list[Level] = field(default_factory=list)
     front: np.ndarray = field(default_factory=lambda: np.zeros(2))
 
-    @property
+    @cached_property
     def pieces(self) -> list["trimesh.Trimesh"]:
-        """The convex pieces as watertight meshes (world frame)."""
+        """The convex pieces as watertight meshes (world frame; built once)."""
         return [piece_mesh(sp) for sp in self.specs]
 
     def parts(self) -> list[np.ndarray]:

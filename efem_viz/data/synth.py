@@ -118,26 +118,26 @@ def _sample_objects(
     from efem_viz.data.procedural import handle_hole, make_shape_with_parts, split_seeds
 
     seeds = split_seeds("mug", split)  # type: ignore[arg-type]
+    # (seed, (mesh, parts), handle opening) of each mug, each mug built once
+    mugs: list[tuple[int, tuple[trimesh.Trimesh, list[np.ndarray]], tuple[np.ndarray, float] | None]] = []
     if hole is None:
-        mug_seeds = [int(seeds[i]) for i in rng.choice(len(seeds), size=n_mugs, replace=False)]
-        holes: list[tuple[np.ndarray, float] | None] = [None] * n_mugs
+        for i in rng.choice(len(seeds), size=n_mugs, replace=False):
+            mugs.append((int(seeds[i]), make_shape_with_parts("mug", int(seeds[i])), None))
     else:
-        mug_seeds, holes = [], []
         for i in rng.choice(len(seeds), size=min(len(seeds), 20 * n_mugs), replace=False):
-            opening = handle_hole(make_shape_with_parts("mug", int(seeds[i]))[0])
+            built = make_shape_with_parts("mug", int(seeds[i]))
+            opening = handle_hole(built[0])
             if opening is not None and opening[1] >= hole:
-                mug_seeds.append(int(seeds[i]))
-                holes.append(opening)
-                if len(mug_seeds) == n_mugs:
+                mugs.append((int(seeds[i]), built, opening))
+                if len(mugs) == n_mugs:
                     break
-        if len(mug_seeds) < n_mugs:
-            raise RuntimeError(f"only {len(mug_seeds)} of the {split} mugs drawn have a handle opening of "
+        if len(mugs) < n_mugs:
+            raise RuntimeError(f"only {len(mugs)} of the {split} mugs drawn have a handle opening of "
                                f"{hole * 1000:.0f} mm")
     objs: list[_Object] = []
     colors = rng.permutation(len(_MUG_COLORS))
-    for k, s in enumerate(mug_seeds):
-        mesh, parts = make_shape_with_parts("mug", s)
-        objs.append(_Object("mug", s, k + 1, mesh, parts, _MUG_COLORS[colors[k % len(colors)]], hole=holes[k]))
+    for k, (s, (mesh, parts), opening) in enumerate(mugs):
+        objs.append(_Object("mug", s, k + 1, mesh, parts, _MUG_COLORS[colors[k % len(colors)]], hole=opening))
     if distractors:
         n_d = int(rng.integers(0, 3))
         for _ in range(n_d):
@@ -195,11 +195,7 @@ def _place_upright(objs: list[_Object], rng: np.random.Generator) -> None:
     foot = [_footprint_radius(o.mesh, R) for o, R in zip(objs, rots)]
     xy = _scatter_xy(rng, [r for _, r in foot])
     for o, R, (c, _), p in zip(objs, rots, foot, xy):
-        zmin = float((np.asarray(o.mesh.vertices) @ R.T)[:, 2].min())
-        T = np.eye(4)
-        T[:3, :3] = R
-        T[:3, 3] = [p[0] - c[0], p[1] - c[1], -zmin]
-        o.T_world_object = T
+        _rest_upright(o, R, p, 0.0, c)
 
 
 def _scatter_in(

@@ -73,8 +73,7 @@ def matmul_precision(dtype: str, prior: "ShapePriorLike | None" = None) -> Abstr
         raise ValueError(f"matmul_dtype must be 'float32' or 'bfloat16', got {dtype!r}")
     import torch
 
-    dev_type = torch.device(prior_device(prior)).type if prior is not None else "cpu"
-    return torch.autocast(dev_type, dtype=torch.bfloat16)
+    return torch.autocast(_device_type(prior), dtype=torch.bfloat16)
 
 
 def full_precision(prior: "ShapePriorLike | None" = None) -> AbstractContextManager[Any]:
@@ -82,8 +81,14 @@ def full_precision(prior: "ShapePriorLike | None" = None) -> AbstractContextMana
     masks, meshes and coverage, so a bf16 solve's outputs are decoded at full precision."""
     import torch
 
-    dev_type = torch.device(prior_device(prior)).type if prior is not None else "cpu"
-    return torch.autocast(dev_type, enabled=False)
+    return torch.autocast(_device_type(prior), enabled=False)
+
+
+def _device_type(prior: "ShapePriorLike | None") -> str:
+    """"cpu" or "cuda": the autocast device type of the prior's parameters."""
+    import torch
+
+    return torch.device(prior_device(prior)).type if prior is not None else "cpu"
 
 
 def decode_rows(
