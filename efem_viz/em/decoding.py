@@ -76,14 +76,6 @@ def matmul_precision(dtype: str, prior: "ShapePriorLike | None" = None) -> Abstr
     return torch.autocast(_device_type(prior), dtype=torch.bfloat16)
 
 
-def full_precision(prior: "ShapePriorLike | None" = None) -> AbstractContextManager[Any]:
-    """A region that runs in float32 inside a `matmul_precision("bfloat16")` one (autocast off): the reviews'
-    masks, meshes and coverage, so a bf16 solve's outputs are decoded at full precision."""
-    import torch
-
-    return torch.autocast(_device_type(prior), enabled=False)
-
-
 def _device_type(prior: "ShapePriorLike | None") -> str:
     """"cpu" or "cuda": the autocast device type of the prior's parameters."""
     import torch

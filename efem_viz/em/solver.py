@@ -29,7 +29,6 @@ from efem_viz.em.decoding import (
     PriorTable,
     decode_owned_rows,
     encode_rows,
-    full_precision,
     matmul_precision,
     mesh_of_latent,
     normals_threshold,
@@ -269,8 +268,7 @@ def run_em(
         solver = _Solver(scene.name, points, normals, PriorTable.of(plist), run_cfg, cfgs, seed=seed,
                          on_step=on_step, cancel=cancel, anchor_candidates=anchor_candidates,
                          step_rules=step_rules, review_rules=review_rules, camera=camera)
-        with matmul_precision(run_cfg.matmul_dtype, plist[0]):
-            inst_rows = solver.run()
+        inst_rows = solver.run()
     finally:
         for pr, was in zip(plist, was_training):
             if was and hasattr(pr, "train"):
@@ -434,8 +432,7 @@ class _Solver:
                 if (phase == 1 and t == cfg.t1 - 1) or (phase == 2 and t == cfg.steps_per_episode - 1):
                     if full_tree is None:
                         full_tree = AvailableTree(self.full_points, available_full, crop=cfg.crop)
-                    with full_precision(self.table.priors[0]):  # masks, meshes, coverage in float32
-                        last_review = self._review(pool, full_tree, step, phase)
+                    last_review = self._review(pool, full_tree, step, phase)  # float32 (matmul_dtype: E-steps)
                 elapsed = time.perf_counter() - self.t_start
                 self.rec.end_step(pool.size, elapsed)
                 if self.on_step is not None:
@@ -468,21 +465,23 @@ class _Solver:
             samples, _ = sample_joint(pool.rag, pool.w, pool.stationary, self.m, cfg.omega, self.rng,
                                       fallback=fallback)
         t0 = self.timer.add("m_step", t0)
-        latent = encode_rows(self.table, pool.owner, self.points[samples], batch=cfg.encode_batch)
-        self.n_encoded += len(samples)
-        review_step = t in (cfg.t1 - 1, cfg.steps_per_episode - 1)
-        if cfg.refine_steps > 0 and pool.size <= cfg.refine_max_pool and (cfg.refine_at == "every_step"
-                                                                          or review_step):
-            latent = self._refine(latent, self.points[samples], pool.owner)
+        with matmul_precision(cfg.matmul_dtype, self.table.priors[0]):  # the EM steps' networks only
+            latent = encode_rows(self.table, pool.owner, self.points[samples], batch=cfg.encode_batch)
+            self.n_encoded += len(samples)
+            review_step = t in (cfg.t1 - 1, cfg.steps_per_episode - 1)
+            if cfg.refine_steps > 0 and pool.size <= cfg.refine_max_pool and (cfg.refine_at == "every_step"
+                                                                              or review_step):
+                latent = self._refine(latent, self.points[samples], pool.owner)
         if cfg.trust_scale is not None:
             latent = _trust_scale(latent, pool, cfg.trust_scale)
         t0 = self.timer.add("encode", t0)
         rag = tree.query(latent["center"], cfg.r_err)
         t0 = self.timer.add("neighbourhood", t0)
         sched = schedule(cfg, t)
-        d, gamma = decode_owned_rows(self.table, pool.owner, latent, rag, self.points, self.normals,
-                                     chunk=cfg.decode_chunk, normals_within=normals_threshold(cfg, sched[1]),
-                                     stats=self.stats)
+        with matmul_precision(cfg.matmul_dtype, self.table.priors[0]):
+            d, gamma = decode_owned_rows(self.table, pool.owner, latent, rag, self.points, self.normals,
+                                         chunk=cfg.decode_chunk, normals_within=normals_threshold(cfg, sched[1]),
+                                         stats=self.stats)
         self.n_queries += len(rag.idx)
         t0 = self.timer.add("decode", t0)
         w, inlier = energy_weights(d, gamma, sched, out_value=cfg.out_value)
