@@ -28,6 +28,9 @@ class AnnotateArgs:
     """TCP port (a busy port is replaced by the next free one; the real URL is printed)."""
     max_points: int = 2_000_000
     """Refuse scans with more vertices than this."""
+    display_points: int = 1_000_000
+    """Draw at most this many vertices in the browser: a larger scan is shown as an evenly spread subset of them
+    (every tool still labels all vertices)."""
     autosave_delay: float = 0.5
     """Seconds between an edit and the checkpoint rewrite (the journal is written before every edit returns)."""
     token: str | None = None
@@ -49,6 +52,7 @@ class AnnotateArgs:
                 host=self.host,
                 port=self.port,
                 max_points=self.max_points,
+                display_points=self.display_points,
                 autosave_delay=self.autosave_delay,
                 accept_scan_mismatch=self.accept_scan_mismatch,
                 token=self.token,

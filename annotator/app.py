@@ -1,9 +1,9 @@
 """The annotator's viser layer over the headless session: builds the GUI, turns GUI/scene events into session calls,
-draws the scan in spatial chunks.
+draws the scan through `annotator.scan_view.ScanView`.
 
 Thin by design: every action (paint, grow, fill, box, lasso, pre-labels, click-to-segment, undo, export) is done by
 `annotator.session.AnnotatorSession` (`self.session`), which is also the tools' host; callbacks read GUI values into
-its `ToolSettings` and call it, and the label store's listener redraws the touched chunks (`draw_chunks`). The
+its `ToolSettings` and call it, and the label store's listener redraws the touched chunks (`ScanView.draw_delta`). The
 app's action methods are the session's, so tests and scripts drive the same code paths without a browser.
 
 Interaction (see docs/ANNOTATOR.md). The tools are the entries of a table (`annotator.tools.DEFAULT_TOOLS`, or
@@ -25,12 +25,10 @@ read from it; this module has no per-tool branches.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import queue
 import threading
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Sequence, cast
 
@@ -41,7 +39,7 @@ from annotator.cheat_sheet import CheatSheets
 from annotator.events import MISSED_SCAN, check_event, coalesce_drag_updates
 from annotator.panel_views import NO_OPTIONS, panel_view, status_markdown
 from annotator.session import AnnotatorSession, BrushCursor, Stroke
-from annotator.render import Chunks, build_chunks, color_lut, compose_colors, ring_segments, splat_proxy
+from annotator.scan_view import DISPLAY_POINTS, ScanView
 from annotator.tools import (
     APP_KEYS,
     BRUSH_STEP,
@@ -56,8 +54,6 @@ from annotator.tools import (
     lasso_click,
     shown_settings,
 )
-from efem_viz.geometry.transforms import xyz_tuple
-from efem_viz.serve.camera import CameraGuard, View, fly_to_view
 from efem_viz.serve.guard import start_server
 from efem_viz.serve.table import option_for as _option_for
 from efem_viz.serve.table import option_id as _id_of
@@ -84,25 +80,6 @@ __all__ = ["TOOLS", "AnnotatorApp", "ToolSettings"]
 MAX_NAME = 200
 """Longest instance name / category accepted from a client."""
 
-@dataclass
-class Stats:
-    """Counters for the benchmark and the status line."""
-
-    bytes_sent: int = 0
-    """Colour payload bytes sent to clients since start (3 bytes per point of each redrawn chunk)."""
-    chunks_sent: int = 0
-    last_edit_bytes: int = 0
-    last_edit_ms: float = 0.0
-    edits: int = 0
-    history: list[str] = field(default_factory=list)
-
-
-CURSOR_COLOR = (255, 150, 0)
-"""Colour of the brush cursor's ring."""
-CURSOR_THICKNESS_PX = 2.5
-"""Line width of the brush cursor's ring, screen pixels."""
-
-
 class AnnotatorApp:
     """The annotator server for one scan.
 
@@ -117,6 +94,8 @@ class AnnotatorApp:
         max_points: refuse scans with more vertices.
         autosave_delay: seconds between an edit and the checkpoint rewrite (the journal is always immediate).
         chunk_size: points per drawn chunk.
+        display_points: display budget: a scan with more vertices is drawn from a subset of this many (every tool
+            still labels all of them; see `annotator.scan_view`).
         efem_result: an `<scene>.efem.npz` to import as pre-labels at start (optional).
         accept_scan_mismatch: resume a journal written for other geometry with the same vertex count.
         token: the server's access token (None = a fresh random one; see `efem_viz.serve.guard`).
@@ -138,6 +117,7 @@ class AnnotatorApp:
         max_points: int = 2_000_000,
         autosave_delay: float = 0.5,
         chunk_size: int = 16384,
+        display_points: int = DISPLAY_POINTS,
         accept_scan_mismatch: bool = False,
         token: str | None = None,
         tools: Sequence[Tool] = DEFAULT_TOOLS,
@@ -166,17 +146,11 @@ class AnnotatorApp:
                                                                            ses.review_prelabels)
         self.set_preview, self.accept_segment, self.discard_segment = (ses.set_preview, ses.accept_segment,
                                                                        ses.discard_segment)
-        self.chunks: Chunks = build_chunks(self.scene.points, max_chunk=chunk_size)
-        self.stats = Stats()
-        self._cursor_handle: Any = None
-        self._lasso_handle: Any = None
         self._sheets = CheatSheets(self.tools)
         self.cheat_sheets = self._sheets.open
         """The open `?` cheat-sheet overlays, by client id."""
         self._edits: queue.Queue[tuple[str, Any]] = queue.Queue()
         self._tls = threading.local()
-        self._draw_lock = threading.Lock()
-        self._cursor_lock = threading.Lock()
         self._closed = threading.Event()
 
         try:
@@ -186,14 +160,18 @@ class AnnotatorApp:
             raise
         try:
             self.server.gui.configure_theme(control_width="large")
-            self._draw_scan()
+            self.view = ScanView(self.server, ses, chunk_size=chunk_size, display_points=display_points)
+            """The scan as drawn: chunks, surface, overlays, camera (`annotator.scan_view`)."""
+            self.view.surface.on_drag("left", modifier="cmd/ctrl")(self._on_drag)
+            self.server.scene.on_click(modifier="cmd/ctrl")(self._on_scene_click)
+            self.server.scene.on_rect_select(modifier="shift")(self._on_rect)
             self._build_gui()
         except BaseException:
             self.server.stop()
             ses.close()
             raise
-        ses.on_change, ses.on_cursor, ses.on_lasso = self._refresh_panel, self._draw_cursor, self._draw_lasso
-        ses.on_preview = lambda idx: self.draw_chunks(self.chunks.touched(idx))
+        ses.on_change, ses.on_cursor, ses.on_lasso = self._refresh_panel, self.view.draw_cursor, self._draw_lasso
+        ses.on_preview = self.view.draw_preview
         ses.on_segment, ses.report = self._show_segmenting, self._run_reporting
         ses.notify = lambda title, body: self.notify(title, body)  # late-bound: tests replace `notify`
         self.store.listeners.append(self._on_labels_changed)
@@ -205,7 +183,8 @@ class AnnotatorApp:
         self._warmup = threading.Thread(target=self.geom.warm_up, name="annotator-warmup", daemon=True)
         self._warmup.start()
         self.open_s = time.perf_counter() - t0
-        log.info("opened %s: %d vertices, %d chunks, %.2f s", self.scan_path.name, self.n, self.chunks.count, self.open_s)
+        log.info("opened %s: %d vertices (%d drawn), %d chunks, %.2f s", self.scan_path.name, self.n,
+                 len(self.view.display), self.view.chunks.count, self.open_s)
 
     # ================================================================== drawing
     @property
@@ -218,86 +197,12 @@ class AnnotatorApp:
         """The URL from this machine (127.0.0.1 for loopback and 0.0.0.0 binds), with the token."""
         return self.access.local_url
 
-    def _draw_scan(self) -> None:
-        pts = self.scene.points
-        centre = pts.mean(axis=0)
-        extent = float(np.linalg.norm(np.ptp(pts, axis=0)))
-        spacing = self.geom.spacing
-        self.point_size = float(max(spacing * 1.6, extent * 5e-4))
-        if self.scene.is_mesh:
-            assert self.scene.faces is not None
-            self.surface = self.server.scene.add_mesh_simple(
-                "/scan/surface", pts, self.scene.faces, color=(205, 205, 205), side="double"
-            )
-        else:
-            verts, faces = splat_proxy(pts, self.scene.normals, size=2.5 * spacing, max_splats=150_000)
-            # An invisible proxy surface: it receives the drag gestures that point clouds do not.
-            self.surface = self.server.scene.add_mesh_simple(
-                "/scan/surface", verts, faces, color=(200, 200, 200), opacity=0.0, side="double"
-            )
-        self.surface.on_drag("left", modifier="cmd/ctrl")(self._on_drag)
-        self.chunk_handles = []
-        labels = self.store.labels
-        lut, show = color_lut(self.store.labelset.instances, int(labels.max(initial=0)))
-        for c in range(self.chunks.count):
-            m = self.chunks.members(c)
-            h = self.server.scene.add_point_cloud(
-                f"/scan/labels/chunk_{c:04d}",
-                points=pts[m],
-                colors=compose_colors(self.scene.colors[m], labels[m], lut, show,
-                                      dim_unlabelled=self.settings.labels_only),
-                point_size=self.point_size,
-                point_shape="circle",
-            )
-            self.chunk_handles.append(h)
-        self.server.scene.on_click(modifier="cmd/ctrl")(self._on_scene_click)
-        self.server.scene.on_rect_select(modifier="shift")(self._on_rect)
-        self.home_view = View(look_at=xyz_tuple(centre),
-                              position=xyz_tuple(centre + np.array([0.0, -1.0, 0.8]) * extent * 0.8))
-        """The fitted view: where every client starts, and where R (reset view) puts the camera."""
-        self.camera_guard = CameraGuard(self.server, self.home_view, pts.min(axis=0), pts.max(axis=0),
-                                        hint="R (reset view) brings it back any time.")
-        """Puts a camera that left the scan back on `home_view` (see `efem_viz.serve.camera`)."""
-
-    def draw_chunks(self, chunk_ids: np.ndarray) -> int:
-        """Recompute and send the colours of some chunks; returns the payload bytes sent."""
-        with self._draw_lock:
-            labels = self.store.labels
-            lut, show = color_lut(self.store.labelset.instances, int(labels.max(initial=0)))
-            sent = 0
-            for c in np.asarray(chunk_ids, np.int64):
-                m = self.chunks.members(int(c))
-                hl = None if self.session.preview is None else self.session.preview[m]
-                cols = compose_colors(self.scene.colors[m], labels[m], lut, show, highlight=hl,
-                                      dim_unlabelled=self.settings.labels_only)
-                self.chunk_handles[int(c)].colors = cols
-                sent += cols.nbytes
-            self.stats.bytes_sent += sent
-            self.stats.chunks_sent += len(chunk_ids)
-            return sent
-
     def _on_labels_changed(self, d: Delta, how: str) -> None:
         t0 = time.perf_counter()
-        touched = self.chunks.touched(d.idx)
-        if d.table_after:
-            # Colour / visibility changes recolour every chunk holding those instances.
-            ids = np.array([k for k in d.table_after], np.int32)
-            visual = [
-                k for k in ids
-                if (d.table_before.get(int(k)) is None) != (d.table_after.get(int(k)) is None)
-                or (d.table_before.get(int(k)) and d.table_after.get(int(k))
-                    and (d.table_before[int(k)].color != d.table_after[int(k)].color  # type: ignore[union-attr]
-                         or d.table_before[int(k)].visible != d.table_after[int(k)].visible  # type: ignore[union-attr]
-                         or d.table_before[int(k)].unreviewed != d.table_after[int(k)].unreviewed))  # type: ignore[union-attr]
-            ]
-            if visual:
-                mask = np.isin(self.store.labels, np.array(visual, np.int32))
-                touched = np.union1d(touched, self.chunks.touched(np.flatnonzero(mask)))
-        sent = self.draw_chunks(touched)
-        self.stats.last_edit_bytes = sent
-        self.stats.last_edit_ms = 1000 * (time.perf_counter() - t0)
-        self.stats.edits += 1
-        self.stats.history = ([f"{how}: {d.label}"] + self.stats.history)[:8]
+        sent = self.view.draw_delta(d)
+        st = self.view.stats
+        st.last_edit_bytes, st.last_edit_ms, st.edits = sent, 1000 * (time.perf_counter() - t0), st.edits + 1
+        st.history = ([f"{how}: {d.label}"] + st.history)[:8]
         self._refresh_panel()
 
     # ================================================================== GUI
@@ -575,7 +480,7 @@ class AnnotatorApp:
         (`annotator.panel_views.panel_view`)."""
         if not hasattr(self, "gui_table"):
             return
-        v = panel_view(self.store, self.settings.active_id, history=self.stats.history)
+        v = panel_view(self.store, self.settings.active_id, history=self.view.stats.history)
         self._tls.syncing = True
         try:
             self.settings.active_id = v.active_id
@@ -593,8 +498,8 @@ class AnnotatorApp:
             self.gui_progress.value = round(100.0 * v.progress, 2)
             self.gui_table.content, self.gui_history.content = v.table, v.history
             self.gui_status.content = status_markdown(self.store, self.work_dir,
-                                                      last_edit_bytes=self.stats.last_edit_bytes,
-                                                      last_edit_ms=self.stats.last_edit_ms)
+                                                      last_edit_bytes=self.view.stats.last_edit_bytes,
+                                                      last_edit_ms=self.view.stats.last_edit_ms)
         finally:
             self._tls.syncing = False
 
@@ -609,7 +514,7 @@ class AnnotatorApp:
     def _greet(self, client: Any) -> None:
         """A newly connected client: its camera is watched (`camera_guard`), and it hears about a recovery or a
         standing autosave problem."""
-        self.camera_guard.attach(client)
+        self.view.camera_guard.attach(client)
         rec = self.store.recovery
         if rec is not None:
             title = ("Session recovered" if rec.verified_complete else "Session recovered with losses"
@@ -621,7 +526,7 @@ class AnnotatorApp:
     def _forget_client(self, client: ClientHandle) -> None:
         """A client left: drop what the app kept for it (its cheat-sheet overlay)."""
         self._sheets.forget(client.client_id)
-        self.camera_guard.forget(client)
+        self.view.camera_guard.forget(client)
 
     def _run_reporting(self, fn: Callable[[], Any], client: Any = None) -> Any:
         """Run an action for a client (a GUI callback, a hotkey, a scene gesture); errors become a notification to
@@ -710,7 +615,7 @@ class AnnotatorApp:
 
     def reset_view(self, client: ClientHandle | None = None) -> None:
         """Put a client's camera (every client's when None) back on the fitted view of the scan (R)."""
-        self.camera_guard.reset(client)
+        self.view.camera_guard.reset(client)
 
     def toggle_cheat_sheet(self, client: ClientHandle | None) -> bool:
         """Open the keyboard cheat sheet (`?`) over one client's view, or close it when open; True when open now.
@@ -724,22 +629,7 @@ class AnnotatorApp:
         """The labels-only view (unlabelled vertices dimmed) on or off; every chunk is redrawn."""
         self.settings.labels_only = bool(on)
         self._gui_write_back(self.gui_labels_only, self.settings.labels_only)
-        self.draw_chunks(np.arange(self.chunks.count))
-
-    # ---- brush cursor
-    def _draw_cursor(self) -> None:
-        """Draw the brush cursor where the session has it (hidden for tools without a brush radius)."""
-        with self._cursor_lock:
-            cur = self.session.cursor
-            if cur is None:
-                return
-            try:
-                self._cursor_handle = self.server.scene.add_line_segments(
-                    "/annotator/brush_cursor", ring_segments(cur.position, cur.normal, cur.radius),
-                    colors=CURSOR_COLOR, thickness=CURSOR_THICKNESS_PX, thickness_units="screen",
-                    visible=cur.visible)
-            except ValueError:  # a degenerate radius: keep the last ring
-                log.debug("brush cursor not drawn", exc_info=True)
+        self.view.redraw()
 
     def add_lasso_point(self, event: SceneClickEvent) -> int:
         """Lasso tool: a Ctrl/Cmd+click adds a screen point to the outline (`annotator.tools.lasso_click`).
@@ -753,15 +643,8 @@ class AnnotatorApp:
             raise ClientValueError(str(exc)) from None
 
     def _draw_lasso(self) -> None:
+        self.view.draw_lasso()
         n = len(self.lasso_outline)
-        seg = self.lasso_outline.segments()
-        if seg is not None:
-            self._lasso_handle = self.server.scene.add_line_segments("/annotator/lasso", seg, colors=(255, 200, 0),
-                                                                     thickness=2.0, thickness_units="screen")
-        elif self._lasso_handle is not None:
-            with contextlib.suppress(Exception):
-                self._lasso_handle.remove()
-            self._lasso_handle = None
         buttons = getattr(self, "gui_tool_buttons", {})  # the lasso's buttons (absent from a table without it)
         for key, disabled in (("lasso_apply", n < 3), ("lasso_clear", n == 0)):
             if key in buttons:
@@ -785,19 +668,8 @@ class AnnotatorApp:
         iid = step_row(ids, int(current) if started and current.isdigit() else None, step)
         self.session.prelabel_cursor = iid
         self._gui_write_back(self.gui_prelabel, _option_for(tuple(self.gui_prelabel.options), iid))
-        self.fly_to(np.flatnonzero(self.store.labels == iid), client)
+        self.view.fly_to(np.flatnonzero(self.store.labels == iid), client)
         return iid
-
-    def fly_to(self, idx: np.ndarray, client: ClientHandle | None = None) -> None:
-        """Point a client's camera (every client's when None) at some vertices: their box, seen from the fitted
-        view's direction, filling about half the view."""
-        idx = np.asarray(idx, np.int64)
-        if idx.size == 0:
-            return
-        pts = self.scene.points[idx]
-        scan_diag = float(np.linalg.norm(np.ptp(self.scene.points, axis=0))) or 1.0
-        self.camera_guard.place(fly_to_view(pts.min(axis=0), pts.max(axis=0), home=self.home_view,
-                                            scene_diagonal=scan_diag), client)
 
     def segment_at(self, vertex: int, *, wait: bool = False) -> np.ndarray | None:
         """Click-to-segment with the prior the dropdown shows (`AnnotatorSession.segment_at`)."""

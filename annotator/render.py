@@ -24,7 +24,7 @@ class Chunks:
     offsets: np.ndarray
     """(C+1,) int64 chunk boundaries in `order`."""
     chunk_of: np.ndarray
-    """(N,) int32 chunk of each vertex."""
+    """(N,) int32 chunk of each vertex (-1: a vertex that is not drawn, see `lifted`)."""
 
     @property
     def count(self) -> int:
@@ -38,7 +38,21 @@ class Chunks:
         """Sorted chunk ids that contain any of the vertices `idx`."""
         if len(idx) == 0:
             return np.zeros(0, np.int32)
-        return np.unique(self.chunk_of[idx])
+        c = np.unique(self.chunk_of[idx])
+        return c[c >= 0] if len(c) and c[0] < 0 else c
+
+    def lifted(self, ids: np.ndarray, n: int) -> Chunks:
+        """These chunks, built over the points `ids` of an `n`-vertex scan, in that scan's vertex ids; the other
+        vertices belong to no chunk (chunk -1).
+
+        Args:
+            ids: (D,) int vertex ids, in the order of the points the chunks were built on.
+            n: vertex count of the scan.
+        """
+        ids = np.asarray(ids, np.int32)
+        chunk_of = np.full(n, -1, np.int32)
+        chunk_of[ids] = self.chunk_of
+        return Chunks(order=ids[self.order], offsets=self.offsets, chunk_of=chunk_of)
 
 
 def build_chunks(points: np.ndarray, *, max_chunk: int = 32768) -> Chunks:

@@ -95,19 +95,19 @@ def main() -> int:
         for s in range(5):
             y = -0.4 + 0.2 * s
             start = np.array([-0.5, y, 0.0], np.float32)
-            b0 = app.stats.bytes_sent
+            b0 = app.view.stats.bytes_sent
             for k in range(32):
                 phase = "start" if k == 0 else ("end" if k == 31 else "update")
                 x = -0.5 + 0.03 * k
                 # a point on the drag plane between the camera and the surface point (x, y, 0)
                 target = np.array([x, y, 0.0])
                 end = cam.position + 0.5 * (target - cam.position)
-                bb = app.stats.bytes_sent
+                bb = app.view.stats.bytes_sent
                 t1 = time.perf_counter()
                 app.handle_event("drag", ev(phase, end))
                 event_ms.append(1000 * (time.perf_counter() - t1))
-                event_bytes.append(app.stats.bytes_sent - bb)
-            stroke_bytes.append(app.stats.bytes_sent - b0)
+                event_bytes.append(app.view.stats.bytes_sent - bb)
+            stroke_bytes.append(app.view.stats.bytes_sent - b0)
         painted = int((app.store.labels == iid).sum())
 
         # region grow on a bump top: seed = highest vertex
@@ -146,8 +146,8 @@ def main() -> int:
         "machine": platform.platform(),
         "vertices": n,
         "faces": int(len(scene.faces)),
-        "chunks": app.chunks.count,
-        "chunk_size_max": int(np.diff(app.chunks.offsets).max()),
+        "chunks": app.view.chunks.count,
+        "chunk_size_max": int(np.diff(app.view.chunks.offsets).max()),
         "generate_and_write_ply_s": round(gen_s, 2),
         "open_s": round(open_s, 2),
         "open_until_tools_ready_s": round(ready_s, 2),

@@ -112,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
             painted = app.store.labels == iid
             true = truth.instance == gid
             iou = (painted & true).sum() / max((painted | true).sum(), 1)
-            print(f"  instance {iid} ({app.stats.history[0]}): {int(painted.sum())} vertices, IoU with true "
+            print(f"  instance {iid} ({app.view.stats.history[0]}): {int(painted.sum())} vertices, IoU with true "
                   f"object {int(gid)}: {iou:.2f}")
         before = int((app.store.labels > 0).sum())
         app.undo()

@@ -47,16 +47,16 @@ def _drag(phase: str, start, end, client_id: int = 7) -> SimpleNamespace:
 
 
 def test_open_builds_chunks_and_panel(app: AnnotatorApp) -> None:
-    assert app.n == 2562 and app.chunks.count >= 9
+    assert app.n == 2562 and app.view.chunks.count >= 9
     assert app.url.startswith("http://127.0.0.1:")
-    assert len(app.chunk_handles) == app.chunks.count
+    assert len(app.view.chunk_handles) == app.view.chunks.count
     assert "0.0%" in app.gui_table.content
 
 
 def test_drag_stroke_paints_only_touched_chunks_and_undoes_as_one(app: AnnotatorApp) -> None:
     iid = app.new_instance(category="mug")
     app.settings.radius = 0.015
-    sent0 = app.stats.bytes_sent
+    sent0 = app.view.stats.bytes_sent
     app.handle_event("drag", _drag("start", (0, 0, 0.1), (0, 0, 0.1)))
     for x in (0.01, 0.02, 0.03):
         app.handle_event("drag", _drag("update", (0, 0, 0.1), (x, 0.0, 0.5)))
@@ -66,13 +66,48 @@ def test_drag_stroke_paints_only_touched_chunks_and_undoes_as_one(app: Annotator
     assert len(painted) > 20
     pts = app.scene.points[painted]
     assert pts[:, 2].min() > 0.045 and pts[:, 0].max() > 0.05  # along the stroke over the top of the ball
-    sent = app.stats.bytes_sent - sent0
+    sent = app.view.stats.bytes_sent - sent0
     assert 0 < sent < 3 * app.n  # partial update: fewer bytes than resending every colour
     # the history panel counts what Ctrl+Z undoes: the new instance and the stroke, not 1 + 5 dabs
     assert app.gui_history.content.startswith("2 undoable, 0 redoable")
     assert len(app.undo()) == 5  # start + 3 updates + end undo together
     assert app.gui_history.content.startswith("1 undoable, 1 redoable")
     assert (app.store.labels == iid).sum() == 0
+
+
+def test_a_scan_over_the_display_budget_is_drawn_from_a_subset_and_labelled_in_full(mesh_path: Path,
+                                                                                   tmp_path: Path) -> None:
+    """Level of detail: 2562 vertices over a budget of 700 draw 700 points (no mesh sent), a stroke labels hidden
+    vertices too, and an edit resends the colours of drawn points only."""
+    a = AnnotatorApp(mesh_path, out_dir=tmp_path / "out", port=0, autosave_delay=0, chunk_size=100,
+                     display_points=700)
+    try:
+        v = a.view
+        assert v.reduced and len(v.display) == 700 and len(np.unique(v.display)) == 700
+        drawn = np.concatenate([v.chunks.members(c) for c in range(v.chunks.count)])
+        assert np.array_equal(np.sort(drawn), v.display)
+        assert sum(len(h.points) for h in v.chunk_handles) == 700
+        assert v.surface.opacity == 0.0 and len(v.surface.vertices) == 3 * 700  # an invisible splat proxy
+        hidden = np.setdiff1d(np.arange(a.n), v.display)
+        assert (v.chunks.chunk_of[hidden] == -1).all() and len(v.chunks.touched(hidden)) == 0
+        iid = a.new_instance(category="mug")
+        a.settings.radius = 0.02
+        sent0 = v.stats.bytes_sent
+        a.handle_event("drag", _drag("start", (0, 0, 0.1), (0, 0, 0.1)))
+        a.handle_event("drag", _drag("end", (0, 0, 0.1), (0.02, 0.0, 0.5)))
+        painted = np.flatnonzero(a.store.labels == iid)
+        assert np.isin(painted, hidden).sum() > 10  # every vertex under the brush, drawn or not
+        touched = v.chunks.touched(painted)
+        # two edits (start, end), each resending the colours of the drawn points of the chunks it touched
+        assert 0 < v.stats.bytes_sent - sent0 <= 2 * 3 * sum(len(v.chunks.members(c)) for c in touched) < 2 * 3 * 700
+        col = v.chunk_handles[int(touched[0])].colors
+        shown = np.isin(v.chunks.members(int(touched[0])), painted)
+        assert shown.any() and not np.array_equal(col[shown][0], a.scene.colors[v.chunks.members(int(touched[0]))][
+            shown][0])  # the drawn painted points show the instance colour
+    finally:
+        a.close()
+    with pytest.raises(ValueError, match="at least 1"):
+        AnnotatorApp(mesh_path, out_dir=tmp_path / "out2", port=0, display_points=0)
 
 
 def test_queued_events_are_processed_in_order(app: AnnotatorApp) -> None:
@@ -129,11 +164,11 @@ def test_instance_panel_through_gui_handles(app: AnnotatorApp) -> None:
     app.gui_color.value = (1, 2, 3)
     info = app.store.labelset.info(a)
     assert (info.name, info.category, info.color) == ("left mug", "cup", (1, 2, 3))
-    c0 = app.chunks.chunk_of[0]
-    m = app.chunks.members(c0)
+    c0 = app.view.chunks.chunk_of[0]
+    m = app.view.chunks.members(c0)
     first = int(np.flatnonzero(m == 0)[0])
     app.gui_visible.value = False  # hidden: drawn in scan colour
-    assert tuple(app.chunk_handles[c0].colors[first]) == tuple(app.scene.colors[0])
+    assert tuple(app.view.chunk_handles[c0].colors[first]) == tuple(app.scene.colors[0])
     app.gui_visible.value = True
     app.gui_locked.value = True
     with pytest.raises(ValueError, match="locked"):
@@ -472,7 +507,7 @@ def test_a_click_that_misses_the_scan_says_so(app: AnnotatorApp) -> None:
     app.handle_event("click", hit)
     assert len(notes) == n  # a hit says nothing
     placed: list[object] = []
-    app.camera_guard.reset = lambda c=None: placed.append(c)  # type: ignore[method-assign]
+    app.view.camera_guard.reset = lambda c=None: placed.append(c)  # type: ignore[method-assign]
     app.reset_view(client)  # type: ignore[arg-type]
     assert placed == [client]
 
@@ -508,11 +543,11 @@ def test_painting_over_other_instances_says_how_many_were_taken(app: AnnotatorAp
     app.paint(np.arange(100))
     app.new_instance()
     app.paint(np.arange(60, 160))
-    assert app.stats.history[0].endswith(", 40 taken from other instances"), app.stats.history[0]
+    assert app.view.stats.history[0].endswith(", 40 taken from other instances"), app.view.stats.history[0]
     assert int((app.store.labels == a).sum()) == 60
     app.settings.only_unlabelled = True
     app.paint(np.arange(0, 200))
-    assert "taken" not in app.stats.history[0] and int((app.store.labels == a).sum()) == 60
+    assert "taken" not in app.view.stats.history[0] and int((app.store.labels == a).sum()) == 60
 
 
 def test_prelabel_review_by_confidence_in_bulk_and_one_by_one(app: AnnotatorApp) -> None:
@@ -538,7 +573,7 @@ def test_prelabel_review_by_confidence_in_bulk_and_one_by_one(app: AnnotatorApp)
     assert all(lut[i].tolist() != own[i] and (lut[i] >= np.array(own[i])).all() for i in ids)  # paler
 
     flown: list[object] = []
-    app.camera_guard.place = lambda view, client=None: flown.append(view)  # type: ignore[method-assign]
+    app.view.camera_guard.place = lambda view, client=None: flown.append(view)  # type: ignore[method-assign]
     first = app.step_prelabel(+1)
     assert first == _id_of_option(opts[0]) and str(app.gui_prelabel.value) == opts[0]
     members = app.scene.points[app.store.labels == first]
@@ -546,11 +581,11 @@ def test_prelabel_review_by_confidence_in_bulk_and_one_by_one(app: AnnotatorApp)
     assert app.step_prelabel(+1) == _id_of_option(opts[1])
     assert app.step_prelabel(-1) == first and app.step_prelabel(-1) == _id_of_option(opts[2])  # wraps around
 
-    sent = app.stats.chunks_sent
+    sent = app.view.stats.chunks_sent
     accepted = app.review_prelabels(0.5, "accept")
     assert sorted(accepted) == sorted(i for i in ids if conf[i] >= 0.5)
     assert all(not app.store.labelset.info(i).unreviewed for i in accepted)
-    assert app.stats.chunks_sent > sent  # redrawn in their full colour
+    assert app.view.stats.chunks_sent > sent  # redrawn in their full colour
     lut, _ = color_lut(app.store.labelset.instances, max(ids))
     assert all(lut[i].tolist() == own[i] for i in accepted)
     assert list(app.gui_prelabel.options) == [opts[2]]
@@ -573,8 +608,8 @@ def test_labels_only_view_dims_unlabelled_vertices(app: AnnotatorApp) -> None:
 
     def drawn() -> np.ndarray:
         out = np.zeros((app.n, 3), np.uint8)
-        for c, h in enumerate(app.chunk_handles):
-            out[app.chunks.members(c)] = np.asarray(h.colors)
+        for c, h in enumerate(app.view.chunk_handles):
+            out[app.view.chunks.members(c)] = np.asarray(h.colors)
         return out
 
     before = drawn()
@@ -707,10 +742,10 @@ def test_tool_table_drives_toolbar_controls_help_and_history(app: AnnotatorApp) 
     app.new_instance(category="mug")
     app.settings.grow_angle_deg, app.settings.grow_distance = 60, 0.05
     app.click(np.array([0, 0, 1.0]), np.array([0, 0, -1.0]))
-    assert app.stats.history[0].endswith("(Region grow)")
+    assert app.view.stats.history[0].endswith("(Region grow)")
     app.handle_event("rect", SimpleNamespace(client_id=3, client=_client(), screen_min=(0.4, 0.4),
                                              screen_max=(0.6, 0.6)))
-    assert app.stats.history[0].endswith("(box select)")
+    assert app.view.stats.history[0].endswith("(box select)")
     app.set_tool("pick")
     assert not any(app.gui_controls[k].visible for k in ("radius", "grow_angle_deg", "grow_min_height"))
     with pytest.raises(ValueError, match="unknown tool"):
@@ -740,7 +775,7 @@ def test_a_new_tool_is_one_entry_plus_its_function(mesh_path: Path, tmp_path: Pa
         painted = np.flatnonzero(a.store.labels == iid)
         assert len(painted) > 10
         assert np.linalg.norm(a.scene.points[painted] - a.scene.points[v], axis=1).max() <= 0.05 + 1e-6
-        assert a.stats.history[0].endswith("(Ball)")
+        assert a.view.stats.history[0].endswith("(Ball)")
     finally:
         a.close()
     with pytest.raises(ValueError, match="hotkey .b. is taken by .brush."):

@@ -52,7 +52,7 @@ def _drag(phase: str, start: tuple[float, ...], end: tuple[float, ...]) -> Simpl
 
 
 def _ring_radius(app: AnnotatorApp) -> float:
-    seg = np.asarray(app._cursor_handle.points, np.float64)
+    seg = np.asarray(app.view.cursor_handle.points, np.float64)
     centre = seg[:, 0].mean(axis=0)
     return float(np.linalg.norm(seg[:, 0] - centre, axis=1).mean())
 
@@ -61,7 +61,7 @@ def test_cursor_follows_the_brush_and_its_radius(app: AnnotatorApp) -> None:
     """No cursor before the brush touches the scan; a drag puts it where the stroke is now; [ / ] (and the radius
     slider) redraw it at the new radius; tools without a radius hide it, the brush shows it again."""
     app.new_instance(category="mug")
-    assert app.cursor is None and app._cursor_handle is None
+    assert app.cursor is None and app.view.cursor_handle is None
     app.settings.radius = 0.02
     app.handle_event("drag", _drag("start", (0.0, 0.0, 0.1), (0.0, 0.0, 0.1)))
     assert app.cursor is not None and app.cursor.visible
@@ -70,7 +70,7 @@ def test_cursor_follows_the_brush_and_its_radius(app: AnnotatorApp) -> None:
     app.handle_event("drag", _drag("end", (0.0, 0.0, 0.1), (0.03, 0.0, 0.5)))
     assert app.cursor.position[0] > 0.01, "the cursor should follow the stroke"
     assert np.allclose(app.cursor.normal, app.cursor.position / np.linalg.norm(app.cursor.position), atol=0.1)
-    assert _ring_radius(app) == pytest.approx(0.02, rel=1e-3) and app._cursor_handle.visible
+    assert _ring_radius(app) == pytest.approx(0.02, rel=1e-3) and app.view.cursor_handle.visible
 
     r = app.resize_brush(2.0)  # ]
     assert app.cursor.radius == r and _ring_radius(app) == pytest.approx(r, rel=1e-3)
@@ -78,8 +78,8 @@ def test_cursor_follows_the_brush_and_its_radius(app: AnnotatorApp) -> None:
     assert app.cursor.radius == pytest.approx(0.01) and _ring_radius(app) == pytest.approx(0.01, rel=1e-3)
 
     app.set_tool("grow")
-    assert not app.cursor.visible and not app._cursor_handle.visible
+    assert not app.cursor.visible and not app.view.cursor_handle.visible
     app.set_tool("erase")
-    assert app.cursor.visible and app._cursor_handle.visible
+    assert app.cursor.visible and app.view.cursor_handle.visible
     app.dab(5, app.scene.points[5], erase=True)  # a click dab moves it too
     assert np.allclose(app.cursor.position, app.scene.points[5])

@@ -24,16 +24,17 @@ DOCS_IMG = Path(__file__).resolve().parents[2] / "docs" / "img"
 SAVE = os.environ.get("EFEM_SAVE_SCREENSHOTS") == "1"
 
 
-@pytest.fixture(params=["mesh", "points"])
+@pytest.fixture(params=["mesh", "points", "reduced"])
 def annotator(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Any]:
     """The annotator on a small sphere (software rendering is slow): a 2.5k-vertex mesh, or 6k points (whose
-    drags land on the invisible splat proxy surface)."""
+    drags land on the invisible splat proxy surface), or the mesh over a display budget of 900 points (level of
+    detail: a subset drawn, every vertex labelled)."""
     import trimesh
 
     from annotator.app import AnnotatorApp
 
     scan = tmp_path / "ball.ply"
-    if request.param == "mesh":
+    if request.param in ("mesh", "reduced"):
         trimesh.creation.icosphere(subdivisions=4, radius=0.15).export(scan)
     else:
         from efem_viz.data.io import save_scene
@@ -42,7 +43,9 @@ def annotator(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Any]:
         p = np.random.default_rng(0).normal(size=(6000, 3))
         p /= np.linalg.norm(p, axis=1, keepdims=True)
         save_scene(Scene.create("ball", (0.15 * p).astype(np.float32), normals=p.astype(np.float32)), scan)
-    app = AnnotatorApp(scan, out_dir=tmp_path / "out", port=0, autosave_delay=0)
+    app = AnnotatorApp(scan, out_dir=tmp_path / "out", port=0, autosave_delay=0,
+                       display_points=900 if request.param == "reduced" else 1_000_000)
+    assert app.view.reduced == (request.param == "reduced")
     app.new_instance(category="mug")
     app.settings.radius = 0.03
     app.kind = request.param
@@ -73,6 +76,8 @@ def test_ctrl_drag_on_mesh_paints_vertices(annotator: Any, page: Any) -> None:
         painted = int((app.store.labels == iid).sum())
         break
     assert painted > 10, "a ctrl-drag on the mesh did not paint any vertex"
+    if app.view.reduced:  # the stroke labels the vertices that are not drawn too
+        assert np.isin(np.flatnonzero(app.store.labels == iid), app.view.display, invert=True).sum() > 5
     # the whole stroke is one undoable journal group
     groups = {r.header.get("group") for r in app.store.journal.records if r.kind == "do" and r.arrays["idx"].size}
     assert len(groups) == 1  # one stroke landed (earlier attempts, if any, painted nothing)
@@ -227,7 +232,7 @@ def test_lasso_by_ctrl_clicks_then_enter_paints_inside(annotator: Any, new_page:
     assert int((app.store.labels == iid).sum()) == 0, "clicks only draw the outline"
     page.keyboard.press("Enter")
     # the edit is done (labels, redraw, history) when its history line is there
-    wait_until(lambda: app.stats.history[0].endswith("(lasso)"), 10, "the lasso's paint (Enter)")
+    wait_until(lambda: app.view.stats.history[0].endswith("(lasso)"), 10, "the lasso's paint (Enter)")
     inside = sel.lasso_select(app.geom, position=camera.position, wxyz=camera.wxyz, fov=camera.fov,
                               aspect=camera.aspect, polygon=polygon, facing="front")
     painted = np.flatnonzero(app.store.labels == iid)
@@ -369,7 +374,7 @@ def test_tool_hotkeys_leave_the_camera_alone(keyed: tuple[Any, Any]) -> None:
     page.wait_for_timeout(1500)  # camera messages (20 Hz) of any motion have arrived
     moved = [float(max(np.linalg.norm(p - pos0), np.linalg.norm(q - look0))) for p, q in seen]
     assert max(moved, default=0.0) < 1e-3 * diag, f"a tool hotkey moved the camera by up to {max(moved):.3f} m"
-    assert not app.camera_guard.resets, app.camera_guard.resets
+    assert not app.view.camera_guard.resets, app.view.camera_guard.resets
 
 
 def test_camera_thrown_off_the_scan_comes_back(keyed: tuple[Any, Any]) -> None:
@@ -383,13 +388,13 @@ def test_camera_thrown_off_the_scan_comes_back(keyed: tuple[Any, Any]) -> None:
     page.wait_for_timeout(1000)
     page.keyboard.down("w")
     try:
-        wait_until(lambda: app.camera_guard.resets.get(handle.client_id, 0) >= 1, 60, "the camera put back")
+        wait_until(lambda: app.view.camera_guard.resets.get(handle.client_id, 0) >= 1, 60, "the camera put back")
     finally:
         page.keyboard.up("w")
     page.get_by_text("View reset", exact=True).first.wait_for(timeout=15_000)
     wait_until(lambda: not view_lost(handle.camera.look_at, lo, hi), 15, "the camera back at the scan")
     page.keyboard.press("r")
-    home = app.home_view
+    home = app.view.home_view
     wait_until(lambda: np.allclose(handle.camera.look_at, home.look_at, atol=1e-4)
                and np.allclose(handle.camera.position, home.position, atol=1e-4), 15, "the fitted view (R)")
 
@@ -419,16 +424,16 @@ def test_brush_cursor_and_labels_only_view(annotator: Any, new_page: Callable[..
     _open(app, page)
     assert app.cursor is None
     _stroke(page, app, STROKE_A, painted=lambda: bool((app.store.labels == iid).any()))
-    wait_until(lambda: app.cursor is not None and app._cursor_handle is not None, 10, "the brush cursor drawn")
+    wait_until(lambda: app.cursor is not None and app.view.cursor_handle is not None, 10, "the brush cursor drawn")
     cur = app.cursor
-    assert cur.visible and app._cursor_handle.visible and cur.radius == pytest.approx(app.settings.radius)
+    assert cur.visible and app.view.cursor_handle.visible and cur.radius == pytest.approx(app.settings.radius)
     painted = np.flatnonzero(app.store.labels == iid)
     gap = np.min(np.linalg.norm(app.scene.points[painted] - cur.position, axis=1))
     assert gap <= app.settings.radius, f"the cursor is {gap:.3f} m from the painted vertices"
     r0 = cur.radius
     page.keyboard.press("]")
     wait_until(lambda: app.cursor.radius > r0, 10, "a larger ring (])")
-    seg = np.asarray(app._cursor_handle.points, np.float64)
+    seg = np.asarray(app.view.cursor_handle.points, np.float64)
     ring = np.linalg.norm(seg[:, 0] - seg[:, 0].mean(axis=0), axis=1).mean()
     assert ring == pytest.approx(app.settings.radius, rel=1e-3)
     page.keyboard.press("x")
@@ -436,14 +441,14 @@ def test_brush_cursor_and_labels_only_view(annotator: Any, new_page: Callable[..
     assert app.cursor.visible
     page.keyboard.press("g")
     wait_until(lambda: app.settings.tool == "grow", 10, "the grow tool (G)")
-    wait_until(lambda: not app._cursor_handle.visible, 10, "the ring hidden for region grow")
+    wait_until(lambda: not app.view.cursor_handle.visible, 10, "the ring hidden for region grow")
     page.keyboard.press("b")
-    wait_until(lambda: app.settings.tool == "brush" and app._cursor_handle.visible, 10, "the ring back (B)")
+    wait_until(lambda: app.settings.tool == "brush" and app.view.cursor_handle.visible, 10, "the ring back (B)")
 
     def drawn() -> np.ndarray:
         out = np.zeros((app.n, 3), np.uint8)
-        for c, h in enumerate(app.chunk_handles):
-            out[app.chunks.members(c)] = np.asarray(h.colors)
+        for c, h in enumerate(app.view.chunk_handles):
+            out[app.view.chunks.members(c)] = np.asarray(h.colors)
         return out
 
     before_cols, before_img = drawn(), settle_canvas(page)
