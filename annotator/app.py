@@ -20,7 +20,7 @@ read from it; this module has no per-tool branches.
 * Camera: every client starts on the fitted view; R puts it back; a camera that leaves the scan (viser's W/A/S/D
   keys after a pause) is put back by `efem_viz.serve.camera.CameraGuard`. A click that misses the scan says so.
 * Errors: a refused action (bad input) and a failing one (a bug) both reach the user who acted as a notification
-  (`_run_reporting`), not only the log.
+  (`run_reporting`), not only the log.
 """
 
 from __future__ import annotations
@@ -30,55 +30,37 @@ import queue
 import threading
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Sequence, cast
+from typing import TYPE_CHECKING, Any, Callable, Sequence, TypeVar
 
 import numpy as np
 
 from annotator.labels import Delta, unreviewed_prelabels
 from annotator.cheat_sheet import CheatSheets
 from annotator.events import MISSED_SCAN, check_event, coalesce_drag_updates
-from annotator.panel_views import NO_OPTIONS, panel_view, status_markdown
+from annotator.panel_views import panel_view, status_markdown
+from annotator.panels import Panels
+from annotator.wiring import wire
 from annotator.session import AnnotatorSession, BrushCursor, Stroke
 from annotator.scan_view import DISPLAY_POINTS, ScanView
-from annotator.tools import (
-    APP_KEYS,
-    BRUSH_STEP,
-    DEFAULT_TOOLS,
-    RADIUS,
-    TOOLS,
-    Control,
-    Tool,
-    ToolSettings,
-    all_controls,
-    help_markdown,
-    lasso_click,
-    shown_settings,
-)
+from annotator.tools import DEFAULT_TOOLS, RADIUS, TOOLS, Tool, ToolSettings, all_controls, lasso_click
 from efem_viz.serve.guard import start_server
 from efem_viz.serve.table import option_for as _option_for
-from efem_viz.serve.table import option_id as _id_of
 from efem_viz.serve.table import step_row
-from efem_viz.serve.inputs import (
-    ClientValueError,
-    read_bool,
-    read_choice,
-    read_number,
-    read_rgb,
-    read_text,
-)
+from efem_viz.serve.inputs import ClientValueError, read_choice
 from efem_viz.data.io import RESULT_SUFFIX
 from efem_viz.prior.config import DEFAULT_PRIOR
 
 if TYPE_CHECKING:
-    from viser import ClientHandle, GuiButtonHandle, GuiInputHandle, SceneClickEvent
+    from viser import (ClientHandle, GuiInputHandle, MeshHandle, SceneClickEvent, SceneNodeDragEvent,
+                       SceneRectSelectEvent)
     from viser._messages import LiteralColor  # the colour names `add_notification` accepts
 
 log = logging.getLogger(__name__)
 
 __all__ = ["TOOLS", "AnnotatorApp", "ToolSettings"]
 
-MAX_NAME = 200
-"""Longest instance name / category accepted from a client."""
+T = TypeVar("T")
+
 
 class AnnotatorApp:
     """The annotator server for one scan.
@@ -172,7 +154,7 @@ class AnnotatorApp:
             raise
         ses.on_change, ses.on_cursor, ses.on_lasso = self._refresh_panel, self.view.draw_cursor, self._draw_lasso
         ses.on_preview = self.view.draw_preview
-        ses.on_segment, ses.report = self._show_segmenting, self._run_reporting
+        ses.on_segment, ses.report = self._show_segmenting, self.run_reporting
         ses.notify = lambda title, body: self.notify(title, body)  # late-bound: tests replace `notify`
         self.store.listeners.append(self._on_labels_changed)
         self.store.problem_listeners.append(self._on_store_problem)
@@ -207,225 +189,17 @@ class AnnotatorApp:
 
     # ================================================================== GUI
     def _build_gui(self) -> None:
-        gui = self.server.gui
-        s = self.settings
-        with gui.add_folder("Tools"):
-            self.gui_tool = gui.add_dropdown("Tool", tuple(t.name for t in self.tools), initial_value=s.tool,
-                                             hint="Ctrl/Cmd+drag paints; Ctrl/Cmd+click applies the tool")
-            self.gui_tool_help = gui.add_markdown("")
-            """The active tool's hotkey and help line."""
-            self.gui_controls: dict[str, GuiInputHandle[Any]] = {
-                c.setting: self._add_control(c) for c in all_controls(self.tools)
-            }
-            """The tools' setting controls by setting name (`annotator.tools.Control`)."""
-            self.gui_tool_buttons: dict[str, GuiButtonHandle] = {}
-            """The tools' buttons by command key (`annotator.tools.ToolCommand`)."""
-            for t in self.tools:
-                for cmd in t.commands:
-                    label = f"{cmd.label} ({cmd.hotkey})" if cmd.hotkey else cmd.label
-                    self.gui_tool_buttons[cmd.key] = gui.add_button(label, disabled=cmd.disabled, hint=cmd.hint)
-            self.gui_seg_progress = gui.add_progress_bar(0.0, visible=False)
-            """Click-to-segment's progress (EM steps done), shown while it runs."""
-        with gui.add_folder("Instances"):
-            self.gui_active = gui.add_dropdown("Active", self._instance_options() or NO_OPTIONS)
-            self.gui_name = gui.add_text("Name", "")
-            self.gui_category = gui.add_text("Category", self.settings.category,
-                                             hint="the active instance's category; new instances (N) take the "
-                                                  "one chosen last")
-            self.gui_color = gui.add_rgb("Colour", (255, 0, 0))
-            self.gui_new = gui.add_button("New instance (N)")
-            self.gui_labels_only = gui.add_checkbox("Labels only", False,
-                                                    hint="dim unlabelled vertices, so what is labelled stands out")
-            self.gui_visible = gui.add_checkbox("Visible", True)
-            self.gui_locked = gui.add_checkbox("Locked", False)
-            self.gui_merge_into = gui.add_dropdown("Merge active into", self._instance_options() or NO_OPTIONS)
-            self.gui_merge = gui.add_button("Merge")
-            self.gui_delete = gui.add_button("Delete active", color="red")
-            self.gui_progress = gui.add_progress_bar(0.0)
-            self.gui_table = gui.add_markdown("")
-        with gui.add_folder("History"):
-            self.gui_undo = gui.add_button("Undo (Ctrl+Z)")
-            self.gui_redo = gui.add_button("Redo (Ctrl+Y)")
-            self.gui_history = gui.add_markdown("")
-        with gui.add_folder("Files", expand_by_default=False):
-            self.gui_status = gui.add_markdown("")
-            self.gui_export_ply = gui.add_button("Export PLY")
-            self.gui_export_npz = gui.add_button("Export NPZ")
-            self.gui_export_scannet = gui.add_button("Export ScanNet JSON")
-            self.gui_import_path = gui.add_text("Import labels from", "", hint="path inside the scan or output folder")
-            self.gui_import = gui.add_button("Import labels (undoable)")
-        self._build_assist_folder()
-        with gui.add_folder("Help", expand_by_default=False):
-            self.gui_help = gui.add_markdown(help_markdown(self.tools))
+        from annotator.assist import available_priors
 
-        # ---- callbacks: read values into settings, call the action methods. Client values pass the checks of
-        # efem_viz.serve.inputs (clamped to the declared slider range, dropdown options only, bounded text).
-        self._wire_settings()
-        self._wire_buttons()
-        self._wire_tool_commands()
-        self._wire_app_keys()
-        self._show_tool()
+        default_efem = self.scan_path.with_name(self.stem + RESULT_SUFFIX)
+        priors = tuple(available_priors()) or (DEFAULT_PRIOR,)
+        self.panels = Panels(self.server.gui, self.tools, self.settings, instance_options=self._instance_options(),
+                             efem_result=default_efem.name if default_efem.exists() else "", priors=priors,
+                             prior=DEFAULT_PRIOR if DEFAULT_PRIOR in priors else priors[0])
+        """The GUI handles (`annotator.panels`)."""
+        wire(self, self.server.gui)
+        self.show_tool()
         self._refresh_panel()
-
-    def _build_assist_folder(self) -> None:
-        """The EFEM assist folder: pre-label import and review, the Segment tool's prior and preview buttons."""
-        gui = self.server.gui
-        with gui.add_folder("EFEM assist", expand_by_default=False):
-            default_efem = self.scan_path.with_name(self.stem + RESULT_SUFFIX)
-            self.gui_efem_path = gui.add_text("EFEM result", default_efem.name if default_efem.exists() else "")
-            self.gui_efem_import = gui.add_button("Import EFEM pre-labels")
-            self.gui_prelabel = gui.add_dropdown("Pre-label", NO_OPTIONS,
-                                                 hint="unreviewed pre-labels, most confident first (drawn pale)")
-            self.gui_prelabel_prev = gui.add_button("◀ Previous pre-label", hint="select it and fly to it")
-            self.gui_prelabel_next = gui.add_button("Next pre-label ▶", hint="select it and fly to it")
-            self.gui_accept = gui.add_button("Accept")
-            self.gui_reject = gui.add_button("Reject")
-            self.gui_accept_merge = gui.add_button("Merge into active")
-            self.gui_prelabel_cut = gui.add_slider("Pre-label cut", min=0.0, max=1.0, step=0.01, initial_value=0.5,
-                                                   hint="confidence that the bulk buttons below split at")
-            self.gui_accept_above = gui.add_button("Accept all ≥ cut")
-            self.gui_reject_below = gui.add_button("Reject all < cut", color="red")
-            from annotator.assist import available_priors
-
-            priors = tuple(available_priors()) or (DEFAULT_PRIOR,)
-            self.gui_prior = gui.add_dropdown("Prior for Segment tool", priors,
-                                              initial_value=DEFAULT_PRIOR if DEFAULT_PRIOR in priors else priors[0])
-            self.gui_seg_accept = gui.add_button("Accept segment preview", disabled=True)
-            self.gui_seg_cancel = gui.add_button("Discard segment preview", disabled=True)
-
-    def _guarded(self, fn: Callable[[], Any]) -> Callable[[Any], None]:
-        """A GUI callback running `fn` for the client that acted (errors reported to it; nothing while the app
-        sets a control itself)."""
-        def cb(event: Any) -> None:
-            if getattr(self._tls, 'syncing', False):
-                return
-            self._run_reporting(lambda: fn(), getattr(event, "client", None))
-
-        return cb
-
-    def _wire_settings(self) -> None:
-        """The tool dropdown and the setting controls: every change re-reads them all into `settings`."""
-        s = self.settings
-        wb = self._gui_write_back
-
-        controls = {c.setting: c for c in all_controls(self.tools)}
-
-        def read_settings(event: Any = None) -> None:
-            if getattr(self._tls, 'syncing', False):
-                return
-            try:
-                s.tool = read_choice(self.gui_tool)
-            except ClientValueError as exc:
-                self._refuse(exc, event, self.gui_tool, s.tool)
-            for name, handle in self.gui_controls.items():
-                c = controls[name]
-                try:
-                    if c.kind == "slider":
-                        value: Any = read_number(handle, write_back=wb) / c.scale
-                    elif c.kind == "dropdown":
-                        value = read_choice(handle)
-                    else:
-                        value = read_bool(handle)
-                except ClientValueError as exc:  # keep this setting; show it again where the bad value was
-                    old = s.value(name)
-                    self._refuse(exc, event, handle, round(old * c.scale, 6) if c.kind == "slider" else old)
-                    continue
-                s.assign(name, value)
-            self._show_tool()
-
-        self.gui_tool.on_update(read_settings)
-        for h in self.gui_controls.values():
-            h.on_update(read_settings)
-
-
-    def _wire_buttons(self) -> None:
-        """The panels' buttons and fields → session actions."""
-        wb = self._gui_write_back
-        guarded = self._guarded
-
-        def text(h: Any) -> str:
-            return read_text(h, max_len=MAX_NAME)
-
-        self.gui_active.on_update(guarded(lambda: self.set_active(_id_of(read_choice(self.gui_active)))))
-        self.gui_name.on_update(guarded(lambda: self.session.update_active(name=text(self.gui_name))))
-        self.gui_category.on_update(guarded(lambda: self.choose_category(text(self.gui_category))))
-        self.gui_color.on_update(guarded(lambda: self.session.update_active(color=read_rgb(self.gui_color, write_back=wb))))
-        self.gui_visible.on_update(guarded(lambda: self.session.update_active(visible=read_bool(self.gui_visible))))
-        self.gui_labels_only.on_update(guarded(lambda: self.set_labels_only(read_bool(self.gui_labels_only))))
-        self.gui_locked.on_update(guarded(lambda: self.session.update_active(locked=read_bool(self.gui_locked))))
-        self.gui_new.on_click(guarded(lambda: self.new_instance(category=self.settings.category)))
-        self.gui_merge.on_click(
-            guarded(lambda: self.merge([self.settings.active_id], _id_of(read_choice(self.gui_merge_into)))))
-        self.gui_delete.on_click(guarded(lambda: self.delete_instance(self.settings.active_id)))
-        self.gui_undo.on_click(guarded(lambda: self.undo()))
-        self.gui_redo.on_click(guarded(lambda: self.redo()))
-        self.gui_export_ply.on_click(guarded(lambda: self.export("ply")))
-        self.gui_export_npz.on_click(guarded(lambda: self.export("npz")))
-        self.gui_export_scannet.on_click(guarded(lambda: self.export("scannet")))
-        self.gui_import.on_click(guarded(lambda: self.import_labels(read_text(self.gui_import_path))))
-        self.gui_efem_import.on_click(guarded(lambda: self.import_efem(read_text(self.gui_efem_path))))
-        self.gui_accept.on_click(
-            guarded(lambda: self.review_prelabel(_id_of(read_choice(self.gui_prelabel)), "accept")))
-        self.gui_reject.on_click(
-            guarded(lambda: self.review_prelabel(_id_of(read_choice(self.gui_prelabel)), "reject")))
-        self.gui_accept_merge.on_click(
-            guarded(lambda: self.review_prelabel(_id_of(read_choice(self.gui_prelabel)), "merge")))
-        self.gui_accept_above.on_click(guarded(lambda: self.review_prelabels(
-            read_number(self.gui_prelabel_cut, write_back=wb), "accept")))
-        self.gui_reject_below.on_click(guarded(lambda: self.review_prelabels(
-            read_number(self.gui_prelabel_cut, write_back=wb), "reject")))
-        self.gui_prelabel_next.on_click(
-            lambda event: self._run_reporting(lambda: self.step_prelabel(+1, client=event.client), event.client))
-        self.gui_prelabel_prev.on_click(
-            lambda event: self._run_reporting(lambda: self.step_prelabel(-1, client=event.client), event.client))
-        self.gui_prior.on_update(guarded(lambda: setattr(self.settings, "prior", read_choice(self.gui_prior))))
-        self.settings.prior = read_choice(self.gui_prior)
-        self.gui_seg_accept.on_click(guarded(lambda: self.accept_segment()))
-        self.gui_seg_cancel.on_click(guarded(lambda: self.discard_segment()))
-    def _wire_tool_commands(self) -> None:
-        """The tools' palette entries, buttons and command hotkeys."""
-        gui = self.server.gui
-        guarded = self._guarded
-        command_keys: dict[str, list[str]] = {}
-        """Command hotkeys → the labels of the commands (of different tools) that use them."""
-        for t in self.tools:  # the tools' buttons and hotkeys
-            gui.add_command(f"Tool: {t.label}", hotkey=t.hotkey).on_trigger(  # type: ignore[arg-type]
-                guarded(lambda name=t.name: self.set_tool(name)))
-            for cmd in t.commands:
-                def run(cmd: Any = cmd) -> object:
-                    return cmd.run(self.session)
-
-                self.gui_tool_buttons[cmd.key].on_click(guarded(run))
-                if cmd.hotkey:
-                    command_keys.setdefault(cmd.hotkey, []).append(cmd.label)
-        for key, labels in command_keys.items():  # a command hotkey acts for the active tool
-            gui.add_command(" / ".join(labels), hotkey=key).on_trigger(  # type: ignore[arg-type]
-                lambda event, key=key: self._run_reporting(lambda: self.run_tool_hotkey(key), event.client))
-
-
-    def _wire_app_keys(self) -> None:
-        """The app's own hotkeys: the table `annotator.tools.APP_KEYS`, each action bound to a method here."""
-        gui = self.server.gui
-        guarded = self._guarded
-        actions: dict[str, Callable[[Any], None]] = {
-            "new_instance": guarded(
-                lambda: self.new_instance(category=self.settings.category)),
-            "next_instance": guarded(lambda: self.cycle_active(+1)),
-            "previous_instance": guarded(lambda: self.cycle_active(-1)),
-            "toggle_visible": guarded(lambda: self.session.toggle_active("visible")),
-            "toggle_locked": guarded(lambda: self.session.toggle_active("locked")),
-            "brush_smaller": guarded(lambda: self.resize_brush(1.0 / BRUSH_STEP)),
-            "brush_larger": guarded(lambda: self.resize_brush(BRUSH_STEP)),
-            "undo": guarded(lambda: self.undo()),
-            "redo": guarded(lambda: self.redo()),
-            "cheat_sheet": lambda event: self._run_reporting(lambda: self.toggle_cheat_sheet(event.client),
-                                                             event.client),
-            "reset_view": lambda event: self._run_reporting(lambda: self.reset_view(event.client), event.client),
-        }
-        for k in APP_KEYS:
-            for key, modifier in k.bindings:
-                gui.add_command(k.label, hotkey=key, modifier=modifier).on_trigger(  # type: ignore[arg-type]
-                    actions[k.action])
 
     # ---- tool table → GUI
     @property
@@ -433,36 +207,23 @@ class AnnotatorApp:
         """The active tool's entry."""
         return self.session.tool
 
-    def _add_control(self, c: Control) -> GuiInputHandle[Any]:
-        """Create a setting control; a setting with a `ToolSettings` field starts at its value."""
-        gui, initial = self.server.gui, self.settings.shown_initial(c)
-        if c.kind == "slider":
-            return gui.add_slider(c.label, min=c.min, max=c.max, step=c.step, initial_value=cast(float, initial),
-                                  hint=c.hint)
-        if c.kind == "dropdown":
-            return gui.add_dropdown(c.label, c.options, initial_value=str(initial), hint=c.hint)
-        return gui.add_checkbox(c.label, bool(initial), hint=c.hint)
-
-    def _refuse(self, exc: ClientValueError, event: Any, handle: Any, old: Any) -> None:
+    def refuse(self, exc: ClientValueError, client: ClientHandle | None, handle: GuiInputHandle[Any],
+               old: object) -> None:
         """A client value no control can produce: say so to that client and show the kept value again."""
         log.warning("refused: %s", exc)
-        self.notify("Not done", str(exc), client=getattr(event, "client", None), color="red")
-        self._gui_write_back(handle, old)
+        self.notify("Not done", str(exc), client=client, color="red")
+        self.write_back(handle, old)
 
-    def _show_tool(self) -> None:
-        """Show the active tool's controls, buttons and help line; hide the other tools' controls and buttons."""
-        t = self.tool
-        shown = shown_settings(t)
-        for name, h in self.gui_controls.items():
-            h.visible = name in shown
-        mine = {cmd.key for cmd in t.commands}
-        for key, button in self.gui_tool_buttons.items():
-            button.visible = key in mine
-        self.gui_tool_help.content = f"**{t.hotkey}** {t.label}: {t.help}"
-        self.gui_help.content = help_markdown(self.tools, t.name)
+    def quiet(self) -> bool:
+        """True while the app itself sets controls (their callbacks then do nothing)."""
+        return bool(getattr(self._tls, "syncing", False))
+
+    def show_tool(self) -> None:
+        """Show the active tool's controls, buttons and help line (`Panels.show_tool`)."""
+        self.panels.show_tool(self.tool, self.tools)
         self.session.refresh_cursor()
 
-    def _gui_write_back(self, handle: Any, value: Any) -> None:
+    def write_back(self, handle: GuiInputHandle[Any], value: object) -> None:
         """Show the value actually used (a clamped client value) in every client, without re-reading it."""
         prev = getattr(self._tls, "syncing", False)
         self._tls.syncing = True
@@ -477,29 +238,17 @@ class AnnotatorApp:
 
     def _refresh_panel(self) -> None:
         """Push counts, progress, the instance list and the active instance's fields to the GUI
-        (`annotator.panel_views.panel_view`)."""
-        if not hasattr(self, "gui_table"):
+        (`annotator.panel_views.panel_view`, `Panels.show`)."""
+        if not hasattr(self, "panels"):
             return
-        v = panel_view(self.store, self.settings.active_id, history=self.view.stats.history)
+        st = self.view.stats
+        v = panel_view(self.store, self.settings.active_id, history=st.history)
+        status = status_markdown(self.store, self.work_dir, last_edit_bytes=st.last_edit_bytes,
+                                 last_edit_ms=st.last_edit_ms)
         self._tls.syncing = True
         try:
             self.settings.active_id = v.active_id
-            self.gui_active.options = v.options
-            self.gui_merge_into.options = v.options
-            self.gui_active.value = _option_for(v.options, v.active_id)
-            current = str(self.gui_prelabel.value).split(":", 1)[0]
-            self.gui_prelabel.options = v.prelabel_options
-            if current.isdigit() and current in {o.split(":", 1)[0] for o in v.prelabel_options}:
-                self.gui_prelabel.value = _option_for(v.prelabel_options, int(current))  # keep the one under review
-            if v.active is not None:
-                self.gui_name.value, self.gui_category.value = v.active.name, v.active.category
-                self.gui_color.value, self.gui_visible.value = v.active.color, v.active.visible
-                self.gui_locked.value = v.active.locked
-            self.gui_progress.value = round(100.0 * v.progress, 2)
-            self.gui_table.content, self.gui_history.content = v.table, v.history
-            self.gui_status.content = status_markdown(self.store, self.work_dir,
-                                                      last_edit_bytes=self.view.stats.last_edit_bytes,
-                                                      last_edit_ms=self.view.stats.last_edit_ms)
+            self.panels.show(v, status)
         finally:
             self._tls.syncing = False
 
@@ -511,7 +260,7 @@ class AnnotatorApp:
             self.notify("Autosave works again", "the checkpoint is up to date", color="green")
         self._refresh_panel()
 
-    def _greet(self, client: Any) -> None:
+    def _greet(self, client: ClientHandle) -> None:
         """A newly connected client: its camera is watched (`camera_guard`), and it hears about a recovery or a
         standing autosave problem."""
         self.view.camera_guard.attach(client)
@@ -528,7 +277,7 @@ class AnnotatorApp:
         self._sheets.forget(client.client_id)
         self.view.camera_guard.forget(client)
 
-    def _run_reporting(self, fn: Callable[[], Any], client: Any = None) -> Any:
+    def run_reporting(self, fn: Callable[[], T], client: ClientHandle | None = None) -> T | None:
         """Run an action for a client (a GUI callback, a hotkey, a scene gesture); errors become a notification to
         that client (all clients when None), never a crash and never only a log line.
 
@@ -551,7 +300,8 @@ class AnnotatorApp:
                         client=client, color="red")
             return None
 
-    def notify(self, title: str, body: str, *, client: Any = None, color: LiteralColor | None = None) -> None:
+    def notify(self, title: str, body: str, *, client: ClientHandle | None = None,
+               color: LiteralColor | None = None) -> None:
         """Show a notification to one client (or all)."""
         targets = [client] if client is not None else list(self.server.get_clients().values())
         for c in targets:
@@ -566,10 +316,10 @@ class AnnotatorApp:
         self.session.set_tool(tool)
         self._tls.syncing = True
         try:
-            self.gui_tool.value = tool
+            self.panels.gui_tool.value = tool
         finally:
             self._tls.syncing = False
-        self._show_tool()
+        self.show_tool()
 
     @property
     def cursor(self) -> BrushCursor | None:
@@ -600,9 +350,9 @@ class AnnotatorApp:
         shows the new value. Returns the radius in metres."""
         radius = self.session.resize_brush(factor)
         control = next((c for c in all_controls(self.tools) if c.setting == "radius"), RADIUS)
-        handle = self.gui_controls.get("radius")
+        handle = self.panels.gui_controls.get("radius")
         if handle is not None:
-            self._gui_write_back(handle, round(radius * control.scale, 6))
+            self.write_back(handle, round(radius * control.scale, 6))
         return radius
 
     def run_tool_hotkey(self, key: str) -> object:
@@ -628,7 +378,7 @@ class AnnotatorApp:
     def set_labels_only(self, on: bool) -> None:
         """The labels-only view (unlabelled vertices dimmed) on or off; every chunk is redrawn."""
         self.settings.labels_only = bool(on)
-        self._gui_write_back(self.gui_labels_only, self.settings.labels_only)
+        self.write_back(self.panels.gui_labels_only, self.settings.labels_only)
         self.view.redraw()
 
     def add_lasso_point(self, event: SceneClickEvent) -> int:
@@ -644,11 +394,7 @@ class AnnotatorApp:
 
     def _draw_lasso(self) -> None:
         self.view.draw_lasso()
-        n = len(self.lasso_outline)
-        buttons = getattr(self, "gui_tool_buttons", {})  # the lasso's buttons (absent from a table without it)
-        for key, disabled in (("lasso_apply", n < 3), ("lasso_clear", n == 0)):
-            if key in buttons:
-                buttons[key].disabled = disabled
+        self.panels.enable_lasso(len(self.lasso_outline))
 
     # ---- files
     # ---- EFEM assist
@@ -663,47 +409,39 @@ class AnnotatorApp:
         ids = unreviewed_prelabels(self.store.labelset.instances)
         if not ids:
             raise ValueError("no unreviewed pre-labels: import an EFEM result first")
-        current = str(self.gui_prelabel.value).split(":", 1)[0]
+        current = str(self.panels.gui_prelabel.value).split(":", 1)[0]
         started = self.session.prelabel_cursor is not None
         iid = step_row(ids, int(current) if started and current.isdigit() else None, step)
         self.session.prelabel_cursor = iid
-        self._gui_write_back(self.gui_prelabel, _option_for(tuple(self.gui_prelabel.options), iid))
+        self.write_back(self.panels.gui_prelabel, _option_for(tuple(self.panels.gui_prelabel.options), iid))
         self.view.fly_to(np.flatnonzero(self.store.labels == iid), client)
         return iid
 
     def segment_at(self, vertex: int, *, wait: bool = False) -> np.ndarray | None:
         """Click-to-segment with the prior the dropdown shows (`AnnotatorSession.segment_at`)."""
-        self.settings.prior = read_choice(self.gui_prior)
+        self.settings.prior = read_choice(self.panels.gui_prior)
         return self.session.segment_at(vertex, wait=wait)
 
     def _show_segmenting(self, percent: float | None) -> None:
         """The segment run's progress (None: it ended, or the preview changed) and the segment buttons."""
         if percent is not None:
-            self.gui_seg_progress.value = percent
-            self.gui_seg_progress.visible = True
+            self.panels.gui_seg_progress.value = percent
+            self.panels.gui_seg_progress.visible = True
         elif not self.session.segmenting:
-            self.gui_seg_progress.visible = False
+            self.panels.gui_seg_progress.visible = False
         self._enable_segment_buttons()
 
     def _enable_segment_buttons(self) -> None:
-        """Accept needs a preview; Discard a preview or a run to cancel (both the Tools and EFEM assist ones)."""
-        has = self.pending_segment is not None
-        self.gui_seg_accept.disabled = not has
-        self.gui_seg_cancel.disabled = not has
-        buttons = getattr(self, "gui_tool_buttons", {})
-        if "segment_accept" in buttons:
-            buttons["segment_accept"].disabled = not has
-        if "segment_discard" in buttons:
-            buttons["segment_discard"].disabled = not (has or self.segmenting)
+        self.panels.enable_segment(has_preview=self.pending_segment is not None, running=self.segmenting)
 
     # ================================================================== viser events
-    def _on_scene_click(self, event: Any) -> None:
+    def _on_scene_click(self, event: SceneClickEvent) -> None:
         self._edits.put(("click", event))
 
-    def _on_rect(self, event: Any) -> None:
+    def _on_rect(self, event: SceneRectSelectEvent) -> None:
         self._edits.put(("rect", event))
 
-    async def _on_drag(self, event: Any) -> None:
+    async def _on_drag(self, event: SceneNodeDragEvent[MeshHandle]) -> None:
         # async: phases arrive in order; the work itself runs on the edit thread.
         self._edits.put(("drag", event))
 
@@ -719,7 +457,7 @@ class AnnotatorApp:
                 event = coalesce_drag_updates(self._edits, event)
             client = getattr(event, "client", None)
             try:
-                self._run_reporting(lambda: self.handle_event(kind, event), client)
+                self.run_reporting(lambda: self.handle_event(kind, event), client)
             except Exception:  # never let one bad event kill the edit thread
                 log.exception("event %s failed", kind)
             finally:

@@ -169,7 +169,7 @@ class Control:
     `efem_viz.serve.inputs` checks every client value."""
 
     setting: str
-    """Name of the setting (and the key of the control in `AnnotatorApp.gui_controls`)."""
+    """Name of the setting (and the key of the control in `annotator.panels.Panels.gui_controls`)."""
     label: str
     """Label in the panel."""
     kind: Literal["slider", "checkbox", "dropdown"]
@@ -191,7 +191,7 @@ class ToolCommand:
     """A button of a tool (in the Tools panel, with an optional hotkey in the Ctrl/Cmd+K palette)."""
 
     key: str
-    """Key of the button in `AnnotatorApp.gui_tool_buttons`."""
+    """Key of the button in `annotator.panels.Panels.gui_tool_buttons`."""
     label: str
     run: Callable[[ToolHost], object]
     hotkey: str | None = None

@@ -10,8 +10,12 @@ opens it in `AnnotatorApp` (port 0, no browser) and drives the same handlers the
   payload bytes per event and per stroke.
 * region grow: `grow(seed)` (20° / 15 cm) including the paint edit.
 * autosave: `store.save_now()` (atomic checkpoint rewrite of 1M labels).
+* memory: the server's resident set after open, after the warm-up and at its peak.
+* `--browser`: headless Debian chromium (software WebGL) opens the page: seconds until the canvas shows the scan and
+  stops changing, then a real Ctrl+drag (playwright mouse events) and the seconds until the server has the stroke.
 
-Writes bench/results/annotator.json. Usage: `python bench/annotator.py [--n-side 1000]`.
+Scans over the display budget (1M vertices) are drawn from a subset (`annotator.scan_view`). Writes
+bench/results/annotator[_<n>].json. Usage: `python bench/annotator.py [--n-side 1000|2236] [--browser]`.
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ import argparse
 import json
 import logging
 import platform
+import resource
 import shutil
 import statistics
 import sys
@@ -54,11 +59,63 @@ def make_surface(n_side: int, *, seed: int = 0) -> "object":
     return Scene.create("bench_surface", pts, faces=faces.astype(np.int32), max_points=len(pts))
 
 
+def _rss_mb() -> int:
+    """Resident set of this process now, MB."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return round(int(line.split()[1]) / 1024)
+    return -1
+
+
+def _browser_stage(app: "object") -> dict[str, float]:
+    """Open the page in headless chromium: seconds to a settled canvas showing the scan, then one real Ctrl+drag
+    across the middle of the view and the seconds until the server has painted it."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "browser"))
+    from browser_utils import canvas_png, ctrl_drag, settle_canvas, wait_until
+    from conftest import CHROMIUM_ARGS, CHROMIUM_PATH, VIEWPORT
+    from playwright.sync_api import sync_playwright
+
+    iid = app.new_instance(category="mug")  # type: ignore[attr-defined]
+    app.settings.radius = 0.03  # type: ignore[attr-defined]
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM_PATH, headless=True, args=CHROMIUM_ARGS)
+        try:
+            page = browser.new_context(viewport=VIEWPORT).new_page()
+            page.set_default_timeout(600_000)  # software WebGL with a million points: minutes, not seconds
+            t0 = time.perf_counter()
+            page.goto(app.url, wait_until="commit")  # type: ignore[attr-defined]
+            page.get_by_text("Tools", exact=True).first.wait_for(timeout=600_000)
+            gui_s = time.perf_counter() - t0
+            blank = canvas_png(page)
+            wait_until(lambda: (abs(canvas_png(page) - blank).sum(axis=-1) > 60).mean() > 0.05, 600, "the scan drawn")
+            first_s = time.perf_counter() - t0
+            settle_canvas(page, timeout=120)
+            settled_s = time.perf_counter() - t0
+            box = page.locator("canvas").first.bounding_box()
+            cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+            t1 = time.perf_counter()
+            ctrl_drag(page, (cx - 60, cy), (cx + 60, cy + 20))
+            drag_s = time.perf_counter() - t1
+            wait_until(lambda: bool((app.store.labels == iid).any()), 120,  # type: ignore[attr-defined]
+                       "the stroke on the server")
+            stroke_s = time.perf_counter() - t1
+        finally:
+            browser.close()
+    return {"page_gui_s": round(gui_s, 1), "page_scan_visible_s": round(first_s, 1),
+            "page_settled_s": round(settled_s, 1), "page_drag_s": round(drag_s, 1),
+            "page_stroke_on_server_s": round(stroke_s, 1), "page_painted": int((app.store.labels == iid).sum())}  # type: ignore[attr-defined]
+
+
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--n-side", type=int, default=1000)
-    ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "annotator.json")
+    ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--browser", action="store_true", help="also time the page in headless chromium")
+    ap.add_argument("--display-points", type=int, default=None, help="display budget (default: the annotator's)")
     args = ap.parse_args()
+    if args.out is None:
+        name = "annotator.json" if args.n_side == 1000 else f"annotator_{args.n_side ** 2}.json"
+        args.out = Path(__file__).parent / "results" / name
     logging.basicConfig(level=logging.WARNING)
     import torch
 
@@ -69,16 +126,20 @@ def main() -> int:
     tmp = Path(tempfile.mkdtemp(prefix="bench_annotator_"))
     t0 = time.perf_counter()
     scene = make_surface(args.n_side)
-    scan = save_scene(scene, tmp / "surface.ply")
+    scan = save_scene(scene, tmp / "surface.ply")  # (about a minute at 5M vertices)
     gen_s = time.perf_counter() - t0
     n = scene.num_points
 
     t0 = time.perf_counter()
-    app = AnnotatorApp(scan, out_dir=tmp / "out", port=0, autosave_delay=0.5)
+    budget = {} if args.display_points is None else {"display_points": args.display_points}
+    app = AnnotatorApp(scan, out_dir=tmp / "out", port=0, autosave_delay=0.5, max_points=max(n, 2_000_000), **budget)
     open_s = time.perf_counter() - t0
+    rss_open = _rss_mb()
     app.geom.warm_up()
     ready_s = time.perf_counter() - t0
+    rss_ready = _rss_mb()
     try:
+        page_stats = _browser_stage(app) if args.browser else {}
         iid = app.new_instance(category="mug")
         app.settings.radius = 0.02
         cam = SimpleNamespace(position=np.array([0.0, -0.3, 1.0]), wxyz=np.array([0.0, 1.0, 0.0, 0.0]),
@@ -151,6 +212,11 @@ def main() -> int:
         "generate_and_write_ply_s": round(gen_s, 2),
         "open_s": round(open_s, 2),
         "open_until_tools_ready_s": round(ready_s, 2),
+        "drawn_points": int(len(app.view.display)),
+        "rss_after_open_mb": rss_open,
+        "rss_after_warmup_mb": rss_ready,
+        "rss_peak_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024),
+        **page_stats,
         "brush_event_ms_median": round(statistics.median(event_ms), 2),
         "brush_event_ms_p90": round(float(np.percentile(event_ms, 90)), 2),
         "brush_bytes_per_event_median": int(statistics.median(event_bytes)),
@@ -164,6 +230,7 @@ def main() -> int:
         "region_grow_sizes": grown_sizes,
         "autosave_ms_median": round(statistics.median(save_ms), 1),
         "journal_bytes": journal_bytes,
+        "threads": 1,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(res, indent=1))

@@ -96,14 +96,14 @@ def main(argv: list[str] | None = None) -> int:
 
     app = AnnotatorApp(scan, out_dir=out, port=0, autosave_delay=0, tools=TOOLS)
     try:
-        print(f"annotator at {app.url}; tools {list(app.gui_tool.options)}")
-        line = next(x for x in app.gui_help.content.splitlines() if "Lift" in x)
+        print(f"annotator at {app.url}; tools {list(app.panels.gui_tool.options)}")
+        line = next(x for x in app.panels.gui_help.content.splitlines() if "Lift" in x)
         print(f"help line: {line}")
         app.set_tool("lift")  # what pressing U (or picking it in the Tool dropdown) does
-        app.gui_controls["lift_radius"].value = args.radius_cm  # the slider, in cm
+        app.panels.gui_controls["lift_radius"].value = args.radius_cm  # the slider, in cm
         print(f"lift settings: radius {app.settings.extra['lift_radius']:.3f} m, "
               f"above {app.settings.extra['lift_above']:.3f} m; controls shown "
-              f"{[k for k, c in app.gui_controls.items() if c.visible]}")
+              f"{[k for k, c in app.panels.gui_controls.items() if c.visible]}")
         for gid in truth.instance_ids()[: args.objects]:
             iid = app.new_instance(category=truth.categories.get(int(gid), "object"))
             origin, direction = click_ray(app.geom, truth, int(gid))

@@ -50,7 +50,7 @@ def test_open_builds_chunks_and_panel(app: AnnotatorApp) -> None:
     assert app.n == 2562 and app.view.chunks.count >= 9
     assert app.url.startswith("http://127.0.0.1:")
     assert len(app.view.chunk_handles) == app.view.chunks.count
-    assert "0.0%" in app.gui_table.content
+    assert "0.0%" in app.panels.gui_table.content
 
 
 def test_drag_stroke_paints_only_touched_chunks_and_undoes_as_one(app: AnnotatorApp) -> None:
@@ -69,9 +69,9 @@ def test_drag_stroke_paints_only_touched_chunks_and_undoes_as_one(app: Annotator
     sent = app.view.stats.bytes_sent - sent0
     assert 0 < sent < 3 * app.n  # partial update: fewer bytes than resending every colour
     # the history panel counts what Ctrl+Z undoes: the new instance and the stroke, not 1 + 5 dabs
-    assert app.gui_history.content.startswith("2 undoable, 0 redoable")
+    assert app.panels.gui_history.content.startswith("2 undoable, 0 redoable")
     assert len(app.undo()) == 5  # start + 3 updates + end undo together
-    assert app.gui_history.content.startswith("1 undoable, 1 redoable")
+    assert app.panels.gui_history.content.startswith("1 undoable, 1 redoable")
     assert (app.store.labels == iid).sum() == 0
 
 
@@ -159,21 +159,21 @@ def test_rect_select_uses_client_camera(app: AnnotatorApp) -> None:
 def test_instance_panel_through_gui_handles(app: AnnotatorApp) -> None:
     a = app.new_instance(category="mug")
     app.paint(np.arange(0, 100))
-    app.gui_name.value = "left mug"  # programmatic update runs the same callback as a client edit
-    app.gui_category.value = "cup"
-    app.gui_color.value = (1, 2, 3)
+    app.panels.gui_name.value = "left mug"  # programmatic update runs the same callback as a client edit
+    app.panels.gui_category.value = "cup"
+    app.panels.gui_color.value = (1, 2, 3)
     info = app.store.labelset.info(a)
     assert (info.name, info.category, info.color) == ("left mug", "cup", (1, 2, 3))
     c0 = app.view.chunks.chunk_of[0]
     m = app.view.chunks.members(c0)
     first = int(np.flatnonzero(m == 0)[0])
-    app.gui_visible.value = False  # hidden: drawn in scan colour
+    app.panels.gui_visible.value = False  # hidden: drawn in scan colour
     assert tuple(app.view.chunk_handles[c0].colors[first]) == tuple(app.scene.colors[0])
-    app.gui_visible.value = True
-    app.gui_locked.value = True
+    app.panels.gui_visible.value = True
+    app.panels.gui_locked.value = True
     with pytest.raises(ValueError, match="locked"):
         app.paint(np.arange(0, 10))
-    app.gui_locked.value = False
+    app.panels.gui_locked.value = False
     b = app.new_instance()
     app.paint(np.arange(200, 250))
     app.merge([b], a)
@@ -182,7 +182,7 @@ def test_instance_panel_through_gui_handles(app: AnnotatorApp) -> None:
     assert (app.store.labels > 0).sum() == 0
     app.undo()
     assert app.store.labelset.counts() == {a: 150}
-    assert "150" in app.gui_table.content and "left mug" in app.gui_table.content
+    assert "150" in app.panels.gui_table.content and "left mug" in app.panels.gui_table.content
 
 
 def test_two_clients_concurrent_edits_are_all_kept(app: AnnotatorApp) -> None:
@@ -243,14 +243,14 @@ def test_gui_import_refuses_traversal_and_bad_files_server_stays_up(app: Annotat
     app.new_instance()
     app.paint(np.arange(10))
     state = app.store.labels.copy()
-    app.gui_import_path.value = "../../../../etc/passwd"
-    app.gui_import.value = True  # a button "click" from Python: runs the callback; refusal is a notification
+    app.panels.gui_import_path.value = "../../../../etc/passwd"
+    app.panels.gui_import.value = True  # a button "click" from Python: runs the callback; refusal is a notification
     assert np.array_equal(app.store.labels, state)
     bad = tmp_path / "out" / "short.npz"
     np.savez(bad, instance=np.zeros(7, np.int32))
     with pytest.raises(LabelIOError, match="7"):
         app.import_labels(str(bad))
-    assert app._run_reporting(lambda: app.import_labels(str(bad))) is None
+    assert app.run_reporting(lambda: app.import_labels(str(bad))) is None
     assert np.array_equal(app.store.labels, state)
     good = tmp_path / "out" / "good.npz"
     lab = np.zeros(app.n, np.int32)
@@ -343,7 +343,7 @@ def test_efem_prelabels_import_and_review(spheres) -> None:
         gt = scene.instance
         best = [max(_iou(a.store.labels == i, gt == g) for g in scene.instance_ids()) for i in ids]
         assert max(best) > 0.5
-        assert a.gui_prelabel.options[0] != "(none)"
+        assert a.panels.gui_prelabel.options[0] != "(none)"
         a.review_prelabel(ids[0], "accept")
         assert "accepted" in a.store.labelset.info(ids[0]).note
         with pytest.raises(LabelIOError):
@@ -366,12 +366,12 @@ def test_click_to_segment_previews_then_accepts(spheres) -> None:
         before = a.store.labels.copy()
         a.set_preview(idx)
         assert np.array_equal(a.store.labels, before)  # a preview is not an edit
-        assert not a.gui_seg_accept.disabled
+        assert not a.panels.gui_seg_accept.disabled
         a.accept_segment()
         new = a.settings.active_id
-        assert a.store.labelset.info(new).category == a.gui_prior.value  # the prior's category
+        assert a.store.labelset.info(new).category == a.panels.gui_prior.value  # the prior's category
         assert set(np.flatnonzero(a.store.labels == new)) <= set(idx.tolist())
-        assert a.pending_segment is None and a.gui_seg_accept.disabled
+        assert a.pending_segment is None and a.panels.gui_seg_accept.disabled
         with pytest.raises(ValueError, match="no segment preview"):
             a.accept_segment()
     finally:
@@ -414,13 +414,13 @@ def test_lasso_tool_outline_by_clicks_then_apply(app: AnnotatorApp) -> None:
         app.handle_event("click", _click(uv, client))
     assert app.lasso_outline.points == outline
     assert app.store.labelset.count(app.settings.active_id) == 0, "clicks only draw the outline"
-    assert not app.gui_tool_buttons["lasso_apply"].disabled
+    assert not app.panels.gui_tool_buttons["lasso_apply"].disabled
     app.apply_lasso()
     idx = sel.lasso_select(app.geom, position=client.camera.position, wxyz=client.camera.wxyz,
                            fov=float(client.camera.fov), aspect=1.0, polygon=np.array(outline))
     n = app.store.labelset.count(app.settings.active_id)
     assert n == len(idx) > 20
-    assert app.gui_tool_buttons["lasso_apply"].disabled and not app.lasso_outline.points
+    assert app.panels.gui_tool_buttons["lasso_apply"].disabled and not app.lasso_outline.points
     with pytest.raises(ValueError, match="at least 3"):
         app.apply_lasso()
     app.undo()
@@ -517,7 +517,7 @@ def test_instance_table_shows_colours_and_escapes_names(app: AnnotatorApp) -> No
     name from a label file cannot inject HTML or break the table (viser renders raw HTML in markdown)."""
     iid = app.new_instance(category="bowl", name="<img src=x onerror=alert(1)>|two")
     app.update_instance(iid, color=(255, 0, 16))
-    content = app.gui_table.content
+    content = app.panels.gui_table.content
     assert f"| {iid} " in content and '<span style="color:#ff0010">■</span>' in content
     assert "<img" not in content and "&lt;img src=x onerror=alert(1)&gt;\\|two" in content
     assert '■</span> bowl: 1 (' in content
@@ -528,12 +528,12 @@ def test_new_instances_take_the_category_chosen_last(app: AnnotatorApp) -> None:
     the panel renames the active instance's category and is what the next N takes."""
     first = app.new_instance(category=app.settings.category)  # what N and the New instance button do
     assert app.store.labelset.info(first).category == "object"
-    app.gui_category.value = "bowl"  # the user types a category for the active instance, as a browser does
+    app.panels.gui_category.value = "bowl"  # the user types a category for the active instance, as a browser does
     assert app.store.labelset.info(first).category == "bowl" and app.settings.category == "bowl"
-    app.gui_new.value = True  # the New instance button, as a browser presses it
+    app.panels.gui_new.value = True  # the New instance button, as a browser presses it
     second = app.settings.active_id
     assert second != first and app.store.labelset.info(second).category == "bowl"
-    assert app.gui_category.value == "bowl"
+    assert app.panels.gui_category.value == "bowl"
 
 
 def test_painting_over_other_instances_says_how_many_were_taken(app: AnnotatorApp) -> None:
@@ -565,9 +565,9 @@ def test_prelabel_review_by_confidence_in_bulk_and_one_by_one(app: AnnotatorApp)
     table = app.store.labelset.instances
     conf = {i: table[i].confidence for i in ids}
     assert sorted(conf.values(), reverse=True) == [0.9, 0.6, 0.3]
-    opts = list(app.gui_prelabel.options)
+    opts = list(app.panels.gui_prelabel.options)
     assert [float(o.rsplit("· ", 1)[1]) for o in opts] == [0.9, 0.6, 0.3]
-    assert "pre-label 0.90" in app.gui_table.content
+    assert "pre-label 0.90" in app.panels.gui_table.content
     lut, _ = color_lut(table, max(ids))
     own = {i: list(table[i].color) for i in ids}
     assert all(lut[i].tolist() != own[i] and (lut[i] >= np.array(own[i])).all() for i in ids)  # paler
@@ -575,7 +575,7 @@ def test_prelabel_review_by_confidence_in_bulk_and_one_by_one(app: AnnotatorApp)
     flown: list[object] = []
     app.view.camera_guard.place = lambda view, client=None: flown.append(view)  # type: ignore[method-assign]
     first = app.step_prelabel(+1)
-    assert first == _id_of_option(opts[0]) and str(app.gui_prelabel.value) == opts[0]
+    assert first == _id_of_option(opts[0]) and str(app.panels.gui_prelabel.value) == opts[0]
     members = app.scene.points[app.store.labels == first]
     assert np.allclose(flown[-1].look_at, (members.min(0) + members.max(0)) / 2, atol=1e-5)  # type: ignore[attr-defined]
     assert app.step_prelabel(+1) == _id_of_option(opts[1])
@@ -588,7 +588,7 @@ def test_prelabel_review_by_confidence_in_bulk_and_one_by_one(app: AnnotatorApp)
     assert app.view.stats.chunks_sent > sent  # redrawn in their full colour
     lut, _ = color_lut(app.store.labelset.instances, max(ids))
     assert all(lut[i].tolist() == own[i] for i in accepted)
-    assert list(app.gui_prelabel.options) == [opts[2]]
+    assert list(app.panels.gui_prelabel.options) == [opts[2]]
     app.undo()  # one step undoes the bulk accept
     assert all(app.store.labelset.info(i).unreviewed for i in accepted)
     rejected = app.review_prelabels(0.5, "reject")
@@ -613,7 +613,7 @@ def test_labels_only_view_dims_unlabelled_vertices(app: AnnotatorApp) -> None:
         return out
 
     before = drawn()
-    app.gui_labels_only.value = True  # as a browser ticks it
+    app.panels.gui_labels_only.value = True  # as a browser ticks it
     assert app.settings.labels_only
     on = drawn()
     rest = on[labels == 0]
@@ -636,7 +636,7 @@ def test_click_to_segment_progress_cancel_and_enter_esc(app: AnnotatorApp, monke
     def fake(scene: object, vertex: int, *, prior_name: str, on_step: object, cancel: threading.Event) -> np.ndarray:
         for i in range(4):
             on_step(SimpleNamespace(step=i, num_steps=4))  # type: ignore[operator]
-            seen.append(float(app.gui_seg_progress.value))
+            seen.append(float(app.panels.gui_seg_progress.value))
         started.set()
         if vertex == 0:  # "a long run": until cancelled
             assert cancel.wait(30), "never cancelled"
@@ -647,13 +647,13 @@ def test_click_to_segment_progress_cancel_and_enter_esc(app: AnnotatorApp, monke
     notes: list[str] = []
     app.notify = lambda title, body, *, client=None, color=None: notes.append(title)  # type: ignore[method-assign]
     app.set_tool("segment")
-    buttons = app.gui_tool_buttons
+    buttons = app.panels.gui_tool_buttons
     assert buttons["segment_accept"].visible and not buttons["lasso_apply"].visible
     assert buttons["segment_accept"].disabled and buttons["segment_discard"].disabled
 
     # a run, cancelled with Esc
     app.segment_at(0)
-    assert started.wait(30) and app.segmenting and app.gui_seg_progress.visible
+    assert started.wait(30) and app.segmenting and app.panels.gui_seg_progress.visible
     assert not buttons["segment_discard"].disabled
     with pytest.raises(ValueError, match="still segmenting"):
         app.segment_at(5)
@@ -661,13 +661,13 @@ def test_click_to_segment_progress_cancel_and_enter_esc(app: AnnotatorApp, monke
     deadline = time.monotonic() + 30
     while app.segmenting and time.monotonic() < deadline:
         time.sleep(0.02)
-    assert not app.segmenting and not app.gui_seg_progress.visible and "Segmenting cancelled" in notes
+    assert not app.segmenting and not app.panels.gui_seg_progress.visible and "Segmenting cancelled" in notes
     assert app.pending_segment is None and buttons["segment_discard"].disabled
 
     # a run to the end: progress up to 100 %, Enter accepts
     seen.clear()
     assert app.segment_at(3, wait=True) is not None
-    assert seen == [25.0, 50.0, 75.0, 100.0] and not app.gui_seg_progress.visible
+    assert seen == [25.0, 50.0, 75.0, 100.0] and not app.panels.gui_seg_progress.visible
     assert not buttons["segment_accept"].disabled
     app.set_tool("lasso")
     with pytest.raises(ValueError):
@@ -714,7 +714,7 @@ def test_app_keys_next_instance_and_brush_size(app: AnnotatorApp) -> None:
     assert [app.cycle_active(-1) for _ in range(2)] == [b, a]
     app.settings.radius = 0.01
     assert app.resize_brush(BRUSH_STEP) == pytest.approx(0.012)  # 1 cm x 1.25, on the slider's 0.1 cm steps
-    assert app.gui_controls["radius"].value == pytest.approx(1.2)
+    assert app.panels.gui_controls["radius"].value == pytest.approx(1.2)
     assert app.resize_brush(1 / BRUSH_STEP) == pytest.approx(0.01)
     app.settings.radius = RADIUS.min / RADIUS.scale
     assert app.resize_brush(BRUSH_STEP) == pytest.approx((RADIUS.min + RADIUS.step) / RADIUS.scale)  # one step
@@ -722,23 +722,23 @@ def test_app_keys_next_instance_and_brush_size(app: AnnotatorApp) -> None:
     assert app.resize_brush(1 / BRUSH_STEP) == pytest.approx(RADIUS.min / RADIUS.scale)  # stays in range
     app.settings.radius = RADIUS.max / RADIUS.scale
     assert app.resize_brush(BRUSH_STEP) == pytest.approx(RADIUS.max / RADIUS.scale)
-    assert app.gui_controls["radius"].value == pytest.approx(RADIUS.max)
+    assert app.panels.gui_controls["radius"].value == pytest.approx(RADIUS.max)
     assert {k.shown for k in APP_KEYS} >= {"[", "]", "Tab", "?"}
     for k in APP_KEYS:
-        assert k.shown in app.gui_help.content
+        assert k.shown in app.panels.gui_help.content
 
 
 def test_tool_table_drives_toolbar_controls_help_and_history(app: AnnotatorApp) -> None:
     """The toolbar, the controls shown, the help and the history lines all come from the tool table."""
-    assert tuple(app.gui_tool.options) == TOOLS == tuple(t.name for t in DEFAULT_TOOLS)
-    assert app.settings.tool == "brush" and "**B** Brush" in app.gui_tool_help.content
-    assert app.gui_controls["radius"].visible and not app.gui_controls["grow_angle_deg"].visible
-    assert app.gui_controls["box_facing"].visible  # box select works with every tool
-    app.gui_tool.value = "grow"  # as a browser does: the dropdown's callback switches the tool
+    assert tuple(app.panels.gui_tool.options) == TOOLS == tuple(t.name for t in DEFAULT_TOOLS)
+    assert app.settings.tool == "brush" and "**B** Brush" in app.panels.gui_tool_help.content
+    assert app.panels.gui_controls["radius"].visible and not app.panels.gui_controls["grow_angle_deg"].visible
+    assert app.panels.gui_controls["box_facing"].visible  # box select works with every tool
+    app.panels.gui_tool.value = "grow"  # as a browser does: the dropdown's callback switches the tool
     assert app.settings.tool == "grow"
-    assert app.gui_controls["grow_angle_deg"].visible and not app.gui_controls["radius"].visible
-    assert "**G** Region grow" in app.gui_tool_help.content
-    assert "- ▶ **G** Region grow" in app.gui_help.content and "- **O** Lasso" in app.gui_help.content
+    assert app.panels.gui_controls["grow_angle_deg"].visible and not app.panels.gui_controls["radius"].visible
+    assert "**G** Region grow" in app.panels.gui_tool_help.content
+    assert "- ▶ **G** Region grow" in app.panels.gui_help.content and "- **O** Lasso" in app.panels.gui_help.content
     app.new_instance(category="mug")
     app.settings.grow_angle_deg, app.settings.grow_distance = 60, 0.05
     app.click(np.array([0, 0, 1.0]), np.array([0, 0, -1.0]))
@@ -747,7 +747,7 @@ def test_tool_table_drives_toolbar_controls_help_and_history(app: AnnotatorApp) 
                                              screen_max=(0.6, 0.6)))
     assert app.view.stats.history[0].endswith("(box select)")
     app.set_tool("pick")
-    assert not any(app.gui_controls[k].visible for k in ("radius", "grow_angle_deg", "grow_min_height"))
+    assert not any(app.panels.gui_controls[k].visible for k in ("radius", "grow_angle_deg", "grow_min_height"))
     with pytest.raises(ValueError, match="unknown tool"):
         app.set_tool("rm")
 
@@ -763,11 +763,11 @@ def test_a_new_tool_is_one_entry_plus_its_function(mesh_path: Path, tmp_path: Pa
     tools = (*DEFAULT_TOOLS, Tool("ball", "Ball", "P", "click paints a ball", controls=(ball,), apply_at=paint_ball))
     a = AnnotatorApp(mesh_path, out_dir=tmp_path / "o", port=0, autosave_delay=0, tools=tools)
     try:
-        assert a.gui_tool.options[-1] == "ball" and "**P** Ball" in a.gui_help.content
-        assert a.settings.extra["ball_radius"] == pytest.approx(0.03) and not a.gui_controls["ball_radius"].visible
+        assert a.panels.gui_tool.options[-1] == "ball" and "**P** Ball" in a.panels.gui_help.content
+        assert a.settings.extra["ball_radius"] == pytest.approx(0.03) and not a.panels.gui_controls["ball_radius"].visible
         a.set_tool("ball")
-        assert a.gui_controls["ball_radius"].visible
-        a.gui_controls["ball_radius"].value = 5.0  # cm in the GUI, metres in the setting
+        assert a.panels.gui_controls["ball_radius"].visible
+        a.panels.gui_controls["ball_radius"].value = 5.0  # cm in the GUI, metres in the setting
         assert a.settings.extra["ball_radius"] == pytest.approx(0.05)
         iid = a.new_instance()
         v = a.click(np.array([0, 0, 1.0]), np.array([0, 0, -1.0]))
@@ -810,9 +810,9 @@ def test_efem_prelabels_carry_their_categories(spheres) -> None:
         assert got == sorted(cats.tolist())[: len(got)] and "mug" in got and "sphere" in got
         assert all(a.store.labelset.info(i).name == f"{a.store.labelset.info(i).category} (EFEM)" for i in ids)
         n_sphere = got.count("sphere")
-        assert "per category: " in a.gui_table.content
-        assert "mug: 1 (" in a.gui_table.content and f"sphere: {n_sphere} (" in a.gui_table.content
-        assert "| mug |" in a.gui_table.content
+        assert "per category: " in a.panels.gui_table.content
+        assert "mug: 1 (" in a.panels.gui_table.content and f"sphere: {n_sphere} (" in a.panels.gui_table.content
+        assert "| mug |" in a.panels.gui_table.content
     finally:
         a.close()
 

@@ -74,7 +74,7 @@ def test_cursor_follows_the_brush_and_its_radius(app: AnnotatorApp) -> None:
 
     r = app.resize_brush(2.0)  # ]
     assert app.cursor.radius == r and _ring_radius(app) == pytest.approx(r, rel=1e-3)
-    app.gui_controls["radius"].value = 1.0  # the slider (cm), as a browser moves it
+    app.panels.gui_controls["radius"].value = 1.0  # the slider (cm), as a browser moves it
     assert app.cursor.radius == pytest.approx(0.01) and _ring_radius(app) == pytest.approx(0.01, rel=1e-3)
 
     app.set_tool("grow")

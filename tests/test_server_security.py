@@ -250,7 +250,7 @@ def test_a_refused_client_cannot_drive_the_annotator(annotator: AnnotatorApp) ->
     assert iid in annotator.store.labelset.instances
     with RawClient(annotator.url) as c:  # the token holder can
         assert wait_for(lambda: len(annotator.server.get_clients()) == 1)
-        c.press(annotator.gui_delete)
+        c.press(annotator.panels.gui_delete)
         assert wait_for(lambda: iid not in annotator.store.labelset.instances)
 
 
@@ -270,14 +270,14 @@ def test_client_cannot_rewrite_control_bounds(annotator: AnnotatorApp) -> None:
     """viser applies any property a client sends; the guard keeps only `value`, so bounds stay the server's."""
     with RawClient(annotator.url) as c:
         assert wait_for(lambda: len(annotator.server.get_clients()) == 1)
-        c.set_gui(annotator.gui_controls["radius"], max=1e9, min=-1e9, value=1e6)
-        c.set_gui(annotator.gui_tool, options=("brush", "rm"), value="rm")
-        c.set_gui(annotator.gui_delete, disabled=True)
+        c.set_gui(annotator.panels.gui_controls["radius"], max=1e9, min=-1e9, value=1e6)
+        c.set_gui(annotator.panels.gui_tool, options=("brush", "rm"), value="rm")
+        c.set_gui(annotator.panels.gui_delete, disabled=True)
         assert wait_for(lambda: abs(annotator.settings.radius - 0.20) < 1e-9)
-        radius = annotator.gui_controls["radius"]
+        radius = annotator.panels.gui_controls["radius"]
         assert radius.max == 20.0 and radius.min == pytest.approx(0.1)
-        assert tuple(annotator.gui_tool.options) == TOOLS
-        assert annotator.gui_delete.disabled is False
+        assert tuple(annotator.panels.gui_tool.options) == TOOLS
+        assert annotator.panels.gui_delete.disabled is False
         assert annotator.settings.tool == "brush"
         c.send({"type": "ShareUrlRequest"})  # would open a public tunnel to this server
         time.sleep(0.2)
@@ -464,14 +464,14 @@ def test_annotator_clamps_a_raw_brush_radius_before_painting(annotator: Annotato
     iid = annotator.new_instance(category="mug")
     with RawClient(annotator.url) as c:
         assert wait_for(lambda: len(annotator.server.get_clients()) == 1)
-        c.set_gui(annotator.gui_controls["radius"], value=1e6)
+        c.set_gui(annotator.panels.gui_controls["radius"], value=1e6)
         assert wait_for(lambda: annotator.settings.radius == pytest.approx(0.20))
-        assert wait_for(lambda: annotator.gui_controls["radius"].value == 20.0), "the clamped value is shown to all"
-        c.set_gui(annotator.gui_controls["brush_max_angle_deg"], value=float("nan"))  # refused: the setting stays
-        c.set_gui(annotator.gui_controls["grow_distance"], value=-1e9)
+        assert wait_for(lambda: annotator.panels.gui_controls["radius"].value == 20.0), "the clamped value is shown to all"
+        c.set_gui(annotator.panels.gui_controls["brush_max_angle_deg"], value=float("nan"))  # refused: the setting stays
+        c.set_gui(annotator.panels.gui_controls["grow_distance"], value=-1e9)
         assert wait_for(lambda: annotator.settings.grow_distance == pytest.approx(0.01))
         assert annotator.settings.brush_max_angle_deg == 180.0
-        c.set_gui(annotator.gui_tool, value="no-such-tool")
+        c.set_gui(annotator.panels.gui_tool, value="no-such-tool")
         time.sleep(0.2)
         assert annotator.settings.tool == "brush"
     # the computation sees the clamped radius: a click paints exactly the 20 cm ball
@@ -494,10 +494,10 @@ def test_annotator_text_fields_are_bounded(annotator: AnnotatorApp) -> None:
     iid = annotator.new_instance(category="mug")
     with RawClient(annotator.url) as c:
         assert wait_for(lambda: len(annotator.server.get_clients()) == 1)
-        c.set_gui(annotator.gui_name, value="n" * 100_000)
+        c.set_gui(annotator.panels.gui_name, value="n" * 100_000)
         time.sleep(0.3)
         assert len(annotator.store.labelset.info(iid).name) < 300
-        c.set_gui(annotator.gui_name, value="cup A")
+        c.set_gui(annotator.panels.gui_name, value="cup A")
         assert wait_for(lambda: annotator.store.labelset.info(iid).name == "cup A")
 
 

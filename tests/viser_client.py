@@ -125,7 +125,7 @@ class RawClient:
         self.send({"type": "GuiUpdateMessage", "uuid": uuid, "updates": updates})
 
     def set_gui(self, handle: Any, **updates: Any) -> None:
-        """`update_gui` for a server-side handle, e.g. `set_gui(app.gui_radius, value=1e6)`."""
+        """`update_gui` for a server-side handle, e.g. `set_gui(app.panels.gui_radius, value=1e6)`."""
         self.update_gui(handle._impl.uuid, **updates)
 
     def press(self, button: Any) -> None:

@@ -18,7 +18,7 @@ from __future__ import annotations
 import logging
 from concurrent.futures import Future
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Literal, Sequence
+from typing import TYPE_CHECKING, Callable, Literal, Sequence, TypeVar
 
 import numpy as np
 
@@ -37,12 +37,18 @@ from efem_viz.viewer.session import DEFAULT_SCENE_DIR, ViewerSession, default_sc
 from efem_viz.viewer.state import ViewerState
 
 if TYPE_CHECKING:
-    from viser import ClientHandle
+    from typing_extensions import TypeVarTuple, Unpack  # typing has them from Python 3.11 only
+    from viser import ClientHandle, GuiInputHandle
     from efem_viz.em.results import EMResult
     from efem_viz.eval.comparison import GTMetrics
     from efem_viz.prior.config import ShapePriorLike
 
 logger = logging.getLogger(__name__)
+
+T = TypeVar("T")
+ValueT = TypeVar("ValueT")
+if TYPE_CHECKING:
+    Ts = TypeVarTuple("Ts")
 
 
 class ViewerApp:
@@ -189,11 +195,11 @@ class ViewerApp:
     def report_error(self, text: str) -> None:
         self.session.set_status(text, error=True)
 
-    def submit_work(self, fn: Callable[..., Any], *args: Any) -> Future[Any]:
+    def submit_work(self, fn: Callable[[Unpack[Ts]], T], *args: Unpack[Ts]) -> Future[T]:
         """Run an action in the worker thread (loads, mask bands, exports)."""
         return self._submit(self._worker, fn, *args)
 
-    def gui_set(self, handle: Any, value: Any) -> None:
+    def gui_set(self, handle: GuiInputHandle[ValueT], value: ValueT) -> None:
         """Set a GUI value without re-entering our own callback."""
         with self._lock:
             prev, self._quiet = self._quiet, True
@@ -280,7 +286,7 @@ class ViewerApp:
         return True
 
     def start_run(self, *, preset: str = "fast", proposals: int | None = None, seed: int = 0,
-                  matmul_dtype: str = "float32") -> Future[Any] | None:
+                  matmul_dtype: str = "float32") -> Future[EMResult | None] | None:
         """Run EFEM on the open scene in the worker thread (progress bar, cancel). Returns the job's Future."""
         with self._lock:
             generation = self.session.begin_run()
@@ -419,7 +425,7 @@ class ViewerApp:
             self.session.set_proposal_layers(shapes=shapes, samples=samples)
             self.set_step(self.state.step)
 
-    def select_proposal(self, pid: int | None) -> Future[Any] | None:
+    def select_proposal(self, pid: int | None) -> Future[None] | None:
         """Inspect one proposal (None clears): Fig. S9 views computed in the worker, drawn when ready."""
         with self._lock:
             s = self.state
@@ -441,7 +447,7 @@ class ViewerApp:
         except Exception as exc:  # noqa: BLE001
             self.session.set_status(f"error: {exc}", error=True)
 
-    def _request_inspect(self, pid: int, t: int) -> Future[Any]:
+    def _request_inspect(self, pid: int, t: int) -> Future[None]:
         return self._submit(self._decoder, self._inspect_job, pid, t, self.session.generation)
 
     def _inspect_job(self, pid: int, t: int, generation: int) -> None:
@@ -570,7 +576,7 @@ class ViewerApp:
         """
         return resolve_inside_root(read_text(self.panels.gui_out_dir), self.out_root, what="output folder")
 
-    def export_from_gui(self, kind: Literal["results", "static"]) -> Future[Any] | None:
+    def export_from_gui(self, kind: Literal["results", "static"]) -> Future[Path | None] | None:
         """The Export buttons: results into the GUI's output folder, the static demo into
         `<output folder>/static/<scene>/`; both confined to the output root. Returns the job's Future.
 

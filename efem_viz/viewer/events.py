@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 from concurrent.futures import Future
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Literal, Protocol
+from typing import TYPE_CHECKING, Callable, Literal, Protocol, TypeVar
 
 from efem_viz.serve.inputs import ClientValueError, read_bool, read_choice, read_int, read_number
 from efem_viz.serve.table import NO_ROW, option_id
@@ -19,12 +19,18 @@ from efem_viz.viewer.panels import COLOR_MODES, VIEW_MODES
 from efem_viz.viewer.texts import parse_pid
 
 if TYPE_CHECKING:
-    from viser import ClientHandle
+    from typing_extensions import TypeVarTuple, Unpack  # typing has them from Python 3.11 only
+    from viser import ClientHandle, GuiInputHandle
 
     from efem_viz.viewer.panels import Panels
     from efem_viz.viewer.state import ViewerState, ViewMode
 
 logger = logging.getLogger(__name__)
+
+T = TypeVar("T")
+ValueT = TypeVar("ValueT")
+if TYPE_CHECKING:
+    Ts = TypeVarTuple("Ts")
 
 
 class ViewerControls(Protocol):
@@ -36,8 +42,8 @@ class ViewerControls(Protocol):
     def state(self) -> ViewerState: ...
     def quiet(self) -> bool: ...
     def report_error(self, text: str) -> None: ...
-    def gui_set(self, handle: Any, value: Any) -> None: ...
-    def submit_work(self, fn: Callable[..., Any], *args: Any) -> Future[Any]: ...
+    def gui_set(self, handle: GuiInputHandle[ValueT], value: ValueT) -> None: ...
+    def submit_work(self, fn: Callable[[Unpack[Ts]], T], *args: Unpack[Ts]) -> Future[T]: ...
     def open_scene(self, name: str) -> bool: ...
     def load_trace(self, path: str | Path | None = None) -> bool: ...
     def set_display(self, display: str) -> None: ...
@@ -68,9 +74,11 @@ def row_id(option: str) -> int | None:
     return None if option == NO_ROW else option_id(option)
 
 
-def guarded(app: ViewerControls, fn: Callable[[], object]) -> Callable[[Any], None]:
-    """A callback running `fn` unless the app is setting a control itself; errors go to the status line."""
-    def cb(_event: Any) -> None:
+def guarded(app: ViewerControls, fn: Callable[[], object]) -> Callable[[object], None]:
+    """A callback running `fn` unless the app is setting a control itself; errors go to the status line.
+
+    The callback takes any event (`viser.GuiEvent` of any control) and ignores it."""
+    def cb(_event: object) -> None:
         if app.quiet():
             return
         try:
@@ -89,7 +97,7 @@ def wire(app: ViewerControls) -> None:
     p = app.panels
     wb = app.gui_set  # shows a clamped value in every client without re-entering the callback
 
-    def guard(fn: Callable[[], object]) -> Callable[[Any], None]:
+    def guard(fn: Callable[[], object]) -> Callable[[object], None]:
         return guarded(app, fn)
 
     def layers() -> None:

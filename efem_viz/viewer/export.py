@@ -15,7 +15,7 @@ import json
 import logging
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -36,6 +36,8 @@ from efem_viz.viewer.nodes import (
 )
 
 if TYPE_CHECKING:
+    from efem_viz.data.scene import Scene
+    from efem_viz.em.results import EMResult
     from efem_viz.prior.config import ShapePriorLike
 
 logger = logging.getLogger(__name__)
@@ -47,7 +49,7 @@ def _atomic_write_text(path: Path, text: str) -> Path:
     return Path(atomic_write_text(path, text))
 
 
-def results_files(result: Any, scene: Any, out_dir: Path, *, threshold: float = 0.0) -> list[Path]:
+def results_files(result: EMResult, scene: Scene, out_dir: Path, *, threshold: float = 0.0) -> list[Path]:
     """The folders and files `export_results` writes, in order: the folder, `pred_mask/`, one mask file per
     instance (the ScanNet layout of `Instances.to_scannet`), `<scene>.txt` and `<scene>_instances.ply`.
 
@@ -63,7 +65,7 @@ def results_files(result: Any, scene: Any, out_dir: Path, *, threshold: float = 
     return [out, out / "pred_mask", *masks, out / f"{scene.name}.txt", out / f"{scene.name}_instances.ply"]
 
 
-def export_results(result: Any, scene: Any, out_dir: Path, *, threshold: float = 0.0,
+def export_results(result: EMResult, scene: Scene, out_dir: Path, *, threshold: float = 0.0,
                    root: Path | None = None) -> Path:
     """Write the instances with confidence ≥ threshold in the ScanNet benchmark layout and as a coloured PLY.
 
@@ -102,8 +104,8 @@ def export_results(result: Any, scene: Any, out_dir: Path, *, threshold: float =
 
 
 def export_static_demo(
-    scene: Any,
-    result: Any,
+    scene: Scene,
+    result: EMResult,
     out_dir: Path,
     *,
     threshold: float = 0.0,

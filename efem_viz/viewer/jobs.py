@@ -12,11 +12,14 @@ import logging
 import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
-from typing import Any, Callable
+from typing import Any, Callable, ParamSpec, TypeVar
 
 from efem_viz.serve.inputs import ClientValueError
 
 logger = logging.getLogger(__name__)
+
+P = ParamSpec("P")
+T = TypeVar("T")
 
 
 class Jobs:
@@ -32,12 +35,13 @@ class Jobs:
         self.worker = ThreadPoolExecutor(1, thread_name_prefix="efem-viewer-work")
         self.decoder = ThreadPoolExecutor(1, thread_name_prefix="efem-viewer-decode")
         self.runner = ThreadPoolExecutor(1, thread_name_prefix="efem-viewer-run")
-        self._pending: set[Future[Any]] = set()
+        self._pending: set[Future[Any]] = set()  # futures of every result type
         self._pending_lock = threading.Lock()
 
-    def submit(self, pool: ThreadPoolExecutor, fn: Callable[..., Any], *args: Any, **kw: Any) -> Future[Any]:
+    def submit(self, pool: ThreadPoolExecutor, fn: Callable[P, T], *args: P.args,
+               **kw: P.kwargs) -> Future[T]:
         """Run `fn(*args, **kw)` on `pool`; an exception is reported through `on_error` and kept in the Future."""
-        def guarded() -> Any:
+        def guarded() -> T:
             try:
                 return fn(*args, **kw)
             except ClientValueError as exc:  # a refused value or path: one line, no traceback

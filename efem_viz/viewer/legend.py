@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import html
 import zlib
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
@@ -24,13 +24,16 @@ from efem_viz.eval.comparison import GTMetrics
 from efem_viz.serve.table import cell, row_option, swatch
 from efem_viz.viewer.texts import md_escape
 
+if TYPE_CHECKING:
+    from efem_viz.em.results import Instances
+
 MAX_LEGEND_ROWS = 40
 """The legend lists at most this many instances (highest confidence first), then says how many more."""
 MAX_TABLE_ROWS = 60
 """The instance table lists at most this many instances (highest confidence first), then says how many more."""
 
 
-def result_colors(instances: Any) -> np.ndarray:
+def result_colors(instances: Instances) -> np.ndarray:
     """(K, 3) uint8 colour of each instance: `instance_colors` of its proposal id (points, mesh, box, swatch).
 
     Args:
@@ -46,7 +49,7 @@ def category_color(category: str) -> tuple[int, int, int]:
     return r, g, b
 
 
-def instance_label(instances: Any, k: int) -> str:
+def instance_label(instances: Instances, k: int) -> str:
     """Text of instance k's label in the scene: category, proposal id and confidence (e.g. "mug #12 · 0.87")."""
     return f"{instances.category[k]} #{int(instances.ids[k])} · {float(instances.confidence[k]):.2f}"
 
@@ -68,7 +71,7 @@ def category_summary(categories: Sequence[str] | np.ndarray) -> str:
     return " · ".join(f"{c} {k}" for c, k in category_counts(categories).items())
 
 
-def result_summary_markdown(instances: Any, keep: np.ndarray, *, threshold: float, out_tau: float,
+def result_summary_markdown(instances: Instances, keep: np.ndarray, *, threshold: float, out_tau: float,
                             hidden_by_hand: int = 0) -> str:
     """The Results tab's summary: how many instances the threshold keeps and how many it hides, per category,
     and the mask band.
@@ -97,7 +100,7 @@ def result_summary_markdown(instances: Any, keep: np.ndarray, *, threshold: floa
     return "\n\n".join(lines)
 
 
-def legend_html(instances: Any, keep: np.ndarray) -> str:
+def legend_html(instances: Instances, keep: np.ndarray) -> str:
     """The instance legend: one row per kept instance (highest confidence first) with its colour swatch, id,
     category (in the category's colour) and confidence. Text from the result file is escaped.
 
@@ -167,7 +170,7 @@ def color_key_html(mode: str) -> str:
     return '<div class="efem-color-key" style="font-size:0.85em;line-height:1.5">' + "".join(rows) + "</div>"
 
 
-def instance_options(instances: Any) -> tuple[str, ...]:
+def instance_options(instances: Instances) -> tuple[str, ...]:
     """The instance table's dropdown: one option "<id>: <category> · <confidence>" per instance, most confident
     first (the table's order); `efem_viz.serve.table.option_id` reads the proposal id back."""
     conf = np.asarray(instances.confidence, float).reshape(-1)
@@ -176,7 +179,7 @@ def instance_options(instances: Any) -> tuple[str, ...]:
 
 
 def instance_table_markdown(
-    instances: Any,
+    instances: Instances,
     *,
     threshold: float,
     hidden: set[int] | frozenset[int] = frozenset(),

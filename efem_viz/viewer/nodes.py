@@ -20,8 +20,9 @@ from __future__ import annotations
 
 import logging
 from collections import OrderedDict
+from collections.abc import Hashable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
 
@@ -42,8 +43,12 @@ if TYPE_CHECKING:
         PointCloudHandle,
         SceneApi,
         SceneNodeHandle,
+        SceneNodePointerEvent,
     )
 
+    from efem_viz.data.scene import Scene
+    from efem_viz.em.results import Instances
+    from efem_viz.em.trace import EMTrace
     from efem_viz.prior.config import ShapePriorLike
 
 logger = logging.getLogger(__name__)
@@ -88,7 +93,7 @@ def default_view(lo: np.ndarray, hi: np.ndarray) -> tuple[tuple[float, float, fl
 
 
 def proposal_samples(
-    trace: Any, step: int, drawn: np.ndarray, points: np.ndarray
+    trace: EMTrace, step: int, drawn: np.ndarray, points: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """The points sampled by some proposals at one step, each coloured by its proposal id.
 
@@ -115,7 +120,9 @@ def proposal_samples(
     return np.concatenate(pts_list).astype(np.float32), np.concatenate(col_list).astype(np.uint8)
 
 
-def decode_shape(prior: ShapePriorLike, latent: Any, *, resolution: int) -> tuple[np.ndarray, np.ndarray] | None:
+def decode_shape(
+    prior: ShapePriorLike, latent: dict[str, np.ndarray], *, resolution: int
+) -> tuple[np.ndarray, np.ndarray] | None:
     """World-frame mesh of a stored latent, or None when its SDF has no zero crossing on the grid.
 
     Args:
@@ -173,7 +180,7 @@ def add_shape_mesh(
     )
 
 
-def instance_label_position(instances: Any, k: int) -> tuple[float, float, float]:
+def instance_label_position(instances: Instances, k: int) -> tuple[float, float, float]:
     """Just above the top of instance k's box (world frame)."""
     c = np.asarray(instances.obb_center[k], np.float64).reshape(3)
     axes = np.asarray(instances.obb_axes[k], np.float64).reshape(3, 3)
@@ -214,7 +221,7 @@ class ResultNodes:
     """The colour each box is drawn in now (its own, or green / red in the TP/FP/FN mode)."""
 
 
-def label_view(instances: Any, view: View | None = None) -> View:
+def label_view(instances: Instances, view: View | None = None) -> View:
     """The view the instance labels are laid out for: `view` (the viewer's fitted view of the scene), or without
     one the fitted view of the instances' boxes from twice `VIEW_DIRECTION`'s distance (the scene holds the
     boxes and is seen from farther away; laying out for a farther camera only spaces the labels more)."""
@@ -249,7 +256,8 @@ def add_leaders(api: SceneApi, anchors: np.ndarray, positions: np.ndarray, *, vi
                                  thickness=LEADER_THICKNESS_PX, thickness_units="screen", visible=visible)
 
 
-def add_result_nodes(api: SceneApi, instances: Any, *, visible: bool, view: View | None = None) -> ResultNodes:
+def add_result_nodes(api: SceneApi, instances: Instances, *, visible: bool,
+                     view: View | None = None) -> ResultNodes:
     """Draw every final instance: its mesh, box, pose axes and label, in its palette colour.
 
     The live viewer draws them hidden and switches visibility with the threshold; the static demo draws the
@@ -332,7 +340,7 @@ class SceneNodes:
     max_cached_shapes: int = 256
     on_shape_click: Callable[[int], None] | None = None
     """Called with the proposal id when a decoded shape is clicked in the browser (or None)."""
-    _colors_key: int | None = None
+    _colors_key: Hashable | None = None
     _extent: float = 1.0
     _bounds: np.ndarray = field(default_factory=lambda: np.array([[-0.5, -0.5, 0.0], [0.5, 0.5, 0.5]]))
 
@@ -350,7 +358,7 @@ class SceneNodes:
         self.results = ResultNodes()
         self._colors_key = None
 
-    def draw_scene(self, scene: Any, *, display: str = "points", point_size: float | None = None) -> None:
+    def draw_scene(self, scene: Scene, *, display: str = "points", point_size: float | None = None) -> None:
         """Send the scan once: a point cloud (always, it carries recolouring) and the mesh when it has faces.
 
         Args:
@@ -393,7 +401,7 @@ class SceneNodes:
         self.mesh.visible = display == "mesh"
         self.points.visible = display == "points" or recolored
 
-    def set_point_colors(self, colors: np.ndarray, *, key: Any = None) -> bool:
+    def set_point_colors(self, colors: np.ndarray, *, key: Hashable | None = None) -> bool:
         """Recolour the scene points (sends only the (N,3) uint8 colour array).
 
         Args:
@@ -461,7 +469,7 @@ class SceneNodes:
             callback = self.on_shape_click
 
             @h.on_click
-            def _(_event: Any, _pid: int = int(pid)) -> None:
+            def _(_event: SceneNodePointerEvent[MeshHandle], _pid: int = int(pid)) -> None:
                 callback(_pid)
 
         self.shapes[key] = h
@@ -568,7 +576,7 @@ class SceneNodes:
             self.inspect.clear()
 
     # ------------------------------------------------------------------ results
-    def draw_results(self, instances: Any) -> None:
+    def draw_results(self, instances: Instances) -> None:
         """Send the final instances once: mesh, box, pose axes and label each (all hidden until `show_results`).
 
         Args:

@@ -8,7 +8,7 @@ re-entering the app's own callback (`ViewerApp._gui_set`). No viser import at ru
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Protocol, TypeVar
 
 import numpy as np
 
@@ -36,12 +36,20 @@ from efem_viz.viewer.texts import (
 from efem_viz.viewer.trace_queries import deaths, phase_marks
 
 if TYPE_CHECKING:
+    from viser import GuiInputHandle
+
+    from efem_viz.em.solver import StepInfo
     from efem_viz.viewer.session import Inspection, StepView, ViewerSession
 
 logger = logging.getLogger(__name__)
 
-GuiSet = Callable[[Any, Any], None]
-"""Sets a control's value without re-entering the app's callback."""
+ValueT = TypeVar("ValueT")
+
+
+class GuiSet(Protocol):
+    """Sets a control's value without re-entering the app's callback (`ViewerApp.gui_set`)."""
+
+    def __call__(self, handle: GuiInputHandle[ValueT], value: ValueT, /) -> None: ...
 
 
 def show_scene_info(p: Panels, session: ViewerSession) -> None:
@@ -62,7 +70,7 @@ def show_running(p: Panels, running: bool) -> None:
         p.gui_progress.animated = True
 
 
-def show_run_progress(p: Panels, info: Any) -> None:
+def show_run_progress(p: Panels, info: StepInfo) -> None:
     """The progress bar and line of a running EM (`info`: the solver's step info)."""
     frac = 100.0 * (int(info.step) + 1) / max(int(info.num_steps), 1)
     p.gui_progress.value = float(np.clip(frac, 0.0, 100.0))

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Sequence, cast
+from typing import TYPE_CHECKING, Sequence, cast
 
 import numpy as np
 
@@ -270,7 +270,7 @@ class PlotlyJSON:
     on every step change, so the figures here are plain dicts (≈0.1 ms).
     """
 
-    def __init__(self, spec: dict[str, Any]) -> None:
+    def __init__(self, spec: dict[str, object]) -> None:
         self.spec = spec
 
     def to_json(self) -> str:
@@ -314,7 +314,7 @@ def active_figure(active_count: np.ndarray, marks: list[tuple[int, str]], step: 
     """
     ac = np.asarray(active_count).reshape(-1)
     x = (np.arange(ac.shape[0]) - 1).tolist()
-    data: list[dict[str, Any]] = [
+    data: list[dict[str, object]] = [
         {"type": "scatter", "x": x, "y": ac.tolist(), "mode": "lines+markers", "name": "active", "line": {"width": 2}}
     ]
     if 0 <= step + 1 < ac.shape[0]:
@@ -349,7 +349,7 @@ def pr_figure(curves: list[tuple[str, np.ndarray, np.ndarray]], *, point: tuple[
         curves: (label, recall (P,), precision (P,)) per curve.
         point: (recall, precision) of the shown predictions at IoU 0.5, marked in red.
     """
-    data: list[dict[str, Any]] = [
+    data: list[dict[str, object]] = [
         {"type": "scatter", "x": np.asarray(rec, float).tolist(), "y": np.asarray(prec, float).tolist(),
          "mode": "lines", "name": label}
         for label, rec, prec in curves

@@ -25,8 +25,9 @@ import dataclasses
 import logging
 import threading
 import time
+from collections.abc import Hashable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, NamedTuple, Sequence
+from typing import TYPE_CHECKING, Callable, NamedTuple, Sequence
 
 import numpy as np
 
@@ -57,7 +58,10 @@ from efem_viz.viewer.trace_queries import alive_table, is_dead_at, proposal_cent
 
 if TYPE_CHECKING:
     from efem_viz.data.scene import Scene
+    from efem_viz.em.masks import InstanceDistances
     from efem_viz.em.results import EMResult
+    from efem_viz.em.solver import StepInfo
+    from efem_viz.em.trace import ProposalView
     from efem_viz.prior.config import ShapePriorLike
 
 logger = logging.getLogger(__name__)
@@ -81,7 +85,7 @@ DEFAULT_SCENE_DIR = default_scene_dir()
 
 StatusListener = Callable[[str, bool], None]
 """Called with (text, is_error) whenever the session's status line changes."""
-ProgressCallback = Callable[[Any], None]
+ProgressCallback = Callable[["StepInfo"], None]
 """Called after each EM step with the solver's step info (`step`, `num_steps`, `phase`, `active`, `elapsed_s`)."""
 
 
@@ -103,7 +107,7 @@ class Inspection(NamedTuple):
 
     pid: int
     step: int
-    view: Any
+    view: ProposalView
     """The replayed `ProposalView` (weights, sampled points, decoded mesh when a prior was there, alive flag)."""
     crop_points: np.ndarray
     """(C, 3) float32, world frame: scene points inside the proposal's error ball."""
@@ -126,7 +130,7 @@ class PointColors(NamedTuple):
 
     colors: np.ndarray
     """(N, 3) uint8."""
-    key: Any
+    key: Hashable
     """A cache key: equal keys mean equal colours (the nodes skip resending them)."""
     shown: str
     """The colouring in effect ("rgb", "instances", "gt_match" or "weights"): its key is shown under the control."""
@@ -200,9 +204,9 @@ class ViewerSession:
         """(N,) float32 weights of the inspected proposal (the "proposal weights" colouring)."""
         self.last_run_source = ""
         """The source line of the last finished run ("run (preset, seed, time)")."""
-        self._view_cache: dict[tuple[int, int], Any] = {}
+        self._view_cache: dict[tuple[int, int], ProposalView] = {}
         self._gt_cache: dict[tuple[int, float], GTMetrics] = {}
-        self._mask_dist: tuple[int, Any] | None = None
+        self._mask_dist: tuple[int, InstanceDistances] | None = None
         """(generation, InstanceDistances) of the shown result: masks at any τ_out without a re-run."""
 
     # ================================================================== status
@@ -526,7 +530,7 @@ class ViewerSession:
                 return False
             return True
 
-    def proposal_view(self, pid: int, step: int, prior: ShapePriorLike | None) -> Any:
+    def proposal_view(self, pid: int, step: int, prior: ShapePriorLike | None) -> ProposalView:
         """The replayed view of proposal `pid` at `step` (cached; with its decoded mesh when `prior` is given)."""
         key = (int(pid), int(step))
         v = self._view_cache.get(key)

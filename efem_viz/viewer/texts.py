@@ -6,7 +6,7 @@ the wiring and makes each text testable on its own. Names read from files (categ
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 
@@ -15,6 +15,11 @@ from efem_viz.eval.comparison import GTMetrics
 from efem_viz.viewer.panels import NO_PROPOSAL
 from efem_viz.viewer.scenes import SceneEntry
 from efem_viz.viewer.trace_queries import Death, top_n
+
+if TYPE_CHECKING:
+    from efem_viz.data.scene import Scene
+    from efem_viz.em.results import Instances
+    from efem_viz.em.trace import ProposalView
 
 MAX_DEAD_LISTED = 40
 """The "terminated" list shows at most this many proposals (latest first)."""
@@ -102,7 +107,7 @@ def safe_name(name: str) -> str:
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in name) or "scene"
 
 
-def scene_info_markdown(scene: Any, entry: SceneEntry) -> str:
+def scene_info_markdown(scene: Scene, entry: SceneEntry) -> str:
     """Info panel text: counts, bounds, ground truth, provenance."""
     summ = scene.summary()
     lo, hi = summ["bounds_min"], summ["bounds_max"]
@@ -129,12 +134,12 @@ def scene_info_markdown(scene: Any, entry: SceneEntry) -> str:
     return "\n".join(lines)
 
 
-def _short(v: Any, n: int = 60) -> str:
+def _short(v: object, n: int = 60) -> str:
     s = str(v)
     return s if len(s) <= n else s[: n - 1] + "…"
 
 
-def inspect_markdown(pid: int, t: int, view: Any, *, instances: Any = None) -> str:
+def inspect_markdown(pid: int, t: int, view: ProposalView, *, instances: Instances | None = None) -> str:
     """Inspector text: state, scores and schedule values of a proposal at a step, and the final instance it became.
 
     Args:

@@ -297,7 +297,7 @@ def test_bracket_keys_resize_the_brush(keyed: tuple[Any, Any]) -> None:
     r0 = app.settings.radius
     def slider_shows_radius() -> bool:
         # the key handler sets the radius, then the slider: wait for both, not for the first alone
-        return app.gui_controls["radius"].value == pytest.approx(100 * app.settings.radius)
+        return app.panels.gui_controls["radius"].value == pytest.approx(100 * app.settings.radius)
 
     page.keyboard.press("]")
     wait_until(lambda: app.settings.radius > r0 and slider_shows_radius(), 10, "a larger brush (]) on the slider")
@@ -318,7 +318,7 @@ def test_tab_makes_the_next_instance_active(keyed: tuple[Any, Any]) -> None:
     page.keyboard.press("Tab")
     second = sorted(app.store.labelset.instances)[1]
     # the key handler sets the active id, then the dropdown: wait for both (reading between the two was a race)
-    wait_until(lambda: app.settings.active_id == second and str(app.gui_active.value).startswith(f"{second}:"), 10,
+    wait_until(lambda: app.settings.active_id == second and str(app.panels.gui_active.value).startswith(f"{second}:"), 10,
                "the next instance active (Tab), shown in the Active dropdown")
     page.keyboard.press("Shift+Tab")
     wait_until(lambda: app.settings.active_id == first, 10, "the previous instance active (Shift+Tab)")
