@@ -16,7 +16,8 @@ import torch
 from efem_viz.data.procedural import make_mug, sample_mug_params
 from efem_viz.geometry.obb import oriented_box
 from efem_viz.geometry.transforms import random_rotation, rotation_angle_deg
-from efem_viz.prior.codebook import Codebook, build_codebook, project_so3_code
+from efem_viz.prior.codebook import Codebook, project_so3_code
+from efem_viz.prior.codebook_build import build_codebook
 from efem_viz.prior.model import Latent, PriorConfig, ShapePrior
 from efem_viz.prior.pose import estimate_pose
 

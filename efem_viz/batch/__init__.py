@@ -16,7 +16,8 @@ from efem_viz.batch.backends import Backend, BackendOptions, BatchError
 from efem_viz.batch.events import BatchObserver
 from efem_viz.batch.job import BatchJob, SceneOutcome, SceneTask, WorkerInfo
 from efem_viz.batch.registry import BACKENDS, make_backend
-from efem_viz.batch.runner import BatchPlan, BatchReport, plan_batch, run_batch
+from efem_viz.batch.job import BatchPlan, BatchReport
+from efem_viz.batch.runner import plan_batch, run_batch
 
 __all__ = [
     "BACKENDS",

@@ -27,7 +27,7 @@ from efem_viz.batch.job import BATCH_FILE, SceneOutcome, SceneTask, WorkerInfo
 from efem_viz.terminal import terminal_text
 
 if TYPE_CHECKING:
-    from efem_viz.batch.runner import BatchPlan, BatchReport
+    from efem_viz.batch.job import BatchPlan, BatchReport
 
 PLAIN_STEP_EVERY_S = 10.0
 """When the console is not a terminal (a log file, a pipe), a scene's EM progress is printed as a plain line at

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from efem_viz.batch.job import SceneOutcome, SceneTask, WorkerInfo
-    from efem_viz.batch.runner import BatchPlan, BatchReport
+    from efem_viz.batch.job import BatchPlan, BatchReport
 
 
 class BatchObserver:

@@ -277,3 +277,73 @@ class WorkerInfo:
     def to_dict(self) -> dict[str, object]:
         """JSON-able record."""
         return dataclasses.asdict(self)
+
+
+# ---------------------------------------------------------------------------------------------- plan
+@dataclass(frozen=True)
+class BatchPlan:
+    """What a batch run will do.
+
+    Attributes:
+        tasks: scenes to segment, in scene order.
+        skipped: outcomes (status "skipped") of scenes whose valid results of the same job exist.
+        out: the output folder (absolute).
+        fingerprint: the job fingerprint.
+        reasons: scene name -> why an existing result is recomputed (for scenes that had one).
+        order: every scene name of the batch, in scene order.
+    """
+
+    tasks: tuple[SceneTask, ...]
+    skipped: tuple[SceneOutcome, ...]
+    out: Path
+    fingerprint: str
+    reasons: dict[str, str] = field(default_factory=dict)
+    order: tuple[str, ...] = ()
+
+    @property
+    def total(self) -> int:
+        """Scenes in the batch (to run + skipped)."""
+        return len(self.tasks) + len(self.skipped)
+
+
+# ---------------------------------------------------------------------------------------------- report
+@dataclass
+class BatchReport:
+    """The outcome of a batch run.
+
+    Attributes:
+        outcomes: one per scene of the plan, in scene order (a scene that never ran, after an interruption, is
+            missing).
+        plan: the plan it ran.
+        backend: `Backend.describe()`.
+        job: the job (with the backend's defaults filled in).
+        workers: the workers that started.
+        wall_s: seconds of the whole run (planning excluded).
+        interrupted: the run was stopped (Ctrl+C) before every scene finished.
+    """
+
+    outcomes: list[SceneOutcome]
+    plan: BatchPlan
+    backend: dict[str, object]
+    job: BatchJob
+    workers: list[WorkerInfo] = field(default_factory=list)
+    wall_s: float = 0.0
+    interrupted: bool = False
+
+    @property
+    def passed(self) -> bool:
+        """Every scene of the plan has a valid result (computed now or skipped)."""
+        return (not self.interrupted and len(self.outcomes) == self.plan.total
+                and all(o.passed for o in self.outcomes))
+
+    def counts(self) -> dict[str, int]:
+        """Scenes per status ("ok", "skipped", "failed", "pending")."""
+        c = {"ok": 0, "skipped": 0, "failed": 0}
+        for o in self.outcomes:
+            c[o.status] += 1
+        c["pending"] = self.plan.total - len(self.outcomes)
+        return c
+
+    def failed(self) -> list[SceneOutcome]:
+        """The failed scenes."""
+        return [o for o in self.outcomes if o.status == "failed"]

@@ -38,7 +38,6 @@ import re
 import time
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field
 from pathlib import Path
 
 from efem_viz.batch.backends import Backend, BatchError
@@ -49,6 +48,8 @@ from efem_viz.batch.job import (
     SCANNET_DIR,
     SEG_SUFFIX,
     BatchJob,
+    BatchPlan,
+    BatchReport,
     SceneOutcome,
     SceneTask,
     WorkerInfo,
@@ -64,33 +65,6 @@ RECORD_EVERY_S = 1.0
 """`batch.json` is rewritten after a finished scene at most this often (and always at the end)."""
 _TEMP_NAME = re.compile(r"^\..+\.[A-Za-z0-9_]{8}\.tmp(\.[A-Za-z0-9.]+)?$")
 """Temporary files of `efem_viz.data.io.atomic_write` (`.<stem>.<random>.tmp<suffix>`) left by a killed write."""
-
-
-# ---------------------------------------------------------------------------------------------- plan
-@dataclass(frozen=True)
-class BatchPlan:
-    """What a batch run will do.
-
-    Attributes:
-        tasks: scenes to segment, in scene order.
-        skipped: outcomes (status "skipped") of scenes whose valid results of the same job exist.
-        out: the output folder (absolute).
-        fingerprint: the job fingerprint.
-        reasons: scene name -> why an existing result is recomputed (for scenes that had one).
-        order: every scene name of the batch, in scene order.
-    """
-
-    tasks: tuple[SceneTask, ...]
-    skipped: tuple[SceneOutcome, ...]
-    out: Path
-    fingerprint: str
-    reasons: dict[str, str] = field(default_factory=dict)
-    order: tuple[str, ...] = ()
-
-    @property
-    def total(self) -> int:
-        """Scenes in the batch (to run + skipped)."""
-        return len(self.tasks) + len(self.skipped)
 
 
 def read_batch_records(out: str | os.PathLike[str]) -> dict[str, SceneOutcome]:
@@ -229,49 +203,6 @@ def _why_not_done(task: SceneTask, job: BatchJob, fp: str, record: SceneOutcome 
     if job.scannet and not task.scannet_path.is_file():
         return f"{SCANNET_DIR}/{task.scannet_path.name} missing"
     return None
-
-
-# ---------------------------------------------------------------------------------------------- report
-@dataclass
-class BatchReport:
-    """The outcome of a batch run.
-
-    Attributes:
-        outcomes: one per scene of the plan, in scene order (a scene that never ran, after an interruption, is
-            missing).
-        plan: the plan it ran.
-        backend: `Backend.describe()`.
-        job: the job (with the backend's defaults filled in).
-        workers: the workers that started.
-        wall_s: seconds of the whole run (planning excluded).
-        interrupted: the run was stopped (Ctrl+C) before every scene finished.
-    """
-
-    outcomes: list[SceneOutcome]
-    plan: BatchPlan
-    backend: dict[str, object]
-    job: BatchJob
-    workers: list[WorkerInfo] = field(default_factory=list)
-    wall_s: float = 0.0
-    interrupted: bool = False
-
-    @property
-    def passed(self) -> bool:
-        """Every scene of the plan has a valid result (computed now or skipped)."""
-        return (not self.interrupted and len(self.outcomes) == self.plan.total
-                and all(o.passed for o in self.outcomes))
-
-    def counts(self) -> dict[str, int]:
-        """Scenes per status ("ok", "skipped", "failed", "pending")."""
-        c = {"ok": 0, "skipped": 0, "failed": 0}
-        for o in self.outcomes:
-            c[o.status] += 1
-        c["pending"] = self.plan.total - len(self.outcomes)
-        return c
-
-    def failed(self) -> list[SceneOutcome]:
-        """The failed scenes."""
-        return [o for o in self.outcomes if o.status == "failed"]
 
 
 # ---------------------------------------------------------------------------------------------- batch.json

@@ -1,5 +1,6 @@
-"""Pose codebook ("database") of a shape prior (efem-method.md §2.8); `efem-viz build-codebook` is
-`efem_viz.prior.commands.BuildCodebookArgs`.
+"""Pose codebook ("database") of a shape prior (efem-method.md §2.8): the stored data and its queries; it is built
+by `efem_viz.prior.codebook_build.build_codebook` (`efem-viz build-codebook` is
+`efem_viz.prior.commands.BuildCodebookArgs`).
 
 For every training object we store its latent (Θ_R, Θ_inv, Θ_s, Θ_c), a noisy canonical surface cloud and a
 rotation-invariant version of Θ_R, and we answer k-nearest-neighbour queries on three feature spaces
@@ -22,27 +23,18 @@ This module's top is light (no torch).
 from __future__ import annotations
 
 import logging
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Sequence
+from typing import Any
 
 import numpy as np
 
-from efem_viz.geometry.sampling import sample_surface
-from efem_viz.prior.config import DEFAULT_PRIOR
-
-if TYPE_CHECKING:
-    import trimesh
-
-    from efem_viz.prior.model import ShapePrior
 
 logger = logging.getLogger(__name__)
 
 __all__ = [
     "CODEBOOK_SCHEMA_VERSION",
     "Codebook",
-    "build_codebook",
     "latent_to_numpy",
     "prior_fingerprint",
     "project_so3_code",
@@ -363,104 +355,3 @@ class Codebook:
             return cls(meta=meta, **{k: data[k] for k in required})
         except ValueError as exc:
             raise ValueError(f"{path}: {exc}") from exc
-
-
-def build_codebook(
-    prior: ShapePrior,
-    meshes_or_seeds: Sequence[trimesh.Trimesh | int],
-    *,
-    n_store: int = 2000,
-    noise: float = 0.01,
-    seed: int = 0,
-    category: str = DEFAULT_PRIOR,
-    normalise: bool = True,
-    batch: int = 16,
-) -> Codebook:
-    """Encode training objects into a codebook (spec §2.8).
-
-    Per object: `n_store` area-uniform surface samples plus i.i.d. Gaussian noise (σ = `noise`, canonical
-    units, as in training), rounded to the stored float16; the encoder input is `prior.config.n_pcl` of
-    those drawn with replacement (their indices are kept in `input_idx`); encoded in the prior's dtype
-    (float32 for a loaded prior; the encoder centres by the mean itself).
-
-    Args:
-        prior: the trained `ShapePrior`.
-        meshes_or_seeds: trimesh meshes (canonical frame), or integer seeds of `category`'s generator.
-        n_store: stored points per object.
-        noise: Gaussian noise σ in canonical units.
-        seed: RNG seed (the whole build is deterministic in it).
-        category: procedural category for integer seeds.
-        normalise: apply the training normalisation (`efem_viz.prior.data.normalize_mesh`: bbox centre to the
-            origin, longest side 1) to each mesh first.
-        batch: objects per encoder call.
-
-    Returns:
-        Codebook (ids = the seeds, or the positions of the meshes in the input).
-    """
-    import torch
-
-    from efem_viz.prior.data import normalize_mesh
-
-    if len(meshes_or_seeds) == 0:
-        raise ValueError("build_codebook needs at least one mesh or seed")
-    if n_store < 1:
-        raise ValueError(f"n_store must be >= 1, got {n_store}")
-    rng = np.random.default_rng(seed)
-    n_pcl = int(prior.config.n_pcl)
-    ids, clouds, input_idx = [], [], []
-    for pos, item in enumerate(meshes_or_seeds):
-        if isinstance(item, (int, np.integer)):
-            from efem_viz.data.procedural import make_shape
-
-            mesh = make_shape(category, int(item))
-            ids.append(int(item))
-        else:
-            mesh = item
-            ids.append(pos)
-        if normalise:
-            mesh = normalize_mesh(mesh)
-        pts = sample_surface(mesh, n_store, seed=rng, empty="raise").points + rng.normal(0.0, noise, size=(n_store, 3))
-        clouds.append(pts.astype(np.float16))  # encode exactly what is stored
-        input_idx.append(rng.integers(0, n_store, size=n_pcl))
-    pcl = np.stack(clouds)
-    idx = np.stack(input_idx).astype(np.int32)
-    X = np.take_along_axis(pcl, idx[:, :, None], axis=1).astype(np.float64)
-    Rs, invs, cs, ss = [], [], [], []
-    with torch.no_grad():  # the prior has no dropout/normalisation layers: no eval() toggling needed
-        for s in range(0, len(X), batch):
-            x = torch.as_tensor(X[s : s + batch], dtype=torch.float32)
-            lat = prior.encode(x)
-            Rs.append(lat.R.cpu().numpy())
-            invs.append(lat.inv.cpu().numpy())
-            cs.append(lat.center.cpu().numpy())
-            ss.append(lat.scale.cpu().numpy())
-    z_so3 = np.concatenate(Rs).astype(np.float64)
-    proj, basis, evals = project_so3_code(z_so3)
-    centred = X - X.mean(axis=1, keepdims=True)
-    lo, hi = centred.min(axis=1), centred.max(axis=1)
-    return Codebook(
-        ids=np.asarray(ids, np.int64),
-        z_so3=z_so3.astype(np.float32),
-        z_inv=np.concatenate(invs).astype(np.float32),
-        scale=np.concatenate(ss).astype(np.float32),
-        center=np.concatenate(cs).astype(np.float32),
-        pcl=pcl,
-        proj=proj.astype(np.float32),
-        basis=basis.astype(np.float32),
-        eigvals=evals.astype(np.float32),
-        bbox_center=((lo + hi) / 2).astype(np.float32),
-        bbox_half=((hi - lo) / 2).astype(np.float32),
-        class_id=np.zeros(len(ids), np.int32),
-        input_idx=idx,
-        meta={
-            "prior": str(getattr(prior, "name", "")),
-            "prior_fingerprint": prior_fingerprint(prior),
-            "category": category,
-            "n_store": int(n_store),
-            "noise": float(noise),
-            "n_pcl": n_pcl,
-            "seed": int(seed),
-            "normalised": bool(normalise),
-            "built_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        },
-    )

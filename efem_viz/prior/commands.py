@@ -43,7 +43,7 @@ class BuildCodebookArgs:
     def run(self) -> int:
         """Build and save; returns the process exit code."""
         from efem_viz.data.procedural import split_seeds
-        from efem_viz.prior.codebook import build_codebook
+        from efem_viz.prior.codebook_build import build_codebook
         from efem_viz.prior.model import load_prior, resolve_prior_path
 
         if self.count < 1:
@@ -128,7 +128,7 @@ class ConvertArgs:
         category = self.category if self.category is not None else RELEASES[release]["category"]
         if category is None:
             logger.warning("no procedural category for the %s prior: codebook skipped. Build one from your own "
-                           "+Z-up meshes with efem_viz.prior.codebook.build_codebook, or pass --category", release)
+                           "+Z-up meshes with efem_viz.prior.codebook_build.build_codebook, or pass --category", release)
             return 0
         return BuildCodebookArgs(prior=str(path), out=None, count=self.count, category=category,
                                  n_store=self.n_store, noise=self.noise, seed=self.seed).run()
