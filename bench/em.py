@@ -59,9 +59,24 @@ def get_scene(config: str, seed: int, mode: str, *, distractors: bool = True) ->
     return scene
 
 
+EXTRA_PRIORS: list[Any] = []
+"""Priors of other categories solved jointly with the mug prior (`--extra-prior`); their instances are not mugs."""
+
+
+def mug_prediction(res: Any, name: str) -> Any:
+    """The mug instances of a result as a prediction (a joint solve's other categories are left out)."""
+    from efem_viz.eval import prediction_from_instances
+    from efem_viz.prior.config import prior_category
+
+    others = tuple(prior_category(p).name for p in EXTRA_PRIORS)
+    return prediction_from_instances(res.instances, name=name, class_names=("mug", *others))
+
+
 def run_one(scene: Any, prior: Any, cfg: Any, seed: int = 0) -> Any:
     from efem_viz.em import run_em
 
+    if EXTRA_PRIORS:
+        return run_em(scene, cfg=cfg, priors=[prior, *EXTRA_PRIORS], seed=seed)
     return run_em(scene, prior, cfg, seed=seed)
 
 
@@ -93,7 +108,7 @@ def compare(args: argparse.Namespace, prior: Any, cfgs: dict[str, Any]) -> int:
     """Accuracy and speed of several solver configs on the same scenes, each scene run by every config in turn
     (so machine load falls on all of them alike)."""
 
-    from efem_viz.eval import SceneGroundTruth, evaluate, prediction_from_instances
+    from efem_viz.eval import SceneGroundTruth, evaluate
 
     n_scenes = args.n_scenes or (2 if args.quick else 10)
     print(f"compare {list(cfgs)}: {n_scenes} scenes x {tuple(args.configs)}, {args.proposals} proposals, preset {args.preset}, "
@@ -109,7 +124,7 @@ def compare(args: argparse.Namespace, prior: Any, cfgs: dict[str, Any]) -> int:
             line = [f"  {scene.name:>10}:"]
             for name, c in cfgs.items():
                 res = run_one(scene, prior, c)
-                preds[name].append(prediction_from_instances(res.instances, name=scene.name, class_names=("mug",)))
+                preds[name].append(mug_prediction(res, scene.name))
                 one = evaluate([preds[name][-1]], [gts[-1]], class_names=("mug",))
                 per[name]["seconds"].append(res.timings["total"])
                 per[name]["cpu_seconds"].append(res.timings["total_cpu"])
@@ -140,6 +155,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="2 scenes per configuration, shorter speed tables")
     ap.add_argument("--prior", default="mug")
+    ap.add_argument("--extra-prior", action="append", default=[], metavar="PRIOR",
+                    help="a prior of another category, solved jointly (repeatable); AP stays the mugs'")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--mode", default="points", choices=["points", "tsdf"])
     ap.add_argument("--preset", default="synthetic")
@@ -173,13 +190,14 @@ def main() -> int:
     import torch
 
     from efem_viz.em import preset
-    from efem_viz.eval import SceneGroundTruth, evaluate, prediction_from_instances
+    from efem_viz.eval import SceneGroundTruth, evaluate
     from efem_viz.prior.model import load_prior
 
     from em_stability import parse_config
 
     torch.set_num_threads(args.threads)
     prior = load_prior(args.prior)
+    EXTRA_PRIORS[:] = [load_prior(p) for p in args.extra_prior]
     cfg = preset(args.preset).with_proposals(args.proposals).replace(work_voxel=args.work_voxel)
     variants = dict(parse_config(spec) for spec in (args.config or [f"{args.preset}="]))
     cfgs = {name: cfg.replace(**changes) for name, changes in variants.items()}
@@ -188,6 +206,7 @@ def main() -> int:
     n_scenes = args.n_scenes or (2 if args.quick else 10)
     out: dict[str, Any] = {
         "machine": machine(args.threads),
+        "extra_priors": list(args.extra_prior),
         "prior": {"name": args.prior, "config": prior.config.to_dict(), "has_codebook": prior.codebook is not None,
                   "metadata": {k: v for k, v in prior.metadata.items() if k in ("iteration", "val_iou", "tau_out")}},
         "em_config": json.loads(cfg.to_json()),
@@ -217,7 +236,7 @@ def main() -> int:
                     res.save(args.save_results)  # <dir>/<scene>.efem.npz
                 all_timings.append(res.timings)
                 runtimes.append(res.timings["total"])
-                preds.append(prediction_from_instances(res.instances, name=scene.name, class_names=("mug",)))
+                preds.append(mug_prediction(res, scene.name))
                 gts.append(SceneGroundTruth.from_scene(scene))
                 one = evaluate([preds[-1]], [gts[-1]], class_names=("mug",))
                 per_scene.append({"scene": scene.name, "points": scene.num_points, "gt": len(scene.instance_ids()),

@@ -285,3 +285,25 @@ def test_init_from_a_prior_with_a_frozen_decoder_trains_only_the_encoder(tmp_pat
     ref = validate(start, load_objects(args, "val"), args.sample_config(start.config.n_pcl), seed=args.seed + 99)
     assert res["val_curve"][0]["iou"] == pytest.approx(ref["iou"])
     assert load_prior(args.resolved_export(), load_codebook=False).metadata["init_from"] == str(first.resolved_export())
+
+
+def test_init_from_another_category_keeps_the_weights_not_the_settings(tmp_path: Path, cache_dir: Path) -> None:
+    """A bowl prior started from a mug prior's weights must not carry the mug's τ_out, its calibration or its
+    category settings (they would be read as the bowl's)."""
+    first = _args(tmp_path / "a", cache_dir, iterations=2, val_every=100, calibrate_iso=False)
+    train(first)
+    mug = load_prior(first.resolved_export(), load_codebook=False)
+    mug.metadata = {**mug.metadata, "tau_out": 0.05, "tau_out_calibration": {"scenes": ["syn_z_0"]},
+                    "category": {"name": "mug", "scale_horizontal": [0.03, 0.13]}}
+    src = save_prior(mug, tmp_path / "mug_tuned.pt")
+    args = _args(tmp_path / "b", cache_dir, category="bowl", export=tmp_path / "w" / "bowl.pt", iterations=2,
+                 val_every=100, init_from=src, calibrate_iso=False)
+    train(args)
+    bowl = load_prior(args.resolved_export(), load_codebook=False)
+    assert bowl.name == "bowl" and bowl.metadata["init_from"] == str(src)
+    assert not {"tau_out", "tau_out_calibration", "category"} & set(bowl.metadata)
+    # the same category keeps what the earlier run learnt about itself
+    again = _args(tmp_path / "c", cache_dir, export=tmp_path / "w2" / "mug.pt", iterations=2, val_every=100,
+                  init_from=src, calibrate_iso=False)
+    train(again)
+    assert load_prior(again.resolved_export(), load_codebook=False).metadata["tau_out"] == 0.05

@@ -240,10 +240,12 @@ KNOWN_CATEGORIES: dict[str, CategorySettings] = {
         scale_height=(0.015, 0.30),
         domain_sizes={"real": ((0.03, 0.08), (0.015, 0.10))},
     ),
+    "bowl": CategorySettings(name="bowl", scale_horizontal=(0.04, 0.15), scale_height=(0.01, 0.09)),
     "sphere": CategorySettings(name="sphere", scale_horizontal=(0.03, 0.13), scale_height=(0.03, 0.13)),
 }
 """Settings of the categories efem-viz ships priors for, used when a prior's metadata carries none. Mug sizes:
-synthetic scenes scale objects over a wide range; real mugs lie within 3-8 cm radius and 20 cm height."""
+synthetic scenes scale objects over a wide range; real mugs lie within 3-8 cm radius and 20 cm height. Bowls: the
+procedural bowls (12-20 cm across, shallow) with a margin."""
 
 
 @runtime_checkable

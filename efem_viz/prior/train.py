@@ -579,7 +579,9 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
     prior = ShapePrior(cfg, name=args.category).to(args.device)
     if init is not None:
         prior.load_state_dict(init.state_dict())
-        prior.metadata = {**dict(init.metadata or {}), "init_from": str(args.init_from)}
+        # Another category's prior gives weights only: its τ_out, calibration and category settings are not ours.
+        kept = dict(init.metadata or {}) if init.name == args.category else {}
+        prior.metadata = {**kept, "init_from": str(args.init_from)}
         log.info("initialised from %s", args.init_from)
     scfg = args.sample_config(cfg.n_pcl)
     if args.freeze_decoder:
