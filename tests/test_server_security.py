@@ -548,13 +548,13 @@ def test_viewer_gui_exports_stay_inside_the_output_root(viewer: Any, tmp_path: P
     root.mkdir(parents=True, exist_ok=True)
     os.symlink(outside, root / "link")
     for bad in ("../escape", str(outside), "/etc", "link/sub", "sub/../../x"):
-        viewer._gui_set(viewer.panels.gui_out_dir, bad)
+        viewer.gui_set(viewer.panels.gui_out_dir, bad)
         with pytest.raises(ClientValueError, match="refusing output folder|not allowed"):
             viewer.export_from_gui("results")
         with pytest.raises(ClientValueError):
             viewer.export_from_gui("static")
     assert not any(outside.iterdir())
-    viewer._gui_set(viewer.panels.gui_out_dir, "run1")
+    viewer.gui_set(viewer.panels.gui_out_dir, "run1")
     fut = viewer.export_from_gui("results")
     assert fut is not None and fut.result(60) == root / "run1"
     assert (root / "run1" / "spheres_instances.ply").is_file()

@@ -3,10 +3,9 @@
 The viewer's state and actions live in `efem_viz.viewer.session.ViewerSession` (headless, no viser); this module
 builds the GUI, translates GUI events into session calls and draws the session's state.
 
-Threading: GUI callbacks run on viser's threads. They read handle values, call the session and either redraw
-directly (cheap: colours, visibility) or submit heavy work (loading, EM, decoding shapes, exports) to worker
-threads. One re-entrant lock (the session's) guards the state and the scene nodes; the workers take it only to
-publish results.
+Threading: GUI callbacks (viser's threads) read handle values, call the session and redraw directly (cheap:
+colours, visibility) or submit heavy work (loading, EM, decoding shapes, exports) to worker threads. One
+re-entrant lock (the session's) guards the state and the scene nodes; the workers take it to publish results.
 
 Sharing: one state, one scene and one GUI for all browsers (`server.gui` / `server.scene`): every client sees the
 same scene, step, threshold and selection. Errors are shown in the status line and as a notification to every
@@ -15,6 +14,7 @@ connected client; the server stays up.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 from concurrent.futures import Future
 from pathlib import Path
@@ -43,20 +43,16 @@ if TYPE_CHECKING:
     from efem_viz.eval.comparison import GTMetrics
     from efem_viz.prior.config import ShapePriorLike
 
+    Ts = TypeVarTuple("Ts")
+
 logger = logging.getLogger(__name__)
 
 T = TypeVar("T")
-ValueT = TypeVar("ValueT")
-if TYPE_CHECKING:
-    Ts = TypeVarTuple("Ts")
 
 
 class ViewerApp:
-    """The viewer application: a viser server, its panels and scene nodes over a `ViewerSession`.
-
-    The session (`efem_viz.viewer.session.ViewerSession`) holds the state and does every action; this class
-    builds the GUI, translates GUI events into session calls, runs the heavy ones in worker threads and draws the
-    session's state.
+    """The viewer application: a viser server, its panels and scene nodes over a `ViewerSession` (which holds the
+    state and does every action; this class builds the GUI, runs the heavy actions in worker threads and draws).
 
     Args:
         paths, prior, prior_name, run_priors, results, max_points: the session's (`ViewerSession`): the scenes
@@ -176,10 +172,8 @@ class ViewerApp:
             self.panels.gui_status.content = f"{icon}{text}" if text else ""
         if error:
             for client in list(self.server.get_clients().values()):
-                try:
+                with contextlib.suppress(Exception):  # a client may disconnect meanwhile
                     client.add_notification("efem-viz", text, color="red", auto_close_seconds=8.0)
-                except Exception:  # noqa: BLE001 - a client may disconnect meanwhile
-                    pass
 
     def _on_connect(self, client: ClientHandle) -> None:
         self.camera_guard.attach(client)
@@ -199,7 +193,7 @@ class ViewerApp:
         """Run an action in the worker thread (loads, mask bands, exports)."""
         return self._submit(self._worker, fn, *args)
 
-    def gui_set(self, handle: GuiInputHandle[ValueT], value: ValueT) -> None:
+    def gui_set(self, handle: GuiInputHandle[T], value: T) -> None:
         """Set a GUI value without re-entering our own callback."""
         with self._lock:
             prev, self._quiet = self._quiet, True
@@ -207,8 +201,6 @@ class ViewerApp:
                 handle.value = value
             finally:
                 self._quiet = prev
-
-    _gui_set = gui_set  # the name callers used before
 
     # ================================================================== 1. scenes
     def open_scene(self, name: str) -> bool:

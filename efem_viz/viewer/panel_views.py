@@ -2,7 +2,7 @@
 
 The `show_*` functions read a `ViewerSession` and write `Panels` handles; the scene nodes are drawn by
 `viewer/nodes.py`. `ViewerApp` calls them after each session action. `gui_set` sets a control's value without
-re-entering the app's own callback (`ViewerApp._gui_set`). No viser import at run time.
+re-entering the app's own callback (`ViewerApp.gui_set`). No viser import at run time.
 """
 
 from __future__ import annotations
