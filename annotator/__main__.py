@@ -8,6 +8,8 @@ from pathlib import Path
 
 import tyro
 
+from annotator.io import MAX_SCAN_POINTS
+
 
 @dataclass
 class AnnotateArgs:
@@ -26,8 +28,8 @@ class AnnotateArgs:
     printed URL (it carries the access token)."""
     port: int = 8081
     """TCP port (a busy port is replaced by the next free one; the real URL is printed)."""
-    max_points: int = 2_000_000
-    """Refuse scans with more vertices than this."""
+    max_points: int = MAX_SCAN_POINTS
+    """Refuse scans with more vertices than this (a 5M-vertex scan needs about 2.2 GB of memory at its peak)."""
     display_points: int = 1_000_000
     """Draw at most this many vertices in the browser: a larger scan is shown as an evenly spread subset of them
     (every tool still labels all vertices)."""

@@ -34,6 +34,7 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence, TypeVar
 
 import numpy as np
 
+from annotator.io import MAX_SCAN_POINTS
 from annotator.labels import Delta, unreviewed_prelabels
 from annotator.cheat_sheet import CheatSheets
 from annotator.events import MISSED_SCAN, check_event, coalesce_drag_updates
@@ -96,7 +97,7 @@ class AnnotatorApp:
         out_dir: str | Path | None = None,
         host: str = "127.0.0.1",
         port: int = 8081,
-        max_points: int = 2_000_000,
+        max_points: int = MAX_SCAN_POINTS,
         autosave_delay: float = 0.5,
         chunk_size: int = 16384,
         display_points: int = DISPLAY_POINTS,

@@ -35,6 +35,9 @@ from efem_viz.data.io import RESULT_SUFFIX
 
 log = logging.getLogger(__name__)
 
+MAX_SCAN_POINTS = 10_000_000
+"""Default vertex limit of a scan the annotator opens (a 5M-vertex scan peaks at about 2.2 GB of memory)."""
+
 LABEL_SUFFIXES = (".labels.ply", ".labels.npz", ".ply", ".npz", ".aggregation.json", ".segs.json", RESULT_SUFFIX)
 
 
@@ -391,7 +394,7 @@ def load_labels(path: str | os.PathLike[str], num_vertices: int) -> LabelData:
     raise LabelIOError(f"{p}: unknown label format; expected one of {', '.join(LABEL_SUFFIXES)}")
 
 
-def load_scan(path: str | os.PathLike[str], *, max_points: int = 2_000_000) -> Any:
+def load_scan(path: str | os.PathLike[str], *, max_points: int = MAX_SCAN_POINTS) -> Any:
     """Open a scan as an `efem_viz.data.scene.Scene`: PLY/OBJ/OFF/GLB/NPZ scenes or a real RGB-D frame `.npz`.
 
     Thin wrapper over `efem_viz.data.io.load_scene` (which also imports RGB-D frames with the table plane to +Z)

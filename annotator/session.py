@@ -37,6 +37,7 @@ import numpy as np
 
 from annotator import selection as sel
 from annotator.io import (
+    MAX_SCAN_POINTS,
     LabelData,
     LabelIOError,
     load_labels,
@@ -114,7 +115,7 @@ class AnnotatorSession:
         *,
         labels_path: str | Path | None = None,
         out_dir: str | Path | None = None,
-        max_points: int = 2_000_000,
+        max_points: int = MAX_SCAN_POINTS,
         autosave_delay: float = 0.5,
         accept_scan_mismatch: bool = False,
         tools: Sequence[Tool] = DEFAULT_TOOLS,
