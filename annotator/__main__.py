@@ -9,6 +9,7 @@ from pathlib import Path
 import tyro
 
 from annotator.io import MAX_SCAN_POINTS
+from annotator.scan_view import DISPLAY_POINTS
 
 
 @dataclass
@@ -30,7 +31,7 @@ class AnnotateArgs:
     """TCP port (a busy port is replaced by the next free one; the real URL is printed)."""
     max_points: int = MAX_SCAN_POINTS
     """Refuse scans with more vertices than this (a 5M-vertex scan needs about 2.2 GB of memory at its peak)."""
-    display_points: int = 1_000_000
+    display_points: int = DISPLAY_POINTS
     """Draw at most this many vertices in the browser: a larger scan is shown as an evenly spread subset of them
     (every tool still labels all vertices)."""
     autosave_delay: float = 0.5

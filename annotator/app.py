@@ -106,6 +106,8 @@ class AnnotatorApp:
         tools: Sequence[Tool] = DEFAULT_TOOLS,
     ) -> None:
         t0 = time.perf_counter()
+        if display_points < 1:  # before the scan is read and its journal created
+            raise ValueError(f"the display budget must be at least 1 point, got {display_points}")
         self.session = AnnotatorSession(scan_path, labels_path=labels_path, out_dir=out_dir, max_points=max_points,
                                         autosave_delay=autosave_delay, accept_scan_mismatch=accept_scan_mismatch,
                                         tools=tools)

@@ -1,6 +1,6 @@
 """The annotator's GUI panels: the viser handles (`Panels`) and what writes a moment's state into them.
 
-Callbacks are wired in `annotator.app`; the text and options shown are computed in `annotator.panel_views`. The
+Callbacks are wired in `annotator.wiring`; the text and options shown are computed in `annotator.panel_views`. The
 GUI is shared (`server.gui`): every connected browser sees and drives the same controls.
 """
 

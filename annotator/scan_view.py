@@ -33,6 +33,8 @@ log = logging.getLogger(__name__)
 
 DISPLAY_POINTS = 1_000_000
 """Default display budget: scans with more vertices are drawn from a subset of this many."""
+MAX_SPLATS = 150_000
+"""Triangles of the invisible proxy surface that catches drags on scans drawn as points."""
 CURSOR_COLOR = (255, 150, 0)
 """Colour of the brush cursor's ring."""
 CURSOR_THICKNESS_PX = 2.5
@@ -81,10 +83,11 @@ class ScanView:
         session: the headless session whose scan, labels and settings are drawn.
         chunk_size: points per drawn chunk.
         display_points: display budget (`DISPLAY_POINTS`); larger scans are drawn from `display_subset`.
+        max_splats: triangles of the invisible drag surface of a scan drawn as points (None: `MAX_SPLATS`).
     """
 
     def __init__(self, server: viser.ViserServer, session: AnnotatorSession, *, chunk_size: int = 16384,
-                 display_points: int = DISPLAY_POINTS) -> None:
+                 display_points: int = DISPLAY_POINTS, max_splats: int | None = None) -> None:
         self.server, self.session = server, session
         scene = session.scene
         self.display = display_subset(scene.num_points, display_points)
@@ -98,15 +101,21 @@ class ScanView:
         self.lasso_handle: viser.LineSegmentsHandle | None = None
         self._draw_lock = threading.Lock()
         self._cursor_lock = threading.Lock()
+        self._lasso_lock = threading.Lock()
         pts = scene.points
         centre = pts.mean(axis=0)
         self.extent = float(np.linalg.norm(np.ptp(pts, axis=0))) or 1.0
-        # The drawn points are sparser than the scan by sqrt(n / D) on a surface.
-        spacing = session.geom.spacing * float(np.sqrt(scene.num_points / max(len(self.display), 1)))
+        # Points drawn from a subset of D of the n vertices are sqrt(n / D) times further apart on a surface.
+        n = scene.num_points
+        spacing = session.geom.spacing * float(np.sqrt(n / max(len(self.display), 1)))
         self.point_size = float(max(spacing * 1.6, self.extent * 5e-4))
-        # Splats 2.5 spacings wide cover the surface; drawn from a subset, 1.6 of its wider spacings still do (and
-        # fewer overlapping transparent triangles keep software-rendered pages fast).
-        self.surface = self._add_surface(1.6 * spacing if self.reduced else 2.5 * spacing)
+        # The proxy's k splats (at most `max_splats`) must cover the surface at their own spacing: 2.5 spacings
+        # when every vertex has one (as always), 1.6 of the wider spacing of a subset (fewer overlapping
+        # transparent triangles keep software-rendered pages fast).
+        max_splats = MAX_SPLATS if max_splats is None else int(max_splats)
+        k = min(len(self.display), max_splats)
+        splat_spacing = session.geom.spacing * float(np.sqrt(n / max(k, 1)))
+        self.surface = self._add_surface((2.5 if k == n else 1.6) * splat_spacing, max_splats)
         """The mesh that receives drag gestures (the scan's own when it is drawn in full, else an invisible proxy)."""
         self.chunk_handles = self._add_chunks()
         self.home_view = View(look_at=xyz_tuple(centre),
@@ -116,7 +125,7 @@ class ScanView:
                                         hint="R (reset view) brings it back any time.")
         """Puts a camera that left the scan back on `home_view` (see `efem_viz.serve.camera`)."""
 
-    def _add_surface(self, splat_size: float) -> viser.MeshHandle:
+    def _add_surface(self, splat_size: float, max_splats: int) -> viser.MeshHandle:
         scene = self.session.scene
         if scene.is_mesh and not self.reduced:
             assert scene.faces is not None
@@ -125,7 +134,7 @@ class ScanView:
         # An invisible proxy surface: it receives the drag gestures that point clouds do not.
         shown = self.display
         verts, faces = splat_proxy(scene.points[shown], self.session.geom.normals[shown], size=splat_size,
-                                   max_splats=150_000)
+                                   max_splats=max_splats)
         return self.server.scene.add_mesh_simple("/scan/surface", verts, faces, color=(200, 200, 200), opacity=0.0,
                                                  side="double")
 
@@ -195,14 +204,15 @@ class ScanView:
 
     def draw_lasso(self) -> None:
         """Draw the lasso outline (removed when it has fewer than two points)."""
-        seg = self.session.lasso_outline.segments()
-        if seg is not None:
-            self.lasso_handle = self.server.scene.add_line_segments("/annotator/lasso", seg, colors=LASSO_COLOR,
-                                                                    thickness=2.0, thickness_units="screen")
-        elif self.lasso_handle is not None:
-            with contextlib.suppress(Exception):
-                self.lasso_handle.remove()
-            self.lasso_handle = None
+        with self._lasso_lock:
+            seg = self.session.lasso_outline.segments()
+            if seg is not None:
+                self.lasso_handle = self.server.scene.add_line_segments(
+                    "/annotator/lasso", seg, colors=LASSO_COLOR, thickness=2.0, thickness_units="screen")
+            elif self.lasso_handle is not None:
+                with contextlib.suppress(Exception):
+                    self.lasso_handle.remove()
+                self.lasso_handle = None
 
     # ---- camera
     def fly_to(self, idx: np.ndarray, client: ClientHandle | None = None) -> None:

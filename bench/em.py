@@ -59,6 +59,8 @@ def get_scene(config: str, seed: int, mode: str, *, distractors: bool = True) ->
     return scene
 
 
+MAIN_CATEGORY: list[str] = []
+"""The evaluated prior's category (its instances are the ones scored)."""
 EXTRA_PRIORS: list[Any] = []
 """Priors of other categories solved jointly with the mug prior (`--extra-prior`); their instances are not mugs."""
 
@@ -69,7 +71,8 @@ def mug_prediction(res: Any, name: str) -> Any:
     from efem_viz.prior.config import prior_category
 
     others = tuple(prior_category(p).name for p in EXTRA_PRIORS)
-    return prediction_from_instances(res.instances, name=name, class_names=("mug", *others))
+    main = MAIN_CATEGORY[0] if MAIN_CATEGORY else "mug"
+    return prediction_from_instances(res.instances, name=name, class_names=(main, *others))
 
 
 def run_one(scene: Any, prior: Any, cfg: Any, seed: int = 0) -> Any:
@@ -191,6 +194,7 @@ def main() -> int:
 
     from efem_viz.em import preset
     from efem_viz.eval import SceneGroundTruth, evaluate
+    from efem_viz.prior.config import prior_category
     from efem_viz.prior.model import load_prior
 
     from em_stability import parse_config
@@ -198,6 +202,7 @@ def main() -> int:
     torch.set_num_threads(args.threads)
     prior = load_prior(args.prior)
     EXTRA_PRIORS[:] = [load_prior(p) for p in args.extra_prior]
+    MAIN_CATEGORY[:] = [prior_category(prior).name]
     cfg = preset(args.preset).with_proposals(args.proposals).replace(work_voxel=args.work_voxel)
     variants = dict(parse_config(spec) for spec in (args.config or [f"{args.preset}="]))
     cfgs = {name: cfg.replace(**changes) for name, changes in variants.items()}

@@ -108,6 +108,7 @@ def test_a_scan_over_the_display_budget_is_drawn_from_a_subset_and_labelled_in_f
         a.close()
     with pytest.raises(ValueError, match="at least 1"):
         AnnotatorApp(mesh_path, out_dir=tmp_path / "out2", port=0, display_points=0)
+    assert not (tmp_path / "out2").exists()  # refused before anything was written
 
 
 def test_queued_events_are_processed_in_order(app: AnnotatorApp) -> None:
@@ -838,3 +839,31 @@ def test_lasso_outline_clamps_limits_and_closes() -> None:
         o.add((0.1, 0.1), ray_origin=np.zeros(3), ray_direction=np.array([1.0, 0, 0]), camera=cam)
     o.clear()
     assert len(o) == 0 and o.camera is None
+
+
+def test_the_drag_surface_of_a_reduced_scan_covers_it(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A scan drawn from a subset, with fewer proxy splats than drawn points (the default budget on a 5M scan:
+    1M drawn, 150k splats): the invisible splats must still cover the surface, or most Ctrl+drags start nowhere.
+    Lower bound of the covered share: scan vertices within a splat's inradius (half its circumradius) of one."""
+    import annotator.scan_view as scan_view
+    from scipy.spatial import cKDTree
+
+    g = np.linspace(0.0, 0.3, 300, dtype=np.float32)  # 90k vertices, 1 mm apart
+    xy = np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)
+    pts = np.concatenate([xy, np.zeros((len(xy), 1), np.float32)], 1)
+    nrm = np.tile(np.array([[0.0, 0.0, 1.0]], np.float32), (len(pts), 1))
+    scan = save_scene(Scene.create("plane", pts, normals=nrm), tmp_path / "plane.ply")
+    monkeypatch.setattr(scan_view, "MAX_SPLATS", 5000)
+    a = AnnotatorApp(scan, out_dir=tmp_path / "out", port=0, autosave_delay=0, display_points=30_000)
+    try:
+        verts = np.asarray(a.view.surface.vertices, np.float64).reshape(-1, 3, 3)
+        assert len(verts) == 5000
+        centres = verts.mean(axis=1)
+        size = float(np.linalg.norm(verts[0, 0] - centres[0]))  # circumradius
+        d, _ = cKDTree(centres[:, :2]).query(pts[:, :2].astype(np.float64))
+        inner = pts[:, :2].min(1) > 0.01  # away from the border, where no splat lies beyond
+        inner &= pts[:, :2].max(1) < 0.29
+        covered = float((d[inner] <= size / 2).mean())
+        assert covered > 0.75, f"the drag surface covers only about {covered:.0%} of the scan"
+    finally:
+        a.close()

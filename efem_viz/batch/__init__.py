@@ -1,9 +1,10 @@
 """Batch segmentation of many scans: `efem-viz segment SCENES... --out DIR` runs through this package.
 
-- `job.py`: `BatchJob` (the settings every scene shares), `SceneTask`, `SceneOutcome`, `WorkerInfo`.
+- `job.py`: `BatchJob` (the settings every scene shares), `SceneTask`, `SceneOutcome`, `WorkerInfo`, `BatchPlan`,
+  `BatchReport`.
 - `worker.py`: `SceneWorker`, the same code on every backend (priors loaded once per worker).
 - `backends.py`: the `Backend` protocol, `local` and `process`; `ray_backend.py`: `ray`; `registry.py`: `BACKENDS`.
-- `runner.py`: `plan_batch` (resume), `run_batch`, `BatchReport`, `batch.json`.
+- `runner.py`: `plan_batch` (resume), `run_batch`, `batch.json`.
 - `console.py`: the CLI's rich progress display and summary table (the only module here that prints).
 - `commands.py`: `efem-viz segment` (`SegmentArgs`), a thin CLI over `run_batch`.
 

@@ -1,4 +1,5 @@
-"""What a batch run is made of: the job (`BatchJob`), one scene's task (`SceneTask`) and its outcome (`SceneOutcome`).
+"""What a batch run is made of: the job (`BatchJob`), one scene's task (`SceneTask`) and its outcome (`SceneOutcome`),
+the plan (`BatchPlan`) and the report (`BatchReport`).
 
 These are plain picklable records: the driver builds them, ships tasks to workers (in-process, a local process pool
 or Ray actors) and gets outcomes back. Nothing here imports torch, so the driver of a Ray cluster stays light.

@@ -572,6 +572,7 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
         cfg = args.prior_config()
     init: ShapePrior | None = None
     if ckpt is None and args.init_from is not None:
+        from efem_viz.prior.config import prior_category
         from efem_viz.prior.model import load_prior
 
         init = load_prior(args.init_from, load_codebook=False)
@@ -580,7 +581,7 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
     if init is not None:
         prior.load_state_dict(init.state_dict())
         # Another category's prior gives weights only: its τ_out, calibration and category settings are not ours.
-        kept = dict(init.metadata or {}) if init.name == args.category else {}
+        kept = dict(init.metadata or {}) if prior_category(init).name == args.category else {}
         prior.metadata = {**kept, "init_from": str(args.init_from)}
         log.info("initialised from %s", args.init_from)
     scfg = args.sample_config(cfg.n_pcl)

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from browser_utils import changed_mask, ctrl_drag, open_viser_pages, settle_canvas, wait_until
 
-pytestmark = [pytest.mark.browser, pytest.mark.timeout(1200)]
+pytestmark = [pytest.mark.browser, pytest.mark.timeout(600)]
 
 DOCS_IMG = Path(__file__).resolve().parents[2] / "docs" / "img"
 SAVE = os.environ.get("EFEM_SAVE_SCREENSHOTS") == "1"
