@@ -196,13 +196,13 @@ class AnnotatorApp:
 
         default_efem = self.scan_path.with_name(self.stem + RESULT_SUFFIX)
         priors = tuple(available_priors()) or (DEFAULT_PRIOR,)
-        self.panels = Panels(self.server.gui, self.tools, self.settings, instance_options=self._instance_options(),
+        self.panels = Panels(self.server.gui, self.tools, self.settings,
                              efem_result=default_efem.name if default_efem.exists() else "", priors=priors,
                              prior=DEFAULT_PRIOR if DEFAULT_PRIOR in priors else priors[0])
         """The GUI handles (`annotator.panels`)."""
         wire(self, self.server.gui)
         self.show_tool()
-        self._refresh_panel()
+        self._refresh_panel()  # fills the instance lists (`panel_view`)
 
     # ---- tool table → GUI
     @property
@@ -234,10 +234,6 @@ class AnnotatorApp:
             handle.value = value
         finally:
             self._tls.syncing = prev
-
-    def _instance_options(self) -> tuple[str, ...]:
-        ls = self.store.labelset
-        return tuple(f"{k}: {v.name}" for k, v in ls.instances.items())
 
     def _refresh_panel(self) -> None:
         """Push counts, progress, the instance list and the active instance's fields to the GUI

@@ -96,14 +96,13 @@ class Panels:
     gui_help: GuiMarkdownHandle
 
     def __init__(self, gui: GuiApi, tools: Sequence[Tool], settings: ToolSettings, *,
-                 instance_options: tuple[str, ...], efem_result: str, priors: tuple[str, ...], prior: str) -> None:
+                 efem_result: str, priors: tuple[str, ...], prior: str) -> None:
         """Create the folders and their handles (Tools, Instances, History, Files, EFEM assist, Help).
 
         Args:
             gui: the server's GUI.
             tools: the tool table (toolbar order).
             settings: the tool settings the controls start from.
-            instance_options: the instance dropdowns' first options.
             efem_result: the EFEM result path shown at start ("" for none).
             priors: the Segment tool's priors; `prior` is selected.
         """
@@ -117,9 +116,8 @@ class Panels:
                                         disabled=cmd.disabled, hint=cmd.hint)
                 for t in tools for cmd in t.commands}
             self.gui_seg_progress = gui.add_progress_bar(0.0, visible=False)
-        options = instance_options or NO_OPTIONS
         with gui.add_folder("Instances"):
-            self.gui_active = gui.add_dropdown("Active", options)
+            self.gui_active = gui.add_dropdown("Active", NO_OPTIONS)
             self.gui_name = gui.add_text("Name", "")
             self.gui_category = gui.add_text("Category", settings.category,
                                              hint="the active instance's category; new instances (N) take "
@@ -130,7 +128,7 @@ class Panels:
                                                     hint="dim unlabelled vertices, so what is labelled stands out")
             self.gui_visible = gui.add_checkbox("Visible", True)
             self.gui_locked = gui.add_checkbox("Locked", False)
-            self.gui_merge_into = gui.add_dropdown("Merge active into", options)
+            self.gui_merge_into = gui.add_dropdown("Merge active into", NO_OPTIONS)
             self.gui_merge = gui.add_button("Merge")
             self.gui_delete = gui.add_button("Delete active", color="red")
             self.gui_progress = gui.add_progress_bar(0.0)

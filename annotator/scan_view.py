@@ -94,8 +94,8 @@ class ScanView:
         """(D,) int32 vertex ids drawn."""
         self.reduced = len(self.display) < scene.num_points
         """True when the scan is drawn from a subset (level of detail)."""
-        self.chunks: Chunks = build_chunks(scene.points[self.display], max_chunk=chunk_size).lifted(
-            self.display, scene.num_points)
+        self.chunks: Chunks = (build_chunks(scene.points[self.display], max_chunk=chunk_size).lifted(
+            self.display, scene.num_points) if self.reduced else build_chunks(scene.points, max_chunk=chunk_size))
         self.stats = Stats()
         self.cursor_handle: viser.LineSegmentsHandle | None = None
         self.lasso_handle: viser.LineSegmentsHandle | None = None
@@ -139,27 +139,31 @@ class ScanView:
                                                  side="double")
 
     def _add_chunks(self) -> list[viser.PointCloudHandle]:
+        lut_show = self._lut()  # one colour table for every chunk
         handles = []
         for c in range(self.chunks.count):
             m = self.chunks.members(c)
             handles.append(self.server.scene.add_point_cloud(
-                f"/scan/labels/chunk_{c:04d}", points=self.session.scene.points[m], colors=self._colors(m),
+                f"/scan/labels/chunk_{c:04d}", points=self.session.scene.points[m], colors=self._colors(m, lut_show),
                 point_size=self.point_size, point_shape="circle"))
         return handles
 
-    def _colors(self, m: np.ndarray, lut_show: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
-        store, ses = self.session.store, self.session
-        labels = store.labels
-        lut, show = lut_show or color_lut(store.labelset.instances, int(labels.max(initial=0)))
+    def _lut(self) -> tuple[np.ndarray, np.ndarray]:
+        """The label colour table (`color_lut`) of the labels now."""
+        store = self.session.store
+        return color_lut(store.labelset.instances, int(store.labels.max(initial=0)))
+
+    def _colors(self, m: np.ndarray, lut_show: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+        ses = self.session
+        lut, show = lut_show
         hl = None if ses.preview is None else ses.preview[m]
-        return compose_colors(ses.scene.colors[m], labels[m], lut, show, highlight=hl,
+        return compose_colors(ses.scene.colors[m], ses.store.labels[m], lut, show, highlight=hl,
                               dim_unlabelled=ses.settings.labels_only)
 
     def draw_chunks(self, chunk_ids: np.ndarray) -> int:
         """Recompute and send the colours of some chunks; returns the payload bytes sent."""
         with self._draw_lock:
-            store = self.session.store
-            lut_show = color_lut(store.labelset.instances, int(store.labels.max(initial=0)))
+            lut_show = self._lut()
             sent = 0
             for c in np.asarray(chunk_ids, np.int64):
                 cols = self._colors(self.chunks.members(int(c)), lut_show)

@@ -59,20 +59,18 @@ def get_scene(config: str, seed: int, mode: str, *, distractors: bool = True) ->
     return scene
 
 
-MAIN_CATEGORY: list[str] = []
-"""The evaluated prior's category (its instances are the ones scored)."""
 EXTRA_PRIORS: list[Any] = []
-"""Priors of other categories solved jointly with the mug prior (`--extra-prior`); their instances are not mugs."""
+"""Priors of other categories solved jointly with the evaluated prior (`--extra-prior`); set once in `main`."""
+CATEGORIES: list[str] = ["mug"]
+"""The categories of a solve, the evaluated prior's first (class 1, the one scored); set once in `main`."""
 
 
 def mug_prediction(res: Any, name: str) -> Any:
-    """The mug instances of a result as a prediction (a joint solve's other categories are left out)."""
+    """The evaluated category's instances of a result as a prediction (a joint solve's others are class 2, ...,
+    which `evaluate(class_names=("mug",))` leaves out)."""
     from efem_viz.eval import prediction_from_instances
-    from efem_viz.prior.config import prior_category
 
-    others = tuple(prior_category(p).name for p in EXTRA_PRIORS)
-    main = MAIN_CATEGORY[0] if MAIN_CATEGORY else "mug"
-    return prediction_from_instances(res.instances, name=name, class_names=(main, *others))
+    return prediction_from_instances(res.instances, name=name, class_names=tuple(CATEGORIES))
 
 
 def run_one(scene: Any, prior: Any, cfg: Any, seed: int = 0) -> Any:
@@ -202,7 +200,7 @@ def main() -> int:
     torch.set_num_threads(args.threads)
     prior = load_prior(args.prior)
     EXTRA_PRIORS[:] = [load_prior(p) for p in args.extra_prior]
-    MAIN_CATEGORY[:] = [prior_category(prior).name]
+    CATEGORIES[:] = [prior_category(p).name for p in (prior, *EXTRA_PRIORS)]
     cfg = preset(args.preset).with_proposals(args.proposals).replace(work_voxel=args.work_voxel)
     variants = dict(parse_config(spec) for spec in (args.config or [f"{args.preset}="]))
     cfgs = {name: cfg.replace(**changes) for name, changes in variants.items()}
