@@ -187,3 +187,22 @@ def test_load_prior_refuses_a_codebook_of_other_weights(prior: ShapePrior, codeb
     assert load_prior(tmp_path / "p.pt").codebook is not None
     save_prior(ShapePrior(prior.config), tmp_path / "p.pt")  # other (random) weights, same file name
     assert load_prior(tmp_path / "p.pt").codebook is None
+
+
+def test_pose_search_on_sample_subsets_finds_the_same_pose(codebook: Codebook, prior: ShapePrior) -> None:
+    """`search_points` aligns and scores subsets: the same entry and rotation as the full search, the whole
+    selected cloud returned, and a bad count refused."""
+    rng = np.random.default_rng(3)
+    R_true = random_rotation(rng)
+    s, t = 0.1, rng.normal(size=3)
+    lat = _encode(prior, s * codebook.encoder_input(4) @ R_true.T + t)
+    samples = s * codebook.cloud(4) @ R_true.T + t - lat.center.numpy()[0]
+    full = estimate_pose(prior, lat, samples, codebook=codebook)
+    sub = estimate_pose(prior, lat, samples, codebook=codebook, search_points=300)
+    assert sub.selected == full.selected == 4
+    assert rotation_angle_deg(sub.R, full.R) < 2.0
+    assert abs(sub.score_db_sim - full.score_db_sim) < 0.05
+    assert sub.aligned_cloud.shape == full.aligned_cloud.shape
+    assert np.abs(sub.aligned_cloud - samples).max() < 0.03 * s
+    with pytest.raises(ValueError, match="search_points"):
+        estimate_pose(prior, lat, samples, codebook=codebook, search_points=0)

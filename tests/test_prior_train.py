@@ -307,3 +307,79 @@ def test_init_from_another_category_keeps_the_weights_not_the_settings(tmp_path:
                   init_from=src, calibrate_iso=False)
     train(again)
     assert load_prior(again.resolved_export(), load_codebook=False).metadata["tau_out"] == 0.05
+
+
+# ------------------------------------------------------------------------------------------ growth and bf16
+def _trained_tiny(seed: int = 0) -> ShapePrior:
+    """A tiny prior whose decoder weights are all non-zero (as a trained one's are)."""
+    torch.manual_seed(seed)
+    prior = ShapePrior(PriorConfig(widths=(8, 8, 16, 16), down_blocks=(2,), down_factors=(2,), latent_dim=16,
+                                   center_hidden=8, n_pcl=64, k=8, decoder_hidden=32, decoder_blocks=2))
+    with torch.no_grad():
+        for prm in prior.decoder.parameters():
+            prm.add_(0.1 * torch.randn_like(prm))
+    return prior.double().eval()
+
+
+def test_widened_decoder_computes_the_same_sdf_in_float64() -> None:
+    from efem_viz.prior.widen import widen_decoder
+
+    prior = _trained_tiny()
+    grown = widen_decoder(prior, hidden=80, blocks=4, seed=3)
+    assert (grown.config.decoder_hidden, grown.config.decoder_blocks) == (80, 4)
+    assert grown.dtype == torch.float64 and grown.decoder.fc_in.weight.shape[0] == 80
+    g = torch.Generator().manual_seed(1)
+    pts = torch.randn(3, 64, 3, generator=g, dtype=torch.float64) * 0.3
+    x = torch.randn(3, 500, 3, generator=g, dtype=torch.float64) * 0.5
+    lat = prior.encode(pts)
+    ref = prior.sdf(x, lat)
+    out = grown.sdf(x, grown.encode(pts))
+    assert torch.allclose(out, ref, rtol=0, atol=1e-12)
+    # negative control: the new units are live, so a nudge of a new fc_out weight changes the function
+    with torch.no_grad():
+        grown.decoder.fc_out.weight[0, 32:] += 1.0
+    assert (grown.sdf(x, grown.encode(pts)) - ref).abs().max() > 1e-6
+    # the source prior is untouched, and shrinking is refused
+    assert prior.config.decoder_hidden == 32 and torch.equal(prior.sdf(x, lat), ref)
+    with pytest.raises(ValueError, match="grow"):
+        widen_decoder(prior, hidden=16)
+
+
+def test_widened_decoder_trains_its_new_units() -> None:
+    """One gradient step moves the new units' outgoing weights (a zero-init that gets no gradient would stay
+    dead) and the appended blocks' output layers."""
+    from efem_viz.prior.widen import widen_decoder
+
+    grown = widen_decoder(_trained_tiny(), hidden=48, blocks=3, seed=0).train()
+    g = torch.Generator().manual_seed(2)
+    pts = torch.randn(4, 64, 3, generator=g, dtype=torch.float64) * 0.3
+    x = torch.randn(4, 300, 3, generator=g, dtype=torch.float64) * 0.5
+    loss = (grown.sdf(x, grown.encode(pts)) - 0.1).abs().mean()
+    loss.backward()
+    dec = grown.decoder
+    assert dec.fc_out.weight.grad[0, 32:].abs().max() > 0
+    assert dec.block0.fc_1.weight.grad[:32, 32:].abs().max() > 0
+    assert dec.block2.fc_1.weight.grad.abs().max() > 0
+
+
+def test_grown_bf16_run_starts_from_the_source_prior(tmp_path: Path, cache_dir: Path) -> None:
+    """--init-from with --grow-decoder-* and --matmul-dtype bfloat16: the iteration-0 validation equals the
+    source prior's (the growth preserves the function and validation runs in float32), the run trains, and the
+    export has the grown architecture."""
+    first = _args(tmp_path / "a", cache_dir, iterations=4, val_every=100, calibrate_iso=False)
+    train(first)
+    args = _args(tmp_path / "b", cache_dir, iterations=6, val_every=100, init_from=first.resolved_export(),
+                 grow_decoder_hidden=48, grow_decoder_blocks=2, matmul_dtype="bfloat16", calibrate_iso=False)
+    res = train(args)
+    from efem_viz.prior.train import load_objects, validate
+
+    start = load_prior(first.resolved_export(), load_codebook=False).eval()
+    ref = validate(start, load_objects(args, "val"), args.sample_config(start.config.n_pcl), seed=args.seed + 99)
+    assert res["val_curve"][0]["iou"] == pytest.approx(ref["iou"], abs=1e-6)
+    assert res["iteration"] == 6 and all(np.isfinite([c["loss"] for c in res["curve"]]))
+    out = load_prior(args.resolved_export(), load_codebook=False)
+    assert (out.config.decoder_hidden, out.config.decoder_blocks) == (48, 2)
+    with pytest.raises(ValueError, match="matmul_dtype"):
+        train(_args(tmp_path / "c", cache_dir, matmul_dtype="float16"))
+    with pytest.raises(ValueError, match="init-from"):
+        train(_args(tmp_path / "d", cache_dir, grow_decoder_hidden=64))

@@ -12,7 +12,15 @@ import json
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal
 
-from efem_viz.prior.config import DEFAULT_TAU_OUT, DOMAINS, MAX_TAU_OUT, CategorySettings, prior_category
+from efem_viz.prior.config import (
+    DEFAULT_TAU_OUT,
+    DOMAINS,
+    MATMUL_DTYPES,
+    MAX_TAU_OUT,
+    CategorySettings,
+    MatmulDtype,
+    prior_category,
+)
 
 if TYPE_CHECKING:
     from efem_viz.prior.config import ShapePriorLike
@@ -26,8 +34,6 @@ PRESET_ALIASES: dict[str, str] = {"synthetic_mugs": "synthetic", "real_mugs": "r
 """Names of the presets before they lost the category (still accepted by `preset`)."""
 CropMode = Literal["sphere", "cylinder"]
 Domain = Literal["synthetic", "real"]
-MatmulDtype = Literal["float32", "bfloat16"]
-MATMUL_DTYPES: tuple[str, ...] = ("float32", "bfloat16")
 
 
 @dataclass(frozen=True)
@@ -135,6 +141,10 @@ class EMConfig:
     """Points sampled per proposal per M-step; None = the prior's training size."""
     pose_retrieval: bool = True
     """Estimate the pose with the prior's codebook in reviews (when it has one); else R = identity."""
+    pose_points: int | None = 1000
+    """Samples (of the proposal and of each codebook cloud) the review's pose search aligns and scores
+    (`estimate_pose(search_points=...)`); None = all `n_store` (the release). 1000 of 5000 cut the search's
+    cost about 5x (docs/BENCHMARKS.md, issue 32)."""
     refine_steps: int = 0
     """Test-time latent refinement (efem_viz/em/refine.py): gradient steps fitting each proposal's latent to its
     M-step samples through the decoder, regularised toward the encoder's code; 0 = off (the paper's method)."""
@@ -222,6 +232,8 @@ class EMConfig:
             raise ValueError(f"mesh_resolution must be >= 8, got {self.mesh_resolution}")
         if self.matmul_dtype not in MATMUL_DTYPES:
             raise ValueError(f"matmul_dtype must be one of {MATMUL_DTYPES}, got {self.matmul_dtype!r}")
+        if self.pose_points is not None and self.pose_points < 1:
+            raise ValueError(f"pose_points must be >= 1 or None, got {self.pose_points}")
         if self.encode_batch < 1 or self.decode_chunk < 1 or self.n_store < 1:
             raise ValueError("encode_batch, decode_chunk and n_store must be >= 1")
 

@@ -10,7 +10,7 @@ so one trace holds them all. With a single prior nothing is padded and every cal
 from __future__ import annotations
 
 from collections.abc import Sequence
-from contextlib import AbstractContextManager, nullcontext
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -64,16 +64,12 @@ def prior_dtype(prior: "ShapePriorLike") -> Any:
 
 
 def matmul_precision(dtype: str, prior: "ShapePriorLike | None" = None) -> AbstractContextManager[Any]:
-    """The context in which the solver runs the networks for `EMConfig.matmul_dtype`: `torch.autocast` to
-    bfloat16 on the prior's device type for "bfloat16", a no-op for "float32". Outputs leave the networks as
-    float32 (`decode_rows`, `encode_samples` convert); k-NN graphs stay float32 (`geometry.knn`)."""
-    if dtype == "float32":
-        return nullcontext()
-    if dtype != "bfloat16":
-        raise ValueError(f"matmul_dtype must be 'float32' or 'bfloat16', got {dtype!r}")
-    import torch
+    """The context in which the solver runs the networks for `EMConfig.matmul_dtype`
+    (`prior.config.matmul_precision` on the prior's device type). Outputs leave the networks as float32
+    (`decode_rows`, `encode_samples` convert)."""
+    from efem_viz.prior.config import matmul_precision as _precision
 
-    return torch.autocast(_device_type(prior), dtype=torch.bfloat16)
+    return _precision(dtype, _device_type(prior))
 
 
 def _device_type(prior: "ShapePriorLike | None") -> str:

@@ -650,7 +650,7 @@ class _Solver:
         from efem_viz.prior.pose import estimate_pose
 
         one = {key: np.asarray(v)[None] if key != "scale" else np.asarray(v).reshape(1) for key, v in lat.items()}
-        est = estimate_pose(prior, latent_from_numpy(prior, one), Q, fnorm)
+        est = estimate_pose(prior, latent_from_numpy(prior, one), Q, fnorm, search_points=self.cfg.pose_points)
         s_sel = (float(est.scale_sel) if np.isfinite(est.scale_sel) and est.scale_sel > 0
                  else self.ref_scales[k])
         R = np.asarray(est.R, np.float64)

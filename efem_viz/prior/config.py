@@ -16,8 +16,9 @@ import dataclasses
 import logging
 import math
 from collections.abc import Iterator, Mapping, Sequence
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Protocol, Union, runtime_checkable
+from typing import TYPE_CHECKING, Any, Literal, Protocol, Union, runtime_checkable
 
 import numpy as np
 
@@ -40,6 +41,27 @@ DEFAULT_PRIOR = "mug"
 """The prior efem-viz ships weights for (efem_viz/weights/mug.pt): the default of every `--prior`."""
 DOMAINS: tuple[str, ...] = ("synthetic", "real")
 """Capture domains a category may give its own sizes for (the solver's presets choose one)."""
+MatmulDtype = Literal["float32", "bfloat16"]
+"""Precision of the networks' matrix work (the solver's `EMConfig.matmul_dtype`, training's `--matmul-dtype`)."""
+MATMUL_DTYPES: tuple[str, ...] = ("float32", "bfloat16")
+
+
+def matmul_precision(dtype: str, device_type: str = "cpu") -> AbstractContextManager[Any]:
+    """The context in which a prior's networks run for a `MatmulDtype`: `torch.autocast` to bfloat16 on
+    ``device_type`` ("cpu" or "cuda") for "bfloat16" (AMX / AVX-512 bf16 CPUs run its matrix products 4-9x
+    faster), a no-op for "float32". Parameters stay float32 (autocast casts per op); k-NN graphs stay float32
+    (`geometry.knn`).
+
+    Raises:
+        ValueError: On an unknown dtype name.
+    """
+    if dtype == "float32":
+        return nullcontext()
+    if dtype != "bfloat16":
+        raise ValueError(f"matmul_dtype must be one of {MATMUL_DTYPES}, got {dtype!r}")
+    import torch
+
+    return torch.autocast(device_type, dtype=torch.bfloat16)
 
 
 @dataclass

@@ -14,6 +14,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from efem_viz.prior import fused
 from efem_viz.geometry.fps import farthest_point_sample
 from efem_viz.geometry.knn import knn_indices
 from efem_viz.prior.vn_layers import (
@@ -140,8 +141,8 @@ class VNDGCNNEncoder(nn.Module):
                 xi_e = xi[:, :, None].expand_as(xj)
                 cross = torch.cross(xi_hat[:, :, None].expand_as(xj), xj, dim=-1)
                 edge = torch.stack([cross, xj - xi_e, xi_e], dim=-1)  # (B, Nd, k, 3, 3)
-                y = layer(edge)
-                out = y.mean(dim=2)
+                out = fused.lin_act_mean(edge, layer.lin.weight, layer.act.lin_dir.weight,
+                                         layer.act.negative_slope)
             elif str(b) in self.Q_list:
                 u = self._edge_linear(layer, feat, f_dst, nbr)  # (B, Nd, k, 3, C)
                 k_layer = cast(VNLinearLeakyReLU, self.K_list[str(b)])
@@ -155,7 +156,11 @@ class VNDGCNNEncoder(nn.Module):
                 att = att.repeat_interleave(cfg.att_head_dim, dim=-1)[..., None, :]  # (B, Nd, k, 1, C)
                 out = (att * u).sum(dim=2)
             else:
-                out = self._edge_linear(layer, feat, f_dst, nbr).mean(dim=2)
+                w = layer.lin.weight
+                c_in = feat.shape[-1]
+                w1 = w[:, :c_in]
+                out = fused.edge_mean(F.linear(feat, w1), F.linear(f_dst, w[:, c_in:] - w1), nbr,
+                                      layer.act.lin_dir.weight, layer.act.negative_slope)
             if b >= cfg.global_from:
                 glayer = cast(VNLinearLeakyReLU, self.global_conv_list[g_idx])
                 g_idx += 1

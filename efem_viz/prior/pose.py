@@ -84,12 +84,22 @@ def _align_neighbour(
     *,
     icp_iters: int,
     proper: bool,
+    subset: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Latent Procrustes + ICP for codebook row n. Returns (R_n (3,3), aligned cloud (n_store, 3))."""
+    """Latent Procrustes + ICP for codebook row n (on the cloud's `subset` rows, when given). Returns
+    (R_n (3,3), aligned cloud (n_store or len(subset), 3))."""
     R0 = latent_procrustes(theta, cb.z_so3[n].astype(np.float64), proper=proper)
-    A = (scale / float(cb.scale[n])) * (cb.cloud(n) - cb.center[n].astype(np.float64)) @ R0.T
+    cloud = cb.cloud(n) if subset is None else cb.pcl[n][subset].astype(np.float64)
+    A = (scale / float(cb.scale[n])) * (cloud - cb.center[n].astype(np.float64)) @ R0.T
     res = icp_rotation(A, Q, iters=icp_iters, proper=proper, tree=Q_tree)
     return res.R @ R0, res.aligned
+
+
+def _subset(n: int, k: int | None) -> np.ndarray | None:
+    """Fixed random rows (seed 0, sorted) of an n-row sample set, or None when k keeps them all."""
+    if k is None or k >= n:
+        return None
+    return np.sort(np.random.default_rng(0).choice(n, size=int(k), replace=False))
 
 
 def _inlier_ratio(Q: np.ndarray, Q_tree: Any, A: np.ndarray, to_canonical: float, tau: float) -> float:
@@ -114,6 +124,7 @@ def estimate_pose(
     k_so3: int = 3,
     k_joint: int = 3,
     proper_search: bool = False,
+    search_points: int | None = None,
 ) -> PoseEstimate:
     """Pose of one proposal from the prior's codebook (spec §3.9 steps 3-7).
 
@@ -131,6 +142,10 @@ def estimate_pose(
         k_so3: neighbours by the projected Θ_R.
         k_joint: neighbours by both.
         proper_search: align every neighbour with proper rotations only (no reflections anywhere).
+        search_points: align and score the neighbours on fixed random subsets of this many samples (of the
+            proposal and of each codebook cloud) instead of all of them; the search's cost falls in proportion
+            (k-d tree queries dominate) and the inlier ratios become estimates of the same fractions. None =
+            every sample. `aligned_cloud` is always the whole selected cloud.
 
     Returns:
         PoseEstimate.
@@ -160,14 +175,22 @@ def estimate_pose(
         # unit conversions stay finite)
         return PoseEstimate(eye, eye.copy(), cb.mean_scale, 0.0, np.zeros(0, np.int64), np.zeros(0), -1,
                             np.zeros((0, 3)), False)
+    if search_points is not None and search_points < 1:
+        raise ValueError(f"search_points must be >= 1 or None, got {search_points}")
     nbrs = cb.retrieve(latent_i, k_inv=k_inv, k_so3=k_so3, k_joint=k_joint)
+    Q_full = Q
+    q_sub = _subset(len(Q), search_points)
+    c_sub = _subset(cb.pcl.shape[1], search_points)
+    if q_sub is not None:
+        Q = Q[q_sub]
     Q_tree = cKDTree(Q - Q.mean(axis=0))
     proper = bool(proper_search)
     cache: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}
     scores = np.zeros(len(nbrs))
     for j, n in enumerate(nbrs.tolist()):
         if n not in cache:
-            R_n, A_n = _align_neighbour(theta, scale, cb, n, Q, Q_tree, icp_iters=icp_iters, proper=proper)
+            R_n, A_n = _align_neighbour(theta, scale, cb, n, Q, Q_tree, icp_iters=icp_iters, proper=proper,
+                                        subset=c_sub)
             r_n = _inlier_ratio(Q, Q_tree, A_n, float(cb.scale[n]) / scale, tau_db)
             cache[n] = (R_n, A_n, r_n)
         scores[j] = cache[n][2]
@@ -176,9 +199,14 @@ def estimate_pose(
     R_raw, A_raw, r_star = cache[n_star]
     reflected = bool(np.linalg.det(R_raw) < 0)
     if reflected:
-        R, A = _align_neighbour(theta, scale, cb, n_star, Q, Q_tree, icp_iters=icp_iters, proper=True)
+        R, A = _align_neighbour(theta, scale, cb, n_star, Q, Q_tree, icp_iters=icp_iters, proper=True,
+                                subset=c_sub)
     else:
         R, A = R_raw, A_raw
+    if q_sub is not None or c_sub is not None:  # the whole selected cloud, placed as the search placed its subset
+        full = (scale / float(cb.scale[n_star])) * (cb.cloud(n_star) - cb.center[n_star].astype(np.float64))
+        A = full @ R.T
+        A = A - A.mean(axis=0) + Q_full.mean(axis=0)
     return PoseEstimate(
         R=R,
         R_raw=R_raw,

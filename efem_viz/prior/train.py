@@ -119,6 +119,14 @@ class TrainArgs:
     init_from: Path | None = None
     """Start a new run (iteration 0, fresh optimiser, this run's schedule) from the weights of a saved prior,
     e.g. the shipped ``efem_viz/weights/mug.pt`` (fine-tuning). Ignored on resume."""
+    grow_decoder_hidden: int | None = None
+    """With --init-from: widen the decoder to this many units, function-preserving (`prior.widen`), before
+    fine-tuning (issue 34: the shipped 128-wide decoder is capacity-bound)."""
+    grow_decoder_blocks: int | None = None
+    """With --init-from: deepen the decoder to this many residual blocks (new blocks start as the identity)."""
+    matmul_dtype: str = "float32"
+    """Precision of the networks' matrix work in training steps: "bfloat16" runs them under autocast (AMX /
+    AVX-512 bf16 CPUs, CUDA) with float32 master weights, optimiser and losses; validation stays float32."""
     freeze_decoder: bool = False
     """Train the encoder only: the decoder (the shape space, its level set and the codebook's meaning) stays
     as it was. With --init-from, for fine-tuning the encoder's response to sensor inputs (issue 21)."""
@@ -311,15 +319,15 @@ def compute_losses(prior: ShapePrior, pcl: torch.Tensor, queries: torch.Tensor, 
     import torch
 
     lat = prior.encode(pcl, centroid_noise=centroid_noise)
-    pred = prior.sdf(queries[..., :3], lat)
+    pred = prior.sdf(queries[..., :3], lat).to(queries.dtype)  # losses in the model dtype under autocast too
     err = (pred - queries[..., 3]).abs()
     w = torch.where(err.detach() < 0.1, 1.0, 0.5).to(err)
     we = w * err
     parts = [we[:, :n_uniform], we[:, n_uniform:]]
     parts = [p for p in parts if p.shape[1] > 0]
     l_sdf = cast("torch.Tensor", sum(p.mean() for p in parts)) / len(parts)  # sum() of tensors is a tensor
-    l_center = lat.center.abs().sum(-1).mean()
-    l_scale = (lat.scale - 1.0).abs().mean()
+    l_center = lat.center.to(queries.dtype).abs().sum(-1).mean()
+    l_scale = (lat.scale.to(queries.dtype) - 1.0).abs().mean()
     loss = l_sdf + 0.2 * l_center + 0.001 * l_scale
     return {"loss": loss.clamp(-4.0, 4.0), "sdf": l_sdf, "center": l_center, "scale": l_scale}
 
@@ -405,7 +413,7 @@ def fixed_point_inputs(prior: ShapePrior, pcl: np.ndarray, rng: np.random.Genera
     prior.eval()
     with torch.no_grad():
         x = torch.as_tensor(out[pick], dtype=prior.dtype, device=prior.device)
-        d = prior.sdf(x, prior.encode(x)).abs().cpu().numpy()
+        d = prior.sdf(x, prior.encode(x)).abs().float().cpu().numpy()
     prior.train(was_training)
     n = out.shape[1]
     for row, b in enumerate(pick):
@@ -538,6 +546,12 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
 
     from efem_viz.prior.model import ShapePrior, count_parameters, save_prior
 
+    from efem_viz.prior.config import matmul_precision
+
+    matmul_precision(args.matmul_dtype)  # an unknown name fails here, before any data is loaded
+    if (args.grow_decoder_hidden is not None or args.grow_decoder_blocks is not None) and args.init_from is None \
+            and args.resume_from is None and not args.resume:
+        raise ValueError("--grow-decoder-hidden/--grow-decoder-blocks grow a trained prior: give --init-from")
     if args.batch_size < 1 or args.iterations < 1 or args.val_every < 1:
         raise ValueError(f"batch_size/iterations/val_every must be >= 1 (got {args.batch_size}, "
                          f"{args.iterations}, {args.val_every})")
@@ -576,6 +590,14 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
         from efem_viz.prior.model import load_prior
 
         init = load_prior(args.init_from, load_codebook=False)
+        if args.grow_decoder_hidden is not None or args.grow_decoder_blocks is not None:
+            from efem_viz.prior.widen import widen_decoder
+
+            h0, b0 = init.config.decoder_hidden, init.config.decoder_blocks
+            init = widen_decoder(init, hidden=args.grow_decoder_hidden, blocks=args.grow_decoder_blocks,
+                                 seed=args.seed)
+            log.info("decoder grown %dx%d -> %dx%d (function-preserving)", h0, b0,
+                     init.config.decoder_hidden, init.config.decoder_blocks)
         cfg = init.config
     prior = ShapePrior(cfg, name=args.category).to(args.device)
     if init is not None:
@@ -702,11 +724,14 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
         pcl_np, q_np = make_batch([train_objs[i] for i in idx], scfg, rng, others=train_objs, augment=True)
         noise_np = rng.normal(0.0, scfg.centroid_noise, (args.batch_size, 3))
         if args.fixed_point_p > 0:
-            pcl_np = fixed_point_inputs(prior, pcl_np, rng, p=args.fixed_point_p, tau=args.fixed_point_tau)
+            with matmul_precision(args.matmul_dtype, prior.device.type):
+                pcl_np = fixed_point_inputs(prior, pcl_np, rng, p=args.fixed_point_p,
+                                            tau=args.fixed_point_tau)
         pcl = torch.as_tensor(pcl_np, dtype=prior.dtype, device=prior.device)
         q = torch.as_tensor(q_np, dtype=prior.dtype, device=prior.device)
         noise = torch.as_tensor(noise_np, dtype=prior.dtype, device=prior.device)
-        losses = compute_losses(prior, pcl, q, n_uniform=n_uni, centroid_noise=noise)
+        with matmul_precision(args.matmul_dtype, prior.device.type):
+            losses = compute_losses(prior, pcl, q, n_uniform=n_uni, centroid_noise=noise)
         opt.zero_grad(set_to_none=True)
         losses["loss"].backward()
         gn_e = float(torch.nn.utils.clip_grad_norm_(enc_params, 4.0))

@@ -1,0 +1,175 @@
+"""EFEM in seconds (issue 32): per-phase seconds of one solve, before and after the speed work, same answers.
+
+For each scene (default: the bundled real frames `real_tabletop_{0,6,8}` with the `real` preset and the fixed
+synthetic scene `z_7000` of bench/em.py with the `synthetic` preset; 400 proposals) and each variant, runs the
+solver `--repeats` times and reports the median seconds per phase (the solver's own `EMResult.timings`), the
+total, and what the answers are:
+
+* `AP50` against the scene's ground truth (where it has one),
+* `mask IoU to baseline`: for each instance of the baseline run of the same seed (confidence >= `--cut`), the
+  best mask IoU among the variant's instances above the same cut, averaged: 1.0 = the same masks.
+
+Variants:
+* `baseline`: the landed main's code paths: eager VN encoder (`EFEM_VIZ_FUSED=0`), pose search on every
+  sample (`pose_points=None`);
+* `fast`: today's defaults (fused VN kernels, pose search on 1000 samples).
+
+`--busy N` runs N one-thread busy loops beside the solves (issue 32 item 4: a solve must slow down by about its
+fair share). `--profile` prints the top functions of one run per variant.
+
+Usage: python bench/speed.py [--threads 2] [--repeats 3] [--scenes real_tabletop_0 z_7000] [--busy 1]
+       [--variants baseline fast] [--tag NAME]
+Writes bench/results/speed[_TAG].json. Say the threads, and what else ran, with every number.
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import multiprocessing as mp
+import os
+import pstats
+import statistics
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
+
+VARIANTS: dict[str, tuple[dict[str, str], dict[str, Any]]] = {
+    "baseline": ({"EFEM_VIZ_FUSED": "0"}, {"pose_points": None}),
+    "fast": ({"EFEM_VIZ_FUSED": "1"}, {}),
+}
+"""name -> (environment, EMConfig overrides)."""
+
+
+def _busy() -> None:
+    x = 0
+    while True:
+        x += 1
+
+
+def load(name: str) -> tuple[Any, str]:
+    """A scene by name (a bundled sample, or a bench/em.py fixed-set scene `<config>_<seed>`) and its preset."""
+    from efem_viz.data.io import load_scene
+
+    p = ROOT / "sample_scenes" / f"{name}.ply"
+    if p.is_file():
+        return load_scene(p), "real" if name.startswith("real_") else "synthetic"
+    from em import get_scene
+
+    config, seed = name.rsplit("_", 1)
+    return get_scene(config, int(seed), "points"), "synthetic"
+
+
+def masks_of(res: Any, cut: float) -> list[np.ndarray]:
+    """The masks of the instances a confidence cut keeps (`Instances.above`, the one thresholding rule)."""
+    return [np.asarray(m) for m in res.instances.above(cut).masks]
+
+
+def mask_iou_to(base: list[np.ndarray], other: list[np.ndarray]) -> float:
+    """Mean over the baseline's masks of the best IoU with any of the other run's masks (1.0 when both empty)."""
+    if not base:
+        return 1.0 if not other else 0.0
+    sets = [set(m.tolist()) for m in other]
+    out = []
+    for m in base:
+        s = set(m.tolist())
+        out.append(max((len(s & o) / max(1, len(s | o)) for o in sets), default=0.0))
+    return float(np.mean(out))
+
+
+def ap50(scene: Any, res: Any) -> float | None:
+    if scene.instance is None or not len(scene.instance_ids()):
+        return None
+    from em import mug_prediction
+
+    from efem_viz.eval import SceneGroundTruth, evaluate
+
+    rep = evaluate([mug_prediction(res, scene.name)], [SceneGroundTruth.from_scene(scene)], class_names=("mug",))
+    return float(rep.ap50) * 100.0
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--proposals", type=int, default=400)
+    ap.add_argument("--scenes", nargs="+", default=["real_tabletop_0", "real_tabletop_6", "real_tabletop_8",
+                                                    "z_7000"])
+    ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    ap.add_argument("--busy", type=int, default=0, help="one-thread busy loops running beside the solves")
+    ap.add_argument("--profile", action="store_true")
+    ap.add_argument("--cut", type=float, default=0.1, help="confidence cut of the masks compared to the baseline")
+    ap.add_argument("--tag", default="")
+    a = ap.parse_args()
+    import torch
+
+    torch.set_num_threads(a.threads)
+    from em import machine, write_json
+
+    from efem_viz.em import run_em
+    from efem_viz.em.config import preset
+    from efem_viz.prior.model import load_prior
+    from efem_viz.prior import fused
+
+    prior = load_prior("mug")
+    fused.load()  # a first build is not a solve's time
+    busy = [mp.Process(target=_busy, daemon=True) for _ in range(a.busy)]
+    for p in busy:
+        p.start()
+    rows: list[dict[str, Any]] = []
+    try:
+        for name in a.scenes:
+            scene, pname = load(name)
+            cfg0 = preset(pname)
+            cfg0 = cfg0.replace(n_init=(a.proposals, *cfg0.n_init[1:]))
+            base_masks: list[np.ndarray] | None = None
+            for var in a.variants:
+                env, over = VARIANTS[var]
+                os.environ.update(env)
+                cfg = cfg0.replace(**over)
+                runs, res = [], None
+                for r in range(a.repeats):
+                    prof = cProfile.Profile() if (a.profile and r == 0) else None
+                    t0 = time.perf_counter()
+                    if prof is not None:
+                        prof.enable()
+                    res = run_em(scene, prior, cfg, seed=a.seed)
+                    if prof is not None:
+                        prof.disable()
+                        print(f"--- profile {name} {var}")
+                        pstats.Stats(prof).sort_stats("tottime").print_stats(15)
+                    runs.append({"wall": time.perf_counter() - t0, **res.timings})
+                assert res is not None
+                masks = masks_of(res, a.cut)
+                if base_masks is None:
+                    base_masks = masks
+                phases = {k: statistics.median(float(x.get(k, 0.0)) for x in runs)
+                          for k in runs[0] if isinstance(runs[0][k], (int, float))}
+                row = {"scene": name, "preset": pname, "variant": var, "points": scene.num_points,
+                       "median": phases, "runs": runs, "instances": len(masks),
+                       "mask_iou_to_baseline": mask_iou_to(base_masks, masks), "ap50": ap50(scene, res)}
+                rows.append(row)
+                ph = " ".join(f"{k} {phases[k]:.1f}" for k in ("encode", "decode", "review_mesh", "review_pose")
+                              if k in phases)
+                ap50_txt = "–" if row["ap50"] is None else f"{row['ap50']:.1f}"
+                print(f"{name:>16} {var:>9}: {phases['wall']:6.1f} s median of {a.repeats} ({ph}); "
+                      f"{len(masks)} instances, AP50 {ap50_txt}, mask IoU to baseline "
+                      f"{row['mask_iou_to_baseline']:.3f}", flush=True)
+    finally:
+        for p in busy:
+            p.terminate()
+    out = ROOT / "bench" / "results" / (f"speed_{a.tag}.json" if a.tag else "speed.json")
+    write_json(out, {"machine": machine(a.threads) | {"busy_loops": a.busy}, "proposals": a.proposals,
+                     "seed": a.seed, "rows": rows})
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,104 @@
+// Fused VN edge kernels of the encoder (efem_viz/prior/fused.py builds and loads this file; the Python
+// references there are the same math). CPU, float32; every neighbour index is checked before use.
+#include <ATen/ATen.h>
+#include <ATen/Parallel.h>
+#include <torch/library.h>
+#include <algorithm>
+#include <vector>
+
+namespace {
+
+inline void vn_acc(const float* x, const float* d, float* acc, int64_t C, float f) {
+  // acc[0..3C) += VN-LeakyReLU(x; d) for one edge; x, d, acc are (3, C) with C contiguous
+  for (int64_t ch = 0; ch < C; ++ch) {
+    const float x0 = x[ch], x1 = x[C + ch], x2 = x[2 * C + ch];
+    const float d0 = d[ch], d1 = d[C + ch], d2 = d[2 * C + ch];
+    const float dot = x0 * d0 + x1 * d1 + x2 * d2;
+    const float dn2 = d0 * d0 + d1 * d1 + d2 * d2;
+    const float coef = std::min(dot, 0.0f) / std::max(dn2, 1e-24f) * f;
+    acc[ch] += x0 - coef * d0;
+    acc[C + ch] += x1 - coef * d1;
+    acc[2 * C + ch] += x2 - coef * d2;
+  }
+}
+
+at::Tensor edge_mean(const at::Tensor& a_, const at::Tensor& c_, const at::Tensor& da_, const at::Tensor& dc_,
+                     const at::Tensor& nbr_, double slope) {
+  TORCH_CHECK(a_.dim() == 4 && a_.size(2) == 3 && a_.scalar_type() == at::kFloat, "a must be (B, Ns, 3, C) float32");
+  TORCH_CHECK(c_.dim() == 4 && c_.size(0) == a_.size(0) && c_.size(2) == 3 && c_.size(3) == a_.size(3) &&
+              c_.scalar_type() == at::kFloat, "c must be (B, Nd, 3, C) float32");
+  TORCH_CHECK(da_.sizes() == a_.sizes() && dc_.sizes() == c_.sizes() && da_.scalar_type() == at::kFloat &&
+              dc_.scalar_type() == at::kFloat, "da/dc must match a/c");
+  TORCH_CHECK(nbr_.dim() == 3 && nbr_.size(0) == a_.size(0) && nbr_.size(1) == c_.size(1) &&
+              nbr_.scalar_type() == at::kLong, "nbr must be (B, Nd, k) int64");
+  TORCH_CHECK(a_.device().is_cpu(), "CPU tensors only");
+  const auto a = a_.contiguous(), c = c_.contiguous(), da = da_.contiguous(), dc = dc_.contiguous();
+  const auto nbr = nbr_.contiguous();
+  const int64_t B = a.size(0), Ns = a.size(1), C = a.size(3), Nd = c.size(1), K = nbr.size(2);
+  auto out = at::empty({B, Nd, 3, C}, a.options());
+  if (out.numel() == 0) return out;
+  TORCH_CHECK(K > 0, "k must be >= 1");
+  const int64_t* pn = nbr.data_ptr<int64_t>();
+  const int64_t n_idx = nbr.numel();
+  for (int64_t t = 0; t < n_idx; ++t) TORCH_CHECK(pn[t] >= 0 && pn[t] < Ns, "neighbour index out of range");
+  const float* pa = a.data_ptr<float>();
+  const float* pc = c.data_ptr<float>();
+  const float* pda = da.data_ptr<float>();
+  const float* pdc = dc.data_ptr<float>();
+  float* po = out.data_ptr<float>();
+  const float f = 1.0f - static_cast<float>(slope);
+  const float invk = 1.0f / static_cast<float>(K);
+  const int64_t S = 3 * C;
+  at::parallel_for(0, B * Nd, 16, [&](int64_t begin, int64_t end) {
+    std::vector<float> x(S), d(S), acc(S);
+    for (int64_t bi = begin; bi < end; ++bi) {
+      const int64_t b = bi / Nd;
+      const float* ci = pc + bi * S;
+      const float* dci = pdc + bi * S;
+      std::fill(acc.begin(), acc.end(), 0.0f);
+      for (int64_t j = 0; j < K; ++j) {
+        const int64_t s = pn[bi * K + j];
+        const float* aj = pa + (b * Ns + s) * S;
+        const float* daj = pda + (b * Ns + s) * S;
+        for (int64_t t = 0; t < S; ++t) { x[t] = aj[t] + ci[t]; d[t] = daj[t] + dci[t]; }
+        vn_acc(x.data(), d.data(), acc.data(), C, f);
+      }
+      float* o = po + bi * S;
+      for (int64_t t = 0; t < S; ++t) o[t] = acc[t] * invk;
+    }
+  });
+  return out;
+}
+
+at::Tensor act_mean(const at::Tensor& x_, const at::Tensor& d_, double slope) {
+  TORCH_CHECK(x_.dim() == 5 && x_.size(3) == 3 && x_.scalar_type() == at::kFloat, "x must be (B, N, k, 3, C) float32");
+  TORCH_CHECK(d_.sizes() == x_.sizes() && d_.scalar_type() == at::kFloat, "d must match x");
+  TORCH_CHECK(x_.device().is_cpu(), "CPU tensors only");
+  const auto x = x_.contiguous(), d = d_.contiguous();
+  const int64_t B = x.size(0), N = x.size(1), K = x.size(2), C = x.size(4), S = 3 * C;
+  auto out = at::empty({B, N, 3, C}, x.options());
+  if (out.numel() == 0) return out;
+  TORCH_CHECK(K > 0, "k must be >= 1");
+  const float* px = x.data_ptr<float>();
+  const float* pd = d.data_ptr<float>();
+  float* po = out.data_ptr<float>();
+  const float f = 1.0f - static_cast<float>(slope);
+  const float invk = 1.0f / static_cast<float>(K);
+  at::parallel_for(0, B * N, 16, [&](int64_t begin, int64_t end) {
+    std::vector<float> acc(S);
+    for (int64_t bi = begin; bi < end; ++bi) {
+      std::fill(acc.begin(), acc.end(), 0.0f);
+      for (int64_t j = 0; j < K; ++j) vn_acc(px + (bi * K + j) * S, pd + (bi * K + j) * S, acc.data(), C, f);
+      float* o = po + bi * S;
+      for (int64_t t = 0; t < S; ++t) o[t] = acc[t] * invk;
+    }
+  });
+  return out;
+}
+
+}  // namespace
+
+TORCH_LIBRARY(efem_vn, m) {
+  m.def("edge_mean(Tensor a, Tensor c, Tensor da, Tensor dc, Tensor nbr, float slope) -> Tensor", &edge_mean);
+  m.def("act_mean(Tensor x, Tensor d, float slope) -> Tensor", &act_mean);
+}
