@@ -383,3 +383,28 @@ def test_grown_bf16_run_starts_from_the_source_prior(tmp_path: Path, cache_dir: 
         train(_args(tmp_path / "c", cache_dir, matmul_dtype="float16"))
     with pytest.raises(ValueError, match="init-from"):
         train(_args(tmp_path / "d", cache_dir, grow_decoder_hidden=64))
+
+
+@pytest.mark.slow
+def test_gpu_training_script_resumes_and_writes_its_outputs_on_cpu(tmp_path: Path, cache_dir: Path) -> None:
+    """scripts/train_gpu.sh, run on the CPU with a tiny budget: it resumes the given state, trains, and leaves
+    the checkpoint, the export, the resume state and the report in its output folder."""
+    import os
+    import subprocess
+
+    first = _args(tmp_path / "a", cache_dir, iterations=3, val_every=100, calibrate_iso=False)
+    train(first)
+    out = tmp_path / "gpu"
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "EFEM_TRAIN_DEVICE": "cpu", "EFEM_TRAIN_BATCH": "4", "EFEM_TRAIN_THREADS": "1",
+           "PYTHONPATH": str(root)}
+    cmd = ["bash", str(root / "scripts" / "train_gpu.sh"), str(out), "0.3", "--resume-from",
+           str(tmp_path / "a" / "run" / "last.pt"), "--n-train", "3", "--n-val", "2", "--cache-dir", str(cache_dir),
+           "--iterations", "8", "--val-every", "4", "--preset", "tiny"]
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "resumed from" in proc.stderr
+    for name in ("last.pt", "mug.pt", "mug_resume.pt", "mug_training_report.md", "config.json"):
+        assert (out / name).is_file(), name
+    ck = torch.load(out / "last.pt", weights_only=False)
+    assert ck["state"]["iteration"] > 3 and ck["args"]["device"] == "cpu"

@@ -61,7 +61,31 @@ def matmul_precision(dtype: str, device_type: str = "cpu") -> AbstractContextMan
         raise ValueError(f"matmul_dtype must be one of {MATMUL_DTYPES}, got {dtype!r}")
     import torch
 
+    if device_type == "cpu" and not fast_cpu_bf16():
+        _warn_slow_bf16()
     return torch.autocast(device_type, dtype=torch.bfloat16)
+
+
+def fast_cpu_bf16() -> bool:
+    """Whether this CPU has bf16 matrix hardware (AMX tiles or AVX-512 BF16). Without it, bf16 matrix products
+    fall back to conversions around scalar code: 10-17x *slower* than float32 (measured on an AVX2-only AMD
+    EPYC, docs/BENCHMARKS.md)."""
+    import torch
+
+    try:
+        return bool(torch.cpu._is_amx_tile_supported() or torch.cpu._is_avx512_bf16_supported())
+    except AttributeError:  # a torch without the probes: assume not
+        return False
+
+
+_slow_bf16_warned: list[bool] = []
+
+
+def _warn_slow_bf16() -> None:
+    if not _slow_bf16_warned:
+        _slow_bf16_warned.append(True)
+        logger.warning("bfloat16 asked for, but this CPU has no AMX or AVX-512 BF16: its bf16 matrix products run "
+                       "about 10x slower than float32 here (use --matmul-dtype float32)")
 
 
 @dataclass
