@@ -157,6 +157,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"efem-viz {package_version()}")
         return 0
     name, rest = args[0], args[1:]
+    from efem_viz.cpu import configure_openmp
+
+    configure_openmp()  # before torch is imported: OpenMP threads sleep at barriers (sharing busy cores)
     if name not in SUBCOMMANDS:
         print(f"efem-viz: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
         return 2

@@ -506,3 +506,23 @@ def test_segment_without_scenes_creates_nothing(tmp_path: Path) -> None:
                            "--out", str(out), "--prior", "sphere"], capture_output=True, text=True, timeout=300)
     assert proc.returncode != 0 and "missing.ply" in proc.stderr
     assert not out.exists(), "a failed segment left an output folder behind"
+
+
+def test_free_cores_and_the_wait_policy(monkeypatch: pytest.MonkeyPatch) -> None:
+    """efem_viz.cpu: the thread count leaves the cores other work holds, and the OpenMP wait policy is set only
+    before torch is imported and only when the user has not chosen one."""
+    import torch  # noqa: F401 - the "too late" case below needs it imported
+
+    from efem_viz import cpu
+
+    assert cpu.free_cores(load=0.0, cpus=2) == 2
+    assert cpu.free_cores(load=0.9, cpus=2) == 1  # one busy core (a training run, a test suite)
+    assert cpu.free_cores(load=5.0, cpus=2) == 1  # never below one
+    assert cpu.free_cores(load=float("nan"), cpus=4) == 4
+    assert cpu.free_cores(load=1.4, cpus=16) == 15
+    monkeypatch.delenv("OMP_WAIT_POLICY", raising=False)
+    assert not cpu.configure_openmp()  # torch is imported in this process: too late, and it says so
+    monkeypatch.delitem(sys.modules, "torch")
+    assert cpu.configure_openmp() and cpu.os.environ["OMP_WAIT_POLICY"] == "PASSIVE"
+    monkeypatch.setenv("OMP_WAIT_POLICY", "ACTIVE")
+    assert not cpu.configure_openmp() and cpu.os.environ["OMP_WAIT_POLICY"] == "ACTIVE"

@@ -77,7 +77,8 @@ class Layers:
 LAYERS = Layers(
     ranks=(
         # base utilities, usable everywhere (the root package holds only __version__)
-        {"base": ("efem_viz", "efem_viz._typeshims", "efem_viz.colors", "efem_viz.terminal", "efem_viz.typed")},
+        {"base": ("efem_viz", "efem_viz._typeshims", "efem_viz.colors", "efem_viz.cpu", "efem_viz.terminal",
+                  "efem_viz.typed")},
         {"geometry": ("efem_viz.geometry.*",)},
         {"data": ("efem_viz.data.*",)},
         {"prior": ("efem_viz.prior.*",)},

@@ -31,6 +31,7 @@ from typing import Any, Protocol, cast
 from efem_viz.batch.events import BatchObserver, step_text
 from efem_viz.batch.job import BatchJob, SceneOutcome, SceneTask
 from efem_viz.batch.worker import one_line
+from efem_viz.cpu import cpu_count  # re-exported: the batch backends size their pools with it
 
 logger = logging.getLogger(__name__)
 
@@ -84,14 +85,6 @@ class BackendOptions:
     """Ray, local start: CPUs to give the local Ray (default: workers × threads, else the CPU count)."""
 
 
-def cpu_count() -> int:
-    """CPUs this process may use."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except (AttributeError, OSError):
-        return max(1, os.cpu_count() or 1)
-
-
 # ---------------------------------------------------------------------------------------------- local
 class LocalBackend:
     """Scenes one after the other in this process (the default)."""
@@ -107,6 +100,10 @@ class LocalBackend:
         return {"backend": self.name, "workers": 1}
 
     def resolve_job(self, job: BatchJob) -> BatchJob:
+        if job.threads is None:  # the cores other work leaves free (efem_viz.cpu): no barrier waits on a busy core
+            from efem_viz.cpu import free_cores
+
+            return dataclasses.replace(job, threads=free_cores())
         return job
 
     def run(self, job: BatchJob, tasks: Sequence[SceneTask], events: BatchObserver) -> Iterator[SceneOutcome]:

@@ -41,8 +41,8 @@ class SegmentArgs(SolveSettings):
     ply: bool = True
     """Write <scene>.seg.ply coloured by predicted instance."""
     threads: int | None = None
-    """torch CPU threads per worker (default: local, torch's choice; process, the CPUs split between the workers;
-    ray, 1 per actor)."""
+    """torch CPU threads per worker (default: local, the cores not busy with other work, `efem_viz.cpu.free_cores`;
+    process, the CPUs split between the workers; ray, 1 per actor)."""
     backend: str = "auto"
     """Where scenes run: a name registered in efem_viz.batch.registry.BACKENDS (local, process, ray, ...) or auto
     = ray with --ray/--ray-address, process with --workers > 1, else local."""
