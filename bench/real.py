@@ -14,7 +14,7 @@ Per configuration and seed: AP / AP50 for the mug class pooled over each split, 
 frame the category under the most confident instance (a mug, or the can / bowl / cup it sits on).
 
 Usage: python bench/real.py [--preset synthetic] [--proposals 400] [--seeds 0 1 2] [--tag NAME]
-       [--set key=value ...]  (EMConfig overrides, e.g. --set min_size=150)
+       [--set key=value ...]  (EMConfig overrides, e.g. --set min_size=150) [--save-results DIR]
 Writes bench/results/real_<tag>.json. Run with 2 torch threads on a quiet machine.
 """
 
@@ -113,6 +113,9 @@ def main() -> int:
     ap.add_argument("--set", nargs="+", action="extend", default=[],
                     help="EMConfig overrides key=value (Python literals); repeat --set or list several")
     ap.add_argument("--tag", default=None)
+    ap.add_argument("--save-results", type=Path, default=None, metavar="DIR",
+                    help="also save every run as DIR/seed<S>/<scene>.efem.npz (+ the scene with its labels) for "
+                         "bench/ranking.py")
     a = ap.parse_args()
     import torch
 
@@ -141,6 +144,14 @@ def main() -> int:
             row = {"frame": k, "seed": seed, "seconds": round(time.perf_counter() - t0, 1),
                    **analyse(scene, res.instances)}
             row["_pred"] = prediction_from_instances(res.instances, name=scene.name, class_names=("mug",))
+            if a.save_results is not None:
+                from efem_viz.data.io import save_scene
+
+                folder = a.save_results / f"seed{seed}"
+                folder.mkdir(parents=True, exist_ok=True)
+                if not (folder / f"{scene.name}.ply").is_file():
+                    save_scene(scene, folder / f"{scene.name}.ply")
+                res.save(folder)  # <folder>/<scene>.efem.npz
             runs.append(row)
             print(f"seed {seed} frame {k}: {row['found']}/{row['mugs']} mugs, top {row['top3']}, "
                   f"{row['instances']} instances, {row['seconds']} s", flush=True)

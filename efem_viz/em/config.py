@@ -90,6 +90,10 @@ class EMConfig:
     ("seen-through"). None = off (the method; scenes without a camera are never checked)."""
     max_seen_through: float = 0.2
     """Largest seen-through fraction a completed shape may have (with `seen_through_margin`)."""
+    seen_through_lateral: float = 0.0
+    """Sideways tolerance of the free-space check (m, `DepthView.of_points(lateral=...)`): a shape point counts
+    as seen through only where the camera saw past it on its pixel *and* on every pixel within about this
+    distance, so silhouette overhangs of a slightly mis-scaled fit are not held against it. 0 = per pixel."""
     m_step_replace: bool = True
     """M-step draws with replacement (the method). False: without replacement while a proposal has at least
     n_pcl weighted points (a smaller support is drawn whole, then topped up with replacement)."""
@@ -218,6 +222,8 @@ class EMConfig:
             raise ValueError(f"min_size_spacing must be in (0, 1) m or None, got {self.min_size_spacing}")
         if self.seen_through_margin is not None and not (0.0 <= self.seen_through_margin < 1.0):
             raise ValueError(f"seen_through_margin must be in [0, 1) m or None, got {self.seen_through_margin}")
+        if not (0.0 <= self.seen_through_lateral < 1.0):
+            raise ValueError(f"seen_through_lateral must be in [0, 1) m, got {self.seen_through_lateral}")
         if not (0.0 <= self.max_seen_through <= 1.0):
             raise ValueError(f"max_seen_through must be in [0, 1], got {self.max_seen_through}")
         if self.trust_scale is not None and not (0.0 <= self.trust_scale < 1.0):

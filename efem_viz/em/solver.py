@@ -361,7 +361,7 @@ class _Solver:
         if camera is not None and cfg.seen_through_margin is not None:
             from efem_viz.geometry.camera import DepthView
 
-            self.depth_view = DepthView.of_points(camera, points)
+            self.depth_view = DepthView.of_points(camera, points, lateral=cfg.seen_through_lateral)
         self.planned_steps = cfg.num_episodes * cfg.steps_per_episode
         self.ref_scales = [float(cb.mean_scale) if (cb := getattr(p, "codebook", None)) is not None else 1.0
                            for p in table.priors]

@@ -90,14 +90,29 @@ class DepthView:
     """(height, width) float64 metres; inf where nothing was observed."""
 
     @classmethod
-    def of_points(cls, camera: Camera, points: np.ndarray, *, splat: int = 5) -> "DepthView":
+    def of_points(cls, camera: Camera, points: np.ndarray, *, splat: int = 5, lateral: float = 0.0) -> "DepthView":
+        """The depth view of scene points.
+
+        Args:
+            camera: the capture camera.
+            points: (N, 3) scene points, world frame.
+            splat: pixel footprint of one point (odd; the minimum filter's size).
+            lateral: extra sideways tolerance (m): the footprint grows by ``ceil(f · lateral / z̃)`` pixels on
+                each side (z̃ the median observed depth), so a completed shape whose silhouette overhangs the
+                object it fits by up to about this much is not counted as seen through there (issue 33: scale
+                errors of a few millimetres put a fit's rim and handle over the background behind it).
+        """
         from scipy.ndimage import minimum_filter
 
         u, v, z, ok = camera.project(points)
         depth = np.full((camera.height, camera.width), np.inf)
         np.minimum.at(depth, (v[ok], u[ok]), z[ok])
-        if splat > 1:
-            depth = minimum_filter(depth, size=int(splat), mode="nearest")
+        size = int(splat)
+        if lateral > 0 and ok.any():
+            f = float(max(camera.K[0, 0], camera.K[1, 1]))
+            size += 2 * int(np.ceil(f * float(lateral) / max(float(np.median(z[ok])), 1e-6)))
+        if size > 1:
+            depth = minimum_filter(depth, size=size, mode="nearest")
         return cls(camera=camera, depth=depth)
 
     def seen_through(self, points: np.ndarray, margin: float) -> tuple[float, float]:

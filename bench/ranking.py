@@ -1,0 +1,302 @@
+"""Ranking without re-running EFEM (issue 33 item 1): every reviewed fit of saved runs, its review features, what
+it covers in the ground truth, and AP50 / top-1 under any scoring rule in seconds.
+
+Input: folders of saved runs, each holding `<scene>.ply` (with instance labels and categories) and
+`<scene>.efem.npz` (e.g. `bench/real.py --save-results DIR` writes DIR/seed<S>/...). For every scene it reads
+
+* the **accepted instances** (their masks, confidence, stationary score, coverage, pose score) and
+* every **proposal killed by a review rule** (its last review record: mask, coverage, seen-through fraction, size,
+  up angle, pose score; the stationary score of its last step),
+
+and matches each mask against the ground truth: best IoU and the category of that object (mug, cup, can, box,
+"background" when no labelled object holds 30 % of it).
+
+Tables printed:
+1. per kind of object (mug fits at IoU >= 0.5, look-alikes by category, background), the distribution of each
+   feature (median and 10-90 % range) and how many were killed by which rule;
+2. for each scoring rule in `RULES` (a function of the features; killed fits can be brought back by a rule that
+   "demotes instead of kills"), pooled AP50 / AP over the scenes and how many scenes rank a mug first.
+
+The rules re-score what the solver produced; a rule that revives killed fits is an estimate (in a real run a revived
+fit would also hold its points against later episodes). Screen rules here, then confirm the best with a re-run.
+
+`--lateral 0 0.005 0.01` re-measures every fit's seen-through fraction with the free-space check's sideways
+tolerance (`EMConfig.seen_through_lateral`) from its stored mesh and scores "kill above `--limit`, confidence x
+(1 - fraction)" for each (issue 33 item 2), without a re-run.
+
+Usage: python bench/ranking.py DIR [DIR ...] [--lateral M ...] [--json bench/results/ranking_<tag>.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+from collections import defaultdict
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+@dataclass
+class Fit:
+    """One reviewed fit of one run."""
+
+    run: str
+    scene: str
+    proposal: int
+    accepted: bool
+    killed_by: str
+    """Review rule that killed it ("" when accepted)."""
+    confidence: float
+    """The solver's confidence (accepted fits; 0 for killed ones)."""
+    stationary: float
+    coverage: float
+    seen_through: float
+    db_sim: float
+    radius: float
+    half_height: float
+    up_angle: float
+    mask_size: int
+    iou: float
+    """Best IoU with a ground-truth object."""
+    category: str
+    """That object's category ("background" below IoU 0.05 or without labels)."""
+    mask: np.ndarray
+    seen_lateral: dict[float, float] = dataclasses.field(default_factory=dict)
+    """Seen-through fraction of the same completed shape with the free-space check's sideways tolerance
+    (`EMConfig.seen_through_lateral`, m) as the key; filled for `--lateral` values on scenes with a camera."""
+
+
+def _category_of(scene: Any, gt_id: int) -> str:
+    return str(scene.categories.get(int(gt_id), "object")) if gt_id > 0 else "background"
+
+
+def _seen_lateral(scene: Any, res: Any, laterals: list[float]) -> Callable[[Any], dict[float, float]]:
+    """A function review record -> {lateral: seen-through fraction} (empty without a camera)."""
+    from efem_viz.geometry.camera import Camera, DepthView
+
+    camera = Camera.from_provenance(getattr(scene, "provenance", None))
+    cfg = res.config
+    if camera is None or cfg.seen_through_margin is None or not laterals:
+        return lambda rec: {}
+    views = {lat: DepthView.of_points(camera, scene.points, lateral=lat) for lat in laterals}
+
+    def measure(rec: Any) -> dict[float, float]:
+        import trimesh
+
+        from efem_viz.geometry.sampling import sample_surface
+
+        if not len(rec.mesh_faces):
+            return {lat: float("nan") for lat in laterals}
+        mesh = trimesh.Trimesh(rec.mesh_vertices, rec.mesh_faces, process=False)
+        pts = sample_surface(mesh, cfg.n_store, seed=res.seed * 1_000_003 + int(rec.proposal_id)).points
+        return {lat: float(v.seen_through(pts, cfg.seen_through_margin)[0]) for lat, v in views.items()}
+
+    return measure
+
+
+def fits_of(folder: Path, laterals: list[float] | None = None) -> list[Fit]:
+    """Every accepted and review-killed fit of the saved runs in one folder (with the seen-through fraction
+    re-measured for each sideways tolerance in `laterals`)."""
+    from efem_viz.data.io import load_scene
+    from efem_viz.em.results import EMResult
+    from efem_viz.em.rules import REVIEW_RULES
+
+    review_reasons = {r.reason for r in REVIEW_RULES}
+    out: list[Fit] = []
+    for npz in sorted(folder.glob("*.efem.npz")):
+        name = npz.name[: -len(".efem.npz")]
+        ply = folder / f"{name}.ply"
+        if not ply.is_file():
+            continue
+        scene = load_scene(ply)
+        res = EMResult.load(npz)
+        tr = res.trace
+        lateral = _seen_lateral(scene, res, list(laterals or []))
+        gt = scene.instance if scene.instance is not None else np.zeros(scene.num_points, np.int64)
+        gt_ids = [int(i) for i in np.unique(gt) if i > 0]
+        gt_sets = {i: np.flatnonzero(gt == i) for i in gt_ids}
+
+        def match(mask: np.ndarray) -> tuple[float, str]:
+            best, cat = 0.0, "background"
+            m = np.asarray(mask, np.int64)
+            for i, g in gt_sets.items():
+                inter = len(np.intersect1d(m, g, assume_unique=False))
+                iou = inter / max(1, len(np.union1d(m, g)))
+                if iou > best:
+                    best, cat = iou, _category_of(scene, i)
+            return best, (cat if best >= 0.05 else "background")
+
+        inst = res.instances
+        for k in range(len(inst)):
+            pid = int(inst.ids[k])
+            rev = tr.reviews(pid)[-1]
+            iou, cat = match(inst.masks[k])
+            out.append(Fit(folder.name, name, pid, True, "", float(inst.confidence[k]), float(inst.stationary[k]),
+                           float(inst.coverage[k]), float(rev.seen_through), float(inst.db_sim[k]),
+                           float(rev.radii[0]), float(rev.radii[1]), float(rev.up_angle), len(inst.masks[k]), iou,
+                           cat, np.asarray(inst.masks[k]), lateral(rev)))
+        for pid in range(tr.num_proposals):
+            death = tr.death(pid)
+            if death is None or death[1] not in review_reasons:
+                continue
+            revs = tr.reviews(pid)
+            if not revs:
+                continue
+            rev = revs[-1]
+            row = tr.row_of(pid, int(rev.step))
+            stat = float(tr.row_stationary[row]) if row is not None else float("nan")
+            iou, cat = match(rev.mask)
+            out.append(Fit(folder.name, name, pid, False, death[1], 0.0, stat, float(rev.coverage),
+                           float(rev.seen_through), float(rev.db_sim), float(rev.radii[0]), float(rev.radii[1]),
+                           float(rev.up_angle), len(rev.mask), iou, cat, np.asarray(rev.mask), lateral(rev)))
+    return out
+
+
+# ------------------------------------------------------------------------------------------------ scoring rules
+def _conf(f: Fit, *, cap: float = 0.4, seen: bool = True) -> float:
+    st = f.seen_through if (seen and math.isfinite(f.seen_through)) else 0.0
+    return f.stationary * min(f.coverage, cap) / cap * (1.0 - st)
+
+
+RULES: dict[str, tuple[Callable[[Fit], float], bool]] = {
+    # name: (score, revive fits killed by the seen-through rule)
+    "solver (as run)": (lambda f: f.confidence, False),
+    "demote seen-through (revived, confidence x (1 - fraction))": (lambda f: _conf(f), True),
+    "demote seen-through, squared factor": (lambda f: _conf(f, seen=False) * (1 - (0 if not math.isfinite(
+        f.seen_through) else f.seen_through)) ** 2, True),
+    "no free-space factor (revived)": (lambda f: _conf(f, seen=False), True),
+    "x pose score": (lambda f: f.confidence * (f.db_sim if math.isfinite(f.db_sim) else 1.0), False),
+}
+
+
+def lateral_rule(lat: float, limit: float) -> tuple[Callable[[Fit], float], Callable[[Fit], bool]]:
+    """The solver's confidence and seen-through kill with the free-space check's sideways tolerance `lat`:
+    (score, keep) where keep(f) says whether the fit would have survived its review."""
+
+    def st(f: Fit) -> float:
+        v = f.seen_lateral.get(lat, f.seen_through)
+        return v if math.isfinite(v) else 0.0
+
+    def score(f: Fit) -> float:
+        return f.stationary * min(f.coverage, 0.4) / 0.4 * (1.0 - st(f))
+
+    def keep(f: Fit) -> bool:
+        return f.accepted or (f.killed_by == "seen-through" and st(f) <= limit)
+
+    return score, keep
+
+
+def score_rule(fits: list[Fit], scenes: dict[tuple[str, str], Any], rule: Callable[[Fit], float],
+               revive: bool | Callable[[Fit], bool]) -> dict[str, float]:
+    """Pooled AP / AP50 of the mug class and how many scenes with a mug rank one first, under a rule."""
+    from efem_viz.eval import SceneGroundTruth, ScenePrediction, evaluate
+
+    preds, gts, top_mug, with_mug = [], [], 0, 0
+    for (run, name), scene in scenes.items():
+        if callable(revive):
+            chosen = [f for f in fits if f.run == run and f.scene == name and revive(f)]
+        else:
+            chosen = [f for f in fits if f.run == run and f.scene == name
+                      and (f.accepted or (revive and f.killed_by == "seen-through"))]
+        scores = [float(rule(f)) for f in chosen]
+        key = f"{run}/{name}"
+        preds.append(ScenePrediction(name=key, masks=[f.mask for f in chosen],
+                                     confidences=np.asarray(scores, np.float64)))
+        gts.append(dataclasses.replace(SceneGroundTruth.from_scene(scene), name=key))
+        has_mug = any(c == "mug" for c in scene.categories.values())
+        if has_mug:
+            with_mug += 1
+            if chosen:
+                best = chosen[int(np.argmax(scores))]
+                top_mug += best.category == "mug" and best.iou >= 0.5
+    ev = evaluate(preds, gts, class_names=("mug",))
+    return {"ap": 100 * ev.ap, "ap50": 100 * ev.ap50, "top_is_mug": top_mug, "scenes_with_mug": with_mug}
+
+
+def kind(f: Fit) -> str:
+    if f.category == "mug":
+        return "mug (IoU >= 0.5)" if f.iou >= 0.5 else "part of a mug"
+    return f.category
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("folders", nargs="+", type=Path)
+    ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--lateral", type=float, nargs="*", default=[],
+                    help="re-measure the free-space check with these sideways tolerances (m) and score each")
+    ap.add_argument("--limit", type=float, default=0.15, help="seen-through limit of the lateral rules")
+    a = ap.parse_args()
+    from efem_viz.data.io import load_scene
+
+    fits: list[Fit] = []
+    scenes: dict[tuple[str, str], Any] = {}
+    for folder in a.folders:
+        got = fits_of(folder, a.lateral)
+        fits += got
+        for name in sorted({f.scene for f in got}):
+            scenes[(folder.name, name)] = load_scene(folder / f"{name}.ply")
+    print(f"{len(fits)} reviewed fits ({sum(f.accepted for f in fits)} accepted) in {len(scenes)} scene runs")
+    groups: dict[str, list[Fit]] = defaultdict(list)
+    for f in fits:
+        groups[kind(f)].append(f)
+    feats = ("stationary", "coverage", "seen_through", "db_sim", "radius", "half_height", "up_angle")
+    for lat in a.lateral:
+        for f in fits:
+            setattr(f, f"seen_{lat:g}", f.seen_lateral.get(lat, float("nan")))
+    feats = feats + tuple(f"seen_{lat:g}" for lat in a.lateral)
+    table: dict[str, Any] = {}
+    print("\n| kind | fits | accepted | killed (rule: n) | " + " | ".join(feats) + " |")
+    print("|---|---:|---:|---|" + "---|" * len(feats))
+    for k in sorted(groups, key=lambda s: (s != "mug (IoU >= 0.5)", s)):
+        g = groups[k]
+        kills: dict[str, int] = defaultdict(int)
+        for f in g:
+            if not f.accepted:
+                kills[f.killed_by] += 1
+        cells = []
+        row: dict[str, Any] = {"fits": len(g), "accepted": sum(f.accepted for f in g), "killed": dict(kills)}
+        for ft in feats:
+            v = np.array([getattr(f, ft) for f in g], np.float64)
+            v = v[np.isfinite(v)]
+            if len(v):
+                q = np.percentile(v, [10, 50, 90])
+                cells.append(f"{q[1]:.3g} ({q[0]:.2g}-{q[2]:.2g})")
+                row[ft] = [float(x) for x in q]
+            else:
+                cells.append("–")
+        table[k] = row
+        print(f"| {k} | {len(g)} | {row['accepted']} | {', '.join(f'{r}: {n}' for r, n in kills.items()) or '–'} | "
+              + " | ".join(cells) + " |")
+    print("\n| scoring rule | AP50 | AP | top is a mug |\n|---|---:|---:|---:|")
+    rules_out = {}
+    rules: dict[str, tuple[Callable[[Fit], float], Any]] = dict(RULES)
+    for lat in a.lateral:
+        rules[f"free space with {lat * 1000:g} mm sideways tolerance, limit {a.limit:g}"] = lateral_rule(lat, a.limit)
+    for name, (rule, revive) in rules.items():
+        r = score_rule(fits, scenes, rule, revive)
+        rules_out[name] = r
+        print(f"| {name} | {r['ap50']:.1f} | {r['ap']:.1f} | {r['top_is_mug']} of {r['scenes_with_mug']} |")
+    if a.json is not None:
+        from efem_viz.data.io import atomic_write_text
+
+        rows = [{k: (v if k != "seen_lateral" else {str(x): y for x, y in v.items()}) for k, v in asdict(f).items()
+                 if k != "mask"} for f in fits]
+        atomic_write_text(a.json, json.dumps({"folders": [str(p) for p in a.folders], "kinds": table,
+                                              "rules": rules_out, "fits": rows}, indent=1, default=float))
+        print(f"wrote {a.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
