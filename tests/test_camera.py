@@ -67,3 +67,26 @@ def test_seen_through_is_space_in_front_of_the_observed_surface() -> None:
     assert frac == 1.0 and known == pytest.approx(1 / 4)
     assert view.seen_through(unknown, 0.01) == (0.0, 0.0)
     assert view.seen_through(np.zeros((0, 3)), 0.01) == (0.0, 0.0)
+
+
+def test_sideways_tolerance_forgives_a_silhouette_overhang_but_not_free_space() -> None:
+    """A box 0.8 m from the camera in front of a far wall: a shape that overhangs the box's edge by 5 mm is seen
+    through there at pixel precision, not with a 1 cm sideways tolerance; a shape floating 5 cm beside the box,
+    over the wall, is seen through either way."""
+    cam = Camera(K=K, T_world_camera=np.eye(4), width=320, height=240)
+    g = np.linspace(-0.3, 0.3, 300)
+    xx, yy = np.meshgrid(g, g)
+    wall = np.stack([xx.ravel(), yy.ravel(), np.full(xx.size, 1.5)], 1)
+    b = np.linspace(-0.05, 0.05, 60)
+    bx, by = np.meshgrid(b, b)
+    box = np.stack([bx.ravel(), by.ravel(), np.full(bx.size, 0.8)], 1)
+    pts = np.vstack([wall, box])
+    strict = DepthView.of_points(cam, pts)
+    loose = DepthView.of_points(cam, pts, lateral=0.01)
+    overhang = np.stack([np.full(20, 0.055), np.linspace(-0.04, 0.04, 20), np.full(20, 0.8)], 1)
+    assert strict.seen_through(overhang, 0.01)[0] == pytest.approx(1.0)
+    assert loose.seen_through(overhang, 0.01)[0] == pytest.approx(0.0)
+    floating = overhang + np.array([0.05, 0.0, 0.0])
+    assert strict.seen_through(floating, 0.01)[0] == pytest.approx(1.0)
+    assert loose.seen_through(floating, 0.01)[0] == pytest.approx(1.0)
+    assert DepthView.of_points(cam, pts, lateral=0.0).depth.tobytes() == strict.depth.tobytes()
