@@ -408,3 +408,17 @@ def test_gpu_training_script_resumes_and_writes_its_outputs_on_cpu(tmp_path: Pat
         assert (out / name).is_file(), name
     ck = torch.load(out / "last.pt", weights_only=False)
     assert ck["state"]["iteration"] > 3 and ck["args"]["device"] == "cpu"
+
+
+def test_handled_only_training_family_has_a_handle_on_every_mug() -> None:
+    from efem_viz.data.procedural import sample_mug_params
+    from efem_viz.prior.data import procedural_sources
+
+    every = procedural_sources("mug", "train", 30)
+    handled = procedural_sources("mug", "train", 20, handled_only=True)
+    seeds = [int(name.split("_")[1]) for name, _ in handled]
+    assert all(sample_mug_params(s).handle != "none" for s in seeds)
+    cups = [name for name, _ in every if sample_mug_params(int(name.split("_")[1])).handle == "none"]
+    assert cups and not set(cups) & {name for name, _ in handled}  # the family today does hold cups
+    with pytest.raises(ValueError, match="mugs"):
+        procedural_sources("bowl", "train", 3, handled_only=True)
