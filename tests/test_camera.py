@@ -44,6 +44,12 @@ def test_from_provenance_accepts_an_import_and_refuses_malformed_records() -> No
            {**prov, "T_world_camera": (2 * np.eye(4)).tolist()}, {**prov, "T_world_camera": None}]
     for p in bad:
         assert Camera.from_provenance(p) is None, p
+        cam_p, problem = Camera.parse(p)
+        assert cam_p is None and problem, p  # a recorded camera that cannot be used says why
+    assert Camera.parse({"source": "fused"}) == (None, None)  # no camera recorded: nothing to say
+    assert "missing" in str(Camera.parse({"K": K.tolist()})[1])
+    assert "not positive" in str(Camera.parse({**prov, "K": np.diag([0.0, 500.0, 1.0]).tolist()})[1])
+    assert "rotation" in str(Camera.parse({**prov, "T_world_camera": np.diag([1.0, 1.0, -1.0, 1.0]).tolist()})[1])
 
 
 def test_seen_through_is_space_in_front_of_the_observed_surface() -> None:
@@ -54,8 +60,9 @@ def test_seen_through_is_space_in_front_of_the_observed_surface() -> None:
     xx, yy = np.meshgrid(g, g)
     wall = np.stack([xx.ravel(), yy.ravel(), np.ones(xx.size)], 1)  # covers |x|,|y| <= 0.25 at z = 1
     view = DepthView.of_points(cam, wall)
-    assert np.isfinite(view.depth[120, 160]) and view.depth[120, 160] == pytest.approx(1.0)
-    assert np.isinf(view.depth[5, 5])  # beyond the wall's footprint: unobserved
+    assert view.depth_at(160, 120) == pytest.approx(1.0)
+    assert np.isinf(view.depth_at(5, 5))  # beyond the wall's footprint: unobserved
+    assert view.depth.dtype == np.float32 and view.depth.size < 320 * 240  # the window of the points only
     inside = np.array([[0.0, 0.0, 0.5], [0.05, 0.0, 0.6], [0.0, 0.05, 0.7], [0.0, 0.0, 0.995],
                        [0.0, 0.0, 1.0], [0.02, 0.0, 1.3]])
     frac, known = view.seen_through(inside, 0.01)
@@ -90,3 +97,17 @@ def test_sideways_tolerance_forgives_a_silhouette_overhang_but_not_free_space() 
     assert strict.seen_through(floating, 0.01)[0] == pytest.approx(1.0)
     assert loose.seen_through(floating, 0.01)[0] == pytest.approx(1.0)
     assert DepthView.of_points(cam, pts, lateral=0.0).depth.tobytes() == strict.depth.tobytes()
+
+
+def test_depth_view_memory_is_bounded_by_the_scene_not_the_declared_image() -> None:
+    """A header may declare a 16384 x 16384 image (issue 36): the view keeps only the window the points fall in."""
+    cam = Camera(K=np.array([[2000.0, 0, 8191.5], [0, 2000.0, 8191.5], [0, 0, 1]]), T_world_camera=np.eye(4),
+                 width=16384, height=16384)
+    g = np.linspace(-0.05, 0.05, 50)
+    xx, yy = np.meshgrid(g, g)
+    pts = np.stack([xx.ravel(), yy.ravel(), np.ones(xx.size)], 1)
+    view = DepthView.of_points(cam, pts)
+    assert view.depth.nbytes < 4 * 300 * 300  # about 210 x 210 pixels of float32, not 16384² float64 (2 GB)
+    centre = pts[np.abs(pts[:, :2]).max(1) < 0.03]
+    assert view.seen_through(centre - np.array([0.0, 0.0, 0.1]), 0.01) == (1.0, 1.0)
+    assert view.seen_through(centre + np.array([0.0, 0.0, 0.1]), 0.01) == (0.0, 1.0)

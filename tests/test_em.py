@@ -497,3 +497,33 @@ def test_run_em_prior_arguments_are_checked() -> None:
         run_em(scene)
     with pytest.raises(ValueError, match="distinct category"):
         run_em(scene, priors=[sphere, make_sphere_prior()])
+
+
+def test_a_malformed_recorded_camera_is_said_on_the_cli_and_in_the_result(tmp_path: Path) -> None:
+    """Issue 36 item 7: a scene whose recorded capture camera cannot be used runs without the free-space check,
+    and says so: one warning line on the full CLI naming the problem, and the saved result's `warnings`."""
+    import os
+    import subprocess
+    import sys
+
+    from efem_viz.data.io import save_scene
+
+    scene = make_sphere_scene(seed=2, radii=(0.05,))
+    K = [[0.0, 0.0, 159.5], [0.0, 500.0, 119.5], [0.0, 0.0, 1.0]]  # zero focal length
+    prov = {**dict(scene.provenance or {}), "K": K, "T_world_camera": np.eye(4).tolist(), "image_size": [320, 240]}
+    bad = save_scene(scene.replace(provenance=prov), tmp_path / "bad.npz")
+    none = save_scene(scene, tmp_path / "none.npz")
+    root = Path(__file__).resolve().parents[1]
+    for path, expect in ((bad, True), (none, False)):
+        out = tmp_path / f"out_{path.stem}"
+        proc = subprocess.run([sys.executable, "-m", "efem_viz.cli", "segment", str(path), "--prior", "sphere",
+                               "--preset", "real", "--proposals", "8", "--out", str(out)], capture_output=True,
+                              text=True, timeout=600, env={**os.environ, "PYTHONPATH": str(root)}, cwd=tmp_path)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        lines = [ln for ln in (proc.stdout + proc.stderr).splitlines() if "camera is unusable" in ln]
+        res = EMResult.load(out / f"{path.stem}.efem.npz")
+        if expect:
+            assert len(lines) == 1 and "focal lengths" in lines[0], proc.stderr[-2000:]
+            assert len(res.warnings) == 1 and "free-space check is off" in res.warnings[0]
+        else:
+            assert not lines and res.warnings == ()

@@ -76,6 +76,20 @@ def test_load_result_state(session: ViewerSession) -> None:
     assert session.threshold_max(res) > float(np.max(res.instances.confidence))
 
 
+def test_a_result_with_warnings_says_them_in_the_status(tmp_path: Path) -> None:
+    """A result that ran without its free-space check (a malformed recorded camera) says so when shown; a clean
+    one says only that it was loaded."""
+    import dataclasses
+
+    s = ViewerSession([SAMPLES], out_dir=tmp_path)
+    assert s.open_scene(SCENE) is not None
+    res = s.load_result()
+    assert res is not None and s.state.error is None and s.state.status.startswith("Loaded result")
+    warned = dataclasses.replace(res, warnings=("the recorded capture camera is unusable (K missing)",))
+    s.set_result(warned, source="run")
+    assert s.state.error is not None and "camera is unusable (K missing)" in s.state.status
+
+
 def test_step_through_iterations(session: ViewerSession) -> None:
     v = session.set_step(0)
     assert isinstance(v, StepView) and v.step == 0 and session.state.step == 0

@@ -318,6 +318,9 @@ class EMResult:
     categories: tuple[CategorySettings, ...] = ()
     """The settings each prior of the solve ran with, in prior order (τ_out resolved); empty for results saved
     before multi-prior solves."""
+    warnings: tuple[str, ...] = ()
+    """What the run could not do as configured, in words (e.g. a recorded camera it could not use, so the
+    free-space check was off); saved with the result, shown by the viewer."""
     replay: TraceReplay = field(default=cast("TraceReplay", None), repr=False, compare=False)
     """The trace bound to its scene and prior(s) (`run_em` and `load` bind what they have, `bind` the rest; not
     saved). Always set: a result built without one gets an unbound replay."""
@@ -350,6 +353,7 @@ class EMResult:
             "config_json": np.array(self.config.to_json()),
             "timings_json": np.array(json.dumps(self.timings)),
             "categories_json": np.array(json.dumps([c.to_dict() for c in self.categories])),
+            "warnings_json": np.array(json.dumps(list(self.warnings))),
         }
         data.update(self.trace.to_npz_dict())
         data.update(self.instances.to_npz_dict())
@@ -445,6 +449,15 @@ class EMResult:
                 categories = tuple(CategorySettings.from_dict(c) for c in raw)
             except (ValueError, TypeError) as exc:
                 raise ResultFileError(f"{p}: categories_json is not a list of category settings: {exc}") from exc
+        warnings: tuple[str, ...] = ()
+        if "warnings_json" in data:  # results saved before it have none
+            try:
+                raw_w = json.loads(str(data["warnings_json"]))
+                if not isinstance(raw_w, list) or not all(isinstance(w, str) for w in raw_w):
+                    raise ValueError("a JSON list of strings is expected")
+                warnings = tuple(w[:500] for w in raw_w[:20])
+            except ValueError as exc:
+                raise ResultFileError(f"{p}: warnings_json is not a list of strings: {exc}") from exc
         return cls(
             trace=trace,
             instances=Instances.from_npz_dict(data),
@@ -454,6 +467,7 @@ class EMResult:
             num_points=num_points,
             seed=_scalar_int(data["seed"], "seed", p),
             categories=categories,
+            warnings=warnings,
             replay=TraceReplay(trace, scene, prior),
         )
 

@@ -261,10 +261,15 @@ def run_em(
             pr.eval()
     try:
         camera = None
+        warnings: list[str] = []
         if run_cfg.seen_through_margin is not None:
             from efem_viz.geometry.camera import Camera
 
-            camera = Camera.from_provenance(getattr(scene, "provenance", None))
+            camera, problem = Camera.parse(getattr(scene, "provenance", None))
+            if problem is not None:  # never silently off (issue 36): the CLI log, the result and the viewer say it
+                warnings.append(f"the recorded capture camera is unusable ({problem}): the free-space check is off "
+                                "for this run")
+                logger.warning("%s: %s", scene.name, warnings[-1])
         solver = _Solver(scene.name, points, normals, PriorTable.of(plist), run_cfg, cfgs, seed=seed,
                          on_step=on_step, cancel=cancel, anchor_candidates=anchor_candidates,
                          step_rules=step_rules, review_rules=review_rules, camera=camera)
@@ -288,7 +293,7 @@ def run_em(
     )
     categories = tuple(c.replace(tau_out=k.out_tau) for c, k in zip(cats, cfgs))
     return EMResult(trace=trace, instances=instances, config=run_cfg, timings=timings, scene_name=scene.name,
-                    num_points=len(points), seed=int(seed), categories=categories,
+                    num_points=len(points), seed=int(seed), categories=categories, warnings=tuple(warnings),
                     replay=TraceReplay(trace, scene, plist[0] if len(plist) == 1 else plist))
 
 

@@ -46,22 +46,49 @@ class Camera:
     @classmethod
     def from_provenance(cls, prov: Mapping[str, Any] | None) -> "Camera | None":
         """The capture camera recorded by `data.rgbd.import_rgbd` (``K``, ``image_size``, ``T_world_camera``),
-        or None when the scene has none (fused or synthetic scans) or the record is malformed."""
-        if not prov:
-            return None
+        or None when the scene has none (fused or synthetic scans) or the record is malformed (`parse` says
+        why)."""
+        return cls.parse(prov)[0]
+
+    @classmethod
+    def parse(cls, prov: Mapping[str, Any] | None) -> tuple["Camera | None", str | None]:
+        """(camera, problem): the recorded capture camera, or None and — when a camera *was* recorded (any of
+        ``K``, ``T_world_camera``, ``image_size`` present) but cannot be used — what is wrong with it, in words.
+        No camera recorded: (None, None)."""
+        keys = ("K", "T_world_camera", "image_size")
+        if not prov or not any(k in prov for k in keys):
+            return None, None
+        missing = [k for k in keys if k not in prov]
+        if missing:
+            return None, f"{', '.join(missing)} missing"
         try:
             K = np.asarray(prov["K"], np.float64)
             T = np.asarray(prov["T_world_camera"], np.float64)
+        except (TypeError, ValueError):
+            return None, "K or T_world_camera is not a numeric matrix"
+        try:
             w, h = (int(x) for x in prov["image_size"])
-        except (KeyError, TypeError, ValueError):
-            return None
-        if (K.shape != (3, 3) or T.shape != (4, 4) or not np.isfinite(K).all() or not np.isfinite(T).all()
-                or K[0, 0] <= 0 or K[1, 1] <= 0 or not (0 < w <= 16384 and 0 < h <= 16384)):
-            return None
+        except (TypeError, ValueError):
+            return None, f"image_size {str(prov['image_size'])[:40]!r} is not two integers"
+        if K.shape != (3, 3):
+            return None, f"K has shape {K.shape}, not (3, 3)"
+        if T.shape != (4, 4):
+            return None, f"T_world_camera has shape {T.shape}, not (4, 4)"
+        if not np.isfinite(K).all() or not np.isfinite(T).all():
+            return None, "K or T_world_camera holds NaN or infinite values"
+        if K[0, 0] <= 0 or K[1, 1] <= 0:
+            return None, f"focal lengths fx={K[0, 0]:g}, fy={K[1, 1]:g} are not positive"
+        if not (0 < w <= MAX_IMAGE_SIDE and 0 < h <= MAX_IMAGE_SIDE):
+            return None, f"image_size {w}x{h} is outside 1..{MAX_IMAGE_SIDE}"
         R = T[:3, :3]
-        if not np.allclose(R.T @ R, np.eye(3), atol=1e-3):
-            return None
-        return cls(K=K, T_world_camera=T, width=w, height=h)
+        if not np.allclose(R.T @ R, np.eye(3), atol=1e-3) or np.linalg.det(R) < 0:
+            return None, "the rotation of T_world_camera is not a rotation"
+        return cls(K=K, T_world_camera=T, width=w, height=h), None
+
+
+MAX_IMAGE_SIDE = 16384
+"""Largest image side a recorded camera may declare (sensors top out near 4K; the depth view is cropped to the
+scene's projected bounds, so a large declared size costs no memory by itself)."""
 
 
 def look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -83,11 +110,15 @@ class DepthView:
     Scene points are voxel-thinned, so each is splatted over a ``splat × splat`` pixel footprint (a minimum
     filter): holes between voxels close, and at silhouettes the nearer surface wins, which errs toward "not
     seen through". Pixels no point reaches (outside the cropped scene, sensor holes) are unknown (``inf``).
+    Only the window of the image the scene's points fall in is kept (float32): its size is bounded by the scene,
+    not by the declared image size.
     """
 
     camera: Camera
     depth: np.ndarray
-    """(height, width) float64 metres; inf where nothing was observed."""
+    """(rows, cols) float32 metres of the window starting at pixel (`u0`, `v0`); inf where nothing was observed."""
+    u0: int = 0
+    v0: int = 0
 
     @classmethod
     def of_points(cls, camera: Camera, points: np.ndarray, *, splat: int = 5, lateral: float = 0.0) -> "DepthView":
@@ -105,15 +136,27 @@ class DepthView:
         from scipy.ndimage import minimum_filter
 
         u, v, z, ok = camera.project(points)
-        depth = np.full((camera.height, camera.width), np.inf)
-        np.minimum.at(depth, (v[ok], u[ok]), z[ok])
+        if not ok.any():
+            return cls(camera=camera, depth=np.full((1, 1), np.inf, np.float32), u0=0, v0=0)
         size = int(splat)
-        if lateral > 0 and ok.any():
+        if lateral > 0:
             f = float(max(camera.K[0, 0], camera.K[1, 1]))
             size += 2 * int(np.ceil(f * float(lateral) / max(float(np.median(z[ok])), 1e-6)))
+        pad = size // 2 + 1
+        u0, v0 = max(int(u[ok].min()) - pad, 0), max(int(v[ok].min()) - pad, 0)
+        u1, v1 = min(int(u[ok].max()) + pad + 1, camera.width), min(int(v[ok].max()) + pad + 1, camera.height)
+        depth = np.full((v1 - v0, u1 - u0), np.inf, np.float32)
+        np.minimum.at(depth, (v[ok] - v0, u[ok] - u0), z[ok].astype(np.float32))
         if size > 1:
             depth = minimum_filter(depth, size=size, mode="nearest")
-        return cls(camera=camera, depth=depth)
+        return cls(camera=camera, depth=depth, u0=u0, v0=v0)
+
+    def depth_at(self, u: int, v: int) -> float:
+        """Observed depth (m) at pixel column ``u``, row ``v``; inf where nothing was observed."""
+        rows, cols = self.depth.shape
+        if self.u0 <= u < self.u0 + cols and self.v0 <= v < self.v0 + rows:
+            return float(self.depth[v - self.v0, u - self.u0])
+        return float("inf")
 
     def seen_through(self, points: np.ndarray, margin: float) -> tuple[float, float]:
         """(fraction of the known ``points`` that lie more than ``margin`` metres in front of the observed
@@ -125,8 +168,10 @@ class DepthView:
         if not len(points):
             return 0.0, 0.0
         u, v, z, ok = self.camera.project(points)
+        rows, cols = self.depth.shape
+        ok = ok & (u >= self.u0) & (u < self.u0 + cols) & (v >= self.v0) & (v < self.v0 + rows)
         d = np.full(len(z), np.inf)
-        d[ok] = self.depth[v[ok], u[ok]]
+        d[ok] = self.depth[v[ok] - self.v0, u[ok] - self.u0]
         known = np.isfinite(d)
         n_known = int(known.sum())
         if n_known == 0:

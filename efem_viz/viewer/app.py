@@ -316,8 +316,7 @@ class ViewerApp:
             self.nodes.remove_shapes()  # old per-step shapes; the final instances are drawn once
             self.nodes.draw_results(result.instances)
             self.set_step(self.state.step, view_mode="result")
-            self.set_threshold(self.state.threshold)
-            self.session.set_status(f"Loaded result: {source}.")
+            self.set_threshold(self.state.threshold)  # the status line is the session's ("Loaded result", warnings)
 
     def _draw_no_result(self) -> None:
         pv.show_no_result(self.panels, self.session, self.gui_set)

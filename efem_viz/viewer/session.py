@@ -381,6 +381,8 @@ class ViewerSession:
             s.threshold = float(np.clip(s.threshold, 0.0, self.threshold_max(result)))
             self._mask_dist = None
             s.color_mode = "instances"
+        warn = "; ".join(getattr(result, "warnings", ()))  # e.g. the free-space check was off: never silently
+        self.set_status(f"Loaded result: {source}." + (f" Warning: {warn}" if warn else ""), error=bool(warn))
 
     def begin_run(self) -> int | None:
         """Mark a run as started (`state.running`). Returns its ticket (the scene generation), or None (status
