@@ -45,8 +45,10 @@ class AnnotateArgs:
     def run(self) -> int:
         """Open the scan, print the URL, serve until Ctrl+C / SIGTERM (`efem_viz.serve.lifecycle`)."""
         from annotator.app import AnnotatorApp
+        from efem_viz.cli import check_port
         from efem_viz.serve.lifecycle import announce, stop_signals, wait_for_stop
 
+        check_port(self.port)  # before the scan is read (a bad port used to hang in viser's server thread)
         with stop_signals("efem-annotate"):  # before loading: Ctrl+C stops a long load too
             app = AnnotatorApp(
                 self.scan,

@@ -44,6 +44,26 @@ EXIT_ERROR = 1
 """Exit status of a command that failed (argument parsing errors exit 2, as with argparse)."""
 EXIT_INTERRUPTED = 130
 """Exit status after Ctrl+C (128 + SIGINT)."""
+EXIT_USAGE = 2
+"""Exit status of a bad option value (as argparse's argument errors)."""
+
+
+class OptionError(ValueError):
+    """A command-line option with a value the command cannot use, found before anything starts: reported as
+    `<prog>: error: <message>` with exit status 2 (`EXIT_USAGE`)."""
+
+    exit_status = EXIT_USAGE
+
+
+def check_port(port: int, *, option: str = "--port") -> int:
+    """Refuse a TCP port outside 0-65535 (0 = any free port) before a server is built.
+
+    Raises:
+        OptionError: naming the option and the value.
+    """
+    if not 0 <= int(port) <= 65535:
+        raise OptionError(f"{option} must be 0-65535 (0: any free port), got {port}")
+    return int(port)
 
 
 def pop_debug_flag(args: list[str]) -> tuple[list[str], bool]:
@@ -105,7 +125,8 @@ def run_reporting_errors(prog: str, command: Callable[[], int | None], *, debug:
         if debug:
             raise
         print(f"{prog}: error: {error_message(exc)}", file=sys.stderr)
-        return EXIT_ERROR
+        # by attribute, not isinstance: under `python -m efem_viz.cli` this module is also `__main__`
+        return int(getattr(exc, "exit_status", EXIT_ERROR))
     except Exception as exc:  # a bug: still one line, with the way to see more
         if debug:
             raise

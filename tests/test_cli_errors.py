@@ -400,3 +400,19 @@ def test_info_calls_a_segment_outputs_labels_predictions(tmp_path: Path, capsys:
     assert cli.main(["info", str(gt)]) == 0
     out = capsys.readouterr().out
     assert "ground truth" in out and "predicted" not in out
+
+
+@pytest.mark.parametrize("prog", ["efem-viz", "efem-annotate"])
+def test_a_port_out_of_range_is_one_line_and_exit_2_before_anything_starts(prog: str, tmp_path: Path) -> None:
+    """Issue 37 item 1: `--port 99999` printed viser's traceback from its server thread and then hung."""
+    if prog == "efem-viz":
+        cmd = [sys.executable, "-m", "efem_viz.cli", "view", str(REPO / "sample_scenes"), "--port", "99999"]
+    else:
+        cmd = [sys.executable, "-m", "annotator", str(REPO / "sample_scenes" / "real_tabletop_8.ply"),
+               "--port", "-1", "--out", str(tmp_path / "ann")]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=tmp_path,
+                          env={**os.environ, "PYTHONPATH": str(REPO)})
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert "--port must be 0-65535" in lines[0] and lines[0].startswith(f"{prog}") and "error:" in lines[0]
+    assert not (tmp_path / "ann").exists()  # nothing was started or written

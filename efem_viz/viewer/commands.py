@@ -41,9 +41,12 @@ class ViewArgs:
 
     def run(self) -> int:
         """Start the server, print its URL, serve until Ctrl+C / SIGTERM (`efem_viz.serve.lifecycle`)."""
+        from efem_viz.cli import check_port
         from efem_viz.serve.lifecycle import announce, stop_signals, wait_for_stop
         from efem_viz.serve.outputs import default_output_dir
         from efem_viz.viewer.app import ViewerApp, default_scene_dir
+
+        check_port(self.port)  # before anything starts (a bad port used to hang in viser's server thread)
 
         if self.paths or self.results:
             paths = list(self.paths)
