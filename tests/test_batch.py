@@ -244,9 +244,18 @@ def test_one_batch_per_output_folder(tmp_path: Path) -> None:
     out = tmp_path / "out"
     job = BatchJob.create(priors=("sphere",), preset="fast", proposals=48)
     with folder_lock(out):
+        assert (out / ".batch.lock").is_file()
         with pytest.raises(BatchError, match="another batch .* is writing to"):
             run_batch(job, [scenes], out, backend=make_backend("local"))
+        assert (out / ".batch.lock").is_file()  # the refused batch left the holder's lock alone
+    assert not (out / ".batch.lock").exists()
     assert run_batch(job, [scenes], out, backend=make_backend("local")).passed
+    assert not (out / ".batch.lock").exists()  # issue 37 item 3: a finished batch leaves only its results
+    # a lock file left by a killed holder (the kernel released its lock) is taken over, then removed
+    (out / ".batch.lock").write_text("12345")
+    with folder_lock(out):
+        assert (out / ".batch.lock").read_text() == str(os.getpid())
+    assert not (out / ".batch.lock").exists()
 
 
 # ---------------------------------------------------------------------------------------------- failures
@@ -526,3 +535,20 @@ def test_free_cores_and_the_wait_policy(monkeypatch: pytest.MonkeyPatch) -> None
     assert cpu.configure_openmp() and cpu.os.environ["OMP_WAIT_POLICY"] == "PASSIVE"
     monkeypatch.setenv("OMP_WAIT_POLICY", "ACTIVE")
     assert not cpu.configure_openmp() and cpu.os.environ["OMP_WAIT_POLICY"] == "ACTIVE"
+
+
+def test_segment_without_out_writes_to_the_data_folder_and_says_where(tmp_path: Path) -> None:
+    """Issue 37 item 2: without --out, `segment` wrote ./results/ silently (into the checkout when run from it).
+    Now the results go to the efem-viz data folder and the first line names it; nothing lands in the cwd."""
+    scenes = tmp_path / "scenes"
+    names = sphere_folder(scenes, 1)
+    work = tmp_path / "cwd"
+    work.mkdir()
+    env = {**os.environ, "XDG_DATA_HOME": str(tmp_path / "data"), "PYTHONPATH": str(Path(__file__).parents[1])}
+    proc = subprocess.run([sys.executable, "-m", "efem_viz.cli", "segment", str(scenes), *SPHERE_ARGS],
+                          capture_output=True, text=True, timeout=600, cwd=work, env=env)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    out = tmp_path / "data" / "efem-viz" / "segment"
+    assert (out / f"{names[0]}.efem.npz").is_file() and not any(work.iterdir())
+    first = [ln for ln in proc.stdout.splitlines() if ln.strip()][0]
+    assert str(out) in first.replace("\n", ""), proc.stdout[:500]

@@ -28,8 +28,10 @@ class SegmentArgs(SolveSettings):
     prior: tyro.conf.UseAppendAction[list[str]] = field(default_factory=list)
     """Shape prior (repeat for several categories in one solve): a name under efem_viz/weights/, "sphere" (the
     analytic sphere) or a .pt path. Default: mug."""
-    out: Path = Path("results")
-    """Output folder: <scene>.efem.npz, scannet/<scene>.txt + scannet/pred_mask/, <scene>.seg.ply, batch.json."""
+    out: Path | None = None
+    """Output folder: <scene>.efem.npz, scannet/<scene>.txt + scannet/pred_mask/, <scene>.seg.ply, batch.json.
+    Default: the efem-viz data folder, `~/.local/share/efem-viz/segment` (`$XDG_DATA_HOME`), never the current
+    folder; the first line printed names it."""
     seed: int = 0
     """Random seed (anchors, samples); the same seed replays the same run, on every backend."""
     device: str = "cpu"
@@ -84,6 +86,12 @@ class SegmentArgs(SolveSettings):
             raise ValueError(f"--ray/--ray-address/--ray-cpus need the ray backend, not --backend {name}")
         backend = make_backend(name, BackendOptions(workers=self.workers, ray_address=self.ray_address,
                                                     ray_cpus=self.ray_cpus))
+        if self.out is not None:
+            out = self.out
+        else:
+            from efem_viz.serve.outputs import default_output_dir
+
+            out = default_output_dir("segment")
         with RichBatchDisplay(Console()) as display:
-            report = run_batch(job, self.scenes, self.out, backend=backend, force=self.force, observer=display)
+            report = run_batch(job, self.scenes, out, backend=backend, force=self.force, observer=display)
         return 0 if report.passed else 1

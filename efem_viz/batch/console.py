@@ -75,8 +75,9 @@ class RichBatchDisplay(BatchObserver):
     # ------------------------------------------------------------------ events
     def on_plan(self, plan: BatchPlan) -> None:
         self.out = str(plan.out)
-        skipped = f", {len(plan.skipped)} skipped (valid results in {_shown(plan.out)})" if plan.skipped else ""
-        self.console.print(f"{plan.total} scene(s): {len(plan.tasks)} to segment{skipped}")
+        skipped = f", {len(plan.skipped)} skipped (valid results there)" if plan.skipped else ""
+        self.console.print(f"{plan.total} scene(s) -> {_shown(plan.out)}: {len(plan.tasks)} to segment{skipped}",
+                           soft_wrap=True)  # the folder stays one piece, to copy
         self.overall = self.progress.add_task("scenes", total=len(plan.tasks), info="")
 
     def on_worker(self, info: WorkerInfo) -> None:

@@ -265,28 +265,49 @@ def _now() -> str:
 
 @contextmanager
 def folder_lock(out: Path) -> Iterator[None]:
-    """Exclusive lock on `<out>/.batch.lock` for the duration (released by the kernel if the process dies).
+    """Exclusive lock on `<out>/.batch.lock` for the duration (released by the kernel if the process dies); the
+    lock file is removed when the batch ends, so a finished folder holds only its results.
+
+    A process that opened the file just before its holder removed it would lock a deleted file: after locking,
+    the file at the path must still be the one locked, else the lock is taken again on the new file.
 
     Raises:
         BatchError: another batch holds it.
     """
     out.mkdir(parents=True, exist_ok=True)
-    fd = os.open(out / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644)
-    try:
+    path = out / LOCK_FILE
+    for _ in range(100):
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
         try:
             import fcntl
 
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except ImportError:  # pragma: no cover - not POSIX: no lock, documented
-            pass
+            break
         except OSError as exc:
             holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
+            os.close(fd)
             raise BatchError(f"another batch (pid {holder}) is writing to {out}; wait for it or use another --out"
                              ) from exc
+        try:
+            same = os.stat(path).st_ino == os.fstat(fd).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)  # locked a file its holder had just removed: lock the current one
+    else:  # pragma: no cover - 100 holders finishing in a row
+        raise BatchError(f"could not lock {path}: it keeps being replaced")
+    try:
         os.ftruncate(fd, 0)
         os.pwrite(fd, str(os.getpid()).encode(), 0)
         yield
     finally:
+        try:
+            if os.stat(path).st_ino == os.fstat(fd).st_ino:
+                path.unlink()  # still holding the lock: nobody else can be using this file
+        except OSError:
+            pass
         os.close(fd)
 
 
