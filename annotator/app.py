@@ -165,7 +165,9 @@ class AnnotatorApp:
         self.server.on_client_disconnect(self._forget_client)
         self._worker = threading.Thread(target=self._edit_loop, name="annotator-edits", daemon=True)
         self._worker.start()
-        self._warmup = threading.Thread(target=self.geom.warm_up, name="annotator-warmup", daemon=True)
+        self._warmup_cancel = threading.Event()
+        self._warmup = threading.Thread(target=self.geom.warm_up, args=(self._warmup_cancel,),
+                                        name="annotator-warmup", daemon=True)
         self._warmup.start()
         self.open_s = time.perf_counter() - t0
         log.info("opened %s: %d vertices (%d drawn), %d chunks, %.2f s", self.scan_path.name, self.n,
@@ -506,7 +508,10 @@ class AnnotatorApp:
             self.server.stop()
         finally:
             self.session.close()
-            # A Ctrl+C right after start must not exit while open3d builds its ray-casting scene in the warm-up
-            # thread (open3d then reports leaks and the process exits with status 1).
-            self._warmup.join(timeout=60)
+            # A Ctrl+C right after start: the warm-up stops before its next structure (issue 36: it used to be
+            # waited for, up to 60 s on big scans). Only an open3d ray-casting scene under construction is waited
+            # for (exiting under it makes open3d report leaks and exit with status 1); the daemon thread's scipy
+            # work is simply abandoned.
+            self._warmup_cancel.set()
+            self._warmup.join(timeout=60 if self.geom.building_raycaster.is_set() else 0.5)
             self._worker.join(timeout=10)

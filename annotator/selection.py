@@ -44,6 +44,8 @@ class ScanGeometry:
         self._tree = None
         self._adj: tuple[np.ndarray, np.ndarray] | None = None
         self._raycaster = None
+        self.building_raycaster = threading.Event()
+        """Set while `warm_up` builds the open3d ray-casting scene."""
         self._spacing: float | None = None
 
     @property
@@ -122,11 +124,20 @@ class ScanGeometry:
                     self._raycaster = rc
         return self._raycaster
 
-    def warm_up(self) -> None:
-        """Build every structure now (call from a worker thread after opening a scan)."""
-        _ = self.tree, self.spacing, self.adjacency
-        if self.faces is not None:
-            self.raycaster()
+    def warm_up(self, cancel: threading.Event | None = None) -> None:
+        """Build every structure now (call from a worker thread after opening a scan); stops between structures
+        once `cancel` is set. While the ray-casting scene is being built, `building_raycaster` is set (open3d must
+        not be torn down under it; the scipy structures can simply be abandoned at exit)."""
+        for build in (lambda: self.tree, lambda: self.spacing, lambda: self.adjacency):
+            if cancel is not None and cancel.is_set():
+                return
+            build()
+        if self.faces is not None and not (cancel is not None and cancel.is_set()):
+            self.building_raycaster.set()
+            try:
+                self.raycaster()
+            finally:
+                self.building_raycaster.clear()
 
 
 # ---------------------------------------------------------------------------------------------- picking

@@ -204,3 +204,30 @@ def test_lasso_select_equals_box_select_for_a_rectangle_and_respects_facing() ->
         assert np.array_equal(a, b) and len(a) > 0
     tri = lasso_select(g, polygon=rect[:3], facing="all", **cam)
     assert 0 < len(tri) < len(lasso_select(g, polygon=rect, facing="all", **cam))
+
+
+def test_warm_up_stops_between_structures_once_cancelled(box_on_plane: sel.ScanGeometry) -> None:
+    """Issue 36 item 6: Ctrl+C on a big scan waited for the whole warm-up (60 s). A cancelled warm-up builds
+    nothing more; an uncancelled one builds everything and clears its ray-casting flag."""
+    import threading
+
+    geom = sel.ScanGeometry(box_on_plane.points, box_on_plane.normals, faces=box_on_plane.faces)
+    cancel = threading.Event()
+    cancel.set()
+    geom.warm_up(cancel)
+    assert geom._tree is None and geom._adj is None and geom._raycaster is None
+    built: list[str] = []
+
+    class Spy(sel.ScanGeometry):
+        @property
+        def spacing(self) -> float:  # cancel arrives while the second structure is built
+            built.append("spacing")
+            cancel.set()
+            return 0.01
+
+    spy = Spy(box_on_plane.points, box_on_plane.normals, faces=box_on_plane.faces)
+    cancel.clear()
+    spy.warm_up(cancel)
+    assert built == ["spacing"] and spy._tree is not None and spy._adj is None and spy._raycaster is None
+    geom.warm_up(threading.Event())
+    assert geom._raycaster is not None and not geom.building_raycaster.is_set()
