@@ -422,3 +422,29 @@ def test_handled_only_training_family_has_a_handle_on_every_mug() -> None:
     assert cups and not set(cups) & {name for name, _ in handled}  # the family today does hold cups
     with pytest.raises(ValueError, match="mugs"):
         procedural_sources("bowl", "train", 3, handled_only=True)
+
+
+def test_resume_from_a_hostile_checkpoint_is_refused_before_any_work(tmp_path: Path) -> None:
+    """Issue 36 item 9: `train-prior --resume-from` used to skip the prior checks (a 16 KB file declaring a
+    20,000-wide decoder cost 90 s and 6.5 GB). On the full CLI: one line, exit 1, no data prepared."""
+    import os
+    import subprocess
+    import sys
+
+    from efem_viz.prior.model import CHECKPOINT_FORMAT
+
+    cfg = PriorConfig(widths=(8, 8, 16, 16), down_blocks=(2,), down_factors=(2,), latent_dim=16, center_hidden=8,
+                      n_pcl=64, k=8, decoder_hidden=20000, decoder_blocks=1).to_dict()
+    bad = tmp_path / "bad.pt"
+    torch.save({"format": CHECKPOINT_FORMAT, "kind": "train", "name": "mug", "config": cfg,
+                "state_dict": {"decoder.fc_in.weight": torch.zeros(2, 2)}, "optimizer": {}, "state": {}}, bad)
+    assert bad.stat().st_size < 20_000
+    root = Path(__file__).resolve().parents[1]
+    proc = subprocess.run([sys.executable, "-m", "efem_viz.cli", "train-prior", "--resume-from", str(bad),
+                           "--out-dir", str(tmp_path / "run"), "--cache-dir", str(tmp_path / "cache"),
+                           "--no-progress"], capture_output=True, text=True, timeout=300, cwd=tmp_path,
+                          env={**os.environ, "PYTHONPATH": str(root)})
+    lines = [ln for ln in proc.stderr.splitlines() if "error" in ln]
+    assert proc.returncode == 1 and len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    assert "bad.pt" in lines[0] and ("weights do not fit" in lines[0] or "declares" in lines[0])
+    assert not (tmp_path / "cache").exists()

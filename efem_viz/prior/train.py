@@ -570,9 +570,15 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
     if resume_path is not None:
         if not Path(resume_path).is_file():
             raise FileNotFoundError(f"no checkpoint to resume from: {resume_path}")
-        from efem_viz.prior.model import read_checkpoint
+        from efem_viz.prior.model import _checked_prior_parts, read_checkpoint
 
         ckpt = read_checkpoint(resume_path)
+        need = ("config", "state_dict", "optimizer", "state")
+        if not isinstance(ckpt, dict) or any(k not in ckpt for k in need):
+            raise ValueError(f"{resume_path}: not a train-prior resume checkpoint (needs {', '.join(need)})")
+        # the prior loaders' checks (sizes declared, shapes, views, finite values) before anything is allocated or
+        # any data is prepared (issue 36: a 16 KB file declaring a 20,000-wide decoder cost 90 s and 6.5 GB)
+        _checked_prior_parts(ckpt, Path(resume_path))
 
     log.info("loading training data ...")
     train_objs = load_objects(args, "train")
