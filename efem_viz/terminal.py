@@ -4,7 +4,8 @@ A file name may hold any byte but `/` and NUL: an ESC sequence in one can clear 
 terminal, a newline or CR can fake a line of output, a bidirectional override can reorder what is shown. Rich
 markup escaping does not cover these. `terminal_text` is the one such rule of the CLI output: the one-line error
 messages (`efem_viz.cli.error_message`), the log lines of both command lines (`log_to_terminal`), the batch console,
-and the start-up lines of both servers.
+`efem-viz info`, and the start-up lines of both servers. `console_text` adds rich-markup escaping for what goes
+through a rich console.
 """
 
 from __future__ import annotations
@@ -42,6 +43,15 @@ class TerminalFormatter(logging.Formatter):
 
 LOG_FORMAT = "%(levelname)s %(name)s: %(message)s"
 """The command lines' log line."""
+
+
+def console_text(text: object) -> str:
+    """Text from outside (scene and file names, provenance strings, error messages) as a rich console prints
+    it: `terminal_text` (control characters visible and inert), then rich markup escaped (a ``[red]`` in a
+    name stays literal). Rich is imported here only when called."""
+    from rich.markup import escape
+
+    return escape(terminal_text(str(text)))
 
 
 def log_to_terminal(level: int = logging.INFO) -> None:

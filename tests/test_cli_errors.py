@@ -416,3 +416,24 @@ def test_a_port_out_of_range_is_one_line_and_exit_2_before_anything_starts(prog:
     assert proc.returncode == 2 and len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
     assert "--port must be 0-65535" in lines[0] and lines[0].startswith(f"{prog}") and "error:" in lines[0]
     assert not (tmp_path / "ann").exists()  # nothing was started or written
+
+
+def test_info_summarises_and_escapes_what_a_file_says(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 37 item 4 and issue 36 item 12: `info` summarises by default (--full for every provenance entry),
+    prints a scene's own strings inert (no raw terminal escapes, no rich markup), and points from a result file
+    to its scene."""
+    from efem_viz import cli
+    from efem_viz.data.io import load_scene, save_scene
+
+    scene = load_scene(REPO / "sample_scenes" / "real_tabletop_8.ply")
+    evil = "\x1b[2J\x1b]0;owned\x07[bold red]fake[/bold red]\nsecond line"
+    path = save_scene(scene.replace(provenance={**dict(scene.provenance), "note": evil}), tmp_path / "s.ply")
+    assert cli.main(["info", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "\x1b" not in out and "\x07" not in out and "\n second" not in out
+    assert "\\x1b[2J" in out and "red]fake[/bold red]" in out  # shown inert, the markup literal (cells may wrap)
+    assert "T_world_camera" not in out and "capture camera" in out and "--full" in out
+    assert cli.main(["info", str(path), "--full"]) == 0
+    assert "T_world_camera" in capsys.readouterr().out
+    proc = run_cli("info", str(REPO / "sample_scenes" / "real_tabletop_8.efem.npz"))
+    assert proc.returncode == 1 and "real_tabletop_8.ply" in proc.stderr and "instead" in proc.stderr

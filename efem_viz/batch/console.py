@@ -10,7 +10,6 @@ import time
 from typing import TYPE_CHECKING
 
 from rich.console import Console
-from rich.markup import escape
 from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
@@ -24,7 +23,7 @@ from rich.table import Table
 
 from efem_viz.batch.events import BatchObserver
 from efem_viz.batch.job import BATCH_FILE, SceneOutcome, SceneTask, WorkerInfo
-from efem_viz.terminal import terminal_text
+from efem_viz.terminal import console_text
 
 if TYPE_CHECKING:
     from efem_viz.batch.job import BatchPlan, BatchReport
@@ -36,11 +35,7 @@ TABLE_ROWS = 40
 """The summary table lists every scene up to this many; beyond, the failed ones and the totals (batch.json has all)."""
 
 
-def _shown(text: object) -> str:
-    """Text from outside (scene and file names, worker ids, error messages) as the console prints it: control
-    characters escaped (`efem_viz.terminal.terminal_text`: an ESC or newline in a file name stays visible and
-    inert), then rich markup escaped."""
-    return escape(terminal_text(str(text)))
+_shown = console_text  # the batch console's name for the one escaping rule (efem_viz.terminal)
 
 
 class RichBatchDisplay(BatchObserver):

@@ -28,6 +28,9 @@ class InfoArgs:
     """Scene files (.ply/.obj/.off/.glb/.npz) and/or folders of them."""
     json: bool = False
     """Print one JSON object per scene instead of tables."""
+    full: bool = False
+    """Print every provenance entry (camera matrices, plane fit, ...) and every instance; by default long values
+    are summarised and at most 12 instances are listed."""
     max_points: int = DEFAULT_MAX_POINTS
     """Refuse scenes with more points than this."""
 
@@ -37,6 +40,7 @@ class InfoArgs:
         from rich.table import Table
 
         from efem_viz.data.io import find_scenes, holds_predictions, load_scene
+        from efem_viz.terminal import console_text
 
         console = Console()
         paths = find_scenes(self.scenes)
@@ -47,7 +51,7 @@ class InfoArgs:
             try:
                 scene = load_scene(path, max_points=self.max_points)
             except SceneError as exc:
-                console.print(f"[red]{exc}[/]")
+                console.print(f"[red]{console_text(exc)}[/]")
                 failures += 1
                 continue
             summary = scene.summary()
@@ -62,7 +66,7 @@ class InfoArgs:
             if self.json:
                 print(json.dumps(summary, default=str))
                 continue
-            table = Table(title=f"{path}", show_header=False, title_justify="left")
+            table = Table(title=console_text(path), show_header=False, title_justify="left")
             table.add_column("field", style="bold")
             table.add_column("value")
             table.add_row("kind", summary["kind"])
@@ -84,20 +88,39 @@ class InfoArgs:
                 )
                 cats = summary.get("categories", {})
                 if cats:
-                    table.add_row("categories", ", ".join(f"{k} x{v}" for k, v in sorted(cats.items())))
-            for key, val in dict(scene.provenance).items():
-                if key in ("K", "T_world_camera"):
+                    table.add_row("categories", console_text(", ".join(f"{k} x{v}" for k, v in sorted(cats.items()))))
+            prov = dict(scene.provenance)
+            from efem_viz.geometry.camera import Camera
+
+            camera, problem = Camera.parse(prov)
+            if camera is not None:
+                table.add_row("capture camera", f"{camera.width}x{camera.height}, fx {camera.K[0, 0]:.1f}, "
+                              "recorded (free-space check available)")
+            elif problem is not None:
+                table.add_row("capture camera", console_text(f"[unusable: {problem}]"))
+            shown = 0
+            for key, val in prov.items():
+                if not self.full and key in ("K", "T_world_camera", "image_size", "plane_camera"):
                     continue
-                table.add_row(f"provenance.{key}", str(val))
+                text = str(val)
+                if not self.full and len(text) > 80:
+                    text = text[:77] + "..."
+                table.add_row(console_text(f"provenance.{key}"), console_text(text))
+                shown += 1
+            if not self.full and shown < len(prov):
+                table.add_row("provenance", f"{len(prov) - shown} more entries (--full shows them)")
             console.print(table)
             if scene.instance is not None and summary.get("instances"):
                 inst = Table(title=labels_name if predicted else "instances", title_justify="left")
                 inst.add_column("id", justify="right")
                 inst.add_column("category")
                 inst.add_column("points", justify="right")
-                for i, rec in summary["instances"].items():
-                    inst.add_row(str(i), str(rec["category"]), f"{rec['points']:,}")
+                items = list(summary["instances"].items())
+                for i, rec in items if self.full else items[:12]:
+                    inst.add_row(str(i), console_text(rec["category"]), f"{rec['points']:,}")
                 console.print(inst)
+                if not self.full and len(items) > 12:
+                    console.print(f"... and {len(items) - 12} more instances (--full lists them)")
         return 1 if failures else 0
 
 

@@ -161,7 +161,13 @@ def find_scenes(
         elif p.is_file():
             if not _has_scene_suffix(p):
                 if p.name.lower().endswith(RESULT_SUFFIX):
-                    raise SceneError(f"{p} is an EFEM result file, not a scene")
+                    stem = p.name[: -len(RESULT_SUFFIX)]
+                    near = [c for c in (p.with_name(f"{stem}.seg.ply"), *(p.with_name(stem + s)
+                                                                        for s in SCENE_SUFFIXES)) if c.is_file()]
+                    hint = (f"; open {near[0]}" + (" (its coloured segmentation)" if near[0].name.endswith(".seg.ply")
+                                                   else "") + " instead, or view both with `efem-viz view "
+                            f"{p.parent}`") if near else "; `efem-viz view --results` shows it over its scene"
+                    raise SceneError(f"{p} is an EFEM result file, not a scene{hint}")
                 raise SceneError(
                     f"{p}: unknown scene format {p.suffix!r}; expected one of {', '.join(SCENE_SUFFIXES)}"
                 )
