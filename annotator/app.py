@@ -44,7 +44,7 @@ from annotator.wiring import wire
 from annotator.session import AnnotatorSession, BrushCursor, Stroke
 from annotator.scan_view import DISPLAY_POINTS, ScanView
 from annotator.tools import DEFAULT_TOOLS, RADIUS, TOOLS, Tool, ToolSettings, all_controls, lasso_click
-from efem_viz.serve.guard import start_server
+from efem_viz.serve.guard import ServedApp, start_server
 from efem_viz.serve.table import option_for as _option_for
 from efem_viz.serve.table import step_row
 from efem_viz.serve.inputs import ClientValueError, read_choice
@@ -63,7 +63,7 @@ __all__ = ["TOOLS", "AnnotatorApp", "ToolSettings"]
 T = TypeVar("T")
 
 
-class AnnotatorApp:
+class AnnotatorApp(ServedApp):
     """The annotator server for one scan.
 
     Args:
@@ -174,16 +174,6 @@ class AnnotatorApp:
                  len(self.view.display), self.view.chunks.count, self.open_s)
 
     # ================================================================== drawing
-    @property
-    def url(self) -> str:
-        """The URL to open, with the access token (the machine's address for a 0.0.0.0 bind; the real port)."""
-        return self.access.url
-
-    @property
-    def local_url(self) -> str:
-        """The URL from this machine (127.0.0.1 for loopback and 0.0.0.0 binds), with the token."""
-        return self.access.local_url
-
     def _on_labels_changed(self, d: Delta, how: str) -> None:
         t0 = time.perf_counter()
         sent = self.view.draw_delta(d)

@@ -606,7 +606,7 @@ class AnnotatorSession:
         return self.store.do(lambda ls: ls.replace_all(data.labels, data.instances, label=f"import {p.name}"))
 
     # ================================================================== EFEM assist: pre-labels
-    def import_efem(self, path: str, *, threshold: float = 0.0) -> list[int]:
+    def import_efem(self, path: str) -> list[int]:
         """Import an EFEM result as unreviewed pre-label instances on unlabelled vertices; returns their ids."""
         p = resolve_inside(path, self.roots, what="EFEM result")
         data = load_labels(p, self.n)

@@ -71,6 +71,8 @@ class Fit:
     category: str
     """That object's category ("background" below IoU 0.05 or without labels)."""
     mask: np.ndarray
+    gt_id: int = 0
+    """That object's ground-truth id (0: background)."""
     seen_lateral: dict[float, float] = dataclasses.field(default_factory=dict)
     """Seen-through fraction of the same completed shape with the free-space check's sideways tolerance
     (`EMConfig.seen_through_lateral`, m) as the key; filled for `--lateral` values on scenes with a camera."""
@@ -126,25 +128,25 @@ def fits_of(folder: Path, laterals: list[float] | None = None) -> list[Fit]:
         gt_ids = [int(i) for i in np.unique(gt) if i > 0]
         gt_sets = {i: np.flatnonzero(gt == i) for i in gt_ids}
 
-        def match(mask: np.ndarray) -> tuple[float, str]:
-            best, cat = 0.0, "background"
+        def match(mask: np.ndarray) -> tuple[float, str, int]:
+            best, cat, gid = 0.0, "background", 0
             m = np.asarray(mask, np.int64)
             for i, g in gt_sets.items():
                 inter = len(np.intersect1d(m, g, assume_unique=False))
                 iou = inter / max(1, len(np.union1d(m, g)))
                 if iou > best:
-                    best, cat = iou, _category_of(scene, i)
-            return best, (cat if best >= 0.05 else "background")
+                    best, cat, gid = iou, _category_of(scene, i), i
+            return (best, cat, gid) if best >= 0.05 else (best, "background", 0)
 
         inst = res.instances
         for k in range(len(inst)):
             pid = int(inst.ids[k])
             rev = tr.reviews(pid)[-1]
-            iou, cat = match(inst.masks[k])
+            iou, cat, gid = match(inst.masks[k])
             out.append(Fit(folder.name, name, pid, True, "", float(inst.confidence[k]), float(inst.stationary[k]),
                            float(inst.coverage[k]), float(rev.seen_through), float(inst.db_sim[k]),
                            float(rev.radii[0]), float(rev.radii[1]), float(rev.up_angle), len(inst.masks[k]), iou,
-                           cat, np.asarray(inst.masks[k]), lateral(rev)))
+                           cat, np.asarray(inst.masks[k]), gid, lateral(rev)))
         for pid in range(tr.num_proposals):
             death = tr.death(pid)
             if death is None or death[1] not in review_reasons:
@@ -155,10 +157,10 @@ def fits_of(folder: Path, laterals: list[float] | None = None) -> list[Fit]:
             rev = revs[-1]
             row = tr.row_of(pid, int(rev.step))
             stat = float(tr.row_stationary[row]) if row is not None else float("nan")
-            iou, cat = match(rev.mask)
+            iou, cat, gid = match(rev.mask)
             out.append(Fit(folder.name, name, pid, False, death[1], 0.0, stat, float(rev.coverage),
                            float(rev.seen_through), float(rev.db_sim), float(rev.radii[0]), float(rev.radii[1]),
-                           float(rev.up_angle), len(rev.mask), iou, cat, np.asarray(rev.mask), lateral(rev)))
+                           float(rev.up_angle), len(rev.mask), iou, cat, np.asarray(rev.mask), gid, lateral(rev)))
     return out
 
 
@@ -202,6 +204,8 @@ def score_rule(fits: list[Fit], scenes: dict[tuple[str, str], Any], rule: Callab
     from efem_viz.eval import SceneGroundTruth, ScenePrediction, evaluate
 
     preds, gts, top_mug, with_mug = [], [], 0, 0
+    found: set[tuple[str, str, int]] = set()
+    n_mugs = 0
     for (run, name), scene in scenes.items():
         if callable(revive):
             chosen = [f for f in fits if f.run == run and f.scene == name and revive(f)]
@@ -213,14 +217,18 @@ def score_rule(fits: list[Fit], scenes: dict[tuple[str, str], Any], rule: Callab
         preds.append(ScenePrediction(name=key, masks=[f.mask for f in chosen],
                                      confidences=np.asarray(scores, np.float64)))
         gts.append(dataclasses.replace(SceneGroundTruth.from_scene(scene), name=key))
-        has_mug = any(c == "mug" for c in scene.categories.values())
+        mug_ids = [i for i, c in scene.categories.items() if c == "mug" and np.any(scene.instance == int(i))]
+        n_mugs += len(mug_ids)
+        found |= {(run, name, f.gt_id) for f in chosen if f.category == "mug" and f.iou >= 0.5}
+        has_mug = bool(mug_ids)
         if has_mug:
             with_mug += 1
             if chosen:
                 best = chosen[int(np.argmax(scores))]
                 top_mug += best.category == "mug" and best.iou >= 0.5
     ev = evaluate(preds, gts, class_names=("mug",))
-    return {"ap": 100 * ev.ap, "ap50": 100 * ev.ap50, "top_is_mug": top_mug, "scenes_with_mug": with_mug}
+    return {"ap": 100 * ev.ap, "ap50": 100 * ev.ap50, "top_is_mug": top_mug, "scenes_with_mug": with_mug,
+            "mugs_found": len(found), "mugs": n_mugs}
 
 
 def kind(f: Fit) -> str:
@@ -278,7 +286,7 @@ def main() -> int:
         table[k] = row
         print(f"| {k} | {len(g)} | {row['accepted']} | {', '.join(f'{r}: {n}' for r, n in kills.items()) or '–'} | "
               + " | ".join(cells) + " |")
-    print("\n| scoring rule | AP50 | AP | top is a mug |\n|---|---:|---:|---:|")
+    print("\n| scoring rule | AP50 | AP | mugs found (IoU >= 0.5) | top is a mug |\n|---|---:|---:|---:|---:|")
     rules_out = {}
     rules: dict[str, tuple[Callable[[Fit], float], Any]] = dict(RULES)
     for lat in a.lateral:
@@ -286,7 +294,8 @@ def main() -> int:
     for name, (rule, revive) in rules.items():
         r = score_rule(fits, scenes, rule, revive)
         rules_out[name] = r
-        print(f"| {name} | {r['ap50']:.1f} | {r['ap']:.1f} | {r['top_is_mug']} of {r['scenes_with_mug']} |")
+        print(f"| {name} | {r['ap50']:.1f} | {r['ap']:.1f} | {r['mugs_found']} of {r['mugs']} | {r['top_is_mug']} of "
+              f"{r['scenes_with_mug']} |")
     if a.json is not None:
         from efem_viz.data.io import atomic_write_text
 

@@ -13,6 +13,8 @@ from typing import Sequence
 
 import numpy as np
 
+from efem_viz.geometry.procrustes import rotation_from_cross_covariance
+
 __all__ = [
     "Sim3",
     "apply_transform",
@@ -199,13 +201,8 @@ def project_to_so3(M: np.ndarray) -> np.ndarray:
     Returns:
         (..., 3, 3) float64 with det = +1.
     """
-    M = _check_rotation_shape(M, "M")
-    U, _, Vt = np.linalg.svd(M)
-    d = np.sign(np.linalg.det(U @ Vt))
-    d = np.where(d == 0, 1.0, d)
-    U = U.copy()
-    U[..., :, 2] *= d[..., None]
-    return U @ Vt
+    # the nearest rotation of M is the proper R maximising tr(Rᵀ M): one SVD rule, in procrustes.py
+    return rotation_from_cross_covariance(_check_rotation_shape(M, "M"), proper=True)
 
 
 def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray | None = None) -> np.ndarray | float:

@@ -430,6 +430,23 @@ def reachable_host(bind_host: str) -> str:
     return socket.gethostname() or "127.0.0.1"
 
 
+class ServedApp:
+    """What both browser apps say about where they are served (`ViewerApp` and `AnnotatorApp` inherit it): they
+    set `access` (the `ServerAccess` of `start_server`) when their server starts."""
+
+    access: ServerAccess
+
+    @property
+    def url(self) -> str:
+        """The URL to open, with the access token (the machine's address for a 0.0.0.0 bind; the real port)."""
+        return self.access.url
+
+    @property
+    def local_url(self) -> str:
+        """The URL from this machine (127.0.0.1 for loopback and 0.0.0.0 binds), with the token."""
+        return self.access.local_url
+
+
 def start_server(*, host: str = "127.0.0.1", port: int = 8080, token: str | None = None) -> tuple[viser.ViserServer, ServerAccess]:
     """Start a `viser.ViserServer` behind the access guard.
 

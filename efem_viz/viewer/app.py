@@ -26,6 +26,7 @@ from efem_viz.data.scene import DEFAULT_MAX_POINTS
 from efem_viz.prior.config import DEFAULT_PRIOR
 from efem_viz.prior.registry import PriorSet
 from efem_viz.serve.camera import CameraGuard, fitted_view, fly_to_view
+from efem_viz.serve.guard import ServedApp
 from efem_viz.serve.inputs import read_text, resolve_inside_root
 from efem_viz.viewer import panel_views as pv, scene_views as sv, state as st
 from efem_viz.viewer.events import wire
@@ -50,7 +51,7 @@ logger = logging.getLogger(__name__)
 T = TypeVar("T")
 
 
-class ViewerApp:
+class ViewerApp(ServedApp):
     """The viewer application: a viser server, its panels and scene nodes over a `ViewerSession` (which holds the
     state and does every action; this class builds the GUI, runs the heavy actions in worker threads and draws).
 
@@ -142,16 +143,6 @@ class ViewerApp:
         return self.session.prior()
 
     # ================================================================== lifecycle
-    @property
-    def url(self) -> str:
-        """The URL to open, with the access token (the machine's address for a 0.0.0.0 bind; the real port)."""
-        return self.access.url
-
-    @property
-    def local_url(self) -> str:
-        """The URL from this machine (127.0.0.1 for loopback and 0.0.0.0 binds), with the token."""
-        return self.access.local_url
-
     def stop(self) -> None:
         """Stop playback, cancel a run, shut the workers and the server down."""
         self.pause()
