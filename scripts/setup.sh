@@ -11,7 +11,8 @@ SUDO=""
 if [[ "$(id -u)" != "0" ]] && command -v sudo >/dev/null 2>&1; then SUDO="sudo"; fi
 
 # System packages: open3d needs libusb/libGL/libgomp; browser tests need Debian's chromium (never `playwright install`).
-PKGS=(libusb-1.0-0 libgl1 libgomp1)
+# g++ builds the fused VN encoder kernels once per machine (without it the encoder runs eagerly, slower).
+PKGS=(libusb-1.0-0 libgl1 libgomp1 g++)
 [[ $WITH_TEST == 1 ]] && PKGS+=(chromium)
 missing=()
 for p in "${PKGS[@]}"; do dpkg -s "$p" >/dev/null 2>&1 || missing+=("$p"); done
