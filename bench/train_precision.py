@@ -5,8 +5,11 @@ decoder with `prior.widen`), trains `--iterations` steps on the same batches (sa
 shipped run: sensor inputs, fixed-point examples) and records seconds per iteration (median after a warm-up) and
 the training SDF loss of every step. Candidates: decoder width x blocks, fp32 or bf16.
 
+On a CPU without AMX or AVX-512 BF16 (`efem_viz.prior.config.fast_cpu_bf16()` False, recorded in the JSON) the
+bf16 rows are 5-12x *slower* than float32: run them only where the hardware has bf16 matrix units.
+
 Usage: python bench/train_precision.py [--threads 1] [--iterations 40] [--candidates 128x2:float32 ...]
-Writes bench/results/train_precision.json. Say the thread count and what else ran with the numbers.
+Writes bench/results/train_precision.json (after every candidate). Say the thread count and what else ran.
 """
 
 from __future__ import annotations
@@ -39,6 +42,7 @@ def main() -> int:
     a = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     from bench.em import machine, write_json
+    from efem_viz.prior.config import fast_cpu_bf16
     from efem_viz.prior.train import TrainArgs, train
 
     rows = []
@@ -61,7 +65,9 @@ def main() -> int:
         rows.append(row)
         print(f"{cand:>16}: {row['sec_per_iter_median']:.3f} s/iter; train SDF loss first 10 "
               f"{row['sdf_first10']:.4f}, last 10 {row['sdf_last10']:.4f}", flush=True)
-    write_json(a.out, {"machine": machine(a.threads), "iterations": a.iterations, "rows": rows})
+        # after every candidate: a run stopped part-way keeps the rows it has
+        write_json(a.out, {"machine": machine(a.threads) | {"fast_cpu_bf16": fast_cpu_bf16()},
+                           "iterations": a.iterations, "rows": rows})
     return 0
 
 
