@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import cProfile
+import dataclasses
 import multiprocessing as mp
 import os
 import pstats
@@ -116,10 +117,14 @@ def main() -> int:
     from efem_viz.em import run_em
     from efem_viz.em.config import preset
     from efem_viz.prior.model import load_prior
-    from efem_viz.prior import fused
 
     prior = load_prior("mug")
-    fused.load()  # a first build is not a solve's time
+    try:
+        from efem_viz.prior import fused
+
+        fused.load()  # a first build is not a solve's time
+    except ImportError:  # a checkout from before the fused kernels
+        pass
     busy = [mp.Process(target=_busy, daemon=True) for _ in range(a.busy)]
     for p in busy:
         p.start()
@@ -133,7 +138,8 @@ def main() -> int:
             for var in a.variants:
                 env, over = VARIANTS[var]
                 os.environ.update(env)
-                cfg = cfg0.replace(**over)
+                known = {f.name for f in dataclasses.fields(cfg0)}  # a checkout older than a knob runs without it
+                cfg = cfg0.replace(**{k: v for k, v in over.items() if k in known})
                 runs, res = [], None
                 for r in range(a.repeats):
                     prof = cProfile.Profile() if (a.profile and r == 0) else None
