@@ -552,3 +552,31 @@ def test_segment_without_out_writes_to_the_data_folder_and_says_where(tmp_path: 
     assert (out / f"{names[0]}.efem.npz").is_file() and not any(work.iterdir())
     first = [ln for ln in proc.stdout.splitlines() if ln.strip()][0]
     assert str(out) in first.replace("\n", ""), proc.stdout[:500]
+
+
+def test_a_damaged_batch_json_means_recompute_not_a_crash(tmp_path: Path) -> None:
+    """Issue 36 items 10-11: a wrongly typed record ("instances": "many") crashed every resume with "internal
+    error: TypeError", and a deeply nested batch.json with RecursionError. On the full CLI: one warning, the
+    affected scenes recomputed, the others skipped, exit 0."""
+    scenes = tmp_path / "scenes"
+    names = sphere_folder(scenes, 2)
+    out = tmp_path / "out"
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[1])}
+    cmd = [sys.executable, "-m", "efem_viz.cli", "segment", str(scenes), "--out", str(out), *SPHERE_ARGS]
+    assert subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env).returncode == 0
+    good = batch_json(out)
+    bad = json.loads(json.dumps(good))
+    first = next(s for s in bad["scenes"] if s["name"] == names[0])
+    first["instances"] = "many"
+    (out / "batch.json").write_text(json.dumps(bad))
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env)
+    assert proc.returncode == 0 and "internal error" not in proc.stderr, proc.stderr[-2000:]
+    text = proc.stdout + proc.stderr
+    assert text.count("invalid record") == 1  # one warning line
+    assert f"{names[0]}: recomputing" in text and f"{names[1]}: recomputing" not in text  # the others stand
+    assert "1 ok, 1 skipped" in text.replace("\n", " ")
+    (out / "batch.json").write_text("[" * 100_000 + "]" * 100_000)
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env)
+    assert proc.returncode == 0 and "internal error" not in proc.stderr, proc.stderr[-2000:]
+    assert (proc.stdout + proc.stderr).count("unreadable") == 1
+    assert {s["name"]: s["status"] for s in batch_json(out)["scenes"]} == {n: "ok" for n in names}

@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -246,6 +247,16 @@ class SceneOutcome:
                 raise ValueError(f"batch record without a valid {key!r}: {d!r}"[:200])
         if kw["status"] not in ("ok", "skipped", "failed"):
             raise ValueError(f"batch record with unknown status {kw['status']!r}")
+        for key, f in known.items():  # every other field must have its declared type (issue 36: "instances":
+            if key not in kw or key in ("name", "path", "status"):  # "many" crashed every later resume)
+                continue
+            v = kw[key]
+            want = (int,) if f.type in ("int", int) else (int, float) if f.type in ("float", float) else (str,)
+            if isinstance(v, bool) or not isinstance(v, want):
+                raise ValueError(f"batch record {kw['name']!r}: {key} must be {want[-1].__name__}, "
+                                 f"got {type(v).__name__}"[:200])
+            if isinstance(v, float) and not math.isfinite(v):
+                raise ValueError(f"batch record {kw['name']!r}: {key} is not finite")
         try:
             return cls(**kw)  # type: ignore[arg-type]
         except TypeError as exc:

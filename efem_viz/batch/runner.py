@@ -63,24 +63,48 @@ LOCK_FILE = ".batch.lock"
 """Held (flock) by the batch writing into a folder."""
 RECORD_EVERY_S = 1.0
 """`batch.json` is rewritten after a finished scene at most this often (and always at the end)."""
+MAX_BATCH_FILE_BYTES = 64 << 20
+"""Largest `batch.json` read (a record is about 500 bytes: room for 100,000 scenes)."""
 _TEMP_NAME = re.compile(r"^\..+\.[A-Za-z0-9_]{8}\.tmp(\.[A-Za-z0-9.]+)?$")
 """Temporary files of `efem_viz.data.io.atomic_write` (`.<stem>.<random>.tmp<suffix>`) left by a killed write."""
 
 
-def read_batch_records(out: str | os.PathLike[str]) -> dict[str, SceneOutcome]:
-    """The per-scene records of `<out>/batch.json` (empty when there is none or it is unreadable)."""
+def read_batch_records(out: str | os.PathLike[str], *, warn: bool = True) -> dict[str, SceneOutcome]:
+    """The per-scene records of `<out>/batch.json` (empty when there is none or it is unreadable; invalid records
+    are left out, so their scenes are recomputed). `warn=False`: no warnings (a second read of the same file)."""
     p = Path(out) / BATCH_FILE
     if not p.is_file():
         return {}
     try:
+        if p.stat().st_size > MAX_BATCH_FILE_BYTES:
+            raise ValueError(f"{p.stat().st_size:,} bytes, more than a batch record can need")
         data = json.loads(p.read_text(encoding="utf-8"))
         if not isinstance(data, dict) or data.get("kind") != "efem-batch":
             raise ValueError("not an efem-viz batch record")
-        records = [SceneOutcome.from_dict(r) for r in data.get("scenes", [])]
-    except (OSError, ValueError, TypeError, AttributeError) as exc:
-        logger.warning("%s is unreadable (%s): every existing result will be recomputed", p, exc)
+        scenes = data.get("scenes", [])
+        if not isinstance(scenes, list):
+            raise ValueError("its 'scenes' is not a list")
+    except (OSError, ValueError, TypeError, AttributeError, RecursionError) as exc:  # RecursionError: deep nesting
+        if warn:
+            logger.warning("%s is unreadable (%s): every existing result will be recomputed", p,
+                           str(exc)[:200] or type(exc).__name__)
         return {}
-    return {r.name: r for r in records}
+    records: dict[str, SceneOutcome] = {}
+    bad = 0
+    for r in scenes:
+        try:
+            if not isinstance(r, dict):
+                raise ValueError("a record is not an object")
+            rec = SceneOutcome.from_dict(r)
+        except ValueError as exc:  # one bad record: that scene is recomputed, the others stand
+            bad += 1
+            if bad == 1 and warn:
+                logger.warning("%s: an invalid record (%s): its scene will be recomputed", p, str(exc)[:200])
+            continue
+        records[rec.name] = rec
+    if bad > 1 and warn:
+        logger.warning("%s: %d invalid records in all; their scenes will be recomputed", p, bad)
+    return records
 
 
 def check_result_file(task: SceneTask, *, seed: int) -> str | None:
@@ -217,7 +241,7 @@ class _BatchRecord:
     def __init__(self, plan: BatchPlan, job: BatchJob, backend: dict[str, object]) -> None:
         self.path = plan.out / BATCH_FILE
         self.plan, self.job, self.backend = plan, job, backend
-        self.records = read_batch_records(plan.out)
+        self.records = read_batch_records(plan.out, warn=False)  # the plan has warned
         for o in plan.skipped:  # a skipped scene keeps the record of the run that computed it
             self.records.setdefault(o.name, o)
         for t in plan.tasks:
