@@ -221,3 +221,25 @@ def test_real_sample_scenes() -> None:
         assert s.provenance["source_file"].startswith("image_")
         nz, mean_abs_z = table_plane_stats(s)
         assert nz > 0.99 and mean_abs_z < 0.005, f.name
+
+
+def test_a_frame_larger_than_any_sensor_is_refused_before_it_is_inflated(tmp_path: Path) -> None:
+    """Issue 36 item 3: a 130 KB .npz with an 8000x8000 depth image ran import-rgbd for 77 s and 10.4 GB. On the
+    full CLI: one line naming the size, at once, nothing written."""
+    import os
+    import subprocess
+    import sys
+
+    big = tmp_path / "big.npz"
+    np.savez_compressed(big, depth_mm=np.zeros((8000, 8000), np.uint16),
+                        K=np.array([[600.0, 0, 4000], [0, 600.0, 4000], [0, 0, 1]]))
+    assert big.stat().st_size < 1_000_000
+    root = Path(__file__).resolve().parents[1]
+    code = ("import resource, sys; lim = 1536 << 20; resource.setrlimit(resource.RLIMIT_AS, (lim, lim)); "
+            "from efem_viz import cli; sys.exit(cli.main(sys.argv[1:]))")
+    proc = subprocess.run([sys.executable, "-c", code, "import-rgbd", str(big), "--out", str(tmp_path / "s.ply")],
+                          capture_output=True, text=True, timeout=300, env={**os.environ, "PYTHONPATH": str(root)})
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 1 and len(lines) == 1, proc.stderr[-2000:]
+    assert "8000x8000 pixels" in lines[0] and "big.npz" in lines[0]
+    assert not (tmp_path / "s.ply").exists()  # (the child ran under a 1.5 GB address-space limit)

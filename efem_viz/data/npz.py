@@ -30,7 +30,7 @@ tokenize.TokenError from its literal parsing), zipfile (BadZipFile; NotImplement
 file version"), zlib and the file itself."""
 
 
-def check_npz_headers(p: Path, max_points: int) -> None:
+def check_npz_headers(p: Path, max_points: int) -> dict[str, tuple[int, ...]]:
     """Check every array header of an `.npz` against the archive and the limits before numpy allocates.
 
     `np.load` allocates an array's full size from its `.npy` header before reading the data, so a header
@@ -38,9 +38,13 @@ def check_npz_headers(p: Path, max_points: int) -> None:
     member's claimed size must equal the bytes the zip directory says it holds (zipfile never inflates more
     than that), and scene arrays must fit `max_points`.
 
+    Returns:
+        The declared shape of every array (key -> shape), for format-specific bounds before loading.
+
     Raises:
         SceneError: not a zip archive; a header that disagrees with its member's size; an array over the limits.
     """
+    shapes: dict[str, tuple[int, ...]] = {}
 
     try:
         zf = zipfile.ZipFile(p)
@@ -60,6 +64,7 @@ def check_npz_headers(p: Path, max_points: int) -> None:
                     header_len = fh.tell()
             except NPY_HEADER_ERRORS as exc:
                 raise SceneError(f"{p}: array {key!r} has a corrupt .npy header ({exc})") from exc
+            shapes[key] = tuple(int(x) for x in shape)
             if dtype.hasobject:
                 continue  # np.load(allow_pickle=False) refuses it with its own message
             nbytes = int(np.prod(shape, dtype=object)) * dtype.itemsize if shape else dtype.itemsize
@@ -83,3 +88,4 @@ def check_npz_headers(p: Path, max_points: int) -> None:
                     f"{p}: array {key!r} has shape {tuple(shape)} {dtype} ({nbytes:,} bytes), larger than any "
                     "scene or RGB-D frame this reader accepts"
                 )
+    return shapes

@@ -28,6 +28,10 @@ MAX_FRAME_SPAN_M = 1000.0
 """A frame whose back-projected points span more than this (metres) has absurd intrinsics and is refused."""
 
 
+MAX_FRAME_PIXELS = 4096 * 4096
+"""Largest RGB-D frame read (depth sensors top out near 4K)."""
+
+
 def load_rgbd_npz(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Read a frame `.npz` with `rgb` (H, W, 3) uint8, `depth_mm` (H, W) uint16 (0 = no reading), `K` (3, 3).
 
@@ -49,7 +53,12 @@ def load_rgbd_npz(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray,
     p = Path(path)
     if not p.is_file():
         raise SceneError(f"{p} is a directory, not an RGB-D frame" if p.is_dir() else f"{p}: no such file")
-    check_npz_headers(p, DEFAULT_MAX_POINTS)  # the scene reader's header check: names the file
+    shapes = check_npz_headers(p, DEFAULT_MAX_POINTS)  # the scene reader's header check: names the file
+    for k in ("depth_mm", "depth", "rgb"):  # before anything is inflated (issue 36: a 130 KB file, 8000² pixels)
+        shape = shapes.get(k)
+        if shape is not None and len(shape) >= 2 and shape[0] * shape[1] > MAX_FRAME_PIXELS:
+            raise SceneError(f"{p}: {k!r} is {shape[1]}x{shape[0]} pixels, more than the {MAX_FRAME_PIXELS:,} "
+                             "a depth sensor gives (4096x4096)")
     try:
         with np.load(p, allow_pickle=False) as d:
             data = {k: np.array(d[k]) for k in d.keys()}
@@ -66,7 +75,9 @@ def load_rgbd_npz(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray,
     for k in (key, "K", "rgb"):
         if k in data and data[k].dtype.kind not in ("biu" if k == "rgb" else "biuf"):
             raise SceneError(f"{p}: RGB-D array {k!r} must be numeric, got dtype {data[k].dtype}")
-    depth_m = data[key].astype(np.float32) / (1000.0 if key == "depth_mm" else 1.0)
+    depth_m = data.pop(key).astype(np.float32)  # one float copy at a time
+    if key == "depth_mm":
+        depth_m /= 1000.0
     rgb = data.get("rgb")
     K = np.asarray(data["K"], dtype=np.float64)
     _check_inputs(depth_m, K, rgb, where=str(p))
