@@ -437,3 +437,22 @@ def test_info_summarises_and_escapes_what_a_file_says(tmp_path: Path, capsys: py
     assert "T_world_camera" in capsys.readouterr().out
     proc = run_cli("info", str(REPO / "sample_scenes" / "real_tabletop_8.efem.npz"))
     assert proc.returncode == 1 and "real_tabletop_8.ply" in proc.stderr and "instead" in proc.stderr
+
+
+def test_an_unused_member_of_a_result_file_is_never_inflated(sample: dict[str, Any], tmp_path: Path) -> None:
+    """Issue 36 item 1: a small result file with an extra, highly compressed member cost its inflated size in
+    every reader. `EMResult.load` reads the format's keys only (memory measured with tracemalloc, which numpy
+    reports its arrays to)."""
+    import tracemalloc
+
+    path = tmp_path / f"{SAMPLE}.efem.npz"
+    np.savez_compressed(path, **sample["arrays"], junk=np.zeros(300 << 20, np.uint8))  # type: ignore[arg-type]
+    assert path.stat().st_size < 20 << 20
+    tracemalloc.start()
+    try:
+        res = EMResult.load(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert len(res.instances) == len(EMResult.load(REPO / "sample_scenes" / f"{SAMPLE}.efem.npz").instances)
+    assert peak < 150 << 20, f"{peak / 2**20:.0f} MB traced while loading"

@@ -409,7 +409,8 @@ class EMResult:
                 missing = [k for k in REQUIRED_RESULT_KEYS if k not in z.files]
                 if missing:
                     raise ResultFileError(f"{p}: not a complete EFEM result: missing {', '.join(missing)}")
-                data = {k: z[k] for k in z.files}
+                wanted = set(REQUIRED_RESULT_KEYS) | set(OPTIONAL_RESULT_KEYS)
+                data = {k: z[k] for k in z.files if k in wanted}
             except ResultFileError:
                 raise
             except MemoryError:
@@ -494,6 +495,12 @@ REQUIRED_RESULT_KEYS: tuple[str, ...] = (
     *(f"trace/{k}" for k in EMTrace._ARRAY_FIELDS),
 )
 """Every key `EMResult.save` writes (schema 1); `EMResult.load` refuses a file without one of them."""
+OPTIONAL_RESULT_KEYS: tuple[str, ...] = (
+    "categories_json", "warnings_json", "trace/reason_names_json", "trace/prior_names_json", "trace/prop_prior",
+    "trace/rev_seen_through",
+)
+"""Keys `EMResult.save` writes that older results lack. `load` reads these and the required keys only: any other
+member of the archive is never inflated (issue 36: a 5 MB result with an extra 2 GiB deflated member cost 2.2 GB)."""
 
 
 def _check_npz_headers(p: Path) -> None:
