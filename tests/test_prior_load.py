@@ -137,3 +137,32 @@ def test_parameter_and_block_bounds_are_checked_from_the_config(tmp_path: Path) 
     # the bound is generous: the shipped prior is far below it, and it loads
     shipped = load_prior("mug", load_codebook=False)
     assert count_parameters(shipped) < MAX_PRIOR_PARAMETERS // 10
+
+
+def test_a_small_prior_file_whose_records_inflate_to_gigabytes_is_refused_before_loading(tmp_path: Path) -> None:
+    """Issue 36 item 2: the shipped prior plus a DEFLATE-compressed 1.5 GiB record, a few MB on disk, was
+    inflated before any check. The zip directory is read first: one line, under a 2 GB address-space limit."""
+    import shutil
+    import zipfile
+
+    from efem_viz.prior.model import MAX_CHECKPOINT_BYTES, WEIGHTS_DIR
+
+    bad = tmp_path / "inflating.pt"
+    shutil.copyfile(WEIGHTS_DIR / "mug.pt", bad)
+    with zipfile.ZipFile(bad, "a", compression=zipfile.ZIP_DEFLATED) as zf:
+        name = zf.namelist()[0].split("/")[0] + "/data/99999"
+        with zf.open(name, "w", force_zip64=True) as fh:
+            chunk = bytes(64 << 20)
+            for _ in range(24):  # 1.5 GiB of zeros
+                fh.write(chunk)
+    assert bad.stat().st_size < 20 << 20 and MAX_CHECKPOINT_BYTES < 24 * (64 << 20)
+    from efem_viz.data.io import save_scene
+    from efem_viz.prior.analytic import make_sphere_scene
+
+    sp = save_scene(make_sphere_scene(seed=1, radii=(0.05,)), tmp_path / "one.npz")
+    r = subprocess.run([sys.executable, "-m", "efem_viz.cli", "segment", str(sp), "--prior", str(bad),
+                        "--out", str(tmp_path / "out")], capture_output=True, text=True, cwd=ROOT, timeout=300,
+                       preexec_fn=_limit_memory(2048))
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 1 and len(lines) == 1 and "Traceback" not in r.stderr, r.stderr[-2000:]
+    assert "declare" in lines[0] and str(bad) in lines[0] and "refused before loading" in lines[0]

@@ -312,6 +312,31 @@ class PickleRequired(ValueError):
     ``allow_pickle`` was not set. Callers with their own opt-in switch can catch this to name it."""
 
 
+MAX_CHECKPOINT_BYTES = 1 << 30
+"""Largest total of tensor data a checkpoint may declare: a prior of `MAX_PRIOR_PARAMETERS` float32 weights with
+its Adam moments is 0.6 GB (the shipped resume state: 8 MB)."""
+
+
+def _check_archive_sizes(path: Path) -> None:
+    """Refuse a torch zip checkpoint whose records declare more data than any prior needs, from the zip directory
+    alone: nothing is inflated (issue 36: a 6.4 MB file with an unused 4 GiB zero tensor cost 30 s and 4.3 GB
+    before the prior checks ran). Not a zip (legacy format, or not a checkpoint): left to `torch.load`."""
+    import zipfile
+
+    try:
+        if not zipfile.is_zipfile(path):
+            return
+        with zipfile.ZipFile(path) as zf:
+            infos = zf.infolist()
+    except (OSError, zipfile.BadZipFile, ValueError, NotImplementedError):
+        return  # torch.load reports it
+    declared = sum(max(int(i.file_size), 0) for i in infos)
+    pickles = [i for i in infos if i.filename.endswith(".pkl")]
+    if declared > MAX_CHECKPOINT_BYTES or any(i.file_size > 64 << 20 for i in pickles):
+        raise ValueError(f"{path}: its records declare {declared:,} bytes of data, more than a prior checkpoint "
+                         f"can hold ({MAX_CHECKPOINT_BYTES:,}); refused before loading")
+
+
 def read_checkpoint(path: str | os.PathLike[str], *, allow_pickle: bool = False) -> Any:
     """``torch.load`` a checkpoint safely: tensors and plain containers only (``weights_only=True``).
 
@@ -323,6 +348,7 @@ def read_checkpoint(path: str | os.PathLike[str], *, allow_pickle: bool = False)
         ValueError: the file is not a readable torch checkpoint.
     """
     path = Path(path)
+    _check_archive_sizes(path)
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
