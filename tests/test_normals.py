@@ -21,3 +21,25 @@ def test_point_normals_face_the_sensor() -> None:
     assert (nrm[:, 2] < -0.95).mean() > 0.98
     nrm_up = estimate_normals(pts)
     assert (nrm_up[:, 2] > 0.95).mean() > 0.98
+
+
+def test_coincident_points_are_estimated_on_the_distinct_positions() -> None:
+    """Issue 36 item 4: a k-d tree cannot split coincident points, so N copies of one point made every k-NN query
+    scan all N (quadratic: 2M copies ran for 200 s+). Duplicates now share the normal of their position."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    rng = np.random.default_rng(0)
+    g = np.linspace(-0.1, 0.1, 60)
+    xx, yy = np.meshgrid(g, g)
+    plane = np.stack([xx.ravel(), yy.ravel(), 0.01 * xx.ravel()], 1)
+    pts = np.vstack([plane, np.repeat(plane[:5], 500, axis=0)])[rng.permutation(len(plane) + 2500)]
+    nrm = estimate_normals(pts)
+    expect = np.array([-0.01, 0.0, 1.0]) / np.linalg.norm([-0.01, 0.0, 1.0])
+    assert np.abs(np.abs(nrm @ expect) - 1).max() < 1e-6  # every copy gets its position's plane normal
+    # 300k copies of one point: seconds, not the quadratic scan (the timeout is a hang guard, 10x the expected)
+    root = Path(__file__).resolve().parents[1]
+    code = ("import numpy as np, sys; sys.path.insert(0, %r); from efem_viz.geometry.normals import estimate_normals;"
+            " n = estimate_normals(np.zeros((300000, 3))); assert np.allclose(np.linalg.norm(n, axis=1), 1)" % str(root))
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120)

@@ -142,6 +142,9 @@ def pca_normals(
     # `pts` (about 2x faster on 2M points than file order); results are scattered back to the input order
     order = _morton_order(pts)
     sorted_pts = pts[order]
+    if n > 1 and _longest_run_of_equal_rows(sorted_pts) > MAX_COINCIDENT:
+        return _pca_normals_deduplicated(pts, knn=knn, chunk=chunk, keep_neighbours=keep_neighbours,
+                                         on_progress=on_progress)
     tree = cKDTree(sorted_pts, leafsize=16, balanced_tree=False, compact_nodes=False)
     nrm = np.empty((n, 3), np.float64)
     nbrs = np.empty((n, keep), np.int32) if keep else None
@@ -166,6 +169,41 @@ def pca_normals(
                     f"{n:,}")
             next_log = e + step
     return nrm, nbrs
+
+
+MAX_COINCIDENT = 64
+"""More copies of one point than this and the normals are computed on the distinct points (issue 36: a k-d tree
+cannot split coincident points, so 2M copies of one point made every k-NN query scan all of them: 200 s+)."""
+
+
+def _longest_run_of_equal_rows(sorted_pts: np.ndarray) -> int:
+    """Longest run of identical consecutive rows (coincident points are adjacent in Morton order)."""
+    same = np.all(sorted_pts[1:] == sorted_pts[:-1], axis=1)
+    if not same.any():
+        return 1
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], same.astype(np.int8), [0]])))
+    return int((edges[1::2] - edges[::2]).max()) + 1
+
+
+def _pca_normals_deduplicated(pts: np.ndarray, *, knn: int, chunk: int, keep_neighbours: int,
+                              on_progress: NormalsProgress | None) -> tuple[np.ndarray, np.ndarray | None]:
+    """`pca_normals` over the distinct points, copied to every duplicate; neighbour indices point at the first
+    copy of each neighbour. Coincident copies carry no shape, so the neighbourhoods lose nothing."""
+    uniq, first, inv = np.unique(pts, axis=0, return_index=True, return_inverse=True)
+    inv = np.asarray(inv).reshape(-1)
+    log.info("normals: %s points hold %s distinct positions; estimating on those", f"{len(pts):,}", f"{len(uniq):,}")
+    if len(uniq) < 3:  # no plane through fewer than 3 distinct points: +Z, as for a flat patch seen from above
+        nrm = np.tile(np.array([0.0, 0.0, 1.0]), (len(pts), 1))
+        keep = min(keep_neighbours, max(1, min(knn, len(uniq))))
+        nbrs = first[np.zeros((len(pts), keep), np.int64)].astype(np.int32) if keep else None
+        if on_progress is not None:
+            on_progress("pca", len(pts), len(pts))
+        return nrm, nbrs
+    nrm_u, nbrs_u = pca_normals(uniq, knn=knn, chunk=chunk, keep_neighbours=keep_neighbours, on_progress=None)
+    if on_progress is not None:
+        on_progress("pca", len(pts), len(pts))
+    nbrs = first[nbrs_u[inv]].astype(np.int32) if nbrs_u is not None else None
+    return nrm_u[inv], nbrs
 
 
 def _morton_order(pts: np.ndarray, *, bits: int = 10) -> np.ndarray:
