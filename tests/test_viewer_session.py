@@ -90,6 +90,25 @@ def test_a_result_with_warnings_says_them_in_the_status(tmp_path: Path) -> None:
     assert s.state.error is not None and "camera is unusable (K missing)" in s.state.status
 
 
+def test_each_result_opens_with_a_cut_that_shows_it(tmp_path: Path) -> None:
+    """Issue 37 item 8: after a cut of 0.25 on one real frame, switching to another whose best instance is below
+    it hid every instance. A person's cut is kept only while it still shows something, and the status says so."""
+    s = ViewerSession([SAMPLES], out_dir=tmp_path)
+    assert s.open_scene("real_tabletop_0") is not None and s.load_result() is not None
+    s.set_threshold(0.99)  # above every instance of every bundled result
+    assert s.open_scene("real_tabletop_8") is not None
+    res = s.load_result()
+    assert res is not None
+    best = float(np.max(res.instances.confidence))
+    assert s.state.threshold <= best and s.state.threshold == s.default_threshold(res)
+    assert "would hide every instance" in s.state.status and not s.state.threshold_by_user
+    s.set_threshold(0.01)
+    assert s.open_scene("real_tabletop_6") is not None and s.load_result() is not None
+    assert s.state.threshold == 0.01 and "is kept" in s.state.status
+    s.set_threshold(0.01, by_user=False)  # redraws do not count as a person's choice
+    assert s.state.threshold_by_user  # (still the person's earlier choice)
+
+
 def test_step_through_iterations(session: ViewerSession) -> None:
     v = session.set_step(0)
     assert isinstance(v, StepView) and v.step == 0 and session.state.step == 0

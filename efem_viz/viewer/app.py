@@ -307,7 +307,7 @@ class ViewerApp(ServedApp):
             self.nodes.remove_shapes()  # old per-step shapes; the final instances are drawn once
             self.nodes.draw_results(result.instances)
             self.set_step(self.state.step, view_mode="result")
-            self.set_threshold(self.state.threshold)  # the status line is the session's ("Loaded result", warnings)
+            self.set_threshold(self.state.threshold, by_user=False)  # the status line is the session's
 
     def _draw_no_result(self) -> None:
         pv.show_no_result(self.panels, self.session, self.gui_set)
@@ -446,11 +446,12 @@ class ViewerApp(ServedApp):
             self._redraw_layers()
 
     # ================================================================== 5./6. results and ground truth
-    def set_threshold(self, threshold: float) -> None:
-        """Filter the final instances by confidence (visibility + colours only, no re-run)."""
+    def set_threshold(self, threshold: float, *, by_user: bool = True) -> None:
+        """Filter the final instances by confidence (visibility + colours only, no re-run); `by_user=False` for
+        redraws (only a person's cut carries over to the next result)."""
         with self._lock:
             s = self.state
-            self.session.set_threshold(threshold)
+            self.session.set_threshold(threshold, by_user=by_user)
             self.gui_set(self.panels.gui_threshold, s.threshold)
             if s.result is None:
                 return
@@ -474,7 +475,7 @@ class ViewerApp(ServedApp):
             if not self.session.set_mask_band(tau_out):
                 return False
             if self.session.mask_version != before:
-                self.set_threshold(s.threshold)
+                self.set_threshold(s.threshold, by_user=False)
             return True
 
     def kept_mask(self) -> np.ndarray:
@@ -500,7 +501,7 @@ class ViewerApp(ServedApp):
         """
         with self._lock:
             self.session.set_instance_visible(pid, visible)
-            self.set_threshold(self.state.threshold)  # redraw layers, colours, summary, legend and table
+            self.set_threshold(self.state.threshold, by_user=False)  # redraw layers, colours, summary, legend, table
 
     def fly_to_instance(self, pid: int | None, *, client: ClientHandle | None = None) -> None:
         """Point one browser's camera (every browser's when None) at an instance: the box of its points (of its

@@ -52,7 +52,7 @@ from efem_viz.viewer.legend import instance_options
 from efem_viz.viewer.nodes import decode_shape, proposal_samples
 from efem_viz.viewer.panels import COLOR_MODES, MASK_BAND_RANGE, VIEW_MODES
 from efem_viz.viewer.scenes import SceneEntry, discover_scenes, is_inside, trace_path_for
-from efem_viz.viewer.state import ViewerState
+from efem_viz.viewer.state import DEFAULT_CONFIDENCE_CUT, ViewerState
 from efem_viz.viewer.texts import safe_name
 from efem_viz.viewer.trace_queries import alive_table, is_dead_at, proposal_center, top_n
 
@@ -378,11 +378,22 @@ class ViewerSession:
             s.result, s.result_source, s.selected = result, source, None
             s.hidden, s.table_row = set(), None  # another result: other instances
             s.step = max(int(result.trace.num_steps) - 1, 0)
+            conf = np.asarray(result.instances.confidence, float)
+            best = float(conf.max()) if conf.size else 0.0
+            cut_note = ""
+            if s.threshold_by_user and conf.size and s.threshold <= best:  # a person's cut that still shows some
+                cut_note = f" Your confidence cut {s.threshold:.2f} is kept."
+            else:
+                if s.threshold_by_user and conf.size:
+                    cut_note = (f" Your confidence cut {s.threshold:.2f} would hide every instance (best "
+                                f"{best:.2f}): this result opens at {self.default_threshold(result):.2f}.")
+                s.threshold, s.threshold_by_user = self.default_threshold(result), False
             s.threshold = float(np.clip(s.threshold, 0.0, self.threshold_max(result)))
             self._mask_dist = None
             s.color_mode = "instances"
         warn = "; ".join(getattr(result, "warnings", ()))  # e.g. the free-space check was off: never silently
-        self.set_status(f"Loaded result: {source}." + (f" Warning: {warn}" if warn else ""), error=bool(warn))
+        self.set_status(f"Loaded result: {source}.{cut_note}" + (f" Warning: {warn}" if warn else ""),
+                        error=bool(warn))
 
     def begin_run(self) -> int | None:
         """Mark a run as started (`state.running`). Returns its ticket (the scene generation), or None (status
@@ -581,9 +592,20 @@ class ViewerSession:
             return True
 
     # ================================================================== 5./6. results and ground truth
-    def set_threshold(self, threshold: float) -> None:
-        """Filter the final instances by confidence (a view, no re-run)."""
+    def set_threshold(self, threshold: float, *, by_user: bool = True) -> None:
+        """Filter the final instances by confidence (a view, no re-run). `by_user=False` for the app's own
+        redraws: only a person's cut is carried over to the next result (`set_result`)."""
         self.state.threshold = float(threshold)
+        if by_user:
+            self.state.threshold_by_user = True
+
+    def default_threshold(self, result: EMResult) -> float:
+        """The cut a result opens with: `DEFAULT_CONFIDENCE_CUT`, lowered to its best instance's confidence when
+        that is below (issue 37: a real frame whose best instance is 0.11 opened with every instance hidden)."""
+        conf = np.asarray(result.instances.confidence, float)
+        if not conf.size:
+            return DEFAULT_CONFIDENCE_CUT
+        return float(min(DEFAULT_CONFIDENCE_CUT, np.floor(float(conf.max()) * 100.0) / 100.0))
 
     def set_mask_band(self, tau_out: float) -> bool:
         """Re-derive the output masks at SDF band `tau_out` (clamped to `MASK_BAND_RANGE`) from the stored
