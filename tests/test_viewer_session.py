@@ -109,6 +109,15 @@ def test_each_result_opens_with_a_cut_that_shows_it(tmp_path: Path) -> None:
     assert s.state.threshold_by_user  # (still the person's earlier choice)
 
 
+def test_the_run_preset_fits_the_scene() -> None:
+    """Issue 37 item 14: a real capture (import-rgbd provenance, a recorded camera) runs with the `real` preset,
+    a synthetic scan (whose generator records only its renders' image size) with `fast`."""
+    from efem_viz.data.io import load_scene
+
+    assert ViewerSession.suggested_preset(load_scene(SAMPLES / "real_tabletop_8.ply")) == "real"
+    assert ViewerSession.suggested_preset(load_scene(SAMPLES / "syn_z_0.ply")) == "fast"
+
+
 def test_step_through_iterations(session: ViewerSession) -> None:
     v = session.set_step(0)
     assert isinstance(v, StepView) and v.step == 0 and session.state.step == 0

@@ -52,11 +52,11 @@ class Camera:
 
     @classmethod
     def parse(cls, prov: Mapping[str, Any] | None) -> tuple["Camera | None", str | None]:
-        """(camera, problem): the recorded capture camera, or None and — when a camera *was* recorded (any of
-        ``K``, ``T_world_camera``, ``image_size`` present) but cannot be used — what is wrong with it, in words.
-        No camera recorded: (None, None)."""
+        """(camera, problem): the recorded capture camera, or None and — when a camera *was* recorded (``K`` or
+        ``T_world_camera`` present) but cannot be used — what is wrong with it, in words. No camera recorded:
+        (None, None); an ``image_size`` alone (the synthetic generator records its renders' size) is no camera."""
         keys = ("K", "T_world_camera", "image_size")
-        if not prov or not any(k in prov for k in keys):
+        if not prov or not any(k in prov for k in ("K", "T_world_camera")):
             return None, None
         missing = [k for k in keys if k not in prov]
         if missing:

@@ -216,6 +216,7 @@ class ViewerApp(ServedApp):
             self.gui_set(self.panels.gui_scene, entry.name)
             self.gui_set(self.panels.gui_display, s.display)
             self.gui_set(self.panels.gui_color, "scene colours")
+            self.gui_set(self.panels.gui_preset, self.session.suggested_preset(scene))
             self.gui_set(self.panels.gui_point_size, float(np.clip(round(s.point_size * 2000) / 2, 0.5, 20.0)))
             pv.show_scene_info(self.panels, self.session)
             lo, hi = scene.bounds  # the initial camera (new clients, "Reset view") and every connected one
