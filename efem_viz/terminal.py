@@ -45,6 +45,12 @@ LOG_FORMAT = "%(levelname)s %(name)s: %(message)s"
 """The command lines' log line."""
 
 
+def count(n: int, noun: str, plural: str | None = None) -> str:
+    """``n`` and the noun in the number it needs: "1 object", "3 objects", "1,204 points" (the one plural rule
+    of every count a person reads: GUI labels, captions, status lines)."""
+    return f"{int(n):,} {noun if int(n) == 1 else (plural or noun + 's')}"
+
+
 def console_text(text: object) -> str:
     """Text from outside (scene and file names, provenance strings, error messages) as a rich console prints
     it: `terminal_text` (control characters visible and inert), then rich markup escaped (a ``[red]`` in a

@@ -98,3 +98,11 @@ def test_annotator_new_instances_use_the_palette() -> None:
         d = ls.create_instance(category="mug")
         ls.apply(d)
     assert {i: info.color for i, info in ls.instances.items()} == {i: instance_color(i) for i in (1, 2, 3)}
+
+
+def test_counts_read_as_words() -> None:
+    """Issue 37 item 9: "result: 1 objects". One plural rule for every count a person reads."""
+    from efem_viz.terminal import count
+
+    assert count(1, "object") == "1 object" and count(0, "object") == "0 objects"
+    assert count(1204, "point") == "1,204 points" and count(2, "vertex", "vertices") == "2 vertices"

@@ -40,7 +40,7 @@ class InfoArgs:
         from rich.table import Table
 
         from efem_viz.data.io import find_scenes, holds_predictions, load_scene
-        from efem_viz.terminal import console_text
+        from efem_viz.terminal import console_text, count
 
         console = Console()
         paths = find_scenes(self.scenes)
@@ -83,7 +83,7 @@ class InfoArgs:
             else:
                 table.add_row(
                     labels_name,
-                    f"{len(summary.get('instances', {}))} instances, "
+                    f"{count(len(summary.get('instances', {})), 'instance')}, "
                     f"{summary.get('labelled_points', 0):,} labelled points",
                 )
                 cats = summary.get("categories", {})

@@ -10,6 +10,7 @@ import tyro
 
 from efem_viz.data.scene import DEFAULT_MAX_POINTS, SceneError
 from efem_viz.prior.config import DEFAULT_PRIOR
+from efem_viz.terminal import count
 
 logger = logging.getLogger(__name__)
 
@@ -65,7 +66,7 @@ class ViewArgs:
             app = ViewerApp(paths, host=self.host, port=self.port, prior_name=priors[0], run_priors=priors[1:],
                             out_dir=out_dir, token=self.token, results=self.results, max_points=self.max_points)
             try:
-                announce("efem-viz viewer", f"{app.url}  ({len(app.state.entries)} scenes; Ctrl+C to stop)",
+                announce("efem-viz viewer", f"{app.url}  ({count(len(app.state.entries), 'scene')}; Ctrl+C to stop)",
                          url=app.url, local_url=app.local_url, exposure_warning=app.access.exposure_warning,
                          details=(f"exports go to: {app.out_root}",))
                 wait_for_stop()

@@ -23,6 +23,7 @@ from efem_viz.colors import dim, instance_point_colors
 from efem_viz.em.replay import prior_latent
 from efem_viz.viewer.scenes import trace_path_for
 from efem_viz.viewer.trace_queries import alive_table, is_dead_at, top_n
+from efem_viz.terminal import count
 from efem_viz.viewer.legend import category_summary
 from efem_viz.viewer.nodes import (
     add_result_nodes,
@@ -176,7 +177,7 @@ def export_static_demo(
         cloud = api.add_point_cloud(
             "/scene/points", points=pts[keep], colors=dim(scene.colors[keep]), point_size=psize, point_shape="rounded"
         )
-        api.add_label("/caption", text=f"{scene.name}: {int(np.asarray(trace.active_count)[0]) if T else 0} proposals", position=caption_pos)
+        api.add_label("/caption", text=f"{scene.name}: {count(int(np.asarray(trace.active_count)[0]) if T else 0, 'proposal')}", position=caption_pos)
         ser.insert_sleep(step_seconds)
         for t in range(T):
             ids, scores = alive_table(trace, t)
@@ -202,7 +203,7 @@ def export_static_demo(
         add_result_nodes(api, inst, visible=True)  # as the live viewer draws them (meshes, boxes, axes, labels)
         counts = category_summary(inst.category)
         api.add_label(
-            "/caption", text=f"result: {len(inst)} objects" + (f" ({counts})" if counts else "")
+            "/caption", text=f"result: {count(len(inst), 'object')}" + (f" ({counts})" if counts else "")
             + f", confidence ≥ {threshold:.2f}", position=caption_pos,
         )
         ser.insert_sleep(final_seconds)

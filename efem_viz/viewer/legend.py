@@ -23,6 +23,7 @@ from efem_viz.colors import FN_COLOR, FP_COLOR, HEAT_RGB, HEAT_STOPS, TP_COLOR, 
 from efem_viz.eval.comparison import GTMetrics
 from efem_viz.serve.table import cell, row_option, swatch
 from efem_viz.viewer.texts import md_escape
+from efem_viz.terminal import count
 
 if TYPE_CHECKING:
     from efem_viz.em.results import Instances
@@ -87,7 +88,7 @@ def result_summary_markdown(instances: Instances, keep: np.ndarray, *, threshold
     conf = np.asarray(instances.confidence, float)
     below = int(keep.size - keep.sum())
     lines = [
-        f"**{int(keep.sum())} of {keep.size} instances** with confidence ≥ {threshold:.2f}"
+        f"**{int(keep.sum())} of {count(keep.size, 'instance')}** with confidence ≥ {threshold:.2f}"
         + (f" (max {conf.max():.2f})" if conf.size else "")
         + (f" · **{below} hidden** below the cut (the slider at 0 shows them)" if below else "")
         + (f" · {hidden_by_hand} hidden in the table" if hidden_by_hand else "")

@@ -34,6 +34,7 @@ from efem_viz.viewer.texts import (
     step_markdown,
 )
 from efem_viz.viewer.trace_queries import deaths, phase_marks
+from efem_viz.terminal import count
 
 if TYPE_CHECKING:
     from viser import GuiInputHandle
@@ -115,7 +116,7 @@ def show_result(p: Panels, session: ViewerSession, gui_set: GuiSet) -> None:
     gui_set(p.gui_mask_band, float(np.clip(result.config.out_tau, *MASK_BAND_RANGE)))
     counts = md_escape(category_summary(result.instances.category))
     p.gui_run_info.content = (
-        f"**Result**: {s.result_source} · {T} steps · {len(result.instances.ids)} instances"
+        f"**Result**: {s.result_source} · {T} steps · {count(len(result.instances.ids), 'instance')}"
         + (f" ({counts})" if counts else "")
     )
     p.gui_active_plot.visible = True

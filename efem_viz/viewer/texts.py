@@ -15,6 +15,7 @@ from efem_viz.eval.comparison import GTMetrics
 from efem_viz.viewer.panels import NO_PROPOSAL
 from efem_viz.viewer.scenes import SceneEntry
 from efem_viz.viewer.trace_queries import Death, top_n
+from efem_viz.terminal import count
 
 if TYPE_CHECKING:
     from efem_viz.data.scene import Scene
@@ -69,7 +70,7 @@ def gt_markdown(n_objects: int, threshold: float, metrics: GTMetrics) -> str:
         metrics: `efem_viz.eval.comparison.gt_metrics` of the result at that threshold.
     """
     return (
-        f"**Ground truth** ({n_objects} objects) at confidence ≥ {threshold:.2f}: "
+        f"**Ground truth** ({count(n_objects, 'object')}) at confidence ≥ {threshold:.2f}: "
         f"TP {len(metrics.tp)} · FP {len(metrics.fp)} · FN {len(metrics.fn)}\n\n"
         f"AP {metrics.ap:.3f} · AP50 {metrics.ap50:.3f} · AP25 {metrics.ap25:.3f}"
     )
@@ -119,7 +120,7 @@ def scene_info_markdown(scene: Scene, entry: SceneEntry) -> str:
     ]
     if scene.has_gt:
         cats = ", ".join(f"{k}: {v}" for k, v in summ.get("categories", {}).items())
-        lines.append(f"- ground truth: {len(scene.instance_ids())} instances ({cats}), {summ.get('labelled_points', 0):,} labelled points")
+        lines.append(f"- ground truth: {count(len(scene.instance_ids()), 'instance')} ({cats}), {summ.get('labelled_points', 0):,} labelled points")
     else:
         lines.append("- ground truth: none")
     if holds_predictions(entry.path):
