@@ -659,6 +659,16 @@ class AnnotatorSession:
             raise ValueError(f"unknown review action {action!r}")
         self.on_change()
 
+    def prelabel_cut(self, default: float = 0.5) -> float:
+        """The pre-label cut that suits the unreviewed pre-labels: `default`, lowered to the best one's confidence
+        when every one is below it (issue 37: a real frame's pre-labels all under 0.5 made "Accept all ≥ cut"
+        accept nothing)."""
+        table = self.store.labelset.instances
+        conf = [float(table[k].confidence) for k in unreviewed_prelabels(table)]
+        if not conf:
+            return float(default)
+        return float(min(default, np.floor(max(conf) * 100.0) / 100.0))
+
     def review_prelabels(self, cut: float, action: Literal["accept", "reject"]) -> list[int]:
         """Bulk review: accept every unreviewed pre-label with confidence ≥ `cut`, or reject every one below it;
         one undo step. Returns the instance ids reviewed."""

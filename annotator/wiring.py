@@ -143,7 +143,11 @@ def _wire_buttons(app: AnnotatorControls) -> None:
     p.gui_export_npz.on_click(on(lambda: ses.export("npz")))
     p.gui_export_scannet.on_click(on(lambda: ses.export("scannet")))
     p.gui_import.on_click(on(lambda: ses.import_labels(read_text(p.gui_import_path))))
-    p.gui_efem_import.on_click(on(lambda: ses.import_efem(read_text(p.gui_efem_path))))
+    def import_efem() -> None:
+        ses.import_efem(read_text(p.gui_efem_path))
+        p.gui_prelabel_cut.value = ses.prelabel_cut(float(p.gui_prelabel_cut.value))  # shows the best ones
+
+    p.gui_efem_import.on_click(on(import_efem))
     p.gui_accept.on_click(on(lambda: ses.review_prelabel(prelabel(), "accept")))
     p.gui_reject.on_click(on(lambda: ses.review_prelabel(prelabel(), "reject")))
     p.gui_accept_merge.on_click(on(lambda: ses.review_prelabel(prelabel(), "merge")))

@@ -334,6 +334,26 @@ def _iou(a: np.ndarray, b: np.ndarray) -> float:
     return float((a & b).sum()) / max(1, int((a | b).sum()))
 
 
+def test_the_prelabel_cut_opens_where_accept_all_accepts_the_best(spheres) -> None:
+    """Issue 37 item 8 (annotator): with every pre-label under the cut, "Accept all ≥ cut" accepted nothing. After
+    an import (a button click), the cut is at most the best unreviewed pre-label's confidence."""
+    d, _, _ = spheres
+    a = AnnotatorApp(d / "spheres.ply", out_dir=d / "out_cut", port=0, autosave_delay=0)
+    try:
+        a.store.do(lambda ls: ls.replace_all(np.zeros(a.n, np.int32), []))
+        a.panels.gui_prelabel_cut.value = 0.99
+        a.panels.gui_efem_path.value = "spheres.efem.npz"
+        a.panels.gui_efem_import.value = True  # the click
+        table = a.store.labelset.instances
+        best = max(float(table[k].confidence) for k in table)
+        assert a.panels.gui_prelabel_cut.value <= best
+        a.panels.gui_accept_above.value = True
+        assert any("accepted" in a.store.labelset.info(k).note for k in a.store.labelset.instances)
+        assert a.session.prelabel_cut() == 0.5  # nothing left to review: the usual default
+    finally:
+        a.close()
+
+
 def test_efem_prelabels_import_and_review(spheres) -> None:
     d, scene, _ = spheres
     a = AnnotatorApp(d / "spheres.ply", out_dir=d / "out_import", port=0, autosave_delay=0)
