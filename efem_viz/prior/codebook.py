@@ -111,6 +111,10 @@ def latent_to_numpy(latent_i: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
     return R, inv, center.reshape(3), float(scale.reshape(-1)[0])
 
 
+CODEBOOK_ARRAYS: tuple[str, ...] = ("ids", "z_so3", "z_inv", "scale", "center", "pcl", "proj", "basis", "eigvals",
+                                    "bbox_center", "bbox_half", "class_id", "input_idx")
+"""The arrays of a codebook file (with `schema_version` and `meta_json`): `Codebook.load` reads these only."""
+
 @dataclass
 class Codebook:
     """Latents and canonical clouds of the training objects, with kNN retrieval (spec §2.8)."""
@@ -315,9 +319,10 @@ class Codebook:
             check_npz_headers(path, 1 << 40)
         except SceneError as exc:
             raise ValueError(str(exc)) from exc
+        wanted = {"schema_version", "meta_json", *CODEBOOK_ARRAYS}  # other members are never inflated (issue 36)
         try:
             with np.load(path, allow_pickle=False) as z:
-                data = {k: z[k] for k in z.files}
+                data = {k: z[k] for k in z.files if k in wanted}
         except MemoryError:
             raise
         except Exception as exc:  # zipfile, zlib and numpy raise many types on a corrupt archive
@@ -339,8 +344,7 @@ class Codebook:
             raise ValueError(f"{path}: codebook meta_json is not valid JSON ({exc})") from exc
         if not isinstance(meta, dict):
             raise ValueError(f"{path}: codebook meta_json must hold a JSON object, got {type(meta).__name__}")
-        required = {"ids", "z_so3", "z_inv", "scale", "center", "pcl", "proj", "basis", "eigvals",
-                    "bbox_center", "bbox_half", "class_id", "input_idx"}
+        required = set(CODEBOOK_ARRAYS)
         missing = required - set(data)
         if missing:
             raise ValueError(f"{path}: codebook lacks arrays {sorted(missing)}")
