@@ -115,6 +115,7 @@ CODEBOOK_ARRAYS: tuple[str, ...] = ("ids", "z_so3", "z_inv", "scale", "center", 
                                     "bbox_center", "bbox_half", "class_id", "input_idx")
 """The arrays of a codebook file (with `schema_version` and `meta_json`): `Codebook.load` reads these only."""
 
+
 @dataclass
 class Codebook:
     """Latents and canonical clouds of the training objects, with kNN retrieval (spec §2.8)."""
