@@ -192,8 +192,8 @@ def lateral_rule(lat: float, limit: float) -> tuple[Callable[[Fit], float], Call
     def score(f: Fit) -> float:
         return f.stationary * min(f.coverage, 0.4) / 0.4 * (1.0 - st(f))
 
-    def keep(f: Fit) -> bool:
-        return f.accepted or (f.killed_by == "seen-through" and st(f) <= limit)
+    def keep(f: Fit) -> bool:  # survived the review (as run) or was killed only by the free-space check, and passes it now
+        return (f.accepted or f.killed_by == "seen-through") and st(f) <= limit
 
     return score, keep
 
@@ -291,6 +291,8 @@ def main() -> int:
     rules: dict[str, tuple[Callable[[Fit], float], Any]] = dict(RULES)
     for lat in a.lateral:
         rules[f"free space with {lat * 1000:g} mm sideways tolerance, limit {a.limit:g}"] = lateral_rule(lat, a.limit)
+        score, _ = lateral_rule(lat, a.limit)
+        rules[f"kills as run, confidence x (1 - fraction at {lat * 1000:g} mm)"] = (score, False)
     for name, (rule, revive) in rules.items():
         r = score_rule(fits, scenes, rule, revive)
         rules_out[name] = r
