@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # One command that continues the mug prior on a GPU for a fixed number of minutes (issue 34 item 4): it resumes
-# from a resume state (default: the committed efem_viz/weights/mug_resume.pt), trains in bf16 with a batch sized
+# from a resume state (default: the committed efem_viz/weights/mug_256x4_resume.pt, the 256-wide decoder grown from
+# the shipped prior in session 11), trains in bf16 with a batch sized
 # for a large GPU, and writes checkpoints (last.pt every 2 min, snapshots every 500 iterations), the best export
 # (OUT/mug.pt), a resume state (OUT/mug_resume.pt) and the training report into OUT.
 #
@@ -27,6 +28,6 @@ exec python3 -m efem_viz.cli train-prior --category mug --preset cpu --n-train 4
   --batch-size "${EFEM_TRAIN_BATCH:-128}" --iterations 60000 --lr 3e-5 --decay-at 0.95 --val-every 250 \
   --ckpt-every-min 2 --resume-export-every-min 2 --threads "${EFEM_TRAIN_THREADS:-8}" --min-views 1 \
   --sensor-p 0.75 --fixed-point-p 0.25 --snapshot-every 500 --device "$DEVICE" --matmul-dtype "$DTYPE" \
-  --resume-from efem_viz/weights/mug_resume.pt --reset-best \
+  --resume-from efem_viz/weights/mug_256x4_resume.pt --reset-best \
   --out-dir "$OUT" --export "$OUT/mug.pt" --resume-export "$OUT/mug_resume.pt" \
   --time-budget-min "$MINUTES" --no-progress "$@"
