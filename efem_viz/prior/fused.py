@@ -27,24 +27,14 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
+from efem_viz.prior.vn_layers import vn_leaky_relu
+
 log = logging.getLogger(__name__)
 
-EPS = 1e-12
-"""Floor of the direction norm (as `vn_layers.EPS`)."""
 SOURCE = Path(__file__).with_name("vn_kernels.cpp")
 
 _lock = threading.Lock()
 _state: dict[str, Any] = {"loaded": None}  # None: not tried; True: ops registered; False: unavailable
-
-
-def _vn_act(x: torch.Tensor, d: torch.Tensor, slope: float) -> torch.Tensor:
-    """VN-LeakyReLU of ``x (..., 3, C)`` along directions ``d (..., 3, C)`` (`vn_layers.VNLeakyReLU`)."""
-    dx, dy, dz = d.unbind(-2)
-    xx, xy, xz = x.unbind(-2)
-    dot = xx * dx + xy * dy + xz * dz
-    dn2 = dx * dx + dy * dy + dz * dz
-    coef = dot.clamp_max(0.0) / dn2.clamp_min(EPS * EPS) * (1.0 - slope)
-    return x - coef.unsqueeze(-2) * d
 
 
 def edge_mean_reference(a: torch.Tensor, c: torch.Tensor, da: torch.Tensor, dc: torch.Tensor, nbr: torch.Tensor,
@@ -66,12 +56,12 @@ def edge_mean_reference(a: torch.Tensor, c: torch.Tensor, da: torch.Tensor, dc: 
     ar = torch.arange(b, device=a.device).view(b, 1, 1)
     x = a[ar, nbr] + c[:, :, None]
     d = da[ar, nbr] + dc[:, :, None]
-    return _vn_act(x, d, slope).mean(dim=2)
+    return vn_leaky_relu(x, d, slope).mean(dim=2)
 
 
 def act_mean_reference(x: torch.Tensor, d: torch.Tensor, slope: float) -> torch.Tensor:
     """Eager ``mean_k act(x, d)`` for ``x, d (B, Nd, k, 3, C)``; returns ``(B, Nd, 3, C)``."""
-    return _vn_act(x, d, slope).mean(dim=2)
+    return vn_leaky_relu(x, d, slope).mean(dim=2)
 
 
 def _build_dir() -> Path:
@@ -91,6 +81,8 @@ def _flags() -> list[str]:
 
 def load() -> bool:
     """Build (first time) and register the kernels; False where they are unavailable (the reason is logged)."""
+    if _state["loaded"] is not None:  # decided: no lock on the encoder's hot path
+        return bool(_state["loaded"])
     with _lock:
         if _state["loaded"] is None:
             _state["loaded"] = False
