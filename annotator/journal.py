@@ -28,7 +28,7 @@ import time
 import zipfile
 import zlib
 from glob import escape as glob_escape
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
@@ -37,6 +37,7 @@ import numpy as np
 from annotator.labels import (
     LABELS_SCHEMA_VERSION,
     Delta,
+    HistoryEntry,
     InstanceInfo,
     LabelSet,
     table_from_json,
@@ -60,7 +61,8 @@ class JournalError(ValueError):
 # ---------------------------------------------------------------------------------------------- records
 @dataclass(frozen=True)
 class Record:
-    """One journal record."""
+    """One journal record. Its arrays stay on disk until asked for (`arrays` reads them back each time), so an
+    open journal costs memory for its headers only, whatever edits it holds."""
 
     seq: int
     """1-based sequence number (the base record is 0)."""
@@ -68,8 +70,25 @@ class Record:
     """One of `RECORD_KINDS`."""
     header: dict[str, Any]
     """The JSON header (label, time, client, table changes, scan identity...)."""
-    arrays: dict[str, np.ndarray]
-    """Named arrays: for "do": idx, before, after; for "base": labels."""
+    loaded: dict[str, np.ndarray] | None = field(default=None, repr=False)
+    """The arrays when they are held in memory (a record being written), else None."""
+    offset: int = -1
+    """Byte offset of the record in its journal file."""
+    journal: "Journal | None" = field(default=None, repr=False, compare=False)
+    """The journal to read the arrays from."""
+
+    @property
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Named arrays: for "do": idx, before, after; for "base"/"snapshot": labels.
+
+        Raises:
+            JournalError: the record can no longer be read back (the file changed under the annotator).
+        """
+        if self.loaded is not None:
+            return self.loaded
+        if self.journal is None:
+            return {}
+        return self.journal.read_arrays(self)
 
 
 def _encode(header: dict[str, Any], arrays: dict[str, np.ndarray]) -> bytes:
@@ -126,6 +145,7 @@ def record_to_delta(r: Record) -> Delta:
         table_before=table_from_json(r.header.get("table_before", {})),
         table_after=table_from_json(r.header.get("table_after", {})),
         group=str(r.header.get("group", "")),
+        seq=r.seq,
     )
 
 
@@ -190,6 +210,13 @@ class Journal:
         self.broken: str | None = None
         """Set when a failed append could not be undone: no further appends are accepted."""
 
+    def record(self, seq: int) -> Record | None:
+        """The record with sequence number `seq`, None when the journal has none."""
+        import bisect
+
+        i = bisect.bisect_left(self.records, seq, key=lambda r: r.seq)
+        return self.records[i] if i < len(self.records) and self.records[i].seq == seq else None
+
     @property
     def gaps(self) -> list[int]:
         """Sequence numbers missing between the first verified record (or 0) and the last one."""
@@ -204,6 +231,9 @@ class Journal:
     def _read_and_repair(self) -> list[Record]:
         if not self.path.exists():
             return []
+        clean = self._verify_streaming()
+        if clean is not None:
+            return clean
         data = self.path.read_bytes()
         out: list[tuple[Record, int, int]] = []  # (record, start offset, end offset)
         bad: list[tuple[int, int]] = []  # damaged byte ranges
@@ -222,7 +252,7 @@ class Journal:
                 self.damage.append(f"record {dropped.seq} ({dropped.kind}) was superseded by a later copy")
             out.append((r, off, end))
             off = end
-        records = [r for r, _, _ in out]
+        records = [dataclasses.replace(r, loaded=None, offset=start, journal=self) for r, start, _ in out]
         if not bad and not self.damage:
             return records
         stamp = int(time.time() * 1000)
@@ -249,6 +279,8 @@ class Journal:
             self.damage.append(f"{e - s} damaged bytes at offset {s} could not be verified")
         clean = b"".join(data[s:e] for _, s, e in out)
         atomic_write_bytes(self.path, clean)
+        starts = np.cumsum([0] + [e - s for _, s, e in out])[:-1]
+        records = [dataclasses.replace(r, offset=int(o)) for r, o in zip(records, starts)]
         log.warning(
             "journal %s was damaged: kept %d verified records, the damaged file is kept in %s (%s)",
             self.path, len(records), self.aside.name, "; ".join(self.damage),
@@ -288,11 +320,78 @@ class Journal:
                 )
                 raise JournalError(self.broken) from exc
             raise JournalError(f"the edit was not saved: cannot write the journal ({why}); nothing changed") from exc
+        offset = self._end
         self._end += len(rec)
         self.bytes_written += len(rec)
         self.next_seq += 1
-        self.records.append(Record(seq, kind, {k: v for k, v in h.items() if k not in ("seq", "kind")}, arrays or {}))
+        self.records.append(Record(seq, kind, {k: v for k, v in h.items() if k not in ("seq", "kind")},
+                                   offset=offset, journal=self))
         return seq
+
+    def _verify_streaming(self) -> list[Record] | None:
+        """Every record of a clean file, checked (length, CRC, header) while reading it in bounded pieces, with
+        its arrays left on disk; None at the first thing that does not verify (the repairing read then runs)."""
+        size = self.path.stat().st_size
+        out: list[Record] = []
+        with open(self.path, "rb") as f:
+            off = 0
+            while off < size:
+                head = f.read(_HEAD.size)
+                if len(head) < _HEAD.size:
+                    return None
+                magic, length, crc = _HEAD.unpack(head)
+                if magic != MAGIC or length < 4 or off + _HEAD.size + length > size:
+                    return None
+                first = f.read(4)
+                (hlen,) = struct.unpack("<I", first)
+                if 4 + hlen > length:
+                    return None
+                hbytes = f.read(hlen)
+                run = zlib.crc32(hbytes, zlib.crc32(first))
+                left = length - 4 - hlen
+                while left > 0:
+                    piece = f.read(min(left, _READ_PIECE))
+                    if not piece:
+                        return None
+                    run = zlib.crc32(piece, run)
+                    left -= len(piece)
+                if run != crc:
+                    return None
+                try:
+                    header = json.loads(hbytes.decode())
+                    seq = int(header.pop("seq"))
+                    kind = str(header.pop("kind"))
+                    specs = header.pop("arrays", [])
+                    need = sum(int(sp["n"]) * np.dtype(sp["dtype"]).itemsize for sp in specs if "const" not in sp)
+                except (ValueError, KeyError, TypeError, UnicodeDecodeError, AttributeError):
+                    return None
+                if seq < 0 or kind not in RECORD_KINDS or need > length - 4 - hlen:
+                    return None
+                if out and out[-1].seq >= seq:
+                    return None  # a retried append: the repairing read decides which copy wins
+                out.append(Record(seq, kind, header, offset=off, journal=self))
+                off += _HEAD.size + length
+        return out
+
+    def read_arrays(self, rec: Record) -> dict[str, np.ndarray]:
+        """The arrays of one record of this journal, read back from the file and checked again.
+
+        Raises:
+            JournalError: the bytes at the record's place no longer verify.
+        """
+        try:
+            with open(self.path, "rb") as f:
+                f.seek(rec.offset)
+                data = f.read(_HEAD.size)
+                if len(data) == _HEAD.size:
+                    _, length, _ = _HEAD.unpack(data)
+                    data += f.read(length)
+        except OSError as exc:
+            raise JournalError(f"cannot read record {rec.seq} of {self.path.name}: {exc.strerror or exc}") from exc
+        parsed = _parse_at(data, 0)
+        if parsed is None or parsed[0].seq != rec.seq:
+            raise JournalError(f"record {rec.seq} of {self.path.name} no longer verifies (the file changed on disk)")
+        return parsed[0].loaded or {}
 
     def close(self) -> None:
         fd, self._fd = self._fd, -1
@@ -306,6 +405,8 @@ class Journal:
 # Indirection for fault injection in tests (a full disk, an I/O error); production code uses the os functions.
 _os_write = os.write
 _os_fsync = os.fsync
+_READ_PIECE = 16 << 20
+"""Bytes read at a time while a journal is verified."""
 
 
 def _parse_at(data: bytes, off: int) -> tuple[Record, int] | None:
@@ -523,6 +624,44 @@ def _ranges(seqs: tuple[int, ...]) -> str:
     return ", ".join(out)
 
 
+HISTORY_BYTES = 256 << 20
+"""Default bytes of edit arrays the undo/redo history keeps in memory (`LabelStore.history_bytes`)."""
+
+
+@dataclass(frozen=True)
+class JournalEdit:
+    """An edit on the undo/redo history that lives in the journal only (`labels.StoredEdit`)."""
+
+    record: Record
+    """The journal's "do" record of the edit."""
+    label: str
+    group: str
+    seq: int
+
+    @classmethod
+    def of(cls, r: Record) -> JournalEdit:
+        """The stored edit of a "do" record (its header is checked now, its arrays when it is read).
+
+        Raises:
+            ValueError, KeyError, TypeError: the header does not describe an edit.
+        """
+        table_from_json(r.header.get("table_before", {}))
+        table_from_json(r.header.get("table_after", {}))
+        return cls(r, str(r.header.get("label", "")), str(r.header.get("group", "")), r.seq)
+
+    def load(self) -> Delta:
+        """The edit, read back from the journal.
+
+        Raises:
+            JournalError: the record cannot be read or is not an edit any more.
+        """
+        arrays = self.record.arrays
+        try:
+            return record_to_delta(dataclasses.replace(self.record, loaded=arrays))
+        except (KeyError, ValueError, TypeError) as exc:
+            raise JournalError(f"the edit of journal record {self.seq} cannot be read back ({exc})") from exc
+
+
 class LabelStore:
     """The label set behind one lock, journalled and autosaved. All edits from all clients go through here.
 
@@ -537,6 +676,8 @@ class LabelStore:
         autosave_delay: seconds to wait after an edit before rewriting the label file (0 = write synchronously).
         accept_scan_mismatch: resume a journal whose recorded content hash differs from this scan's (the user
             says it is the same scan, e.g. re-exported); the new identity is recorded.
+        history_bytes: bytes of vertex arrays the undo/redo history may hold in memory; older edits stay in the
+            journal only and are read back from it when they are undone or redone (every edit is undoable).
 
     Raises:
         JournalError: journal belongs to another scan, or is in use by another process.
@@ -553,8 +694,10 @@ class LabelStore:
         initial_instances: list[InstanceInfo] | None = None,
         autosave_delay: float = 0.5,
         accept_scan_mismatch: bool = False,
+        history_bytes: int = HISTORY_BYTES,
     ) -> None:
         self.n = int(num_vertices)
+        self.history_bytes = int(history_bytes)
         self.lock = threading.RLock()
         self.label_path = Path(label_path)
         self.scan_id = {**(scan_id or {}), "num_vertices": self.n}
@@ -640,7 +783,7 @@ class LabelStore:
         # Start from the newest valid full state: a base/snapshot record or the checkpoint (never an older one).
         start_seq, start_name = -1, ""
         ls: LabelSet | None = None
-        if states:
+        if states and not (ck is not None and ck[2] > states[-1].seq):  # (a newer checkpoint: never read it)
             r = states[-1]
             table = {k: v for k, v in table_from_json(r.header.get("table", {})).items() if v is not None}
             ls = LabelSet(self.n, r.arrays["labels"], table.values())
@@ -657,8 +800,8 @@ class LabelStore:
         j.next_seq = max(j.next_seq, start_seq + 1, newest + 1)
         # Rebuild history over all records with the same stack logic as LabelSet; apply to the labels only the
         # records after the start state. History cannot be undone across a missing record: stacks restart there.
-        undo: list[Delta] = []
-        redo: list[Delta] = []
+        undo: list[HistoryEntry] = []
+        redo: list[HistoryEntry] = []
         skipped: list[str] = []
         replayed = 0
         prev = -1
@@ -672,16 +815,19 @@ class LabelStore:
                 continue  # full states: the newest one (or a newer checkpoint) is the start state
             if r.kind == "do":
                 try:
-                    d = record_to_delta(r)
+                    entry: HistoryEntry = JournalEdit.of(r)
+                    if apply_now:  # read it now; older edits are read only if they are undone
+                        d = record_to_delta(r)
+                        forced = _force_apply(ls, d)
+                        replayed += 1
+                        if forced is not d:  # not what the record holds: keep this one in memory
+                            entry = dataclasses.replace(forced, seq=-1)
                 except (KeyError, ValueError, TypeError) as exc:
                     skipped.append(f"record {r.seq}: unreadable edit ({exc})")
                     undo.clear()
                     redo.clear()
                     continue
-                if apply_now:
-                    d = _force_apply(ls, d)
-                    replayed += 1
-                undo.append(d)
+                undo.append(entry)
                 redo.clear()
             elif r.kind in ("undo", "redo"):
                 src, dst = (undo, redo) if r.kind == "undo" else (redo, undo)
@@ -691,10 +837,11 @@ class LabelStore:
                     continue
                 group = src[-1].group
                 while src:
-                    d = src.pop()
+                    e = src.pop()
                     if apply_now:
+                        d = e.load()
                         _force_apply(ls, d.inverse() if r.kind == "undo" else d)
-                    dst.append(d)
+                    dst.append(e)
                     if not group or not src or src[-1].group != group:
                         break
                 if apply_now:
@@ -773,8 +920,10 @@ class LabelStore:
             if group:
                 d = dataclasses.replace(d, group=group)
             header, arrays = delta_to_record(d)
-            self.journal.append("do", {**header, "client": client}, arrays)
+            seq = self.journal.append("do", {**header, "client": client}, arrays)
+            d = dataclasses.replace(d, seq=seq)
             self.labelset.apply(d)
+            self._trim_history()
             self._changed(d, "do")
             return d
 
@@ -783,8 +932,10 @@ class LabelStore:
         with self.lock:
             if not self.labelset.undo_stack:
                 return []
+            loaded = LabelSet.top_group(self.labelset.undo_stack)  # may fail: then nothing has changed
             self.journal.append("undo", {"client": client})
-            applied = self.labelset.undo()
+            applied = self.labelset.undo(loaded)
+            self._trim_history()
             for d in applied:
                 self._changed(d, "undo")
             return applied
@@ -794,11 +945,34 @@ class LabelStore:
         with self.lock:
             if not self.labelset.redo_stack:
                 return []
+            loaded = LabelSet.top_group(self.labelset.redo_stack)
             self.journal.append("redo", {"client": client})
-            applied = self.labelset.redo()
+            applied = self.labelset.redo(loaded)
+            self._trim_history()
             for d in applied:
                 self._changed(d, "redo")
             return applied
+
+    def history_in_memory(self) -> int:
+        """Bytes of vertex arrays the undo/redo history holds in memory now."""
+        ls = self.labelset
+        return sum(e.nbytes for e in (*ls.undo_stack, *ls.redo_stack) if isinstance(e, Delta))
+
+    def _trim_history(self) -> None:
+        """Keep the newest edits in memory up to `history_bytes`; older ones are left to the journal."""
+        ls = self.labelset
+        budget = self.history_bytes
+        for stack in (ls.undo_stack, ls.redo_stack):
+            for i in range(len(stack) - 1, -1, -1):
+                e = stack[i]
+                if not isinstance(e, Delta):
+                    continue
+                if e.seq >= 0 and e.nbytes > budget:
+                    rec = self.journal.record(e.seq)
+                    if rec is not None:
+                        stack[i] = JournalEdit.of(rec)
+                        continue
+                budget -= e.nbytes
 
     def _changed(self, d: Delta, how: str) -> None:
         if self.autosave_delay <= 0:

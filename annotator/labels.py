@@ -16,7 +16,7 @@ from __future__ import annotations
 import dataclasses
 import re
 from dataclasses import dataclass, field
-from typing import Any, Iterable, Mapping
+from typing import Any, Iterable, Mapping, Protocol, Union
 
 import numpy as np
 
@@ -122,6 +122,9 @@ class Delta:
     group: str = ""
     """Edits with the same non-empty group that are adjacent on the undo stack undo/redo together (the
     segments of one brush stroke)."""
+    seq: int = -1
+    """The journal record that holds exactly this edit (set by `LabelStore`), -1 when none does; an edit with a
+    record can leave memory and be read back from the journal when it is undone or redone."""
 
     def inverse(self) -> "Delta":
         """The delta that undoes this one."""
@@ -135,6 +138,15 @@ class Delta:
             group=self.group,
         )
 
+    def load(self) -> "Delta":
+        """The edit itself (a `StoredEdit` reads it back from where it was kept)."""
+        return self
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes its vertex arrays hold in memory."""
+        return int(self.idx.nbytes + self.before.nbytes + self.after.nbytes)
+
     @property
     def is_empty(self) -> bool:
         """True when the edit changes nothing."""
@@ -143,6 +155,22 @@ class Delta:
     @property
     def num_vertices(self) -> int:
         return int(len(self.idx))
+
+
+class StoredEdit(Protocol):
+    """An edit on the undo/redo history whose arrays live outside memory (`annotator.journal.JournalEdit`)."""
+
+    label: str
+    group: str
+    seq: int
+
+    def load(self) -> Delta:
+        """The full edit (raises when it can no longer be read)."""
+        ...
+
+
+HistoryEntry = Union[Delta, StoredEdit]
+"""One entry of `LabelSet.undo_stack` / `redo_stack`: an edit in memory or one kept elsewhere."""
 
 
 def _as_index(idx: Iterable[int] | np.ndarray, n: int) -> np.ndarray:
@@ -201,8 +229,8 @@ class LabelSet:
             if iid > 0 and int(iid) not in self._table:
                 self._table[int(iid)] = InstanceInfo(int(iid), f"instance {iid}", color=instance_color(int(iid)))
         self._counts = np.bincount(self._labels, minlength=1).astype(np.int64)
-        self.undo_stack: list[Delta] = []
-        self.redo_stack: list[Delta] = []
+        self.undo_stack: list[HistoryEntry] = []
+        self.redo_stack: list[HistoryEntry] = []
         self.version = 0
         """Increments on every applied delta (do, undo or redo)."""
 
@@ -395,8 +423,9 @@ class LabelSet:
             top = int(max(d.after.max(initial=0), d.before.max(initial=0)))
             if top >= len(self._counts):
                 self._counts = np.concatenate([self._counts, np.zeros(top + 1 - len(self._counts), np.int64)])
-            np.subtract.at(self._counts, d.before, 1)
-            np.add.at(self._counts, d.after, 1)
+            m = len(self._counts)
+            self._counts -= np.bincount(d.before, minlength=m)
+            self._counts += np.bincount(d.after, minlength=m)
             self._labels[d.idx] = d.after
         for k, v in d.table_after.items():
             if v is None:
@@ -411,28 +440,45 @@ class LabelSet:
         self.undo_stack.append(d)
         self.redo_stack.clear()
 
-    def undo(self) -> list[Delta]:
-        """Undo the last edit (a whole stroke group); returns the deltas applied (inverses), empty if none."""
-        return self._move(self.undo_stack, self.redo_stack, invert=True)
+    def undo(self, loaded: list[Delta] | None = None) -> list[Delta]:
+        """Undo the last edit (a whole stroke group); returns the deltas applied (inverses), empty if none.
 
-    def redo(self) -> list[Delta]:
+        Args:
+            loaded: the group's edits already read (`top_group(self.undo_stack)`), so that reading them back
+                cannot fail half way; None reads them here.
+        """
+        return self._move(self.undo_stack, self.redo_stack, invert=True, loaded=loaded)
+
+    def redo(self, loaded: list[Delta] | None = None) -> list[Delta]:
         """Redo the last undone edit (a whole stroke group); returns the deltas applied, empty if none."""
-        return self._move(self.redo_stack, self.undo_stack, invert=False)
+        return self._move(self.redo_stack, self.undo_stack, invert=False, loaded=loaded)
 
-    def _move(self, src: list[Delta], dst: list[Delta], *, invert: bool) -> list[Delta]:
+    @staticmethod
+    def top_group(stack: list[HistoryEntry]) -> list[Delta]:
+        """The edits one undo (or redo) of `stack` applies, newest first, read into memory.
+
+        Raises:
+            Whatever a stored edit raises when it cannot be read (nothing has changed then).
+        """
+        out: list[Delta] = []
+        if not stack:
+            return out
+        group = stack[-1].group
+        for e in reversed(stack):
+            if out and (not group or e.group != group):
+                break
+            out.append(e.load())
+        return out
+
+    def _move(self, src: list[HistoryEntry], dst: list[HistoryEntry], *, invert: bool,
+              loaded: list[Delta] | None) -> list[Delta]:
+        deltas = self.top_group(src) if loaded is None else loaded
         applied: list[Delta] = []
-        if not src:
-            return applied
-        group = src[-1].group
-        while src:
-            d = src[-1]
+        for d in deltas:
             a = d.inverse() if invert else d
             self._apply_raw(a)
-            src.pop()
-            dst.append(d)
+            dst.append(src.pop())  # the entry as it was kept (in memory or stored)
             applied.append(a)
-            if not group or not src or src[-1].group != group:
-                break
         return applied
 
     def snapshot(self) -> tuple[np.ndarray, dict[int, InstanceInfo]]:

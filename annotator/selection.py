@@ -404,6 +404,74 @@ def project(
     return np.stack([u, v], axis=1), z
 
 
+Facing = Literal["visible", "front", "all"]
+"""Which vertices a box or lasso takes: "visible" (facing the camera and not hidden behind other scan surface),
+"front" (facing the camera, hidden or not) or "all" (through the object)."""
+
+VISIBLE_CELL = 2.0
+"""Visibility grid cell, in scan spacings at the depth of the nearest selected surface."""
+VISIBLE_TOLERANCE = 2.0
+"""Depth a visible vertex may always lie behind the nearest surface of its cell, in scan spacings; on top of it a
+surface seen at a slant may recede by its own slope across the cell's width (capped at 4: 76°)."""
+
+
+def visible_among(points: np.ndarray, normals: np.ndarray, *, position: np.ndarray, wxyz: np.ndarray,
+                  spacing: float) -> np.ndarray:
+    """Which of a set of points the camera sees: not behind another point of the set along the same ray.
+
+    Whatever hides a point inside a screen outline projects inside the same outline, so testing a selection's
+    candidates against each other is a full visibility test. The candidates are binned on a grid over the image
+    plane whose cells are `VISIBLE_CELL` scan spacings wide at the nearest candidate's depth (so the nearest
+    surface covers its cells without gaps); a point is visible when it lies within a tolerance of its cell's
+    nearest depth (`VISIBLE_TOLERANCE`, plus its surface's slope across the cell). Points within about one cell of
+    an occluding outline may be taken as hidden.
+
+    Args:
+        points: (K, 3) candidate points, world frame, in front of the camera.
+        normals: (K, 3) their unit normals.
+        position: (3,) camera position, world frame.
+        wxyz: (4,) camera orientation R_world_camera.
+        spacing: the scan's point spacing (m).
+
+    Returns:
+        (K,) bool, True for the points the camera sees.
+    """
+    if len(points) == 0:
+        return np.zeros(0, bool)
+    R = quat_wxyz_to_rotation(wxyz)
+    view = np.asarray(points, np.float64) - np.asarray(position, np.float64)
+    pc = view @ R
+    z = np.maximum(pc[:, 2], 1e-9)
+    z_near = max(float(np.percentile(z, 2)), 1e-6)
+    cell = VISIBLE_CELL * float(spacing) / z_near  # tangent-plane units
+    ij = np.floor(pc[:, :2] / z[:, None] / cell).astype(np.int64)
+    _, key = np.unique(ij, axis=0, return_inverse=True)
+    key = key.reshape(-1)
+    nearest = np.full(int(key.max()) + 1, np.inf)
+    np.minimum.at(nearest, key, z)
+    cos = np.abs(np.einsum("ij,ij->i", view, np.asarray(normals, np.float64)))
+    cos /= np.maximum(np.linalg.norm(view, axis=1), 1e-12)
+    slope = np.minimum(np.sqrt(np.maximum(1.0 - cos**2, 0.0)) / np.maximum(cos, 1e-6), 4.0)
+    tol = float(spacing) * (VISIBLE_TOLERANCE + VISIBLE_CELL * (z / z_near) * slope)
+    return z <= nearest[key] + tol
+
+
+def _keep_facing(geom: ScanGeometry, keep: np.ndarray, facing: Facing, position: np.ndarray,
+                 wxyz: np.ndarray) -> np.ndarray:
+    """The candidates `keep` that the `facing` rule takes (see `Facing`)."""
+    if facing not in ("visible", "front", "all"):
+        raise ValueError(f"facing must be 'visible', 'front' or 'all', got {facing!r}")
+    if facing == "all" or not len(keep):
+        return keep
+    seen = np.ones(len(keep), bool)
+    if facing == "visible":
+        seen = visible_among(geom.points[keep], geom.normals[keep], position=position, wxyz=wxyz,
+                             spacing=geom.spacing)
+    view = geom.points[keep].astype(np.float64) - np.asarray(position, np.float64)
+    seen &= np.einsum("ij,ij->i", view, geom.normals[keep].astype(np.float64)) < 0
+    return keep[seen]
+
+
 def box_select(
     geom: ScanGeometry,
     *,
@@ -413,7 +481,7 @@ def box_select(
     aspect: float,
     screen_min: tuple[float, float],
     screen_max: tuple[float, float],
-    facing: Literal["front", "all"] = "front",
+    facing: Facing = "visible",
 ) -> np.ndarray:
     """Vertices whose projection falls in a screen rectangle.
 
@@ -421,8 +489,8 @@ def box_select(
         geom: the scan.
         position, wxyz, fov, aspect: the client camera (see `project`).
         screen_min, screen_max: rectangle corners in [0, 1] screen coordinates (OpenCV: (0,0) top-left).
-        facing: "front" keeps only vertices whose normal faces the camera (a cheap stand-in for visibility);
-            "all" selects through the object.
+        facing: which vertices inside it are taken (`Facing`): "visible" (default) what the camera sees,
+            "front" everything facing the camera, hidden or not, "all" through the object.
 
     Returns:
         (K,) int32 sorted vertex indices.
@@ -431,10 +499,8 @@ def box_select(
     u0, v0 = min(screen_min[0], screen_max[0]), min(screen_min[1], screen_max[1])
     u1, v1 = max(screen_min[0], screen_max[0]), max(screen_min[1], screen_max[1])
     inside = (z > 1e-6) & (uv[:, 0] >= u0) & (uv[:, 0] <= u1) & (uv[:, 1] >= v0) & (uv[:, 1] <= v1)
-    if facing == "front":
-        view = geom.points.astype(np.float64) - np.asarray(position, np.float64)
-        inside &= np.einsum("ij,ij->i", view, geom.normals.astype(np.float64)) < 0
-    return np.flatnonzero(inside).astype(np.int32)
+    keep = _keep_facing(geom, np.flatnonzero(inside), facing, position, wxyz)
+    return np.sort(keep).astype(np.int32)
 
 
 def points_in_polygon(uv: np.ndarray, polygon: np.ndarray) -> np.ndarray:
@@ -468,7 +534,7 @@ def lasso_select(
     fov: float,
     aspect: float,
     polygon: np.ndarray,
-    facing: Literal["front", "all"] = "front",
+    facing: Facing = "visible",
 ) -> np.ndarray:
     """Vertices whose projection falls inside a screen polygon (lasso), like `box_select` with any outline.
 
@@ -476,7 +542,7 @@ def lasso_select(
         geom: the scan.
         position, wxyz, fov, aspect: the client camera (see `project`).
         polygon: (P, 2) outline in [0, 1] screen coordinates (OpenCV: (0,0) top-left), P >= 3.
-        facing: "front" keeps only vertices whose normal faces the camera; "all" selects through the object.
+        facing: which vertices inside it are taken (`Facing`, as `box_select`).
 
     Returns:
         (K,) int32 sorted vertex indices.
@@ -487,8 +553,5 @@ def lasso_select(
     uv, z = project(geom.points, position=position, wxyz=wxyz, fov=fov, aspect=aspect)
     lo, hi = poly.min(axis=0), poly.max(axis=0)
     cand = np.flatnonzero((z > 1e-6) & np.all((uv >= lo) & (uv <= hi), axis=1))
-    keep = cand[points_in_polygon(uv[cand], poly)]
-    if facing == "front" and len(keep):
-        view = geom.points[keep].astype(np.float64) - np.asarray(position, np.float64)
-        keep = keep[np.einsum("ij,ij->i", view, geom.normals[keep].astype(np.float64)) < 0]
+    keep = _keep_facing(geom, cand[points_in_polygon(uv[cand], poly)], facing, position, wxyz)
     return np.sort(keep).astype(np.int32)

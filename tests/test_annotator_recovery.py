@@ -333,3 +333,77 @@ def test_torn_tail_with_a_current_checkpoint_still_cannot_vouch_for_later_edits(
     assert "checkpoint: holds records up to 9" in text and "checkpoint holds nothing newer (record 9)" in text
     assert "nothing was lost" not in text
     s2.close()
+
+
+# ---------------------------------------------------------------------------------------------- issue 36 item 5
+def _whole_scan_edits(s: LabelStore, k: int) -> list[np.ndarray]:
+    """k edits that each repaint every vertex; returns the labels after each (index 0: before the first)."""
+    states = [s.labels.copy()]
+    ids = [s.do(lambda ls: ls.create_instance(category="mug")) for _ in range(2)]
+    assert all(d is not None for d in ids)
+    states = [s.labels.copy()]
+    for i in range(k):
+        s.do(lambda ls, i=i: ls.paint(np.arange(ls.n), 1 + i % 2))
+        states.append(s.labels.copy())
+    return states
+
+
+def test_undo_history_in_memory_is_bounded_and_every_edit_stays_undoable(tmp_path: Path) -> None:
+    n = 20_000
+    per_edit = 12 * n  # idx + before + after, int32
+    s = _store(tmp_path, n=n, history_bytes=2 * per_edit)
+    states = _whole_scan_edits(s, 6)
+    assert s.history_in_memory() <= 2 * per_edit
+    stored = [e for e in s.labelset.undo_stack if not hasattr(e, "nbytes")]
+    assert len(stored) >= 4, "older whole-scan edits must leave memory"
+    assert all(r.loaded is None for r in s.journal.records), "the open journal holds headers only"
+    for want in reversed(states[:-1]):  # undo all six, reading the old ones back from the journal
+        assert s.undo()
+        assert np.array_equal(s.labels, want)
+        assert s.history_in_memory() <= 2 * per_edit
+    for want in states[1:]:
+        assert s.redo()
+        assert np.array_equal(s.labels, want)
+    assert s.history_in_memory() <= 2 * per_edit
+    s.close()
+
+
+def test_reopening_reads_only_the_checkpoint_and_later_records(tmp_path: Path, monkeypatch) -> None:
+    n = 20_000
+    s = _store(tmp_path, n=n)
+    states = _whole_scan_edits(s, 5)
+    s.close()  # final save: the checkpoint holds every record
+    reads: list[int] = []
+    real = journal_mod.Journal.read_arrays
+
+    def counting(self, rec):
+        reads.append(rec.seq)
+        return real(self, rec)
+
+    monkeypatch.setattr(journal_mod.Journal, "read_arrays", counting)
+    s2 = _store(tmp_path, n=n)
+    assert np.array_equal(s2.labels, states[-1])
+    assert reads == [], "history older than the checkpoint is not read on reopen"
+    assert s2.history_in_memory() == 0 and len(s2.labelset.undo_stack) == 7
+    assert s2.undo() and np.array_equal(s2.labels, states[-2])
+    assert len(reads) == 1, "an undo reads its one record back"
+    s2.close()
+
+
+def test_a_stored_edit_that_no_longer_verifies_refuses_the_undo_and_changes_nothing(tmp_path: Path) -> None:
+    n = 5_000
+    s = _store(tmp_path, n=n, history_bytes=0)
+    states = _whole_scan_edits(s, 2)
+    rec = s.journal.record(3)  # the first whole-scan paint
+    assert rec is not None
+    with open(tmp_path / "s.journal", "r+b") as f:  # the file changes under the annotator
+        f.seek(rec.offset + 40)
+        b = f.read(1)
+        f.seek(rec.offset + 40)
+        f.write(bytes([b[0] ^ 0xFF]))
+    assert s.undo() and np.array_equal(s.labels, states[1])
+    before = s.journal.next_seq
+    with pytest.raises(JournalError, match="record 3"):
+        s.undo()
+    assert np.array_equal(s.labels, states[1]) and s.journal.next_seq == before, "nothing applied nor journalled"
+    s.journal.close()

@@ -198,7 +198,7 @@ def test_lasso_select_equals_box_select_for_a_rectangle_and_respects_facing() ->
     cam = dict(position=np.array([0.0, 0.0, 2.0]), wxyz=np.array([0.0, 1.0, 0.0, 0.0]), fov=np.deg2rad(60),
                aspect=1.0)
     rect = np.array([[0.3, 0.35], [0.7, 0.35], [0.7, 0.6], [0.3, 0.6]])
-    for facing in ("front", "all"):
+    for facing in ("visible", "front", "all"):
         a = lasso_select(g, polygon=rect, facing=facing, **cam)
         b = box_select(g, screen_min=(0.3, 0.35), screen_max=(0.7, 0.6), facing=facing, **cam)
         assert np.array_equal(a, b) and len(a) > 0
@@ -231,3 +231,58 @@ def test_warm_up_stops_between_structures_once_cancelled(box_on_plane: sel.ScanG
     assert built == ["spacing"] and spy._tree is not None and spy._adj is None and spy._raycaster is None
     geom.warm_up(threading.Event())
     assert geom._raycaster is not None and not geom.building_raycaster.is_set()
+
+
+def _plate_over_table(spacing: float, *, jitter: float = 0.0) -> tuple[sel.ScanGeometry, np.ndarray]:
+    """A point-cloud table (z = 0) with a 12 cm plate floating 10 cm above its centre; True marks the plate."""
+    rng = np.random.default_rng(1)
+    g1 = np.arange(-0.3, 0.3, spacing)
+    tx, ty = np.meshgrid(g1, g1)
+    table = np.stack([tx.ravel(), ty.ravel(), np.zeros(tx.size)], axis=1)
+    g2 = np.arange(-0.06, 0.06, spacing)
+    px, py = np.meshgrid(g2, g2)
+    plate = np.stack([px.ravel(), py.ravel(), np.full(px.size, 0.10)], axis=1)
+    pts = np.concatenate([table, plate]) + rng.normal(scale=jitter, size=(len(table) + len(plate), 3))
+    nrm = np.tile(np.array([[0, 0, 1.0]]), (len(pts), 1))
+    is_plate = np.r_[np.zeros(len(table), bool), np.ones(len(plate), bool)]
+    return sel.ScanGeometry(pts.astype(np.float32), nrm.astype(np.float32)), is_plate
+
+
+@pytest.mark.parametrize("tilt_deg", [0.0, 35.0, 60.0])
+def test_lasso_and_box_take_only_what_the_camera_sees(tilt_deg: float) -> None:
+    """Issue 37 item 5: a lasso around an object took the table hidden behind it ("front" keeps whatever faces
+    the camera). "visible" (the default) takes the plate and the table around it, never the table in its shadow;
+    the reference is exact: a table point is hidden when the ray from the camera to it crosses the plate."""
+    from efem_viz.geometry.transforms import rotation_to_quat_wxyz
+
+    g, is_plate = _plate_over_table(0.003, jitter=0.0005)
+    t = np.deg2rad(tilt_deg)
+    position = np.array([0.0, -0.8 * np.sin(t), 0.8 * np.cos(t)])  # 80 cm from the table centre, tilted about x
+    fwd = -position / np.linalg.norm(position)
+    right = np.array([1.0, 0.0, 0.0])
+    down = np.cross(fwd, right)
+    wxyz = rotation_to_quat_wxyz(np.stack([right, down, fwd], axis=1))
+    cam = dict(position=position, wxyz=wxyz, fov=np.deg2rad(60), aspect=1.0)
+    uv, _ = sel.project(g.points[is_plate], **cam)
+    lo, hi = uv.min(axis=0) - 0.03, uv.max(axis=0) + 0.03
+    rect = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]])
+    # exact shadow: where the ray camera -> table point crosses z = 0.10, inside the plate's square
+    pts = g.points.astype(np.float64)
+    s = (position[2] - 0.10) / (position[2] - pts[:, 2])
+    cross = position + s[:, None] * (pts - position)
+    shadow = ~is_plate & (np.abs(cross[:, 0]) < 0.06) & (np.abs(cross[:, 1]) < 0.06)
+    front = sel.lasso_select(g, polygon=rect, facing="front", **cam)
+    vis = sel.lasso_select(g, polygon=rect, facing="visible", **cam)
+    box = sel.box_select(g, screen_min=tuple(lo), screen_max=tuple(hi), **cam)  # default: visible
+    assert np.array_equal(vis, box)
+    assert shadow[front].sum() > 1000, "the old rule takes the hidden table"
+    # near the plate's edge a point may sit within one grid cell of the shadow: allow that rim only
+    deep = shadow & (np.abs(cross[:, 0]) < 0.06 - 0.01) & (np.abs(cross[:, 1]) < 0.06 - 0.01)
+    assert deep[vis].sum() == 0
+    assert shadow[vis].sum() <= 0.05 * shadow.sum()
+    assert is_plate[vis].sum() == is_plate.sum(), "every plate point is seen"
+    # the table around the plate, in view: all of it beyond one grid cell of the plate's outline is taken
+    ring = np.setdiff1d(front, np.flatnonzero(shadow | is_plate))
+    clear = ring[np.maximum(np.abs(cross[ring, 0]), np.abs(cross[ring, 1])) > 0.06 + 0.01]
+    assert len(clear) > 300 and np.isin(clear, vis).all()
+    assert np.isin(ring, vis).mean() >= 0.85
