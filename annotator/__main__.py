@@ -63,11 +63,11 @@ class AnnotateArgs:
                 token=self.token,
             )
             try:
-                if app.store.recovery is not None:
-                    print("efem-annotate: " + app.store.recovery.summary().replace("\n", "\n  "), flush=True)
-                announce("efem-annotate", f"{app.scan_path.name} ({app.n:,} vertices) at {app.url}  — Ctrl+C to quit",
+                if app.session.store.recovery is not None:
+                    print("efem-annotate: " + app.session.store.recovery.summary().replace("\n", "\n  "), flush=True)
+                announce("efem-annotate", f"{app.session.scan_path.name} ({app.session.n:,} vertices) at {app.url}  — Ctrl+C to quit",
                          url=app.url, local_url=app.local_url, exposure_warning=app.access.exposure_warning,
-                         details=(f"autosave: {app.work_dir}",))
+                         details=(f"autosave: {app.session.work_dir}",))
                 wait_for_stop()
             finally:
                 app.close()
