@@ -69,7 +69,8 @@ def test_cursor_follows_the_brush_and_its_radius(app: AnnotatorApp) -> None:
     app.handle_event("drag", _drag("update", (0.0, 0.0, 0.1), (0.03, 0.0, 0.5)))
     app.handle_event("drag", _drag("end", (0.0, 0.0, 0.1), (0.03, 0.0, 0.5)))
     assert app.session.cursor.position[0] > 0.01, "the cursor should follow the stroke"
-    assert np.allclose(app.session.cursor.normal, app.session.cursor.position / np.linalg.norm(app.session.cursor.position), atol=0.1)
+    cur = app.session.cursor
+    assert np.allclose(cur.normal, cur.position / np.linalg.norm(cur.position), atol=0.1)
     assert _ring_radius(app) == pytest.approx(0.02, rel=1e-3) and app.view.cursor_handle.visible
 
     r = app.resize_brush(2.0)  # ]
