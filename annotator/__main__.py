@@ -63,11 +63,12 @@ class AnnotateArgs:
                 token=self.token,
             )
             try:
-                if app.store.recovery is not None:
-                    print("efem-annotate: " + app.store.recovery.summary().replace("\n", "\n  "), flush=True)
-                announce("efem-annotate", f"{app.scan_path.name} ({app.n:,} vertices) at {app.url}  — Ctrl+C to quit",
+                ses = app.session
+                if ses.store.recovery is not None:
+                    print("efem-annotate: " + ses.store.recovery.summary().replace("\n", "\n  "), flush=True)
+                announce("efem-annotate", f"{ses.scan_path.name} ({ses.n:,} vertices) at {app.url}  — Ctrl+C to quit",
                          url=app.url, local_url=app.local_url, exposure_warning=app.access.exposure_warning,
-                         details=(f"autosave: {app.work_dir}",))
+                         details=(f"autosave: {ses.work_dir}",))
                 wait_for_stop()
             finally:
                 app.close()

@@ -3,8 +3,9 @@ draws the scan through `annotator.scan_view.ScanView`.
 
 Thin by design: every action (paint, grow, fill, box, lasso, pre-labels, click-to-segment, undo, export) is done by
 `annotator.session.AnnotatorSession` (`self.session`), which is also the tools' host; callbacks read GUI values into
-its `ToolSettings` and call it, and the label store's listener redraws the touched chunks (`ScanView.draw_delta`). The
-app's action methods are the session's, so tests and scripts drive the same code paths without a browser.
+its `ToolSettings` and call it, and the label store's listener redraws the touched chunks (`ScanView.draw_delta`). Tests
+and scripts drive the same code paths through `app.session` without a browser (the app copies none of its
+names).
 
 Interaction (see docs/ANNOTATOR.md). The tools are the entries of a table (`annotator.tools.DEFAULT_TOOLS`, or
 the `tools=` given): the Tool dropdown, the hotkeys, the help, the controls shown and what each gesture does are
@@ -41,7 +42,7 @@ from annotator.events import MISSED_SCAN, check_event, coalesce_drag_updates
 from annotator.panel_views import panel_view, status_markdown
 from annotator.panels import Panels
 from annotator.wiring import wire
-from annotator.session import AnnotatorSession, BrushCursor, Stroke
+from annotator.session import AnnotatorSession
 from annotator.scan_view import DISPLAY_POINTS, ScanView
 from annotator.tools import DEFAULT_TOOLS, RADIUS, TOOLS, Tool, ToolSettings, all_controls, lasso_click
 from efem_viz.serve.guard import ServedApp, start_server
@@ -113,25 +114,7 @@ class AnnotatorApp(ServedApp):
                                         tools=tools)
         """Every action and the state it acts on (`annotator.session`); this class draws it."""
         ses = self.session
-        self.tools, self.scan_path, self.out_dir, self.stem = ses.tools, ses.scan_path, ses.out_dir, ses.stem
-        self.work_dir = ses.work_dir
-        self.scene, self.n, self.store, self.geom, self.settings = ses.scene, ses.n, ses.store, ses.geom, ses.settings
-        self.lasso_outline = ses.lasso_outline
-        # The actions the GUI offers, for tests and scripts that drive the app (the session does them).
-        self.new_instance, self.update_instance, self.delete_instance = (ses.new_instance, ses.update_instance,
-                                                                         ses.delete_instance)
-        self.merge, self.undo, self.redo, self.cycle_active = ses.merge, ses.undo, ses.redo, ses.cycle_active
-        self.set_active, self.choose_category, self.pick_instance = ses.set_active, ses.choose_category, ses.pick_instance
-        self.paint, self.paint_stroke, self.dab, self.grow, self.fill = (ses.paint, ses.paint_stroke, ses.dab,
-                                                                         ses.grow, ses.fill)
-        self.click, self.box, self.lasso, self.move_cursor = ses.click, ses.box, ses.lasso, ses.move_cursor
-        self.apply_lasso, self.clear_lasso = ses.apply_lasso, ses.clear_lasso
-        self.export, self.import_labels, self.import_efem = ses.export, ses.import_labels, ses.import_efem
-        self.add_prelabels, self.review_prelabel, self.review_prelabels = (ses.add_prelabels, ses.review_prelabel,
-                                                                           ses.review_prelabels)
-        self.set_preview, self.accept_segment, self.discard_segment = (ses.set_preview, ses.accept_segment,
-                                                                       ses.discard_segment)
-        self._sheets = CheatSheets(self.tools)
+        self._sheets = CheatSheets(self.session.tools)
         self.cheat_sheets = self._sheets.open
         """The open `?` cheat-sheet overlays, by client id."""
         self._edits: queue.Queue[tuple[str, Any]] = queue.Queue()
@@ -159,18 +142,15 @@ class AnnotatorApp(ServedApp):
         ses.on_preview = self.view.draw_preview
         ses.on_segment, ses.report = self._show_segmenting, self.run_reporting
         ses.notify = lambda title, body: self.notify(title, body)  # late-bound: tests replace `notify`
-        self.store.listeners.append(self._on_labels_changed)
-        self.store.problem_listeners.append(self._on_store_problem)
+        self.session.store.listeners.append(self._on_labels_changed)
+        self.session.store.problem_listeners.append(self._on_store_problem)
         self.server.on_client_connect(self._greet)
         self.server.on_client_disconnect(self._forget_client)
         self._worker = threading.Thread(target=self._edit_loop, name="annotator-edits", daemon=True)
         self._worker.start()
-        self._warmup_cancel = threading.Event()
-        self._warmup = threading.Thread(target=self.geom.warm_up, args=(self._warmup_cancel,),
-                                        name="annotator-warmup", daemon=True)
-        self._warmup.start()
+        ses.scan.start_warm_up()
         self.open_s = time.perf_counter() - t0
-        log.info("opened %s: %d vertices (%d drawn), %d chunks, %.2f s", self.scan_path.name, self.n,
+        log.info("opened %s: %d vertices (%d drawn), %d chunks, %.2f s", self.session.scan_path.name, self.session.n,
                  len(self.view.display), self.view.chunks.count, self.open_s)
 
     # ================================================================== drawing
@@ -186,9 +166,9 @@ class AnnotatorApp(ServedApp):
     def _build_gui(self) -> None:
         from annotator.assist import available_priors
 
-        default_efem = self.scan_path.with_name(self.stem + RESULT_SUFFIX)
+        default_efem = self.session.scan_path.with_name(self.session.stem + RESULT_SUFFIX)
         priors = tuple(available_priors()) or (DEFAULT_PRIOR,)
-        self.panels = Panels(self.server.gui, self.tools, self.settings,
+        self.panels = Panels(self.server.gui, self.session.tools, self.session.settings,
                              efem_result=default_efem.name if default_efem.exists() else "", priors=priors,
                              prior=DEFAULT_PRIOR if DEFAULT_PRIOR in priors else priors[0])
         """The GUI handles (`annotator.panels`)."""
@@ -215,7 +195,7 @@ class AnnotatorApp(ServedApp):
 
     def show_tool(self) -> None:
         """Show the active tool's controls, buttons and help line (`Panels.show_tool`)."""
-        self.panels.show_tool(self.tool, self.tools)
+        self.panels.show_tool(self.tool, self.session.tools)
         self.session.refresh_cursor()
 
     def write_back(self, handle: GuiInputHandle[Any], value: object) -> None:
@@ -233,12 +213,12 @@ class AnnotatorApp(ServedApp):
         if not hasattr(self, "panels"):
             return
         st = self.view.stats
-        v = panel_view(self.store, self.settings.active_id, history=st.history)
-        status = status_markdown(self.store, self.work_dir, last_edit_bytes=st.last_edit_bytes,
+        v = panel_view(self.session.store, self.session.settings.active_id, history=st.history)
+        status = status_markdown(self.session.store, self.session.work_dir, last_edit_bytes=st.last_edit_bytes,
                                  last_edit_ms=st.last_edit_ms)
         self._tls.syncing = True
         try:
-            self.settings.active_id = v.active_id
+            self.session.settings.active_id = v.active_id
             self.panels.show(v, status)
         finally:
             self._tls.syncing = False
@@ -255,13 +235,13 @@ class AnnotatorApp(ServedApp):
         """A newly connected client: its camera is watched (`camera_guard`), and it hears about a recovery or a
         standing autosave problem."""
         self.view.camera_guard.attach(client)
-        rec = self.store.recovery
+        rec = self.session.store.recovery
         if rec is not None:
             title = ("Session recovered" if rec.verified_complete else "Session recovered with losses"
                      if not rec.complete else "Session recovered, not everything verifiable")
             self.notify(title, rec.summary(), client=client, color="yellow" if rec.complete else "red")
-        if self.store.problem:
-            self.notify("Autosave failed", self.store.problem, client=client, color="red")
+        if self.session.store.problem:
+            self.notify("Autosave failed", self.session.store.problem, client=client, color="red")
 
     def _forget_client(self, client: ClientHandle) -> None:
         """A client left: drop what the app kept for it (its cheat-sheet overlay)."""
@@ -312,35 +292,11 @@ class AnnotatorApp(ServedApp):
             self._tls.syncing = False
         self.show_tool()
 
-    @property
-    def cursor(self) -> BrushCursor | None:
-        """The brush cursor (`AnnotatorSession.cursor`)."""
-        return self.session.cursor
-
-    @property
-    def preview(self) -> np.ndarray | None:
-        """(N,) bool, the segment preview drawn highlighted (`AnnotatorSession.preview`)."""
-        return self.session.preview
-
-    @property
-    def pending_segment(self) -> np.ndarray | None:
-        """(K,) int32, the previewed segment's vertices (`AnnotatorSession.pending_segment`)."""
-        return self.session.pending_segment
-
-    @property
-    def segmenting(self) -> bool:
-        """Whether a click-to-segment run is in progress."""
-        return self.session.segmenting
-
-    @property
-    def _strokes(self) -> dict[int, Stroke]:
-        return self.session.strokes
-
     def resize_brush(self, factor: float) -> float:
         """Multiply the brush radius by `factor` (the `[` / `]` keys, `AnnotatorSession.resize_brush`); the slider
         shows the new value. Returns the radius in metres."""
         radius = self.session.resize_brush(factor)
-        control = next((c for c in all_controls(self.tools) if c.setting == "radius"), RADIUS)
+        control = next((c for c in all_controls(self.session.tools) if c.setting == "radius"), RADIUS)
         handle = self.panels.gui_controls.get("radius")
         if handle is not None:
             self.write_back(handle, round(radius * control.scale, 6))
@@ -368,8 +324,8 @@ class AnnotatorApp(ServedApp):
 
     def set_labels_only(self, on: bool) -> None:
         """The labels-only view (unlabelled vertices dimmed) on or off; every chunk is redrawn."""
-        self.settings.labels_only = bool(on)
-        self.write_back(self.panels.gui_labels_only, self.settings.labels_only)
+        self.session.settings.labels_only = bool(on)
+        self.write_back(self.panels.gui_labels_only, self.session.settings.labels_only)
         self.view.redraw()
 
     def add_lasso_point(self, event: SceneClickEvent) -> int:
@@ -385,7 +341,7 @@ class AnnotatorApp(ServedApp):
 
     def _draw_lasso(self) -> None:
         self.view.draw_lasso()
-        self.panels.enable_lasso(len(self.lasso_outline))
+        self.panels.enable_lasso(len(self.session.lasso_outline))
 
     # ---- files
     # ---- EFEM assist
@@ -397,7 +353,7 @@ class AnnotatorApp(ServedApp):
         Raises:
             ValueError: no unreviewed pre-label is left.
         """
-        ids = unreviewed_prelabels(self.store.labelset.instances)
+        ids = unreviewed_prelabels(self.session.store.labelset.instances)
         if not ids:
             raise ValueError("no unreviewed pre-labels: import an EFEM result first")
         current = str(self.panels.gui_prelabel.value).split(":", 1)[0]
@@ -405,12 +361,12 @@ class AnnotatorApp(ServedApp):
         iid = step_row(ids, int(current) if started and current.isdigit() else None, step)
         self.session.prelabel_cursor = iid
         self.write_back(self.panels.gui_prelabel, _option_for(tuple(self.panels.gui_prelabel.options), iid))
-        self.view.fly_to(np.flatnonzero(self.store.labels == iid), client)
+        self.view.fly_to(np.flatnonzero(self.session.store.labels == iid), client)
         return iid
 
     def segment_at(self, vertex: int, *, wait: bool = False) -> np.ndarray | None:
         """Click-to-segment with the prior the dropdown shows (`AnnotatorSession.segment_at`)."""
-        self.settings.prior = read_choice(self.panels.gui_prior)
+        self.session.settings.prior = read_choice(self.panels.gui_prior)
         return self.session.segment_at(vertex, wait=wait)
 
     def _show_segmenting(self, percent: float | None) -> None:
@@ -423,7 +379,8 @@ class AnnotatorApp(ServedApp):
         self._enable_segment_buttons()
 
     def _enable_segment_buttons(self) -> None:
-        self.panels.enable_segment(has_preview=self.pending_segment is not None, running=self.segmenting)
+        ses = self.session
+        self.panels.enable_segment(has_preview=ses.pending_segment is not None, running=ses.segmenting)
 
     # ================================================================== viser events
     def _on_scene_click(self, event: SceneClickEvent) -> None:
@@ -467,12 +424,12 @@ class AnnotatorApp(ServedApp):
             with self.session.edit_source(self.tool.label):
                 on_click(self.session, event)
         elif kind == "click":
-            v = self.click(np.asarray(event.ray_origin), np.asarray(event.ray_direction), client=cid)
+            v = self.session.click(np.asarray(event.ray_origin), np.asarray(event.ray_direction), client=cid)
             if v is None and self.tool.apply_at is not None:
                 self.notify("Missed the scan", MISSED_SCAN, client=getattr(event, "client", None), color="yellow")
         elif kind == "rect":
             cam = event.client.camera
-            self.box(position=np.asarray(cam.position), wxyz=np.asarray(cam.wxyz), fov=float(cam.fov),
+            self.session.box(position=np.asarray(cam.position), wxyz=np.asarray(cam.wxyz), fov=float(cam.fov),
                      aspect=float(cam.aspect), screen_min=tuple(event.screen_min), screen_max=tuple(event.screen_max),
                      client=cid)
         elif kind == "drag" and event.phase == "start":
@@ -498,10 +455,5 @@ class AnnotatorApp(ServedApp):
             self.server.stop()
         finally:
             self.session.close()
-            # A Ctrl+C right after start: the warm-up stops before its next structure (issue 36: it used to be
-            # waited for, up to 60 s on big scans). Only an open3d ray-casting scene under construction is waited
-            # for (exiting under it makes open3d report leaks and exit with status 1); the daemon thread's scipy
-            # work is simply abandoned.
-            self._warmup_cancel.set()
-            self._warmup.join(timeout=60 if self.geom.building_raycaster.is_set() else 0.5)
+            self.session.scan.stop_warm_up()  # a Ctrl+C right after start: the warm-up stops (issue 36)
             self._worker.join(timeout=10)

@@ -100,8 +100,15 @@ class ToolSettings:
 class ToolHost(Protocol):
     """What a tool's functions may use of their host (`annotator.session.AnnotatorSession` provides it)."""
 
-    settings: ToolSettings
-    geom: ScanGeometry
+    @property
+    def settings(self) -> ToolSettings:
+        """What the tool controls say."""
+        ...
+
+    @property
+    def geom(self) -> ScanGeometry:
+        """The scan's selection geometry."""
+        ...
 
     def paint(self, idx: np.ndarray, *, erase: bool = False, group: str = "", client: str = "") -> Delta | None:
         """Paint vertices with the active instance (or erase them); one journalled edit."""

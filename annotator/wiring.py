@@ -9,9 +9,9 @@ against its options, bounded text), never used raw. A callback does nothing whil
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Callable, Protocol, Sequence, Union
+from typing import TYPE_CHECKING, Any, Callable, Protocol, Union
 
-from annotator.tools import APP_KEYS, BRUSH_STEP, Tool, ToolCommand, all_controls
+from annotator.tools import APP_KEYS, BRUSH_STEP, ToolCommand, all_controls
 from efem_viz.serve.inputs import ClientValueError, read_bool, read_choice, read_number, read_rgb, read_text
 from efem_viz.serve.table import option_id
 
@@ -35,8 +35,6 @@ class AnnotatorControls(Protocol):
 
     @property
     def session(self) -> AnnotatorSession: ...
-    @property
-    def tools(self) -> Sequence[Tool]: ...
     @property
     def panels(self) -> Panels: ...
 
@@ -84,7 +82,7 @@ def _for_client(app: AnnotatorControls, fn: Callable[[ClientHandle | None], obje
 def _wire_settings(app: AnnotatorControls) -> None:
     """The tool dropdown and the setting controls: every change re-reads them all into the settings."""
     s, p = app.session.settings, app.panels
-    controls = {c.setting: c for c in all_controls(app.tools)}
+    controls = {c.setting: c for c in all_controls(app.session.tools)}
 
     def read_one(name: str, handle: ControlHandle, client: ClientHandle | None) -> None:
         c = controls[name]
@@ -167,7 +165,7 @@ def _wire_tool_commands(app: AnnotatorControls, gui: GuiApi) -> None:
     """The tools' palette entries, buttons and command hotkeys."""
     command_keys: dict[str, list[str]] = {}
     """Command hotkeys → the labels of the commands (of different tools) that use them."""
-    for t in app.tools:
+    for t in app.session.tools:
         gui.add_command(f"Tool: {t.label}", hotkey=t.hotkey).on_trigger(  # type: ignore[arg-type]
             _guarded(app, lambda name=t.name: app.set_tool(name)))
         for cmd in t.commands:

@@ -101,26 +101,26 @@ def main(argv: list[str] | None = None) -> int:
         print(f"help line: {line}")
         app.set_tool("lift")  # what pressing U (or picking it in the Tool dropdown) does
         app.panels.gui_controls["lift_radius"].value = args.radius_cm  # the slider, in cm
-        print(f"lift settings: radius {app.settings.extra['lift_radius']:.3f} m, "
-              f"above {app.settings.extra['lift_above']:.3f} m; controls shown "
+        print(f"lift settings: radius {app.session.settings.extra['lift_radius']:.3f} m, "
+              f"above {app.session.settings.extra['lift_above']:.3f} m; controls shown "
               f"{[k for k, c in app.panels.gui_controls.items() if c.visible]}")
         for gid in truth.instance_ids()[: args.objects]:
-            iid = app.new_instance(category=truth.categories.get(int(gid), "object"))
-            origin, direction = click_ray(app.geom, truth, int(gid))
-            v = app.click(origin, direction)
+            iid = app.session.new_instance(category=truth.categories.get(int(gid), "object"))
+            origin, direction = click_ray(app.session.geom, truth, int(gid))
+            v = app.session.click(origin, direction)
             assert v is not None, "the ray missed the scan"
-            painted = app.store.labels == iid
+            painted = app.session.store.labels == iid
             true = truth.instance == gid
             iou = (painted & true).sum() / max((painted | true).sum(), 1)
             print(f"  instance {iid} ({app.view.stats.history[0]}): {int(painted.sum())} vertices, IoU with true "
                   f"object {int(gid)}: {iou:.2f}")
-        before = int((app.store.labels > 0).sum())
-        app.undo()
-        after_undo = int((app.store.labels > 0).sum())
-        app.redo()
-        after_redo = int((app.store.labels > 0).sum())
+        before = int((app.session.store.labels > 0).sum())
+        app.session.undo()
+        after_undo = int((app.session.store.labels > 0).sum())
+        app.session.redo()
+        after_redo = int((app.session.store.labels > 0).sum())
         print(f"labelled vertices {before}; after undo {after_undo}; after redo {after_redo}")
-        for p in app.export("ply"):
+        for p in app.session.export("ply"):
             print(f"exported {p.name}")
     finally:
         app.close()

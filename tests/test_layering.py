@@ -565,3 +565,65 @@ def test_every_subcommand_resolves(name: str) -> None:
     module_name, cls_name = cli.SUBCOMMANDS[name][0].split(":")
     cls = getattr(importlib.import_module(module_name), cls_name)
     assert callable(getattr(cls, "run", None)), f"{cls_name} has no run()"
+
+
+HEADLESS_SESSIONS = ("efem_viz.viewer.session", "annotator.session")
+"""The apps' headless sessions (ARCHITECTURE.md "The apps"): drivable from a script with no GUI library loaded."""
+DRAWING_MODULES = (
+    "efem_viz.viewer.app", "efem_viz.viewer.events", "efem_viz.viewer.nodes", "efem_viz.viewer.panels",
+    "efem_viz.viewer.panel_views", "efem_viz.viewer.scene_views", "efem_viz.viewer.legend",
+    "efem_viz.viewer.label_layout", "annotator.app", "annotator.panels", "annotator.panel_views",
+    "annotator.scan_view", "annotator.render", "annotator.wiring", "annotator.cheat_sheet",
+)
+"""The modules that draw (scene nodes, panels and what fills them, the legend, label placement) or wire the GUI;
+every module that imports viser anywhere (even for types only) counts too (`drawing_modules`)."""
+
+
+def imports_viser(path: Path) -> bool:
+    """Whether a module's source imports viser anywhere (module level, functions, `if TYPE_CHECKING:`)."""
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                 else [node.module or ""] if isinstance(node, ast.ImportFrom) and node.level == 0 else [])
+        if any(n == "viser" or n.startswith("viser.") for n in names):
+            return True
+    return False
+
+
+def drawing_modules(graph: ImportGraph) -> list[str]:
+    """`DRAWING_MODULES` and every module of the package that imports viser."""
+    found = {m for m, path in graph.modules.items() if imports_viser(path)}
+    missing = [m for m in DRAWING_MODULES if m not in graph.modules]
+    assert not missing, f"DRAWING_MODULES names modules that do not exist: {missing}"
+    return sorted(found | set(DRAWING_MODULES))
+
+
+_LOADED = """
+import importlib, json, sys
+importlib.import_module(sys.argv[1])
+watched = set(json.loads(sys.argv[2]))
+print(json.dumps(sorted(m for m in sys.modules if m in watched or m == "viser" or m.startswith("viser."))))
+"""
+
+
+@pytest.mark.parametrize("session", HEADLESS_SESSIONS)
+def test_sessions_load_no_viser_and_no_drawing_module(graph: ImportGraph, session: str) -> None:
+    """Headless means headless: importing a session (in a fresh interpreter) loads neither viser nor a module that
+    draws, directly or through anything it imports."""
+    drawing = drawing_modules(graph)
+    assert session not in drawing
+    out = subprocess.run([sys.executable, "-c", _LOADED, session, json.dumps(drawing)], capture_output=True,
+                         text=True, timeout=120, cwd=ROOT)
+    assert out.returncode == 0, out.stderr
+    loaded = json.loads(out.stdout.strip().splitlines()[-1])
+    assert loaded == [], f"importing {session} loads {loaded}"
+
+
+def test_drawing_module_detection_sees_type_only_imports(tmp_path: Path) -> None:
+    """The viser detector finds imports under `if TYPE_CHECKING:` and in functions, and ignores mentions."""
+    typed = tmp_path / "typed.py"
+    typed.write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from viser import GuiApi\n")
+    lazy = tmp_path / "lazy.py"
+    lazy.write_text("def f():\n    import viser.transforms\n")
+    plain = tmp_path / "plain.py"
+    plain.write_text('"""No viser here."""\nimport viserlike\n')
+    assert imports_viser(typed) and imports_viser(lazy) and not imports_viser(plain)

@@ -22,17 +22,15 @@ import numpy as np
 from efem_viz.colors import dim, instance_point_colors
 from efem_viz.em.replay import prior_latent
 from efem_viz.viewer.scenes import trace_path_for
-from efem_viz.viewer.trace_queries import alive_table, is_dead_at, top_n
+from efem_viz.viewer.trace_queries import alive_table, decode_shape, is_dead_at, proposal_samples, top_n
 from efem_viz.terminal import count
 from efem_viz.viewer.legend import category_summary
 from efem_viz.viewer.nodes import (
     add_result_nodes,
     add_sample_cloud,
     add_shape_mesh,
-    decode_shape,
     default_point_size,
     default_view,
-    proposal_samples,
     scene_diagonal,
 )
 

@@ -1,8 +1,9 @@
 """What the viewer says about the final instances: their colours, scene labels, category counts and the legend.
 
 `color_key_html` is the key of the point colours of each colour mode (TP/FP/FN, the weight colour bar).
-`instance_table_markdown` and `instance_options` are the Results tab's instance table and the dropdown that names
-its rows (built like the annotator's instance list, from `efem_viz.serve.table`).
+`instance_table_markdown` is the Results tab's instance table (its dropdown's options, `instance_options`, are a
+headless text in `efem_viz.viewer.texts`; both are built like the annotator's instance list, from
+`efem_viz.serve.table`).
 
 Pure functions of an `efem_viz.em.Instances` (no viser): the live viewer and the static demo both draw their
 instance nodes with `result_colors` and `instance_label`, and the Results tab shows `result_summary_markdown` and
@@ -21,7 +22,7 @@ import numpy as np
 
 from efem_viz.colors import FN_COLOR, FP_COLOR, HEAT_RGB, HEAT_STOPS, TP_COLOR, dim, hex_color, instance_colors
 from efem_viz.eval.comparison import GTMetrics
-from efem_viz.serve.table import cell, row_option, swatch
+from efem_viz.serve.table import cell, swatch
 from efem_viz.viewer.texts import md_escape
 from efem_viz.terminal import count
 
@@ -169,14 +170,6 @@ def color_key_html(mode: str) -> str:
     else:
         return ""
     return '<div class="efem-color-key" style="font-size:0.85em;line-height:1.5">' + "".join(rows) + "</div>"
-
-
-def instance_options(instances: Instances) -> tuple[str, ...]:
-    """The instance table's dropdown: one option "<id>: <category> · <confidence>" per instance, most confident
-    first (the table's order); `efem_viz.serve.table.option_id` reads the proposal id back."""
-    conf = np.asarray(instances.confidence, float).reshape(-1)
-    order = np.argsort(-conf, kind="stable")
-    return tuple(row_option(int(instances.ids[k]), f"{instances.category[k]} · {conf[k]:.2f}") for k in order)
 
 
 def instance_table_markdown(

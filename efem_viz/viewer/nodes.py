@@ -31,7 +31,6 @@ from efem_viz.geometry.transforms import rotation_to_quat_wxyz, xyz_tuple
 from efem_viz.serve.camera import View, fitted_view
 from efem_viz.viewer.label_layout import leader_segments, place_labels
 from efem_viz.viewer.legend import instance_label, result_colors
-from efem_viz.viewer.trace_queries import sample_indices
 
 if TYPE_CHECKING:
     from viser import (
@@ -48,8 +47,6 @@ if TYPE_CHECKING:
 
     from efem_viz.data.scene import Scene
     from efem_viz.em.results import Instances
-    from efem_viz.em.trace import EMTrace
-    from efem_viz.prior.config import ShapePriorLike
 
 logger = logging.getLogger(__name__)
 
@@ -90,55 +87,6 @@ def default_view(lo: np.ndarray, hi: np.ndarray) -> tuple[tuple[float, float, fl
     live viewer's fitted view (`efem_viz.serve.camera.fitted_view` from `VIEW_DIRECTION`)."""
     view = fitted_view(lo, hi, direction=VIEW_DIRECTION)
     return view.look_at, view.position
-
-
-def proposal_samples(
-    trace: EMTrace, step: int, drawn: np.ndarray, points: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """The points sampled by some proposals at one step, each coloured by its proposal id.
-
-    Args:
-        trace: the run's `EMTrace`.
-        step: EM step.
-        drawn: (D,) int proposal ids to draw.
-        points: (N, 3) float32 scene points, world frame.
-
-    Returns:
-        (S, 3) float32 points and (S, 3) uint8 colours (S = 0 when none of them sampled anything).
-    """
-    cols = instance_colors(drawn)
-    pts_list, col_list = [], []
-    for k, pid in enumerate(np.asarray(drawn).reshape(-1)):
-        idx = sample_indices(trace, int(pid), int(step))
-        if idx is None or idx.size == 0:
-            continue
-        idx = np.unique(idx)
-        pts_list.append(np.asarray(points)[idx])
-        col_list.append(np.repeat(cols[k : k + 1], idx.size, axis=0))
-    if not pts_list:
-        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
-    return np.concatenate(pts_list).astype(np.float32), np.concatenate(col_list).astype(np.uint8)
-
-
-def decode_shape(
-    prior: ShapePriorLike, latent: dict[str, np.ndarray], *, resolution: int
-) -> tuple[np.ndarray, np.ndarray] | None:
-    """World-frame mesh of a stored latent, or None when its SDF has no zero crossing on the grid.
-
-    Args:
-        prior: the run's shape prior.
-        latent: `EMTrace.latent(pid, step)`.
-        resolution: meshing grid (the run's `EMConfig.mesh_resolution`).
-
-    Returns:
-        (V, 3) float32 vertices and (F, 3) int32 faces, or None.
-    """
-    from efem_viz.em.decoding import mesh_of_latent
-
-    mesh = mesh_of_latent(prior, latent, resolution=int(resolution))
-    if mesh is None or not len(getattr(mesh, "faces", ())):
-        return None
-    return np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32)
 
 
 def add_sample_cloud(

@@ -14,7 +14,13 @@ import numpy as np
 
 from efem_viz.em import config as em_config
 from efem_viz.serve.table import NO_ROW
-from efem_viz.viewer.state import DEFAULT_CONFIDENCE_CUT
+from efem_viz.viewer.state import (
+    COLOR_MODES,
+    DEFAULT_CONFIDENCE_CUT,
+    MASK_BAND_RANGE,
+    NO_PROPOSAL,
+    VIEW_MODES,
+)
 
 if TYPE_CHECKING:
     import plotly.graph_objects as go
@@ -32,22 +38,8 @@ if TYPE_CHECKING:
     )
     from viser._gui_handles import GuiProgressBarHandle  # not re-exported by viser 1.1
 
-NO_PROPOSAL: str = "(none)"
 PRESETS: tuple[str, ...] = ("fast", *(p for p in em_config.PRESETS if p != "fast"))
 DISPLAYS: tuple[str, ...] = ("points", "mesh")
-MASK_BAND_RANGE = (0.01, 0.2)
-"""Range of the mask-band slider (τ_out, canonical units)."""
-VIEW_MODES = {
-    "Result (final instances)": "result",
-    "EM step (that step only)": "step",
-}
-"""Options of the Show dropdown → `ViewerState.view_mode`."""
-COLOR_MODES = {
-    "scene colours": "rgb",
-    "instances": "instances",
-    "TP / FP / FN": "gt_match",
-    "proposal weights": "weights",
-}
 
 
 @dataclass
@@ -104,7 +96,7 @@ class Panels:
     gui_result_info: GuiMarkdownHandle
     """Instances kept by the threshold, with counts per category, and how many the threshold hides."""
     gui_instance: GuiDropdownHandle[str]
-    """The instance table's row chooser: options "<id>: <category> · <confidence>" (`legend.instance_options`),
+    """The instance table's row chooser: options "<id>: <category> · <confidence>" (`texts.instance_options`),
     or `NO_ROW`."""
     gui_instance_visible: GuiCheckboxHandle
     """Shows / hides the chosen instance (a view: metrics and exports follow the threshold)."""

@@ -29,6 +29,23 @@ DEFAULT_CONFIDENCE_CUT = 0.05
 near-zero-confidence instances that cover the view and say nothing). The Results tab says how many it hides; the
 slider at 0 shows them all."""
 
+NO_PROPOSAL: str = "(none)"
+"""The Inspect dropdown's "no proposal" option."""
+MASK_BAND_RANGE = (0.01, 0.2)
+"""Range of the mask-band slider (τ_out, canonical units)."""
+VIEW_MODES = {
+    "Result (final instances)": "result",
+    "EM step (that step only)": "step",
+}
+"""Options of the Show dropdown → `ViewerState.view_mode`."""
+COLOR_MODES = {
+    "scene colours": "rgb",
+    "instances": "instances",
+    "TP / FP / FN": "gt_match",
+    "proposal weights": "weights",
+}
+"""Options of the Colour dropdown → `ViewerState.color_mode`."""
+
 
 def shown_mask(instances: Instances, threshold: float,
                hidden: set[int] | frozenset[int] = frozenset()) -> np.ndarray:

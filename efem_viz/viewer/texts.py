@@ -12,8 +12,9 @@ import numpy as np
 
 from efem_viz.data.io import holds_predictions
 from efem_viz.eval.comparison import GTMetrics
-from efem_viz.viewer.panels import NO_PROPOSAL
+from efem_viz.serve.table import row_option
 from efem_viz.viewer.scenes import SceneEntry
+from efem_viz.viewer.state import NO_PROPOSAL
 from efem_viz.viewer.trace_queries import Death, top_n
 from efem_viz.terminal import count
 
@@ -91,6 +92,14 @@ def proposal_options(ids: np.ndarray, scores: np.ndarray, *, selected: int | Non
     if selected is not None and int(selected) not in score_of:
         options.append(f"#{int(selected)}  (dead)")
     return tuple(options)
+
+
+def instance_options(instances: Instances) -> tuple[str, ...]:
+    """The instance table's dropdown: one option "<id>: <category> · <confidence>" per instance, most confident
+    first (the table's order); `efem_viz.serve.table.option_id` reads the proposal id back."""
+    conf = np.asarray(instances.confidence, float).reshape(-1)
+    order = np.argsort(-conf, kind="stable")
+    return tuple(row_option(int(instances.ids[k]), f"{instances.category[k]} · {conf[k]:.2f}") for k in order)
 
 
 def parse_pid(option: str) -> int | None:

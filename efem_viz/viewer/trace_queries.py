@@ -1,6 +1,7 @@
 """What the viewer asks of a recorded run: the proposals of a step and their scores, a proposal's samples and
-centre, the deaths, the timeline's phase marks and the top-N proposals to draw. Plain NumPy over an
-`efem_viz.em.EMTrace`.
+centre, the deaths, the timeline's phase marks and the top-N proposals to draw, the drawn proposals' samples
+(`proposal_samples`) and a stored latent's decoded shape (`decode_shape`). Plain NumPy over an
+`efem_viz.em.EMTrace` (no viser, no drawing module: the headless sessions use them, and so do the scene nodes).
 
 These queries belong to the trace (`EMTrace` / `TraceReplay` methods, issue 23 item 2); they wait here, in one
 place, until efem_viz/em/trace.py can take them.
@@ -13,8 +14,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from efem_viz.colors import instance_colors
+
 if TYPE_CHECKING:
     from efem_viz.em.trace import EMTrace
+    from efem_viz.prior.config import ShapePriorLike
 
 
 @dataclass(frozen=True)
@@ -137,3 +141,52 @@ def proposal_center(trace: EMTrace, pid: int, step: int) -> np.ndarray:
     if r is None:
         raise ValueError(f"proposal {pid} has no record at step {s}")
     return np.asarray(trace.row_center[r], np.float32).reshape(3)
+
+
+def proposal_samples(
+    trace: EMTrace, step: int, drawn: np.ndarray, points: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The points sampled by some proposals at one step, each coloured by its proposal id.
+
+    Args:
+        trace: the run's `EMTrace`.
+        step: EM step.
+        drawn: (D,) int proposal ids to draw.
+        points: (N, 3) float32 scene points, world frame.
+
+    Returns:
+        (S, 3) float32 points and (S, 3) uint8 colours (S = 0 when none of them sampled anything).
+    """
+    cols = instance_colors(drawn)
+    pts_list, col_list = [], []
+    for k, pid in enumerate(np.asarray(drawn).reshape(-1)):
+        idx = sample_indices(trace, int(pid), int(step))
+        if idx is None or idx.size == 0:
+            continue
+        idx = np.unique(idx)
+        pts_list.append(np.asarray(points)[idx])
+        col_list.append(np.repeat(cols[k : k + 1], idx.size, axis=0))
+    if not pts_list:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
+    return np.concatenate(pts_list).astype(np.float32), np.concatenate(col_list).astype(np.uint8)
+
+
+def decode_shape(
+    prior: ShapePriorLike, latent: dict[str, np.ndarray], *, resolution: int
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """World-frame mesh of a stored latent, or None when its SDF has no zero crossing on the grid.
+
+    Args:
+        prior: the run's shape prior.
+        latent: `EMTrace.latent(pid, step)`.
+        resolution: meshing grid (the run's `EMConfig.mesh_resolution`).
+
+    Returns:
+        (V, 3) float32 vertices and (F, 3) int32 faces, or None.
+    """
+    from efem_viz.em.decoding import mesh_of_latent
+
+    mesh = mesh_of_latent(prior, latent, resolution=int(resolution))
+    if mesh is None or not len(getattr(mesh, "faces", ())):
+        return None
+    return np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32)

@@ -46,8 +46,8 @@ def annotator(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Any]:
     app = AnnotatorApp(scan, out_dir=tmp_path / "out", port=0, autosave_delay=0,
                        display_points=900 if request.param == "reduced" else 1_000_000)
     assert app.view.reduced == (request.param == "reduced")
-    app.new_instance(category="mug")
-    app.settings.radius = 0.03
+    app.session.new_instance(category="mug")
+    app.session.settings.radius = 0.03
     app.kind = request.param
     yield app
     app.close()
@@ -57,7 +57,7 @@ def annotator(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Any]:
 def test_ctrl_drag_on_mesh_paints_vertices(annotator: Any, page: Any) -> None:
     """A ctrl-drag paints: the label store changes (one undoable stroke) and so does the canvas."""
     app = annotator
-    iid = app.settings.active_id
+    iid = app.session.settings.active_id
     page.goto(app.url)
     page.get_by_text("Tools", exact=True).first.wait_for(timeout=30_000)
     wait_until(lambda: len(app.server.get_clients()) > 0, 30, "client connection")
@@ -69,17 +69,17 @@ def test_ctrl_drag_on_mesh_paints_vertices(annotator: Any, page: Any) -> None:
     for attempt in range(3):  # the first gesture can land while the scene is still streaming in
         ctrl_drag(page, (cx - 40, cy), (cx + 44, cy + 24))
         try:
-            wait_until(lambda: int((app.store.labels == iid).sum()) > 0, 10, "painted vertices")
+            wait_until(lambda: int((app.session.store.labels == iid).sum()) > 0, 10, "painted vertices")
         except AssertionError:
             continue
         app.wait_idle()
-        painted = int((app.store.labels == iid).sum())
+        painted = int((app.session.store.labels == iid).sum())
         break
     assert painted > 10, "a ctrl-drag on the mesh did not paint any vertex"
     if app.view.reduced:  # the stroke labels the vertices that are not drawn too
-        assert np.isin(np.flatnonzero(app.store.labels == iid), app.view.display, invert=True).sum() > 5
+        assert np.isin(np.flatnonzero(app.session.store.labels == iid), app.view.display, invert=True).sum() > 5
     # the whole stroke is one undoable journal group
-    groups = {r.header.get("group") for r in app.store.journal.records if r.kind == "do" and r.arrays["idx"].size}
+    groups = {r.header.get("group") for r in app.session.store.journal.records if r.kind == "do" and r.arrays["idx"].size}
     assert len(groups) == 1  # one stroke landed (earlier attempts, if any, painted nothing)
     after = settle_canvas(page)
     changed = int(changed_mask(after, before).sum())
@@ -87,15 +87,15 @@ def test_ctrl_drag_on_mesh_paints_vertices(annotator: Any, page: Any) -> None:
     if SAVE:
         DOCS_IMG.mkdir(parents=True, exist_ok=True)
         page.screenshot(path=str(DOCS_IMG / f"annotator_brush_{app.kind}.png"))
-    app.undo()
-    assert int((app.store.labels == iid).sum()) == 0
+    app.session.undo()
+    assert int((app.session.store.labels == iid).sum()) == 0
 
 
 
 def _strokes(app: Any) -> list[tuple[str, str, np.ndarray]]:
     """(client, group, vertices) of each stroke in the journal, in order (adjacent edits of one group merged)."""
     out: list[tuple[str, str, np.ndarray]] = []
-    for r in app.store.journal.records:
+    for r in app.session.store.journal.records:
         if r.kind != "do" or not r.arrays["idx"].size:
             continue
         client, group = str(r.header.get("client")), str(r.header.get("group"))
@@ -153,15 +153,15 @@ def test_two_tabs_see_each_others_edits(annotator: Any, new_page: Callable[..., 
     B's, and the journal holds the two strokes in order under the two tabs' client ids.
     """
     app = annotator
-    iid = app.settings.active_id
+    iid = app.session.settings.active_id
     tab_a, tab_b = new_page(SMALL), new_page(SMALL)
     open_viser_pages([tab_a, tab_b], app.url)
     wait_until(lambda: len(app.server.get_clients()) >= 2, 30, "two connected tabs")
     b0 = settle_canvas(tab_b)
 
     # ---- tab A paints; tab B shows it
-    _stroke(tab_a, app, STROKE_A, painted=lambda: bool((app.store.labels == iid).any()))
-    by_a = app.store.labels == iid
+    _stroke(tab_a, app, STROKE_A, painted=lambda: bool((app.session.store.labels == iid).any()))
+    by_a = app.session.store.labels == iid
     strokes = _strokes(app)
     assert len(strokes) == 1, strokes
     client_a = strokes[0][0]
@@ -172,8 +172,8 @@ def test_two_tabs_see_each_others_edits(annotator: Any, new_page: Callable[..., 
 
     # ---- tab B paints elsewhere; tab A shows it; nothing of A's edit is lost
     a1 = settle_canvas(tab_a)
-    _stroke(tab_b, app, STROKE_B, painted=lambda: bool(((app.store.labels == iid) & ~by_a).any()))
-    labels = app.store.labels
+    _stroke(tab_b, app, STROKE_B, painted=lambda: bool(((app.session.store.labels == iid) & ~by_a).any()))
+    labels = app.session.store.labels
     assert (labels[by_a] == iid).all(), "tab B's stroke lost vertices painted by tab A"
     by_b = (labels == iid) & ~by_a
     assert by_b.sum() > 0
@@ -216,31 +216,31 @@ def test_lasso_by_ctrl_clicks_then_enter_paints_inside(annotator: Any, new_page:
     from annotator import selection as sel
 
     app = annotator
-    iid = app.settings.active_id
+    iid = app.session.settings.active_id
     page = new_page(SMALL)
     _open(app, page)
     page.keyboard.press("o")
-    wait_until(lambda: app.settings.tool == "lasso", 10, "the lasso tool (O)")
+    wait_until(lambda: app.session.settings.tool == "lasso", 10, "the lasso tool (O)")
     cx, cy, box = _centre(page)
     corners = [(cx - 40, cy - 35), (cx + 40, cy - 35), (cx + 40, cy + 35), (cx - 40, cy + 35)]
     for k, (x, y) in enumerate(corners):
         _ctrl_click(page, x, y)
-        wait_until(lambda k=k: len(app.lasso_outline) == k + 1, 10, f"lasso point {k + 1} on the server")
+        wait_until(lambda k=k: len(app.session.lasso_outline) == k + 1, 10, f"lasso point {k + 1} on the server")
     expect = [((x - box["x"]) / box["width"], (y - box["y"]) / box["height"]) for x, y in corners]
-    assert np.allclose(app.lasso_outline.points, expect, atol=0.01), (app.lasso_outline.points, expect)
-    camera, polygon = app.lasso_outline.polygon()
-    assert int((app.store.labels == iid).sum()) == 0, "clicks only draw the outline"
+    assert np.allclose(app.session.lasso_outline.points, expect, atol=0.01), (app.session.lasso_outline.points, expect)
+    camera, polygon = app.session.lasso_outline.polygon()
+    assert int((app.session.store.labels == iid).sum()) == 0, "clicks only draw the outline"
     page.keyboard.press("Enter")
     # the edit is done (labels, redraw, history) when its history line is there
     wait_until(lambda: app.view.stats.history[0].endswith("(lasso)"), 10, "the lasso's paint (Enter)")
-    inside = sel.lasso_select(app.geom, position=camera.position, wxyz=camera.wxyz, fov=camera.fov,
+    inside = sel.lasso_select(app.session.geom, position=camera.position, wxyz=camera.wxyz, fov=camera.fov,
                               aspect=camera.aspect, polygon=polygon, facing="front")
-    painted = np.flatnonzero(app.store.labels == iid)
+    painted = np.flatnonzero(app.session.store.labels == iid)
     assert len(painted) > 10 and np.array_equal(painted, np.sort(inside))
-    assert len(app.lasso_outline) == 0
+    assert len(app.session.lasso_outline) == 0
     assert page.get_by_text("that did not work").count() == 0
-    app.undo()
-    assert int((app.store.labels == iid).sum()) == 0
+    app.session.undo()
+    assert int((app.session.store.labels == iid).sum()) == 0
 
 
 def test_a_failing_tool_shows_its_error_in_the_page(tmp_path: Path, new_page: Callable[..., Any]) -> None:
@@ -261,7 +261,7 @@ def test_a_failing_tool_shows_its_error_in_the_page(tmp_path: Path, new_page: Ca
         page = new_page(SMALL)
         _open(app, page)
         page.keyboard.press("k")
-        wait_until(lambda: app.settings.tool == "broken", 10, "the broken tool (K)")
+        wait_until(lambda: app.session.settings.tool == "broken", 10, "the broken tool (K)")
         cx, cy, _ = _centre(page)
         _ctrl_click(page, cx, cy)
         page.get_by_text("TypeError: 'float' object is not iterable", exact=False).first.wait_for(timeout=15_000)
@@ -294,34 +294,34 @@ def keyed(browser: Any, tmp_path_factory: pytest.TempPathFactory) -> Iterator[tu
 def test_bracket_keys_resize_the_brush(keyed: tuple[Any, Any]) -> None:
     """] makes the brush larger, [ smaller: the radius the tools use changes, and the slider shows it."""
     app, page = keyed
-    r0 = app.settings.radius
+    r0 = app.session.settings.radius
     def slider_shows_radius() -> bool:
         # the key handler sets the radius, then the slider: wait for both, not for the first alone
-        return app.panels.gui_controls["radius"].value == pytest.approx(100 * app.settings.radius)
+        return app.panels.gui_controls["radius"].value == pytest.approx(100 * app.session.settings.radius)
 
     page.keyboard.press("]")
-    wait_until(lambda: app.settings.radius > r0 and slider_shows_radius(), 10, "a larger brush (]) on the slider")
+    wait_until(lambda: app.session.settings.radius > r0 and slider_shows_radius(), 10, "a larger brush (]) on the slider")
     page.keyboard.press("[")
     page.keyboard.press("[")
-    wait_until(lambda: app.settings.radius < r0 and slider_shows_radius(), 10,
+    wait_until(lambda: app.session.settings.radius < r0 and slider_shows_radius(), 10,
                "a smaller brush ([ [) on the slider")
 
 
 def test_tab_makes_the_next_instance_active(keyed: tuple[Any, Any]) -> None:
     """Tab makes the next instance active (wrapping around), Shift+Tab the previous one; the Active dropdown follows."""
     app, page = keyed
-    ids = [app.new_instance(category="mug") for _ in range(3)]
-    first = min(app.store.labelset.instances)
-    assert app.settings.active_id == ids[-1]
+    ids = [app.session.new_instance(category="mug") for _ in range(3)]
+    first = min(app.session.store.labelset.instances)
+    assert app.session.settings.active_id == ids[-1]
     page.keyboard.press("Tab")
-    wait_until(lambda: app.settings.active_id == first, 10, "the first instance active (Tab wraps)")
+    wait_until(lambda: app.session.settings.active_id == first, 10, "the first instance active (Tab wraps)")
     page.keyboard.press("Tab")
-    second = sorted(app.store.labelset.instances)[1]
+    second = sorted(app.session.store.labelset.instances)[1]
     # the key handler sets the active id, then the dropdown: wait for both (reading between the two was a race)
-    wait_until(lambda: app.settings.active_id == second and str(app.panels.gui_active.value).startswith(f"{second}:"), 10,
+    wait_until(lambda: app.session.settings.active_id == second and str(app.panels.gui_active.value).startswith(f"{second}:"), 10,
                "the next instance active (Tab), shown in the Active dropdown")
     page.keyboard.press("Shift+Tab")
-    wait_until(lambda: app.settings.active_id == first, 10, "the previous instance active (Shift+Tab)")
+    wait_until(lambda: app.session.settings.active_id == first, 10, "the previous instance active (Shift+Tab)")
 
 
 def test_question_mark_toggles_the_cheat_sheet(keyed: tuple[Any, Any]) -> None:
@@ -360,14 +360,14 @@ def test_tool_hotkeys_leave_the_camera_alone(keyed: tuple[Any, Any]) -> None:
     handle, pos0, look0 = _camera(app)
     seen: list[tuple[np.ndarray, np.ndarray]] = []
     handle.camera.on_update(lambda cam: seen.append((np.array(cam.position), np.array(cam.look_at))))
-    diag = float(np.linalg.norm(np.ptp(app.scene.points, axis=0)))
-    order = [t for t in DEFAULT_TOOLS if t.name != app.settings.tool] + [
-        t for t in DEFAULT_TOOLS if t.name == app.settings.tool]
+    diag = float(np.linalg.norm(np.ptp(app.session.scene.points, axis=0)))
+    order = [t for t in DEFAULT_TOOLS if t.name != app.session.settings.tool] + [
+        t for t in DEFAULT_TOOLS if t.name == app.session.settings.tool]
     for t in order:
         page.wait_for_timeout(600)  # idle first: the first frame after a pause spans it
         page.keyboard.down(t.hotkey.lower())
         try:
-            wait_until(lambda t=t: app.settings.tool == t.name, 10, f"the {t.name} tool ({t.hotkey})")
+            wait_until(lambda t=t: app.session.settings.tool == t.name, 10, f"the {t.name} tool ({t.hotkey})")
             page.wait_for_timeout(400)  # held: frames are drawn meanwhile
         finally:
             page.keyboard.up(t.hotkey.lower())
@@ -384,7 +384,7 @@ def test_camera_thrown_off_the_scan_comes_back(keyed: tuple[Any, Any]) -> None:
 
     app, page = keyed
     handle, _, _ = _camera(app)
-    lo, hi = app.scene.points.min(axis=0), app.scene.points.max(axis=0)
+    lo, hi = app.session.scene.points.min(axis=0), app.session.scene.points.max(axis=0)
     page.wait_for_timeout(1000)
     page.keyboard.down("w")
     try:
@@ -404,12 +404,12 @@ def test_a_click_off_the_scan_says_so(keyed: tuple[Any, Any]) -> None:
     do nothing, silently)."""
     app, page = keyed
     page.keyboard.press("c")
-    wait_until(lambda: app.settings.tool == "segment", 10, "the segment tool (C)")
+    wait_until(lambda: app.session.settings.tool == "segment", 10, "the segment tool (C)")
     app.reset_view()
     _, _, box = _centre(page)
     _ctrl_click(page, box["x"] + 0.12 * box["width"], box["y"] + 0.88 * box["height"])
     page.get_by_text("Missed the scan", exact=True).first.wait_for(timeout=15_000)
-    assert app.pending_segment is None
+    assert app.session.pending_segment is None
 
 
 # ============================================================================ brush cursor and labels-only view (item 13)
@@ -419,43 +419,43 @@ def test_brush_cursor_and_labels_only_view(annotator: Any, new_page: Callable[..
     the ring larger; the eraser keeps it, region grow hides it. A mouse click on *Labels only* dims every unlabelled
     vertex on the server (the painted ones keep their colour) and the canvas changes; a second click restores."""
     app = annotator
-    iid = app.settings.active_id
+    iid = app.session.settings.active_id
     page = new_page(SMALL)
     _open(app, page)
-    assert app.cursor is None
-    _stroke(page, app, STROKE_A, painted=lambda: bool((app.store.labels == iid).any()))
-    wait_until(lambda: app.cursor is not None and app.view.cursor_handle is not None, 10, "the brush cursor drawn")
-    cur = app.cursor
-    assert cur.visible and app.view.cursor_handle.visible and cur.radius == pytest.approx(app.settings.radius)
-    painted = np.flatnonzero(app.store.labels == iid)
-    gap = np.min(np.linalg.norm(app.scene.points[painted] - cur.position, axis=1))
-    assert gap <= app.settings.radius, f"the cursor is {gap:.3f} m from the painted vertices"
+    assert app.session.cursor is None
+    _stroke(page, app, STROKE_A, painted=lambda: bool((app.session.store.labels == iid).any()))
+    wait_until(lambda: app.session.cursor is not None and app.view.cursor_handle is not None, 10, "the brush cursor drawn")
+    cur = app.session.cursor
+    assert cur.visible and app.view.cursor_handle.visible and cur.radius == pytest.approx(app.session.settings.radius)
+    painted = np.flatnonzero(app.session.store.labels == iid)
+    gap = np.min(np.linalg.norm(app.session.scene.points[painted] - cur.position, axis=1))
+    assert gap <= app.session.settings.radius, f"the cursor is {gap:.3f} m from the painted vertices"
     r0 = cur.radius
     page.keyboard.press("]")
-    wait_until(lambda: app.cursor.radius > r0, 10, "a larger ring (])")
+    wait_until(lambda: app.session.cursor.radius > r0, 10, "a larger ring (])")
     seg = np.asarray(app.view.cursor_handle.points, np.float64)
     ring = np.linalg.norm(seg[:, 0] - seg[:, 0].mean(axis=0), axis=1).mean()
-    assert ring == pytest.approx(app.settings.radius, rel=1e-3)
+    assert ring == pytest.approx(app.session.settings.radius, rel=1e-3)
     page.keyboard.press("x")
-    wait_until(lambda: app.settings.tool == "erase", 10, "the erase tool (X)")
-    assert app.cursor.visible
+    wait_until(lambda: app.session.settings.tool == "erase", 10, "the erase tool (X)")
+    assert app.session.cursor.visible
     page.keyboard.press("g")
-    wait_until(lambda: app.settings.tool == "grow", 10, "the grow tool (G)")
+    wait_until(lambda: app.session.settings.tool == "grow", 10, "the grow tool (G)")
     wait_until(lambda: not app.view.cursor_handle.visible, 10, "the ring hidden for region grow")
     page.keyboard.press("b")
-    wait_until(lambda: app.settings.tool == "brush" and app.view.cursor_handle.visible, 10, "the ring back (B)")
+    wait_until(lambda: app.session.settings.tool == "brush" and app.view.cursor_handle.visible, 10, "the ring back (B)")
 
     def drawn() -> np.ndarray:
-        out = np.zeros((app.n, 3), np.uint8)
+        out = np.zeros((app.session.n, 3), np.uint8)
         for c, h in enumerate(app.view.chunk_handles):
             out[app.view.chunks.members(c)] = np.asarray(h.colors)
         return out
 
     before_cols, before_img = drawn(), settle_canvas(page)
-    labels = app.store.labels.copy()
+    labels = app.session.store.labels.copy()
     box = page.get_by_role("checkbox", name="Labels only")
     box.click()
-    wait_until(lambda: app.settings.labels_only, 10, "the labels-only view on (click)")
+    wait_until(lambda: app.session.settings.labels_only, 10, "the labels-only view on (click)")
     wait_until(lambda: not np.array_equal(drawn()[labels == 0], before_cols[labels == 0]), 10, "dimmed vertices")
     on = drawn()
     rest = on[labels == 0]
@@ -469,6 +469,6 @@ def test_brush_cursor_and_labels_only_view(annotator: Any, new_page: Callable[..
         DOCS_IMG.mkdir(parents=True, exist_ok=True)
         page.screenshot(path=str(DOCS_IMG / "annotator_labels_only.png"))
     box.click()
-    wait_until(lambda: not app.settings.labels_only, 10, "the labels-only view off (click)")
+    wait_until(lambda: not app.session.settings.labels_only, 10, "the labels-only view off (click)")
     wait_until(lambda: np.array_equal(drawn(), before_cols), 10, "the scan's colours back")
-    assert np.array_equal(app.store.labels, labels)
+    assert np.array_equal(app.session.store.labels, labels)

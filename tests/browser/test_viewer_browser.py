@@ -278,7 +278,7 @@ def test_instance_table_cut_visibility_and_fly_to(viewer: Any, page: Any) -> Non
     flies this browser's camera to it, *Visible* off hides that instance on the server, on shows it again, and
     Fly to flies to the chosen row."""
     from efem_viz.serve.camera import fly_to_view
-    from efem_viz.viewer.legend import instance_options
+    from efem_viz.viewer.texts import instance_options
     from efem_viz.viewer.state import DEFAULT_CONFIDENCE_CUT
 
     _open(page, viewer)

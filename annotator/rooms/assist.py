@@ -1,0 +1,213 @@
+"""The EFEM assistance room: pre-labels from an EFEM result and their review, and click-to-segment with the
+shape prior (its background thread, preview, accept, discard)."""
+
+from __future__ import annotations
+
+import threading
+import time
+import uuid
+from typing import TYPE_CHECKING, Any, Literal
+
+import numpy as np
+
+from annotator.io import LabelData, LabelIOError, load_labels, resolve_inside
+from annotator.labels import Delta, prelabel_note, unreviewed_prelabels
+from efem_viz.data.io import RESULT_SUFFIX
+
+if TYPE_CHECKING:
+    from annotator.rooms.context import SessionHooks, Toolbox
+    from annotator.rooms.scan import ScanRoom
+    from annotator.rooms.instances import InstanceRoom
+    from annotator.rooms.paint import PaintRoom
+
+
+class AssistRoom:
+    """EFEM's help: unreviewed pre-label instances, their review, and the click-to-segment run and preview."""
+
+    def __init__(self, scan: ScanRoom, toolbox: Toolbox, hooks: SessionHooks, instances: InstanceRoom,
+                 painting: PaintRoom) -> None:
+        self.scan, self.toolbox, self.hooks = scan, toolbox, hooks
+        self.instances, self.painting = instances, painting
+        self.preview: np.ndarray | None = None
+        """(N,) bool mask drawn highlighted (click-to-segment preview), or None."""
+        self.pending_segment: np.ndarray | None = None
+        """(K,) int32 vertices of the previewed segment, or None."""
+        self.prelabel_cursor: int | None = None
+        """The pre-label Next / Previous went to last (None: not used yet)."""
+        self._segment_lock = threading.Lock()
+        self._segment_cancel: threading.Event | None = None
+
+    def import_efem(self, path: str) -> list[int]:
+        """Import an EFEM result as unreviewed pre-label instances on unlabelled vertices; returns their ids."""
+        p = resolve_inside(path, self.scan.roots, what="EFEM result")
+        data = load_labels(p, self.scan.n)
+        if not p.name.endswith(RESULT_SUFFIX):
+            raise LabelIOError(f"{p.name} is not an EFEM result (*{RESULT_SUFFIX})")
+        return self.add_prelabels(data, source=p.name)
+
+    def add_prelabels(self, data: LabelData, *, source: str) -> list[int]:
+        """Add proposals (labels + rows) as new unreviewed instances, painted only where nothing is labelled."""
+        new_ids: list[int] = []
+        group = uuid.uuid4().hex[:12]
+        conf = data.confidence or {}
+        order = sorted((r for r in data.instances if (data.labels == r.id).any()),
+                       key=lambda r: -conf.get(r.id, 0.0))
+        for row in order:
+            note = prelabel_note(source, conf.get(row.id))
+            d = self.scan.store.do(lambda ls, row=row, note=note: ls.create_instance(category=row.category,
+                                                                                name=f"{row.category} (EFEM)"),
+                              group=group)
+            assert d is not None
+            iid = int(next(iter(d.table_after)))
+            self.scan.store.do(lambda ls, iid=iid, note=note: ls.update_instance(iid, note=note), group=group)
+            idx = np.flatnonzero(data.labels == row.id)
+            self.scan.store.do(lambda ls, iid=iid, idx=idx: ls.paint(idx, iid, overwrite=False), group=group)
+            new_ids.append(iid)
+        self.hooks.on_change()
+        return new_ids
+
+    def review_prelabel(self, instance_id: int, action: Literal["accept", "reject", "merge"], *,
+                        group: str = "") -> None:
+        """Accept (keep as a real instance), reject (delete) or merge (into the active instance) a pre-label.
+
+        Args:
+            instance_id: the pre-label.
+            action: what to do with it.
+            group: undo group (reviews of one group undo together).
+        """
+        info = self.scan.store.labelset.info(instance_id)
+        if action == "accept":
+            note, name = info.note.replace("unreviewed", "accepted"), info.name.replace(" (EFEM)", "")
+            self.scan.store.do(lambda ls: ls.update_instance(instance_id, note=note, name=name), group=group)
+        elif action == "reject":
+            self.scan.store.do(lambda ls: ls.delete_instance(instance_id), group=group)
+        elif action == "merge":
+            target = self.instances.require_active()
+            if target == instance_id:
+                raise ValueError("choose another active instance to merge this pre-label into")
+            self.scan.store.do(lambda ls: ls.merge([instance_id], target), group=group)
+        else:
+            raise ValueError(f"unknown review action {action!r}")
+        self.hooks.on_change()
+
+    def prelabel_cut(self, default: float = 0.5) -> float:
+        """The pre-label cut that suits the unreviewed pre-labels: `default`, lowered to the best one's confidence
+        when every one is below it (issue 37: a real frame's pre-labels all under 0.5 made "Accept all ≥ cut"
+        accept nothing)."""
+        table = self.scan.store.labelset.instances
+        conf = [float(table[k].confidence) for k in unreviewed_prelabels(table)]
+        if not conf:
+            return float(default)
+        return float(min(default, np.floor(max(conf) * 100.0) / 100.0))
+
+    def review_prelabels(self, cut: float, action: Literal["accept", "reject"]) -> list[int]:
+        """Bulk review: accept every unreviewed pre-label with confidence ≥ `cut`, or reject every one below it;
+        one undo step. Returns the instance ids reviewed."""
+        if action not in ("accept", "reject"):
+            raise ValueError(f"unknown bulk review action {action!r}")
+        table = self.scan.store.labelset.instances
+        ids = [k for k in unreviewed_prelabels(table)
+               if (table[k].confidence >= cut) == (action == "accept")]
+        group = uuid.uuid4().hex[:12]
+        for iid in ids:
+            self.review_prelabel(iid, action, group=group)
+        self.hooks.on_change()
+        self.hooks.notify("Pre-labels", f"{'accepted' if action == 'accept' else 'rejected'} {len(ids)} pre-label(s) "
+                    f"with confidence {'≥' if action == 'accept' else '<'} {cut:.2f} (one undo step)")
+        return ids
+
+    def segment_at(self, vertex: int, *, wait: bool = False) -> np.ndarray | None:
+        """Click-to-segment: run EFEM seeded near a vertex with the chosen prior (`settings.prior`) and preview the
+        mask.
+
+        The solver runs in a background thread (edits stay responsive); the mask is highlighted when it is ready
+        and becomes labels only through `accept_segment`.
+
+        Args:
+            vertex: the clicked vertex.
+            wait: run in the calling thread and return the mask (tests, scripts).
+
+        Returns:
+            With `wait`, (K,) int32 vertex indices of the proposed mask (also kept in `pending_segment`); else None.
+        """
+        prior_name = self.toolbox.settings.prior
+        with self._segment_lock:
+            if self._segment_cancel is not None:
+                raise ValueError("still segmenting the last click: wait for its preview, or Esc cancels it")
+            cancel = self._segment_cancel = threading.Event()
+        self.hooks.on_segment(0.0)
+        if wait:
+            return self._segment_job(int(vertex), prior_name, cancel)
+        self.hooks.notify("Segmenting", f"EFEM with prior {prior_name!r} around vertex {vertex}... (Esc cancels)")
+        threading.Thread(target=lambda: self.hooks.report(lambda: self._segment_job(int(vertex), prior_name, cancel)),
+                         name="annotator-segment", daemon=True).start()
+        return None
+
+    def _segment_job(self, vertex: int, prior_name: str, cancel: threading.Event) -> np.ndarray | None:
+        from annotator import assist
+        from efem_viz.em.solver import EMCancelled
+
+        def on_step(info: Any) -> None:
+            self.hooks.on_segment(round(100.0 * (info.step + 1) / max(info.num_steps, 1), 1))
+
+        t0 = time.perf_counter()
+        try:
+            mask_idx = assist.segment_at_point(self.scan.scene, vertex, prior_name=prior_name, on_step=on_step,
+                                               cancel=cancel)
+        except EMCancelled:
+            self.hooks.notify("Segmenting cancelled", f"the segmentation around vertex {vertex} was stopped")
+            return None
+        finally:
+            with self._segment_lock:
+                self._segment_cancel = None
+            self.hooks.on_segment(None)
+        self.set_preview(mask_idx)
+        if len(mask_idx) == 0:
+            self.hooks.notify("No object found", f"EFEM with prior {prior_name!r} accepted no proposal around vertex "
+                        f"{vertex} ({time.perf_counter() - t0:.1f} s): click nearer the object's centre, or "
+                        "label it with the brush / region grow")
+        else:
+            self.hooks.notify("Segment preview", f"{len(mask_idx):,} vertices in {time.perf_counter() - t0:.1f} s: "
+                        "Enter (Accept segment) paints it as a new instance, Esc discards it")
+        return mask_idx
+
+    @property
+    def segmenting(self) -> bool:
+        """Whether a click-to-segment run is in progress."""
+        with self._segment_lock:
+            return self._segment_cancel is not None
+
+    def set_preview(self, idx: np.ndarray | None) -> None:
+        """Highlight a proposed mask (None clears it) without touching the labels."""
+        old = self.preview
+        if idx is None or len(idx) == 0:
+            self.preview, self.pending_segment = None, None
+        else:
+            preview = np.zeros(self.scan.n, bool)
+            preview[idx] = True
+            self.preview = preview
+            self.pending_segment = np.asarray(idx, np.int32)
+        touched = np.zeros(0, np.int64)
+        for m in (old, self.preview):
+            if m is not None:
+                touched = np.union1d(touched, np.flatnonzero(m))
+        self.hooks.on_preview(touched)
+        self.hooks.on_segment(None)
+
+    def accept_segment(self) -> Delta | None:
+        """Paint the previewed segment as a new instance (category from the prior name)."""
+        if self.pending_segment is None:
+            raise ValueError("no segment preview to accept: Ctrl+click with the segment tool first")
+        idx = self.pending_segment
+        self.set_preview(None)
+        self.instances.new_instance(category=self.toolbox.settings.prior or "object")
+        return self.painting.paint(idx)
+
+    def discard_segment(self) -> None:
+        """Drop the segment preview; while a segmentation runs, cancel it (Esc)."""
+        with self._segment_lock:
+            running = self._segment_cancel
+        if running is not None:
+            running.set()
+            return
+        self.set_preview(None)

@@ -1,0 +1,68 @@
+"""The box and lasso room: select the vertices inside a screen rectangle or outline seen from a camera."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Sequence
+
+import numpy as np
+
+from annotator import selection as sel
+from annotator.labels import Delta
+from annotator.lasso import LassoCamera, LassoOutline
+
+if TYPE_CHECKING:
+    from annotator.rooms.context import SessionHooks, Toolbox
+    from annotator.rooms.scan import ScanRoom
+    from annotator.rooms.paint import PaintRoom
+
+
+class BoxLassoRoom:
+    """Box and lasso selection, painted with the active instance (erased with an erasing tool)."""
+
+    def __init__(self, scan: ScanRoom, toolbox: Toolbox, hooks: SessionHooks, painting: PaintRoom) -> None:
+        self.scan, self.toolbox, self.hooks, self.painting = scan, toolbox, hooks, painting
+        self.lasso_outline = LassoOutline()
+        """The lasso tool's outline (screen points of one view)."""
+
+    def box(self, *, position: np.ndarray, wxyz: np.ndarray, fov: float, aspect: float,
+            screen_min: tuple[float, float], screen_max: tuple[float, float], client: str = "") -> Delta | None:
+        """Box select with a camera, painted with the active instance (erased with the erase tool)."""
+        idx = sel.box_select(self.scan.geom, position=position, wxyz=wxyz, fov=fov, aspect=aspect,
+                             screen_min=screen_min, screen_max=screen_max,
+                             facing="front" if self.toolbox.settings.box_facing == "front" else "all")
+        with self.painting.edit_source("box select"):
+            return self.painting.paint(idx, erase=self.toolbox.tool.erase, client=client)
+
+    def lasso(self, *, position: np.ndarray, wxyz: np.ndarray, fov: float, aspect: float, polygon: np.ndarray,
+              client: str = "") -> Delta | None:
+        """Lasso select with a camera: vertices inside a screen outline, painted with the active instance (erased
+        with the erase tool); `Box select: front/all` decides whether hidden sides are taken too."""
+        idx = sel.lasso_select(self.scan.geom, position=position, wxyz=wxyz, fov=fov, aspect=aspect, polygon=polygon,
+                               facing="front" if self.toolbox.settings.box_facing == "front" else "all")
+        with self.painting.edit_source("lasso"):
+            return self.painting.paint(idx, erase=self.toolbox.tool.erase, client=client)
+
+    def add_lasso_point(self, screen_pos: Sequence[float] | Sequence[Sequence[float]], *,
+                        ray_origin: Sequence[float] | np.ndarray, ray_direction: Sequence[float] | np.ndarray,
+                        camera: LassoCamera) -> int:
+        """Lasso tool: add a clicked screen point to the outline (the first point's camera is used); returns the
+        number of outline points (see `annotator.lasso.LassoOutline.add`).
+
+        Raises:
+            ValueError: the outline is full, or `screen_pos` is not one finite (u, v).
+        """
+        n = self.lasso_outline.add(screen_pos, ray_origin=ray_origin, ray_direction=ray_direction, camera=camera)
+        self.hooks.on_lasso()
+        return n
+
+    def apply_lasso(self, *, client: str = "") -> Delta | None:
+        """Select inside the outline drawn with the lasso tool, then clear it."""
+        camera, polygon = self.lasso_outline.polygon()
+        self.clear_lasso()
+        return self.lasso(position=camera.position, wxyz=camera.wxyz, fov=camera.fov, aspect=camera.aspect,
+                          polygon=polygon, client=client)
+
+    def clear_lasso(self) -> None:
+        """Drop the lasso outline."""
+        self.lasso_outline.clear()
+        self.hooks.on_lasso()

@@ -1,0 +1,128 @@
+"""The instances room: the active tool and the instance table (create, change, delete, merge, undo, redo)."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any, Literal
+
+from annotator.labels import Delta
+from annotator.tools import RADIUS, all_controls
+
+if TYPE_CHECKING:
+    from annotator.rooms.context import SessionHooks, Toolbox
+    from annotator.rooms.scan import ScanRoom
+    from annotator.rooms.cursor import CursorRoom
+
+
+class InstanceRoom:
+    """Which tool and which instance are active, and every undoable change of the instance table."""
+
+    def __init__(self, scan: ScanRoom, toolbox: Toolbox, hooks: SessionHooks, cursor_room: CursorRoom) -> None:
+        self.scan, self.toolbox, self.hooks, self.cursor_room = scan, toolbox, hooks, cursor_room
+
+    def set_tool(self, tool: str) -> None:
+        """Make a tool of the table active."""
+        if tool not in self.toolbox.tool_of:
+            raise ValueError(f"unknown tool {tool!r}; tools: {tuple(self.toolbox.tool_of)}")
+        self.toolbox.settings.tool = tool
+        self.cursor_room.refresh_cursor()
+
+    def set_active(self, instance_id: int) -> None:
+        """Make an instance the one brushes paint."""
+        self.scan.store.labelset.info(instance_id)  # KeyError when unknown
+        self.toolbox.settings.active_id = int(instance_id)
+        self.hooks.on_change()
+
+    def cycle_active(self, step: int = 1) -> int:
+        """Make the next (`step` = 1) or previous (-1) instance by id active, wrapping around; returns its id.
+
+        Raises:
+            ValueError: there is no instance yet.
+        """
+        ids = sorted(self.scan.store.labelset.instances)
+        if not ids:
+            raise ValueError("no instances yet: N creates one")
+        current = self.toolbox.settings.active_id
+        if current in ids:
+            nxt = ids[(ids.index(current) + step) % len(ids)]
+        else:  # none active (or it was deleted): start at the first (last going back)
+            nxt = ids[0] if step > 0 else ids[-1]
+        self.set_active(nxt)
+        return nxt
+
+    def resize_brush(self, factor: float) -> float:
+        """Multiply the brush radius by `factor` (the `[` / `]` keys), by at least one step of its slider and within
+        the slider's range. Returns the radius in metres."""
+        control = next((c for c in all_controls(self.toolbox.tools) if c.setting == "radius"), RADIUS)
+        shown = self.toolbox.settings.radius * control.scale
+        target = shown * float(factor)
+        snapped = round(round(target / control.step) * control.step, 6)
+        if factor > 1.0:
+            snapped = max(snapped, shown + control.step)
+        elif factor < 1.0:
+            snapped = min(snapped, shown - control.step)
+        snapped = round(min(max(snapped, control.min), control.max), 6)
+        self.toolbox.settings.radius = snapped / control.scale
+        self.cursor_room.refresh_cursor()
+        return self.toolbox.settings.radius
+
+    def choose_category(self, category: str) -> None:
+        """The user typed a category: the active instance takes it, and so do new instances from now on."""
+        category = category.strip()
+        if not category:
+            return
+        self.toolbox.settings.category = category
+        self.update_active(category=category)
+
+    def new_instance(self, *, category: str = "object", name: str | None = None, client: str = "") -> int:
+        """Create an instance and make it active; returns its id."""
+        d = self.scan.store.do(lambda ls: ls.create_instance(category=category, name=name), client=client)
+        assert d is not None
+        iid = next(iter(d.table_after))
+        self.toolbox.settings.active_id = int(iid)
+        self.hooks.on_change()
+        return int(iid)
+
+    def update_active(self, **changes: Any) -> None:
+        """Change the active instance (nothing when none is active)."""
+        iid = self.toolbox.settings.active_id
+        if iid <= 0:
+            return
+        self.scan.store.do(lambda ls: ls.update_instance(iid, **changes))
+
+    def toggle_active(self, what: Literal["visible", "locked"]) -> None:
+        """Hide / show or lock / unlock the active instance."""
+        info = self.scan.store.labelset.info(self.toolbox.settings.active_id)
+        self.update_active(**{what: not getattr(info, what)})
+
+    def update_instance(self, instance_id: int, **changes: Any) -> None:
+        """Rename / recategorise / recolour / hide / lock an instance (undoable)."""
+        self.scan.store.do(lambda ls: ls.update_instance(instance_id, **changes))
+
+    def delete_instance(self, instance_id: int) -> None:
+        """Delete an instance (its vertices become unlabelled; undoable)."""
+        self.scan.store.do(lambda ls: ls.delete_instance(instance_id))
+
+    def merge(self, sources: list[int], into: int) -> None:
+        """Merge instances into one, which becomes active (undoable)."""
+        self.scan.store.do(lambda ls: ls.merge(sources, into))
+        self.toolbox.settings.active_id = int(into)
+        self.hooks.on_change()
+
+    def undo(self, *, client: str = "") -> list[Delta]:
+        """Undo the last edit (a whole stroke or group); returns the deltas undone."""
+        return self.scan.store.undo(client=client)
+
+    def redo(self, *, client: str = "") -> list[Delta]:
+        """Redo the last undone edit; returns the deltas redone."""
+        return self.scan.store.redo(client=client)
+
+    def require_active(self) -> int:
+        """The active instance id.
+
+        Raises:
+            ValueError: none is active.
+        """
+        iid = self.toolbox.settings.active_id
+        if iid <= 0 or iid not in self.scan.store.labelset.instances:
+            raise ValueError("no active instance: create one first (N)")
+        return iid
