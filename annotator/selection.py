@@ -457,18 +457,21 @@ def visible_among(points: np.ndarray, normals: np.ndarray, *, position: np.ndarr
 
 
 def _keep_facing(geom: ScanGeometry, keep: np.ndarray, facing: Facing, position: np.ndarray,
-                 wxyz: np.ndarray) -> np.ndarray:
-    """The candidates `keep` that the `facing` rule takes (see `Facing`)."""
+                 wxyz: np.ndarray, counts: dict[str, int] | None = None) -> np.ndarray:
+    """The candidates `keep` that the `facing` rule takes (see `Facing`); `counts["hidden"]` gets the number of
+    candidates facing the camera that "visible" left out as hidden."""
     if facing not in ("visible", "front", "all"):
         raise ValueError(f"facing must be 'visible', 'front' or 'all', got {facing!r}")
     if facing == "all" or not len(keep):
         return keep
-    seen = np.ones(len(keep), bool)
-    if facing == "visible":
-        seen = visible_among(geom.points[keep], geom.normals[keep], position=position, wxyz=wxyz,
-                             spacing=geom.spacing)
     view = geom.points[keep].astype(np.float64) - np.asarray(position, np.float64)
-    seen &= np.einsum("ij,ij->i", view, geom.normals[keep].astype(np.float64)) < 0
+    front = np.einsum("ij,ij->i", view, geom.normals[keep].astype(np.float64)) < 0
+    if facing == "front":
+        return keep[front]
+    seen = front & visible_among(geom.points[keep], geom.normals[keep], position=position, wxyz=wxyz,
+                                 spacing=geom.spacing)
+    if counts is not None:
+        counts["hidden"] = int(front.sum() - seen.sum())
     return keep[seen]
 
 
@@ -482,6 +485,7 @@ def box_select(
     screen_min: tuple[float, float],
     screen_max: tuple[float, float],
     facing: Facing = "visible",
+    counts: dict[str, int] | None = None,
 ) -> np.ndarray:
     """Vertices whose projection falls in a screen rectangle.
 
@@ -491,6 +495,8 @@ def box_select(
         screen_min, screen_max: rectangle corners in [0, 1] screen coordinates (OpenCV: (0,0) top-left).
         facing: which vertices inside it are taken (`Facing`): "visible" (default) what the camera sees,
             "front" everything facing the camera, hidden or not, "all" through the object.
+        counts: if given, "hidden" is set to the number of vertices inside that face the camera but are hidden
+            behind other surface (left out by "visible").
 
     Returns:
         (K,) int32 sorted vertex indices.
@@ -499,7 +505,7 @@ def box_select(
     u0, v0 = min(screen_min[0], screen_max[0]), min(screen_min[1], screen_max[1])
     u1, v1 = max(screen_min[0], screen_max[0]), max(screen_min[1], screen_max[1])
     inside = (z > 1e-6) & (uv[:, 0] >= u0) & (uv[:, 0] <= u1) & (uv[:, 1] >= v0) & (uv[:, 1] <= v1)
-    keep = _keep_facing(geom, np.flatnonzero(inside), facing, position, wxyz)
+    keep = _keep_facing(geom, np.flatnonzero(inside), facing, position, wxyz, counts)
     return np.sort(keep).astype(np.int32)
 
 
@@ -535,6 +541,7 @@ def lasso_select(
     aspect: float,
     polygon: np.ndarray,
     facing: Facing = "visible",
+    counts: dict[str, int] | None = None,
 ) -> np.ndarray:
     """Vertices whose projection falls inside a screen polygon (lasso), like `box_select` with any outline.
 
@@ -543,6 +550,7 @@ def lasso_select(
         position, wxyz, fov, aspect: the client camera (see `project`).
         polygon: (P, 2) outline in [0, 1] screen coordinates (OpenCV: (0,0) top-left), P >= 3.
         facing: which vertices inside it are taken (`Facing`, as `box_select`).
+        counts: as `box_select`.
 
     Returns:
         (K,) int32 sorted vertex indices.
@@ -553,5 +561,5 @@ def lasso_select(
     uv, z = project(geom.points, position=position, wxyz=wxyz, fov=fov, aspect=aspect)
     lo, hi = poly.min(axis=0), poly.max(axis=0)
     cand = np.flatnonzero((z > 1e-6) & np.all((uv >= lo) & (uv <= hi), axis=1))
-    keep = _keep_facing(geom, cand[points_in_polygon(uv[cand], poly)], facing, position, wxyz)
+    keep = _keep_facing(geom, cand[points_in_polygon(uv[cand], poly)], facing, position, wxyz, counts)
     return np.sort(keep).astype(np.int32)

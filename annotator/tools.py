@@ -64,8 +64,9 @@ class ToolSettings:
     """Paint/grow/box change only unlabelled vertices."""
     labels_only: bool = False
     """The labels-only view: unlabelled vertices drawn in a faint grey (`annotator.render.compose_colors`)."""
-    box_facing: str = "front"
-    """Box select: "front" (vertices facing the camera) or "all"."""
+    box_facing: str = "visible"
+    """Box and lasso select: "visible" (what the camera sees), "front" (everything facing the camera, hidden or
+    not) or "all" (through the object)."""
     active_id: int = 0
     """Active instance id (0 = none yet)."""
     prior: str = DEFAULT_PRIOR
@@ -282,8 +283,9 @@ GROW_DISTANCE = Control("grow_distance", "Grow: max distance (cm)", "slider", 15
 MIN_HEIGHT = Control("grow_min_height", "Grow: min height (cm)", "slider", 0.0, min=0.0, max=10.0, step=0.1,
                      scale=100.0, hint="keep fills above the table (z = 0 in imported tabletop scans); 0 = off")
 ONLY_UNLABELLED = Control("only_unlabelled", "Only unlabelled vertices", "checkbox", False)
-BOX_FACING = Control("box_facing", "Box select", "dropdown", "front", options=("front", "all"),
-                     hint="Shift+drag a box; front = vertices facing the camera")
+BOX_FACING = Control("box_facing", "Box / lasso take", "dropdown", "visible", options=("visible", "front", "all"),
+                     hint="visible = what the camera sees; front = all surface facing it, hidden or not; "
+                          "all = through the object")
 GESTURE_CONTROLS: tuple[Control, ...] = (ONLY_UNLABELLED, BOX_FACING)
 """Shown whatever the tool: box select (Shift+drag) works with every tool, and any tool's paint may be limited to
 unlabelled vertices."""

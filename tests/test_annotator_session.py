@@ -263,3 +263,73 @@ def test_tool_settings_by_name() -> None:
     s.assign("lift_radius", 0.2)
     s.assign("grow_distance", 0.3)
     assert s.extra["lift_radius"] == 0.2 and s.grow_distance == 0.3 and s.value("grow_distance") == 0.3
+
+
+def test_lasso_takes_only_the_visible_surface_and_says_what_it_left_out(tmp_path: Path) -> None:
+    """Issue 37 item 5 through the session: a lasso around a box standing on a table, seen from the side and above,
+    takes the box's visible faces and the table around it, not the table hidden behind the box; the history says
+    how many hidden vertices were left out. "front" (the old rule) still takes them when asked for."""
+    import trimesh
+
+    from efem_viz.geometry.transforms import rotation_to_quat_wxyz
+
+    table = trimesh.creation.box(extents=(0.6, 0.6, 0.02))
+    table.apply_translation((0, 0, -0.01))
+    box = trimesh.creation.box(extents=(0.1, 0.1, 0.15))
+    box.apply_translation((0, 0, 0.075))
+    mesh = trimesh.util.concatenate([table.subdivide_to_size(0.004), box.subdivide_to_size(0.004)])
+    path = tmp_path / "scans" / "box_on_table.ply"
+    path.parent.mkdir(parents=True)
+    mesh.export(path)
+    s = AnnotatorSession(path, out_dir=tmp_path / "out", autosave_delay=0)
+    try:
+        position = np.array([0.0, -0.45, 0.35])
+        fwd = (np.array([0.0, 0.0, 0.07]) - position) / np.linalg.norm(np.array([0.0, 0.0, 0.07]) - position)
+        right = np.array([1.0, 0.0, 0.0])
+        cam = dict(position=position, wxyz=rotation_to_quat_wxyz(np.stack([right, np.cross(fwd, right), fwd], 1)),
+                   fov=float(np.deg2rad(50)), aspect=1.0)
+        pts = s.scene.points
+        in_box = (np.abs(pts[:, 0]) <= 0.0501) & (np.abs(pts[:, 1]) <= 0.0501) & (pts[:, 2] >= -1e-6)
+        uv, _ = sel_project(pts[in_box], cam)
+        lo, hi = uv.min(axis=0) - 0.02, uv.max(axis=0) + 0.02
+        polygon = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]])
+        # the table top behind the box: rays from the camera to it pass through the box
+        top = (pts[:, 2] > -1e-6) & (pts[:, 2] < 1e-6) & ~in_box
+        hidden = top & _ray_hits_box(position, pts)
+        assert hidden.sum() > 100
+        s.new_instance(category="box")
+        d = s.lasso(polygon=polygon, **cam)
+        assert d is not None
+        taken = np.flatnonzero(s.store.labels == s.settings.active_id)
+        assert hidden[taken].sum() <= 0.05 * hidden.sum()
+        seen_faces = in_box & ((np.abs(pts[:, 1] + 0.05) < 1e-6) | (np.abs(pts[:, 2] - 0.15) < 1e-6))
+        assert np.isin(np.flatnonzero(seen_faces), taken).mean() > 0.95  # the front and top faces
+        label = s.store.labelset.undo_stack[-1].label
+        assert "hidden left out" in label and "(lasso" in label
+        s.undo()
+        s.settings.box_facing = "front"
+        s.lasso(polygon=polygon, **cam)
+        taken = np.flatnonzero(s.store.labels == s.settings.active_id)
+        assert hidden[taken].sum() > 0.5 * hidden.sum(), "the old rule, on request, takes the hidden table"
+    finally:
+        s.close()
+
+
+def sel_project(points: np.ndarray, cam: dict) -> tuple[np.ndarray, np.ndarray]:
+    from annotator.selection import project
+
+    return project(points, position=cam["position"], wxyz=cam["wxyz"], fov=cam["fov"], aspect=cam["aspect"])
+
+
+def _ray_hits_box(origin: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Whether the segment origin -> point passes through the box [-5, 5] x [-5, 5] x [0.5, 15] cm (slab test,
+    stopping short of the point so that a point on the box itself is not hidden by its own face)."""
+    lo = np.array([-0.05, -0.05, 0.005])
+    hi = np.array([0.05, 0.05, 0.15])
+    d = pts.astype(np.float64) - origin
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t0 = (lo - origin) / d
+        t1 = (hi - origin) / d
+    tmin = np.nanmax(np.minimum(t0, t1), axis=1)
+    tmax = np.nanmin(np.maximum(t0, t1), axis=1)
+    return (tmax >= tmin) & (tmin < 0.99) & (tmax > 0)

@@ -27,20 +27,25 @@ class BoxLassoRoom:
     def box(self, *, position: np.ndarray, wxyz: np.ndarray, fov: float, aspect: float,
             screen_min: tuple[float, float], screen_max: tuple[float, float], client: str = "") -> Delta | None:
         """Box select with a camera, painted with the active instance (erased with the erase tool)."""
+        counts: dict[str, int] = {}
         idx = sel.box_select(self.scan.geom, position=position, wxyz=wxyz, fov=fov, aspect=aspect,
-                             screen_min=screen_min, screen_max=screen_max,
-                             facing="front" if self.toolbox.settings.box_facing == "front" else "all")
-        with self.painting.edit_source("box select"):
+                             screen_min=screen_min, screen_max=screen_max, facing=self._facing(), counts=counts)
+        with self.painting.edit_source(_source("box select", counts)):
             return self.painting.paint(idx, erase=self.toolbox.tool.erase, client=client)
 
     def lasso(self, *, position: np.ndarray, wxyz: np.ndarray, fov: float, aspect: float, polygon: np.ndarray,
               client: str = "") -> Delta | None:
         """Lasso select with a camera: vertices inside a screen outline, painted with the active instance (erased
-        with the erase tool); `Box select: front/all` decides whether hidden sides are taken too."""
+        with the erase tool); `Box select: visible/front/all` decides whether hidden surface is taken too."""
+        counts: dict[str, int] = {}
         idx = sel.lasso_select(self.scan.geom, position=position, wxyz=wxyz, fov=fov, aspect=aspect, polygon=polygon,
-                               facing="front" if self.toolbox.settings.box_facing == "front" else "all")
-        with self.painting.edit_source("lasso"):
+                               facing=self._facing(), counts=counts)
+        with self.painting.edit_source(_source("lasso", counts)):
             return self.painting.paint(idx, erase=self.toolbox.tool.erase, client=client)
+
+    def _facing(self) -> sel.Facing:
+        mode = self.toolbox.settings.box_facing
+        return mode if mode in ("visible", "front", "all") else "visible"  # type: ignore[return-value]
 
     def add_lasso_point(self, screen_pos: Sequence[float] | Sequence[Sequence[float]], *,
                         ray_origin: Sequence[float] | np.ndarray, ray_direction: Sequence[float] | np.ndarray,
@@ -66,3 +71,10 @@ class BoxLassoRoom:
         """Drop the lasso outline."""
         self.lasso_outline.clear()
         self.hooks.on_lasso()
+
+
+def _source(tool: str, counts: dict[str, int]) -> str:
+    """The edit's source label: the tool, and how many hidden vertices it left out ("lasso, 2,670 hidden left
+    out"), so the history says what was taken and what was not."""
+    hidden = counts.get("hidden", 0)
+    return f"{tool}, {hidden:,} hidden left out" if hidden else tool
