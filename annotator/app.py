@@ -212,6 +212,9 @@ class AnnotatorApp(ServedApp):
         (`annotator.panel_views.panel_view`, `Panels.show`)."""
         if not hasattr(self, "panels"):
             return
+        if getattr(self._tls, "defer_panel", False):
+            self._tls.panel_due = True  # an action is about to read its control: refresh after it
+            return
         st = self.view.stats
         v = panel_view(self.session.store, self.session.settings.active_id, history=st.history)
         status = status_markdown(self.session.store, self.session.work_dir, last_edit_bytes=st.last_edit_bytes,
@@ -219,7 +222,7 @@ class AnnotatorApp(ServedApp):
         self._tls.syncing = True
         try:
             self.session.settings.active_id = v.active_id
-            self.panels.show(v, status)
+            self.panels.show(v, status, typing=self.session.fields_typing())
         finally:
             self._tls.syncing = False
 
@@ -248,9 +251,13 @@ class AnnotatorApp(ServedApp):
         self._sheets.forget(client.client_id)
         self.view.camera_guard.forget(client)
 
-    def run_reporting(self, fn: Callable[[], T], client: ClientHandle | None = None) -> T | None:
+    def run_reporting(self, fn: Callable[[], T], client: ClientHandle | None = None, *,
+                      typing: bool = False) -> T | None:
         """Run an action for a client (a GUI callback, a hotkey, a scene gesture); errors become a notification to
         that client (all clients when None), never a crash and never only a log line.
+
+        Every action but a keystroke in a text field (`typing`) first commits what was typed in the Name and
+        Category fields (`AnnotatorSession.flush_typing`): doing anything else is leaving the field.
 
         A refused action (bad input: ValueError, KeyError, OSError) says why ("Not done"); anything else is a bug
         and is logged with its traceback and shown as "Error" with its type and message.
@@ -258,7 +265,16 @@ class AnnotatorApp(ServedApp):
         Returns:
             What `fn` returned, or None after an error.
         """
+        typed = 0
         try:
+            if not typing:
+                self._tls.defer_panel = True  # the action reads its own control before the panels are redrawn
+                try:
+                    typed = self.session.flush_typing(refresh=False)
+                finally:
+                    self._tls.defer_panel = False
+                typed = typed or bool(getattr(self._tls, "panel_due", False))
+                self._tls.panel_due = False
             return fn()
         except (ValueError, KeyError, OSError) as exc:
             msg = str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc)
@@ -270,6 +286,9 @@ class AnnotatorApp(ServedApp):
             self.notify("Error", f"that did not work: {type(exc).__name__}: {exc} (the server log has the details)",
                         client=client, color="red")
             return None
+        finally:
+            if typed:
+                self._refresh_panel()  # the typed fields now show what is stored
 
     def notify(self, title: str, body: str, *, client: ClientHandle | None = None,
                color: LiteralColor | None = None) -> None:

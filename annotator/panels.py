@@ -176,8 +176,9 @@ class Panels:
         self.gui_tool_help.content = f"**{tool.hotkey}** {tool.label}: {tool.help}"
         self.gui_help.content = help_markdown(tools, tool.name)
 
-    def show(self, v: PanelView, status: str) -> None:
-        """Counts, progress, the instance list and the active instance's fields (`annotator.panel_views`)."""
+    def show(self, v: PanelView, status: str, *, typing: frozenset[str] = frozenset()) -> None:
+        """Counts, progress, the instance list and the active instance's fields (`annotator.panel_views`); the
+        text fields in `typing` keep what the person is typing (committed later, then shown as stored)."""
         self.gui_active.options = v.options
         self.gui_merge_into.options = v.options
         self.gui_active.value = option_for(v.options, v.active_id)
@@ -186,7 +187,10 @@ class Panels:
         if current.isdigit() and current in {o.split(":", 1)[0] for o in v.prelabel_options}:
             self.gui_prelabel.value = option_for(v.prelabel_options, int(current))  # keep the one under review
         if v.active is not None:
-            self.gui_name.value, self.gui_category.value = v.active.name, v.active.category
+            if "name" not in typing:
+                self.gui_name.value = v.active.name
+            if "category" not in typing:
+                self.gui_category.value = v.active.category
             self.gui_color.value, self.gui_visible.value = v.active.color, v.active.visible
             self.gui_locked.value = v.active.locked
         self.gui_progress.value = round(100.0 * v.progress, 2)

@@ -109,8 +109,11 @@ class AnnotatorSession(SessionHooks):
         """EFEM assistance: pre-labels and their review, click-to-segment."""
 
     def close(self) -> None:
-        """Flush the checkpoint and release the journal (idempotent)."""
-        self.scan.close()
+        """Commit what was typed, flush the checkpoint and release the journal (idempotent)."""
+        try:
+            self.instances.flush_typing()
+        finally:
+            self.scan.close()
 
     # ================================================================== what the rooms hold
     @property
@@ -237,6 +240,18 @@ class AnnotatorSession(SessionHooks):
     def choose_category(self, category: str) -> None:
         """`InstanceRoom.choose_category`."""
         self.instances.choose_category(category)
+
+    def type_text(self, field: Literal["name", "category"], value: str) -> None:
+        """`InstanceRoom.type_text`."""
+        self.instances.type_text(field, value)
+
+    def flush_typing(self, *, refresh: bool = True) -> int:
+        """`InstanceRoom.flush_typing`."""
+        return self.instances.flush_typing(refresh=refresh)
+
+    def fields_typing(self) -> frozenset[str]:
+        """`InstanceRoom.fields_typing`."""
+        return self.instances.fields_typing()
 
     def new_instance(self, *, category: str = "object", name: str | None = None, client: str = "") -> int:
         """`InstanceRoom.new_instance`."""

@@ -9,7 +9,7 @@ against its options, bounded text), never used raw. A callback does nothing whil
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Callable, Protocol, Union
+from typing import TYPE_CHECKING, Any, Callable, Literal, Protocol, Union
 
 from annotator.tools import APP_KEYS, BRUSH_STEP, ToolCommand, all_controls
 from efem_viz.serve.inputs import ClientValueError, read_bool, read_choice, read_number, read_rgb, read_text
@@ -39,7 +39,8 @@ class AnnotatorControls(Protocol):
     def panels(self) -> Panels: ...
 
     def quiet(self) -> bool: ...
-    def run_reporting(self, fn: Callable[[], object], client: ClientHandle | None = None) -> object: ...
+    def run_reporting(self, fn: Callable[[], object], client: ClientHandle | None = None, *,
+                      typing: bool = False) -> object: ...
     def write_back(self, handle: GuiInputHandle[Any], value: object) -> None: ...
     def refuse(self, exc: ClientValueError, client: ClientHandle | None, handle: GuiInputHandle[Any],
                old: object) -> None: ...
@@ -67,6 +68,18 @@ def _guarded(app: AnnotatorControls, fn: Callable[[], object]) -> Callback:
     def cb(event: Event) -> None:
         if not app.quiet():
             app.run_reporting(fn, event.client)
+
+    return cb
+
+
+def _typed(app: AnnotatorControls, field: Literal["name", "category"], handle: GuiInputHandle[Any]) -> Callback:
+    """A keystroke in a text field: buffered (`AnnotatorSession.type_text`), committed once when the field is left
+    alone or the person does anything else; not an action itself, so it does not commit what is being typed."""
+    def cb(event: Event) -> None:
+        if app.quiet():
+            return  # the app set the field itself
+        app.run_reporting(lambda: app.session.type_text(field, read_text(handle, max_len=MAX_NAME)), event.client,
+                          typing=True)
 
     return cb
 
@@ -126,8 +139,8 @@ def _wire_buttons(app: AnnotatorControls) -> None:
         return option_id(read_choice(p.gui_prelabel))
 
     p.gui_active.on_update(on(lambda: ses.set_active(option_id(read_choice(p.gui_active)))))
-    p.gui_name.on_update(on(lambda: ses.update_active(name=read_text(p.gui_name, max_len=MAX_NAME))))
-    p.gui_category.on_update(on(lambda: ses.choose_category(read_text(p.gui_category, max_len=MAX_NAME))))
+    p.gui_name.on_update(_typed(app, "name", p.gui_name))
+    p.gui_category.on_update(_typed(app, "category", p.gui_category))
     p.gui_color.on_update(on(lambda: ses.update_active(color=read_rgb(p.gui_color, write_back=wb))))
     p.gui_visible.on_update(on(lambda: ses.update_active(visible=read_bool(p.gui_visible))))
     p.gui_labels_only.on_update(on(lambda: app.set_labels_only(read_bool(p.gui_labels_only))))

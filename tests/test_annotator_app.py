@@ -549,12 +549,17 @@ def test_new_instances_take_the_category_chosen_last(app: AnnotatorApp) -> None:
     the panel renames the active instance's category and is what the next N takes."""
     first = app.session.new_instance(category=app.session.settings.category)  # what N and the New instance button do
     assert app.session.store.labelset.info(first).category == "object"
-    app.panels.gui_category.value = "bowl"  # the user types a category for the active instance, as a browser does
+    for typed in ("b", "bo", "bow", "bowl"):  # the user types a category for the active instance, key by key
+        app.panels.gui_category.value = typed
+    assert app.session.store.labelset.info(first).category == "object", "typing is not an edit yet"
+    assert app.session.fields_typing() == {"category"}
+    app.panels.gui_new.value = True  # the New instance button: doing anything else commits what was typed, once
     assert app.session.store.labelset.info(first).category == "bowl" and app.session.settings.category == "bowl"
-    app.panels.gui_new.value = True  # the New instance button, as a browser presses it
     second = app.session.settings.active_id
     assert second != first and app.session.store.labelset.info(second).category == "bowl"
     assert app.panels.gui_category.value == "bowl"
+    renames = [r for r in app.session.store.journal.records if r.kind == "do" and "category" in r.header["label"]]
+    assert len(renames) == 1, "four keystrokes, one edit"
 
 
 def test_painting_over_other_instances_says_how_many_were_taken(app: AnnotatorApp) -> None:

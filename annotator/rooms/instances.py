@@ -6,6 +6,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 from annotator.labels import Delta
 from annotator.tools import RADIUS, all_controls
+from annotator.typing_buffer import TEXT_IDLE_S, TypingBuffer
 
 if TYPE_CHECKING:
     from annotator.rooms.context import SessionHooks, Toolbox
@@ -16,8 +17,46 @@ if TYPE_CHECKING:
 class InstanceRoom:
     """Which tool and which instance are active, and every undoable change of the instance table."""
 
-    def __init__(self, scan: ScanRoom, toolbox: Toolbox, hooks: SessionHooks, cursor_room: CursorRoom) -> None:
+    def __init__(self, scan: ScanRoom, toolbox: Toolbox, hooks: SessionHooks, cursor_room: CursorRoom, *,
+                 text_idle_s: float = TEXT_IDLE_S) -> None:
         self.scan, self.toolbox, self.hooks, self.cursor_room = scan, toolbox, hooks, cursor_room
+        self.typing = TypingBuffer(self._commit_text, on_error=lambda msg: self.hooks.notify("Not done", msg),
+                                   idle_s=text_idle_s, on_idle=lambda: self.hooks.on_change())
+        """The Name and Category fields being typed (each committed once: `type_text`, `flush_typing`)."""
+
+    # ------------------------------------------------------------------ typed fields
+    def type_text(self, field: Literal["name", "category"], value: str) -> None:
+        """A keystroke in the active instance's Name or Category field: committed once, when the field is left
+        alone (`TEXT_IDLE_S`) or the person does anything else (`flush_typing`), to the instance that was active
+        when it was typed."""
+        if field not in ("name", "category"):
+            raise ValueError(f"no text field {field!r}")
+        self.typing.typed((self.toolbox.settings.active_id, field), value)
+
+    def flush_typing(self, *, refresh: bool = True) -> int:
+        """Commit what was typed now (before any other action); returns the number of fields that were pending
+        (committed, or refused with a notice). With `refresh`, the panels are told to show the stored values; an
+        action that flushes first refreshes after it has read its own control instead."""
+        n = self.typing.flush()
+        if n and refresh:
+            self.hooks.on_change()
+        return n
+
+    def fields_typing(self) -> frozenset[str]:
+        """The fields whose typed value is not committed yet (the panels leave them as the person typed them)."""
+        return frozenset(field for _, field in self.typing.pending())
+
+    def _commit_text(self, key: object, value: str) -> None:
+        iid, field = key  # type: ignore[misc]
+        text = value.strip()
+        if field == "category":
+            if not text:
+                raise ValueError("a category cannot be empty; the stored one is kept")
+            self.toolbox.settings.category = text
+        elif not text:
+            raise ValueError("a name cannot be empty; the stored one is kept")
+        if iid > 0 and iid in self.scan.store.labelset.instances:
+            self.update_instance(int(iid), **{field: text})
 
     def set_tool(self, tool: str) -> None:
         """Make a tool of the table active."""

@@ -472,3 +472,38 @@ def test_brush_cursor_and_labels_only_view(annotator: Any, new_page: Callable[..
     wait_until(lambda: not app.session.settings.labels_only, 10, "the labels-only view off (click)")
     wait_until(lambda: np.array_equal(drawn(), before_cols), 10, "the scan's colours back")
     assert np.array_equal(app.session.store.labels, labels)
+
+
+def _text_field(page: Any, label: str) -> Any:
+    """The text input of a viser text control, found by its visible label (viser does not tie the two)."""
+    return page.get_by_text(label, exact=True).first.locator("xpath=following::input[1]")
+
+
+def test_typing_a_category_is_one_edit_and_the_field_shows_what_is_stored(keyed: tuple[Any, Any]) -> None:
+    """Issue 37 item 6: each typing pause used to be an edit, and once the store kept "b" while the field showed
+    "box". Typed with real keys (with pauses, as a person types), the category is committed once, after the field
+    is left alone or on the next action, and the field and the store agree."""
+    app, page = keyed
+    iid = app.session.new_instance(category="object")
+    field = _text_field(page, "Category")
+    wait_until(lambda: field.input_value() == "object", 20, "the active instance's category in the field")
+    before = len(app.session.store.journal.records)
+    field.click()
+    page.keyboard.press("Control+A")
+    for key in "box":
+        page.keyboard.type(key)
+        page.wait_for_timeout(400)  # a person's pause between keys (shorter than the commit's idle time)
+    wait_until(lambda: app.session.store.labelset.info(iid).category == "box", 30, "the typed category stored")
+    edits = [r for r in app.session.store.journal.records[before:] if r.kind == "do"]
+    assert len(edits) == 1 and "category='box'" in edits[0].header["label"], [r.header.get("label") for r in edits]
+    assert field.input_value() == "box" and app.panels.gui_category.value == "box"
+    # typing, then an action at once (N: a new instance) commits the typed name first, to the instance it was for
+    name = _text_field(page, "Name")
+    name.click()
+    page.keyboard.press("Control+A")
+    page.keyboard.type("left box")
+    page.mouse.click(40, 40)  # leave the field: a plain click on the view's corner (no edit)
+    page.keyboard.press("n")
+    wait_until(lambda: app.session.settings.active_id != iid, 20, "a new instance (N)")
+    wait_until(lambda: app.session.store.labelset.info(iid).name == "left box", 20, "the typed name stored")
+    assert app.session.store.labelset.info(app.session.settings.active_id).category == "box"

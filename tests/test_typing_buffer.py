@@ -1,0 +1,113 @@
+"""Typed text committed once (issue 37 item 6): `annotator.typing_buffer.TypingBuffer` and the session's Name and
+Category fields, driven without a browser (the browser test types with real keys)."""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from annotator.session import AnnotatorSession
+from annotator.typing_buffer import TypingBuffer
+from tests.helpers import ball_scan
+
+
+def _wait(cond, what: str, timeout: float = 20.0) -> None:
+    end = time.monotonic() + timeout  # a hang guard, not a speed bound
+    while not cond():
+        if time.monotonic() > end:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.01)
+
+
+def test_keystrokes_are_one_commit_of_the_last_value() -> None:
+    done: list[tuple[object, str]] = []
+    buf = TypingBuffer(lambda k, v: done.append((k, v)), idle_s=60.0)
+    for v in ("b", "bo", "box"):
+        buf.typed("cat", v)
+    assert done == [] and buf.pending() == {"cat": "box"}
+    assert buf.flush() == 1 and done == [("cat", "box")]
+    assert buf.flush() == 0 and done == [("cat", "box")], "nothing twice"
+
+
+def test_idle_commits_by_itself_and_a_refusal_is_reported() -> None:
+    done: list[str] = []
+    errors: list[str] = []
+
+    def commit(_k: object, v: str) -> None:
+        if not v:
+            raise ValueError("a category cannot be empty")
+        done.append(v)
+
+    buf = TypingBuffer(commit, on_error=errors.append, idle_s=0.05)
+    buf.typed("cat", "cup")
+    _wait(lambda: done == ["cup"], "the idle commit")
+    buf.typed("cat", "")
+    _wait(lambda: bool(errors), "the refusal")
+    assert errors == ["a category cannot be empty"] and done == ["cup"] and buf.pending() == {}
+    with pytest.raises(ValueError):
+        TypingBuffer(commit, idle_s=0)
+
+
+def test_racing_flushes_commit_each_value_once() -> None:
+    done: list[str] = []
+    buf = TypingBuffer(lambda _k, v: done.append(v), idle_s=60.0)
+    buf.typed("name", "left mug")
+    threads = [threading.Thread(target=buf.flush) for _ in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert done == ["left mug"]
+
+
+@pytest.fixture()
+def session(tmp_path: Path):
+    s = AnnotatorSession(ball_scan(tmp_path), out_dir=tmp_path / "out", autosave_delay=0)
+    yield s
+    s.close()
+
+
+def test_the_typed_name_lands_on_the_instance_it_was_typed_for(session: AnnotatorSession) -> None:
+    """Typing into mug 1's Name, then making mug 2 active (an action: it commits first) names mug 1, not mug 2;
+    the history has one rename; the panels were told to refresh after the commit."""
+    a = session.new_instance(category="mug")
+    b = session.new_instance(category="mug")
+    session.set_active(a)
+    refreshed: list[int] = []
+    session.on_change = lambda: refreshed.append(1)
+    for v in ("l", "le", "left", "left mug"):
+        session.type_text("name", v)
+    assert session.fields_typing() == {"name"}
+    session.flush_typing()  # what the app does before the next action
+    session.set_active(b)
+    ls = session.store.labelset
+    assert ls.info(a).name == "left mug" and ls.info(b).name != "left mug"
+    assert sum("name=" in e.label for e in ls.undo_stack) == 1
+    assert refreshed and session.fields_typing() == frozenset()
+
+
+def test_an_empty_category_is_refused_and_the_stored_one_kept(session: AnnotatorSession) -> None:
+    notes: list[tuple[str, str]] = []
+    session.notify = lambda title, body: notes.append((title, body))
+    a = session.new_instance(category="mug")
+    session.type_text("category", "   ")
+    assert session.flush_typing() == 1  # pending, then refused
+    assert session.store.labelset.info(a).category == "mug" and notes and "cannot be empty" in notes[0][1]
+
+
+def test_closing_commits_what_was_typed(tmp_path: Path) -> None:
+    """Never lose work: a name typed just before the annotator stops is stored."""
+    s = AnnotatorSession(ball_scan(tmp_path), out_dir=tmp_path / "out", autosave_delay=0)
+    a = s.new_instance(category="mug")
+    s.paint(np.arange(5))
+    s.type_text("name", "last mug")
+    s.close()
+    s2 = AnnotatorSession(ball_scan(tmp_path), out_dir=tmp_path / "out", autosave_delay=0)
+    try:
+        assert s2.store.labelset.info(a).name == "last mug"
+    finally:
+        s2.close()
