@@ -143,7 +143,7 @@ def fits_of(folder: Path, laterals: list[float] | None = None) -> list[Fit]:
             pid = int(inst.ids[k])
             rev = tr.reviews(pid)[-1]
             iou, cat, gid = match(inst.masks[k])
-            out.append(Fit(folder.name, name, pid, True, "", float(inst.confidence[k]), float(inst.stationary[k]),
+            out.append(Fit(run_key(folder), name, pid, True, "", float(inst.confidence[k]), float(inst.stationary[k]),
                            float(inst.coverage[k]), float(rev.seen_through), float(inst.db_sim[k]),
                            float(rev.radii[0]), float(rev.radii[1]), float(rev.up_angle), len(inst.masks[k]), iou,
                            cat, np.asarray(inst.masks[k]), gid, lateral(rev)))
@@ -158,10 +158,16 @@ def fits_of(folder: Path, laterals: list[float] | None = None) -> list[Fit]:
             row = tr.row_of(pid, int(rev.step))
             stat = float(tr.row_stationary[row]) if row is not None else float("nan")
             iou, cat, gid = match(rev.mask)
-            out.append(Fit(folder.name, name, pid, False, death[1], 0.0, stat, float(rev.coverage),
+            out.append(Fit(run_key(folder), name, pid, False, death[1], 0.0, stat, float(rev.coverage),
                            float(rev.seen_through), float(rev.db_sim), float(rev.radii[0]), float(rev.radii[1]),
                            float(rev.up_angle), len(rev.mask), iou, cat, np.asarray(rev.mask), gid, lateral(rev)))
     return out
+
+
+def run_key(folder: Path) -> str:
+    """A run's name: its folder and the folder above (`DIR/seed0`), so that runs of several saved sets, each with
+    its seed0, seed1, ... folders, stay apart."""
+    return "/".join(folder.resolve().parts[-2:])
 
 
 # ------------------------------------------------------------------------------------------------ scoring rules
@@ -178,7 +184,26 @@ RULES: dict[str, tuple[Callable[[Fit], float], bool]] = {
         f.seen_through) else f.seen_through)) ** 2, True),
     "no free-space factor (revived)": (lambda f: _conf(f, seen=False), True),
     "x pose score": (lambda f: f.confidence * (f.db_sim if math.isfinite(f.db_sim) else 1.0), False),
+    "x pose score^2": (lambda f: f.confidence * _pose(f) ** 2, False),
+    "x pose score^4": (lambda f: f.confidence * _pose(f) ** 4, False),
+    "x min(1, pose score / 0.5)^2": (lambda f: f.confidence * min(1.0, _pose(f) / 0.5) ** 2, False),
+    "x min(1, pose score / 0.6)^2": (lambda f: f.confidence * min(1.0, _pose(f) / 0.6) ** 2, False),
+    "x min(1, pose score / 0.5)^4": (lambda f: f.confidence * min(1.0, _pose(f) / 0.5) ** 4, False),
+    "x mug-sized (radius <= 5.5 cm)": (lambda f: f.confidence * _sized(f), False),
+    "x pose score^2 x mug-sized": (lambda f: f.confidence * _pose(f) ** 2 * _sized(f), False),
+    "stationary only": (lambda f: f.stationary, False),
+    "stationary x pose score^2": (lambda f: f.stationary * _pose(f) ** 2, False),
 }
+
+
+def _pose(f: Fit) -> float:
+    """The codebook pose score, 1 where there is none, clipped to [0, 1]."""
+    return min(max(f.db_sim, 0.0), 1.0) if math.isfinite(f.db_sim) else 1.0
+
+
+def _sized(f: Fit, *, radius: float = 0.055, width: float = 0.01) -> float:
+    """1 for a completed shape no wider than a mug (`radius`), falling linearly to 0 over `width` beyond."""
+    return float(np.clip(1.0 - (f.radius - radius) / width, 0.0, 1.0))
 
 
 def lateral_rule(lat: float, limit: float) -> tuple[Callable[[Fit], float], Callable[[Fit], bool]]:
@@ -199,14 +224,17 @@ def lateral_rule(lat: float, limit: float) -> tuple[Callable[[Fit], float], Call
 
 
 def score_rule(fits: list[Fit], scenes: dict[tuple[str, str], Any], rule: Callable[[Fit], float],
-               revive: bool | Callable[[Fit], bool]) -> dict[str, float]:
-    """Pooled AP / AP50 of the mug class and how many scenes with a mug rank one first, under a rule."""
+               revive: bool | Callable[[Fit], bool], *, only: Callable[[str], bool] | None = None) -> dict[str, float]:
+    """Pooled AP / AP50 of the mug class and how many scenes with a mug rank one first, under a rule (over the
+    scenes whose name passes `only`, all by default)."""
     from efem_viz.eval import SceneGroundTruth, ScenePrediction, evaluate
 
     preds, gts, top_mug, with_mug = [], [], 0, 0
     found: set[tuple[str, str, int]] = set()
     n_mugs = 0
     for (run, name), scene in scenes.items():
+        if only is not None and not only(name):
+            continue
         if callable(revive):
             chosen = [f for f in fits if f.run == run and f.scene == name and revive(f)]
         else:
@@ -244,6 +272,8 @@ def main() -> int:
     ap.add_argument("--lateral", type=float, nargs="*", default=[],
                     help="re-measure the free-space check with these sideways tolerances (m) and score each")
     ap.add_argument("--limit", type=float, default=0.15, help="seen-through limit of the lateral rules")
+    ap.add_argument("--split", nargs="*", default=[], metavar="NAME=K,K",
+                    help="also score scene subsets by frame number, e.g. tune=0,1,6 judge=2,3,4,5,7,8 (bench/real.py)")
     a = ap.parse_args()
     from efem_viz.data.io import load_scene
 
@@ -253,7 +283,7 @@ def main() -> int:
         got = fits_of(folder, a.lateral)
         fits += got
         for name in sorted({f.scene for f in got}):
-            scenes[(folder.name, name)] = load_scene(folder / f"{name}.ply")
+            scenes[(run_key(folder), name)] = load_scene(folder / f"{name}.ply")
     print(f"{len(fits)} reviewed fits ({sum(f.accepted for f in fits)} accepted) in {len(scenes)} scene runs")
     groups: dict[str, list[Fit]] = defaultdict(list)
     for f in fits:
@@ -293,11 +323,20 @@ def main() -> int:
         rules[f"free space with {lat * 1000:g} mm sideways tolerance, limit {a.limit:g}"] = lateral_rule(lat, a.limit)
         score, _ = lateral_rule(lat, a.limit)
         rules[f"kills as run, confidence x (1 - fraction at {lat * 1000:g} mm)"] = (score, False)
+    splits = {k: {int(x) for x in v.split(",")} for k, v in (arg.split("=", 1) for arg in a.split)}
+
+    def member(frames: set[int]) -> Callable[[str], bool]:
+        return lambda name: name.rsplit("_", 1)[-1].isdigit() and int(name.rsplit("_", 1)[-1]) in frames
+
     for name, (rule, revive) in rules.items():
         r = score_rule(fits, scenes, rule, revive)
+        for split, frames in splits.items():
+            r[split] = score_rule(fits, scenes, rule, revive, only=member(frames))
         rules_out[name] = r
+        extra = "".join(f"; {k}: AP50 {r[k]['ap50']:.1f}, top {r[k]['top_is_mug']}/{r[k]['scenes_with_mug']}"
+                        for k in splits)
         print(f"| {name} | {r['ap50']:.1f} | {r['ap']:.1f} | {r['mugs_found']} of {r['mugs']} | {r['top_is_mug']} of "
-              f"{r['scenes_with_mug']} |")
+              f"{r['scenes_with_mug']}{extra} |")
     if a.json is not None:
         from efem_viz.data.io import atomic_write_text
 

@@ -257,10 +257,13 @@ def test_schedule_real_paper(t: int, expected: tuple[float, ...]) -> None:
 
 
 def test_real_preset_is_the_paper_one_with_the_measured_changes() -> None:
-    """`real` = §3.12's real settings (`real_paper`) + the session-8 changes for noisy single-view frames."""
+    """`real` = §3.12's real settings (`real_paper`) + the session-8 changes for noisy single-view frames + the
+    session-12 pose-score factor in the confidence."""
     real, paper = preset("real"), preset("real_paper")
     assert dataclasses.replace(real, name="real_paper", tau_d=paper.tau_d, tau_n=paper.tau_n, m_step_replace=True,
-                               seen_through_margin=None, max_seen_through=paper.max_seen_through) == paper
+                               seen_through_margin=None, max_seen_through=paper.max_seen_through,
+                               pose_weight=0.0) == paper
+    assert real.pose_weight == 2.0 and paper.pose_weight == 0.0
     assert schedule(real, 0) == pytest.approx((3.0, 0.15, 0.003, 180.0))
     assert not real.m_step_replace and real.seen_through_margin == 0.01 and real.max_seen_through == 0.15
 
@@ -342,6 +345,14 @@ def test_confidence_formula() -> None:
     assert confidence(0.0, 1.0) == 0.0
     with pytest.raises(ValueError):
         confidence(0.5, 0.5, cap=0.0)
+    # the pose-score factor (issue 33): min(1, pose / ref)^w, off without a pose score or with w = 0
+    assert confidence(0.8, 0.2, pose=0.3, pose_weight=2.0, pose_ref=0.6) == pytest.approx(0.4 * 0.25)
+    assert confidence(0.8, 0.2, pose=0.9, pose_weight=2.0, pose_ref=0.6) == pytest.approx(0.4)
+    assert confidence(0.8, 0.2, pose=-0.2, pose_weight=2.0) == 0.0
+    assert confidence(0.8, 0.2, pose=float("nan"), pose_weight=2.0) == pytest.approx(0.4)
+    assert confidence(0.8, 0.2, pose=0.3) == pytest.approx(0.4)
+    both = confidence(0.8, 0.2, seen_through=0.5, pose=0.3, pose_weight=1.0, pose_ref=0.6)
+    assert both == pytest.approx(0.4 * 0.5 * 0.5)
 
 
 # ---------------------------------------------------------------------------------------------- sampling

@@ -90,14 +90,20 @@ class StepInfo:
     """Episode of this step."""
 
 
-def confidence(stationary: float, coverage: float, *, cap: float = 0.4, seen_through: float = float("nan")) -> float:
+def confidence(stationary: float, coverage: float, *, cap: float = 0.4, seen_through: float = float("nan"),
+               pose: float = float("nan"), pose_weight: float = 0.0, pose_ref: float = 0.6) -> float:
     """Final confidence of an accepted proposal: s_stat · min(coverage, cap) / cap (efem-method.md §3.10), times
-    (1 − seen-through fraction) when the free-space check measured one (`EMConfig.seen_through_margin`)."""
+    (1 − seen-through fraction) when the free-space check measured one (`EMConfig.seen_through_margin`), times
+    min(1, pose score / `pose_ref`)^`pose_weight` when the codebook gave a pose score (`EMConfig.pose_weight`)."""
     if not cap > 0:
         raise ValueError(f"coverage cap must be > 0, got {cap}")
     conf = float(stationary) * min(float(coverage), cap) / cap
     st = float(seen_through)
-    return conf * (1.0 - min(max(st, 0.0), 1.0)) if math.isfinite(st) else conf
+    if math.isfinite(st):
+        conf *= 1.0 - min(max(st, 0.0), 1.0)
+    if pose_weight > 0 and math.isfinite(float(pose)):
+        conf *= min(max(float(pose), 0.0) / pose_ref, 1.0) ** pose_weight
+    return conf
 
 
 def working_set(points: np.ndarray, voxel: float | None) -> np.ndarray:
@@ -449,7 +455,8 @@ class _Solver:
                 assert pool.stationary is not None and pool.latent is not None
                 rev = last_review[int(pid)]
                 s_stat = float(pool.stationary[r])
-                conf = confidence(s_stat, float(rev.coverage), cap=cfg.cov_cap, seen_through=rev.seen_through)
+                conf = confidence(s_stat, float(rev.coverage), cap=cfg.cov_cap, seen_through=rev.seen_through,
+                                  pose=float(rev.db_sim), pose_weight=cfg.pose_weight, pose_ref=cfg.pose_ref)
                 self.rec.death(int(pid), final_step, REASON_SURVIVE, -1, conf)
                 accepted.append({**rev._asdict(), "confidence": conf, "stationary": s_stat,
                                  "center": pool.latent["center"][r], "scale": float(pool.latent["scale"][r]),
