@@ -124,6 +124,11 @@ class ScanGeometry:
                     self._raycaster = rc
         return self._raycaster
 
+    @property
+    def has_raycaster(self) -> bool:
+        """True once the ray-casting scene is built (`warm_up`): visibility is then exact."""
+        return self._raycaster is not None
+
     def warm_up(self, cancel: threading.Event | None = None) -> None:
         """Build every structure now (call from a worker thread after opening a scan); stops between structures
         once `cancel` is set. While the ray-casting scene is being built, `building_raycaster` is set (open3d must
@@ -456,6 +461,30 @@ def visible_among(points: np.ndarray, normals: np.ndarray, *, position: np.ndarr
     return z <= nearest[key] + tol
 
 
+def visible_by_rays(geom: ScanGeometry, idx: np.ndarray, *, position: np.ndarray) -> np.ndarray:
+    """Which vertices of a mesh the camera sees, by casting a ray from the camera to each (exact at the mesh's
+    resolution): hidden when the ray meets a triangle more than a quarter spacing before the vertex.
+
+    Args:
+        geom: a mesh scan (its ray caster is built if it is not yet).
+        idx: (K,) vertex indices.
+        position: (3,) camera position, world frame.
+
+    Returns:
+        (K,) bool.
+    """
+    from efem_viz._typeshims import o3d_tensor
+
+    if len(idx) == 0:
+        return np.zeros(0, bool)
+    d = geom.points[idx].astype(np.float64) - np.asarray(position, np.float64)
+    dist = np.linalg.norm(d, axis=1)
+    rays = np.concatenate([np.broadcast_to(np.asarray(position, np.float64), d.shape),
+                           d / np.maximum(dist, 1e-12)[:, None]], axis=1).astype(np.float32)
+    t = geom.raycaster().cast_rays(o3d_tensor(rays))["t_hit"].numpy()
+    return t >= dist - (0.25 * geom.spacing + 1e-4 * dist)
+
+
 def _keep_facing(geom: ScanGeometry, keep: np.ndarray, facing: Facing, position: np.ndarray,
                  wxyz: np.ndarray, counts: dict[str, int] | None = None) -> np.ndarray:
     """The candidates `keep` that the `facing` rule takes (see `Facing`); `counts["hidden"]` gets the number of
@@ -468,8 +497,11 @@ def _keep_facing(geom: ScanGeometry, keep: np.ndarray, facing: Facing, position:
     front = np.einsum("ij,ij->i", view, geom.normals[keep].astype(np.float64)) < 0
     if facing == "front":
         return keep[front]
-    seen = front & visible_among(geom.points[keep], geom.normals[keep], position=position, wxyz=wxyz,
-                                 spacing=geom.spacing)
+    if geom.is_mesh:  # exact (waits for the warm-up's ray caster if it is still being built)
+        seen = front & visible_by_rays(geom, keep, position=position)
+    else:
+        seen = front & visible_among(geom.points[keep], geom.normals[keep], position=position, wxyz=wxyz,
+                                     spacing=geom.spacing)
     if counts is not None:
         counts["hidden"] = int(front.sum() - seen.sum())
     return keep[seen]

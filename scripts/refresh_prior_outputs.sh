@@ -22,22 +22,22 @@ PY=${PYTHON:-python3}
 if [[ $SKIP_CB == 0 ]]; then
   $PY -m efem_viz.cli build-codebook --prior mug --count 150 --n-store 2000 --noise 0.01 --seed 0
 fi
-# The bundled traces: 100 proposals, seed 0; synthetic scenes with the synthetic_mugs preset, real ones with
-# real_mugs (efem-method.md §3.12; the demo config equals the real-mugs config).
+# The bundled traces: 100 proposals, seed 0; synthetic scenes with the synthetic preset, real ones with
+# real (efem-method.md §3.12; the demo config equals the real-mugs config).
 OUT=$(mktemp -d)
 trap 'rm -rf "$OUT"' EXIT
 # tau_out is calibrated on the six table scenes (z, so3, pile) as it always was; the arrangement scenes (tree, box,
 # shelf) only get their traces
 CAL=(sample_scenes/syn_z_*.ply sample_scenes/syn_so3_*.ply sample_scenes/syn_pile_*.ply)
-$PY -m efem_viz.cli segment "${CAL[@]}" --prior mug --preset synthetic_mugs --proposals 100 --seed 0 \
+$PY -m efem_viz.cli segment "${CAL[@]}" --prior mug --preset synthetic --proposals 100 --seed 0 \
   --out "$OUT" --no-scannet --no-ply
 # tau_out for these weights, chosen on the synthetic runs just made; then the runs again with it (the masks and
 # the recorded config change, nothing else)
 $PY -m efem_viz.cli calibrate-masks "$OUT" --gt "${CAL[@]}" --prior mug --write \
   --json-out efem_viz/weights/mug_tau_out.json
-$PY -m efem_viz.cli segment sample_scenes/syn_*.ply --prior mug --preset synthetic_mugs --proposals 100 --seed 0 \
+$PY -m efem_viz.cli segment sample_scenes/syn_*.ply --prior mug --preset synthetic --proposals 100 --seed 0 \
   --out "$OUT" --no-scannet --no-ply
-$PY -m efem_viz.cli segment sample_scenes/real_tabletop_*.ply --prior mug --preset real_mugs --proposals 100 \
+$PY -m efem_viz.cli segment sample_scenes/real_tabletop_*.ply --prior mug --preset real --proposals 100 \
   --seed 0 --out "$OUT" --no-scannet --no-ply
 cp "$OUT"/*.efem.npz sample_scenes/
 $PY -m efem_viz.cli evaluate sample_scenes --gt sample_scenes
