@@ -10,7 +10,17 @@ import numpy as np
 import pytest
 from viser_client import ViserClient, wait_for
 
-from efem_viz.serve.camera import LOST_MARGIN, VISER_CAMERA_KEYS, CameraGuard, fitted_view, view_lost
+from efem_viz.serve.camera import (
+    FIT_ASPECT,
+    FIT_FILL,
+    LOST_MARGIN,
+    VISER_CAMERA_KEYS,
+    VISER_FOV,
+    CameraGuard,
+    fitted_view,
+    framing_bounds,
+    view_lost,
+)
 
 LO, HI = np.array([-0.15, -0.15, 0.0]), np.array([0.15, 0.15, 0.3])
 
@@ -23,11 +33,12 @@ def _camera_message(look_at: tuple[float, float, float], position: tuple[float, 
 
 
 def test_fitted_view_and_lost_cameras() -> None:
-    """The fitted view looks at the box centre from one diagonal along the direction; a look-at point is lost only
-    beyond `LOST_MARGIN` diagonals outside the box (or when not finite)."""
+    """The fitted view looks at the box centre along the direction; a look-at point is lost only beyond
+    `LOST_MARGIN` diagonals outside the box (or when not finite)."""
     v = fitted_view(LO, HI, direction=(0.0, -1.0, 0.0))
     diag = float(np.linalg.norm(HI - LO))
-    assert np.allclose(v.look_at, (LO + HI) / 2) and np.allclose(v.position, (LO + HI) / 2 + [0, -diag, 0])
+    off = np.subtract(v.position, (LO + HI) / 2)
+    assert np.allclose(v.look_at, (LO + HI) / 2) and off[1] < 0 and np.allclose(off[[0, 2]], 0.0)
     assert v.up == (0.0, 0.0, 1.0)
     assert not view_lost(v.look_at, LO, HI)
     assert not view_lost(HI + [0, 0, 0.99 * LOST_MARGIN * diag], LO, HI)  # far above the scan, still near
@@ -37,6 +48,44 @@ def test_fitted_view_and_lost_cameras() -> None:
     with pytest.raises(ValueError, match="finite"):
         fitted_view((0, 0, np.inf), HI)
     assert set(VISER_CAMERA_KEYS) == {"W", "A", "S", "D", "Q", "E"}
+
+
+def _screen_extent(view, corners: np.ndarray) -> tuple[float, float]:
+    """Largest |x| / (tan(fov/2) aspect) and |y| / tan(fov/2) of the corners as the fitted camera sees them."""
+    fwd = np.subtract(view.look_at, view.position)
+    fwd /= np.linalg.norm(fwd)
+    right = np.cross(fwd, view.up)
+    right /= np.linalg.norm(right)
+    R = np.stack([right, np.cross(fwd, right), fwd], axis=1)  # OpenCV camera axes: x right, y down, z forward
+    pc = (corners - np.asarray(view.position)) @ R
+    t = np.tan(VISER_FOV / 2)
+    return float(np.max(np.abs(pc[:, 0] / pc[:, 2])) / (t * FIT_ASPECT)), float(np.max(np.abs(pc[:, 1] / pc[:, 2])) / t)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_fitted_view_frames_the_box_tightly(seed: int) -> None:
+    """Issue 37 item 7 (scenes opened small, a quarter of the width): every corner of the box is inside the planned
+    view, and the box fills `FIT_FILL` of it along the binding axis (not a speck in the middle)."""
+    rng = np.random.default_rng(seed)
+    lo = rng.uniform(-2, 2, 3)
+    hi = lo + rng.uniform(0.05, 3, 3)
+    direction = rng.normal(size=3)
+    direction[2] = abs(direction[2]) + 0.2  # looking down, as the apps do
+    v = fitted_view(lo, hi, direction=direction)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    ex, ey = _screen_extent(v, corners)
+    assert max(ex, ey) == pytest.approx(FIT_FILL, rel=1e-6), (ex, ey)
+
+
+def test_framing_bounds_ignore_stray_points() -> None:
+    """A real scan's few far points (a wall pixel 5 m away) do not make the framed box five metres wide."""
+    rng = np.random.default_rng(0)
+    table = rng.uniform([-0.4, -0.3, 0.0], [0.4, 0.3, 0.2], size=(20_000, 3))
+    stray = rng.uniform(4.0, 5.0, size=(50, 3))
+    lo, hi = framing_bounds(np.concatenate([table, stray]))
+    assert np.all(hi < 0.45) and np.all(lo > -0.45)
+    with pytest.raises(ValueError):
+        framing_bounds(np.zeros((0, 3)))
 
 
 @pytest.fixture()
@@ -118,7 +167,7 @@ def test_the_viewer_fits_every_camera_on_a_scene_change(tmp_path: Path) -> None:
             handle = next(iter(app.server.get_clients().values()))
             for name in ("a", "b"):
                 assert app.open_scene(name)
-                lo, hi = app.state.scene.bounds
+                lo, hi = framing_bounds(app.state.scene.points)
                 view = fitted_view(lo, hi, direction=(0.5, -0.95, 0.85))
                 assert np.allclose(handle.camera.look_at, view.look_at, atol=1e-5), (name, handle.camera.look_at)
                 assert np.allclose(handle.camera.position, view.position, atol=1e-5), name

@@ -62,25 +62,82 @@ class View:
     """The up direction."""
 
 
+VISER_FOV = float(np.deg2rad(75.0))
+"""The vertical field of view of viser's browser camera (radians; three.js's default, which viser keeps)."""
+FIT_ASPECT = 1.2
+"""Width / height of the view a fitted camera plans for: a browser window less the apps' side panel is rarely
+narrower."""
+FIT_FILL = 0.85
+"""A fitted scene's box spans this fraction of the view's height or width (whichever binds first)."""
+
+
 def fitted_view(lo: Sequence[float] | np.ndarray, hi: Sequence[float] | np.ndarray, *,
-                direction: Sequence[float] | np.ndarray = (0.5, -0.95, 0.85)) -> View:
-    """The view that shows a whole scene: looking at its box centre from `direction` (in scene diagonals).
+                direction: Sequence[float] | np.ndarray = (0.5, -0.95, 0.85), fov: float = VISER_FOV,
+                aspect: float = FIT_ASPECT, fill: float = FIT_FILL) -> View:
+    """The view that shows a whole scene, framed the way a person would: looking at its box centre from
+    `direction`, just far enough away that all eight corners of the box fall inside `fill` of the view.
 
     Args:
         lo: (3,) min corner of the scene's box, world frame.
         hi: (3,) max corner, world frame.
-        direction: (3,) camera offset from the centre, in scene diagonals (default: down at the table from the
-            front, as the viewer opens scenes).
+        direction: (3,) direction from the centre to the camera (default: down at the table from the front, as the
+            viewer opens scenes); only its direction matters.
+        fov: vertical field of view of the camera (radians).
+        aspect: width / height of the view planned for.
+        fill: fraction of the view's height (or width) the box may span.
 
     Raises:
-        ValueError: a corner is not 3 finite numbers.
+        ValueError: a corner is not 3 finite numbers, or `direction` is zero.
     """
     lo_a, hi_a = np.asarray(lo, np.float64).reshape(-1), np.asarray(hi, np.float64).reshape(-1)
     if lo_a.shape != (3,) or hi_a.shape != (3,) or not (np.isfinite(lo_a).all() and np.isfinite(hi_a).all()):
         raise ValueError(f"scene box corners must be 3 finite numbers each, got {lo_a} and {hi_a}")
+    u = np.asarray(direction, np.float64).reshape(3)
+    norm = float(np.linalg.norm(u))
+    if not norm > 0:
+        raise ValueError(f"the view direction must not be zero, got {u}")
+    u /= norm
     centre = (lo_a + hi_a) / 2.0
     diagonal = float(np.linalg.norm(hi_a - lo_a)) or 1.0
-    return View(xyz_tuple(centre), xyz_tuple(centre + diagonal * np.asarray(direction, np.float64)))
+    forward = -u
+    up = np.array([0.0, 0.0, 1.0])
+    right = np.cross(forward, up)
+    if float(np.linalg.norm(right)) < 1e-9:  # looking straight down or up
+        right = np.array([1.0, 0.0, 0.0])
+    right /= np.linalg.norm(right)
+    cam_up = np.cross(right, forward)
+    corners = np.array([[x, y, z] for x in (lo_a[0], hi_a[0]) for y in (lo_a[1], hi_a[1])
+                        for z in (lo_a[2], hi_a[2])]) - centre
+    tan_v = np.tan(0.5 * float(fov)) * float(fill)
+    tan_h = tan_v * float(aspect)
+    # a corner at offset p is inside when |p·right| <= tan_h (d - p·u) and |p·cam_up| <= tan_v (d - p·u)
+    along = corners @ u
+    need = along + np.maximum(np.abs(corners @ right) / tan_h, np.abs(corners @ cam_up) / tan_v)
+    dist = max(float(need.max()), 0.05 * diagonal)
+    return View(xyz_tuple(centre), xyz_tuple(centre + dist * u))
+
+
+def framing_bounds(points: np.ndarray, *, keep: float = 0.99, sample: int = 200_000, seed: int = 0) -> np.ndarray:
+    """(2, 3) corners of the box a camera frames: the central `keep` of the points along each axis (a few stray
+    points of a real scan, a far wall pixel, do not shrink the scene to a speck), from at most `sample` points.
+
+    Args:
+        points: (N, 3) world frame.
+        keep: fraction of the points kept along each axis (the rest split equally on both sides).
+        sample: at most this many points are looked at (drawn with `seed`).
+        seed: the draw's seed.
+
+    Raises:
+        ValueError: no points, or not (N, 3).
+    """
+    pts = np.asarray(points)
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
+        raise ValueError(f"need (N, 3) points, got {pts.shape}")
+    if len(pts) > sample:
+        pts = pts[np.random.default_rng(seed).choice(len(pts), size=sample, replace=False)]
+    q = 100.0 * (1.0 - float(keep)) / 2.0
+    lo, hi = np.percentile(pts, [q, 100.0 - q], axis=0)
+    return np.stack([lo, hi])
 
 
 FLY_TO_DISTANCE = 1.8

@@ -143,6 +143,7 @@ def export_static_demo(
         ClientValueError: a path the export would write leaves `root` (nothing was written).
     """
     from efem_viz.serve.guard import start_server
+    from efem_viz.serve.camera import framing_bounds
 
     out = Path(out_dir).expanduser()
     if root is not None:
@@ -170,7 +171,7 @@ def export_static_demo(
         api = server.scene
         api.set_up_direction("+z")
         cam = server.initial_camera  # recorded: the page opens looking at the scene
-        cam.look_at, cam.position = default_view(lo, hi)
+        cam.look_at, cam.position = default_view(*framing_bounds(pts))
         cam.up = (0.0, 0.0, 1.0)
         cloud = api.add_point_cloud(
             "/scene/points", points=pts[keep], colors=dim(scene.colors[keep]), point_size=psize, point_shape="rounded"
