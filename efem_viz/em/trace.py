@@ -8,7 +8,7 @@ phase) and proposal: pose, OBB, coverage, codebook similarity, scale radii, up a
 tentative mask and the mesh (vertices float16 relative to Θ_c, faces int32).
 
 Not stored: the weights over the scene and the decoded shapes. `em.replay.TraceReplay.view` re-derives them
-from the stored latents with the same code the solver uses (`energy_weights`), and caches the result (LRU). The weights that
+from the stored latents with the same code the solver uses (`em.estep.energy_weights`), and caches the result (LRU). The weights that
 produced step t's samples are `W_out` of step t−1; at the first step of an episode they are the crop mask.
 """
 
@@ -79,37 +79,6 @@ class ProposalView(NamedTuple):
     latent: dict[str, np.ndarray]
     category: str = ""
     """Category of the proposal's prior ("" for traces that predate category tables)."""
-
-
-def energy_weights(
-    d: np.ndarray,
-    gamma: np.ndarray,
-    sched: tuple[float, float, float, float],
-    *,
-    out_value: float = 100.0,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Truncated energies → new weights and inlier flags (efem-method.md §3.6.4–6).
-
-    Args:
-        d: (K,) canonical SDF values.
-        gamma: (K,) signed normal angles in degrees.
-        sched: (α_D, τ_D, α_N, τ_N).
-        out_value: U, the energy of a truncated term.
-
-    Returns:
-        w (K,) float32 = exp(−E_D − E_N) (NaN/Inf → 0), inlier (K,) bool = |d| ≤ τ_D and γ ≤ τ_N.
-    """
-    a_d, t_d, a_n, t_n = sched
-    ad = np.abs(np.asarray(d, np.float32))
-    g = np.asarray(gamma, np.float32)
-    ok_d = ad <= t_d
-    ok_n = g <= t_n
-    e = np.where(ok_d, np.float32(a_d) * ad, np.float32(out_value)) + np.where(
-        ok_n, np.float32(a_n) * g, np.float32(out_value)
-    )
-    w = np.exp(-e).astype(np.float32)
-    w[~(np.isfinite(w) & np.isfinite(ad) & np.isfinite(g))] = 0.0
-    return w, ok_d & ok_n
 
 
 def _ragged_to_npz(prefix: str, values: np.ndarray, offsets: np.ndarray, out: dict[str, np.ndarray]) -> None:
