@@ -277,6 +277,40 @@ class EMTrace:
             return -1
         return int(np.searchsorted(self.row_offsets, steps[-1], side="right") - 1)
 
+    def alive_scores(self, step: int) -> tuple[np.ndarray, np.ndarray]:
+        """The proposals taking part in a step (live at its start) and their stationary scores.
+
+        Args:
+            step: global EM step.
+
+        Returns:
+            ((K,) int64 ids, (K,) float64 stationary scores).
+        """
+        rows = self.rows(int(step))
+        return np.asarray(self.row_id[rows], dtype=np.int64), np.asarray(self.row_stationary[rows], dtype=np.float64)
+
+    def sample_indices(self, proposal_id: int, step: int) -> np.ndarray | None:
+        """(M,) int64 scene-point indices sampled by a proposal at a step (None when it did not take part)."""
+        r = self.row_of(int(proposal_id), int(step))
+        return None if r is None else np.asarray(self.row_samples[r], dtype=np.int64).reshape(-1)
+
+    def is_dead_at(self, proposal_id: int, step: int) -> bool:
+        """True when the proposal was terminated (not accepted) at or before `step`."""
+        d = self.death(int(proposal_id))
+        return d is not None and d[1] != REASON_SURVIVE and int(d[0]) <= int(step)
+
+    def center_at(self, proposal_id: int, step: int) -> np.ndarray:
+        """(3,) float32 world centre Θ_c of a proposal at a step (its last recorded step if it died before).
+
+        Raises:
+            ValueError: the proposal has no record at that step.
+        """
+        s = min(int(step), int(self.last_step(int(proposal_id))))
+        r = self.row_of(int(proposal_id), s)
+        if r is None:
+            raise ValueError(f"proposal {proposal_id} has no record at step {s}")
+        return np.asarray(self.row_center[r], np.float32).reshape(3)
+
     def latent(self, proposal_id: int, step: int) -> dict[str, np.ndarray]:
         """The stored latent arrays of (proposal, step): R (C,3), inv (C,), center (3,), scale ()."""
         r = self.row_of(proposal_id, step)
