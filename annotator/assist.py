@@ -21,6 +21,7 @@ from efem_viz.prior.config import DEFAULT_PRIOR
 from efem_viz.prior.registry import PriorSet
 
 if TYPE_CHECKING:
+    from efem_viz.em.results import Instances
     from efem_viz.prior.config import ShapePriorLike
 
 log = logging.getLogger(__name__)
@@ -132,10 +133,25 @@ def segment_at_point(
     # crop-local indices within anchor_radius of the click (never empty: the clicked vertex is at distance 0)
     near = np.flatnonzero(np.linalg.norm(pts[crop] - centre, axis=1) <= max(float(anchor_radius), 0.0))
     res = run_em(sub, cfg=cfg, priors=[pr], seed=seed, anchor_candidates=near, on_step=on_step, cancel=cancel)
-    inst = res.instances
+    return _instance_at(res.instances, crop, int(vertex), centre)
+
+
+def _instance_at(inst: Instances, crop: np.ndarray, vertex: int, centre: np.ndarray) -> np.ndarray:
+    """The mask of the crop's instance under the click: the most confident one containing the clicked vertex, else
+    the one whose centre is nearest the click.
+
+    Args:
+        inst: the instances found in the crop.
+        crop: (C,) int64 sorted scene indices of the crop's points.
+        vertex: the clicked scene vertex (in `crop`).
+        centre: (3,) float32 its position, world frame.
+
+    Returns:
+        (K,) int32 sorted scene vertex indices; empty when there is no instance.
+    """
     if len(inst) == 0:
         return np.zeros(0, np.int32)
-    local = int(np.searchsorted(crop, int(vertex)))
+    local = int(np.searchsorted(crop, vertex))
     containing = [k for k in range(len(inst)) if local in set(np.asarray(inst.masks[k]).tolist())]
     if containing:
         k = max(containing, key=lambda j: float(inst.confidence[j]))

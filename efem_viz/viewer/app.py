@@ -271,12 +271,8 @@ class ViewerApp(ServedApp):
         return True
 
     def start_run(self, settings: RunSettings | None = None, **knobs: Any) -> Future[EMResult | None] | None:
-        """Run EFEM on the open scene in the worker thread (progress bar, cancel). Returns the job's Future.
-
-        Args:
-            settings: what to solve with (the Run tab's preset, proposals, seed and precision).
-            knobs: `RunSettings` fields instead of (or replacing those of) `settings`, e.g. `preset="fast"`.
-        """
+        """Run EFEM on the open scene in the worker thread (progress bar, cancel) with `RunSettings.of(settings,
+        **knobs)` (`knobs`: its fields, e.g. `preset="fast"`). Returns the job's Future."""
         settings = RunSettings.of(settings, **knobs)
         with self._lock:
             generation = self.session.begin_run()

@@ -100,15 +100,15 @@ def generate_scene(
     _check_arguments(config, mode=mode, split=split, n_objects=n_objects, voxel=voxel, image_size=image_size,
                      n_cameras=n_cameras)
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
-    t0 = time.perf_counter()
+    clock = [time.perf_counter()]  # the end of each stage
     rng = np.random.default_rng([int(seed), CONFIGS.index(config), 0x5CE7E])
     objs, structure = _draw_objects(config, seed, rng, n_objects=n_objects, distractors=distractors, split=split)
     objs, poses = _pose_objects(config, seed, objs, structure, rng)
-    t_pose = time.perf_counter()
+    clock.append(time.perf_counter())
     scan = _scan(config, objs, structure, rng, n_cameras=n_cameras, image_size=image_size, noise=noise)
-    t_scan = time.perf_counter()
+    clock.append(time.perf_counter())
     fused = _fuse(scan, mode=mode, voxel=voxel, what=f"scene {config}_{seed}")
-    t_fuse = time.perf_counter()
+    clock.append(time.perf_counter())
     labels = label_points(scan.raycaster, fused.points, n_fixtures=scan.n_fixtures, objects=objs,
                           tolerance=label_tolerance)
     provenance = _provenance(
@@ -116,25 +116,16 @@ def generate_scene(
         image_size=image_size, n_cameras=n_cameras, noise=noise, label_tolerance=label_tolerance, objs=objs,
         structure=structure, poses=poses, scan=scan, counts=labels.counts,
     )  # fmt: skip
-    stages = {
-        "poses": round(t_pose - t0, 3),
-        "scan": round(t_scan - t_pose, 3),
-        "fusion": round(t_fuse - t_scan, 3),
-        "labels": round(time.perf_counter() - t_fuse, 3),
-    }
+    clock.append(time.perf_counter())
+    stages = {k: round(b - a, 3) for k, a, b in zip(("poses", "scan", "fusion", "labels"), clock, clock[1:])}
     if timings is not None:
         timings.update(stages)
     logger.debug("scene %s_%d stages (s): %s", config, seed, stages)
-    return Scene.create(
-        name or f"{config}_{seed}",
-        fused.points.astype(np.float32),
-        normals=fused.normals.astype(np.float32),
-        colors=np.clip(np.round(fused.colors), 0, 255).astype(np.uint8),
-        faces=fused.faces,
-        instance=labels.instance,
-        categories=labels.categories,
-        provenance=json.loads(json.dumps(provenance)),
-    )
+    return Scene.create(name or f"{config}_{seed}", fused.points.astype(np.float32),
+                        normals=fused.normals.astype(np.float32),
+                        colors=np.clip(np.round(fused.colors), 0, 255).astype(np.uint8), faces=fused.faces,
+                        instance=labels.instance, categories=labels.categories,
+                        provenance=json.loads(json.dumps(provenance)))
 
 
 def _check_arguments(
