@@ -8,22 +8,29 @@ nearest) is returned, mapped back to the scene's vertex indices.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import re
 import threading
 from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
+
+from efem_viz.em.config import SolveSettings
 from efem_viz.prior.config import DEFAULT_PRIOR
 from efem_viz.prior.registry import PriorSet
 
 if TYPE_CHECKING:
+    from efem_viz.em.results import Instances
     from efem_viz.prior.config import ShapePriorLike
 
 log = logging.getLogger(__name__)
 
 _PRIORS = PriorSet()
 """The shipped priors click-to-segment used so far, each loaded once (`efem_viz.prior.registry.PriorSet`)."""
+
+SEGMENT_SETTINGS = SolveSettings(preset="real", proposals=12)
+"""The solve of a click: the real-capture preset, 12 proposals, one episode (`segment_at_point`)."""
 
 
 def available_priors() -> list[str]:
@@ -62,8 +69,8 @@ def segment_at_point(
     prior: ShapePriorLike | None = None,
     crop_radius: float = 0.16,
     anchor_radius: float = 0.03,
-    n_proposals: int = 12,
-    preset_name: str = "real",
+    n_proposals: int | None = None,
+    settings: SolveSettings = SEGMENT_SETTINGS,
     seed: int = 0,
     on_step: Callable[[Any], None] | None = None,
     cancel: threading.Event | None = None,
@@ -78,8 +85,10 @@ def segment_at_point(
         prior: an already loaded `ShapePrior` (tests), or None.
         crop_radius: metres; EM sees only points within this distance of the click.
         anchor_radius: metres; the proposals are anchored on points within this distance of the click.
-        n_proposals: proposals initialised (all anchored inside the crop).
-        preset_name: `efem_viz.em.preset` name the config starts from.
+        n_proposals: proposals initialised (all anchored inside the crop); None: `settings.proposals` (else the
+            preset's first-episode count).
+        settings: the solver knobs (preset, proposals, work_voxel, tau_out, matmul_dtype; `SolveSettings.config()`
+            builds the config). The crop runs one episode, of the first episode's proposal count.
         seed: EM seed.
         on_step: called with `efem_viz.em.StepInfo` after every EM step (progress).
         cancel: when set, EM stops at its next check and `efem_viz.em.solver.EMCancelled` is raised.
@@ -93,7 +102,7 @@ def segment_at_point(
     """
     from efem_viz._typeshims import cKDTree
     from efem_viz.data.scene import Scene
-    from efem_viz.em import preset, run_em
+    from efem_viz.em import run_em
 
     n = int(scene.num_points)
     if not 0 <= int(vertex) < n:
@@ -101,12 +110,15 @@ def segment_at_point(
     pts = np.asarray(scene.points, np.float32)
     centre = pts[int(vertex)]
     crop = np.sort(np.asarray(cKDTree(pts).query_ball_point(centre, crop_radius), np.int64))
-    cfg = preset(preset_name).replace(**overrides) if overrides else preset(preset_name)
+    if n_proposals is not None:
+        settings = dataclasses.replace(settings, proposals=int(n_proposals))
+    cfg = settings.config()
+    cfg = cfg.replace(**overrides) if overrides else cfg
     if len(crop) <= cfg.min_size:
         raise ValueError(
             f"only {len(crop)} points within {crop_radius:.2f} m of the click (EFEM needs > {cfg.min_size})"
         )
-    cfg = cfg.replace(n_init=(int(n_proposals),))
+    cfg = cfg.replace(n_init=(int(cfg.n_init[0]),))
     sub = Scene.create(
         f"{scene.name}_click{int(vertex)}",
         pts[crop],
@@ -120,11 +132,26 @@ def segment_at_point(
     torch.set_num_threads(max(1, min(2, torch.get_num_threads())))
     # crop-local indices within anchor_radius of the click (never empty: the clicked vertex is at distance 0)
     near = np.flatnonzero(np.linalg.norm(pts[crop] - centre, axis=1) <= max(float(anchor_radius), 0.0))
-    res = run_em(sub, pr, cfg, seed=seed, anchor_candidates=near, on_step=on_step, cancel=cancel)
-    inst = res.instances
+    res = run_em(sub, cfg=cfg, priors=[pr], seed=seed, anchor_candidates=near, on_step=on_step, cancel=cancel)
+    return _instance_at(res.instances, crop, int(vertex), centre)
+
+
+def _instance_at(inst: Instances, crop: np.ndarray, vertex: int, centre: np.ndarray) -> np.ndarray:
+    """The mask of the crop's instance under the click: the most confident one containing the clicked vertex, else
+    the one whose centre is nearest the click.
+
+    Args:
+        inst: the instances found in the crop.
+        crop: (C,) int64 sorted scene indices of the crop's points.
+        vertex: the clicked scene vertex (in `crop`).
+        centre: (3,) float32 its position, world frame.
+
+    Returns:
+        (K,) int32 sorted scene vertex indices; empty when there is no instance.
+    """
     if len(inst) == 0:
         return np.zeros(0, np.int32)
-    local = int(np.searchsorted(crop, int(vertex)))
+    local = int(np.searchsorted(crop, vertex))
     containing = [k for k in range(len(inst)) if local in set(np.asarray(inst.masks[k]).tolist())]
     if containing:
         k = max(containing, key=lambda j: float(inst.confidence[j]))

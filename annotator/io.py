@@ -233,7 +233,7 @@ def _read_ply_labels(p: Path, n: int) -> LabelData:
 def _check_npz_headers(p: Path, n: int) -> None:
     """The scene reader's `.npz` check: every array header agrees with the bytes its member holds (so numpy never
     allocates what a corrupt header claims)."""
-    from efem_viz.data.npz import check_npz_headers
+    from efem_viz.data.npz_guard import check_npz_headers
     from efem_viz.data.scene import DEFAULT_MAX_POINTS, SceneError
 
     try:

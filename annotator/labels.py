@@ -5,7 +5,7 @@ instance-table entries before and after. A delta is its own undo record (`Delta.
 after), so the whole history is a list of deltas that can be written to a journal and replayed
 (`annotator.journal`). `LabelSet` builds deltas for the operations the GUI offers (paint, erase, create, rename,
 recolour, hide, lock, delete, merge, import) without applying them, and `LabelSet.apply` / `undo` / `redo`
-apply them. `LabelSet` is not thread-safe: the app holds one lock around it (`annotator.journal.LabelStore`).
+apply them. `LabelSet` is not thread-safe: the app holds one lock around it (`annotator.store.LabelStore`).
 
 Label ids: 0 = unlabelled; instance ids are positive int32. Vertices of a *locked* or *hidden* instance are
 protected: paint, erase and fill leave them alone (one cannot change what one cannot see or has frozen).
@@ -158,11 +158,22 @@ class Delta:
 
 
 class StoredEdit(Protocol):
-    """An edit on the undo/redo history whose arrays live outside memory (`annotator.journal.JournalEdit`)."""
+    """An edit on the undo/redo history whose arrays live outside memory (`annotator.store.JournalEdit`)."""
 
-    label: str
-    group: str
-    seq: int
+    @property
+    def label(self) -> str:
+        """The edit's history label."""
+        ...
+
+    @property
+    def group(self) -> str:
+        """Its stroke group ("" for none)."""
+        ...
+
+    @property
+    def seq(self) -> int:
+        """The journal record that holds it."""
+        ...
 
     def load(self) -> Delta:
         """The full edit (raises when it can no longer be read)."""

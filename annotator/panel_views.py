@@ -9,12 +9,12 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple, Sequence
 
-from annotator.labels import Delta, InstanceInfo, unreviewed_prelabels
+from annotator.labels import HistoryEntry, InstanceInfo, unreviewed_prelabels
 from efem_viz.serve.table import cell as _md
 from efem_viz.serve.table import swatch as _swatch
 
 if TYPE_CHECKING:
-    from annotator.journal import LabelStore
+    from annotator.store import LabelStore
 
 NO_OPTIONS: tuple[str, ...] = ("(none)",)
 """Dropdown options while a list is empty (typed `str` so that the handles accept real options later)."""
@@ -39,7 +39,7 @@ class PanelView(NamedTuple):
     """Markdown: undo / redo counts and the last edits."""
 
 
-def undo_steps(stack: Sequence[Delta]) -> int:
+def undo_steps(stack: Sequence[HistoryEntry]) -> int:
     """Undo steps on a stack: adjacent deltas of one stroke group count once (what one Ctrl+Z undoes)."""
     steps = 0
     prev = None

@@ -1,6 +1,6 @@
 """The annotator's headless session: every labelling action on typed data, no viser, no GUI handle.
 
-`AnnotatorSession` opens one scan and its label store (`annotator.journal.LabelStore`: journal first, autosaved
+`AnnotatorSession` opens one scan and its label store (`annotator.store.LabelStore`: journal first, autosaved
 checkpoint, recovery) and does what the annotator does: paint and erase (dabs, strokes), region grow, fill, box
 and lasso select, instances (new, update, delete, merge, pick, cycle), undo/redo, import, export, EFEM pre-labels
 and their review, and click-to-segment with the shape prior (preview, accept, discard). It is the tools' host
@@ -46,7 +46,7 @@ from annotator.rooms.scan import ScanRoom
 from annotator.tools import DEFAULT_TOOLS, Hit, Tool, ToolSettings
 
 if TYPE_CHECKING:
-    from annotator.journal import LabelStore
+    from annotator.store import LabelStore
     from annotator.labels import Delta
     from annotator.selection import ScanGeometry
     from efem_viz.data.scene import Scene

@@ -115,7 +115,7 @@ def _counts(table: str) -> dict[int, int]:
 
 def _journal_without_last_records(out: Path, tmp: Path, n: int, drop: int = 1) -> dict[int, int]:
     """Counts of the state the journal holds without its last `drop` records (checkpoint ignored)."""
-    from annotator.journal import LabelStore
+    from annotator.store import LabelStore
 
     journal = next(out.glob("*.annotate/*.journal"))
     scratch = tmp / "scratch"
@@ -293,7 +293,7 @@ def _surface_file(folder: Path, n_side: int) -> Path:
 
 
 def bench_load(tmp: Path, clients: int, edits: int, n_side: int) -> dict[str, Any]:
-    from annotator.journal import LabelStore
+    from annotator.store import LabelStore
 
     scan = _surface_file(tmp / "load", n_side)
     d = tmp / "load-out"

@@ -39,7 +39,7 @@ def main() -> int:
     ap.add_argument("--edits", type=int, default=10)
     ap.add_argument("--history-mb", type=int, default=256)
     a = ap.parse_args()
-    from annotator.journal import LabelStore
+    from annotator.store import LabelStore
     from efem_viz.data.io import atomic_write_text
 
     out: dict[str, object] = {"machine": f"{platform.machine()}, {platform.processor() or 'cpu'}", "n": a.n,

@@ -185,7 +185,7 @@ def main() -> int:
 
         # Inspecting a proposal (weights re-derived from the stored latent, heat map, crop, samples, shape).
         t_mid = T // 2
-        ids, scores = tq.alive_table(trace, t_mid)
+        ids, scores = trace.alive_scores(t_mid)
         pid = int(tq.top_n(ids, scores, 1)[0])
         app.set_step(t_mid)
         app.wait_idle(300)

@@ -375,12 +375,14 @@ def test_efem_prelabels_import_and_review(spheres) -> None:
 
 def test_click_to_segment_previews_then_accepts(spheres) -> None:
     from annotator.assist import segment_at_point
+    from efem_viz.em.config import SolveSettings
 
     d, scene, prior = spheres
     g = int(scene.instance_ids()[0])
     members = np.flatnonzero(scene.instance == g)
     top = int(members[np.argmax(scene.points[members, 2])])
-    idx = segment_at_point(scene, top, prior=prior, preset_name="fast", n_proposals=8, crop_radius=0.1, min_size=30)
+    idx = segment_at_point(scene, top, prior=prior, settings=SolveSettings(preset="fast"), n_proposals=8,
+                           crop_radius=0.1, min_size=30)
     assert _iou(np.isin(np.arange(scene.num_points), idx), scene.instance == g) > 0.5
     a = AnnotatorApp(d / "spheres.ply", out_dir=d / "out_seg", port=0, autosave_delay=0)
     try:
@@ -659,7 +661,8 @@ def test_click_to_segment_progress_cancel_and_enter_esc(app: AnnotatorApp, monke
     seen: list[float] = []
     started = threading.Event()
 
-    def fake(scene: object, vertex: int, *, prior_name: str, on_step: object, cancel: threading.Event) -> np.ndarray:
+    def fake(scene: object, vertex: int, *, prior_name: str, on_step: object, cancel: threading.Event,
+             **_: object) -> np.ndarray:
         for i in range(4):
             on_step(SimpleNamespace(step=i, num_steps=4))  # type: ignore[operator]
             seen.append(float(app.panels.gui_seg_progress.value))

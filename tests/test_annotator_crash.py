@@ -19,14 +19,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from annotator.journal import LabelStore
+from annotator.store import LabelStore
 from annotator.labels import LabelSet
 
 N = 120_000
 CHILD = textwrap.dedent(
     """
     import sys, numpy as np
-    from annotator.journal import LabelStore
+    from annotator.store import LabelStore
     from annotator.labels import LabelSet
     sys.path.insert(0, {here!r})
     from test_annotator_crash import edit, N

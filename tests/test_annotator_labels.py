@@ -10,7 +10,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from annotator.journal import JournalError, LabelStore, read_label_file
+from annotator.journal import JournalError, read_label_file
+from annotator.store import LabelStore
 from annotator.labels import InstanceInfo, LabelSet
 
 N = 200

@@ -15,14 +15,15 @@ import numpy as np
 import pytest
 
 import annotator.journal as journal_mod
+import annotator.store as store_mod
 from annotator.journal import (
     MAGIC,
     JournalError,
-    LabelStore,
     read_label_file,
     remove_stale_temp_files,
     scan_fingerprint,
 )
+from annotator.store import LabelStore
 
 N = 500
 
@@ -259,7 +260,7 @@ def test_autosave_failure_is_reported_and_cleared(tmp_path: Path, monkeypatch: p
     seen: list[str | None] = []
     s = _store(tmp_path)
     s.problem_listeners.append(seen.append)
-    real = journal_mod.write_label_file
+    real = store_mod.write_label_file
     fail = {"on": True}
 
     def write_label_file(*a, **kw):
@@ -267,7 +268,7 @@ def test_autosave_failure_is_reported_and_cleared(tmp_path: Path, monkeypatch: p
             raise OSError(errno.ENOSPC, "No space left on device")
         return real(*a, **kw)
 
-    monkeypatch.setattr(journal_mod, "write_label_file", write_label_file)
+    monkeypatch.setattr(store_mod, "write_label_file", write_label_file)
     s.do(lambda ls: ls.create_instance())  # the edit itself is journalled and kept
     assert s.labelset.instances and s.problem and "No space left" in s.problem
     assert seen and seen[-1] == s.problem

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import subprocess
 import sys
 import threading
@@ -208,8 +209,12 @@ def test_click_to_segment_preview_accept_discard(session: AnnotatorSession,
                                                  monkeypatch: pytest.MonkeyPatch) -> None:
     import annotator.assist as assist
 
-    def fake(scene: object, vertex: int, *, prior_name: str, on_step: object, cancel: threading.Event) -> np.ndarray:
+    solves: list[object] = []
+
+    def fake(scene: object, vertex: int, *, prior_name: str, on_step: object, cancel: threading.Event,
+             settings: object) -> np.ndarray:
         assert prior_name == "bowl"
+        solves.append(settings)
         return np.arange(40, dtype=np.int32)
 
     monkeypatch.setattr(assist, "segment_at_point", fake)
@@ -218,7 +223,9 @@ def test_click_to_segment_preview_accept_discard(session: AnnotatorSession,
     session.on_segment = progress.append
     session.on_preview = lambda idx: redrawn.append(len(idx))
     session.settings.prior = "bowl"
+    session.assist.solve = dataclasses.replace(session.assist.solve, work_voxel=0.005, tau_out=0.06)
     mask = session.segment_at(5, wait=True)
+    assert solves == [session.assist.solve]  # the room's solver knobs reach the solve
     assert mask is not None and len(mask) == 40 and session.preview is not None and session.preview[:40].all()
     assert progress[0] == 0.0 and None in progress and redrawn == [40] and not session.segmenting
     d = session.accept_segment()

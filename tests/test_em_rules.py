@@ -12,7 +12,8 @@ import scipy.sparse as sp
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from efem_viz.em.config import EMConfig, preset, resolve_for_prior, schedule
+from efem_viz.em.config import EMConfig, preset, resolve_for_prior
+from efem_viz.em.estep import energy_weights, schedule
 from efem_viz.em.proposals import AvailableTree, Ragged, init_crops, lookup, sample_independent, sample_joint
 from efem_viz.em.rules import (
     REASON_DUPLICATE,
@@ -32,7 +33,6 @@ from efem_viz.em.rules import (
 )
 from efem_viz.em.solver import confidence
 from efem_viz.prior.config import CategorySettings, category_settings
-from efem_viz.em.trace import energy_weights
 
 N = 100
 

@@ -63,6 +63,29 @@ def test_events_are_complete_and_ordered(run: tuple) -> None:
             assert e.ratio < res.config.min_size
 
 
+def test_the_viewers_questions_are_trace_methods(run: tuple) -> None:
+    _, _, res = run
+    tr = res.trace
+    for t in (0, tr.num_steps - 1):
+        ids, scores = tr.alive_scores(t)
+        assert ids.dtype == np.int64 and scores.dtype == np.float64
+        np.testing.assert_array_equal(ids, tr.alive(t))
+        np.testing.assert_array_equal(scores, tr.row_stationary[tr.rows(t)])
+        pid = int(ids[0])
+        r = tr.row_of(pid, t)
+        assert r is not None
+        np.testing.assert_array_equal(tr.sample_indices(pid, t), tr.row_samples[r])
+        np.testing.assert_array_equal(tr.center_at(pid, t), tr.row_center[r])
+    for e in tr.events():
+        dead = e.reason != "survive"
+        assert tr.is_dead_at(e.proposal_id, e.step) == dead and not tr.is_dead_at(e.proposal_id, e.step - 1)
+        last = tr.last_step(e.proposal_id)
+        np.testing.assert_array_equal(tr.center_at(e.proposal_id, tr.num_steps - 1),
+                                      tr.row_center[tr.row_of(e.proposal_id, last)])
+        if e.step + 1 < tr.num_steps and dead:
+            assert tr.sample_indices(e.proposal_id, e.step + 1) is None
+
+
 def test_reviews_recorded_at_phase_ends(run: tuple) -> None:
     _, _, res = run
     tr = res.trace

@@ -140,8 +140,8 @@ def test_step_change_updates_samples_shapes_and_lists(app: Any) -> None:
     trace = app.state.result.trace
     app.set_step(0)
     assert app.wait_idle(60)
-    ids0, _ = tq.alive_table(trace, 0)
-    drawn0 = set(tq.top_n(*tq.alive_table(trace, 0), app.state.max_shapes).tolist())
+    ids0, _ = trace.alive_scores(0)
+    drawn0 = set(tq.top_n(*trace.alive_scores(0), app.state.max_shapes).tolist())
     assert {p for p, t in _visible_shapes(app)} == drawn0 and all(t == 0 for _, t in _visible_shapes(app))
     samples0 = np.array(app.nodes.samples.points)
     assert f"**{len(ids0)} alive**" in app.panels.gui_step_info.content
@@ -240,7 +240,7 @@ def test_colour_keys_tp_fp_boxes_and_grey_background(app: Any) -> None:
 def test_inspect_proposal_shows_fig_s9_views(app: Any) -> None:
     trace = app.state.result.trace
     app.set_step(2)
-    ids, _ = tq.alive_table(trace, 2)
+    ids, _ = trace.alive_scores(2)
     pid = int(ids[0])
     fut = app.select_proposal(pid)
     fut.result(timeout=60)

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from efem_viz.prior import analytic
-from efem_viz.viewer.session import FlyTarget, Inspection, PointColors, StepView, ViewerSession
+from efem_viz.viewer.session import FlyTarget, Inspection, PointColors, RunSettings, StepView, ViewerSession
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLES = ROOT / "sample_scenes"
@@ -268,12 +268,15 @@ def test_run_efem_with_progress(sphere_dir: Path, tmp_path: Path) -> None:
     assert res is not None and s.state.result is res and not s.state.running
     assert s.state.result_source.startswith("run (fast, seed 0, ") and steps
     assert all(0 <= int(i.step) < int(i.num_steps) for i in steps)
-    again = s.run(preset="fast", proposals=8, seed=0, show=False)
+    again = s.run(RunSettings(preset="fast", proposals=8, seed=0), show=False)  # the settings object: the same run
     assert again is not None and s.state.result is res  # not shown
     np.testing.assert_array_equal(again.instances.confidence, res.instances.confidence)  # fixed seed: same
     bf16 = s.run(preset="fast", proposals=8, seed=0, show=False, matmul_dtype="bfloat16")  # the Run tab's Precision
     assert bf16 is not None and bf16.config.matmul_dtype == "bfloat16" and res.config.matmul_dtype == "float32"
     assert s.run(preset="fast", proposals=8, matmul_dtype="float16") is None and "matmul_dtype" in s.state.error
+    with pytest.raises(TypeError):
+        s.run(bogus=1)  # a knob that is no RunSettings field
+    assert RunSettings.of(RunSettings(seed=2), tau_out=0.05, work_voxel=0.004).config().tau_out == 0.05
 
 
 def test_run_cancel_and_one_at_a_time(sphere_dir: Path, tmp_path: Path) -> None:

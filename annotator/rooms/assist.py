@@ -10,11 +10,13 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
+from annotator.assist import SEGMENT_SETTINGS
 from annotator.io import LabelData, LabelIOError, load_labels, resolve_inside
 from annotator.labels import Delta, prelabel_note, unreviewed_prelabels
 from efem_viz.data.io import RESULT_SUFFIX
 
 if TYPE_CHECKING:
+    from efem_viz.em.config import SolveSettings
     from annotator.rooms.context import SessionHooks, Toolbox
     from annotator.rooms.scan import ScanRoom
     from annotator.rooms.instances import InstanceRoom
@@ -34,6 +36,9 @@ class AssistRoom:
         """(K,) int32 vertices of the previewed segment, or None."""
         self.prelabel_cursor: int | None = None
         """The pre-label Next / Previous went to last (None: not used yet)."""
+        self.solve: SolveSettings = SEGMENT_SETTINGS
+        """The solver knobs of click-to-segment (preset, proposals, work_voxel, tau_out, matmul_dtype); the prior
+        is the tool's (`settings.prior`)."""
         self._segment_lock = threading.Lock()
         self._segment_cancel: threading.Event | None = None
 
@@ -152,8 +157,8 @@ class AssistRoom:
 
         t0 = time.perf_counter()
         try:
-            mask_idx = assist.segment_at_point(self.scan.scene, vertex, prior_name=prior_name, on_step=on_step,
-                                               cancel=cancel)
+            mask_idx = assist.segment_at_point(self.scan.scene, vertex, prior_name=prior_name, settings=self.solve,
+                                               on_step=on_step, cancel=cancel)
         except EMCancelled:
             self.hooks.notify("Segmenting cancelled", f"the segmentation around vertex {vertex} was stopped")
             return None

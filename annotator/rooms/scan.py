@@ -14,7 +14,8 @@ from pathlib import Path
 
 from annotator import selection as sel
 from annotator.io import MAX_SCAN_POINTS, LabelData, LabelIOError, load_labels, load_scan
-from annotator.journal import LabelStore, remove_stale_temp_files, scan_fingerprint
+from annotator.journal import remove_stale_temp_files, scan_fingerprint
+from annotator.store import LabelStore
 from annotator.labels import InstanceInfo
 from efem_viz.colors import instance_color
 

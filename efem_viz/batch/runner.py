@@ -115,7 +115,7 @@ def check_result_file(task: SceneTask, *, seed: int) -> str | None:
     """
     import numpy as np
 
-    from efem_viz.data.npz import check_npz_headers
+    from efem_viz.data.npz_guard import check_npz_headers
     from efem_viz.em.results import REQUIRED_RESULT_KEYS, RESULT_SCHEMA_VERSION
 
     p = task.result_path

@@ -77,7 +77,7 @@ class SceneWorker:
         t1 = time.perf_counter()
         self.prior_set = PriorSet.from_specs(list(job.priors), device=job.device)
         """The job's priors, loaded once (`efem_viz.prior.registry.PriorSet`)."""
-        self.priors: list[ShapePriorLike] = self.prior_set.run_priors() or [self.prior_set.primary()]
+        self.priors: list[ShapePriorLike] = self.prior_set.solve_priors()
         """The job's priors in the job's order (what `run_em(priors=...)` takes)."""
         self.prior_load_s = time.perf_counter() - t1
         for spec, prior in zip(job.priors, self.priors):

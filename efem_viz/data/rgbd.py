@@ -47,7 +47,7 @@ def load_rgbd_npz(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray,
         SceneError: missing file or arrays, a corrupt archive (an array header that disagrees with its member's
             bytes is refused before numpy allocates), wrong shapes or dtypes.
     """
-    from efem_viz.data.npz import check_npz_headers
+    from efem_viz.data.npz_guard import check_npz_headers
     from efem_viz.data.scene import DEFAULT_MAX_POINTS
 
     p = Path(path)

@@ -5,7 +5,8 @@ Light at import time (no torch): the solver imports torch inside its functions.
 
 from __future__ import annotations
 
-from efem_viz.em.config import PRESETS, EMConfig, preset, schedule
+from efem_viz.em.config import PRESETS, EMConfig, preset
+from efem_viz.em.estep import schedule
 from efem_viz.em.replay import TraceReplay
 from efem_viz.em.results import EMResult, Instances, ResultFileError
 from efem_viz.em.rules import REVIEW_RULES, STEP_RULES, Kill, ReviewRecord, ReviewRule, StepContext, StepRule

@@ -26,7 +26,7 @@ if TYPE_CHECKING:
     from efem_viz.prior.config import ShapePriorLike
 
 __all__ = ["DEFAULT_TAU_OUT", "MAX_TAU_OUT", "PRESETS", "EMConfig", "PresetName", "SolveSettings", "preset",
-           "resolve_for_prior", "schedule"]
+           "resolve_for_prior"]
 
 PresetName = Literal["synthetic", "real", "real_paper", "fast"]
 """Solver presets: the capture domain's settings; category settings (sizes, τ_out) come with each prior."""
@@ -306,24 +306,6 @@ class SolveSettings:
     def settings(self) -> dict[str, Any]:
         """These fields as keyword arguments (to build another `SolveSettings` subclass from them)."""
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(SolveSettings)}
-
-
-def schedule(cfg: EMConfig, t: int) -> tuple[float, float, float, float]:
-    """Annealed E-step parameters at local step t (efem-method.md §3.6.3).
-
-    Args:
-        cfg: solver config.
-        t: step index within the episode (0-based). Phase-2 steps (t >= t1) use the end values.
-
-    Returns:
-        (α_D, τ_D, α_N, τ_N).
-    """
-    lam = 1.0 if t >= cfg.t1 else min(t, cfg.end_step) / cfg.end_step
-
-    def lerp(p: tuple[float, float]) -> float:
-        return float(p[0] + (p[1] - p[0]) * lam)
-
-    return lerp(cfg.alpha_d), lerp(cfg.tau_d), lerp(cfg.alpha_n), lerp(cfg.tau_n)
 
 
 _SYNTHETIC = EMConfig()

@@ -16,7 +16,6 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from efem_viz.em.config import EMConfig
 from efem_viz.em.proposals import Ragged
 
 if TYPE_CHECKING:
@@ -197,14 +196,6 @@ def _decode_padded(
         d_out[flat_pos] = sdf.detach().float().cpu().reshape(-1).numpy()[vmask]
         i = j
     return d_out, g_out
-
-
-def normals_threshold(cfg: EMConfig, tau_d: float) -> float:
-    """The largest |d| at which a decoded normal can still matter at a step with SDF truncation `tau_d`."""
-    out = [tau_d, cfg.stat_tau]
-    if cfg.gamma_out < 180.0:
-        out.append(cfg.out_tau)
-    return float(max(out))
 
 
 def encode_samples(prior: "ShapePriorLike", pts: np.ndarray, *, batch: int = 30) -> dict[str, np.ndarray]:

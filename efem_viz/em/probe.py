@@ -16,8 +16,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from efem_viz.em.config import EMConfig, resolve_for_prior, schedule
+from efem_viz.em.config import EMConfig, resolve_for_prior
 from efem_viz.em.decoding import PriorTable
+from efem_viz.em.estep import schedule
 from efem_viz.em.proposals import AvailableTree, Ragged, init_crops
 from efem_viz.em.rules import size_counts
 

@@ -3,7 +3,7 @@
 An `EMTrace` is frozen arrays (em/trace.py). A `TraceReplay` binds one to the scene it ran on and the prior(s)
 it ran with, and re-derives the weights over the scene at any step (`weights_in`, `weights_out`) and the
 inspector's view of a proposal (`view`, the four views of Fig. S9) with the code the solver uses
-(`energy_weights`, `decode_rows`, `mesh_of_latent`), keeping the last views in an LRU cache. A run with several
+(`em.estep.energy_weights`, `decode_rows`, `mesh_of_latent`), keeping the last views in an LRU cache. A run with several
 priors decodes each proposal with its own prior (`EMTrace.prop_prior`).
 """
 
@@ -16,7 +16,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from efem_viz.em.proposals import AvailableTree
-from efem_viz.em.trace import EMTrace, ProposalView, energy_weights
+from efem_viz.em.estep import energy_weights, normals_threshold
+from efem_viz.em.trace import EMTrace, ProposalView
 
 if TYPE_CHECKING:
     from efem_viz.data.scene import Scene
@@ -166,7 +167,7 @@ class TraceReplay:
     def weights_out(self, proposal_id: int, step: int, prior: "PriorArg | None" = None, *, full_resolution: bool = True
                     ) -> np.ndarray:
         """(N,) float32 weights produced by the E-step of (proposal, step), re-derived from its latent."""
-        from efem_viz.em.decoding import decode_rows, latent_width, matmul_precision, normals_threshold, trim_latent
+        from efem_viz.em.decoding import decode_rows, latent_width, matmul_precision, trim_latent
 
         tr = self.trace
         pri = self.prior_of(proposal_id, prior)

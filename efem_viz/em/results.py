@@ -505,8 +505,8 @@ member of the archive is never inflated (issue 36: a 5 MB result with an extra 2
 
 def _check_npz_headers(p: Path) -> None:
     """Every array header of the archive agrees with the bytes its member holds, before numpy allocates for it
-    (the scene reader's check, `efem_viz.data.npz.check_npz_headers`, without its scene size limits)."""
-    from efem_viz.data.npz import check_npz_headers
+    (the scene reader's check, `efem_viz.data.npz_guard.check_npz_headers`, without its scene size limits)."""
+    from efem_viz.data.npz_guard import check_npz_headers
     from efem_viz.data.scene import SceneError
 
     try:

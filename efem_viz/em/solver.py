@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
-from efem_viz.em.config import EMConfig, resolve_for_prior, schedule
+from efem_viz.em.config import EMConfig, resolve_for_prior
 from efem_viz.em.decoding import (
     LatentArrays,
     PriorTable,
@@ -31,11 +31,11 @@ from efem_viz.em.decoding import (
     encode_rows,
     matmul_precision,
     mesh_of_latent,
-    normals_threshold,
     prior_device,
 )
+from efem_viz.em.estep import energy_weights, normals_threshold, schedule, stationary_score
 from efem_viz.em.replay import TraceReplay
-from efem_viz.em.proposals import AvailableTree, Ragged, init_crops, lookup, sample_independent, sample_joint
+from efem_viz.em.proposals import AvailableTree, Ragged, init_crops, sample_independent, sample_joint
 from efem_viz.em.rules import (
     REASON_SURVIVE,
     REVIEW_RULES,
@@ -50,7 +50,7 @@ from efem_viz.em.rules import (
     size_passes,
     up_passes,
 )
-from efem_viz.em.trace import TraceRecorder, energy_weights
+from efem_viz.em.trace import TraceRecorder
 
 if TYPE_CHECKING:
     import trimesh
@@ -498,12 +498,7 @@ class _Solver:
         t0 = self.timer.add("decode", t0)
         w, inlier = energy_weights(d, gamma, sched, out_value=cfg.out_value)
         inliers = np.bincount(rag.row[inlier], minlength=pool.size).astype(np.int32)
-        # stationary score: samples explained by the shape they produced (outside the ball: placeholder 1000)
-        pos = lookup(rag, np.repeat(np.arange(pool.size), self.m).reshape(pool.size, self.m), samples)
-        found = pos >= 0
-        pc = np.maximum(pos, 0)
-        hit = found & (np.abs(d[pc]) < cfg.stat_tau) & (gamma[pc] < cfg.stat_gamma) if len(d) else found
-        stationary = hit.mean(axis=1).astype(np.float32) if self.m else np.zeros(pool.size, np.float32)
+        stationary = stationary_score(rag, samples, d, gamma, tau=cfg.stat_tau, gamma_max=cfg.stat_gamma)
         pool.rag, pool.w, pool.d, pool.gamma = rag, w, d, gamma
         pool.latent, pool.stationary, pool.inliers = latent, stationary, inliers
         self.timer.add("score", t0)

@@ -8,7 +8,7 @@ phase) and proposal: pose, OBB, coverage, codebook similarity, scale radii, up a
 tentative mask and the mesh (vertices float16 relative to Θ_c, faces int32).
 
 Not stored: the weights over the scene and the decoded shapes. `em.replay.TraceReplay.view` re-derives them
-from the stored latents with the same code the solver uses (`energy_weights`), and caches the result (LRU). The weights that
+from the stored latents with the same code the solver uses (`em.estep.energy_weights`), and caches the result (LRU). The weights that
 produced step t's samples are `W_out` of step t−1; at the first step of an episode they are the crop mask.
 """
 
@@ -79,37 +79,6 @@ class ProposalView(NamedTuple):
     latent: dict[str, np.ndarray]
     category: str = ""
     """Category of the proposal's prior ("" for traces that predate category tables)."""
-
-
-def energy_weights(
-    d: np.ndarray,
-    gamma: np.ndarray,
-    sched: tuple[float, float, float, float],
-    *,
-    out_value: float = 100.0,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Truncated energies → new weights and inlier flags (efem-method.md §3.6.4–6).
-
-    Args:
-        d: (K,) canonical SDF values.
-        gamma: (K,) signed normal angles in degrees.
-        sched: (α_D, τ_D, α_N, τ_N).
-        out_value: U, the energy of a truncated term.
-
-    Returns:
-        w (K,) float32 = exp(−E_D − E_N) (NaN/Inf → 0), inlier (K,) bool = |d| ≤ τ_D and γ ≤ τ_N.
-    """
-    a_d, t_d, a_n, t_n = sched
-    ad = np.abs(np.asarray(d, np.float32))
-    g = np.asarray(gamma, np.float32)
-    ok_d = ad <= t_d
-    ok_n = g <= t_n
-    e = np.where(ok_d, np.float32(a_d) * ad, np.float32(out_value)) + np.where(
-        ok_n, np.float32(a_n) * g, np.float32(out_value)
-    )
-    w = np.exp(-e).astype(np.float32)
-    w[~(np.isfinite(w) & np.isfinite(ad) & np.isfinite(g))] = 0.0
-    return w, ok_d & ok_n
 
 
 def _ragged_to_npz(prefix: str, values: np.ndarray, offsets: np.ndarray, out: dict[str, np.ndarray]) -> None:
@@ -307,6 +276,40 @@ class EMTrace:
         if len(steps) == 0:
             return -1
         return int(np.searchsorted(self.row_offsets, steps[-1], side="right") - 1)
+
+    def alive_scores(self, step: int) -> tuple[np.ndarray, np.ndarray]:
+        """The proposals taking part in a step (live at its start) and their stationary scores.
+
+        Args:
+            step: global EM step.
+
+        Returns:
+            ((K,) int64 ids, (K,) float64 stationary scores).
+        """
+        rows = self.rows(int(step))
+        return np.asarray(self.row_id[rows], dtype=np.int64), np.asarray(self.row_stationary[rows], dtype=np.float64)
+
+    def sample_indices(self, proposal_id: int, step: int) -> np.ndarray | None:
+        """(M,) int64 scene-point indices sampled by a proposal at a step (None when it did not take part)."""
+        r = self.row_of(int(proposal_id), int(step))
+        return None if r is None else np.asarray(self.row_samples[r], dtype=np.int64).reshape(-1)
+
+    def is_dead_at(self, proposal_id: int, step: int) -> bool:
+        """True when the proposal was terminated (not accepted) at or before `step`."""
+        d = self.death(int(proposal_id))
+        return d is not None and d[1] != REASON_SURVIVE and int(d[0]) <= int(step)
+
+    def center_at(self, proposal_id: int, step: int) -> np.ndarray:
+        """(3,) float32 world centre Θ_c of a proposal at a step (its last recorded step if it died before).
+
+        Raises:
+            ValueError: the proposal has no record at that step.
+        """
+        s = min(int(step), int(self.last_step(int(proposal_id))))
+        r = self.row_of(int(proposal_id), s)
+        if r is None:
+            raise ValueError(f"proposal {proposal_id} has no record at step {s}")
+        return np.asarray(self.row_center[r], np.float32).reshape(3)
 
     def latent(self, proposal_id: int, step: int) -> dict[str, np.ndarray]:
         """The stored latent arrays of (proposal, step): R (C,3), inv (C,), center (3,), scale ()."""

@@ -310,7 +310,7 @@ class Codebook:
         """
         import json
 
-        from efem_viz.data.npz import check_npz_headers
+        from efem_viz.data.npz_guard import check_npz_headers
         from efem_viz.data.scene import SceneError
 
         path = Path(path)

@@ -214,6 +214,16 @@ class PriorSet:
                 _check_distinct_categories(self._extras)
             return [primary, *self._extras]
 
+    def solve_priors(self) -> list[ShapePriorLike]:
+        """The priors a solve started with this set passes to `run_em(priors=...)`: `run_priors()`, or the primary
+        alone (the one place that decides; `run_em` treats `priors=[p]` as `prior=p`).
+
+        Raises:
+            RuntimeError: the primary prior is unavailable.
+            ValueError, FileNotFoundError: an extra prior cannot be loaded (as `load_priors`).
+        """
+        return self.run_priors() or [self.primary()]
+
     def named(self, names: Sequence[str]) -> list[ShapePriorLike]:
         """The priors of a multi-prior run by category name: the priors loaded here where the name matches, the
         others loaded by that name once.

@@ -18,7 +18,7 @@ import contextlib
 import logging
 from concurrent.futures import Future
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Literal, Sequence, TypeVar
+from typing import TYPE_CHECKING, Any, Callable, Literal, Sequence, TypeVar
 
 import numpy as np
 
@@ -33,6 +33,7 @@ from efem_viz.viewer.events import wire
 from efem_viz.viewer.jobs import Jobs, Player
 from efem_viz.viewer.legend import color_key_html
 from efem_viz.viewer.nodes import VIEW_DIRECTION, SceneNodes
+from efem_viz.viewer.rooms.runs import RunSettings
 from efem_viz.viewer.panels import COLOR_MODES, MASK_BAND_RANGE, NO_PROPOSAL, VIEW_MODES, build_panels
 from efem_viz.viewer.session import DEFAULT_SCENE_DIR, ViewerSession, default_scene_dir  # noqa: F401 - re-export
 from efem_viz.viewer.state import ViewerState
@@ -270,21 +271,20 @@ class ViewerApp(ServedApp):
             return False
         return True
 
-    def start_run(self, *, preset: str = "fast", proposals: int | None = None, seed: int = 0,
-                  matmul_dtype: str = "float32") -> Future[EMResult | None] | None:
-        """Run EFEM on the open scene in the worker thread (progress bar, cancel). Returns the job's Future."""
+    def start_run(self, settings: RunSettings | None = None, **knobs: Any) -> Future[EMResult | None] | None:
+        """Run EFEM on the open scene in the worker thread (progress bar, cancel) with `RunSettings.of(settings,
+        **knobs)` (`knobs`: its fields, e.g. `preset="fast"`). Returns the job's Future."""
+        settings = RunSettings.of(settings, **knobs)
         with self._lock:
             generation = self.session.begin_run()
             if generation is None:
                 return None
             pv.show_running(self.panels, True)
-        return self._submit(self._runner, self._run_job, preset, proposals, seed, generation, matmul_dtype)
+        return self._submit(self._runner, self._run_job, settings, generation)
 
-    def _run_job(self, preset: str, proposals: int | None, seed: int, generation: int,
-                 matmul_dtype: str = "float32") -> EMResult | None:
+    def _run_job(self, settings: RunSettings, generation: int) -> EMResult | None:
         try:
-            result = self.session.run(preset=preset, proposals=proposals, seed=seed, show=False,
-                                      matmul_dtype=matmul_dtype,
+            result = self.session.run(settings, show=False,
                                       on_step=lambda info: pv.show_run_progress(self.panels, info),
                                       generation=generation)
         finally:

@@ -11,17 +11,20 @@ from __future__ import annotations
 import logging
 from concurrent.futures import Future
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Literal, Protocol, TypeVar
+from typing import TYPE_CHECKING, Any, Callable, Literal, Protocol, TypeVar, cast
 
 from efem_viz.serve.inputs import ClientValueError, read_bool, read_choice, read_int, read_number
 from efem_viz.serve.table import NO_ROW, option_id
 from efem_viz.viewer.panels import COLOR_MODES, VIEW_MODES
+from efem_viz.viewer.rooms.runs import RunSettings
 from efem_viz.viewer.texts import parse_pid
 
 if TYPE_CHECKING:
     from typing_extensions import TypeVarTuple, Unpack  # typing has them from Python 3.11 only
     from viser import ClientHandle, GuiInputHandle
 
+    from efem_viz.em.config import PresetName
+    from efem_viz.prior.config import MatmulDtype
     from efem_viz.viewer.panels import Panels
     from efem_viz.viewer.state import ViewerState, ViewMode
 
@@ -49,8 +52,7 @@ class ViewerControls(Protocol):
     def set_display(self, display: str) -> None: ...
     def set_color_mode(self, mode: str) -> None: ...
     def set_point_size(self, size_m: float) -> None: ...
-    def start_run(self, *, preset: str = ..., proposals: int | None = ..., seed: int = ...,
-                  matmul_dtype: str = ...) -> object: ...
+    def start_run(self, settings: RunSettings | None = ..., **knobs: Any) -> object: ...
     def cancel_run(self) -> None: ...
     def set_view_mode(self, mode: str) -> None: ...
     def set_step(self, step: int, *, view_mode: ViewMode = ...) -> None: ...
@@ -110,10 +112,10 @@ def wire(app: ViewerControls) -> None:
     p.gui_point_size.on_update(
         guard(lambda: app.set_point_size(read_number(p.gui_point_size, write_back=wb) / 1000.0)))
     p.gui_run.on_click(
-        guard(lambda: app.start_run(preset=read_choice(p.gui_preset),
-                                    proposals=read_int(p.gui_proposals, write_back=wb),
-                                    seed=read_int(p.gui_seed, write_back=wb),
-                                    matmul_dtype=read_choice(p.gui_precision)))
+        guard(lambda: app.start_run(RunSettings(preset=cast("PresetName", read_choice(p.gui_preset)),
+                                                proposals=read_int(p.gui_proposals, write_back=wb),
+                                                seed=read_int(p.gui_seed, write_back=wb),
+                                                matmul_dtype=cast("MatmulDtype", read_choice(p.gui_precision)))))
     )
     p.gui_cancel.on_click(guard(app.cancel_run))
     p.gui_load.on_click(guard(lambda: app.submit_work(app.load_trace)))

@@ -22,7 +22,7 @@ import numpy as np
 from efem_viz.colors import dim, instance_point_colors
 from efem_viz.em.replay import prior_latent
 from efem_viz.viewer.scenes import trace_path_for
-from efem_viz.viewer.trace_queries import alive_table, decode_shape, is_dead_at, proposal_samples, top_n
+from efem_viz.viewer.trace_queries import decode_shape, proposal_samples, top_n
 from efem_viz.terminal import count
 from efem_viz.viewer.legend import category_summary
 from efem_viz.viewer.nodes import (
@@ -179,7 +179,7 @@ def export_static_demo(
         api.add_label("/caption", text=f"{scene.name}: {count(int(np.asarray(trace.active_count)[0]) if T else 0, 'proposal')}", position=caption_pos)
         ser.insert_sleep(step_seconds)
         for t in range(T):
-            ids, scores = alive_table(trace, t)
+            ids, scores = trace.alive_scores(t)
             drawn = top_n(ids, scores, max_proposals)
             s_pts, s_cols = proposal_samples(trace, t, drawn, pts)
             if len(s_pts):
@@ -193,7 +193,7 @@ def export_static_demo(
                         continue
                     n_shapes += 1
                     add_shape_mesh(api, f"/em/shapes/p{int(pid)}", *shape, pid=int(pid),
-                                   dead=is_dead_at(trace, int(pid), t))
+                                   dead=trace.is_dead_at(int(pid), t))
             phase = int(np.asarray(trace.phase)[t])
             api.add_label("/caption", text=f"step {t}/{T - 1} · phase {phase} · {len(ids)} active", position=caption_pos)
             ser.insert_sleep(step_seconds)

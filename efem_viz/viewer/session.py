@@ -27,7 +27,7 @@ holds it while it draws. `run()` and `load_result()` are synchronous: the app ca
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 
@@ -46,7 +46,7 @@ from efem_viz.viewer.rooms.export import ExportRoom
 from efem_viz.viewer.rooms.inspect import Inspection, InspectRoom
 from efem_viz.viewer.rooms.instances import FlyTarget, InstanceRoom
 from efem_viz.viewer.rooms.results import PointColors, ResultRoom
-from efem_viz.viewer.rooms.runs import ProgressCallback, RunRoom
+from efem_viz.viewer.rooms.runs import ProgressCallback, RunRoom, RunSettings
 from efem_viz.viewer.rooms.scenes import SceneRoom
 from efem_viz.viewer.rooms.timeline import StepView, TimelineRoom
 
@@ -60,7 +60,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "BUNDLED_SCENE_DIR", "CHECKOUT_SCENE_DIR", "DEFAULT_SCENE_DIR", "REPO_ROOT", "FlyTarget", "Inspection",
-    "PointColors", "ProgressCallback", "StatusListener", "StepView", "ViewerSession", "default_scene_dir",
+    "PointColors", "ProgressCallback", "RunSettings", "StatusListener", "StepView", "ViewerSession", "default_scene_dir",
 ]
 
 
@@ -207,12 +207,10 @@ class ViewerSession(ViewerCore):
         """`RunRoom.begin_run`."""
         return self.runs.begin_run()
 
-    def run(self, *, preset: str = "fast", proposals: int | None = None, seed: int = 0,
-            on_step: ProgressCallback | None = None, show: bool = True,
-            generation: int | None = None, matmul_dtype: str = "float32") -> EMResult | None:
-        """`RunRoom.run`."""
-        return self.runs.run(preset=preset, proposals=proposals, seed=seed, on_step=on_step, show=show,
-                             generation=generation, matmul_dtype=matmul_dtype)
+    def run(self, settings: RunSettings | None = None, *, on_step: ProgressCallback | None = None,
+            show: bool = True, generation: int | None = None, **knobs: Any) -> EMResult | None:
+        """`RunRoom.run` with `settings`, or `RunSettings` fields as keywords (`run(preset="fast", seed=3)`)."""
+        return self.runs.run(RunSettings.of(settings, **knobs), on_step=on_step, show=show, generation=generation)
 
     def cancel_run(self) -> None:
         """`RunRoom.cancel_run`."""

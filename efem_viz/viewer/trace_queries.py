@@ -1,10 +1,10 @@
-"""What the viewer asks of a recorded run: the proposals of a step and their scores, a proposal's samples and
-centre, the deaths, the timeline's phase marks and the top-N proposals to draw, the drawn proposals' samples
-(`proposal_samples`) and a stored latent's decoded shape (`decode_shape`). Plain NumPy over an
-`efem_viz.em.EMTrace` (no viser, no drawing module: the headless sessions use them, and so do the scene nodes).
+"""What the viewer makes of a recorded run: the deaths as the panels list them, the timeline's phase marks, the
+top-N proposals to draw, the drawn proposals' samples coloured by proposal (`proposal_samples`) and a stored
+latent's decoded shape (`decode_shape`). Plain NumPy over an `efem_viz.em.EMTrace` (no viser, no drawing module:
+the headless sessions use them, and so do the scene nodes).
 
-These queries belong to the trace (`EMTrace` / `TraceReplay` methods, issue 23 item 2); they wait here, in one
-place, until efem_viz/em/trace.py can take them.
+The questions that are the trace's own are `EMTrace` methods: `alive_scores(step)` (a step's proposals and their
+stationary scores), `sample_indices(pid, step)`, `is_dead_at(pid, step)`, `center_at(pid, step)`.
 """
 
 from __future__ import annotations
@@ -86,28 +86,6 @@ class Death:
     ratio: float | None = None
 
 
-def alive_table(trace: EMTrace, step: int) -> tuple[np.ndarray, np.ndarray]:
-    """Proposals taking part in a step (live at its start) and their stationary scores.
-
-    Args:
-        trace: an `efem_viz.em.EMTrace`.
-        step: global EM step.
-
-    Returns:
-        ((K,) int64 ids, (K,) float64 stationary scores).
-    """
-    rows = trace.rows(int(step))
-    ids = np.asarray(trace.row_id[rows], dtype=np.int64)
-    scores = np.asarray(trace.row_stationary[rows], dtype=np.float64)
-    return ids, scores
-
-
-def sample_indices(trace: EMTrace, pid: int, step: int) -> np.ndarray | None:
-    """(M,) int64 scene-point indices sampled by proposal `pid` at `step` (None when it did not take part)."""
-    r = trace.row_of(int(pid), int(step))
-    return None if r is None else np.asarray(trace.row_samples[r], dtype=np.int64).reshape(-1)
-
-
 def deaths(trace: EMTrace) -> list[Death]:
     """Every terminated proposal with its step and reason (accepted survivors excluded), in order of death."""
     out: list[Death] = []
@@ -128,21 +106,6 @@ def deaths(trace: EMTrace) -> list[Death]:
     return out
 
 
-def is_dead_at(trace: EMTrace, pid: int, step: int) -> bool:
-    """True when the proposal was terminated (not accepted) at or before `step`."""
-    d = trace.death(int(pid))
-    return d is not None and d[1] != "survive" and int(d[0]) <= int(step)
-
-
-def proposal_center(trace: EMTrace, pid: int, step: int) -> np.ndarray:
-    """(3,) float32 world centre Θ_c of a proposal at a step (its last recorded step if it died before)."""
-    s = min(int(step), int(trace.last_step(int(pid))))
-    r = trace.row_of(int(pid), s)
-    if r is None:
-        raise ValueError(f"proposal {pid} has no record at step {s}")
-    return np.asarray(trace.row_center[r], np.float32).reshape(3)
-
-
 def proposal_samples(
     trace: EMTrace, step: int, drawn: np.ndarray, points: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -160,7 +123,7 @@ def proposal_samples(
     cols = instance_colors(drawn)
     pts_list, col_list = [], []
     for k, pid in enumerate(np.asarray(drawn).reshape(-1)):
-        idx = sample_indices(trace, int(pid), int(step))
+        idx = trace.sample_indices(int(pid), int(step))
         if idx is None or idx.size == 0:
             continue
         idx = np.unique(idx)

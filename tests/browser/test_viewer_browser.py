@@ -208,7 +208,7 @@ def test_guide_proposals_tab(viewer: Any, page: Any) -> None:
     trace = viewer.state.result.trace
     t = min(2, trace.num_steps - 1)
     viewer.set_step(t)
-    ids, scores = tq.alive_table(trace, t)
+    ids, scores = trace.alive_scores(t)
     viewer.select_proposal(int(tq.top_n(ids, scores, 1)[0])).result(timeout=120)
     assert viewer.wait_idle(120)
     page.get_by_role("tab", name="Proposals").click()

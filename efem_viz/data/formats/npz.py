@@ -1,7 +1,7 @@
 """The native scene `.npz` (the arrays of `Scene.to_npz_dict`, with `schema_version`); an `.npz` holding an RGB-D
 frame (`depth_mm` or `depth`, `K`, optional `rgb`) instead of a scene is imported with
 `efem_viz.data.rgbd.import_rgbd_file` and its default settings. Array headers are checked before anything is read
-(`efem_viz.data.npz.check_npz_headers`).
+(`efem_viz.data.npz_guard.check_npz_headers`).
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from typing import Any, cast
 import numpy as np
 
 from efem_viz.data.formats.common import parse_categories
-from efem_viz.data.npz import check_npz_headers
+from efem_viz.data.npz_guard import check_npz_headers
 from efem_viz.data.scene import DEFAULT_MAX_POINTS, SCENE_SCHEMA_VERSION, Scene, SceneError
 
 def scene_from_npz(data: Any, *, name: str | None = None, max_points: int = DEFAULT_MAX_POINTS) -> Scene:

@@ -8,7 +8,6 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 
 from efem_viz.colors import DEAD_COLOR, heatmap, instance_colors
-from efem_viz.viewer.trace_queries import proposal_center
 
 if TYPE_CHECKING:
     from efem_viz.em.trace import ProposalView
@@ -88,7 +87,7 @@ class InspectRoom:
         scene, result = s.require_scene(), s.require_result()
         w = np.asarray(view.weights, np.float32).reshape(-1)
         r_err = float(result.trace.prop_r_err[pid])
-        center = proposal_center(result.trace, pid, t)
+        center = result.trace.center_at(pid, t)
         near = np.flatnonzero(np.linalg.norm(scene.points - center[None], axis=1) <= r_err)
         col = instance_colors([pid])[0] if view.alive else DEAD_COLOR  # red once terminated (paper Fig. S9)
         return Inspection(pid=int(pid), step=t, view=view, crop_points=scene.points[near],

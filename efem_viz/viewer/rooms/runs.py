@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
-from typing import TYPE_CHECKING, Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Callable
+
+from efem_viz.em.config import PresetName, SolveSettings
 
 if TYPE_CHECKING:
     from efem_viz.em.results import EMResult
@@ -16,6 +20,27 @@ logger = logging.getLogger(__name__)
 
 ProgressCallback = Callable[["StepInfo"], None]
 """Called after each EM step with the solver's step info (`step`, `num_steps`, `phase`, `active`, `elapsed_s`)."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class RunSettings(SolveSettings):
+    """What a viewer run solves with: the solver knobs of `SolveSettings` (preset, proposals, work_voxel, tau_out,
+    matmul_dtype; `config()` builds the `EMConfig`) and the seed. The Run tab fills preset, proposals, seed and
+    precision; a script may set every field."""
+
+    preset: PresetName = "fast"
+    """Solver configuration (`efem_viz.em.preset` name); the viewer's default is the quick one."""
+    seed: int = 0
+    """The run's seed."""
+
+    @classmethod
+    def of(cls, settings: RunSettings | None = None, **knobs: Any) -> RunSettings:
+        """`settings` with the given fields replaced (a fresh `RunSettings` from `knobs` when None).
+
+        Raises:
+            TypeError: a knob that is not a field.
+        """
+        return cls(**knobs) if settings is None else dataclasses.replace(settings, **knobs)
 
 
 class RunRoom:
@@ -43,16 +68,12 @@ class RunRoom:
             self.core.cancel_event.clear()
             return self.core.generation
 
-    def run(self, *, preset: str = "fast", proposals: int | None = None, seed: int = 0,
-            on_step: ProgressCallback | None = None, show: bool = True,
-            generation: int | None = None, matmul_dtype: str = "float32") -> EMResult | None:
+    def run(self, settings: RunSettings | None = None, *, on_step: ProgressCallback | None = None, show: bool = True,
+            generation: int | None = None) -> EMResult | None:
         """Run EFEM on the open scene (synchronously; `cancel_run()` from another thread stops it).
 
         Args:
-            preset: an `efem_viz.em.preset` name.
-            proposals: the initial proposal count (None: the preset's).
-            seed: the run's seed.
-            matmul_dtype: `EMConfig.matmul_dtype` ("float32" or "bfloat16").
+            settings: preset, proposals, seed, precision, ... (None: `RunSettings()`, the "fast" preset).
             on_step: called after each EM step with the solver's step info.
             show: show the result when done (unless the scene changed meanwhile).
             generation: the ticket of a `begin_run()` already called (None: begin here).
@@ -62,13 +83,14 @@ class RunRoom:
         """
         from efem_viz.em import EMCancelled
 
+        settings = settings if settings is not None else RunSettings()
         if generation is None:
             generation = self.begin_run()
             if generation is None:
                 return None
         t0 = time.perf_counter()
         try:
-            result = self._solve(preset, proposals=proposals, seed=seed, on_step=on_step, matmul_dtype=matmul_dtype)
+            result = self._solve(settings, on_step=on_step)
         except EMCancelled:
             self.core.set_status("Run cancelled.")
             return None
@@ -81,28 +103,22 @@ class RunRoom:
         if generation != self.core.generation:
             logger.info("scene changed during the run; result dropped")
             return None
-        self.last_run_source = f"run ({preset}, seed {seed}, {time.perf_counter() - t0:.1f} s)"
+        self.last_run_source = f"run ({settings.preset}, seed {settings.seed}, {time.perf_counter() - t0:.1f} s)"
         if show:
             self.results.set_result(result, source=self.last_run_source)
         return result
 
-    def _solve(self, preset: str, *, proposals: int | None, seed: int, on_step: ProgressCallback | None,
-               matmul_dtype: str) -> EMResult:
+    def _solve(self, settings: RunSettings, *, on_step: ProgressCallback | None) -> EMResult:
         """The EFEM solve of a run on the open scene (its status line says what runs); raises what `run_em` raises."""
-        from efem_viz.em import preset as make_preset, run_em
+        from efem_viz.em import run_em
 
         scene = self.core.state.require_scene()
-        cfg = make_preset(preset)
-        if proposals is not None:
-            cfg = cfg.with_proposals(int(proposals))
-        cfg = cfg.replace(matmul_dtype=matmul_dtype)
-        self.core.set_status(f"Running EFEM ({preset}, {cfg.n_init[0]} proposals, seed {seed}"
-                             f"{', bf16' if matmul_dtype == 'bfloat16' else ''}) …")
-        prior = self.core.prior()
-        priors = self.core.priors.run_priors()
-        if priors is None:
-            return run_em(scene, prior, cfg, seed=int(seed), on_step=on_step, cancel=self.core.cancel_event)
-        return run_em(scene, cfg=cfg, priors=priors, seed=int(seed), on_step=on_step, cancel=self.core.cancel_event)
+        cfg = settings.config()
+        self.core.set_status(f"Running EFEM ({settings.preset}, {cfg.n_init[0]} proposals, seed {settings.seed}"
+                             f"{', bf16' if settings.matmul_dtype == 'bfloat16' else ''}) …")
+        priors = self.core.priors.solve_priors()
+        return run_em(scene, cfg=cfg, priors=priors, seed=int(settings.seed), on_step=on_step,
+                      cancel=self.core.cancel_event)
 
     def cancel_run(self) -> None:
         """Ask a running EM to stop at its next step."""

@@ -6,7 +6,7 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from efem_viz.viewer.trace_queries import alive_table, decode_shape, is_dead_at, proposal_samples, top_n
+from efem_viz.viewer.trace_queries import decode_shape, proposal_samples, top_n
 
 if TYPE_CHECKING:
     from efem_viz.viewer.rooms.core import ViewerCore
@@ -38,7 +38,7 @@ class TimelineRoom:
         if s.result is None:
             return None
         t = int(np.clip(s.step if step is None else step, 0, max(s.num_steps - 1, 0)))
-        ids, scores = alive_table(s.result.trace, t)
+        ids, scores = s.result.trace.alive_scores(t)
         return StepView(t, ids, scores, top_n(ids, scores, s.max_shapes))
 
     def set_step(self, step: int) -> StepView | None:
@@ -89,4 +89,4 @@ class TimelineRoom:
 
     def is_dead_at(self, pid: int, step: int) -> bool:
         """Whether proposal `pid` has been eliminated by `step`."""
-        return is_dead_at(self.core.state.require_result().trace, pid, step)
+        return self.core.state.require_result().trace.is_dead_at(pid, step)
