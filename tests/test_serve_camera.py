@@ -18,7 +18,7 @@ from efem_viz.serve.camera import (
     VISER_FOV,
     CameraGuard,
     fitted_view,
-    framing_bounds,
+    framing,
     view_lost,
 )
 
@@ -77,15 +77,22 @@ def test_fitted_view_frames_the_box_tightly(seed: int) -> None:
     assert max(ex, ey) == pytest.approx(FIT_FILL, rel=1e-6), (ex, ey)
 
 
-def test_framing_bounds_ignore_stray_points() -> None:
+def test_framing_ignore_stray_points() -> None:
     """A real scan's few far points (a wall pixel 5 m away) do not make the framed box five metres wide."""
     rng = np.random.default_rng(0)
     table = rng.uniform([-0.4, -0.3, 0.0], [0.4, 0.3, 0.2], size=(20_000, 3))
     stray = rng.uniform(4.0, 5.0, size=(50, 3))
-    lo, hi = framing_bounds(np.concatenate([table, stray]))
-    assert np.all(hi < 0.45) and np.all(lo > -0.45)
+    lo, hi, sample = framing(np.concatenate([table, stray]))
+    assert np.all(hi < 0.45) and np.all(lo > -0.45) and len(sample) > 15_000 and np.all(sample < 0.45)
+    # a flat table seen from above is framed by its points, closer than by its box
+    v_pts = fitted_view(lo, hi, points=sample)
+    v_box = fitted_view(lo, hi)
+    assert np.linalg.norm(np.subtract(v_pts.position, v_pts.look_at)) < np.linalg.norm(
+        np.subtract(v_box.position, v_box.look_at))
+    ex, ey = _screen_extent(v_pts, sample)
+    assert max(ex, ey) == pytest.approx(FIT_FILL, rel=1e-6)
     with pytest.raises(ValueError):
-        framing_bounds(np.zeros((0, 3)))
+        framing(np.zeros((0, 3)))
 
 
 @pytest.fixture()
@@ -167,8 +174,8 @@ def test_the_viewer_fits_every_camera_on_a_scene_change(tmp_path: Path) -> None:
             handle = next(iter(app.server.get_clients().values()))
             for name in ("a", "b"):
                 assert app.open_scene(name)
-                lo, hi = framing_bounds(app.state.scene.points)
-                view = fitted_view(lo, hi, direction=(0.5, -0.95, 0.85))
+                lo, hi, sample = framing(app.state.scene.points)
+                view = fitted_view(lo, hi, direction=(0.5, -0.95, 0.85), points=sample)
                 assert np.allclose(handle.camera.look_at, view.look_at, atol=1e-5), (name, handle.camera.look_at)
                 assert np.allclose(handle.camera.position, view.position, atol=1e-5), name
             client.send(_camera_message((3.1, 3.0, 3.0), (3.5, 2.0, 4.0)))

@@ -73,9 +73,10 @@ FIT_FILL = 0.85
 
 def fitted_view(lo: Sequence[float] | np.ndarray, hi: Sequence[float] | np.ndarray, *,
                 direction: Sequence[float] | np.ndarray = (0.5, -0.95, 0.85), fov: float = VISER_FOV,
-                aspect: float = FIT_ASPECT, fill: float = FIT_FILL) -> View:
+                aspect: float = FIT_ASPECT, fill: float = FIT_FILL, points: np.ndarray | None = None) -> View:
     """The view that shows a whole scene, framed the way a person would: looking at its box centre from
-    `direction`, just far enough away that all eight corners of the box fall inside `fill` of the view.
+    `direction`, just far enough away that all eight corners of the box (or, given `points`, the scan itself)
+    fall inside `fill` of the view.
 
     Args:
         lo: (3,) min corner of the scene's box, world frame.
@@ -85,6 +86,8 @@ def fitted_view(lo: Sequence[float] | np.ndarray, hi: Sequence[float] | np.ndarr
         fov: vertical field of view of the camera (radians).
         aspect: width / height of the view planned for.
         fill: fraction of the view's height (or width) the box may span.
+        points: (N, 3) world points of the scene (a sample is enough) to frame instead of the box's corners: a
+            flat table seen from above spans much less of the view than its box.
 
     Raises:
         ValueError: a corner is not 3 finite numbers, or `direction` is zero.
@@ -106,8 +109,11 @@ def fitted_view(lo: Sequence[float] | np.ndarray, hi: Sequence[float] | np.ndarr
         right = np.array([1.0, 0.0, 0.0])
     right /= np.linalg.norm(right)
     cam_up = np.cross(right, forward)
-    corners = np.array([[x, y, z] for x in (lo_a[0], hi_a[0]) for y in (lo_a[1], hi_a[1])
-                        for z in (lo_a[2], hi_a[2])]) - centre
+    if points is not None and len(points):
+        corners = np.asarray(points, np.float64).reshape(-1, 3) - centre
+    else:
+        corners = np.array([[x, y, z] for x in (lo_a[0], hi_a[0]) for y in (lo_a[1], hi_a[1])
+                            for z in (lo_a[2], hi_a[2])]) - centre
     tan_v = np.tan(0.5 * float(fov)) * float(fill)
     tan_h = tan_v * float(aspect)
     # a corner at offset p is inside when |p·right| <= tan_h (d - p·u) and |p·cam_up| <= tan_v (d - p·u)
@@ -117,9 +123,11 @@ def fitted_view(lo: Sequence[float] | np.ndarray, hi: Sequence[float] | np.ndarr
     return View(xyz_tuple(centre), xyz_tuple(centre + dist * u))
 
 
-def framing_bounds(points: np.ndarray, *, keep: float = 0.99, sample: int = 200_000, seed: int = 0) -> np.ndarray:
-    """(2, 3) corners of the box a camera frames: the central `keep` of the points along each axis (a few stray
-    points of a real scan, a far wall pixel, do not shrink the scene to a speck), from at most `sample` points.
+def framing(points: np.ndarray, *, keep: float = 0.99, sample: int = 20_000,
+            seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What a camera frames of a scan: (lo (3,), hi (3,), sample (M, 3)): the box of the central `keep` of the
+    points along each axis (a few stray points of a real scan, a far wall pixel, do not shrink the scene to a
+    speck) and at most `sample` of the points inside it, for `fitted_view(lo, hi, points=sample)`.
 
     Args:
         points: (N, 3) world frame.
@@ -135,9 +143,11 @@ def framing_bounds(points: np.ndarray, *, keep: float = 0.99, sample: int = 200_
         raise ValueError(f"need (N, 3) points, got {pts.shape}")
     if len(pts) > sample:
         pts = pts[np.random.default_rng(seed).choice(len(pts), size=sample, replace=False)]
+    pts = pts.astype(np.float64)
     q = 100.0 * (1.0 - float(keep)) / 2.0
     lo, hi = np.percentile(pts, [q, 100.0 - q], axis=0)
-    return np.stack([lo, hi])
+    inside = np.all((pts >= lo) & (pts <= hi), axis=1)
+    return lo, hi, pts[inside]
 
 
 FLY_TO_DISTANCE = 1.8

@@ -25,7 +25,7 @@ import numpy as np
 from efem_viz.data.scene import DEFAULT_MAX_POINTS
 from efem_viz.prior.config import DEFAULT_PRIOR
 from efem_viz.prior.registry import PriorSet
-from efem_viz.serve.camera import CameraGuard, fitted_view, fly_to_view, framing_bounds
+from efem_viz.serve.camera import CameraGuard, fitted_view, fly_to_view, framing
 from efem_viz.serve.guard import ServedApp
 from efem_viz.serve.inputs import read_text, resolve_inside_root
 from efem_viz.viewer import panel_views as pv, scene_views as sv, state as st
@@ -221,8 +221,8 @@ class ViewerApp(ServedApp):
             self.gui_set(self.panels.gui_point_size, float(np.clip(round(s.point_size * 2000) / 2, 0.5, 20.0)))
             pv.show_scene_info(self.panels, self.session)
             lo, hi = scene.bounds  # the initial camera (new clients, "Reset view") and every connected one
-            flo, fhi = framing_bounds(scene.points)
-            self.camera_guard.set_scene(fitted_view(flo, fhi, direction=VIEW_DIRECTION), lo, hi)
+            flo, fhi, sample = framing(scene.points)
+            self.camera_guard.set_scene(fitted_view(flo, fhi, direction=VIEW_DIRECTION, points=sample), lo, hi)
             self._draw_no_result()
             self.session.set_status(f"Opened {entry.name} ({scene.num_points:,} points).")
         if self.session.saved_result_path() is not None:

@@ -29,8 +29,8 @@ from efem_viz.viewer.nodes import (
     add_result_nodes,
     add_sample_cloud,
     add_shape_mesh,
+    VIEW_DIRECTION,
     default_point_size,
-    default_view,
     scene_diagonal,
 )
 
@@ -143,7 +143,7 @@ def export_static_demo(
         ClientValueError: a path the export would write leaves `root` (nothing was written).
     """
     from efem_viz.serve.guard import start_server
-    from efem_viz.serve.camera import framing_bounds
+    from efem_viz.serve.camera import fitted_view, framing
 
     out = Path(out_dir).expanduser()
     if root is not None:
@@ -171,7 +171,9 @@ def export_static_demo(
         api = server.scene
         api.set_up_direction("+z")
         cam = server.initial_camera  # recorded: the page opens looking at the scene
-        cam.look_at, cam.position = default_view(*framing_bounds(pts))
+        flo, fhi, sample = framing(pts)
+        view = fitted_view(flo, fhi, direction=VIEW_DIRECTION, points=sample)  # the live viewer's framing
+        cam.look_at, cam.position = view.look_at, view.position
         cam.up = (0.0, 0.0, 1.0)
         cloud = api.add_point_cloud(
             "/scene/points", points=pts[keep], colors=dim(scene.colors[keep]), point_size=psize, point_shape="rounded"

@@ -82,13 +82,6 @@ def default_point_size(diagonal: float) -> float:
     return max(float(diagonal) * POINT_SIZE_OF_DIAGONAL, 1e-4)
 
 
-def default_view(lo: np.ndarray, hi: np.ndarray) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
-    """(look_at, position) of the initial camera for a scene with bounds `lo`, `hi` ((3,) world, +Z up): the
-    live viewer's fitted view (`efem_viz.serve.camera.fitted_view` from `VIEW_DIRECTION`)."""
-    view = fitted_view(lo, hi, direction=VIEW_DIRECTION)
-    return view.look_at, view.position
-
-
 def add_sample_cloud(
     api: SceneApi, points: np.ndarray, colors: np.ndarray, *, point_size: float, visible: bool = True
 ) -> PointCloudHandle:
