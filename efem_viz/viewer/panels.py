@@ -129,7 +129,6 @@ def build_panels(gui: GuiApi, *, scene_names: list[str], out_dir: str) -> Panels
     """
     import plotly.graph_objects as go
 
-    status = gui.add_markdown("")
     tabs = gui.add_tab_group()
 
     with tabs.add_tab("Scene"):
@@ -202,6 +201,8 @@ def build_panels(gui: GuiApi, *, scene_names: list[str], out_dir: str) -> Panels
         export_results = gui.add_button("Export results", hint="ScanNet layout + coloured PLY")
         export_static = gui.add_button("Export static demo", hint="<output folder>/static/<scene>/index.html")
         export_info = gui.add_markdown("")
+    # below the tabs: a status line that changes length never moves a tab or a button (issue 37 item 12)
+    status = gui.add_markdown("")
 
     return Panels(
         gui_status=status,

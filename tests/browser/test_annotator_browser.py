@@ -569,3 +569,23 @@ def test_typing_a_category_is_one_edit_and_the_field_shows_what_is_stored(keyed:
     wait_until(lambda: app.session.settings.active_id != iid, 20, "a new instance (N)")
     wait_until(lambda: app.session.store.labelset.info(iid).name == "left box", 20, "the typed name stored")
     assert app.session.store.labelset.info(app.session.settings.active_id).category == "box"
+
+
+def test_growing_table_and_history_move_no_button(keyed: tuple[Any, Any]) -> None:
+    """Issue 37 item 12: pre-label buttons moved after each Accept/Reject (the instance table above them grew) and a
+    second click on *Next ▶* hit *◀ Previous*. The table and the history now sit below every button."""
+    app, page = keyed
+    page.get_by_text("EFEM assist", exact=True).first.click()  # the folder starts collapsed
+    buttons = [page.get_by_role("button", name=n, exact=True) for n in ("Next pre-label ▶", "Accept", "Undo (Ctrl+Z)")]
+    buttons[0].wait_for(timeout=20_000)
+    before = [b.bounding_box() for b in buttons]
+    n0 = len(app.session.store.labelset.instances)
+    for _ in range(6):  # six more rows in the table, six more lines in the history
+        app.session.new_instance(category="mug")
+    app.session.paint(np.arange(20))
+    wait_until(lambda: page.get_by_text(f"{n0 + 6} ", exact=False).count() > 0, 20, "the table's new rows")
+    page.wait_for_timeout(300)
+    after = [b.bounding_box() for b in buttons]
+    for b0, b1 in zip(before, after):
+        assert b0 is not None and b1 is not None and abs(b1["y"] - b0["y"]) < 1.0, (b0, b1)
+    page.get_by_text("EFEM assist", exact=True).first.click()

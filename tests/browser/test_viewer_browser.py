@@ -361,3 +361,18 @@ def test_run_tab_precision_and_run_button(viewer: Any, page: Any) -> None:
                "the run's result shown")
     cfg = viewer.state.result.config
     assert cfg.matmul_dtype == "bfloat16" and cfg.n_init[0] == 12
+
+
+def test_a_changing_status_moves_no_button(viewer: Any, page: Any) -> None:
+    """Issue 37 item 12: the status line sat above the tabs, so a longer or shorter status pushed every tab and
+    button by 19-38 px between two clicks. It now sits below them: the Run tab's buttons stay where they were."""
+    _open(page, viewer, canvas=False)
+    page.get_by_role("tab", name="Run").click()
+    run = page.get_by_role("button", name="Run EFEM")
+    viewer.session.set_status("short")
+    page.wait_for_timeout(300)
+    before = run.bounding_box()
+    viewer.session.set_status("a much longer status line " * 12 + "\n\nwith a second paragraph")
+    page.get_by_text("with a second paragraph").wait_for(timeout=20_000)
+    after = run.bounding_box()
+    assert before is not None and after is not None and abs(after["y"] - before["y"]) < 1.0, (before, after)
