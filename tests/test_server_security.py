@@ -503,8 +503,8 @@ def test_annotator_text_fields_are_bounded(annotator: AnnotatorApp) -> None:
 
 def test_viewer_clamps_raw_proposals_and_rejects_nan(viewer: Any) -> None:
     """50,000,000 proposals sent raw (GUI max 2000): the run gets 2000; a NaN point size changes nothing."""
-    calls: list[dict[str, Any]] = []
-    viewer.start_run = lambda **kw: calls.append(kw)  # the wired callback looks the method up at call time
+    calls: list[Any] = []
+    viewer.start_run = lambda settings=None, **kw: calls.append(settings)  # looked up at call time
     p = viewer.panels
     size_before = viewer.state.point_size
     with RawClient(viewer.url) as c:
@@ -527,7 +527,8 @@ def test_viewer_clamps_raw_proposals_and_rejects_nan(viewer: Any) -> None:
         time.sleep(0.1)
         c.press(p.gui_run)
         assert wait_for(lambda: bool(calls))
-        assert calls[0] == {"preset": "fast", "proposals": 2000, "seed": 0, "matmul_dtype": "bfloat16"}
+        got = calls[0]
+        assert (got.preset, got.proposals, got.seed, got.matmul_dtype) == ("fast", 2000, 0, "bfloat16")
         assert wait_for(lambda: p.gui_proposals.value == 2000)
         c.set_gui(p.gui_point_size, value=float("nan"))
         assert wait_for(lambda: "finite" in (viewer.state.error or ""))

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any, Literal, cast
 
 from annotator.labels import Delta
 from annotator.tools import RADIUS, all_controls
@@ -44,10 +44,10 @@ class InstanceRoom:
 
     def fields_typing(self) -> frozenset[str]:
         """The fields whose typed value is not committed yet (the panels leave them as the person typed them)."""
-        return frozenset(field for _, field in self.typing.pending())
+        return frozenset(cast("tuple[int, str]", key)[1] for key in self.typing.pending())
 
     def _commit_text(self, key: object, value: str) -> None:
-        iid, field = key  # type: ignore[misc]
+        iid, field = cast("tuple[int, str]", key)
         text = value.strip()
         if field == "category":
             if not text:
