@@ -37,7 +37,8 @@ class AnnotateArgs:
     autosave_delay: float = 0.5
     """Seconds between an edit and the checkpoint rewrite (the journal is written before every edit returns)."""
     token: str | None = None
-    """Access token to require (default: a fresh random one, printed in the URL). At least 16 characters."""
+    """Access token to require (default: the one this scan's output folder keeps, `<scan>.annotate/server.token`,
+    made on the first run: the URL stays the same across restarts). At least 16 characters."""
     accept_scan_mismatch: bool = False
     """Resume a session whose journal was written for other scan geometry with the same vertex count (e.g. the
     same scan re-exported). Without it such a session is refused, so labels never land on the wrong points."""
@@ -66,9 +67,15 @@ class AnnotateArgs:
                 ses = app.session
                 if ses.store.recovery is not None:
                     print("efem-annotate: " + ses.store.recovery.summary().replace("\n", "\n  "), flush=True)
+                details = [f"autosave: {ses.work_dir}"]
+                if ses.store.resumed:
+                    details.append(f"resumed from the journal: {ses.store.journal.next_seq:,} records, "
+                                   f"{len(ses.store.labelset.undo_stack):,} undoable edits")
+                if app.token_kept:
+                    details.append("same URL as the last run on this scan: a tab left open reconnects by itself")
                 announce("efem-annotate", f"{ses.scan_path.name} ({ses.n:,} vertices) at {app.url}  — Ctrl+C to quit",
                          url=app.url, local_url=app.local_url, exposure_warning=app.access.exposure_warning,
-                         details=(f"autosave: {ses.work_dir}",))
+                         details=tuple(details))
                 wait_for_stop()
             finally:
                 app.close()

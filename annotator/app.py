@@ -45,7 +45,7 @@ from annotator.wiring import wire
 from annotator.session import AnnotatorSession
 from annotator.scan_view import DISPLAY_POINTS, ScanView
 from annotator.tools import DEFAULT_TOOLS, RADIUS, TOOLS, Tool, ToolSettings, all_controls, lasso_click
-from efem_viz.serve.guard import ServedApp, start_server
+from efem_viz.serve.guard import ServedApp, saved_token, start_server
 from efem_viz.serve.table import option_for as _option_for
 from efem_viz.serve.table import step_row
 from efem_viz.serve.inputs import ClientValueError, read_choice
@@ -122,6 +122,10 @@ class AnnotatorApp(ServedApp):
         self._closed = threading.Event()
 
         try:
+            self.token_kept = False
+            """True when the token (and so the URL) is the one this scan's folder kept from an earlier run."""
+            if token is None:  # the scan's folder keeps it: a tab left open reconnects after a restart
+                token, self.token_kept = saved_token(ses.work_dir)
             self.server, self.access = start_server(host=host, port=port, token=token)
         except BaseException:
             ses.close()

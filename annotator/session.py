@@ -29,7 +29,7 @@ from __future__ import annotations
 
 from contextlib import AbstractContextManager
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal, Sequence
+from typing import TYPE_CHECKING, Any, Literal, Mapping, Sequence
 
 import numpy as np
 
@@ -52,6 +52,29 @@ if TYPE_CHECKING:
     from efem_viz.data.scene import Scene
 
 __all__ = ["AnnotatorSession", "BrushCursor", "Stroke"]
+
+
+TABLE_CLEARANCE_MIN = 0.005
+"""Least height above the table (m) that region grow and fill keep to on an imported tabletop scan."""
+
+
+def table_clearance(provenance: Mapping[str, Any] | None) -> float:
+    """The default *Grow: min height* of a scan (m): on a tabletop imported from an RGB-D frame (`import-rgbd`: the
+    table at z = 0) 2.5x the table fit's RMS residual, at least `TABLE_CLEARANCE_MIN`, to 1 mm (a grow from a mug
+    then stops at the table instead of flooding it); 0 (off) for any other scan.
+
+    Args:
+        provenance: the scene's provenance (`Scene.provenance`).
+    """
+    prov = dict(provenance or {})
+    if prov.get("source") != "rgbd":
+        return 0.0
+    try:
+        rms = float(prov.get("plane_residual_rms_m", 0.0))
+    except (TypeError, ValueError):
+        rms = 0.0
+    rms = rms if np.isfinite(rms) and 0.0 <= rms < 0.05 else 0.0
+    return round(max(TABLE_CLEARANCE_MIN, 2.5 * rms), 3)
 
 
 class AnnotatorSession(SessionHooks):
@@ -91,6 +114,7 @@ class AnnotatorSession(SessionHooks):
         """The scan, its geometry and its label store."""
         settings = self.toolbox.settings
         settings.radius = max(0.005, 0.02 * float(np.linalg.norm(np.ptp(self.scan.scene.points, axis=0))))
+        settings.grow_min_height = table_clearance(self.scan.scene.provenance)
         ls = self.scan.store.labelset
         if ls.instances:
             settings.active_id = max(ls.instances)

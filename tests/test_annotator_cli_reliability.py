@@ -223,3 +223,33 @@ def test_real_full_disk_shows_in_the_gui_and_loses_nothing(scan: Path, small_dis
     again = Cli(scan, out)
     assert again.table() == final, "every edit the GUI showed survives"
     assert again.stop() == 0
+
+
+def test_a_restart_keeps_the_url_and_says_it_resumed(scan: Path, tmp_path: Path) -> None:
+    """Issue 37 item 15: after a restart the old tab hung on "Connecting…" because the new server drew a new token.
+    The scan's folder now keeps the token: killed (-9) and restarted on the same scan and --out, the CLI prints the
+    same token, says it resumed from the journal and that the URL is the same, and a client using the old URL gets
+    in (the old tab reconnecting). The kept token is readable by its owner only."""
+    import socket
+    import stat
+    from urllib.parse import parse_qs, urlsplit
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    first = Cli(scan, tmp_path / "out", args=("--port", str(port)))
+    token = parse_qs(urlsplit(first.url).query)["token"][0]
+    first.edit(_script(scan, 1)[0])
+    first.kill()
+    again = Cli(scan, tmp_path / "out", args=("--port", str(port)))
+    try:
+        assert parse_qs(urlsplit(again.url).query)["token"][0] == token
+        text = "".join(again.lines)
+        assert "resumed from the journal" in text and "same URL as the last run" in text, text
+        if urlsplit(again.url).port == port:  # (the port was free again: the very same URL)
+            assert again.url == first.url
+        kept = next((tmp_path / "out").glob("*.annotate/server.token"))
+        assert stat.S_IMODE(kept.stat().st_mode) == 0o600 and kept.read_text().strip() == token
+        assert "vertices labelled" in again.table()  # the client on the old token is served
+    finally:
+        assert again.stop() == 0

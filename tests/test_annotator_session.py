@@ -340,3 +340,35 @@ def _ray_hits_box(origin: np.ndarray, pts: np.ndarray) -> np.ndarray:
     tmin = np.nanmax(np.minimum(t0, t1), axis=1)
     tmax = np.nanmin(np.maximum(t0, t1), axis=1)
     return (tmax >= tmin) & (tmin < 0.99) & (tmax > 0)
+
+
+def test_region_grow_keeps_to_objects_on_an_imported_tabletop(tmp_path: Path) -> None:
+    """Issue 37 item 14: region grow with min height 0 flooded a 15 cm disc of table. On a tabletop imported from an
+    RGB-D frame (the table at z = 0) the min height now starts above the table's fit residual; a grow from a mug's
+    side then stays on the mug. Other scans keep 0 (off)."""
+    from annotator.session import TABLE_CLEARANCE_MIN, table_clearance
+
+    assert table_clearance({"source": "rgbd", "plane_residual_rms_m": 0.00302}) == pytest.approx(0.008)
+    assert table_clearance({"source": "rgbd"}) == TABLE_CLEARANCE_MIN
+    for prov in (None, {}, {"source": "synthetic"}, {"source": "rgbd", "plane_residual_rms_m": "nan"}):
+        assert table_clearance(prov) in (0.0, TABLE_CLEARANCE_MIN)
+    assert table_clearance({"source": "synthetic", "plane_residual_rms_m": 0.003}) == 0.0
+    repo = Path(__file__).resolve().parents[1]
+    s = AnnotatorSession(repo / "sample_scenes" / "real_tabletop_0.ply", out_dir=tmp_path / "out", autosave_delay=0)
+    try:
+        assert s.settings.grow_min_height == pytest.approx(0.008)
+        s.new_instance(category="mug")
+        mug = s.scene.instance == int(np.bincount(s.scene.instance[s.scene.instance > 0]).argmax())
+        pts = s.scene.points
+        seed = int(np.flatnonzero(mug & (pts[:, 2] > 0.03))[0])
+        s.grow(seed)
+        grown = np.flatnonzero(s.store.labels == s.settings.active_id)
+        assert len(grown) > 50 and pts[grown, 2].min() >= 0.008
+        assert (~mug[grown]).mean() < 0.2, "the grow stays (mostly) on the mug, not the table"
+    finally:
+        s.close()
+    ball = AnnotatorSession(ball_scan(tmp_path), out_dir=tmp_path / "out2", autosave_delay=0)
+    try:
+        assert ball.settings.grow_min_height == 0.0
+    finally:
+        ball.close()

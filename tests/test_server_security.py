@@ -732,3 +732,26 @@ def test_annotator_exports_only_into_the_output_folder(annotator: AnnotatorApp, 
     assert [p.name for p in annotator.session.export("npz", directory="sub")] == ["ball.labels.npz"]
     assert (out / "sub" / "ball.labels.npz").is_file()
     assert sorted(p.name for p in scan.parent.iterdir()) == ["ball.ply"], "nothing written next to the scan"
+
+
+def test_saved_token_is_kept_private_and_bad_files_are_replaced(tmp_path: Path) -> None:
+    """`saved_token`: the first call writes a fresh token (mode 0600), later calls read it back; a file that is not
+    one URL-safe token (too short, other characters, too big, a symbolic link) is replaced, never trusted."""
+    import os
+    import stat
+
+    from efem_viz.serve.guard import TOKEN_FILE, saved_token
+
+    tok, kept = saved_token(tmp_path)
+    path = tmp_path / TOKEN_FILE
+    assert not kept and len(tok) >= 16 and stat.S_IMODE(path.stat().st_mode) == 0o600
+    assert saved_token(tmp_path) == (tok, True)
+    for bad in ("short", "x" * 20 + "<script>", "y" * 300):
+        path.write_text(bad)
+        new, kept = saved_token(tmp_path)
+        assert not kept and new != bad and path.read_text().strip() == new
+    path.unlink()
+    (tmp_path / "elsewhere").write_text("z" * 32)
+    os.symlink(tmp_path / "elsewhere", path)
+    new, kept = saved_token(tmp_path)
+    assert not kept and new != "z" * 32 and not path.is_symlink()

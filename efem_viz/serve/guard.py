@@ -36,16 +36,19 @@ stopped and `GuardUnavailableError` raised: the apps never run unguarded.
 
 from __future__ import annotations
 
+import contextlib
 import hmac
 import http
 import inspect
 import ipaddress
 import logging
+import os
 import secrets
 import socket
 import threading
 from dataclasses import dataclass, field
 from http.cookies import CookieError, SimpleCookie
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Protocol
 from urllib.parse import parse_qs, urlsplit
 
@@ -77,6 +80,45 @@ class _Headers(Protocol):
 def new_token() -> str:
     """A fresh random server token (URL-safe, 32 characters, 192 bits)."""
     return secrets.token_urlsafe(24)
+
+
+TOKEN_FILE = "server.token"
+"""Where a server that works in a folder of its own keeps its token (`saved_token`)."""
+
+
+def saved_token(folder: str | os.PathLike[str]) -> tuple[str, bool]:
+    """The token kept in `folder/server.token`, or a fresh one written there (readable by its owner only).
+
+    A server restarted on the same folder (the annotator on the same scan and `--out`) keeps its URL, so a tab
+    left open reconnects by itself instead of hanging on "Connecting…". A file that is not a plain file of one
+    URL-safe token of 16-128 characters is replaced.
+
+    Returns:
+        (token, True when it was read back from the folder).
+
+    Raises:
+        OSError: the folder cannot be written.
+    """
+    path = Path(folder) / TOKEN_FILE
+    try:
+        if path.is_file() and not path.is_symlink() and path.stat().st_size <= 256:
+            text = path.read_text(encoding="ascii").strip()
+            if 16 <= len(text) <= 128 and all(c.isalnum() or c in "-_" for c in text):
+                return text, True
+    except (OSError, UnicodeDecodeError):
+        pass
+    token = new_token()
+    tmp = path.with_name(f".{TOKEN_FILE}.tmp-{os.getpid()}")
+    with contextlib.suppress(FileNotFoundError):
+        tmp.unlink()
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    try:
+        os.write(fd, (token + "\n").encode("ascii"))
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    os.replace(tmp, path)
+    return token, False
 
 
 def is_loopback(host: str) -> bool:
