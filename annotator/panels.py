@@ -97,8 +97,8 @@ class Panels:
 
     def __init__(self, gui: GuiApi, tools: Sequence[Tool], settings: ToolSettings, *,
                  efem_result: str, priors: tuple[str, ...], prior: str) -> None:
-        """Create the folders and their handles (Tools, Instances, EFEM assist, Files, History, Instance table,
-        Help): every folder with buttons comes before the text that grows.
+        """Create the folders and their handles (Tools, Instances, EFEM assist, History, Files, Instance table, Edit
+        history, Help): every folder with buttons comes before the text that grows.
 
         Args:
             gui: the server's GUI.
@@ -150,6 +150,9 @@ class Panels:
             self.gui_prior = gui.add_dropdown("Prior for Segment tool", priors, initial_value=prior)
             self.gui_seg_accept = gui.add_button("Accept segment preview", disabled=True)
             self.gui_seg_cancel = gui.add_button("Discard segment preview", disabled=True)
+        with gui.add_folder("History"):
+            self.gui_undo = gui.add_button("Undo (Ctrl+Z)")
+            self.gui_redo = gui.add_button("Redo (Ctrl+Y)")
         with gui.add_folder("Files", expand_by_default=False):
             self.gui_export_ply = gui.add_button("Export PLY")
             self.gui_export_npz = gui.add_button("Export NPZ")
@@ -157,14 +160,12 @@ class Panels:
             self.gui_import_path = gui.add_text("Import labels from", "", hint="path inside the scan or output folder")
             self.gui_import = gui.add_button("Import labels (undoable)")
             self.gui_status = gui.add_markdown("")  # below its buttons: they never move
-        with gui.add_folder("History"):
-            self.gui_undo = gui.add_button("Undo (Ctrl+Z)")
-            self.gui_redo = gui.add_button("Redo (Ctrl+Y)")
-            self.gui_history = gui.add_markdown("")
         # Text that grows (the instance table, the edit history) sits below every button, so that nothing above a
         # button changes height while a person is clicking it (Accept, Reject, Next, Undo...).
         with gui.add_folder("Instance table"):
             self.gui_table = gui.add_markdown("")
+        with gui.add_folder("Edit history"):
+            self.gui_history = gui.add_markdown("")
         with gui.add_folder("Help", expand_by_default=False):
             self.gui_help = gui.add_markdown(help_markdown(tools))
 

@@ -11,6 +11,7 @@ With EFEM_SAVE_SCREENSHOTS=1 screenshots go to docs/img/ for the guide.
 from __future__ import annotations
 
 import os
+import time
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
@@ -571,6 +572,19 @@ def test_typing_a_category_is_one_edit_and_the_field_shows_what_is_stored(keyed:
     assert app.session.store.labelset.info(app.session.settings.active_id).category == "box"
 
 
+def _settled_boxes(page: Any, locators: list[Any], *, timeout: float = 20.0) -> list[Any]:
+    """The locators' bounding boxes once two reads 300 ms apart agree (panels animate when folders open)."""
+    prev = [loc.bounding_box() for loc in locators]
+    end = time.monotonic() + timeout  # a hang guard
+    while time.monotonic() < end:
+        page.wait_for_timeout(300)
+        now = [loc.bounding_box() for loc in locators]
+        if now == prev:
+            return now
+        prev = now
+    raise AssertionError("the panel kept moving")
+
+
 def test_growing_table_and_history_move_no_button(keyed: tuple[Any, Any]) -> None:
     """Issue 37 item 12: pre-label buttons moved after each Accept/Reject (the instance table above them grew) and a
     second click on *Next ▶* hit *◀ Previous*. The table and the history now sit below every button."""
@@ -578,14 +592,14 @@ def test_growing_table_and_history_move_no_button(keyed: tuple[Any, Any]) -> Non
     page.get_by_text("EFEM assist", exact=True).first.click()  # the folder starts collapsed
     buttons = [page.get_by_role("button", name=n, exact=True) for n in ("Next pre-label ▶", "Accept", "Undo (Ctrl+Z)")]
     buttons[0].wait_for(timeout=20_000)
-    before = [b.bounding_box() for b in buttons]
+    before = _settled_boxes(page, buttons)  # the folder opens with an animation: measure once it has ended
     n0 = len(app.session.store.labelset.instances)
     for _ in range(6):  # six more rows in the table, six more lines in the history
         app.session.new_instance(category="mug")
     app.session.paint(np.arange(20))
     wait_until(lambda: page.get_by_text(f"{n0 + 6} ", exact=False).count() > 0, 20, "the table's new rows")
     page.wait_for_timeout(300)
-    after = [b.bounding_box() for b in buttons]
-    for b0, b1 in zip(before, after):
-        assert b0 is not None and b1 is not None and abs(b1["y"] - b0["y"]) < 1.0, (b0, b1)
+    after = _settled_boxes(page, buttons)
+    for name, b0, b1 in zip(("Next", "Accept", "Undo"), before, after):
+        assert b0 is not None and b1 is not None and abs(b1["y"] - b0["y"]) < 1.0, (name, b0, b1)
     page.get_by_text("EFEM assist", exact=True).first.click()
