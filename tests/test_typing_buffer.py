@@ -111,3 +111,21 @@ def test_closing_commits_what_was_typed(tmp_path: Path) -> None:
         assert s2.store.labelset.info(a).name == "last mug"
     finally:
         s2.close()
+
+
+def test_late_keys_after_an_action_go_to_the_instance_they_were_typed_for(session: AnnotatorSession) -> None:
+    """The browser sends a field's keystrokes and a hotkey on separate paths: the last keys of a name typed for mug
+    A can reach the server after the N that made mug B active. Keys arriving that soon after the field was committed
+    belong to A; later typing is B's."""
+    a = session.new_instance(category="mug")
+    session.type_text("name", "left b")
+    session.flush_typing()  # what the app does before N
+    b = session.new_instance(category="mug")
+    session.type_text("name", "left box")  # the late keys
+    session.flush_typing()
+    ls = session.store.labelset
+    assert ls.info(a).name == "left box" and ls.info(b).name != "left box"
+    session.instances.late_keys_s = 0.0  # long after: typing is for the active instance
+    session.type_text("name", "right box")
+    session.flush_typing()
+    assert ls.info(b).name == "right box" and ls.info(a).name == "left box"

@@ -2,11 +2,17 @@
 
 from __future__ import annotations
 
+import time
 from typing import TYPE_CHECKING, Any, Literal, cast
 
 from annotator.labels import Delta
 from annotator.tools import RADIUS, all_controls
 from annotator.typing_buffer import TEXT_IDLE_S, TypingBuffer
+
+LATE_KEYS_S = 1.0
+"""A browser sends a text field's keystrokes and a hotkey on separate paths: the last keys of a name can reach the
+server after the N that followed them. Keys of a field this soon after its value was committed by an action go to
+the instance it was committed to, not to the one the action made active."""
 
 if TYPE_CHECKING:
     from annotator.rooms.context import SessionHooks, Toolbox
@@ -20,6 +26,9 @@ class InstanceRoom:
     def __init__(self, scan: ScanRoom, toolbox: Toolbox, hooks: SessionHooks, cursor_room: CursorRoom, *,
                  text_idle_s: float = TEXT_IDLE_S) -> None:
         self.scan, self.toolbox, self.hooks, self.cursor_room = scan, toolbox, hooks, cursor_room
+        self.late_keys_s = LATE_KEYS_S
+        """Keystrokes this soon after a field was committed belong to the instance it was committed to."""
+        self._committed: dict[str, tuple[int, float]] = {}
         self.typing = TypingBuffer(self._commit_text, on_error=lambda msg: self.hooks.notify("Not done", msg),
                                    idle_s=text_idle_s, on_idle=lambda: self.hooks.on_change())
         """The Name and Category fields being typed (each committed once: `type_text`, `flush_typing`)."""
@@ -31,7 +40,12 @@ class InstanceRoom:
         when it was typed."""
         if field not in ("name", "category"):
             raise ValueError(f"no text field {field!r}")
-        self.typing.typed((self.toolbox.settings.active_id, field), value)
+        iid = self.toolbox.settings.active_id
+        last = self._committed.get(field)
+        typing_it = any(cast("tuple[int, str]", k)[1] == field for k in self.typing.pending())
+        if last is not None and not typing_it and time.monotonic() - last[1] < self.late_keys_s:
+            iid = last[0]  # the last keys of a typing that an action committed, arriving after that action
+        self.typing.typed((iid, field), value)
 
     def flush_typing(self, *, refresh: bool = True) -> int:
         """Commit what was typed now (before any other action); returns the number of fields that were pending
@@ -55,6 +69,7 @@ class InstanceRoom:
             self.toolbox.settings.category = text
         elif not text:
             raise ValueError("a name cannot be empty; the stored one is kept")
+        self._committed[field] = (int(iid), time.monotonic())
         if iid > 0 and iid in self.scan.store.labelset.instances:
             self.update_instance(int(iid), **{field: text})
 

@@ -496,9 +496,14 @@ def test_brush_cursor_and_labels_only_view(annotator: Any, new_page: Callable[..
     r0 = cur.radius
     page.keyboard.press("]")
     wait_until(lambda: app.session.cursor.radius > r0, 10, "a larger ring (])")
-    seg = np.asarray(app.view.cursor_handle.points, np.float64)
-    ring = np.linalg.norm(seg[:, 0] - seg[:, 0].mean(axis=0), axis=1).mean()
-    assert ring == pytest.approx(app.session.settings.radius, rel=1e-3)
+
+    def ring() -> float:
+        seg = np.asarray(app.view.cursor_handle.points, np.float64)
+        return float(np.linalg.norm(seg[:, 0] - seg[:, 0].mean(axis=0), axis=1).mean())
+
+    # the key sets the radius, then the ring is redrawn: wait for both (reading between the two was a race)
+    wait_until(lambda: abs(ring() - app.session.settings.radius) <= 1e-3 * app.session.settings.radius, 10,
+               "the ring redrawn at the new radius")
     page.keyboard.press("x")
     wait_until(lambda: app.session.settings.tool == "erase", 10, "the erase tool (X)")
     assert app.session.cursor.visible
