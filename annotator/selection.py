@@ -124,11 +124,6 @@ class ScanGeometry:
                     self._raycaster = rc
         return self._raycaster
 
-    @property
-    def has_raycaster(self) -> bool:
-        """True once the ray-casting scene is built (`warm_up`): visibility is then exact."""
-        return self._raycaster is not None
-
     def warm_up(self, cancel: threading.Event | None = None) -> None:
         """Build every structure now (call from a worker thread after opening a scan); stops between structures
         once `cancel` is set. While the ray-casting scene is being built, `building_raycaster` is set (open3d must
