@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from efem_viz.prior import analytic
+from efem_viz.viewer.legend import color_key_html
 from efem_viz.viewer.session import FlyTarget, Inspection, PointColors, RunSettings, StepView, ViewerSession
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -153,7 +154,8 @@ def test_modes_and_validation(session: ViewerSession) -> None:
     session.set_color_mode("instances")
     assert not session.recolored()  # a step on screen: scene colours
     pc = session.point_colors()
-    assert isinstance(pc, PointColors) and pc.shown == "rgb"
+    assert isinstance(pc, PointColors) and pc.shown == "step"  # the EM-step view's key
+    assert "terminated at this step" in color_key_html(pc.shown)
     session.set_view_mode("result")
     assert session.recolored() and session.point_colors().shown == "instances"  # type: ignore[union-attr]
     session.set_result_layers(meshes=False, obbs=True, axes=True)

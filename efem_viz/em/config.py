@@ -127,6 +127,10 @@ class EMConfig:
     mug (issue 33: on the real frames mug fits score 0.52 (median), cups, cans and boxes 0.36-0.40)."""
     pose_ref: float = 0.6
     """Pose score at and above which `pose_weight` leaves the confidence unchanged."""
+    mug_model: str | None = None
+    """Name of a shipped look-alike model (`efem_viz/em/models/<name>.json`, `efem_viz.em.look_alike`): each
+    accepted fit's confidence becomes the model's probability that it is a mug (times the confidence above, as
+    the model says). None = off."""
     scale_horizontal: tuple[float, float] | None = None
     """Allowed range of the horizontal radius max ‖Q̃_xy‖ of the completed shape (m); None = the prior's
     category sizes for `domain`."""
@@ -233,6 +237,10 @@ class EMConfig:
         if not (0.0 <= self.pose_weight <= 16.0) or not (0.0 < self.pose_ref <= 1.0):
             raise ValueError(f"pose_weight must be in [0, 16] and pose_ref in (0, 1], got {self.pose_weight}, "
                              f"{self.pose_ref}")
+        if self.mug_model is not None:
+            from efem_viz.em.look_alike import load_model
+
+            load_model(self.mug_model)  # a shipped name holding a valid model, or one clear error
         if not (0.0 <= self.max_seen_through <= 1.0):
             raise ValueError(f"max_seen_through must be in [0, 1], got {self.max_seen_through}")
         if self.trust_scale is not None and not (0.0 <= self.trust_scale < 1.0):

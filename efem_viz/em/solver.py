@@ -34,6 +34,7 @@ from efem_viz.em.decoding import (
     prior_device,
 )
 from efem_viz.em.estep import energy_weights, normals_threshold, schedule, stationary_score
+from efem_viz.em.look_alike import load_model, review_features
 from efem_viz.em.replay import TraceReplay
 from efem_viz.em.proposals import AvailableTree, Ragged, init_crops, sample_independent, sample_joint
 from efem_viz.em.rules import (
@@ -414,6 +415,7 @@ class _Solver:
         k_priors = len(self.table)
         assigned = np.zeros(self.n_full, bool)  # full resolution
         accepted: list[dict[str, Any]] = []
+        mug_model = load_model(cfg.mug_model) if cfg.mug_model is not None else None
         for ep, n_init in enumerate(cfg.n_init):
             self._check_cancel()
             available_full = ~assigned
@@ -457,6 +459,11 @@ class _Solver:
                 s_stat = float(pool.stationary[r])
                 conf = confidence(s_stat, float(rev.coverage), cap=cfg.cov_cap, seen_through=rev.seen_through,
                                   pose=float(rev.db_sim), pose_weight=cfg.pose_weight, pose_ref=cfg.pose_ref)
+                if mug_model is not None:
+                    conf = mug_model.confidence(conf, review_features(
+                        stationary=s_stat, coverage=float(rev.coverage), pose=float(rev.db_sim),
+                        radius=float(rev.radii[0]), half_height=float(rev.radii[1]), up_angle=float(rev.up_angle),
+                        seen_through=float(rev.seen_through), mask_size=len(rev.mask)))
                 self.rec.death(int(pid), final_step, REASON_SURVIVE, -1, conf)
                 accepted.append({**rev._asdict(), "confidence": conf, "stationary": s_stat,
                                  "center": pool.latent["center"][r], "scale": float(pool.latent["scale"][r]),

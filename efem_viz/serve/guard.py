@@ -51,6 +51,7 @@ from http.cookies import CookieError, SimpleCookie
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Protocol
 from urllib.parse import parse_qs, urlsplit
+from efem_viz.serve.page import with_page_additions
 
 if TYPE_CHECKING:
     import viser
@@ -317,7 +318,7 @@ def _guarded_process_request(armed: _Armed, inner: Callable[..., Any] | None) ->
             response = await response
         if response is not None and policy.query_token_ok(request.path):
             response.headers["Set-Cookie"] = policy.set_cookie_header(port)
-        return response
+        return with_page_additions(response) if response is not None else None
 
     return process_request
 

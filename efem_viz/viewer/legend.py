@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
-from efem_viz.colors import FN_COLOR, FP_COLOR, HEAT_RGB, HEAT_STOPS, TP_COLOR, dim, hex_color, instance_colors
+from efem_viz.colors import DEAD_COLOR, FN_COLOR, FP_COLOR, HEAT_RGB, HEAT_STOPS, TP_COLOR, dim, hex_color, instance_colors
 from efem_viz.eval.comparison import GTMetrics
 from efem_viz.serve.table import cell, swatch
 from efem_viz.viewer.texts import md_escape
@@ -145,7 +145,8 @@ def color_key_html(mode: str) -> str:
 
     Args:
         mode: the colour mode in effect: "gt_match" (TP / FP / FN, boxes too), "instances", "weights" (the
-            inspected proposal's weight heat map: a colour bar) or "rgb" (scene colours: no key).
+            inspected proposal's weight heat map: a colour bar), "step" (one EM step on screen: the samples' and
+            shapes' colours) or "rgb" (scene colours: no key).
 
     Returns:
         An HTML fragment ("" for scene colours).
@@ -166,6 +167,13 @@ def color_key_html(mode: str) -> str:
             '<div style="display:flex;justify-content:space-between"><span>0</span>'
             "<span>weight of the point in the inspected proposal</span><span>1</span></div>",
             _swatch(GREY_SWATCH, "grey: weight ≤ 0.001"),
+        ]
+    elif mode == "step":
+        rows = [
+            "<div>One EM step on screen: the scene in its own colours</div>",
+            _swatch(hex_color(instance_colors([7])[0]), "each drawn proposal's samples and decoded shape in the "
+                    "proposal's colour (click a shape to inspect it)"),
+            _swatch(hex_color(DEAD_COLOR), "red shape: the proposal is terminated at this step"),
         ]
     else:
         return ""

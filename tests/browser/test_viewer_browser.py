@@ -130,6 +130,40 @@ def test_step_slider_changes_view(viewer: Any, page: Any) -> None:
     wait_until(lambda: viewer.state.step == last, 20, "the step callback")
 
 
+def test_step_slider_keeps_its_arrow_keys(viewer: Any, page: Any) -> None:
+    """Issue 37 item 13: arrow keys on the focused Step slider step through EM iterations and leave the camera
+    where it is; the same keys on the 3-D view still move the camera (the check can see a move)."""
+    _open(page, viewer)
+    page.get_by_role("tab", name="Timeline").click()
+    slider = page.get_by_role("slider").first
+    slider.wait_for(timeout=20_000)
+    client = next(iter(viewer.server.get_clients().values()))
+    slider.focus()
+    page.keyboard.press("End")
+    wait_until(lambda: viewer.state.step > 3, 20, "the last step")
+    start = viewer.state.step
+
+    def pose() -> np.ndarray:
+        return np.r_[np.asarray(client.camera.position, float), np.asarray(client.camera.wxyz, float)]
+
+    page.wait_for_timeout(600)
+    before = pose()
+    for _ in range(3):  # held a little, as a person presses: viser's camera moves per frame while a key is down
+        page.keyboard.down("ArrowLeft")
+        page.wait_for_timeout(150)
+        page.keyboard.up("ArrowLeft")
+    wait_until(lambda: viewer.state.step == start - 3, 20, "three steps back")
+    page.wait_for_timeout(800)  # a camera move would have reached the server by now
+    assert np.allclose(pose(), before, atol=1e-6), f"the camera moved with the slider's keys: {before} -> {pose()}"
+    # the control: the same key on the 3-D view moves the camera
+    page.evaluate("document.activeElement && document.activeElement.blur()")
+    page.keyboard.down("ArrowLeft")
+    page.wait_for_timeout(400)
+    page.keyboard.up("ArrowLeft")
+    wait_until(lambda: not np.allclose(pose(), before, atol=1e-4), 20, "the camera to move with a key on the view")
+    assert viewer.state.step == start - 3  # and the step stayed
+
+
 def test_threshold_changes_view(viewer: Any, page: Any) -> None:
     _open(page, viewer)
     page.get_by_role("tab", name="Results").click()

@@ -32,7 +32,8 @@ class PointColors(NamedTuple):
     key: Hashable
     """A cache key: equal keys mean equal colours (the nodes skip resending them)."""
     shown: str
-    """The colouring in effect ("rgb", "instances", "gt_match" or "weights"): its key is shown under the control."""
+    """The colouring in effect ("rgb", "instances", "gt_match", "weights" or "step": scene colours while one EM
+    step is on screen): its key is shown under the control."""
     boxes: np.ndarray | None
     """(K, 3) uint8 box colours of the final instances (TP/FP in the ground-truth view), or None: their own."""
 
@@ -227,7 +228,7 @@ class ResultRoom:
         base = s.scene.colors
         mode = s.color_mode
         if mode in ("instances", "gt_match") and s.view_mode != "result":
-            return PointColors(base, ("rgb", id(base)), "rgb", None)  # one EM step on screen: no final instances
+            return PointColors(base, ("rgb", id(base)), "step", None)  # one EM step on screen: no final instances
         if (mode == "gt_match" and s.result is not None and s.scene.has_gt
                 and self.gt_metrics_or_none() is not None):
             return self._gt_point_colors(base, result_box_colors)
@@ -238,7 +239,7 @@ class ResultRoom:
         if mode == "weights" and s.selected is not None and self.core.inspect_weights is not None:
             return PointColors(weights_colors(base, self.core.inspect_weights),
                                ("w", self.core.generation, s.selected, s.step), "weights", None)
-        return PointColors(base, ("rgb", id(base)), "rgb", None)
+        return PointColors(base, ("rgb", id(base)), "step" if s.view_mode == "step" else "rgb", None)
 
     def _gt_point_colors(self, base: np.ndarray, result_box_colors: np.ndarray | None) -> PointColors:
         """TP/FP/FN colours of the points and boxes (instances hidden in the table: grey)."""

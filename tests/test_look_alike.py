@@ -1,0 +1,94 @@
+"""The learned mug-vs-look-alike score (`efem_viz.em.look_alike`): fitting, shipped models, hostile files."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from efem_viz.em import look_alike
+from efem_viz.em.config import EMConfig, preset
+from efem_viz.em.look_alike import FEATURES, LookAlikeModel, fit_logistic, load_model, review_features
+
+
+def _features(**kw: float) -> dict[str, float]:
+    base = dict(stationary=0.3, coverage=0.1, pose=0.5, radius=0.045, half_height=0.05, up_angle=10.0,
+                seen_through=0.05, mask_size=900)
+    base.update(kw)
+    return review_features(**base)  # type: ignore[arg-type]
+
+
+def test_review_features_neutral_values_for_missing_measurements() -> None:
+    f = _features(pose=float("nan"), up_angle=float("nan"), seen_through=float("nan"))
+    assert list(f) == list(FEATURES)
+    assert f["pose score"] == 0.4 and f["cos up angle"] == 0.0 and f["seen-through"] == 0.0
+    assert f["radius (cm)"] == pytest.approx(4.5) and f["log mask size"] == pytest.approx(math.log(900))
+
+
+def test_fit_separates_and_probabilities_follow_the_weights() -> None:
+    rng = np.random.default_rng(0)
+    small = rng.normal(4.5, 0.4, 200)  # mugs: radius ~4.5 cm
+    big = rng.normal(6.5, 0.4, 200)  # look-alikes: ~6.5 cm
+    x = np.r_[small, big][:, None]
+    y = np.r_[np.ones(200), np.zeros(200)]
+    m = fit_logistic(x, y, ["radius (cm)"], l2=0.1)
+    assert m.weights[0] < 0  # wider is less mug-like
+    p = m.probs(x)
+    assert (p[:200] > 0.5).mean() > 0.95 and (p[200:] < 0.5).mean() > 0.95
+    one = m.prob(_features(radius=0.045))
+    assert one == pytest.approx(float(m.probs(np.array([[4.5]]))[0]))
+    assert m.prob(_features(radius=0.045)) > m.prob(_features(radius=0.065))
+    # confidence: times the solver's, or alone
+    assert m.confidence(0.5, _features()) == pytest.approx(0.5 * m.prob(_features()))
+    alone = LookAlikeModel(m.names, m.mean, m.scale, m.weights, m.bias, times_confidence=False)
+    assert alone.confidence(0.5, _features()) == pytest.approx(m.prob(_features()))
+
+
+def test_save_load_round_trip(tmp_path, monkeypatch) -> None:
+    monkeypatch.setattr(look_alike, "MODELS", tmp_path)
+    load_model.cache_clear()
+    m = LookAlikeModel(("pose score", "radius (cm)"), (0.4, 5.0), (0.1, 1.0), (1.0, -2.0), -0.5, "test", False)
+    m.save(tmp_path / "t1.json")
+    assert load_model("t1") == m
+    load_model.cache_clear()
+
+
+@pytest.mark.parametrize("body", [
+    b"not json",
+    json.dumps({"names": ["rm -rf"], "mean": [0], "scale": [1], "weights": [1], "bias": 0}).encode(),
+    json.dumps({"names": ["pose score"], "mean": [0], "scale": [0], "weights": [1], "bias": 0}).encode(),
+    json.dumps({"names": ["pose score"], "mean": [0], "scale": [1], "weights": [1e300], "bias": 0}).encode(),
+    json.dumps({"names": ["pose score"], "mean": [0, 1], "scale": [1], "weights": [1], "bias": 0}).encode(),
+    json.dumps({"names": ["pose score"], "mean": ["0"], "scale": [1], "weights": [1], "bias": 0}).encode(),
+    json.dumps({"names": ["pose score"], "mean": [0], "scale": [1], "weights": [1], "bias": 0,
+                "times_confidence": "yes"}).encode(),
+    b"[" * 100_000,
+    b" " * 70_000,
+])
+def test_hostile_model_files_get_one_clear_error(tmp_path, monkeypatch, body: bytes) -> None:
+    monkeypatch.setattr(look_alike, "MODELS", tmp_path)
+    load_model.cache_clear()
+    (tmp_path / "bad.json").write_bytes(body)
+    with pytest.raises(ValueError, match="look-alike model"):
+        load_model("bad")
+    load_model.cache_clear()
+
+
+@pytest.mark.parametrize("name", ["../etc/passwd", "", "a" * 65, "no_such_model", "x.json"])
+def test_only_shipped_names(name: str) -> None:
+    with pytest.raises(ValueError, match="look-alike model"):
+        load_model(name)
+    with pytest.raises(ValueError, match="look-alike model"):
+        EMConfig(mug_model=name).validate()
+
+
+def test_shipped_models_load_and_configure() -> None:
+    names = look_alike.available_models()
+    assert names, "at least one shipped model"
+    for name in names:
+        m = load_model(name)
+        assert 0.0 < m.prob(_features()) < 1.0
+        cfg = preset("real").replace(mug_model=name)
+        assert EMConfig.from_json(cfg.to_json()).mug_model == name
