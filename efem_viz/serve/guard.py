@@ -51,6 +51,7 @@ from http.cookies import CookieError, SimpleCookie
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Protocol
 from urllib.parse import parse_qs, urlsplit
+
 from efem_viz.serve.page import with_page_additions
 
 if TYPE_CHECKING:
