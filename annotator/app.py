@@ -48,8 +48,9 @@ from annotator.tools import DEFAULT_TOOLS, RADIUS, TOOLS, Tool, ToolSettings, al
 from efem_viz.serve.guard import ServedApp, saved_token, start_server
 from efem_viz.serve.table import option_for as _option_for
 from efem_viz.serve.table import step_row
-from efem_viz.serve.inputs import ClientValueError, read_choice
+from efem_viz.serve.inputs import ClientValueError, read_choice, read_int
 from efem_viz.data.io import RESULT_SUFFIX
+from efem_viz.em.config import suggested_preset
 from efem_viz.prior.config import DEFAULT_PRIOR
 
 if TYPE_CHECKING:
@@ -145,6 +146,7 @@ class AnnotatorApp(ServedApp):
         ses.on_change, ses.on_cursor, ses.on_lasso = self._refresh_panel, self.view.draw_cursor, self._draw_lasso
         ses.on_preview = self.view.draw_preview
         ses.on_segment, ses.report = self._show_segmenting, self.run_reporting
+        ses.on_efem = self._show_efem_run
         ses.notify = lambda title, body: self.notify(title, body)  # late-bound: tests replace `notify`
         self.session.store.listeners.append(self._on_labels_changed)
         self.session.store.problem_listeners.append(self._on_store_problem)
@@ -174,7 +176,8 @@ class AnnotatorApp(ServedApp):
         priors = tuple(available_priors()) or (DEFAULT_PRIOR,)
         self.panels = Panels(self.server.gui, self.session.tools, self.session.settings,
                              efem_result=default_efem.name if default_efem.exists() else "", priors=priors,
-                             prior=DEFAULT_PRIOR if DEFAULT_PRIOR in priors else priors[0])
+                             prior=DEFAULT_PRIOR if DEFAULT_PRIOR in priors else priors[0],
+                             preset=suggested_preset(self.session.scan.scene))
         """The GUI handles (`annotator.panels`)."""
         wire(self, self.server.gui)
         self.show_tool()
@@ -387,6 +390,15 @@ class AnnotatorApp(ServedApp):
         self.view.fly_to(np.flatnonzero(self.session.store.labels == iid), client)
         return iid
 
+    def run_efem(self, *, wait: bool = False) -> list[int] | None:
+        """EFEM on the whole scan with the preset, proposal count and prior the EFEM assist folder shows
+        (`AnnotatorSession.run_efem`); every value read is checked."""
+        p = self.panels
+        self.session.settings.prior = read_choice(p.gui_prior)
+        return self.session.run_efem(preset=read_choice(p.gui_efem_preset),
+                                     proposals=read_int(p.gui_efem_proposals, write_back=self.write_back),
+                                     wait=wait)
+
     def segment_at(self, vertex: int, *, wait: bool = False) -> np.ndarray | None:
         """Click-to-segment with the prior the dropdown shows (`AnnotatorSession.segment_at`)."""
         self.session.settings.prior = read_choice(self.panels.gui_prior)
@@ -400,6 +412,20 @@ class AnnotatorApp(ServedApp):
         elif not self.session.segmenting:
             self.panels.gui_seg_progress.visible = False
         self._enable_segment_buttons()
+
+    def _show_efem_run(self, text: str | None, percent: float | None) -> None:
+        """An EFEM run on the scan: its words and progress, Run / Cancel enabled to match; when it ends, the
+        pre-label cut moves to where "Accept all ≥ cut" accepts the best of the new pre-labels."""
+        p = self.panels
+        running = text is not None
+        p.gui_efem_status.content = text or ""
+        if percent is not None:
+            p.gui_efem_progress.value = percent
+        p.gui_efem_progress.visible = running
+        p.gui_efem_run.disabled = running
+        p.gui_efem_cancel.disabled = not running
+        if not running:
+            p.gui_prelabel_cut.value = self.session.prelabel_cut(float(p.gui_prelabel_cut.value))
 
     def _enable_segment_buttons(self) -> None:
         ses = self.session

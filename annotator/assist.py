@@ -21,7 +21,7 @@ from efem_viz.prior.config import DEFAULT_PRIOR
 from efem_viz.prior.registry import PriorSet
 
 if TYPE_CHECKING:
-    from efem_viz.em.results import Instances
+    from efem_viz.em.results import EMResult, Instances
     from efem_viz.prior.config import ShapePriorLike
 
 log = logging.getLogger(__name__)
@@ -134,6 +134,35 @@ def segment_at_point(
     near = np.flatnonzero(np.linalg.norm(pts[crop] - centre, axis=1) <= max(float(anchor_radius), 0.0))
     res = run_em(sub, cfg=cfg, priors=[pr], seed=seed, anchor_candidates=near, on_step=on_step, cancel=cancel)
     return _instance_at(res.instances, crop, int(vertex), centre)
+
+
+def solve_scan(
+    scene: Any,
+    *,
+    prior_name: str = DEFAULT_PRIOR,
+    settings: SolveSettings,
+    seed: int = 0,
+    on_step: Callable[[Any], None] | None = None,
+    cancel: threading.Event | None = None,
+) -> EMResult:
+    """EFEM on the whole open scan with a shipped prior (the annotator's "Run EFEM on this scan").
+
+    Args:
+        scene: the scan as a `Scene`.
+        prior_name: a shipped prior (`get_prior`).
+        settings: preset, proposals, ... (`SolveSettings.config()`).
+        seed: EM seed.
+        on_step: called with `efem_viz.em.StepInfo` after every EM step (progress).
+        cancel: when set, EM stops at its next check (`efem_viz.em.solver.EMCancelled`).
+
+    Raises:
+        ValueError: unknown prior or bad settings.
+    """
+    from efem_viz.em import run_em
+
+    cfg = settings.config()
+    prior = get_prior(prior_name)
+    return run_em(scene, cfg=cfg, priors=[prior], seed=seed, on_step=on_step, cancel=cancel)
 
 
 def _instance_at(inst: Instances, crop: np.ndarray, vertex: int, centre: np.ndarray) -> np.ndarray:

@@ -95,7 +95,7 @@ def _one_line(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {text[:300]}" if text else type(exc).__name__
 
 
-def _check_labels(labels: np.ndarray, n: int, path: Path) -> np.ndarray:
+def _check_labels(labels: np.ndarray, n: int, path: Path | str) -> np.ndarray:
     lab = np.asarray(labels)
     if lab.ndim != 1 or lab.shape[0] != n:
         raise LabelIOError(f"{path}: has {lab.shape[0] if lab.ndim == 1 else lab.shape} labels, the scan has {n} vertices")
@@ -343,6 +343,17 @@ def _read_efem(p: Path, n: int, *, threshold: float = 0.0) -> LabelData:
         if isinstance(exc, (ValueError, OSError)) and str(p) in msg:  # ResultFileError names the file already
             raise LabelIOError(f"could not load EFEM result: {msg}") from exc
         raise LabelIOError(f"{p}: could not load EFEM result ({_one_line(exc)})") from exc
+    return labels_from_result(res, n, where=str(p), threshold=threshold)
+
+
+def labels_from_result(res: Any, n: int, *, where: str, threshold: float = 0.0) -> LabelData:
+    """The instances of an `EMResult` as labels (instance k -> label k + 1, its proposal's colour) with their
+    confidences, for a scan of `n` vertices.
+
+    Raises:
+        LabelIOError: the result belongs to another point count or its masks are not usable (`where` names it).
+    """
+    p = where
     if res.num_points != n:
         raise LabelIOError(f"{p}: the EFEM result was computed on {res.num_points} points, the scan has {n} vertices")
     try:

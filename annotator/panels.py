@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Sequence, Union
 
 from annotator.panel_views import NO_OPTIONS, PanelView
 from annotator.tools import Control, Tool, ToolSettings, all_controls, help_markdown, shown_settings
+from efem_viz.em.config import PRESETS
 from efem_viz.serve.table import option_for
 
 if TYPE_CHECKING:
@@ -19,6 +20,7 @@ if TYPE_CHECKING:
         GuiCheckboxHandle,
         GuiDropdownHandle,
         GuiMarkdownHandle,
+        GuiNumberHandle,
         GuiRgbHandle,
         GuiSliderHandle,
         GuiTextHandle,
@@ -78,6 +80,14 @@ class Panels:
     gui_import_path: GuiTextHandle
     gui_import: GuiButtonHandle
     # ---- EFEM assist
+    gui_efem_run: GuiButtonHandle
+    """Run EFEM on the open scan (its instances become pre-labels)."""
+    gui_efem_preset: GuiDropdownHandle[str]
+    gui_efem_proposals: GuiNumberHandle[int]
+    gui_efem_cancel: GuiButtonHandle
+    gui_efem_progress: GuiProgressBarHandle
+    gui_efem_status: GuiMarkdownHandle
+    """What the EFEM run is doing (at the bottom of the folder, below every button)."""
     gui_efem_path: GuiTextHandle
     gui_efem_import: GuiButtonHandle
     gui_prelabel: GuiDropdownHandle[str]
@@ -96,7 +106,7 @@ class Panels:
     gui_help: GuiMarkdownHandle
 
     def __init__(self, gui: GuiApi, tools: Sequence[Tool], settings: ToolSettings, *,
-                 efem_result: str, priors: tuple[str, ...], prior: str) -> None:
+                 efem_result: str, priors: tuple[str, ...], prior: str, preset: str = "real") -> None:
         """Create the folders and their handles (Tools, Instances, EFEM assist, History, Files, Instance table, Edit
         history, Help): every folder with buttons comes before the text that grows.
 
@@ -106,6 +116,7 @@ class Panels:
             settings: the tool settings the controls start from.
             efem_result: the EFEM result path shown at start ("" for none).
             priors: the Segment tool's priors; `prior` is selected.
+            preset: the EFEM run's preset shown at start (the one that fits the scan).
         """
         with gui.add_folder("Tools"):
             self.gui_tool = gui.add_dropdown("Tool", tuple(t.name for t in tools), initial_value=settings.tool,
@@ -134,6 +145,13 @@ class Panels:
             self.gui_delete = gui.add_button("Delete active", color="red")
             self.gui_progress = gui.add_progress_bar(0.0)
         with gui.add_folder("EFEM assist", expand_by_default=False):
+            self.gui_efem_run = gui.add_button("Run EFEM on this scan",
+                                               hint="its instances become pre-labels to review (the prior below)")
+            self.gui_efem_preset = gui.add_dropdown("Run preset", PRESETS, initial_value=preset,
+                                                    hint="'real' for single-view captures, 'fast' for a quick look")
+            self.gui_efem_proposals = gui.add_number("Proposals", 400, min=10, max=2000, step=10,
+                                                     hint="more finds more, slower (a real frame: ~1 min per 400)")
+            self.gui_efem_cancel = gui.add_button("Cancel EFEM run", disabled=True)
             self.gui_efem_path = gui.add_text("EFEM result", efem_result)
             self.gui_efem_import = gui.add_button("Import EFEM pre-labels")
             self.gui_prelabel = gui.add_dropdown("Pre-label", NO_OPTIONS,
@@ -150,6 +168,9 @@ class Panels:
             self.gui_prior = gui.add_dropdown("Prior for Segment tool", priors, initial_value=prior)
             self.gui_seg_accept = gui.add_button("Accept segment preview", disabled=True)
             self.gui_seg_cancel = gui.add_button("Discard segment preview", disabled=True)
+            # the run's progress and words below every button of the folder: they grow while a person clicks
+            self.gui_efem_progress = gui.add_progress_bar(0.0, visible=False)
+            self.gui_efem_status = gui.add_markdown("")
         with gui.add_folder("History"):
             self.gui_undo = gui.add_button("Undo (Ctrl+Z)")
             self.gui_redo = gui.add_button("Redo (Ctrl+Y)")

@@ -6,7 +6,7 @@ and lasso select, instances (new, update, delete, merge, pick, cycle), undo/redo
 and their review, and click-to-segment with the shape prior (preview, accept, discard). It is the tools' host
 (`annotator.tools.ToolHost`): a tool's functions get the session. `annotator.app.AnnotatorApp` is the thin viser
 layer on top: it builds the GUI, translates events into session calls and draws what the session reports through
-its hooks (`on_change`, `on_cursor`, `on_lasso`, `on_preview`, `on_segment`, `notify`).
+its hooks (`on_change`, `on_cursor`, `on_lasso`, `on_preview`, `on_segment`, `on_efem`, `notify`).
 
 The session is a facade over its rooms (`annotator.rooms`, one job each; docs/INTERFACES.md): `scan` (the scan,
 its geometry and label store, the warm-up), `instances` (the active tool and the instance table), `painting`,
@@ -241,8 +241,13 @@ class AnnotatorSession(SessionHooks):
 
     @property
     def segmenting(self) -> bool:
-        """Whether a click-to-segment run is in progress."""
+        """Whether an EFEM job (click-to-segment or a run on the scan) is in progress."""
         return self.assist.segmenting
+
+    @property
+    def efem_running(self) -> bool:
+        """Whether an EFEM run on the whole scan is in progress."""
+        return self.assist.efem_running
 
     # ================================================================== tools and instances (rooms/instances.py)
     def set_tool(self, tool: str) -> None:
@@ -430,6 +435,11 @@ class AnnotatorSession(SessionHooks):
     def review_prelabels(self, cut: float, action: Literal["accept", "reject"]) -> list[int]:
         """`AssistRoom.review_prelabels`."""
         return self.assist.review_prelabels(cut, action)
+
+    def run_efem(self, *, preset: str | None = None, proposals: int | None = None, seed: int = 0,
+                 wait: bool = False) -> list[int] | None:
+        """`AssistRoom.run_efem`."""
+        return self.assist.run_efem(preset=preset, proposals=proposals, seed=seed, wait=wait)
 
     def segment_at(self, vertex: int, *, wait: bool = False) -> np.ndarray | None:
         """`AssistRoom.segment_at`."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 import threading
 import time
 from pathlib import Path
+from typing import Any
 from types import SimpleNamespace
 
 import numpy as np
@@ -16,7 +17,8 @@ from annotator import selection as sel
 from annotator.app import TOOLS, AnnotatorApp
 from annotator.tools import DEFAULT_TOOLS, Control, Hit, Tool, check_tools
 from annotator.io import LabelIOError, load_labels
-from efem_viz.data.io import load_scene, save_scene
+from efem_viz.data.io import RESULT_SUFFIX, load_scene, save_scene
+from efem_viz.serve.inputs import ClientValueError
 from efem_viz.data.scene import Scene
 
 
@@ -895,3 +897,92 @@ def test_the_drag_surface_of_a_reduced_scan_covers_it(tmp_path: Path, monkeypatc
         assert covered > 0.75, f"the drag surface covers only about {covered:.0%} of the scan"
     finally:
         a.close()
+
+
+def test_run_efem_on_the_open_scan_makes_prelabels(spheres, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 37 item 14: the annotator runs EFEM on the open scan itself (the real solver, the sphere prior in place
+    of a shipped one): the Run button's run shows progress with what it does, its instances become unreviewed
+    pre-labels on unlabelled vertices only, the result is saved beside the journal and imports again, and the
+    pre-label cut opens where "Accept all ≥ cut" takes the best."""
+    import annotator.assist as assist
+    from efem_viz.em.results import EMResult
+
+    d, scene, prior = spheres
+    monkeypatch.setattr(assist, "get_prior", lambda name: prior)
+    save_scene(Scene.create("bare", scene.points, normals=scene.normals, colors=scene.colors), d / "bare.ply")
+    a = AnnotatorApp(d / "bare.ply", out_dir=d / "out_run", port=0, autosave_delay=0)  # no labels to start from
+    try:
+        assert a.panels.gui_efem_preset.value == "fast"  # a synthetic scan: no capture camera
+        kept = a.session.new_instance(category="table")
+        a.session.paint(np.arange(50))
+        texts: list[str] = []
+        shown = a._show_efem_run
+
+        def spy(text: str | None, percent: float | None) -> None:
+            shown(text, percent)
+            if text is not None:
+                texts.append(text)
+                assert a.panels.gui_efem_progress.visible and a.panels.gui_efem_run.disabled
+                assert not a.panels.gui_efem_cancel.disabled
+
+        a.session.on_efem = spy
+        a.panels.gui_efem_proposals.value = 16
+        ids = a.run_efem(wait=True)
+        assert ids, "the sphere scene's spheres become pre-labels"
+        assert any("step 1 of" in t and "proposals alive" in t for t in texts)
+        assert not a.panels.gui_efem_progress.visible and not a.panels.gui_efem_run.disabled
+        assert a.panels.gui_efem_cancel.disabled and a.panels.gui_efem_status.content == ""
+        labels = a.session.store.labels
+        assert (labels[:50] == kept).all()  # labelled vertices stay
+        table = a.session.store.labelset.instances
+        assert all("unreviewed" in table[i].note for i in ids)
+        best = max(table[i].confidence for i in ids)
+        assert float(a.panels.gui_prelabel_cut.value) <= best
+        saved = a.session.scan.work_dir / f"bare{RESULT_SUFFIX}"
+        res = EMResult.load(saved)
+        assert len(res.instances) == len(ids) + sum(  # every instance is a pre-label unless nothing was left free
+            1 for k in range(len(res.instances)) if not np.any(np.setdiff1d(res.instances.masks[k], np.arange(50))))
+        hits = [g for g in scene.instance_ids() if any(
+            _iou(labels == i, scene.instance == g) > 0.5 for i in ids)]
+        assert len(hits) >= 2, "the pre-labels cover the spheres"
+        assert a.session.import_efem(str(saved.relative_to(d))) is not None  # the saved run imports again
+    finally:
+        a.close()
+
+
+def test_run_efem_progress_and_cancel(app: AnnotatorApp, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The EFEM run on the scan reports its steps and the Cancel button stops it: nothing is added, the buttons
+    come back, one run at a time (click-to-segment waits for it too), and bad values are refused."""
+    import annotator.assist as assist
+    from efem_viz.em.solver import EMCancelled
+
+    started = threading.Event()
+
+    def slow(scene: object, *, prior_name: str, settings: object, seed: int, on_step: Any,
+             cancel: threading.Event) -> object:
+        on_step(SimpleNamespace(step=0, num_steps=30, active=80, elapsed_s=1.0))
+        started.set()
+        assert cancel.wait(30), "never cancelled"
+        raise EMCancelled("cancelled")
+
+    monkeypatch.setattr(assist, "solve_scan", slow)
+    notes: list[str] = []
+    app.notify = lambda title, body, *, client=None, color=None: notes.append(title)  # type: ignore[method-assign]
+    before = dict(app.session.store.labelset.instances)
+    app.run_efem()
+    assert started.wait(30) and app.session.efem_running
+    assert "step 1 of 30" in app.panels.gui_efem_status.content and app.panels.gui_efem_progress.value > 0
+    with pytest.raises(ValueError, match="still running EFEM"):
+        app.run_efem()
+    with pytest.raises(ValueError, match="still running EFEM"):
+        app.segment_at(0)
+    app.session.discard_segment()  # the Cancel button's action
+    deadline = time.monotonic() + 30
+    while app.session.efem_running and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert not app.session.efem_running and "EFEM run cancelled" in notes
+    assert dict(app.session.store.labelset.instances) == before
+    assert not app.panels.gui_efem_run.disabled and app.panels.gui_efem_cancel.disabled
+    app.panels.gui_efem_preset.value = "turbo"  # a hostile client value
+    with pytest.raises(ClientValueError):
+        app.run_efem()

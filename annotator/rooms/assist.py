@@ -41,6 +41,8 @@ class AssistRoom:
         is the tool's (`settings.prior`)."""
         self._segment_lock = threading.Lock()
         self._segment_cancel: threading.Event | None = None
+        self._job: str | None = None
+        """The EFEM job running: "segment" (click-to-segment), "efem" (a run on the scan) or None."""
 
     def import_efem(self, path: str) -> list[int]:
         """Import an EFEM result as unreviewed pre-label instances on unlabelled vertices; returns their ids."""
@@ -136,10 +138,7 @@ class AssistRoom:
             With `wait`, (K,) int32 vertex indices of the proposed mask (also kept in `pending_segment`); else None.
         """
         prior_name = self.toolbox.settings.prior
-        with self._segment_lock:
-            if self._segment_cancel is not None:
-                raise ValueError("still segmenting the last click: wait for its preview, or Esc cancels it")
-            cancel = self._segment_cancel = threading.Event()
+        cancel = self._claim("segment")
         self.hooks.on_segment(0.0)
         if wait:
             return self._segment_job(int(vertex), prior_name, cancel)
@@ -163,8 +162,7 @@ class AssistRoom:
             self.hooks.notify("Segmenting cancelled", f"the segmentation around vertex {vertex} was stopped")
             return None
         finally:
-            with self._segment_lock:
-                self._segment_cancel = None
+            self._release()
             self.hooks.on_segment(None)
         self.set_preview(mask_idx)
         if len(mask_idx) == 0:
@@ -178,9 +176,101 @@ class AssistRoom:
 
     @property
     def segmenting(self) -> bool:
-        """Whether a click-to-segment run is in progress."""
+        """Whether an EFEM job (click-to-segment or a run on the scan) is in progress (Esc cancels it)."""
         with self._segment_lock:
             return self._segment_cancel is not None
+
+    @property
+    def efem_running(self) -> bool:
+        """Whether an EFEM run on the whole scan is in progress."""
+        with self._segment_lock:
+            return self._job == "efem"
+
+    def _claim(self, job: str) -> threading.Event:
+        """Start EFEM job `job` (one at a time); returns its cancel event.
+
+        Raises:
+            ValueError: another EFEM job is running (says which, and that Esc cancels it).
+        """
+        with self._segment_lock:
+            if self._segment_cancel is not None:
+                what = "segmenting the last click" if self._job == "segment" else "running EFEM on the scan"
+                raise ValueError(f"still {what}: wait for it to finish, or cancel it")
+            self._job = job
+            self._segment_cancel = threading.Event()
+            return self._segment_cancel
+
+    def _release(self) -> None:
+        with self._segment_lock:
+            self._segment_cancel, self._job = None, None
+
+    def run_efem(self, *, preset: str | None = None, proposals: int | None = None, seed: int = 0,
+                 wait: bool = False) -> list[int] | None:
+        """Run EFEM on the whole scan with the chosen prior (`settings.prior`); its instances become unreviewed
+        pre-labels (painted only where nothing is labelled), and the result is saved beside the journal
+        (`<scan>.annotate/<scan>.efem.npz`, the last run) so that it can be imported again.
+
+        The solver runs in a background thread; `hooks.on_efem` reports what it does and its progress, and
+        `discard_segment` (the Cancel button) stops it at its next step.
+
+        Args:
+            preset: solver preset (None: the one that fits the scan, `efem_viz.em.config.suggested_preset`).
+            proposals: first-episode proposals (None: the preset's).
+            seed: EM seed.
+            wait: run in the calling thread and return the new pre-label ids (tests, scripts).
+
+        Returns:
+            With `wait`, the new pre-label instance ids ([] when cancelled or nothing was found); else None.
+
+        Raises:
+            ValueError: another EFEM job is running, or a bad preset / proposal count.
+        """
+        from efem_viz.em.config import SolveSettings, suggested_preset
+
+        settings = SolveSettings(preset=preset or suggested_preset(self.scan.scene),  # type: ignore[arg-type]
+                                 proposals=None if proposals is None else int(proposals))
+        settings.config()  # a bad preset or count: one clear error before anything starts
+        prior_name = self.toolbox.settings.prior
+        cancel = self._claim("efem")
+        self.hooks.on_efem(f"EFEM ({settings.preset}, prior {prior_name!r}): starting …", 0.0)
+        self.hooks.on_segment(None)  # Cancel / Esc now stop the run
+        if wait:
+            return self._efem_job(settings, prior_name, seed, cancel)
+        threading.Thread(target=lambda: self.hooks.report(lambda: self._efem_job(settings, prior_name, seed, cancel)),
+                         name="annotator-efem", daemon=True).start()
+        return None
+
+    def _efem_job(self, settings: SolveSettings, prior_name: str, seed: int, cancel: threading.Event) -> list[int]:
+        from annotator import assist
+        from annotator.io import labels_from_result
+        from efem_viz.em.solver import EMCancelled
+
+        what = f"EFEM ({settings.preset}, prior {prior_name!r})"
+
+        def on_step(info: Any) -> None:
+            self.hooks.on_efem(f"{what}: step {info.step + 1} of {info.num_steps}, {info.active} proposals alive, "
+                               f"{info.elapsed_s:.0f} s (Cancel stops it)",
+                               round(100.0 * (info.step + 1) / max(info.num_steps, 1), 1))
+
+        t0 = time.perf_counter()
+        try:
+            result = assist.solve_scan(self.scan.scene, prior_name=prior_name, settings=settings, seed=seed,
+                                       on_step=on_step, cancel=cancel)
+            self.hooks.on_efem(f"{what}: saving the result and adding pre-labels …", 100.0)
+            path = self.scan.work_dir / f"{self.scan.stem}{RESULT_SUFFIX}"
+            result.save(path)
+            ids = self.add_prelabels(labels_from_result(result, self.scan.n, where=path.name), source=path.name)
+        except EMCancelled:
+            self.hooks.notify("EFEM run cancelled", f"{what} was stopped; nothing was added")
+            return []
+        finally:
+            self.hooks.on_efem(None, None)  # the panel first: once the job is released, it shows the end
+            self._release()
+            self.hooks.on_segment(None)
+        self.hooks.notify("EFEM pre-labels", f"{what} found {len(result.instances)} instance(s) in "
+                          f"{time.perf_counter() - t0:.0f} s: {len(ids)} pre-label(s) to review (result saved as "
+                          f"{path.name} beside the journal)")
+        return ids
 
     def set_preview(self, idx: np.ndarray | None) -> None:
         """Highlight a proposed mask (None clears it) without touching the labels."""
@@ -209,7 +299,7 @@ class AssistRoom:
         return self.painting.paint(idx)
 
     def discard_segment(self) -> None:
-        """Drop the segment preview; while a segmentation runs, cancel it (Esc)."""
+        """Drop the segment preview; while an EFEM job runs (click-to-segment or a run on the scan), cancel it (Esc)."""
         with self._segment_lock:
             running = self._segment_cancel
         if running is not None:

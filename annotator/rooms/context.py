@@ -39,6 +39,8 @@ class SessionHooks:
         """The segment preview changed: (K,) int64 vertices whose highlight changed."""
         self.on_segment: Callable[[float | None], None] = _nothing
         """Click-to-segment progress in percent (None: the run ended, or the preview changed)."""
+        self.on_efem: Callable[[str | None, float | None], None] = _nothing
+        """An EFEM run on the scan: what it is doing and its progress in percent (None, None: it ended)."""
         self.notify: Callable[[str, str], None] = lambda title, body: log.info("%s: %s", title, body)
         """Tell the user something (title, body)."""
         self.report: Callable[[Callable[[], Any]], Any] = _log_errors

@@ -26,7 +26,7 @@ if TYPE_CHECKING:
     from efem_viz.prior.config import ShapePriorLike
 
 __all__ = ["DEFAULT_TAU_OUT", "MAX_TAU_OUT", "PRESETS", "EMConfig", "PresetName", "SolveSettings", "preset",
-           "resolve_for_prior"]
+           "resolve_for_prior", "suggested_preset"]
 
 PresetName = Literal["synthetic", "real", "real_paper", "fast"]
 """Solver presets: the capture domain's settings; category settings (sizes, τ_out) come with each prior."""
@@ -314,6 +314,17 @@ class SolveSettings:
     def settings(self) -> dict[str, Any]:
         """These fields as keyword arguments (to build another `SolveSettings` subclass from them)."""
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(SolveSettings)}
+
+
+def suggested_preset(scene: Any) -> PresetName:
+    """The preset that fits a scene: "real" for a single-view capture (`import-rgbd` provenance or a recorded
+    camera), else "fast" (issue 37: a real scan was run with the synthetic `fast` settings). The viewer's Run and
+    the annotator's EFEM run start from it."""
+    from efem_viz.geometry.camera import Camera
+
+    prov = dict(getattr(scene, "provenance", None) or {})
+    camera, problem = Camera.parse(prov)
+    return "real" if prov.get("source") == "rgbd" or camera is not None or problem is not None else "fast"
 
 
 _SYNTHETIC = EMConfig()

@@ -130,13 +130,10 @@ class ResultRoom:
 
     @staticmethod
     def suggested_preset(scene: "Scene") -> str:
-        """The Run preset that fits a scene: "real" for a single-view capture (`import-rgbd` provenance or a
-        recorded camera), else "fast" (issue 37: a real scan was run with the synthetic `fast` settings)."""
-        from efem_viz.geometry.camera import Camera
+        """The Run preset that fits a scene (`efem_viz.em.config.suggested_preset`)."""
+        from efem_viz.em.config import suggested_preset
 
-        prov = dict(getattr(scene, "provenance", None) or {})
-        camera, problem = Camera.parse(prov)
-        return "real" if prov.get("source") == "rgbd" or camera is not None or problem is not None else "fast"
+        return suggested_preset(scene)
 
     def default_threshold(self, result: EMResult) -> float:
         """The cut a result opens with: `DEFAULT_CONFIDENCE_CUT`, lowered to its best instance's confidence when
