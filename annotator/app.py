@@ -154,7 +154,7 @@ class AnnotatorApp(ServedApp):
         self.server.on_client_disconnect(self._forget_client)
         self._worker = threading.Thread(target=self._edit_loop, name="annotator-edits", daemon=True)
         self._worker.start()
-        ses.scan.start_warm_up()
+        ses.scan.start_warm_up(self._show_warm_up)
         self.open_s = time.perf_counter() - t0
         log.info("opened %s: %d vertices (%d drawn), %d chunks, %.2f s", self.session.scan_path.name, self.session.n,
                  len(self.view.display), self.view.chunks.count, self.open_s)
@@ -412,6 +412,20 @@ class AnnotatorApp(ServedApp):
         elif not self.session.segmenting:
             self.panels.gui_seg_progress.visible = False
         self._enable_segment_buttons()
+
+    def _show_warm_up(self, stage: str, done: int, total: int) -> None:
+        """The tools' structures being built after the scan opened (big scans: seconds): what is built now and
+        what already works; hidden once every one is ready."""
+        p = self.panels
+        ready = done >= total
+        p.gui_tools_progress.visible = not ready
+        p.gui_tools_progress.value = round(100.0 * done / max(total, 1), 1)
+        if ready:
+            p.gui_tools_status.content = ""
+            return
+        works = ("" if done == 0 else " The brush works already" + (
+            "; Ctrl+click and lasso visibility wait for the ray caster." if stage == "ray caster" else "."))
+        p.gui_tools_status.content = f"Preparing the tools ({done + 1} of {total}): {stage} …{works}"
 
     def _show_efem_run(self, text: str | None, percent: float | None) -> None:
         """An EFEM run on the scan: its words and progress, Run / Cancel enabled to match; when it ends, the

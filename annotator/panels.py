@@ -54,6 +54,10 @@ class Panels:
     """The tools' buttons by command key (`annotator.tools.ToolCommand`)."""
     gui_seg_progress: GuiProgressBarHandle
     """Click-to-segment's progress (EM steps done), shown while it runs."""
+    gui_tools_progress: GuiProgressBarHandle
+    """The tools' structures built after opening a scan (`ScanGeometry.warm_up`), shown until all are ready."""
+    gui_tools_status: GuiMarkdownHandle
+    """What the warm-up builds now and what already works."""
     # ---- Instances
     gui_active: GuiDropdownHandle[str]
     gui_name: GuiTextHandle
@@ -128,6 +132,9 @@ class Panels:
                                         disabled=cmd.disabled, hint=cmd.hint)
                 for t in tools for cmd in t.commands}
             self.gui_seg_progress = gui.add_progress_bar(0.0, visible=False)
+            # below every tool button: the words grow and go while a person clicks
+            self.gui_tools_progress = gui.add_progress_bar(0.0, visible=False)
+            self.gui_tools_status = gui.add_markdown("")
         with gui.add_folder("Instances"):
             self.gui_active = gui.add_dropdown("Active", NO_OPTIONS)
             self.gui_name = gui.add_text("Name", "")

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 import threading
-from typing import Literal
+from typing import Callable, Literal
 
 import numpy as np
 
@@ -124,20 +124,45 @@ class ScanGeometry:
                     self._raycaster = rc
         return self._raycaster
 
-    def warm_up(self, cancel: threading.Event | None = None) -> None:
+    @property
+    def raycaster_ready(self) -> bool:
+        """Whether the ray-casting scene is built (meshes)."""
+        return self._raycaster is not None
+
+    def warm_up_stages(self) -> list[str]:
+        """What `warm_up` builds, in order (the names its progress reports)."""
+        return ["search tree", "point spacing", "neighbour graph"] + (["ray caster"] if self.faces is not None
+                                                                      else [])
+
+    def warm_up(self, cancel: threading.Event | None = None,
+                on_stage: Callable[[str, int, int], None] | None = None) -> None:
         """Build every structure now (call from a worker thread after opening a scan); stops between structures
         once `cancel` is set. While the ray-casting scene is being built, `building_raycaster` is set (open3d must
-        not be torn down under it; the scipy structures can simply be abandoned at exit)."""
-        for build in (lambda: self.tree, lambda: self.spacing, lambda: self.adjacency):
+        not be torn down under it; the scipy structures can simply be abandoned at exit), and `pick` uses the
+        vertices instead of waiting for it.
+
+        Args:
+            cancel: stop before the next structure when set.
+            on_stage: called with (stage name, stages done, stages in all) before each structure and with
+                ("", total, total) when every one is built.
+        """
+        stages = self.warm_up_stages()
+        builds = [lambda: self.tree, lambda: self.spacing, lambda: self.adjacency, self._warm_raycaster]
+        for k, (name, build) in enumerate(zip(stages, builds)):
             if cancel is not None and cancel.is_set():
                 return
+            if on_stage is not None:
+                on_stage(name, k, len(stages))
             build()
-        if self.faces is not None and not (cancel is not None and cancel.is_set()):
-            self.building_raycaster.set()
-            try:
-                self.raycaster()
-            finally:
-                self.building_raycaster.clear()
+        if on_stage is not None:
+            on_stage("", len(stages), len(stages))
+
+    def _warm_raycaster(self) -> None:
+        self.building_raycaster.set()
+        try:
+            self.raycaster()
+        finally:
+            self.building_raycaster.clear()
 
 
 # ---------------------------------------------------------------------------------------------- picking
@@ -167,7 +192,8 @@ def pick(
     if not np.isfinite(nd) or nd < 1e-12 or not np.isfinite(o).all():
         return None
     dvec = dvec / nd
-    if geom.faces is not None:
+    # a mesh whose ray caster is still being built (opening a big scan) is picked by its vertices meanwhile
+    if geom.faces is not None and not (geom.building_raycaster.is_set() and not geom.raycaster_ready):
         from efem_viz._typeshims import o3d_tensor
 
         rays = o3d_tensor(np.concatenate([o, dvec])[None].astype(np.float32))

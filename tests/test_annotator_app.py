@@ -986,3 +986,18 @@ def test_run_efem_progress_and_cancel(app: AnnotatorApp, monkeypatch: pytest.Mon
     app.panels.gui_efem_preset.value = "turbo"  # a hostile client value
     with pytest.raises(ClientValueError):
         app.run_efem()
+
+
+def test_tools_show_their_warm_up_until_ready(app: AnnotatorApp) -> None:
+    """Issue 37 item 10: after a scan opens, the Tools folder says which structure is being built and what works
+    already, and the words go when every tool is ready."""
+    deadline = time.monotonic() + 60
+    while app.panels.gui_tools_progress.visible and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert not app.panels.gui_tools_progress.visible and app.panels.gui_tools_status.content == ""
+    app._show_warm_up("ray caster", 3, 4)  # as the warm-up thread reports it on a big mesh
+    assert app.panels.gui_tools_progress.visible and app.panels.gui_tools_progress.value == 75.0
+    text = app.panels.gui_tools_status.content
+    assert "4 of 4" in text and "ray caster" in text and "brush works" in text
+    app._show_warm_up("", 4, 4)
+    assert not app.panels.gui_tools_progress.visible and app.panels.gui_tools_status.content == ""

@@ -233,6 +233,30 @@ def test_warm_up_stops_between_structures_once_cancelled(box_on_plane: sel.ScanG
     assert geom._raycaster is not None and not geom.building_raycaster.is_set()
 
 
+def test_warm_up_reports_its_stages_and_picks_wait_for_no_ray_caster(box_on_plane: sel.ScanGeometry) -> None:
+    """Issue 37 item 10: on a big scan the tools were ready 8 s after the scan showed, and a click meanwhile waited
+    without a word. The warm-up names each structure as it starts (the panel shows it), and while the ray caster
+    is being built a pick uses the vertices at once: the same vertex as the exact cast, no ray caster built."""
+    import threading
+
+    geom = sel.ScanGeometry(box_on_plane.points, box_on_plane.normals, faces=box_on_plane.faces)
+    stages: list[tuple[str, int, int]] = []
+    geom.warm_up(threading.Event(), on_stage=lambda *a: stages.append(a))
+    assert stages == [("search tree", 0, 4), ("point spacing", 1, 4), ("neighbour graph", 2, 4),
+                      ("ray caster", 3, 4), ("", 4, 4)]
+    origin = np.array([0.01, 0.013, 1.0])
+    direction = np.array([0.0, 0.0, -1.0])
+    exact = sel.pick(geom, origin, direction)
+    building = sel.ScanGeometry(box_on_plane.points, box_on_plane.normals, faces=box_on_plane.faces)
+    building.building_raycaster.set()  # as while the warm-up thread builds it
+    meanwhile = sel.pick(building, origin, direction)
+    assert building._raycaster is None, "the pick built (waited for) the ray caster"
+    assert exact is not None and meanwhile is not None
+    assert np.linalg.norm(box_on_plane.points[meanwhile[0]] - exact[1]) <= 2.5 * geom.spacing
+    cloud = sel.ScanGeometry(box_on_plane.points, box_on_plane.normals)
+    assert [s[0] for s in cloud.warm_up_stages()] == ["s", "p", "n"]  # no ray caster for point clouds
+
+
 def _plate_over_table(spacing: float, *, jitter: float = 0.0) -> tuple[sel.ScanGeometry, np.ndarray]:
     """A point-cloud table (z = 0) with a 12 cm plate floating 10 cm above its centre; True marks the plate."""
     rng = np.random.default_rng(1)

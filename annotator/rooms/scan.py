@@ -11,6 +11,7 @@ import logging
 import os
 import threading
 from pathlib import Path
+from typing import Callable
 
 from annotator import selection as sel
 from annotator.io import MAX_SCAN_POINTS, LabelData, LabelIOError, load_labels, load_scan
@@ -105,9 +106,11 @@ class ScanRoom:
             accept_scan_mismatch=accept_scan_mismatch,
         )
 
-    def start_warm_up(self) -> None:
-        """Build the selection structures (ray caster, ...) in a daemon thread, so the first click is fast."""
-        self._warmup = threading.Thread(target=self.geom.warm_up, args=(self._warmup_cancel,),
+    def start_warm_up(self, on_stage: Callable[[str, int, int], None] | None = None) -> None:
+        """Build the selection structures (ray caster, ...) in a daemon thread, so the first click is fast;
+        `on_stage(name, done, total)` hears each structure start and ("", total, total) at the end
+        (`ScanGeometry.warm_up`)."""
+        self._warmup = threading.Thread(target=self.geom.warm_up, args=(self._warmup_cancel, on_stage),
                                         name="annotator-warmup", daemon=True)
         self._warmup.start()
 
