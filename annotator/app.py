@@ -414,32 +414,15 @@ class AnnotatorApp(ServedApp):
         self._enable_segment_buttons()
 
     def _show_warm_up(self, stage: str, done: int, total: int) -> None:
-        """The tools' structures being built after the scan opened (big scans: seconds): what is built now and
-        what already works; hidden once every one is ready."""
-        p = self.panels
-        ready = done >= total
-        p.gui_tools_progress.visible = not ready
-        p.gui_tools_progress.value = round(100.0 * done / max(total, 1), 1)
-        if ready:
-            p.gui_tools_status.content = ""
-            return
-        works = ("" if done == 0 else " The brush works already" + (
-            "; Ctrl+click and lasso visibility wait for the ray caster." if stage == "ray caster" else "."))
-        p.gui_tools_status.content = f"Preparing the tools ({done + 1} of {total}): {stage} …{works}"
+        """The tools' warm-up on the panel (`Panels.show_warm_up`)."""
+        self.panels.show_warm_up(stage, done, total)
 
     def _show_efem_run(self, text: str | None, percent: float | None) -> None:
-        """An EFEM run on the scan: its words and progress, Run / Cancel enabled to match; when it ends, the
-        pre-label cut moves to where "Accept all ≥ cut" accepts the best of the new pre-labels."""
-        p = self.panels
-        running = text is not None
-        p.gui_efem_status.content = text or ""
-        if percent is not None:
-            p.gui_efem_progress.value = percent
-        p.gui_efem_progress.visible = running
-        p.gui_efem_run.disabled = running
-        p.gui_efem_cancel.disabled = not running
-        if not running:
-            p.gui_prelabel_cut.value = self.session.prelabel_cut(float(p.gui_prelabel_cut.value))
+        """An EFEM run on the scan on the panel (`Panels.show_efem_run`); when it ends, the pre-label cut moves to
+        where "Accept all ≥ cut" accepts the best of the new pre-labels."""
+        self.panels.show_efem_run(text, percent)
+        if text is None:
+            self.panels.gui_prelabel_cut.value = self.session.prelabel_cut(float(self.panels.gui_prelabel_cut.value))
 
     def _enable_segment_buttons(self) -> None:
         ses = self.session

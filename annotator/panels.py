@@ -236,6 +236,29 @@ class Panels:
             if key in self.gui_tool_buttons:
                 self.gui_tool_buttons[key].disabled = disabled
 
+    def show_warm_up(self, stage: str, done: int, total: int) -> None:
+        """The tools' structures being built after the scan opened (big scans: seconds): what is built now and
+        what already works; hidden once every one is ready (`ScanGeometry.warm_up`'s stages)."""
+        ready = done >= total
+        self.gui_tools_progress.visible = not ready
+        self.gui_tools_progress.value = round(100.0 * done / max(total, 1), 1)
+        if ready:
+            self.gui_tools_status.content = ""
+            return
+        works = ("" if done == 0 else " The brush works already" + (
+            "; Ctrl+click and lasso visibility wait for the ray caster." if stage == "ray caster" else "."))
+        self.gui_tools_status.content = f"Preparing the tools ({done + 1} of {total}): {stage} …{works}"
+
+    def show_efem_run(self, text: str | None, percent: float | None) -> None:
+        """An EFEM run on the scan: its words and progress, Run / Cancel enabled to match (None: it ended)."""
+        running = text is not None
+        self.gui_efem_status.content = text or ""
+        if percent is not None:
+            self.gui_efem_progress.value = percent
+        self.gui_efem_progress.visible = running
+        self.gui_efem_run.disabled = running
+        self.gui_efem_cancel.disabled = not running
+
     def enable_segment(self, *, has_preview: bool, running: bool) -> None:
         """Accept needs a segment preview; Discard a preview or a run to cancel (the Tools and EFEM assist ones)."""
         self.gui_seg_accept.disabled = not has_preview
