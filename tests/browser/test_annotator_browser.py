@@ -608,3 +608,67 @@ def test_growing_table_and_history_move_no_button(keyed: tuple[Any, Any]) -> Non
     for name, b0, b1 in zip(("Next", "Accept", "Undo"), before, after):
         assert b0 is not None and b1 is not None and abs(b1["y"] - b0["y"]) < 1.0, (name, b0, b1)
     page.get_by_text("EFEM assist", exact=True).first.click()
+
+
+def test_run_efem_from_the_page_progress_cancel_then_prelabels(tmp_path: Path, new_page: Callable[..., Any],
+                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 37 items 11 and 14: a person opens EFEM assist, clicks *Run EFEM on this scan*, sees what it does, clicks
+    *Cancel EFEM run* (nothing is added), then runs it to the end (the real solver; the analytic sphere prior stands
+    in for a shipped one) and accepts the best pre-labels with *Accept all ≥ cut*: every step by mouse and keyboard
+    in the page, checked on the server."""
+    import threading
+    from types import SimpleNamespace
+
+    import torch
+
+    import annotator.assist as assist
+    from annotator.app import AnnotatorApp
+    from annotator.labels import unreviewed_prelabels
+    from efem_viz.data.io import save_scene
+    from efem_viz.data.scene import Scene
+    from efem_viz.em.solver import EMCancelled
+    from efem_viz.prior import analytic
+
+    torch.set_num_threads(1)
+    spheres = analytic.make_sphere_scene(seed=0, spacing=0.01, name="spheres")
+    save_scene(Scene.create("bare", spheres.points, normals=spheres.normals, colors=spheres.colors), tmp_path / "bare.ply")
+    prior = analytic.make_sphere_prior()
+    monkeypatch.setattr(assist, "get_prior", lambda name: prior)
+    real_solve = assist.solve_scan
+    cancelled = threading.Event()
+
+    def slow_then_real(scene: Any, **kw: Any) -> Any:
+        if not cancelled.is_set():  # the first run: steps until the person cancels it
+            kw["on_step"](SimpleNamespace(step=0, num_steps=30, active=80, elapsed_s=1.0))
+            assert kw["cancel"].wait(60), "never cancelled"
+            cancelled.set()
+            raise EMCancelled("cancelled")
+        return real_solve(scene, **kw)
+
+    monkeypatch.setattr(assist, "solve_scan", slow_then_real)
+    app = AnnotatorApp(tmp_path / "bare.ply", out_dir=tmp_path / "out", port=0, autosave_delay=0)
+    try:
+        page = new_page(SMALL)
+        _open(app, page)
+        page.get_by_text("EFEM assist", exact=True).first.click()  # the folder starts collapsed
+        proposals = page.get_by_label("Proposals")
+        proposals.fill("16")
+        proposals.press("Enter")
+        wait_until(lambda: app.panels.gui_efem_proposals.value == 16, 15, "the proposal count")
+        page.get_by_role("button", name="Run EFEM on this scan").click()
+        page.get_by_text("step 1 of 30", exact=False).first.wait_for(timeout=20_000)
+        assert app.session.efem_running
+        page.get_by_role("button", name="Cancel EFEM run").click()
+        wait_until(lambda: cancelled.is_set() and not app.session.efem_running, 30, "the run to stop")
+        assert not unreviewed_prelabels(app.session.store.labelset.instances)
+        page.get_by_role("button", name="Run EFEM on this scan").click()
+        wait_until(lambda: bool(unreviewed_prelabels(app.session.store.labelset.instances))
+                   and not app.session.efem_running, 120, "the pre-labels of a finished run")
+        pre = unreviewed_prelabels(app.session.store.labelset.instances)
+        page.get_by_role("button", name="Accept all ≥ cut").click()
+        wait_until(lambda: len(unreviewed_prelabels(app.session.store.labelset.instances)) < len(pre), 20,
+                   "the best pre-labels accepted")
+        accepted = [i for i in pre if "accepted" in app.session.store.labelset.instances[i].note]
+        assert accepted and all((app.session.store.labels == i).any() for i in accepted)
+    finally:
+        app.close()
