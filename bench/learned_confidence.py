@@ -81,10 +81,16 @@ def main() -> int:
     ap.add_argument("--tune", type=int, nargs="+", default=[0, 1, 6])
     ap.add_argument("--judge", type=int, nargs="+", default=[2, 3, 4, 5, 7, 8])
     ap.add_argument("--l2", type=float, nargs="+", default=[0.3, 1.0, 3.0, 10.0])
+    ap.add_argument("--revive", type=float, nargs="+", default=[0.0, 1.0],
+                    help="free-space kill limits to screen: 0 = as run, L = fits killed at a seen-through fraction "
+                         "<= L come back (1: every one)")
     ap.add_argument("--cache", type=Path, default=None, help="pickle of the fits (read if present, else written)")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--write", type=Path, default=None, metavar="MODEL.json",
                     help="save the candidate with the best leave-one-frame-out tune AP50 as a model")
+    ap.add_argument("--write-revive", type=float, default=0.0,
+                    help="--write chooses among the candidates of this kill limit (0: the solver's kills as run, "
+                         "which keeps a re-score exact end to end)")
     a = ap.parse_args()
     fits, scenes = load_fits(a.folders, a.cache)
     acc = [f for f in fits if f.accepted]
@@ -98,18 +104,22 @@ def main() -> int:
     def in_frames(frames: set[int]) -> Callable[[str], bool]:
         return lambda name: frame_of(name) in frames
 
-    def table_row(label: str, rule: Callable[[Fit], float], revive: bool = False) -> dict[str, Any]:
-        r = {"tune": score_rule(fits, scenes, rule, revive, only=in_frames(tune)),
-             "judge": score_rule(fits, scenes, rule, revive, only=in_frames(judge))}
+    def kept(limit: float) -> Callable[[Fit], bool]:
+        """The fits a run keeps when the free-space check kills only above `limit` (0: as run)."""
+        return lambda f: f.accepted or (limit > 0 and f.killed_by == "seen-through" and f.seen_through <= limit)
+
+    def table_row(label: str, rule: Callable[[Fit], float], revive: float = 0.0) -> dict[str, Any]:
+        r = {"tune": score_rule(fits, scenes, rule, kept(revive), only=in_frames(tune)),
+             "judge": score_rule(fits, scenes, rule, kept(revive), only=in_frames(judge))}
         print(f"| {label} | {r['tune']['ap50']:.1f} | {r['judge']['ap50']:.1f} | {r['judge']['ap']:.1f} | "
               f"{r['judge']['top_is_mug']} of {r['judge']['scenes_with_mug']} | {r['judge']['mugs_found']} of "
               f"{r['judge']['mugs']} |")
         return r
 
-    def lofo(names: Sequence[str], l2: float, use_conf: bool, revive: bool = False) -> float:
+    def lofo(names: Sequence[str], l2: float, use_conf: bool, revive: float = 0.0) -> float:
         """AP50 over the tune frames, each scored by a model fitted on the other tune frames."""
         models = {}
-        pool = tr_revived if revive else tr
+        pool = [f for f in tr_all if kept(revive)(f)]
         for k in tune:
             rest = [f for f in pool if frame_of(f.scene) != k]
             y = np.array([is_mug(f) for f in rest], np.float64)
@@ -120,11 +130,11 @@ def main() -> int:
             p = float(m.probs(matrix([f], names))[0]) if m is not None else 0.5
             return p * (conf(f) if use_conf else 1.0)
 
-        return score_rule(fits, scenes, rule, revive, only=in_frames(tune))["ap50"]
+        return score_rule(fits, scenes, rule, kept(revive), only=in_frames(tune))["ap50"]
 
     out: dict[str, Any] = {}
     models: dict[str, LookAlikeModel] = {}
-    tr_revived = [f for f in fits if frame_of(f.scene) in tune and (f.accepted or f.killed_by == "seen-through")]
+    tr_all = [f for f in fits if frame_of(f.scene) in tune]
 
     def demoted(f: Fit) -> float:
         """The confidence of a revived fit: stationary x coverage (capped at 0.4) x (1 - seen-through)."""
@@ -134,21 +144,22 @@ def main() -> int:
     def conf(f: Fit) -> float:
         return f.confidence if f.accepted else demoted(f)
 
-    def _candidate(revive: bool, sname: str, names: list[str], use_conf: bool) -> None:
+    def _candidate(revive: float, sname: str, names: list[str], use_conf: bool) -> None:
         best = max(a.l2, key=lambda l2: lofo(names, l2, use_conf, revive))
         inner = lofo(names, best, use_conf, revive)
-        pool = tr_revived if revive else tr
+        pool = [f for f in tr_all if kept(revive)(f)]
         y = np.array([is_mug(f) for f in pool], np.float64)
         model = fit_logistic(matrix(pool, names), y, names, l2=best, trained_on=(
-            f"bench/learned_confidence.py: accepted{' and free-space-killed' if revive else ''} fits of "
+            f"bench/learned_confidence.py: accepted{f' and free-space-killed (<= {revive:g})' if revive else ''} fits of "
             f"frames {sorted(tune)} in {len(a.folders)} saved runs, L2 {best:g}"), times_confidence=use_conf)
 
         def rule(f: Fit) -> float:
             return float(model.probs(matrix([f], names))[0]) * (conf(f) if use_conf else 1.0)
 
-        label = (f"{'revived: ' if revive else ''}{'confidence x ' if use_conf else ''}p(mug | {sname}), L2 {best:g} "
+        label = (f"{f'revived <= {revive:g}: ' if revive else ''}{'confidence x ' if use_conf else ''}p(mug | {sname}), L2 {best:g} "
                  f"(LOFO tune AP50 {inner:.1f})")
         r = table_row(label, rule, revive)
+        r["revive_limit"] = revive
         r["weights"] = dict(zip(["bias", *names], (model.bias, *model.weights)))
         r["l2"], r["lofo_tune_ap50"] = best, inner
         out[label] = r
@@ -167,14 +178,18 @@ def main() -> int:
                "stationary, coverage, pose": ["log stationary", "log coverage", "pose score"],
                "no mask size": [n for n in all_names if n != "log mask size"],
                "no mask size, no seen-through": [n for n in all_names if n not in ("log mask size", "seen-through")]}
-    out["revived, demoted"] = table_row("fits killed by the free-space check revived, confidence x (1 - fraction)",
-                                        demoted, revive=True)
-    for revive in (False, True):
+    for limit in a.revive:
+        if limit > 0:
+            out[f"revived <= {limit:g}, demoted"] = table_row(
+                f"fits killed by the free-space check revived up to {limit:g}, confidence x (1 - fraction)",
+                demoted, revive=limit)
+    for revive in a.revive:
         for sname, names in subsets.items():
             for use_conf in (False, True):
                 _candidate(revive, sname, names, use_conf)
     if a.write is not None:  # the candidate with the best held-out tune AP50 (never chosen on the judge frames)
-        label = max(models, key=lambda k: out[k]["lofo_tune_ap50"])
+        label = max((k for k in models if out[k]["revive_limit"] == a.write_revive),
+                    key=lambda k: out[k]["lofo_tune_ap50"])
         models[label].save(a.write)
         print(f"wrote {a.write}: {label}")
     if a.json is not None:

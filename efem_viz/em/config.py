@@ -348,14 +348,17 @@ _REAL = dataclasses.replace(
     m_step_replace=False,
     seen_through_margin=0.01,
     max_seen_through=0.15,
-    pose_weight=2.0,
+    mug_model="mug_uois_tune",
 )
 """Real single-view depth frames (session 8, measured with bench/em_stability.py, bench/real.py and
 bench/stereo_mug.py; docs/BENCHMARKS.md): §3.12's settings, but the E-step does not truncate on normals (depth
 noise tilts estimated normals, and the truncated points started the shrink spiral), a wider SDF band, M-step
-draws without replacement, and the free-space check of the capture camera; the confidence weighs the pose score
-(session 12, issue 33: `bench/ranking.py` on 8 saved runs of the UOIS frames, pooled AP50 42.8 -> 46.3, tune 63.5
--> 64.8, judge 16.8 -> 22.4; the instances themselves do not change)."""
+draws without replacement, and the free-space check of the capture camera. The confidence is the learned
+probability that a fit is a mug (`mug_model`, issue 33, session 13: fitted on the tune frames' accepted fits of 8
+saved runs, chosen by leave-one-frame-out AP50 inside the tune frames; `bench/learned_confidence.py`: tune AP50
+64.8 -> 71.2, judge 22.4 -> 23.0, the most confident fit a mug in 18 of 32 judge scenes instead of 15); it
+replaced session 12's pose-score weighting (pooled AP50 42.8 -> 46.3), whose pose score is one of its features.
+The instances themselves do not change (one episode: the confidence decides no elimination)."""
 
 _FAST = EMConfig(
     name="fast",
