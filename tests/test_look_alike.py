@@ -92,3 +92,39 @@ def test_shipped_models_load_and_configure() -> None:
         assert 0.0 < m.prob(_features()) < 1.0
         cfg = preset("real").replace(mug_model=name)
         assert EMConfig.from_json(cfg.to_json()).mug_model == name
+
+
+def test_solver_confidence_is_the_models_and_instances_do_not_change(tmp_path, monkeypatch) -> None:
+    """`EMConfig.mug_model`: each accepted fit's confidence is the model's (from its last review and stationary
+    score, as `bench/learned_confidence.py` scores saved runs), and the instances are those of the same run
+    without it (one episode: the confidence decides no elimination)."""
+    import torch
+
+    from efem_viz import em
+    from efem_viz.prior import analytic
+
+    torch.set_num_threads(1)
+    monkeypatch.setattr(look_alike, "MODELS", tmp_path)
+    load_model.cache_clear()
+    model = LookAlikeModel(("radius (cm)", "log coverage"), (5.0, -3.0), (1.0, 1.0), (-1.5, 0.7), 0.2,
+                           times_confidence=True)
+    model.save(tmp_path / "toy.json")
+    scene = analytic.make_sphere_scene(seed=0, spacing=0.008, name="spheres")
+    prior = analytic.make_sphere_prior()
+    cfg = em.preset("fast").with_proposals(16).replace(min_size=30)
+    plain = em.run_em(scene, prior, cfg, seed=0)
+    learned = em.run_em(scene, prior, cfg.replace(mug_model="toy"), seed=0)
+    load_model.cache_clear()
+    assert len(plain.instances) == len(learned.instances) > 0
+    before = {int(i): (sorted(m), float(c)) for i, m, c in zip(plain.instances.ids, plain.instances.masks,
+                                                                 plain.instances.confidence)}
+    assert {int(i): sorted(m) for i, m in zip(learned.instances.ids, learned.instances.masks)} == {
+        i: v[0] for i, v in before.items()}
+    for k in range(len(learned.instances)):
+        rev = learned.trace.reviews(int(learned.instances.ids[k]))[-1]
+        f = review_features(stationary=float(learned.instances.stationary[k]), coverage=float(rev.coverage),
+                            pose=float(rev.db_sim), radius=float(rev.radii[0]), half_height=float(rev.radii[1]),
+                            up_angle=float(rev.up_angle), seen_through=float(rev.seen_through),
+                            mask_size=len(rev.mask))
+        expected = model.confidence(before[int(learned.instances.ids[k])][1], f)
+        assert float(learned.instances.confidence[k]) == pytest.approx(expected, rel=1e-5)
