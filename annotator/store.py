@@ -19,7 +19,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 import numpy as np
 
@@ -234,29 +234,18 @@ class LabelStore:
             )
 
     def _recover(self, initial_labels: np.ndarray | None, initial_instances: list[InstanceInfo] | None) -> LabelSet:
+        """Open the labels: a new session's start labels, or the newest verifiable full state (a journal base or
+        snapshot record, or the checkpoint) with the journal's later edits replayed and the undo/redo history
+        rebuilt over the whole journal. Sets `resumed`, and `recovery` when there was damage to report.
+
+        Raises:
+            JournalError: another scan's journal or label file, or a journal damaged beyond recovery.
+        """
         j = self.journal
         recs = j.records
-        ck: tuple[np.ndarray, dict[int, InstanceInfo], int] | None = None
-        ck_problem = ""
-        if self.label_path.exists():
-            try:
-                lab, table, seq, scan = read_label_file_with_scan(self.label_path, self.n)
-                self._check_scan({**scan, "num_vertices": self.n}, f"label file {self.label_path}")
-                ck = (lab, table, seq)
-            except JournalError as exc:
-                if not recs:
-                    raise JournalError(f"{exc}; refusing to overwrite it — move it away or choose another --out") from exc
-                ck_problem = f"the checkpoint could not be used ({exc})"
-                log.warning("%s; replaying the journal instead", exc)
+        ck, ck_problem = self._read_checkpoint(has_records=bool(recs))
         if not recs and not j.damage:
-            ls = LabelSet(self.n, initial_labels, initial_instances)
-            if ck is not None:  # an existing checkpoint without a journal (journal deleted by hand)
-                ls = LabelSet(self.n, ck[0], ck[1].values())
-                log.warning("no journal next to %s: resuming from the label file alone", self.label_path)
-                self.resumed = True
-            lab, table = ls.snapshot()
-            j.append("base", {"scan": self.scan_id, "table": table_to_json(table)}, {"labels": lab})
-            return ls
+            return self._start_new(initial_labels, initial_instances, ck)
         # The scan identity: the newest full-state record's, else the checkpoint's check above.
         states = [r for r in recs if r.kind in ("base", "snapshot")]
         for r in reversed(states):
@@ -264,7 +253,81 @@ class LabelStore:
                 self._check_scan(r.header["scan"], f"journal {j.path}")
                 break
         self.resumed = True
-        # Start from the newest valid full state: a base/snapshot record or the checkpoint (never an older one).
+        ls, start_seq, start_name = self._start_state(states, ck)
+        newest = max([r.seq for r in recs], default=-1)
+        j.next_seq = max(j.next_seq, start_seq + 1, newest + 1)
+        replay = _replay_history(recs, ls, start_seq)
+        ls.undo_stack = replay.undo
+        ls.redo_stack = replay.redo
+        ck_seq = ck[2] if ck is not None else -1
+        ck_newer = ck_seq > newest
+        report = _recovery_report(j, start_seq=start_seq, start_name=start_name, replay=replay,
+                                  ck_seq=ck_seq if ck is not None else None, ck_problem=ck_problem,
+                                  newest=newest, label_name=self.label_path.name)
+        if report is not None:
+            self.recovery = report
+            log.warning("journal %s recovery:\n%s", j.path.name, self.recovery.summary())
+        # Make the journal alone reproduce the recovered state, whatever happens to the checkpoint later: a full
+        # snapshot when replaying it would not (records missing since its newest full state, skipped records, a
+        # newer checkpoint), or when the scan identity changed on purpose.
+        last_state = states[-1].seq if states else -1
+        scan_changed = self.accept_scan_mismatch and bool(states) and (
+            states[-1].header.get("scan", {}).get("content_hash") != self.scan_id.get("content_hash")
+        )
+        if replay.skipped or ck_newer or scan_changed or any(g > last_state for g in j.gaps):
+            lab, table = ls.snapshot()
+            j.append("snapshot", {"scan": self.scan_id, "table": table_to_json(table)}, {"labels": lab})
+        log.info(
+            "resumed %s: %d journal records, start %s, %d undoable edits",
+            j.path.name, len(recs), start_name, len(replay.undo),
+        )
+        return ls
+
+    def _read_checkpoint(self, *, has_records: bool) -> tuple[_Checkpoint | None, str]:
+        """The label file (the checkpoint), checked against this scan.
+
+        Returns:
+            Its (labels, table, newest record) or None when there is none or it is unusable, and a line saying
+            why it is unusable ("" when it is fine or missing).
+
+        Raises:
+            JournalError: it is unusable and there is no journal to replay instead (it is never overwritten).
+        """
+        if not self.label_path.exists():
+            return None, ""
+        try:
+            lab, table, seq, scan = read_label_file_with_scan(self.label_path, self.n)
+            self._check_scan({**scan, "num_vertices": self.n}, f"label file {self.label_path}")
+            return (lab, table, seq), ""
+        except JournalError as exc:
+            if not has_records:
+                raise JournalError(f"{exc}; refusing to overwrite it — move it away or choose another --out") from exc
+            log.warning("%s; replaying the journal instead", exc)
+            return None, f"the checkpoint could not be used ({exc})"
+
+    def _start_new(self, initial_labels: np.ndarray | None, initial_instances: list[InstanceInfo] | None,
+                   ck: _Checkpoint | None) -> LabelSet:
+        """A session without journal records: the start labels (or a checkpoint whose journal was deleted by
+        hand), written as the journal's base record."""
+        ls = LabelSet(self.n, initial_labels, initial_instances)
+        if ck is not None:  # an existing checkpoint without a journal (journal deleted by hand)
+            ls = LabelSet(self.n, ck[0], ck[1].values())
+            log.warning("no journal next to %s: resuming from the label file alone", self.label_path)
+            self.resumed = True
+        lab, table = ls.snapshot()
+        self.journal.append("base", {"scan": self.scan_id, "table": table_to_json(table)}, {"labels": lab})
+        return ls
+
+    def _start_state(self, states: list[Record], ck: _Checkpoint | None) -> tuple[LabelSet, int, str]:
+        """The newest valid full state to replay from: the newest base/snapshot record or the checkpoint, whichever
+        holds more records (never an older one).
+
+        Returns:
+            The labels, the sequence number they hold records up to, and a name for the report.
+
+        Raises:
+            JournalError: neither a full-state record nor a usable checkpoint.
+        """
         start_seq, start_name = -1, ""
         ls: LabelSet | None = None
         if states and not (ck is not None and ck[2] > states[-1].seq):  # (a newer checkpoint: never read it)
@@ -277,109 +340,10 @@ class LabelStore:
             start_seq, start_name = ck[2], f"checkpoint (record {ck[2]})"
         if ls is None:
             raise JournalError(
-                f"journal {j.path} is damaged beyond recovery (no verifiable full state, no usable checkpoint); "
-                f"the damaged file is kept in {j.aside}"
+                f"journal {self.journal.path} is damaged beyond recovery (no verifiable full state, no usable "
+                f"checkpoint); the damaged file is kept in {self.journal.aside}"
             )
-        newest = max([r.seq for r in recs], default=-1)
-        j.next_seq = max(j.next_seq, start_seq + 1, newest + 1)
-        # Rebuild history over all records with the same stack logic as LabelSet; apply to the labels only the
-        # records after the start state. History cannot be undone across a missing record: stacks restart there.
-        undo: list[HistoryEntry] = []
-        redo: list[HistoryEntry] = []
-        skipped: list[str] = []
-        replayed = 0
-        prev = -1
-        for r in recs:
-            if r.seq != prev + 1:
-                undo.clear()
-                redo.clear()
-            prev = r.seq
-            apply_now = r.seq > start_seq
-            if r.kind in ("base", "snapshot"):
-                continue  # full states: the newest one (or a newer checkpoint) is the start state
-            if r.kind == "do":
-                try:
-                    entry: HistoryEntry = JournalEdit.of(r)
-                    if apply_now:  # read it now; older edits are read only if they are undone
-                        d = record_to_delta(r)
-                        forced = _force_apply(ls, d)
-                        replayed += 1
-                        if forced is not d:  # not what the record holds: keep this one in memory
-                            entry = dataclasses.replace(forced, seq=-1)
-                except (KeyError, ValueError, TypeError) as exc:
-                    skipped.append(f"record {r.seq}: unreadable edit ({exc})")
-                    undo.clear()
-                    redo.clear()
-                    continue
-                undo.append(entry)
-                redo.clear()
-            elif r.kind in ("undo", "redo"):
-                src, dst = (undo, redo) if r.kind == "undo" else (redo, undo)
-                if not src:
-                    if apply_now:
-                        skipped.append(f"record {r.seq}: {r.kind} of an edit in the damaged part")
-                    continue
-                group = src[-1].group
-                while src:
-                    e = src.pop()
-                    if apply_now:
-                        d = e.load()
-                        _force_apply(ls, d.inverse() if r.kind == "undo" else d)
-                    dst.append(e)
-                    if not group or not src or src[-1].group != group:
-                        break
-                if apply_now:
-                    replayed += 1
-        ls.undo_stack = undo
-        ls.redo_stack = redo
-        lost = tuple(s for s in j.gaps if s > start_seq)
-        damage = list(j.damage)
-        if ck_problem:
-            damage.append(ck_problem)
-        ck_seq = ck[2] if ck is not None else -1
-        ck_newer = ck_seq > newest
-        if ck_newer:
-            damage.append(f"the journal ends at record {newest}, the checkpoint holds records up to {ck_seq}: "
-                          "resumed from the checkpoint")
-        if damage or lost or skipped:
-            seqs = [r.seq for r in recs]
-            checkpoint = (f"holds records up to {ck_seq}" if ck is not None
-                          else "unreadable" if ck_problem else f"missing ({self.label_path.name})")
-            unverified: list[str] = []
-            if j.torn_at is not None and ck_seq <= newest:
-                unverified.append(
-                    f"whether edits followed record {newest}: a crash during an edit leaves an incomplete last "
-                    "record (that edit was never acknowledged), but so does a journal cut short, and then every "
-                    "later edit is gone; "
-                    + ("there is no checkpoint to compare with" if ck is None else
-                       f"the checkpoint holds nothing newer (record {ck_seq})"))
-            self.recovery = RecoveryReport(
-                start=start_name,
-                replayed=replayed,
-                damage=tuple(damage),
-                lost=lost,
-                skipped=tuple(skipped),
-                aside=(j.aside.name,) if j.aside is not None else (),
-                verified=(f"{len(seqs)} journal records ({_ranges(tuple(seqs))}, checksums match)" if seqs
-                          else "no journal record") + f"; checkpoint: {checkpoint}",
-                unverified=tuple(unverified),
-            )
-            log.warning("journal %s recovery:\n%s", j.path.name, self.recovery.summary())
-        # Make the journal alone reproduce the recovered state, whatever happens to the checkpoint later: a full
-        # snapshot when replaying it would not (records missing since its newest full state, skipped records, a
-        # newer checkpoint), or when the scan identity changed on purpose.
-        last_state = states[-1].seq if states else -1
-        scan_changed = self.accept_scan_mismatch and bool(states) and (
-            states[-1].header.get("scan", {}).get("content_hash") != self.scan_id.get("content_hash")
-        )
-        if skipped or ck_newer or scan_changed or any(g > last_state for g in j.gaps):
-            lab, table = ls.snapshot()
-            j.append("snapshot", {"scan": self.scan_id, "table": table_to_json(table)}, {"labels": lab})
-        log.info(
-            "resumed %s: %d journal records, start %s, %d undoable edits",
-            j.path.name, len(recs), start_name, len(undo),
-        )
-        return ls
+        return ls, start_seq, start_name
 
     # ------------------------------------------------------------------ editing
     def do(self, build: Callable[[LabelSet], Delta], *, client: str = "", group: str = "") -> Delta | None:
@@ -540,6 +504,125 @@ class LabelStore:
     def snapshot(self) -> tuple[np.ndarray, dict[int, InstanceInfo]]:
         with self.lock:
             return self.labelset.snapshot()
+
+
+_Checkpoint = tuple[np.ndarray, dict[int, InstanceInfo], int]
+"""A checkpoint as recovery reads it: (N,) int32 labels, the instance table, the newest journal record it holds."""
+
+
+class _Replay(NamedTuple):
+    """The journal replayed over a start state (`_replay_history`)."""
+
+    undo: list[HistoryEntry]
+    """The rebuilt undo stack (oldest first)."""
+    redo: list[HistoryEntry]
+    """The rebuilt redo stack."""
+    skipped: list[str]
+    """Verified records that could not be replayed, and why."""
+    replayed: int
+    """Records applied to the labels (those after the start state)."""
+
+
+def _replay_history(recs: list[Record], ls: LabelSet, start_seq: int) -> _Replay:
+    """Rebuild the undo/redo history over all journal records with the same stack logic as `LabelSet`, applying to
+    `ls` only the records after `start_seq` (the start state holds the others). History cannot be undone across a
+    missing record: the stacks restart there. Edits older than the start state are read only if they are undone.
+    """
+    undo: list[HistoryEntry] = []
+    redo: list[HistoryEntry] = []
+    skipped: list[str] = []
+    replayed = 0
+    prev = -1
+    for r in recs:
+        if r.seq != prev + 1:
+            undo.clear()
+            redo.clear()
+        prev = r.seq
+        apply_now = r.seq > start_seq
+        if r.kind in ("base", "snapshot"):
+            continue  # full states: the newest one (or a newer checkpoint) is the start state
+        if r.kind == "do":
+            try:
+                entry: HistoryEntry = JournalEdit.of(r)
+                if apply_now:  # read it now; older edits are read only if they are undone
+                    d = record_to_delta(r)
+                    forced = _force_apply(ls, d)
+                    replayed += 1
+                    if forced is not d:  # not what the record holds: keep this one in memory
+                        entry = dataclasses.replace(forced, seq=-1)
+            except (KeyError, ValueError, TypeError) as exc:
+                skipped.append(f"record {r.seq}: unreadable edit ({exc})")
+                undo.clear()
+                redo.clear()
+                continue
+            undo.append(entry)
+            redo.clear()
+        elif r.kind in ("undo", "redo"):
+            src, dst = (undo, redo) if r.kind == "undo" else (redo, undo)
+            if not src:
+                if apply_now:
+                    skipped.append(f"record {r.seq}: {r.kind} of an edit in the damaged part")
+                continue
+            group = src[-1].group
+            while src:
+                e = src.pop()
+                if apply_now:
+                    d = e.load()
+                    _force_apply(ls, d.inverse() if r.kind == "undo" else d)
+                dst.append(e)
+                if not group or not src or src[-1].group != group:
+                    break
+            if apply_now:
+                replayed += 1
+    return _Replay(undo, redo, skipped, replayed)
+
+
+def _recovery_report(j: Journal, *, start_seq: int, start_name: str, replay: _Replay, ck_seq: int | None,
+                     ck_problem: str, newest: int, label_name: str) -> RecoveryReport | None:
+    """What a reopened session recovered and what it could not; None when there is nothing to report (no damage,
+    no lost or skipped record, no checkpoint newer than the journal).
+
+    Args:
+        j: the opened journal (its damage, gaps, torn end and aside file).
+        start_seq, start_name: the start state (`LabelStore._start_state`).
+        replay: the journal replayed over it.
+        ck_seq: the newest record the checkpoint holds; None without a usable checkpoint.
+        ck_problem: why the checkpoint is unusable ("" when it is fine or missing).
+        newest: the journal's newest record (-1: none).
+        label_name: the checkpoint's file name.
+    """
+    lost = tuple(s for s in j.gaps if s > start_seq)
+    damage = list(j.damage)
+    if ck_problem:
+        damage.append(ck_problem)
+    seq = ck_seq if ck_seq is not None else -1
+    if seq > newest:
+        damage.append(f"the journal ends at record {newest}, the checkpoint holds records up to {seq}: "
+                      "resumed from the checkpoint")
+    if not (damage or lost or replay.skipped):
+        return None
+    seqs = [r.seq for r in j.records]
+    checkpoint = (f"holds records up to {seq}" if ck_seq is not None
+                  else "unreadable" if ck_problem else f"missing ({label_name})")
+    unverified: list[str] = []
+    if j.torn_at is not None and seq <= newest:
+        unverified.append(
+            f"whether edits followed record {newest}: a crash during an edit leaves an incomplete last "
+            "record (that edit was never acknowledged), but so does a journal cut short, and then every "
+            "later edit is gone; "
+            + ("there is no checkpoint to compare with" if ck_seq is None else
+               f"the checkpoint holds nothing newer (record {seq})"))
+    return RecoveryReport(
+        start=start_name,
+        replayed=replay.replayed,
+        damage=tuple(damage),
+        lost=lost,
+        skipped=tuple(replay.skipped),
+        aside=(j.aside.name,) if j.aside is not None else (),
+        verified=(f"{len(seqs)} journal records ({_ranges(tuple(seqs))}, checksums match)" if seqs
+                  else "no journal record") + f"; checkpoint: {checkpoint}",
+        unverified=tuple(unverified),
+    )
 
 
 def _force_apply(ls: LabelSet, d: Delta) -> Delta:

@@ -7,12 +7,18 @@ import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 import numpy as np
 import tyro
 
 from efem_viz.data.scene import DEFAULT_MAX_POINTS, SceneError
+
+if TYPE_CHECKING:
+    from rich.console import Console
+    from rich.table import Table
+
+    from efem_viz.data.scene import Scene
 
 log = logging.getLogger(__name__)
 
@@ -37,10 +43,9 @@ class InfoArgs:
     def run(self) -> int:
         """Describe every scene; returns 1 if any file could not be read, else 0."""
         from rich.console import Console
-        from rich.table import Table
 
         from efem_viz.data.io import find_scenes, holds_predictions, load_scene
-        from efem_viz.terminal import console_text, count
+        from efem_viz.terminal import console_text
 
         console = Console()
         paths = find_scenes(self.scenes)
@@ -66,62 +71,84 @@ class InfoArgs:
             if self.json:
                 print(json.dumps(summary, default=str))
                 continue
-            table = Table(title=console_text(path), show_header=False, title_justify="left")
-            table.add_column("field", style="bold")
-            table.add_column("value")
-            table.add_row("kind", summary["kind"])
-            table.add_row("points", f"{summary['points']:,}")
-            table.add_row("faces", f"{summary['faces']:,}")
-            table.add_row("bounds min (m)", _vec(summary["bounds_min"]))
-            table.add_row("bounds max (m)", _vec(summary["bounds_max"]))
-            table.add_row("extent (m)", _vec(summary["extent"]))
-            colours = "grey (none)" if bool((scene.colors == 180).all()) else "per point"
-            table.add_row("colours", colours)
-            table.add_row("normals", "in the file" if summary["normals"] == "stored" else "none (estimated on use)")
-            if scene.instance is None:
-                table.add_row(labels_name, "none")
-            else:
-                table.add_row(
-                    labels_name,
-                    f"{count(len(summary.get('instances', {})), 'instance')}, "
-                    f"{summary.get('labelled_points', 0):,} labelled points",
-                )
-                cats = summary.get("categories", {})
-                if cats:
-                    table.add_row("categories", console_text(", ".join(f"{k} x{v}" for k, v in sorted(cats.items()))))
-            prov = dict(scene.provenance)
-            from efem_viz.geometry.camera import Camera
-
-            camera, problem = Camera.parse(prov)
-            if camera is not None:
-                table.add_row("capture camera", f"{camera.width}x{camera.height}, fx {camera.K[0, 0]:.1f}, "
-                              "recorded (free-space check available)")
-            elif problem is not None:
-                table.add_row("capture camera", console_text(f"[unusable: {problem}]"))
-            shown = 0
-            for key, val in prov.items():
-                if not self.full and key in ("K", "T_world_camera", "image_size", "plane_camera"):
-                    continue
-                text = str(val)
-                if not self.full and len(text) > 80:
-                    text = text[:77] + "..."
-                table.add_row(console_text(f"provenance.{key}"), console_text(text))
-                shown += 1
-            if not self.full and shown < len(prov):
-                table.add_row("provenance", f"{len(prov) - shown} more entries (--full shows them)")
-            console.print(table)
+            console.print(self._scene_table(path, scene, summary, labels_name))
             if scene.instance is not None and summary.get("instances"):
-                inst = Table(title=labels_name if predicted else "instances", title_justify="left")
-                inst.add_column("id", justify="right")
-                inst.add_column("category")
-                inst.add_column("points", justify="right")
-                items = list(summary["instances"].items())
-                for i, rec in items if self.full else items[:12]:
-                    inst.add_row(str(i), console_text(rec["category"]), f"{rec['points']:,}")
-                console.print(inst)
-                if not self.full and len(items) > 12:
-                    console.print(f"... and {len(items) - 12} more instances (--full lists them)")
+                self._print_instances(console, summary, labels_name if predicted else "instances")
         return 1 if failures else 0
+
+
+    def _scene_table(self, path: Path, scene: Scene, summary: dict[str, Any], labels_name: str) -> Table:
+        """One scene's table: kind, sizes, bounds, colours, normals, labels, capture camera, provenance."""
+        from rich.table import Table
+
+        from efem_viz.terminal import console_text, count
+
+        table = Table(title=console_text(path), show_header=False, title_justify="left")
+        table.add_column("field", style="bold")
+        table.add_column("value")
+        table.add_row("kind", summary["kind"])
+        table.add_row("points", f"{summary['points']:,}")
+        table.add_row("faces", f"{summary['faces']:,}")
+        table.add_row("bounds min (m)", _vec(summary["bounds_min"]))
+        table.add_row("bounds max (m)", _vec(summary["bounds_max"]))
+        table.add_row("extent (m)", _vec(summary["extent"]))
+        colours = "grey (none)" if bool((scene.colors == 180).all()) else "per point"
+        table.add_row("colours", colours)
+        table.add_row("normals", "in the file" if summary["normals"] == "stored" else "none (estimated on use)")
+        if scene.instance is None:
+            table.add_row(labels_name, "none")
+        else:
+            table.add_row(
+                labels_name,
+                f"{count(len(summary.get('instances', {})), 'instance')}, "
+                f"{summary.get('labelled_points', 0):,} labelled points",
+            )
+            cats = summary.get("categories", {})
+            if cats:
+                table.add_row("categories", console_text(", ".join(f"{k} x{v}" for k, v in sorted(cats.items()))))
+        self._add_provenance_rows(table, dict(scene.provenance))
+        return table
+
+    def _add_provenance_rows(self, table: Table, prov: dict[str, Any]) -> None:
+        """The capture camera (usable or why not) and the provenance entries (long or camera ones only with
+        `--full`)."""
+        from efem_viz.geometry.camera import Camera
+        from efem_viz.terminal import console_text
+
+        camera, problem = Camera.parse(prov)
+        if camera is not None:
+            table.add_row("capture camera", f"{camera.width}x{camera.height}, fx {camera.K[0, 0]:.1f}, "
+                          "recorded (free-space check available)")
+        elif problem is not None:
+            table.add_row("capture camera", console_text(f"[unusable: {problem}]"))
+        shown = 0
+        for key, val in prov.items():
+            if not self.full and key in ("K", "T_world_camera", "image_size", "plane_camera"):
+                continue
+            text = str(val)
+            if not self.full and len(text) > 80:
+                text = text[:77] + "..."
+            table.add_row(console_text(f"provenance.{key}"), console_text(text))
+            shown += 1
+        if not self.full and shown < len(prov):
+            table.add_row("provenance", f"{len(prov) - shown} more entries (--full shows them)")
+
+    def _print_instances(self, console: Console, summary: dict[str, Any], title: str) -> None:
+        """The instance table (id, category, points): the first 12 rows unless `--full`."""
+        from rich.table import Table
+
+        from efem_viz.terminal import console_text
+
+        inst = Table(title=title, title_justify="left")
+        inst.add_column("id", justify="right")
+        inst.add_column("category")
+        inst.add_column("points", justify="right")
+        items = list(summary["instances"].items())
+        for i, rec in items if self.full else items[:12]:
+            inst.add_row(str(i), console_text(rec["category"]), f"{rec['points']:,}")
+        console.print(inst)
+        if not self.full and len(items) > 12:
+            console.print(f"... and {len(items) - 12} more instances (--full lists them)")
 
 
 def _vec(v: list[float]) -> str:

@@ -288,6 +288,60 @@ def _inside_hull(hull_xy: np.ndarray, q: np.ndarray, margin: float) -> np.ndarra
     return inside
 
 
+def _crop_above_table(points_cam: np.ndarray, colors: np.ndarray, table_pts: np.ndarray, R: np.ndarray,
+                      t: np.ndarray, *, below: float, max_height: float, margin: float,
+                      voxel: float) -> tuple[np.ndarray, np.ndarray]:
+    """The frame's points over the table, in the table frame, voxel-downsampled (`import_rgbd`).
+
+    Args:
+        points_cam: (N, 3) float64 points, camera frame.
+        colors: (N, 3) float64 colours in [0, 1].
+        table_pts: (T, 3) float64 support-plane inliers, camera frame (their convex hull is the table outline).
+        R, t: camera frame → table frame (`table_frame`).
+        below, max_height: the height band kept, metres under and over the table.
+        margin: the outline grown by this much, metres.
+        voxel: voxel size, metres (colours averaged per voxel).
+
+    Returns:
+        (M, 3) float64 points in the table frame and (M, 3) uint8 colours.
+    """
+    import open3d as o3d
+    from scipy.spatial import ConvexHull
+
+    table_xy = (table_pts @ R.T + t)[:, :2]
+    hull = ConvexHull(table_xy)
+    hull_xy = table_xy[hull.vertices]  # scipy returns 2-D hull vertices counter-clockwise
+
+    dense = points_cam @ R.T + t
+    keep = (dense[:, 2] > -below) & (dense[:, 2] < max_height)
+    keep[keep] = _inside_hull(hull_xy, dense[keep, :2], margin)
+    crop = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(dense[keep]))
+    crop.colors = o3d.utility.Vector3dVector(colors[keep])
+    down = crop.voxel_down_sample(voxel)
+    pts = np.asarray(down.points)
+    cols = np.clip(np.round(np.asarray(down.colors) * 255.0), 0, 255).astype(np.uint8)
+    return pts, cols
+
+
+def _rgbd_provenance(K: np.ndarray, depth_shape: tuple[int, ...], plane: PlaneFit, table_pts: np.ndarray,
+                     R: np.ndarray, t: np.ndarray) -> dict[str, Any]:
+    """What an imported frame records about its capture: the intrinsics and image size, the support plane (camera
+    frame) and its residual, the camera pose in the table frame (`T_world_camera`, 4x4)."""
+    T_world_cam = np.eye(4)
+    T_world_cam[:3, :3] = R
+    T_world_cam[:3, 3] = t
+    res_world = (table_pts @ R.T + t)[:, 2]
+    return {
+        "source": "rgbd",
+        "frame": "table: z = 0 at the support plane, +Z up, origin at the visible table's centre",
+        "K": np.round(K, 4).tolist(),
+        "image_size": [int(depth_shape[1]), int(depth_shape[0])],
+        "plane_camera": [float(v) for v in (*plane.normal, plane.offset)],
+        "plane_residual_rms_m": round(float(np.sqrt(np.mean(res_world**2))), 5),
+        "T_world_camera": np.round(T_world_cam, 6).tolist(),
+    }
+
+
 def import_rgbd(
     depth_m: np.ndarray,
     K: np.ndarray,
@@ -362,41 +416,14 @@ def import_rgbd(
     centre = table_pts.mean(axis=0)
     centre = centre - (centre @ plane.normal + plane.offset) * plane.normal  # projected onto the plane
     R, t = table_frame(plane.normal, centre)
-    from scipy.spatial import ConvexHull
-
-    table_xy = (table_pts @ R.T + t)[:, :2]
-    hull = ConvexHull(table_xy)
-    hull_xy = table_xy[hull.vertices]  # scipy returns 2-D hull vertices counter-clockwise
-
-    dense = np.asarray(full.points) @ R.T + t
-    keep = (dense[:, 2] > -below) & (dense[:, 2] < max_height)
-    keep[keep] = _inside_hull(hull_xy, dense[keep, :2], margin)
-    crop = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(dense[keep]))
-    crop.colors = o3d.utility.Vector3dVector(colors[keep])
-    down = crop.voxel_down_sample(voxel)
-    pts = np.asarray(down.points)
-    cols = np.clip(np.round(np.asarray(down.colors) * 255.0), 0, 255).astype(np.uint8)
+    pts, cols = _crop_above_table(np.asarray(full.points), colors, table_pts, R, t, below=below,
+                                  max_height=max_height, margin=margin, voxel=voxel)
     cam_world = t  # the camera centre (origin of the camera frame) in the table frame: R @ 0 + t
     from efem_viz.geometry.normals import estimate_normals
 
     normals = estimate_normals(pts, toward=cam_world, knn=20)
-    T_world_cam = np.eye(4)
-    T_world_cam[:3, :3] = R
-    T_world_cam[:3, 3] = t
-    res_world = (table_pts @ R.T + t)[:, 2]
-    prov: dict[str, Any] = {
-        "source": "rgbd",
-        "frame": "table: z = 0 at the support plane, +Z up, origin at the visible table's centre",
-        "K": np.round(K, 4).tolist(),
-        "image_size": [int(depth_m.shape[1]), int(depth_m.shape[0])],
-        "plane_camera": [float(v) for v in (*plane.normal, plane.offset)],
-        "plane_residual_rms_m": round(float(np.sqrt(np.mean(res_world**2))), 5),
-        "T_world_camera": np.round(T_world_cam, 6).tolist(),
-        "voxel_m": voxel,
-        "max_depth_m": max_depth,
-        "max_height_m": max_height,
-        "seed": seed,
-    }
+    prov = _rgbd_provenance(K, depth_m.shape, plane, table_pts, R, t)
+    prov.update(voxel_m=voxel, max_depth_m=max_depth, max_height_m=max_height, seed=seed)
     if licence is not None:
         prov["licence"] = str(licence)
     prov.update(provenance or {})

@@ -177,54 +177,11 @@ class Scene:
         if not np.isfinite(pts).all():
             bad = int((~np.isfinite(pts)).any(axis=1).sum())
             raise SceneError(f"scene {name!r}: {bad} of {n} points contain NaN or Inf coordinates")
-        fcs: np.ndarray | None = None
-        if faces is not None:
-            fcs = np.asarray(faces)
-            if fcs.size == 0:
-                fcs = None
-            else:
-                if fcs.ndim != 2 or fcs.shape[1] != 3:
-                    raise SceneError(f"scene {name!r}: faces must have shape (M, 3), got {fcs.shape}")
-                if not np.issubdtype(fcs.dtype, np.integer):
-                    raise SceneError(f"scene {name!r}: faces must be integers, got {fcs.dtype}")
-                if fcs.min() < 0 or fcs.max() >= n:
-                    raise SceneError(
-                        f"scene {name!r}: face indices must lie in [0, {n}), got [{fcs.min()}, {fcs.max()}]"
-                    )
-                fcs = np.ascontiguousarray(fcs, dtype=np.int32)
+        fcs = _as_faces(faces, n, name)
         pts32 = np.ascontiguousarray(pts, dtype=np.float32)
-        nrm: np.ndarray | PendingNormals
-        if normals is None:
-            nrm = PendingNormals(pts32, fcs)
-        else:
-            nrm = _as_points(normals, "normals")
-            if nrm.shape[0] != n:
-                raise SceneError(f"scene {name!r}: {n} points but {nrm.shape[0]} normals")
-            if not np.isfinite(nrm).all():
-                raise SceneError(f"scene {name!r}: normals contain NaN or Inf")
-            lens = np.linalg.norm(nrm, axis=1, keepdims=True)
-            nrm = np.where(lens > 1e-12, nrm / np.maximum(lens, 1e-12), np.array([0, 0, 1], np.float32))
-            nrm = np.ascontiguousarray(nrm, dtype=np.float32)
+        nrm = PendingNormals(pts32, fcs) if normals is None else _as_normals(normals, n, name)
         col = _as_colors(colors, n, name)
-        inst: np.ndarray | None = None
-        if instance is not None:
-            inst_raw = np.asarray(instance)
-            if inst_raw.ndim != 1 or inst_raw.shape[0] != n:
-                raise SceneError(f"scene {name!r}: {n} points but instance labels of shape {inst_raw.shape}")
-            if not np.issubdtype(inst_raw.dtype, np.integer):
-                if np.issubdtype(inst_raw.dtype, np.floating) and np.isfinite(inst_raw).all() and (
-                    np.round(inst_raw) == inst_raw
-                ).all():
-                    inst_raw = inst_raw.astype(np.int64)
-                else:
-                    raise SceneError(
-                        f"scene {name!r}: instance labels must be integers, got dtype {inst_raw.dtype}"
-                    )
-            if inst_raw.min() < 0:
-                raise SceneError(f"scene {name!r}: instance labels must be >= 0 (0 = unlabelled)")
-            if inst_raw.max() > np.iinfo(np.int32).max:
-                raise SceneError(f"scene {name!r}: instance label {inst_raw.max()} does not fit int32")
-            inst = np.ascontiguousarray(inst_raw, dtype=np.int32)
+        inst = None if instance is None else _as_instance(instance, n, name)
         if not isinstance(categories or {}, Mapping) or not isinstance(provenance or {}, Mapping):
             raise SceneError(f"scene {name!r}: categories and provenance must be mappings, got "
                              f"{type(categories).__name__} and {type(provenance).__name__}")
@@ -393,3 +350,54 @@ def _as_colors(colors: np.ndarray | None, n: int, name: str) -> np.ndarray:
     elif not (np.issubdtype(c.dtype, np.integer) or np.issubdtype(c.dtype, np.floating)):
         raise SceneError(f"scene {name!r}: colours must be numeric, got dtype {c.dtype}")
     return np.ascontiguousarray(c, dtype=np.uint8)
+
+
+def _as_faces(faces: np.ndarray | None, n: int, name: str) -> np.ndarray | None:
+    """(M, 3) int32 faces indexing `n` points, contiguous; None for None or no faces."""
+    if faces is None:
+        return None
+    fcs = np.asarray(faces)
+    if fcs.size == 0:
+        return None
+    if fcs.ndim != 2 or fcs.shape[1] != 3:
+        raise SceneError(f"scene {name!r}: faces must have shape (M, 3), got {fcs.shape}")
+    if not np.issubdtype(fcs.dtype, np.integer):
+        raise SceneError(f"scene {name!r}: faces must be integers, got {fcs.dtype}")
+    if fcs.min() < 0 or fcs.max() >= n:
+        raise SceneError(
+            f"scene {name!r}: face indices must lie in [0, {n}), got [{fcs.min()}, {fcs.max()}]"
+        )
+    return np.ascontiguousarray(fcs, dtype=np.int32)
+
+
+def _as_normals(normals: np.ndarray, n: int, name: str) -> np.ndarray:
+    """(n, 3) float32 unit normals, contiguous; a zero-length normal becomes +Z."""
+    nrm = _as_points(normals, "normals")
+    if nrm.shape[0] != n:
+        raise SceneError(f"scene {name!r}: {n} points but {nrm.shape[0]} normals")
+    if not np.isfinite(nrm).all():
+        raise SceneError(f"scene {name!r}: normals contain NaN or Inf")
+    lens = np.linalg.norm(nrm, axis=1, keepdims=True)
+    nrm = np.where(lens > 1e-12, nrm / np.maximum(lens, 1e-12), np.array([0, 0, 1], np.float32))
+    return np.ascontiguousarray(nrm, dtype=np.float32)
+
+
+def _as_instance(instance: np.ndarray, n: int, name: str) -> np.ndarray:
+    """(n,) int32 instance labels >= 0 (0 = unlabelled), contiguous; whole-valued floats are accepted."""
+    inst_raw = np.asarray(instance)
+    if inst_raw.ndim != 1 or inst_raw.shape[0] != n:
+        raise SceneError(f"scene {name!r}: {n} points but instance labels of shape {inst_raw.shape}")
+    if not np.issubdtype(inst_raw.dtype, np.integer):
+        if np.issubdtype(inst_raw.dtype, np.floating) and np.isfinite(inst_raw).all() and (
+            np.round(inst_raw) == inst_raw
+        ).all():
+            inst_raw = inst_raw.astype(np.int64)
+        else:
+            raise SceneError(
+                f"scene {name!r}: instance labels must be integers, got dtype {inst_raw.dtype}"
+            )
+    if inst_raw.min() < 0:
+        raise SceneError(f"scene {name!r}: instance labels must be >= 0 (0 = unlabelled)")
+    if inst_raw.max() > np.iinfo(np.int32).max:
+        raise SceneError(f"scene {name!r}: instance label {inst_raw.max()} does not fit int32")
+    return np.ascontiguousarray(inst_raw, dtype=np.int32)

@@ -383,41 +383,7 @@ class EMResult:
                 another number of points.
         """
         p = Path(path)
-        if not p.is_file():
-            if p.is_dir():
-                raise ResultFileError(f"{p} is a directory, not an EFEM result file")
-            raise FileNotFoundError(f"EFEM result not found: {p}")
-        _check_npz_headers(p)
-        try:
-            z = np.load(p, allow_pickle=False)
-        except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
-            raise ResultFileError(f"{p} is not a readable EFEM result (corrupt or truncated .npz?): "
-                                  f"{type(exc).__name__}") from exc
-        if not isinstance(z, np.lib.npyio.NpzFile):
-            raise ResultFileError(f"{p} is not an EFEM result file (a single array, not an .npz archive)")
-        with z:
-            try:
-                kind = str(z["kind"]) if "kind" in z.files else None
-                if kind != "efem-result":
-                    raise ResultFileError(f"{p} is not an EFEM result file (keys: {sorted(z.files)[:8]}...)")
-                if "schema_version" not in z.files:
-                    raise ResultFileError(f"{p}: not a complete EFEM result: key 'schema_version' missing")
-                ver = _scalar_int(z["schema_version"], "schema_version", p)
-                if ver != RESULT_SCHEMA_VERSION:
-                    raise ResultFileError(
-                        f"{p}: unsupported result schema_version {ver} (this build reads {RESULT_SCHEMA_VERSION})")
-                missing = [k for k in REQUIRED_RESULT_KEYS if k not in z.files]
-                if missing:
-                    raise ResultFileError(f"{p}: not a complete EFEM result: missing {', '.join(missing)}")
-                wanted = set(REQUIRED_RESULT_KEYS) | set(OPTIONAL_RESULT_KEYS)
-                data = {k: z[k] for k in z.files if k in wanted}
-            except ResultFileError:
-                raise
-            except MemoryError:
-                raise
-            except Exception as exc:  # zipfile, zlib and numpy raise many types on a corrupt member
-                raise ResultFileError(f"{p}: a member of the result archive is unreadable (corrupt?): "
-                                      f"{_describe(exc)[:300]} ({type(exc).__name__})") from exc
+        data = _read_result_archive(p)
         num_points = validate_result_arrays(data, path=p)
         if scene is not None and scene.num_points != num_points:
             raise ResultFileError(f"{p} was computed on {num_points} points but scene {scene.name!r} has "
@@ -441,24 +407,8 @@ class EMResult:
         if len(ids) and (int(ids.min()) < 0 or int(ids.max()) >= n_props):
             raise ResultFileError(f"{p}: instance proposal ids span [{int(ids.min())}, {int(ids.max())}] but the "
                                   f"trace has {n_props} proposals")
-        categories: tuple[CategorySettings, ...] = ()
-        if "categories_json" in data:
-            try:
-                raw = json.loads(str(data["categories_json"]))
-                if not isinstance(raw, list):
-                    raise ValueError(f"a JSON list is expected, got {type(raw).__name__}")
-                categories = tuple(CategorySettings.from_dict(c) for c in raw)
-            except (ValueError, TypeError) as exc:
-                raise ResultFileError(f"{p}: categories_json is not a list of category settings: {exc}") from exc
-        warnings: tuple[str, ...] = ()
-        if "warnings_json" in data:  # results saved before it have none
-            try:
-                raw_w = json.loads(str(data["warnings_json"]))
-                if not isinstance(raw_w, list) or not all(isinstance(w, str) for w in raw_w):
-                    raise ValueError("a JSON list of strings is expected")
-                warnings = tuple(w[:500] for w in raw_w[:20])
-            except ValueError as exc:
-                raise ResultFileError(f"{p}: warnings_json is not a list of strings: {exc}") from exc
+        categories = _read_categories(data, p)
+        warnings = _read_warnings(data, p)
         return cls(
             trace=trace,
             instances=Instances.from_npz_dict(data),
@@ -478,6 +428,87 @@ class ResultFileError(ValueError):
 
     The message names the file and the problem, and is meant for the user.
     """
+
+
+def _read_result_archive(p: Path) -> dict[str, Any]:
+    """The arrays of a result file that `EMResult.load` reads (required and optional keys), once the file is known
+    to be an `.npz` EFEM result of this schema version with every required key; nothing else is checked yet.
+
+    Raises:
+        FileNotFoundError: missing file.
+        ResultFileError: a directory, an unreadable or corrupt archive, not an EFEM result, another schema version,
+            a missing key.
+    """
+    if not p.is_file():
+        if p.is_dir():
+            raise ResultFileError(f"{p} is a directory, not an EFEM result file")
+        raise FileNotFoundError(f"EFEM result not found: {p}")
+    _check_npz_headers(p)
+    try:
+        z = np.load(p, allow_pickle=False)
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
+        raise ResultFileError(f"{p} is not a readable EFEM result (corrupt or truncated .npz?): "
+                              f"{type(exc).__name__}") from exc
+    if not isinstance(z, np.lib.npyio.NpzFile):
+        raise ResultFileError(f"{p} is not an EFEM result file (a single array, not an .npz archive)")
+    with z:
+        try:
+            kind = str(z["kind"]) if "kind" in z.files else None
+            if kind != "efem-result":
+                raise ResultFileError(f"{p} is not an EFEM result file (keys: {sorted(z.files)[:8]}...)")
+            if "schema_version" not in z.files:
+                raise ResultFileError(f"{p}: not a complete EFEM result: key 'schema_version' missing")
+            ver = _scalar_int(z["schema_version"], "schema_version", p)
+            if ver != RESULT_SCHEMA_VERSION:
+                raise ResultFileError(
+                    f"{p}: unsupported result schema_version {ver} (this build reads {RESULT_SCHEMA_VERSION})")
+            missing = [k for k in REQUIRED_RESULT_KEYS if k not in z.files]
+            if missing:
+                raise ResultFileError(f"{p}: not a complete EFEM result: missing {', '.join(missing)}")
+            wanted = set(REQUIRED_RESULT_KEYS) | set(OPTIONAL_RESULT_KEYS)
+            return {k: z[k] for k in z.files if k in wanted}
+        except ResultFileError:
+            raise
+        except MemoryError:
+            raise
+        except Exception as exc:  # zipfile, zlib and numpy raise many types on a corrupt member
+            raise ResultFileError(f"{p}: a member of the result archive is unreadable (corrupt?): "
+                                  f"{_describe(exc)[:300]} ({type(exc).__name__})") from exc
+
+
+def _read_categories(data: Mapping[str, Any], p: Path) -> tuple[CategorySettings, ...]:
+    """The per-category review settings a result was computed with (`categories_json`; none when absent).
+
+    Raises:
+        ResultFileError: not a JSON list of category settings.
+    """
+    if "categories_json" not in data:
+        return ()
+    try:
+        raw = json.loads(str(data["categories_json"]))
+        if not isinstance(raw, list):
+            raise ValueError(f"a JSON list is expected, got {type(raw).__name__}")
+        return tuple(CategorySettings.from_dict(c) for c in raw)
+    except (ValueError, TypeError) as exc:
+        raise ResultFileError(f"{p}: categories_json is not a list of category settings: {exc}") from exc
+
+
+def _read_warnings(data: Mapping[str, Any], p: Path) -> tuple[str, ...]:
+    """The run's warnings (`warnings_json`: at most 20 of at most 500 characters; results saved before it have
+    none).
+
+    Raises:
+        ResultFileError: not a JSON list of strings.
+    """
+    if "warnings_json" not in data:  # results saved before it have none
+        return ()
+    try:
+        raw_w = json.loads(str(data["warnings_json"]))
+        if not isinstance(raw_w, list) or not all(isinstance(w, str) for w in raw_w):
+            raise ValueError("a JSON list of strings is expected")
+        return tuple(w[:500] for w in raw_w[:20])
+    except ValueError as exc:
+        raise ResultFileError(f"{p}: warnings_json is not a list of strings: {exc}") from exc
 
 
 _INSTANCE_KEYS: tuple[str, ...] = (
@@ -554,74 +585,93 @@ def validate_result_arrays(data: Mapping[str, Any], *, path: str | os.PathLike[s
         ResultFileError: (a ValueError) naming the file and the first problem found.
     """
     p = Path(path)
-
-    def fail(msg: str) -> ResultFileError:
-        return ResultFileError(f"{p}: {msg}")
-
-    missing = [k for k in REQUIRED_RESULT_KEYS if k not in data]
-    if missing:
-        raise fail(f"not a complete EFEM result: missing {', '.join(missing)}")
-    for key in ("scene_name", "config_json", "timings_json", "trace/config_json", "trace/timings_json"):
-        a = np.asarray(data[key])
-        if a.size != 1 or a.dtype.kind not in "US":
-            raise fail(f"{key} must be one string, got {a.dtype} array of shape {a.shape}")
-    num_points = _scalar_int(data["num_points"], "num_points", p)
-    if num_points < 0:
-        raise fail(f"num_points must be >= 0, got {num_points}")
-    trace_n = _scalar_int(data["trace/num_points"], "trace/num_points", p)
-    if trace_n != num_points:
-        raise fail(f"num_points {num_points} disagrees with trace/num_points {trace_n}")
-
-    g = lambda k: np.asarray(data["instances/" + k])  # noqa: E731
-    ids = g("ids")
-    if ids.ndim != 1 or ids.dtype.kind not in "iu":
-        raise fail(f"instances/ids must be (K,) integers, got {ids.dtype} {ids.shape}")
-    k = int(len(ids))
-    # key -> (trailing shape, dtype kinds, may be empty instead of K rows)
-    per_instance: dict[str, tuple[tuple[int, ...], str, bool]] = {
-        "confidence": ((), "f", False), "category": ((), "US", False), "R": ((3, 3), "f", False),
-        "center": ((3,), "f", False), "scale": ((), "f", False), "obb_center": ((3,), "f", False),
-        "obb_axes": ((3, 3), "f", False), "obb_half_extents": ((3,), "f", False),
-        "coverage": ((), "f", True), "stationary": ((), "f", True), "db_sim": ((), "f", True),
-    }
-    for key, (tail, kinds, may_be_empty) in per_instance.items():
-        a = g(key)
-        shapes = [(k, *tail)] + ([(0, *tail)] if may_be_empty else [])
-        if a.shape not in shapes or a.dtype.kind not in kinds:
-            raise fail(f"instances/{key} must be {' or '.join(map(str, shapes))} ({kinds!r} dtype kind) for "
-                       f"{k} instances, got {a.dtype} {a.shape}")
-    conf = g("confidence").astype(np.float64)
-    bad = np.flatnonzero(~(np.isfinite(conf) & (conf >= 0.0) & (conf <= 1.0)))
-    if len(bad):
-        raise fail(f"instance {int(bad[0])} has confidence {conf[bad[0]]} (must be finite and in [0, 1]; "
-                   f"{len(bad)} bad of {k})")
-
-    def ragged(key: str, tail: tuple[int, ...], kinds: str) -> tuple[np.ndarray, np.ndarray]:
-        values, offs = g(key), g(f"{key}_offsets")
-        if values.shape[1:] != tail or values.ndim != 1 + len(tail) or values.dtype.kind not in kinds:
-            want = "(n,)" if not tail else f"(n, {', '.join(map(str, tail))})"
-            raise fail(f"instances/{key} must be {want} ({kinds!r} dtype kind), got {values.dtype} {values.shape}")
-        if offs.shape != (k + 1,) or offs.dtype.kind not in "iu":
-            raise fail(f"instances/{key}_offsets must be ({k + 1},) integers for {k} instances, got "
-                       f"{offs.dtype} {offs.shape}")
-        if int(offs[0]) != 0 or (np.diff(offs) < 0).any() or int(offs[-1]) != len(values):
-            raise fail(f"instances/{key}_offsets must rise from 0 to {len(values)} (the length of "
-                       f"instances/{key}), got [{int(offs[0])} ... {int(offs[-1])}]")
-        return values, offs
-
-    masks, _ = ragged("masks", (), "iu")
-    if len(masks) and (int(masks.min()) < 0 or int(masks.max()) >= num_points):
-        raise fail(f"mask point indices span [{int(masks.min())}, {int(masks.max())}], outside "
-                   f"[0, num_points = {num_points})")
-    _, v_off = ragged("mesh_vertices", (3,), "f")
-    faces, f_off = ragged("mesh_faces", (3,), "iu")
-    if len(faces):
-        n_verts = np.repeat(np.diff(v_off), np.diff(f_off))[:, None]
-        if (faces < 0).any() or (faces >= n_verts).any():
-            raise fail("instances/mesh_faces index vertices outside their own instance's mesh")
+    num_points = _check_scalars(data, p)
+    _check_instances(data, p, num_points)
     for key in ("rev_mask", "episode_unavailable", "work_idx"):
         a = np.asarray(data["trace/" + key])
         if a.size and (a.dtype.kind not in "iu" or int(a.min()) < 0 or int(a.max()) >= num_points):
-            raise fail(f"trace/{key} must hold point indices in [0, num_points = {num_points}), got "
-                       f"{a.dtype} in [{a.min()}, {a.max()}]")
+            raise _fail(p, f"trace/{key} must hold point indices in [0, num_points = {num_points}), got "
+                        f"{a.dtype} in [{a.min()}, {a.max()}]")
     return num_points
+
+
+def _fail(p: Path, msg: str) -> ResultFileError:
+    """The error for a result file `p` with problem `msg`."""
+    return ResultFileError(f"{p}: {msg}")
+
+
+def _check_scalars(data: Mapping[str, Any], p: Path) -> int:
+    """Every required key present; names and JSON texts single strings; `num_points` (returned) a non-negative
+    integer equal to `trace/num_points` (`validate_result_arrays`)."""
+    missing = [k for k in REQUIRED_RESULT_KEYS if k not in data]
+    if missing:
+        raise _fail(p, f"not a complete EFEM result: missing {', '.join(missing)}")
+    for key in ("scene_name", "config_json", "timings_json", "trace/config_json", "trace/timings_json"):
+        a = np.asarray(data[key])
+        if a.size != 1 or a.dtype.kind not in "US":
+            raise _fail(p, f"{key} must be one string, got {a.dtype} array of shape {a.shape}")
+    num_points = _scalar_int(data["num_points"], "num_points", p)
+    if num_points < 0:
+        raise _fail(p, f"num_points must be >= 0, got {num_points}")
+    trace_n = _scalar_int(data["trace/num_points"], "trace/num_points", p)
+    if trace_n != num_points:
+        raise _fail(p, f"num_points {num_points} disagrees with trace/num_points {trace_n}")
+    return num_points
+
+
+_PER_INSTANCE: dict[str, tuple[tuple[int, ...], str, bool]] = {
+    "confidence": ((), "f", False), "category": ((), "US", False), "R": ((3, 3), "f", False),
+    "center": ((3,), "f", False), "scale": ((), "f", False), "obb_center": ((3,), "f", False),
+    "obb_axes": ((3, 3), "f", False), "obb_half_extents": ((3,), "f", False),
+    "coverage": ((), "f", True), "stationary": ((), "f", True), "db_sim": ((), "f", True),
+}
+"""The per-instance arrays of a result file: key -> (trailing shape, dtype kinds, may be empty instead of K rows)."""
+
+
+def _check_instances(data: Mapping[str, Any], p: Path, num_points: int) -> None:
+    """The instances of a result file: K rows of every per-instance array (`_PER_INSTANCE`), confidences finite
+    and in [0, 1], mask indices in [0, num_points), mesh faces indexing their own instance's vertices
+    (`validate_result_arrays`)."""
+    g = lambda k: np.asarray(data["instances/" + k])  # noqa: E731
+    ids = g("ids")
+    if ids.ndim != 1 or ids.dtype.kind not in "iu":
+        raise _fail(p, f"instances/ids must be (K,) integers, got {ids.dtype} {ids.shape}")
+    k = int(len(ids))
+    for key, (tail, kinds, may_be_empty) in _PER_INSTANCE.items():
+        a = g(key)
+        shapes = [(k, *tail)] + ([(0, *tail)] if may_be_empty else [])
+        if a.shape not in shapes or a.dtype.kind not in kinds:
+            raise _fail(p, f"instances/{key} must be {' or '.join(map(str, shapes))} ({kinds!r} dtype kind) for "
+                        f"{k} instances, got {a.dtype} {a.shape}")
+    conf = g("confidence").astype(np.float64)
+    bad = np.flatnonzero(~(np.isfinite(conf) & (conf >= 0.0) & (conf <= 1.0)))
+    if len(bad):
+        raise _fail(p, f"instance {int(bad[0])} has confidence {conf[bad[0]]} (must be finite and in [0, 1]; "
+                    f"{len(bad)} bad of {k})")
+    masks, _ = _ragged(data, p, "masks", (), "iu", k=k)
+    if len(masks) and (int(masks.min()) < 0 or int(masks.max()) >= num_points):
+        raise _fail(p, f"mask point indices span [{int(masks.min())}, {int(masks.max())}], outside "
+                    f"[0, num_points = {num_points})")
+    _, v_off = _ragged(data, p, "mesh_vertices", (3,), "f", k=k)
+    faces, f_off = _ragged(data, p, "mesh_faces", (3,), "iu", k=k)
+    if len(faces):
+        n_verts = np.repeat(np.diff(v_off), np.diff(f_off))[:, None]
+        if (faces < 0).any() or (faces >= n_verts).any():
+            raise _fail(p, "instances/mesh_faces index vertices outside their own instance's mesh")
+
+
+def _ragged(data: Mapping[str, Any], p: Path, key: str, tail: tuple[int, ...], kinds: str, *,
+            k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ragged per-instance array `instances/<key>` and its (k+1,) offsets, checked: values of trailing shape
+    `tail` and a dtype kind in `kinds`, offsets non-decreasing from 0 to the number of values."""
+    values, offs = np.asarray(data[f"instances/{key}"]), np.asarray(data[f"instances/{key}_offsets"])
+    if values.shape[1:] != tail or values.ndim != 1 + len(tail) or values.dtype.kind not in kinds:
+        want = "(n,)" if not tail else f"(n, {', '.join(map(str, tail))})"
+        raise _fail(p, f"instances/{key} must be {want} ({kinds!r} dtype kind), got {values.dtype} {values.shape}")
+    if offs.shape != (k + 1,) or offs.dtype.kind not in "iu":
+        raise _fail(p, f"instances/{key}_offsets must be ({k + 1},) integers for {k} instances, got "
+                    f"{offs.dtype} {offs.shape}")
+    if int(offs[0]) != 0 or (np.diff(offs) < 0).any() or int(offs[-1]) != len(values):
+        raise _fail(p, f"instances/{key}_offsets must rise from 0 to {len(values)} (the length of "
+                    f"instances/{key}), got [{int(offs[0])} ... {int(offs[-1])}]")
+    return values, offs

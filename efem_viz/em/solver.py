@@ -230,15 +230,7 @@ def run_em(
     from efem_viz.em.results import EMResult, Instances
     from efem_viz.prior.config import prior_category
 
-    if (prior is None) == (priors is None):
-        raise ValueError("give run_em one prior (prior=...) or a list of priors (priors=[...]), not both")
-    plist = [prior] if prior is not None else list(priors or [])
-    if not plist:
-        raise ValueError("priors must not be empty")
-    for pr in plist:
-        for meth in ("encode", "sdf_and_normals", "sdf"):
-            if not callable(getattr(pr, meth, None)):
-                raise ValueError(f"prior {type(pr).__name__} has no {meth}() method")
+    plist = _solve_priors(prior, priors)
     cats = [prior_category(pr) for pr in plist]
     names = [c.name for c in cats]
     if len(set(names)) != len(names):
@@ -246,20 +238,9 @@ def run_em(
     base = cfg if cfg is not None else preset("synthetic")
     cfgs = [resolve_for_prior(base, pr) for pr in plist]
     run_cfg = cfgs[0] if len(plist) == 1 else base.replace(tau_out=max(c.out_tau for c in cfgs))
-    points = np.ascontiguousarray(scene.points, np.float32)
-    normals = np.ascontiguousarray(scene.normals, np.float32)
-    if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
-        raise ValueError(f"scene points must be a non-empty (N, 3) array, got {points.shape}")
-    if normals.shape != points.shape:
-        raise ValueError(f"scene normals {normals.shape} do not match points {points.shape}")
+    points, normals = _scene_arrays(scene)
     if anchor_candidates is not None:
-        anchor_candidates = np.asarray(anchor_candidates)
-        if anchor_candidates.ndim != 1 or len(anchor_candidates) == 0 or anchor_candidates.dtype.kind not in "iu":
-            raise ValueError(f"anchor_candidates must be a non-empty (K,) integer array, got "
-                             f"{anchor_candidates.dtype} {anchor_candidates.shape}")
-        if anchor_candidates.min() < 0 or anchor_candidates.max() >= len(points):
-            raise ValueError(f"anchor_candidates must index the scene's {len(points)} points, got range "
-                             f"[{anchor_candidates.min()}, {anchor_candidates.max()}]")
+        anchor_candidates = _checked_anchor_candidates(anchor_candidates, len(points))
     was_training = []
     for pr in plist:
         _move_prior(pr, device)
@@ -267,16 +248,7 @@ def run_em(
         if hasattr(pr, "eval"):
             pr.eval()
     try:
-        camera = None
-        warnings: list[str] = []
-        if run_cfg.seen_through_margin is not None:
-            from efem_viz.geometry.camera import Camera
-
-            camera, problem = Camera.parse(getattr(scene, "provenance", None))
-            if problem is not None:  # never silently off (issue 36): the CLI log, the result and the viewer say it
-                warnings.append(f"the recorded capture camera is unusable ({problem}): the free-space check is off "
-                                "for this run")
-                logger.warning("%s: %s", scene.name, warnings[-1])
+        camera, warnings = _capture_camera(scene) if run_cfg.seen_through_margin is not None else (None, [])
         solver = _Solver(scene.name, points, normals, PriorTable.of(plist), run_cfg, cfgs, seed=seed,
                          on_step=on_step, cancel=cancel, anchor_candidates=anchor_candidates,
                          step_rules=step_rules, review_rules=review_rules, camera=camera)
@@ -302,6 +274,70 @@ def run_em(
     return EMResult(trace=trace, instances=instances, config=run_cfg, timings=timings, scene_name=scene.name,
                     num_points=len(points), seed=int(seed), categories=categories, warnings=tuple(warnings),
                     replay=TraceReplay(trace, scene, plist[0] if len(plist) == 1 else plist))
+
+
+def _solve_priors(prior: ShapePriorLike | None, priors: Sequence[ShapePriorLike] | None) -> list[ShapePriorLike]:
+    """The priors of a solve: `prior` alone or the list `priors` (exactly one of them given), each with the
+    methods the solver calls.
+
+    Raises:
+        ValueError: both or neither given, an empty list, a prior without `encode`, `sdf_and_normals` or `sdf`.
+    """
+    if (prior is None) == (priors is None):
+        raise ValueError("give run_em one prior (prior=...) or a list of priors (priors=[...]), not both")
+    plist = [prior] if prior is not None else list(priors or [])
+    if not plist:
+        raise ValueError("priors must not be empty")
+    for pr in plist:
+        for meth in ("encode", "sdf_and_normals", "sdf"):
+            if not callable(getattr(pr, meth, None)):
+                raise ValueError(f"prior {type(pr).__name__} has no {meth}() method")
+    return plist
+
+
+def _scene_arrays(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
+    """The scene's (N, 3) float32 points and normals, contiguous, checked.
+
+    Raises:
+        ValueError: no points, not (N, 3), or normals of another shape.
+    """
+    points = np.ascontiguousarray(scene.points, np.float32)
+    normals = np.ascontiguousarray(scene.normals, np.float32)
+    if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
+        raise ValueError(f"scene points must be a non-empty (N, 3) array, got {points.shape}")
+    if normals.shape != points.shape:
+        raise ValueError(f"scene normals {normals.shape} do not match points {points.shape}")
+    return points, normals
+
+
+def _checked_anchor_candidates(anchor_candidates: np.ndarray, n_points: int) -> np.ndarray:
+    """`run_em`'s `anchor_candidates` as an array, checked: a non-empty (K,) integer array of point indices.
+
+    Raises:
+        ValueError: another shape or dtype, or an index outside [0, n_points).
+    """
+    anchor_candidates = np.asarray(anchor_candidates)
+    if anchor_candidates.ndim != 1 or len(anchor_candidates) == 0 or anchor_candidates.dtype.kind not in "iu":
+        raise ValueError(f"anchor_candidates must be a non-empty (K,) integer array, got "
+                         f"{anchor_candidates.dtype} {anchor_candidates.shape}")
+    if anchor_candidates.min() < 0 or anchor_candidates.max() >= n_points:
+        raise ValueError(f"anchor_candidates must index the scene's {n_points} points, got range "
+                         f"[{anchor_candidates.min()}, {anchor_candidates.max()}]")
+    return anchor_candidates
+
+
+def _capture_camera(scene: Scene) -> tuple[Camera | None, list[str]]:
+    """The capture camera recorded in the scene's provenance, for the free-space check, and the run's warning
+    when the recorded one is unusable (never silently off: the CLI log, the result and the viewer say it)."""
+    from efem_viz.geometry.camera import Camera
+
+    warnings: list[str] = []
+    camera, problem = Camera.parse(getattr(scene, "provenance", None))
+    if problem is not None:  # never silently off (issue 36): the CLI log, the result and the viewer say it
+        warnings.append(f"the recorded capture camera is unusable ({problem}): the free-space check is off "
+                        "for this run")
+        logger.warning("%s: %s", scene.name, warnings[-1])
+    return camera, warnings
 
 
 def _move_prior(prior: Any, device: str) -> None:

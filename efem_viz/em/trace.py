@@ -606,46 +606,13 @@ class TraceRecorder:
 
     def finish(self, timings: dict[str, float] | None = None) -> EMTrace:
         """Concatenate everything into an `EMTrace`."""
-        n_prop = len(self.props["anchor"])
-        c = None
-        m = self.config.n_pcl or 0
-        for r in self.rows:
-            if len(r["id"]):
-                c = r["R"].shape[1]
-                m = r["samples"].shape[1]
-                break
-        c = c or 0
+        c, m = self._row_widths()
+        rows = [r for r in self.rows if len(r["id"])]
 
         def cat(key: str, shape: tuple[int, ...], dtype: Any) -> np.ndarray:
-            parts = [r[key] for r in self.rows if len(r["id"])]
-            # C order: a live replay and the replay of the saved trace then decode identical bytes
-            return np.ascontiguousarray(np.concatenate(parts).astype(dtype)) if parts else np.zeros((0, *shape), dtype)
+            return _concat_rows(rows, key, shape, dtype)
 
-        death_step = np.full(n_prop, -1, np.int32)
-        death_reason = np.full(n_prop, -1, np.int8)
-        death_partner = np.full(n_prop, -1, np.int32)
-        death_ratio = np.full(n_prop, np.nan, np.float32)
-        death_order = np.full(n_prop, -1, np.int32)
-        for pid, (st, rs, pa, ra, od) in self.deaths.items():
-            death_step[pid], death_reason[pid], death_partner[pid], death_ratio[pid], death_order[pid] = (
-                st, rs, pa, ra, od)
-        revs = self.reviews
-
-        def rv(key: str, shape: tuple[int, ...], dtype: Any) -> np.ndarray:
-            if not revs:
-                return np.zeros((0, *shape), dtype)
-            return np.stack([np.asarray(r[key], dtype) for r in revs]).reshape(len(revs), *shape)
-
-        def rr(key: str, shape: tuple[int, ...], dtype: Any) -> tuple[np.ndarray, np.ndarray]:
-            parts = [np.asarray(r[key], dtype).reshape(-1, *shape) for r in revs]
-            offs = _offsets([len(p) for p in parts])
-            vals = np.concatenate(parts) if parts else np.zeros((0, *shape), dtype)
-            return vals.astype(dtype), offs
-
-        mask, mask_off = rr("mask", (), np.int32)
-        mv, mv_off = rr("mesh_vertices", (3,), np.float16)
-        mf, mf_off = rr("mesh_faces", (3,), np.int32)
-        nb, nb_off = rr("neighbours", (), np.int32)
+        death_step, death_reason, death_partner, death_ratio, death_order = self._death_arrays()
         un_off = _offsets([len(u) for u in self.episode_unavail])
         un = np.concatenate(self.episode_unavail) if self.episode_unavail else np.zeros(0, np.int32)
         active = list(self.active_count) or [0]
@@ -679,6 +646,57 @@ class TraceRecorder:
             death_order=death_order,
             episode_unavailable=un.astype(np.int32),
             episode_unavailable_offsets=un_off,
+            **self._review_fields(),
+            work_idx=self.work_idx,
+            work_min_size=self.work_min_size,
+            timings=dict(timings or {}),
+            reason_names=self.reasons,
+            prop_prior=np.array(self.owner, np.int8) if len(self.prior_names) > 1 else None,
+            prior_names=self.prior_names,
+        )
+
+    def _row_widths(self) -> tuple[int, int]:
+        """(C, M): the latent's channels and the samples per proposal, from the first non-empty step (C 0 and M
+        the config's `n_pcl` without one)."""
+        for r in self.rows:
+            if len(r["id"]):
+                return r["R"].shape[1], r["samples"].shape[1]
+        return 0, self.config.n_pcl or 0
+
+    def _death_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Per proposal: death step, reason code, partner, ratio and order among the deaths (-1 / NaN: alive)."""
+        n_prop = len(self.props["anchor"])
+        death_step = np.full(n_prop, -1, np.int32)
+        death_reason = np.full(n_prop, -1, np.int8)
+        death_partner = np.full(n_prop, -1, np.int32)
+        death_ratio = np.full(n_prop, np.nan, np.float32)
+        death_order = np.full(n_prop, -1, np.int32)
+        for pid, (st, rs, pa, ra, od) in self.deaths.items():
+            death_step[pid], death_reason[pid], death_partner[pid], death_ratio[pid], death_order[pid] = (
+                st, rs, pa, ra, od)
+        return death_step, death_reason, death_partner, death_ratio, death_order
+
+    def _review_fields(self) -> dict[str, Any]:
+        """The review records as the `EMTrace` fields `rev_*`: one row per review, the masks, meshes and
+        neighbours ragged (values + offsets); `rev_seen_through` only when the free-space check ran."""
+        revs = self.reviews
+
+        def rv(key: str, shape: tuple[int, ...], dtype: Any) -> np.ndarray:
+            if not revs:
+                return np.zeros((0, *shape), dtype)
+            return np.stack([np.asarray(r[key], dtype) for r in revs]).reshape(len(revs), *shape)
+
+        def rr(key: str, shape: tuple[int, ...], dtype: Any) -> tuple[np.ndarray, np.ndarray]:
+            parts = [np.asarray(r[key], dtype).reshape(-1, *shape) for r in revs]
+            offs = _offsets([len(p) for p in parts])
+            vals = np.concatenate(parts) if parts else np.zeros((0, *shape), dtype)
+            return vals.astype(dtype), offs
+
+        mask, mask_off = rr("mask", (), np.int32)
+        mv, mv_off = rr("mesh_vertices", (3,), np.float16)
+        mf, mf_off = rr("mesh_faces", (3,), np.int32)
+        nb, nb_off = rr("neighbours", (), np.int32)
+        return dict(
             rev_step=rv("step", (), np.int32),
             rev_phase=rv("phase", (), np.int8),
             rev_id=rv("proposal_id", (), np.int32),
@@ -702,12 +720,13 @@ class TraceRecorder:
             rev_mesh_face_offsets=mf_off,
             rev_neighbours=nb,
             rev_neighbour_offsets=nb_off,
-            work_idx=self.work_idx,
-            work_min_size=self.work_min_size,
-            timings=dict(timings or {}),
-            reason_names=self.reasons,
-            prop_prior=np.array(self.owner, np.int8) if len(self.prior_names) > 1 else None,
-            prior_names=self.prior_names,
             rev_seen_through=(rv("seen_through", (), np.float32) if self.config.seen_through_margin is not None
                               else None),
         )
+
+
+def _concat_rows(rows: list[dict[str, np.ndarray]], key: str, shape: tuple[int, ...], dtype: Any) -> np.ndarray:
+    """One per-row field of the recorded steps (`rows`, the non-empty ones) concatenated as `dtype`, C order (a
+    live replay and the replay of the saved trace then decode identical bytes); (0, *shape) without rows."""
+    parts = [r[key] for r in rows]
+    return np.ascontiguousarray(np.concatenate(parts).astype(dtype)) if parts else np.zeros((0, *shape), dtype)

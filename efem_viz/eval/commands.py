@@ -16,6 +16,9 @@ from efem_viz.eval.calibrate import TAU_OUT_CANDIDATES
 from efem_viz.prior.config import DEFAULT_PRIOR
 
 if TYPE_CHECKING:
+    from rich.table import Table
+
+    from efem_viz.eval.ap import EvalResult
     from efem_viz.eval.matching import SceneGroundTruth, ScenePrediction
 
 log = logging.getLogger(__name__)
@@ -44,15 +47,12 @@ class EvaluateArgs:
 
     def run(self) -> int:
         """Evaluate and print the table; returns 0."""
-        import numpy as np
         from rich.console import Console
-        from rich.table import Table
 
-        from efem_viz.data.io import RESULT_SUFFIX, find_scenes, load_scene
+        from efem_viz.data.io import find_scenes, load_scene
         from efem_viz.data.scene import SceneError
         from efem_viz.eval.ap import evaluate_overlaps, overlaps_of
         from efem_viz.eval.matching import SceneGroundTruth, SceneOverlaps
-        from efem_viz.eval.scannet import scannet_prediction_files
 
         if not self.gt:
             raise SceneError("give the labelled scenes with --gt SCENE... (files or folders)")
@@ -61,20 +61,7 @@ class EvaluateArgs:
 
             check_output_file(self.json_out, option="--json-out")
         gt_files = find_scenes(self.gt)  # missing paths are reported first, before anything is read
-        if not self.results.is_dir():
-            raise SceneError(f"{self.results}: not a folder")
-        # hidden files are temporaries of interrupted writes (a killed batch), never results. `.efem.npz` results
-        # win over a ScanNet export beside them (a `segment --out` folder has both): they keep exact confidences
-        # and each instance's category; the ScanNet layout is read when there are none
-        sources: dict[str, Path] = {
-            f.name[: -len(RESULT_SUFFIX)]: f for f in sorted(self.results.glob(f"*{RESULT_SUFFIX}"))
-            if not f.name.startswith(".")
-        }
-        from_efem = bool(sources)
-        if not from_efem:
-            sources = scannet_prediction_files(self.results)
-        if not sources:
-            raise SceneError(f"{self.results}: no predictions found (<scene>.txt or <scene>.efem.npz)")
+        sources, from_efem = self._prediction_sources()
         # one scene at a time: its labels and predictions are dropped once its overlaps (a few numbers per
         # instance pair) are computed, so a folder of any size is scored in the memory of its largest scene
         overlaps: dict[str, SceneOverlaps] = {}
@@ -106,20 +93,7 @@ class EvaluateArgs:
             raise SceneError(f"no labelled scenes found in {[str(g) for g in self.gt]}")
         result = evaluate_overlaps(overlaps, class_names=self.classes, scannet_flag=self.scannet_flag)
         console = Console()
-        table = Table(title=f"instance AP over {len(result.scenes)} scenes", title_justify="left")
-        for col in ("class", "AP", "AP50", "AP25", "RC50", "RC25", "GT", "pred"):
-            table.add_column(col, justify="right" if col != "class" else "left")
-
-        def f(v: float) -> str:
-            return "nan" if not np.isfinite(v) else f"{100 * v:.1f}"
-
-        for name, row in result.per_class().items():
-            table.add_row(
-                name, f(row["ap"]), f(row["ap50"]), f(row["ap25"]), f(row["rc50"]), f(row["rc25"]),
-                str(row["n_gt"]), str(row["n_pred"]),
-            )
-        table.add_row("mean", f(result.ap), f(result.ap50), f(result.ap25), "", "", "", "", style="bold")
-        console.print(table)
+        console.print(_ap_table(result))
         if self.json_out is not None:
             from efem_viz.data.io import atomic_write_text
 
@@ -127,6 +101,33 @@ class EvaluateArgs:
             console.print(f"wrote {self.json_out}")
         return 0
 
+
+    def _prediction_sources(self) -> tuple[dict[str, Path], bool]:
+        """The prediction file of each scene in `--results`, by scene name, and whether they are `.efem.npz` results
+        (else ScanNet `<scene>.txt` files).
+
+        Raises:
+            SceneError: `--results` is not a folder or holds no predictions.
+        """
+        from efem_viz.data.io import RESULT_SUFFIX
+        from efem_viz.data.scene import SceneError
+        from efem_viz.eval.scannet import scannet_prediction_files
+
+        if not self.results.is_dir():
+            raise SceneError(f"{self.results}: not a folder")
+        # hidden files are temporaries of interrupted writes (a killed batch), never results. `.efem.npz` results
+        # win over a ScanNet export beside them (a `segment --out` folder has both): they keep exact confidences
+        # and each instance's category; the ScanNet layout is read when there are none
+        sources: dict[str, Path] = {
+            f.name[: -len(RESULT_SUFFIX)]: f for f in sorted(self.results.glob(f"*{RESULT_SUFFIX}"))
+            if not f.name.startswith(".")
+        }
+        from_efem = bool(sources)
+        if not from_efem:
+            sources = scannet_prediction_files(self.results)
+        if not sources:
+            raise SceneError(f"{self.results}: no predictions found (<scene>.txt or <scene>.efem.npz)")
+        return sources, from_efem
 
     def _prediction(self, src: Path, gt: "SceneGroundTruth", *, from_efem: bool) -> "ScenePrediction":
         """One scene's predictions from its `.efem.npz` or ScanNet `<scene>.txt`, checked and thresholded."""
@@ -158,6 +159,27 @@ class EvaluateArgs:
             pred = ScenePrediction(name=pred.name, masks=[pred.masks[int(i)] for i in np.flatnonzero(keep)],
                                    confidences=conf[keep], labels=None if pred.labels is None else pred.labels[keep])
         return pred
+
+
+def _ap_table(result: EvalResult) -> Table:
+    """The AP table of an evaluation: per class AP, AP50, AP25, recalls, counts, then the mean (in %)."""
+    import numpy as np
+    from rich.table import Table
+
+    table = Table(title=f"instance AP over {len(result.scenes)} scenes", title_justify="left")
+    for col in ("class", "AP", "AP50", "AP25", "RC50", "RC25", "GT", "pred"):
+        table.add_column(col, justify="right" if col != "class" else "left")
+
+    def f(v: float) -> str:
+        return "nan" if not np.isfinite(v) else f"{100 * v:.1f}"
+
+    for name, row in result.per_class().items():
+        table.add_row(
+            name, f(row["ap"]), f(row["ap50"]), f(row["ap25"]), f(row["rc50"]), f(row["rc25"]),
+            str(row["n_gt"]), str(row["n_pred"]),
+        )
+    table.add_row("mean", f(result.ap), f(result.ap50), f(result.ap25), "", "", "", "", style="bold")
+    return table
 
 
 @dataclass

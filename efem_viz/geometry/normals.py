@@ -22,7 +22,7 @@ point relative to its piece's root is the parity of sign changes along its tree 
 from __future__ import annotations
 
 import logging
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
@@ -236,12 +236,37 @@ def orient_normals(
     Returns:
         (N, 3) float64 normals: `normals` with some rows negated.
     """
-    from scipy.sparse import coo_matrix, csr_matrix
-    from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
-
     pts = np.asarray(points, dtype=np.float64)
     nrm = np.array(normals, dtype=np.float64)
     n = len(pts)
+    mst = _spanning_forest(nrm, neighbours)
+    if on_progress is not None:
+        on_progress("orient", 1, 3)
+    parent, is_root, labels, n_comp = _tree_parents(mst, n)
+    del mst
+    if on_progress is not None:
+        on_progress("orient", 2, 3)
+    _flip_along_trees(nrm, parent, is_root)
+    _flip_pieces(pts, nrm, labels, n_comp)
+    if on_progress is not None:
+        on_progress("orient", 3, 3)
+    log.log(logging.INFO if n >= 200_000 else logging.DEBUG, "normals: oriented %s points in %d piece(s)",
+            f"{n:,}", n_comp)
+    return nrm
+
+
+def _spanning_forest(nrm: np.ndarray, neighbours: np.ndarray) -> Any:
+    """The minimum spanning forest of the kNN graph weighted by 1 − |cos| between normals (Hoppe: signs travel
+    along flat stretches first), as a scipy sparse matrix (`orient_normals`).
+
+    Args:
+        nrm: (N, 3) float64 unit normals.
+        neighbours: (N, K) int neighbour indices (self entries give no edge).
+    """
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import minimum_spanning_tree
+
+    n = len(nrm)
     kk = neighbours.shape[1]
     cols = np.ascontiguousarray(neighbours, dtype=np.int32).reshape(-1)
     # 1 - |cos| (Hoppe): signs travel along flat stretches first; + eps because scipy drops explicit zeros.
@@ -254,10 +279,20 @@ def orient_normals(
     w = w.reshape(-1)
     graph = csr_matrix((w, cols, np.arange(0, n * kk + 1, kk, dtype=np.int64)), shape=(n, n))
     del w, cols
-    mst = minimum_spanning_tree(graph, overwrite=True)
-    del graph
-    if on_progress is not None:
-        on_progress("orient", 1, 3)
+    return minimum_spanning_tree(graph, overwrite=True)
+
+
+def _tree_parents(mst: Any, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """Root every tree of the spanning forest at its first point and find each point's parent (one BFS from a
+    virtual root joined to every tree's root).
+
+    Returns:
+        (parent (N,) int64, a root its own parent; is_root (N,) bool; labels (N,) the connected piece of each
+        point; the number of pieces).
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import breadth_first_order, connected_components
+
     n_comp, labels = connected_components(mst, directed=False)
     # one virtual root (node n) joined to the first point of every piece: a single BFS roots all the trees
     _, roots = np.unique(labels, return_index=True)
@@ -273,9 +308,12 @@ def orient_normals(
     parent = pred[:n].astype(np.int64)
     is_root = parent == n
     parent[is_root] = np.flatnonzero(is_root)
-    if on_progress is not None:
-        on_progress("orient", 2, 3)
-    # parity of sign changes on the path to the root, by pointer jumping (ceil(log2(depth)) rounds)
+    return parent, is_root, labels, int(n_comp)
+
+
+def _flip_along_trees(nrm: np.ndarray, parent: np.ndarray, is_root: np.ndarray) -> None:
+    """Negate (in place) the normals whose path to their tree's root changes sign an odd number of times, so
+    that every normal agrees with its parent: the parity by pointer jumping (ceil(log2(depth)) rounds)."""
     parity = np.einsum("ij,ij->i", nrm, nrm[parent]) < 0
     parity[is_root] = False
     anc = parent
@@ -286,9 +324,12 @@ def orient_normals(
             break
         anc = nxt
     nrm[parity] *= -1.0
-    # the global rule, applied to each connected piece on its own: most normals away from the piece's centroid,
-    # or +Z when the piece is flat; pieces too small to judge (stray points) use the whole cloud's centroid and
-    # flatness. A single connected cloud gets exactly the rule as it was.
+
+
+def _flip_pieces(pts: np.ndarray, nrm: np.ndarray, labels: np.ndarray, n_comp: int) -> None:
+    """The global sign rule, applied (in place) to each connected piece on its own: most normals away from the
+    piece's centroid, or +Z when the piece is flat; pieces too small to judge (stray points) use the whole
+    cloud's centroid and flatness. A single connected cloud gets exactly the rule as it was."""
     order = np.argsort(labels, kind="stable")
     counts = np.bincount(labels, minlength=n_comp)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
@@ -304,8 +345,3 @@ def orient_normals(
     per_point = np.where(flat[labels], nrm[:, 2], outward)
     score = np.bincount(labels, weights=per_point, minlength=n_comp)
     nrm[score[labels] < 0] *= -1.0
-    if on_progress is not None:
-        on_progress("orient", 3, 3)
-    log.log(logging.INFO if n >= 200_000 else logging.DEBUG, "normals: oriented %s points in %d piece(s)",
-            f"{n:,}", n_comp)
-    return nrm

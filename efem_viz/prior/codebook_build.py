@@ -24,6 +24,52 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 
+def _sample_objects(meshes_or_seeds: Sequence[trimesh.Trimesh | int], rng: np.random.Generator, *, n_store: int,
+                    noise: float, n_pcl: int, category: str,
+                    normalise: bool) -> tuple[list[int], np.ndarray, np.ndarray]:
+    """Each object's stored cloud and encoder input (`build_codebook`), drawn from `rng` object by object.
+
+    Returns:
+        The ids (seeds, or positions of the meshes), (K, n_store, 3) float16 noisy surface samples, and
+        (K, n_pcl) int32 indices of the encoder inputs among them (drawn with replacement).
+    """
+    from efem_viz.prior.data import normalize_mesh
+
+    ids, clouds, input_idx = [], [], []
+    for pos, item in enumerate(meshes_or_seeds):
+        if isinstance(item, (int, np.integer)):
+            from efem_viz.data.procedural import make_shape
+
+            mesh = make_shape(category, int(item))
+            ids.append(int(item))
+        else:
+            mesh = item
+            ids.append(pos)
+        if normalise:
+            mesh = normalize_mesh(mesh)
+        pts = sample_surface(mesh, n_store, seed=rng, empty="raise").points + rng.normal(0.0, noise, size=(n_store, 3))
+        clouds.append(pts.astype(np.float16))  # encode exactly what is stored
+        input_idx.append(rng.integers(0, n_store, size=n_pcl))
+    return ids, np.stack(clouds), np.stack(input_idx).astype(np.int32)
+
+
+def _encode_batches(prior: ShapePrior, X: np.ndarray,
+                    batch: int) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
+    """Encode (K, n_pcl, 3) clouds `batch` at a time in float32; the latents' Θ_R, Θ_inv, Θ_c, Θ_s per batch."""
+    import torch
+
+    Rs, invs, cs, ss = [], [], [], []
+    with torch.no_grad():  # the prior has no dropout/normalisation layers: no eval() toggling needed
+        for s in range(0, len(X), batch):
+            x = torch.as_tensor(X[s : s + batch], dtype=torch.float32)
+            lat = prior.encode(x)
+            Rs.append(lat.R.cpu().numpy())
+            invs.append(lat.inv.cpu().numpy())
+            cs.append(lat.center.cpu().numpy())
+            ss.append(lat.scale.cpu().numpy())
+    return Rs, invs, cs, ss
+
+
 def build_codebook(
     prior: ShapePrior,
     meshes_or_seeds: Sequence[trimesh.Trimesh | int],
@@ -56,43 +102,16 @@ def build_codebook(
     Returns:
         Codebook (ids = the seeds, or the positions of the meshes in the input).
     """
-    import torch
-
-    from efem_viz.prior.data import normalize_mesh
-
     if len(meshes_or_seeds) == 0:
         raise ValueError("build_codebook needs at least one mesh or seed")
     if n_store < 1:
         raise ValueError(f"n_store must be >= 1, got {n_store}")
     rng = np.random.default_rng(seed)
     n_pcl = int(prior.config.n_pcl)
-    ids, clouds, input_idx = [], [], []
-    for pos, item in enumerate(meshes_or_seeds):
-        if isinstance(item, (int, np.integer)):
-            from efem_viz.data.procedural import make_shape
-
-            mesh = make_shape(category, int(item))
-            ids.append(int(item))
-        else:
-            mesh = item
-            ids.append(pos)
-        if normalise:
-            mesh = normalize_mesh(mesh)
-        pts = sample_surface(mesh, n_store, seed=rng, empty="raise").points + rng.normal(0.0, noise, size=(n_store, 3))
-        clouds.append(pts.astype(np.float16))  # encode exactly what is stored
-        input_idx.append(rng.integers(0, n_store, size=n_pcl))
-    pcl = np.stack(clouds)
-    idx = np.stack(input_idx).astype(np.int32)
+    ids, pcl, idx = _sample_objects(meshes_or_seeds, rng, n_store=n_store, noise=noise, n_pcl=n_pcl,
+                                    category=category, normalise=normalise)
     X = np.take_along_axis(pcl, idx[:, :, None], axis=1).astype(np.float64)
-    Rs, invs, cs, ss = [], [], [], []
-    with torch.no_grad():  # the prior has no dropout/normalisation layers: no eval() toggling needed
-        for s in range(0, len(X), batch):
-            x = torch.as_tensor(X[s : s + batch], dtype=torch.float32)
-            lat = prior.encode(x)
-            Rs.append(lat.R.cpu().numpy())
-            invs.append(lat.inv.cpu().numpy())
-            cs.append(lat.center.cpu().numpy())
-            ss.append(lat.scale.cpu().numpy())
+    Rs, invs, cs, ss = _encode_batches(prior, X, batch)
     z_so3 = np.concatenate(Rs).astype(np.float64)
     proj, basis, evals = project_so3_code(z_so3)
     centred = X - X.mean(axis=1, keepdims=True)

@@ -225,6 +225,47 @@ def release_from_filename(path: str | Path) -> ReleaseName | None:
     return None
 
 
+def _backbone_widths(state: Mapping[str, Any]) -> tuple[int, ...]:
+    """The widths of the encoder's backbone blocks (``V_list.{b}.lin.weight`` rows), blocks numbered 0..n-1.
+
+    Raises:
+        ValueError: no backbone block, or a block missing from the numbering.
+    """
+    blocks = _indices(state, r"encoder\.V_list\.(\d+)\.lin\.weight")
+    if not blocks:
+        raise ValueError(f"missing keys {_released_name('encoder.V_list.{b}.lin.weight')}: no backbone blocks")
+    if blocks != list(range(len(blocks))):
+        missing = sorted(set(range(max(blocks) + 1)) - set(blocks))
+        raise ValueError("missing key(s) " + ", ".join(_released_name(f"encoder.V_list.{b}.lin.weight")
+                                                      for b in missing) + " (backbone blocks must be 0..n-1)")
+    return tuple(int(_need(state, f"encoder.V_list.{b}.lin.weight", f"the width of block {b}").shape[0])
+                 for b in blocks)
+
+
+def _down_schedule(n_blocks: int, rel: Mapping[str, Any], *, down_blocks: tuple[int, ...] | None,
+                   down_factors: tuple[int, ...] | None) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """The encoder's down-sampling schedule: as given, else the release's (``rel``, a `RELEASES` entry) when the
+    backbone has the released block count.
+
+    Raises:
+        ValueError: another block count without a schedule, factors without blocks, or down-sampling before
+            block 0.
+    """
+    if down_blocks is None:
+        if n_blocks != _RELEASED_BLOCKS:
+            raise ValueError(f"the checkpoint has {n_blocks} backbone blocks, not the released "
+                             f"{_RELEASED_BLOCKS}: its down-sampling schedule cannot be known, pass down_blocks "
+                             "and down_factors (CLI: --down-blocks, --down-factors)")
+        down_blocks = tuple(rel["down_blocks"])
+        if down_factors is None:
+            down_factors = tuple(rel["down_factors"])
+    if down_factors is None:
+        raise ValueError("down_factors must be given together with down_blocks")
+    if 0 in tuple(down_blocks):
+        raise ValueError("block 0 cannot be preceded by down-sampling in the released network")
+    return tuple(down_blocks), tuple(down_factors)
+
+
 def infer_released_config(
     state: Mapping[str, Any],
     *,
@@ -267,15 +308,7 @@ def infer_released_config(
     if release not in RELEASES:
         raise ValueError(f"unknown release {release!r}; known: {sorted(RELEASES)}")
     rel = RELEASES[release]
-    blocks = _indices(state, r"encoder\.V_list\.(\d+)\.lin\.weight")
-    if not blocks:
-        raise ValueError(f"missing keys {_released_name('encoder.V_list.{b}.lin.weight')}: no backbone blocks")
-    if blocks != list(range(len(blocks))):
-        missing = sorted(set(range(max(blocks) + 1)) - set(blocks))
-        raise ValueError("missing key(s) " + ", ".join(_released_name(f"encoder.V_list.{b}.lin.weight")
-                                                      for b in missing) + " (backbone blocks must be 0..n-1)")
-    widths = tuple(int(_need(state, f"encoder.V_list.{b}.lin.weight", f"the width of block {b}").shape[0])
-                   for b in blocks)
+    widths = _backbone_widths(state)
     n_blocks = len(widths)
     attention = tuple(sorted(set(_indices(state, r"encoder\.Q_list\.(\d+)\.lin\.weight"))
                              | set(_indices(state, r"encoder\.K_list\.(\d+)\.lin\.weight"))))
@@ -293,18 +326,7 @@ def infer_released_config(
     else:
         raise ValueError(f"{_released_name('decoder.fc_in.weight')} has shape {tuple(fc_in.shape)}: expected "
                          f"(H, {2 * latent + 1}) for latent width {latent} (projections, ‖q‖, invariant code)")
-    if down_blocks is None:
-        if n_blocks != _RELEASED_BLOCKS:
-            raise ValueError(f"the checkpoint has {n_blocks} backbone blocks, not the released "
-                             f"{_RELEASED_BLOCKS}: its down-sampling schedule cannot be known, pass down_blocks "
-                             "and down_factors (CLI: --down-blocks, --down-factors)")
-        down_blocks = tuple(rel["down_blocks"])
-        if down_factors is None:
-            down_factors = tuple(rel["down_factors"])
-    if down_factors is None:
-        raise ValueError("down_factors must be given together with down_blocks")
-    if 0 in tuple(down_blocks):
-        raise ValueError("block 0 cannot be preceded by down-sampling in the released network")
+    down_blocks, down_factors = _down_schedule(n_blocks, rel, down_blocks=down_blocks, down_factors=down_factors)
     cts = bool(rel["center_times_sigma"]) if center_times_sigma is None else bool(center_times_sigma)
     return PriorConfig(
         widths=widths, k=int(k), n_pcl=int(n_pcl if n_pcl is not None else rel["n_pcl"]),

@@ -103,6 +103,46 @@ def _grid_points(lo: float, h: float, idx: np.ndarray) -> np.ndarray:
     return (lo + h * idx.astype(np.float64)).astype(np.float32)
 
 
+def _evaluate(fn: SdfFn, pts: np.ndarray, batch: int) -> np.ndarray:
+    """(Q,) float32 values of `fn` at (Q, 3) points, in calls of at most `batch` points (each checked for size)."""
+    out = np.empty(len(pts), dtype=np.float32)
+    for s in range(0, len(pts), batch):
+        vals = np.asarray(fn(pts[s : s + batch]), dtype=np.float32).reshape(-1)
+        n_in = min(batch, len(pts) - s)
+        if vals.shape[0] != n_in:
+            raise ValueError(f"sdf fn returned {vals.shape[0]} values for {n_in} points")
+        out[s : s + batch] = vals
+    return out
+
+
+def _refine_mask(v: np.ndarray, h: float, lipschitz: float) -> tuple[np.ndarray, int]:
+    """Which points of the next, twice finer lattice to evaluate (`sdf_grid`): those of every active cell (a sign
+    change, or a corner |sdf| below `lipschitz` × half the cell diagonal `h`√3), except the known ones.
+
+    Args:
+        v: (n+1, n+1, n+1) SDF values of the current lattice.
+        h: its cell size.
+        lipschitz: see `sdf_grid`.
+
+    Returns:
+        ((2n+1,)*3 bool mask, number of active cells).
+    """
+    n = v.shape[0] - 1
+    cmin, cmax = _cell_minmax(v)
+    amin = np.minimum(np.abs(cmin), np.abs(cmax))
+    active = (cmin <= 0) & (cmax >= 0)
+    if lipschitz > 0:
+        active |= amin < lipschitz * 0.5 * np.sqrt(3.0) * h
+    # mark the (2n+1)³ lattice points of every active cell
+    mask = np.zeros((2 * n + 1,) * 3, dtype=bool)
+    for dx in range(3):
+        for dy in range(3):
+            for dz in range(3):
+                mask[dx : dx + 2 * n : 2, dy : dy + 2 * n : 2, dz : dz + 2 * n : 2] |= active
+    mask[::2, ::2, ::2] = False  # already known
+    return mask, int(active.sum())
+
+
 def sdf_grid(
     fn: SdfFn,
     *,
@@ -140,44 +180,23 @@ def sdf_grid(
             f"resolution/coarse must be a power of two; got resolution={resolution}, coarse={coarse}"
         )
 
-    def evaluate(pts: np.ndarray) -> np.ndarray:
-        out = np.empty(len(pts), dtype=np.float32)
-        for s in range(0, len(pts), batch):
-            vals = np.asarray(fn(pts[s : s + batch]), dtype=np.float32).reshape(-1)
-            n_in = min(batch, len(pts) - s)
-            if vals.shape[0] != n_in:
-                raise ValueError(f"sdf fn returned {vals.shape[0]} values for {n_in} points")
-            out[s : s + batch] = vals
-        return out
-
     lo = -float(half_extent)
     n = coarse
     h = 2.0 * half_extent / n
     idx = np.stack(np.meshgrid(*(np.arange(n + 1),) * 3, indexing="ij"), axis=-1).reshape(-1, 3)
-    v = evaluate(_grid_points(lo, h, idx)).reshape(n + 1, n + 1, n + 1)
+    v = _evaluate(fn, _grid_points(lo, h, idx), batch).reshape(n + 1, n + 1, n + 1)
     queries = len(idx)
     active_counts: list[int] = []
     levels = 0
     while n < resolution:
-        cmin, cmax = _cell_minmax(v)
-        amin = np.minimum(np.abs(cmin), np.abs(cmax))
-        active = (cmin <= 0) & (cmax >= 0)
-        if lipschitz > 0:
-            active |= amin < lipschitz * 0.5 * np.sqrt(3.0) * h
-        active_counts.append(int(active.sum()))
-        # mark the (2n+1)³ lattice points of every active cell
-        mask = np.zeros((2 * n + 1,) * 3, dtype=bool)
-        for dx in range(3):
-            for dy in range(3):
-                for dz in range(3):
-                    mask[dx : dx + 2 * n : 2, dy : dy + 2 * n : 2, dz : dz + 2 * n : 2] |= active
-        mask[::2, ::2, ::2] = False  # already known
+        mask, n_active = _refine_mask(v, h, lipschitz)
+        active_counts.append(n_active)
         v = _upsample2(v)
         n *= 2
         h /= 2.0
         new_idx = np.argwhere(mask)
         if len(new_idx):
-            v[mask] = evaluate(_grid_points(lo, h, new_idx))
+            v[mask] = _evaluate(fn, _grid_points(lo, h, new_idx), batch)
         queries += len(new_idx)
         levels += 1
     if stats is not None:
@@ -317,6 +336,35 @@ def _single_latent(latent_i: Any) -> Any:
     return latent_i
 
 
+def _reference_sdf_fn(prior: Any, lat: Any, *, s_bar: float, clip_r: float | None) -> SdfFn:
+    """The SDF of one latent's shape in its reference frame (centre 0, scale `s_bar`, world orientation), as a
+    function of (Q, 3) float32 points (`extract_mesh`); intersected with the ball of radius `clip_r` when given."""
+    import torch
+
+    param = next(prior.parameters())
+    dtype, device = param.dtype, param.device
+    R = torch.as_tensor(lat.R, dtype=dtype, device=device)
+    inv = torch.as_tensor(lat.inv, dtype=dtype, device=device)
+    ref = type(lat)(
+        R=R,
+        inv=inv,
+        center=torch.zeros(1, 3, dtype=dtype, device=device),
+        scale=torch.full((1,), s_bar, dtype=dtype, device=device),
+    )
+
+    def fn(pts: np.ndarray) -> np.ndarray:
+        # no train/eval toggling: the prior has no dropout or normalisation layers, and toggling a shared module
+        # from a viewer worker thread would race with other users of it
+        with torch.no_grad():
+            x = torch.from_numpy(pts).to(device=device, dtype=dtype)
+            out = prior.sdf(x[None], ref).reshape(-1).float().cpu().numpy()
+        if clip_r is not None:
+            out = np.maximum(out, (np.linalg.norm(pts, axis=1) - clip_r) / s_bar)
+        return out
+
+    return fn
+
+
 def extract_mesh(
     prior: Any,
     latent_i: Any,
@@ -360,29 +408,7 @@ def extract_mesh(
     s_bar = _reference_scale(prior) if reference_scale is None else float(reference_scale)
     if not s_bar > 0:
         raise ValueError(f"reference scale must be > 0, got {s_bar}")
-    param = next(prior.parameters())
-    dtype, device = param.dtype, param.device
-    R = torch.as_tensor(lat.R, dtype=dtype, device=device)
-    inv = torch.as_tensor(lat.inv, dtype=dtype, device=device)
-    ref = type(lat)(
-        R=R,
-        inv=inv,
-        center=torch.zeros(1, 3, dtype=dtype, device=device),
-        scale=torch.full((1,), s_bar, dtype=dtype, device=device),
-    )
-
-    clip_r = float(half_extent) if clip_ball else None
-
-    def fn(pts: np.ndarray) -> np.ndarray:
-        # no train/eval toggling: the prior has no dropout or normalisation layers, and toggling a shared module
-        # from a viewer worker thread would race with other users of it
-        with torch.no_grad():
-            x = torch.from_numpy(pts).to(device=device, dtype=dtype)
-            out = prior.sdf(x[None], ref).reshape(-1).float().cpu().numpy()
-        if clip_r is not None:
-            out = np.maximum(out, (np.linalg.norm(pts, axis=1) - clip_r) / s_bar)
-        return out
-
+    fn = _reference_sdf_fn(prior, lat, s_bar=s_bar, clip_r=float(half_extent) if clip_ball else None)
     mesh = mesh_from_sdf_fn(
         fn,
         half_extent=half_extent,

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
@@ -111,6 +111,76 @@ def _inlier_ratio(Q: np.ndarray, Q_tree: Any, A: np.ndarray, to_canonical: float
     return hits / float(len(Q) + len(A))
 
 
+def _pose_inputs(prior: Any, latent_i: Any, surface_samples: np.ndarray, normals: np.ndarray | None, *,
+                 codebook: Codebook | None) -> tuple[Codebook, np.ndarray, np.ndarray, float]:
+    """`estimate_pose`'s inputs, checked: the codebook (`codebook`, else the prior's), the (S, 3) float64 samples,
+    and the latent's Θ_R (C, 3) and Θ_s.
+
+    Raises:
+        ValueError: no codebook, samples not (S, 3) or not finite, normals of another shape, Θ_s not > 0.
+    """
+    from efem_viz.prior.codebook import latent_to_numpy
+
+    cb = codebook if codebook is not None else getattr(prior, "codebook", None)
+    if cb is None:
+        raise ValueError("estimate_pose needs a codebook: the prior has none (run `efem-viz build-codebook`)")
+    Q = np.asarray(surface_samples, dtype=np.float64)
+    if Q.ndim != 2 or Q.shape[1] != 3:
+        raise ValueError(f"surface_samples must have shape (S, 3), got {Q.shape}")
+    if normals is not None and np.shape(normals) != Q.shape:
+        raise ValueError(f"normals must have the shape of surface_samples {Q.shape}, got {np.shape(normals)}")
+    if not np.isfinite(Q).all():
+        raise ValueError("surface_samples contain non-finite values")
+    theta, _, _, scale = latent_to_numpy(latent_i)
+    if not scale > 0:
+        raise ValueError(f"latent scale must be > 0, got {scale}")
+    return cb, Q, theta, scale
+
+
+def _no_surface_pose(cb: Codebook) -> PoseEstimate:
+    """The pose of a proposal without surface samples (an empty mesh): identity, score 0, no neighbour, and the
+    mean codebook scale (finite, so downstream unit conversions stay finite)."""
+    eye = np.eye(3)
+    return PoseEstimate(eye, eye.copy(), cb.mean_scale, 0.0, np.zeros(0, np.int64), np.zeros(0), -1,
+                        np.zeros((0, 3)), False)
+
+
+def _placed_cloud(cb: Codebook, n: int, R: np.ndarray, *, scale: float, centroid: np.ndarray) -> np.ndarray:
+    """(n_store, 3) float64: codebook row `n`'s whole cloud at the proposal's scale, rotated by `R` and centred on
+    `centroid` (the samples' centroid), as the search placed its subset."""
+    full = (scale / float(cb.scale[n])) * (cb.cloud(n) - cb.center[n].astype(np.float64))
+    A = full @ R.T
+    return A - A.mean(axis=0) + centroid
+
+
+def _score_neighbours(
+    nbrs: np.ndarray,
+    align: Callable[[int, bool], tuple[np.ndarray, np.ndarray]],
+    *,
+    proper: bool,
+    Q: np.ndarray,
+    Q_tree: Any,
+    cb: Codebook,
+    scale: float,
+    tau_db: float,
+) -> tuple[np.ndarray, dict[int, tuple[np.ndarray, np.ndarray, float]]]:
+    """Align every retrieved neighbour once (`align(n, proper)`: steps 2-4) and score it (step 5).
+
+    Returns:
+        (n,) float64 inlier ratio per retrieved neighbour (duplicates share theirs), and per distinct codebook
+        row its (R_n, aligned cloud, inlier ratio).
+    """
+    cache: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}
+    scores = np.zeros(len(nbrs))
+    for j, n in enumerate(nbrs.tolist()):
+        if n not in cache:
+            R_n, A_n = align(n, proper)
+            r_n = _inlier_ratio(Q, Q_tree, A_n, float(cb.scale[n]) / scale, tau_db)
+            cache[n] = (R_n, A_n, r_n)
+        scores[j] = cache[n][2]
+    return scores, cache
+
+
 def estimate_pose(
     prior: Any,
     latent_i: Any,
@@ -154,27 +224,10 @@ def estimate_pose(
         ValueError: no codebook, or bad shapes.
     """
     from efem_viz._typeshims import cKDTree
-    from efem_viz.prior.codebook import latent_to_numpy
 
-    cb = codebook if codebook is not None else getattr(prior, "codebook", None)
-    if cb is None:
-        raise ValueError("estimate_pose needs a codebook: the prior has none (run `efem-viz build-codebook`)")
-    Q = np.asarray(surface_samples, dtype=np.float64)
-    if Q.ndim != 2 or Q.shape[1] != 3:
-        raise ValueError(f"surface_samples must have shape (S, 3), got {Q.shape}")
-    if normals is not None and np.shape(normals) != Q.shape:
-        raise ValueError(f"normals must have the shape of surface_samples {Q.shape}, got {np.shape(normals)}")
-    if not np.isfinite(Q).all():
-        raise ValueError("surface_samples contain non-finite values")
-    theta, _, _, scale = latent_to_numpy(latent_i)
-    if not scale > 0:
-        raise ValueError(f"latent scale must be > 0, got {scale}")
+    cb, Q, theta, scale = _pose_inputs(prior, latent_i, surface_samples, normals, codebook=codebook)
     if len(Q) == 0 or not np.any(Q):
-        eye = np.eye(3)
-        # no surface (empty mesh): identity pose, score 0, and the mean codebook scale (finite, so downstream
-        # unit conversions stay finite)
-        return PoseEstimate(eye, eye.copy(), cb.mean_scale, 0.0, np.zeros(0, np.int64), np.zeros(0), -1,
-                            np.zeros((0, 3)), False)
+        return _no_surface_pose(cb)
     if search_points is not None and search_points < 1:
         raise ValueError(f"search_points must be >= 1 or None, got {search_points}")
     nbrs = cb.retrieve(latent_i, k_inv=k_inv, k_so3=k_so3, k_joint=k_joint)
@@ -184,29 +237,19 @@ def estimate_pose(
     if q_sub is not None:
         Q = Q[q_sub]
     Q_tree = cKDTree(Q - Q.mean(axis=0))
-    proper = bool(proper_search)
-    cache: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}
-    scores = np.zeros(len(nbrs))
-    for j, n in enumerate(nbrs.tolist()):
-        if n not in cache:
-            R_n, A_n = _align_neighbour(theta, scale, cb, n, Q, Q_tree, icp_iters=icp_iters, proper=proper,
-                                        subset=c_sub)
-            r_n = _inlier_ratio(Q, Q_tree, A_n, float(cb.scale[n]) / scale, tau_db)
-            cache[n] = (R_n, A_n, r_n)
-        scores[j] = cache[n][2]
+
+    def align(n: int, proper: bool) -> tuple[np.ndarray, np.ndarray]:
+        return _align_neighbour(theta, scale, cb, n, Q, Q_tree, icp_iters=icp_iters, proper=proper, subset=c_sub)
+
+    scores, cache = _score_neighbours(nbrs, align, proper=bool(proper_search), Q=Q, Q_tree=Q_tree, cb=cb,
+                                      scale=scale, tau_db=tau_db)
     best = int(np.argmax(scores))
     n_star = int(nbrs[best])
     R_raw, A_raw, r_star = cache[n_star]
     reflected = bool(np.linalg.det(R_raw) < 0)
-    if reflected:
-        R, A = _align_neighbour(theta, scale, cb, n_star, Q, Q_tree, icp_iters=icp_iters, proper=True,
-                                subset=c_sub)
-    else:
-        R, A = R_raw, A_raw
+    R, A = align(n_star, True) if reflected else (R_raw, A_raw)
     if q_sub is not None or c_sub is not None:  # the whole selected cloud, placed as the search placed its subset
-        full = (scale / float(cb.scale[n_star])) * (cb.cloud(n_star) - cb.center[n_star].astype(np.float64))
-        A = full @ R.T
-        A = A - A.mean(axis=0) + Q_full.mean(axis=0)
+        A = _placed_cloud(cb, n_star, R, scale=scale, centroid=Q_full.mean(axis=0))
     return PoseEstimate(
         R=R,
         R_raw=R_raw,

@@ -530,26 +530,13 @@ def _args_dict(args: TrainArgs) -> dict[str, Any]:
 
 
 # ------------------------------------------------------------------------------------------------------ train
-def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], None] | None = None,
-          max_iterations: int | None = None) -> dict[str, Any]:
-    """Run (or resume) training.
-
-    Args:
-        args: Run configuration.
-        on_progress: Called after every iteration with ``(iteration, total, info)``.
-        max_iterations: Stop after this many iterations of *this call* (tests).
-
-    Returns:
-        Summary dict: ``iteration``, ``best_iou``, ``best_iteration``, ``export``, ``val_curve``, ``curve``.
+def _check_args(args: TrainArgs) -> None:
+    """Refuse a run that cannot work, before any data is loaded.
 
     Raises:
-        FileNotFoundError: If resuming without a checkpoint.
-        ValueError: On bad arguments.
+        ValueError: an unknown matmul precision, a grown decoder without a prior to grow, or a batch size, iteration
+            count or validation interval below 1.
     """
-    import torch
-
-    from efem_viz.prior.model import ShapePrior, count_parameters, save_prior
-
     from efem_viz.prior.config import matmul_precision
 
     matmul_precision(args.matmul_dtype)  # an unknown name fails here, before any data is loaded
@@ -559,35 +546,45 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
     if args.batch_size < 1 or args.iterations < 1 or args.val_every < 1:
         raise ValueError(f"batch_size/iterations/val_every must be >= 1 (got {args.batch_size}, "
                          f"{args.iterations}, {args.val_every})")
-    t_start = time.monotonic()
-    torch.set_num_threads(max(1, args.threads))
-    out_dir = args.resolved_out_dir()
-    out_dir.mkdir(parents=True, exist_ok=True)
-    export = args.resolved_export()
-    last = out_dir / "last.pt"
+
+
+def _read_resume_checkpoint(args: TrainArgs, last: Path) -> tuple[Path | None, dict[str, Any] | None]:
+    """The checkpoint a resumed run starts from (``--resume-from``, or ``last`` with ``--resume``), checked.
+
+    Returns:
+        Its path and contents; (None, None) for a run that does not resume.
+
+    Raises:
+        FileNotFoundError: resuming without a checkpoint.
+        ValueError: not a train-prior resume checkpoint, or one the prior loaders refuse.
+    """
     resume_path = args.resume_from if args.resume_from is not None else (last if args.resume else None)
-    ckpt: dict[str, Any] | None = None
-    if resume_path is not None:
-        if not Path(resume_path).is_file():
-            raise FileNotFoundError(f"no checkpoint to resume from: {resume_path}")
-        from efem_viz.prior.model import _checked_prior_parts, read_checkpoint
+    if resume_path is None:
+        return None, None
+    if not Path(resume_path).is_file():
+        raise FileNotFoundError(f"no checkpoint to resume from: {resume_path}")
+    from efem_viz.prior.model import _checked_prior_parts, read_checkpoint
 
-        ckpt = read_checkpoint(resume_path)
-        need = ("config", "state_dict", "optimizer", "state")
-        if not isinstance(ckpt, dict) or any(k not in ckpt for k in need):
-            raise ValueError(f"{resume_path}: not a train-prior resume checkpoint (needs {', '.join(need)})")
-        # the prior loaders' checks (sizes declared, shapes, views, finite values) before anything is allocated or
-        # any data is prepared (issue 36: a 16 KB file declaring a 20,000-wide decoder cost 90 s and 6.5 GB)
-        _checked_prior_parts(ckpt, Path(resume_path))
+    ckpt = read_checkpoint(resume_path)
+    need = ("config", "state_dict", "optimizer", "state")
+    if not isinstance(ckpt, dict) or any(k not in ckpt for k in need):
+        raise ValueError(f"{resume_path}: not a train-prior resume checkpoint (needs {', '.join(need)})")
+    # the prior loaders' checks (sizes declared, shapes, views, finite values) before anything is allocated or
+    # any data is prepared (issue 36: a 16 KB file declaring a 20,000-wide decoder cost 90 s and 6.5 GB)
+    _checked_prior_parts(ckpt, Path(resume_path))
+    return resume_path, ckpt
 
-    log.info("loading training data ...")
-    train_objs = load_objects(args, "train")
-    val_objs = load_objects(args, "val")
-    log.info("data: %d train / %d val objects (%.1f s)", len(train_objs), len(val_objs),
-             time.monotonic() - t_start)
 
-    torch.manual_seed(args.seed)
-    rng = np.random.default_rng(args.seed)
+def _build_prior(args: TrainArgs, ckpt: dict[str, Any] | None) -> tuple[ShapePrior, bool]:
+    """The prior to train: the checkpoint's architecture (its weights come with the optimiser, `_resume_state`),
+    else ``--init-from``'s weights (its decoder grown when asked; its settings only for the same category), else a
+    fresh one of ``args.prior_config()``. Draws the fresh weights from torch's global generator (seeded by `train`).
+
+    Returns:
+        The prior on ``args.device`` and whether its weights came from ``--init-from``.
+    """
+    from efem_viz.prior.model import ShapePrior
+
     if ckpt is not None:
         from efem_viz.prior.config import PriorConfig
 
@@ -616,62 +613,94 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
         kept = dict(init.metadata or {}) if prior_category(init).name == args.category else {}
         prior.metadata = {**kept, "init_from": str(args.init_from)}
         log.info("initialised from %s", args.init_from)
-    scfg = args.sample_config(cfg.n_pcl)
-    if args.freeze_decoder:
-        for prm in prior.decoder.parameters():
-            prm.requires_grad_(False)
-    opt = torch.optim.Adam([prm for prm in prior.parameters() if prm.requires_grad], lr=args.lr)
-    state = _State()
-    if ckpt is not None:
-        prior.load_state_dict(ckpt["state_dict"])
-        opt.load_state_dict(ckpt["optimizer"])
-        state = _State(**ckpt["state"])
-        rng.bit_generator.state = ckpt["np_rng"]
-        torch.set_rng_state(ckpt["torch_rng"])
-        prior.metadata = dict(ckpt.get("metadata") or {})
-        log.info("resumed from %s at iteration %d", resume_path, state.iteration)
-        if args.reset_best:
-            log.info("--reset-best: forgetting best val IoU %.4f (iteration %d)", state.best_iou,
-                     state.best_iteration)
-            state.best_iou, state.best_iteration = -1.0, -1
-    elif init is None:
-        calib_rng = np.random.default_rng(args.seed + 7)
-        from efem_viz.prior.data import input_cloud
+    return prior, init is not None
 
-        calib = np.stack([input_cloud(o, scfg, calib_rng) for o in train_objs[:32]])
-        sigma = calibrate_scale_factor(prior, torch.as_tensor(calib, dtype=prior.dtype))
-        log.info("calibrated σ = %.6g", sigma)
-    args_dict = _args_dict(args)
-    _write_text_atomic(out_dir / "config.json", json.dumps(
-        {"args": args_dict, "prior": prior.config.to_dict(), "sample": dataclasses.asdict(scfg),
-         "n_train": len(train_objs), "n_val": len(val_objs)}, indent=1, default=_json_default) + "\n")
-    log.info("model: encoder %d params, decoder %d params", count_parameters(prior.encoder),
-             count_parameters(prior.decoder))
-    enc_params = list(prior.encoder.parameters())
-    dec_params = list(prior.decoder.parameters())
-    n_uni = scfg.n_query_uniform
-    budget_s = args.time_budget_min * 60.0 if args.time_budget_min is not None else math.inf
-    wall0 = state.wall_s
-    t_loop = time.monotonic()
-    last_ckpt = time.monotonic()
-    last_resume_export = -math.inf
-    iter_times: list[float] = []
-    done_here = 0
-    running: list[float] = []
 
-    def elapsed() -> float:
-        return time.monotonic() - t_start
+def _resume_state(args: TrainArgs, prior: ShapePrior, opt: Any, rng: np.random.Generator, ckpt: dict[str, Any],
+                  resume_path: Path | None) -> _State:
+    """Put a resume checkpoint back: weights, optimiser, loop state, both RNG states and the prior's metadata
+    (``--reset-best`` forgets the best validation score). Returns the loop state."""
+    import torch
 
-    def do_validation() -> None:
+    prior.load_state_dict(ckpt["state_dict"])
+    opt.load_state_dict(ckpt["optimizer"])
+    state = _State(**ckpt["state"])
+    rng.bit_generator.state = ckpt["np_rng"]
+    torch.set_rng_state(ckpt["torch_rng"])
+    prior.metadata = dict(ckpt.get("metadata") or {})
+    log.info("resumed from %s at iteration %d", resume_path, state.iteration)
+    if args.reset_best:
+        log.info("--reset-best: forgetting best val IoU %.4f (iteration %d)", state.best_iou,
+                 state.best_iteration)
+        state.best_iou, state.best_iteration = -1.0, -1
+    return state
+
+
+def _calibrate_new_prior(args: TrainArgs, prior: ShapePrior, scfg: SampleConfig, train_objs: list[ObjectData]) -> None:
+    """Calibrate a fresh prior's σ on input clouds of the first 32 training objects (their own seeded RNG)."""
+    import torch
+
+    calib_rng = np.random.default_rng(args.seed + 7)
+    from efem_viz.prior.data import input_cloud
+
+    calib = np.stack([input_cloud(o, scfg, calib_rng) for o in train_objs[:32]])
+    sigma = calibrate_scale_factor(prior, torch.as_tensor(calib, dtype=prior.dtype))
+    log.info("calibrated σ = %.6g", sigma)
+
+
+class _TrainLoop:
+    """The iterations of one `train` call: optimiser steps, validations (exporting the best model and rewriting the
+    report) and resume checkpoints, with the clocks and running losses they share.
+
+    Args:
+        args: the run configuration.
+        prior, opt, state, rng: the prior, its optimiser, the loop state and the data generator (a checkpoint holds
+            all four).
+        scfg: how training inputs and queries are sampled.
+        train_objs, val_objs: the prepared objects.
+        out_dir: the run folder (``last.pt``, snapshots).
+        export: where the best model goes.
+        args_dict: ``args`` as JSON (stored in every checkpoint).
+        t_start: when `train` started (`time.monotonic`; the time budget counts from it).
+    """
+
+    def __init__(self, args: TrainArgs, prior: ShapePrior, opt: Any, state: _State, rng: np.random.Generator, *,
+                 scfg: SampleConfig, train_objs: list[ObjectData], val_objs: list[ObjectData], out_dir: Path,
+                 export: Path, args_dict: dict[str, Any], t_start: float) -> None:
+        self.args, self.prior, self.opt, self.state, self.rng = args, prior, opt, state, rng
+        self.scfg, self.train_objs, self.val_objs = scfg, train_objs, val_objs
+        self.out_dir, self.export, self.last, self.args_dict = out_dir, export, out_dir / "last.pt", args_dict
+        self.t_start = t_start
+        self.enc_params = list(prior.encoder.parameters())
+        self.dec_params = list(prior.decoder.parameters())
+        self.budget_s = args.time_budget_min * 60.0 if args.time_budget_min is not None else math.inf
+        self.wall0 = state.wall_s
+        self.t_loop = time.monotonic()
+        self.last_ckpt = time.monotonic()
+        self.last_resume_export = -math.inf
+        self.iter_times: list[float] = []
+        self.done_here = 0
+        self.running: list[float] = []
+
+    def elapsed(self) -> float:
+        """Seconds since `train` started."""
+        return time.monotonic() - self.t_start
+
+    def validate(self) -> None:
+        """Validate (clean inputs, and sensor-like ones when trained on them), export the model when it is the best
+        so far (iso offset calibrated when asked), rewrite the training report."""
+        from efem_viz.prior.model import save_prior
+
+        args, prior, state = self.args, self.prior, self.state
         prior.eval()
         t0 = time.monotonic()
-        m = validate(prior, val_objs, scfg, seed=args.seed + 99)
+        m = validate(prior, self.val_objs, self.scfg, seed=args.seed + 99)
         if args.sensor_p > 0:
-            ms = validate(prior, val_objs, scfg, seed=args.seed + 98, sensor=True)
+            ms = validate(prior, self.val_objs, self.scfg, seed=args.seed + 98, sensor=True)
             m.update({f"sensor_{k}": v for k, v in ms.items()})
         prior.train()
-        m.update(iteration=state.iteration, wall_s=wall0 + (time.monotonic() - t_loop),
-                 train_loss=float(np.mean(running)) if running else float("nan"),
+        m.update(iteration=state.iteration, wall_s=self.wall0 + (time.monotonic() - self.t_loop),
+                 train_loss=float(np.mean(self.running)) if self.running else float("nan"),
                  val_time_s=round(time.monotonic() - t0, 2))
         state.val_curve.append(m)
         log.info("val @%d: IoU %.4f (min %.3f; calibrated %.4f at c=%.4f) |Θc| %.4f Θs %.3f L1 %.4f [%.1fs]%s",
@@ -685,53 +714,61 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
             state.best_iou, state.best_iteration = score, state.iteration
             trained_on = str(args.meshes) if args.meshes is not None else f"procedural:{args.category}"
             offset = m["sensor_iso_offset" if args.sensor_p > 0 else "iso_offset"] if args.calibrate_iso else 0.0
-            save_prior(with_iso_offset(prior, offset), export,
+            save_prior(with_iso_offset(prior, offset), self.export,
                        extra={"iteration": state.iteration, "val_iou": score, "val_iou_raw": m["iou"],
                               "iso_offset": offset, "val_metrics": m, "trained_on": trained_on,
-                              "n_train": len(train_objs)})
-            log.info("exported best model to %s", export)
-        spi = float(np.median(iter_times[-200:])) if iter_times else None
-        _report(args, prior, state, sec_per_iter=spi, n_train=len(train_objs), n_val=len(val_objs),
-                out_dir=out_dir, export=export)
+                              "n_train": len(self.train_objs)})
+            log.info("exported best model to %s", self.export)
+        spi = float(np.median(self.iter_times[-200:])) if self.iter_times else None
+        _report(args, prior, state, sec_per_iter=spi, n_train=len(self.train_objs), n_val=len(self.val_objs),
+                out_dir=self.out_dir, export=self.export)
 
-    def do_checkpoint(final: bool = False) -> None:
-        nonlocal last_ckpt, last_resume_export
-        state.wall_s = wall0 + (time.monotonic() - t_loop)
-        save_checkpoint(last, prior, opt, state, rng, args_dict)
-        last_ckpt = time.monotonic()
-        due = time.monotonic() - last_resume_export >= args.resume_export_every_min * 60
+    def checkpoint(self, final: bool = False) -> None:
+        """Write the resume checkpoint ``last.pt``; copy it to ``--resume-export`` at its interval and at the end
+        (when under 20 MB)."""
+        args = self.args
+        self.state.wall_s = self.wall0 + (time.monotonic() - self.t_loop)
+        save_checkpoint(self.last, self.prior, self.opt, self.state, self.rng, self.args_dict)
+        self.last_ckpt = time.monotonic()
+        due = time.monotonic() - self.last_resume_export >= args.resume_export_every_min * 60
         if args.resume_export is not None and (due or final):
-            if last.stat().st_size < 20 * 2**20:
-                _copy_atomic(last, args.resume_export)
-                last_resume_export = time.monotonic()
+            if self.last.stat().st_size < 20 * 2**20:
+                _copy_atomic(self.last, args.resume_export)
+                self.last_resume_export = time.monotonic()
             else:
                 log.warning("resume checkpoint is %.1f MB (> 20 MB): not copied to %s",
-                            last.stat().st_size / 2**20, args.resume_export)
+                            self.last.stat().st_size / 2**20, args.resume_export)
 
-    prior.train()
-    if (state.iteration == 0 and not state.val_curve) or (ckpt is not None and args.reset_best):
-        do_validation()
-    stop_reason = "iterations"
-    stop_requested, restore_handlers = _install_stop_handlers()
-    while state.iteration < args.iterations:
+    def stop_reason(self, stop_requested: threading.Event, max_iterations: int | None) -> str | None:
+        """Why the loop stops before the next iteration (a signal, this call's iteration cap, the time budget);
+        None to go on."""
         if stop_requested.is_set():
-            stop_reason = "interrupted (SIGINT/SIGTERM)"
-            break
-        if max_iterations is not None and done_here >= max_iterations:
-            stop_reason = "max_iterations"
-            break
-        if elapsed() >= budget_s:
-            stop_reason = "time budget"
-            break
+            return "interrupted (SIGINT/SIGTERM)"
+        if max_iterations is not None and self.done_here >= max_iterations:
+            return "max_iterations"
+        if self.elapsed() >= self.budget_s:
+            return "time budget"
+        return None
+
+    def step(self) -> None:
+        """One optimiser step on a random batch (fixed-point inputs when asked), with its curve and log entries.
+
+        Raises:
+            FloatingPointError: a non-finite loss.
+        """
+        import torch
+
+        from efem_viz.prior.config import matmul_precision
+        from efem_viz.prior.data import make_batch
+
+        args, prior, state, rng, scfg = self.args, self.prior, self.state, self.rng, self.scfg
         t0 = time.monotonic()
         lr = lr_at(state.iteration, base=args.lr, total=args.iterations, decay_at=args.decay_at,
                    factor=args.decay_factor)
-        for g in opt.param_groups:
+        for g in self.opt.param_groups:
             g["lr"] = lr
-        idx = rng.integers(0, len(train_objs), args.batch_size)
-        from efem_viz.prior.data import make_batch
-
-        pcl_np, q_np = make_batch([train_objs[i] for i in idx], scfg, rng, others=train_objs, augment=True)
+        idx = rng.integers(0, len(self.train_objs), args.batch_size)
+        pcl_np, q_np = make_batch([self.train_objs[i] for i in idx], scfg, rng, others=self.train_objs, augment=True)
         noise_np = rng.normal(0.0, scfg.centroid_noise, (args.batch_size, 3))
         if args.fixed_point_p > 0:
             with matmul_precision(args.matmul_dtype, prior.device.type):
@@ -741,19 +778,19 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
         q = torch.as_tensor(q_np, dtype=prior.dtype, device=prior.device)
         noise = torch.as_tensor(noise_np, dtype=prior.dtype, device=prior.device)
         with matmul_precision(args.matmul_dtype, prior.device.type):
-            losses = compute_losses(prior, pcl, q, n_uniform=n_uni, centroid_noise=noise)
-        opt.zero_grad(set_to_none=True)
+            losses = compute_losses(prior, pcl, q, n_uniform=scfg.n_query_uniform, centroid_noise=noise)
+        self.opt.zero_grad(set_to_none=True)
         losses["loss"].backward()
-        gn_e = float(torch.nn.utils.clip_grad_norm_(enc_params, 4.0))
-        gn_d = 0.0 if args.freeze_decoder else float(torch.nn.utils.clip_grad_norm_(dec_params, 4.0))
-        opt.step()
+        gn_e = float(torch.nn.utils.clip_grad_norm_(self.enc_params, 4.0))
+        gn_d = 0.0 if args.freeze_decoder else float(torch.nn.utils.clip_grad_norm_(self.dec_params, 4.0))
+        self.opt.step()
         state.iteration += 1
-        done_here += 1
+        self.done_here += 1
         dt = time.monotonic() - t0
-        iter_times.append(dt)
+        self.iter_times.append(dt)
         lv = float(losses["loss"].detach())
-        running.append(lv)
-        running[:] = running[-50:]
+        self.running.append(lv)
+        self.running[:] = self.running[-50:]
         if not math.isfinite(lv):
             raise FloatingPointError(f"non-finite loss at iteration {state.iteration}")
         if state.iteration % max(1, args.log_every) == 0:
@@ -766,23 +803,104 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
             log.info("it %d loss %.4f sdf %.4f center %.4f scale %.4f |g| %.2f/%.2f lr %.2g %.2fs/it",
                      state.iteration, lv, float(losses["sdf"].detach()), float(losses["center"].detach()),
                      float(losses["scale"].detach()),
-                     gn_e, gn_d, lr, float(np.median(iter_times[-50:])))
-        if on_progress is not None:
-            on_progress(state.iteration, args.iterations,
-                        {"loss": float(np.mean(running)), "best_iou": state.best_iou,
-                         "left_min": (budget_s - elapsed()) / 60 if math.isfinite(budget_s)
-                         else float("nan")})
-        if state.iteration % args.val_every == 0:
-            do_validation()
-        if args.snapshot_every > 0 and state.iteration % args.snapshot_every == 0:
-            save_prior(prior, out_dir / f"snap_{state.iteration}.pt", extra={"iteration": state.iteration})
-        if time.monotonic() - last_ckpt >= args.ckpt_every_min * 60:
-            do_checkpoint()
-    restore_handlers()
-    if not state.val_curve or state.val_curve[-1]["iteration"] != state.iteration:
-        do_validation()
-    do_checkpoint(final=True)
-    log.info("stopped (%s) at iteration %d after %.1f min", stop_reason, state.iteration, elapsed() / 60)
+                     gn_e, gn_d, lr, float(np.median(self.iter_times[-50:])))
+
+    def run(self, *, validate_first: bool, on_progress: Callable[[int, int, dict[str, Any]], None] | None,
+            max_iterations: int | None) -> str:
+        """Iterate until the last iteration, a signal, ``max_iterations`` or the time budget; validate and
+        checkpoint on the way and at the end. Returns why it stopped."""
+        from efem_viz.prior.model import save_prior
+
+        args, state = self.args, self.state
+        self.prior.train()
+        if validate_first:
+            self.validate()
+        stop_reason = "iterations"
+        stop_requested, restore_handlers = _install_stop_handlers()
+        while state.iteration < args.iterations:
+            reason = self.stop_reason(stop_requested, max_iterations)
+            if reason is not None:
+                stop_reason = reason
+                break
+            self.step()
+            if on_progress is not None:
+                on_progress(state.iteration, args.iterations,
+                            {"loss": float(np.mean(self.running)), "best_iou": state.best_iou,
+                             "left_min": (self.budget_s - self.elapsed()) / 60 if math.isfinite(self.budget_s)
+                             else float("nan")})
+            if state.iteration % args.val_every == 0:
+                self.validate()
+            if args.snapshot_every > 0 and state.iteration % args.snapshot_every == 0:
+                save_prior(self.prior, self.out_dir / f"snap_{state.iteration}.pt",
+                           extra={"iteration": state.iteration})
+            if time.monotonic() - self.last_ckpt >= args.ckpt_every_min * 60:
+                self.checkpoint()
+        restore_handlers()
+        if not state.val_curve or state.val_curve[-1]["iteration"] != state.iteration:
+            self.validate()
+        self.checkpoint(final=True)
+        return stop_reason
+
+
+def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], None] | None = None,
+          max_iterations: int | None = None) -> dict[str, Any]:
+    """Run (or resume) training.
+
+    Args:
+        args: Run configuration.
+        on_progress: Called after every iteration with ``(iteration, total, info)``.
+        max_iterations: Stop after this many iterations of *this call* (tests).
+
+    Returns:
+        Summary dict: ``iteration``, ``best_iou``, ``best_iteration``, ``export``, ``val_curve``, ``curve``.
+
+    Raises:
+        FileNotFoundError: If resuming without a checkpoint.
+        ValueError: On bad arguments.
+    """
+    import torch
+
+    from efem_viz.prior.model import count_parameters
+
+    _check_args(args)
+    t_start = time.monotonic()
+    torch.set_num_threads(max(1, args.threads))
+    out_dir = args.resolved_out_dir()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    export = args.resolved_export()
+    resume_path, ckpt = _read_resume_checkpoint(args, out_dir / "last.pt")
+
+    log.info("loading training data ...")
+    train_objs = load_objects(args, "train")
+    val_objs = load_objects(args, "val")
+    log.info("data: %d train / %d val objects (%.1f s)", len(train_objs), len(val_objs),
+             time.monotonic() - t_start)
+
+    torch.manual_seed(args.seed)
+    rng = np.random.default_rng(args.seed)
+    prior, from_init = _build_prior(args, ckpt)
+    scfg = args.sample_config(prior.config.n_pcl)
+    if args.freeze_decoder:
+        for prm in prior.decoder.parameters():
+            prm.requires_grad_(False)
+    opt = torch.optim.Adam([prm for prm in prior.parameters() if prm.requires_grad], lr=args.lr)
+    state = _State()
+    if ckpt is not None:
+        state = _resume_state(args, prior, opt, rng, ckpt, resume_path)
+    elif not from_init:
+        _calibrate_new_prior(args, prior, scfg, train_objs)
+    args_dict = _args_dict(args)
+    _write_text_atomic(out_dir / "config.json", json.dumps(
+        {"args": args_dict, "prior": prior.config.to_dict(), "sample": dataclasses.asdict(scfg),
+         "n_train": len(train_objs), "n_val": len(val_objs)}, indent=1, default=_json_default) + "\n")
+    log.info("model: encoder %d params, decoder %d params", count_parameters(prior.encoder),
+             count_parameters(prior.decoder))
+    loop = _TrainLoop(args, prior, opt, state, rng, scfg=scfg, train_objs=train_objs, val_objs=val_objs,
+                      out_dir=out_dir, export=export, args_dict=args_dict, t_start=t_start)
+    stop_reason = loop.run(validate_first=(state.iteration == 0 and not state.val_curve)
+                           or (ckpt is not None and args.reset_best),
+                           on_progress=on_progress, max_iterations=max_iterations)
+    log.info("stopped (%s) at iteration %d after %.1f min", stop_reason, state.iteration, loop.elapsed() / 60)
     return {"iteration": state.iteration, "best_iou": state.best_iou, "best_iteration": state.best_iteration,
             "export": str(export), "val_curve": state.val_curve, "curve": state.curve,
-            "stop_reason": stop_reason, "checkpoint": str(last)}
+            "stop_reason": stop_reason, "checkpoint": str(loop.last)}

@@ -14,7 +14,6 @@ connected client; the server stays up.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 from concurrent.futures import Future
 from pathlib import Path
@@ -25,16 +24,20 @@ import numpy as np
 from efem_viz.data.scene import DEFAULT_MAX_POINTS
 from efem_viz.prior.config import DEFAULT_PRIOR
 from efem_viz.prior.registry import PriorSet
-from efem_viz.serve.camera import CameraGuard, fitted_view, fly_to_view, framing
+from efem_viz.serve.camera import fitted_view, framing
 from efem_viz.serve.guard import ServedApp
-from efem_viz.serve.inputs import read_text, resolve_inside_root
 from efem_viz.viewer import panel_views as pv, scene_views as sv, state as st
+from efem_viz.viewer.browsers import Browsers, start_viewer_server
 from efem_viz.viewer.events import wire
-from efem_viz.viewer.jobs import Jobs, Player
+from efem_viz.viewer.export_tab import ExportTab
+from efem_viz.viewer.instance_table import InstanceTable
+from efem_viz.viewer.jobs import Jobs
 from efem_viz.viewer.legend import color_key_html
 from efem_viz.viewer.nodes import VIEW_DIRECTION, SceneNodes
 from efem_viz.viewer.rooms.runs import RunSettings
 from efem_viz.viewer.panels import COLOR_MODES, MASK_BAND_RANGE, NO_PROPOSAL, VIEW_MODES, build_panels
+from efem_viz.viewer.playback import Playback
+from efem_viz.viewer.run_panel import RunPanel
 from efem_viz.viewer.session import DEFAULT_SCENE_DIR, ViewerSession, default_scene_dir  # noqa: F401 - re-export
 from efem_viz.viewer.state import ViewerState
 
@@ -86,8 +89,6 @@ class ViewerApp(ServedApp):
         results: Sequence[str | Path] = (),
         max_points: int = DEFAULT_MAX_POINTS,
     ) -> None:
-        from efem_viz.serve.guard import start_server
-
         self.session = ViewerSession(paths, prior=prior, prior_name=prior_name, run_priors=run_priors,
                                      out_dir=out_dir, results=results, max_points=max_points)
         """The headless viewer under this GUI: state and actions."""
@@ -97,24 +98,32 @@ class ViewerApp(ServedApp):
         """Worker threads (`efem_viz.viewer.jobs`): loads and exports, decoding, EM runs."""
         self._worker, self._decoder, self._runner = self.jobs.worker, self.jobs.decoder, self.jobs.runner
         self._submit = self.jobs.submit
-        self._player = Player(self._play_tick, lambda: self.state.speed)
 
-        self.server, self.access = start_server(host=host, port=port, token=token)
-        self.server.gui.configure_theme(control_width="large", dark_mode=False, show_logo=False)
-        self.server.scene.set_up_direction("+z")
-        unit = (np.full(3, -0.5), np.full(3, 0.5))  # until a scene opens
-        self.camera_guard = CameraGuard(self.server, fitted_view(*unit, direction=VIEW_DIRECTION), *unit,
-                                        hint="Reset view (Scene tab) brings it back any time.")
-        """Fits every browser's camera to the open scene and puts back a camera that left it
-        (`efem_viz.serve.camera`)."""
+        self.server, self.access, self.camera_guard = start_viewer_server(host=host, port=port, token=token)
+        """The server, how to reach it (`url`) and the guard that fits every browser's camera to the open scene
+        (`efem_viz.viewer.browsers`)."""
         self.nodes = SceneNodes(self.server.scene)
         self.nodes.on_shape_click = self._on_shape_click
         self.panels = build_panels(
             self.server.gui, scene_names=[e.name for e in self.state.entries], out_dir=str(self.out_root)
         )
-        self.session.on_status = self._show_status
+        self.run_panel = RunPanel(self.session, self.panels, self.jobs,
+                                  show_result=lambda result, source: self.set_result(result, source=source))
+        """The Run button's job, its progress and result (`efem_viz.viewer.run_panel`)."""
+        self.playback = Playback(self.session, self.panels.gui_play, self.set_step)
+        """Play/Pause and the timer that steps through the timeline (`efem_viz.viewer.playback`)."""
+        self.export_tab = ExportTab(self.session, self.panels, self.jobs)
+        """The Export tab's actions (`efem_viz.viewer.export_tab`)."""
+        self.instance_table = InstanceTable(
+            self.session, self.panels, gui_set=self.gui_set, camera_guard=self.camera_guard,
+            redraw_results=lambda: self.set_threshold(self.state.threshold, by_user=False))
+        """The instance table's GUI actions (`efem_viz.viewer.instance_table`)."""
+        self.browsers = Browsers(self.server, self.panels, lock=self._lock, state=self.state,
+                                 camera_guard=self.camera_guard)
+        """The status line, error notifications and a new client's greeting (`efem_viz.viewer.browsers`)."""
+        self.session.on_status = self.browsers.show_status
         wire(self)
-        self.server.on_client_connect(self._on_connect)
+        self.server.on_client_connect(self.browsers.connect)
         self.server.on_client_disconnect(self.camera_guard.forget)
         if open_first and self.state.entries:
             for e in self.state.entries:  # the first scene that opens (a bad file only shows its error)
@@ -155,22 +164,6 @@ class ViewerApp(ServedApp):
     def wait_idle(self, timeout: float = 60.0) -> bool:
         """Block until every submitted job (loads, runs, decodes) has finished. Returns False on timeout."""
         return self.jobs.wait_idle(timeout)
-
-    # ================================================================== status
-    def _show_status(self, text: str, error: bool) -> None:
-        """The session's status listener: the status line, and a notification to every client for an error."""
-        with self._lock:
-            icon = "⚠️ " if error else ""
-            self.panels.gui_status.content = f"{icon}{text}" if text else ""
-        if error:
-            for client in list(self.server.get_clients().values()):
-                with contextlib.suppress(Exception):  # a client may disconnect meanwhile
-                    client.add_notification("efem-viz", text, color="red", auto_close_seconds=8.0)
-
-    def _on_connect(self, client: ClientHandle) -> None:
-        self.camera_guard.attach(client)
-        if self.state.error:
-            client.add_notification("efem-viz", self.state.error, color="red", auto_close_seconds=8.0)
 
     # ================================================================== GUI events (`viewer/events.py`)
     def quiet(self) -> bool:
@@ -272,28 +265,8 @@ class ViewerApp(ServedApp):
         return True
 
     def start_run(self, settings: RunSettings | None = None, **knobs: Any) -> Future[EMResult | None] | None:
-        """Run EFEM on the open scene in the worker thread (progress bar, cancel) with `RunSettings.of(settings,
-        **knobs)` (`knobs`: its fields, e.g. `preset="fast"`). Returns the job's Future."""
-        settings = RunSettings.of(settings, **knobs)
-        with self._lock:
-            generation = self.session.begin_run()
-            if generation is None:
-                return None
-            pv.show_running(self.panels, True)
-        return self._submit(self._runner, self._run_job, settings, generation)
-
-    def _run_job(self, settings: RunSettings, generation: int) -> EMResult | None:
-        try:
-            result = self.session.run(settings, show=False,
-                                      on_step=lambda info: pv.show_run_progress(self.panels, info),
-                                      generation=generation)
-        finally:
-            with self._lock:
-                pv.show_running(self.panels, False)
-        if result is None:
-            return None
-        self.set_result(result, source=self.session.last_run_source)
-        return result
+        """`RunPanel.start_run`: EFEM on the open scene in the runner thread with `RunSettings.of(settings, **knobs)`."""
+        return self.run_panel.start_run(settings, **knobs)
 
     def cancel_run(self) -> None:
         """Ask a running EM to stop at its next step."""
@@ -366,37 +339,13 @@ class ViewerApp(ServedApp):
 
     def play(self) -> None:
         """Start playback from the current step (from 0 when at the end)."""
-        with self._lock:
-            if self.state.result is None or self.state.playing:
-                return
-            if self.state.step >= self.state.num_steps - 1:
-                self.set_step(0)
-            self.state.playing = True
-            self.panels.gui_play.label = "Pause"
-            self._player.start()
+        self.playback.play()
 
     def pause(self) -> None:
-        with self._lock:
-            self.state.playing = False
-            self._player.stop()
-            self.panels.gui_play.label = "Play"
+        self.playback.pause()
 
     def toggle_play(self) -> None:
-        if self.state.playing:
-            self.pause()
-        else:
-            self.play()
-
-    def _play_tick(self) -> bool:
-        """One playback step; False (and paused at the end) when playback is over."""
-        with self._lock:
-            if not self.state.playing or self.state.result is None:
-                return False
-            if self.state.step + 1 >= self.state.num_steps:
-                self.pause()
-                return False
-            self.set_step(self.state.step + 1)
-            return True
+        self.playback.toggle()
 
     # ================================================================== 4. proposals
     def set_max_shapes(self, n: int) -> None:
@@ -490,44 +439,20 @@ class ViewerApp(ServedApp):
 
     # ---------------------------------------------------------------- the instance table
     def choose_instance(self, pid: int | None) -> None:
-        """Choose a row of the instance table (None: none); its *Visible* box and mark follow."""
-        with self._lock:
-            self.session.choose_instance(pid)
-            pv.show_instance_table(self.panels, self.session, self.gui_set)
+        """`InstanceTable.choose_instance`: choose a row of the instance table (None: none)."""
+        self.instance_table.choose_instance(pid)
 
     def set_instance_visible(self, pid: int | None, visible: bool) -> None:
-        """Show or hide one final instance (its mesh, box, label and point colours); a view like the threshold.
-
-        Raises:
-            ValueError: no such instance.
-        """
-        with self._lock:
-            self.session.set_instance_visible(pid, visible)
-            self.set_threshold(self.state.threshold, by_user=False)  # redraw layers, colours, summary, legend, table
+        """`InstanceTable.set_instance_visible`: show or hide one final instance (ValueError: no such instance)."""
+        self.instance_table.set_instance_visible(pid, visible)
 
     def fly_to_instance(self, pid: int | None, *, client: ClientHandle | None = None) -> None:
-        """Point one browser's camera (every browser's when None) at an instance: the box of its points (of its
-        box when it has none), seen from the fitted view's direction (`efem_viz.serve.camera.fly_to_view`).
-
-        Raises:
-            ValueError: no such instance.
-        """
-        with self._lock:
-            f = self.session.fly_target(pid)
-            view = fly_to_view(f.lo, f.hi, home=self.camera_guard.view, scene_diagonal=f.scene_diagonal)
-            pv.show_instance_table(self.panels, self.session, self.gui_set)
-        self.camera_guard.place(view, client)
+        """`InstanceTable.fly_to_instance`: point one browser's camera (every browser's when None) at an instance."""
+        self.instance_table.fly_to_instance(pid, client=client)
 
     def step_instance(self, step: int, *, client: ClientHandle | None = None) -> int:
-        """Choose the next (`step` = 1) or previous (-1) row of the instance table (most confident first, wrapping
-        around) and fly to it; returns its proposal id.
-
-        Raises:
-            ValueError: no result or no instance.
-        """
-        pid = self.session.next_instance(step)
-        self.fly_to_instance(pid, client=client)
-        return pid
+        """`InstanceTable.step_instance`: choose the next (1) or previous (-1) row and fly to it; its id."""
+        return self.instance_table.step_instance(step, client=client)
 
     def set_result_layers(self, *, meshes: bool, obbs: bool, axes: bool) -> None:
         with self._lock:
@@ -553,41 +478,17 @@ class ViewerApp(ServedApp):
 
     # ================================================================== 7. export
     def gui_out_folder(self) -> Path:
-        """The folder in the GUI's "Output folder" field, resolved inside the output root chosen at start.
-
-        Raises:
-            ClientValueError: the field names a place outside the output root (`..`, another absolute path, a
-                symlink pointing out), or is not a usable path.
-        """
-        return resolve_inside_root(read_text(self.panels.gui_out_dir), self.out_root, what="output folder")
+        """`ExportTab.gui_out_folder`: the GUI's output folder, inside the output root."""
+        return self.export_tab.gui_out_folder()
 
     def export_from_gui(self, kind: Literal["results", "static"]) -> Future[Path | None] | None:
-        """The Export buttons: results into the GUI's output folder, the static demo into
-        `<output folder>/static/<scene>/`; both confined to the output root. Returns the job's Future.
-
-        Raises:
-            ClientValueError: the output folder field is outside the output root.
-        """
-        folder = self.gui_out_folder()
-        if kind == "results":
-            return self._submit(self._worker, self.export_results, folder, root=self.out_root)
-        return self._submit(self._worker, self.export_static, self.session.static_target(folder),
-                            root=self.out_root)
+        """`ExportTab.export_from_gui`: the Export buttons (writes confined to the output root)."""
+        return self.export_tab.export_from_gui(kind)
 
     def export_results(self, out_dir: str | Path, *, root: Path | None = None) -> Path | None:
-        """Write the thresholded result: ScanNet layout + coloured PLY under `out_dir` (a Python caller's choice;
-        the GUI button goes through `export_from_gui`, confined to the output root). See
-        `ViewerSession.export_results`."""
-        out = self.session.export_results(out_dir, root=root)
-        if out is not None:
-            self.panels.gui_export_info.content = f"Results written to `{out}`"
-        return out
+        """`ExportTab.export_results`: the thresholded result (ScanNet layout + coloured PLY) under `out_dir`."""
+        return self.export_tab.export_results(out_dir, root=root)
 
     def export_static(self, out_dir: str | Path | None = None, *, root: Path | None = None) -> Path | None:
-        """Write the static demo page `<out_dir>/index.html` (final result + playback of the steps); None =
-        `<output root>/static/<scene>/`. See `ViewerSession.export_static`."""
-        out = self.session.export_static(out_dir, root=root)
-        if out is not None:
-            self.panels.gui_export_info.content = f"Static demo written to `{out}`"
-        return out
-
+        """`ExportTab.export_static`: the static demo page (None: `<output root>/static/<scene>/`)."""
+        return self.export_tab.export_static(out_dir, root=root)

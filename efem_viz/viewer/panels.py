@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Sequence, cast
+from typing import TYPE_CHECKING, Any, Sequence, cast
 
 import numpy as np
 
@@ -120,140 +120,133 @@ class Panels:
 
 
 def build_panels(gui: GuiApi, *, scene_names: list[str], out_dir: str) -> Panels:
-    """Create every control under `gui` (a `viser.GuiApi`), grouped in tabs.
+    """Create every control under `gui` (a `viser.GuiApi`), grouped in tabs (one function per tab, in tab order).
 
     Args:
         gui: `server.gui`.
         scene_names: dropdown options of the scene browser.
         out_dir: the output root (exports from the GUI stay inside it).
     """
-    import plotly.graph_objects as go
-
     tabs = gui.add_tab_group()
-
+    handles: dict[str, Any] = {}
     with tabs.add_tab("Scene"):
-        opts = tuple(scene_names) if scene_names else ("(no scenes)",)
-        scene = gui.add_dropdown("Scene", opts, initial_value=opts[0], hint="scenes inside the paths given")
-        display = gui.add_dropdown("Display", DISPLAYS, initial_value="points")
-        color = gui.add_dropdown("Colour", tuple(COLOR_MODES), initial_value="scene colours")
-        color_key = gui.add_html("")
-        point_size = gui.add_slider("Point size (mm)", 0.5, 20.0, 0.5, 4.0)
-        reset_view = gui.add_button("Reset view", hint="fit the scene in this browser's view")
-        info = gui.add_markdown("")
-
+        handles |= _scene_tab(gui, scene_names=scene_names)
     with tabs.add_tab("Run"):
-        preset = gui.add_dropdown("Preset", PRESETS, initial_value="fast")
-        proposals = gui.add_number("Proposals", 100, min=1, max=2000, step=1)
-        seed = gui.add_number("Seed", 0, min=0, max=2**31 - 1, step=1)
-        precision = gui.add_dropdown("Precision", em_config.MATMUL_DTYPES, initial_value="float32",
-                                     hint="bfloat16: the networks' matrix work in bf16, about 1.5x faster on CPUs "
-                                          "with AMX / AVX-512 bf16, AP within a point (docs/BENCHMARKS.md)")
-        run = gui.add_button("Run EFEM", hint="run EM on this scene in the background")
-        cancel = gui.add_button("Cancel", disabled=True, color="red")
-        load = gui.add_button("Load saved trace", hint="<scene>.efem.npz next to the scene file")
-        progress = gui.add_progress_bar(0.0, visible=False)
-        run_info = gui.add_markdown("")
-
+        handles |= _run_tab(gui)
     with tabs.add_tab("Timeline"):
-        view_mode = gui.add_dropdown("Show", tuple(VIEW_MODES), initial_value=next(iter(VIEW_MODES)),
-                                     hint="one EM step (its decoded shapes and samples) or the final instances")
-        step = gui.add_slider("Step", 0, 1, 1, 0, disabled=True)
-        play = gui.add_button("Play", disabled=True)
-        speed = gui.add_slider("Speed (steps/s)", 0.5, 10.0, 0.5, 2.0)
-        step_info = gui.add_markdown("")
-        active_plot = gui.add_plotly(go.Figure(), aspect=1.6, visible=False)
-
+        handles |= _timeline_tab(gui)
     with tabs.add_tab("Proposals"):
-        show_shapes = gui.add_checkbox("Decoded shapes", True)
-        show_samples = gui.add_checkbox("Sampled points", True)
-        max_shapes = gui.add_slider("Max shapes drawn", 0, 64, 1, 8, hint="top-N by stationary score")
-        proposal = gui.add_dropdown("Inspect", (NO_PROPOSAL,), initial_value=NO_PROPOSAL)
-        inspect_info = gui.add_markdown("")
-        dead_info = gui.add_markdown("")
-
+        handles |= _proposals_tab(gui)
     with tabs.add_tab("Results"):
-        threshold = gui.add_slider("Confidence ≥", 0.0, 1.0, 0.01, DEFAULT_CONFIDENCE_CUT,
-                                   hint="instances below this confidence are hidden (a view: nothing is re-run)")
-        mask_band = gui.add_slider(
-            "Mask band τ_out", MASK_BAND_RANGE[0], MASK_BAND_RANGE[1], 0.005, 0.04, disabled=True,
-            hint="output masks take the points whose decoded |SDF| is below this (canonical units); re-derived from "
-                 "the stored latents, no re-run")
-        show_meshes = gui.add_checkbox("Meshes", True)
-        show_obbs = gui.add_checkbox("Boxes (OBB)", True)
-        show_axes = gui.add_checkbox("Pose axes", False)
-        result_info = gui.add_markdown("")
-        with gui.add_folder("Instance table"):
-            instance = gui.add_dropdown("Instance", (NO_ROW,), initial_value=NO_ROW,
-                                        hint="a row of the table below, most confident first")
-            instance_visible = gui.add_checkbox("Visible", True, disabled=True,
-                                                hint="show or hide the chosen instance (metrics and exports follow "
-                                                     "the confidence threshold only)")
-            fly_to = gui.add_button("Fly to", disabled=True, hint="point this browser's camera at the instance")
-            instance_prev = gui.add_button("◀ Previous", disabled=True, hint="choose the row above and fly to it")
-            instance_next = gui.add_button("Next ▶", disabled=True, hint="choose the row below and fly to it")
-            instance_table = gui.add_markdown("")
-        legend = gui.add_html("")
-        gt_info = gui.add_markdown("")
-        pr_plot = gui.add_plotly(go.Figure(), aspect=1.3, visible=False)
-
+        handles |= _results_tab(gui)
     with tabs.add_tab("Export"):
-        out = gui.add_text("Output folder", out_dir, hint=f"inside {out_dir} (the output folder chosen at start)")
-        export_results = gui.add_button("Export results", hint="ScanNet layout + coloured PLY")
-        export_static = gui.add_button("Export static demo", hint="<output folder>/static/<scene>/index.html")
-        export_info = gui.add_markdown("")
+        handles |= _export_tab(gui, out_dir=out_dir)
     # below the tabs: a status line that changes length never moves a tab or a button (issue 37 item 12)
     status = gui.add_markdown("")
+    return Panels(gui_status=status, **handles)
 
-    return Panels(
-        gui_status=status,
-        gui_scene=scene,
-        gui_display=display,
-        gui_color=color,
-        gui_color_key=color_key,
-        gui_point_size=point_size,
-        gui_reset_view=reset_view,
-        gui_info=info,
-        gui_preset=preset,
-        gui_proposals=proposals,
-        gui_seed=seed,
-        gui_precision=precision,
-        gui_run=run,
-        gui_cancel=cancel,
-        gui_load=load,
-        gui_progress=progress,
-        gui_run_info=run_info,
-        gui_view_mode=view_mode,
-        gui_step=step,
-        gui_play=play,
-        gui_speed=speed,
-        gui_step_info=step_info,
-        gui_active_plot=active_plot,
-        gui_show_shapes=show_shapes,
-        gui_show_samples=show_samples,
-        gui_max_shapes=max_shapes,
-        gui_proposal=proposal,
-        gui_inspect_info=inspect_info,
-        gui_dead_info=dead_info,
-        gui_threshold=threshold,
-        gui_mask_band=mask_band,
-        gui_show_meshes=show_meshes,
-        gui_show_obbs=show_obbs,
-        gui_show_axes=show_axes,
-        gui_result_info=result_info,
-        gui_instance=instance,
-        gui_instance_visible=instance_visible,
-        gui_fly_to=fly_to,
-        gui_instance_prev=instance_prev,
-        gui_instance_next=instance_next,
-        gui_instance_table=instance_table,
-        gui_legend=legend,
-        gui_gt_info=gt_info,
-        gui_pr_plot=pr_plot,
-        gui_out_dir=out,
-        gui_export_results=export_results,
-        gui_export_static=export_static,
-        gui_export_info=export_info,
-    )
+
+def _scene_tab(gui: GuiApi, *, scene_names: list[str]) -> dict[str, Any]:
+    """The Scene tab's controls (`Panels` field → handle): scene browser, display, colours, point size, view."""
+    opts = tuple(scene_names) if scene_names else ("(no scenes)",)
+    scene = gui.add_dropdown("Scene", opts, initial_value=opts[0], hint="scenes inside the paths given")
+    display = gui.add_dropdown("Display", DISPLAYS, initial_value="points")
+    color = gui.add_dropdown("Colour", tuple(COLOR_MODES), initial_value="scene colours")
+    color_key = gui.add_html("")
+    point_size = gui.add_slider("Point size (mm)", 0.5, 20.0, 0.5, 4.0)
+    reset_view = gui.add_button("Reset view", hint="fit the scene in this browser's view")
+    info = gui.add_markdown("")
+    return dict(gui_scene=scene, gui_display=display, gui_color=color, gui_color_key=color_key,
+                gui_point_size=point_size, gui_reset_view=reset_view, gui_info=info)
+
+
+def _run_tab(gui: GuiApi) -> dict[str, Any]:
+    """The Run tab's controls: the solve's settings, Run / Cancel / Load, the progress bar and line."""
+    preset = gui.add_dropdown("Preset", PRESETS, initial_value="fast")
+    proposals = gui.add_number("Proposals", 100, min=1, max=2000, step=1)
+    seed = gui.add_number("Seed", 0, min=0, max=2**31 - 1, step=1)
+    precision = gui.add_dropdown("Precision", em_config.MATMUL_DTYPES, initial_value="float32",
+                                 hint="bfloat16: the networks' matrix work in bf16, about 1.5x faster on CPUs "
+                                      "with AMX / AVX-512 bf16, AP within a point (docs/BENCHMARKS.md)")
+    run = gui.add_button("Run EFEM", hint="run EM on this scene in the background")
+    cancel = gui.add_button("Cancel", disabled=True, color="red")
+    load = gui.add_button("Load saved trace", hint="<scene>.efem.npz next to the scene file")
+    progress = gui.add_progress_bar(0.0, visible=False)
+    run_info = gui.add_markdown("")
+    return dict(gui_preset=preset, gui_proposals=proposals, gui_seed=seed, gui_precision=precision, gui_run=run,
+                gui_cancel=cancel, gui_load=load, gui_progress=progress, gui_run_info=run_info)
+
+
+def _timeline_tab(gui: GuiApi) -> dict[str, Any]:
+    """The Timeline tab's controls: step or result view, the step slider, Play and speed, the active-count plot."""
+    import plotly.graph_objects as go
+
+    view_mode = gui.add_dropdown("Show", tuple(VIEW_MODES), initial_value=next(iter(VIEW_MODES)),
+                                 hint="one EM step (its decoded shapes and samples) or the final instances")
+    step = gui.add_slider("Step", 0, 1, 1, 0, disabled=True)
+    play = gui.add_button("Play", disabled=True)
+    speed = gui.add_slider("Speed (steps/s)", 0.5, 10.0, 0.5, 2.0)
+    step_info = gui.add_markdown("")
+    active_plot = gui.add_plotly(go.Figure(), aspect=1.6, visible=False)
+    return dict(gui_view_mode=view_mode, gui_step=step, gui_play=play, gui_speed=speed, gui_step_info=step_info,
+                gui_active_plot=active_plot)
+
+
+def _proposals_tab(gui: GuiApi) -> dict[str, Any]:
+    """The Proposals tab's controls: which step layers show, how many shapes, the inspected proposal."""
+    show_shapes = gui.add_checkbox("Decoded shapes", True)
+    show_samples = gui.add_checkbox("Sampled points", True)
+    max_shapes = gui.add_slider("Max shapes drawn", 0, 64, 1, 8, hint="top-N by stationary score")
+    proposal = gui.add_dropdown("Inspect", (NO_PROPOSAL,), initial_value=NO_PROPOSAL)
+    inspect_info = gui.add_markdown("")
+    dead_info = gui.add_markdown("")
+    return dict(gui_show_shapes=show_shapes, gui_show_samples=show_samples, gui_max_shapes=max_shapes,
+                gui_proposal=proposal, gui_inspect_info=inspect_info, gui_dead_info=dead_info)
+
+
+def _results_tab(gui: GuiApi) -> dict[str, Any]:
+    """The Results tab's controls: confidence cut, mask band, result layers, the instance table, legend, ground
+    truth and the PR curve."""
+    import plotly.graph_objects as go
+
+    threshold = gui.add_slider("Confidence ≥", 0.0, 1.0, 0.01, DEFAULT_CONFIDENCE_CUT,
+                               hint="instances below this confidence are hidden (a view: nothing is re-run)")
+    mask_band = gui.add_slider(
+        "Mask band τ_out", MASK_BAND_RANGE[0], MASK_BAND_RANGE[1], 0.005, 0.04, disabled=True,
+        hint="output masks take the points whose decoded |SDF| is below this (canonical units); re-derived from "
+             "the stored latents, no re-run")
+    show_meshes = gui.add_checkbox("Meshes", True)
+    show_obbs = gui.add_checkbox("Boxes (OBB)", True)
+    show_axes = gui.add_checkbox("Pose axes", False)
+    result_info = gui.add_markdown("")
+    with gui.add_folder("Instance table"):
+        instance = gui.add_dropdown("Instance", (NO_ROW,), initial_value=NO_ROW,
+                                    hint="a row of the table below, most confident first")
+        instance_visible = gui.add_checkbox("Visible", True, disabled=True,
+                                            hint="show or hide the chosen instance (metrics and exports follow "
+                                                 "the confidence threshold only)")
+        fly_to = gui.add_button("Fly to", disabled=True, hint="point this browser's camera at the instance")
+        instance_prev = gui.add_button("◀ Previous", disabled=True, hint="choose the row above and fly to it")
+        instance_next = gui.add_button("Next ▶", disabled=True, hint="choose the row below and fly to it")
+        instance_table = gui.add_markdown("")
+    legend = gui.add_html("")
+    gt_info = gui.add_markdown("")
+    pr_plot = gui.add_plotly(go.Figure(), aspect=1.3, visible=False)
+    return dict(gui_threshold=threshold, gui_mask_band=mask_band, gui_show_meshes=show_meshes,
+                gui_show_obbs=show_obbs, gui_show_axes=show_axes, gui_result_info=result_info,
+                gui_instance=instance, gui_instance_visible=instance_visible, gui_fly_to=fly_to,
+                gui_instance_prev=instance_prev, gui_instance_next=instance_next, gui_instance_table=instance_table,
+                gui_legend=legend, gui_gt_info=gt_info, gui_pr_plot=pr_plot)
+
+
+def _export_tab(gui: GuiApi, *, out_dir: str) -> dict[str, Any]:
+    """The Export tab's controls: the output folder (inside `out_dir`), the two buttons, where they wrote."""
+    out = gui.add_text("Output folder", out_dir, hint=f"inside {out_dir} (the output folder chosen at start)")
+    export_results = gui.add_button("Export results", hint="ScanNet layout + coloured PLY")
+    export_static = gui.add_button("Export static demo", hint="<output folder>/static/<scene>/index.html")
+    export_info = gui.add_markdown("")
+    return dict(gui_out_dir=out, gui_export_results=export_results, gui_export_static=export_static,
+                gui_export_info=export_info)
 
 
 class PlotlyJSON:

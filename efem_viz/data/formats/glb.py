@@ -38,71 +38,14 @@ def _check_glb(p: Path, max_points: int) -> None:
         SceneError: a chunk or buffer view that runs past the file, an accessor that runs past its buffer view
             (or, without one, is larger than any scene), more vertex positions than `max_points`.
     """
-    import struct
-
-    size = p.stat().st_size
-    with open(p, "rb") as fh:
-        head = fh.read(20)
-        if len(head) < 20 or head[:4] != b"glTF":
-            return
-        _, length, json_len, json_type = struct.unpack("<IIII", head[4:])
-        if length > size:
-            raise SceneError(f"{p}: GLB header says the file has {length:,} bytes, but it has {size:,} (truncated)")
-        if json_type != 0x4E4F534A:  # "JSON"
-            return
-        if 20 + json_len > size:
-            raise SceneError(f"{p}: GLB JSON chunk of {json_len:,} bytes runs past the end of the file ({size:,})")
-        try:
-            gltf = json.loads(fh.read(json_len))
-        except (ValueError, UnicodeDecodeError):
-            return
-        bin_head = fh.read(8)  # the JSON chunk's length includes its padding
-    if not isinstance(gltf, dict):
+    got = _read_glb_json(p)
+    if got is None:
         return
-    bin_len = struct.unpack("<I", bin_head[:4])[0] if len(bin_head) == 8 else 0
-    if bin_len > max(size - 28 - json_len, 0):
-        raise SceneError(f"{p}: GLB binary chunk of {bin_len:,} bytes runs past the end of the file ({size:,})")
-    buffers = gltf.get("buffers", []) or []
+    gltf, bin_len = got
     views = gltf.get("bufferViews", []) or []
     try:
-        for i, view in enumerate(views):
-            buf = buffers[int(view.get("buffer", 0))]
-            buf_len = int(buf.get("byteLength", 0))
-            if "uri" not in buf and buf_len > bin_len:
-                raise SceneError(f"{p}: GLB buffer {view.get('buffer', 0)} claims {buf_len:,} bytes, but the "
-                                 f"binary chunk holds {bin_len:,}")
-            if int(view.get("byteOffset", 0)) + int(view["byteLength"]) > buf_len:
-                raise SceneError(f"{p}: GLB bufferView {i} runs past the end of its buffer ({buf_len:,} bytes)")
-        n_positions = 0
-        position_ids = {
-            int(prim["attributes"]["POSITION"])
-            for mesh in gltf.get("meshes", []) or []
-            for prim in mesh.get("primitives", []) or []
-            if "POSITION" in (prim.get("attributes") or {})
-        }
-        for i, acc in enumerate(gltf.get("accessors", []) or []):
-            count = int(acc["count"])
-            comps = _GLTF_COMPONENTS[acc["type"]]
-            itemsize = _GLTF_ITEMSIZE[int(acc["componentType"])]
-            if count < 0:
-                raise SceneError(f"{p}: GLB accessor {i} has a negative count ({count})")
-            if i in position_ids:
-                n_positions += count
-            if "bufferView" in acc:
-                view = views[int(acc["bufferView"])]
-                elem = comps * itemsize
-                stride = int(view.get("byteStride", elem)) or elem
-                need = int(acc.get("byteOffset", 0)) + ((count - 1) * stride + elem if count else 0)
-                if need > int(view["byteLength"]):
-                    raise SceneError(
-                        f"{p}: GLB accessor {i} claims {count:,} items ({need:,} bytes), more than its bufferView "
-                        f"holds ({int(view['byteLength']):,} bytes): corrupt file"
-                    )
-            elif count * comps > 16 * max(max_points, 1):
-                raise SceneError(
-                    f"{p}: GLB accessor {i} has no data but claims {count:,} items, more than any scene this "
-                    f"reader accepts (max_points {max_points:,})"
-                )
+        _check_buffer_views(p, views, gltf.get("buffers", []) or [], bin_len)
+        n_positions = _check_accessors(p, gltf, views, max_points)
     except SceneError:
         raise
     except (KeyError, IndexError, TypeError, ValueError, AttributeError):
@@ -112,6 +55,101 @@ def _check_glb(p: Path, max_points: int) -> None:
             f"{p} has {n_positions:,} vertex positions, more than the limit of {max_points:,}; "
             f"{TOO_MANY_POINTS_HINT}"
         )
+
+
+def _read_glb_json(p: Path) -> tuple[dict[str, Any], int] | None:
+    """A GLB's JSON chunk and the length its binary chunk declares, both checked against the file's size.
+
+    Returns:
+        (gltf, bin_len); None when trimesh should report the file itself (not GLB, no JSON chunk, JSON it
+        cannot parse, not a JSON object).
+
+    Raises:
+        SceneError: the header, the JSON chunk or the binary chunk runs past the end of the file.
+    """
+    import struct
+
+    size = p.stat().st_size
+    with open(p, "rb") as fh:
+        head = fh.read(20)
+        if len(head) < 20 or head[:4] != b"glTF":
+            return None
+        _, length, json_len, json_type = struct.unpack("<IIII", head[4:])
+        if length > size:
+            raise SceneError(f"{p}: GLB header says the file has {length:,} bytes, but it has {size:,} (truncated)")
+        if json_type != 0x4E4F534A:  # "JSON"
+            return None
+        if 20 + json_len > size:
+            raise SceneError(f"{p}: GLB JSON chunk of {json_len:,} bytes runs past the end of the file ({size:,})")
+        try:
+            gltf = json.loads(fh.read(json_len))
+        except (ValueError, UnicodeDecodeError):
+            return None
+        bin_head = fh.read(8)  # the JSON chunk's length includes its padding
+    if not isinstance(gltf, dict):
+        return None
+    bin_len = struct.unpack("<I", bin_head[:4])[0] if len(bin_head) == 8 else 0
+    if bin_len > max(size - 28 - json_len, 0):
+        raise SceneError(f"{p}: GLB binary chunk of {bin_len:,} bytes runs past the end of the file ({size:,})")
+    return gltf, bin_len
+
+
+def _check_buffer_views(p: Path, views: list[Any], buffers: list[Any], bin_len: int) -> None:
+    """Every buffer view inside its buffer, and every embedded buffer inside the binary chunk (`bin_len` bytes).
+
+    Raises:
+        SceneError: a buffer or buffer view runs past its end; KeyError, IndexError, TypeError, ValueError or
+            AttributeError for a malformed structure (`_check_glb` leaves it to trimesh).
+    """
+    for i, view in enumerate(views):
+        buf = buffers[int(view.get("buffer", 0))]
+        buf_len = int(buf.get("byteLength", 0))
+        if "uri" not in buf and buf_len > bin_len:
+            raise SceneError(f"{p}: GLB buffer {view.get('buffer', 0)} claims {buf_len:,} bytes, but the "
+                             f"binary chunk holds {bin_len:,}")
+        if int(view.get("byteOffset", 0)) + int(view["byteLength"]) > buf_len:
+            raise SceneError(f"{p}: GLB bufferView {i} runs past the end of its buffer ({buf_len:,} bytes)")
+
+
+def _check_accessors(p: Path, gltf: dict[str, Any], views: list[Any], max_points: int) -> int:
+    """Every accessor inside its buffer view (or, without one, no larger than any scene); returns the number of
+    vertex positions of the meshes' primitives.
+
+    Raises:
+        SceneError: a negative count, an accessor past its buffer view, a data-less accessor larger than any
+            scene; KeyError, IndexError, TypeError, ValueError or AttributeError for a malformed structure.
+    """
+    n_positions = 0
+    position_ids = {
+        int(prim["attributes"]["POSITION"])
+        for mesh in gltf.get("meshes", []) or []
+        for prim in mesh.get("primitives", []) or []
+        if "POSITION" in (prim.get("attributes") or {})
+    }
+    for i, acc in enumerate(gltf.get("accessors", []) or []):
+        count = int(acc["count"])
+        comps = _GLTF_COMPONENTS[acc["type"]]
+        itemsize = _GLTF_ITEMSIZE[int(acc["componentType"])]
+        if count < 0:
+            raise SceneError(f"{p}: GLB accessor {i} has a negative count ({count})")
+        if i in position_ids:
+            n_positions += count
+        if "bufferView" in acc:
+            view = views[int(acc["bufferView"])]
+            elem = comps * itemsize
+            stride = int(view.get("byteStride", elem)) or elem
+            need = int(acc.get("byteOffset", 0)) + ((count - 1) * stride + elem if count else 0)
+            if need > int(view["byteLength"]):
+                raise SceneError(
+                    f"{p}: GLB accessor {i} claims {count:,} items ({need:,} bytes), more than its bufferView "
+                    f"holds ({int(view['byteLength']):,} bytes): corrupt file"
+                )
+        elif count * comps > 16 * max(max_points, 1):
+            raise SceneError(
+                f"{p}: GLB accessor {i} has no data but claims {count:,} items, more than any scene this "
+                f"reader accepts (max_points {max_points:,})"
+            )
+    return n_positions
 
 
 def load(p: Path, max_points: int) -> dict[str, Any]:

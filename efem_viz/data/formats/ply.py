@@ -375,30 +375,10 @@ def _read_ply_ascii(p: Path) -> tuple[Any, tuple[np.ndarray, np.ndarray] | None]
             many values, or a value that is not a number of its property's type. The message names element,
             row and line.
     """
-    import plyfile
-
-    parse_header = getattr(plyfile.PlyData, "_parse_header", None)  # private: if gone, plyfile reads the file
-    if parse_header is None:
+    got = _ascii_header_and_body(p)
+    if got is None:
         return None, None
-    with open(p, "rb") as fh:
-        head = fh.read(1 << 16)
-        end = head.find(b"end_header")
-        if not head.startswith(b"ply") or not re.search(rb"format\s+ascii", head[: max(end, 0)]):
-            return None, None
-        fh.seek(0)
-        try:
-            ply = parse_header(fh)
-        except Exception:  # plyfile reports a bad header in its own words
-            return None, None
-        if not ply.text:
-            return None, None
-        n_head = fh.tell()
-        body = fh.read()
-    head_lines = len(head[:n_head].splitlines()) if n_head <= len(head) else None
-    if b"\r" in body:  # plyfile reads the body with universal newlines
-        body = body.replace(b"\r\n", b"\n").replace(b"\r", b"\n")
-    if body.translate(None, _PLY_ASCII_BYTES):
-        return None, None
+    ply, body, head_lines = got
     text = body.decode("ascii")
     newlines = np.flatnonzero(np.frombuffer(body, np.uint8) == 10)
     n_lines = len(newlines) + (1 if body and not body.endswith(b"\n") else 0)
@@ -438,6 +418,41 @@ def _read_ply_ascii(p: Path) -> tuple[Any, tuple[np.ndarray, np.ndarray] | None]
             polys = lists[key]
         row0 += count
     return ply, polys
+
+
+def _ascii_header_and_body(p: Path) -> tuple[Any, bytes, int | None] | None:
+    """An ASCII PLY's header, parsed by plyfile, and its body (`_read_ply_ascii`).
+
+    Returns:
+        (ply, body, head_lines): the `PlyData` of the header (elements without data), the body with LF newlines,
+        and the number of header lines (None when the header is longer than 64 KiB); None for a binary file, a
+        header plyfile rejects, or a body with a byte outside `_PLY_ASCII_BYTES` (plyfile then reads the file).
+    """
+    import plyfile
+
+    parse_header = getattr(plyfile.PlyData, "_parse_header", None)  # private: if gone, plyfile reads the file
+    if parse_header is None:
+        return None
+    with open(p, "rb") as fh:
+        head = fh.read(1 << 16)
+        end = head.find(b"end_header")
+        if not head.startswith(b"ply") or not re.search(rb"format\s+ascii", head[: max(end, 0)]):
+            return None
+        fh.seek(0)
+        try:
+            ply = parse_header(fh)
+        except Exception:  # plyfile reports a bad header in its own words
+            return None
+        if not ply.text:
+            return None
+        n_head = fh.tell()
+        body = fh.read()
+    head_lines = len(head[:n_head].splitlines()) if n_head <= len(head) else None
+    if b"\r" in body:  # plyfile reads the body with universal newlines
+        body = body.replace(b"\r\n", b"\n").replace(b"\r", b"\n")
+    if body.translate(None, _PLY_ASCII_BYTES):
+        return None
+    return ply, body, head_lines
 
 
 def _parse_ascii_block(

@@ -29,6 +29,70 @@ def _voxel_average(
     return avg(points), avg(colors.astype(np.float64)), avg(normals)
 
 
+def _band_voxels(frames: Sequence[_Frame], cams: Sequence[Camera], *, lo: np.ndarray, dims: np.ndarray, voxel: float,
+                 trunc_voxels: float) -> np.ndarray:
+    """Flat indices (into the `dims` grid with origin `lo`) of the voxels within the truncation band of some
+    measurement: only they can carry |tsdf| < 1 (`_fuse_tsdf`)."""
+    from scipy.ndimage import binary_dilation
+
+    occ = np.zeros(tuple(dims), bool)
+    for fr, cam in zip(frames, cams):
+        p, _, _ = _backproject(fr, cam)
+        ijk = np.round((p - lo) / voxel).astype(np.int64)
+        ijk = ijk[np.all((ijk >= 0) & (ijk < dims), axis=1)]
+        occ[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
+    r = int(math.ceil(trunc_voxels))
+    ball = np.linalg.norm(np.mgrid[-r : r + 1, -r : r + 1, -r : r + 1], axis=0) <= r + 0.5
+    return np.nonzero(binary_dilation(occ, structure=ball).ravel())[0]
+
+
+def _integrate(frames: Sequence[_Frame], cams: Sequence[Camera], centres: np.ndarray, *,
+               trunc: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Projective TSDF at the (n, 3) voxel `centres`: the running mean over cameras of the truncated signed
+    distance (voxels in front of a measurement or less than `trunc` behind it), and of the colour (within
+    `trunc` of the surface).
+
+    Returns:
+        tsdf (n,) float32 in [-1, 1], weight (n,) float32 (cameras that saw the voxel), colour (n, 3) float32.
+    """
+    n = len(centres)
+    tsdf = np.zeros(n, np.float32)
+    weight = np.zeros(n, np.float32)
+    color = np.zeros((n, 3), np.float32)
+    cweight = np.zeros(n, np.float32)
+    for fr, cam in zip(frames, cams):
+        u, v, z, ok = cam.project(centres)
+        idx = np.nonzero(ok)[0]
+        ui, vi = u[idx], v[idx]
+        d = fr.depth[vi, ui].astype(np.float64)
+        sdf = d - z[idx]
+        use = (d > 0) & (sdf > -trunc)
+        idx, sdf, ui, vi = idx[use], sdf[use], ui[use], vi[use]
+        val = np.minimum(sdf / trunc, 1.0).astype(np.float32)
+        tsdf[idx] = (tsdf[idx] * weight[idx] + val) / (weight[idx] + 1.0)
+        weight[idx] += 1.0
+        near = np.abs(sdf) < trunc
+        cidx = idx[near]
+        rgb = fr.color[vi[near], ui[near]].astype(np.float32)
+        color[cidx] = (color[cidx] * cweight[cidx, None] + rgb) / (cweight[cidx, None] + 1.0)
+        cweight[cidx] += 1.0
+    return tsdf, weight, color
+
+
+def _meshable_cubes(seen: np.ndarray) -> np.ndarray:
+    """The cubes to mesh: those whose 8 corners are all usable (`seen`), marked at the cube's first corner (the
+    marching-cubes mask); the last layer of each axis starts no cube."""
+    cube = seen.copy()
+    cube[:-1, :-1, :-1] = (
+        seen[:-1, :-1, :-1] & seen[1:, :-1, :-1] & seen[:-1, 1:, :-1] & seen[:-1, :-1, 1:]
+        & seen[1:, 1:, :-1] & seen[1:, :-1, 1:] & seen[:-1, 1:, 1:] & seen[1:, 1:, 1:]
+    )  # fmt: skip
+    cube[-1, :, :] = False
+    cube[:, -1, :] = False
+    cube[:, :, -1] = False
+    return cube
+
+
 def _fuse_tsdf(
     frames: Sequence[_Frame],
     cams: Sequence[Camera],
@@ -57,63 +121,22 @@ def _fuse_tsdf(
     """
     from skimage.measure import marching_cubes
 
-    from scipy.ndimage import binary_dilation
-
     # put the table top (z = 0) halfway between two voxel layers: a surface running exactly through voxel
     # centres makes marching cubes emit degenerate triangles, which leaves holes and doubles the vertex count
     lo = np.array(lo, dtype=np.float64)
     lo[2] = (math.floor(lo[2] / voxel) + 0.5) * voxel
     dims = np.maximum(np.ceil((hi - lo) / voxel).astype(int) + 1, 2)
-    trunc = trunc_voxels * voxel
-    # only voxels within the truncation band of some measurement can carry |tsdf| < 1: find them first
-    occ = np.zeros(tuple(dims), bool)
-    for fr, cam in zip(frames, cams):
-        p, _, _ = _backproject(fr, cam)
-        ijk = np.round((p - lo) / voxel).astype(np.int64)
-        ijk = ijk[np.all((ijk >= 0) & (ijk < dims), axis=1)]
-        occ[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
-    r = int(math.ceil(trunc_voxels))
-    ball = np.linalg.norm(np.mgrid[-r : r + 1, -r : r + 1, -r : r + 1], axis=0) <= r + 0.5
-    active = np.nonzero(binary_dilation(occ, structure=ball).ravel())[0]
+    active = _band_voxels(frames, cams, lo=lo, dims=dims, voxel=voxel, trunc_voxels=trunc_voxels)
     ii, jj, kk = np.unravel_index(active, tuple(dims))
     centres = lo + voxel * np.stack([ii, jj, kk], axis=1).astype(np.float64)
-    n = len(centres)
-    tsdf = np.zeros(n, np.float32)
-    weight = np.zeros(n, np.float32)
-    color = np.zeros((n, 3), np.float32)
-    cweight = np.zeros(n, np.float32)
-    for fr, cam in zip(frames, cams):
-        u, v, z, ok = cam.project(centres)
-        idx = np.nonzero(ok)[0]
-        ui, vi = u[idx], v[idx]
-        d = fr.depth[vi, ui].astype(np.float64)
-        sdf = d - z[idx]
-        use = (d > 0) & (sdf > -trunc)
-        idx, sdf, ui, vi = idx[use], sdf[use], ui[use], vi[use]
-        val = np.minimum(sdf / trunc, 1.0).astype(np.float32)
-        tsdf[idx] = (tsdf[idx] * weight[idx] + val) / (weight[idx] + 1.0)
-        weight[idx] += 1.0
-        near = np.abs(sdf) < trunc
-        cidx = idx[near]
-        rgb = fr.color[vi[near], ui[near]].astype(np.float32)
-        color[cidx] = (color[cidx] * cweight[cidx, None] + rgb) / (cweight[cidx, None] + 1.0)
-        cweight[cidx] += 1.0
+    tsdf, weight, color = _integrate(frames, cams, centres, trunc=trunc_voxels * voxel)
     vol = np.ones(tuple(dims), np.float32)
     vol.ravel()[active] = tsdf
     # usable corners: observed, and not truncated (a jump from +1 to a negative value is a depth-discontinuity
     # or frustum-border artefact, not a surface)
     good = np.zeros(tuple(dims), bool)
     good.ravel()[active] = (weight > 0) & (np.abs(tsdf) < 0.999)
-    seen = good
-    # a cube is meshed only when all 8 corners are usable (the mask applies to the cube's first corner)
-    cube = seen.copy()
-    cube[:-1, :-1, :-1] = (
-        seen[:-1, :-1, :-1] & seen[1:, :-1, :-1] & seen[:-1, 1:, :-1] & seen[:-1, :-1, 1:]
-        & seen[1:, 1:, :-1] & seen[1:, :-1, 1:] & seen[:-1, 1:, 1:] & seen[1:, 1:, 1:]
-    )  # fmt: skip
-    cube[-1, :, :] = False
-    cube[:, -1, :] = False
-    cube[:, :, -1] = False
+    cube = _meshable_cubes(good)
     if not cube.any() or vol[cube].min() >= 0 or vol[cube].max() <= 0:
         return np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3))
     verts, faces, _, _ = marching_cubes(vol, level=0.0, spacing=(voxel, voxel, voxel), mask=cube)

@@ -112,38 +112,9 @@ def _simulate(
                 elif xy is not None:
                     pos = [xy[k, 0], xy[k, 1], radii[k] + 0.005 + float(rng.uniform(0, 0.02))]
                 else:
-                    top = floor_top
-                    if bodies:
-                        top = max(top, max(pb.getAABB(b, physicsClientId=cid)[1][2] for b in bodies))
-                    if layout == "box" and floor is not None:
-                        lo, hi = np.asarray(floor[0], np.float64), np.asarray(floor[1], np.float64)
-                        inset = np.minimum(radii[k], (hi - lo) / 2 - 0.005)
-                        centre = rng.uniform(lo + inset, hi - inset)
-                    elif bodies:  # pile: above the centre of the pile so far, just clear of its top
-                        poses = [pb.getBasePositionAndOrientation(b, physicsClientId=cid) for b in bodies]
-                        centre = np.mean([q[0] for q in poses], axis=0)[:2] + rng.normal(0.0, 0.015, 2)
-                    else:
-                        centre = rng.normal(0.0, 0.015, 2)
-                    pos = [centre[0], centre[1], top + radii[k] + 0.005]
-                b = pb.createMultiBody(
-                    max(float(o.mesh.volume) * 2000.0, 0.02),
-                    shape,
-                    basePosition=pos,
-                    baseOrientation=np.roll(rotation_to_quat_wxyz(R), -1).tolist(),  # pybullet: xyzw
-                    physicsClientId=cid,
-                )
-                pb.changeDynamics(
-                    b,
-                    -1,
-                    lateralFriction=0.8,
-                    spinningFriction=0.003,
-                    rollingFriction=0.002 if layout in ("pile", "box") else 0.0005,
-                    restitution=0.05,
-                    linearDamping=0.3 if layout != "hang" else 0.6,
-                    angularDamping=0.3 if layout != "hang" else 0.6,
-                    physicsClientId=cid,
-                )
-                bodies.append(b)
+                    pos = _drop_position(pb, cid, bodies, rng, radius=radii[k], floor=floor if layout == "box" else None,
+                                         floor_top=floor_top)
+                bodies.append(_add_body(pb, cid, o, shape, pos, R, layout=layout))
                 if layout in ("pile", "box"):
                     _settle(pb, cid, bodies, max_steps=int(3.0 / dt), min_steps=240)
         _settle(pb, cid, bodies, max_steps=int(max_seconds / dt))
@@ -156,6 +127,51 @@ def _simulate(
             o.T_world_object = T
     finally:
         pb.disconnect(physicsClientId=cid)
+
+
+def _drop_position(pb: Any, cid: int, bodies: list[int], rng: np.random.Generator, *, radius: float,
+                   floor: tuple[np.ndarray, np.ndarray] | None, floor_top: float) -> list[float]:
+    """Where a piled or boxed object of bounding radius `radius` is dropped from: just clear of `floor_top` and of
+    the top of the `bodies` already lying there, above a random spot of `floor` (box), else above the centre of
+    the pile so far (or near the origin for the first)."""
+    top = floor_top
+    if bodies:
+        top = max(top, max(pb.getAABB(b, physicsClientId=cid)[1][2] for b in bodies))
+    if floor is not None:
+        lo, hi = np.asarray(floor[0], np.float64), np.asarray(floor[1], np.float64)
+        inset = np.minimum(radius, (hi - lo) / 2 - 0.005)
+        centre = rng.uniform(lo + inset, hi - inset)
+    elif bodies:  # pile: above the centre of the pile so far, just clear of its top
+        poses = [pb.getBasePositionAndOrientation(b, physicsClientId=cid) for b in bodies]
+        centre = np.mean([q[0] for q in poses], axis=0)[:2] + rng.normal(0.0, 0.015, 2)
+    else:
+        centre = rng.normal(0.0, 0.015, 2)
+    return [centre[0], centre[1], top + radius + 0.005]
+
+
+def _add_body(pb: Any, cid: int, o: _Object, shape: int, pos: list[float], R: np.ndarray, *,
+              layout: Literal["scatter", "pile", "box", "hang"]) -> int:
+    """Add one object as a rigid body at `pos` (its centre of mass, world frame) turned by `R`: mass from its
+    volume, friction and damping for the layout (hanging objects damped more). Returns the body id."""
+    b = pb.createMultiBody(
+        max(float(o.mesh.volume) * 2000.0, 0.02),
+        shape,
+        basePosition=pos,
+        baseOrientation=np.roll(rotation_to_quat_wxyz(R), -1).tolist(),  # pybullet: xyzw
+        physicsClientId=cid,
+    )
+    pb.changeDynamics(
+        b,
+        -1,
+        lateralFriction=0.8,
+        spinningFriction=0.003,
+        rollingFriction=0.002 if layout in ("pile", "box") else 0.0005,
+        restitution=0.05,
+        linearDamping=0.3 if layout != "hang" else 0.6,
+        angularDamping=0.3 if layout != "hang" else 0.6,
+        physicsClientId=cid,
+    )
+    return b
 
 
 def _settle(

@@ -1,0 +1,64 @@
+"""The Run button's job: EFEM on the open scene in the runner thread, its progress in the panels, its result shown.
+
+The run itself is the session's (`efem_viz.viewer.rooms.runs`: one run at a time, cancel at the next step); this
+module submits it to `Jobs.runner` (a run never queues loads or decodes behind it), keeps the Run/Load/Cancel
+buttons and the progress bar current, and hands the finished result to the app's `set_result`. No viser import at
+run time.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import Future
+from typing import TYPE_CHECKING, Any, Callable
+
+from efem_viz.viewer import panel_views as pv
+from efem_viz.viewer.rooms.runs import RunSettings
+
+if TYPE_CHECKING:
+    from efem_viz.em.results import EMResult
+    from efem_viz.viewer.jobs import Jobs
+    from efem_viz.viewer.panels import Panels
+    from efem_viz.viewer.session import ViewerSession
+
+
+class RunPanel:
+    """Starts runs from the GUI (or from a Python caller) and shows their progress.
+
+    Args:
+        session: the viewer session (runs EFEM; its lock).
+        panels: the viewer's panels (buttons, progress bar, progress line).
+        jobs: the viewer's worker threads (runs go to `jobs.runner`).
+        show_result: shows a finished run's result (`ViewerApp.set_result`).
+    """
+
+    def __init__(self, session: ViewerSession, panels: Panels, jobs: Jobs, *,
+                 show_result: Callable[[EMResult, str], None]) -> None:
+        self.session = session
+        self.panels = panels
+        self.jobs = jobs
+        self.show_result = show_result
+
+    def start_run(self, settings: RunSettings | None = None, **knobs: Any) -> Future[EMResult | None] | None:
+        """Run EFEM on the open scene in the runner thread (progress bar, cancel) with `RunSettings.of(settings,
+        **knobs)` (`knobs`: its fields, e.g. `preset="fast"`). Returns the job's Future (None: a run is going)."""
+        settings = RunSettings.of(settings, **knobs)
+        with self.session.lock:
+            generation = self.session.begin_run()
+            if generation is None:
+                return None
+            pv.show_running(self.panels, True)
+        return self.jobs.submit(self.jobs.runner, self._run_job, settings, generation)
+
+    def _run_job(self, settings: RunSettings, generation: int) -> EMResult | None:
+        """The run, in the runner thread: progress per step, the buttons back at the end, the result shown."""
+        try:
+            result = self.session.run(settings, show=False,
+                                      on_step=lambda info: pv.show_run_progress(self.panels, info),
+                                      generation=generation)
+        finally:
+            with self.session.lock:
+                pv.show_running(self.panels, False)
+        if result is None:
+            return None
+        self.show_result(result, self.session.last_run_source)
+        return result
