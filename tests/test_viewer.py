@@ -477,6 +477,36 @@ def test_export_results_and_static_demo(app: Any, tmp_path: Path) -> None:
     assert meta["decoded_shapes"] > 0  # the viewer's prior decoded the best proposals of every step
 
 
+def test_static_demo_export_shows_progress_and_cancels(app: Any, tmp_path: Path,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 37 item 11: the static demo (seconds: it records every EM step) says which step it records, with a
+    progress bar; *Cancel export* stops it and nothing is written; the buttons come back."""
+    from efem_viz.viewer import export
+
+    app.set_threshold(0.0)
+    seen: list[tuple[str, bool, bool]] = []
+    real_step = export._DemoRecording._step
+
+    def step(self: Any, api: Any, t: int, **kw: Any) -> int:
+        p = app.panels
+        seen.append((app.state.status, p.gui_export_progress.visible, p.gui_export_cancel.disabled))
+        if t == 2 and len(seen) == 3:  # the first export only
+            app.export_tab.cancel()
+        return real_step(self, api, t, **kw)
+
+    monkeypatch.setattr(export._DemoRecording, "_step", step)
+    target = tmp_path / "static" / "cancelled"
+    assert app.export_static(target) is None
+    assert not (target / "index.html").exists() and not (target / "meta.json").exists()
+    assert "cancelled: nothing was written" in app.state.status
+    assert seen[0][0].endswith("EM step 1 of %d … (Cancel export stops it)" % app.state.result.trace.num_steps)
+    assert all(visible and not disabled for _, visible, disabled in seen) and len(seen) == 3
+    p = app.panels
+    assert not p.gui_export_progress.visible and p.gui_export_cancel.disabled and not p.gui_export_static.disabled
+    assert app.export_static(tmp_path / "static" / "again") is not None  # the next export runs to the end
+    assert len(seen) == 3 + app.state.result.trace.num_steps
+
+
 def test_ground_truth_panel(app: Any) -> None:
     app.set_threshold(0.0)
     app.set_color_mode("gt_match")

@@ -25,6 +25,7 @@ if TYPE_CHECKING:
 
     from efem_viz.em.config import PresetName
     from efem_viz.prior.config import MatmulDtype
+    from efem_viz.viewer.export_tab import ExportTab
     from efem_viz.viewer.panels import Panels
     from efem_viz.viewer.state import ViewerState, ViewMode
 
@@ -69,6 +70,7 @@ class ViewerControls(Protocol):
     def step_instance(self, step: int, *, client: ClientHandle | None = ...) -> int: ...
     def reset_view(self, client: ClientHandle | None = ...) -> None: ...
     def export_from_gui(self, kind: Literal["results", "static"]) -> object: ...
+    export_tab: ExportTab
 
 
 def row_id(option: str) -> int | None:
@@ -141,3 +143,4 @@ def wire(app: ViewerControls) -> None:
     p.gui_reset_view.on_click(lambda event: app.reset_view(event.client))
     p.gui_export_results.on_click(guard(lambda: app.export_from_gui("results")))
     p.gui_export_static.on_click(guard(lambda: app.export_from_gui("static")))
+    p.gui_export_cancel.on_click(guard(lambda: app.export_tab.cancel()))

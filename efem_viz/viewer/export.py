@@ -13,9 +13,10 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Sequence
+import threading
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -102,6 +103,14 @@ def export_results(result: EMResult, scene: Scene, out_dir: Path, *, threshold: 
     return out
 
 
+class ExportCancelled(Exception):
+    """A static-demo export was cancelled (nothing was written)."""
+
+
+DemoProgress = Callable[[str, float], None]
+"""Called with what a static-demo export does now and the fraction done (0-1)."""
+
+
 def export_static_demo(
     scene: Scene,
     result: EMResult,
@@ -116,6 +125,8 @@ def export_static_demo(
     prior: ShapePriorLike | Sequence[ShapePriorLike] | None = None,
     shapes_per_step: int = 4,
     root: Path | None = None,
+    on_progress: DemoProgress | None = None,
+    cancel: threading.Event | None = None,
 ) -> Path:
     """Record a static demo page: the scan, a playback of the EM steps, and the final result.
 
@@ -135,16 +146,16 @@ def export_static_demo(
         shapes_per_step: see `prior`.
         root: when given (the viewer's output root), the folder and both files must lie inside it after following
             symbolic links, checked before anything is recorded or written (see `export_results`).
+        on_progress: called with what it records now and the fraction done (each EM step, then the page).
+        cancel: when set, the recording stops at the next step and `ExportCancelled` is raised; nothing is written.
 
     Returns:
         Path of the written `index.html`.
 
     Raises:
         ClientValueError: a path the export would write leaves `root` (nothing was written).
+        ExportCancelled: `cancel` was set (nothing was written).
     """
-    from efem_viz.serve.guard import start_server
-    from efem_viz.serve.camera import fitted_view, framing
-
     out = Path(out_dir).expanduser()
     if root is not None:
         from efem_viz.serve.inputs import confine_writes
@@ -155,70 +166,18 @@ def export_static_demo(
     n = pts.shape[0]
     rng = np.random.default_rng(seed)
     keep = np.sort(rng.choice(n, size=max_points, replace=False)) if n > max_points else np.arange(n)
-    lo, hi = pts.min(axis=0), pts.max(axis=0)
-    diag = scene_diagonal(lo, hi)
-    psize = default_point_size(diag)
-    trace = result.trace
-    T = int(trace.num_steps)
     kept = result.instances.kept(float(threshold))
-    inst = result.instances.select(kept)
-    caption_pos = (float((lo[0] + hi[0]) / 2), float((lo[1] + hi[1]) / 2), float(hi[2] + 0.08 * diag))
-
-    n_shapes = 0
-    server, _ = start_server(host="127.0.0.1", port=0)  # guarded too: its token is never shown to anyone
-    try:
-        ser = server.get_scene_serializer()
-        api = server.scene
-        api.set_up_direction("+z")
-        cam = server.initial_camera  # recorded: the page opens looking at the scene
-        flo, fhi, sample = framing(pts)
-        view = fitted_view(flo, fhi, direction=VIEW_DIRECTION, points=sample)  # the live viewer's framing
-        cam.look_at, cam.position = view.look_at, view.position
-        cam.up = (0.0, 0.0, 1.0)
-        cloud = api.add_point_cloud(
-            "/scene/points", points=pts[keep], colors=dim(scene.colors[keep]), point_size=psize, point_shape="rounded"
-        )
-        api.add_label("/caption", text=f"{scene.name}: {count(int(np.asarray(trace.active_count)[0]) if T else 0, 'proposal')}", position=caption_pos)
-        ser.insert_sleep(step_seconds)
-        for t in range(T):
-            ids, scores = trace.alive_scores(t)
-            drawn = top_n(ids, scores, max_proposals)
-            s_pts, s_cols = proposal_samples(trace, t, drawn, pts)
-            if len(s_pts):
-                add_sample_cloud(api, s_pts, s_cols, point_size=psize)
-            api.remove_by_name("/em/shapes")
-            if prior is not None and shapes_per_step > 0:
-                for pid in drawn[:shapes_per_step]:
-                    pri, lat = prior_latent(trace, int(pid), t, prior)
-                    shape = decode_shape(pri, lat, resolution=trace.config.mesh_resolution)
-                    if shape is None:
-                        continue
-                    n_shapes += 1
-                    add_shape_mesh(api, f"/em/shapes/p{int(pid)}", *shape, pid=int(pid),
-                                   dead=trace.is_dead_at(int(pid), t))
-            phase = int(np.asarray(trace.phase)[t])
-            api.add_label("/caption", text=f"step {t}/{T - 1} · phase {phase} · {len(ids)} active", position=caption_pos)
-            ser.insert_sleep(step_seconds)
-        api.remove_by_name("/em")
-        cloud.colors = instance_point_colors(scene.colors, result.instances, kept)[keep]  # same colours as the meshes
-        add_result_nodes(api, inst, visible=True)  # as the live viewer draws them (meshes, boxes, axes, labels)
-        counts = category_summary(inst.category)
-        api.add_label(
-            "/caption", text=f"result: {count(len(inst), 'object')}" + (f" ({counts})" if counts else "")
-            + f", confidence ≥ {threshold:.2f}", position=caption_pos,
-        )
-        ser.insert_sleep(final_seconds)
-        html = ser.as_html()
-    finally:
-        server.stop()
+    rec = _DemoRecording(scene, result, keep, step_seconds=step_seconds, on_progress=on_progress, cancel=cancel)
+    html, n_shapes = rec.record(prior=prior, shapes_per_step=shapes_per_step, max_proposals=max_proposals,
+                                kept=kept, threshold=float(threshold), final_seconds=final_seconds)
     index = out / "index.html"
     _atomic_write_text(index, html)
     meta = {
         "scene": scene.name,
         "points_shown": int(keep.size),
         "points_total": int(n),
-        "steps": T,
-        "instances": int(len(inst.ids)),
+        "steps": int(result.trace.num_steps),
+        "instances": int(kept.sum()),
         "decoded_shapes": n_shapes,
         "threshold": float(threshold),
         "step_seconds": step_seconds,
@@ -227,6 +186,106 @@ def export_static_demo(
     _atomic_write_text(out / "meta.json", json.dumps(meta, indent=2))
     logger.info("static demo of %s: %s (%.1f MB)", scene.name, index, meta["bytes"] / 1e6)
     return index
+
+
+class _DemoRecording:
+    """One static demo being recorded on a private, guarded server: the scan, each EM step, the final result."""
+
+    def __init__(self, scene: Scene, result: EMResult, keep: np.ndarray, *, step_seconds: float,
+                 on_progress: DemoProgress | None, cancel: threading.Event | None) -> None:
+        self.scene, self.result, self.keep = scene, result, keep
+        self.pts = np.asarray(scene.points, np.float32)
+        lo, hi = self.pts.min(axis=0), self.pts.max(axis=0)
+        diag = scene_diagonal(lo, hi)
+        self.psize = default_point_size(diag)
+        self.caption_pos = (float((lo[0] + hi[0]) / 2), float((lo[1] + hi[1]) / 2), float(hi[2] + 0.08 * diag))
+        self.step_seconds = step_seconds
+        self.on_progress, self.cancel = on_progress, cancel
+
+    def _report(self, what: str, fraction: float) -> None:
+        if self.cancel is not None and self.cancel.is_set():
+            raise ExportCancelled(f"static demo of {self.scene.name!r} cancelled ({what})")
+        if self.on_progress is not None:
+            self.on_progress(what, fraction)
+
+    def record(self, *, prior: ShapePriorLike | Sequence[ShapePriorLike] | None, shapes_per_step: int,
+               max_proposals: int, kept: np.ndarray, threshold: float, final_seconds: float) -> tuple[str, int]:
+        """The page's HTML and the number of decoded shapes in it."""
+        from efem_viz.serve.guard import start_server
+
+        T = int(self.result.trace.num_steps)
+        server, _ = start_server(host="127.0.0.1", port=0)  # guarded too: its token is never shown to anyone
+        try:
+            ser = server.get_scene_serializer()
+            api = server.scene
+            cloud = self._scan(server, api, T)
+            ser.insert_sleep(self.step_seconds)
+            n_shapes = 0
+            for t in range(T):
+                self._report(f"EM step {t + 1} of {T}", t / (T + 1))
+                n_shapes += self._step(api, t, prior=prior, shapes_per_step=shapes_per_step,
+                                       max_proposals=max_proposals)
+                ser.insert_sleep(self.step_seconds)
+            self._report("the final result and the page", T / (T + 1))
+            self._final(api, cloud, kept, threshold)
+            ser.insert_sleep(final_seconds)
+            return ser.as_html(), n_shapes
+        finally:
+            server.stop()
+
+    def _scan(self, server: Any, api: Any, T: int) -> Any:
+        """The camera, the (subsampled, dimmed) scan and the opening caption; returns the scan's cloud."""
+        from efem_viz.serve.camera import fitted_view, framing
+
+        api.set_up_direction("+z")
+        cam = server.initial_camera  # recorded: the page opens looking at the scene
+        flo, fhi, sample = framing(self.pts)
+        view = fitted_view(flo, fhi, direction=VIEW_DIRECTION, points=sample)  # the live viewer's framing
+        cam.look_at, cam.position = view.look_at, view.position
+        cam.up = (0.0, 0.0, 1.0)
+        cloud = api.add_point_cloud("/scene/points", points=self.pts[self.keep],
+                                    colors=dim(self.scene.colors[self.keep]), point_size=self.psize,
+                                    point_shape="rounded")
+        first = int(np.asarray(self.result.trace.active_count)[0]) if T else 0
+        api.add_label("/caption", text=f"{self.scene.name}: {count(first, 'proposal')}", position=self.caption_pos)
+        return cloud
+
+    def _step(self, api: Any, t: int, *, prior: ShapePriorLike | Sequence[ShapePriorLike] | None,
+              shapes_per_step: int, max_proposals: int) -> int:
+        """EM step t: the samples of the best live proposals, their decoded shapes, the caption; returns the
+        number of shapes decoded."""
+        trace = self.result.trace
+        ids, scores = trace.alive_scores(t)
+        drawn = top_n(ids, scores, max_proposals)
+        s_pts, s_cols = proposal_samples(trace, t, drawn, self.pts)
+        if len(s_pts):
+            add_sample_cloud(api, s_pts, s_cols, point_size=self.psize)
+        api.remove_by_name("/em/shapes")
+        n_shapes = 0
+        if prior is not None and shapes_per_step > 0:
+            for pid in drawn[:shapes_per_step]:
+                pri, lat = prior_latent(trace, int(pid), t, prior)
+                shape = decode_shape(pri, lat, resolution=trace.config.mesh_resolution)
+                if shape is None:
+                    continue
+                n_shapes += 1
+                add_shape_mesh(api, f"/em/shapes/p{int(pid)}", *shape, pid=int(pid), dead=trace.is_dead_at(int(pid), t))
+        phase = int(np.asarray(trace.phase)[t])
+        api.add_label("/caption", text=f"step {t}/{trace.num_steps - 1} · phase {phase} · {len(ids)} active",
+                      position=self.caption_pos)
+        return n_shapes
+
+    def _final(self, api: Any, cloud: Any, kept: np.ndarray, threshold: float) -> None:
+        """The final instances (as the live viewer draws them) over the scan in their colours."""
+        inst = self.result.instances.select(kept)
+        api.remove_by_name("/em")
+        cloud.colors = instance_point_colors(self.scene.colors, self.result.instances, kept)[self.keep]
+        add_result_nodes(api, inst, visible=True)  # as the live viewer draws them (meshes, boxes, axes, labels)
+        counts = category_summary(inst.category)
+        api.add_label(
+            "/caption", text=f"result: {count(len(inst), 'object')}" + (f" ({counts})" if counts else "")
+            + f", confidence ≥ {threshold:.2f}", position=self.caption_pos,
+        )
 
 
 def main(argv: list[str] | None = None) -> int:

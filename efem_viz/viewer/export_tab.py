@@ -66,7 +66,21 @@ class ExportTab:
     def export_static(self, out_dir: str | Path | None = None, *, root: Path | None = None) -> Path | None:
         """Write the static demo page `<out_dir>/index.html` (final result + playback of the steps); None =
         `<output root>/static/<scene>/` (see `ViewerSession.export_static`); the tab says where."""
-        out = self.session.export_static(out_dir, root=root)
+        out = self.session.export_static(out_dir, root=root, on_progress=self._show_progress)
         if out is not None:
             self.panels.gui_export_info.content = f"Static demo written to `{out}`"
         return out
+
+    def _show_progress(self, fraction: float | None) -> None:
+        """The recording's progress bar and Cancel button (None: the export ended)."""
+        p = self.panels
+        running = fraction is not None
+        if fraction is not None:
+            p.gui_export_progress.value = round(100.0 * fraction, 1)
+        p.gui_export_progress.visible = running
+        p.gui_export_cancel.disabled = not running
+        p.gui_export_static.disabled = running
+
+    def cancel(self) -> None:
+        """The Cancel export button: the static demo stops at its next step, nothing is written."""
+        self.session.cancel_export()

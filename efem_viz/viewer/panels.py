@@ -116,6 +116,10 @@ class Panels:
     gui_out_dir: GuiTextHandle
     gui_export_results: GuiButtonHandle
     gui_export_static: GuiButtonHandle
+    gui_export_cancel: GuiButtonHandle
+    """Stops a static-demo export (enabled while one runs)."""
+    gui_export_progress: GuiProgressBarHandle
+    """The static demo's recording (EM steps done), shown while it runs."""
     gui_export_info: GuiMarkdownHandle
 
 
@@ -244,9 +248,11 @@ def _export_tab(gui: GuiApi, *, out_dir: str) -> dict[str, Any]:
     out = gui.add_text("Output folder", out_dir, hint=f"inside {out_dir} (the output folder chosen at start)")
     export_results = gui.add_button("Export results", hint="ScanNet layout + coloured PLY")
     export_static = gui.add_button("Export static demo", hint="<output folder>/static/<scene>/index.html")
+    export_cancel = gui.add_button("Cancel export", disabled=True, hint="stops the static demo; nothing is written")
+    export_progress = gui.add_progress_bar(0.0, visible=False)  # below every button: it comes and goes
     export_info = gui.add_markdown("")
     return dict(gui_out_dir=out, gui_export_results=export_results, gui_export_static=export_static,
-                gui_export_info=export_info)
+                gui_export_cancel=export_cancel, gui_export_progress=export_progress, gui_export_info=export_info)
 
 
 class PlotlyJSON:

@@ -27,7 +27,7 @@ holds it while it draws. `run()` and `load_result()` are synchronous: the app ca
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
@@ -300,6 +300,11 @@ class ViewerSession(ViewerCore):
         """`ExportRoom.static_target`."""
         return self.export.static_target(folder)
 
-    def export_static(self, out_dir: str | Path | None = None, *, root: Path | None = None) -> Path | None:
+    def export_static(self, out_dir: str | Path | None = None, *, root: Path | None = None,
+                      on_progress: Callable[[float | None], None] | None = None) -> Path | None:
         """`ExportRoom.export_static`."""
-        return self.export.export_static(out_dir, root=root)
+        return self.export.export_static(out_dir, root=root, on_progress=on_progress)
+
+    def cancel_export(self) -> None:
+        """`ExportRoom.cancel_export`."""
+        self.export.cancel_export()

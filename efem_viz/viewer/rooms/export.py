@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import logging
+import threading
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Callable
 
 from efem_viz.viewer.texts import safe_name
 
@@ -20,6 +21,8 @@ class ExportRoom:
     def __init__(self, core: ViewerCore) -> None:
         self.core = core
         """The session's shared parts."""
+        self.cancel_event = threading.Event()
+        """Set to stop a static-demo export at its next step (`cancel_export`)."""
 
     def export_results(self, out_dir: str | Path, *, root: Path | None = None) -> Path | None:
         """Write the thresholded result (ScanNet layout + coloured PLY) under `out_dir`.
@@ -49,14 +52,20 @@ class ExportRoom:
             return None
         return (folder if folder is not None else self.core.out_root) / "static" / safe_name(scene.name)
 
-    def export_static(self, out_dir: str | Path | None = None, *, root: Path | None = None) -> Path | None:
-        """Write the static demo page `<out_dir>/index.html` (final result + playback of the steps).
+    def export_static(self, out_dir: str | Path | None = None, *, root: Path | None = None,
+                      on_progress: Callable[[float | None], None] | None = None) -> Path | None:
+        """Write the static demo page `<out_dir>/index.html` (final result + playback of the steps); the status
+        line says which step it records, and `cancel_export()` stops it before anything is written.
 
         Args:
             out_dir: the page's folder; None = `<output root>/static/<scene>/`.
             root: as in `export_results`.
+            on_progress: called with the fraction done (0-1) as it records, and None when it ends.
+
+        Returns:
+            The page, or None (status says why) without a result or when cancelled.
         """
-        from efem_viz.viewer.export import export_static_demo
+        from efem_viz.viewer.export import ExportCancelled, export_static_demo
 
         s = self.core.state
         if s.result is None or s.scene is None:
@@ -69,7 +78,27 @@ class ExportRoom:
         except RuntimeError as exc:
             prior = None
             logger.info("static demo without decoded shapes: %s", exc)
-        self.core.set_status(f"Exporting the static demo of {s.scene.name} …")
-        out = export_static_demo(s.scene, s.result, target, threshold=s.threshold, prior=prior, root=root)
+        name = s.scene.name
+
+        def progress(what: str, fraction: float) -> None:
+            self.core.set_status(f"Exporting the static demo of {name}: {what} … (Cancel export stops it)")
+            if on_progress is not None:
+                on_progress(fraction)
+
+        self.cancel_event.clear()
+        self.core.set_status(f"Exporting the static demo of {name} …")
+        try:
+            out = export_static_demo(s.scene, s.result, target, threshold=s.threshold, prior=prior, root=root,
+                                     on_progress=progress, cancel=self.cancel_event)
+        except ExportCancelled:
+            self.core.set_status(f"Static demo export of {name} cancelled: nothing was written.")
+            return None
+        finally:
+            if on_progress is not None:
+                on_progress(None)
         self.core.set_status(f"Exported static demo to {out}.")
         return out
+
+    def cancel_export(self) -> None:
+        """Stop a static-demo export at its next step (nothing is written)."""
+        self.cancel_event.set()
