@@ -62,6 +62,7 @@ class AnnotateArgs:
                 autosave_delay=self.autosave_delay,
                 accept_scan_mismatch=self.accept_scan_mismatch,
                 token=self.token,
+                on_stage=lambda what: print(f"efem-annotate: opening {Path(self.scan).name}: {what} …", flush=True),
             )
             try:
                 ses = app.session

@@ -86,6 +86,8 @@ class AnnotatorApp(ServedApp):
         token: the server's access token (None = a fresh random one; see `efem_viz.serve.guard`).
         tools: the tool table (`annotator.tools.Tool` entries, toolbar order; default `DEFAULT_TOOLS`). The first
             one is active at start.
+        on_stage: called with what the opening does next (reading, journal, normals, server, drawing): a big
+            scan takes seconds before its URL, and the CLI prints each stage.
 
     Raises:
         LabelIOError: the scan or labels cannot be read; JournalError: the journal belongs to another scan.
@@ -106,13 +108,15 @@ class AnnotatorApp(ServedApp):
         accept_scan_mismatch: bool = False,
         token: str | None = None,
         tools: Sequence[Tool] = DEFAULT_TOOLS,
+        on_stage: Callable[[str], None] | None = None,
     ) -> None:
         t0 = time.perf_counter()
+        stage = on_stage or (lambda _what: None)
         if display_points < 1:  # before the scan is read and its journal created
             raise ValueError(f"the display budget must be at least 1 point, got {display_points}")
         self.session = AnnotatorSession(scan_path, labels_path=labels_path, out_dir=out_dir, max_points=max_points,
                                         autosave_delay=autosave_delay, accept_scan_mismatch=accept_scan_mismatch,
-                                        tools=tools)
+                                        tools=tools, on_stage=on_stage)
         """Every action and the state it acts on (`annotator.session`); this class draws it."""
         ses = self.session
         self._sheets = CheatSheets(self.session.tools)
@@ -127,12 +131,14 @@ class AnnotatorApp(ServedApp):
             """True when the token (and so the URL) is the one this scan's folder kept from an earlier run."""
             if token is None:  # the scan's folder keeps it: a tab left open reconnects after a restart
                 token, self.token_kept = saved_token(ses.work_dir)
+            stage("starting the server")
             self.server, self.access = start_server(host=host, port=port, token=token)
         except BaseException:
             ses.close()
             raise
         try:
             self.server.gui.configure_theme(control_width="large")
+            stage("preparing the drawing")
             self.view = ScanView(self.server, ses, chunk_size=chunk_size, display_points=display_points)
             """The scan as drawn: chunks, surface, overlays, camera (`annotator.scan_view`)."""
             self.view.surface.on_drag("left", modifier="cmd/ctrl")(self._on_drag)

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 from contextlib import AbstractContextManager
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Literal, Mapping, Sequence
 
 import numpy as np
 
@@ -90,6 +90,7 @@ class AnnotatorSession(SessionHooks):
         autosave_delay: seconds between an edit and the checkpoint rewrite (the journal is always immediate).
         accept_scan_mismatch: resume a journal written for other geometry with the same vertex count.
         tools: the tool table (`annotator.tools.Tool` entries; default `DEFAULT_TOOLS`). The first is active.
+        on_stage: called with what the opening does next (`ScanRoom`).
 
     Raises:
         LabelIOError: the scan or labels cannot be read; JournalError: the journal belongs to another scan.
@@ -105,12 +106,14 @@ class AnnotatorSession(SessionHooks):
         autosave_delay: float = 0.5,
         accept_scan_mismatch: bool = False,
         tools: Sequence[Tool] = DEFAULT_TOOLS,
+        on_stage: Callable[[str], None] | None = None,
     ) -> None:
         super().__init__()
         self.toolbox = Toolbox(tools)
         """The tool table and the settings the tools read."""
         self.scan = ScanRoom(scan_path, labels_path=labels_path, out_dir=out_dir, max_points=max_points,
-                             autosave_delay=autosave_delay, accept_scan_mismatch=accept_scan_mismatch)
+                             autosave_delay=autosave_delay, accept_scan_mismatch=accept_scan_mismatch,
+                             on_stage=on_stage)
         """The scan, its geometry and its label store."""
         settings = self.toolbox.settings
         settings.radius = max(0.005, 0.02 * float(np.linalg.norm(np.ptp(self.scan.scene.points, axis=0))))

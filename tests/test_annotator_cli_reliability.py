@@ -246,6 +246,12 @@ def test_a_restart_keeps_the_url_and_says_it_resumed(scan: Path, tmp_path: Path)
         assert parse_qs(urlsplit(again.url).query)["token"][0] == token
         text = "".join(again.lines)
         assert "resumed from the journal" in text and "same URL as the last run" in text, text
+        # issue 37 item 11: before its URL, the CLI says what the opening does (seconds on a big scan)
+        stages = [ln.split(": ", 2)[-1] for ln in again.lines if ln.startswith(f"efem-annotate: opening {scan.name}: ")
+                  and "estimating normals" not in ln]  # (normals: when the file has none)
+        assert [x.split(" ", 2)[:2] for x in stages] == [["reading", "the"], ["opening", "the"], ["starting", "the"],
+                                                          ["preparing", "the"]], text
+        assert text.index("preparing the drawing") < text.index(again.url)
         if urlsplit(again.url).port == port:  # (the port was free again: the very same URL)
             assert again.url == first.url
         kept = next((tmp_path / "out").glob("*.annotate/server.token"))

@@ -34,6 +34,7 @@ class ScanRoom:
         max_points: refuse scans with more vertices.
         autosave_delay: seconds between an edit and the checkpoint rewrite.
         accept_scan_mismatch: resume a journal written for other geometry with the same vertex count.
+        on_stage: called with what the opening does next (a big scan takes seconds: the CLI prints it).
 
     Raises:
         LabelIOError: the scan or labels cannot be read; JournalError: the journal belongs to another scan.
@@ -41,9 +42,11 @@ class ScanRoom:
 
     def __init__(self, scan_path: str | Path, *, labels_path: str | Path | None = None,
                  out_dir: str | Path | None = None, max_points: int = MAX_SCAN_POINTS, autosave_delay: float = 0.5,
-                 accept_scan_mismatch: bool = False) -> None:
+                 accept_scan_mismatch: bool = False, on_stage: Callable[[str], None] | None = None) -> None:
+        stage = on_stage or (lambda _what: None)
         self.scan_path = Path(scan_path).resolve()
         """The scan (never written)."""
+        stage("reading the scan")
         self.scene = load_scan(self.scan_path, max_points=max_points)
         """The scan as a `Scene`."""
         self.n = self.scene.num_points
@@ -55,12 +58,15 @@ class ScanRoom:
         """The folders files are read from (the scan's and the output folder)."""
         self.work_dir = self.out_dir / f"{self.stem}.annotate"
         """The journal's and checkpoint's folder."""
+        stage("opening the journal")
         self.store = self._open_store(labels_path, autosave_delay=autosave_delay,
                                       accept_scan_mismatch=accept_scan_mismatch)
         """The label store (journal first, autosaved checkpoint)."""
         # We hold the scan's journal lock now: temp files of an interrupted write of ours are stale.
         for folder in {self.out_dir, self.work_dir}:
             remove_stale_temp_files(folder, self.stem)
+        if self.scene._normals_or_none() is None:
+            stage(f"estimating normals of {self.n:,} points")
         self.geom = sel.ScanGeometry(self.scene.points, self.scene.normals, faces=self.scene.faces)
         """The scan's selection geometry (kd-tree, ray caster, adjacency)."""
         self._warmup_cancel = threading.Event()
