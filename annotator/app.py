@@ -420,8 +420,9 @@ class AnnotatorApp(ServedApp):
         self._enable_segment_buttons()
 
     def _show_warm_up(self, stage: str, done: int, total: int) -> None:
-        """The tools' warm-up on the panel (`Panels.show_warm_up`)."""
-        self.panels.show_warm_up(stage, done, total)
+        """The tools' warm-up on the panel (`Panels.show_warm_up`; nothing once the app is closing)."""
+        if not self._closed.is_set():
+            self.panels.show_warm_up(stage, done, total)
 
     def _show_efem_run(self, text: str | None, percent: float | None) -> None:
         """An EFEM run on the scan on the panel (`Panels.show_efem_run`); when it ends, the pre-label cut moves to
