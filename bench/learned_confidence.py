@@ -84,6 +84,8 @@ def main() -> int:
     ap.add_argument("--revive", type=float, nargs="+", default=[0.0, 1.0],
                     help="free-space kill limits to screen: 0 = as run, L = fits killed at a seen-through fraction "
                          "<= L come back (1: every one)")
+    ap.add_argument("--spare", type=float, nargs="*", default=[],
+                    help="also score: the free-space kill spares fits whose p(mug) (the chosen model) is >= each")
     ap.add_argument("--cache", type=Path, default=None, help="pickle of the fits (read if present, else written)")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--write", type=Path, default=None, metavar="MODEL.json",
@@ -187,6 +189,27 @@ def main() -> int:
         for sname, names in subsets.items():
             for use_conf in (False, True):
                 _candidate(revive, sname, names, use_conf)
+    if a.spare:  # the free-space kill spares the fits the chosen (un-revived) model finds mug-like
+        label = max((k for k in models if out[k]["revive_limit"] == 0.0), key=lambda k: out[k]["lofo_tune_ap50"])
+        model = models[label]
+
+        def mug_score(f: Fit) -> float:
+            p = float(model.probs(matrix([f], model.names))[0])
+            return p * conf(f) if model.times_confidence else p
+
+        for tau in a.spare:
+            def spared(f: Fit, tau: float = tau) -> bool:
+                return f.accepted or (f.killed_by == "seen-through" and mug_score(f) >= tau)
+
+            r = {"tune": score_rule(fits, scenes, mug_score, spared, only=in_frames(tune)),
+                 "judge": score_rule(fits, scenes, mug_score, spared, only=in_frames(judge))}
+            lab = f"kill spares p(mug) >= {tau:g} ({label.split(',')[0]})"
+            print(f"| {lab} | {r['tune']['ap50']:.1f} | {r['judge']['ap50']:.1f} | {r['judge']['ap']:.1f} | "
+                  f"{r['judge']['top_is_mug']} of {r['judge']['scenes_with_mug']} | {r['judge']['mugs_found']} of "
+                  f"{r['judge']['mugs']} |")
+            n_spared = sum(1 for f in fits if not f.accepted and spared(f))
+            r["spared_fits"] = n_spared
+            out[lab] = r
     if a.write is not None:  # the candidate with the best held-out tune AP50 (never chosen on the judge frames)
         label = max((k for k in models if out[k]["revive_limit"] == a.write_revive),
                     key=lambda k: out[k]["lofo_tune_ap50"])
