@@ -353,12 +353,12 @@ _REAL = dataclasses.replace(
 """Real single-view depth frames (session 8, measured with bench/em_stability.py, bench/real.py and
 bench/stereo_mug.py; docs/BENCHMARKS.md): §3.12's settings, but the E-step does not truncate on normals (depth
 noise tilts estimated normals, and the truncated points started the shrink spiral), a wider SDF band, M-step
-draws without replacement, and the free-space check of the capture camera. The confidence is the learned
-probability that a fit is a mug (`mug_model`, issue 33, session 13: fitted on the tune frames' accepted fits of 8
-saved runs, chosen by leave-one-frame-out AP50 inside the tune frames; `bench/learned_confidence.py`: tune AP50
-64.8 -> 71.2, judge 22.4 -> 23.0, the most confident fit a mug in 18 of 32 judge scenes instead of 15); it
-replaced session 12's pose-score weighting (pooled AP50 42.8 -> 46.3), whose pose score is one of its features.
-The instances themselves do not change (one episode: the confidence decides no elimination)."""
+draws without replacement, and the free-space check of the capture camera. The confidence is the paper's times
+the learned probability that a fit is a mug (`mug_model`, issue 33, session 13: fitted on the tune frames'
+accepted fits of 12 saved runs, chosen by leave-one-frame-out AP50 inside the tune frames;
+`bench/learned_confidence.py`: judge AP50 22.4 -> 25.2, the most confident fit a mug in 18 of 32 judge scenes
+instead of 15); it replaced session 12's pose-score weighting, whose pose score is one of its features. The
+instances themselves do not change (one episode: the confidence decides no elimination)."""
 
 _FAST = EMConfig(
     name="fast",
