@@ -401,8 +401,8 @@ class AnnotatorApp(ServedApp):
         (`AnnotatorSession.run_efem`); every value read is checked."""
         p = self.panels
         self.session.settings.prior = read_choice(p.gui_prior)
-        return self.session.run_efem(preset=read_choice(p.gui_efem_preset),
-                                     proposals=read_int(p.gui_efem_proposals, write_back=self.write_back),
+        return self.session.run_efem(preset=read_choice(p.gui_efem_preset),  # proposals 0: the preset's count
+                                     proposals=read_int(p.gui_efem_proposals, write_back=self.write_back) or None,
                                      wait=wait)
 
     def segment_at(self, vertex: int, *, wait: bool = False) -> np.ndarray | None:
@@ -427,9 +427,13 @@ class AnnotatorApp(ServedApp):
     def _show_efem_run(self, text: str | None, percent: float | None) -> None:
         """An EFEM run on the scan on the panel (`Panels.show_efem_run`); when it ends, the pre-label cut moves to
         where "Accept all ≥ cut" accepts the best of the new pre-labels."""
+        if self._closed.is_set():
+            return
         self.panels.show_efem_run(text, percent)
         if text is None:
             self.panels.gui_prelabel_cut.value = self.session.prelabel_cut(float(self.panels.gui_prelabel_cut.value))
+            if self.session.assist.last_run_path is not None:  # the saved run, ready to import again
+                self.panels.gui_efem_path.value = str(self.session.assist.last_run_path)
 
     def _enable_segment_buttons(self) -> None:
         ses = self.session
@@ -505,6 +509,7 @@ class AnnotatorApp(ServedApp):
         self._closed.set()
         self._edits.put(("stop", None))
         try:
+            self.session.assist.join_jobs()  # an EFEM job stops at its next step, before the journal closes
             self.server.stop()
         finally:
             self.session.close()

@@ -156,8 +156,9 @@ class Panels:
                                                hint="its instances become pre-labels to review (the prior below)")
             self.gui_efem_preset = gui.add_dropdown("Run preset", PRESETS, initial_value=preset,
                                                     hint="'real' for single-view captures, 'fast' for a quick look")
-            self.gui_efem_proposals = gui.add_number("Proposals", 400, min=10, max=2000, step=10,
-                                                     hint="more finds more, slower (a real frame: ~1 min per 400)")
+            self.gui_efem_proposals = gui.add_number(
+                "Proposals", 0, min=0, max=2000, step=10,
+                hint="0: the preset's (real 400, fast 80); more finds more, slower (a real frame: ~1 min per 400)")
             self.gui_efem_cancel = gui.add_button("Cancel EFEM run", disabled=True)
             self.gui_efem_path = gui.add_text("EFEM result", efem_result)
             self.gui_efem_import = gui.add_button("Import EFEM pre-labels")
@@ -246,7 +247,7 @@ class Panels:
             self.gui_tools_status.content = ""
             return
         works = ("" if done == 0 else " The brush works already" + (
-            "; Ctrl+click and lasso visibility wait for the ray caster." if stage == "ray caster" else "."))
+            " (picking by vertices); lasso visibility waits for the ray caster." if stage == "ray caster" else "."))
         self.gui_tools_status.content = f"Preparing the tools ({done + 1} of {total}): {stage} …{works}"
 
     def show_efem_run(self, text: str | None, percent: float | None) -> None:

@@ -46,6 +46,8 @@ class ScanGeometry:
         self._raycaster = None
         self.building_raycaster = threading.Event()
         """Set while `warm_up` builds the open3d ray-casting scene."""
+        self.warming = threading.Event()
+        """Set while `warm_up` runs: until its ray caster is ready, picks use the vertices (never build it)."""
         self._spacing: float | None = None
 
     @property
@@ -148,12 +150,16 @@ class ScanGeometry:
         """
         stages = self.warm_up_stages()
         builds = [lambda: self.tree, lambda: self.spacing, lambda: self.adjacency, self._warm_raycaster]
-        for k, (name, build) in enumerate(zip(stages, builds)):
-            if cancel is not None and cancel.is_set():
-                return
-            if on_stage is not None:
-                on_stage(name, k, len(stages))
-            build()
+        self.warming.set()
+        try:
+            for k, (name, build) in enumerate(zip(stages, builds)):
+                if cancel is not None and cancel.is_set():
+                    return
+                if on_stage is not None:
+                    on_stage(name, k, len(stages))
+                build()
+        finally:
+            self.warming.clear()
         if on_stage is not None:
             on_stage("", len(stages), len(stages))
 
@@ -192,8 +198,10 @@ def pick(
     if not np.isfinite(nd) or nd < 1e-12 or not np.isfinite(o).all():
         return None
     dvec = dvec / nd
-    # a mesh whose ray caster is still being built (opening a big scan) is picked by its vertices meanwhile
-    if geom.faces is not None and not (geom.building_raycaster.is_set() and not geom.raycaster_ready):
+    # while the warm-up builds the structures (opening a big scan), a mesh is picked by its vertices: a pick never
+    # waits for the warm-up's lock nor builds the ray caster itself
+    warming = geom.warming.is_set() or geom.building_raycaster.is_set()
+    if geom.faces is not None and (geom.raycaster_ready or not warming):
         from efem_viz._typeshims import o3d_tensor
 
         rays = o3d_tensor(np.concatenate([o, dvec])[None].astype(np.float32))

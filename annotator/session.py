@@ -444,6 +444,10 @@ class AnnotatorSession(SessionHooks):
         """`AssistRoom.run_efem`."""
         return self.assist.run_efem(preset=preset, proposals=proposals, seed=seed, wait=wait)
 
+    def cancel_efem(self) -> bool:
+        """`AssistRoom.cancel_efem`."""
+        return self.assist.cancel_efem()
+
     def segment_at(self, vertex: int, *, wait: bool = False) -> np.ndarray | None:
         """`AssistRoom.segment_at`."""
         return self.assist.segment_at(vertex, wait=wait)

@@ -161,7 +161,7 @@ def _wire_buttons(app: AnnotatorControls) -> None:
 
     p.gui_efem_import.on_click(on(import_efem))
     p.gui_efem_run.on_click(on(lambda: app.run_efem()))
-    p.gui_efem_cancel.on_click(on(ses.discard_segment))
+    p.gui_efem_cancel.on_click(on(ses.cancel_efem))
     p.gui_accept.on_click(on(lambda: ses.review_prelabel(prelabel(), "accept")))
     p.gui_reject.on_click(on(lambda: ses.review_prelabel(prelabel(), "reject")))
     p.gui_accept_merge.on_click(on(lambda: ses.review_prelabel(prelabel(), "merge")))

@@ -976,13 +976,16 @@ def test_run_efem_progress_and_cancel(app: AnnotatorApp, monkeypatch: pytest.Mon
         app.run_efem()
     with pytest.raises(ValueError, match="still running EFEM"):
         app.segment_at(0)
-    app.session.discard_segment()  # the Cancel button's action
+    app.session.set_preview(np.arange(5))  # a segment preview from before stays: Cancel stops only the run
+    assert app.session.cancel_efem()  # the Cancel button's action
     deadline = time.monotonic() + 30
     while app.session.efem_running and time.monotonic() < deadline:
         time.sleep(0.02)
     assert not app.session.efem_running and "EFEM run cancelled" in notes
     assert dict(app.session.store.labelset.instances) == before
     assert not app.panels.gui_efem_run.disabled and app.panels.gui_efem_cancel.disabled
+    assert app.session.pending_segment is not None and not app.session.cancel_efem()
+    app.session.set_preview(None)
     app.panels.gui_efem_preset.value = "turbo"  # a hostile client value
     with pytest.raises(ClientValueError):
         app.run_efem()
@@ -1001,3 +1004,33 @@ def test_tools_show_their_warm_up_until_ready(app: AnnotatorApp) -> None:
     assert "4 of 4" in text and "ray caster" in text and "brush works" in text
     app._show_warm_up("", 4, 4)
     assert not app.panels.gui_tools_progress.visible and app.panels.gui_tools_status.content == ""
+
+
+def test_closing_during_an_efem_run_stops_it_first(spheres, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Closing the app (Ctrl+C) during an EFEM run on the scan cancels it and waits for its thread before the journal
+    closes: nothing is saved or added afterwards. Proposals 0 takes the preset's count."""
+    import annotator.assist as assist
+    from efem_viz.em.solver import EMCancelled
+
+    d, scene, _ = spheres
+    started = threading.Event()
+    got: list[object] = []
+
+    def slow(scene: object, *, prior_name: str, settings: Any, seed: int, on_step: Any,
+             cancel: threading.Event) -> object:
+        got.append(settings)
+        on_step(SimpleNamespace(step=0, num_steps=30, active=80, elapsed_s=1.0))
+        started.set()
+        assert cancel.wait(30), "never cancelled"
+        raise EMCancelled("cancelled")
+
+    monkeypatch.setattr(assist, "solve_scan", slow)
+    a = AnnotatorApp(d / "spheres.ply", out_dir=d / "out_close", port=0, autosave_delay=0)
+    assert a.panels.gui_efem_proposals.value == 0
+    a.run_efem()
+    assert started.wait(30)
+    thread = a.session.assist._thread
+    a.close()
+    assert thread is not None and not thread.is_alive() and not a.session.efem_running
+    assert got[0].proposals is None and got[0].preset == "fast"  # type: ignore[attr-defined]
+    assert not list((d / "out_close").glob("*.annotate/*.efem.npz"))

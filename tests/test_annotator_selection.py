@@ -247,12 +247,14 @@ def test_warm_up_reports_its_stages_and_picks_wait_for_no_ray_caster(box_on_plan
     origin = np.array([0.01, 0.013, 1.0])
     direction = np.array([0.0, 0.0, -1.0])
     exact = sel.pick(geom, origin, direction)
-    building = sel.ScanGeometry(box_on_plane.points, box_on_plane.normals, faces=box_on_plane.faces)
-    building.building_raycaster.set()  # as while the warm-up thread builds it
-    meanwhile = sel.pick(building, origin, direction)
-    assert building._raycaster is None, "the pick built (waited for) the ray caster"
-    assert exact is not None and meanwhile is not None
-    assert np.linalg.norm(box_on_plane.points[meanwhile[0]] - exact[1]) <= 2.5 * geom.spacing
+    for flag in ("warming", "building_raycaster"):  # any warm-up stage, the ray caster's included
+        building = sel.ScanGeometry(box_on_plane.points, box_on_plane.normals, faces=box_on_plane.faces)
+        getattr(building, flag).set()  # as while the warm-up thread runs
+        meanwhile = sel.pick(building, origin, direction)
+        assert building._raycaster is None, "the pick built (waited for) the ray caster"
+        assert exact is not None and meanwhile is not None
+        assert np.linalg.norm(box_on_plane.points[meanwhile[0]] - exact[1]) <= 2.5 * geom.spacing
+    assert not geom.warming.is_set() and geom.raycaster_ready  # the warm-up ended: exact picks again
     cloud = sel.ScanGeometry(box_on_plane.points, box_on_plane.normals)
     assert [s[0] for s in cloud.warm_up_stages()] == ["s", "p", "n"]  # no ray caster for point clouds
 

@@ -80,8 +80,22 @@ def test_hostile_model_files_get_one_clear_error(tmp_path, monkeypatch, body: by
 def test_only_shipped_names(name: str) -> None:
     with pytest.raises(ValueError, match="look-alike model"):
         load_model(name)
-    with pytest.raises(ValueError, match="look-alike model"):
+    if name == "no_such_model":  # a plain name: a config (a saved result) holding it still loads
         EMConfig(mug_model=name).validate()
+    else:
+        with pytest.raises(ValueError, match="look-alike model"):
+            EMConfig(mug_model=name).validate()
+
+
+def test_values_that_are_not_numbers_and_missing_measurements() -> None:
+    with pytest.raises(ValueError, match="finite"):
+        LookAlikeModel(("pose score",), (True,), (1.0,), (1.0,), 0.0)  # a bool is not a number
+    with pytest.raises(ValueError, match="category"):
+        LookAlikeModel(("pose score",), (0.0,), (1.0,), (1.0,), 0.0, category="../x")
+    with pytest.raises(ValueError, match="features"):
+        LookAlikeModel(([1],), (0.0,), (1.0,), (1.0,), 0.0)  # type: ignore[arg-type]
+    f = _features(stationary=float("nan"), coverage=float("nan"), radius=float("nan"), half_height=float("inf"))
+    assert all(math.isfinite(v) for v in f.values())
 
 
 def test_shipped_models_load_and_configure() -> None:
@@ -107,14 +121,18 @@ def test_solver_confidence_is_the_models_and_instances_do_not_change(tmp_path, m
     monkeypatch.setattr(look_alike, "MODELS", tmp_path)
     load_model.cache_clear()
     model = LookAlikeModel(("radius (cm)", "log coverage"), (5.0, -3.0), (1.0, 1.0), (-1.5, 0.7), 0.2,
-                           times_confidence=True)
+                           times_confidence=True, category="sphere")
     model.save(tmp_path / "toy.json")
+    LookAlikeModel(*[getattr(model, k) for k in ("names", "mean", "scale", "weights", "bias")],
+                   category="mug").save(tmp_path / "other.json")
     scene = analytic.make_sphere_scene(seed=0, spacing=0.008, name="spheres")
     prior = analytic.make_sphere_prior()
     cfg = em.preset("fast").with_proposals(16).replace(min_size=30)
     plain = em.run_em(scene, prior, cfg, seed=0)
     learned = em.run_em(scene, prior, cfg.replace(mug_model="toy"), seed=0)
+    other = em.run_em(scene, prior, cfg.replace(mug_model="other"), seed=0)  # scores mugs: spheres keep theirs
     load_model.cache_clear()
+    assert np.array_equal(other.instances.confidence, plain.instances.confidence)
     assert len(plain.instances) == len(learned.instances) > 0
     before = {int(i): (sorted(m), float(c)) for i, m, c in zip(plain.instances.ids, plain.instances.masks,
                                                                  plain.instances.confidence)}

@@ -6,6 +6,7 @@ from __future__ import annotations
 import threading
 import time
 import uuid
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
@@ -14,6 +15,12 @@ from annotator.assist import SEGMENT_SETTINGS
 from annotator.io import LabelData, LabelIOError, load_labels, resolve_inside
 from annotator.labels import Delta, prelabel_note, unreviewed_prelabels
 from efem_viz.data.io import RESULT_SUFFIX
+
+EFEM_FULL_RESOLUTION_POINTS = 250_000
+"""Scans with more vertices run EFEM on a thinned working set (`EFEM_BIG_SCAN_VOXEL`; masks stay full resolution):
+a real frame has ~60k points, and EM's cost grows with the points it iterates on."""
+EFEM_BIG_SCAN_VOXEL = 0.005
+"""The working-set cell (m) of an EFEM run on a big scan (`SolveSettings.work_voxel`)."""
 
 if TYPE_CHECKING:
     from efem_viz.em.config import SolveSettings
@@ -43,6 +50,10 @@ class AssistRoom:
         self._segment_cancel: threading.Event | None = None
         self._job: str | None = None
         """The EFEM job running: "segment" (click-to-segment), "efem" (a run on the scan) or None."""
+        self._thread: threading.Thread | None = None
+        """The last EFEM job's thread (joined on close)."""
+        self.last_run_path: Path | None = None
+        """Where the last EFEM run on the scan saved its result (None: none yet)."""
 
     def import_efem(self, path: str) -> list[int]:
         """Import an EFEM result as unreviewed pre-label instances on unlabelled vertices; returns their ids."""
@@ -54,11 +65,18 @@ class AssistRoom:
 
     def add_prelabels(self, data: LabelData, *, source: str) -> list[int]:
         """Add proposals (labels + rows) as new unreviewed instances, painted only where nothing is labelled."""
-        new_ids: list[int] = []
         group = uuid.uuid4().hex[:12]
         conf = data.confidence or {}
         order = sorted((r for r in data.instances if (data.labels == r.id).any()),
                        key=lambda r: -conf.get(r.id, 0.0))
+        with self.scan.store.lock:  # one undo step: no other edit (another browser, an undo) between its parts
+            new_ids = self._add_rows(data, order, conf, source, group)
+        self.hooks.on_change()
+        return new_ids
+
+    def _add_rows(self, data: LabelData, order: list[Any], conf: dict[int, float], source: str,
+                  group: str) -> list[int]:
+        new_ids: list[int] = []
         for row in order:
             note = prelabel_note(source, conf.get(row.id))
             d = self.scan.store.do(lambda ls, row=row, note=note: ls.create_instance(category=row.category,
@@ -70,7 +88,6 @@ class AssistRoom:
             idx = np.flatnonzero(data.labels == row.id)
             self.scan.store.do(lambda ls, iid=iid, idx=idx: ls.paint(idx, iid, overwrite=False), group=group)
             new_ids.append(iid)
-        self.hooks.on_change()
         return new_ids
 
     def review_prelabel(self, instance_id: int, action: Literal["accept", "reject", "merge"], *,
@@ -143,8 +160,10 @@ class AssistRoom:
         if wait:
             return self._segment_job(int(vertex), prior_name, cancel)
         self.hooks.notify("Segmenting", f"EFEM with prior {prior_name!r} around vertex {vertex}... (Esc cancels)")
-        threading.Thread(target=lambda: self.hooks.report(lambda: self._segment_job(int(vertex), prior_name, cancel)),
-                         name="annotator-segment", daemon=True).start()
+        self._thread = threading.Thread(
+            target=lambda: self.hooks.report(lambda: self._segment_job(int(vertex), prior_name, cancel)),
+            name="annotator-segment", daemon=True)
+        self._thread.start()
         return None
 
     def _segment_job(self, vertex: int, prior_name: str, cancel: threading.Event) -> np.ndarray | None:
@@ -227,17 +246,25 @@ class AssistRoom:
         """
         from efem_viz.em.config import SolveSettings, suggested_preset
 
+        big = self.scan.n > EFEM_FULL_RESOLUTION_POINTS
         settings = SolveSettings(preset=preset or suggested_preset(self.scan.scene),  # type: ignore[arg-type]
-                                 proposals=None if proposals is None else int(proposals))
+                                 proposals=None if not proposals else int(proposals),
+                                 work_voxel=EFEM_BIG_SCAN_VOXEL if big else None)
         settings.config()  # a bad preset or count: one clear error before anything starts
         prior_name = self.toolbox.settings.prior
         cancel = self._claim("efem")
-        self.hooks.on_efem(f"EFEM ({settings.preset}, prior {prior_name!r}): starting …", 0.0)
-        self.hooks.on_segment(None)  # Cancel / Esc now stop the run
+        try:
+            self.hooks.on_efem(f"EFEM ({settings.preset}, prior {prior_name!r}): starting …", 0.0)
+            self.hooks.on_segment(None)  # Cancel / Esc now stop the run
+        except BaseException:
+            self._release()
+            raise
         if wait:
             return self._efem_job(settings, prior_name, seed, cancel)
-        threading.Thread(target=lambda: self.hooks.report(lambda: self._efem_job(settings, prior_name, seed, cancel)),
-                         name="annotator-efem", daemon=True).start()
+        self._thread = threading.Thread(
+            target=lambda: self.hooks.report(lambda: self._efem_job(settings, prior_name, seed, cancel)),
+            name="annotator-efem", daemon=True)
+        self._thread.start()
         return None
 
     def _efem_job(self, settings: SolveSettings, prior_name: str, seed: int, cancel: threading.Event) -> list[int]:
@@ -245,7 +272,8 @@ class AssistRoom:
         from annotator.io import labels_from_result
         from efem_viz.em.solver import EMCancelled
 
-        what = f"EFEM ({settings.preset}, prior {prior_name!r})"
+        what = f"EFEM ({settings.preset}, prior {prior_name!r}" + (
+            f", on a {1000 * settings.work_voxel:g} mm working set" if settings.work_voxel else "") + ")"
 
         def on_step(info: Any) -> None:
             self.hooks.on_efem(f"{what}: step {info.step + 1} of {info.num_steps}, {info.active} proposals alive, "
@@ -256,17 +284,22 @@ class AssistRoom:
         try:
             result = assist.solve_scan(self.scan.scene, prior_name=prior_name, settings=settings, seed=seed,
                                        on_step=on_step, cancel=cancel)
+            if cancel.is_set():  # pressed after the last step: still nothing is added
+                raise EMCancelled("cancelled after the last step")
             self.hooks.on_efem(f"{what}: saving the result and adding pre-labels …", 100.0)
             path = self.scan.work_dir / f"{self.scan.stem}{RESULT_SUFFIX}"
             result.save(path)
+            self.last_run_path = path
             ids = self.add_prelabels(labels_from_result(result, self.scan.n, where=path.name), source=path.name)
         except EMCancelled:
             self.hooks.notify("EFEM run cancelled", f"{what} was stopped; nothing was added")
             return []
         finally:
-            self.hooks.on_efem(None, None)  # the panel first: once the job is released, it shows the end
-            self._release()
-            self.hooks.on_segment(None)
+            try:
+                self.hooks.on_efem(None, None)  # the panel first: once the job is released, it shows the end
+            finally:
+                self._release()
+                self.hooks.on_segment(None)
         self.hooks.notify("EFEM pre-labels", f"{what} found {len(result.instances)} instance(s) in "
                           f"{time.perf_counter() - t0:.0f} s: {len(ids)} pre-label(s) to review (result saved as "
                           f"{path.name} beside the journal)")
@@ -297,6 +330,24 @@ class AssistRoom:
         self.set_preview(None)
         self.instances.new_instance(category=self.toolbox.settings.prior or "object")
         return self.painting.paint(idx)
+
+    def cancel_efem(self) -> bool:
+        """Stop an EFEM run on the scan at its next step (the Cancel EFEM run button); a click-to-segment job or
+        its preview is left alone. Returns whether a run was asked to stop."""
+        with self._segment_lock:
+            running = self._segment_cancel if self._job == "efem" else None
+        if running is not None:
+            running.set()
+        return running is not None
+
+    def join_jobs(self, timeout: float = 60.0) -> None:
+        """Cancel a running EFEM job and wait for its thread (closing the app)."""
+        with self._segment_lock:
+            running, thread = self._segment_cancel, self._thread
+        if running is not None:
+            running.set()
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(timeout)
 
     def discard_segment(self) -> None:
         """Drop the segment preview; while an EFEM job runs (click-to-segment or a run on the scan), cancel it (Esc)."""

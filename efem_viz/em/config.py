@@ -238,9 +238,9 @@ class EMConfig:
             raise ValueError(f"pose_weight must be in [0, 16] and pose_ref in (0, 1], got {self.pose_weight}, "
                              f"{self.pose_ref}")
         if self.mug_model is not None:
-            from efem_viz.em.look_alike import load_model
+            from efem_viz.em.look_alike import check_name
 
-            load_model(self.mug_model)  # a shipped name holding a valid model, or one clear error
+            check_name(self.mug_model)  # the file itself is read when a run starts (`run_em`)
         if not (0.0 <= self.max_seen_through <= 1.0):
             raise ValueError(f"max_seen_through must be in [0, 1], got {self.max_seen_through}")
         if self.trust_scale is not None and not (0.0 <= self.trust_scale < 1.0):

@@ -49,12 +49,15 @@ def review_features(*, stationary: float, coverage: float, pose: float, radius: 
         seen_through: seen-through fraction of the free-space check (NaN: not measured).
         mask_size: points in its mask.
     """
+    def finite(x: float, default: float = 0.0) -> float:
+        return float(x) if math.isfinite(float(x)) else default
+
     return {
-        "log stationary": math.log(max(float(stationary), 1e-4)),
-        "log coverage": math.log(max(float(coverage), 1e-4)),
-        "pose score": float(pose) if math.isfinite(pose) else 0.4,
-        "radius (cm)": 100.0 * float(radius),
-        "half height (cm)": 100.0 * float(half_height),
+        "log stationary": math.log(max(finite(stationary), 1e-4)),
+        "log coverage": math.log(max(finite(coverage), 1e-4)),
+        "pose score": finite(pose, 0.4),
+        "radius (cm)": 100.0 * finite(radius),
+        "half height (cm)": 100.0 * finite(half_height),
         "cos up angle": math.cos(math.radians(up_angle)) if math.isfinite(up_angle) else 0.0,
         "seen-through": float(seen_through) if math.isfinite(seen_through) else 0.0,
         "log mask size": math.log(max(int(mask_size), 1)),
@@ -74,15 +77,21 @@ class LookAlikeModel:
     """Where it was fitted (frames, runs, the command)."""
     times_confidence: bool = True
     """The fit's confidence is the solver's confidence times p(mug) (True) or p(mug) alone (False)."""
+    category: str = "mug"
+    """The category it scores: a joint solve's other priors keep their confidence."""
 
     def __post_init__(self) -> None:
         n = len(self.names)
-        if not 0 < n <= len(FEATURES) or len(set(self.names)) != n or any(x not in FEATURES for x in self.names):
+        if (not 0 < n <= len(FEATURES) or not all(isinstance(x, str) for x in self.names)
+                or len(set(self.names)) != n or any(x not in FEATURES for x in self.names)):
             raise ValueError(f"look-alike model features must be distinct names from {FEATURES}, got {self.names}")
+        if not isinstance(self.category, str) or not _NAME.fullmatch(self.category):
+            raise ValueError(f"look-alike model category must be a plain name, got {self.category!r}")
         if not (len(self.mean) == len(self.scale) == len(self.weights) == n):
             raise ValueError("look-alike model: mean, scale and weights need one value per feature")
         nums = (*self.mean, *self.scale, *self.weights, self.bias)
-        if not all(isinstance(v, (int, float)) and math.isfinite(v) and abs(v) < 1e6 for v in nums):
+        if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and abs(v) < 1e6
+                   for v in nums):
             raise ValueError("look-alike model: every number must be finite and below 1e6 in size")
         if not all(s > 0 for s in self.scale):
             raise ValueError("look-alike model: every scale must be > 0")
@@ -144,6 +153,17 @@ def fit_logistic(x: np.ndarray, y: np.ndarray, names: tuple[str, ...] | list[str
                           float(w[0]), trained_on, times_confidence)
 
 
+def check_name(name: object) -> None:
+    """A model name as a config may hold it (the file is looked up when a run starts, so that a result naming a
+    model that was since removed still loads).
+
+    Raises:
+        ValueError: not a plain name.
+    """
+    if not isinstance(name, str) or not _NAME.fullmatch(name):
+        raise ValueError(f"look-alike model name must be a plain name ([A-Za-z0-9_-], <= 64), got {name!r}")
+
+
 def available_models() -> list[str]:
     """Names of the shipped models."""
     return sorted(p.stem for p in MODELS.glob("*.json"))
@@ -165,6 +185,8 @@ def load_model(name: str) -> LookAlikeModel:
     try:
         d: Any = json.loads(raw)
         return LookAlikeModel(tuple(d["names"]), tuple(d["mean"]), tuple(d["scale"]), tuple(d["weights"]),
-                              d["bias"], str(d.get("trained_on", "")), d.get("times_confidence", True))
-    except (ValueError, KeyError, TypeError) as exc:
-        raise ValueError(f"look-alike model {name!r} is not valid: {exc}") from exc
+                              d["bias"], str(d.get("trained_on", "")), d.get("times_confidence", True),
+                              d.get("category", "mug"))
+    except (ValueError, KeyError, TypeError, RecursionError) as exc:
+        raise ValueError(f"look-alike model {name!r} is not valid: {type(exc).__name__}: "
+                         f"{str(exc)[:200]}") from exc

@@ -495,7 +495,7 @@ class _Solver:
                 s_stat = float(pool.stationary[r])
                 conf = confidence(s_stat, float(rev.coverage), cap=cfg.cov_cap, seen_through=rev.seen_through,
                                   pose=float(rev.db_sim), pose_weight=cfg.pose_weight, pose_ref=cfg.pose_ref)
-                if mug_model is not None:
+                if mug_model is not None and self.categories[rev.prior] == mug_model.category:
                     conf = mug_model.confidence(conf, review_features(
                         stationary=s_stat, coverage=float(rev.coverage), pose=float(rev.db_sim),
                         radius=float(rev.radii[0]), half_height=float(rev.radii[1]), up_angle=float(rev.up_angle),

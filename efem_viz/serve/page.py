@@ -53,6 +53,7 @@ def with_page_additions(response: Any) -> Any:
         return response
     payload = gzip.compress(new) if zipped else new
     response.body = payload
-    del headers["Content-Length"]
+    if "Content-Length" in headers:
+        del headers["Content-Length"]
     headers["Content-Length"] = str(len(payload))
     return response

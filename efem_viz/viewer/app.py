@@ -154,9 +154,10 @@ class ViewerApp(ServedApp):
 
     # ================================================================== lifecycle
     def stop(self) -> None:
-        """Stop playback, cancel a run, shut the workers and the server down."""
+        """Stop playback, cancel a run and a static-demo export, shut the workers and the server down."""
         self.pause()
         self.session.cancel_event.set()  # a running EM stops at its next step
+        self.session.cancel_export()  # a static demo stops at its next step, unwritten
         self.session.generation += 1  # running decode/inspect jobs drop their results
         self.jobs.shutdown()
         self.server.stop()

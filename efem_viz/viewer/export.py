@@ -161,7 +161,6 @@ def export_static_demo(
         from efem_viz.serve.inputs import confine_writes
 
         confine_writes([out, out / "index.html", out / "meta.json"], root, what="static demo export")
-    out.mkdir(parents=True, exist_ok=True)
     pts = np.asarray(scene.points, np.float32)
     n = pts.shape[0]
     rng = np.random.default_rng(seed)
@@ -170,6 +169,8 @@ def export_static_demo(
     rec = _DemoRecording(scene, result, keep, step_seconds=step_seconds, on_progress=on_progress, cancel=cancel)
     html, n_shapes = rec.record(prior=prior, shapes_per_step=shapes_per_step, max_proposals=max_proposals,
                                 kept=kept, threshold=float(threshold), final_seconds=final_seconds)
+    rec.check_cancel("before writing")  # the last moment a Cancel keeps the folder untouched
+    out.mkdir(parents=True, exist_ok=True)
     index = out / "index.html"
     _atomic_write_text(index, html)
     meta = {
@@ -202,9 +203,13 @@ class _DemoRecording:
         self.step_seconds = step_seconds
         self.on_progress, self.cancel = on_progress, cancel
 
-    def _report(self, what: str, fraction: float) -> None:
+    def check_cancel(self, what: str) -> None:
+        """Raise `ExportCancelled` when the export was cancelled."""
         if self.cancel is not None and self.cancel.is_set():
             raise ExportCancelled(f"static demo of {self.scene.name!r} cancelled ({what})")
+
+    def _report(self, what: str, fraction: float) -> None:
+        self.check_cancel(what)
         if self.on_progress is not None:
             self.on_progress(what, fraction)
 

@@ -66,6 +66,7 @@ class ExportTab:
     def export_static(self, out_dir: str | Path | None = None, *, root: Path | None = None) -> Path | None:
         """Write the static demo page `<out_dir>/index.html` (final result + playback of the steps); None =
         `<output root>/static/<scene>/` (see `ViewerSession.export_static`); the tab says where."""
+        self.panels.gui_export_info.content = ""  # a cancelled or failed export must not show the last one's path
         out = self.session.export_static(out_dir, root=root, on_progress=self._show_progress)
         if out is not None:
             self.panels.gui_export_info.content = f"Static demo written to `{out}`"
