@@ -172,6 +172,9 @@ class ScanGeometry:
 
 
 # ---------------------------------------------------------------------------------------------- picking
+PICK_CHUNK = 1_000_000
+"""Points per piece of a pick by the points (point clouds; meshes while their ray caster is being built)."""
+
 def pick(
     geom: ScanGeometry,
     origin: np.ndarray,
@@ -215,15 +218,19 @@ def pick(
         v = tri[np.argmin(np.linalg.norm(geom.points[tri] - hit, axis=1))]
         return int(v), hit
     tol = 2.0 * geom.spacing if tolerance is None else float(tolerance)
-    rel = geom.points.astype(np.float64) - o
-    t = rel @ dvec
-    front = t > 0
-    perp2 = np.einsum("ij,ij->i", rel, rel) - t * t
-    cand = np.flatnonzero(front & (perp2 <= tol * tol))
-    if len(cand) == 0:
+    best, best_t = -1, np.inf
+    for start in range(0, geom.n, PICK_CHUNK):  # bounded memory on big scans (24 MB per chunk, not 24 B per point)
+        rel = geom.points[start:start + PICK_CHUNK].astype(np.float64) - o
+        t = rel @ dvec
+        perp2 = np.einsum("ij,ij->i", rel, rel) - t * t
+        cand = np.flatnonzero((t > 0) & (perp2 <= tol * tol))
+        if len(cand):
+            k = int(cand[np.argmin(t[cand])])
+            if t[k] < best_t:  # strict: on a tie the lower index wins, as one argmin over all points would
+                best, best_t = start + k, float(t[k])
+    if best < 0:
         return None
-    best = cand[np.argmin(t[cand])]
-    return int(best), geom.points[best].copy()
+    return best, geom.points[best].copy()
 
 
 # ---------------------------------------------------------------------------------------------- brush

@@ -312,3 +312,18 @@ def test_lasso_and_box_take_only_what_the_camera_sees(tilt_deg: float) -> None:
     clear = ring[np.maximum(np.abs(cross[ring, 0]), np.abs(cross[ring, 1])) > 0.06 + 0.01]
     assert len(clear) > 300 and np.isin(clear, vis).all()
     assert np.isin(ring, vis).mean() >= 0.85
+
+
+def test_pick_by_points_in_pieces_is_the_pick_in_one(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A pick by the points goes through big scans in pieces (bounded memory): the same vertex as one pass over all
+    points, ties included (the lower index)."""
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(-0.2, 0.2, (5000, 3)).astype(np.float32)
+    pts[4000] = pts[1000]  # a tie: the first one wins
+    geom = sel.ScanGeometry(pts, np.tile(np.float32([0, 0, 1]), (5000, 1)))
+    rays = [(pts[i] + np.float32([0, 0, 1.0]), np.array([0.0, 0.0, -1.0])) for i in (1000, 7, 2500, 4999)]
+    whole = [sel.pick(geom, o, d) for o, d in rays]
+    monkeypatch.setattr(sel, "PICK_CHUNK", 333)
+    pieces = [sel.pick(geom, o, d) for o, d in rays]
+    assert [w[0] for w in whole] == [p[0] for p in pieces]  # type: ignore[index]
+    assert whole[0][0] != 4000  # type: ignore[index]
