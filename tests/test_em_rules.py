@@ -287,7 +287,7 @@ def test_presets_follow_the_spec_table() -> None:
     mug = category_settings("mug")
     real_mug, syn_mug = resolve_for_prior(real, _Named("mug")), resolve_for_prior(syn, _Named("mug"))
     assert real_mug.scale_horizontal == (0.03, 0.08) and real_mug.scale_height == (0.015, 0.10)
-    assert syn_mug.scale_horizontal == (0.03, 0.13) and syn_mug.scale_height == (0.015, 0.30)
+    assert syn_mug.scale_horizontal == (0.03, 0.08) and syn_mug.scale_height == (0.015, 0.30)  # issue 33 item 4
     assert syn_mug.up_range == mug.up_range == (0.0, 180.0) and syn_mug.tau_out == 0.04
     # an explicit value in the config wins over the category's
     assert resolve_for_prior(real.replace(scale_horizontal=(0.01, 0.5)), _Named("mug")).scale_horizontal == (0.01, 0.5)
