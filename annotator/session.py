@@ -244,7 +244,7 @@ class AnnotatorSession(SessionHooks):
 
     @property
     def segmenting(self) -> bool:
-        """Whether an EFEM job (click-to-segment or a run on the scan) is in progress."""
+        """Whether a click-to-segment run is in progress."""
         return self.assist.segmenting
 
     @property

@@ -976,6 +976,8 @@ def test_run_efem_progress_and_cancel(app: AnnotatorApp, monkeypatch: pytest.Mon
         app.run_efem()
     with pytest.raises(ValueError, match="still running EFEM"):
         app.segment_at(0)
+    app.session.discard_segment()  # Esc of the Segment tool: the scan run goes on
+    assert app.session.efem_running and not app.session.segmenting
     app.session.set_preview(np.arange(5))  # a segment preview from before stays: Cancel stops only the run
     assert app.session.cancel_efem()  # the Cancel button's action
     deadline = time.monotonic() + 30

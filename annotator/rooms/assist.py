@@ -195,9 +195,9 @@ class AssistRoom:
 
     @property
     def segmenting(self) -> bool:
-        """Whether an EFEM job (click-to-segment or a run on the scan) is in progress (Esc cancels it)."""
+        """Whether a click-to-segment run is in progress (Esc / Discard cancels it)."""
         with self._segment_lock:
-            return self._segment_cancel is not None
+            return self._job == "segment"
 
     @property
     def efem_running(self) -> bool:
@@ -230,7 +230,7 @@ class AssistRoom:
         (`<scan>.annotate/<scan>.efem.npz`, the last run) so that it can be imported again.
 
         The solver runs in a background thread; `hooks.on_efem` reports what it does and its progress, and
-        `discard_segment` (the Cancel button) stops it at its next step.
+        `cancel_efem` (the Cancel EFEM run button) stops it at its next step.
 
         Args:
             preset: solver preset (None: the one that fits the scan, `efem_viz.em.config.suggested_preset`).
@@ -255,7 +255,7 @@ class AssistRoom:
         cancel = self._claim("efem")
         try:
             self.hooks.on_efem(f"EFEM ({settings.preset}, prior {prior_name!r}): starting …", 0.0)
-            self.hooks.on_segment(None)  # Cancel / Esc now stop the run
+            self.hooks.on_segment(None)  # the segment buttons: a click-to-segment now waits
         except BaseException:
             self._release()
             raise
@@ -350,9 +350,10 @@ class AssistRoom:
             thread.join(timeout)
 
     def discard_segment(self) -> None:
-        """Drop the segment preview; while an EFEM job runs (click-to-segment or a run on the scan), cancel it (Esc)."""
+        """Drop the segment preview; while a click-to-segment run is in progress, cancel it (Esc). An EFEM run on
+        the scan is left alone (`cancel_efem`: minutes of work are not lost to an Esc meant for a preview)."""
         with self._segment_lock:
-            running = self._segment_cancel
+            running = self._segment_cancel if self._job == "segment" else None
         if running is not None:
             running.set()
             return

@@ -65,7 +65,7 @@ class ScanRoom:
         # We hold the scan's journal lock now: temp files of an interrupted write of ours are stale.
         for folder in {self.out_dir, self.work_dir}:
             remove_stale_temp_files(folder, self.stem)
-        if self.scene._normals_or_none() is None:
+        if self.scene.normals_pending:
             stage(f"estimating normals of {self.n:,} points")
         self.geom = sel.ScanGeometry(self.scene.points, self.scene.normals, faces=self.scene.faces)
         """The scan's selection geometry (kd-tree, ray caster, adjacency)."""

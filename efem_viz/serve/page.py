@@ -12,6 +12,7 @@ project starts (viewer, annotator) serves the same page.
 
 from __future__ import annotations
 
+import functools
 import gzip
 from typing import Any
 
@@ -34,6 +35,20 @@ def add_to_html(page: bytes) -> bytes:
     return page.replace(_MARKER, script + _MARKER, 1)
 
 
+@functools.lru_cache(maxsize=4)
+def _patched(body: bytes, zipped: bool) -> bytes | None:
+    """The served page with the additions (re-compressed when `zipped`), or None to serve it unchanged. Cached:
+    viser serves the same cached page bytes on every load, so the (de)compression runs once per page."""
+    try:
+        page = gzip.decompress(body) if zipped else body
+    except (OSError, EOFError):  # not what the header says: serve it as it is
+        return None
+    new = add_to_html(page)
+    if new is page:
+        return None
+    return gzip.compress(new) if zipped else new
+
+
 def with_page_additions(response: Any) -> Any:
     """The response with `KEYS_SCRIPT` in it when it carries the client's HTML page (status 200, `text/html`),
     re-compressed and with its Content-Length updated; any other response unchanged."""
@@ -43,15 +58,9 @@ def with_page_additions(response: Any) -> Any:
         return response
     if not str(headers.get("Content-Type", "")).startswith("text/html"):
         return response
-    zipped = headers.get("Content-Encoding", "identity") == "gzip"
-    try:
-        page = gzip.decompress(bytes(body)) if zipped else bytes(body)
-    except (OSError, EOFError):  # not what the header says: serve it as it is
+    payload = _patched(bytes(body), headers.get("Content-Encoding", "identity") == "gzip")
+    if payload is None:
         return response
-    new = add_to_html(page)
-    if new is page:
-        return response
-    payload = gzip.compress(new) if zipped else new
     response.body = payload
     if "Content-Length" in headers:
         del headers["Content-Length"]
