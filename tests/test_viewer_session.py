@@ -110,6 +110,22 @@ def test_each_result_opens_with_a_cut_that_shows_it(tmp_path: Path) -> None:
     assert s.state.threshold_by_user  # (still the person's earlier choice)
 
 
+def test_the_cut_stays_within_the_slider(tmp_path: Path) -> None:
+    """A script's cut above the slider's top (or below 0) is kept at the end of the range: the field never shows
+    a value the slider cannot (session 13 saw 0.1 on a slider ending at 0.02); the instances shown are the same."""
+    s = ViewerSession([SAMPLES], out_dir=tmp_path)
+    assert s.open_scene("real_tabletop_8") is not None
+    res = s.load_result()
+    assert res is not None
+    top = s.threshold_max(res)
+    s.set_threshold(top + 0.5)
+    assert s.state.threshold == top and not s.kept_mask().any()
+    s.set_threshold(-0.3)
+    assert s.state.threshold == 0.0 and s.kept_mask().all()
+    s.set_threshold(top / 2)
+    assert s.state.threshold == top / 2
+
+
 def test_the_run_preset_fits_the_scene() -> None:
     """Issue 37 item 14: a real capture (import-rgbd provenance, a recorded camera) runs with the `real` preset,
     a synthetic scan (whose generator records only its renders' image size) with `fast`."""

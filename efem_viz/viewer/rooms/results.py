@@ -123,8 +123,12 @@ class ResultRoom:
 
     def set_threshold(self, threshold: float, *, by_user: bool = True) -> None:
         """Filter the final instances by confidence (a view, no re-run). `by_user=False` for the app's own
-        redraws: only a person's cut is carried over to the next result (`set_result`)."""
-        self.core.state.threshold = float(threshold)
+        redraws: only a person's cut is carried over to the next result (`set_result`). The cut is kept within
+        the slider's range (0 to `threshold_max` of the shown result): a script's cut above the top hid the same
+        instances as the top but left the field showing a value the slider could not."""
+        s = self.core.state
+        top = self.threshold_max(s.result) if s.result is not None else 1.0
+        s.threshold = float(min(max(float(threshold), 0.0), top))
         if by_user:
             self.core.state.threshold_by_user = True
 
