@@ -125,6 +125,14 @@ def compare(args: argparse.Namespace, prior: Any, cfgs: dict[str, Any]) -> int:
             line = [f"  {scene.name:>10}:"]
             for name, c in cfgs.items():
                 res = run_one(scene, prior, c)
+                if args.save_results is not None:  # one folder per config: <dir>/<name>/<scene>.efem.npz
+                    from efem_viz.data.io import save_scene
+
+                    out = args.save_results / name
+                    out.mkdir(parents=True, exist_ok=True)
+                    if not (out / f"{scene.name}.ply").is_file():
+                        save_scene(scene, out / f"{scene.name}.ply")
+                    res.save(out)
                 preds[name].append(mug_prediction(res, scene.name))
                 one = evaluate([preds[name][-1]], [gts[-1]], class_names=("mug",))
                 per[name]["seconds"].append(res.timings["total"])
@@ -175,7 +183,7 @@ def main() -> int:
                     help="JSON output (default bench/results/em.json, or em_no_distractors.json)")
     ap.add_argument("--save-results", type=Path, default=None,
                     help="also write every accuracy run's scene (.ply) and result (.efem.npz) here, to open them in "
-                         "the viewer (efem-viz view DIR) or re-score them")
+                         "the viewer (efem-viz view DIR) or re-score them; with --config, one sub-folder per config)")
     ap.add_argument("--configs", nargs="+", default=list(CONFIGS[:3]), choices=CONFIGS,
                     help="scene configurations of the fixed set (default z so3 pile; the arrangements tree box "
                          "shelf are their own rows, issue 26)")

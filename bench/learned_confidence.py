@@ -17,6 +17,9 @@ A single-episode run's instances do not depend on the confidence, so a re-scored
 
 Usage: python bench/learned_confidence.py DIR/seed0 DIR/seed1 ... [--tune 0 1 6] [--judge 2 3 4 5 7 8]
        [--json bench/results/learned_confidence.json]
+       python bench/learned_confidence.py TUNE_DIR ... --judge-folders JUDGE_DIR ...   (generated scenes: every
+       scene of the positional folders is a tune scene, every scene of --judge-folders a judge scene; the held-out
+       score inside the tune set leaves one scene out at a time)
 """
 
 from __future__ import annotations
@@ -35,7 +38,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
 
-from efem_viz.em.look_alike import FEATURES, LookAlikeModel, fit_logistic, review_features  # noqa: E402
+from efem_viz.em.look_alike import FEATURES, LookAlikeModel, fit_logistic, load_model, review_features  # noqa: E402
 from ranking import Fit, fits_of, run_key, score_rule  # noqa: E402
 
 def features_of(f: Fit) -> dict[str, float]:
@@ -80,6 +83,11 @@ def main() -> int:
     ap.add_argument("folders", nargs="+", type=Path)
     ap.add_argument("--tune", type=int, nargs="+", default=[0, 1, 6])
     ap.add_argument("--judge", type=int, nargs="+", default=[2, 3, 4, 5, 7, 8])
+    ap.add_argument("--judge-folders", type=Path, nargs="+", default=None,
+                    help="split by folder instead of by frame: the positional folders are the tune scenes (e.g. "
+                         "`bench/em.py --seed0 9000 --save-results`), these the judge scenes (the fixed set)")
+    ap.add_argument("--model", nargs="*", default=["mug_uois_tune"],
+                    help="shipped models (efem_viz/em/models/NAME.json) to score as they are")
     ap.add_argument("--l2", type=float, nargs="+", default=[0.3, 1.0, 3.0, 10.0])
     ap.add_argument("--revive", type=float, nargs="+", default=[0.0, 1.0],
                     help="free-space kill limits to screen: 0 = as run, L = fits killed at a seen-through fraction "
@@ -94,17 +102,28 @@ def main() -> int:
                     help="--write chooses among the candidates of this kill limit (0: the solver's kills as run, "
                          "which keeps a re-score exact end to end)")
     a = ap.parse_args()
-    fits, scenes = load_fits(a.folders, a.cache)
+    fits, scenes = load_fits([*a.folders, *(a.judge_folders or [])], a.cache)
     acc = [f for f in fits if f.accepted]
-    tune, judge = set(a.tune), set(a.judge)
-    tr = [f for f in acc if frame_of(f.scene) in tune]
-    print(f"{len(acc)} accepted fits in {len(scenes)} scene runs; tune frames {sorted(tune)}: {len(tr)} fits, "
-          f"{sum(map(is_mug, tr))} mugs; judge frames {sorted(judge)}: "
-          f"{sum(frame_of(f.scene) in judge for f in acc)} fits, "
-          f"{sum(is_mug(f) for f in acc if frame_of(f.scene) in judge)} mugs")
+    group_of: Callable[[str], Any]
+    if a.judge_folders:  # generated scenes: the split is by folder, the held-out groups are scenes
+        tune_runs = {run_key(p) for p in a.folders}
+        tune_names = {name for run, name in scenes if run in tune_runs}
+        judge_names = {name for run, name in scenes if run not in tune_runs}
+        if tune_names & judge_names:
+            raise SystemExit(f"scenes in both the tune and the judge folders: {sorted(tune_names & judge_names)[:5]}")
+        tune, judge = tune_names, judge_names
+        group_of, split = (lambda name: name), "folders"
+    else:
+        tune, judge = set(a.tune), set(a.judge)
+        group_of, split = frame_of, "frames"
+    tr = [f for f in acc if group_of(f.scene) in tune]
+    print(f"{len(acc)} accepted fits in {len(scenes)} scene runs; tune {split} ({len(tune)}): {len(tr)} fits, "
+          f"{sum(map(is_mug, tr))} mugs; judge {split} ({len(judge)}): "
+          f"{sum(group_of(f.scene) in judge for f in acc)} fits, "
+          f"{sum(is_mug(f) for f in acc if group_of(f.scene) in judge)} mugs")
 
-    def in_frames(frames: set[int]) -> Callable[[str], bool]:
-        return lambda name: frame_of(name) in frames
+    def in_frames(frames: set[Any]) -> Callable[[str], bool]:
+        return lambda name: group_of(name) in frames
 
     def kept(limit: float) -> Callable[[Fit], bool]:
         """The fits a run keeps when the free-space check kills only above `limit` (0: as run)."""
@@ -119,16 +138,16 @@ def main() -> int:
         return r
 
     def lofo(names: Sequence[str], l2: float, use_conf: bool, revive: float = 0.0) -> float:
-        """AP50 over the tune frames, each scored by a model fitted on the other tune frames."""
+        """AP50 over the tune frames (scenes), each scored by a model fitted on the other tune frames (scenes)."""
         models = {}
         pool = [f for f in tr_all if kept(revive)(f)]
         for k in tune:
-            rest = [f for f in pool if frame_of(f.scene) != k]
+            rest = [f for f in pool if group_of(f.scene) != k]
             y = np.array([is_mug(f) for f in rest], np.float64)
             models[k] = fit_logistic(matrix(rest, names), y, names, l2=l2) if 0 < y.sum() < len(y) else None
 
         def rule(f: Fit) -> float:
-            m = models.get(frame_of(f.scene))
+            m = models.get(group_of(f.scene))
             p = float(m.probs(matrix([f], names))[0]) if m is not None else 0.5
             return p * (conf(f) if use_conf else 1.0)
 
@@ -136,7 +155,7 @@ def main() -> int:
 
     out: dict[str, Any] = {}
     models: dict[str, LookAlikeModel] = {}
-    tr_all = [f for f in fits if frame_of(f.scene) in tune]
+    tr_all = [f for f in fits if group_of(f.scene) in tune]
 
     def demoted(f: Fit) -> float:
         """The confidence of a revived fit: stationary x coverage (capped at 0.4) x (1 - seen-through)."""
@@ -144,7 +163,9 @@ def main() -> int:
         return f.stationary * min(f.coverage, 0.4) / 0.4 * (1.0 - st)
 
     def conf(f: Fit) -> float:
-        return f.confidence if f.accepted else demoted(f)
+        """The paper's confidence with the free-space factor, recomputed from the review features: runs saved
+        with a `mug_model` store confidences that already hold that model's factor."""
+        return demoted(f)
 
     def _candidate(revive: float, sname: str, names: list[str], use_conf: bool) -> None:
         best = max(a.l2, key=lambda l2: lofo(names, l2, use_conf, revive))
@@ -153,7 +174,8 @@ def main() -> int:
         y = np.array([is_mug(f) for f in pool], np.float64)
         model = fit_logistic(matrix(pool, names), y, names, l2=best, trained_on=(
             f"bench/learned_confidence.py: accepted{f' and free-space-killed (<= {revive:g})' if revive else ''} fits of "
-            f"frames {sorted(tune)} in {len(a.folders)} saved runs, L2 {best:g}"), times_confidence=use_conf)
+            f"{split} {sorted(tune) if split == 'frames' else ', '.join(map(str, a.folders))} in "
+            f"{len(a.folders)} saved runs, L2 {best:g}"), times_confidence=use_conf)
 
         def rule(f: Fit) -> float:
             return float(model.probs(matrix([f], names))[0]) * (conf(f) if use_conf else 1.0)
@@ -171,8 +193,12 @@ def main() -> int:
           "found |\n|---|---:|---:|---:|---:|---:|")
     pose = lambda f: min(1.0, max(f.db_sim, 0.0) / 0.6) ** 2 if math.isfinite(f.db_sim) else 1.0  # noqa: E731
     out["solver (as run)"] = table_row("solver (as run)", lambda f: f.confidence)
-    out["x min(1, pose/0.6)^2 (shipped)"] = table_row("x min(1, pose/0.6)² (shipped `real` preset)",
-                                                      lambda f: f.confidence * pose(f))
+    out["x min(1, pose/0.6)^2 (session 12)"] = table_row("x min(1, pose/0.6)² (session 12's `real` preset)",
+                                                         lambda f: conf(f) * pose(f))
+    for name in a.model:
+        shipped = load_model(name)
+        out[f"shipped {name}"] = table_row(
+            f"shipped model `{name}`", lambda f, m=shipped: m.confidence(conf(f), features_of(f)))
     all_names = list(FEATURES)
     subsets = {"all features": all_names,
                "no seen-through": [n for n in all_names if n != "seen-through"],
@@ -218,8 +244,8 @@ def main() -> int:
     if a.json is not None:
         from efem_viz.data.io import atomic_write_text
 
-        atomic_write_text(a.json, json.dumps({"folders": [str(p) for p in a.folders], "tune": sorted(tune),
-                                              "judge": sorted(judge), "candidates": out}, indent=1, default=float))
+        atomic_write_text(a.json, json.dumps({"folders": [str(p) for p in a.folders], "tune": sorted(map(str, tune)),
+                                              "judge": sorted(map(str, judge)), "candidates": out}, indent=1, default=float))
         print(f"wrote {a.json}")
     return 0
 

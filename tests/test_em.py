@@ -199,7 +199,8 @@ def test_random_shape_prior_smoke() -> None:
     assert len(steps) == tr.num_steps >= 1
     assert np.all(np.diff(tr.active_count) <= 0)
     for e in tr.events():
-        assert e.reason in ("proposal too small", "duplicated", "included", "scale-fail", "pose-fail", "survive")
+        assert e.reason in ("proposal too small", "duplicated", "included", "includes a better fit", "scale-fail",
+                            "pose-fail", "survive")
     assert (tr.death_reason >= 0).all()  # every proposal ended with a recorded reason
     assert tr.row_R.shape[1:] == (16, 3) and tr.row_samples.shape[1] == 64
     assert res.timings["encoded_sets"] == tr.row_offsets[-1]

@@ -18,6 +18,7 @@ from efem_viz.em.proposals import AvailableTree, Ragged, init_crops, lookup, sam
 from efem_viz.em.rules import (
     REASON_DUPLICATE,
     REASON_INCLUDED,
+    REASON_INCLUDES_BETTER,
     REASON_TOO_SMALL,
     find_duplicates,
     find_inclusions,
@@ -175,6 +176,32 @@ def test_inclusion_kill_takes_effect_immediately() -> None:
     assert [(k.row, k.partner) for k in kills] == [(0, 1)]
     # inactive rows are never partners
     assert find_inclusions(sets_from([a, a]), 0.8, active=np.array([True, False])) == []
+
+
+def test_inclusion_modes_decide_by_the_stationary_score() -> None:
+    """Issue 33: a fit wider than its object (two mugs, a mug and the table) includes a better fit of one of them;
+    the paper kills the better one. "score" keeps both unless the includer scores at least as high, "swap" kills
+    the includer instead."""
+    big = list(range(0, 50))
+    small = list(range(5, 15)) + [90]  # 10 of 11 inside big
+    mat = sets_from([big, small])
+    better_small, better_big = np.array([0.3, 0.7]), np.array([0.7, 0.3])
+    assert [(k.row, k.partner) for k in find_inclusions(mat, 0.8, scores=better_small)] == [(1, 0)]  # paper
+    assert find_inclusions(mat, 0.8, scores=better_small, mode="score") == []
+    swapped = find_inclusions(mat, 0.8, scores=better_small, mode="swap")
+    assert [(k.row, k.partner, k.reason) for k in swapped] == [(0, 1, REASON_INCLUDES_BETTER)]
+    assert swapped[0].ratio == pytest.approx(10 / 11, abs=1e-5)
+    for mode in ("score", "swap"):  # an includer that scores at least as high still wins, ties included
+        assert [(k.row, k.partner) for k in find_inclusions(mat, 0.8, scores=better_big, mode=mode)] == [(1, 0)]
+        assert [k.row for k in find_inclusions(mat, 0.8, scores=np.array([0.5, 0.5]), mode=mode)] == [1]
+    # a swapped-out includer is no partner for later rows: a third set inside big only survives
+    third = list(range(20, 30))
+    kills = find_inclusions(sets_from([big, small, third]), 0.8, scores=np.array([0.3, 0.7, 0.1]), mode="swap")
+    assert [(k.row, k.partner) for k in kills] == [(0, 1)]
+    with pytest.raises(ValueError, match="needs the rows' scores"):
+        find_inclusions(mat, 0.8, mode="swap")
+    with pytest.raises(ValueError, match="paper, score or swap"):
+        find_inclusions(mat, 0.8, scores=better_big, mode="bigger")
 
 
 # ---------------------------------------------------------------------------------------------- registry

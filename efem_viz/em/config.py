@@ -34,6 +34,9 @@ PRESET_ALIASES: dict[str, str] = {"synthetic_mugs": "synthetic", "real_mugs": "r
 """Names of the presets before they lost the category (still accepted by `preset`)."""
 CropMode = Literal["sphere", "cylinder"]
 Domain = Literal["synthetic", "real"]
+InclusionMode = Literal["paper", "score", "swap"]
+INCLUSION_MODES: tuple[str, ...] = ("paper", "score", "swap")
+"""Which row of a §3.8c inclusion dies (`EMConfig.inclusion`, `rules.find_inclusions`)."""
 
 
 @dataclass(frozen=True)
@@ -105,6 +108,9 @@ class EMConfig:
     """Phase-2 duplicate IoU threshold."""
     joint_incl: float = 0.8
     """Phase-2 inclusion ratio threshold (pairwise)."""
+    inclusion: InclusionMode = "paper"
+    """Which row of an inclusion dies (`rules.find_inclusions`): "paper" (§3.8c: the included one), "score" (the
+    included one only when its includer scores at least as high) or "swap" (else the includer)."""
     tau_out: float | None = None
     """Output mask SDF threshold (canonical units). None = the prior's (its category's `tau_out`, i.e. the
     metadata `tau_out` written by `efem-viz calibrate-masks`, else the spec's 0.04); `run_em` resolves it per
@@ -226,6 +232,8 @@ class EMConfig:
             raise ValueError(f"work_voxel must be >= 0 or None, got {self.work_voxel}")
         if self.tau_out is not None and not 0.0 < self.tau_out <= MAX_TAU_OUT:
             raise ValueError(f"tau_out must be in (0, {MAX_TAU_OUT}] or None, got {self.tau_out}")
+        if self.inclusion not in INCLUSION_MODES:
+            raise ValueError(f"inclusion must be one of {INCLUSION_MODES}, got {self.inclusion!r}")
         if self.min_size_on not in ("inliers", "band"):
             raise ValueError(f"min_size_on must be 'inliers' or 'band', got {self.min_size_on!r}")
         if self.min_size_spacing is not None and not (0.0 < self.min_size_spacing < 1.0):

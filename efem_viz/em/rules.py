@@ -34,6 +34,8 @@ if TYPE_CHECKING:
 REASON_TOO_SMALL = "proposal too small"
 REASON_DUPLICATE = "duplicated"
 REASON_INCLUDED = "included"
+REASON_INCLUDES_BETTER = "includes a better fit"
+"""An includer that scores lower than the fit it includes (`EMConfig.inclusion` = "swap")."""
 REASON_SCALE = "scale-fail"
 REASON_POSE = "pose-fail"
 REASON_SEEN_THROUGH = "seen-through"
@@ -173,14 +175,30 @@ def find_inclusions(
     threshold: float,
     *,
     active: np.ndarray | None = None,
+    scores: np.ndarray | None = None,
+    mode: str = "paper",
 ) -> list[Kill]:
     """§3.8c pairwise inclusion: row i dies if |B_i ∩ B_k| / |B_i| > θ for a single other active k.
 
     Rows are visited in order and a kill takes effect immediately (later rows no longer see it).
 
+    Args:
+        sets: (P, N) sparse sets.
+        threshold: θ_incl.
+        active: rows still alive.
+        scores: (P,) stationary scores (modes other than "paper").
+        mode: "paper" (§3.8c: the included row dies), "score" (it dies only when its includer scores at least as
+            high; else both stay) or "swap" (as "score", but an includer that scores lower than the row it
+            includes dies instead: a fit wider than its object swallowing a better fit of that object).
+
     Returns:
-        The kills; `partner` is the k of the largest overlap and `ratio` that overlap.
+        The kills; `partner` is the k of the largest overlap and `ratio` that overlap (a swapped kill: reason
+        `REASON_INCLUDES_BETTER`, partner the row it included, ratio that row's overlap with it).
     """
+    if mode not in ("paper", "score", "swap"):
+        raise ValueError(f"inclusion mode must be paper, score or swap, got {mode!r}")
+    if mode != "paper" and scores is None:
+        raise ValueError(f"inclusion mode {mode!r} needs the rows' scores")
     inter, sizes = overlap_counts(sets)
     p = len(sizes)
     alive = np.ones(p, bool) if active is None else np.asarray(active, bool).copy()
@@ -193,8 +211,12 @@ def find_inclusions(
         ratio[i] = -1.0
         k = int(np.argmax(ratio)) if p > 1 else -1
         if k >= 0 and ratio[k] > threshold:
-            alive[i] = False
-            kills.append(Kill(i, REASON_INCLUDED, k, float(ratio[k])))
+            if mode == "paper" or scores[k] >= scores[i]:
+                alive[i] = False
+                kills.append(Kill(i, REASON_INCLUDED, k, float(ratio[k])))
+            elif mode == "swap":
+                alive[k] = False
+                kills.append(Kill(k, REASON_INCLUDES_BETTER, i, float(ratio[k])))
     return kills
 
 
@@ -254,12 +276,14 @@ class StepRule:
         find: the rule: StepContext → kills (rows of the context; must only kill active rows).
         phases: the phases it runs in.
         needs_pair: run only while more than one row is active (pairwise rules).
+        also: other reasons its kills may carry (a rule that can kill either row of a pair).
     """
 
     reason: str
     find: Callable[[StepContext], list[Kill]]
     phases: tuple[int, ...] = (1, 2)
     needs_pair: bool = False
+    also: tuple[str, ...] = ()
 
 
 def _too_small(ctx: StepContext) -> list[Kill]:
@@ -273,13 +297,14 @@ def _duplicates(ctx: StepContext) -> list[Kill]:
 
 
 def _inclusions(ctx: StepContext) -> list[Kill]:
-    return find_inclusions(ctx.sets, ctx.cfg.joint_incl, active=ctx.active)
+    return find_inclusions(ctx.sets, ctx.cfg.joint_incl, active=ctx.active, scores=ctx.stationary,
+                           mode=getattr(ctx.cfg, "inclusion", "paper"))
 
 
 STEP_RULES: tuple[StepRule, ...] = (
     StepRule(REASON_TOO_SMALL, _too_small),
     StepRule(REASON_DUPLICATE, _duplicates, needs_pair=True),
-    StepRule(REASON_INCLUDED, _inclusions, phases=(2,), needs_pair=True),
+    StepRule(REASON_INCLUDED, _inclusions, phases=(2,), needs_pair=True, also=(REASON_INCLUDES_BETTER,)),
 )
 """The method's per-step rules (§3.8a-c), in the order they run."""
 
@@ -294,7 +319,7 @@ def apply_step_rules(ctx: StepContext, rules: Sequence[StepRule] = STEP_RULES) -
         for k in found:
             if not ctx.active[k.row]:
                 raise ValueError(f"rule {rule.reason!r} killed row {k.row}, which was already dead")
-            if k.reason != rule.reason:
+            if k.reason != rule.reason and k.reason not in rule.also:
                 k = Kill(k.row, rule.reason, k.partner, k.ratio)
             ctx.active[k.row] = False
             kills.append(k)
@@ -415,10 +440,11 @@ def reason_names(step_rules: Sequence[StepRule] = STEP_RULES,
     """The reason-name table of a run with these rules (its int8 death codes index it; "survive" last)."""
     names: list[str] = []
     for r in (*step_rules, *review_rules):
-        if r.reason == REASON_SURVIVE:
-            raise ValueError(f"a rule cannot be named {REASON_SURVIVE!r}")
-        if r.reason not in names:
-            names.append(r.reason)
+        for reason in (r.reason, *getattr(r, "also", ())):
+            if reason == REASON_SURVIVE:
+                raise ValueError(f"a rule cannot be named {REASON_SURVIVE!r}")
+            if reason not in names:
+                names.append(reason)
     names.append(REASON_SURVIVE)
     if len(names) > 127:
         raise ValueError(f"too many distinct rule reasons ({len(names)}): the trace stores int8 codes")

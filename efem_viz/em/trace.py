@@ -37,8 +37,9 @@ class DeathEvent(NamedTuple):
     """A proposal's termination (`reason` one of the trace's `reason_names`; `survive` = accepted).
 
     `ratio` depends on the reason: the inlier count ("proposal too small"), the IoU or inclusion ratio with
-    `partner` ("duplicated", "included"), the largest scale radius in metres ("scale-fail"), the up-axis angle
-    in degrees ("pose-fail"), or the confidence ("survive"). `partner` is −1 unless a duplicate/inclusion.
+    `partner` ("duplicated", "included"; "includes a better fit": the included fit's overlap), the largest scale
+    radius in metres ("scale-fail"), the up-axis angle in degrees ("pose-fail"), or the confidence ("survive").
+    `partner` is −1 unless a duplicate/inclusion.
     """
 
     step: int
