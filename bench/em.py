@@ -214,6 +214,7 @@ def main() -> int:
     cfgs = {name: cfg.replace(**changes) for name, changes in variants.items()}
     if len(cfgs) > 1:
         return compare(args, prior, cfgs)
+    cfg = next(iter(cfgs.values()))  # one --config: its changes on the preset (they were dropped before)
     n_scenes = args.n_scenes or (2 if args.quick else 10)
     out: dict[str, Any] = {
         "machine": machine(args.threads),

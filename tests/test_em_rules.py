@@ -227,6 +227,23 @@ def test_step_rules_run_in_order_and_each_kill_hides_the_row_from_later_rules() 
     assert [(k.row, k.partner, k.reason) for k in apply_step_rules(ctx)] == [(0, 1, REASON_INCLUDED)]
 
 
+def test_the_inclusion_mode_of_the_config_reaches_the_step_rule() -> None:
+    """`EMConfig.inclusion` through `apply_step_rules`: b (19 points) lies inside a (20) and a inside b; a is
+    visited first and scores higher. The paper kills a; "score" spares it and b dies inside a; "swap" kills b
+    as the includer of a better fit, and that reason is in the name table."""
+    a, b = list(range(0, 20)), list(range(0, 19))
+    got = {}
+    for mode in ("paper", "score", "swap"):
+        ctx = _ctx(2, [20, 19], [a, b], [0.9, 0.1])
+        ctx.cfg = ctx.cfg.replace(joint_dup_iou=1.01, inclusion=mode)
+        got[mode] = [(k.row, k.partner, k.reason) for k in apply_step_rules(ctx)]
+    assert got == {"paper": [(0, 1, REASON_INCLUDED)], "score": [(1, 0, REASON_INCLUDED)],
+                   "swap": [(1, 0, REASON_INCLUDES_BETTER)]}
+    assert REASON_INCLUDES_BETTER in reason_names()
+    with pytest.raises(ValueError, match="inclusion must be one of"):
+        preset("fast").replace(inclusion="largest").validate()
+
+
 def test_a_registered_rule_runs_and_its_reason_enters_the_name_table() -> None:
     def odd_rows(ctx: StepContext) -> list[Kill]:
         return [Kill(int(r), "odd") for r in np.flatnonzero(ctx.active) if r % 2]
