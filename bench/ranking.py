@@ -24,7 +24,10 @@ fit would also hold its points against later episodes). Screen rules here, then 
 tolerance (`EMConfig.seen_through_lateral`) from its stored mesh and scores "kill above `--limit`, confidence x
 (1 - fraction)" for each (issue 33 item 2), without a re-run.
 
-Usage: python bench/ranking.py DIR [DIR ...] [--lateral M ...] [--json bench/results/ranking_<tag>.json]
+`--lost` says why each mug that no accepted instance matches was lost: the best reviewed fit of it and how that
+proposal ended ("included" in a wider fit, "duplicated", a review rule) or "no good fit" (issue 33 item 4).
+
+Usage: python bench/ranking.py DIR [DIR ...] [--lateral M ...] [--lost] [--json bench/results/ranking_<tag>.json]
 """
 
 from __future__ import annotations
@@ -164,6 +167,42 @@ def fits_of(folder: Path, laterals: list[float] | None = None) -> list[Fit]:
     return out
 
 
+def lost_mugs(folder: Path) -> list[dict[str, Any]]:
+    """Why each mug that no accepted instance matches (IoU >= 0.5) was lost: the reviewed fit of it with the best
+    IoU (any proposal's last review) and how that proposal ended — "included" in a wider fit, "duplicated",
+    killed by a review rule, ... — or "no good fit" when no proposal ever held it (issue 33 item 4)."""
+    from efem_viz.data.io import load_scene
+    from efem_viz.em.results import EMResult
+
+    out: list[dict[str, Any]] = []
+    for npz in sorted(folder.glob("*.efem.npz")):
+        name = npz.name[: -len(".efem.npz")]
+        if not (folder / f"{name}.ply").is_file():
+            continue
+        scene = load_scene(folder / f"{name}.ply")
+        if scene.instance is None:
+            continue
+        res = EMResult.load(npz)
+        tr = res.trace
+        last = {pid: revs[-1].mask for pid in range(tr.num_proposals) if (revs := tr.reviews(pid))}
+        for gid, cat in sorted(scene.categories.items()):
+            g = np.flatnonzero(scene.instance == int(gid))
+            if cat != "mug" or not len(g):
+                continue
+
+            def iou(mask: np.ndarray) -> float:
+                return len(np.intersect1d(mask, g)) / max(1, len(np.union1d(mask, g)))
+
+            if max((iou(m) for m in res.instances.masks), default=0.0) >= 0.5:
+                continue
+            best = max(((iou(m), pid) for pid, m in last.items()), default=(0.0, -1))
+            death = tr.death(best[1]) if best[0] >= 0.5 else None
+            out.append({"run": run_key(folder), "scene": name, "mug": int(gid), "best_iou": float(best[0]),
+                        "reason": str(death[1]) if death is not None else "no good fit",
+                        "step": int(death[0]) if death is not None else -1})
+    return out
+
+
 def run_key(folder: Path) -> str:
     """A run's name: its folder and the folder above (`DIR/seed0`), so that runs of several saved sets, each with
     its seed0, seed1, ... folders, stay apart."""
@@ -272,6 +311,8 @@ def main() -> int:
     ap.add_argument("--lateral", type=float, nargs="*", default=[],
                     help="re-measure the free-space check with these sideways tolerances (m) and score each")
     ap.add_argument("--limit", type=float, default=0.15, help="seen-through limit of the lateral rules")
+    ap.add_argument("--lost", action="store_true",
+                    help="also say why each mug no accepted instance matches was lost (`lost_mugs`)")
     ap.add_argument("--split", nargs="*", default=[], metavar="NAME=K,K",
                     help="also score scene subsets by frame number, e.g. tune=0,1,6 judge=2,3,4,5,7,8 (bench/real.py)")
     a = ap.parse_args()
@@ -285,6 +326,17 @@ def main() -> int:
         for name in sorted({f.scene for f in got}):
             scenes[(run_key(folder), name)] = load_scene(folder / f"{name}.ply")
     print(f"{len(fits)} reviewed fits ({sum(f.accepted for f in fits)} accepted) in {len(scenes)} scene runs")
+    lost: list[dict[str, Any]] = []
+    if a.lost:
+        lost = [m for folder in a.folders for m in lost_mugs(folder)]
+        tally: dict[str, int] = defaultdict(int)
+        for m in lost:
+            tally[m["reason"]] += 1
+        print(f"\n{len(lost)} mugs lost; the fate of the best reviewed fit of each (IoU >= 0.5):\n\n| fate | mugs | "
+              "best IoU (median) |\n|---|---:|---:|")
+        for reason, n in sorted(tally.items(), key=lambda kv: -kv[1]):
+            ious = [m["best_iou"] for m in lost if m["reason"] == reason]
+            print(f"| {reason} | {n} | {np.median(ious):.2f} |")
     groups: dict[str, list[Fit]] = defaultdict(list)
     for f in fits:
         groups[kind(f)].append(f)
@@ -343,7 +395,8 @@ def main() -> int:
         rows = [{k: (v if k != "seen_lateral" else {str(x): y for x, y in v.items()}) for k, v in asdict(f).items()
                  if k != "mask"} for f in fits]
         atomic_write_text(a.json, json.dumps({"folders": [str(p) for p in a.folders], "kinds": table,
-                                              "rules": rules_out, "fits": rows}, indent=1, default=float))
+                                              "rules": rules_out, "fits": rows, "lost_mugs": lost},
+                                             indent=1, default=float))
         print(f"wrote {a.json}")
     return 0
 
