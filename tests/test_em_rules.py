@@ -302,12 +302,14 @@ def test_schedule_real_paper(t: int, expected: tuple[float, ...]) -> None:
 
 def test_real_preset_is_the_paper_one_with_the_measured_changes() -> None:
     """`real` = §3.12's real settings (`real_paper`) + the session-8 changes for noisy single-view frames + the
-    session-13 learned mug-vs-look-alike confidence."""
+    session-13 learned mug-vs-look-alike confidence + the session-14 inclusion rule that spares the better fit."""
     real, paper = preset("real"), preset("real_paper")
     assert dataclasses.replace(real, name="real_paper", tau_d=paper.tau_d, tau_n=paper.tau_n, m_step_replace=True,
                                seen_through_margin=None, max_seen_through=paper.max_seen_through,
-                               mug_model=None) == paper
+                               mug_model=None, inclusion="paper") == paper
     assert real.mug_model == "mug_uois_tune" and paper.mug_model is None and real.pose_weight == 0.0
+    assert real.inclusion == "score" and paper.inclusion == "paper"
+    assert preset("synthetic").inclusion == preset("fast").inclusion == "score"
     assert schedule(real, 0) == pytest.approx((3.0, 0.15, 0.003, 180.0))
     assert not real.m_step_replace and real.seen_through_margin == 0.01 and real.max_seen_through == 0.15
 

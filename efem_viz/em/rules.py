@@ -201,6 +201,7 @@ def find_inclusions(
         raise ValueError(f"inclusion mode {mode!r} needs the rows' scores")
     inter, sizes = overlap_counts(sets)
     p = len(sizes)
+    score = np.zeros(p) if scores is None else np.asarray(scores, np.float64)
     alive = np.ones(p, bool) if active is None else np.asarray(active, bool).copy()
     kills: list[Kill] = []
     for i in range(p):
@@ -211,7 +212,7 @@ def find_inclusions(
         ratio[i] = -1.0
         k = int(np.argmax(ratio)) if p > 1 else -1
         if k >= 0 and ratio[k] > threshold:
-            if mode == "paper" or scores[k] >= scores[i]:
+            if mode == "paper" or score[k] >= score[i]:
                 alive[i] = False
                 kills.append(Kill(i, REASON_INCLUDED, k, float(ratio[k])))
             elif mode == "swap":
