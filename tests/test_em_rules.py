@@ -200,7 +200,7 @@ def test_inclusion_modes_decide_by_the_stationary_score() -> None:
     assert [(k.row, k.partner) for k in kills] == [(0, 1)]
     with pytest.raises(ValueError, match="needs the rows' scores"):
         find_inclusions(mat, 0.8, mode="swap")
-    with pytest.raises(ValueError, match="paper, score or swap"):
+    with pytest.raises(ValueError, match="one of paper, score, swap"):
         find_inclusions(mat, 0.8, scores=better_big, mode="bigger")
 
 

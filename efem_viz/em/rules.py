@@ -195,8 +195,10 @@ def find_inclusions(
         The kills; `partner` is the k of the largest overlap and `ratio` that overlap (a swapped kill: reason
         `REASON_INCLUDES_BETTER`, partner the row it included, ratio that row's overlap with it).
     """
-    if mode not in ("paper", "score", "swap"):
-        raise ValueError(f"inclusion mode must be paper, score or swap, got {mode!r}")
+    from efem_viz.em.config import INCLUSION_MODES
+
+    if mode not in INCLUSION_MODES:
+        raise ValueError(f"inclusion mode must be one of {', '.join(INCLUSION_MODES)}, got {mode!r}")
     if mode != "paper" and scores is None:
         raise ValueError(f"inclusion mode {mode!r} needs the rows' scores")
     inter, sizes = overlap_counts(sets)
