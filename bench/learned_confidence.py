@@ -39,6 +39,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
 
 from efem_viz.em.look_alike import FEATURES, LookAlikeModel, fit_logistic, load_model, review_features  # noqa: E402
+from efem_viz.em.solver import confidence  # noqa: E402
 from ranking import Fit, fits_of, run_key, score_rule  # noqa: E402
 
 def features_of(f: Fit) -> dict[str, float]:
@@ -157,15 +158,11 @@ def main() -> int:
     models: dict[str, LookAlikeModel] = {}
     tr_all = [f for f in fits if group_of(f.scene) in tune]
 
-    def demoted(f: Fit) -> float:
-        """The confidence of a revived fit: stationary x coverage (capped at 0.4) x (1 - seen-through)."""
-        st = f.seen_through if math.isfinite(f.seen_through) else 0.0
-        return f.stationary * min(f.coverage, 0.4) / 0.4 * (1.0 - st)
-
     def conf(f: Fit) -> float:
-        """The paper's confidence with the free-space factor, recomputed from the review features: runs saved
-        with a `mug_model` store confidences that already hold that model's factor."""
-        return demoted(f)
+        """The paper's confidence with the free-space factor (`solver.confidence`, the presets' coverage cap 0.4),
+        recomputed from the review features for every fit, revived ones included: runs saved with a `mug_model`
+        store confidences that already hold that model's factor."""
+        return confidence(f.stationary, f.coverage, cap=0.4, seen_through=f.seen_through)
 
     def _candidate(revive: float, sname: str, names: list[str], use_conf: bool) -> None:
         best = max(a.l2, key=lambda l2: lofo(names, l2, use_conf, revive))
@@ -210,7 +207,7 @@ def main() -> int:
         if limit > 0:
             out[f"revived <= {limit:g}, demoted"] = table_row(
                 f"fits killed by the free-space check revived up to {limit:g}, confidence x (1 - fraction)",
-                demoted, revive=limit)
+                conf, revive=limit)
     for revive in a.revive:
         for sname, names in subsets.items():
             for use_conf in (False, True):

@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 import json
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any, Literal, get_args
 
 from efem_viz.prior.config import (
     DEFAULT_TAU_OUT,
@@ -35,7 +35,7 @@ PRESET_ALIASES: dict[str, str] = {"synthetic_mugs": "synthetic", "real_mugs": "r
 CropMode = Literal["sphere", "cylinder"]
 Domain = Literal["synthetic", "real"]
 InclusionMode = Literal["paper", "score", "swap"]
-INCLUSION_MODES: tuple[str, ...] = ("paper", "score", "swap")
+INCLUSION_MODES: tuple[str, ...] = get_args(InclusionMode)
 """Which row of a §3.8c inclusion dies (`EMConfig.inclusion`, `rules.find_inclusions`)."""
 
 

@@ -29,7 +29,7 @@ from efem_viz.em.proposals import Ragged
 if TYPE_CHECKING:
     import scipy.sparse as sp
 
-    from efem_viz.em.config import EMConfig
+    from efem_viz.em.config import EMConfig, InclusionMode
 
 REASON_TOO_SMALL = "proposal too small"
 REASON_DUPLICATE = "duplicated"
@@ -176,7 +176,7 @@ def find_inclusions(
     *,
     active: np.ndarray | None = None,
     scores: np.ndarray | None = None,
-    mode: str = "paper",
+    mode: "InclusionMode" = "paper",
 ) -> list[Kill]:
     """§3.8c pairwise inclusion: row i dies if |B_i ∩ B_k| / |B_i| > θ for a single other active k.
 
@@ -301,7 +301,7 @@ def _duplicates(ctx: StepContext) -> list[Kill]:
 
 def _inclusions(ctx: StepContext) -> list[Kill]:
     return find_inclusions(ctx.sets, ctx.cfg.joint_incl, active=ctx.active, scores=ctx.stationary,
-                           mode=getattr(ctx.cfg, "inclusion", "paper"))
+                           mode=ctx.cfg.inclusion)
 
 
 STEP_RULES: tuple[StepRule, ...] = (
@@ -442,12 +442,12 @@ def reason_names(step_rules: Sequence[StepRule] = STEP_RULES,
                  review_rules: Sequence[ReviewRule] = REVIEW_RULES) -> tuple[str, ...]:
     """The reason-name table of a run with these rules (its int8 death codes index it; "survive" last)."""
     names: list[str] = []
-    for r in (*step_rules, *review_rules):
-        for reason in (r.reason, *getattr(r, "also", ())):
-            if reason == REASON_SURVIVE:
-                raise ValueError(f"a rule cannot be named {REASON_SURVIVE!r}")
-            if reason not in names:
-                names.append(reason)
+    every = [reason for r in step_rules for reason in (r.reason, *r.also)] + [r.reason for r in review_rules]
+    for reason in every:
+        if reason == REASON_SURVIVE:
+            raise ValueError(f"a rule cannot be named {REASON_SURVIVE!r}")
+        if reason not in names:
+            names.append(reason)
     names.append(REASON_SURVIVE)
     if len(names) > 127:
         raise ValueError(f"too many distinct rule reasons ({len(names)}): the trace stores int8 codes")
