@@ -179,6 +179,35 @@ def test_episodes_reseed_only_unassigned_points(sphere_run: tuple) -> None:
     assert tr.step_local.tolist() == list(range(6)) * 2 or tr.num_steps < 12
 
 
+def test_phase_two_rules_see_each_rows_phase_one_review_coverage() -> None:
+    """`EMConfig.inclusion_by` = "confidence" needs each live row's review coverage: the solver hands the step
+    rules the phase-1 review's coverage of exactly the rows alive in every phase-2 step (none in phase 1), and
+    a solve with that mode runs through and finds each sphere once."""
+    from efem_viz.em.rules import STEP_RULES, StepContext, StepRule
+
+    scene = make_sphere_scene(seed=11)
+    prior = make_sphere_prior()
+    seen: list[tuple[int, int, np.ndarray | None, int]] = []
+
+    def record(ctx: StepContext) -> list:
+        seen.append((ctx.phase, ctx.step, None if ctx.coverage is None else ctx.coverage.copy(), len(ctx.inliers)))
+        return []
+
+    cfg = preset("fast").replace(n_init=(64,), inclusion="score", inclusion_by="confidence")
+    res = run_em(scene, prior, cfg, seed=5, step_rules=(StepRule("record", record), *STEP_RULES))
+    tr = res.trace
+    assert [p for p, *_ in seen] == [1] * cfg.t1 + [2] * cfg.t2
+    assert all(cov is None for p, _, cov, _ in seen if p == 1)
+    for phase, step, cov, rows in seen:
+        if phase == 2:
+            assert cov is not None and len(cov) == rows
+            ids, _ = tr.alive_scores(step)
+            want = [next(r.coverage for r in tr.reviews(int(i)) if r.phase == 1) for i in ids]
+            np.testing.assert_allclose(cov, want)
+    best = ious(res.instances, scene.instance).max(axis=0)
+    assert (best >= 0.5).all()
+
+
 # ---------------------------------------------------------------------------------------------- random ShapePrior
 def test_random_shape_prior_smoke() -> None:
     import torch

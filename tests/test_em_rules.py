@@ -28,6 +28,7 @@ from efem_viz.em.rules import (
     StepContext,
     StepRule,
     apply_step_rules,
+    capped_confidence,
     first_failed_review,
     reason_names,
     set_matrix,
@@ -210,7 +211,8 @@ def _ctx(phase: int, inliers: list[int], rows: list[list[int]], stationary: list
     return StepContext(phase=phase, step=0, local_step=0 if phase == 1 else 15, cfg=preset("fast"),
                        inliers=np.array(inliers), stationary=np.array(stationary),
                        d=np.zeros(len(rag.idx), np.float32), rag=rag, n_points=N, min_size=3,
-                       owner=np.zeros(len(rows), np.int64))
+                       owner=np.zeros(len(rows), np.int64),
+                       coverage=np.full(len(rows), 0.4) if phase == 2 else None)  # phase 2 rows have a review
 
 
 def test_step_rules_run_in_order_and_each_kill_hides_the_row_from_later_rules() -> None:
@@ -242,6 +244,50 @@ def test_the_inclusion_mode_of_the_config_reaches_the_step_rule() -> None:
     assert REASON_INCLUDES_BETTER in reason_names()
     with pytest.raises(ValueError, match="inclusion must be one of"):
         preset("fast").replace(inclusion="largest").validate()
+
+
+def test_capped_confidence_is_the_papers_confidence() -> None:
+    """§3.10 by hand: 0.5 · min(0.2, 0.4) / 0.4 = 0.25; coverage above the cap counts as the cap."""
+    got = capped_confidence(np.array([0.5, 0.5, 0.8]), np.array([0.2, 0.6, 0.0]), 0.4)
+    np.testing.assert_allclose(got, [0.25, 0.5, 0.0])
+    assert confidence(0.5, 0.2) == pytest.approx(0.25)
+    with pytest.raises(ValueError, match="cap must be > 0"):
+        capped_confidence(0.5, 0.2, 0.0)
+
+
+def test_confidence_inclusion_spares_a_tight_fit_inside_a_wide_one() -> None:
+    """Issue 33 (tree and box scenes): a fit over two mugs (a, 30 points, stationary 0.9) holds all of a tight
+    fit of one of them (b, 19 points, stationary 0.6; a holds only 19/30 of a's own points in b, so a is not
+    included in b). By stationary score b dies in every mode. The wide fit's completed shape is mostly
+    unobserved (coverage 0.05 against 0.35), so by confidence (0.9 · 0.05/0.4 = 0.11 against 0.6 · 0.35/0.4 =
+    0.525) "score" keeps both and "swap" kills a as the includer of a better fit; the paper compares nothing."""
+    a, b = list(range(0, 30)), list(range(0, 19))
+    got = {}
+    for mode in ("paper", "score", "swap"):
+        for by in ("stationary", "confidence"):
+            ctx = _ctx(2, [30, 19], [a, b], [0.9, 0.6])
+            ctx.coverage = np.array([0.05, 0.35])
+            ctx.cfg = ctx.cfg.replace(joint_dup_iou=1.01, inclusion=mode, inclusion_by=by)
+            got[mode, by] = [(k.row, k.partner, k.reason) for k in apply_step_rules(ctx)]
+    assert got == {("paper", "stationary"): [(1, 0, REASON_INCLUDED)],
+                   ("paper", "confidence"): [(1, 0, REASON_INCLUDED)],
+                   ("score", "stationary"): [(1, 0, REASON_INCLUDED)],
+                   ("score", "confidence"): [],
+                   ("swap", "stationary"): [(1, 0, REASON_INCLUDED)],
+                   ("swap", "confidence"): [(0, 1, REASON_INCLUDES_BETTER)]}
+    # the same pair with the coverages swapped: the wide fit is also the better explained one and wins
+    ctx = _ctx(2, [30, 19], [a, b], [0.9, 0.6])
+    ctx.coverage = np.array([0.35, 0.05])
+    ctx.cfg = ctx.cfg.replace(joint_dup_iou=1.01, inclusion="swap", inclusion_by="confidence")
+    assert [(k.row, k.partner) for k in apply_step_rules(ctx)] == [(1, 0)]
+    # a context without review coverage cannot decide by confidence: one clear error, not a silent fallback
+    ctx = _ctx(2, [30, 19], [a, b], [0.9, 0.6])
+    ctx.coverage = None
+    ctx.cfg = ctx.cfg.replace(joint_dup_iou=1.01, inclusion="score", inclusion_by="confidence")
+    with pytest.raises(ValueError, match="needs the rows' review coverage"):
+        apply_step_rules(ctx)
+    with pytest.raises(ValueError, match="inclusion_by must be one of"):
+        preset("fast").replace(inclusion_by="coverage").validate()
 
 
 def test_a_registered_rule_runs_and_its_reason_enters_the_name_table() -> None:
@@ -302,14 +348,16 @@ def test_schedule_real_paper(t: int, expected: tuple[float, ...]) -> None:
 
 def test_real_preset_is_the_paper_one_with_the_measured_changes() -> None:
     """`real` = §3.12's real settings (`real_paper`) + the session-8 changes for noisy single-view frames + the
-    session-13 learned mug-vs-look-alike confidence + the session-14 inclusion rule that spares the better fit."""
+    session-13 learned mug-vs-look-alike confidence + the session-14 inclusion rule that spares the better fit
+    (by stationary score; the synthetic presets compare the confidence since session 15)."""
     real, paper = preset("real"), preset("real_paper")
     assert dataclasses.replace(real, name="real_paper", tau_d=paper.tau_d, tau_n=paper.tau_n, m_step_replace=True,
                                seen_through_margin=None, max_seen_through=paper.max_seen_through,
                                mug_model=None, inclusion="paper") == paper
     assert real.mug_model == "mug_uois_tune" and paper.mug_model is None and real.pose_weight == 0.0
-    assert real.inclusion == "score" and paper.inclusion == "paper"
-    assert preset("synthetic").inclusion == preset("fast").inclusion == "score"
+    assert real.inclusion == "score" and real.inclusion_by == "stationary" and paper.inclusion == "paper"
+    for name in ("synthetic", "fast"):  # session 15: the better-explained fit is spared
+        assert (preset(name).inclusion, preset(name).inclusion_by) == ("score", "confidence")
     assert schedule(real, 0) == pytest.approx((3.0, 0.15, 0.003, 180.0))
     assert not real.m_step_replace and real.seen_through_margin == 0.01 and real.max_seen_through == 0.15
 

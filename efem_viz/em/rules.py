@@ -170,6 +170,13 @@ def find_duplicates(
     return kills
 
 
+def capped_confidence(stationary: np.ndarray | float, coverage: np.ndarray | float, cap: float) -> np.ndarray:
+    """The paper's confidence (efem-method.md §3.10): stationary score · min(coverage, cap) / cap, elementwise."""
+    if not cap > 0:
+        raise ValueError(f"coverage cap must be > 0, got {cap}")
+    return np.asarray(stationary, np.float64) * np.minimum(np.asarray(coverage, np.float64), cap) / cap
+
+
 def find_inclusions(
     sets: sp.csr_matrix,
     threshold: float,
@@ -186,7 +193,8 @@ def find_inclusions(
         sets: (P, N) sparse sets.
         threshold: θ_incl.
         active: rows still alive.
-        scores: (P,) stationary scores (modes other than "paper").
+        scores: (P,) the rows' scores (modes other than "paper"): stationary scores or confidences
+            (`EMConfig.inclusion_by`).
         mode: "paper" (§3.8c: the included row dies), "score" (it dies only when its includer scores at least as
             high; else both stay) or "swap" (as "score", but an includer that scores lower than the row it
             includes dies instead: a fit wider than its object swallowing a better fit of that object).
@@ -243,6 +251,8 @@ class StepContext:
         tau_d: this step's SDF truncation τ_D (for `cfg.min_size_on` = "band").
         spacing: (N,) nearest-neighbour spacing of the working set (for `cfg.min_size_spacing`), or None.
         active: (P,) bool rows still alive; the runner clears the rows each rule kills.
+        coverage: (P,) coverage of each row's last review (in phase 2 its phase-1 review; for
+            `cfg.inclusion_by` = "confidence"), or None before any review.
     """
 
     phase: int
@@ -259,6 +269,7 @@ class StepContext:
     active: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     tau_d: float = float("inf")
     spacing: np.ndarray | None = None
+    coverage: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if len(self.active) != len(self.inliers):
@@ -300,8 +311,12 @@ def _duplicates(ctx: StepContext) -> list[Kill]:
 
 
 def _inclusions(ctx: StepContext) -> list[Kill]:
-    return find_inclusions(ctx.sets, ctx.cfg.joint_incl, active=ctx.active, scores=ctx.stationary,
-                           mode=ctx.cfg.inclusion)
+    scores = ctx.stationary
+    if ctx.cfg.inclusion != "paper" and ctx.cfg.inclusion_by == "confidence":
+        if ctx.coverage is None:
+            raise ValueError("inclusion_by 'confidence' needs the rows' review coverage (StepContext.coverage)")
+        scores = capped_confidence(ctx.stationary, ctx.coverage, ctx.cfg.cov_cap)
+    return find_inclusions(ctx.sets, ctx.cfg.joint_incl, active=ctx.active, scores=scores, mode=ctx.cfg.inclusion)
 
 
 STEP_RULES: tuple[StepRule, ...] = (

@@ -42,6 +42,7 @@ from efem_viz.em.rules import (
     REVIEW_RULES,
     STEP_RULES,
     ReviewRecord,
+    capped_confidence,
     ReviewRule,
     StepContext,
     StepRule,
@@ -96,9 +97,7 @@ def confidence(stationary: float, coverage: float, *, cap: float = 0.4, seen_thr
     """Final confidence of an accepted proposal: s_stat · min(coverage, cap) / cap (efem-method.md §3.10), times
     (1 − seen-through fraction) when the free-space check measured one (`EMConfig.seen_through_margin`), times
     min(1, pose score / `pose_ref`)^`pose_weight` when the codebook gave a pose score (`EMConfig.pose_weight`)."""
-    if not cap > 0:
-        raise ValueError(f"coverage cap must be > 0, got {cap}")
-    conf = float(stationary) * min(float(coverage), cap) / cap
+    conf = float(capped_confidence(float(stationary), float(coverage), cap))
     st = float(seen_through)
     if math.isfinite(st):
         conf *= 1.0 - min(max(st, 0.0), 1.0)
@@ -144,6 +143,7 @@ class _Pool:
     stationary: np.ndarray | None = None  # (P,)
     inliers: np.ndarray | None = None  # (P,)
     scale_max: np.ndarray | None = None  # (P,) largest Θ_s so far (EMConfig.trust_scale)
+    coverage: np.ndarray | None = None  # (P,) coverage of the last review (EMConfig.inclusion = "confidence")
 
     @property
     def size(self) -> int:
@@ -167,6 +167,8 @@ class _Pool:
             self.inliers = self.inliers[rows]
         if self.scale_max is not None:
             self.scale_max = self.scale_max[rows]
+        if self.coverage is not None:
+            self.coverage = self.coverage[rows]
 
 
 class _Timer:
@@ -575,7 +577,7 @@ class _Solver:
         ctx = StepContext(phase=phase, step=step, local_step=local, cfg=self.cfg, inliers=pool.inliers,
                           stationary=pool.stationary, d=pool.d,
                           rag=pool.rag, n_points=self.n, min_size=self.min_size, owner=pool.owner,
-                          tau_d=schedule(self.cfg, local)[1], spacing=self.spacing)
+                          tau_d=schedule(self.cfg, local)[1], spacing=self.spacing, coverage=pool.coverage)
         kills = apply_step_rules(ctx, self.step_rules)
         for k in kills:
             partner = int(pool.ids[k.partner]) if k.partner >= 0 else -1
@@ -644,6 +646,7 @@ class _Solver:
                 keep[r] = False
                 self.rec.death(pid, step, failed[0], -1, failed[1])
             self.timer.add("review_coverage", t0)
+        pool.coverage = np.array([records[int(pid)].coverage for pid in pool.ids], np.float64)
         if not keep.all():
             pool.keep(np.flatnonzero(keep))
         return records
