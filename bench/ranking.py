@@ -211,8 +211,10 @@ def run_key(folder: Path) -> str:
 
 # ------------------------------------------------------------------------------------------------ scoring rules
 def _conf(f: Fit, *, cap: float = 0.4, seen: bool = True) -> float:
-    st = f.seen_through if (seen and math.isfinite(f.seen_through)) else 0.0
-    return f.stationary * min(f.coverage, cap) / cap * (1.0 - st)
+    """The solver's confidence of a fit (`efem_viz.em.solver.confidence`), with its free-space factor or without."""
+    from efem_viz.em.solver import confidence
+
+    return confidence(f.stationary, f.coverage, cap=cap, seen_through=f.seen_through if seen else float("nan"))
 
 
 RULES: dict[str, tuple[Callable[[Fit], float], bool]] = {
@@ -254,7 +256,9 @@ def lateral_rule(lat: float, limit: float) -> tuple[Callable[[Fit], float], Call
         return v if math.isfinite(v) else 0.0
 
     def score(f: Fit) -> float:
-        return f.stationary * min(f.coverage, 0.4) / 0.4 * (1.0 - st(f))
+        from efem_viz.em.solver import confidence
+
+        return confidence(f.stationary, f.coverage, cap=0.4, seen_through=st(f))
 
     def keep(f: Fit) -> bool:  # survived the review (as run) or was killed only by the free-space check, and passes it now
         return (f.accepted or f.killed_by == "seen-through") and st(f) <= limit

@@ -143,7 +143,7 @@ class _Pool:
     stationary: np.ndarray | None = None  # (P,)
     inliers: np.ndarray | None = None  # (P,)
     scale_max: np.ndarray | None = None  # (P,) largest Θ_s so far (EMConfig.trust_scale)
-    coverage: np.ndarray | None = None  # (P,) coverage of the last review (EMConfig.inclusion = "confidence")
+    coverage: np.ndarray | None = None  # (P,) coverage of the last review (EMConfig.inclusion_by = "confidence")
 
     @property
     def size(self) -> int:
