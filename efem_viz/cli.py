@@ -17,6 +17,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "import-rgbd": ("efem_viz.data.commands:ImportRgbdArgs", "import a real RGB-D frame as a scene"),
     "train-prior": ("efem_viz.prior.train:TrainArgs", "train a SIM(3)-equivariant shape prior"),
     "build-codebook": ("efem_viz.prior.commands:BuildCodebookArgs", "build the pose codebook of a prior"),
+    "pack-meshes": ("efem_viz.prior.commands:PackMeshesArgs",
+                    "pack training meshes into one .npz for a machine without trimesh/open3d"),
     "convert-prior": ("efem_viz.prior.commands:ConvertArgs",
                       "convert a released EFEM checkpoint (weights/mugs.pt) + build its +Z-up codebook"),
     "segment": ("efem_viz.batch.commands:SegmentArgs", "run EFEM on scenes and save traces + results"),

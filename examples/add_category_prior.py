@@ -17,7 +17,7 @@ Shows:
 Run (about 40 s on one CPU thread with the defaults)::
 
     python examples/add_category_prior.py
-    python examples/add_category_prior.py --scene syn_z_0 --proposals 80 --out /tmp/two_priors
+    python examples/add_category_prior.py --scene syn_z_1 --proposals 80 --out /tmp/two_priors
 """
 
 from __future__ import annotations

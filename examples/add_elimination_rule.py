@@ -9,12 +9,12 @@ changing its rule here. `run_em(..., step_rules=..., review_rules=...)` takes ot
 - a `StepRule` "stationary near zero": a proposal whose stationary score is below `--min-stationary` explains
   (almost) none of its own samples; it dies now instead of lingering until it is "too small";
 - a `ReviewRule` "low coverage": a completed shape that the observed points cover less than `--min-coverage`
-  is rejected at review (on `syn_so3_0` it removes a fit that lies on no mug);
+  is rejected at review (on `syn_pile_0`, mugs tumbled onto each other, it removes fits that lie on no mug);
 
 checks the step rule alone on a hand-made `StepContext` (how to unit-test a rule), runs EFEM with both,
 prints the deaths by reason, and shows that the saved trace carries its table of reason names, so its int8
-death codes read back correctly whatever rules a later build registers (the bundled traces predate the table
-and read with `LEGACY_REASONS`).
+death codes read back correctly whatever rules a later build registers (traces saved before the table read
+with `LEGACY_REASONS`).
 
 Note: `StepContext` carries the phase, the global step and the step within the episode (`local_step`), so a
 rule can also say "after step k".
@@ -39,7 +39,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--scene", default="syn_so3_0", help="a sample_scenes/<name>.ply name, or a scene path")
+    ap.add_argument("--scene", default="syn_pile_0", help="a sample_scenes/<name>.ply name, or a scene path")
     ap.add_argument("--proposals", type=int, default=40, help="proposals of the first episode")
     ap.add_argument("--min-stationary", type=float, default=0.03, help="the step rule's threshold")
     ap.add_argument("--min-coverage", type=float, default=0.1, help="the review rule's threshold")
@@ -54,7 +54,6 @@ def main(argv: list[str] | None = None) -> int:
     from efem_viz.em import EMResult, preset, run_em
     from efem_viz.em.proposals import Ragged
     from efem_viz.em.rules import (
-        LEGACY_REASONS,
         REVIEW_RULES,
         STEP_RULES,
         Kill,
@@ -119,11 +118,6 @@ def main(argv: list[str] | None = None) -> int:
     print(f"reloaded trace: reason names {list(back.trace.reason_names)}; "
           f"{sum(e.reason == step_rule.reason for e in back.trace.events())} deaths read back as "
           f"{step_rule.reason!r}")
-    bundled = REPO / "sample_scenes" / f"{scene.name}.efem.npz"
-    if bundled.is_file():
-        old = EMResult.load(bundled)
-        print(f"bundled {bundled.name} (saved before name tables): reads with the legacy table "
-              f"{old.trace.reason_names == LEGACY_REASONS}: {list(old.trace.reason_names)}")
     return 0
 
 

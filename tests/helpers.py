@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import signal
 from pathlib import Path
 from typing import Any, Callable
@@ -75,4 +76,30 @@ def expanded_prior(path: Path, config: Any, *, name: str = "hostile") -> Path:
     state = {k: one.reshape(()) if not s else one.expand(*s) for k, s in shapes.items()}
     torch.save({"format": CHECKPOINT_FORMAT, "name": name, "config": config.to_dict(), "state_dict": state,
                 "metadata": {}}, path)
+    return path
+
+
+REGENERATED_SAMPLES: dict[str, tuple[str, int, int]] = {"syn_z_0": ("z", 0, 5), "syn_so3_0": ("so3", 0, 5)}
+"""Synthetic sample scenes the checkout no longer ships (the tree travels small) but tests still use: name ->
+(config, seed, objects) of the `efem-viz generate` call that made them (sample_scenes/README.md)."""
+
+
+def sample_scene(name: str) -> Path:
+    """`sample_scenes/<name>.ply`, or for a `REGENERATED_SAMPLES` name the same scene generated once per
+    process into a temporary folder (bit-identical arrays; seconds of work)."""
+    import tempfile
+
+    shipped = Path(__file__).resolve().parents[1] / "sample_scenes" / f"{name}.ply"
+    if shipped.is_file() or name not in REGENERATED_SAMPLES:
+        return shipped
+    folder = Path(tempfile.gettempdir()) / f"efem-viz-test-samples-{os.getuid()}"
+    path = folder / f"{name}.ply"
+    if not path.is_file():
+        from efem_viz.data.io import save_scene
+        from efem_viz.data.synth.generate import generate_scene
+
+        config, seed, objects = REGENERATED_SAMPLES[name]
+        folder.mkdir(parents=True, exist_ok=True)
+        scene = generate_scene(config, seed=seed, n_objects=objects, mode="tsdf", name=name)  # type: ignore[arg-type]
+        save_scene(scene, path)
     return path

@@ -435,8 +435,8 @@ def test_info_summarises_and_escapes_what_a_file_says(tmp_path: Path, capsys: py
     assert "T_world_camera" not in out and "capture camera" in out and "--full" in out
     assert cli.main(["info", str(path), "--full"]) == 0
     assert "T_world_camera" in capsys.readouterr().out
-    proc = run_cli("info", str(REPO / "sample_scenes" / "real_tabletop_8.efem.npz"))
-    assert proc.returncode == 1 and "real_tabletop_8.ply" in proc.stderr and "instead" in proc.stderr
+    proc = run_cli("info", str(REPO / "sample_scenes" / "real_tabletop_6.efem.npz"))
+    assert proc.returncode == 1 and "real_tabletop_6.ply" in proc.stderr and "instead" in proc.stderr
 
 
 def test_an_unused_member_of_a_result_file_is_never_inflated(sample: dict[str, Any], tmp_path: Path) -> None:

@@ -13,6 +13,7 @@ import pytest
 
 from efem_viz.em import EMCancelled, EMResult, Instances, StepInfo, preset, run_em
 from efem_viz.prior.analytic import make_sphere_prior, make_sphere_scene
+from helpers import sample_scene
 
 WEIGHTS = Path(__file__).resolve().parents[1] / "efem_viz" / "weights" / "mug.pt"
 
@@ -464,7 +465,7 @@ def mixed_run() -> tuple[object, EMResult]:
     from efem_viz.prior import load_priors
     from efem_viz.prior.analytic import add_spheres
 
-    scene = add_spheres(load_scene(Path(__file__).resolve().parents[1] / "sample_scenes" / "syn_z_0.ply"),
+    scene = add_spheres(load_scene(sample_scene("syn_z_0")),
                         [0.045, 0.04], seed=0)
     return scene, run_em(scene, priors=load_priors(["mug", "sphere"]), cfg=preset("fast"), seed=0)
 

@@ -36,8 +36,8 @@ EXPECTED: dict[str, tuple[list[str], list[str]]] = {
     "add_elimination_rule": (
         ["'stationary near zero'", "'low coverage'",
          "on a hand-made context: kills [(1, 'stationary near zero')]", "deaths by reason: ",
-         "reloaded trace: reason names", "reads with the legacy table True"],
-        ["syn_so3_0.efem.npz"],
+         "reloaded trace: reason names"],
+        ["syn_pile_0.efem.npz"],
     ),
     "embed_viewer": (
         ["ran EFEM on spheres", "viewer at http://127.0.0.1:", "inspecting proposal #", "scene nodes (",

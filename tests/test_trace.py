@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -240,14 +241,27 @@ def test_load_binds_scene_and_checks_size(run: tuple, tmp_path: Path) -> None:
         EMResult.load(path, scene=other)
 
 
-def test_traces_saved_before_the_name_table_still_read() -> None:
+def test_traces_saved_before_the_name_table_still_read(tmp_path: Path) -> None:
+    """A trace written before traces carried their reason and prior names (codes index the legacy table) reads
+    with the legacy names: made here from a bundled trace by mapping its codes and dropping the tables."""
     from efem_viz.em.rules import LEGACY_REASONS
 
     root = Path(__file__).resolve().parents[1] / "sample_scenes"
-    res = EMResult.load(root / "syn_z_0.efem.npz")
+    with np.load(root / "syn_z_1.efem.npz") as z:
+        data = {k: z[k] for k in z.files}
+    names = json.loads(str(data.pop("trace/reason_names_json")))
+    data.pop("trace/prior_names_json")
+    legacy = {"duplicated": "duplicated or included", "included": "duplicated or included"}
+    codes = data["trace/death_reason"]
+    assert set(names[c] for c in codes[codes >= 0]) <= set(LEGACY_REASONS) | set(legacy)
+    data["trace/death_reason"] = np.array([LEGACY_REASONS.index(legacy.get(names[c], names[c])) if c >= 0 else c
+                                           for c in codes], codes.dtype)
+    old = tmp_path / "syn_z_1.efem.npz"
+    np.savez_compressed(old, **data)
+    res = EMResult.load(old)
     assert res.trace.reason_names == LEGACY_REASONS and res.trace.prior_names == ()
     reasons = {e.reason for e in res.trace.events()}
-    assert "survive" in reasons and reasons <= set(LEGACY_REASONS)
+    assert "survive" in reasons and "duplicated or included" in reasons and reasons <= set(LEGACY_REASONS)
     assert res.trace.category_of(int(res.instances.ids[0])) == ""
 
 

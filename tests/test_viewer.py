@@ -22,6 +22,7 @@ from efem_viz import colors as pal
 from efem_viz.viewer import scenes as sc
 from efem_viz.viewer import trace_queries as tq
 from efem_viz.viewer.panels import slider_marks
+from helpers import sample_scene
 
 
 # ---------------------------------------------------------------------------------------------- fixtures
@@ -722,8 +723,7 @@ def test_a_two_prior_result_decodes_and_inspects_each_proposal_with_its_own_prio
     from efem_viz.viewer.app import ViewerApp
 
     torch.set_num_threads(1)
-    root = Path(__file__).resolve().parents[1] / "sample_scenes"
-    scene = analytic.add_spheres(load_scene(root / "syn_z_0.ply"), [0.045], seed=0)
+    scene = analytic.add_spheres(load_scene(sample_scene("syn_z_0")), [0.045], seed=0)
     scene = scene.replace(name="mixed")
     mug, sphere = load_priors(["mug", "sphere"])
     cfg = em.preset("fast").replace(n_init=(12,), t1=3, t2=1, end_step=2)
@@ -772,8 +772,7 @@ def test_a_run_started_in_the_viewer_solves_over_the_extra_priors(tmp_path: Path
     from efem_viz.viewer.app import ViewerApp
 
     torch.set_num_threads(1)
-    root = Path(__file__).resolve().parents[1] / "sample_scenes"
-    scene = analytic.add_spheres(load_scene(root / "syn_z_0.ply"), [0.045], seed=1).replace(name="mixed_run")
+    scene = analytic.add_spheres(load_scene(sample_scene("syn_z_0")), [0.045], seed=1).replace(name="mixed_run")
     save_scene(scene, tmp_path / "mixed_run.ply")
     app = ViewerApp([tmp_path], port=0, prior=analytic.make_sphere_prior(), prior_name="sphere", run_priors=["mug"],
                     open_first=False)

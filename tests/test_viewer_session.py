@@ -18,6 +18,7 @@ import pytest
 from efem_viz.prior import analytic
 from efem_viz.viewer.legend import color_key_html
 from efem_viz.viewer.session import FlyTarget, Inspection, PointColors, RunSettings, StepView, ViewerSession
+from helpers import sample_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLES = ROOT / "sample_scenes"
@@ -95,16 +96,16 @@ def test_each_result_opens_with_a_cut_that_shows_it(tmp_path: Path) -> None:
     """Issue 37 item 8: after a cut of 0.25 on one real frame, switching to another whose best instance is below
     it hid every instance. A person's cut is kept only while it still shows something, and the status says so."""
     s = ViewerSession([SAMPLES], out_dir=tmp_path)
-    assert s.open_scene("real_tabletop_0") is not None and s.load_result() is not None
+    assert s.open_scene("syn_pile_0") is not None and s.load_result() is not None
     s.set_threshold(0.99)  # above every instance of every bundled result
-    assert s.open_scene("real_tabletop_8") is not None
+    assert s.open_scene("real_tabletop_6") is not None
     res = s.load_result()
     assert res is not None
     best = float(np.max(res.instances.confidence))
     assert s.state.threshold <= best and s.state.threshold == s.default_threshold(res)
     assert "would hide every instance" in s.state.status and not s.state.threshold_by_user
     s.set_threshold(0.01)
-    assert s.open_scene("real_tabletop_6") is not None and s.load_result() is not None
+    assert s.open_scene("syn_z_1") is not None and s.load_result() is not None
     assert s.state.threshold == 0.01 and "is kept" in s.state.status
     s.set_threshold(0.01, by_user=False)  # redraws do not count as a person's choice
     assert s.state.threshold_by_user  # (still the person's earlier choice)
@@ -114,7 +115,7 @@ def test_the_cut_stays_within_the_slider(tmp_path: Path) -> None:
     """A script's cut above the slider's top (or below 0) is kept at the end of the range: the field never shows
     a value the slider cannot (session 13 saw 0.1 on a slider ending at 0.02); the instances shown are the same."""
     s = ViewerSession([SAMPLES], out_dir=tmp_path)
-    assert s.open_scene("real_tabletop_8") is not None
+    assert s.open_scene("real_tabletop_6") is not None
     res = s.load_result()
     assert res is not None
     top = s.threshold_max(res)
@@ -132,7 +133,7 @@ def test_the_run_preset_fits_the_scene() -> None:
     from efem_viz.data.io import load_scene
 
     assert ViewerSession.suggested_preset(load_scene(SAMPLES / "real_tabletop_8.ply")) == "real"
-    assert ViewerSession.suggested_preset(load_scene(SAMPLES / "syn_z_0.ply")) == "fast"
+    assert ViewerSession.suggested_preset(load_scene(sample_scene("syn_z_0"))) == "fast"
 
 
 def test_step_through_iterations(session: ViewerSession) -> None:

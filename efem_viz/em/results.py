@@ -337,8 +337,10 @@ class EMResult:
         """
         return self.replay.bind(scene, prior)
 
-    def save(self, path: str | os.PathLike[str]) -> Path:
-        """Write `<scene>.efem.npz` (compressed, atomic). A directory path gets `<dir>/<scene>.efem.npz`."""
+    def save(self, path: str | os.PathLike[str], *, compact: bool = False) -> Path:
+        """Write `<scene>.efem.npz` (compressed, atomic). A directory path gets `<dir>/<scene>.efem.npz`.
+
+        ``compact``: the trace's latents in float16 (`EMTrace.to_npz_dict`), for bundled or shared results."""
         from efem_viz.data.io import atomic_write
 
         p = Path(path)
@@ -355,7 +357,7 @@ class EMResult:
             "categories_json": np.array(json.dumps([c.to_dict() for c in self.categories])),
             "warnings_json": np.array(json.dumps(list(self.warnings))),
         }
-        data.update(self.trace.to_npz_dict())
+        data.update(self.trace.to_npz_dict(compact=compact))
         data.update(self.instances.to_npz_dict())
         # cast: numpy's stub types savez's keywords as `allow_pickle: bool, **kwds: ArrayLike`, so it takes a
         # **dict[str, ndarray] to possibly fill `allow_pickle`; these keys are array names.

@@ -14,6 +14,18 @@ if TYPE_CHECKING:
     import trimesh
 
 
+class MeshArrays(NamedTuple):
+    """A triangle mesh as two arrays, for code that must run without trimesh (`sample_surface` takes either).
+
+    Attributes:
+        vertices: (V, 3) float vertex positions.
+        faces: (F, 3) int triangle vertex indices.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+
+
 class SurfaceSamples(NamedTuple):
     """Samples on a mesh surface, in the mesh's frame.
 
@@ -29,7 +41,7 @@ class SurfaceSamples(NamedTuple):
 
 
 def sample_surface(
-    mesh: "trimesh.Trimesh",
+    mesh: "trimesh.Trimesh | MeshArrays",
     n: int,
     *,
     seed: int | np.random.Generator = 0,
@@ -41,7 +53,7 @@ def sample_surface(
     gives the same samples.
 
     Args:
-        mesh: triangle mesh (any frame).
+        mesh: triangle mesh (any frame): a trimesh, or `MeshArrays` (the same samples for the same arrays).
         n: number of samples (>= 0).
         seed: integer seed or a Generator (advanced in place).
         empty: what a mesh without faces or with zero total area gives: "zeros" = n samples at the origin with
@@ -59,7 +71,16 @@ def sample_surface(
     if empty not in ("zeros", "raise"):
         raise ValueError(f"empty must be 'zeros' or 'raise', got {empty!r}")
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
-    area = np.asarray(mesh.area_faces, dtype=np.float64) if len(mesh.faces) else np.zeros(0)
+    if isinstance(mesh, MeshArrays):
+        tris = np.asarray(mesh.vertices, np.float64)[np.asarray(mesh.faces, np.int64)].reshape(-1, 3, 3)
+        cross = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+        norm = np.linalg.norm(cross, axis=1)
+        area = norm / 2.0
+        face_normals = np.where(norm[:, None] > 0, cross / np.maximum(norm, 1e-300)[:, None], 0.0)
+    else:
+        tris = np.asarray(mesh.triangles, dtype=np.float64) if len(mesh.faces) else np.zeros((0, 3, 3))
+        area = np.asarray(mesh.area_faces, dtype=np.float64) if len(mesh.faces) else np.zeros(0)
+        face_normals = np.asarray(mesh.face_normals, dtype=np.float64) if len(mesh.faces) else np.zeros((0, 3))
     if len(area) == 0 or not area.sum() > 0:
         if empty == "raise":
             raise ValueError(f"cannot sample the surface of an empty mesh ({len(mesh.faces)} faces, zero area)")
@@ -68,7 +89,7 @@ def sample_surface(
     u = rng.random((n, 2))
     flip = u.sum(axis=1) > 1.0
     u[flip] = 1.0 - u[flip]
-    tri = np.asarray(mesh.triangles, dtype=np.float64)[face]
+    tri = tris[face]
     pts = tri[:, 0] + u[:, :1] * (tri[:, 1] - tri[:, 0]) + u[:, 1:] * (tri[:, 2] - tri[:, 0])
-    normals = np.asarray(mesh.face_normals, dtype=np.float64)[face]
+    normals = face_normals[face]
     return SurfaceSamples(pts, normals, np.asarray(face, np.int64))

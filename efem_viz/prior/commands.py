@@ -18,7 +18,7 @@ from efem_viz.prior.config import DEFAULT_PRIOR
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["BuildCodebookArgs", "ConvertArgs"]
+__all__ = ["BuildCodebookArgs", "ConvertArgs", "PackMeshesArgs"]
 
 
 @dataclass
@@ -62,6 +62,39 @@ class BuildCodebookArgs:
             len(cb), cb.latent_dim, cb.n_store, cb.mean_scale, path, path.stat().st_size / 1024,
             time.perf_counter() - t0,
         )
+        return 0
+
+
+@dataclass
+class PackMeshesArgs:
+    """Pack a training set's meshes into one .npz that `train-prior --meshes PACK` reads without trimesh or
+    open3d (a GPU machine with only torch prepares its training data from it, on the GPU)."""
+
+    out: Path
+    """Output .npz."""
+    category: str = DEFAULT_PRIOR
+    """Procedural category (ignored with --folder)."""
+    split: Literal["train", "val", "test"] = "train"
+    """Procedural seed split."""
+    count: int = 400
+    """Number of meshes (the first seeds of the split)."""
+    handled_only: bool = False
+    """Mugs with a handle only (as `train-prior --handled-only`)."""
+    folder: Path | None = None
+    """Pack every mesh file of this folder instead of a procedural split."""
+
+    def run(self) -> int:
+        """Build and save; returns the process exit code."""
+        from efem_viz.prior.data import folder_sources, procedural_sources, save_mesh_pack
+
+        if self.count < 1:
+            raise ValueError(f"--count must be >= 1, got {self.count}")
+        t0 = time.perf_counter()
+        srcs = (folder_sources(self.folder) if self.folder is not None
+                else procedural_sources(self.category, self.split, self.count, handled_only=self.handled_only))
+        path = save_mesh_pack(srcs, self.out)
+        logger.info("mesh pack: %d meshes -> %s (%.1f MB, %.1f s)", len(srcs), path, path.stat().st_size / 2**20,
+                    time.perf_counter() - t0)
         return 0
 
 

@@ -4,8 +4,13 @@ Per object (canonical frame: +Z up, bounding-box centre at the origin, longest s
 ``uni`` (Nu, 4) uniform queries in ``[-0.55, 0.55]³`` + SDF, ``nss`` (Nn, 4) near-surface queries + SDF,
 ``surface`` (Ns, 3) dense surface samples, ``views`` (V, 3) back-projected depth-view hits with
 ``view_offsets`` (12 + 1), ``view_elev_deg`` (12,), ``view_eyes`` (12, 3) camera centres and ``view_cos`` (V,)
-the cosine of the incidence angle of every hit (for the depth-sensor model, `sensor_cloud`). SDF comes from
-``open3d.t.geometry.RaycastingScene.compute_signed_distance`` (negative inside; needs watertight meshes).
+the cosine of the incidence angle of every hit (for the depth-sensor model, `sensor_cloud`). SDF and depth views
+come from open3d's ``RaycastingScene`` on a CPU with open3d, otherwise from the plain-torch
+`efem_viz.geometry.raycast` (the same numbers to float rounding, on any device: a GPU machine without open3d
+prepares its own data). Signs need watertight meshes.
+
+Meshes travel to a machine without trimesh as a *mesh pack* (`save_mesh_pack`, `pack_sources`): one npz of
+normalised vertex and face arrays.
 
 Depth views (deviation from §2.1, documented in the training report): views 0-7 look from above (elevation
 30-60°, as in the release data), views 8-9 from the side (-10..30°) and views 10-11 from below (-60..-10°),
@@ -20,6 +25,7 @@ import dataclasses
 import hashlib
 import json
 import logging
+import zipfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,12 +33,14 @@ from typing import TYPE_CHECKING, Any, Literal, cast
 
 import numpy as np
 
+from efem_viz.geometry.sampling import MeshArrays
+
 if TYPE_CHECKING:
     import trimesh
 
 log = logging.getLogger(__name__)
 
-CACHE_VERSION = 3
+CACHE_VERSION = 4
 _CACHE_KEYS = ("uni", "nss", "surface", "views", "view_offsets", "view_elev_deg", "view_eyes", "view_cos")
 MESH_SUFFIXES = (".obj", ".ply", ".off", ".glb", ".gltf", ".stl")
 
@@ -152,39 +160,100 @@ class SampleConfig:
 
 
 # ---------------------------------------------------------------------------------------------- meshes
-def normalize_mesh(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
-    """Bounding-box centre to the origin, longest side to 1 (a copy).
+def normalize_mesh(mesh: trimesh.Trimesh | MeshArrays) -> trimesh.Trimesh | MeshArrays:
+    """Bounding-box centre to the origin, longest side to 1 (a copy of the same kind).
 
     Raises:
         ValueError: On an empty or degenerate mesh.
     """
-    if len(mesh.vertices) == 0 or len(mesh.faces) == 0:
+    vertices = np.asarray(mesh.vertices, np.float64)
+    if len(vertices) == 0 or len(mesh.faces) == 0:
         raise ValueError("cannot normalise an empty mesh")
-    lo, hi = mesh.bounds
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
     ext = float(np.max(hi - lo))
     if not np.isfinite(ext) or ext <= 0:
-        raise ValueError(f"degenerate mesh bounds {mesh.bounds.tolist()}")
+        raise ValueError(f"degenerate mesh bounds {[lo.tolist(), hi.tolist()]}")
+    if isinstance(mesh, MeshArrays):
+        return MeshArrays((vertices - (lo + hi) / 2.0) / ext, np.asarray(mesh.faces, np.int64))
     out = mesh.copy()
     out.apply_translation(-(lo + hi) / 2.0)
     out.apply_scale(1.0 / ext)
     return out
 
 
-def _raycasting_scene(mesh: trimesh.Trimesh) -> Any:
-    import open3d as o3d
+class _MeshQueries:
+    """Signed distance and ray casting of one normalised mesh: open3d's RaycastingScene (``backend="open3d"``)
+    or `efem_viz.geometry.raycast` in torch on ``device`` (``backend="torch"``)."""
 
-    from efem_viz._typeshims import o3d_tensor
+    def __init__(self, mesh: trimesh.Trimesh | MeshArrays, *, backend: Literal["open3d", "torch"],
+                 device: str = "cpu") -> None:
+        self.backend = backend
+        vertices = np.asarray(mesh.vertices, np.float32)
+        faces = np.asarray(mesh.faces, np.int64)
+        if backend == "open3d":
+            import open3d as o3d
 
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d_tensor(np.asarray(mesh.vertices, np.float32)),
-                        o3d_tensor(np.asarray(mesh.faces, np.uint32)))
-    return scene
+            from efem_viz._typeshims import o3d_tensor
+
+            self.scene = o3d.t.geometry.RaycastingScene()
+            self.scene.add_triangles(o3d_tensor(vertices), o3d_tensor(faces.astype(np.uint32)))
+        else:
+            import torch
+
+            self.device = torch.device(device)
+            self.budget = 1 << (26 if self.device.type == "cuda" else 22)
+            self.vertices = torch.as_tensor(vertices, device=self.device)
+            self.faces = torch.as_tensor(faces, device=self.device)
+
+    def signed_distance(self, pts: np.ndarray) -> np.ndarray:
+        """(P,) float32 signed distance of (P, 3) points (negative inside)."""
+        if self.backend == "open3d":
+            from efem_viz._typeshims import o3d_tensor
+
+            return self.scene.compute_signed_distance(o3d_tensor(pts.astype(np.float32))).numpy().astype(np.float32)
+        import torch
+
+        from efem_viz.geometry.raycast import signed_distance
+
+        p = torch.as_tensor(np.asarray(pts, np.float32), device=self.device)
+        return signed_distance(self.vertices, self.faces, p, budget=self.budget).cpu().numpy().astype(np.float32)
+
+    def depth_view(self, eye: np.ndarray, cfg: PrepConfig) -> tuple[np.ndarray, np.ndarray]:
+        """Hits of a pinhole view from ``eye`` towards the origin: (n, 3) points and (n,) |cos| of incidence."""
+        import torch
+
+        from efem_viz.geometry.raycast import cast_rays, pinhole_rays
+
+        if self.backend == "open3d":
+            from efem_viz._typeshims import o3d_tensor
+
+            o, d = pinhole_rays(torch.as_tensor(eye, dtype=torch.float32), fov_deg=cfg.fov_deg,
+                                resolution=cfg.resolution)
+            r = torch.cat([o, d], dim=1).numpy()
+            ans = self.scene.cast_rays(o3d_tensor(r))
+            t = ans["t_hit"].numpy().reshape(-1)
+            nrm = ans["primitive_normals"].numpy().reshape(-1, 3)
+        else:
+            o, d = pinhole_rays(torch.as_tensor(eye, dtype=torch.float32, device=self.device),
+                                fov_deg=cfg.fov_deg, resolution=cfg.resolution)
+            tt, nn = cast_rays(self.vertices, self.faces, o, d, budget=self.budget)
+            t, nrm = tt.cpu().numpy(), nn.cpu().numpy()
+            r = torch.cat([o, d], dim=1).cpu().numpy()
+        hit = np.isfinite(t)
+        pts = r[hit, :3] + r[hit, 3:] * t[hit, None]
+        dirs = r[hit, 3:] / np.maximum(np.linalg.norm(r[hit, 3:], axis=1, keepdims=True), 1e-12)
+        return pts, np.abs((dirs * nrm[hit]).sum(1))
 
 
-def _signed_distance(scene: Any, pts: np.ndarray) -> np.ndarray:
-    from efem_viz._typeshims import o3d_tensor
-
-    return scene.compute_signed_distance(o3d_tensor(pts.astype(np.float32))).numpy().astype(np.float32)
+def prep_backend(device: str = "cpu") -> Literal["open3d", "torch"]:
+    """Which `_MeshQueries` backend prepares data on ``device``: open3d on a CPU that has it, else torch."""
+    if device != "cpu":
+        return "torch"
+    try:
+        import open3d  # noqa: F401
+    except ImportError:
+        return "torch"
+    return "open3d"
 
 
 def _view_elevations(cfg: PrepConfig, rng: np.random.Generator) -> np.ndarray:
@@ -196,24 +265,23 @@ def _view_elevations(cfg: PrepConfig, rng: np.random.Generator) -> np.ndarray:
     return np.concatenate([top, side, below])
 
 
-def render_views(mesh: trimesh.Trimesh, cfg: PrepConfig, *, rng: np.random.Generator,
-                 scene: Any = None, details: dict[str, Any] | None = None) -> tuple[list[np.ndarray], np.ndarray]:
+def render_views(mesh: trimesh.Trimesh | MeshArrays, cfg: PrepConfig, *, rng: np.random.Generator,
+                 queries: _MeshQueries | None = None, details: dict[str, Any] | None = None
+                 ) -> tuple[list[np.ndarray], np.ndarray]:
     """Ray-cast depth views and back-project the hits (canonical frame).
 
     Args:
         mesh: Normalised mesh.
         cfg: Camera settings.
         rng: Random generator (azimuths, elevations, distances, subsets).
-        scene: Optional prebuilt RaycastingScene.
+        queries: Optional prebuilt mesh queries (default: the CPU's backend for ``mesh``).
         details: If given, filled with ``eyes`` ((n_views, 3) camera centres) and ``cos`` (list of (n_i,)
             |cos| of the incidence angle of every kept hit).
 
     Returns:
         (list of (n_i, 3) float32 hit points per view, (n_views,) elevations in degrees).
     """
-    from efem_viz._typeshims import o3d_tensor
-
-    scene = scene if scene is not None else _raycasting_scene(mesh)
+    queries = queries if queries is not None else _MeshQueries(mesh, backend=prep_backend())
     elev = _view_elevations(cfg, rng)
     out = []
     eyes, coss = [], []
@@ -222,18 +290,7 @@ def render_views(mesh: trimesh.Trimesh, cfg: PrepConfig, *, rng: np.random.Gener
         d = rng.uniform(*cfg.distance)
         el = np.deg2rad(e)
         eye = d * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-        rays = scene.create_rays_pinhole(fov_deg=cfg.fov_deg, center=o3d_tensor([0.0, 0.0, 0.0]),
-                                         eye=o3d_tensor(eye.astype(np.float32)),
-                                         up=o3d_tensor([0.0, 0.0, 1.0]),
-                                         width_px=cfg.resolution, height_px=cfg.resolution)
-        ans = scene.cast_rays(rays)
-        t = ans["t_hit"].numpy().reshape(-1)
-        nrm = ans["primitive_normals"].numpy().reshape(-1, 3)
-        r = rays.numpy().reshape(-1, 6)
-        hit = np.isfinite(t)
-        pts = r[hit, :3] + r[hit, 3:] * t[hit, None]
-        d = r[hit, 3:] / np.maximum(np.linalg.norm(r[hit, 3:], axis=1, keepdims=True), 1e-12)
-        cos = np.abs((d * nrm[hit]).sum(1))
+        pts, cos = queries.depth_view(eye.astype(np.float32), cfg)
         if len(pts) > cfg.max_view_points:
             keep = rng.choice(len(pts), cfg.max_view_points, replace=False)
             pts, cos = pts[keep], cos[keep]
@@ -246,14 +303,17 @@ def render_views(mesh: trimesh.Trimesh, cfg: PrepConfig, *, rng: np.random.Gener
     return out, elev.astype(np.float32)
 
 
-def prepare_object(mesh: trimesh.Trimesh, *, name: str, cfg: PrepConfig, seed: int) -> ObjectData:
+def prepare_object(mesh: trimesh.Trimesh | MeshArrays, *, name: str, cfg: PrepConfig, seed: int,
+                   device: str = "cpu", backend: Literal["auto", "open3d", "torch"] = "auto") -> ObjectData:
     """Normalise a watertight mesh and compute its SDF queries, surface samples and depth views.
 
     Args:
-        mesh: Watertight mesh, +Z up, any scale.
+        mesh: Watertight mesh, +Z up, any scale (a trimesh or `MeshArrays`).
         name: Object name.
         cfg: Sampling sizes.
-        seed: Seed of all sampling.
+        seed: Seed of all sampling (the same data on every backend and device, to float rounding).
+        device: Where the mesh queries run ("cpu": open3d if installed, else torch; "cuda": torch on the GPU).
+        backend: "auto" (`prep_backend`), or force "open3d" / "torch".
 
     Returns:
         ``ObjectData``.
@@ -261,29 +321,27 @@ def prepare_object(mesh: trimesh.Trimesh, *, name: str, cfg: PrepConfig, seed: i
     Raises:
         ValueError: If the mesh is empty or no depth view hits it.
     """
-    import trimesh as tm
+    from efem_viz.geometry.sampling import sample_surface
 
     rng = np.random.default_rng(seed)
     m = normalize_mesh(mesh)
-    scene = _raycasting_scene(m)
+    queries = _MeshQueries(m, backend=prep_backend(device) if backend == "auto" else backend, device=device)
     uni = rng.uniform(-0.55, 0.55, (cfg.n_uniform, 3)).astype(np.float32)
-    # cast: trimesh's inferred return is a union over its optional outputs; these args give (points, faces)
-    surf, _ = cast("tuple[np.ndarray, np.ndarray]",
-                   tm.sample.sample_surface(m, cfg.n_surface + cfg.n_near, seed=int(rng.integers(2**31))))
-    surf = np.asarray(surf, np.float32)
-    base = surf[cfg.n_surface:]
+    surf = sample_surface(m, cfg.n_surface + cfg.n_near, seed=int(rng.integers(2**31)), empty="raise")
+    surf_pts = np.asarray(surf.points, np.float32)
+    base = surf_pts[cfg.n_surface:]
     sig = np.asarray(cfg.near_sigmas, np.float32)[np.arange(cfg.n_near) % len(cfg.near_sigmas)]
     nss = (base + rng.normal(size=base.shape).astype(np.float32) * sig[:, None]).astype(np.float32)
     det: dict[str, Any] = {}
-    views, elev = render_views(m, cfg, rng=rng, scene=scene, details=det)
+    views, elev = render_views(m, cfg, rng=rng, queries=queries, details=det)
     if sum(len(v) for v in views) == 0:
         raise ValueError(f"object {name}: no depth view hits the mesh")
     offsets = np.concatenate([[0], np.cumsum([len(v) for v in views])]).astype(np.int64)
     return ObjectData(
         name=name,
-        uni=np.concatenate([uni, _signed_distance(scene, uni)[:, None]], axis=1),
-        nss=np.concatenate([nss, _signed_distance(scene, nss)[:, None]], axis=1),
-        surface=surf[:cfg.n_surface],
+        uni=np.concatenate([uni, queries.signed_distance(uni)[:, None]], axis=1),
+        nss=np.concatenate([nss, queries.signed_distance(nss)[:, None]], axis=1),
+        surface=surf_pts[:cfg.n_surface],
         views=np.concatenate(views, axis=0),
         view_offsets=offsets,
         view_elev_deg=elev,
@@ -303,9 +361,10 @@ def _save_npz_atomic(path: Path, arrays: dict[str, np.ndarray]) -> None:
     atomic_write(path, write)
 
 
-def load_or_prepare(source: tuple[str, Callable[[], trimesh.Trimesh]], *, cache_dir: Path, cfg: PrepConfig,
-                    seed: int) -> ObjectData:
-    """The cached ``ObjectData`` of ``source`` (name, mesh factory); computed and cached if needed."""
+def load_or_prepare(source: tuple[str, Callable[[], trimesh.Trimesh | MeshArrays]], *, cache_dir: Path,
+                    cfg: PrepConfig, seed: int, device: str = "cpu") -> ObjectData:
+    """The cached ``ObjectData`` of ``source`` (name, mesh factory); computed (on ``device``, see
+    `prepare_object`) and cached if needed."""
     name, factory = source
     key = hashlib.sha1(json.dumps([CACHE_VERSION, dataclasses.asdict(cfg), seed]).encode()).hexdigest()[:10]
     path = cache_dir / f"{name}_{key}.npz"
@@ -315,7 +374,7 @@ def load_or_prepare(source: tuple[str, Callable[[], trimesh.Trimesh]], *, cache_
                 return ObjectData(name=name, **{k: z[k] for k in _CACHE_KEYS})
         except (OSError, KeyError, ValueError) as exc:
             log.warning("ignoring unreadable cache %s (%s)", path, exc)
-    obj = prepare_object(factory(), name=name, cfg=cfg, seed=seed)
+    obj = prepare_object(factory(), name=name, cfg=cfg, seed=seed, device=device)
     _save_npz_atomic(path, {k: getattr(obj, k) for k in _CACHE_KEYS})
     return obj
 
@@ -341,6 +400,83 @@ def procedural_sources(category: str, split: str, n: int, *, handled_only: bool 
         raise ValueError(f"split {split!r} of {category!r} has {len(seeds)} seeds"
                          f"{' with a handle' if handled_only else ''}, asked for {n}")
     return [(f"{category}_{s:06d}", (lambda s=s: make_shape(category, s))) for s in seeds[:n]]
+
+
+MESH_PACK_FORMAT = "efem-viz mesh pack 1"
+MAX_PACK_VERTICES = 50_000_000
+"""Refuse packs declaring more vertices (or faces) than this: bounded memory for a hostile file."""
+
+
+def save_mesh_pack(sources: Sequence[tuple[str, Callable[[], trimesh.Trimesh | MeshArrays]]], path: Path, *,
+                   on_item: Callable[[int, int], None] | None = None) -> Path:
+    """Write the normalised meshes of ``sources`` into one compressed npz (vertices float32, faces int32).
+
+    The pack carries a training set to a machine without trimesh or open3d (`pack_sources` reads it there);
+    vertices are stored normalised (`normalize_mesh`), so preparing from the pack normalises to the same mesh.
+
+    Returns:
+        ``path``.
+    """
+    names, verts, faces, v_off, f_off = [], [], [], [0], [0]
+    for i, (name, factory) in enumerate(sources):
+        m = normalize_mesh(factory())
+        names.append(name)
+        verts.append(np.asarray(m.vertices, np.float32))
+        faces.append(np.asarray(m.faces, np.int32))
+        v_off.append(v_off[-1] + len(verts[-1]))
+        f_off.append(f_off[-1] + len(faces[-1]))
+        if on_item is not None:
+            on_item(i + 1, len(sources))
+    arrays = {"format": np.array(MESH_PACK_FORMAT), "names": np.array(names),
+              "vertices": np.concatenate(verts) if verts else np.zeros((0, 3), np.float32),
+              "faces": np.concatenate(faces) if faces else np.zeros((0, 3), np.int32),
+              "vertex_offsets": np.asarray(v_off, np.int64), "face_offsets": np.asarray(f_off, np.int64)}
+    from efem_viz.data.io import atomic_write
+
+    def write(tmp: Path) -> None:
+        with open(tmp, "wb") as f:
+            np.savez_compressed(f, **cast("dict[str, Any]", arrays))
+
+    atomic_write(Path(path), write)
+    return Path(path)
+
+
+def pack_sources(path: Path) -> list[tuple[str, Callable[[], MeshArrays]]]:
+    """(name, mesh factory) for every mesh of a mesh pack written by `save_mesh_pack`.
+
+    Raises:
+        FileNotFoundError: If the file does not exist.
+        ValueError: If it is not a valid mesh pack (one line saying what is wrong).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"mesh pack not found: {path}")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if "format" not in z.files or str(z["format"]) != MESH_PACK_FORMAT:
+                raise ValueError("not an efem-viz mesh pack (no or another 'format')")
+            v_off, f_off = np.asarray(z["vertex_offsets"], np.int64), np.asarray(z["face_offsets"], np.int64)
+            names = [str(n) for n in np.asarray(z["names"]).reshape(-1)]
+            if (len(v_off) != len(names) + 1 or len(f_off) != len(names) + 1 or v_off[0] != 0 or f_off[0] != 0
+                    or np.any(np.diff(v_off) < 1) or np.any(np.diff(f_off) < 1)
+                    or v_off[-1] > MAX_PACK_VERTICES or f_off[-1] > MAX_PACK_VERTICES):
+                raise ValueError(f"inconsistent offsets for {len(names)} meshes")
+            vertices = np.asarray(z["vertices"], np.float32)
+            faces = np.asarray(z["faces"], np.int64)
+    except (OSError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+        raise ValueError(f"{path}: unreadable mesh pack ({type(exc).__name__}: {exc})") from None
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
+    if vertices.shape != (v_off[-1], 3) or faces.shape != (f_off[-1], 3) or not np.isfinite(vertices).all():
+        raise ValueError(f"{path}: vertex/face arrays do not match their offsets or hold non-finite values")
+    out: list[tuple[str, Callable[[], MeshArrays]]] = []
+    for i, name in enumerate(names):
+        v = vertices[v_off[i]:v_off[i + 1]]
+        f = faces[f_off[i]:f_off[i + 1]]
+        if int(f.min()) < 0 or int(f.max()) >= len(v):
+            raise ValueError(f"{path}: mesh {name!r} has face indices outside its {len(v)} vertices")
+        out.append((name, (lambda v=v, f=f: MeshArrays(v.copy(), f.copy()))))
+    return out
 
 
 def folder_sources(folder: Path) -> list[tuple[str, Callable[[], trimesh.Trimesh]]]:

@@ -61,13 +61,14 @@ class TrainArgs:
     category: str = "mug"
     """Procedural category (``efem_viz.data.procedural``); also the default output name."""
     meshes: Path | None = None
-    """Folder of aligned (+Z up) watertight training meshes instead of the procedural category."""
+    """Aligned (+Z up) watertight training meshes instead of the procedural category: a folder of mesh files
+    or a mesh pack (`efem-viz pack-meshes`, .npz; needs neither trimesh nor open3d)."""
     val_meshes: Path | None = None
-    """Folder of validation meshes (default with --meshes: every 10th mesh is held out)."""
+    """Validation meshes, a folder or a mesh pack (default with --meshes: every 10th mesh is held out)."""
     n_train: int = 400
-    """Procedural training objects (first seeds of the train split)."""
+    """Training objects: the first seeds of the procedural train split, or the first meshes of a mesh pack."""
     n_val: int = 24
-    """Procedural validation objects (first seeds of the val split)."""
+    """Validation objects: the first seeds of the procedural val split, or the first meshes of a mesh pack."""
     handled_only: bool = False
     """Procedural mugs with a handle only, for training and validation (the paper's ShapeNet mugs all have one;
     about 15 % of the procedural mugs are handle-less cups)."""
@@ -109,6 +110,9 @@ class TrainArgs:
     """Iterations between validations."""
     ckpt_every_min: float = 4.0
     """Minutes between resume checkpoints."""
+    steps: int | None = None
+    """Stop after this many iterations of this run, counted from where it started or resumed (None: run to
+    ``iterations`` or the time budget). Work-counted, so a test or a smoke run means the same on any machine."""
     time_budget_min: float | None = None
     """Stop (with a final checkpoint and validation) after this many minutes of this process."""
     threads: int = 2
@@ -281,18 +285,28 @@ def lr_at(iteration: int, *, base: float, total: int, decay_at: tuple[float, ...
     return max(base * factor**n, 1e-8)
 
 
+def mesh_sources(path: Path) -> list[tuple[str, Callable[[], Any]]]:
+    """(name, mesh factory) of a mesh folder or a mesh pack file."""
+    from efem_viz.prior.data import folder_sources, pack_sources
+
+    return pack_sources(path) if Path(path).is_file() else folder_sources(path)
+
+
 def load_objects(args: TrainArgs, split: Literal["train", "val"], *,
                  on_item: Callable[[int, int], None] | None = None) -> list[ObjectData]:
     """Load (or prepare and cache) the objects of a split."""
-    from efem_viz.prior.data import PrepConfig, folder_sources, load_or_prepare, procedural_sources
+    from efem_viz.prior.data import PrepConfig, load_or_prepare, procedural_sources
 
     if args.meshes is not None:
-        srcs = folder_sources(args.meshes)
+        srcs = mesh_sources(args.meshes)
         if split == "val":
-            srcs = folder_sources(args.val_meshes) if args.val_meshes is not None else srcs[::10]
+            srcs = mesh_sources(args.val_meshes) if args.val_meshes is not None else srcs[::10]
         elif args.val_meshes is None:
             srcs = [s for i, s in enumerate(srcs) if i % 10 != 0] or srcs
-        cache = args.cache_dir / f"folder_{Path(args.meshes).name}"
+        given = Path(args.meshes if split == "train" or args.val_meshes is None else args.val_meshes)
+        if given.is_file():  # a pack: the first n_train / n_val of its meshes
+            srcs = srcs[:args.n_train if split == "train" else args.n_val]
+        cache = args.cache_dir / f"{'pack' if given.is_file() else 'folder'}_{given.stem}"
     else:
         srcs = procedural_sources(args.category, split, args.n_train if split == "train" else args.n_val,
                                   handled_only=args.handled_only)
@@ -300,7 +314,7 @@ def load_objects(args: TrainArgs, split: Literal["train", "val"], *,
     out = []
     for i, s in enumerate(srcs):
         seed = args.seed + i + (0 if split == "train" else 10**6)
-        out.append(load_or_prepare(s, cache_dir=cache, cfg=PrepConfig(), seed=seed))
+        out.append(load_or_prepare(s, cache_dir=cache, cfg=PrepConfig(), seed=seed, device=args.device))
         if on_item is not None:
             on_item(i + 1, len(srcs))
     return out
@@ -546,6 +560,8 @@ def _check_args(args: TrainArgs) -> None:
     if args.batch_size < 1 or args.iterations < 1 or args.val_every < 1:
         raise ValueError(f"batch_size/iterations/val_every must be >= 1 (got {args.batch_size}, "
                          f"{args.iterations}, {args.val_every})")
+    if args.steps is not None and args.steps < 1:
+        raise ValueError(f"--steps must be >= 1 (got {args.steps})")
 
 
 def _read_resume_checkpoint(args: TrainArgs, last: Path) -> tuple[Path | None, dict[str, Any] | None]:
@@ -899,7 +915,8 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
                       out_dir=out_dir, export=export, args_dict=args_dict, t_start=t_start)
     stop_reason = loop.run(validate_first=(state.iteration == 0 and not state.val_curve)
                            or (ckpt is not None and args.reset_best),
-                           on_progress=on_progress, max_iterations=max_iterations)
+                           on_progress=on_progress,
+                           max_iterations=max_iterations if max_iterations is not None else args.steps)
     log.info("stopped (%s) at iteration %d after %.1f min", stop_reason, state.iteration, loop.elapsed() / 60)
     return {"iteration": state.iteration, "best_iou": state.best_iou, "best_iteration": state.best_iteration,
             "export": str(export), "val_curve": state.val_curve, "curve": state.curve,
