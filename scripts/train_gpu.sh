@@ -1,33 +1,82 @@
 #!/usr/bin/env bash
-# One command that continues the mug prior on a GPU for a fixed number of minutes (issue 34 item 4): it resumes
-# from a resume state (default: the committed efem_viz/weights/mug_256x4_resume.pt, the 256-wide decoder grown from
-# the shipped prior in session 11), trains in bf16 with a batch sized
-# for a large GPU, and writes checkpoints (last.pt every 2 min, snapshots every 500 iterations), the best export
-# (OUT/mug.pt), a resume state (OUT/mug_resume.pt) and the training report into OUT.
+# Train a shape prior on a GPU machine that has Python, torch and numpy but no open3d, trimesh, viser or network,
+# and that receives this working tree plus what `--prepare` put in runs/carry/ (pass it as a carried path).
 #
-#   bash scripts/train_gpu.sh OUT [MINUTES] [more train-prior options, which win over the ones below]
-#   e.g. bash scripts/train_gpu.sh "$OUT" 7 --resume-from runs/cap_256x4/last.pt
+#   bash scripts/train_gpu.sh --prepare                 here, once: mesh packs + pure-Python wheels -> runs/carry/
+#   bash scripts/train_gpu.sh --smoke OUT               there: CUDA, data, 20 steps, a checkpoint in OUT (< 1 min)
+#   bash scripts/train_gpu.sh OUT [MINUTES] [train-prior options, which win over the ones below]
 #
-# MINUTES (default 7) is the whole process's budget, data preparation included (about 3 min for a fresh data cache
-# of the 496 procedural mugs on one core), so that the command ends under the device tool's 9-minute limit.
-# EFEM_TRAIN_DEVICE (default cuda), EFEM_TRAIN_BATCH (default 128), EFEM_TRAIN_THREADS (default 8) change the
-# device, the batch and the CPU threads. On a CPU the matrix work stays float32 (bf16 is fast only on AMX /
-# AVX-512 BF16 CPUs and GPUs; `efem_viz.prior.config.fast_cpu_bf16`).
+# The training run resumes efem_viz/weights/mug_resume.pt (override with --resume-from), prepares its data on the
+# GPU from the carried mesh packs (torch signed distance and ray casting; no open3d), trains in bf16 autocast with a
+# batch sized for a large GPU, and writes into OUT every minute: last.pt (the full checkpoint), mug_resume.pt (the
+# shippable resume state), mug.pt (the best export) and the training report (the data cache stays in $TMPDIR).
+# MINUTES (default 8) is the whole process's budget, data preparation included, so that a call of the device tool
+# (9-10 minutes) ends with everything in OUT. Work is counted in iterations (--steps N stops after N of them).
+#
+# Environment: EFEM_TRAIN_DEVICE (default cuda; cpu runs the same path here), EFEM_TRAIN_BATCH (default 256),
+# EFEM_TRAIN_THREADS (default 8), EFEM_CARRY (default runs/carry).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-OUT=${1:?usage: bash scripts/train_gpu.sh OUT_DIR [MINUTES] [train-prior options]}
-MINUTES=${2:-7}
-shift $(( $# >= 2 ? 2 : 1 ))
+PY=${PYTHON:-python3}
+CARRY=${EFEM_CARRY:-runs/carry}
+WHEELS=(tyro docstring-parser typeguard typing-extensions tqdm)
+
+if [[ ${1:-} == --prepare ]]; then
+  mkdir -p "$CARRY/wheels"
+  $PY -m efem_viz.cli pack-meshes --category mug --split train --count 400 --out "$CARRY/mug_train.npz"
+  $PY -m efem_viz.cli pack-meshes --category mug --split val --count 96 --out "$CARRY/mug_val.npz"
+  # pure-Python wheels for a machine without tyro/tqdm (installed there into a temporary folder, never from a network)
+  $PY -m pip download -q --only-binary=:all: --no-deps --python-version 3.12 --implementation py \
+    --platform any -d "$CARRY/wheels" "${WHEELS[@]}"
+  du -sh "$CARRY"
+  exit 0
+fi
+
+SMOKE=0
+if [[ ${1:-} == --smoke ]]; then SMOKE=1; shift; fi
+OUT=${1:?usage: bash scripts/train_gpu.sh [--prepare | --smoke OUT | OUT [MINUTES] [train-prior options]]}
+shift
+MINUTES=8
+if (( ! SMOKE )) && [[ $# -gt 0 && $1 != --* ]]; then MINUTES=$1; shift; fi
 DEVICE=${EFEM_TRAIN_DEVICE:-cuda}
+mkdir -p "$OUT"
+for f in "$CARRY/mug_train.npz" "$CARRY/mug_val.npz"; do
+  [[ -f $f ]] || { echo "[train_gpu] missing $f: run 'bash scripts/train_gpu.sh --prepare' here and carry $CARRY" >&2; exit 1; }
+done
+
+# what the machine lacks of the pure-Python dependencies comes from the carried wheels, into a folder of OUT's
+if ! $PY -c "import tyro, tqdm" >/dev/null 2>&1; then
+  SITE=$(mktemp -d)
+  $PY -m pip install -q --no-index --find-links "$CARRY/wheels" --target "$SITE" "${WHEELS[@]}" >&2
+  export PYTHONPATH="$SITE${PYTHONPATH:+:$PYTHONPATH}"
+fi
+export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
+
+$PY - "$DEVICE" <<'PYCHECK' >&2
+import sys
+import torch
+dev = sys.argv[1]
+if dev.startswith("cuda") and not torch.cuda.is_available():
+    sys.exit("[train_gpu] no CUDA device visible to torch " + torch.__version__ + " (EFEM_TRAIN_DEVICE=cpu runs on the CPU)")
+name = torch.cuda.get_device_name(0) if dev.startswith("cuda") else "cpu"
+print(f"[train_gpu] torch {torch.__version__} on {name}; python {sys.version.split()[0]}")
+PYCHECK
+
 DTYPE=bfloat16
 if [[ $DEVICE == cpu ]]; then
-  DTYPE=$(python3 -c "from efem_viz.prior.config import fast_cpu_bf16; print('bfloat16' if fast_cpu_bf16() else 'float32')")
+  DTYPE=$($PY -c "from efem_viz.prior.config import fast_cpu_bf16; print('bfloat16' if fast_cpu_bf16() else 'float32')")
 fi
-mkdir -p "$OUT"
-exec python3 -m efem_viz.cli train-prior --category mug --preset cpu --n-train 400 --n-val 96 \
-  --batch-size "${EFEM_TRAIN_BATCH:-128}" --iterations 60000 --lr 3e-5 --decay-at 0.95 --val-every 250 \
-  --ckpt-every-min 2 --resume-export-every-min 2 --threads "${EFEM_TRAIN_THREADS:-8}" --min-views 1 \
-  --sensor-p 0.75 --fixed-point-p 0.25 --snapshot-every 500 --device "$DEVICE" --matmul-dtype "$DTYPE" \
-  --resume-from efem_viz/weights/mug_256x4_resume.pt --reset-best \
-  --out-dir "$OUT" --export "$OUT/mug.pt" --resume-export "$OUT/mug_resume.pt" \
-  --time-budget-min "$MINUTES" --no-progress "$@"
+RESUME=efem_viz/weights/mug_resume.pt
+COMMON=(--category mug --preset cpu --meshes "$CARRY/mug_train.npz" --val-meshes "$CARRY/mug_val.npz"
+  --device "$DEVICE" --matmul-dtype "$DTYPE" --threads "${EFEM_TRAIN_THREADS:-8}" --min-views 1
+  --sensor-p 0.75 --fixed-point-p 0.25 --lr 3e-5 --decay-at 0.95 --iterations 200000
+  --cache-dir "${TMPDIR:-/tmp}/efem-train-cache" --out-dir "$OUT" --export "$OUT/mug.pt" --resume-export "$OUT/mug_resume.pt"
+  --ckpt-every-min 1 --resume-export-every-min 1 --no-progress)
+[[ -f $RESUME ]] && COMMON+=(--resume-from "$RESUME" --reset-best)
+if (( SMOKE )); then
+  exec $PY -m efem_viz.cli train-prior "${COMMON[@]}" --n-train 16 --n-val 4 --batch-size 32 --steps 20 \
+    --val-every 10 --log-every 5 --time-budget-min 3 "$@"
+fi
+exec $PY -m efem_viz.cli train-prior "${COMMON[@]}" --n-train 400 --n-val 96 \
+  --batch-size "${EFEM_TRAIN_BATCH:-256}" --val-every 250 --log-every 50 \
+  --time-budget-min "$MINUTES" "$@"

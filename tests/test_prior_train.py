@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -386,28 +387,117 @@ def test_grown_bf16_run_starts_from_the_source_prior(tmp_path: Path, cache_dir: 
 
 
 @pytest.mark.slow
-def test_gpu_training_script_resumes_and_writes_its_outputs_on_cpu(tmp_path: Path, cache_dir: Path) -> None:
-    """scripts/train_gpu.sh, run on the CPU with a tiny budget: it resumes the given state, trains, and leaves
-    the checkpoint, the export, the resume state and the report in its output folder."""
+def _small_pack(path: Path, seeds: range) -> Path:
+    """A mesh pack of a few low-poly closed shapes (boxes and icospheres): cheap to prepare on any backend."""
+    import trimesh
+
+    from efem_viz.geometry.sampling import MeshArrays
+    from efem_viz.prior.data import save_mesh_pack
+
+    def source(i: int) -> tuple[str, Any]:
+        m = (trimesh.creation.icosphere(subdivisions=1) if i % 2 else
+             trimesh.creation.box(extents=[1.0, 0.5 + 0.05 * i, 0.8]))
+        return f"shape_{i}", (lambda m=m: MeshArrays(np.asarray(m.vertices), np.asarray(m.faces)))
+
+    return save_mesh_pack([source(i) for i in seeds], path)
+
+
+def _without_open3d(folder: Path) -> Path:
+    """A sitecustomize that makes open3d, trimesh, viser, pybullet and manifold3d unimportable (a GPU machine)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "sitecustomize.py").write_text(
+        "import importlib.abc, sys\n"
+        "class _Block(importlib.abc.MetaPathFinder):\n"
+        "    def find_spec(self, name, path, target=None):\n"
+        "        if name.split('.')[0] in {'open3d', 'trimesh', 'viser', 'pybullet', 'manifold3d'}:\n"
+        "            raise ModuleNotFoundError(f'No module named {name!r} (blocked)')\n"
+        "sys.meta_path.insert(0, _Block())\n")
+    return folder
+
+
+def test_torch_preparation_gives_the_open3d_data_to_rounding() -> None:
+    """The data a GPU machine prepares without open3d (torch signed distance and ray casting) equals open3d's."""
+    from efem_viz.data.procedural import make_shape
+    from efem_viz.geometry.sampling import MeshArrays
+    from efem_viz.prior.data import prepare_object
+
+    cfg = PrepConfig(n_uniform=300, n_near=300, n_surface=100, resolution=24, max_view_points=200)
+    mesh = make_shape("mug", 11)
+    a = prepare_object(mesh, name="m", cfg=cfg, seed=5, backend="open3d")
+    b = prepare_object(MeshArrays(np.asarray(mesh.vertices), np.asarray(mesh.faces)), name="m", cfg=cfg, seed=5,
+                       backend="torch")
+    for key in ("uni", "nss", "surface", "views", "view_eyes", "view_cos"):
+        assert getattr(a, key).shape == getattr(b, key).shape, key
+        assert np.abs(getattr(a, key) - getattr(b, key)).max() < 1e-4, key
+    assert np.array_equal(a.view_offsets, b.view_offsets) and (a.uni[:, 3] < 0).any()
+
+
+def test_a_mesh_pack_round_trips_and_a_damaged_one_is_one_line(tmp_path: Path) -> None:
+    from efem_viz.prior.data import normalize_mesh, pack_sources, procedural_sources, save_mesh_pack
+
+    srcs = procedural_sources("mug", "train", 3)
+    pack = save_mesh_pack(srcs, tmp_path / "p.npz")
+    back = pack_sources(pack)
+    assert [n for n, _ in back] == [n for n, _ in srcs]
+    for (_, f0), (_, f1) in zip(srcs, back):
+        m0, m1 = normalize_mesh(f0()), f1()
+        assert np.abs(np.asarray(m0.vertices) - m1.vertices).max() < 1e-6 and np.array_equal(m0.faces, m1.faces)
+    with np.load(pack) as z:
+        data = {k: z[k] for k in z.files}
+    bad = dict(data, faces=data["faces"] + 10**6)
+    np.savez(tmp_path / "bad.npz", **bad)
+    with pytest.raises(ValueError, match="face indices outside"):
+        pack_sources(tmp_path / "bad.npz")
+    np.savez(tmp_path / "lie.npz", **dict(data, vertex_offsets=np.array([0, 10**9, 2 * 10**9, 3 * 10**9])))
+    with pytest.raises(ValueError, match="inconsistent offsets"):
+        pack_sources(tmp_path / "lie.npz")
+    (tmp_path / "cut.npz").write_bytes(pack.read_bytes()[:1000])
+    with pytest.raises(ValueError, match="unreadable mesh pack|not an efem-viz mesh pack"):
+        pack_sources(tmp_path / "cut.npz")
+
+
+def test_gpu_training_script_smoke_and_run_without_open3d_counting_iterations(tmp_path: Path, cache_dir: Path) -> None:
+    """scripts/train_gpu.sh as it runs on the GPU machine (no open3d, trimesh or viser; data from carried mesh
+    packs), here on the CPU: the smoke mode does its 20 steps and leaves a checkpoint; a run resumes the state it
+    is given and stops after exactly --steps iterations, leaving the checkpoint, export, resume state (without the
+    optimiser's moments) and report. Work is counted; the time budgets are far out of reach."""
     import os
     import subprocess
 
     first = _args(tmp_path / "a", cache_dir, iterations=3, val_every=100, calibrate_iso=False)
     train(first)
-    out = tmp_path / "gpu"
+    carry = tmp_path / "carry"
+    carry.mkdir()
+    _small_pack(carry / "mug_train.npz", range(5))
+    _small_pack(carry / "mug_val.npz", range(5, 7))
     root = Path(__file__).resolve().parents[1]
-    env = {**os.environ, "EFEM_TRAIN_DEVICE": "cpu", "EFEM_TRAIN_BATCH": "4", "EFEM_TRAIN_THREADS": "1",
-           "PYTHONPATH": str(root)}
-    cmd = ["bash", str(root / "scripts" / "train_gpu.sh"), str(out), "0.3", "--resume-from",
-           str(tmp_path / "a" / "run" / "last.pt"), "--n-train", "3", "--n-val", "2", "--cache-dir", str(cache_dir),
-           "--iterations", "8", "--val-every", "4", "--preset", "tiny"]
-    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    assert "resumed from" in proc.stderr
+    env = {**os.environ, "EFEM_TRAIN_DEVICE": "cpu", "EFEM_TRAIN_THREADS": "1", "EFEM_CARRY": str(carry),
+           "TMPDIR": str(tmp_path), "PYTHONPATH": str(_without_open3d(tmp_path / "site"))}
+    script = str(root / "scripts" / "train_gpu.sh")
+    resume = ["--resume-from", str(tmp_path / "a" / "run" / "last.pt"), "--batch-size", "4",
+              "--time-budget-min", "600"]
+    smoke = subprocess.run(["bash", script, "--smoke", str(tmp_path / "smoke"), *resume], env=env,
+                           capture_output=True, text=True, timeout=1800)
+    assert smoke.returncode == 0, smoke.stderr[-3000:]
+    assert "resumed from" in smoke.stderr and "[train_gpu] torch" in smoke.stderr
+    ck = torch.load(tmp_path / "smoke" / "last.pt", weights_only=False)
+    assert ck["state"]["iteration"] == 3 + 20
+    run = subprocess.run(["bash", script, str(tmp_path / "gpu"), "600", *resume, "--steps", "5"], env=env,
+                         capture_output=True, text=True, timeout=1800)
+    assert run.returncode == 0, run.stderr[-3000:]
+    out = tmp_path / "gpu"
     for name in ("last.pt", "mug.pt", "mug_resume.pt", "mug_training_report.md", "config.json"):
         assert (out / name).is_file(), name
     ck = torch.load(out / "last.pt", weights_only=False)
-    assert ck["state"]["iteration"] > 3 and ck["args"]["device"] == "cpu"
+    assert ck["state"]["iteration"] == 3 + 5 and ck["args"]["device"] == "cpu" and ck["optimizer"] is not None
+    shipped = torch.load(out / "mug_resume.pt", weights_only=False)
+    assert shipped["optimizer"] is None and shipped["state"]["iteration"] == 3 + 5
+    assert not (out / "cache").exists()  # the data cache never travels back
+    again = subprocess.run(["bash", script, str(tmp_path / "again"), "600", "--resume-from", str(out / "mug_resume.pt"),
+                            "--batch-size", "4", "--time-budget-min", "600", "--steps", "2"], env=env,
+                           capture_output=True, text=True, timeout=1800)
+    assert again.returncode == 0 and "Adam restarts" in again.stderr, again.stderr[-3000:]
+    assert torch.load(tmp_path / "again" / "last.pt", weights_only=False)["state"]["iteration"] == 3 + 5 + 2
 
 
 def test_handled_only_training_family_has_a_handle_on_every_mug() -> None:

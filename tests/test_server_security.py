@@ -755,3 +755,37 @@ def test_saved_token_is_kept_private_and_bad_files_are_replaced(tmp_path: Path) 
     os.symlink(tmp_path / "elsewhere", path)
     new, kept = saved_token(tmp_path)
     assert not kept and new != "z" * 32 and not path.is_symlink()
+
+
+def test_view_results_alone_opens_the_scenes_its_batch_names_and_says_which_are_gone(tmp_path: Path) -> None:
+    """`efem-viz view --results DIR` on a `segment --out DIR` folder alone (as USER_GUIDE.md and BATCH.md tell
+    people to browse a batch): the viewer opens the scenes DIR's batch.json names, a line names the one whose scene
+    file is gone, and with no scene left it is one error line. Full CLI, sphere prior (exact, fast)."""
+    from efem_viz.data.io import save_scene
+    from efem_viz.prior import analytic
+
+    scenes = tmp_path / "scans"
+    scenes.mkdir()
+    for k in (0, 1):
+        save_scene(analytic.make_sphere_scene(seed=k, spacing=0.014, name=f"balls_{k}"), scenes / f"balls_{k}.ply")
+    out = tmp_path / "results"
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    seg = subprocess.run([sys.executable, "-m", "efem_viz.cli", "segment", str(scenes), "--prior", "sphere",
+                          "--preset", "fast", "--proposals", "8", "--out", str(out), "--no-scannet"],
+                         capture_output=True, text=True, timeout=600, env=env)
+    assert seg.returncode == 0, seg.stderr[-2000:]
+    assert (out / "balls_0.efem.npz").is_file() and (out / "balls_1.efem.npz").is_file()
+    (scenes / "balls_1.ply").unlink()
+    proc, lines = _start_cli(["-m", "efem_viz.cli", "view", "--results", str(out), "--port", "0", "--prior", "sphere",
+                              "--out-dir", str(tmp_path / "o")], until="  exports go to:")
+    try:
+        log = "".join(lines)
+        assert "(1 scene;" in log, log
+        assert "scene file not found for 1 result(s): balls_1" in log, log
+    finally:
+        assert _stop_cli(proc) in (0, 130)  # (stopping is test_server_stop's subject)
+    (scenes / "balls_0.ply").unlink()
+    gone = subprocess.run([sys.executable, "-m", "efem_viz.cli", "view", "--results", str(out), "--port", "0"],
+                          capture_output=True, text=True, timeout=600, env=env)
+    errors = [ln for ln in gone.stderr.splitlines() if "error" in ln]
+    assert gone.returncode == 1 and len(errors) == 1 and "no scene to show" in errors[0], gone.stderr[-2000:]

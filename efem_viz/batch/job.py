@@ -21,13 +21,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+from efem_viz.data.files import BATCH_FILE as _BATCH_FILE
 from efem_viz.data.io import RESULT_SUFFIX, SEG_SUFFIX  # SEG_SUFFIX: the coloured PLY written per scene
 from efem_viz.em.config import SolveSettings
 from efem_viz.prior.config import DEFAULT_PRIOR
 
 BATCH_SCHEMA_VERSION = 1
 """Version of `batch.json` and of the job fingerprint (bump when either changes meaning)."""
-BATCH_FILE = "batch.json"
+BATCH_FILE = _BATCH_FILE
 """The batch record written beside the results."""
 SCANNET_DIR = "scannet"
 """Sub-folder of the ScanNet benchmark layout."""

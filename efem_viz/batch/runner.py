@@ -56,6 +56,7 @@ from efem_viz.batch.job import (
     scene_name_of,
     scene_stamp,
 )
+from efem_viz.data.files import MAX_BATCH_FILE_BYTES
 
 logger = logging.getLogger(__name__)
 
@@ -63,8 +64,6 @@ LOCK_FILE = ".batch.lock"
 """Held (flock) by the batch writing into a folder."""
 RECORD_EVERY_S = 1.0
 """`batch.json` is rewritten after a finished scene at most this often (and always at the end)."""
-MAX_BATCH_FILE_BYTES = 64 << 20
-"""Largest `batch.json` read (a record is about 500 bytes: room for 100,000 scenes)."""
 _TEMP_NAME = re.compile(r"^\..+\.[A-Za-z0-9_]{8}\.tmp(\.[A-Za-z0-9.]+)?$")
 """Temporary files of `efem_viz.data.io.atomic_write` (`.<stem>.<random>.tmp<suffix>`) left by a killed write."""
 

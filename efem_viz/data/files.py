@@ -17,11 +17,35 @@ from efem_viz.data.formats import SCENE_SUFFIXES
 from efem_viz.data.scene import SceneError
 
 RESULT_SUFFIX = ".efem.npz"
+BATCH_FILE = "batch.json"
+"""The record `efem-viz segment --out DIR` keeps of its scenes (written and read in full by `efem_viz.batch`)."""
+MAX_BATCH_FILE_BYTES = 64 << 20
+"""Largest `batch.json` read (a record is about 500 bytes: room for 100,000 scenes)."""
 """Suffix of EFEM result files (`EMResult.save`); `find_scenes` skips them. (Its owner is the result file,
 efem_viz/em/results.py, which imports it from here for now: data/ sits below em/.)"""
 SEG_SUFFIX = ".seg.ply"
 """Suffix of `efem-viz segment`'s scene copies coloured by prediction: their per-vertex `instance` property holds
 the *predicted* instances, not ground truth (`holds_predictions`)."""
+
+
+def recorded_scene_paths(folder: str | os.PathLike[str]) -> dict[str, Path]:
+    """Scene name -> scene file, as the `batch.json` of a results folder records them ({} when it has none, or
+    an unreadable or oversized one); for apps that open a batch's results with their scenes."""
+    import json
+
+    p = Path(folder) / BATCH_FILE
+    try:
+        if not p.is_file() or p.stat().st_size > MAX_BATCH_FILE_BYTES:
+            return {}
+        data = json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, ValueError, RecursionError):
+        return {}
+    scenes = data.get("scenes") if isinstance(data, dict) and data.get("kind") == "efem-batch" else None
+    out: dict[str, Path] = {}
+    for r in scenes if isinstance(scenes, list) else []:
+        if isinstance(r, dict) and isinstance(r.get("name"), str) and isinstance(r.get("path"), str):
+            out[r["name"]] = Path(r["path"])
+    return out
 
 
 def holds_predictions(path: str | os.PathLike[str]) -> bool:

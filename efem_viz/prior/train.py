@@ -15,7 +15,6 @@ import json
 import logging
 import math
 import os
-import shutil
 import threading
 import time
 from collections.abc import Callable
@@ -77,7 +76,8 @@ class TrainArgs:
     export: Path | None = None
     """Where the best model goes. Default: efem_viz/weights/<category>.pt."""
     resume_export: Path | None = None
-    """Also copy the latest resume checkpoint here (if < 20 MB), e.g. efem_viz/weights/mug_resume.pt."""
+    """Also write the latest resume state here (`write_resume_state`: without the optimiser's moments, at most
+    20 MB), e.g. efem_viz/weights/mug_resume.pt."""
     resume_export_every_min: float = 10.0
     """Minutes between copies to --resume-export."""
     cache_dir: Path = Path("runs/cache")
@@ -271,12 +271,6 @@ def _install_stop_handlers() -> tuple[threading.Event, Callable[[], None]]:
             signal.signal(sig, old)
 
     return stop, restore
-
-
-def _copy_atomic(src: Path, dst: Path) -> None:
-    from efem_viz.data.io import atomic_write
-
-    atomic_write(dst, lambda tmp: shutil.copyfile(src, tmp))
 
 
 def lr_at(iteration: int, *, base: float, total: int, decay_at: tuple[float, ...], factor: float) -> float:
@@ -591,6 +585,37 @@ def _read_resume_checkpoint(args: TrainArgs, last: Path) -> tuple[Path | None, d
     return resume_path, ckpt
 
 
+RESUME_STATE_LIMIT_BYTES = 20 * 2**20
+"""A resume state is committed with the weights: never larger than this."""
+
+
+def write_resume_state(checkpoint: Path, dest: Path) -> int | None:
+    """Write the shippable resume state of a training checkpoint: weights, loop state, RNG states and metadata,
+    without the optimiser's moments (two thirds of the file; a resumed run restarts Adam, which re-estimates them
+    within a few dozen steps). Atomic.
+
+    Returns:
+        The bytes written, or None (with a warning) when even that would exceed `RESUME_STATE_LIMIT_BYTES`.
+    """
+    import io
+
+    import torch
+
+    ckpt = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    ckpt["optimizer"] = None
+    buf = io.BytesIO()
+    torch.save(ckpt, buf)
+    data = buf.getvalue()
+    if len(data) > RESUME_STATE_LIMIT_BYTES:
+        log.warning("resume state would be %.1f MB (> %d MB): not written to %s", len(data) / 2**20,
+                    RESUME_STATE_LIMIT_BYTES // 2**20, dest)
+        return None
+    from efem_viz.data.io import atomic_write
+
+    atomic_write(Path(dest), lambda tmp: Path(tmp).write_bytes(data))
+    return len(data)
+
+
 def _build_prior(args: TrainArgs, ckpt: dict[str, Any] | None) -> tuple[ShapePrior, bool]:
     """The prior to train: the checkpoint's architecture (its weights come with the optimiser, `_resume_state`),
     else ``--init-from``'s weights (its decoder grown when asked; its settings only for the same category), else a
@@ -639,7 +664,10 @@ def _resume_state(args: TrainArgs, prior: ShapePrior, opt: Any, rng: np.random.G
     import torch
 
     prior.load_state_dict(ckpt["state_dict"])
-    opt.load_state_dict(ckpt["optimizer"])
+    if ckpt["optimizer"] is not None:
+        opt.load_state_dict(ckpt["optimizer"])
+    else:
+        log.info("the resume state carries no optimiser moments (a shipped state): Adam restarts")
     state = _State(**ckpt["state"])
     rng.bit_generator.state = ckpt["np_rng"]
     torch.set_rng_state(ckpt["torch_rng"])
@@ -748,12 +776,9 @@ class _TrainLoop:
         self.last_ckpt = time.monotonic()
         due = time.monotonic() - self.last_resume_export >= args.resume_export_every_min * 60
         if args.resume_export is not None and (due or final):
-            if self.last.stat().st_size < 20 * 2**20:
-                _copy_atomic(self.last, args.resume_export)
+            size = write_resume_state(self.last, args.resume_export)
+            if size is not None:
                 self.last_resume_export = time.monotonic()
-            else:
-                log.warning("resume checkpoint is %.1f MB (> 20 MB): not copied to %s",
-                            self.last.stat().st_size / 2**20, args.resume_export)
 
     def stop_reason(self, stop_requested: threading.Event, max_iterations: int | None) -> str | None:
         """Why the loop stops before the next iteration (a signal, this call's iteration cap, the time budget);

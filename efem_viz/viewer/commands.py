@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Sequence
 
 import tyro
 
@@ -36,7 +37,8 @@ class ViewArgs:
     """Access token to require (default: a fresh random one, printed in the URL). At least 16 characters."""
     results: tuple[Path, ...] = ()
     """Folders of saved results (`efem-viz segment --out DIR`): each scene's `<scene>.efem.npz` is looked for there
-    after its own folder. Without scene paths, the scenes are the scene files in these folders."""
+    first, then next to the scene. Without scene paths, the scenes are those the folders' `batch.json` names
+    (a line lists the results whose scene file is gone)."""
     max_points: int = DEFAULT_MAX_POINTS
     """Refuse scenes with more points than this."""
 
@@ -49,8 +51,10 @@ class ViewArgs:
 
         check_port(self.port)  # before anything starts (a bad port used to hang in viser's server thread)
 
-        if self.paths or self.results:
+        if self.paths:
             paths = list(self.paths)
+        elif self.results:
+            paths = scenes_of_results(self.results)
         else:
             samples = default_scene_dir()
             if not samples.is_dir():
@@ -73,6 +77,42 @@ class ViewArgs:
             finally:
                 app.stop()
         return 0
+
+
+def scenes_of_results(results: Sequence[Path]) -> list[Path]:
+    """The scene files that results folders (`efem-viz segment --out DIR`) name in their `batch.json`, for
+    `view --results DIR` without scene paths; one warning line lists the results whose scene is not there.
+
+    Raises:
+        FileNotFoundError: a results folder does not exist.
+        SceneError: none of the named scenes exists (the line says how to give them).
+    """
+    from efem_viz.data.files import RESULT_SUFFIX, SCENE_SUFFIXES, recorded_scene_paths
+
+    found: list[Path] = []
+    missing: list[str] = []
+    for d in results:
+        folder = Path(d).expanduser()
+        if not folder.is_dir():
+            raise FileNotFoundError(f"no such results folder: {d}")
+        recorded = recorded_scene_paths(folder)
+        for result in sorted(folder.glob(f"*{RESULT_SUFFIX}")):
+            name = result.name[: -len(RESULT_SUFFIX)]
+            scene = recorded.get(name)
+            if scene is not None and scene.suffix.lower() in SCENE_SUFFIXES and scene.is_file():
+                if scene not in found:
+                    found.append(scene)
+            else:
+                missing.append(name if scene is None else f"{name} ({scene})")
+    if missing:
+        logger.warning("%s: scene file not found for %d result(s): %s%s (give the scenes: efem-viz view SCENES "
+                       "--results DIR)", ", ".join(str(d) for d in results), len(missing), ", ".join(missing[:8]),
+                       " ..." if len(missing) > 8 else "")
+    if not found:
+        raise SceneError(f"no scene to show: {', '.join(str(d) for d in results)} holds no result whose scene file "
+                         "is still where its batch.json says; give the scene files or folders too "
+                         "(efem-viz view SCENES --results DIR)")
+    return found
 
 
 def check_view_inputs(paths: list[Path], results: tuple[Path, ...], *, max_points: int) -> None:

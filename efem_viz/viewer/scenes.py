@@ -31,18 +31,18 @@ class SceneEntry:
     path: Path
     root: Path
     result_dirs: tuple[Path, ...] = ()
-    """Folders of saved results (`efem-viz view --results DIR`, e.g. a `segment --out` folder) searched after the
-    scene's own folder."""
+    """Folders of saved results (`efem-viz view --results DIR`, e.g. a `segment --out` folder), searched before
+    the scene's own folder: a person who names a results folder asks to see those results."""
 
     @property
     def trace_path(self) -> Path:
         """The saved result to open with this scene, looked up when asked (a result written meanwhile is found):
-        `<scene>.efem.npz` next to it, then in each results folder; for an annotated copy `<base>.labels.ply` or a
+        `<scene>.efem.npz` in each results folder, then next to the scene; for an annotated copy `<base>.labels.ply` or a
         `segment` output `<base>.seg.ply`, the result of `<base>` (same points). When none exists, the path next
         to the scene (where a run would be saved)."""
         stem = self.path.name[: -len(self.path.suffix)] if self.path.suffix else self.path.name
         stems = [stem] + [stem[: -len(infix)] for infix in (LABELS_INFIX, SEG_INFIX) if stem.endswith(infix)]
-        folders = [self.path.parent, *self.result_dirs]
+        folders = [*self.result_dirs, self.path.parent]
         for base in stems:
             for d in folders:
                 cand = d / (base + RESULT_SUFFIX)
