@@ -43,7 +43,7 @@ from annotator.rooms.files import FileRoom
 from annotator.rooms.instances import InstanceRoom
 from annotator.rooms.paint import PaintRoom, Stroke
 from annotator.rooms.scan import ScanRoom
-from annotator.tools import DEFAULT_TOOLS, Hit, Tool, ToolSettings
+from annotator.tools import DEFAULT_TOOLS, Hit, Tool, ToolSettings, all_controls, check_tools, scaled_to_scan
 
 if TYPE_CHECKING:
     from annotator.store import LabelStore
@@ -115,8 +115,13 @@ class AnnotatorSession(SessionHooks):
                              autosave_delay=autosave_delay, accept_scan_mismatch=accept_scan_mismatch,
                              on_stage=on_stage)
         """The scan, its geometry and its label store."""
+        diagonal = float(np.linalg.norm(np.ptp(self.scan.scene.points, axis=0)))
+        self.toolbox.tools = scaled_to_scan(self.toolbox.tools, diagonal)  # sliders as long as the scan needs
+        self.toolbox.tool_of = check_tools(self.toolbox.tools)
         settings = self.toolbox.settings
-        settings.radius = max(0.005, 0.02 * float(np.linalg.norm(np.ptp(self.scan.scene.points, axis=0))))
+        radius = next(c for c in all_controls(self.toolbox.tools) if c.setting == "radius")
+        settings.radius = float(np.clip(0.02 * diagonal, max(0.005, radius.min / radius.scale),
+                                        radius.max / radius.scale))
         settings.grow_min_height = table_clearance(self.scan.scene.provenance)
         ls = self.scan.store.labelset
         if ls.instances:

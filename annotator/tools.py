@@ -26,6 +26,7 @@ Pure: no viser import (the tests of the tool table run without a server).
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Callable, Literal, Protocol, Sequence
 
@@ -400,6 +401,21 @@ def check_tools(tools: Sequence[Tool]) -> dict[str, Tool]:
                 command_keys.setdefault(key, f"{t.name}: {cmd.label}")
         by_name[t.name] = t
     return by_name
+
+
+def scaled_to_scan(tools: Sequence[Tool], diagonal: float) -> tuple[Tool, ...]:
+    """The tools with their length sliders reaching as far as the scan needs: the brush radius up to 10 % of the
+    scan's diagonal (at least its 20 cm), the grow distance up to the diagonal (at least its 2 m). A room-sized
+    scan (9 x 6 x 3 m) gets a brush that covers a chair; a tabletop scan keeps the shipped ranges."""
+    reach = {"radius": 0.10 * diagonal, "grow_distance": diagonal}
+
+    def scaled(c: Control) -> Control:
+        if c.kind != "slider" or c.setting not in reach or not np.isfinite(reach[c.setting]):
+            return c
+        top = round(reach[c.setting] * c.scale / c.step) * c.step
+        return dataclasses.replace(c, max=float(max(c.max, top)))
+
+    return tuple(dataclasses.replace(t, controls=tuple(scaled(c) for c in t.controls)) for t in tools)
 
 
 def all_controls(tools: Sequence[Tool]) -> tuple[Control, ...]:

@@ -12,7 +12,9 @@ total, and what the answers are:
 Variants:
 * `baseline`: the landed main's code paths: eager VN encoder (`EFEM_VIZ_FUSED=0`), pose search on every
   sample (`pose_points=None`);
-* `fast`: today's defaults (fused VN kernels, pose search on 1000 samples).
+* `two_pass`: fused VN kernels, pose search on 1000 samples, the E-step's SDF and band normals in two decoder
+  passes (an SDF pass, then autograd on the band: `EFEM_VIZ_ONE_PASS=0`);
+* `fast`: today's defaults (as `two_pass`, with one decoder pass and a hand-made backward on the band).
 
 `--busy N` runs N one-thread busy loops beside the solves (issue 32 item 4: a solve must slow down by about its
 fair share). `--profile` prints the top functions of one run per variant.
@@ -42,8 +44,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
 
 VARIANTS: dict[str, tuple[dict[str, str], dict[str, Any]]] = {
-    "baseline": ({"EFEM_VIZ_FUSED": "0"}, {"pose_points": None}),
-    "fast": ({"EFEM_VIZ_FUSED": "1"}, {}),
+    "baseline": ({"EFEM_VIZ_FUSED": "0", "EFEM_VIZ_ONE_PASS": "0"}, {"pose_points": None}),
+    "two_pass": ({"EFEM_VIZ_FUSED": "1", "EFEM_VIZ_ONE_PASS": "0"}, {}),
+    "fast": ({"EFEM_VIZ_FUSED": "1", "EFEM_VIZ_ONE_PASS": "1"}, {}),
 }
 """name -> (environment, EMConfig overrides)."""
 
@@ -109,6 +112,9 @@ def main() -> int:
     ap.add_argument("--cut", type=float, default=0.1, help="confidence cut of the masks compared to the baseline")
     ap.add_argument("--tag", default="")
     a = ap.parse_args()
+    from efem_viz.cpu import configure_openmp
+
+    configure_openmp()  # the CLIs' OpenMP wait policy, before torch starts its threads
     import torch
 
     torch.set_num_threads(a.threads)
@@ -143,7 +149,7 @@ def main() -> int:
                 runs, res = [], None
                 for r in range(a.repeats):
                     prof = cProfile.Profile() if (a.profile and r == 0) else None
-                    t0 = time.perf_counter()
+                    t0, c0 = time.perf_counter(), time.process_time()
                     if prof is not None:
                         prof.enable()
                     res = run_em(scene, prior, cfg, seed=a.seed)
@@ -151,7 +157,7 @@ def main() -> int:
                         prof.disable()
                         print(f"--- profile {name} {var}")
                         pstats.Stats(prof).sort_stats("tottime").print_stats(15)
-                    runs.append({"wall": time.perf_counter() - t0, **res.timings})
+                    runs.append({"wall": time.perf_counter() - t0, "cpu": time.process_time() - c0, **res.timings})
                 assert res is not None
                 masks = masks_of(res, a.cut)
                 if base_masks is None:
@@ -165,7 +171,8 @@ def main() -> int:
                 ph = " ".join(f"{k} {phases[k]:.1f}" for k in ("encode", "decode", "review_mesh", "review_pose")
                               if k in phases)
                 ap50_txt = "–" if row["ap50"] is None else f"{row['ap50']:.1f}"
-                print(f"{name:>16} {var:>9}: {phases['wall']:6.1f} s median of {a.repeats} ({ph}); "
+                print(f"{name:>16} {var:>9}: {phases['wall']:6.1f} s ({phases['cpu']:.1f} CPU-s) median of "
+                      f"{a.repeats} ({ph}); "
                       f"{len(masks)} instances, AP50 {ap50_txt}, mask IoU to baseline "
                       f"{row['mask_iou_to_baseline']:.3f}", flush=True)
     finally:

@@ -1036,3 +1036,26 @@ def test_closing_during_an_efem_run_stops_it_first(spheres, monkeypatch: pytest.
     assert thread is not None and not thread.is_alive() and not a.session.efem_running
     assert got[0].proposals is None and got[0].preset == "fast"  # type: ignore[attr-defined]
     assert not list((d / "out_close").glob("*.annotate/*.efem.npz"))
+
+
+def test_a_room_sized_scan_opens_with_sliders_as_long_as_it_needs(tmp_path: Path) -> None:
+    """A 9 x 6 x 3 m scan used to fail at start ("add_slider: initial_value (22.4) is outside of [0.1, 20.0]"):
+    the brush starts at 2 % of the diagonal on a slider that reaches 10 % of it; a tabletop scan keeps 20 cm."""
+    rng = np.random.default_rng(0)
+    floor = np.c_[rng.uniform(0, 9, 20000), rng.uniform(0, 6, 20000), np.zeros(20000)]
+    walls = np.c_[rng.uniform(0, 9, 5000), np.full(5000, 6.0), rng.uniform(0, 3, 5000)]
+    pts = np.concatenate([floor, walls]).astype(np.float32)
+    room = save_scene(Scene(name="room", points=pts, normals=np.tile(np.float32([0, 0, 1]), (len(pts), 1)),
+                            colors=np.full((len(pts), 3), 128, np.uint8)), tmp_path / "room.ply")
+    a = AnnotatorApp(room, out_dir=tmp_path / "out", port=0, autosave_delay=0)
+    try:
+        diagonal = float(np.linalg.norm(np.ptp(pts, axis=0)))
+        slider = a.panels.gui_controls["radius"]
+        assert abs(a.session.toolbox.settings.radius - 0.02 * diagonal) < 1e-6
+        assert slider.max >= 0.1 * diagonal * 100 - 0.1 and slider.min <= slider.value <= slider.max
+        assert abs(slider.value - 2.0 * diagonal) < 0.1  # cm
+        grow = a.panels.gui_controls["grow_distance"]
+        assert grow.max >= diagonal * 100 - 1
+        assert a.resize_brush(100.0) <= slider.max / 100 + 1e-9  # `]` stops at the slider's end
+    finally:
+        a.close()

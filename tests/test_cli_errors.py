@@ -8,6 +8,7 @@ entry in a subprocess to show what a user sees.
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import subprocess
@@ -456,3 +457,38 @@ def test_an_unused_member_of_a_result_file_is_never_inflated(sample: dict[str, A
         tracemalloc.stop()
     assert len(res.instances) == len(EMResult.load(REPO / "sample_scenes" / f"{SAMPLE}.efem.npz").instances)
     assert peak < 150 << 20, f"{peak / 2**20:.0f} MB traced while loading"
+
+
+def _with_config(key: str, value: Any) -> Callable[[dict[str, np.ndarray]], None]:
+    """Damage: the saved run's config (both copies) with ``key`` set to ``value``."""
+    def go(d: dict[str, np.ndarray]) -> None:
+        for k in ("config_json", "trace/config_json"):
+            cfg = json.loads(str(d[k]))
+            cfg[key] = value
+            d[k] = np.array(json.dumps(cfg))
+    return go
+
+
+@pytest.mark.parametrize(("key", "value", "says"), [
+    ("mesh_resolution", 600, "mesh_resolution must be in [8, 128]"),
+    ("r_init", 1e309, "r_init = inf: must be float"),
+    ("n_init", [100000], "at most 2000"),
+])
+def test_a_results_file_declaring_unbounded_work_is_refused_in_one_line(
+        key: str, value: Any, says: str, sample: dict[str, Any], tmp_path: Path) -> None:
+    """A results file's solver settings are bounded like a run's own (a mesh_resolution of 600 took the viewer's
+    Step slider to 1.9 GB and minutes per shape): the loader and `evaluate` refuse it in one line."""
+    path = write_result(tmp_path, sample["arrays"], _with_config(key, value))
+    with pytest.raises(ValueError, match=re.escape(says)):
+        EMResult.load(path)
+    proc = run_cli("evaluate", str(path.parent), "--gt", str(sample["gt"]))
+    errors = [ln for ln in proc.stderr.splitlines() if "error" in ln]
+    assert proc.returncode == 1 and len(errors) == 1 and says in errors[0], proc.stderr[-2000:]
+
+
+def test_segment_refuses_more_proposals_than_it_can_hold_before_any_work(tmp_path: Path) -> None:
+    proc = run_cli("segment", str(REPO / "sample_scenes" / f"{SAMPLE}.ply"), "--proposals", "20000", "--out",
+                   str(tmp_path / "out"))
+    errors = [ln for ln in proc.stderr.splitlines() if "error" in ln]
+    assert proc.returncode in (1, 2) and len(errors) == 1 and "at most 2000" in errors[0], proc.stderr[-2000:]
+    assert not (tmp_path / "out" / f"{SAMPLE}.efem.npz").exists()

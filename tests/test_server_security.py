@@ -757,6 +757,35 @@ def test_saved_token_is_kept_private_and_bad_files_are_replaced(tmp_path: Path) 
     assert not kept and new != "z" * 32 and not path.is_symlink()
 
 
+@pytest.mark.parametrize("mode", [0o644, 0o666, 0o640, 0o602])
+def test_a_saved_token_others_can_read_or_write_is_replaced_with_a_warning(
+        tmp_path: Path, mode: int, caplog: pytest.LogCaptureFixture) -> None:
+    """A `server.token` that others could read (and so enter with) or write (and so choose) is never printed in a
+    URL again: a fresh token, mode 0600, replaces it, and one warning says why."""
+    import stat
+
+    from efem_viz.serve.guard import TOKEN_FILE, saved_token
+
+    old, _ = saved_token(tmp_path)
+    path = tmp_path / TOKEN_FILE
+    path.chmod(mode)
+    with caplog.at_level("WARNING"):
+        new, kept = saved_token(tmp_path)
+    assert not kept and new != old and stat.S_IMODE(path.stat().st_mode) == 0o600
+    assert any("readable or writable by others" in r.getMessage() for r in caplog.records)
+    assert saved_token(tmp_path) == (new, True)
+
+
+@pytest.mark.skipif(os.getuid() != 0, reason="needs root to give the file to another user")
+def test_a_saved_token_owned_by_another_user_is_replaced(tmp_path: Path) -> None:
+    from efem_viz.serve.guard import TOKEN_FILE, saved_token
+
+    old, _ = saved_token(tmp_path)
+    os.chown(tmp_path / TOKEN_FILE, 65534, 65534)
+    new, kept = saved_token(tmp_path)
+    assert not kept and new != old and (tmp_path / TOKEN_FILE).stat().st_uid == os.getuid()
+
+
 def test_view_results_alone_opens_the_scenes_its_batch_names_and_says_which_are_gone(tmp_path: Path) -> None:
     """`efem-viz view --results DIR` on a `segment --out DIR` folder alone (as USER_GUIDE.md and BATCH.md tell
     people to browse a batch): the viewer opens the scenes DIR's batch.json names, a line names the one whose scene

@@ -9,6 +9,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
+import types
+import typing
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal, get_args
 
@@ -40,6 +43,55 @@ INCLUSION_MODES: tuple[str, ...] = get_args(InclusionMode)
 InclusionScore = Literal["stationary", "confidence"]
 INCLUSION_SCORES: tuple[str, ...] = get_args(InclusionScore)
 """What the "score" and "swap" inclusion modes compare (`EMConfig.inclusion_by`)."""
+
+
+MAX_PROPOSALS = 2000
+"""Most proposals per episode a run accepts (the viewer's and annotator's fields stop there too)."""
+MAX_MESH_RESOLUTION = 128
+"""Finest review-mesh grid (128³ = 2.1M decoder queries per shape; 600 took minutes and gigabytes per shape)."""
+
+
+def _type_ok(value: Any, hint: Any) -> bool:
+    """Whether ``value`` fits the (resolved) type ``hint`` of an EMConfig field; numbers must be finite."""
+    origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        return any(_type_ok(value, h) for h in typing.get_args(hint))
+    if hint is type(None):
+        return value is None
+    if origin is Literal:
+        return value in typing.get_args(hint)
+    if hint is bool:
+        return isinstance(value, bool)
+    if hint is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if hint is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if hint is str:
+        return isinstance(value, str)
+    if origin is tuple:
+        args = typing.get_args(hint)
+        if not isinstance(value, tuple):
+            return False
+        if len(args) == 2 and args[1] is Ellipsis:
+            return all(_type_ok(v, args[0]) for v in value)
+        return len(args) == len(value) and all(_type_ok(v, a) for v, a in zip(value, args))
+    return True  # anything else is checked by `validate`'s own rules
+
+
+def _check_field_types(cfg: Any) -> None:
+    hints = _FIELD_HINTS.get(type(cfg))
+    if hints is None:
+        hints = _FIELD_HINTS[type(cfg)] = typing.get_type_hints(type(cfg))
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        if not _type_ok(value, hints[f.name]):
+            shown = hints[f.name] if isinstance(hints[f.name], type) else str(hints[f.name]).replace("typing.", "")
+            name = getattr(shown, "__name__", shown)
+            raise ValueError(f"{type(cfg).__name__}.{f.name} = {value!r}: must be {name}"
+                             f"{' (finite)' if 'float' in str(name) else ''}")
+
+
+_FIELD_HINTS: dict[type, dict[str, Any]] = {}
 
 
 @dataclass(frozen=True)
@@ -220,10 +272,18 @@ class EMConfig:
         scaled = tuple([n] + [max(1, round(k * n / first)) for k in self.n_init[1:]])
         return self.replace(n_init=scaled)
 
+    def __post_init__(self) -> None:
+        self.validate()  # every value checked where the config is built, whoever builds it
+
     def validate(self) -> None:
-        """Raise ValueError on inconsistent values."""
+        """Raise ValueError (one line naming the field, its value and what is allowed) on a value of the wrong
+        type, a non-finite number or a value out of its range."""
+        _check_field_types(self)
         if not self.n_init or any(int(k) < 1 for k in self.n_init):
             raise ValueError(f"n_init must be a non-empty tuple of positive ints, got {self.n_init}")
+        if any(int(k) > MAX_PROPOSALS for k in self.n_init):
+            raise ValueError(f"n_init (proposals per episode) must be at most {MAX_PROPOSALS}, got {self.n_init} "
+                             f"(each proposal is encoded and decoded every step: memory and time grow with it)")
         if self.crop not in ("sphere", "cylinder"):
             raise ValueError(f"crop must be 'sphere' or 'cylinder', got {self.crop!r}")
         for nm in ("r_init", "r_err", "omega", "end_step"):
@@ -270,8 +330,9 @@ class EMConfig:
             raise ValueError(f"refine_at must be 'every_step' or 'review_steps', got {self.refine_at!r}")
         if self.refine_steps < 0 or self.refine_max_pool < 0 or self.refine_lr <= 0 or self.refine_reg < 0:
             raise ValueError("refine_steps and refine_max_pool must be >= 0, refine_lr > 0, refine_reg >= 0")
-        if self.mesh_resolution < 8:
-            raise ValueError(f"mesh_resolution must be >= 8, got {self.mesh_resolution}")
+        if not 8 <= self.mesh_resolution <= MAX_MESH_RESOLUTION:
+            raise ValueError(f"mesh_resolution must be in [8, {MAX_MESH_RESOLUTION}], got {self.mesh_resolution} "
+                             f"(a review decodes resolution³ queries per shape)")
         if self.matmul_dtype not in MATMUL_DTYPES:
             raise ValueError(f"matmul_dtype must be one of {MATMUL_DTYPES}, got {self.matmul_dtype!r}")
         if self.pose_points is not None and self.pose_points < 1:

@@ -78,6 +78,15 @@ def _device_type(prior: "ShapePriorLike | None") -> str:
     return torch.device(prior_device(prior)).type if prior is not None else "cpu"
 
 
+def one_pass_enabled() -> bool:
+    """Whether `decode_rows` decodes SDF and band normals in one pass (`ShapePrior.sdf_and_band_normals`); the
+    environment variable ``EFEM_VIZ_ONE_PASS=0`` selects the two-pass form (an SDF pass, then autograd on the
+    band), the same answers to float rounding, for benchmarks."""
+    import os
+
+    return os.environ.get("EFEM_VIZ_ONE_PASS", "1") != "0"
+
+
 def decode_rows(
     prior: "ShapePriorLike",
     latent: Any,
@@ -91,8 +100,9 @@ def decode_rows(
 ) -> tuple[np.ndarray, np.ndarray]:
     """SDF and normal angle of every (row, point) entry, decoding all rows in one ragged pass.
 
-    With `normals_within`, a first no-grad pass computes the SDF of every entry and the (3× dearer) gradient
-    pass runs only on entries with |d| ≤ normals_within; the others get γ = 180°. The solver sets it to the
+    With `normals_within`, the normal angle is computed only for entries with |d| ≤ normals_within (the others
+    get γ = 180°): in one decoder pass with a hand-made backward on those rows where the prior offers it
+    (`ShapePrior.sdf_and_band_normals`, `one_pass_enabled`), else an SDF pass and then autograd on them. The solver sets it to the
     largest SDF threshold any later test applies (τ_D(t), the stationary and output thresholds), so every
     result is unchanged: an entry beyond it fails the SDF test anyway, and its weight exp(−U − E_N) is 0.
 
@@ -126,6 +136,13 @@ def decode_rows(
             stats["normal_queries"] = stats.get("normal_queries", 0.0) + k
         assert g is not None  # with_normals=True always fills the angles
         return d, g
+    if one_pass_enabled() and callable(getattr(prior, "sdf_and_band_normals", None)):  # one pass (`ShapePrior`)
+        d, g1 = _decode_padded(prior, latent, rag.idx, row, pts_t, nrm_t, chunk=chunk, with_normals=False,
+                               band=float(normals_within))
+        assert g1 is not None
+        if stats is not None:
+            stats["normal_queries"] = stats.get("normal_queries", 0.0) + int(np.count_nonzero(g1 < 180.0))
+        return d, g1
     d, _ = _decode_padded(prior, latent, rag.idx, row, pts_t, nrm_t, chunk=chunk, with_normals=False)
     g = np.full(k, 180.0, np.float32)
     sel = np.flatnonzero(np.abs(d) <= float(normals_within))
@@ -148,10 +165,13 @@ def _decode_padded(
     *,
     chunk: int,
     with_normals: bool,
+    band: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """Decode entries (row r, scene point idx) grouped by row: rows of similar length are padded into dense
     (G, L, 3) batches of at most `chunk` queries and sent through the prior's batched form (one latent per
-    batch row), which avoids gathering a per-query copy of the folded first layer. `row` must be sorted."""
+    batch row), which avoids gathering a per-query copy of the folded first layer. `row` must be sorted.
+    With `band`, the angles come from the prior's one-pass `sdf_and_band_normals` for the entries with
+    |d| <= band (180° for the others)."""
     import torch
 
     k = len(idx)
@@ -164,7 +184,7 @@ def _decode_padded(
     present = np.flatnonzero(counts > 0)
     order = present[np.argsort(counts[present], kind="stable")]
     d_out = np.empty(k, np.float32)
-    g_out = np.empty(k, np.float32) if with_normals else None
+    g_out = np.empty(k, np.float32) if with_normals else (np.full(k, 180.0, np.float32) if band is not None else None)
     i = 0
     while i < len(order):
         # grow a group of rows while the padded size stays within the chunk budget
@@ -185,7 +205,15 @@ def _decode_padded(
         lat_g = latent[torch.from_numpy(grp).to(latent.R.device)]
         vmask = valid.reshape(-1)
         flat_pos = pos.reshape(-1)[vmask]
-        if with_normals:
+        if band is not None and not with_normals:
+            sdf, nrm, in_band = prior.sdf_and_band_normals(x, lat_g, within=band)  # type: ignore[attr-defined]
+            take = (in_band.cpu().reshape(-1).numpy() & vmask)
+            if take.any():
+                sel_t = torch.from_numpy(np.flatnonzero(take))
+                n_sel = nrm.float().cpu().reshape(-1, 3)[sel_t]
+                cos = (n_sel * nrm_t[pidx.reshape(-1)[sel_t]]).sum(-1).clamp(-1.0, 1.0)
+                g_out[pos.reshape(-1)[take]] = torch.rad2deg(torch.arccos(cos)).numpy()  # type: ignore[index]
+        elif with_normals:
             sdf, nrm = prior.sdf_and_normals(x, lat_g)
             cos = (nrm.float().cpu() * nrm_t[pidx]).sum(-1).clamp(-1.0, 1.0)
             g = torch.rad2deg(torch.arccos(cos)).reshape(-1).numpy()

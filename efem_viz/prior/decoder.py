@@ -109,6 +109,60 @@ class SDFDecoder(nn.Module):
             h = h + qf
         return self._mlp(h)
 
+    def sdf_and_band_grad(self, q: torch.Tensor, m: torch.Tensor, bias: torch.Tensor, *, within: float
+                          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """SDF of every query and its gradient in ``q`` for the queries with ``|sdf| <= within``, in one pass.
+
+        One forward over every query keeps its ReLU masks; the input gradient is then back-propagated by hand
+        through those masks for the band rows only (the same products autograd would form, without a second
+        forward or autograd's bookkeeping). Outside the band the gradient is zero. Call under ``no_grad``.
+
+        Args:
+            q: ``(B, Q, 3)`` canonical queries.
+            m: ``(B, H, 3)`` from ``fold``.
+            bias: ``(B, H)`` from ``fold``.
+            within: the band half-width (canonical SDF units).
+
+        Returns:
+            ``sdf (B, Q)``, ``dq (B, Q, 3)`` (∂sdf/∂q; zeros outside the band) and ``band (B, Q)`` bool.
+        """
+        h = torch.matmul(q, m.transpose(1, 2)) + bias[:, None, :]
+        qf = self._qfeat(q)
+        if qf is not None:
+            h = h + qf
+        if torch.is_autocast_enabled(h.device.type):
+            h = h.to(torch.get_autocast_dtype(h.device.type))
+        b, n, width = h.shape
+        hf = h.reshape(-1, width)
+        masks: list[tuple[torch.Tensor, torch.Tensor]] = []
+        for i in range(self.n_blocks):
+            blk = getattr(self, f"block{i}")
+            on_h = hf > 0
+            u = blk.fc_0(F.relu(hf))
+            on_u = u > 0
+            hf = hf + blk.fc_1(F.relu(u))
+            masks.append((on_h, on_u))
+        on_out = hf > 0
+        sdf = self.fc_out(F.relu(hf))[:, 0]
+        sel = torch.nonzero(sdf.abs() <= within)[:, 0]
+        g = on_out[sel].to(hf.dtype) * self.fc_out.weight[0].to(hf.dtype)
+        for i in reversed(range(self.n_blocks)):
+            blk = getattr(self, f"block{i}")
+            on_h, on_u = masks[i]
+            t = torch.matmul(g, blk.fc_1.weight.to(g.dtype)) * on_u[sel]
+            g = g + torch.matmul(t, blk.fc_0.weight.to(g.dtype)) * on_h[sel]
+        dh0 = torch.zeros(b * n, width, dtype=q.dtype, device=q.device)
+        dh0[sel] = g.to(q.dtype)
+        dh0 = dh0.reshape(b, n, width)
+        dq = torch.matmul(dh0, m)
+        if self.use_qnorm:
+            a_q = self.fc_in.weight[:, self.latent_dim].to(q.dtype)
+            qn = (q * q).sum(-1, keepdim=True).clamp_min(1e-24).sqrt()
+            dq = dq + torch.matmul(dh0, a_q)[..., None] * q / qn
+        band = torch.zeros(b * n, dtype=torch.bool, device=q.device)
+        band[sel] = True
+        return sdf.reshape(b, n), dq, band.reshape(b, n)
+
     def forward_ragged(self, q: torch.Tensor, m: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
         """SDF of canonical queries that each carry their own (already gathered) folded latent.
 

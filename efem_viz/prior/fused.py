@@ -10,8 +10,9 @@ over a ``k``-fold tensor, memory-bound. Two exact rewrites remove that:
    writing the ``k``-fold tensors (45x faster than the eager ops at the shipped widths, one thread).
 
 The C++ file is compiled on first use with torch's own toolchain support (`torch.utils.cpp_extension`, about
-35 s once per machine and torch version, cached under ``~/.cache/efem-viz/torch_extensions``; a file lock
-serialises concurrent builds). The eager references below are the same math and serve everything the kernels
+35 s once per machine, cached under ``~/.cache/efem-viz/torch_extensions`` in a folder keyed by everything that
+changes the build, `build_key`; an exclusive flock makes a build safe against concurrent and killed ones).
+The k-NN of the encoder's graph selects its neighbours in one pass per row (``knn_select``) instead of a sort. The eager references below are the same math and serve everything the kernels
 do not: float64 (the equivariance tests), autograd (training), autocast, CUDA, and any machine where the build
 fails (one warning, then eager for the rest of the process). ``EFEM_VIZ_FUSED=0`` turns the kernels off.
 """
@@ -79,8 +80,39 @@ def _flags() -> list[str]:
     return []
 
 
+def build_key(src: str, flags: list[str]) -> str:
+    """Hash of everything that changes the compiled file: the source, torch, Python, the compiler and its
+    version, the flags and torch's include paths. Environments that differ in any of them build into their own
+    folder; equal ones share one build and never rebuild it."""
+    import hashlib
+    import platform
+    import subprocess
+    import sys
+
+    cxx = os.environ.get("CXX", "c++")
+    try:
+        out = subprocess.run([cxx, "--version"], capture_output=True, text=True, timeout=30)
+        version = (out.stdout.splitlines() or ["?"])[0]
+    except (OSError, subprocess.SubprocessError):
+        version = "unavailable"
+    try:
+        from torch.utils.cpp_extension import include_paths
+
+        includes = [str(p) for p in include_paths()]
+    except Exception:  # noqa: BLE001 - a torch without cpp_extension: the build fails later, with its reason
+        includes = []
+    parts = [src, torch.__version__, sys.version, platform.machine(), cxx, version, *flags, *includes]
+    return hashlib.sha1("\n".join(parts).encode()).hexdigest()[:12]
+
+
 def load() -> bool:
-    """Build (first time) and register the kernels; False where they are unavailable (the reason is logged)."""
+    """Build (first time) and register the kernels; False where they are unavailable (the reason is logged).
+
+    A finished build is loaded as it is (never rebuilt). A build runs under an exclusive `flock` of the build
+    folder, which the system releases when its process dies, so a lock file left by a killed build is known to
+    be stale and removed. While another live process builds, this one does not wait: it runs the eager encoder
+    (the same math) and says so in one line.
+    """
     if _state["loaded"] is not None:  # decided: no lock on the encoder's hot path
         return bool(_state["loaded"])
     with _lock:
@@ -89,26 +121,69 @@ def load() -> bool:
             if os.environ.get("EFEM_VIZ_FUSED", "1") == "0":
                 return False
             try:
-                from torch.utils.cpp_extension import load_inline
-
-                src = SOURCE.read_text(encoding="utf-8")
-                flags = _flags()
-                import hashlib
-
-                tag = hashlib.sha1((src + torch.__version__ + " ".join(flags)).encode()).hexdigest()[:10]
-                build = _build_dir() / f"efem_vn_{tag}"
-                build.mkdir(parents=True, exist_ok=True)
-                if not (build / f"efem_vn_{tag}.so").exists():
-                    log.info("building the fused VN kernels (once per machine, about 35 s) in %s", build)
-                load_inline(name=f"efem_vn_{tag}", cpp_sources=[src], is_python_module=False,
-                            extra_cflags=["-O3", "-fopenmp", *flags], extra_ldflags=["-fopenmp"],
-                            build_directory=str(build), verbose=False)
-                _state["loaded"] = hasattr(torch.ops.efem_vn, "edge_mean")
+                _state["loaded"] = _load_or_build()
             except Exception as exc:  # noqa: BLE001 - no compiler, no headers, ...: keep working, eagerly
                 msg = str(exc).strip().splitlines()
                 log.warning("fused VN kernels unavailable (%s: %s); the encoder runs eagerly (slower)",
                             type(exc).__name__, msg[-1][:200] if msg else "")
         return bool(_state["loaded"])
+
+
+def _registered() -> bool:
+    return hasattr(torch.ops.efem_vn, "edge_mean") and hasattr(torch.ops.efem_vn, "knn_select")
+
+
+def _load_or_build() -> bool:
+    import fcntl
+
+    src = SOURCE.read_text(encoding="utf-8")
+    flags = _flags()
+    name = f"efem_vn_{build_key(src, flags)}"
+    build = _build_dir() / name
+    build.mkdir(parents=True, exist_ok=True)
+    lib = build / f"{name}.so"
+    if lib.is_file():
+        try:
+            torch.ops.load_library(str(lib))
+            return _registered()
+        except (OSError, RuntimeError) as exc:  # a build killed while linking: build it again below
+            log.info("fused VN kernels at %s do not load (%s): building them again", lib, str(exc)[:120])
+    with open(build / ".efem-build.lock", "a+") as held:
+        try:
+            fcntl.flock(held.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            log.warning("another process is building the fused VN kernels in %s; this one runs the eager "
+                        "encoder (the same math, slower)", build)
+            return False
+        stale = build / "lock"  # torch's own build lock: only a flock holder builds, so a leftover is stale
+        if stale.exists():
+            log.info("removing the lock file of an interrupted build (%s)", stale)
+            stale.unlink()
+        if lib.is_file():  # built by the process that held the lock before us
+            torch.ops.load_library(str(lib))
+            return _registered()
+        from torch.utils.cpp_extension import load_inline
+
+        log.info("building the fused VN kernels (once per machine, about 35 s) in %s", build)
+        load_inline(name=name, cpp_sources=[src], is_python_module=False,
+                    extra_cflags=["-O3", "-fopenmp", *flags], extra_ldflags=["-fopenmp"],
+                    build_directory=str(build), verbose=False)
+    return _registered()
+
+
+def knn_indices(query: torch.Tensor, ref: torch.Tensor, k: int) -> torch.Tensor:
+    """`efem_viz.geometry.knn.knn_indices` with the selection in one pass per row (``knn_select``) where the
+    kernels are loaded: the same neighbours (ties to the lower index), without sorting every row."""
+    from efem_viz.geometry.knn import knn_indices as knn_topk
+    from efem_viz.geometry.knn import knn_sq_distances
+
+    if (os.environ.get("EFEM_VIZ_FUSED", "1") == "0" or _state["loaded"] is False or query.device.type != "cpu"
+            or not load()):
+        return knn_topk(query, ref, k)
+    d2 = knn_sq_distances(query, ref)
+    if d2.dtype != torch.float32 or not 1 <= k <= d2.shape[-1]:
+        return knn_topk(query, ref, k)
+    return torch.ops.efem_vn.knn_select(d2, int(k))
 
 
 def usable(*tensors: torch.Tensor) -> bool:

@@ -229,6 +229,32 @@ class ShapePrior(nn.Module):
             return x.new_zeros(0)
         return torch.cat(outs)
 
+    def sdf_and_band_normals(self, x: torch.Tensor, latent: Latent, *, within: float
+                             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """SDF of every query and the outward unit normal of those with ``|sdf| <= within``, in one decoder pass
+        (`SDFDecoder.sdf_and_band_grad`): what ``sdf`` and then ``sdf_and_normals`` on the band give, at the
+        cost of one forward and a backward on the band rows.
+
+        Args:
+            x: ``(B, Q, 3)`` world queries, one latent per batch row.
+            latent: ``Latent`` with batch size B.
+            within: band half-width (canonical SDF units).
+
+        Returns:
+            ``sdf (B, Q)``, ``normals (B, Q, 3)`` (world frame; zeros outside the band), ``band (B, Q)`` bool.
+        """
+        with torch.no_grad():
+            lat = self._prep_latent(latent)
+            x = x.to(device=self.device, dtype=self.dtype)
+            if x.ndim != 3 or x.shape[0] != lat.R.shape[0] or x.shape[-1] != 3:
+                raise ValueError(f"x {tuple(x.shape)} does not match a latent batch of {lat.R.shape[0]}")
+            m, bias = self.decoder.fold(lat.R, lat.inv)
+            q = (x - lat.center[:, None, :]) / lat.scale[:, None, None]
+            sdf, dq, band = self.decoder.sdf_and_band_grad(q, m, bias, within=within)
+            # ∂sdf/∂x = ∂sdf/∂q / Θ_s with Θ_s > 0: the same direction
+            normals = dq / dq.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        return sdf, normals, band
+
     def sdf_and_normals(self, x: torch.Tensor, latent: Latent, index: torch.Tensor | None = None, *,
                         chunk: int = 65536) -> tuple[torch.Tensor, torch.Tensor]:
         """SDF and outward unit normals ``∂sdf/∂x / ‖·‖`` (world frame), usable inside ``torch.no_grad()``.

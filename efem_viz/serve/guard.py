@@ -93,7 +93,9 @@ def saved_token(folder: str | os.PathLike[str]) -> tuple[str, bool]:
 
     A server restarted on the same folder (the annotator on the same scan and `--out`) keeps its URL, so a tab
     left open reconnects by itself instead of hanging on "Connecting…". A file that is not a plain file of one
-    URL-safe token of 16-128 characters is replaced.
+    URL-safe token of 16-128 characters, or that others could read or write (any group/other permission bit) or
+    that another user owns, is replaced by a fresh token (mode 0600, owned by this user) and a warning says why:
+    a token others can read lets them in.
 
     Returns:
         (token, True when it was read back from the folder).
@@ -104,9 +106,14 @@ def saved_token(folder: str | os.PathLike[str]) -> tuple[str, bool]:
     path = Path(folder) / TOKEN_FILE
     try:
         if path.is_file() and not path.is_symlink() and path.stat().st_size <= 256:
-            text = path.read_text(encoding="ascii").strip()
-            if 16 <= len(text) <= 128 and all(c.isalnum() or c in "-_" for c in text):
-                return text, True
+            st = path.stat()
+            if st.st_mode & 0o077 or st.st_uid != os.getuid():
+                logger.warning("%s is readable or writable by others (mode %o, owner uid %d): not used; a fresh "
+                            "token replaces it (mode 600)", path, st.st_mode & 0o777, st.st_uid)
+            else:
+                text = path.read_text(encoding="ascii").strip()
+                if 16 <= len(text) <= 128 and all(c.isalnum() or c in "-_" for c in text):
+                    return text, True
     except (OSError, UnicodeDecodeError):
         pass
     token = new_token()

@@ -8,8 +8,16 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+HANG_GUARD_S = 300.0
+"""Every wait in the browser tests is a hang guard, not a speed check: 10x what the slowest of them took beside a
+2-thread busy load (about 30 s for a page of the annotator to render a mesh in software)."""
+HANG_GUARD_MS = int(HANG_GUARD_S * 1000)
+"""`HANG_GUARD_S` for Playwright's timeouts (milliseconds)."""
+SETTLE_S = 120.0
+"""How long `settle` waits for two identical frames (it returns as soon as they agree)."""
 
-def wait_until(cond: Callable[[], bool], timeout: float = 20.0, what: str = "condition") -> None:
+
+def wait_until(cond: Callable[[], bool], timeout: float = HANG_GUARD_S, what: str = "condition") -> None:
     """Poll `cond` every 50 ms; fail the test with `what` in the message after `timeout` seconds."""
     deadline = time.monotonic() + timeout
     while not cond():
@@ -25,7 +33,7 @@ def png_to_array(png: bytes) -> np.ndarray:
     return np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(np.int16)
 
 
-def settle(grab: Callable[[], np.ndarray], page: Any, *, timeout: float = 15.0) -> np.ndarray:
+def settle(grab: Callable[[], np.ndarray], page: Any, *, timeout: float = SETTLE_S) -> np.ndarray:
     """Screenshot until two consecutive shots agree (software rendering takes a few frames)."""
     prev = grab()
     deadline = time.monotonic() + timeout
@@ -43,7 +51,7 @@ def canvas_png(page: Any) -> np.ndarray:
     return png_to_array(page.locator("canvas").first.screenshot())
 
 
-def settle_canvas(page: Any, *, timeout: float = 15.0) -> np.ndarray:
+def settle_canvas(page: Any, *, timeout: float = SETTLE_S) -> np.ndarray:
     """Canvas screenshot once rendering has settled."""
     return settle(lambda: canvas_png(page), page, timeout=timeout)
 
@@ -60,9 +68,9 @@ def open_viser_pages(pages: Sequence[Any], url: str, *, ready_text: str = "Tools
     for page in pages:
         page.goto(url, wait_until="commit")
     for page in pages:
-        page.get_by_text(ready_text, exact=True).first.wait_for(timeout=30_000)
+        page.get_by_text(ready_text, exact=True).first.wait_for(timeout=HANG_GUARD_MS)
         page.wait_for_function(
-            "Array.from(document.querySelectorAll('canvas')).some(c => c.width > 0 && c.height > 0)", timeout=30_000
+            "Array.from(document.querySelectorAll('canvas')).some(c => c.width > 0 && c.height > 0)", timeout=HANG_GUARD_MS
         )
         if hide_notice:
             page.add_style_tag(content="#webgl-software-rendering { display: none !important; }")

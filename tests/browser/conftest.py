@@ -18,6 +18,7 @@ import shutil
 from typing import Any, Callable, Iterator
 
 import pytest
+from browser_utils import HANG_GUARD_MS
 
 CHROMIUM_PATH = os.environ.get("EFEM_CHROMIUM", "/usr/bin/chromium")
 CHROMIUM_ARGS = [
@@ -64,7 +65,7 @@ def page(browser: Any) -> Iterator[Any]:
     """A fresh page in its own browser context (1280x800 viewport); closed after the test."""
     context = browser.new_context(viewport=VIEWPORT)
     pg = context.new_page()
-    pg.set_default_timeout(30_000)
+    pg.set_default_timeout(HANG_GUARD_MS)
     try:
         yield pg
     finally:
@@ -81,7 +82,7 @@ def new_page(browser: Any) -> Iterator[Callable[..., Any]]:
         context = browser.new_context(viewport=viewport or VIEWPORT)
         contexts.append(context)
         pg = context.new_page()
-        pg.set_default_timeout(30_000)
+        pg.set_default_timeout(HANG_GUARD_MS)
         return pg
 
     try:

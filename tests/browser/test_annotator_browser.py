@@ -17,7 +17,7 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 import pytest
-from browser_utils import changed_mask, ctrl_drag, open_viser_pages, settle_canvas, wait_until
+from browser_utils import HANG_GUARD_MS, HANG_GUARD_S, changed_mask, ctrl_drag, open_viser_pages, settle_canvas, wait_until
 
 pytestmark = [pytest.mark.browser, pytest.mark.timeout(600)]
 
@@ -60,8 +60,8 @@ def test_ctrl_drag_on_mesh_paints_vertices(annotator: Any, page: Any) -> None:
     app = annotator
     iid = app.session.settings.active_id
     page.goto(app.url)
-    page.get_by_text("Tools", exact=True).first.wait_for(timeout=30_000)
-    wait_until(lambda: len(app.server.get_clients()) > 0, 30, "client connection")
+    page.get_by_text("Tools", exact=True).first.wait_for(timeout=HANG_GUARD_MS)
+    wait_until(lambda: len(app.server.get_clients()) > 0, HANG_GUARD_S, "client connection")
     before = settle_canvas(page)
     box = page.locator("canvas").first.bounding_box()
     assert box is not None
@@ -70,7 +70,7 @@ def test_ctrl_drag_on_mesh_paints_vertices(annotator: Any, page: Any) -> None:
     for attempt in range(3):  # the first gesture can land while the scene is still streaming in
         ctrl_drag(page, (cx - 40, cy), (cx + 44, cy + 24))
         try:
-            wait_until(lambda: int((app.session.store.labels == iid).sum()) > 0, 10, "painted vertices")
+            wait_until(lambda: int((app.session.store.labels == iid).sum()) > 0, HANG_GUARD_S, "painted vertices")
         except AssertionError:
             continue
         app.wait_idle()
@@ -118,7 +118,7 @@ def _stroke(page: Any, app: Any, stroke: tuple[tuple[float, float], tuple[float,
     for _ in range(3):
         ctrl_drag(page, (cx + x0, cy + y0), (cx + x1, cy + y1), moves=6, steps=1)
         try:
-            wait_until(painted, 10, "painted vertices")
+            wait_until(painted, HANG_GUARD_S, "painted vertices")
         except AssertionError:
             continue
         app.wait_idle()
@@ -157,7 +157,7 @@ def test_two_tabs_see_each_others_edits(annotator: Any, new_page: Callable[..., 
     iid = app.session.settings.active_id
     tab_a, tab_b = new_page(SMALL), new_page(SMALL)
     open_viser_pages([tab_a, tab_b], app.url)
-    wait_until(lambda: len(app.server.get_clients()) >= 2, 30, "two connected tabs")
+    wait_until(lambda: len(app.server.get_clients()) >= 2, HANG_GUARD_S, "two connected tabs")
     b0 = settle_canvas(tab_b)
 
     # ---- tab A paints; tab B shows it
@@ -204,7 +204,7 @@ def _ctrl_click(page: Any, x: float, y: float) -> None:
 
 def _open(app: Any, page: Any) -> None:
     open_viser_pages([page], app.url)
-    wait_until(lambda: len(app.server.get_clients()) > 0, 30, "client connection")
+    wait_until(lambda: len(app.server.get_clients()) > 0, HANG_GUARD_S, "client connection")
 
 
 @pytest.mark.parametrize("annotator", ["mesh"], indirect=True)
@@ -221,19 +221,19 @@ def test_lasso_by_ctrl_clicks_then_enter_paints_inside(annotator: Any, new_page:
     page = new_page(SMALL)
     _open(app, page)
     page.keyboard.press("o")
-    wait_until(lambda: app.session.settings.tool == "lasso", 10, "the lasso tool (O)")
+    wait_until(lambda: app.session.settings.tool == "lasso", HANG_GUARD_S, "the lasso tool (O)")
     cx, cy, box = _centre(page)
     corners = [(cx - 40, cy - 35), (cx + 40, cy - 35), (cx + 40, cy + 35), (cx - 40, cy + 35)]
     for k, (x, y) in enumerate(corners):
         _ctrl_click(page, x, y)
-        wait_until(lambda k=k: len(app.session.lasso_outline) == k + 1, 10, f"lasso point {k + 1} on the server")
+        wait_until(lambda k=k: len(app.session.lasso_outline) == k + 1, HANG_GUARD_S, f"lasso point {k + 1} on the server")
     expect = [((x - box["x"]) / box["width"], (y - box["y"]) / box["height"]) for x, y in corners]
     assert np.allclose(app.session.lasso_outline.points, expect, atol=0.01), (app.session.lasso_outline.points, expect)
     camera, polygon = app.session.lasso_outline.polygon()
     assert int((app.session.store.labels == iid).sum()) == 0, "clicks only draw the outline"
     page.keyboard.press("Enter")
     # the edit is done (labels, redraw, history) when its history line is there
-    wait_until(lambda: "(lasso" in app.view.stats.history[0], 10, "the lasso's paint (Enter)")
+    wait_until(lambda: "(lasso" in app.view.stats.history[0], HANG_GUARD_S, "the lasso's paint (Enter)")
     inside = sel.lasso_select(app.session.geom, position=camera.position, wxyz=camera.wxyz, fov=camera.fov,
                               aspect=camera.aspect, polygon=polygon)
     painted = np.flatnonzero(app.session.store.labels == iid)
@@ -268,7 +268,7 @@ def test_lasso_around_a_box_takes_no_hidden_table(tmp_path: Path, new_page: Call
         page = new_page(SMALL)
         _open(app, page)
         page.keyboard.press("o")
-        wait_until(lambda: app.session.settings.tool == "lasso", 10, "the lasso tool (O)")
+        wait_until(lambda: app.session.settings.tool == "lasso", HANG_GUARD_S, "the lasso tool (O)")
         client = next(iter(app.server.get_clients().values()))
         _, _, box = _centre(page)
         pts = app.session.geom.points
@@ -281,10 +281,10 @@ def test_lasso_around_a_box_takes_no_hidden_table(tmp_path: Path, new_page: Call
         corners = [(lo[0], lo[1]), (hi[0], lo[1]), (hi[0], hi[1]), (lo[0], hi[1])]
         for k, (u, v) in enumerate(corners):
             _ctrl_click(page, box["x"] + u * box["width"], box["y"] + v * box["height"])
-            wait_until(lambda k=k: len(app.session.lasso_outline) == k + 1, 10, f"lasso point {k + 1} on the server")
+            wait_until(lambda k=k: len(app.session.lasso_outline) == k + 1, HANG_GUARD_S, f"lasso point {k + 1} on the server")
         camera, polygon = app.session.lasso_outline.polygon()
         page.keyboard.press("Enter")
-        wait_until(lambda: "(lasso" in app.view.stats.history[0], 10, "the lasso's paint (Enter)")
+        wait_until(lambda: "(lasso" in app.view.stats.history[0], HANG_GUARD_S, "the lasso's paint (Enter)")
         painted = np.flatnonzero(app.session.store.labels == iid)
         scene = o3d.t.geometry.RaycastingScene()
         scene.add_triangles(o3d.core.Tensor(pts), o3d.core.Tensor(app.session.geom.faces.astype(np.uint32)))
@@ -324,10 +324,10 @@ def test_a_failing_tool_shows_its_error_in_the_page(tmp_path: Path, new_page: Ca
         page = new_page(SMALL)
         _open(app, page)
         page.keyboard.press("k")
-        wait_until(lambda: app.session.settings.tool == "broken", 10, "the broken tool (K)")
+        wait_until(lambda: app.session.settings.tool == "broken", HANG_GUARD_S, "the broken tool (K)")
         cx, cy, _ = _centre(page)
         _ctrl_click(page, cx, cy)
-        page.get_by_text("TypeError: 'float' object is not iterable", exact=False).first.wait_for(timeout=15_000)
+        page.get_by_text("TypeError: 'float' object is not iterable", exact=False).first.wait_for(timeout=HANG_GUARD_MS)
     finally:
         app.close()
 
@@ -345,7 +345,7 @@ def keyed(browser: Any, tmp_path_factory: pytest.TempPathFactory) -> Iterator[tu
     app = AnnotatorApp(d / "ball.ply", out_dir=d / "out", port=0, autosave_delay=0)
     context = browser.new_context(viewport=SMALL)
     page = context.new_page()
-    page.set_default_timeout(30_000)
+    page.set_default_timeout(HANG_GUARD_MS)
     try:
         _open(app, page)
         yield app, page
@@ -363,10 +363,10 @@ def test_bracket_keys_resize_the_brush(keyed: tuple[Any, Any]) -> None:
         return app.panels.gui_controls["radius"].value == pytest.approx(100 * app.session.settings.radius)
 
     page.keyboard.press("]")
-    wait_until(lambda: app.session.settings.radius > r0 and slider_shows_radius(), 10, "a larger brush (]) on the slider")
+    wait_until(lambda: app.session.settings.radius > r0 and slider_shows_radius(), HANG_GUARD_S, "a larger brush (]) on the slider")
     page.keyboard.press("[")
     page.keyboard.press("[")
-    wait_until(lambda: app.session.settings.radius < r0 and slider_shows_radius(), 10,
+    wait_until(lambda: app.session.settings.radius < r0 and slider_shows_radius(), HANG_GUARD_S,
                "a smaller brush ([ [) on the slider")
 
 
@@ -377,14 +377,14 @@ def test_tab_makes_the_next_instance_active(keyed: tuple[Any, Any]) -> None:
     first = min(app.session.store.labelset.instances)
     assert app.session.settings.active_id == ids[-1]
     page.keyboard.press("Tab")
-    wait_until(lambda: app.session.settings.active_id == first, 10, "the first instance active (Tab wraps)")
+    wait_until(lambda: app.session.settings.active_id == first, HANG_GUARD_S, "the first instance active (Tab wraps)")
     page.keyboard.press("Tab")
     second = sorted(app.session.store.labelset.instances)[1]
     # the key handler sets the active id, then the dropdown: wait for both (reading between the two was a race)
-    wait_until(lambda: app.session.settings.active_id == second and str(app.panels.gui_active.value).startswith(f"{second}:"), 10,
+    wait_until(lambda: app.session.settings.active_id == second and str(app.panels.gui_active.value).startswith(f"{second}:"), HANG_GUARD_S,
                "the next instance active (Tab), shown in the Active dropdown")
     page.keyboard.press("Shift+Tab")
-    wait_until(lambda: app.session.settings.active_id == first, 10, "the previous instance active (Shift+Tab)")
+    wait_until(lambda: app.session.settings.active_id == first, HANG_GUARD_S, "the previous instance active (Shift+Tab)")
 
 
 def test_question_mark_toggles_the_cheat_sheet(keyed: tuple[Any, Any]) -> None:
@@ -393,16 +393,16 @@ def test_question_mark_toggles_the_cheat_sheet(keyed: tuple[Any, Any]) -> None:
     app, page = keyed
     sheet = page.get_by_text("Smaller brush", exact=True)
     page.keyboard.press("Shift+Slash")
-    wait_until(lambda: len(app.cheat_sheets) == 1, 10, "the cheat sheet open on the server (?)")
-    sheet.wait_for(state="visible", timeout=15_000)
+    wait_until(lambda: len(app.cheat_sheets) == 1, HANG_GUARD_S, "the cheat sheet open on the server (?)")
+    sheet.wait_for(state="visible", timeout=HANG_GUARD_MS)
     page.keyboard.press("Shift+Slash")
-    wait_until(lambda: not app.cheat_sheets, 10, "the cheat sheet closed on the server (? again)")
-    sheet.wait_for(state="detached", timeout=15_000)
+    wait_until(lambda: not app.cheat_sheets, HANG_GUARD_S, "the cheat sheet closed on the server (? again)")
+    sheet.wait_for(state="detached", timeout=HANG_GUARD_MS)
     page.keyboard.press("?")  # a layout where ? needs no Shift
-    wait_until(lambda: len(app.cheat_sheets) == 1, 10, "the cheat sheet open again")
+    wait_until(lambda: len(app.cheat_sheets) == 1, HANG_GUARD_S, "the cheat sheet open again")
     page.get_by_role("button", name="Close (?)").click()
-    wait_until(lambda: not app.cheat_sheets, 10, "the cheat sheet closed by its button")
-    sheet.wait_for(state="detached", timeout=15_000)
+    wait_until(lambda: not app.cheat_sheets, HANG_GUARD_S, "the cheat sheet closed by its button")
+    sheet.wait_for(state="detached", timeout=HANG_GUARD_MS)
 
 
 # ============================================================================ camera (issue 22, item 4)
@@ -430,7 +430,7 @@ def test_tool_hotkeys_leave_the_camera_alone(keyed: tuple[Any, Any]) -> None:
         page.wait_for_timeout(600)  # idle first: the first frame after a pause spans it
         page.keyboard.down(t.hotkey.lower())
         try:
-            wait_until(lambda t=t: app.session.settings.tool == t.name, 10, f"the {t.name} tool ({t.hotkey})")
+            wait_until(lambda t=t: app.session.settings.tool == t.name, HANG_GUARD_S, f"the {t.name} tool ({t.hotkey})")
             page.wait_for_timeout(400)  # held: frames are drawn meanwhile
         finally:
             page.keyboard.up(t.hotkey.lower())
@@ -451,11 +451,11 @@ def test_camera_thrown_off_the_scan_comes_back(keyed: tuple[Any, Any]) -> None:
     page.wait_for_timeout(1000)
     page.keyboard.down("w")
     try:
-        wait_until(lambda: app.view.camera_guard.resets.get(handle.client_id, 0) >= 1, 60, "the camera put back")
+        wait_until(lambda: app.view.camera_guard.resets.get(handle.client_id, 0) >= 1, HANG_GUARD_S, "the camera put back")
     finally:
         page.keyboard.up("w")
-    page.get_by_text("View reset", exact=True).first.wait_for(timeout=15_000)
-    wait_until(lambda: not view_lost(handle.camera.look_at, lo, hi), 15, "the camera back at the scan")
+    page.get_by_text("View reset", exact=True).first.wait_for(timeout=HANG_GUARD_MS)
+    wait_until(lambda: not view_lost(handle.camera.look_at, lo, hi), HANG_GUARD_S, "the camera back at the scan")
     page.keyboard.press("r")
     home = app.view.home_view
     wait_until(lambda: np.allclose(handle.camera.look_at, home.look_at, atol=1e-4)
@@ -467,11 +467,11 @@ def test_a_click_off_the_scan_says_so(keyed: tuple[Any, Any]) -> None:
     do nothing, silently)."""
     app, page = keyed
     page.keyboard.press("c")
-    wait_until(lambda: app.session.settings.tool == "segment", 10, "the segment tool (C)")
+    wait_until(lambda: app.session.settings.tool == "segment", HANG_GUARD_S, "the segment tool (C)")
     app.reset_view()
     _, _, box = _centre(page)
     _ctrl_click(page, box["x"] + 0.12 * box["width"], box["y"] + 0.88 * box["height"])
-    page.get_by_text("Missed the scan", exact=True).first.wait_for(timeout=15_000)
+    page.get_by_text("Missed the scan", exact=True).first.wait_for(timeout=HANG_GUARD_MS)
     assert app.session.pending_segment is None
 
 
@@ -487,7 +487,7 @@ def test_brush_cursor_and_labels_only_view(annotator: Any, new_page: Callable[..
     _open(app, page)
     assert app.session.cursor is None
     _stroke(page, app, STROKE_A, painted=lambda: bool((app.session.store.labels == iid).any()))
-    wait_until(lambda: app.session.cursor is not None and app.view.cursor_handle is not None, 10, "the brush cursor drawn")
+    wait_until(lambda: app.session.cursor is not None and app.view.cursor_handle is not None, HANG_GUARD_S, "the brush cursor drawn")
     cur = app.session.cursor
     assert cur.visible and app.view.cursor_handle.visible and cur.radius == pytest.approx(app.session.settings.radius)
     painted = np.flatnonzero(app.session.store.labels == iid)
@@ -495,23 +495,23 @@ def test_brush_cursor_and_labels_only_view(annotator: Any, new_page: Callable[..
     assert gap <= app.session.settings.radius, f"the cursor is {gap:.3f} m from the painted vertices"
     r0 = cur.radius
     page.keyboard.press("]")
-    wait_until(lambda: app.session.cursor.radius > r0, 10, "a larger ring (])")
+    wait_until(lambda: app.session.cursor.radius > r0, HANG_GUARD_S, "a larger ring (])")
 
     def ring() -> float:
         seg = np.asarray(app.view.cursor_handle.points, np.float64)
         return float(np.linalg.norm(seg[:, 0] - seg[:, 0].mean(axis=0), axis=1).mean())
 
     # the key sets the radius, then the ring is redrawn: wait for both (reading between the two was a race)
-    wait_until(lambda: abs(ring() - app.session.settings.radius) <= 1e-3 * app.session.settings.radius, 10,
+    wait_until(lambda: abs(ring() - app.session.settings.radius) <= 1e-3 * app.session.settings.radius, HANG_GUARD_S,
                "the ring redrawn at the new radius")
     page.keyboard.press("x")
-    wait_until(lambda: app.session.settings.tool == "erase", 10, "the erase tool (X)")
+    wait_until(lambda: app.session.settings.tool == "erase", HANG_GUARD_S, "the erase tool (X)")
     assert app.session.cursor.visible
     page.keyboard.press("g")
-    wait_until(lambda: app.session.settings.tool == "grow", 10, "the grow tool (G)")
-    wait_until(lambda: not app.view.cursor_handle.visible, 10, "the ring hidden for region grow")
+    wait_until(lambda: app.session.settings.tool == "grow", HANG_GUARD_S, "the grow tool (G)")
+    wait_until(lambda: not app.view.cursor_handle.visible, HANG_GUARD_S, "the ring hidden for region grow")
     page.keyboard.press("b")
-    wait_until(lambda: app.session.settings.tool == "brush" and app.view.cursor_handle.visible, 10, "the ring back (B)")
+    wait_until(lambda: app.session.settings.tool == "brush" and app.view.cursor_handle.visible, HANG_GUARD_S, "the ring back (B)")
 
     def drawn() -> np.ndarray:
         out = np.zeros((app.session.n, 3), np.uint8)
@@ -523,8 +523,8 @@ def test_brush_cursor_and_labels_only_view(annotator: Any, new_page: Callable[..
     labels = app.session.store.labels.copy()
     box = page.get_by_role("checkbox", name="Labels only")
     box.click()
-    wait_until(lambda: app.session.settings.labels_only, 10, "the labels-only view on (click)")
-    wait_until(lambda: not np.array_equal(drawn()[labels == 0], before_cols[labels == 0]), 10, "dimmed vertices")
+    wait_until(lambda: app.session.settings.labels_only, HANG_GUARD_S, "the labels-only view on (click)")
+    wait_until(lambda: not np.array_equal(drawn()[labels == 0], before_cols[labels == 0]), HANG_GUARD_S, "dimmed vertices")
     on = drawn()
     rest = on[labels == 0]
     assert (rest[:, 0] == rest[:, 1]).all() and (rest[:, 1] == rest[:, 2]).all() and rest.min() >= 180
@@ -537,8 +537,8 @@ def test_brush_cursor_and_labels_only_view(annotator: Any, new_page: Callable[..
         DOCS_IMG.mkdir(parents=True, exist_ok=True)
         page.screenshot(path=str(DOCS_IMG / "annotator_labels_only.png"))
     box.click()
-    wait_until(lambda: not app.session.settings.labels_only, 10, "the labels-only view off (click)")
-    wait_until(lambda: np.array_equal(drawn(), before_cols), 10, "the scan's colours back")
+    wait_until(lambda: not app.session.settings.labels_only, HANG_GUARD_S, "the labels-only view off (click)")
+    wait_until(lambda: np.array_equal(drawn(), before_cols), HANG_GUARD_S, "the scan's colours back")
     assert np.array_equal(app.session.store.labels, labels)
 
 
@@ -554,14 +554,14 @@ def test_typing_a_category_is_one_edit_and_the_field_shows_what_is_stored(keyed:
     app, page = keyed
     iid = app.session.new_instance(category="object")
     field = _text_field(page, "Category")
-    wait_until(lambda: field.input_value() == "object", 20, "the active instance's category in the field")
+    wait_until(lambda: field.input_value() == "object", HANG_GUARD_S, "the active instance's category in the field")
     before = len(app.session.store.journal.records)
     field.click()
     page.keyboard.press("Control+A")
     for key in "box":
         page.keyboard.type(key)
         page.wait_for_timeout(400)  # a person's pause between keys (shorter than the commit's idle time)
-    wait_until(lambda: app.session.store.labelset.info(iid).category == "box", 30, "the typed category stored")
+    wait_until(lambda: app.session.store.labelset.info(iid).category == "box", HANG_GUARD_S, "the typed category stored")
     edits = [r for r in app.session.store.journal.records[before:] if r.kind == "do"]
     assert len(edits) == 1 and "category='box'" in edits[0].header["label"], [r.header.get("label") for r in edits]
     assert field.input_value() == "box" and app.panels.gui_category.value == "box"
@@ -572,12 +572,12 @@ def test_typing_a_category_is_one_edit_and_the_field_shows_what_is_stored(keyed:
     page.keyboard.type("left box")
     page.mouse.click(40, 40)  # leave the field: a plain click on the view's corner (no edit)
     page.keyboard.press("n")
-    wait_until(lambda: app.session.settings.active_id != iid, 20, "a new instance (N)")
-    wait_until(lambda: app.session.store.labelset.info(iid).name == "left box", 20, "the typed name stored")
+    wait_until(lambda: app.session.settings.active_id != iid, HANG_GUARD_S, "a new instance (N)")
+    wait_until(lambda: app.session.store.labelset.info(iid).name == "left box", HANG_GUARD_S, "the typed name stored")
     assert app.session.store.labelset.info(app.session.settings.active_id).category == "box"
 
 
-def _settled_boxes(page: Any, locators: list[Any], *, timeout: float = 20.0) -> list[Any]:
+def _settled_boxes(page: Any, locators: list[Any], *, timeout: float = HANG_GUARD_S) -> list[Any]:
     """The locators' bounding boxes once two reads 300 ms apart agree (panels animate when folders open)."""
     prev = [loc.bounding_box() for loc in locators]
     end = time.monotonic() + timeout  # a hang guard
@@ -596,13 +596,13 @@ def test_growing_table_and_history_move_no_button(keyed: tuple[Any, Any]) -> Non
     app, page = keyed
     page.get_by_text("EFEM assist", exact=True).first.click()  # the folder starts collapsed
     buttons = [page.get_by_role("button", name=n, exact=True) for n in ("Next pre-label ▶", "Accept", "Undo (Ctrl+Z)")]
-    buttons[0].wait_for(timeout=20_000)
+    buttons[0].wait_for(timeout=HANG_GUARD_MS)
     before = _settled_boxes(page, buttons)  # the folder opens with an animation: measure once it has ended
     n0 = len(app.session.store.labelset.instances)
     for _ in range(6):  # six more rows in the table, six more lines in the history
         app.session.new_instance(category="mug")
     app.session.paint(np.arange(20))
-    wait_until(lambda: page.get_by_text(f"{n0 + 6} ", exact=False).count() > 0, 20, "the table's new rows")
+    wait_until(lambda: page.get_by_text(f"{n0 + 6} ", exact=False).count() > 0, HANG_GUARD_S, "the table's new rows")
     page.wait_for_timeout(300)
     after = _settled_boxes(page, buttons)
     for name, b0, b1 in zip(("Next", "Accept", "Undo"), before, after):
@@ -654,19 +654,19 @@ def test_run_efem_from_the_page_progress_cancel_then_prelabels(tmp_path: Path, n
         proposals = page.get_by_label("Proposals")
         proposals.fill("16")
         proposals.press("Enter")
-        wait_until(lambda: app.panels.gui_efem_proposals.value == 16, 15, "the proposal count")
+        wait_until(lambda: app.panels.gui_efem_proposals.value == 16, HANG_GUARD_S, "the proposal count")
         page.get_by_role("button", name="Run EFEM on this scan").click()
-        page.get_by_text("step 1 of 30", exact=False).first.wait_for(timeout=20_000)
+        page.get_by_text("step 1 of 30", exact=False).first.wait_for(timeout=HANG_GUARD_MS)
         assert app.session.efem_running
         page.get_by_role("button", name="Cancel EFEM run").click()
-        wait_until(lambda: cancelled.is_set() and not app.session.efem_running, 30, "the run to stop")
+        wait_until(lambda: cancelled.is_set() and not app.session.efem_running, HANG_GUARD_S, "the run to stop")
         assert not unreviewed_prelabels(app.session.store.labelset.instances)
         page.get_by_role("button", name="Run EFEM on this scan").click()
         wait_until(lambda: bool(unreviewed_prelabels(app.session.store.labelset.instances))
                    and not app.session.efem_running, 120, "the pre-labels of a finished run")
         pre = unreviewed_prelabels(app.session.store.labelset.instances)
         page.get_by_role("button", name="Accept all ≥ cut").click()
-        wait_until(lambda: len(unreviewed_prelabels(app.session.store.labelset.instances)) < len(pre), 20,
+        wait_until(lambda: len(unreviewed_prelabels(app.session.store.labelset.instances)) < len(pre), HANG_GUARD_S,
                    "the best pre-labels accepted")
         accepted = [i for i in pre if "accepted" in app.session.store.labelset.instances[i].note]
         assert accepted and all((app.session.store.labels == i).any() for i in accepted)

@@ -14,7 +14,7 @@ from typing import Any, Iterator
 
 import numpy as np
 import pytest
-from browser_utils import png_to_array, settle, wait_until
+from browser_utils import HANG_GUARD_MS, HANG_GUARD_S, SETTLE_S, png_to_array, settle, wait_until
 
 pytestmark = [pytest.mark.browser, pytest.mark.timeout(600)]
 
@@ -70,7 +70,7 @@ def _canvas_png(page: Any) -> np.ndarray:
     return img[:, : int(img.shape[1] * 0.7)]
 
 
-def _settle(page: Any, *, timeout: float = 15.0) -> np.ndarray:
+def _settle(page: Any, *, timeout: float = SETTLE_S) -> np.ndarray:
     """Canvas screenshot once rendering has settled."""
     return settle(lambda: _canvas_png(page), page, timeout=timeout)
 
@@ -84,10 +84,10 @@ def _open(page: Any, app: Any, *, close_notice: bool = True, canvas: bool = True
     page.goto(app.url)
     if canvas:
         page.wait_for_function(
-            "Array.from(document.querySelectorAll('canvas')).some(c => c.width > 0 && c.height > 0)", timeout=30_000
+            "Array.from(document.querySelectorAll('canvas')).some(c => c.width > 0 && c.height > 0)", timeout=HANG_GUARD_MS
         )
-    wait_until(lambda: len(app.server.get_clients()) >= 1, 30, "the client to connect")
-    page.get_by_role("tab", name="Scene").wait_for(timeout=30_000)
+    wait_until(lambda: len(app.server.get_clients()) >= 1, HANG_GUARD_S, "the client to connect")
+    page.get_by_role("tab", name="Scene").wait_for(timeout=HANG_GUARD_MS)
     if close_notice:  # hide the "software WebGL rendering" notice of headless chromium: clean screenshots
         page.add_style_tag(content="#webgl-software-rendering { display: none !important; }")
 
@@ -112,13 +112,13 @@ def test_step_slider_changes_view(viewer: Any, page: Any) -> None:
     _open(page, viewer)
     page.get_by_role("tab", name="Timeline").click()
     slider = page.get_by_role("slider").first
-    slider.wait_for(timeout=20_000)
-    page.get_by_text("P1", exact=True).first.wait_for(timeout=20_000)  # the phase marks reach the browser
+    slider.wait_for(timeout=HANG_GUARD_MS)
+    page.get_by_text("P1", exact=True).first.wait_for(timeout=HANG_GUARD_MS)  # the phase marks reach the browser
     before = _settle(page)
     last = viewer.state.step
     slider.focus()
     page.keyboard.press("Home")  # step 0: many more proposals alive, other samples and shapes
-    wait_until(lambda: viewer.state.step == 0, 20, "the step callback")
+    wait_until(lambda: viewer.state.step == 0, HANG_GUARD_S, "the step callback")
     assert viewer.wait_idle(60)
     after = _settle(page)
     assert last != 0
@@ -127,7 +127,7 @@ def test_step_slider_changes_view(viewer: Any, page: Any) -> None:
     _save(page, "viewer_timeline.png")
     slider.focus()
     page.keyboard.press("End")
-    wait_until(lambda: viewer.state.step == last, 20, "the step callback")
+    wait_until(lambda: viewer.state.step == last, HANG_GUARD_S, "the step callback")
 
 
 def test_step_slider_keeps_its_arrow_keys(viewer: Any, page: Any) -> None:
@@ -136,11 +136,11 @@ def test_step_slider_keeps_its_arrow_keys(viewer: Any, page: Any) -> None:
     _open(page, viewer)
     page.get_by_role("tab", name="Timeline").click()
     slider = page.get_by_role("slider").first
-    slider.wait_for(timeout=20_000)
+    slider.wait_for(timeout=HANG_GUARD_MS)
     client = next(iter(viewer.server.get_clients().values()))
     slider.focus()
     page.keyboard.press("End")
-    wait_until(lambda: viewer.state.step > 3, 20, "the last step")
+    wait_until(lambda: viewer.state.step > 3, HANG_GUARD_S, "the last step")
     start = viewer.state.step
 
     def pose() -> np.ndarray:
@@ -152,7 +152,7 @@ def test_step_slider_keeps_its_arrow_keys(viewer: Any, page: Any) -> None:
         page.keyboard.down("ArrowLeft")
         page.wait_for_timeout(150)
         page.keyboard.up("ArrowLeft")
-    wait_until(lambda: viewer.state.step == start - 3, 20, "three steps back")
+    wait_until(lambda: viewer.state.step == start - 3, HANG_GUARD_S, "three steps back")
     page.wait_for_timeout(800)  # a camera move would have reached the server by now
     assert np.allclose(pose(), before, atol=1e-6), f"the camera moved with the slider's keys: {before} -> {pose()}"
     # the control: the same key on the 3-D view moves the camera
@@ -160,7 +160,7 @@ def test_step_slider_keeps_its_arrow_keys(viewer: Any, page: Any) -> None:
     page.keyboard.down("ArrowLeft")
     page.wait_for_timeout(400)
     page.keyboard.up("ArrowLeft")
-    wait_until(lambda: not np.allclose(pose(), before, atol=1e-4), 20, "the camera to move with a key on the view")
+    wait_until(lambda: not np.allclose(pose(), before, atol=1e-4), HANG_GUARD_S, "the camera to move with a key on the view")
     assert viewer.state.step == start - 3  # and the step stayed
 
 
@@ -168,24 +168,24 @@ def test_threshold_changes_view(viewer: Any, page: Any) -> None:
     _open(page, viewer)
     page.get_by_role("tab", name="Results").click()
     slider = page.get_by_role("slider").first
-    slider.wait_for(timeout=20_000)
+    slider.wait_for(timeout=HANG_GUARD_MS)
     viewer.set_proposal_layers(shapes=False, samples=False)  # only the final instances on screen
     viewer.set_threshold(0.0)
     # the legend names each instance's category, in the category's colour
     category = str(viewer.state.result.instances.category[0])  # "sphere" here, "mug" on the guide's scenes
     legend = page.locator("b", has_text=category)
-    wait_until(lambda: legend.count() == len(viewer.state.result.instances), 20, "one legend row per instance")
+    wait_until(lambda: legend.count() == len(viewer.state.result.instances), HANG_GUARD_S, "one legend row per instance")
     before = _settle(page)
     _save(page, "viewer_results.png")
     slider.focus()
     page.keyboard.press("End")  # above every confidence: all instances hidden, points back to scene colours
-    wait_until(lambda: viewer.state.threshold > float(np.max(viewer.state.result.instances.confidence)), 20, "threshold")
+    wait_until(lambda: viewer.state.threshold > float(np.max(viewer.state.result.instances.confidence)), HANG_GUARD_S, "threshold")
     after = _settle(page)
     changed = _changed_pixels(after, before)
     assert changed > 1500, f"moving the threshold did not change the canvas ({changed} pixels changed)"
     slider.focus()
     page.keyboard.press("Home")
-    wait_until(lambda: viewer.state.threshold == 0.0, 20, "threshold reset")
+    wait_until(lambda: viewer.state.threshold == 0.0, HANG_GUARD_S, "threshold reset")
     viewer.set_proposal_layers(shapes=True, samples=True)
 
 
@@ -195,12 +195,12 @@ def test_two_clients_share_state(viewer: Any, browser: Any, page: Any) -> None:
     try:
         page2 = ctx2.new_page()
         _open(page2, viewer, close_notice=False, canvas=False)
-        wait_until(lambda: len(viewer.server.get_clients()) >= 2, 30, "two clients")
+        wait_until(lambda: len(viewer.server.get_clients()) >= 2, HANG_GUARD_S, "two clients")
         page.get_by_role("tab", name="Timeline").click()
         page2.get_by_role("tab", name="Timeline").click()
         viewer.set_step(1)
         s2 = page2.get_by_role("slider").first
-        wait_until(lambda: s2.get_attribute("aria-valuenow") == "1", 20, "the second client to see step 1")
+        wait_until(lambda: s2.get_attribute("aria-valuenow") == "1", HANG_GUARD_S, "the second client to see step 1")
         viewer.set_step(viewer.state.num_steps - 1)
     finally:
         ctx2.close()
@@ -228,9 +228,9 @@ def test_guide_run_tab(viewer: Any, page: Any, monkeypatch: pytest.MonkeyPatch) 
     page.get_by_role("tab", name="Run").click()
     fut = viewer.start_run(preset="fast", proposals=100, seed=0)
     assert fut is not None
-    wait_until(lambda: viewer.panels.gui_progress.value >= 25 or fut.done(), 120, "a quarter of the run")
+    wait_until(lambda: viewer.panels.gui_progress.value >= 25 or fut.done(), HANG_GUARD_S, "a quarter of the run")
     _save(page, "viewer_run.png")
-    fut.result(timeout=300)
+    fut.result(timeout=2 * HANG_GUARD_S)
     assert viewer.load_trace() and viewer.wait_idle(120)
 
 
@@ -243,7 +243,7 @@ def test_guide_proposals_tab(viewer: Any, page: Any) -> None:
     t = min(2, trace.num_steps - 1)
     viewer.set_step(t)
     ids, scores = trace.alive_scores(t)
-    viewer.select_proposal(int(tq.top_n(ids, scores, 1)[0])).result(timeout=120)
+    viewer.select_proposal(int(tq.top_n(ids, scores, 1)[0])).result(timeout=HANG_GUARD_S)
     assert viewer.wait_idle(120)
     page.get_by_role("tab", name="Proposals").click()
     _settle(page)
@@ -320,22 +320,22 @@ def test_instance_table_cut_visibility_and_fly_to(viewer: Any, page: Any) -> Non
     inst = viewer.state.result.instances
     page.get_by_role("tab", name="Results").click()
     table = page.locator("table", has_text="conf.")
-    table.wait_for(timeout=20_000)
-    wait_until(lambda: table.locator("tbody tr").count() == len(inst), 20, "one table row per instance")
+    table.wait_for(timeout=HANG_GUARD_MS)
+    wait_until(lambda: table.locator("tbody tr").count() == len(inst), HANG_GUARD_S, "one table row per instance")
     assert table.locator("th", has_text="GT (IoU)").count() == 1  # the scene has ground truth
 
     # ---- the confidence cut: End hides every instance, Home (0) shows them all again
     slider = page.get_by_role("slider").first
     slider.focus()
     page.keyboard.press("End")
-    wait_until(lambda: viewer.state.threshold > float(np.max(inst.confidence)), 20, "the cut above every instance")
-    wait_until(lambda: table.locator("td", has_text="below cut").count() == len(inst), 20, "rows below the cut")
+    wait_until(lambda: viewer.state.threshold > float(np.max(inst.confidence)), HANG_GUARD_S, "the cut above every instance")
+    wait_until(lambda: table.locator("td", has_text="below cut").count() == len(inst), HANG_GUARD_S, "rows below the cut")
     assert not viewer.shown_mask().any() and not any(h.visible for h in viewer.nodes.results.labels)
-    page.get_by_text(f"{len(inst)} hidden", exact=False).first.wait_for(timeout=20_000)
+    page.get_by_text(f"{len(inst)} hidden", exact=False).first.wait_for(timeout=HANG_GUARD_MS)
     slider.focus()
     page.keyboard.press("Home")
-    wait_until(lambda: viewer.state.threshold == 0.0, 20, "the cut at 0")
-    wait_until(lambda: viewer.shown_mask().all(), 20, "every instance shown")
+    wait_until(lambda: viewer.state.threshold == 0.0, HANG_GUARD_S, "the cut at 0")
+    wait_until(lambda: viewer.shown_mask().all(), HANG_GUARD_S, "every instance shown")
 
     # ---- Next ▶ chooses a row and flies this browser's camera to it
     client = next(iter(viewer.server.get_clients().values()))
@@ -343,31 +343,31 @@ def test_instance_table_cut_visibility_and_fly_to(viewer: Any, page: Any) -> Non
     start = viewer.state.table_row
     page.get_by_role("button", name="Next ▶").click()
     nxt = ids[(ids.index(start) + 1) % len(ids)] if start in ids else ids[0]
-    wait_until(lambda: viewer.state.table_row == nxt, 20, "the next row chosen (Next ▶)")
+    wait_until(lambda: viewer.state.table_row == nxt, HANG_GUARD_S, "the next row chosen (Next ▶)")
     k = int(np.flatnonzero(np.asarray(inst.ids) == nxt)[0])
     pts = viewer.state.scene.points[np.asarray(inst.masks[k])]
     lo, hi = viewer.state.scene.bounds
     want = fly_to_view(pts.min(axis=0), pts.max(axis=0), home=viewer.camera_guard.view,
                        scene_diagonal=float(np.linalg.norm(np.subtract(hi, lo))))
-    wait_until(lambda: np.allclose(client.camera.look_at, want.look_at, atol=1e-3), 20, "the camera at the instance")
+    wait_until(lambda: np.allclose(client.camera.look_at, want.look_at, atol=1e-3), HANG_GUARD_S, "the camera at the instance")
 
     # ---- Visible off / on, by a mouse click on the checkbox
     visible = page.get_by_role("checkbox", name="Visible")
     assert visible.is_checked()
     visible.click()
-    wait_until(lambda: nxt in viewer.state.hidden, 20, "the instance hidden on the server")
+    wait_until(lambda: nxt in viewer.state.hidden, HANG_GUARD_S, "the instance hidden on the server")
     assert not viewer.shown_mask()[k] and not viewer.nodes.results.labels[k].visible
     assert not viewer.nodes.results.obbs[k].visible
-    wait_until(lambda: table.locator("td", has_text="hidden").count() == 1, 20, "its row says hidden")
+    wait_until(lambda: table.locator("td", has_text="hidden").count() == 1, HANG_GUARD_S, "its row says hidden")
     visible.click()
-    wait_until(lambda: nxt not in viewer.state.hidden and viewer.shown_mask()[k], 20, "the instance shown again")
+    wait_until(lambda: nxt not in viewer.state.hidden and viewer.shown_mask()[k], HANG_GUARD_S, "the instance shown again")
 
     # ---- Fly to: back at the fitted view first, then the button brings the camera to the chosen row again
     viewer.reset_view(client)
-    wait_until(lambda: np.allclose(client.camera.look_at, viewer.camera_guard.view.look_at, atol=1e-3), 20,
+    wait_until(lambda: np.allclose(client.camera.look_at, viewer.camera_guard.view.look_at, atol=1e-3), HANG_GUARD_S,
                "the fitted view")
     page.get_by_role("button", name="Fly to").click()
-    wait_until(lambda: np.allclose(client.camera.look_at, want.look_at, atol=1e-3), 20, "the camera flown to it")
+    wait_until(lambda: np.allclose(client.camera.look_at, want.look_at, atol=1e-3), HANG_GUARD_S, "the camera flown to it")
     if SAVE:
         _settle(page)
         _save(page, "viewer_instance_table.png")
@@ -382,16 +382,16 @@ def test_run_tab_precision_and_run_button(viewer: Any, page: Any) -> None:
     precision = page.get_by_role("combobox", name="Precision")
     precision.click()
     page.get_by_role("option", name="bfloat16").click()
-    wait_until(lambda: viewer.panels.gui_precision.value == "bfloat16", 20, "the dropdown's value on the server")
+    wait_until(lambda: viewer.panels.gui_precision.value == "bfloat16", HANG_GUARD_S, "the dropdown's value on the server")
     proposals = page.get_by_role("textbox", name="Proposals")
     proposals.click()
     page.keyboard.press("Control+A")
     page.keyboard.type("12")
     page.keyboard.press("Enter")
-    wait_until(lambda: viewer.panels.gui_proposals.value == 12, 20, "the proposal count on the server")
+    wait_until(lambda: viewer.panels.gui_proposals.value == 12, HANG_GUARD_S, "the proposal count on the server")
     before = viewer.state.result
     page.get_by_role("button", name="Run EFEM").click()
-    wait_until(lambda: viewer.state.result is not before and viewer.state.result_source.startswith("run"), 90,
+    wait_until(lambda: viewer.state.result is not before and viewer.state.result_source.startswith("run"), HANG_GUARD_S,
                "the run's result shown")
     cfg = viewer.state.result.config
     assert cfg.matmul_dtype == "bfloat16" and cfg.n_init[0] == 12
@@ -407,6 +407,6 @@ def test_a_changing_status_moves_no_button(viewer: Any, page: Any) -> None:
     page.wait_for_timeout(300)
     before = run.bounding_box()
     viewer.session.set_status("a much longer status line " * 12 + "\n\nwith a second paragraph")
-    page.get_by_text("with a second paragraph").wait_for(timeout=20_000)
+    page.get_by_text("with a second paragraph").wait_for(timeout=HANG_GUARD_MS)
     after = run.bounding_box()
     assert before is not None and after is not None and abs(after["y"] - before["y"]) < 1.0, (before, after)
