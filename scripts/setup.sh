@@ -30,9 +30,12 @@ if ! $PY -c "import torch" >/dev/null 2>&1; then
 fi
 EXTRA=""
 [[ $WITH_TEST == 1 ]] && EXTRA="[test,ray]"  # ray: tests/test_batch.py runs the Ray backend (fails, never skips, without it)
-if ! $PY -c "import efem_viz, annotator" >/dev/null 2>&1 || [[ $WITH_TEST == 1 ]]; then
-  echo "[setup] pip install -e .${EXTRA}"
-fi
+echo "[setup] pip install -e .${EXTRA}"
 $PY -m pip install -q -e ".${EXTRA}" 2>&1 | grep -v -E "Running pip as the 'root' user|notice" || true
-$PY -c "import efem_viz, annotator, torch, open3d, viser" || { echo "[setup] install check failed" >&2; exit 1; }
+# the check runs from another folder: from the checkout, `import efem_viz` would succeed without any install
+HERE=$PWD
+(cd / && $PY -c "import efem_viz, annotator, torch, open3d, viser, sys; \
+  assert efem_viz.__file__.startswith(sys.argv[1]), efem_viz.__file__" "$HERE") \
+  || { echo "[setup] install check failed: efem_viz does not import from outside the checkout" >&2; exit 1; }
+command -v efem-viz >/dev/null || { echo "[setup] install check failed: no efem-viz command on PATH" >&2; exit 1; }
 echo "[setup] ok"

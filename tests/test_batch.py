@@ -580,3 +580,40 @@ def test_a_damaged_batch_json_means_recompute_not_a_crash(tmp_path: Path) -> Non
     assert proc.returncode == 0 and "internal error" not in proc.stderr, proc.stderr[-2000:]
     assert (proc.stdout + proc.stderr).count("unreadable") == 1
     assert {s["name"]: s["status"] for s in batch_json(out)["scenes"]} == {n: "ok" for n in names}
+
+
+def test_segment_started_with_sigint_ignored_stops_on_sigint_and_leaves_nothing_half_written(tmp_path: Path) -> None:
+    """A `segment` a script started in the background inherits SIGINT as ignored; it used to run on for minutes
+    after `kill -INT` and write its results. Full CLI: it stops after the scene in progress, records the batch as
+    interrupted, and leaves no temporary file, no lock and no result of a scene it did not finish."""
+    from efem_viz.prior import analytic
+    from helpers import server_signals
+
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    for k in range(6):
+        save_scene(analytic.make_sphere_scene(seed=k, spacing=0.01, name=f"balls_{k}"), scans / f"balls_{k}.ply")
+    out = tmp_path / "out"
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "efem_viz.cli", "segment", str(scans), "--prior", "sphere",
+                             "--preset", "fast", "--proposals", "60", "--out", str(out), "--no-scannet",
+                             "--no-ply"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
+                            preexec_fn=server_signals(sigint_ignored=True))
+    assert proc.stdout is not None
+    seen = []
+    for line in proc.stdout:  # the first scene has started: interrupt
+        seen.append(line)
+        if "started" in line:
+            break
+    proc.send_signal(signal.SIGINT)
+    try:
+        rest, _ = proc.communicate(timeout=600)  # a hang guard: it stops after the scene in progress
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        raise AssertionError("segment ran on after SIGINT:\n" + "".join(seen)) from None
+    assert proc.returncode != 0, "".join(seen) + rest
+    record = json.loads((out / BATCH_FILE).read_text())
+    assert record["interrupted"] is True
+    done = {p.name for p in out.glob("*.efem.npz")}
+    assert len(done) < 6 and done == {f"{r['name']}.efem.npz" for r in record["scenes"] if r["status"] == "ok"}
+    assert not [p for p in out.rglob("*") if p.name.startswith(".") or p.suffix == ".tmp"], list(out.rglob("*"))

@@ -92,6 +92,10 @@ class SegmentArgs(SolveSettings):
             from efem_viz.serve.outputs import default_output_dir
 
             out = default_output_dir("segment")
-        with RichBatchDisplay(Console()) as display:
+        from efem_viz.serve.lifecycle import stop_signals
+
+        # its own SIGINT/SIGTERM handlers: a segment started in the background by a script inherits SIGINT as
+        # ignored and would run on after Ctrl+C / `kill -INT`; the batch records what finished and stops
+        with stop_signals("efem-viz segment"), RichBatchDisplay(Console()) as display:
             report = run_batch(job, self.scenes, out, backend=backend, force=self.force, observer=display)
         return 0 if report.passed else 1

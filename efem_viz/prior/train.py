@@ -110,6 +110,9 @@ class TrainArgs:
     """Iterations between validations."""
     ckpt_every_min: float = 4.0
     """Minutes between resume checkpoints."""
+    near_fraction: float = 0.5
+    """Share of each example's SDF queries drawn near the surface (the rest uniform in the cube); 0.5 is the
+    spec's 1024 + 1024."""
     steps: int | None = None
     """Stop after this many iterations of this run, counted from where it started or resumed (None: run to
     ``iterations`` or the time budget). Work-counted, so a test or a smoke run means the same on any machine."""
@@ -214,7 +217,12 @@ class TrainArgs:
 
         if self.min_views < 1:
             raise ValueError(f"min_views must be >= 1 (got {self.min_views})")
-        return SampleConfig(n_pcl=n_pcl, p_table=self.p_table, min_views=self.min_views, sensor_p=self.sensor_p)
+        if not 0.0 < self.near_fraction < 1.0:
+            raise ValueError(f"near_fraction must be in (0, 1) (got {self.near_fraction})")
+        total = SampleConfig.n_query_uniform + SampleConfig.n_query_near
+        near = int(round(total * self.near_fraction))
+        return SampleConfig(n_pcl=n_pcl, p_table=self.p_table, min_views=self.min_views, sensor_p=self.sensor_p,
+                            n_query_near=near, n_query_uniform=total - near)
 
     def resolved_out_dir(self) -> Path:
         """``out_dir`` or ``runs/<category>``."""

@@ -188,6 +188,14 @@ class ViewerApp(ServedApp):
             finally:
                 self._quiet = prev
 
+    def choose_preset(self, name: str) -> None:
+        """The Run tab's preset is now `name`: the Proposals field shows that preset's number of proposals,
+        unless a person has edited the field (their number is kept)."""
+        from efem_viz.em.config import preset
+
+        if not self.state.proposals_by_user:
+            self.gui_set(self.panels.gui_proposals, int(preset(name).n_init[0]))
+
     # ================================================================== 1. scenes
     def open_scene(self, name: str) -> bool:
         """Load a scene from the browser list, draw it, and load its saved trace when present.
@@ -212,6 +220,7 @@ class ViewerApp(ServedApp):
             self.gui_set(self.panels.gui_display, s.display)
             self.gui_set(self.panels.gui_color, "scene colours")
             self.gui_set(self.panels.gui_preset, self.session.suggested_preset(scene))
+            self.choose_preset(self.session.suggested_preset(scene))
             self.gui_set(self.panels.gui_point_size, float(np.clip(round(s.point_size * 2000) / 2, 0.5, 20.0)))
             pv.show_scene_info(self.panels, self.session)
             lo, hi = scene.bounds  # the initial camera (new clients, "Reset view") and every connected one

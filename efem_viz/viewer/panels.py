@@ -167,7 +167,8 @@ def _scene_tab(gui: GuiApi, *, scene_names: list[str]) -> dict[str, Any]:
 def _run_tab(gui: GuiApi) -> dict[str, Any]:
     """The Run tab's controls: the solve's settings, Run / Cancel / Load, the progress bar and line."""
     preset = gui.add_dropdown("Preset", PRESETS, initial_value="fast")
-    proposals = gui.add_number("Proposals", 100, min=1, max=2000, step=1)
+    proposals = gui.add_number("Proposals", em_config.preset("fast").n_init[0], min=1, max=em_config.MAX_PROPOSALS,
+                               step=1, hint="the preset's number until you change it")
     seed = gui.add_number("Seed", 0, min=0, max=2**31 - 1, step=1)
     precision = gui.add_dropdown("Precision", em_config.MATMUL_DTYPES, initial_value="float32",
                                  hint="bfloat16: the networks' matrix work in bf16, about 1.5x faster on CPUs "

@@ -100,6 +100,8 @@ class ViewerState:
     """Confidence threshold on the final instances (a view, not a re-run)."""
     threshold_by_user: bool = False
     """Whether a person set `threshold` (kept for the next result only if it still shows an instance there)."""
+    proposals_by_user: bool = False
+    """Whether a person edited the Run tab's Proposals field (until then it shows the chosen preset's number)."""
     hidden: set[int] = field(default_factory=set)
     """Proposal ids of final instances hidden by hand (the instance table's *Visible* box): a view, like the
     threshold; the metrics and exports follow the threshold only."""
