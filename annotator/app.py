@@ -176,7 +176,7 @@ class AnnotatorApp(ServedApp):
 
     # ================================================================== GUI
     def _build_gui(self) -> None:
-        from annotator.assist import available_priors
+        from efem_viz.prior.registry import available_priors
 
         default_efem = self.session.scan_path.with_name(self.session.stem + RESULT_SUFFIX)
         priors = tuple(available_priors()) or (DEFAULT_PRIOR,)

@@ -18,7 +18,7 @@ import numpy as np
 
 from efem_viz.em.config import SolveSettings
 from efem_viz.prior.config import DEFAULT_PRIOR
-from efem_viz.prior.registry import PriorSet
+from efem_viz.prior.registry import PriorSet, available_priors
 
 if TYPE_CHECKING:
     from efem_viz.em.results import EMResult, Instances
@@ -33,19 +33,8 @@ SEGMENT_SETTINGS = SolveSettings(preset="real", proposals=12)
 """The solve of a click: the real-capture preset, 12 proposals, one episode (`segment_at_point`)."""
 
 
-def available_priors() -> list[str]:
-    """Names of the priors shipped in `efem_viz/weights/` (`<name>.pt`, training checkpoints excluded)."""
-    from pathlib import Path
-
-    import efem_viz
-
-    d = Path(efem_viz.__file__).parent / "weights"
-    names = sorted(p.stem for p in d.glob("*.pt") if not p.stem.endswith("_resume"))
-    return names
-
-
 def get_prior(name: str) -> ShapePriorLike:
-    """Load (once) and return a shipped shape prior by *name* (`PriorSet.get`).
+    """Load (once) and return a shipped or analytic shape prior by *name* (`PriorSet.get`).
 
     Only names of files in `efem_viz/weights/` are accepted, never paths: a prior file is a pickle, and GUI
     input must not make the server unpickle an arbitrary file.

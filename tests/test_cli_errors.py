@@ -492,3 +492,18 @@ def test_segment_refuses_more_proposals_than_it_can_hold_before_any_work(tmp_pat
     errors = [ln for ln in proc.stderr.splitlines() if "error" in ln]
     assert proc.returncode in (1, 2) and len(errors) == 1 and "at most 2000" in errors[0], proc.stderr[-2000:]
     assert not (tmp_path / "out" / f"{SAMPLE}.efem.npz").exists()
+
+
+def test_segment_names_the_valid_priors_and_an_empty_call_says_what_to_give(tmp_path: Path) -> None:
+    """A prior typo is one line that lists the valid names, before any scene work or display (no blank line
+    first); a call without scenes says what to give instead of "no scene files found in []"."""
+    proc = run_cli("segment", str(REPO / "sample_scenes" / f"{SAMPLE}.ply"), "--prior", "mugg", "--out",
+                   str(tmp_path / "o"))
+    assert proc.returncode == 1 and proc.stdout == "", proc.stdout
+    lines = proc.stderr.splitlines()
+    assert len(lines) == 1 and "unknown shape prior 'mugg'" in lines[0] and "mug, sphere" in lines[0], lines
+    assert not (tmp_path / "o").exists()
+    empty = run_cli("segment")
+    assert empty.returncode == 1 and empty.stdout == ""
+    assert empty.stderr.strip() == ("efem-viz segment: error: no scenes given: name scene files (.ply, .obj, .off, "
+                                    ".glb, .npz) or folders of them")

@@ -92,7 +92,13 @@ class SegmentArgs(SolveSettings):
             from efem_viz.serve.outputs import default_output_dir
 
             out = default_output_dir("segment")
+        from efem_viz.batch.job import prior_identity
         from efem_viz.serve.lifecycle import stop_signals
+
+        if not self.scenes:
+            raise ValueError("no scenes given: name scene files (.ply, .obj, .off, .glb, .npz) or folders of them")
+        for spec in job.priors:  # a typo in a prior name is one line at once, before any display or scene work
+            prior_identity(spec)
 
         # its own SIGINT/SIGTERM handlers: a segment started in the background by a script inherits SIGINT as
         # ignored and would run on after Ctrl+C / `kill -INT`; the batch records what finished and stops

@@ -166,7 +166,8 @@ def plan_batch(
     paths = [p for p in find_scenes(list(scenes))
              if not (p.name.endswith(SEG_SUFFIX) and p.resolve().parent == out_dir)]
     if not paths:
-        raise ValueError(f"no scene files found in {[str(s) for s in scenes]}")
+        raise ValueError(f"no scene files found in {', '.join(str(s) for s in scenes)}" if scenes else
+                          "no scenes given: name scene files (.ply, .obj, .off, .glb, .npz) or folders of them")
     by_name: dict[str, Path] = {}
     for p in paths:
         name = scene_name_of(p)

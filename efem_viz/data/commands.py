@@ -50,7 +50,8 @@ class InfoArgs:
         console = Console()
         paths = find_scenes(self.scenes)
         if not paths:
-            raise SceneError(f"no scene files found in {[str(s) for s in self.scenes]}")
+            raise SceneError(f"no scene files found in {', '.join(str(s) for s in self.scenes)}" if self.scenes else
+                          "no scenes given: name scene files (.ply, .obj, .off, .glb, .npz) or folders of them")
         failures = 0
         for path in paths:
             try:

@@ -47,6 +47,15 @@ ANALYTIC_PRIORS: dict[str, Callable[[], ShapePriorLike]] = {"sphere": _sphere}
 """Closed-form priors by name (no weights file): name → factory. Register a new one here."""
 
 
+def available_priors() -> list[str]:
+    """Every prior name a solve accepts: the priors shipped in ``efem_viz/weights/`` (``<name>.pt``; training
+    resume states excluded) and the analytic ones (`ANALYTIC_PRIORS`), sorted."""
+    from efem_viz.prior.model import WEIGHTS_DIR
+
+    shipped = {p.stem for p in WEIGHTS_DIR.glob("*.pt") if not p.stem.endswith("_resume")}
+    return sorted(shipped | set(ANALYTIC_PRIORS))
+
+
 def load_prior_spec(spec: str | os.PathLike[str], *, device: str = "cpu") -> ShapePriorLike:
     """Load one prior: a name of `ANALYTIC_PRIORS`, a name under ``efem_viz/weights/`` or a ``.pt`` path.
 
