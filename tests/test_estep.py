@@ -1,4 +1,4 @@
-"""The E-step's vectorised functions (efem_viz.em.estep) against per-entry loops of efem-method.md §3.6–3.7.
+"""The E-step's vectorised functions (efem_viz.em.estep) against per-entry loops of docs/design/efem-method.md §3.6–3.7.
 
 The references are written as the spec states them, one entry at a time in float64 Python arithmetic. Inputs are
 float32-representable (the solver's precision), so every comparison decides the same way in both; the weights

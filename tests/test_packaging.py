@@ -51,6 +51,8 @@ def test_the_wheel_carries_a_demo_but_not_the_resume_state(wheel: Path) -> None:
     weights = {n for n in names if n.startswith("efem_viz/weights/")}
     assert "efem_viz/weights/mug.pt" in weights and "efem_viz/weights/mug_codebook.npz" in weights
     assert not [n for n in weights if "resume" in n], weights
+    assert "efem_viz/weights/mug_training_report.md" in weights  # the report ships, the working notes do not
+    assert not [n for n in weights if "notes" in n], weights
     samples = sorted(n.removeprefix("efem_viz/sample_scenes/") for n in names
                      if n.startswith("efem_viz/sample_scenes/"))
     scenes = [n for n in samples if n.endswith(".ply")]

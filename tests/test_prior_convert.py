@@ -1,4 +1,4 @@
-"""Converter of the authors' released EFEM checkpoints (efem_viz.prior.convert, efem-method.md §1.7).
+"""Converter of the authors' released EFEM checkpoints (efem_viz.prior.convert, docs/design/efem-method.md §1.7).
 
 Small random priors are written in the released layout (``network_dict.encoder.``/``network_dict.decoder.`` keys
 inside ``{"model_state_dict", "optimizers_state_dict", "epoch", "batch"}``), converted, loaded with ``load_prior``
@@ -159,7 +159,7 @@ def _released_parts(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, torc
 
 # ------------------------------------------------------------------------------------------------------ tests
 def _expected_released_keys(widths: tuple[int, ...], attention: tuple[int, ...]) -> dict[str, tuple[int, ...]]:
-    """The released key/shape table (efem-method.md §1.7, confirmed against the released module structure)."""
+    """The released key/shape table (docs/design/efem-method.md §1.7, confirmed against the released module structure)."""
     out: dict[str, tuple[int, ...]] = {}
     e, d = "network_dict.encoder.", "network_dict.decoder."
     for b, c in enumerate(widths):

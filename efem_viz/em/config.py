@@ -1,4 +1,4 @@
-"""Typed configuration of the EFEM solver (efem-method.md §3.12) and its presets.
+"""Typed configuration of the EFEM solver (docs/design/efem-method.md §3.12) and its presets.
 
 All distances are in metres (world) unless the field says "canonical" (decoder SDF units, about one object
 size); angles are in degrees. efem-viz is +Z up, so the "horizontal" scale group is {x, y} and the height
@@ -364,7 +364,7 @@ class SolveSettings:
     (`SegmentArgs`) and batch jobs (`BatchJob`) inherit these fields, and `config()` builds the `EMConfig`."""
 
     preset: PresetName = "synthetic"
-    """Solver configuration (efem-method.md §3.12); category sizes and τ_out come with each prior."""
+    """Solver configuration (docs/design/efem-method.md §3.12); category sizes and τ_out come with each prior."""
     proposals: int | None = None
     """Override the number of proposals (first episode)."""
     work_voxel: float | None = None

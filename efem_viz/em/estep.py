@@ -1,4 +1,4 @@
-"""The E-step (efem-method.md §3.6–3.7): annealed parameters, truncated energies, weights, inliers, stationary score.
+"""The E-step (docs/design/efem-method.md §3.6–3.7): annealed parameters, truncated energies, weights, inliers, stationary score.
 
 One op per function, each vectorised over the flat (K,) entries of a step's error balls (a `Ragged` of P rows):
 
@@ -32,7 +32,7 @@ Schedule = tuple[float, float, float, float]
 
 
 def schedule(cfg: "EMConfig", t: int) -> Schedule:
-    """Annealed E-step parameters at local step t (efem-method.md §3.6.3).
+    """Annealed E-step parameters at local step t (docs/design/efem-method.md §3.6.3).
 
     Args:
         cfg: solver config.
@@ -70,7 +70,7 @@ def normals_threshold(cfg: "EMConfig", tau_d: float) -> float:
 
 
 def inlier_mask(d: np.ndarray, gamma: np.ndarray, *, tau_d: float, tau_n: float) -> np.ndarray:
-    """The inlier test (efem-method.md §3.6.6), in float32 as the solver computes it.
+    """The inlier test (docs/design/efem-method.md §3.6.6), in float32 as the solver computes it.
 
     Args:
         d: (K,) canonical SDF values.
@@ -89,7 +89,7 @@ def inlier_mask(d: np.ndarray, gamma: np.ndarray, *, tau_d: float, tau_n: float)
 def energies(
     d: np.ndarray, gamma: np.ndarray, sched: Schedule, *, out_value: float = 100.0
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The truncated energies (efem-method.md §3.6.4), in float32.
+    """The truncated energies (docs/design/efem-method.md §3.6.4), in float32.
 
     Args:
         d: (K,) canonical SDF values.
@@ -115,7 +115,7 @@ def energy_weights(
     *,
     out_value: float = 100.0,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Truncated energies → new weights and inlier flags (efem-method.md §3.6.4–6).
+    """Truncated energies → new weights and inlier flags (docs/design/efem-method.md §3.6.4–6).
 
     Args:
         d: (K,) canonical SDF values.
@@ -143,7 +143,7 @@ def stationary_score(
     tau: float,
     gamma_max: float,
 ) -> np.ndarray:
-    """The stationary score of every proposal (efem-method.md §3.7).
+    """The stationary score of every proposal (docs/design/efem-method.md §3.7).
 
     A sample counts when its point lies in the proposal's error ball and its decoded entry has |d| < τ_st and
     γ < γ_st; a sample outside the ball (the spec's placeholder 1000) never counts. Repeated samples count with

@@ -1,6 +1,6 @@
 """Output masks at another SDF threshold, re-derived from a saved run.
 
-efem-method.md §3.9.12 takes a point into an instance's output mask when |d| < τ_out (0.04 canonical units
+docs/design/efem-method.md §3.9.12 takes a point into an instance's output mask when |d| < τ_out (0.04 canonical units
 for mugs). That value fits the authors' prior, whose decoded surfaces lie within a few millimetres of the
 scan. A prior with blurrier surfaces (ours, trained on two CPU cores) leaves true object points outside
 that band, so masks come out too small and AP at IoU ≥ 0.5 suffers while the objects are found. τ_out is

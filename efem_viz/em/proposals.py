@@ -3,7 +3,7 @@
 Everything here is plain NumPy/SciPy and works on *ragged rows*: proposal r owns the scene-point indices
 `idx[offsets[r]:offsets[r+1]]` (its crop or E-step neighbourhood) with one value per entry (weights, SDF).
 Weights outside a row are zero by definition, so cost scales with the neighbourhood sizes, never with P × N.
-Rows are always in increasing proposal-id order. References: efem-method.md §3.3 and §3.4.
+Rows are always in increasing proposal-id order. References: docs/design/efem-method.md §3.3 and §3.4.
 """
 
 from __future__ import annotations

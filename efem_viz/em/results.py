@@ -2,7 +2,7 @@
 
 `<scene>.efem.npz` holds the trace (`trace/...`), the instances (`instances/...`), the config as JSON, the
 schema version, the scene name and its number of points. Exports: the ScanNet benchmark layout
-(efem-method.md §4.2) and a coloured PLY with the predicted instance as the per-vertex `instance` property.
+(docs/design/efem-method.md §4.2) and a coloured PLY with the predicted instance as the per-vertex `instance` property.
 """
 
 from __future__ import annotations
@@ -262,7 +262,7 @@ class Instances:
     # ------------------------------------------------------------------ exports
     def to_scannet(self, out_dir: str | os.PathLike[str], scene_name: str, n_points: int, *,
                    label_id: int = 1) -> Path:
-        """Write the ScanNet benchmark layout (efem-method.md §4.2).
+        """Write the ScanNet benchmark layout (docs/design/efem-method.md §4.2).
 
         `<out_dir>/<scene>.txt` lists one line per instance, `pred_mask/<scene>_<kkk>.txt <label_id> <conf>`
         (confidence with 4 decimals); each mask file under `<out_dir>/pred_mask/` holds N lines of 0/1.

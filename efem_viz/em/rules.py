@@ -1,4 +1,4 @@
-"""Elimination rules of the EFEM solver (efem-method.md §3.8 and §3.9), registered in one place.
+"""Elimination rules of the EFEM solver (docs/design/efem-method.md §3.8 and §3.9), registered in one place.
 
 Two kinds of rule:
 - `StepRule`: runs after every EM step on the live proposals of the pool (too small, duplicate, inclusion);
@@ -171,7 +171,7 @@ def find_duplicates(
 
 
 def capped_confidence(stationary: np.ndarray | float, coverage: np.ndarray | float, cap: float) -> np.ndarray:
-    """The paper's confidence (efem-method.md §3.10): stationary score · min(coverage, cap) / cap, elementwise."""
+    """The paper's confidence (docs/design/efem-method.md §3.10): stationary score · min(coverage, cap) / cap, elementwise."""
     if not cap > 0:
         raise ValueError(f"coverage cap must be > 0, got {cap}")
     return np.asarray(stationary, np.float64) * np.minimum(np.asarray(coverage, np.float64), cap) / cap

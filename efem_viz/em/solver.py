@@ -1,6 +1,6 @@
 """The EFEM solver: proposals → EM steps (independent, then joint) → reviews → accepted instances.
 
-Reference: efem-method.md §3 (efem-viz is +Z up). One prior or several: with several priors (one per
+Reference: docs/design/efem-method.md §3 (efem-viz is +Z up). One prior or several: with several priors (one per
 category) every prior starts `n_init` proposals per episode and all of them share one pool, so the joint
 phase's competition for points, the duplicate and the inclusion rules act across categories; each proposal is
 encoded, decoded, meshed and reviewed with its own prior and its category's settings (sizes, up range, τ_out).
@@ -94,7 +94,7 @@ class StepInfo:
 
 def confidence(stationary: float, coverage: float, *, cap: float = 0.4, seen_through: float = float("nan"),
                pose: float = float("nan"), pose_weight: float = 0.0, pose_ref: float = 0.6) -> float:
-    """Final confidence of an accepted proposal: s_stat · min(coverage, cap) / cap (efem-method.md §3.10), times
+    """Final confidence of an accepted proposal: s_stat · min(coverage, cap) / cap (docs/design/efem-method.md §3.10), times
     (1 − seen-through fraction) when the free-space check measured one (`EMConfig.seen_through_margin`), times
     min(1, pose score / `pose_ref`)^`pose_weight` when the codebook gave a pose score (`EMConfig.pose_weight`)."""
     conf = float(capped_confidence(float(stationary), float(coverage), cap))
@@ -196,7 +196,7 @@ def run_em(
     step_rules: Sequence[StepRule] = STEP_RULES,
     review_rules: Sequence[ReviewRule] = REVIEW_RULES,
 ) -> "EMResult":
-    """Segment a scene with EFEM (efem-method.md §3) and record the full trace.
+    """Segment a scene with EFEM (docs/design/efem-method.md §3) and record the full trace.
 
     Args:
         scene: the scan (points (N,3) float32 world metres, +Z up, unit normals).

@@ -1,4 +1,4 @@
-"""`EMTrace`: everything an EFEM run did, step by step, stored compactly (efem-method.md §3.11).
+"""`EMTrace`: everything an EFEM run did, step by step, stored compactly (docs/design/efem-method.md §3.11).
 
 Stored per step (global step index over all episodes): phase, episode, step within the episode, the schedule
 (α_D, τ_D, α_N, τ_N), and for every proposal that took part (a "row"): its id, latent (float32, exact replay),

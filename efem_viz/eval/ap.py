@@ -1,4 +1,4 @@
-"""Instance AP as in EFEM's `standalone_eval_v2` (efem-method.md §5): AP (0.50:0.95), AP50, AP25, PR curves.
+"""Instance AP as in EFEM's `standalone_eval_v2` (docs/design/efem-method.md §5): AP (0.50:0.95), AP50, AP25, PR curves.
 
 `average_precision` is the central-difference integration of §5.4, replicated exactly (including the tie handling
 and the final (recall 0, precision 1) point); `evaluate` runs the filtering and matching of §5.1–5.3 per class and
@@ -84,7 +84,7 @@ def average_precision(
 
 @dataclass
 class EvalResult:
-    """Instance-segmentation scores (efem-method.md §5).
+    """Instance-segmentation scores (docs/design/efem-method.md §5).
 
     Attributes:
         class_names: evaluated classes; class id k+1 is `class_names[k]`.
@@ -195,7 +195,7 @@ def evaluate(
     strict: bool = True,
     decimals: int | None = CONFIDENCE_DECIMALS,
 ) -> EvalResult:
-    """Instance AP over scenes, as in `standalone_eval_v2` (efem-method.md §5).
+    """Instance AP over scenes, as in `standalone_eval_v2` (docs/design/efem-method.md §5).
 
     Args:
         preds: predictions per scene.

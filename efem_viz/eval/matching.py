@@ -1,6 +1,6 @@
 """Ground truth and predictions for instance evaluation, their overlaps, and the ScanNet matching of §5.1–5.3.
 
-Conventions (efem-method.md §5): class ids are 1-based indices into `class_names` (a single mug prior gives
+Conventions (docs/design/efem-method.md §5): class ids are 1-based indices into `class_names` (a single mug prior gives
 class 1); a ground-truth instance is evaluated only if it has a valid class and at least `min_region_size` points;
 predictions with fewer points are dropped; all IoU comparisons are strict (`IoU > τ`).
 """

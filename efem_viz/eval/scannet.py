@@ -1,4 +1,4 @@
-"""The ScanNet benchmark prediction layout (efem-method.md §4.2), read and written.
+"""The ScanNet benchmark prediction layout (docs/design/efem-method.md §4.2), read and written.
 
 `<dir>/<scene>.txt` holds one line per predicted instance, `<mask path> <class id> <confidence>`, the mask path
 relative to `<dir>`. A mask is a `.npy` of N 0/1 values (EFEM appends `.npy` to the listed name:

@@ -1,4 +1,4 @@
-"""Rotation-only ICP with a scipy cKDTree (efem-method.md §3.9 step 6).
+"""Rotation-only ICP with a scipy cKDTree (docs/design/efem-method.md §3.9 step 6).
 
 Both clouds are centred on their own centroids once; each iteration matches every source point to its
 nearest target point, solves the orthogonal Procrustes problem on the matches and rotates the source.

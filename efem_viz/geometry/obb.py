@@ -1,4 +1,4 @@
-"""Oriented bounding boxes from surface samples and a pose (efem-method.md §3.9 step 8, the corrected form).
+"""Oriented bounding boxes from surface samples and a pose (docs/design/efem-method.md §3.9 step 8, the corrected form).
 
 Given centred samples `Q = samples − Θ_c` and the pose `R` (columns = canonical x, y, z axes in the world
 frame), the coordinates along the canonical axes are `Q̃ = Q R` (row form). Then `e = (max Q̃ − min Q̃)/2`,

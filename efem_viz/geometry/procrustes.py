@@ -3,7 +3,7 @@
 Two flavours everywhere:
 
 * `proper=False` — the best *orthogonal* map (may be a reflection, det = −1). This is what the EFEM release
-  uses for its codebook pose search (efem-method.md §3.9 steps 4 and 6).
+  uses for its codebook pose search (docs/design/efem-method.md §3.9 steps 4 and 6).
 * `proper=True` — the best *proper rotation* (Kabsch with the determinant fix: the sign of the smallest
   singular direction is flipped when `det(U Vᵀ) < 0`).
 
@@ -124,7 +124,7 @@ def latent_procrustes(
     *,
     proper: bool = False,
 ) -> np.ndarray:
-    """Rotation that maps reference VN codes onto observed ones (efem-method.md §3.9 step 4).
+    """Rotation that maps reference VN codes onto observed ones (docs/design/efem-method.md §3.9 step 4).
 
     With observed channel vectors `θ_c` (rows of `theta_obs`, world frame) and reference vectors `θ'_c`
     (rows of `theta_ref`, canonical frame): `H = Σ_c θ_c θ'_cᵀ`, SVD `H = U Σ Vᵀ`, `R = U Vᵀ`. If

@@ -1,6 +1,6 @@
 """Rigid (SE(3)) and similarity (SIM(3)) transforms, random rotations and quaternion conversion.
 
-Conventions (as in efem-method.md): points are column vectors; a similarity `g = (s, R, t)` acts as
+Conventions (as in docs/design/efem-method.md): points are column vectors; a similarity `g = (s, R, t)` acts as
 `x ↦ s R x + t` with `s > 0` and `R ∈ SO(3)`. Arrays of points are stored as rows, so applying `g` to an
 (N, 3) array is `s * points @ R.T + t`. Quaternions are scalar-first `wxyz` (viser's convention).
 Pure NumPy; no torch.

@@ -1,4 +1,4 @@
-"""Pose codebook ("database") of a shape prior (efem-method.md §2.8): the stored data and its queries; it is built
+"""Pose codebook ("database") of a shape prior (docs/design/efem-method.md §2.8): the stored data and its queries; it is built
 by `efem_viz.prior.codebook_build.build_codebook` (`efem-viz build-codebook` is
 `efem_viz.prior.commands.BuildCodebookArgs`).
 

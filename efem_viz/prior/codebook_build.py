@@ -1,4 +1,4 @@
-"""Building a prior's pose codebook (efem-method.md §2.8) from training meshes: `build_codebook`.
+"""Building a prior's pose codebook (docs/design/efem-method.md §2.8) from training meshes: `build_codebook`.
 
 Apart from `efem_viz.prior.codebook` (the stored data and its queries), so that the codebook, which the prior
 carries, imports neither the prior nor its configuration.

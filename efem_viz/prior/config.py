@@ -30,7 +30,7 @@ logger = logging.getLogger(__name__)
 Range = tuple[float, float]
 
 DEFAULT_TAU_OUT = 0.04
-"""Output-mask SDF threshold of efem-method.md §3.9.12 (canonical units) for a prior that was not calibrated."""
+"""Output-mask SDF threshold of docs/design/efem-method.md §3.9.12 (canonical units) for a prior that was not calibrated."""
 MAX_TAU_OUT = 0.5
 """Largest accepted τ_out: half an object size (a larger band would take in the neighbours)."""
 TAU_OUT_KEY = "tau_out"
@@ -90,7 +90,7 @@ def _warn_slow_bf16() -> None:
 
 @dataclass
 class PriorConfig:
-    """Architecture of a shape prior (defaults = the released mug model, efem-method.md §1.3)."""
+    """Architecture of a shape prior (defaults = the released mug model, docs/design/efem-method.md §1.3)."""
 
     widths: tuple[int, ...] = (32, 32, 64, 64, 128, 256, 512)
     """Output width of every backbone block (the number of entries is the depth)."""

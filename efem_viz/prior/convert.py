@@ -1,4 +1,4 @@
-"""Convert the authors' released EFEM shape priors into efem-viz prior files (efem-method.md §1.7).
+"""Convert the authors' released EFEM shape priors into efem-viz prior files (docs/design/efem-method.md §1.7).
 
 The MIT release (repository ``JiahuiLei/EFEM``) ships ``weights/{mugs,chairs,kit4cates}.pt``: pickled dicts with
 the keys ``model_state_dict``, ``optimizers_state_dict``, ``epoch`` and ``batch``. Every state-dict key is

@@ -1,4 +1,4 @@
-"""Training data for a shape prior (efem-method.md §2.1-§2.4): per-object caches and per-example sampling.
+"""Training data for a shape prior (docs/design/efem-method.md §2.1-§2.4): per-object caches and per-example sampling.
 
 Per object (canonical frame: +Z up, bounding-box centre at the origin, longest side 1) we cache in an npz:
 ``uni`` (Nu, 4) uniform queries in ``[-0.55, 0.55]³`` + SDF, ``nss`` (Nn, 4) near-surface queries + SDF,

@@ -1,4 +1,4 @@
-"""Invariant implicit SDF decoder (efem-method.md §1.5).
+"""Invariant implicit SDF decoder (docs/design/efem-method.md §1.5).
 
 ``q = (x − Θ_c)/Θ_s``; ``φ = [Θ_R q ; ‖q‖ ; Θ_inv]``; ``h_0 = A_in φ + a_in``; pre-activation residual
 ReLU blocks; ``sdf = w_outᵀ ReLU(h) + b_out``. Parameter names follow §1.7 (``fc_in``,

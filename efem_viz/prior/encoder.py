@@ -1,4 +1,4 @@
-"""SIM(3)-equivariant point-cloud encoder: VN-DGCNN backbone + four latent heads (efem-method.md §1.3-1.4).
+"""SIM(3)-equivariant point-cloud encoder: VN-DGCNN backbone + four latent heads (docs/design/efem-method.md §1.3-1.4).
 
 Tensors are channels-last VN features ``(B, N, 3, C)`` (see ``vn_layers``). Parameter names follow §1.7
 (``V_list.{b}.lin.weight``, ``global_conv_list.{j}``, ``Q_list.{b}``/``K_list.{b}``, ``conv_c``, ``fc_inv``,

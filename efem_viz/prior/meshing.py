@@ -1,4 +1,4 @@
-"""Mesh extraction from an SDF: coarse-to-fine grid evaluation + marching cubes (efem-method.md §3.9.1).
+"""Mesh extraction from an SDF: coarse-to-fine grid evaluation + marching cubes (docs/design/efem-method.md §3.9.1).
 
 `mesh_from_sdf_fn` works on any callable SDF (used by tests with analytic shapes); `extract_mesh` wraps it
 for a `ShapePrior` latent: the decoder is evaluated with `Θ_R`, `Θ_inv`, centre 0 and the reference scale
@@ -380,7 +380,7 @@ def extract_mesh(
     clip_ball: bool = True,
     stats: MeshStats | None = None,
 ) -> trimesh.Trimesh:
-    """Mesh of one latent's shape (efem-method.md §3.9.1).
+    """Mesh of one latent's shape (docs/design/efem-method.md §3.9.1).
 
     Args:
         prior: a `ShapePrior` (its decoder is called through `prior.sdf`).

@@ -1,4 +1,4 @@
-"""Train a shape prior (efem-method.md §2): ``efem-viz train-prior``.
+"""Train a shape prior (docs/design/efem-method.md §2): ``efem-viz train-prior``.
 
 The module top is light (the CLI imports it); torch/open3d are imported inside functions.
 

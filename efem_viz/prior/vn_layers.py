@@ -1,4 +1,4 @@
-"""Vector-neuron (VN) primitive layers (efem-method.md §1.2).
+"""Vector-neuron (VN) primitive layers (docs/design/efem-method.md §1.2).
 
 Memory layout. The spec writes a VN feature as a matrix ``V`` of shape ``(C, 3)``. Here every VN tensor is
 stored *channels last*, ``(..., 3, C)`` (the 3-D axis second to last), so that a VN-Linear is one dense GEMM
