@@ -66,6 +66,8 @@ def test_save_load_round_trip(tmp_path, monkeypatch) -> None:
                 "times_confidence": "yes"}).encode(),
     b"[" * 100_000,
     b" " * 70_000,
+    b'{"names": ["pose score"], "mean": [0], "scale": [1], "weights": [1], "bias": 1' + b"0" * 400 + b"}",
+    json.dumps({"names": ["pose score"], "mean": [0], "scale": [1e-310], "weights": [1], "bias": 0}).encode(),
 ])
 def test_hostile_model_files_get_one_clear_error(tmp_path, monkeypatch, body: bytes) -> None:
     monkeypatch.setattr(look_alike, "MODELS", tmp_path)
@@ -73,6 +75,31 @@ def test_hostile_model_files_get_one_clear_error(tmp_path, monkeypatch, body: by
     (tmp_path / "bad.json").write_bytes(body)
     with pytest.raises(ValueError, match="look-alike model"):
         load_model("bad")
+    load_model.cache_clear()
+
+
+@pytest.mark.parametrize("kind", ["dev_zero_link", "directory", "huge_sparse"])
+def test_model_files_that_are_not_small_plain_files_are_refused_without_reading_them(
+        tmp_path, monkeypatch, kind: str) -> None:
+    """A link to /dev/zero used to exhaust memory, a 300 MB file cost 331 MB, a directory named `*.json` escaped as
+    an uncaught error: at most the 64 KB cap is read, and each is one ValueError naming the model."""
+    import os
+    import resource
+
+    monkeypatch.setattr(look_alike, "MODELS", tmp_path)
+    load_model.cache_clear()
+    target = tmp_path / "bad.json"
+    if kind == "dev_zero_link":
+        os.symlink("/dev/zero", target)
+    elif kind == "directory":
+        target.mkdir()
+    else:
+        with open(target, "wb") as fh:
+            fh.truncate(300 << 20)
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    with pytest.raises(ValueError, match="look-alike model"):
+        load_model("bad")
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before < 50 * 1024  # KB: nothing was inflated
     load_model.cache_clear()
 
 

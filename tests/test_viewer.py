@@ -821,3 +821,50 @@ def test_the_proposals_field_follows_the_preset_until_a_person_edits_it(tmp_path
         assert p.gui_proposals.value == 123 and a.state.proposals_by_user
     finally:
         a.stop()
+
+
+def test_a_scene_with_astronomic_coordinates_is_refused_and_the_others_open(tmp_path: Path, prior: Any) -> None:
+    """A scene of 1e30-metre coordinates first in the list aborted the viewer's start-up (an internal
+    OverflowError): it is one status line, and the viewer starts on the next scene."""
+    from efem_viz.data.io import save_scene
+    from efem_viz.data.scene import Scene
+    from efem_viz.viewer.app import ViewerApp
+
+    rng = np.random.default_rng(0)
+    up = np.tile(np.float32([0, 0, 1]), (400, 1))
+    grey = np.full((400, 3), 100, np.uint8)
+    save_scene(Scene(name="a", points=(rng.normal(size=(400, 3)) * 1e30).astype(np.float32), normals=up,
+                     colors=grey), tmp_path / "a_huge.ply")
+    save_scene(Scene(name="b", points=(rng.normal(size=(400, 3)) * 0.1).astype(np.float32), normals=up,
+                     colors=grey), tmp_path / "b_ok.ply")
+    a = ViewerApp([tmp_path], port=0, prior=prior)
+    try:
+        assert a.state.scene_name == "b_ok"
+        assert not a.open_scene("a_huge")
+        assert "not a scan in metres" in a.state.status and a.state.scene_name == "b_ok"
+    finally:
+        a.stop()
+
+
+def test_a_result_without_steps_loads_and_a_run_on_a_two_point_scene_finishes(tmp_path: Path, prior: Any) -> None:
+    """A scene of one or two points gives a trace with zero steps: the viewer could not load it ("step 0 out of
+    range [0, 0)") and its Run failed with a traceback. Both now show the (empty) result."""
+    from efem_viz.data.io import save_scene
+    from efem_viz.data.scene import Scene
+    from efem_viz.viewer.app import ViewerApp
+
+    two = Scene(name="two", points=np.float32([[0, 0, 0], [0.01, 0, 0]]), normals=np.float32([[0, 0, 1]] * 2),
+                colors=np.full((2, 3), 100, np.uint8))
+    save_scene(two, tmp_path / "two.ply")
+    res = em.run_em(two, prior, em.preset("fast"), seed=0)
+    assert len(res.trace.step_phase) == 0
+    res.save(tmp_path / "two.efem.npz")
+    a = ViewerApp([tmp_path], port=0, prior=prior, prior_name="sphere")
+    try:
+        assert a.state.result is not None and "Loaded result" in a.state.status, a.state.status
+        a.start_run()
+        assert a.wait_idle(600)
+        assert a.state.result is not None and a.state.result_source.startswith("run"), a.state.status
+        assert "failed" not in a.state.status
+    finally:
+        a.stop()

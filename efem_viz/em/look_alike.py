@@ -16,7 +16,9 @@ from __future__ import annotations
 import functools
 import json
 import math
+import os
 import re
+import stat
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -90,11 +92,12 @@ class LookAlikeModel:
         if not (len(self.mean) == len(self.scale) == len(self.weights) == n):
             raise ValueError("look-alike model: mean, scale and weights need one value per feature")
         nums = (*self.mean, *self.scale, *self.weights, self.bias)
-        if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and abs(v) < 1e6
-                   for v in nums):
+        if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and abs(v) < 1e6 and math.isfinite(v)
+                   for v in nums):  # abs first: a 400-digit int is a size error, not an OverflowError
             raise ValueError("look-alike model: every number must be finite and below 1e6 in size")
-        if not all(s > 0 for s in self.scale):
-            raise ValueError("look-alike model: every scale must be > 0")
+        if not all(s >= 1e-6 for s in self.scale):
+            raise ValueError("look-alike model: every scale must be >= 1e-6 (a smaller one divides features into "
+                             "inf / NaN confidences)")
         if not isinstance(self.times_confidence, bool):
             raise ValueError("look-alike model: times_confidence must be true or false")
 
@@ -165,8 +168,8 @@ def check_name(name: object) -> None:
 
 
 def available_models() -> list[str]:
-    """Names of the shipped models."""
-    return sorted(p.stem for p in MODELS.glob("*.json"))
+    """Names of the shipped models (plain files `<name>.json`; links and folders are not models)."""
+    return sorted(p.stem for p in MODELS.glob("*.json") if p.is_file() and not p.is_symlink())
 
 
 @functools.lru_cache(maxsize=8)
@@ -179,7 +182,13 @@ def load_model(name: str) -> LookAlikeModel:
     if not isinstance(name, str) or not _NAME.fullmatch(name) or name not in available_models():
         raise ValueError(f"unknown look-alike model {name!r}; shipped: {available_models()}")
     path = MODELS / f"{name}.json"
-    raw = path.read_bytes()[: _MAX_BYTES + 1]
+    try:
+        with open(path, "rb") as fh:  # at most the cap is ever read, whatever the file claims to be
+            if not stat.S_ISREG(os.fstat(fh.fileno()).st_mode):
+                raise ValueError(f"look-alike model {name!r} is not a regular file")
+            raw = fh.read(_MAX_BYTES + 1)
+    except OSError as exc:
+        raise ValueError(f"look-alike model {name!r} cannot be read: {type(exc).__name__}: {exc}") from None
     if len(raw) > _MAX_BYTES:
         raise ValueError(f"look-alike model {name!r} is larger than {_MAX_BYTES} bytes")
     try:
@@ -187,6 +196,6 @@ def load_model(name: str) -> LookAlikeModel:
         return LookAlikeModel(tuple(d["names"]), tuple(d["mean"]), tuple(d["scale"]), tuple(d["weights"]),
                               d["bias"], str(d.get("trained_on", "")), d.get("times_confidence", True),
                               d.get("category", "mug"))
-    except (ValueError, KeyError, TypeError, RecursionError) as exc:
+    except (ValueError, KeyError, TypeError, RecursionError, OverflowError) as exc:
         raise ValueError(f"look-alike model {name!r} is not valid: {type(exc).__name__}: "
                          f"{str(exc)[:200]}") from exc

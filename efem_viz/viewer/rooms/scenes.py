@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from efem_viz.viewer.scenes import SceneEntry, is_inside
 from efem_viz.viewer.state import COLOR_MODES, VIEW_MODES
 
@@ -12,6 +14,11 @@ if TYPE_CHECKING:
 
     from efem_viz.data.scene import Scene
     from efem_viz.viewer.rooms.core import ViewerCore
+
+
+MAX_VIEW_COORDINATE = 1e5
+"""Largest |coordinate| (metres) of a scene the viewer opens: beyond, it is not a metric scan (a file in other
+units, or damaged), and the drawing maths would overflow."""
 
 
 class SceneRoom:
@@ -36,6 +43,10 @@ class SceneRoom:
         self.core.set_status(f"Loading {entry.name} …")
         try:
             scene = load_scene(entry.path, max_points=self.core.max_points)
+            reach = float(np.abs(scene.points).max()) if scene.num_points else 0.0
+            if not reach <= MAX_VIEW_COORDINATE:
+                raise ValueError(f"coordinates reach {reach:.3g} m: not a scan in metres (the viewer shows scenes "
+                                 f"within ±{MAX_VIEW_COORDINATE:.0e} m)")
             if holds_predictions(entry.path) and scene.instance is not None:
                 scene = scene.with_labels(None, {})  # a segment output's labels are its predictions: no ground truth
         except Exception as exc:  # noqa: BLE001 - SceneError, OSError, parser errors: show, stay up

@@ -37,6 +37,9 @@ class TimelineRoom:
         s = self.core.state
         if s.result is None:
             return None
+        if s.num_steps == 0:  # a run that ended before its first step (a scene of one or two points)
+            none = np.zeros(0, np.int64)
+            return StepView(0, none, np.zeros(0, np.float32), none)
         t = int(np.clip(s.step if step is None else step, 0, max(s.num_steps - 1, 0)))
         ids, scores = s.result.trace.alive_scores(t)
         return StepView(t, ids, scores, top_n(ids, scores, s.max_shapes))
