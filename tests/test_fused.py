@@ -96,3 +96,52 @@ def test_encoder_with_kernels_matches_the_eager_encoder(monkeypatch: pytest.Monk
         slow = prior.encode(pts)
     for name in ("R", "inv", "center", "scale"):
         torch.testing.assert_close(getattr(fast, name), getattr(slow, name), rtol=1e-4, atol=1e-5)
+
+
+@needs_kernels
+@pytest.mark.parametrize(("b", "nq", "nr", "k"), [(3, 40, 40, 7), (2, 17, 64, 16), (1, 5, 5, 5), (4, 33, 9, 1)])
+def test_knn_selection_equals_the_sorted_topk(b: int, nq: int, nr: int, k: int) -> None:
+    """The one-pass selection kernel gives topk's neighbours, ascending, on distinct distances; through
+    `fused.knn_indices` the same for any feature size; NaN counts as the farthest."""
+    from efem_viz.geometry.knn import knn_indices
+
+    g = torch.Generator().manual_seed(b * 100 + nq)
+    d2 = torch.rand(b, nq, nr, generator=g)
+    assert torch.equal(torch.ops.efem_vn.knn_select(d2, k), d2.topk(k, dim=-1, largest=False).indices)
+    q, r = torch.randn(b, nq, 6, generator=g), torch.randn(b, nr, 6, generator=g)
+    assert torch.equal(fused.knn_indices(q, r, k), knn_indices(q, r, k))
+    d2[..., 0] = float("nan")
+    got = torch.ops.efem_vn.knn_select(d2, k)
+    assert (k < nr) <= bool((got != 0).all())  # a NaN distance is never nearer than a number
+    with pytest.raises(RuntimeError, match="k must be"):
+        torch.ops.efem_vn.knn_select(d2, nr + 1)
+
+
+def test_a_killed_first_build_is_rebuilt_and_a_concurrent_one_means_eager_not_a_wait(tmp_path) -> None:
+    """A first build killed part-way used to leave torch's `lock` file behind, and every later run waited for it
+    forever. Full processes, a private cache folder: a build killed after a few seconds, then a process that builds
+    and loads the kernels (the stale lock removed, within a hang guard far above a build); while one process
+    builds, another starts: it runs eagerly at once, with one line saying why, and waits for nothing."""
+    import os
+    import subprocess
+    import sys
+    import time
+
+    env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path / "cache"), "EFEM_VIZ_FUSED": "1"}
+    code = ("import logging, sys; logging.basicConfig(level=logging.INFO, stream=sys.stdout); "
+            "from efem_viz.prior import fused; print('LOADED', fused.load(), flush=True)")
+    first = subprocess.Popen([sys.executable, "-c", code], env=env, stdout=subprocess.PIPE, text=True)
+    folder = tmp_path / "cache" / "efem-viz" / "torch_extensions"
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and not list(folder.glob("efem_vn_*/lock")):  # torch's build lock appears
+        time.sleep(0.2)
+    assert list(folder.glob("efem_vn_*/lock")), "the build never started"
+    busy = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert "LOADED False" in busy.stdout and "another process is building" in busy.stdout, busy.stdout
+    first.kill()
+    first.wait(60)
+    assert list(folder.glob("efem_vn_*/lock")), "the killed build left its lock (the case under test)"
+    again = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=1800)
+    assert "LOADED True" in again.stdout and "interrupted build" in again.stdout, again.stdout + again.stderr
+    warm = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert "LOADED True" in warm.stdout and "building" not in warm.stdout  # a valid build is never rebuilt

@@ -403,13 +403,16 @@ def _small_pack(path: Path, seeds: range) -> Path:
 
 
 def _without_open3d(folder: Path) -> Path:
-    """A sitecustomize that makes open3d, trimesh, viser, pybullet and manifold3d unimportable (a GPU machine)."""
+    """A sitecustomize that makes open3d, trimesh, viser, pybullet, manifold3d, rich, scipy, scikit-image, plyfile
+    and ray unimportable: less than the GPU machine has (it has scipy and scikit-image), so the training path is
+    shown to need none of them."""
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "sitecustomize.py").write_text(
         "import importlib.abc, sys\n"
         "class _Block(importlib.abc.MetaPathFinder):\n"
         "    def find_spec(self, name, path, target=None):\n"
-        "        if name.split('.')[0] in {'open3d', 'trimesh', 'viser', 'pybullet', 'manifold3d'}:\n"
+        "        if name.split('.')[0] in {'open3d', 'trimesh', 'viser', 'pybullet', 'manifold3d', 'rich', 'scipy',\n"
+        "                                  'skimage', 'plyfile', 'ray'}:\n"
         "            raise ModuleNotFoundError(f'No module named {name!r} (blocked)')\n"
         "sys.meta_path.insert(0, _Block())\n")
     return folder
