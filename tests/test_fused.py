@@ -98,25 +98,6 @@ def test_encoder_with_kernels_matches_the_eager_encoder(monkeypatch: pytest.Monk
         torch.testing.assert_close(getattr(fast, name), getattr(slow, name), rtol=1e-4, atol=1e-5)
 
 
-@needs_kernels
-@pytest.mark.parametrize(("b", "nq", "nr", "k"), [(3, 40, 40, 7), (2, 17, 64, 16), (1, 5, 5, 5), (4, 33, 9, 1)])
-def test_knn_selection_equals_the_sorted_topk(b: int, nq: int, nr: int, k: int) -> None:
-    """The one-pass selection kernel gives topk's neighbours, ascending, on distinct distances; through
-    `fused.knn_indices` the same for any feature size; NaN counts as the farthest."""
-    from efem_viz.geometry.knn import knn_indices
-
-    g = torch.Generator().manual_seed(b * 100 + nq)
-    d2 = torch.rand(b, nq, nr, generator=g)
-    assert torch.equal(torch.ops.efem_vn.knn_select(d2, k), d2.topk(k, dim=-1, largest=False).indices)
-    q, r = torch.randn(b, nq, 6, generator=g), torch.randn(b, nr, 6, generator=g)
-    assert torch.equal(fused.knn_indices(q, r, k), knn_indices(q, r, k))
-    d2[..., 0] = float("nan")
-    got = torch.ops.efem_vn.knn_select(d2, k)
-    assert (k < nr) <= bool((got != 0).all())  # a NaN distance is never nearer than a number
-    with pytest.raises(RuntimeError, match="k must be"):
-        torch.ops.efem_vn.knn_select(d2, nr + 1)
-
-
 def test_a_killed_first_build_is_rebuilt_and_a_concurrent_one_means_eager_not_a_wait(tmp_path) -> None:
     """A first build killed part-way used to leave torch's `lock` file behind, and every later run waited for it
     forever. Full processes, a private cache folder: a build killed after a few seconds, then a process that builds

@@ -26,33 +26,18 @@ def knn_indices(query: torch.Tensor, ref: torch.Tensor, k: int) -> torch.Tensor:
     """
     import torch
 
-    d2 = knn_sq_distances(query, ref)
-    if not 1 <= k <= d2.shape[-1]:
-        raise ValueError(f"k must be in [1, {d2.shape[-1]}], got {k}")
-    with torch.no_grad():
-        return d2.topk(k, dim=-1, largest=False).indices
-
-
-def knn_sq_distances(query: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
-    """``(B, Nq, Nr)`` squared Euclidean distances of every query row to every ref row, without gradient (what
-    `knn_indices` selects from; a faster selection may take them instead).
-
-    Raises:
-        ValueError: On mismatched shapes.
-    """
-    import torch
-
     if query.ndim != 3 or ref.ndim != 3 or query.shape[0] != ref.shape[0] or query.shape[2] != ref.shape[2]:
         raise ValueError(f"query (B,Nq,D) and ref (B,Nr,D) must agree, "
                          f"got {tuple(query.shape)} / {tuple(ref.shape)}")
+    if not 1 <= k <= ref.shape[1]:
+        raise ValueError(f"k must be in [1, {ref.shape[1]}], got {k}")
     # float32 distances even inside a bf16 autocast region (EMConfig.matmul_dtype): bf16 keeps 8 bits of
     # mantissa, too few to order neighbours in feature space
     with torch.no_grad(), torch.autocast(query.device.type, enabled=False):
         q = query.detach().float() if query.dtype in (torch.bfloat16, torch.float16) else query.detach()
         r = ref.detach().to(q.dtype)
-        # |q|² + |r|² − 2 q·r with the product accumulated onto the norms in one GEMM call (two passes fewer)
-        return torch.baddbmm((q * q).sum(-1, keepdim=True) + (r * r).sum(-1)[:, None, :], q, r.transpose(1, 2),
-                             alpha=-2.0)
+        d2 = (q * q).sum(-1, keepdim=True) - 2.0 * q @ r.transpose(1, 2) + (r * r).sum(-1)[:, None, :]
+        return d2.topk(k, dim=-1, largest=False).indices
 
 
 def point_spacing(points: np.ndarray) -> np.ndarray:

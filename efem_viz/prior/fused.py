@@ -11,8 +11,7 @@ over a ``k``-fold tensor, memory-bound. Two exact rewrites remove that:
 
 The C++ file is compiled on first use with torch's own toolchain support (`torch.utils.cpp_extension`, about
 35 s once per machine, cached under ``~/.cache/efem-viz/torch_extensions`` in a folder keyed by everything that
-changes the build, `build_key`; an exclusive flock makes a build safe against concurrent and killed ones).
-The k-NN of the encoder's graph selects its neighbours in one pass per row (``knn_select``) instead of a sort. The eager references below are the same math and serve everything the kernels
+changes the build, `build_key`; an exclusive flock makes a build safe against concurrent and killed ones). The eager references below are the same math and serve everything the kernels
 do not: float64 (the equivariance tests), autograd (training), autocast, CUDA, and any machine where the build
 fails (one warning, then eager for the rest of the process). ``EFEM_VIZ_FUSED=0`` turns the kernels off.
 """
@@ -130,7 +129,7 @@ def load() -> bool:
 
 
 def _registered() -> bool:
-    return hasattr(torch.ops.efem_vn, "edge_mean") and hasattr(torch.ops.efem_vn, "knn_select")
+    return hasattr(torch.ops.efem_vn, "edge_mean") and hasattr(torch.ops.efem_vn, "act_mean")
 
 
 def _load_or_build() -> bool:
@@ -169,21 +168,6 @@ def _load_or_build() -> bool:
                     extra_cflags=["-O3", "-fopenmp", *flags], extra_ldflags=["-fopenmp"],
                     build_directory=str(build), verbose=False)
     return _registered()
-
-
-def knn_indices(query: torch.Tensor, ref: torch.Tensor, k: int) -> torch.Tensor:
-    """`efem_viz.geometry.knn.knn_indices` with the selection in one pass per row (``knn_select``) where the
-    kernels are loaded: the same neighbours (ties to the lower index), without sorting every row."""
-    from efem_viz.geometry.knn import knn_indices as knn_topk
-    from efem_viz.geometry.knn import knn_sq_distances
-
-    if (os.environ.get("EFEM_VIZ_FUSED", "1") == "0" or _state["loaded"] is False or query.device.type != "cpu"
-            or not load()):
-        return knn_topk(query, ref, k)
-    d2 = knn_sq_distances(query, ref)
-    if d2.dtype != torch.float32 or not 1 <= k <= d2.shape[-1]:
-        return knn_topk(query, ref, k)
-    return torch.ops.efem_vn.knn_select(d2, int(k))
 
 
 def usable(*tensors: torch.Tensor) -> bool:

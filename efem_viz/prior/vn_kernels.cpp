@@ -4,8 +4,6 @@
 #include <ATen/Parallel.h>
 #include <torch/library.h>
 #include <algorithm>
-#include <cmath>
-#include <limits>
 #include <vector>
 
 namespace {
@@ -98,49 +96,9 @@ at::Tensor act_mean(const at::Tensor& x_, const at::Tensor& d_, double slope) {
   return out;
 }
 
-at::Tensor knn_select(const at::Tensor& d2_, int64_t k) {
-  // indices of the k smallest entries of every row of d2 (B, Nq, Nr), ascending; ties: the lower index first;
-  // NaN counts as +inf. One pass per row with an insertion buffer of k (no sort of the row).
-  TORCH_CHECK(d2_.dim() == 3 && d2_.scalar_type() == at::kFloat, "d2 must be (B, Nq, Nr) float32");
-  TORCH_CHECK(d2_.device().is_cpu(), "CPU tensors only");
-  const auto d2 = d2_.contiguous();
-  const int64_t B = d2.size(0), Nq = d2.size(1), Nr = d2.size(2);
-  TORCH_CHECK(k >= 1 && k <= Nr, "k must be in [1, Nr]");
-  auto out = at::empty({B, Nq, k}, d2.options().dtype(at::kLong));
-  if (out.numel() == 0) return out;
-  const float* pd = d2.data_ptr<float>();
-  int64_t* po = out.data_ptr<int64_t>();
-  const float inf = std::numeric_limits<float>::infinity();
-  at::parallel_for(0, B * Nq, 64, [&](int64_t begin, int64_t end) {
-    std::vector<float> bd(k);
-    std::vector<int64_t> bi(k);
-    for (int64_t r = begin; r < end; ++r) {
-      const float* row = pd + r * Nr;
-      int64_t n = 0;
-      for (int64_t j = 0; j < Nr; ++j) {
-        float v = row[j];
-        if (std::isnan(v)) v = inf;
-        if (n == k && !(v < bd[k - 1])) continue;
-        int64_t p = n < k ? n : k - 1;
-        while (p > 0 && v < bd[p - 1]) {
-          bd[p] = bd[p - 1];
-          bi[p] = bi[p - 1];
-          --p;
-        }
-        bd[p] = v;
-        bi[p] = j;
-        if (n < k) ++n;
-      }
-      std::copy(bi.begin(), bi.end(), po + r * k);
-    }
-  });
-  return out;
-}
-
 }  // namespace
 
 TORCH_LIBRARY(efem_vn, m) {
   m.def("edge_mean(Tensor a, Tensor c, Tensor da, Tensor dc, Tensor nbr, float slope) -> Tensor", &edge_mean);
   m.def("act_mean(Tensor x, Tensor d, float slope) -> Tensor", &act_mean);
-  m.def("knn_select(Tensor d2, int k) -> Tensor", &knn_select);
 }
