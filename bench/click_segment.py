@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))  # the `annotator` package, not bench/annotator.py next to this script
+sys.path.insert(0, str(ROOT))  # the checkout first
 SCENES = ("real_tabletop_0", "real_tabletop_6", "real_tabletop_8")
 
 

@@ -277,7 +277,7 @@ def bench_faults(tmp: Path, seed: int) -> dict[str, Any]:
 
 
 def _surface_file(folder: Path, n_side: int) -> Path:
-    """bench/annotator.py's height-field tabletop (n_side^2 vertices) as a PLY."""
+    """bench/annotator_scale.py's height-field tabletop (n_side^2 vertices) as a PLY."""
     import importlib.util
 
     from efem_viz.data.io import save_scene

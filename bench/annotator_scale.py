@@ -15,7 +15,7 @@ opens it in `AnnotatorApp` (port 0, no browser) and drives the same handlers the
   stops changing, then a real Ctrl+drag (playwright mouse events) and the seconds until the server has the stroke.
 
 Scans over the display budget (1M vertices) are drawn from a subset (`annotator.scan_view`). Writes
-bench/results/annotator[_<n>].json. Usage: `python bench/annotator.py [--n-side 1000|2236] [--browser]`.
+bench/results/annotator[_<n>].json. Usage: `python bench/annotator_scale.py [--n-side 1000|2236] [--browser]`.
 """
 
 from __future__ import annotations
