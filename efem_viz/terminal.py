@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import unicodedata
+from typing import Any
 
 BIDI_CONTROLS = frozenset("\u202a\u202b\u202c\u202d\u202e\u2066\u2067\u2068\u2069")
 """Unicode bidirectional embedding, override and isolate characters (escaped like control characters)."""
@@ -70,3 +71,21 @@ def log_to_terminal(level: int = logging.INFO) -> None:
     handler.setFormatter(TerminalFormatter(LOG_FORMAT))
     root.addHandler(handler)
     root.setLevel(level)
+
+
+FILE_WIDTH = 200
+"""Columns of tables written to a file or pipe (rich's default, 80, cut paths and wrapped rows)."""
+
+
+def console(stream: Any = None) -> Any:
+    """The rich `Console` the CLIs print tables with: the terminal's width on a terminal, `FILE_WIDTH` columns when
+    the output goes to a file or a pipe (``COLUMNS`` in the environment still wins). rich is imported here, lazily.
+    """
+    import os
+    import sys
+
+    from rich.console import Console
+
+    out = stream if stream is not None else sys.stdout
+    wide = not (hasattr(out, "isatty") and out.isatty()) and "COLUMNS" not in os.environ
+    return Console(file=stream, width=FILE_WIDTH if wide else None)

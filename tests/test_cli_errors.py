@@ -507,3 +507,17 @@ def test_segment_names_the_valid_priors_and_an_empty_call_says_what_to_give(tmp_
     assert empty.returncode == 1 and empty.stdout == ""
     assert empty.stderr.strip() == ("efem-viz segment: error: no scenes given: name scene files (.ply, .obj, .off, "
                                     ".glb, .npz) or folders of them")
+
+
+def test_tables_written_to_a_file_keep_long_paths_whole(tmp_path: Path) -> None:
+    """Output to a file or pipe was cut at rich's 80 columns (paths truncated with "…", rows wrapped): tables
+    written there are 200 columns wide unless COLUMNS says otherwise."""
+    import shutil
+
+    deep = tmp_path / ("a_rather_long_folder_name_for_scans_" * 2) / "another_level_of_folders"
+    deep.mkdir(parents=True)
+    scene = shutil.copy(REPO / "sample_scenes" / f"{SAMPLE}.ply", deep / f"{SAMPLE}.ply")
+    proc = run_cli("segment", str(scene), "--prior", "sphere", "--preset", "fast", "--proposals", "8", "--out",
+                   str(deep / "out"), "--no-scannet", "--no-ply")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert str(deep / "out" / "batch.json") in proc.stdout and "…" not in proc.stdout, proc.stdout

@@ -71,7 +71,7 @@ class SegmentArgs(SolveSettings):
 
     def run(self) -> int:
         """Segment every scene; returns 0 when every scene has a valid result, 1 otherwise."""
-        from rich.console import Console
+        from efem_viz.terminal import console
 
         from efem_viz.batch import BackendOptions, BatchJob, make_backend, run_batch
         from efem_viz.batch.console import RichBatchDisplay
@@ -102,6 +102,6 @@ class SegmentArgs(SolveSettings):
 
         # its own SIGINT/SIGTERM handlers: a segment started in the background by a script inherits SIGINT as
         # ignored and would run on after Ctrl+C / `kill -INT`; the batch records what finished and stops
-        with stop_signals("efem-viz segment"), RichBatchDisplay(Console()) as display:
+        with stop_signals("efem-viz segment"), RichBatchDisplay(console()) as display:
             report = run_batch(job, self.scenes, out, backend=backend, force=self.force, observer=display)
         return 0 if report.passed else 1

@@ -23,6 +23,7 @@ from rich.table import Table
 
 from efem_viz.batch.events import BatchObserver
 from efem_viz.batch.job import BATCH_FILE, SceneOutcome, SceneTask, WorkerInfo
+from efem_viz.terminal import console as terminal_console
 from efem_viz.terminal import console_text
 
 if TYPE_CHECKING:
@@ -46,7 +47,7 @@ class RichBatchDisplay(BatchObserver):
     """
 
     def __init__(self, console: Console | None = None, *, plain_every_s: float = PLAIN_STEP_EVERY_S) -> None:
-        self.console = console or Console()
+        self.console = console or terminal_console()
         self.plain = not self.console.is_terminal
         self.plain_every_s = float(plain_every_s)
         self._last_plain: dict[str, float] = {}

@@ -42,12 +42,12 @@ class InfoArgs:
 
     def run(self) -> int:
         """Describe every scene; returns 1 if any file could not be read, else 0."""
-        from rich.console import Console
+        from efem_viz.terminal import console
 
         from efem_viz.data.io import find_scenes, holds_predictions, load_scene
         from efem_viz.terminal import console_text
 
-        console = Console()
+        console = console()
         paths = find_scenes(self.scenes)
         if not paths:
             raise SceneError(f"no scene files found in {', '.join(str(s) for s in self.scenes)}" if self.scenes else
@@ -196,12 +196,12 @@ class ImportRgbdArgs:
 
     def run(self) -> int:
         """Import the frame and save it; returns 0."""
-        from rich.console import Console
+        from efem_viz.terminal import console
 
         from efem_viz.data.io import save_scene
         from efem_viz.data.rgbd import import_rgbd, load_rgbd_npz
 
-        console = Console()
+        console = console()
         t0 = time.perf_counter()
         if (self.frame is None) == (self.depth is None):
             raise SceneError("give either FRAME.npz or --depth (with --fx --fy --cx --cy), not both or neither")

@@ -47,7 +47,7 @@ class EvaluateArgs:
 
     def run(self) -> int:
         """Evaluate and print the table; returns 0."""
-        from rich.console import Console
+        from efem_viz.terminal import console
 
         from efem_viz.data.io import find_scenes, load_scene
         from efem_viz.data.scene import SceneError
@@ -92,7 +92,7 @@ class EvaluateArgs:
         if not overlaps:
             raise SceneError(f"no labelled scenes found in {[str(g) for g in self.gt]}")
         result = evaluate_overlaps(overlaps, class_names=self.classes, scannet_flag=self.scannet_flag)
-        console = Console()
+        console = console()
         console.print(_ap_table(result))
         if self.json_out is not None:
             from efem_viz.data.io import atomic_write_text
