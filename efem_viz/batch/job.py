@@ -129,10 +129,11 @@ def prior_identity(spec: str) -> str:
         FileNotFoundError: the weights file does not exist.
     """
     from efem_viz.prior.model import resolve_prior_path
-    from efem_viz.prior.registry import ANALYTIC_PRIORS
+    from efem_viz.prior.registry import ANALYTIC_PRIORS, check_prior_name
 
     if spec in ANALYTIC_PRIORS:
         return spec
+    check_prior_name(spec)
     path = resolve_prior_path(spec)
     h = hashlib.sha256()
     with open(path, "rb") as fh:

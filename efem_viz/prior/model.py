@@ -328,11 +328,6 @@ def resolve_prior_path(name_or_path: str | os.PathLike[str]) -> Path:
     p = Path(s)
     if p.suffix != ".pt" and os.sep not in s and "/" not in s:
         p = WEIGHTS_DIR / f"{s}.pt"
-        if not p.is_file():
-            from efem_viz.prior.registry import available_priors
-
-            raise FileNotFoundError(f"unknown shape prior {s!r}: give one of {', '.join(available_priors())} "
-                                    f"or a .pt file")
     if not p.is_file():
         raise FileNotFoundError(f"shape prior weights not found: {p}")
     return p

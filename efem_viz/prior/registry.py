@@ -56,6 +56,21 @@ def available_priors() -> list[str]:
     return sorted(shipped | set(ANALYTIC_PRIORS))
 
 
+def check_prior_name(spec: str | os.PathLike[str]) -> None:
+    """Refuse a bare prior name that is neither shipped nor analytic, in one line that lists the valid names (a
+    path is left to the loader).
+
+    Raises:
+        FileNotFoundError: an unknown name.
+    """
+    s = str(spec)
+    if s.endswith(".pt") or os.sep in s or "/" in s:
+        return
+    names = available_priors()
+    if s not in names:
+        raise FileNotFoundError(f"unknown shape prior {s!r}: give one of {', '.join(names)} or a .pt file")
+
+
 def load_prior_spec(spec: str | os.PathLike[str], *, device: str = "cpu") -> ShapePriorLike:
     """Load one prior: a name of `ANALYTIC_PRIORS`, a name under ``efem_viz/weights/`` or a ``.pt`` path.
 
@@ -66,6 +81,7 @@ def load_prior_spec(spec: str | os.PathLike[str], *, device: str = "cpu") -> Sha
     factory = ANALYTIC_PRIORS.get(str(spec))
     if factory is not None:
         return factory().to(device)
+    check_prior_name(spec)
     from efem_viz.prior.model import load_prior
 
     return load_prior(spec, device=device)
