@@ -4,7 +4,7 @@
 `annotator.app.AnnotatorApp`, is a thin layer over it). Every edit goes through the crash-safe journal, so a
 script's labels open in `efem-annotate` afterwards and survive a crash like a person's. This example
 
-1. opens a bundled real scan (`sample_scenes/real_tabletop_0.ply`; the scan itself is never written) with its
+1. opens a bundled real scan (`sample_scenes/real_tabletop_6.ply`; the scan itself is never written) with its
    journal under `--out`;
 2. imports the scan's precomputed EFEM result as pre-labels and accepts those above a confidence cut;
 3. adds an instance by region growing from a vertex, undoes it and redoes it;
@@ -29,7 +29,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--scene", default="real_tabletop_0", help="a scan of sample_scenes/ with its .efem.npz")
+    ap.add_argument("--scene", default="real_tabletop_6", help="a scan of sample_scenes/ with its .efem.npz")
     ap.add_argument("--cut", type=float, default=0.2, help="accept pre-labels at or above this confidence")
     ap.add_argument("--out", type=Path, default=None, help="journal and export folder (default: a temp dir)")
     args = ap.parse_args(argv)

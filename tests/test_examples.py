@@ -50,9 +50,9 @@ EXPECTED: dict[str, tuple[list[str], list[str]]] = {
         ["exported/syn_z_1.txt", "exported/pred_mask"],
     ),
     "annotator_session": (
-        ["opened real_tabletop_0.ply: ", "imported ", "accepted ", "after undo 0; after redo ",
+        ["opened real_tabletop_6.ply: ", "imported ", "accepted ", "after undo 0; after redo ",
          "reopened from the journal: labels identical True"],
-        ["real_tabletop_0.labels.ply", "real_tabletop_0.annotate"],
+        ["real_tabletop_6.labels.ply", "real_tabletop_6.annotate"],
     ),
     "add_annotator_tool": (
         ["'lift'", "**U** Lift", "IoU with true object", "(Lift)", "after undo", "exported "],

@@ -51,21 +51,25 @@ MAX_MESH_RESOLUTION = 128
 """Finest review-mesh grid (128³ = 2.1M decoder queries per shape; 600 took minutes and gigabytes per shape)."""
 
 
-def _type_ok(value: Any, hint: Any) -> bool:
-    """Whether ``value`` fits the (resolved) type ``hint`` of an EMConfig field; numbers must be finite."""
+def _type_ok(value: Any, hint: Any, *, in_range: bool = False) -> bool:
+    """Whether ``value`` fits the (resolved) type ``hint`` of an EMConfig field: a float is finite, except as the
+    bound of a range (a tuple's element, where ``inf`` means "no bound"), and never NaN. A `Literal` passes here:
+    `EMConfig.validate` names its allowed values."""
     origin = typing.get_origin(hint)
     if origin in (typing.Union, types.UnionType):
-        return any(_type_ok(value, h) for h in typing.get_args(hint))
+        return any(_type_ok(value, h, in_range=in_range) for h in typing.get_args(hint))
     if hint is type(None):
         return value is None
     if origin is Literal:
-        return value in typing.get_args(hint)
+        return True
     if hint is bool:
         return isinstance(value, bool)
     if hint is int:
         return isinstance(value, int) and not isinstance(value, bool)
     if hint is float:
-        return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+        if not isinstance(value, (int, float)) or isinstance(value, bool) or math.isnan(value):
+            return False
+        return in_range or math.isfinite(value)
     if hint is str:
         return isinstance(value, str)
     if origin is tuple:
@@ -73,8 +77,8 @@ def _type_ok(value: Any, hint: Any) -> bool:
         if not isinstance(value, tuple):
             return False
         if len(args) == 2 and args[1] is Ellipsis:
-            return all(_type_ok(v, args[0]) for v in value)
-        return len(args) == len(value) and all(_type_ok(v, a) for v, a in zip(value, args))
+            return all(_type_ok(v, args[0], in_range=True) for v in value)
+        return len(args) == len(value) and all(_type_ok(v, a, in_range=True) for v, a in zip(value, args))
     return True  # anything else is checked by `validate`'s own rules
 
 
