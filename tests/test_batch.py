@@ -603,7 +603,7 @@ def test_segment_started_with_sigint_ignored_stops_on_sigint_and_leaves_nothing_
     seen = []
     for line in proc.stdout:  # the first scene has started: interrupt
         seen.append(line)
-        if "started" in line:
+        if ": started (" in line:
             break
     proc.send_signal(signal.SIGINT)
     try:
@@ -611,7 +611,9 @@ def test_segment_started_with_sigint_ignored_stops_on_sigint_and_leaves_nothing_
     except subprocess.TimeoutExpired:
         proc.kill()
         raise AssertionError("segment ran on after SIGINT:\n" + "".join(seen)) from None
-    assert proc.returncode != 0, "".join(seen) + rest
+    log = "".join(seen) + rest
+    assert proc.returncode != 0, log
+    assert (out / BATCH_FILE).is_file(), log
     record = json.loads((out / BATCH_FILE).read_text())
     assert record["interrupted"] is True
     done = {p.name for p in out.glob("*.efem.npz")}

@@ -330,7 +330,8 @@ def test_instance_table_cut_visibility_and_fly_to(viewer: Any, page: Any) -> Non
     page.keyboard.press("End")
     wait_until(lambda: viewer.state.threshold > float(np.max(inst.confidence)), HANG_GUARD_S, "the cut above every instance")
     wait_until(lambda: table.locator("td", has_text="below cut").count() == len(inst), HANG_GUARD_S, "rows below the cut")
-    assert not viewer.shown_mask().any() and not any(h.visible for h in viewer.nodes.results.labels)
+    wait_until(lambda: not viewer.shown_mask().any() and not any(h.visible for h in viewer.nodes.results.labels),
+               HANG_GUARD_S, "no mask and no label shown")  # the labels are redrawn after the table
     page.get_by_text(f"{len(inst)} hidden", exact=False).first.wait_for(timeout=HANG_GUARD_MS)
     slider.focus()
     page.keyboard.press("Home")
