@@ -12,6 +12,7 @@ from typing import Annotated
 
 import tyro
 
+from efem_viz.data.files import NO_SCENES_GIVEN
 from efem_viz.em.config import SolveSettings
 from efem_viz.prior.config import DEFAULT_PRIOR
 
@@ -96,7 +97,7 @@ class SegmentArgs(SolveSettings):
         from efem_viz.serve.lifecycle import stop_signals
 
         if not self.scenes:
-            raise ValueError("no scenes given: name scene files (.ply, .obj, .off, .glb, .npz) or folders of them")
+            raise ValueError(NO_SCENES_GIVEN)
         for spec in job.priors:  # a typo in a prior name is one line at once, before any display or scene work
             prior_identity(spec)
 

@@ -56,7 +56,7 @@ from efem_viz.batch.job import (
     scene_name_of,
     scene_stamp,
 )
-from efem_viz.data.files import MAX_BATCH_FILE_BYTES
+from efem_viz.data.files import MAX_BATCH_FILE_BYTES, NO_SCENES_GIVEN
 
 logger = logging.getLogger(__name__)
 
@@ -167,7 +167,7 @@ def plan_batch(
              if not (p.name.endswith(SEG_SUFFIX) and p.resolve().parent == out_dir)]
     if not paths:
         raise ValueError(f"no scene files found in {', '.join(str(s) for s in scenes)}" if scenes else
-                          "no scenes given: name scene files (.ply, .obj, .off, .glb, .npz) or folders of them")
+                          NO_SCENES_GIVEN)
     by_name: dict[str, Path] = {}
     for p in paths:
         name = scene_name_of(p)

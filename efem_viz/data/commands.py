@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 import numpy as np
 import tyro
 
+from efem_viz.data.files import NO_SCENES_GIVEN
 from efem_viz.data.scene import DEFAULT_MAX_POINTS, SceneError
 
 if TYPE_CHECKING:
@@ -51,7 +52,7 @@ class InfoArgs:
         paths = find_scenes(self.scenes)
         if not paths:
             raise SceneError(f"no scene files found in {', '.join(str(s) for s in self.scenes)}" if self.scenes else
-                          "no scenes given: name scene files (.ply, .obj, .off, .glb, .npz) or folders of them")
+                          NO_SCENES_GIVEN)
         failures = 0
         for path in paths:
             try:

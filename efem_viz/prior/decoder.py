@@ -116,11 +116,13 @@ class SDFDecoder(nn.Module):
         Returns:
             ``(B, Q)`` canonical SDF.
         """
+        return self._mlp(self._first_layer(q, m, bias))
+
+    def _first_layer(self, q: torch.Tensor, m: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+        """``h_0 = M q + a_q ‖q‖ + bias`` for batched queries ``(B, Q, 3)`` -> ``(B, Q, H)``."""
         h = torch.matmul(q, m.transpose(1, 2)) + bias[:, None, :]
         qf = self._qfeat(q)
-        if qf is not None:
-            h = h + qf
-        return self._mlp(h)
+        return h + qf if qf is not None else h
 
     def sdf_and_band_grad(self, q: torch.Tensor, m: torch.Tensor, bias: torch.Tensor, *, within: float
                           ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -139,10 +141,7 @@ class SDFDecoder(nn.Module):
         Returns:
             ``sdf (B, Q)``, ``dq (B, Q, 3)`` (∂sdf/∂q; zeros outside the band) and ``band (B, Q)`` bool.
         """
-        h = torch.matmul(q, m.transpose(1, 2)) + bias[:, None, :]
-        qf = self._qfeat(q)
-        if qf is not None:
-            h = h + qf
+        h = self._first_layer(q, m, bias)
         if torch.is_autocast_enabled(h.device.type):
             h = h.to(torch.get_autocast_dtype(h.device.type))
         b, n, width = h.shape
