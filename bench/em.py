@@ -26,6 +26,9 @@ Usage: python bench/em.py [--quick] [--prior mug] [--threads 2] [--mode points] 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import dataclasses
+import itertools
 import json
 import logging
 import os
@@ -81,6 +84,33 @@ def run_one(scene: Any, prior: Any, cfg: Any, seed: int = 0) -> Any:
     return run_em(scene, prior, cfg, seed=seed)
 
 
+@contextlib.contextmanager
+def config_env(env: dict[str, str]) -> Any:
+    """Environment switches of one compared config (e.g. ``EFEM_VIZ_ONE_PASS=1``), restored afterwards."""
+    old = {k: os.environ.get(k) for k in env}
+    os.environ.update(env)
+    try:
+        yield
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def parse_config_env(specs: list[str]) -> dict[str, dict[str, str]]:
+    """``NAME=VAR=VALUE`` specs -> {config name: {VAR: VALUE}}."""
+    out: dict[str, dict[str, str]] = {}
+    for spec in specs:
+        name, _, assignment = spec.partition("=")
+        var, eq, value = assignment.partition("=")
+        if not name or not var or not eq:
+            raise SystemExit(f"--config-env {spec!r}: expected NAME=VAR=VALUE")
+        out.setdefault(name, {})[var] = value
+    return out
+
+
 def stage_table(timings: list[dict[str, float]]) -> dict[str, float]:
     from efem_viz.em.solver import STAGES
 
@@ -119,12 +149,14 @@ def compare(args: argparse.Namespace, prior: Any, cfgs: dict[str, Any]) -> int:
     for config in args.configs:
         preds: dict[str, list[Any]] = {n: [] for n in cfgs}
         gts = []
-        for i in range(n_scenes):
+        for i, em_seed in itertools.product(range(n_scenes), args.em_seeds):
             scene = get_scene(config, args.seed0 + i, args.mode, distractors=not args.no_distractors)
-            gts.append(SceneGroundTruth.from_scene(scene))
-            line = [f"  {scene.name:>10}:"]
+            gt = SceneGroundTruth.from_scene(scene)
+            gts.append(dataclasses.replace(gt, name=f"{scene.name}_s{em_seed}"))
+            line = [f"  {scene.name:>10} s{em_seed}:"]
             for name, c in cfgs.items():
-                res = run_one(scene, prior, c)
+                with config_env(args.config_env.get(name, {})):
+                    res = run_one(scene, prior, c, seed=em_seed)
                 if args.save_results is not None:  # one folder per config: <dir>/<name>/<scene>.efem.npz
                     from efem_viz.data.io import save_scene
 
@@ -133,8 +165,9 @@ def compare(args: argparse.Namespace, prior: Any, cfgs: dict[str, Any]) -> int:
                     if not (out / f"{scene.name}.ply").is_file():
                         save_scene(scene, out / f"{scene.name}.ply")
                     res.save(out)
-                preds[name].append(mug_prediction(res, scene.name))
+                preds[name].append(mug_prediction(res, f"{scene.name}_s{em_seed}"))
                 one = evaluate([preds[name][-1]], [gts[-1]], class_names=("mug",))
+                per[name].setdefault("per_run_ap50", []).append(one.ap50 * 100)
                 per[name]["seconds"].append(res.timings["total"])
                 per[name]["cpu_seconds"].append(res.timings["total_cpu"])
                 per[name]["timings"].append(res.timings)
@@ -149,12 +182,17 @@ def compare(args: argparse.Namespace, prior: Any, cfgs: dict[str, Any]) -> int:
         r["median_seconds_per_scene"] = float(np.median(r["seconds"]))
         r["median_cpu_seconds_per_scene"] = float(np.median(r["cpu_seconds"]))
         r["time_share_by_stage"] = stage_table(r.pop("timings"))
+        runs = np.asarray(r["per_run_ap50"])
+        r["mean_run_ap50"] = float(runs.mean())
+        r["sem_run_ap50"] = float(runs.std(ddof=1) / np.sqrt(len(runs))) if len(runs) > 1 else 0.0
         print(f"{name:>10} {r['median_seconds_per_scene']:9.1f} {r['median_cpu_seconds_per_scene']:13.1f}  "
-              + "  ".join(f"AP50 {r['accuracy'][c]['ap50']:6.1f}" for c in args.configs))
+              + "  ".join(f"AP50 {r['accuracy'][c]['ap50']:6.1f}" for c in args.configs)
+              + f"  per-run AP50 {r['mean_run_ap50']:.1f} ± {r['sem_run_ap50']:.1f} ({len(runs)} runs)")
     out = {"machine": machine(args.threads),
            "prior": {"name": args.prior, "metadata": {k: v for k, v in prior.metadata.items()
                                                       if k in ("iteration", "val_iou", "tau_out")}},
            "scene_mode": args.mode, "distractors": not args.no_distractors, "n_scenes": n_scenes,
+           "em_seeds": list(args.em_seeds), "config_env": args.config_env,
            "proposals": args.proposals, "configs": per}
     write_json(args.out, out)
     return 0
@@ -191,7 +229,13 @@ def main() -> int:
                     help="compare solver configs in one run: each scene is run with every config in turn (values are "
                          "Python literals on top of --preset), e.g. --config fp32= --config "
                          "\"bf16=matmul_dtype='bfloat16'\"; default: the preset alone")
+    ap.add_argument("--config-env", action="append", default=[], metavar="NAME=VAR=VALUE",
+                    help="an environment switch for one compared config's runs, e.g. onepass=EFEM_VIZ_ONE_PASS=1")
+    ap.add_argument("--em-seeds", type=int, nargs="+", default=[0],
+                    help="solver seeds of every scene in a comparison (the solver is sensitive to rounding: "
+                         "judge exact-to-rounding changes over several)")
     args = ap.parse_args()
+    args.config_env = parse_config_env(args.config_env)
     if args.out is None:
         args.out = ROOT / "bench" / "results" / ("em_no_distractors.json" if args.no_distractors else "em.json")
     logging.basicConfig(level=logging.WARNING)

@@ -138,6 +138,23 @@ def test_resume_is_exact(tmp_path: Path, cache_dir: Path) -> None:
     assert sa["np_rng"] == sb["np_rng"]
 
 
+def test_the_learning_rate_warms_up_whenever_adam_starts_without_moments(tmp_path: Path, cache_dir: Path) -> None:
+    """A new run and a resume state without the optimiser's moments ramp the learning rate up linearly; a full
+    checkpoint (moments kept) continues the ramp where it was."""
+    from efem_viz.prior.train import write_resume_state
+
+    kw = dict(val_every=100, warmup_steps=4, iterations=20)
+    first = train(_args(tmp_path / "a", cache_dir, **kw), max_iterations=2)
+    assert [c["lr"] for c in first["curve"]] == pytest.approx([2.5e-4, 5e-4])
+    cont = train(_args(tmp_path / "a", cache_dir, resume=True, **kw), max_iterations=3)
+    assert [c["lr"] for c in cont["curve"]][2:] == pytest.approx([7.5e-4, 1e-3, 1e-3])
+    shipped = tmp_path / "shipped.pt"
+    assert write_resume_state(tmp_path / "a" / "run" / "last.pt", shipped) is not None
+    restarted = train(_args(tmp_path / "b", cache_dir, resume_from=shipped, **kw), max_iterations=2)
+    assert restarted["iteration"] == 7
+    assert [c["lr"] for c in restarted["curve"]][5:] == pytest.approx([2.5e-4, 5e-4])
+
+
 def test_resume_without_checkpoint_fails(tmp_path: Path, cache_dir: Path) -> None:
     with pytest.raises(FileNotFoundError, match="resume"):
         train(_args(tmp_path, cache_dir, resume=True))
