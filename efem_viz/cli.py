@@ -15,6 +15,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "info": ("efem_viz.data.commands:InfoArgs", "print what a scene file contains"),
     "generate": ("efem_viz.data.synth:GenerateArgs", "generate synthetic tabletop scans with ground truth"),
     "import-rgbd": ("efem_viz.data.commands:ImportRgbdArgs", "import a real RGB-D frame as a scene"),
+    "import-scan": ("efem_viz.data.commands:ImportScanArgs",
+                    "bring your own scan (any units, any up axis) into the scene frame"),
     "train-prior": ("efem_viz.prior.train:TrainArgs", "train a SIM(3)-equivariant shape prior"),
     "build-codebook": ("efem_viz.prior.commands:BuildCodebookArgs", "build the pose codebook of a prior"),
     "pack-meshes": ("efem_viz.prior.commands:PackMeshesArgs",

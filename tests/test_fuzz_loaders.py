@@ -244,6 +244,16 @@ def _make_loaders(tmp: Path) -> list[_Loader]:
         with np.load(io.BytesIO(saved(scene, "s.npz")), allow_pickle=False) as z:
             return {k: z[k] for k in z.files}
 
+    def pcl_compressed(scene: Any) -> bytes:
+        """A binary_compressed (LZF) PCD as PCL-based tools write it (by open3d)."""
+        import open3d as o3d
+
+        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(scene.points.astype(np.float64)))
+        pc.colors = o3d.utility.Vector3dVector(scene.colors / 255.0)
+        p = seeds_dir / "c.pcd"
+        o3d.io.write_point_cloud(str(p), pc, compressed=True)
+        return p.read_bytes()
+
     frame = _frame_arrays(2)
     scene_kinds = ("byte-flip", "truncate", "zero-region", "junk")
     text_kinds = ("header-number", "line-dup", "line-drop")
@@ -267,6 +277,11 @@ def _make_loaders(tmp: Path) -> list[_Loader]:
                 lambda p: load_scene(p), _check_scene, scene_kinds + zip_kinds, b"PK\x03\x04"),
         _Loader("scene-glb", [one("a.glb", saved(mesh, "a.glb")), one("b.glb", saved(cloud, "b.glb"))],
                 lambda p: load_scene(p), _check_scene, scene_kinds + ("glb-json", "glb-bin"), b"glTF\x02\x00\x00\x00"),
+        _Loader("scene-pcd-binary", [one("a.pcd", saved(cloud, "a.pcd"), header_end=b"DATA binary\n"),
+                                     one("b.pcd", pcl_compressed(cloud), header_end=b"DATA binary_compressed\n")],
+                lambda p: load_scene(p), _check_scene, scene_kinds + ("header-number",), b"VERSION 0.7\n"),
+        _Loader("scene-pcd-ascii", [one("a.pcd", saved(cloud, "a.pcd", ascii=True), text=True)],
+                lambda p: load_scene(p), _check_scene, scene_kinds + text_kinds, b"VERSION 0.7\n"),
         _Loader("rgbd-frame", [one("frame.npz", npz_bytes(frame)), one("frame.npz", npz_bytes(frame, compressed=True))],
                 lambda p: import_rgbd_file(p), _check_scene, scene_kinds + zip_kinds, b"PK\x03\x04"),
     ]

@@ -25,12 +25,13 @@ class SegmentArgs(SolveSettings):
     The solver knobs (--preset, --proposals, --work-voxel, --tau-out, --matmul-dtype) are `SolveSettings`."""
 
     scenes: Annotated[list[Path], tyro.conf.Positional]
-    """Scene files (.ply/.obj/.off/.glb/.npz) and/or folders of them."""
+    """Scene files (.ply/.pcd/.obj/.off/.glb/.npz) and/or folders of them."""
     prior: tyro.conf.UseAppendAction[list[str]] = field(default_factory=list)
     """Shape prior (repeat for several categories in one solve): a name under efem_viz/weights/, "sphere" (the
     analytic sphere) or a .pt path. Default: mug."""
     out: Path | None = None
-    """Output folder: <scene>.efem.npz, scannet/<scene>.txt + scannet/pred_mask/, <scene>.seg.ply, batch.json.
+    """Output folder: <scene>.efem.npz, scannet/<scene>.txt + scannet/pred_mask/, <scene>.seg.ply,
+    <scene>.objects.json, batch.json.
     Default: the efem-viz data folder, `~/.local/share/efem-viz/segment` (`$XDG_DATA_HOME`), never the current
     folder; the first line printed names it."""
     seed: int = 0
@@ -39,6 +40,9 @@ class SegmentArgs(SolveSettings):
     """cpu or cuda."""
     threshold: float = 0.0
     """Confidence threshold for the coloured PLY (the .efem.npz keeps every instance)."""
+    frame: str = "scene"
+    """Frame of <scene>.seg.ply and <scene>.objects.json: scene (metres, +Z up) or original (the scan file's own
+    frame and units, for scans brought in by `efem-viz import-scan` or opened directly; docs/OWN_DATA.md)."""
     scannet: bool = True
     """Write the ScanNet benchmark layout under <out>/scannet/."""
     ply: bool = True
@@ -79,7 +83,7 @@ class SegmentArgs(SolveSettings):
 
         job = BatchJob.create(
             priors=tuple(self.prior or [DEFAULT_PRIOR]), seed=self.seed, device=self.device,
-            threads=self.threads, threshold=self.threshold, scannet=self.scannet, ply=self.ply,
+            threads=self.threads, threshold=self.threshold, frame=self.frame, scannet=self.scannet, ply=self.ply,
             timeout_s=self.scene_timeout, **self.settings(),
         )
         name = self.backend_name()

@@ -70,6 +70,9 @@ class BatchJob(SolveSettings):
     """Write `<scene>.seg.ply`."""
     timeout_s: float | None = None
     """Give up on a scene after this many seconds of solving (it is reported failed; the batch goes on)."""
+    frame: str = "scene"
+    """Frame of the coloured PLY and `<name>.objects.json`: "scene" (metres, +Z up) or "original" (an imported
+    scan's own frame and units, `efem_viz.data.scan.ScanFrame`; the scene frame for scenes made in it)."""
 
     @classmethod
     def create(cls, **kwargs: object) -> BatchJob:
@@ -87,6 +90,8 @@ class BatchJob(SolveSettings):
             raise ValueError(f"a prior is given twice: {list(job.priors)}")
         if job.threads is not None and job.threads < 1:
             raise ValueError(f"--threads must be >= 1, got {job.threads}")
+        if job.frame not in ("scene", "original"):
+            raise ValueError(f"--frame must be scene or original, got {job.frame!r}")
         if job.timeout_s is not None and not job.timeout_s > 0:
             raise ValueError(f"--scene-timeout must be > 0 seconds, got {job.timeout_s}")
         job = dataclasses.replace(job, priors=specs)
@@ -104,6 +109,8 @@ class BatchJob(SolveSettings):
             "seed": int(self.seed),
             "threshold": float(self.threshold),
         }
+        if self.frame != "scene":  # the exports' frame; left out by default so earlier batches stay valid
+            payload["frame"] = self.frame
         return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:20]
 
     def to_dict(self) -> dict[str, object]:
@@ -176,6 +183,11 @@ class SceneTask:
     def ply_path(self) -> Path:
         """`<out>/<name>.seg.ply`."""
         return self.out / f"{self.name}{SEG_SUFFIX}"
+
+    @property
+    def objects_path(self) -> Path:
+        """`<out>/<name>.objects.json`: every instance's category, confidence, pose and box."""
+        return self.out / f"{self.name}.objects.json"
 
     @property
     def scannet_path(self) -> Path:

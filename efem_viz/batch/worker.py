@@ -7,6 +7,7 @@ becomes a failed `SceneOutcome` with a one-line error; the worker stays usable f
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import resource
@@ -104,6 +105,8 @@ class SceneWorker:
             The outcome ("ok" or "failed"; never raises for a scene's own problems).
         """
         from efem_viz.data.io import load_scene
+        from efem_viz.data.io import atomic_write_text
+        from efem_viz.data.scan import ScanFrame, scene_in_scene_frame
         from efem_viz.em.solver import EMCancelled, run_em
 
         t0 = time.perf_counter()
@@ -124,9 +127,11 @@ class SceneWorker:
         points = -1
         try:
             # a recompute that fails must not leave the previous run's outputs looking current
-            for stale in (task.result_path, task.ply_path, task.scannet_path):
+            for stale in (task.result_path, task.ply_path, task.scannet_path, task.objects_path):
                 stale.unlink(missing_ok=True)
-            scene = load_scene(task.path)
+            scene, notice = scene_in_scene_frame(load_scene(task.path))
+            if notice is not None:
+                logger.warning("%s", notice)
             points = scene.num_points
             t1 = time.perf_counter()
             load_s = t1 - t0
@@ -138,8 +143,19 @@ class SceneWorker:
                             on_step=on_step, cancel=cancel)
             t2 = time.perf_counter()
             solve_s = t2 - t1
+            out_scene, out_instances, frame_name = scene, result.instances, "scene"
+            scan_frame = ScanFrame.from_provenance(scene.provenance)
+            if self.job.frame == "original" and scan_frame is not None and not scan_frame.is_identity:
+                back = scan_frame.to_scene.inverse()
+                out_scene = scene.replace(points=back.apply(scene.points),
+                                          normals=None if scene.normals_pending else scene.normals @ back.R.T)
+                out_instances, frame_name = result.instances.transformed(back), f"original ({scan_frame.units})"
             if self.job.ply:
-                result.instances.to_colored_ply(scene, task.ply_path, threshold=self.job.threshold)
+                out_instances.to_colored_ply(out_scene, task.ply_path, threshold=self.job.threshold)
+            atomic_write_text(task.objects_path, json.dumps(
+                {"scene": task.name, "frame": frame_name,
+                 "scan_frame": None if scan_frame is None else scan_frame.to_provenance(),
+                 "instances": out_instances.to_json_objects()}, indent=1) + "\n")
             if self.job.scannet:
                 result.instances.to_scannet(task.scannet_path.parent, task.name, scene.num_points)
             result.save(task.result_path)  # last: the commit record of the scene

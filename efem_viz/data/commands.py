@@ -32,7 +32,7 @@ class InfoArgs:
     bare point clouds."""
 
     scenes: Annotated[list[Path], tyro.conf.Positional]
-    """Scene files (.ply/.obj/.off/.glb/.npz) and/or folders of them."""
+    """Scene files (.ply/.pcd/.obj/.off/.glb/.npz) and/or folders of them."""
     json: bool = False
     """Print one JSON object per scene instead of tables."""
     full: bool = False
@@ -168,7 +168,7 @@ class ImportRgbdArgs:
     frame: Annotated[Path | None, tyro.conf.Positional] = None
     """An .npz frame with `rgb` (H,W,3) uint8, `depth_mm` (H,W) uint16 (or `depth` float metres) and `K` (3,3)."""
     out: Path = Path("scene.ply")
-    """Output scene file (.ply, .npz, .glb, .obj, .off)."""
+    """Output scene file (.ply, .pcd, .npz, .glb, .obj, .off)."""
     depth: Path | None = None
     """Depth image instead of FRAME: .npy in metres, or a 16-bit .png in millimetres."""
     rgb: Path | None = None
@@ -282,3 +282,52 @@ def read_rgb_image(path: Path) -> np.ndarray:
         raise SceneError(f"{p}: no such file")
     with Image.open(p) as im:
         return np.asarray(im.convert("RGB"))
+
+
+@dataclass
+class ImportScanArgs:
+    """Import your own scan (a point cloud or mesh from a phone or tablet LiDAR app, a robot, another tool) into
+    the scene frame EFEM works in: metres, +Z up, the support plane at z = 0.
+
+    Units (metres, centimetres, millimetres) are told by the scan's extent and point spacing, the up axis by its
+    dominant support plane; --units and --up override a wrong guess, and a scan that cannot be decided is refused
+    with the flag to pass. The transform is recorded in the scene (`efem-viz info` shows it), so that
+    `efem-viz segment --frame original` writes results back in the file's own frame and units; the point order is
+    kept, so per-point masks and labels line up with the file's vertices. See docs/OWN_DATA.md."""
+
+    scan: Annotated[Path, tyro.conf.Positional]
+    """The scan: .ply, .pcd, .obj, .off, .glb or .npz."""
+    out: Path | None = None
+    """Output scene file (any scene format by its suffix); default: SCAN's folder, <stem>.scene.ply."""
+    units: str = "auto"
+    """The scan's length unit: auto, m, cm or mm."""
+    up: str = "auto"
+    """The scan's up axis: auto, +z, -z, +y, -y, +x or -x (glTF files and many phone apps: +y)."""
+    seed: int = 0
+    """Seed of the plane search (the same seed gives the same frame)."""
+    max_points: int = DEFAULT_MAX_POINTS
+    """Refuse scans with more points than this."""
+
+    def run(self) -> int:
+        """Import the scan and save it; returns 0."""
+        from efem_viz.terminal import console
+
+        from efem_viz.data.io import load_scene, save_scene
+        from efem_viz.data.scan import import_scan
+
+        console = console()
+        t0 = time.perf_counter()
+        out = self.out if self.out is not None else self.scan.with_name(self.scan.name.split(".")[0] + ".scene.ply")
+        if out.resolve() == self.scan.resolve():
+            raise SceneError(f"--out {out} is the scan itself; choose another file")
+        scene = load_scene(self.scan, max_points=self.max_points)
+        imported, frame = import_scan(scene, units=self.units, up=self.up, seed=self.seed)  # type: ignore[arg-type]
+        imported = imported.replace(name=out.name.split(".")[0],
+                                    provenance={**dict(imported.provenance), "source_file": self.scan.name})
+        save_scene(imported, out)
+        b = imported.bounds
+        console.print(f"[green]wrote[/] {out}: {imported.num_points:,} points, {frame.describe()}"
+                      + ("; already in the scene frame, unchanged" if frame.is_identity else
+                         f" -> metres, +Z up, extent {[round(float(v), 3) for v in b[1] - b[0]]} m")
+                      + f", {time.perf_counter() - t0:.1f} s")
+        return 0

@@ -63,7 +63,7 @@ def check_npz_headers(p: Path, max_points: int) -> dict[str, tuple[int, ...]]:
                     shape, _, dtype = read(fh)
                     header_len = fh.tell()
             except NPY_HEADER_ERRORS as exc:
-                raise SceneError(f"{p}: array {key!r} has a corrupt .npy header ({exc})") from exc
+                raise SceneError(f"{p}: array {key!r} has a corrupt .npy header ({str(exc)[:160]})") from exc
             shapes[key] = tuple(int(x) for x in shape)
             if dtype.hasobject:
                 continue  # np.load(allow_pickle=False) refuses it with its own message

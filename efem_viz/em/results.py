@@ -25,6 +25,7 @@ from efem_viz.em.trace import EMTrace
 from efem_viz.prior.config import CategorySettings
 
 if TYPE_CHECKING:
+    from efem_viz.geometry.transforms import Sim3
     from efem_viz.prior.config import PriorArg
     import trimesh
 
@@ -158,6 +159,38 @@ class Instances:
             stationary=self.stationary[idx] if len(self.stationary) == len(self) else self.stationary,
             db_sim=self.db_sim[idx] if len(self.db_sim) == len(self) else self.db_sim,
         )
+
+    def transformed(self, sim: "Sim3") -> "Instances":
+        """The instances in another frame, `x ↦ s R x + t` (e.g. a scan's own frame: `ScanFrame.to_scene.inverse()`):
+        meshes, poses (R, centre, scale Θ_s) and boxes move with it; masks (point indices), confidences and scores
+        are unchanged."""
+        import dataclasses
+
+        Rf, s, t = sim.R.astype(np.float32), np.float32(sim.scale), sim.t.astype(np.float32)
+        move = lambda x: (s * np.asarray(x, np.float32) @ Rf.T + t).astype(np.float32)  # noqa: E731
+        return dataclasses.replace(
+            self,
+            mesh_vertices=[move(v) for v in self.mesh_vertices],
+            R=np.einsum("ij,kjl->kil", Rf, self.R).astype(np.float32),
+            center=move(self.center).reshape(-1, 3),
+            scale=(self.scale * s).astype(np.float32),
+            obb_center=move(self.obb_center).reshape(-1, 3),
+            obb_axes=np.einsum("ij,kjl->kil", Rf, self.obb_axes).astype(np.float32),
+            obb_half_extents=(self.obb_half_extents * s).astype(np.float32),
+        )
+
+    def to_json_objects(self) -> list[dict[str, Any]]:
+        """One JSON object per instance: category, confidence, pose (R, centre, scale Θ_s), oriented box and
+        mask size, in the instances' frame."""
+        return [{"index": k, "proposal_id": int(self.ids[k]), "category": str(self.category[k]),
+                 "confidence": round(float(self.confidence[k]), 6), "points": int(len(self.masks[k])),
+                 "R": np.round(self.R[k].astype(np.float64), 7).tolist(),
+                 "center": np.round(self.center[k].astype(np.float64), 7).tolist(),
+                 "scale": round(float(self.scale[k]), 7),
+                 "obb": {"center": np.round(self.obb_center[k].astype(np.float64), 7).tolist(),
+                         "axes": np.round(self.obb_axes[k].astype(np.float64), 7).tolist(),
+                         "half_extents": np.round(self.obb_half_extents[k].astype(np.float64), 7).tolist()}}
+                for k in range(len(self))]
 
     def above(self, threshold: float) -> "Instances":
         """Instances with confidence ≥ threshold (a view on the stored result; nothing is re-run)."""

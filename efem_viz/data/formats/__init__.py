@@ -12,7 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Callable, NamedTuple
 
-from efem_viz.data.formats import glb, npz, obj_off, ply
+from efem_viz.data.formats import glb, npz, obj_off, pcd, ply
 
 
 class SceneFormat(NamedTuple):
@@ -32,6 +32,7 @@ FORMATS: dict[str, SceneFormat] = {
     ".off": SceneFormat(obj_off.load_off, obj_off.save_off, keeps_labels=False),
     ".glb": SceneFormat(glb.load, glb.save),
     ".npz": SceneFormat(npz.load, npz.save),
+    ".pcd": SceneFormat(pcd.load, pcd.save),
 }
 """Scene formats by lower-case file suffix."""
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -15,6 +16,7 @@ if TYPE_CHECKING:
     from efem_viz.data.scene import Scene
     from efem_viz.viewer.rooms.core import ViewerCore
 
+log = logging.getLogger(__name__)
 
 MAX_VIEW_COORDINATE = 1e5
 """Largest |coordinate| (metres) of a scene the viewer opens: beyond, it is not a metric scan (a file in other
@@ -31,6 +33,7 @@ class SceneRoom:
     def read_scene(self, name: str) -> tuple[SceneEntry, Scene] | None:
         """Load a scene of the list (no state change). None, with the status saying why, when it cannot."""
         from efem_viz.data.io import holds_predictions, load_scene
+        from efem_viz.data.scan import scene_in_scene_frame
 
         try:
             entry = self.core.state.entry(name)
@@ -42,7 +45,10 @@ class SceneRoom:
             return None
         self.core.set_status(f"Loading {entry.name} …")
         try:
-            scene = load_scene(entry.path, max_points=self.core.max_points)
+            scene, notice = scene_in_scene_frame(load_scene(entry.path, max_points=self.core.max_points))
+            if notice is not None:
+                log.warning("%s", notice)
+                self.core.set_status(notice)
             reach = float(np.abs(scene.points).max()) if scene.num_points else 0.0
             if not reach <= MAX_VIEW_COORDINATE:
                 raise ValueError(f"coordinates reach {reach:.3g} m: not a scan in metres (the viewer shows scenes "
