@@ -950,6 +950,30 @@ def test_run_efem_on_the_open_scan_makes_prelabels(spheres, monkeypatch: pytest.
         a.close()
 
 
+def test_run_efem_refuses_a_result_path_that_links_out_of_the_output_folder(spheres, tmp_path: Path) -> None:
+    """The EFEM result `<scan>.annotate/<scan>.efem.npz` as a link to a folder elsewhere (or to a file): the run is
+    refused before any work with one line, and nothing is written outside the output folder."""
+    from annotator.io import LabelIOError
+
+    d, scene, _ = spheres
+    save_scene(Scene.create("linked", scene.points, normals=scene.normals, colors=scene.colors), d / "linked.ply")
+    a = AnnotatorApp(d / "linked.ply", out_dir=d / "out_linked", port=0, autosave_delay=0)
+    try:
+        outside = tmp_path / "elsewhere"
+        outside.mkdir()
+        link = a.session.scan.work_dir / f"linked{RESULT_SUFFIX}"
+        link.symlink_to(outside, target_is_directory=True)
+        with pytest.raises(LabelIOError, match="outside|link"):
+            a.session.run_efem(wait=True)
+        link.unlink()
+        link.symlink_to(outside / "x.efem.npz")
+        with pytest.raises(LabelIOError, match="outside|link"):
+            a.session.run_efem(wait=True)
+        assert list(outside.iterdir()) == []
+    finally:
+        a.close()
+
+
 def test_run_efem_progress_and_cancel(app: AnnotatorApp, monkeypatch: pytest.MonkeyPatch) -> None:
     """The EFEM run on the scan reports its steps and the Cancel button stops it: nothing is added, the buttons
     come back, one run at a time (click-to-segment waits for it too), and bad values are refused."""

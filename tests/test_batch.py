@@ -458,6 +458,30 @@ def test_ray_job_that_no_node_can_host_fails_in_one_line(tmp_path: Path) -> None
     assert "asks for 2 CPU(s)" in proc.stderr and "cluster has 1" in proc.stderr, proc.stderr
 
 
+def test_a_ray_address_where_nothing_listens_is_one_line_at_once(tmp_path: Path) -> None:
+    """Ray retries a dead --ray-address for over 10 minutes: the CLI checks it first (a hang guard of 10x the
+    connect timeout), and a malformed address is refused without a connection."""
+    import socket
+
+    from efem_viz.batch.ray_backend import RAY_CONNECT_TIMEOUT_S, check_ray_address
+    from efem_viz.prior.analytic import make_sphere_scene
+
+    with socket.socket() as sock:  # a port that was free a moment ago: nothing listens there
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    scene = tmp_path / "s.ply"
+    save_scene(make_sphere_scene(seed=0, spacing=0.012, radii=(0.05,)), scene)
+    proc = subprocess.run([sys.executable, "-m", "efem_viz.cli", "segment", str(scene), "--out", str(tmp_path / "o"),
+                           "--prior", "sphere", "--ray-address", f"ray://127.0.0.1:{port}"],
+                          capture_output=True, text=True, timeout=10 * RAY_CONNECT_TIMEOUT_S + 60)
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    assert f"--ray-address ray://127.0.0.1:{port}: nothing answers there" in proc.stderr
+    assert proc.stderr.strip().count("\n") == 0 and "Traceback" not in proc.stderr
+    for bad in ("127.0.0.1", "host:port", "ray://:6379", "127.0.0.1:70000"):
+        with pytest.raises(BatchError, match="expected auto, HOST:PORT"):
+            check_ray_address(bad)
+
+
 def test_control_characters_in_scene_names_reach_the_console_escaped(tmp_path: Path) -> None:
     """Issue 25 item 3, on the real CLI: an ESC sequence and a newline in scene file names (one scene that
     segments, one that fails) are printed as visible escapes, in the console lines, the summary table and the log."""

@@ -111,3 +111,24 @@ def test_depth_view_memory_is_bounded_by_the_scene_not_the_declared_image() -> N
     centre = pts[np.abs(pts[:, :2]).max(1) < 0.03]
     assert view.seen_through(centre - np.array([0.0, 0.0, 0.1]), 0.01) == (1.0, 1.0)
     assert view.seen_through(centre + np.array([0.0, 0.0, 0.1]), 0.01) == (0.0, 1.0)
+
+
+def test_a_huge_focal_length_gives_a_coarser_view_of_the_same_rays_in_bounded_memory() -> None:
+    """A focal length of 30000 with a 16384² image spreads a 30 cm scene over the whole image (2.3 GB, 85 s
+    before): the view is taken at a coarser resolution (at most `MAX_VIEW_PIXELS`), with the same answers."""
+    import time
+
+    from efem_viz.geometry.camera import MAX_VIEW_PIXELS
+
+    cam = Camera(K=np.array([[30000.0, 0, 8191.5], [0, 30000.0, 8191.5], [0, 0, 1]]), T_world_camera=np.eye(4),
+                 width=16384, height=16384)
+    g = np.linspace(-0.15, 0.15, 200)
+    xx, yy = np.meshgrid(g, g)
+    pts = np.stack([xx.ravel(), yy.ravel(), np.ones(xx.size)], 1)
+    c0 = time.process_time()
+    view = DepthView.of_points(cam, pts, lateral=0.005)
+    assert view.depth.size <= MAX_VIEW_PIXELS and view.camera.width < cam.width
+    assert time.process_time() - c0 < 60  # a hang guard (about 1 s of work), not a speed test
+    centre = pts[np.abs(pts[:, :2]).max(1) < 0.1]
+    assert view.seen_through(centre - np.array([0.0, 0.0, 0.1]), 0.01) == (1.0, 1.0)
+    assert view.seen_through(centre + np.array([0.0, 0.0, 0.1]), 0.01) == (0.0, 1.0)

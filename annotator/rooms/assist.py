@@ -223,6 +223,22 @@ class AssistRoom:
         with self._segment_lock:
             self._segment_cancel, self._job = None, None
 
+    def result_path(self) -> Path:
+        """Where a run's result goes, `<scan>.annotate/<scan>.efem.npz`, checked to stay inside the output folder
+        (a link there to a folder or a file elsewhere is refused, as for every other output).
+
+        Raises:
+            LabelIOError: the path resolves outside the output folder, is a link or a folder.
+        """
+        from efem_viz.serve.inputs import confine_writes
+
+        path = self.scan.work_dir / f"{self.scan.stem}{RESULT_SUFFIX}"
+        confine_writes([path], self.scan.out_dir, what="EFEM result", error=LabelIOError)
+        if path.is_symlink() or path.is_dir():
+            raise LabelIOError(f"refusing EFEM result: {path} is a {'link' if path.is_symlink() else 'folder'}; "
+                               "nothing was written")
+        return path
+
     def run_efem(self, *, preset: str | None = None, proposals: int | None = None, seed: int = 0,
                  wait: bool = False) -> list[int] | None:
         """Run EFEM on the whole scan with the chosen prior (`settings.prior`); its instances become unreviewed
@@ -251,6 +267,7 @@ class AssistRoom:
                                  proposals=None if not proposals else int(proposals),
                                  work_voxel=EFEM_BIG_SCAN_VOXEL if big else None)
         settings.config()  # a bad preset or count: one clear error before anything starts
+        self.result_path()  # and an output that would land outside the output folder
         prior_name = self.toolbox.settings.prior
         cancel = self._claim("efem")
         try:
@@ -287,7 +304,7 @@ class AssistRoom:
             if cancel.is_set():  # pressed after the last step: still nothing is added
                 raise EMCancelled("cancelled after the last step")
             self.hooks.on_efem(f"{what}: saving the result and adding pre-labels …", 100.0)
-            path = self.scan.work_dir / f"{self.scan.stem}{RESULT_SUFFIX}"
+            path = self.result_path()  # checked again: the folder may have changed during the run
             result.save(path)
             self.last_run_path = path
             ids = self.add_prelabels(labels_from_result(result, self.scan.n, where=path.name), source=path.name)

@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import socket
+import sys
 import time
 from collections import deque
 from collections.abc import Iterator, Sequence
@@ -67,6 +69,40 @@ def _cause(exc: BaseException) -> str:
     return text[-400:] or type(exc).__name__
 
 
+RAY_CONNECT_TIMEOUT_S = 10.0
+"""How long `check_ray_address` waits for a TCP answer (Ray itself retries a dead address for over 10 minutes)."""
+
+
+def ray_is_initialized() -> bool:
+    """Whether this process is already connected to a Ray (without importing ray when it is not imported)."""
+    ray = sys.modules.get("ray")
+    return bool(ray is not None and ray.is_initialized())
+
+
+def check_ray_address(address: str, *, timeout_s: float = RAY_CONNECT_TIMEOUT_S) -> None:
+    """Refuse a `--ray-address` where nothing listens, in one line within `timeout_s` ("auto" is left to Ray).
+
+    Raises:
+        BatchError: an address that is not HOST:PORT / ray://HOST:PORT, or no TCP answer there.
+    """
+    if address == "auto":
+        return
+    hostport = address.split("://", 1)[1] if "://" in address else address
+    host, sep, port_text = hostport.rpartition(":")
+    try:
+        port = int(port_text)
+    except ValueError:
+        port = -1
+    if not sep or not host or not 0 < port < 65536:
+        raise BatchError(f"--ray-address {address!r}: expected auto, HOST:PORT or ray://HOST:PORT")
+    try:
+        with socket.create_connection((host.strip("[]"), port), timeout=timeout_s):
+            pass
+    except OSError as exc:
+        raise BatchError(f"--ray-address {address}: nothing answers there ({exc.strerror or exc}); is the Ray "
+                         "cluster running (`ray start --head`)?") from None
+
+
 class RayBackend:
     """Scenes on Ray actors (local start with `--ray`, or an existing cluster with `--ray-address`).
 
@@ -99,6 +135,8 @@ class RayBackend:
     def run(self, job: BatchJob, tasks: Sequence[SceneTask], events: BatchObserver) -> Iterator[SceneOutcome]:
         if not tasks:
             return
+        if self.options.ray_address and not ray_is_initialized():
+            check_ray_address(self.options.ray_address)
         ray = _import_ray()
         from ray.exceptions import RayActorError, RayError, RayTaskError
 

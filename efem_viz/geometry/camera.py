@@ -43,6 +43,14 @@ class Camera:
         v = np.where(ok, v, 0).astype(np.int64)
         return u, v, z, ok
 
+    def scaled(self, factor: float) -> "Camera":
+        """The same camera with ``factor`` times the pixels along each side (intrinsics scaled; factor < 1 is a
+        coarser image of the same rays)."""
+        K = self.K.astype(np.float64).copy()
+        K[:2] *= float(factor)
+        return Camera(K=K, T_world_camera=self.T_world_camera, width=max(1, int(np.ceil(self.width * factor))),
+                      height=max(1, int(np.ceil(self.height * factor))))
+
     @classmethod
     def from_provenance(cls, prov: Mapping[str, Any] | None) -> "Camera | None":
         """The capture camera recorded by `data.rgbd.import_rgbd` (``K``, ``image_size``, ``T_world_camera``),
@@ -86,6 +94,10 @@ class Camera:
         return cls(K=K, T_world_camera=T, width=w, height=h), None
 
 
+MAX_VIEW_PIXELS = 1 << 22
+"""Most pixels of a `DepthView` window (4.2 M, 16 MB): a camera whose declared focal length and image size would
+spread the scene over more is viewed at a coarser resolution (`Camera.scaled`); a real 640 x 480 frame uses 0.3 M."""
+
 MAX_IMAGE_SIDE = 16384
 """Largest image side a recorded camera may declare (sensors top out near 4K; the depth view is cropped to the
 scene's projected bounds, so a large declared size costs no memory by itself)."""
@@ -111,7 +123,8 @@ class DepthView:
     filter): holes between voxels close, and at silhouettes the nearer surface wins, which errs toward "not
     seen through". Pixels no point reaches (outside the cropped scene, sensor holes) are unknown (``inf``).
     Only the window of the image the scene's points fall in is kept (float32): its size is bounded by the scene,
-    not by the declared image size.
+    not by the declared image size, and by `MAX_VIEW_PIXELS` (beyond it the view is of `Camera.scaled`, whose
+    camera it keeps: `seen_through` projects with the same one).
     """
 
     camera: Camera
@@ -138,6 +151,10 @@ class DepthView:
         u, v, z, ok = camera.project(points)
         if not ok.any():
             return cls(camera=camera, depth=np.full((1, 1), np.inf, np.float32), u0=0, v0=0)
+        area = float(u[ok].max() - u[ok].min() + 1) * float(v[ok].max() - v[ok].min() + 1)
+        if area > MAX_VIEW_PIXELS:  # bounded by the scene, whatever the intrinsics declare
+            camera = camera.scaled(0.95 * np.sqrt(MAX_VIEW_PIXELS / area))
+            u, v, z, ok = camera.project(points)
         size = int(splat)
         if lateral > 0:
             f = float(max(camera.K[0, 0], camera.K[1, 1]))
