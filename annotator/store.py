@@ -257,10 +257,14 @@ class LabelStore:
         newest = max([r.seq for r in recs], default=-1)
         j.next_seq = max(j.next_seq, start_seq + 1, newest + 1)
         replay = _replay_history(recs, ls, start_seq)
-        ls.undo_stack = replay.undo
-        ls.redo_stack = replay.redo
         ck_seq = ck[2] if ck is not None else -1
         ck_newer = ck_seq > newest
+        if ck_newer:  # the edits between the journal's end and the checkpoint are unknown: history restarts here,
+            # as across any missing record (undoing the journal's last edit on top of them would corrupt labels)
+            replay.undo.clear()
+            replay.redo.clear()
+        ls.undo_stack = replay.undo
+        ls.redo_stack = replay.redo
         report = _recovery_report(j, start_seq=start_seq, start_name=start_name, replay=replay,
                                   ck_seq=ck_seq if ck is not None else None, ck_problem=ck_problem,
                                   newest=newest, label_name=self.label_path.name)

@@ -133,6 +133,34 @@ def test_checkpoint_newer_than_a_truncated_journal_wins(tmp_path: Path) -> None:
     s3.close()
 
 
+def test_a_journal_one_record_behind_its_checkpoint_starts_a_new_undo_history(tmp_path: Path) -> None:
+    """A folder copied while writing (the checkpoint holds record 10, the journal ends at 9): the labels are the
+    checkpoint's, and Undo must not undo record 9 on top of the unknown record 10 (it used to delete an instance
+    whose vertices kept its id, fail every later Undo as stale, and lose the instance's name after a restart)."""
+    s = _store(tmp_path)
+    _nine_edits(s)
+    s.do(lambda ls: ls.create_instance(category="cup", name="the blue cup"))  # 10
+    s.do(lambda ls: ls.paint(np.arange(450, 500), 3))  # 11
+    s.close()
+    final = s.labels.copy()
+    jp = tmp_path / "s.journal"
+    offs = _record_offsets(jp)
+    with open(jp, "r+b") as f:
+        f.truncate(offs[11])  # the journal ends at record 10; the checkpoint holds 11
+    s2 = _store(tmp_path)
+    assert np.array_equal(s2.labels, final) and s2.recovery is not None
+    assert s2.labelset.undo_stack == [] and s2.undo() == []  # nothing to undo across the missing record
+    assert np.array_equal(s2.labels, final)
+    s2.do(lambda ls: ls.paint(np.arange(400, 410), 3))
+    assert len(s2.undo()) == 1 and np.array_equal(s2.labels, final)  # the new edit undoes cleanly
+    s2.close()
+    s3 = _store(tmp_path)
+    assert np.array_equal(s3.labels, final)
+    info = s3.snapshot()[1][3]
+    assert (info.name, info.category) == ("the blue cup", "cup")
+    s3.close()
+
+
 def test_retried_record_with_a_repeated_seq_supersedes_the_old_copy(tmp_path: Path) -> None:
     """An old version left a complete copy of a failed append before its retry: the retry (the edit the user
     saw applied) wins."""
