@@ -4,6 +4,7 @@ own frame (`segment --frame original`)."""
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -191,3 +192,25 @@ def test_import_scan_then_segment_writes_results_back_on_the_files_own_vertices(
         assert objects["frame"] == "original (mm)" and objects["scan_frame"]["up"] == "+y"
         for obj in objects["instances"]:  # boxes in millimetres, around the file's points
             assert 1.0 < max(obj["obb"]["half_extents"]) < 1000.0
+
+
+def test_segment_picks_each_scenes_preset_and_refuses_a_scan_far_from_metric(tmp_path: Path) -> None:
+    """`segment` (default --preset auto): a single-view capture runs with `real`, a fused scan with `synthetic`,
+    each scene's line says which; a 5 km "mug" is refused with the reason and the others still run."""
+    from efem_viz.prior.analytic import make_sphere_scene
+
+    (tmp_path / "in").mkdir()
+    (tmp_path / "in" / "capture.ply").write_bytes((ROOT / "sample_scenes" / "real_tabletop_0.ply").read_bytes())
+    spheres = make_sphere_scene(seed=0, spacing=0.012, radii=(0.05,))
+    save_scene(spheres, tmp_path / "in" / "fused.ply")
+    save_scene(spheres.replace(points=spheres.points * 5e4, provenance={}), tmp_path / "in" / "huge.ply")
+    env = {"PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"}
+    seg = subprocess.run([sys.executable, "-m", "efem_viz.cli", "segment", str(tmp_path / "in"), "--out",
+                          str(tmp_path / "out"), "--prior", "sphere", "--proposals", "4", "--threads", "1",
+                          "--no-scannet"], capture_output=True, text=True, env=env, timeout=1200)
+    out = seg.stdout
+    assert seg.returncode == 1, out + seg.stderr  # one scene failed
+    assert out.splitlines()[0].endswith("preset auto (real for single-view captures, else synthetic)")
+    assert re.search(r"capture: \d+ instances in .* \(local, preset real\)", out), out
+    assert re.search(r"fused: \d+ instances in .* \(local, preset synthetic\)", out), out
+    assert re.search(r"huge: failed: SceneError: the scene spans [\d.e+]+ m: not a scan in metres", out), out

@@ -460,6 +460,32 @@ def test_run_in_worker_with_progress_and_cancel(app: Any) -> None:
     assert app.wait_idle(60)
 
 
+def test_a_run_is_shown_as_it_goes_then_its_final_result(app: Any) -> None:
+    """Progressive results: with no wait between shown states, every step's state of a run (its proposals at the
+    newest step, the instances accepted so far) is shown, each with more steps, then the finished result; the
+    progress line says the time left."""
+    shown: list[tuple[int, int, str]] = []
+    original = app.set_result
+    app.set_result = lambda result, *, source: (shown.append((result.trace.num_steps, len(result.instances), source)),
+                                                original(result, source=source))
+    try:
+        app.run_panel.progressive_every_s = 0.0
+        fut = app.start_run(preset="fast", proposals=8, seed=3)
+        res = fut.result(timeout=600)
+    finally:
+        app.set_result = original
+        app.run_panel.progressive_every_s = None
+    assert res is not None and app.state.result is res
+    partial, final = shown[:-1], shown[-1]
+    steps = [n for n, _, _ in partial]
+    assert steps == list(range(1, res.trace.num_steps + 1)), steps  # one state per step, in order
+    assert all(src.startswith(f"running: step {n} of ") for n, _, src in partial)
+    accepted = [k for _, k, _ in partial]  # instances appear as their episodes end, never disappear
+    assert accepted == sorted(accepted) and accepted[-1] <= len(res.instances)
+    assert final[0] == res.trace.num_steps and final[2].startswith("run (fast, seed 3")
+    assert app.wait_idle(60)
+
+
 def test_export_results_and_static_demo(app: Any, tmp_path: Path) -> None:
     app.set_threshold(0.0)
     out = app.export_results(tmp_path / "res")

@@ -46,8 +46,11 @@ class RichBatchDisplay(BatchObserver):
         console: where to draw.
     """
 
-    def __init__(self, console: Console | None = None, *, plain_every_s: float = PLAIN_STEP_EVERY_S) -> None:
+    def __init__(self, console: Console | None = None, *, plain_every_s: float = PLAIN_STEP_EVERY_S,
+                 preset: str = "") -> None:
         self.console = console or terminal_console()
+        self.preset = preset
+        """The job's solver preset, named in the first line ("" leaves it out)."""
         self.plain = not self.console.is_terminal
         self.plain_every_s = float(plain_every_s)
         self._last_plain: dict[str, float] = {}
@@ -72,7 +75,9 @@ class RichBatchDisplay(BatchObserver):
     def on_plan(self, plan: BatchPlan) -> None:
         self.out = str(plan.out)
         skipped = f", {len(plan.skipped)} skipped (valid results there)" if plan.skipped else ""
-        self.console.print(f"{plan.total} scene(s) -> {_shown(plan.out)}: {len(plan.tasks)} to segment{skipped}",
+        preset = ("" if not self.preset else ", preset auto (real for single-view captures, else synthetic)"
+                  if self.preset == "auto" else f", preset {self.preset}")
+        self.console.print(f"{plan.total} scene(s) -> {_shown(plan.out)}: {len(plan.tasks)} to segment{skipped}{preset}",
                            soft_wrap=True)  # the folder stays one piece, to copy
         self.overall = self.progress.add_task("scenes", total=len(plan.tasks), info="")
 
@@ -112,8 +117,9 @@ class RichBatchDisplay(BatchObserver):
         if row is not None:
             self.progress.update(row, visible=False)
         if outcome.status == "ok":
+            preset = f", preset {outcome.preset}" if outcome.preset else ""
             self.console.print(f"{_shown(outcome.name)}: {outcome.instances} instances in {outcome.seconds:.1f} s "
-                               f"({_shown(outcome.worker)})")
+                               f"({_shown(outcome.worker)}{preset})")
         else:
             self.console.print(f"[red]{_shown(outcome.name)}: failed: {_shown(outcome.error)}[/]")
 

@@ -233,6 +233,8 @@ class SceneOutcome:
     write_s: float = 0.0
     rss_mb: float = 0.0
     fingerprint: str = ""
+    preset: str = ""
+    """The solver preset the scene ran with (`--preset auto` picks it per scene)."""
     wall_s: float = 0.0
     cpu_s: float = 0.0
     scene_stamp: str = ""

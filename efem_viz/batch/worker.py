@@ -18,6 +18,8 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from efem_viz.batch.job import BatchJob, SceneOutcome, SceneTask, WorkerInfo, scene_stamp
 
 if TYPE_CHECKING:
@@ -25,6 +27,9 @@ if TYPE_CHECKING:
     from efem_viz.prior.config import ShapePriorLike
 
 logger = logging.getLogger(__name__)
+
+MAX_SCENE_SPAN_M = 1000.0
+"""Largest extent (m) of a scene `segment` runs: beyond it the points are not metric (a 5 km mug)."""
 
 StepCallback = Callable[["StepInfo"], None]
 """Called after every EM step of the scene being solved (progress)."""
@@ -106,6 +111,7 @@ class SceneWorker:
         """
         from efem_viz.data.io import load_scene
         from efem_viz.data.io import atomic_write_text
+        from efem_viz.data.scene import SceneError
         from efem_viz.data.scan import ScanFrame, scene_in_scene_frame
         from efem_viz.em.solver import EMCancelled, run_em
 
@@ -133,13 +139,18 @@ class SceneWorker:
             if notice is not None:
                 logger.warning("%s", notice)
             points = scene.num_points
+            span = float(np.max(scene.points.max(axis=0) - scene.points.min(axis=0)))
+            if not span <= MAX_SCENE_SPAN_M:
+                raise SceneError(f"the scene spans {span:.3g} m: not a scan in metres (EFEM's objects are cm-sized); "
+                                 "bring it in with `efem-viz import-scan --units ...`")
+            cfg = self.cfg if self.job.preset != "auto" else self.job.config(scene)
             t1 = time.perf_counter()
             load_s = t1 - t0
             if self.job.timeout_s is not None:
                 timer = threading.Timer(float(self.job.timeout_s), cancel.set)
                 timer.daemon = True
                 timer.start()
-            result = run_em(scene, cfg=self.cfg, priors=self.priors, seed=self.job.seed, device=self.job.device,
+            result = run_em(scene, cfg=cfg, priors=self.priors, seed=self.job.seed, device=self.job.device,
                             on_step=on_step, cancel=cancel)
             t2 = time.perf_counter()
             solve_s = t2 - t1
@@ -175,4 +186,5 @@ class SceneWorker:
             name=task.name, path=str(task.path), status="ok", instances=len(result.instances), points=points,
             seconds=time.perf_counter() - t0, worker=self.worker, load_s=load_s, solve_s=solve_s, write_s=write_s,
             rss_mb=peak_rss_mb(), fingerprint=fp, cpu_s=time.process_time() - c0, scene_stamp=stamp,
+            preset=cfg.name,
         )

@@ -28,10 +28,13 @@ from efem_viz.prior.config import (
 if TYPE_CHECKING:
     from efem_viz.prior.config import ShapePriorLike
 
-__all__ = ["DEFAULT_TAU_OUT", "MAX_TAU_OUT", "PRESETS", "EMConfig", "PresetName", "SolveSettings", "preset",
+__all__ = ["DEFAULT_TAU_OUT", "MAX_TAU_OUT", "PRESETS", "EMConfig", "PresetName", "SolvePresetName", "SolveSettings",
+           "preset", "preset_for_scene",
            "resolve_for_prior", "suggested_preset"]
 
 PresetName = Literal["synthetic", "real", "real_paper", "fast"]
+SolvePresetName = Literal["auto", "synthetic", "real", "real_paper", "fast"]
+"""A preset, or "auto": each scene's own (`preset_for_scene`)."""
 """Solver presets: the capture domain's settings; category settings (sizes, τ_out) come with each prior."""
 PRESET_ALIASES: dict[str, str] = {"synthetic_mugs": "synthetic", "real_mugs": "real"}
 """Names of the presets before they lost the category (still accepted by `preset`)."""
@@ -367,8 +370,9 @@ class SolveSettings:
     """The solver knobs a command or a job sets on top of a preset, declared once: `efem-viz segment`
     (`SegmentArgs`) and batch jobs (`BatchJob`) inherit these fields, and `config()` builds the `EMConfig`."""
 
-    preset: PresetName = "synthetic"
-    """Solver configuration (docs/design/efem-method.md §3.12); category sizes and τ_out come with each prior."""
+    preset: SolvePresetName = "synthetic"
+    """Solver configuration (docs/design/efem-method.md §3.12): synthetic, real, real_paper, fast, or auto (each
+    scene's own: real for a single-view capture, else synthetic); category sizes and τ_out come with each prior."""
     proposals: int | None = None
     """Override the number of proposals (first episode)."""
     work_voxel: float | None = None
@@ -380,13 +384,19 @@ class SolveSettings:
     """Precision of the networks' matrix products: float32 (the method) or bfloat16 (2-4× faster matrix work on
     CPUs with AMX / AVX-512 bf16; `EMConfig.matmul_dtype`)."""
 
-    def config(self) -> EMConfig:
+    def config(self, scene: Any = None) -> EMConfig:
         """The solver config: the preset with these overrides (validated).
+
+        Args:
+            scene: the scene it is for (``preset="auto"`` resolves to `preset_for_scene` of it; without a scene,
+                to "synthetic", which checks the overrides).
 
         Raises:
             ValueError: an unknown preset or a bad value.
         """
-        cfg = preset(self.preset)
+        name = self.preset if self.preset != "auto" else (preset_for_scene(scene) if scene is not None
+                                                           else "synthetic")
+        cfg = preset(name)
         if self.proposals is not None:
             cfg = cfg.with_proposals(int(self.proposals))
         if self.work_voxel is not None:
@@ -409,6 +419,12 @@ def suggested_preset(scene: Any) -> PresetName:
     prov = dict(getattr(scene, "provenance", None) or {})
     camera, problem = Camera.parse(prov)
     return "real" if prov.get("source") == "rgbd" or camera is not None or problem is not None else "fast"
+
+
+def preset_for_scene(scene: Any) -> PresetName:
+    """What `segment --preset auto` runs a scene with: "real" for a single-view capture (as `suggested_preset`),
+    else "synthetic" (fused scans, generated scenes, a user's own scan)."""
+    return "real" if suggested_preset(scene) == "real" else "synthetic"
 
 
 _SYNTHETIC = EMConfig(inclusion="score", inclusion_by="confidence")

@@ -17,7 +17,7 @@ import logging
 import math
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any, Callable
 
@@ -90,6 +90,18 @@ class StepInfo:
     """Seconds since `run_em` started."""
     episode: int = 0
     """Episode of this step."""
+    @property
+    def time_left_s(self) -> float | None:
+        """Seconds left by the mean step time so far (an upper estimate: later steps hold fewer proposals); None
+        after the last step."""
+        done = self.step + 1
+        if done <= 0 or done >= self.num_steps:
+            return None
+        return self.elapsed_s / done * (self.num_steps - done)
+
+    partial: "Callable[[], EMResult] | None" = field(default=None, repr=False, compare=False)
+    """The run so far as an `EMResult` (its trace up to this step, the instances accepted so far), built when
+    called, in the solver's thread (a viewer shows runs as they go; the batch never calls it)."""
 
 
 def confidence(stationary: float, coverage: float, *, cap: float = 0.4, seen_through: float = float("nan"),
@@ -254,6 +266,7 @@ def run_em(
         solver = _Solver(scene.name, points, normals, PriorTable.of(plist), run_cfg, cfgs, seed=seed,
                          on_step=on_step, cancel=cancel, anchor_candidates=anchor_candidates,
                          step_rules=step_rules, review_rules=review_rules, camera=camera)
+        solver.partial_result = lambda: _result_so_far(solver, scene, plist, run_cfg, cats, cfgs, seed, warnings)
         inst_rows = solver.run()
     finally:
         for pr, was in zip(plist, was_training):
@@ -275,6 +288,20 @@ def run_em(
     categories = tuple(c.replace(tau_out=k.out_tau) for c, k in zip(cats, cfgs))
     return EMResult(trace=trace, instances=instances, config=run_cfg, timings=timings, scene_name=scene.name,
                     num_points=len(points), seed=int(seed), categories=categories, warnings=tuple(warnings),
+                    replay=TraceReplay(trace, scene, plist[0] if len(plist) == 1 else plist))
+
+
+def _result_so_far(solver: _Solver, scene: "Scene", plist: list[Any], run_cfg: EMConfig, cats: list[Any],
+                    cfgs: list[EMConfig], seed: int, warnings: list[str]) -> "EMResult":
+    """The run so far as an `EMResult`: the trace of the steps done, the instances accepted so far."""
+    from efem_viz.em.results import EMResult, Instances
+
+    timings = dict(solver.timer.t) | {"total": time.perf_counter() - solver.t_start}
+    trace = solver.rec.finish(timings)
+    categories = tuple(c.replace(tau_out=k.out_tau) for c, k in zip(cats, cfgs))
+    return EMResult(trace=trace, instances=Instances.from_rows(list(solver.accepted)), config=run_cfg,
+                    timings=timings, scene_name=scene.name, num_points=len(solver.full_points), seed=int(seed),
+                    categories=categories, warnings=tuple(warnings),
                     replay=TraceReplay(trace, scene, plist[0] if len(plist) == 1 else plist))
 
 
@@ -413,6 +440,10 @@ class _Solver:
 
             self.depth_view = DepthView.of_points(camera, points, lateral=cfg.seen_through_lateral)
         self.planned_steps = cfg.num_episodes * cfg.steps_per_episode
+        self.accepted: list[dict[str, Any]] = []
+        """The instances' rows accepted so far (the end of each episode adds its survivors)."""
+        self.partial_result: Callable[[], EMResult] | None = None
+        """Builds the run so far as an `EMResult` (`StepInfo.partial`); set by `run_em`."""
         self.ref_scales = [float(cb.mean_scale) if (cb := getattr(p, "codebook", None)) is not None else 1.0
                            for p in table.priors]
         if not self.identity and cfg.work_voxel:  # a thinned working set implies work_voxel > 0
@@ -452,7 +483,7 @@ class _Solver:
         cfg = self.cfg
         k_priors = len(self.table)
         assigned = np.zeros(self.n_full, bool)  # full resolution
-        accepted: list[dict[str, Any]] = []
+        accepted = self.accepted
         mug_model = load_model(cfg.mug_model) if cfg.mug_model is not None else None
         for ep, n_init in enumerate(cfg.n_init):
             self._check_cancel()
@@ -487,7 +518,8 @@ class _Solver:
                 elapsed = time.perf_counter() - self.t_start
                 self.rec.end_step(pool.size, elapsed)
                 if self.on_step is not None:
-                    self.on_step(StepInfo(step, self.planned_steps, phase, pool.size, elapsed, ep))
+                    self.on_step(StepInfo(step, self.planned_steps, phase, pool.size, elapsed, ep,
+                                          partial=self.partial_result))
             t0 = time.perf_counter()
             final_step = self.rec.num_steps - 1
             for r, pid in enumerate(pool.ids):

@@ -73,11 +73,11 @@ def show_running(p: Panels, running: bool) -> None:
 
 def show_run_progress(p: Panels, info: StepInfo) -> None:
     """The progress bar and line of a running EM (`info`: the solver's step info)."""
-    frac = 100.0 * (int(info.step) + 1) / max(int(info.num_steps), 1)
-    p.gui_progress.value = float(np.clip(frac, 0.0, 100.0))
+    done, total = int(info.step) + 1, max(int(info.num_steps), 1)
+    p.gui_progress.value = float(np.clip(100.0 * done / total, 0.0, 100.0))
     p.gui_run_info.content = (
-        f"step {int(info.step) + 1}/{int(info.num_steps)} · phase {int(info.phase)} · "
-        f"{int(info.active)} active · {float(info.elapsed_s):.1f} s"
+        f"step {done}/{total} · phase {int(info.phase)} · {int(info.active)} active · "
+        f"{float(info.elapsed_s):.1f} s" + ("" if info.time_left_s is None else f" · about {info.time_left_s:.0f} s left")
     )
 
 

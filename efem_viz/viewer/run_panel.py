@@ -8,6 +8,8 @@ run time.
 
 from __future__ import annotations
 
+import math
+import time
 from concurrent.futures import Future
 from typing import TYPE_CHECKING, Any, Callable
 
@@ -16,9 +18,14 @@ from efem_viz.viewer.rooms.runs import RunSettings
 
 if TYPE_CHECKING:
     from efem_viz.em.results import EMResult
+    from efem_viz.em.solver import StepInfo
     from efem_viz.viewer.jobs import Jobs
     from efem_viz.viewer.panels import Panels
     from efem_viz.viewer.session import ViewerSession
+
+
+PROGRESSIVE_EVERY_S = 1.0
+"""Seconds between two shown states of a running EFEM (the first step and the last are always shown)."""
 
 
 class RunPanel:
@@ -29,14 +36,18 @@ class RunPanel:
         panels: the viewer's panels (buttons, progress bar, progress line).
         jobs: the viewer's worker threads (runs go to `jobs.runner`).
         show_result: shows a finished run's result (`ViewerApp.set_result`).
+        progressive_every_s: the run is shown as it goes, its proposals at the newest step and the instances
+            accepted so far, at most this often (None: only the finished result).
     """
 
     def __init__(self, session: ViewerSession, panels: Panels, jobs: Jobs, *,
-                 show_result: Callable[[EMResult, str], None]) -> None:
+                 show_result: Callable[[EMResult, str], None],
+                 progressive_every_s: float | None = PROGRESSIVE_EVERY_S) -> None:
         self.session = session
         self.panels = panels
         self.jobs = jobs
         self.show_result = show_result
+        self.progressive_every_s = progressive_every_s
 
     def start_run(self, settings: RunSettings | None = None, **knobs: Any) -> Future[EMResult | None] | None:
         """Run EFEM on the open scene in the runner thread (progress bar, cancel) with `RunSettings.of(settings,
@@ -51,10 +62,23 @@ class RunPanel:
 
     def _run_job(self, settings: RunSettings, generation: int) -> EMResult | None:
         """The run, in the runner thread: progress per step, the buttons back at the end, the result shown."""
+        last_shown = [-math.inf]
+
+        def on_step(info: StepInfo) -> None:
+            pv.show_run_progress(self.panels, info)
+            every = self.progressive_every_s
+            if every is None or info.partial is None or not self.session.runs.is_current(generation):
+                return
+            now = time.monotonic()
+            if info.step > 0 and now - last_shown[0] < every:
+                return
+            last_shown[0] = now
+            partial = info.partial()
+            self.show_result(partial, f"running: step {info.step + 1} of {info.num_steps}, "
+                                      f"{info.active} proposals alive, {len(partial.instances)} accepted so far")
+
         try:
-            result = self.session.run(settings, show=False,
-                                      on_step=lambda info: pv.show_run_progress(self.panels, info),
-                                      generation=generation)
+            result = self.session.run(settings, show=False, on_step=on_step, generation=generation)
         finally:
             with self.session.lock:
                 pv.show_running(self.panels, False)

@@ -81,6 +81,9 @@ class ViewerCore:
         """Told every status change (the app shows it in the GUI)."""
         self.generation = 0
         """Bumped on every scene/result change so stale worker results are dropped."""
+        self.scene_generation = 0
+        """Bumped when another scene is opened: a run's ticket (its result is dropped when the scene changed; the
+        run's own results as it goes do not change it)."""
         self.mask_version = 0
         """Bumped whenever the shown masks change within one result (colour caches key on it)."""
         self.no_shapes_generation = -1

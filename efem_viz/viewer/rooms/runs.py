@@ -55,7 +55,7 @@ class RunRoom:
         """The source line of the last finished run ("run (preset, seed, time)")."""
 
     def begin_run(self) -> int | None:
-        """Mark a run as started (`state.running`). Returns its ticket (the scene generation), or None (status
+        """Mark a run as started (`state.running`). Returns its ticket (`core.scene_generation`), or None (status
         says why) when a run is in progress or no scene is open."""
         with self.core.lock:
             if self.core.state.running:
@@ -66,7 +66,7 @@ class RunRoom:
                 return None
             self.core.state.running = True
             self.core.cancel_event.clear()
-            return self.core.generation
+            return self.core.scene_generation
 
     def run(self, settings: RunSettings | None = None, *, on_step: ProgressCallback | None = None, show: bool = True,
             generation: int | None = None) -> EMResult | None:
@@ -100,7 +100,7 @@ class RunRoom:
         finally:
             with self.core.lock:
                 self.core.state.running = False
-        if generation != self.core.generation:
+        if generation != self.core.scene_generation:
             logger.info("scene changed during the run; result dropped")
             return None
         self.last_run_source = f"run ({settings.preset}, seed {settings.seed}, {time.perf_counter() - t0:.1f} s)"
@@ -119,6 +119,10 @@ class RunRoom:
         priors = self.core.priors.solve_priors()
         return run_em(scene, cfg=cfg, priors=priors, seed=int(settings.seed), on_step=on_step,
                       cancel=self.core.cancel_event)
+
+    def is_current(self, generation: int) -> bool:
+        """Whether a run's ticket is still the open scene's (results of a run on another scene are dropped)."""
+        return generation == self.core.scene_generation
 
     def cancel_run(self) -> None:
         """Ask a running EM to stop at its next step."""

@@ -68,6 +68,7 @@ class SceneRoom:
             if s.running:
                 self.core.cancel_event.set()  # the run belongs to the previous scene
             self.core.forget_views()
+            self.core.scene_generation += 1
             s.scene_name, s.scene, s.result, s.result_source = entry.name, scene, None, ""
             s.step, s.selected, s.color_mode, s.view_mode = 0, None, "rgb", "result"
             if scene.is_mesh and s.display == "points":
