@@ -182,7 +182,8 @@ def test_import_scan_then_segment_writes_results_back_on_the_files_own_vertices(
         (tmp_path / "in" / copy).write_bytes((tmp_path / name).read_bytes())
     seg = subprocess.run([sys.executable, "-m", "efem_viz.cli", "segment", str(tmp_path / "in"), "--out",
                           str(tmp_path / "out"), "--prior", "sphere", "--proposals", "8", "--frame", "original",
-                          "--threads", "1"], capture_output=True, text=True, env=env, timeout=1200)
+                          "--threads", "1", "--export-objects", str(tmp_path / "objects"), "--object-format", "ply"],
+                         capture_output=True, text=True, env=env, timeout=1200)
     assert seg.returncode == 0, seg.stdout + seg.stderr
     assert "read as millimetres, +Y up (detected)" in seg.stdout + seg.stderr  # the PCD opened directly
     for name in ("phone", "phone_scene"):
@@ -192,6 +193,14 @@ def test_import_scan_then_segment_writes_results_back_on_the_files_own_vertices(
         assert objects["frame"] == "original (mm)" and objects["scan_frame"]["up"] == "+y"
         for obj in objects["instances"]:  # boxes in millimetres, around the file's points
             assert 1.0 < max(obj["obb"]["half_extents"]) < 1000.0
+        exported = json.loads((tmp_path / "objects" / name / "objects.json").read_text())
+        assert exported["instances"] == [{**o, "mesh": e["mesh"]} for o, e in zip(objects["instances"],
+                                                                                  exported["instances"])]
+        assert len(exported["instances"]) > 0, "the spheres' stand-ins were found"
+        for obj in exported["instances"]:  # each completed mesh, in millimetres, inside its own box
+            mesh = load_scene(tmp_path / "objects" / name / obj["mesh"])
+            local = (mesh.points - np.array(obj["obb"]["center"])) @ np.array(obj["obb"]["axes"])
+            assert (np.abs(local) <= np.array(obj["obb"]["half_extents"]) * 1.05 + 0.5).mean() > 0.95
 
 
 def test_segment_picks_each_scenes_preset_and_refuses_a_scan_far_from_metric(tmp_path: Path) -> None:

@@ -43,6 +43,11 @@ class SegmentArgs(SolveSettings):
     """cpu or cuda."""
     threshold: float = 0.0
     """Confidence threshold for the coloured PLY (the .efem.npz keeps every instance)."""
+    export_objects: Path | None = None
+    """Also write each scene's completed objects into EXPORT_OBJECTS/<scene>/: one mesh per instance and
+    objects.json (category, confidence, pose, scale, oriented box, mesh file), in the --frame."""
+    object_format: str = "glb"
+    """Mesh format of --export-objects: glb, obj or ply."""
     frame: str = "scene"
     """Frame of <scene>.seg.ply and <scene>.objects.json: scene (metres, +Z up) or original (the scan file's own
     frame and units, for scans brought in by `efem-viz import-scan` or opened directly; docs/OWN_DATA.md)."""
@@ -86,7 +91,9 @@ class SegmentArgs(SolveSettings):
 
         job = BatchJob.create(
             priors=tuple(self.prior or [DEFAULT_PRIOR]), seed=self.seed, device=self.device,
-            threads=self.threads, threshold=self.threshold, frame=self.frame, scannet=self.scannet, ply=self.ply,
+            threads=self.threads, threshold=self.threshold, frame=self.frame,
+            objects_dir=None if self.export_objects is None else str(self.export_objects),
+            objects_format=self.object_format, scannet=self.scannet, ply=self.ply,
             timeout_s=self.scene_timeout, **self.settings(),
         )
         name = self.backend_name()

@@ -70,6 +70,10 @@ class BatchJob(SolveSettings):
     """Write `<scene>.seg.ply`."""
     timeout_s: float | None = None
     """Give up on a scene after this many seconds of solving (it is reported failed; the batch goes on)."""
+    objects_dir: str | None = None
+    """Also write every instance's completed mesh and `objects.json` into `<objects_dir>/<name>/` (absolute)."""
+    objects_format: str = "glb"
+    """Mesh format of `objects_dir`: glb, obj or ply."""
     frame: str = "scene"
     """Frame of the coloured PLY and `<name>.objects.json`: "scene" (metres, +Z up) or "original" (an imported
     scan's own frame and units, `efem_viz.data.scan.ScanFrame`; the scene frame for scenes made in it)."""
@@ -90,6 +94,10 @@ class BatchJob(SolveSettings):
             raise ValueError(f"a prior is given twice: {list(job.priors)}")
         if job.threads is not None and job.threads < 1:
             raise ValueError(f"--threads must be >= 1, got {job.threads}")
+        if job.objects_format not in ("glb", "obj", "ply"):
+            raise ValueError(f"--object-format must be glb, obj or ply, got {job.objects_format!r}")
+        if job.objects_dir is not None:
+            job = dataclasses.replace(job, objects_dir=str(Path(job.objects_dir).expanduser().resolve()))
         if job.frame not in ("scene", "original"):
             raise ValueError(f"--frame must be scene or original, got {job.frame!r}")
         if job.timeout_s is not None and not job.timeout_s > 0:
@@ -183,6 +191,10 @@ class SceneTask:
     def ply_path(self) -> Path:
         """`<out>/<name>.seg.ply`."""
         return self.out / f"{self.name}{SEG_SUFFIX}"
+
+    def objects_folder(self, job: BatchJob) -> Path | None:
+        """`<objects_dir>/<name>/` of a job that exports objects (None otherwise)."""
+        return None if job.objects_dir is None else Path(job.objects_dir) / self.name
 
     @property
     def objects_path(self) -> Path:

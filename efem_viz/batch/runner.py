@@ -226,6 +226,9 @@ def _why_not_done(task: SceneTask, job: BatchJob, fp: str, record: SceneOutcome 
         return f"{task.ply_path.name} missing"
     if job.scannet and not task.scannet_path.is_file():
         return f"{SCANNET_DIR}/{task.scannet_path.name} missing"
+    folder = task.objects_folder(job)
+    if folder is not None and not (folder / "objects.json").is_file():
+        return f"{folder / 'objects.json'} missing"
     return None
 
 

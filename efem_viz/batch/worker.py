@@ -163,10 +163,12 @@ class SceneWorker:
                 out_instances, frame_name = result.instances.transformed(back), f"original ({scan_frame.units})"
             if self.job.ply:
                 out_instances.to_colored_ply(out_scene, task.ply_path, threshold=self.job.threshold)
+            about = {"scene": task.name, "scan_frame": None if scan_frame is None else scan_frame.to_provenance()}
             atomic_write_text(task.objects_path, json.dumps(
-                {"scene": task.name, "frame": frame_name,
-                 "scan_frame": None if scan_frame is None else scan_frame.to_provenance(),
-                 "instances": out_instances.to_json_objects()}, indent=1) + "\n")
+                {**about, "frame": frame_name, "instances": out_instances.to_json_objects()}, indent=1) + "\n")
+            folder = task.objects_folder(self.job)
+            if folder is not None:
+                out_instances.export_objects(folder, fmt=self.job.objects_format, frame=frame_name, extra=about)
             if self.job.scannet:
                 result.instances.to_scannet(task.scannet_path.parent, task.name, scene.num_points)
             result.save(task.result_path)  # last: the commit record of the scene

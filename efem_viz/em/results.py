@@ -192,6 +192,29 @@ class Instances:
                          "half_extents": np.round(self.obb_half_extents[k].astype(np.float64), 7).tolist()}}
                 for k in range(len(self))]
 
+    def export_objects(self, folder: str | os.PathLike[str], *, fmt: str = "glb", frame: str = "scene",
+                       extra: dict[str, Any] | None = None) -> Path:
+        """Write every instance's completed mesh (`<k>_<category>.glb|obj|ply`) and `objects.json` (category,
+        confidence, pose, box and mesh file per instance, plus `extra`) into `folder`; returns the JSON's path.
+
+        Raises:
+            ValueError: an unknown mesh format.
+        """
+        from efem_viz.data.io import atomic_write_bytes, atomic_write_text
+
+        if fmt not in ("glb", "obj", "ply"):
+            raise ValueError(f"unknown object mesh format {fmt!r}; use glb, obj or ply")
+        out = Path(folder)
+        out.mkdir(parents=True, exist_ok=True)
+        objects = self.to_json_objects()
+        for k, obj in enumerate(objects):
+            name = f"{k:03d}_{''.join(c if c.isalnum() else '_' for c in str(self.category[k]))[:40]}.{fmt}"
+            data = self.mesh(k).export(file_type=fmt)
+            atomic_write_bytes(out / name, data if isinstance(data, bytes) else data.encode())
+            obj["mesh"] = name
+        return atomic_write_text(out / "objects.json", json.dumps(
+            {**(extra or {}), "frame": frame, "instances": objects}, indent=1) + "\n")
+
     def above(self, threshold: float) -> "Instances":
         """Instances with confidence ≥ threshold (a view on the stored result; nothing is re-run)."""
         return self.select(confidence_mask(self.confidence, threshold))
