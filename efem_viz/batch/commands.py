@@ -13,7 +13,7 @@ from typing import Annotated
 import tyro
 
 from efem_viz.data.files import NO_SCENES_GIVEN
-from efem_viz.em.config import SolvePresetName, SolveSettings
+from efem_viz.em.config import SolveSettings
 from efem_viz.prior.config import DEFAULT_PRIOR
 
 
@@ -26,9 +26,6 @@ class SegmentArgs(SolveSettings):
 
     scenes: Annotated[list[Path], tyro.conf.Positional]
     """Scene files (.ply/.pcd/.obj/.off/.glb/.npz) and/or folders of them."""
-    preset: SolvePresetName = "auto"
-    """Solver configuration: auto (each scene's own: real for a single-view capture such as an `import-rgbd`
-    frame, else synthetic; each scene's line says which), synthetic, real, real_paper or fast."""
     prior: tyro.conf.UseAppendAction[list[str]] = field(default_factory=list)
     """Shape prior (repeat for several categories in one solve): a name under efem_viz/weights/, "sphere" (the
     analytic sphere) or a .pt path. Default: mug."""

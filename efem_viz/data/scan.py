@@ -116,7 +116,7 @@ def _robust_extent(points: np.ndarray) -> float:
 
 def _spacing(points: np.ndarray, rng: np.random.Generator) -> float:
     """Median distance from 2,000 random points to their nearest neighbour in the whole cloud."""
-    from scipy.spatial import cKDTree
+    from efem_viz._typeshims import cKDTree
 
     probe = points[rng.choice(len(points), size=min(len(points), 2000), replace=False)]
     d, _ = cKDTree(points).query(probe, k=2)

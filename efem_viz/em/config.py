@@ -168,6 +168,12 @@ class EMConfig:
     """Phase-1 duplicate IoU threshold."""
     joint_dup_iou: float = 0.7
     """Phase-2 duplicate IoU threshold."""
+    early_dup_iou: float | None = None
+    """Duplicate IoU threshold of an episode's first `early_dup_steps` steps (None: `dup_iou` throughout). Most
+    first proposals are near-copies of another (their masks overlap by IoU ≥ 0.5); a lower threshold merges them
+    before each costs an encode and a decode per step."""
+    early_dup_steps: int = 2
+    """Steps of an episode that use `early_dup_iou`."""
     joint_incl: float = 0.8
     """Phase-2 inclusion ratio threshold (pairwise)."""
     inclusion: InclusionMode = "paper"
@@ -308,6 +314,12 @@ class EMConfig:
             raise ValueError(f"work_voxel must be >= 0 or None, got {self.work_voxel}")
         if self.tau_out is not None and not 0.0 < self.tau_out <= MAX_TAU_OUT:
             raise ValueError(f"tau_out must be in (0, {MAX_TAU_OUT}] or None, got {self.tau_out}")
+        for nm in ("dup_iou", "joint_dup_iou", "early_dup_iou", "joint_incl"):
+            v = getattr(self, nm)
+            if v is not None and not v > 0.0:  # above 1: the rule never fires
+                raise ValueError(f"{nm} must be > 0, got {v}")
+        if self.early_dup_steps < 0:
+            raise ValueError(f"early_dup_steps must be >= 0, got {self.early_dup_steps}")
         if self.inclusion not in INCLUSION_MODES:
             raise ValueError(f"inclusion must be one of {INCLUSION_MODES}, got {self.inclusion!r}")
         if self.inclusion_by not in INCLUSION_SCORES:
@@ -370,9 +382,10 @@ class SolveSettings:
     """The solver knobs a command or a job sets on top of a preset, declared once: `efem-viz segment`
     (`SegmentArgs`) and batch jobs (`BatchJob`) inherit these fields, and `config()` builds the `EMConfig`."""
 
-    preset: SolvePresetName = "synthetic"
-    """Solver configuration (docs/design/efem-method.md §3.12): synthetic, real, real_paper, fast, or auto (each
-    scene's own: real for a single-view capture, else synthetic); category sizes and τ_out come with each prior."""
+    preset: SolvePresetName = "auto"
+    """Solver configuration (docs/design/efem-method.md §3.12): auto (each scene's own: real for a single-view
+    capture such as an `import-rgbd` frame, else synthetic; `segment` names it on each scene's line), synthetic,
+    real, real_paper or fast; category sizes and τ_out come with each prior."""
     proposals: int | None = None
     """Override the number of proposals (first episode)."""
     work_voxel: float | None = None

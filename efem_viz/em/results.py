@@ -209,8 +209,8 @@ class Instances:
         objects = self.to_json_objects()
         for k, obj in enumerate(objects):
             name = f"{k:03d}_{''.join(c if c.isalnum() else '_' for c in str(self.category[k]))[:40]}.{fmt}"
-            data = self.mesh(k).export(file_type=fmt)
-            atomic_write_bytes(out / name, data if isinstance(data, bytes) else data.encode())
+            data: Any = self.mesh(k).export(file_type=fmt)
+            atomic_write_bytes(out / name, data if isinstance(data, bytes) else str(data).encode())
             obj["mesh"] = name
         return atomic_write_text(out / "objects.json", json.dumps(
             {**(extra or {}), "frame": frame, "instances": objects}, indent=1) + "\n")

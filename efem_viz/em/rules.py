@@ -307,6 +307,8 @@ def _too_small(ctx: StepContext) -> list[Kill]:
 
 def _duplicates(ctx: StepContext) -> list[Kill]:
     thr = ctx.cfg.dup_iou if ctx.phase == 1 else ctx.cfg.joint_dup_iou
+    if ctx.cfg.early_dup_iou is not None and ctx.local_step < ctx.cfg.early_dup_steps:
+        thr = ctx.cfg.early_dup_iou
     return find_duplicates(ctx.sets, ctx.stationary, thr, active=ctx.active)
 
 

@@ -158,8 +158,10 @@ def _body(p: Path, offset: int, row: np.dtype, points: int, kind: str) -> np.nda
     """The (points,) structured array of the body, bounds-checked against the file's size."""
     file_size = p.stat().st_size
     body_bytes = file_size - offset
+    names: tuple[str, ...] = tuple(row.names or ())
+    fields: dict[str, Any] = {str(k): v for k, v in (row.fields or {}).items()}
     if kind == "ascii":
-        if body_bytes < 2 * points * len(row.names) - 1:  # every value takes at least a digit and a separator
+        if body_bytes < 2 * points * len(names) - 1:  # every value takes at least a digit and a separator
             raise SceneError(f"PCD header declares {points:,} points but the file holds {body_bytes:,} bytes of text")
         with open(p, "rb") as fh:
             fh.seek(offset)
@@ -170,12 +172,12 @@ def _body(p: Path, offset: int, row: np.dtype, points: int, kind: str) -> np.nda
                 flat = np.fromstring(text.decode("ascii", errors="replace").replace("\ufffd", "?"), sep=" ")
         except (ValueError, DeprecationWarning):
             raise SceneError("the PCD body holds a value that is not a number: damaged file") from None
-        width = len(row.names)
+        width = len(names)
         if len(flat) != points * width:
             raise SceneError(f"PCD body holds {len(flat):,} values, the header declares {points:,} x {width}")
         vals = flat.reshape(points, width)
         arr = np.zeros(points, dtype=row)
-        for j, name in enumerate(row.names):
+        for j, name in enumerate(names):
             arr[name] = vals[:, j]
         return arr
     need = points * row.itemsize
@@ -199,8 +201,8 @@ def _body(p: Path, offset: int, row: np.dtype, points: int, kind: str) -> np.nda
     # binary_compressed stores the fields one after another (column-major)
     arr = np.zeros(points, dtype=row)
     pos = 0
-    for name in row.names:
-        dt = row.fields[name][0]
+    for name in names:
+        dt = fields[name][0]
         arr[name] = np.frombuffer(raw, dtype=dt, count=points, offset=pos)
         pos += points * dt.itemsize
     return arr
@@ -221,7 +223,7 @@ def load(p: Path, max_points: int) -> dict[str, Any]:
         if np.isfinite(nrm).all() and (np.linalg.norm(nrm, axis=1) > 0).all():
             out["normals"] = nrm
     for colour in ("rgb", "rgba"):
-        if colour in names and row.fields[colour][0].itemsize == 4:
+        if colour in names and dict(row.fields or {})[colour][0].itemsize == 4:
             packed = arr[colour].view("<u4")[valid]
             out["colors"] = np.stack([(packed >> 16) & 255, (packed >> 8) & 255, packed & 255],
                                      axis=1).astype(np.uint8)
