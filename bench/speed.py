@@ -15,7 +15,7 @@ Variants:
 * `two_pass`: fused VN kernels, pose search on 1000 samples, the E-step's SDF and band normals in two decoder
   passes (an SDF pass, then autograd on the band: `EFEM_VIZ_ONE_PASS=0`);
 * `fast`: as `two_pass`, with one decoder pass and a hand-made backward on the band (`EFEM_VIZ_ONE_PASS=1`,
-  not the default: see `efem_viz.em.decoding.one_pass_enabled`).
+  the default: see `efem_viz.em.decoding.one_pass_enabled`).
 
 `--busy N` runs N one-thread busy loops beside the solves (issue 32 item 4: a solve must slow down by about its
 fair share). `--profile` prints the top functions of one run per variant.

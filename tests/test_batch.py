@@ -258,6 +258,26 @@ def test_one_batch_per_output_folder(tmp_path: Path) -> None:
     assert not (out / ".batch.lock").exists()
 
 
+def test_the_output_folder_among_the_inputs_is_said(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """`segment out/ --out out/`: the folder's own segmentation outputs are left out with a warning; another run's
+    outputs given as inputs are segmented, with a warning that their labels are predictions."""
+    import logging
+    import shutil
+
+    from efem_viz.data.scene import Scene
+
+    names = sphere_folder(tmp_path / "out", 2)
+    save_scene(Scene.create("s0", np.random.default_rng(0).normal(size=(50, 3))), tmp_path / "out" / "s0.seg.ply")
+    (tmp_path / "other").mkdir()
+    shutil.copy(tmp_path / "out" / "s0.seg.ply", tmp_path / "other" / "x.seg.ply")
+    job = BatchJob.create(priors=("sphere",), preset="fast")
+    with caplog.at_level(logging.WARNING, logger="efem_viz.batch.runner"):
+        plan = plan_batch(job, [tmp_path / "out", tmp_path / "other"], tmp_path / "out")
+    assert {t.name for t in plan.tasks} == {*names, "x.seg"}
+    assert "its 1 segmentation output(s) (*.seg.ply) are not segmented again" in caplog.text
+    assert "1 input(s) are segmentation outputs of another run" in caplog.text
+
+
 # ---------------------------------------------------------------------------------------------- failures
 def test_bad_scenes_are_reported_and_the_batch_goes_on(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from efem_viz import cli

@@ -266,6 +266,24 @@ def test_guard_fails_loudly_when_the_hook_point_is_gone(monkeypatch: pytest.Monk
         guard.start_server(host="127.0.0.1", port=0)
 
 
+def test_a_busy_port_is_replaced_with_a_notice(caplog: pytest.LogCaptureFixture) -> None:
+    """viser takes the next free port without a word; the server says which port it serves on instead."""
+    import logging
+    import socket
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen(1)
+        port = busy.getsockname()[1]
+        with caplog.at_level(logging.WARNING, logger=guard.logger.name):
+            server, access = guard.start_server(host="127.0.0.1", port=port)
+        try:
+            assert access.port != port and str(access.port) in access.url
+            assert f"port {port} is busy" in caplog.text and f"serving on port {access.port} instead" in caplog.text
+        finally:
+            server.stop()
+
+
 def test_client_cannot_rewrite_control_bounds(annotator: AnnotatorApp) -> None:
     """viser applies any property a client sends; the guard keeps only `value`, so bounds stay the server's."""
     with RawClient(annotator.url) as c:

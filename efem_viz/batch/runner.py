@@ -163,8 +163,15 @@ def plan_batch(
     from efem_viz.data.io import find_scenes
 
     out_dir = Path(out).expanduser().resolve()
-    paths = [p for p in find_scenes(list(scenes))
-             if not (p.name.endswith(SEG_SUFFIX) and p.resolve().parent == out_dir)]
+    found = find_scenes(list(scenes))
+    paths = [p for p in found if not (p.name.endswith(SEG_SUFFIX) and p.resolve().parent == out_dir)]
+    if len(paths) < len(found):
+        logger.warning("the output folder %s is among the inputs: its %d segmentation output(s) (*%s) are not "
+                       "segmented again", out_dir, len(found) - len(paths), SEG_SUFFIX)
+    foreign = [p for p in paths if p.name.endswith(SEG_SUFFIX)]
+    if foreign:
+        logger.warning("%d input(s) are segmentation outputs of another run (e.g. %s): their labels are "
+                       "predictions, not ground truth", len(foreign), foreign[0])
     if not paths:
         raise ValueError(f"no scene files found in {', '.join(str(s) for s in scenes)}" if scenes else
                           NO_SCENES_GIVEN)

@@ -160,9 +160,12 @@ def _vec(v: list[float]) -> str:
 @dataclass
 class ImportRgbdArgs:
     """Import a real RGB-D frame as a tabletop scene (table at z = 0, +Z up), written as a binary PLY (or any
-    scene format, by the suffix of --out).
+    scene format, by the suffix of --out); or a posed RGB-D sequence fused into one scan (--sequence).
 
-    Either give FRAME.npz (arrays rgb, depth_mm or depth, K), or --depth with the intrinsics --fx --fy --cx --cy.
+    Either give FRAME.npz (arrays rgb, depth_mm or depth, K), or --depth with the intrinsics --fx --fy --cx --cy,
+    or --sequence DIR: a 7-Scenes style folder (frame-*.depth.png / .color.png / .pose.txt), ScanNet's exported
+    frames (depth/, color/, pose/, intrinsic/), or depth (and color) images with --poses FILE. Every frame is
+    fused (TSDF), the support plane put at z = 0 and every camera recorded (docs/OWN_DATA.md).
     """
 
     frame: Annotated[Path | None, tyro.conf.Positional] = None
@@ -194,6 +197,14 @@ class ImportRgbdArgs:
     licence: str | None = None
     """The frame's licence, recorded in the scene's provenance (e.g. "CC-BY-4.0, (c) 2025 A. Person"); default:
     none is recorded."""
+    sequence: Path | None = None
+    """A folder of posed RGB-D frames to fuse into one scan (instead of FRAME or --depth)."""
+    poses: Path | None = None
+    """With --sequence: a poses file, one camera-to-world 4x4 per depth image (16 numbers per line or 4 lines)."""
+    every: int = 1
+    """With --sequence: fuse every N-th frame."""
+    depth_scale: float = 1000.0
+    """With --sequence: depth PNG units per metre (1000: millimetres; TUM's files: 5000)."""
 
     def run(self) -> int:
         """Import the frame and save it; returns 0."""
@@ -204,6 +215,8 @@ class ImportRgbdArgs:
 
         console = console()
         t0 = time.perf_counter()
+        if self.sequence is not None:
+            return self._run_sequence(console, t0)
         if (self.frame is None) == (self.depth is None):
             raise SceneError("give either FRAME.npz or --depth (with --fx --fy --cx --cy), not both or neither")
         if self.frame is not None:
@@ -240,6 +253,46 @@ class ImportRgbdArgs:
             f"{time.perf_counter() - t0:.1f} s"
         )
         return 0
+
+    def _run_sequence(self, console: Any, t0: float) -> int:
+        """--sequence: fuse the folder's posed frames into one scene and save it; returns 0."""
+        from efem_viz.data.io import save_scene
+        from efem_viz.data.sequence import import_sequence
+
+        if self.frame is not None or self.depth is not None:
+            raise SceneError("give FRAME.npz, --depth or --sequence, not several")
+        if self.every < 1 or not self.depth_scale > 0:
+            raise SceneError(f"--every must be >= 1 and --depth-scale > 0, got {self.every} and {self.depth_scale}")
+        assert self.sequence is not None
+        name = self.name or self.out.name.split(".")[0]
+        scene = import_sequence(self.sequence, name=name, poses=self.poses, K=_intrinsics_given(self),
+                                every=self.every, voxel=self.voxel, max_depth=self.max_depth,
+                                depth_scale=self.depth_scale, seed=self.seed)
+        if self.licence is not None:
+            scene = scene.replace(provenance={**dict(scene.provenance), "licence": self.licence})
+        save_scene(scene, self.out)
+        b = scene.bounds
+        console.print(f"[green]wrote[/] {self.out}: {scene.provenance['frames']} frames ({scene.provenance['layout']}) "
+                      f"fused into {scene.num_points:,} points, extent {[round(float(v), 3) for v in b[1] - b[0]]} m, "
+                      f"{time.perf_counter() - t0:.1f} s")
+        return 0
+
+
+def _intrinsics_given(args: ImportRgbdArgs) -> np.ndarray | None:
+    """--fx --fy --cx --cy as a K matrix (None when none is given).
+
+    Raises:
+        SceneError: some given and not all, or a focal length that is not positive.
+    """
+    intr = (args.fx, args.fy, args.cx, args.cy)
+    if all(v is None for v in intr):
+        return None
+    if any(v is None for v in intr):
+        raise SceneError("give all four intrinsics --fx --fy --cx --cy")
+    fx, fy, cx, cy = (float(v) for v in intr)  # type: ignore[arg-type]
+    if not (fx > 0 and fy > 0):
+        raise SceneError(f"focal lengths must be positive, got fx={fx}, fy={fy}")
+    return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=np.float64)
 
 
 def read_depth_image(path: Path) -> np.ndarray:

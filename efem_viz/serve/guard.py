@@ -545,8 +545,10 @@ def start_server(*, host: str = "127.0.0.1", port: int = 8080, token: str | None
     except GuardUnavailableError:
         server.stop()
         raise
-    return server, ServerAccess(token=policy.token, bind_host=host, port=int(server.get_port()),
-                                url_host=policy.url_host)
+    actual = int(server.get_port())
+    if port and actual != port:  # viser takes the next free port without a word: say so
+        logger.warning("port %d is busy (another server?): serving on port %d instead", port, actual)
+    return server, ServerAccess(token=policy.token, bind_host=host, port=actual, url_host=policy.url_host)
 
 
 def _rich_console() -> Any:
