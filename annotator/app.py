@@ -513,5 +513,5 @@ class AnnotatorApp(ServedApp):
             self.server.stop()
         finally:
             self.session.close()
-            self.session.scan.stop_warm_up()  # a Ctrl+C right after start: the warm-up stops (issue 36)
+            self.session.scan.stop_warm_up()  # a Ctrl+C right after start: the warm-up stops
             self._worker.join(timeout=10)

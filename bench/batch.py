@@ -1,4 +1,4 @@
-"""Batch segmentation throughput (issue 16): the same 12 scenes on the `local`, `process` and `ray` backends.
+"""Batch segmentation throughput: the same 12 scenes on the `local`, `process` and `ray` backends.
 
 Each backend runs the real `efem-viz segment` CLI in a fresh process (`--force`, so every scene is computed) on
 seeded synthetic scans (`generate_scene("z", seed=9100+k, n_objects=3, distractors=False)`, cached under

@@ -1,4 +1,4 @@
-"""Profile first (issue 24): does bf16 pay for the shipped prior's decoder and encoder on this CPU, and what does it
+"""Profile first: does bf16 pay for the shipped prior's decoder and encoder on this CPU, and what does it
 change?
 
 The EM E-step decodes (proposal, scene point) queries in padded groups, `ShapePrior.sdf(x (B, Q, 3), latent)`;
@@ -7,7 +7,7 @@ the M-step encodes batches of `n_pcl`-point clouds. This bench times both on the
 procedural mugs, queries around their surfaces as an E-step sees them), and reports the SDF error bf16 makes:
 the median and 99th percentile |Δ SDF| (canonical units) and the fraction of queries within the solver's bands
 (|SDF| ≤ 0.15) whose inside/outside or in-band verdict flips. No solver change: this decides whether the
-decoder's matrix work can move to bf16 (`EMConfig` knob, issue 24 item 2).
+decoder's matrix work can move to bf16 (`EMConfig` knob).
 
 Usage: python bench/decoder_bf16.py [--threads 2] [--repeats 5] [--profile]
 Writes bench/results/decoder_bf16.json. Run on a quiet machine; say the thread count with the numbers.

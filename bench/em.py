@@ -16,7 +16,7 @@ notes do not say whether the paper's synthetic mug scenes held other objects, so
 writes bench/results/em_no_distractors.json. The targets stay judged on the default set.
 
 `--config NAME=key=value;...` (repeated) compares solver configs in one run: every scene is run by each config in
-turn, and the table gives AP per configuration and the median seconds of each (issue 24: `--config fp32=
+turn, and the table gives AP per configuration and the median seconds of each (`--config fp32=
 --config "bf16=matmul_dtype='bfloat16'"`).
 
 Usage: python bench/em.py [--quick] [--prior mug] [--threads 2] [--mode points] [--skip-accuracy]
@@ -224,7 +224,7 @@ def main() -> int:
                          "the viewer (efem-viz view DIR) or re-score them; with --config, one sub-folder per config)")
     ap.add_argument("--configs", nargs="+", default=list(CONFIGS[:3]), choices=CONFIGS,
                     help="scene configurations of the fixed set (default z so3 pile; the arrangements tree box "
-                         "shelf are their own rows, issue 26)")
+                         "shelf are their own rows)")
     ap.add_argument("--config", action="append", default=None, metavar="NAME=key=value;...",
                     help="compare solver configs in one run: each scene is run with every config in turn (values are "
                          "Python literals on top of --preset), e.g. --config fp32= --config "

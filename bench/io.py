@@ -8,7 +8,7 @@
 Prints medians and writes bench/results/io.json. `--only` runs just the named format rows (no RGB-D import)
 and updates those rows in an existing io.json measured at the same `--points`.
 
-3. `--normals N [N ...]` runs only the point-cloud-without-normals benchmark (issue 13 item 10): a binary PLY
+3. `--normals N [N ...]` runs only the point-cloud-without-normals benchmark: a binary PLY
    of N points on a random surface (a wavy table plus 8 spheres, 1 mm noise, seed 0) and no normals; each
    measurement runs in a fresh 1-thread process (so peak RSS is its own): `info` = `load_scene` + `summary`
    (what `efem-viz info` does), `normals` = that plus reading `scene.normals`. `--root DIR` measures another

@@ -1,4 +1,4 @@
-"""A learned confidence against look-alikes (issue 33 item 3), screened on saved runs without a re-run.
+"""A learned confidence against look-alikes, screened on saved runs without a re-run.
 
 Every accepted fit of the saved runs (`bench/ranking.py`'s `fits_of`) becomes a feature vector of its review
 features (stationary score, coverage, pose score, size, up angle, seen-through fraction, mask size); the label is

@@ -1,4 +1,4 @@
-"""Issue 34 item 1: is the mug prior capacity-bound, and where on a mug does its error sit?
+"""is the mug prior capacity-bound, and where on a mug does its error sit?
 
 For each prior given (default: the shipped `mug.pt`) and for training objects and held-out objects alike (the first
 `--n` of each procedural split, the same data recipe as training), with clean multi-view inputs and with the

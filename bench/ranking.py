@@ -1,4 +1,4 @@
-"""Ranking without re-running EFEM (issue 33 item 1): every reviewed fit of saved runs, its review features, what
+"""Ranking without re-running EFEM: every reviewed fit of saved runs, its review features, what
 it covers in the ground truth, and AP50 / top-1 under any scoring rule in seconds.
 
 Input: folders of saved runs, each holding `<scene>.ply` (with instance labels and categories) and
@@ -22,10 +22,10 @@ fit would also hold its points against later episodes). Screen rules here, then 
 
 `--lateral 0 0.005 0.01` re-measures every fit's seen-through fraction with the free-space check's sideways
 tolerance (`EMConfig.seen_through_lateral`) from its stored mesh and scores "kill above `--limit`, confidence x
-(1 - fraction)" for each (issue 33 item 2), without a re-run.
+(1 - fraction)" for each, without a re-run.
 
 `--lost` says why each mug that no accepted instance matches was lost: the best reviewed fit of it and how that
-proposal ended ("included" in a wider fit, "duplicated", a review rule) or "no good fit" (issue 33 item 4).
+proposal ended ("included" in a wider fit, "duplicated", a review rule) or "no good fit".
 
 Usage: python bench/ranking.py DIR [DIR ...] [--lateral M ...] [--lost] [--json bench/results/ranking_<tag>.json]
 """
@@ -170,7 +170,7 @@ def fits_of(folder: Path, laterals: list[float] | None = None) -> list[Fit]:
 def lost_mugs(folder: Path) -> list[dict[str, Any]]:
     """Why each mug that no accepted instance matches (IoU >= 0.5) was lost: the reviewed fit of it with the best
     IoU (any proposal's last review) and how that proposal ended — "included" in a wider fit, "duplicated",
-    killed by a review rule, ... — or "no good fit" when no proposal ever held it (issue 33 item 4)."""
+    killed by a review rule, ... — or "no good fit" when no proposal ever held it."""
     from efem_viz.data.io import load_scene
     from efem_viz.em.results import EMResult
 

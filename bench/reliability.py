@@ -1,4 +1,4 @@
-"""Reliability of the full `efem-annotate` CLI, measured (issue 13): edits acknowledged vs recovered.
+"""Reliability of the full `efem-annotate` CLI, measured: edits acknowledged vs recovered.
 
 Every number comes from the real CLI process driven by the scripted WebSocket client in tests/viser_client.py
 (an edit is *acknowledged* when the server has sent the instance table that shows it):
@@ -15,10 +15,10 @@ Every number comes from the real CLI process driven by the scripted WebSocket cl
   its sending order, and the latency from send to the first table update after the edit was journalled.
 * fuzz: the loader fuzzer of tests/test_fuzz_loaders.py (inputs per loader, errors by kind, worst time and
   peak memory).
-* hostile-prior (issue 25): `efem-viz segment --prior` on a few-KB prior file declaring a huge decoder as
+* hostile-prior: `efem-viz segment --prior` on a few-KB prior file declaring a huge decoder as
   zero-stride views (20,000 and 200,000 wide), and on one with plausible sizes but view weights: exit status,
   error lines, seconds and peak memory of the CLI process.
-* links (issue 25): the real `efem-viz view` CLI and a scripted client pressing *Export results* into folders of
+* links: the real `efem-viz view` CLI and a scripted client pressing *Export results* into folders of
   the output root where a link leads out (a `pred_mask` folder link, a file link, a folder link inside the root
   whose `pred_mask` leads out): refused or not, and files written outside and inside.
 
@@ -215,7 +215,7 @@ def bench_damage(tmp: Path, seed: int) -> dict[str, Any]:
                 ckpt.unlink()
         elif case == "end":
             journal.write_bytes(bytes(data[: offs[len(offs) - 3]]))
-        elif case == "half-no-checkpoint":  # edit records cut to half, inside a record; checkpoint deleted (issue 25)
+        elif case == "half-no-checkpoint":  # edit records cut to half, inside a record; checkpoint deleted
             half = offs[1] + (len(data) - offs[1]) // 2
             half += 7 if half in offs else 0
             journal.write_bytes(bytes(data[:half]))

@@ -1,4 +1,4 @@
-"""Is the depth-sensor model of the training inputs (`prior.data.SensorModel`) like the real frames? (issue 21)
+"""Is the depth-sensor model of the training inputs (`prior.data.SensorModel`) like the real frames?
 
 For every real frame (the nine UOIS RealSense frames and the PCL textured-stereo frame of ``../shared/data``):
 back-project the full-resolution depth, fit the table plane (`data.rgbd.find_support_plane`), and measure on the

@@ -1,4 +1,4 @@
-"""EFEM in seconds (issue 32): per-phase seconds of one solve, before and after the speed work, same answers.
+"""EFEM in seconds: per-phase seconds of one solve, before and after the speed work, same answers.
 
 For each scene (default: the bundled real frames `real_tabletop_{0,6,8}` with the `real` preset and the fixed
 synthetic scene `z_7000` of bench/em.py with the `synthetic` preset; 400 proposals) and each variant, runs the
@@ -17,7 +17,7 @@ Variants:
 * `fast`: as `two_pass`, with one decoder pass and a hand-made backward on the band (`EFEM_VIZ_ONE_PASS=1`,
   the default: see `efem_viz.em.decoding.one_pass_enabled`).
 
-`--busy N` runs N one-thread busy loops beside the solves (issue 32 item 4: a solve must slow down by about its
+`--busy N` runs N one-thread busy loops beside the solves (a solve must slow down by about its
 fair share). `--profile` prints the top functions of one run per variant.
 
 Usage: python bench/speed.py [--threads 2] [--repeats 3] [--scenes real_tabletop_0 z_7000] [--busy 1]

@@ -1,4 +1,4 @@
-"""Issue 34 item 2: what bf16 (AMX autocast) buys a training step, and what it changes in the loss curve.
+"""what bf16 (AMX autocast) buys a training step, and what it changes in the loss curve.
 
 Every candidate starts from the same prior (the shipped `mug.pt`, grown function-preservingly to the candidate's
 decoder with `prior.widen`), trains `--iterations` steps on the same batches (same seed, same data recipe as the

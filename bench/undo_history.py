@@ -1,4 +1,4 @@
-"""Undo history on a big scan (issue 36 item 5): memory per whole-scan edit, reopening, undoing an old edit.
+"""Undo history on a big scan: memory per whole-scan edit, reopening, undoing an old edit.
 
 Drives `LabelStore` directly (the annotator's one store) on N vertices: two instances, then K edits that each
 repaint every vertex (the worst case: a whole-scan import or fill). Prints and records the resident set after each

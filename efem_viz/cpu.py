@@ -1,4 +1,4 @@
-"""How a process of efem-viz shares the CPU (issue 32 item 4): OpenMP threads that sleep instead of spinning, and
+"""How a process of efem-viz shares the CPU: OpenMP threads that sleep instead of spinning, and
 a torch thread count taken from the cores that are free.
 
 Torch's OpenMP threads spin at every barrier for a while before they sleep. On a machine whose cores are all busy

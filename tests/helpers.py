@@ -56,7 +56,7 @@ def server_signals(*, sigint_ignored: bool = False) -> Callable[[], None]:
 
 
 def expanded_prior(path: Path, config: Any, *, name: str = "hostile") -> Path:
-    """Write a prior file whose every weight is a zero-stride view of one stored float (issue 25 item 1).
+    """Write a prior file whose every weight is a zero-stride view of one stored float.
 
     The file stays a few KB however large `config` makes the network: ``torch.save`` keeps only the one-element
     storage, and ``torch.load`` gives back views of the declared shapes.

@@ -337,7 +337,7 @@ def _iou(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def test_the_prelabel_cut_opens_where_accept_all_accepts_the_best(spheres) -> None:
-    """Issue 37 item 8 (annotator): with every pre-label under the cut, "Accept all ≥ cut" accepted nothing. After
+    """(annotator): with every pre-label under the cut, "Accept all ≥ cut" accepted nothing. After
     an import (a button click), the cut is at most the best unreviewed pre-label's confidence."""
     d, _, _ = spheres
     a = AnnotatorApp(d / "spheres.ply", out_dir=d / "out_cut", port=0, autosave_delay=0)
@@ -900,7 +900,7 @@ def test_the_drag_surface_of_a_reduced_scan_covers_it(tmp_path: Path, monkeypatc
 
 
 def test_run_efem_on_the_open_scan_makes_prelabels(spheres, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Issue 37 item 14: the annotator runs EFEM on the open scan itself (the real solver, the sphere prior in place
+    """the annotator runs EFEM on the open scan itself (the real solver, the sphere prior in place
     of a shipped one): the Run button's run shows progress with what it does, its instances become unreviewed
     pre-labels on unlabelled vertices only, the result is saved beside the journal and imports again, and the
     pre-label cut opens where "Accept all ≥ cut" takes the best."""
@@ -1018,7 +1018,7 @@ def test_run_efem_progress_and_cancel(app: AnnotatorApp, monkeypatch: pytest.Mon
 
 
 def test_tools_show_their_warm_up_until_ready(app: AnnotatorApp) -> None:
-    """Issue 37 item 10: after a scan opens, the Tools folder says which structure is being built and what works
+    """after a scan opens, the Tools folder says which structure is being built and what works
     already, and the words go when every tool is ready."""
     deadline = time.monotonic() + 60
     while app.panels.gui_tools_progress.visible and time.monotonic() < deadline:

@@ -142,7 +142,7 @@ def test_damaged_journal_is_reported_in_the_gui(scan: Path, tmp_path: Path) -> N
 
 
 def test_a_journal_cut_short_without_checkpoint_is_not_called_lossless(scan: Path, tmp_path: Path) -> None:
-    """Issue 25 item 4 on the real CLI: after a session, the journal is cut to half its bytes and the checkpoint
+    """on the real CLI: after a session, the journal is cut to half its bytes and the checkpoint
     deleted. Fewer vertices come back, and the GUI says what was verified and what cannot be, never that nothing
     was lost."""
     out = tmp_path / "out"
@@ -226,7 +226,7 @@ def test_real_full_disk_shows_in_the_gui_and_loses_nothing(scan: Path, small_dis
 
 
 def test_a_restart_keeps_the_url_and_says_it_resumed(scan: Path, tmp_path: Path) -> None:
-    """Issue 37 item 15: after a restart the old tab hung on "Connecting…" because the new server drew a new token.
+    """after a restart the old tab hung on "Connecting…" because the new server drew a new token.
     The scan's folder now keeps the token: killed (-9) and restarted on the same scan and --out, the CLI prints the
     same token, says it resumed from the journal and that the URL is the same, and a client using the old URL gets
     in (the old tab reconnecting). The kept token is readable by its owner only."""
@@ -246,7 +246,7 @@ def test_a_restart_keeps_the_url_and_says_it_resumed(scan: Path, tmp_path: Path)
         assert parse_qs(urlsplit(again.url).query)["token"][0] == token
         text = "".join(again.lines)
         assert "resumed from the journal" in text and "same URL as the last run" in text, text
-        # issue 37 item 11: before its URL, the CLI says what the opening does (seconds on a big scan)
+        # before its URL, the CLI says what the opening does (seconds on a big scan)
         stages = [ln.split(": ", 2)[-1] for ln in again.lines if ln.startswith(f"efem-annotate: opening {scan.name}: ")
                   and "estimating normals" not in ln]  # (normals: when the file has none)
         assert [x.split(" ", 2)[:2] for x in stages] == [["reading", "the"], ["opening", "the"], ["starting", "the"],

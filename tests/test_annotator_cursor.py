@@ -1,4 +1,4 @@
-"""The brush cursor (issue 22, item 13) without a browser: the ring's geometry, and where the app draws it (the last
+"""The brush cursor (item 13) without a browser: the ring's geometry, and where the app draws it (the last
 brush position, the current radius, only for tools with a brush radius)."""
 
 from __future__ import annotations

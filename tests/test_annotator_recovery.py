@@ -1,4 +1,4 @@
-"""Journal recovery and write failures (issue 13, items 1-4), at the `LabelStore` level.
+"""Journal recovery and write failures (items 1-4), at the `LabelStore` level.
 
 A damaged record in the middle of the journal, a checkpoint newer than the journal, a failed append (ENOSPC on
 write, EIO on fsync), a different scan with the same vertex count, autosave failures and stale temp files.
@@ -318,7 +318,7 @@ def test_stale_temp_files_of_this_scan_are_removed(tmp_path: Path) -> None:
 
 
 def test_truncated_journal_without_checkpoint_says_what_it_cannot_verify(tmp_path: Path) -> None:
-    """Issue 25 item 4: the journal cut to half its bytes and the checkpoint deleted. The store cannot know how
+    """the journal cut to half its bytes and the checkpoint deleted. The store cannot know how
     many edits followed the cut: the notice says what was verified (the records replayed, where the journal ended,
     that the checkpoint is missing) and what cannot be verified, and never that nothing was lost."""
     s = _store(tmp_path)
@@ -364,7 +364,7 @@ def test_torn_tail_with_a_current_checkpoint_still_cannot_vouch_for_later_edits(
     s2.close()
 
 
-# ---------------------------------------------------------------------------------------------- issue 36 item 5
+# ----------------------------------------------------------------------------------------------
 def _whole_scan_edits(s: LabelStore, k: int) -> list[np.ndarray]:
     """k edits that each repaint every vertex; returns the labels after each (index 0: before the first)."""
     states = [s.labels.copy()]

@@ -207,7 +207,7 @@ def test_lasso_select_equals_box_select_for_a_rectangle_and_respects_facing() ->
 
 
 def test_warm_up_stops_between_structures_once_cancelled(box_on_plane: sel.ScanGeometry) -> None:
-    """Issue 36 item 6: Ctrl+C on a big scan waited for the whole warm-up (60 s). A cancelled warm-up builds
+    """Ctrl+C on a big scan waited for the whole warm-up (60 s). A cancelled warm-up builds
     nothing more; an uncancelled one builds everything and clears its ray-casting flag."""
     import threading
 
@@ -234,7 +234,7 @@ def test_warm_up_stops_between_structures_once_cancelled(box_on_plane: sel.ScanG
 
 
 def test_warm_up_reports_its_stages_and_picks_wait_for_no_ray_caster(box_on_plane: sel.ScanGeometry) -> None:
-    """Issue 37 item 10: on a big scan the tools were ready 8 s after the scan showed, and a click meanwhile waited
+    """on a big scan the tools were ready 8 s after the scan showed, and a click meanwhile waited
     without a word. The warm-up names each structure as it starts (the panel shows it), and while the ray caster
     is being built a pick uses the vertices at once: the same vertex as the exact cast, no ray caster built."""
     import threading
@@ -276,7 +276,7 @@ def _plate_over_table(spacing: float, *, jitter: float = 0.0) -> tuple[sel.ScanG
 
 @pytest.mark.parametrize("tilt_deg", [0.0, 35.0, 60.0])
 def test_lasso_and_box_take_only_what_the_camera_sees(tilt_deg: float) -> None:
-    """Issue 37 item 5: a lasso around an object took the table hidden behind it ("front" keeps whatever faces
+    """a lasso around an object took the table hidden behind it ("front" keeps whatever faces
     the camera). "visible" (the default) takes the plate and the table around it, never the table in its shadow;
     the reference is exact: a table point is hidden when the ray from the camera to it crosses the plate."""
     from efem_viz.geometry.transforms import rotation_to_quat_wxyz

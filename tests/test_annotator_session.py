@@ -273,7 +273,7 @@ def test_tool_settings_by_name() -> None:
 
 
 def test_lasso_takes_only_the_visible_surface_and_says_what_it_left_out(tmp_path: Path) -> None:
-    """Issue 37 item 5 through the session: a lasso around a box standing on a table, seen from the side and above,
+    """through the session: a lasso around a box standing on a table, seen from the side and above,
     takes the box's visible faces and the table around it, not the table hidden behind the box; the history says
     how many hidden vertices were left out. "front" (the old rule) still takes them when asked for."""
     import trimesh
@@ -343,7 +343,7 @@ def _ray_hits_box(origin: np.ndarray, pts: np.ndarray) -> np.ndarray:
 
 
 def test_region_grow_keeps_to_objects_on_an_imported_tabletop(tmp_path: Path) -> None:
-    """Issue 37 item 14: region grow with min height 0 flooded a 15 cm disc of table. On a tabletop imported from an
+    """region grow with min height 0 flooded a 15 cm disc of table. On a tabletop imported from an
     RGB-D frame (the table at z = 0) the min height now starts above the table's fit residual; a grow from a mug's
     side then stays on the mug. Other scans keep 0 (off)."""
     from annotator.session import TABLE_CLEARANCE_MIN, table_clearance

@@ -250,7 +250,7 @@ def test_one_batch_per_output_folder(tmp_path: Path) -> None:
         assert (out / ".batch.lock").is_file()  # the refused batch left the holder's lock alone
     assert not (out / ".batch.lock").exists()
     assert run_batch(job, [scenes], out, backend=make_backend("local")).passed
-    assert not (out / ".batch.lock").exists()  # issue 37 item 3: a finished batch leaves only its results
+    assert not (out / ".batch.lock").exists()  # a finished batch leaves only its results
     # a lock file left by a killed holder (the kernel released its lock) is taken over, then removed
     (out / ".batch.lock").write_text("12345")
     with folder_lock(out):
@@ -503,7 +503,7 @@ def test_a_ray_address_where_nothing_listens_is_one_line_at_once(tmp_path: Path)
 
 
 def test_control_characters_in_scene_names_reach_the_console_escaped(tmp_path: Path) -> None:
-    """Issue 25 item 3, on the real CLI: an ESC sequence and a newline in scene file names (one scene that
+    """on the real CLI: an ESC sequence and a newline in scene file names (one scene that
     segments, one that fails) are printed as visible escapes, in the console lines, the summary table and the log."""
     from efem_viz.prior.analytic import make_sphere_scene
 
@@ -534,8 +534,8 @@ def test_terminal_text_escapes_controls_only() -> None:
 
 
 def test_solve_knobs_are_declared_once_and_reach_the_job(tmp_path: Path) -> None:
-    """`SolveSettings` holds the solver knobs; `efem-viz segment` and `BatchJob` inherit them (issue 23 item 6), so
-    a new knob (matmul_dtype, issue 24) reaches the solver config and the resume fingerprint with no copy."""
+    """`SolveSettings` holds the solver knobs; `efem-viz segment` and `BatchJob` inherit them, so
+    a new knob (matmul_dtype) reaches the solver config and the resume fingerprint with no copy."""
     from efem_viz.batch.commands import SegmentArgs
     from efem_viz.em.config import SolveSettings
 
@@ -582,7 +582,7 @@ def test_free_cores_and_the_wait_policy(monkeypatch: pytest.MonkeyPatch) -> None
 
 
 def test_segment_without_out_writes_to_the_data_folder_and_says_where(tmp_path: Path) -> None:
-    """Issue 37 item 2: without --out, `segment` wrote ./results/ silently (into the checkout when run from it).
+    """without --out, `segment` wrote ./results/ silently (into the checkout when run from it).
     Now the results go to the efem-viz data folder and the first line names it; nothing lands in the cwd."""
     scenes = tmp_path / "scenes"
     names = sphere_folder(scenes, 1)
@@ -599,7 +599,7 @@ def test_segment_without_out_writes_to_the_data_folder_and_says_where(tmp_path: 
 
 
 def test_a_damaged_batch_json_means_recompute_not_a_crash(tmp_path: Path) -> None:
-    """Issue 36 items 10-11: a wrongly typed record ("instances": "many") crashed every resume with "internal
+    """a wrongly typed record ("instances": "many") crashed every resume with "internal
     error: TypeError", and a deeply nested batch.json with RecursionError. On the full CLI: one warning, the
     affected scenes recomputed, the others skipped, exit 0."""
     scenes = tmp_path / "scenes"

@@ -100,7 +100,7 @@ def test_sideways_tolerance_forgives_a_silhouette_overhang_but_not_free_space() 
 
 
 def test_depth_view_memory_is_bounded_by_the_scene_not_the_declared_image() -> None:
-    """A header may declare a 16384 x 16384 image (issue 36): the view keeps only the window the points fall in."""
+    """A header may declare a 16384 x 16384 image: the view keeps only the window the points fall in."""
     cam = Camera(K=np.array([[2000.0, 0, 8191.5], [0, 2000.0, 8191.5], [0, 0, 1]]), T_world_camera=np.eye(4),
                  width=16384, height=16384)
     g = np.linspace(-0.05, 0.05, 50)

@@ -307,7 +307,7 @@ def test_version_flag(capsys: pytest.CaptureFixture[str]) -> None:
     assert capsys.readouterr().out.strip() == f"efem-viz {version('efem-viz')}"
 
 
-# ---------------------------------------------------------------------------------------------- issue 22, item 5
+# ----------------------------------------------------------------------------------------------
 def test_view_refuses_what_it_cannot_show_before_serving(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                                          capsys: pytest.CaptureFixture[str]) -> None:
     """`efem-viz view corrupt.ply` (and a folder without scenes, a scene over --max-points) says why in one line and
@@ -405,7 +405,7 @@ def test_info_calls_a_segment_outputs_labels_predictions(tmp_path: Path, capsys:
 
 @pytest.mark.parametrize("prog", ["efem-viz", "efem-annotate"])
 def test_a_port_out_of_range_is_one_line_and_exit_2_before_anything_starts(prog: str, tmp_path: Path) -> None:
-    """Issue 37 item 1: `--port 99999` printed viser's traceback from its server thread and then hung."""
+    """`--port 99999` printed viser's traceback from its server thread and then hung."""
     if prog == "efem-viz":
         cmd = [sys.executable, "-m", "efem_viz.cli", "view", str(REPO / "sample_scenes"), "--port", "99999"]
     else:
@@ -420,7 +420,7 @@ def test_a_port_out_of_range_is_one_line_and_exit_2_before_anything_starts(prog:
 
 
 def test_info_summarises_and_escapes_what_a_file_says(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """Issue 37 item 4 and issue 36 item 12: `info` summarises by default (--full for every provenance entry),
+    """and `info` summarises by default (--full for every provenance entry),
     prints a scene's own strings inert (no raw terminal escapes, no rich markup), and points from a result file
     to its scene."""
     from efem_viz import cli
@@ -441,7 +441,7 @@ def test_info_summarises_and_escapes_what_a_file_says(tmp_path: Path, capsys: py
 
 
 def test_an_unused_member_of_a_result_file_is_never_inflated(sample: dict[str, Any], tmp_path: Path) -> None:
-    """Issue 36 item 1: a small result file with an extra, highly compressed member cost its inflated size in
+    """a small result file with an extra, highly compressed member cost its inflated size in
     every reader. `EMResult.load` reads the format's keys only (memory measured with tracemalloc, which numpy
     reports its arrays to)."""
     import tracemalloc

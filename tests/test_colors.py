@@ -101,7 +101,7 @@ def test_annotator_new_instances_use_the_palette() -> None:
 
 
 def test_counts_read_as_words() -> None:
-    """Issue 37 item 9: "result: 1 objects". One plural rule for every count a person reads."""
+    """"result: 1 objects". One plural rule for every count a person reads."""
     from efem_viz.terminal import count
 
     assert count(1, "object") == "1 object" and count(0, "object") == "0 objects"

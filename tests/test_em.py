@@ -352,7 +352,7 @@ def _shipped_prior_or_skip() -> object:
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="issue 4's bar (every mug at IoU >= 0.7) is not met by the CPU-trained prior: "
+@pytest.mark.xfail(strict=True, reason="the target (every mug at IoU >= 0.7) is not met by the CPU-trained prior: "
                    "measured per-mug best IoU 0.586 / 0.928 / 0.877 (iteration-29000 prior, its tau_out 0.07). "
                    "strict: once it passes, drop this marker")
 def test_trained_prior_finds_mugs() -> None:
@@ -368,9 +368,9 @@ def test_trained_prior_finds_mugs() -> None:
 def test_shipped_prior_regression_each_mug_found_once() -> None:
     """EM regression with the prior as shipped now (always runs; tolerances set from its measured behaviour).
 
-    Measured with the iteration-29000 prior (session 4; calibrated IoU 0.556 on 96 validation mugs, 1-12 views; its
+    Measured with the iteration-29000 prior (2026-12-01; calibrated IoU 0.556 on 96 validation mugs, 1-12 views; its
     calibrated output band tau_out = 0.07), fast preset, 100 proposals, seed 0: 3 instances with confidences 0.55 /
-    0.52 / 0.93, one per mug; per-mug best IoU 0.586 / 0.928 / 0.877; AP50 = AP25 = 1, AP 0.70. (Session 3's
+    0.52 / 0.93, one per mug; per-mug best IoU 0.586 / 0.928 / 0.877; AP50 = AP25 = 1, AP 0.70. (The earlier
     iteration-21000 prior: 0.654 / 0.726 / 0.836, AP 0.49.)
     On an Intel Xeon with AVX-512 (2026-12-04) the same run's float rounding gives 0.494 / 0.915 / 0.910: the weakest
     mug sits at the 0.5 line, one machine above it, one below. The bars hold on both: every mug covered at
@@ -535,7 +535,7 @@ def test_run_em_prior_arguments_are_checked() -> None:
 
 
 def test_a_malformed_recorded_camera_is_said_on_the_cli_and_in_the_result(tmp_path: Path) -> None:
-    """Issue 36 item 7: a scene whose recorded capture camera cannot be used runs without the free-space check,
+    """a scene whose recorded capture camera cannot be used runs without the free-space check,
     and says so: one warning line on the full CLI naming the problem, and the saved result's `warnings`."""
     import os
     import subprocess

@@ -180,7 +180,7 @@ def test_inclusion_kill_takes_effect_immediately() -> None:
 
 
 def test_inclusion_modes_decide_by_the_stationary_score() -> None:
-    """Issue 33: a fit wider than its object (two mugs, a mug and the table) includes a better fit of one of them;
+    """a fit wider than its object (two mugs, a mug and the table) includes a better fit of one of them;
     the paper kills the better one. "score" keeps both unless the includer scores at least as high, "swap" kills
     the includer instead."""
     big = list(range(0, 50))
@@ -256,7 +256,7 @@ def test_capped_confidence_is_the_papers_confidence() -> None:
 
 
 def test_confidence_inclusion_spares_a_tight_fit_inside_a_wide_one() -> None:
-    """Issue 33 (tree and box scenes): a fit over two mugs (a, 30 points, stationary 0.9) holds all of a tight
+    """(tree and box scenes): a fit over two mugs (a, 30 points, stationary 0.9) holds all of a tight
     fit of one of them (b, 19 points, stationary 0.6; a holds only 19/30 of a's own points in b, so a is not
     included in b). By stationary score b dies in every mode. The wide fit's completed shape is mostly
     unobserved (coverage 0.05 against 0.35), so by confidence (0.9 · 0.05/0.4 = 0.11 against 0.6 · 0.35/0.4 =
@@ -349,14 +349,14 @@ def test_schedule_real_paper(t: int, expected: tuple[float, ...]) -> None:
 def test_real_preset_is_the_paper_one_with_the_measured_changes() -> None:
     """`real` = §3.12's real settings (`real_paper`) + the session-8 changes for noisy single-view frames + the
     session-13 learned mug-vs-look-alike confidence + the session-14 inclusion rule that spares the better fit
-    (by stationary score; the synthetic presets compare the confidence since session 15)."""
+    (by stationary score; the synthetic presets compare the confidence)."""
     real, paper = preset("real"), preset("real_paper")
     assert dataclasses.replace(real, name="real_paper", tau_d=paper.tau_d, tau_n=paper.tau_n, m_step_replace=True,
                                seen_through_margin=None, max_seen_through=paper.max_seen_through,
                                mug_model=None, inclusion="paper") == paper
     assert real.mug_model == "mug_uois_tune" and paper.mug_model is None and real.pose_weight == 0.0
     assert real.inclusion == "score" and real.inclusion_by == "stationary" and paper.inclusion == "paper"
-    for name in ("synthetic", "fast"):  # session 15: the better-explained fit is spared
+    for name in ("synthetic", "fast"):  # the better-explained fit is spared
         assert (preset(name).inclusion, preset(name).inclusion_by) == ("score", "confidence")
     assert schedule(real, 0) == pytest.approx((3.0, 0.15, 0.003, 180.0))
     assert not real.m_step_replace and real.seen_through_margin == 0.01 and real.max_seen_through == 0.15
@@ -381,7 +381,7 @@ def test_presets_follow_the_spec_table() -> None:
     mug = category_settings("mug")
     real_mug, syn_mug = resolve_for_prior(real, _Named("mug")), resolve_for_prior(syn, _Named("mug"))
     assert real_mug.scale_horizontal == (0.03, 0.08) and real_mug.scale_height == (0.015, 0.10)
-    assert syn_mug.scale_horizontal == (0.03, 0.08) and syn_mug.scale_height == (0.015, 0.30)  # issue 33 item 4
+    assert syn_mug.scale_horizontal == (0.03, 0.08) and syn_mug.scale_height == (0.015, 0.30)
     assert syn_mug.up_range == mug.up_range == (0.0, 180.0) and syn_mug.tau_out == 0.04
     # an explicit value in the config wins over the category's
     assert resolve_for_prior(real.replace(scale_horizontal=(0.01, 0.5)), _Named("mug")).scale_horizontal == (0.01, 0.5)
@@ -439,7 +439,7 @@ def test_confidence_formula() -> None:
     assert confidence(0.0, 1.0) == 0.0
     with pytest.raises(ValueError):
         confidence(0.5, 0.5, cap=0.0)
-    # the pose-score factor (issue 33): min(1, pose / ref)^w, off without a pose score or with w = 0
+    # the pose-score factor: min(1, pose / ref)^w, off without a pose score or with w = 0
     assert confidence(0.8, 0.2, pose=0.3, pose_weight=2.0, pose_ref=0.6) == pytest.approx(0.4 * 0.25)
     assert confidence(0.8, 0.2, pose=0.9, pose_weight=2.0, pose_ref=0.6) == pytest.approx(0.4)
     assert confidence(0.8, 0.2, pose=-0.2, pose_weight=2.0) == 0.0
@@ -548,7 +548,7 @@ def test_nan_centre_owns_no_points() -> None:
 
 
 def test_review_rules_decide_from_the_measures() -> None:
-    """The size and up verdicts are the rules' (issue 23 item 5): with a resolved config the rule decides from the
+    """The size and up verdicts are the rules': with a resolved config the rule decides from the
     record's radii and up angle, whatever verdict the record carries; without a config it keeps the stored one."""
     from efem_viz.em.rules import ReviewRecord, size_passes, up_passes
 

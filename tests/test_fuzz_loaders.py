@@ -1,4 +1,4 @@
-"""Fuzz every loader (issue 13 item 13): each input gives a valid object or one clear error, in bounded time and
+"""Fuzz every loader: each input gives a valid object or one clear error, in bounded time and
 memory, and nothing is written.
 
 Loaders: `load_scene` on PLY (binary and ASCII), OBJ, OFF, NPZ (scene and RGB-D frame) and GLB; RGB-D frame
@@ -1019,7 +1019,7 @@ def format_bad(res: dict[str, Any]) -> str:
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="the fuzzer forks one child per input")
 def test_every_loader_gives_a_valid_object_or_one_clear_error() -> None:
     # The work is counted: 28 inputs per loader (about 30 s on a quiet core). The wall-clock budget is only a hang
-    # guard (20× that), so a loaded machine runs the same inputs, slower (issue 25 item 6).
+    # guard (20× that), so a loaded machine runs the same inputs, slower.
     res = run_fuzz(budget_s=600.0, seed=0, per_loader=28)
     json.dumps(res)  # bench/reliability.py writes it as JSON
     assert res["bad"]["count"] == 0, format_bad(res)
@@ -1031,7 +1031,7 @@ def test_every_loader_gives_a_valid_object_or_one_clear_error() -> None:
 
 
 def _found_cases(tmp: Path) -> dict[str, tuple[Callable[[Path], Any], Path, Callable[[Any], None] | None]]:
-    """The inputs the fuzzer found bad (before the fixes of issue 13 item 13), rebuilt deterministically.
+    """The inputs the fuzzer found bad (before their fixes), rebuilt deterministically.
 
     Returns:
         name -> (loader, input, None for "one clear error expected" or the check of the object it must return).

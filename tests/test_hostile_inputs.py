@@ -1,4 +1,4 @@
-"""Hostile and corrupt scene files (issue 13 items 9, 10, 12): one clear `SceneError`, in bounded time and memory.
+"""Hostile and corrupt scene files: one clear `SceneError`, in bounded time and memory.
 
 Files whose header claims huge counts are loaded in a child process under an address-space limit
 (`load_bounded`), so that a regression fails fast with MemoryError instead of eating the machine's memory
@@ -231,7 +231,7 @@ def test_off_and_obj_counts(tmp_path: Path) -> None:
     off.write_text("OFF\n3 900 0\n0 0 0\n1 0 0\n0 1 0\n")
     with pytest.raises(SceneError, match=r"declares 900 faces, more than the limit of 400"):
         load_scene(off, max_points=100)
-    off.write_text("OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n3 0 2 1\n")  # issue 13 item 12, for OFF
+    off.write_text("OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n3 0 2 1\n")  # for OFF too
     with pytest.raises(SceneError, match=r"more rows than its header declares \(3 vertices, 1 faces\).*'3 0 2 1'"):
         load_scene(off)
     off.write_text("OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n\n# a comment\n  \n")

@@ -24,7 +24,7 @@ def test_point_normals_face_the_sensor() -> None:
 
 
 def test_coincident_points_are_estimated_on_the_distinct_positions() -> None:
-    """Issue 36 item 4: a k-d tree cannot split coincident points, so N copies of one point made every k-NN query
+    """a k-d tree cannot split coincident points, so N copies of one point made every k-NN query
     scan all N (quadratic: 2M copies ran for 200 s+). Duplicates now share the normal of their position."""
     import subprocess
     import sys

@@ -1,4 +1,4 @@
-"""The built wheel, used outside the checkout (issue 22, item 7): `efem-viz view` without arguments opens the
+"""The built wheel, used outside the checkout (item 7): `efem-viz view` without arguments opens the
 bundled sample scenes with their saved results, and the wheel leaves the training resume state out.
 
 The wheel is built from a copy of the sources in tmp_path (the checkout gets no build/ or egg-info), offline and

@@ -337,7 +337,7 @@ def test_extra_elements_are_read_past(tmp_path: Path) -> None:
 
 
 def test_trailing_blank_lines_are_fine_but_extra_rows_are_refused(tmp_path: Path) -> None:
-    """Issue 13 item 12: rows beyond the header's counts used to load silently (the header lied about them)."""
+    """rows beyond the header's counts used to load silently (the header lied about them)."""
     s = assert_matches_plyfile(write(tmp_path, "blank.ply", ply(QUAD, faces="3 0 1 2\n") + "\n \t\n\r\n"))
     assert s.faces.shape == (1, 3)
     cases = {

@@ -78,7 +78,7 @@ def test_corrupt_prior_through_the_cli_is_an_error_message(tmp_path: Path, capsy
     assert "not a readable torch checkpoint" in capsys.readouterr().err
 
 
-# ---------------------------------------------------------------------------- hostile priors (issue 25 item 1)
+# ---------------------------------------------------------------------------- hostile priors
 def _limit_memory(mb: int) -> object:
     def preexec() -> None:
         resource.setrlimit(resource.RLIMIT_AS, (mb << 20, mb << 20))
@@ -140,7 +140,7 @@ def test_parameter_and_block_bounds_are_checked_from_the_config(tmp_path: Path) 
 
 
 def test_a_small_prior_file_whose_records_inflate_to_gigabytes_is_refused_before_loading(tmp_path: Path) -> None:
-    """Issue 36 item 2: the shipped prior plus a DEFLATE-compressed 1.5 GiB record, a few MB on disk, was
+    """the shipped prior plus a DEFLATE-compressed 1.5 GiB record, a few MB on disk, was
     inflated before any check. The zip directory is read first: one line, under a 2 GB address-space limit."""
     import shutil
     import zipfile

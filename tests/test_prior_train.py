@@ -188,10 +188,10 @@ def test_save_load_round_trip(tmp_path: Path) -> None:
 
 # ------------------------------------------------------------------------------------------ shipped weights
 SHIPPED = WEIGHTS_DIR / "mug.pt"
-#: Measured 2026-12-01 (session 4) on the shipped iteration-29000 export with exactly this test: mean IoU 0.653 from
+#: Measured 2026-12-01 on the shipped iteration-29000 export with exactly this test: mean IoU 0.653 from
 #: 4-12 top views (0.78/0.63/0.63/0.57) and 0.660 from 1-12 views incl. single ones (0.75/0.63/0.67/0.59); Θ_s/s
-#: 0.93-1.04; centre error 0.01-0.08 (relative to s). (Session 3's iteration-21000 export: 0.659 / 0.626; session
-#: 2's iteration-14500 export: 0.639 / 0.580; session 1's iteration-2500 export: 0.35 from top views.) The bars leave a margin for float and platform differences, not for
+#: 0.93-1.04; centre error 0.01-0.08 (relative to s). (Earlier exports: iteration-21000 export: 0.659 / 0.626;
+#: iteration-14500 export: 0.639 / 0.580; iteration-2500 export: 0.35 from top views.) The bars leave a margin for float and platform differences, not for
 #: a worse prior.
 SHIPPED_IOU_BAR = {"top views": 0.6, "1-12 views": 0.57}
 #: weights exported before this many iterations are snapshots of a training run still in progress
@@ -535,7 +535,7 @@ def test_handled_only_training_family_has_a_handle_on_every_mug() -> None:
 
 
 def test_resume_from_a_hostile_checkpoint_is_refused_before_any_work(tmp_path: Path) -> None:
-    """Issue 36 item 9: `train-prior --resume-from` used to skip the prior checks (a 16 KB file declaring a
+    """`train-prior --resume-from` used to skip the prior checks (a 16 KB file declaring a
     20,000-wide decoder cost 90 s and 6.5 GB). On the full CLI: one line, exit 1, no data prepared."""
     import os
     import subprocess

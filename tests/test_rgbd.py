@@ -224,7 +224,7 @@ def test_real_sample_scenes() -> None:
 
 
 def test_a_frame_larger_than_any_sensor_is_refused_before_it_is_inflated(tmp_path: Path) -> None:
-    """Issue 36 item 3: a 130 KB .npz with an 8000x8000 depth image ran import-rgbd for 77 s and 10.4 GB. On the
+    """a 130 KB .npz with an 8000x8000 depth image ran import-rgbd for 77 s and 10.4 GB. On the
     full CLI: one line naming the size, at once, nothing written."""
     import os
     import subprocess

@@ -64,7 +64,7 @@ def _screen_extent(view, corners: np.ndarray) -> tuple[float, float]:
 
 @pytest.mark.parametrize("seed", range(6))
 def test_fitted_view_frames_the_box_tightly(seed: int) -> None:
-    """Issue 37 item 7 (scenes opened small, a quarter of the width): every corner of the box is inside the planned
+    """(scenes opened small, a quarter of the width): every corner of the box is inside the planned
     view, and the box fills `FIT_FILL` of it along the binding axis (not a speck in the middle)."""
     rng = np.random.default_rng(seed)
     lo = rng.uniform(-2, 2, 3)

@@ -1,4 +1,4 @@
-"""Server security of the viewer and the annotator (issue 13, items 5-8), against the real apps on port 0.
+"""Server security of the viewer and the annotator (items 5-8), against the real apps on port 0.
 
 5. Cross-site WebSocket hijacking: a foreign `Origin`, a missing or wrong token are refused with HTTP 403; the
    printed URL (token in the query) and the cookie its page load sets are accepted. Also on the full CLI process.
@@ -130,7 +130,7 @@ def test_policy_refuses_foreign_origin_rebinding_and_missing_token() -> None:
     assert pol.refusal(path=ok, headers=_h(host="127.0.0.1:8080", origin="http://localhost:8080"),
                        local_port=8080) is None
     assert pol.refusal(path=ok, headers=_h(host="[::1]:8080", origin="http://127.0.0.1:8080"), local_port=8080) is None
-    # other loopback aliases are other origins (issue 25 item 5): another local user's server can listen there
+    # other loopback aliases are other origins: another local user's server can listen there
     for alias in ("http://127.0.0.2:8080", "http://[::1]:8080", "http://127.1.2.3:8080", "https://127.0.0.1:8080",
                   "http://127.0.0.1.:8081", "http://0.0.0.0:8080"):
         for host in ("127.0.0.1:8080", alias.split("//")[1]):
@@ -175,7 +175,7 @@ def test_policy_refuses_foreign_origin_rebinding_and_missing_token() -> None:
 
 # ============================================================================ 5. against the real apps
 _LOOPBACK_ALIASES = ("http://127.0.0.2:%d", "http://[::1]:%d", "http://127.0.0.1.:%d", "https://127.0.0.1:%d")
-"""Origins that reach the same machine but are not the printed one (issue 25 item 5)."""
+"""Origins that reach the same machine but are not the printed one."""
 
 
 def _check_printed_origin_only(url: str) -> None:
@@ -196,7 +196,7 @@ def _check_printed_origin_only(url: str) -> None:
 
 
 def test_cli_servers_accept_only_the_printed_origin(view_cli: ViewCLI, scan: Path, tmp_path: Path) -> None:
-    """Both CLIs, as started by a user: 127.0.0.2 and [::1] are not 127.0.0.1 (issue 25 item 5)."""
+    """Both CLIs, as started by a user: 127.0.0.2 and [::1] are not 127.0.0.1."""
     _check_printed_origin_only(view_cli.url)
     proc, lines = _start_cli(["-m", "annotator", str(scan), "--out", str(tmp_path / "o"), "--port", "0"])
     try:
@@ -580,7 +580,7 @@ def test_viewer_gui_exports_stay_inside_the_output_root(viewer: Any, tmp_path: P
 
 
 def test_view_cli_export_refuses_links_inside_the_output_root(view_cli: ViewCLI, tmp_path: Path) -> None:
-    """Issue 25 item 2, on the real CLI: the typed folder is inside the root, but a link below it leads out (a
+    """on the real CLI: the typed folder is inside the root, but a link below it leads out (a
     `pred_mask` folder link; a file link at the last file written). Refused before anything is written."""
     root = view_cli.root
     outside = tmp_path / "outside"
@@ -616,7 +616,7 @@ def test_view_cli_export_refuses_links_inside_the_output_root(view_cli: ViewCLI,
 
 
 def test_view_cli_refuses_control_characters_and_uncastable_values(view_cli: ViewCLI) -> None:
-    """Issue 25 item 3, on the real CLI: a newline in the output-folder field, and NaN / infinity / text sent for
+    """on the real CLI: a newline in the output-folder field, and NaN / infinity / text sent for
     integer controls, are refused with one-line notices and one log line each; no traceback in the server log."""
     root = view_cli.root
     c = view_cli.client()
@@ -641,7 +641,7 @@ def test_view_cli_refuses_control_characters_and_uncastable_values(view_cli: Vie
 
 
 def test_annotate_cli_refuses_a_nan_colour_without_a_traceback(scan: Path, tmp_path: Path) -> None:
-    """Issue 25 item 3: a NaN (or text, or an overflow) sent for the colour control: one-line notice, one log line
+    """a NaN (or text, or an overflow) sent for the colour control: one-line notice, one log line
     each, no traceback."""
     proc = AnnotateProcess(scan, tmp_path / "o")
     try:

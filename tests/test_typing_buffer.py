@@ -1,4 +1,4 @@
-"""Typed text committed once (issue 37 item 6): `annotator.typing_buffer.TypingBuffer` and the session's Name and
+"""Typed text committed once: `annotator.typing_buffer.TypingBuffer` and the session's Name and
 Category fields, driven without a browser (the browser test types with real keys)."""
 
 from __future__ import annotations

@@ -506,7 +506,7 @@ def test_export_results_and_static_demo(app: Any, tmp_path: Path) -> None:
 
 def test_static_demo_export_shows_progress_and_cancels(app: Any, tmp_path: Path,
                                                        monkeypatch: pytest.MonkeyPatch) -> None:
-    """Issue 37 item 11: the static demo (seconds: it records every EM step) says which step it records, with a
+    """the static demo (seconds: it records every EM step) says which step it records, with a
     progress bar; *Cancel export* stops it and nothing is written; the buttons come back."""
     from efem_viz.viewer import export
 

@@ -1,4 +1,4 @@
-"""Real-scan results that a person can read (issue 22, item 15), without a browser: the default confidence cut, labels
+"""Real-scan results that a person can read (item 15), without a browser: the default confidence cut, labels
 that do not overlap, and the instance table (visibility, fly-to, next / previous).
 
 The layout is checked in the image of the viewer's fitted view with the same projection viser's screen-size labels

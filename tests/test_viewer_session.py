@@ -93,7 +93,7 @@ def test_a_result_with_warnings_says_them_in_the_status(tmp_path: Path) -> None:
 
 
 def test_each_result_opens_with_a_cut_that_shows_it(tmp_path: Path) -> None:
-    """Issue 37 item 8: after a cut of 0.25 on one real frame, switching to another whose best instance is below
+    """after a cut of 0.25 on one real frame, switching to another whose best instance is below
     it hid every instance. A person's cut is kept only while it still shows something, and the status says so."""
     s = ViewerSession([SAMPLES], out_dir=tmp_path)
     assert s.open_scene("syn_pile_0") is not None and s.load_result() is not None
@@ -113,7 +113,7 @@ def test_each_result_opens_with_a_cut_that_shows_it(tmp_path: Path) -> None:
 
 def test_the_cut_stays_within_the_slider(tmp_path: Path) -> None:
     """A script's cut above the slider's top (or below 0) is kept at the end of the range: the field never shows
-    a value the slider cannot (session 13 saw 0.1 on a slider ending at 0.02); the instances shown are the same."""
+    a value the slider cannot (0.1 was seen on a slider ending at 0.02); the instances shown are the same."""
     s = ViewerSession([SAMPLES], out_dir=tmp_path)
     assert s.open_scene("real_tabletop_6") is not None
     res = s.load_result()
@@ -128,7 +128,7 @@ def test_the_cut_stays_within_the_slider(tmp_path: Path) -> None:
 
 
 def test_the_run_preset_fits_the_scene() -> None:
-    """Issue 37 item 14: a real capture (import-rgbd provenance, a recorded camera) runs with the `real` preset,
+    """a real capture (import-rgbd provenance, a recorded camera) runs with the `real` preset,
     a synthetic scan (whose generator records only its renders' image size) with `fast`."""
     from efem_viz.data.io import load_scene
 

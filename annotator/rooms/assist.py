@@ -116,7 +116,7 @@ class AssistRoom:
 
     def prelabel_cut(self, default: float = 0.5) -> float:
         """The pre-label cut that suits the unreviewed pre-labels: `default`, lowered to the best one's confidence
-        when every one is below it (issue 37: a real frame's pre-labels all under 0.5 made "Accept all ≥ cut"
+        when every one is below it (a real frame's pre-labels all under 0.5 made "Accept all ≥ cut"
         accept nothing)."""
         table = self.scan.store.labelset.instances
         conf = [float(table[k].confidence) for k in unreviewed_prelabels(table)]

@@ -121,7 +121,7 @@ class ScanRoom:
         self._warmup.start()
 
     def stop_warm_up(self) -> None:
-        """Stop the warm-up before its next structure (issue 36: it used to be waited for, up to 60 s on big
+        """Stop the warm-up before its next structure (it used to be waited for, up to 60 s on big
         scans). Only an open3d ray-casting scene under construction is waited for (exiting under it makes open3d
         report leaks and exit with status 1); the daemon thread's scipy work is simply abandoned."""
         self._warmup_cancel.set()

@@ -275,7 +275,7 @@ class SceneOutcome:
                 raise ValueError(f"batch record without a valid {key!r}: {d!r}"[:200])
         if kw["status"] not in ("ok", "skipped", "failed"):
             raise ValueError(f"batch record with unknown status {kw['status']!r}")
-        for key, f in known.items():  # every other field must have its declared type (issue 36: "instances":
+        for key, f in known.items():  # every other field must have its declared type ("instances":
             if key not in kw or key in ("name", "path", "status"):  # "many" crashed every later resume)
                 continue
             v = kw[key]

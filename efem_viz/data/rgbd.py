@@ -54,7 +54,7 @@ def load_rgbd_npz(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray,
     if not p.is_file():
         raise SceneError(f"{p} is a directory, not an RGB-D frame" if p.is_dir() else f"{p}: no such file")
     shapes = check_npz_headers(p, DEFAULT_MAX_POINTS)  # the scene reader's header check: names the file
-    for k in ("depth_mm", "depth", "rgb"):  # before anything is inflated (issue 36: a 130 KB file, 8000² pixels)
+    for k in ("depth_mm", "depth", "rgb"):  # before anything is inflated (a 130 KB file, 8000² pixels)
         shape = shapes.get(k)
         if shape is not None and len(shape) >= 2 and shape[0] * shape[1] > MAX_FRAME_PIXELS:
             raise SceneError(f"{p}: {k!r} is {shape[1]}x{shape[0]} pixels, more than the {MAX_FRAME_PIXELS:,} "

@@ -184,7 +184,7 @@ class EMConfig:
     """What "score" and "swap" compare: the rows' "stationary" scores, or their "confidence" (stationary score
     times the capped coverage of the phase-1 review, `rules.capped_confidence`): a wide fit over two objects
     explains its samples well but leaves most of its completed shape unobserved, so by confidence it no longer
-    outranks a tight fit of one of them (issue 33)."""
+    outranks a tight fit of one of them."""
     tau_out: float | None = None
     """Output mask SDF threshold (canonical units). None = the prior's (its category's `tau_out`, i.e. the
     metadata `tau_out` written by `efem-viz calibrate-masks`, else the spec's 0.04); `run_em` resolves it per
@@ -204,7 +204,7 @@ class EMConfig:
     pose_weight: float = 0.0
     """Exponent w of the codebook pose score in the confidence: × min(1, db_sim / `pose_ref`)^w (0 = off, the
     paper's confidence). A completed shape that matches no training pose well is a look-alike more often than a
-    mug (issue 33: on the real frames mug fits score 0.52 (median), cups, cans and boxes 0.36-0.40)."""
+    mug (on the real frames mug fits score 0.52 (median), cups, cans and boxes 0.36-0.40)."""
     pose_ref: float = 0.6
     """Pose score at and above which `pose_weight` leaves the confidence unchanged."""
     mug_model: str | None = None
@@ -238,7 +238,7 @@ class EMConfig:
     pose_points: int | None = 1000
     """Samples (of the proposal and of each codebook cloud) the review's pose search aligns and scores
     (`estimate_pose(search_points=...)`); None = all `n_store` (the release). 1000 of 5000 cut the search's
-    cost about 5x (docs/BENCHMARKS.md, issue 32)."""
+    cost about 5x (docs/BENCHMARKS.md)."""
     refine_steps: int = 0
     """Test-time latent refinement (efem_viz/em/refine.py): gradient steps fitting each proposal's latent to its
     M-step samples through the decoder, regularised toward the encoder's code; 0 = off (the paper's method)."""
@@ -255,7 +255,7 @@ class EMConfig:
     (`torch.autocast`: the encoder's and decoder's linear layers in bf16, which CPUs with AMX / AVX-512 bf16
     and GPUs run 2-4× faster; k-NN graphs, SDF values, normals and every energy stay float32). The reviews
     (completed meshes, poses, coverage and the output masks) always decode in float32. A speed knob:
-    docs/BENCHMARKS.md (issue 24) measures its effect on AP."""
+    docs/BENCHMARKS.md measures its effect on AP."""
 
     # ------------------------------------------------------------------ helpers
     @property
@@ -425,7 +425,7 @@ class SolveSettings:
 
 def suggested_preset(scene: Any) -> PresetName:
     """The preset that fits a scene: "real" for a single-view capture (`import-rgbd` provenance or a recorded
-    camera), else "fast" (issue 37: a real scan was run with the synthetic `fast` settings). The viewer's Run and
+    camera), else "fast" (a real scan was run with the synthetic `fast` settings). The viewer's Run and
     the annotator's EFEM run start from it."""
     from efem_viz.geometry.camera import Camera
 
@@ -442,10 +442,10 @@ def preset_for_scene(scene: Any) -> PresetName:
 
 _SYNTHETIC = EMConfig(inclusion="score", inclusion_by="confidence")
 """§3.12's synthetic settings, but an inclusion spares the included fit when it is the better one (`inclusion`,
-`inclusion_by`; issue 33: a fit wider than its object — two mugs in a box, a mug and its peg — killed better fits
-of those mugs as "included"). Session 14 spared it when its stationary score was higher; session 15 compares the
-confidence (stationary score x capped phase-1 coverage: a fit over two objects leaves most of its completed shape
-unobserved). Chosen on tune scenes (seeds 9000-9003, box/tree/pile/z: mean AP50 79.9 -> 80.7, AP 55.0 -> 58.2),
+`inclusion_by`: a fit wider than its object — two mugs in a box, a mug and its peg — killed better fits of those
+mugs as "included"). The better one is the one with the higher confidence (stationary score x capped phase-1
+coverage: a fit over two objects leaves most of its completed shape unobserved); the stationary score alone was
+tried first. Chosen on tune scenes (seeds 9000-9003, box/tree/pile/z: mean AP50 79.9 -> 80.7, AP 55.0 -> 58.2),
 judged on the 10-scene fixed set (`bench/em.py --mode tsdf`, docs/BENCHMARKS.md). "swap" (kill the includer) scored
 higher on the tune scenes but kills whole mugs for sphere part-fits in a joint mug + sphere solve."""
 
@@ -458,7 +458,7 @@ _REAL_PAPER = EMConfig(
     cov_tau=0.03,
     cov_gamma=30.0,
 )
-"""§3.12's settings for real captures (the `real` preset up to session 7)."""
+"""§3.12's settings for real captures, as specified."""
 
 _REAL = dataclasses.replace(
     _REAL_PAPER,
@@ -471,18 +471,17 @@ _REAL = dataclasses.replace(
     mug_model="mug_uois_tune",
     inclusion="score",
 )
-"""Real single-view depth frames (session 8, measured with bench/em_stability.py, bench/real.py and
-bench/stereo_mug.py; docs/BENCHMARKS.md): §3.12's settings, but the E-step does not truncate on normals (depth
+"""Real single-view depth frames (measured with bench/em_stability.py, bench/real.py and bench/stereo_mug.py;
+docs/BENCHMARKS.md): §3.12's settings, but the E-step does not truncate on normals (depth
 noise tilts estimated normals, and the truncated points started the shrink spiral), a wider SDF band, M-step
 draws without replacement, and the free-space check of the capture camera. The confidence is the paper's times
-the learned probability that a fit is a mug (`mug_model`, issue 33, session 13: fitted on the tune frames'
-accepted fits of 12 saved runs, chosen by leave-one-frame-out AP50 inside the tune frames;
+the learned probability that a fit is a mug (`mug_model`: fitted on the tune frames' accepted fits of 12 saved runs, chosen by leave-one-frame-out AP50 inside the tune frames;
 `bench/learned_confidence.py`: judge AP50 22.4 -> 25.2, the most confident fit a mug in 18 of 32 judge scenes
-instead of 15); it replaced session 12's pose-score weighting, whose pose score is one of its features. The
-instances themselves do not change (one episode: the confidence decides no elimination). Session 14: an inclusion
-spares the included fit when it scores higher than its includer (`inclusion`: tune frames AP50 74.8 -> 90.0 on
-seeds 0/1, judge frames equal; `bench/real.py --set "inclusion='score'"`). Session 15's comparison by confidence
-(the synthetic presets' `inclusion_by`) ties on the tune frames (AP50 90.0 either way, AP 35.8 by stationary score
+instead of 15); it replaced a pose-score weighting, whose pose score is one of its features. The instances
+themselves do not change (one episode: the confidence decides no elimination). An inclusion spares the included
+fit when it scores higher than its includer (`inclusion`: tune frames AP50 74.8 -> 90.0 on seeds 0/1, judge frames
+equal; `bench/real.py --set "inclusion='score'"`). The comparison by confidence (the synthetic presets'
+`inclusion_by`) ties on the tune frames (AP50 90.0 either way, AP 35.8 by stationary score
 against 34.4-35.2), so `real` keeps the stationary score."""
 
 _FAST = EMConfig(

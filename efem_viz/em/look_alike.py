@@ -1,4 +1,4 @@
-"""Mug or look-alike? A small learned score on a fit's review features (issue 33 item 3).
+"""Mug or look-alike? A small learned score on a fit's review features.
 
 A completed shape that passed the review can still be a cup, a can, a box or part of the table. The review already
 measures what tells them apart (`bench/ranking.py`, `bench/learned_confidence.py`): how still the fit is, how much of

@@ -589,7 +589,7 @@ OPTIONAL_RESULT_KEYS: tuple[str, ...] = (
     "trace/rev_seen_through",
 )
 """Keys `EMResult.save` writes that older results lack. `load` reads these and the required keys only: any other
-member of the archive is never inflated (issue 36: a 5 MB result with an extra 2 GiB deflated member cost 2.2 GB)."""
+member of the archive is never inflated (a 5 MB result with an extra 2 GiB deflated member cost 2.2 GB)."""
 
 
 def _check_npz_headers(p: Path) -> None:

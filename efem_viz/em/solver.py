@@ -362,7 +362,7 @@ def _capture_camera(scene: Scene) -> tuple[Camera | None, list[str]]:
 
     warnings: list[str] = []
     camera, problem = Camera.parse(getattr(scene, "provenance", None))
-    if problem is not None:  # never silently off (issue 36): the CLI log, the result and the viewer say it
+    if problem is not None:  # never silently off: the CLI log, the result and the viewer say it
         warnings.append(f"the recorded capture camera is unusable ({problem}): the free-space check is off "
                         "for this run")
         logger.warning("%s: %s", scene.name, warnings[-1])

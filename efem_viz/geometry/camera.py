@@ -143,7 +143,7 @@ class DepthView:
             splat: pixel footprint of one point (odd; the minimum filter's size).
             lateral: extra sideways tolerance (m): the footprint grows by ``ceil(f · lateral / z̃)`` pixels on
                 each side (z̃ the median observed depth), so a completed shape whose silhouette overhangs the
-                object it fits by up to about this much is not counted as seen through there (issue 33: scale
+                object it fits by up to about this much is not counted as seen through there (scale
                 errors of a few millimetres put a fit's rim and handle over the background behind it).
         """
         from scipy.ndimage import minimum_filter

@@ -172,7 +172,7 @@ def pca_normals(
 
 
 MAX_COINCIDENT = 64
-"""More copies of one point than this and the normals are computed on the distinct points (issue 36: a k-d tree
+"""More copies of one point than this and the normals are computed on the distinct points (a k-d tree
 cannot split coincident points, so 2M copies of one point made every k-NN query scan all of them: 200 s+)."""
 
 

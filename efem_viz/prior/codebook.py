@@ -320,7 +320,7 @@ class Codebook:
             check_npz_headers(path, 1 << 40)
         except SceneError as exc:
             raise ValueError(str(exc)) from exc
-        wanted = {"schema_version", "meta_json", *CODEBOOK_ARRAYS}  # other members are never inflated (issue 36)
+        wanted = {"schema_version", "meta_json", *CODEBOOK_ARRAYS}  # other members are never inflated
         try:
             with np.load(path, allow_pickle=False) as z:
                 data = {k: z[k] for k in z.files if k in wanted}

@@ -292,7 +292,7 @@ KNOWN_CATEGORIES: dict[str, CategorySettings] = {
 """Settings of the categories efem-viz ships priors for, used when a prior's metadata carries none. Mug sizes:
 real mugs lie within 3-8 cm radius and 20 cm height; synthetic scenes scale objects over a wider range of heights,
 but no true synthetic fit is wider than 7.5 cm (bundled scenes), while fits merging two or three mugs in a box or
-a pile are 6.7-9 cm: the synthetic radius range stops at 8 cm too (issue 33 item 4, session 13: `bench/em.py
+a pile are 6.7-9 cm: the synthetic radius range stops at 8 cm too (`bench/em.py
 --mode tsdf --config base= --config "tight=scale_horizontal=(0.03, 0.08)"`, box AP50 46.1 -> 66.4 on 4 scenes,
 tree 51.7 -> 55.1, so3 91.6 -> 92.5, z, pile and shelf unchanged on 3-4 scenes each). The unqualified range
 (3-13 cm) is for other domains. Bowls: the

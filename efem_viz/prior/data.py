@@ -144,7 +144,7 @@ class SampleConfig:
     """Std of the centroid augmentation (§2.4)."""
     sensor_p: float = 0.0
     """Probability that an example is a depth-sensor view (`sensor_cloud`) instead of `input_cloud`'s union of
-    views with isotropic noise (0 = the training inputs of the priors up to session 6)."""
+    views with isotropic noise (0 = isotropic noise only, as the first priors were trained)."""
     sensor_scale: tuple[float, float] = (0.5, 2.0)
     """Range of the multiplier k of the sensor's noise model."""
     sensor_distance: tuple[float, float] = (0.4, 1.2)

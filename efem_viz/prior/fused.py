@@ -1,4 +1,4 @@
-"""Fused VN edge kernels of the encoder (issue 32 item 3): one pass over the edges instead of fifteen.
+"""Fused VN edge kernels of the encoder: one pass over the edges instead of fifteen.
 
 The VN-DGCNN encoder spends most of its time not in matrix products but in the VN-LeakyReLU applied to every
 edge feature ``(B, N, k, 3, C)`` and the mean over the ``k`` neighbours that follows: a dozen elementwise passes

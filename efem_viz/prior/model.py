@@ -35,7 +35,7 @@ CHECKPOINT_FORMAT = "efem-viz-prior/1"
 MAX_PRIOR_PARAMETERS = 50_000_000
 """Most parameters a prior file may declare (the shipped mug prior has 0.6M, the released EFEM priors a few M).
 A file declaring more is refused before anything is built: a few KB of zero-stride views can otherwise declare
-billions of weights that the loader would allocate and copy (issue 25)."""
+billions of weights that the loader would allocate and copy."""
 MAX_PRIOR_BLOCKS = 256
 """Most encoder blocks (``widths`` entries) and decoder blocks a prior file may declare (the shipped priors use
 7 and 2-5): bounds the cost of building the network on the meta device to count its parameters."""
@@ -345,7 +345,7 @@ its Adam moments is 0.6 GB (the shipped resume state: 8 MB)."""
 
 def _check_archive_sizes(path: Path) -> None:
     """Refuse a torch zip checkpoint whose records declare more data than any prior needs, from the zip directory
-    alone: nothing is inflated (issue 36: a 6.4 MB file with an unused 4 GiB zero tensor cost 30 s and 4.3 GB
+    alone: nothing is inflated (a 6.4 MB file with an unused 4 GiB zero tensor cost 30 s and 4.3 GB
     before the prior checks ran). Not a zip (legacy format, or not a checkpoint): left to `torch.load`."""
     import zipfile
 

@@ -136,7 +136,7 @@ class TrainArgs:
     e.g. the shipped ``efem_viz/weights/mug.pt`` (fine-tuning). Ignored on resume."""
     grow_decoder_hidden: int | None = None
     """With --init-from: widen the decoder to this many units, function-preserving (`prior.widen`), before
-    fine-tuning (issue 34: the shipped 128-wide decoder is capacity-bound)."""
+    fine-tuning (the shipped 128-wide decoder is capacity-bound)."""
     grow_decoder_blocks: int | None = None
     """With --init-from: deepen the decoder to this many residual blocks (new blocks start as the identity)."""
     matmul_dtype: str = "float32"
@@ -144,7 +144,7 @@ class TrainArgs:
     AVX-512 bf16 CPUs, CUDA) with float32 master weights, optimiser and losses; validation stays float32."""
     freeze_decoder: bool = False
     """Train the encoder only: the decoder (the shape space, its level set and the codebook's meaning) stays
-    as it was. With --init-from, for fine-tuning the encoder's response to sensor inputs (issue 21)."""
+    as it was. With --init-from, for fine-tuning the encoder's response to sensor inputs."""
     p_table: float = 0.3
     """Probability of the table-plane augmentation."""
     min_views: int = 4
@@ -157,7 +157,7 @@ class TrainArgs:
     metrics on fixed sensor inputs and selects the export by them."""
     fixed_point_p: float = 0.0
     """Probability that an example is re-encoded from the model's own SDF-band inliers of its input (as one EM
-    M-step would), so that one step cannot shrink a good fit (issue 21)."""
+    M-step would), so that one step cannot shrink a good fit."""
     fixed_point_tau: float = 0.05
     """SDF band (canonical units) of the fixed-point inliers."""
     snapshot_every: int = 0
@@ -595,7 +595,7 @@ def _read_resume_checkpoint(args: TrainArgs, last: Path) -> tuple[Path | None, d
     if not isinstance(ckpt, dict) or any(k not in ckpt for k in need):
         raise ValueError(f"{resume_path}: not a train-prior resume checkpoint (needs {', '.join(need)})")
     # the prior loaders' checks (sizes declared, shapes, views, finite values) before anything is allocated or
-    # any data is prepared (issue 36: a 16 KB file declaring a 20,000-wide decoder cost 90 s and 6.5 GB)
+    # any data is prepared (a 16 KB file declaring a 20,000-wide decoder cost 90 s and 6.5 GB)
     _checked_prior_parts(ckpt, Path(resume_path))
     return resume_path, ckpt
 

@@ -1,4 +1,4 @@
-"""Function-preserving growth of a trained prior's decoder (Net2Net-style, issue 34).
+"""Function-preserving growth of a trained prior's decoder (Net2Net-style).
 
 `widen_decoder` returns a new `ShapePrior` whose decoder is wider (``hidden``) and/or deeper (``blocks``) and
 computes exactly the function of the old one, so a fine-tune starts where the shipped prior is instead of from

@@ -1,4 +1,4 @@
-"""What our servers add to viser's page: a focused GUI control keeps its keys (issue 37 item 13).
+"""What our servers add to viser's page: a focused GUI control keeps its keys.
 
 viser's client moves the camera on WASD/QE and the arrow keys from a `document` listener that only steps aside for
 text fields; a focused slider (Mantine's thumb, a `div` with `role="slider"`) is not one, so the arrow keys that step

@@ -145,7 +145,7 @@ def build_panels(gui: GuiApi, *, scene_names: list[str], out_dir: str) -> Panels
         handles |= _results_tab(gui)
     with tabs.add_tab("Export"):
         handles |= _export_tab(gui, out_dir=out_dir)
-    # below the tabs: a status line that changes length never moves a tab or a button (issue 37 item 12)
+    # below the tabs: a status line that changes length never moves a tab or a button
     status = gui.add_markdown("")
     return Panels(gui_status=status, **handles)
 

@@ -245,7 +245,7 @@ def test_lasso_by_ctrl_clicks_then_enter_paints_inside(annotator: Any, new_page:
 
 
 def test_lasso_around_a_box_takes_no_hidden_table(tmp_path: Path, new_page: Callable[..., Any]) -> None:
-    """Issue 37 item 5 in the page: a box standing on a table, a lasso drawn with Ctrl+clicks around the box as the
+    """in the page: a box standing on a table, a lasso drawn with Ctrl+clicks around the box as the
     page shows it, Enter. No vertex the page's camera cannot see is labelled (exact ray casting against the mesh
     from the camera the lasso used), while the old rule ("front": whatever faces the camera) would have taken
     hidden table."""
@@ -405,7 +405,7 @@ def test_question_mark_toggles_the_cheat_sheet(keyed: tuple[Any, Any]) -> None:
     sheet.wait_for(state="detached", timeout=HANG_GUARD_MS)
 
 
-# ============================================================================ camera (issue 22, item 4)
+# ============================================================================ camera (item 4)
 def _camera(app: Any) -> tuple[Any, np.ndarray, np.ndarray]:
     """(client handle, position, look-at) of the page's camera as the server last heard it."""
     handle = next(iter(app.server.get_clients().values()))
@@ -548,7 +548,7 @@ def _text_field(page: Any, label: str) -> Any:
 
 
 def test_typing_a_category_is_one_edit_and_the_field_shows_what_is_stored(keyed: tuple[Any, Any]) -> None:
-    """Issue 37 item 6: each typing pause used to be an edit, and once the store kept "b" while the field showed
+    """each typing pause used to be an edit, and once the store kept "b" while the field showed
     "box". Typed with real keys (with pauses, as a person types), the category is committed once, after the field
     is left alone or on the next action, and the field and the store agree."""
     app, page = keyed
@@ -591,7 +591,7 @@ def _settled_boxes(page: Any, locators: list[Any], *, timeout: float = HANG_GUAR
 
 
 def test_growing_table_and_history_move_no_button(keyed: tuple[Any, Any]) -> None:
-    """Issue 37 item 12: pre-label buttons moved after each Accept/Reject (the instance table above them grew) and a
+    """pre-label buttons moved after each Accept/Reject (the instance table above them grew) and a
     second click on *Next ▶* hit *◀ Previous*. The table and the history now sit below every button."""
     app, page = keyed
     page.get_by_text("EFEM assist", exact=True).first.click()  # the folder starts collapsed
@@ -612,7 +612,7 @@ def test_growing_table_and_history_move_no_button(keyed: tuple[Any, Any]) -> Non
 
 def test_run_efem_from_the_page_progress_cancel_then_prelabels(tmp_path: Path, new_page: Callable[..., Any],
                                                                monkeypatch: pytest.MonkeyPatch) -> None:
-    """Issue 37 items 11 and 14: a person opens EFEM assist, clicks *Run EFEM on this scan*, sees what it does, clicks
+    """and 14: a person opens EFEM assist, clicks *Run EFEM on this scan*, sees what it does, clicks
     *Cancel EFEM run* (nothing is added), then runs it to the end (the real solver; the analytic sphere prior stands
     in for a shipped one) and accepts the best pre-labels with *Accept all ≥ cut*: every step by mouse and keyboard
     in the page, checked on the server."""

@@ -131,7 +131,7 @@ def test_step_slider_changes_view(viewer: Any, page: Any) -> None:
 
 
 def test_step_slider_keeps_its_arrow_keys(viewer: Any, page: Any) -> None:
-    """Issue 37 item 13: arrow keys on the focused Step slider step through EM iterations and leave the camera
+    """arrow keys on the focused Step slider step through EM iterations and leave the camera
     where it is; the same keys on the 3-D view still move the camera (the check can see a move)."""
     _open(page, viewer)
     page.get_by_role("tab", name="Timeline").click()
@@ -377,7 +377,7 @@ def test_instance_table_cut_visibility_and_fly_to(viewer: Any, page: Any) -> Non
 
 def test_run_tab_precision_and_run_button(viewer: Any, page: Any) -> None:
     """The Run tab, with the mouse and keyboard only: choose Precision bfloat16 in its dropdown, type a proposal
-    count, press Run EFEM; the server runs EFEM with those settings (issue 24's knob reaches the solver)."""
+    count, press Run EFEM; the server runs EFEM with those settings (the knob reaches the solver)."""
     _open(page, viewer, canvas=False)
     page.get_by_role("tab", name="Run").click()
     precision = page.get_by_role("combobox", name="Precision")
@@ -399,7 +399,7 @@ def test_run_tab_precision_and_run_button(viewer: Any, page: Any) -> None:
 
 
 def test_a_changing_status_moves_no_button(viewer: Any, page: Any) -> None:
-    """Issue 37 item 12: the status line sat above the tabs, so a longer or shorter status pushed every tab and
+    """the status line sat above the tabs, so a longer or shorter status pushed every tab and
     button by 19-38 px between two clicks. It now sits below them: the Run tab's buttons stay where they were."""
     _open(page, viewer, canvas=False)
     page.get_by_role("tab", name="Run").click()

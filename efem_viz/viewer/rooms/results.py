@@ -141,7 +141,7 @@ class ResultRoom:
 
     def default_threshold(self, result: EMResult) -> float:
         """The cut a result opens with: `DEFAULT_CONFIDENCE_CUT`, lowered to its best instance's confidence when
-        that is below (issue 37: a real frame whose best instance is 0.11 opened with every instance hidden)."""
+        that is below (a real frame whose best instance is 0.11 opened with every instance hidden)."""
         conf = np.asarray(result.instances.confidence, float)
         if not conf.size:
             return DEFAULT_CONFIDENCE_CUT
