@@ -284,49 +284,12 @@ def _read_npz_labels(p: Path, n: int) -> LabelData:
 
 
 def _read_scannet(p: Path, n: int) -> LabelData:
-    name = p.name
-    stem = name[: -len(".aggregation.json")] if name.endswith(".aggregation.json") else name[: -len(".segs.json")]
-    agg_p = p.with_name(stem + ".aggregation.json")
-    segs_p = p.with_name(stem + ".segs.json")
-    try:
-        agg = json.loads(agg_p.read_text(encoding="utf-8"))
-        if not isinstance(agg, dict):
-            raise TypeError(f"{agg_p.name} holds a JSON {type(agg).__name__}, not an object")
-        segs_name = agg.get("segmentsFile") or f"{stem}.segs.json"
-        named = p.with_name(Path(str(segs_name)).name)  # never follow a path inside the file
-        if named.exists():
-            segs_p = named
-        segs = json.loads(segs_p.read_text(encoding="utf-8"))
-        if not isinstance(segs, dict):
-            raise TypeError(f"{segs_p.name} holds a JSON {type(segs).__name__}, not an object")
-        seg_idx = np.asarray(segs["segIndices"])
-        groups = agg["segGroups"]
-        if not isinstance(groups, list):
-            raise TypeError(f"segGroups is a JSON {type(groups).__name__}, not a list")
-    except (OSError, ValueError, KeyError, TypeError, RecursionError) as exc:
-        raise LabelIOError(f"{p}: could not read ScanNet segs/aggregation pair ({_one_line(exc)})") from exc
-    if seg_idx.ndim != 1 or len(seg_idx) != n:
-        raise LabelIOError(f"{segs_p}: has {seg_idx.shape} segIndices, the scan has {n} vertices")
-    if not np.issubdtype(seg_idx.dtype, np.integer):
-        raise LabelIOError(f"{segs_p}: segIndices must be integers, got {seg_idx.dtype}")
-    labels = np.zeros(n, np.int32)
-    rows: list[InstanceInfo] = []
-    for k, g in enumerate(groups):
-        try:
-            if not isinstance(g, dict):
-                raise TypeError(f"a JSON {type(g).__name__}, not an object")
-            raw_id: Any = g.get("objectId", g.get("id"))  # None (neither key) fails int() as a TypeError
-            iid = int(raw_id) + 1
-            segments = np.asarray([int(s) for s in g["segments"]], np.int64)
-            cat = str(g.get("label", "object"))
-        except (KeyError, TypeError, ValueError, OverflowError) as exc:
-            raise LabelIOError(f"{agg_p}: malformed segGroups[{k}] {repr(g)[:80]} ({_one_line(exc)})") from exc
-        if not 0 < iid <= np.iinfo(np.int32).max:
-            raise LabelIOError(f"{agg_p}: segGroups[{k}] objectId must be in [0, {np.iinfo(np.int32).max - 1}], "
-                               f"got {iid - 1}")
-        labels[np.isin(seg_idx, segments)] = iid
-        rows.append(InstanceInfo(iid, str(g.get("name", f"{cat} {iid}")), category=cat, color=instance_color(iid)))
-    return LabelData(labels, _complete(labels, rows))
+    from efem_viz.data.formats.scannet import read_scannet_instances
+
+    got = read_scannet_instances(p, n, error=LabelIOError)
+    rows = [InstanceInfo(iid, got.names[iid], category=cat, color=instance_color(iid))
+            for iid, cat in got.categories.items()]
+    return LabelData(got.labels, _complete(got.labels, rows))
 
 
 def _read_efem(p: Path, n: int, *, threshold: float = 0.0) -> LabelData:

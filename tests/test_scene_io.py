@@ -333,3 +333,35 @@ def test_glb_mesh_keeps_its_stored_normals(tmp_path: Path) -> None:
     back = load_scene(tmp_path / "n.glb")
     assert not back.normals_pending
     np.testing.assert_allclose(back.normals, custom.normals, atol=1e-5)
+
+
+def test_a_scannet_scene_folder_opens_with_its_instance_ground_truth(tmp_path: Path) -> None:
+    """`sceneXXXX_XX_vh_clean_2.ply` beside its `.aggregation.json` and `_vh_clean_2.0.010000.segs.json` (ScanNet's
+    layout, its `segmentsFile` prefixed "scannet."): the instances become the scene's ground truth, objectId + 1
+    with the object's label as category; the annotator reads the same pair as labels."""
+    import json
+
+    from annotator.io import load_labels
+    from efem_viz.data.io import load_scene, save_scene
+
+    mesh = mesh_scene(0)
+    n = mesh.num_points
+    seg = np.arange(n) // 10  # segments of 10 vertices
+    folder = tmp_path / "scene0007_00"
+    folder.mkdir()
+    save_scene(mesh.with_labels(None, {}), folder / "scene0007_00_vh_clean_2.ply")
+    (folder / "scene0007_00_vh_clean_2.0.010000.segs.json").write_text(json.dumps({"segIndices": seg.tolist()}))
+    groups = [{"objectId": 0, "label": "chair", "segments": [0, 1, 2]},
+              {"objectId": 4, "label": "cup", "segments": [int(seg[-1])]}]
+    (folder / "scene0007_00.aggregation.json").write_text(json.dumps(
+        {"sceneId": "scannet.scene0007_00", "segmentsFile": "scannet.scene0007_00_vh_clean_2.0.010000.segs.json",
+         "segGroups": groups}))
+    scene = load_scene(folder / "scene0007_00_vh_clean_2.ply")
+    assert scene.has_gt and set(np.unique(scene.instance)) == {0, 1, 5}
+    assert (scene.instance[:30] == 1).all() and scene.instance[-1] == 5
+    assert scene.categories == {1: "chair", 5: "cup"}
+    labels = load_labels(folder / "scene0007_00.aggregation.json", n)
+    assert np.array_equal(labels.labels, scene.instance)
+    (folder / "scene0007_00_vh_clean_2.0.010000.segs.json").write_text(json.dumps({"segIndices": [0, 1]}))
+    with pytest.raises(SceneError, match="segIndices, the scan has"):
+        load_scene(folder / "scene0007_00_vh_clean_2.ply")

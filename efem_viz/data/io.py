@@ -48,6 +48,7 @@ from efem_viz.data.files import (
     is_scene_file,
 )
 from efem_viz.data.formats import FORMATS, SCENE_SUFFIXES, SceneFormat
+from efem_viz.data.formats.scannet import read_scannet_instances, scannet_pair_of
 from efem_viz.data.formats.npz import scene_from_npz
 from efem_viz.data.formats.ply import PlyElementHeader, PlyHeader, check_ply_counts, read_ply_header
 from efem_viz.data.scene import DEFAULT_MAX_POINTS, Scene, SceneError
@@ -132,6 +133,10 @@ def load_scene(
     except Exception as exc:  # parser errors of plyfile / trimesh / numpy: corrupt or truncated file
         raise SceneError(f"{p}: could not read {suffix[1:].upper()} file ({type(exc).__name__}: {exc})") from exc
     kwargs.pop("name", None)  # the file name wins over a name stored inside the file
+    pair = scannet_pair_of(p) if kwargs.get("instance") is None else None
+    if pair is not None:  # a ScanNet scene mesh: its instance annotation is the ground truth
+        gt = read_scannet_instances(pair[0], len(kwargs["points"]))
+        kwargs["instance"], kwargs["categories"] = gt.labels, gt.categories
     try:
         return Scene.create(scene_name, max_points=max_points, **kwargs)
     except SceneError as exc:
