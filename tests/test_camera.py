@@ -132,3 +132,27 @@ def test_a_huge_focal_length_gives_a_coarser_view_of_the_same_rays_in_bounded_me
     centre = pts[np.abs(pts[:, :2]).max(1) < 0.1]
     assert view.seen_through(centre - np.array([0.0, 0.0, 0.1]), 0.01) == (1.0, 1.0)
     assert view.seen_through(centre + np.array([0.0, 0.0, 0.1]), 0.01) == (0.0, 1.0)
+
+
+def test_depth_edges_are_no_evidence_and_the_margin_grows_with_range() -> None:
+    """A box 0.8 m from the camera in front of a wall at 1.5 m: with `edge`, the pixels along the box's silhouette
+    (where a mixed pixel or a slightly mis-scaled fit sits) say nothing; the middle of the wall and of the box
+    still do. The range term widens the margin as depth² (a sample 2 cm in front of the wall at 1.5 m: seen
+    through with a 1 cm margin, not with 1 cm + 0.01 x 1.5²)."""
+    cam = Camera(K=K, T_world_camera=np.eye(4), width=320, height=240)
+    g = np.linspace(-0.3, 0.3, 300)
+    xx, yy = np.meshgrid(g, g)
+    wall = np.stack([xx.ravel(), yy.ravel(), np.full(xx.size, 1.5)], 1)
+    b = np.linspace(-0.05, 0.05, 60)
+    bx, by = np.meshgrid(b, b)
+    box = np.stack([bx.ravel(), by.ravel(), np.full(bx.size, 0.8)], 1)
+    pts = np.vstack([wall, box])
+    plain, edged = DepthView.of_points(cam, pts), DepthView.of_points(cam, pts, edge=0.05)
+    beside = np.array([[0.0828, 0.0, 1.2]])  # in front of the wall, 3 pixels beside the box's silhouette
+    assert plain.seen_through(beside, 0.01) == (1.0, 1.0)
+    assert edged.seen_through(beside, 0.01) == (0.0, 0.0)  # unobserved: an edge pixel
+    far = np.array([[0.2, 0.1, 1.2]])  # in front of the wall, far from any edge
+    assert edged.seen_through(far, 0.01) == (1.0, 1.0)
+    near_wall = np.array([[0.2, 0.1, 1.48]])
+    assert plain.seen_through(near_wall, 0.01) == (1.0, 1.0)
+    assert plain.seen_through(near_wall, 0.01, per_depth2=0.01) == (0.0, 1.0)

@@ -159,6 +159,13 @@ class EMConfig:
     """Sideways tolerance of the free-space check (m, `DepthView.of_points(lateral=...)`): a shape point counts
     as seen through only where the camera saw past it on its pixel *and* on every pixel within about this
     distance, so silhouette overhangs of a slightly mis-scaled fit are not held against it. 0 = per pixel."""
+    seen_through_edge: float | None = None
+    """Depth edges are not evidence of free space: a pixel whose observed depth varies by more than this (m)
+    within its splat window (an object's silhouette, mixed pixels, the border of a hole) counts as unobserved in
+    the free-space check. None = every observed pixel counts."""
+    seen_through_range: float = 0.0
+    """The free-space margin grows with the observed depth as `seen_through_margin` + this x depth² (m; depth
+    sensors' noise grows with the square of the range). 0 = a fixed margin."""
     m_step_replace: bool = True
     """M-step draws with replacement (the method). False: without replacement while a proposal has at least
     n_pcl weighted points (a smaller support is drawn whole, then topped up with replacement)."""
@@ -330,6 +337,10 @@ class EMConfig:
             raise ValueError(f"min_size_spacing must be in (0, 1) m or None, got {self.min_size_spacing}")
         if self.seen_through_margin is not None and not (0.0 <= self.seen_through_margin < 1.0):
             raise ValueError(f"seen_through_margin must be in [0, 1) m or None, got {self.seen_through_margin}")
+        if self.seen_through_edge is not None and not (0.0 < self.seen_through_edge < 1.0):
+            raise ValueError(f"seen_through_edge must be in (0, 1) m or None, got {self.seen_through_edge}")
+        if not (0.0 <= self.seen_through_range < 1.0):
+            raise ValueError(f"seen_through_range must be in [0, 1) m per m², got {self.seen_through_range}")
         if not (0.0 <= self.seen_through_lateral < 1.0):
             raise ValueError(f"seen_through_lateral must be in [0, 1) m, got {self.seen_through_lateral}")
         if not (0.0 <= self.pose_weight <= 16.0) or not (0.0 < self.pose_ref <= 1.0):

@@ -438,7 +438,8 @@ class _Solver:
         if camera is not None and cfg.seen_through_margin is not None:
             from efem_viz.geometry.camera import DepthView
 
-            self.depth_view = DepthView.of_points(camera, points, lateral=cfg.seen_through_lateral)
+            self.depth_view = DepthView.of_points(camera, points, lateral=cfg.seen_through_lateral,
+                                                  edge=cfg.seen_through_edge)
         self.planned_steps = cfg.num_episodes * cfg.steps_per_episode
         self.accepted: list[dict[str, Any]] = []
         """The instances' rows accepted so far (the end of each episode adds its survivors)."""
@@ -658,7 +659,8 @@ class _Solver:
             radii, scale_pass, up_angle, pose_pass = _size_and_up(Q, R, R_raw, cfg_k)
             st = float("nan")
             if self.depth_view is not None and cfg.seen_through_margin is not None and np.any(Q):
-                st = self.depth_view.seen_through(Q + center, cfg.seen_through_margin)[0]
+                st = self.depth_view.seen_through(Q + center, cfg.seen_through_margin,
+                                                  per_depth2=cfg.seen_through_range)[0]
             m_ok = np.abs(d_full[sl]) < cfg_k.out_tau
             if cfg.gamma_out < 180.0:
                 m_ok &= g_full[sl] < cfg.gamma_out

@@ -134,7 +134,8 @@ class DepthView:
     v0: int = 0
 
     @classmethod
-    def of_points(cls, camera: Camera, points: np.ndarray, *, splat: int = 5, lateral: float = 0.0) -> "DepthView":
+    def of_points(cls, camera: Camera, points: np.ndarray, *, splat: int = 5, lateral: float = 0.0,
+                  edge: float | None = None) -> "DepthView":
         """The depth view of scene points.
 
         Args:
@@ -145,6 +146,8 @@ class DepthView:
                 each side (z̃ the median observed depth), so a completed shape whose silhouette overhangs the
                 object it fits by up to about this much is not counted as seen through there (scale
                 errors of a few millimetres put a fit's rim and handle over the background behind it).
+            edge: pixels whose observed depth varies by more than this (m) within the splat window (silhouettes,
+                mixed pixels, hole borders) become unobserved: no evidence of free space there. None: kept.
         """
         from scipy.ndimage import minimum_filter
 
@@ -166,6 +169,13 @@ class DepthView:
         np.minimum.at(depth, (v[ok] - v0, u[ok] - u0), z[ok].astype(np.float32))
         if size > 1:
             depth = minimum_filter(depth, size=size, mode="nearest")
+        if edge is not None:
+            from scipy.ndimage import maximum_filter
+
+            window = max(int(splat), 3)
+            spread = maximum_filter(depth, size=window, mode="nearest") - minimum_filter(depth, size=window,
+                                                                                        mode="nearest")
+            depth = np.where(np.isfinite(spread) & (spread <= edge), depth, np.inf).astype(np.float32)
         return cls(camera=camera, depth=depth, u0=u0, v0=v0)
 
     def depth_at(self, u: int, v: int) -> float:
@@ -175,10 +185,11 @@ class DepthView:
             return float(self.depth[v - self.v0, u - self.u0])
         return float("inf")
 
-    def seen_through(self, points: np.ndarray, margin: float) -> tuple[float, float]:
+    def seen_through(self, points: np.ndarray, margin: float, *, per_depth2: float = 0.0) -> tuple[float, float]:
         """(fraction of the known ``points`` that lie more than ``margin`` metres in front of the observed
         surface on their pixel — where the camera saw through them —, fraction of ``points`` that are known).
 
+        The margin grows by ``per_depth2`` x (observed depth)² (sensor noise grows with the square of the range).
         A point is known when it projects into the image onto an observed pixel. Points behind the observed
         surface (occluded) or on it agree with the frame. (0, 0) when no point is known.
         """
@@ -193,5 +204,5 @@ class DepthView:
         n_known = int(known.sum())
         if n_known == 0:
             return 0.0, 0.0
-        through = known & (d > z + margin)
+        through = known & (d > z + margin + per_depth2 * np.where(known, d, 0.0) ** 2)
         return float(through.sum()) / n_known, n_known / len(z)
