@@ -151,3 +151,29 @@ def test_mug_parts_frame_matches_mesh() -> None:
     m2, parts = make_mug_with_parts(42)
     assert np.array_equal(m1.vertices, m2.vertices)
     assert len(parts) > 10
+
+
+def test_the_chair_family_is_varied_watertight_and_canonical() -> None:
+    """60 chairs of the train split: every base (four legs, stool, sled, cantilever, swivel), every back (solid,
+    slatted, curved, none) and both arm variants appear; each chair is one watertight solid, +Z up with its
+    bounding-box centre at the origin, its back toward +Y; the same seed gives the same chair."""
+    from efem_viz.data.chairs import BACKS, BASES, chair_with_parts, sample_chair_params
+
+    seen_bases, seen_backs, seen_arms = set(), set(), set()
+    for seed in range(60):
+        p = sample_chair_params(seed)
+        mesh, parts = chair_with_parts(seed)
+        seen_bases.add(p.base)
+        seen_backs.add(p.back)
+        seen_arms.add(p.arms)
+        assert mesh.is_watertight and mesh.volume > 0 and len(mesh.split(only_watertight=False)) == 1, seed
+        assert np.allclose(mesh.bounds.mean(axis=0), 0.0, atol=1e-9)
+        assert 0.3 < mesh.extents[2] < 1.2 and max(mesh.extents[:2]) < 0.8, (seed, mesh.extents)
+        assert all(len(q) >= 4 for q in parts)
+        if p.back != "none":  # the back stands at +Y: the upper part of the chair lies behind the middle
+            v = np.asarray(mesh.vertices)
+            top = v[v[:, 2] > mesh.bounds[1, 2] - 0.1]
+            assert top[:, 1].mean() > 0.0, seed
+    assert seen_bases == set(BASES) and seen_backs == set(BACKS) and seen_arms == {True, False}
+    again, _ = chair_with_parts(7)
+    assert np.array_equal(again.vertices, chair_with_parts(7)[0].vertices)

@@ -442,7 +442,7 @@ def _tube_rings(path_xz: np.ndarray, *, radius: float, aspect: float, ring: int 
     return p3[:, None, :] + offs
 
 
-def _finish(
+def finish_solid(
     mesh: trimesh.Trimesh, parts: list[np.ndarray], what: str
 ) -> tuple[trimesh.Trimesh, list[np.ndarray]]:
     """Check the solid, then move mesh and pieces into the canonical frame (bbox centre at the origin)."""
@@ -478,7 +478,7 @@ def make_mug_with_parts(
     """`make_mug` plus a convex decomposition for physics: list of (K, 3) point sets, canonical frame."""
     p = sample_mug_params(seed) if params is None else params
     mesh, parts = _build_mug(p)
-    return _finish(mesh, parts, f"mug {seed} ({p.profile}, handle {p.handle})")
+    return finish_solid(mesh, parts, f"mug {seed} ({p.profile}, handle {p.handle})")
 
 
 def handle_hole(mesh: trimesh.Trimesh, *, grid: int = 48) -> tuple[np.ndarray, float] | None:
@@ -534,7 +534,7 @@ def box_with_parts(seed: int) -> tuple[trimesh.Trimesh, list[np.ndarray]]:
     rng = np.random.default_rng([int(seed), 0x426F78])
     ext = np.array([rng.uniform(0.04, 0.15), rng.uniform(0.03, 0.09), rng.uniform(0.03, 0.15)])
     mesh = trimesh.creation.box(extents=ext)
-    return _finish(mesh, _hull_parts(mesh), f"box {seed}")
+    return finish_solid(mesh, _hull_parts(mesh), f"box {seed}")
 
 
 def can_with_parts(seed: int) -> tuple[trimesh.Trimesh, list[np.ndarray]]:
@@ -546,7 +546,7 @@ def can_with_parts(seed: int) -> tuple[trimesh.Trimesh, list[np.ndarray]]:
         [[0.0, 0.0], [r - bevel, 0.0], [r, bevel], [r, h - bevel], [r - bevel, h], [0.0, h]], dtype=np.float64
     )
     mesh = _revolve(prof, 40)
-    return _finish(mesh, _hull_parts(mesh), f"can {seed}")
+    return finish_solid(mesh, _hull_parts(mesh), f"can {seed}")
 
 
 def bowl_with_parts(seed: int) -> tuple[trimesh.Trimesh, list[np.ndarray]]:
@@ -569,7 +569,7 @@ def bowl_with_parts(seed: int) -> tuple[trimesh.Trimesh, list[np.ndarray]]:
     mesh = _revolve(prof, 40)
     parts = _wall_parts(r_out, z0=max(bottom * 0.5, 0.002), z1=h, wall=wall, sectors=16, bands=4)
     parts.append(_disk_part(r_out, z0=0.0, z1=bottom, foot_radius=0.002))
-    return _finish(mesh, parts, f"bowl {seed}")
+    return finish_solid(mesh, parts, f"bowl {seed}")
 
 
 def bottle_with_parts(seed: int) -> tuple[trimesh.Trimesh, list[np.ndarray]]:
@@ -598,7 +598,7 @@ def bottle_with_parts(seed: int) -> tuple[trimesh.Trimesh, list[np.ndarray]]:
         np.concatenate([np.stack([rr * np.cos(a), rr * np.sin(a), np.full(24, zz)], 1) for rr, zz in q])
         for q in (body, neck)
     ]
-    return _finish(mesh, parts, f"bottle {seed}")
+    return finish_solid(mesh, parts, f"bottle {seed}")
 
 
 def make_box(seed: int) -> trimesh.Trimesh:
@@ -649,14 +649,23 @@ CATEGORIES: dict[str, CategorySpec] = {
     "can": CategorySpec("can", can_with_parts, (0.06, 0.15), description="closed cylinders (cans, jars)"),
     "bowl": CategorySpec("bowl", bowl_with_parts, (0.12, 0.20), description="open bowls"),
     "bottle": CategorySpec("bottle", bottle_with_parts, (0.15, 0.26), description="closed bottles"),
+    "chair": CategorySpec("chair", lambda seed: _chairs().chair_with_parts(seed), (0.40, 1.10), target=True,
+                          description="four-legged chairs, stools, sled, cantilever and swivel chairs; solid, "
+                                      "slatted and curved backs; with and without arms (efem_viz.data.chairs)"),
 }
+
+
+def _chairs():  # noqa: ANN202 - the module (imported on first use: it imports this one)
+    import efem_viz.data.chairs as chairs
+
+    return chairs
 
 
 def make_shape(category: str, seed: int) -> trimesh.Trimesh:
     """Generate object `seed` of a registered category.
 
     Args:
-        category: a key of `CATEGORIES` ("mug", "box", "can", "bowl", "bottle").
+        category: a key of `CATEGORIES` ("mug", "box", "can", "bowl", "bottle", "chair").
         seed: non-negative integer.
 
     Returns:
