@@ -978,13 +978,13 @@ def test_run_efem_progress_and_cancel(app: AnnotatorApp, monkeypatch: pytest.Mon
     """The EFEM run on the scan reports its steps and the Cancel button stops it: nothing is added, the buttons
     come back, one run at a time (click-to-segment waits for it too), and bad values are refused."""
     import annotator.assist as assist
-    from efem_viz.em.solver import EMCancelled
+    from efem_viz.em.solver import EMCancelled, StepInfo
 
     started = threading.Event()
 
     def slow(scene: object, *, prior_name: str, settings: object, seed: int, on_step: Any,
              cancel: threading.Event) -> object:
-        on_step(SimpleNamespace(step=0, num_steps=30, active=80, elapsed_s=1.0))
+        on_step(StepInfo(step=0, num_steps=30, phase=1, active=80, elapsed_s=1.0))
         started.set()
         assert cancel.wait(30), "never cancelled"
         raise EMCancelled("cancelled")

@@ -293,9 +293,7 @@ class AssistRoom:
             f", on a {1000 * settings.work_voxel:g} mm working set" if settings.work_voxel else "") + ")"
 
         def on_step(info: Any) -> None:
-            left = "" if info.time_left_s is None else f", about {info.time_left_s:.0f} s left"
-            self.hooks.on_efem(f"{what}: step {info.step + 1} of {info.num_steps}, {info.active} proposals alive, "
-                               f"{info.elapsed_s:.0f} s{left} (Cancel stops it)",
+            self.hooks.on_efem(f"{what}: step {info.step + 1} of {info.num_steps} · {info.status()} (Cancel stops it)",
                                round(100.0 * (info.step + 1) / max(info.num_steps, 1), 1))
 
         t0 = time.perf_counter()

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
 from typing import Any, Protocol, cast
 
-from efem_viz.batch.events import BatchObserver, step_text
+from efem_viz.batch.events import BatchObserver
 from efem_viz.batch.job import BatchJob, SceneOutcome, SceneTask
 from efem_viz.batch.worker import one_line
 from efem_viz.cpu import cpu_count  # re-exported: the batch backends size their pools with it
@@ -117,7 +117,7 @@ class LocalBackend:
             events.on_start(task, "local")
 
             def on_step(s: Any, _task: SceneTask = task) -> None:
-                events.on_step(_task, "local", s.step + 1, s.num_steps, step_text(s.phase, s.active))
+                events.on_step(_task, "local", s.step + 1, s.num_steps, s.status())
 
             t0 = time.perf_counter()
             out = worker.process(task, on_step=on_step)
@@ -175,7 +175,7 @@ def _pool_worker_main(conn: Connection, worker_id: str, job: BatchJob, parent_pi
             now = time.monotonic()
             if now - last[0] >= STEP_REPORT_S or s.step + 1 >= s.num_steps:
                 last[0] = now
-                conn.send(("step", _task.index, s.step + 1, s.num_steps, step_text(s.phase, s.active)))
+                conn.send(("step", _task.index, s.step + 1, s.num_steps, s.status()))
 
         conn.send(("done", worker.process(task, on_step=on_step)))
 

@@ -35,7 +35,3 @@ class BatchObserver:
     def on_finish(self, report: BatchReport) -> None:
         """The batch is over (also after an interruption: the report then has pending scenes)."""
 
-
-def step_text(phase: int, active: int) -> str:
-    """The per-scene progress text every backend shows."""
-    return f"phase {phase}  active {active:4d}"

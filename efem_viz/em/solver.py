@@ -99,6 +99,13 @@ class StepInfo:
             return None
         return self.elapsed_s / done * (self.num_steps - done)
 
+    def status(self) -> str:
+        """The progress words every front end shows after its own "step k of N": the phase, the proposals alive,
+        the seconds so far and the time left, e.g. "phase 1 · 178 proposals alive · 12 s · about 30 s left"."""
+        left = self.time_left_s
+        return (f"phase {self.phase} · {self.active} proposals alive · {self.elapsed_s:.0f} s"
+                + ("" if left is None else f" · about {left:.0f} s left"))
+
     partial: "Callable[[], EMResult] | None" = field(default=None, repr=False, compare=False)
     """The run so far as an `EMResult` (its trace up to this step, the instances accepted so far), built when
     called, in the solver's thread (a viewer shows runs as they go; the batch never calls it)."""

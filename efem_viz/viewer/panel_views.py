@@ -75,10 +75,7 @@ def show_run_progress(p: Panels, info: StepInfo) -> None:
     """The progress bar and line of a running EM (`info`: the solver's step info)."""
     done, total = int(info.step) + 1, max(int(info.num_steps), 1)
     p.gui_progress.value = float(np.clip(100.0 * done / total, 0.0, 100.0))
-    p.gui_run_info.content = (
-        f"step {done}/{total} · phase {int(info.phase)} · {int(info.active)} active · "
-        f"{float(info.elapsed_s):.1f} s" + ("" if info.time_left_s is None else f" · about {info.time_left_s:.0f} s left")
-    )
+    p.gui_run_info.content = f"step {done}/{total} · {info.status()}"
 
 
 def show_no_result(p: Panels, session: ViewerSession, gui_set: GuiSet) -> None:
