@@ -167,4 +167,6 @@ def save_scene(scene: Scene, path: str | os.PathLike[str], *, ascii: bool = Fals
         raise SceneError(f"{p}: unknown scene format {suffix!r}; expected one of {', '.join(SCENE_SUFFIXES)}")
     if not fmt.keeps_labels and scene.has_gt:
         log.warning("%s: %s cannot hold instance labels; they are not saved (use .ply or .npz)", p, suffix)
+    if not fmt.keeps_faces and scene.is_mesh:
+        log.warning("%s: %s holds points only; the mesh's vertices are saved without its faces", p, suffix)
     return atomic_write(p, lambda tmp: fmt.save(scene, tmp, ascii=ascii))

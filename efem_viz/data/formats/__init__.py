@@ -24,6 +24,8 @@ class SceneFormat(NamedTuple):
     """`save(scene, tmp_path, *, ascii)`: write the whole file (`ascii`: the text form, where there is a choice)."""
     keeps_labels: bool = True
     """Whether the format holds per-vertex instance labels (saving a labelled scene without it warns)."""
+    keeps_faces: bool = True
+    """Whether the format holds triangles (saving a mesh without it keeps the vertices only, with a warning)."""
 
 
 FORMATS: dict[str, SceneFormat] = {
@@ -32,7 +34,7 @@ FORMATS: dict[str, SceneFormat] = {
     ".off": SceneFormat(obj_off.load_off, obj_off.save_off, keeps_labels=False),
     ".glb": SceneFormat(glb.load, glb.save),
     ".npz": SceneFormat(npz.load, npz.save),
-    ".pcd": SceneFormat(pcd.load, pcd.save),
+    ".pcd": SceneFormat(pcd.load, pcd.save, keeps_faces=False),
 }
 """Scene formats by lower-case file suffix."""
 
