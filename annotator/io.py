@@ -24,7 +24,7 @@ import logging
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Mapping, cast
+from typing import Any, Callable, Iterable, Mapping, cast
 
 import numpy as np
 
@@ -357,15 +357,19 @@ def load_labels(path: str | os.PathLike[str], num_vertices: int) -> LabelData:
     if p.stat().st_size == 0:
         raise LabelIOError(f"{p}: file is empty (0 bytes)")
     name = p.name.lower()
-    if name.endswith(RESULT_SUFFIX):
-        return _read_efem(p, num_vertices)
-    if name.endswith(".ply"):
-        return _read_ply_labels(p, num_vertices)
-    if name.endswith(".npz"):
-        return _read_npz_labels(p, num_vertices)
-    if name.endswith(".aggregation.json") or name.endswith(".segs.json"):
-        return _read_scannet(p, num_vertices)
+    for suffixes, read in LABEL_READERS:
+        if name.endswith(suffixes):
+            return read(p, num_vertices)
     raise LabelIOError(f"{p}: unknown label format; expected one of {', '.join(LABEL_SUFFIXES)}")
+
+
+LABEL_READERS: tuple[tuple[tuple[str, ...], Callable[[Path, int], LabelData]], ...] = (
+    ((RESULT_SUFFIX,), lambda p, n: _read_efem(p, n)),  # before ".npz": a result is an .npz too
+    ((".ply",), _read_ply_labels),
+    ((".npz",), _read_npz_labels),
+    ((".aggregation.json", ".segs.json"), _read_scannet),
+)
+"""The label formats `load_labels` reads, by file-name suffix, first match wins (one row per format)."""
 
 
 def load_scan(path: str | os.PathLike[str], *, max_points: int = MAX_SCAN_POINTS) -> Any:
