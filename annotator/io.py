@@ -32,6 +32,7 @@ from annotator.journal import read_label_file, write_label_file
 from annotator.labels import InstanceInfo, table_from_json, table_to_json
 from efem_viz.colors import instance_color
 from efem_viz.data.io import RESULT_SUFFIX
+from efem_viz.terminal import one_line
 
 log = logging.getLogger(__name__)
 
@@ -87,12 +88,6 @@ def _table_rows(table: Mapping[int, InstanceInfo] | Iterable[InstanceInfo]) -> l
         by_id = cast("Mapping[int, InstanceInfo]", table)
         return [by_id[k] for k in sorted(by_id)]
     return sorted(table, key=lambda i: i.id)
-
-
-def _one_line(exc: BaseException) -> str:
-    """`Type: message` of an exception on one line, cut to 300 characters."""
-    text = " ".join(str(exc).split())
-    return f"{type(exc).__name__}: {text[:300]}" if text else type(exc).__name__
 
 
 def _check_labels(labels: np.ndarray, n: int, path: Path | str) -> np.ndarray:
@@ -208,7 +203,7 @@ def _read_ply_labels(p: Path, n: int) -> LabelData:
     except MemoryError:
         raise
     except Exception as exc:  # plyfile raises many types on corrupt input
-        raise LabelIOError(f"{p}: could not read PLY ({_one_line(exc)})") from exc
+        raise LabelIOError(f"{p}: could not read PLY ({one_line(exc, limit=300)})") from exc
     props = v.dtype.names or ()
     key = next((k for k in ("instance", "instance_id", "objectId", "label") if k in props), None)
     if key is None:
@@ -260,14 +255,14 @@ def _read_npz_labels(p: Path, n: int) -> LabelData:
     except MemoryError:
         raise
     except Exception as exc:  # zipfile, zlib and numpy raise many types on a corrupt archive
-        raise LabelIOError(f"{p}: could not read NPZ ({_one_line(exc)})") from exc
+        raise LabelIOError(f"{p}: could not read NPZ ({one_line(exc, limit=300)})") from exc
     if instance is None:
         try:
             labels, table, _ = read_label_file(p, n)
         except MemoryError:
             raise
         except Exception as exc:  # JournalError (a ValueError) names the file; others are corrupt members
-            msg = " ".join(str(exc).split()) if isinstance(exc, ValueError) else _one_line(exc)
+            msg = " ".join(str(exc).split()) if isinstance(exc, ValueError) else one_line(exc, limit=300)
             raise LabelIOError(msg if str(p) in msg else f"{p}: {msg}") from exc
         return LabelData(_check_labels(labels, n, p), _complete(labels, list(table.values())))
     labels = _check_labels(instance, n, p)
@@ -305,7 +300,7 @@ def _read_efem(p: Path, n: int, *, threshold: float = 0.0) -> LabelData:
         msg = " ".join(str(exc).split())
         if isinstance(exc, (ValueError, OSError)) and str(p) in msg:  # ResultFileError names the file already
             raise LabelIOError(f"could not load EFEM result: {msg}") from exc
-        raise LabelIOError(f"{p}: could not load EFEM result ({_one_line(exc)})") from exc
+        raise LabelIOError(f"{p}: could not load EFEM result ({one_line(exc, limit=300)})") from exc
     return labels_from_result(res, n, where=str(p), threshold=threshold)
 
 
@@ -323,7 +318,7 @@ def labels_from_result(res: Any, n: int, *, where: str, threshold: float = 0.0) 
         inst = res.instances.above(threshold) if threshold > 0 else res.instances
         labels = np.asarray(inst.label_array(n), np.int32)
     except (ValueError, IndexError) as exc:
-        raise LabelIOError(f"{p}: could not use the EFEM result ({_one_line(exc)})") from exc
+        raise LabelIOError(f"{p}: could not use the EFEM result ({one_line(exc, limit=300)})") from exc
     labels = _check_labels(labels, n, p)
     rows: list[InstanceInfo] = []
     conf: dict[int, float] = {}

@@ -46,6 +46,13 @@ LOG_FORMAT = "%(levelname)s %(name)s: %(message)s"
 """The command lines' log line."""
 
 
+def one_line(exc: BaseException, *, limit: int = 500) -> str:
+    """An exception as one line, `Type: message` (whitespace collapsed, the message cut to `limit` characters):
+    what every command, batch record and app notice says of an error."""
+    text = " ".join(str(exc).split())
+    return f"{type(exc).__name__}: {text[:limit]}" if text else type(exc).__name__
+
+
 def count(n: int, noun: str, plural: str | None = None) -> str:
     """``n`` and the noun in the number it needs: "1 object", "3 objects", "1,204 points" (the one plural rule
     of every count a person reads: GUI labels, captions, status lines)."""

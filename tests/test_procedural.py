@@ -117,9 +117,9 @@ def test_splits_disjoint_and_errors() -> None:
     with pytest.raises(ValueError, match="split"):
         split_seeds("mug", "dev")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="category"):
-        split_seeds("chair", "train")
+        split_seeds("sofa", "train")
     with pytest.raises(ValueError, match="category"):
-        make_shape("chair", 0)
+        make_shape("sofa", 0)
 
 
 @pytest.mark.parametrize("category", sorted(CATEGORIES))

@@ -30,7 +30,7 @@ from typing import Any, Protocol, cast
 
 from efem_viz.batch.events import BatchObserver
 from efem_viz.batch.job import BatchJob, SceneOutcome, SceneTask
-from efem_viz.batch.worker import one_line
+from efem_viz.terminal import one_line
 from efem_viz.cpu import cpu_count  # re-exported: the batch backends size their pools with it
 
 logger = logging.getLogger(__name__)

@@ -25,7 +25,7 @@ from typing import Any
 from efem_viz.batch.backends import BackendOptions, BatchError, cpu_count
 from efem_viz.batch.events import BatchObserver
 from efem_viz.batch.job import BatchJob, SceneOutcome, SceneTask, WorkerInfo
-from efem_viz.batch.worker import one_line
+from efem_viz.terminal import one_line
 
 logger = logging.getLogger(__name__)
 

@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from efem_viz.batch.job import BatchJob, SceneOutcome, SceneTask, WorkerInfo, scene_stamp
+from efem_viz.terminal import one_line
 
 if TYPE_CHECKING:
     from efem_viz.em.solver import StepInfo
@@ -49,12 +50,6 @@ def current_rss_mb() -> float:
         return pages * os.sysconf("SC_PAGE_SIZE") / (1024.0 * 1024.0)
     except (OSError, ValueError, IndexError):
         return peak_rss_mb()
-
-
-def one_line(exc: BaseException) -> str:
-    """`Type: message` on one line (for outcomes and `batch.json`)."""
-    msg = " ".join(str(exc).split())
-    return f"{type(exc).__name__}: {msg}" if msg else type(exc).__name__
 
 
 class SceneWorker:

@@ -15,6 +15,8 @@ from typing import Literal
 import numpy as np
 import trimesh
 
+from efem_viz.data.solid import finish_solid
+
 Base = Literal["four_legs", "stool", "sled", "cantilever", "swivel"]
 Back = Literal["solid", "slatted", "curved", "none"]
 
@@ -201,8 +203,6 @@ def chair_with_parts(seed: int, params: ChairParams | None = None) -> tuple[trim
     Raises:
         RuntimeError: the union is not a watertight solid (should not happen).
     """
-    from efem_viz.data.procedural import finish_solid
-
     p = sample_chair_params(seed) if params is None else params
     prims = _seat(p) + _base(p) + _back(p) + _arms(p)
     mesh = trimesh.boolean.union(prims, engine="manifold")

@@ -228,6 +228,8 @@ class ImportRgbdArgs:
             if any(v is None for v in intr):
                 raise SceneError("--depth needs the intrinsics --fx --fy --cx --cy")
             K = np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1]], dtype=np.float64)
+            from efem_viz.data.rgbd import read_depth_image, read_rgb_image
+
             depth_m = read_depth_image(self.depth)
             rgb = read_rgb_image(self.rgb) if self.rgb is not None else None
             source = self.depth
@@ -293,48 +295,6 @@ def _intrinsics_given(args: ImportRgbdArgs) -> np.ndarray | None:
     if not (fx > 0 and fy > 0):
         raise SceneError(f"focal lengths must be positive, got fx={fx}, fy={fy}")
     return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=np.float64)
-
-
-def read_depth_image(path: Path) -> np.ndarray:
-    """Depth in metres from a `.npy` (float metres, or integer millimetres) or a 16-bit `.png` (millimetres).
-
-    Returns:
-        (H, W) float32 metres, 0 = no reading.
-
-    Raises:
-        SceneError: missing file, unknown suffix, not a 2-D image.
-    """
-    p = Path(path)
-    if not p.is_file():
-        raise SceneError(f"{p}: no such file")
-    suffix = p.suffix.lower()
-    if suffix == ".npy":
-        d = np.load(p, allow_pickle=False)
-        d = d.astype(np.float32) / 1000.0 if np.issubdtype(d.dtype, np.integer) else d.astype(np.float32)
-    elif suffix == ".png":
-        from PIL import Image
-
-        with Image.open(p) as im:
-            arr = np.asarray(im)
-        if arr.dtype not in (np.uint16, np.int32, np.uint32) and not (arr.dtype == np.int64):
-            raise SceneError(f"{p}: a depth PNG must be 16-bit millimetres, got {arr.dtype} (mode {im.mode})")
-        d = arr.astype(np.float32) / 1000.0
-    else:
-        raise SceneError(f"{p}: depth must be .npy (metres) or 16-bit .png (millimetres), got {suffix!r}")
-    if d.ndim != 2:
-        raise SceneError(f"{p}: depth must be a 2-D image, got shape {d.shape}")
-    return np.where(np.isfinite(d), d, 0.0).astype(np.float32)
-
-
-def read_rgb_image(path: Path) -> np.ndarray:
-    """(H, W, 3) uint8 colours from an image file."""
-    from PIL import Image
-
-    p = Path(path)
-    if not p.is_file():
-        raise SceneError(f"{p}: no such file")
-    with Image.open(p) as im:
-        return np.asarray(im.convert("RGB"))
 
 
 @dataclass

@@ -24,6 +24,9 @@ from typing import Callable, Literal
 import numpy as np
 import trimesh
 
+from efem_viz.data.chairs import chair_with_parts
+from efem_viz.data.solid import finish_solid
+
 logger = logging.getLogger(__name__)
 
 Profile = Literal["straight", "tapered", "barrel", "flared"]
@@ -442,19 +445,6 @@ def _tube_rings(path_xz: np.ndarray, *, radius: float, aspect: float, ring: int 
     return p3[:, None, :] + offs
 
 
-def finish_solid(
-    mesh: trimesh.Trimesh, parts: list[np.ndarray], what: str
-) -> tuple[trimesh.Trimesh, list[np.ndarray]]:
-    """Check the solid, then move mesh and pieces into the canonical frame (bbox centre at the origin)."""
-    if not mesh.is_watertight or mesh.volume <= 0:
-        raise RuntimeError(
-            f"{what} is not a watertight solid (watertight={mesh.is_watertight}, volume={mesh.volume})"
-        )
-    shift = -mesh.bounds.mean(axis=0)
-    mesh.apply_translation(shift)
-    return mesh, [np.asarray(q, np.float64) + shift for q in parts]
-
-
 def make_mug(seed: int, params: MugParams | None = None) -> trimesh.Trimesh:
     """Build procedural mug `seed` (or the mug described by `params`).
 
@@ -649,16 +639,10 @@ CATEGORIES: dict[str, CategorySpec] = {
     "can": CategorySpec("can", can_with_parts, (0.06, 0.15), description="closed cylinders (cans, jars)"),
     "bowl": CategorySpec("bowl", bowl_with_parts, (0.12, 0.20), description="open bowls"),
     "bottle": CategorySpec("bottle", bottle_with_parts, (0.15, 0.26), description="closed bottles"),
-    "chair": CategorySpec("chair", lambda seed: _chairs().chair_with_parts(seed), (0.40, 1.10), target=True,
+    "chair": CategorySpec("chair", chair_with_parts, (0.40, 1.10), target=True,
                           description="four-legged chairs, stools, sled, cantilever and swivel chairs; solid, "
                                       "slatted and curved backs; with and without arms (efem_viz.data.chairs)"),
 }
-
-
-def _chairs():  # noqa: ANN202 - the module (imported on first use: it imports this one)
-    import efem_viz.data.chairs as chairs
-
-    return chairs
 
 
 def make_shape(category: str, seed: int) -> trimesh.Trimesh:

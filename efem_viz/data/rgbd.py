@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from efem_viz.data.scene import Scene, SceneError
+from efem_viz.terminal import one_line
 
 log = logging.getLogger(__name__)
 
@@ -65,8 +66,7 @@ def load_rgbd_npz(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray,
     except MemoryError:
         raise
     except Exception as exc:
-        text = " ".join(str(exc).split())[:300]
-        raise SceneError(f"{p}: could not read the RGB-D .npz ({type(exc).__name__}: {text})") from exc
+        raise SceneError(f"{p}: could not read the RGB-D .npz ({one_line(exc, limit=300)})") from exc
     if "K" not in data:
         raise SceneError(f"{p}: RGB-D .npz needs an intrinsics array 'K' (has {sorted(data)})")
     key = "depth_mm" if "depth_mm" in data else "depth" if "depth" in data else None
@@ -462,3 +462,45 @@ def import_rgbd_file(
     except RuntimeError as exc:  # Open3D's errors: coloured, over several lines
         text = " ".join(re.sub(r"\x1b\[[0-9;]*m", "", str(exc)).split())[:300]
         raise SceneError(f"{p}: could not import the RGB-D frame ({text})") from exc
+
+
+def read_depth_image(path: Path) -> np.ndarray:
+    """Depth in metres from a `.npy` (float metres, or integer millimetres) or a 16-bit `.png` (millimetres).
+
+    Returns:
+        (H, W) float32 metres, 0 = no reading.
+
+    Raises:
+        SceneError: missing file, unknown suffix, not a 2-D image.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise SceneError(f"{p}: no such file")
+    suffix = p.suffix.lower()
+    if suffix == ".npy":
+        d = np.load(p, allow_pickle=False)
+        d = d.astype(np.float32) / 1000.0 if np.issubdtype(d.dtype, np.integer) else d.astype(np.float32)
+    elif suffix == ".png":
+        from PIL import Image
+
+        with Image.open(p) as im:
+            arr = np.asarray(im)
+        if arr.dtype not in (np.uint16, np.int32, np.uint32) and not (arr.dtype == np.int64):
+            raise SceneError(f"{p}: a depth PNG must be 16-bit millimetres, got {arr.dtype} (mode {im.mode})")
+        d = arr.astype(np.float32) / 1000.0
+    else:
+        raise SceneError(f"{p}: depth must be .npy (metres) or 16-bit .png (millimetres), got {suffix!r}")
+    if d.ndim != 2:
+        raise SceneError(f"{p}: depth must be a 2-D image, got shape {d.shape}")
+    return np.where(np.isfinite(d), d, 0.0).astype(np.float32)
+
+
+def read_rgb_image(path: Path) -> np.ndarray:
+    """(H, W, 3) uint8 colours from an image file."""
+    from PIL import Image
+
+    p = Path(path)
+    if not p.is_file():
+        raise SceneError(f"{p}: no such file")
+    with Image.open(p) as im:
+        return np.asarray(im.convert("RGB"))

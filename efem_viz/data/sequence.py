@@ -205,7 +205,7 @@ def fuse_sequence(seq: Sequence, *, voxel: float = 0.004, trunc_voxels: float = 
     """
     import open3d as o3d
 
-    from efem_viz.data.commands import read_depth_image, read_rgb_image
+    from efem_viz.data.rgbd import read_depth_image, read_rgb_image
 
     f32 = o3d.core.float32
     grid = o3d.t.geometry.VoxelBlockGrid(

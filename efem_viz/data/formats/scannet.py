@@ -16,6 +16,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from efem_viz.data.scene import SceneError
+from efem_viz.terminal import one_line
 
 MESH_SUFFIX = "_vh_clean_2.ply"
 """The suffix of ScanNet's annotated scene meshes."""
@@ -43,10 +44,6 @@ def scannet_pair_of(mesh: Path) -> tuple[Path, Path] | None:
                             mesh.with_name(f"{scene}_vh_clean.aggregation.json")) if p.is_file()), None)
     segs = mesh.with_name(f"{scene}_vh_clean_2.0.010000.segs.json")
     return (agg, segs) if agg is not None and segs.is_file() else None
-
-
-def _one_line(exc: BaseException) -> str:
-    return " ".join(f"{type(exc).__name__}: {exc}".split())[:300]
 
 
 def read_scannet_instances(path: Path, n: int, *, error: type[ValueError] = SceneError) -> ScanNetInstances:
@@ -81,7 +78,7 @@ def read_scannet_instances(path: Path, n: int, *, error: type[ValueError] = Scen
         if not isinstance(groups, list):
             raise TypeError(f"segGroups is a JSON {type(groups).__name__}, not a list")
     except (OSError, ValueError, KeyError, TypeError, RecursionError) as exc:
-        raise error(f"{p}: could not read ScanNet segs/aggregation pair ({_one_line(exc)})") from exc
+        raise error(f"{p}: could not read ScanNet segs/aggregation pair ({one_line(exc, limit=300)})") from exc
     if seg_idx.ndim != 1 or len(seg_idx) != n:
         raise error(f"{segs_p}: has {seg_idx.shape} segIndices, the scan has {n} vertices")
     if not np.issubdtype(seg_idx.dtype, np.integer):
@@ -98,7 +95,7 @@ def read_scannet_instances(path: Path, n: int, *, error: type[ValueError] = Scen
             segments = np.asarray([int(s) for s in g["segments"]], np.int64)
             cat = str(g.get("label", "object"))
         except (KeyError, TypeError, ValueError, OverflowError) as exc:
-            raise error(f"{agg_p}: malformed segGroups[{k}] {repr(g)[:80]} ({_one_line(exc)})") from exc
+            raise error(f"{agg_p}: malformed segGroups[{k}] {repr(g)[:80]} ({one_line(exc, limit=300)})") from exc
         if not 0 < iid <= np.iinfo(np.int32).max:
             raise error(f"{agg_p}: segGroups[{k}] objectId must be in [0, {np.iinfo(np.int32).max - 1}], "
                         f"got {iid - 1}")
