@@ -173,8 +173,9 @@ class DepthView:
             from scipy.ndimage import maximum_filter
 
             window = max(int(splat), 3)
-            spread = maximum_filter(depth, size=window, mode="nearest") - minimum_filter(depth, size=window,
-                                                                                        mode="nearest")
+            with np.errstate(invalid="ignore"):  # inf - inf next to unobserved pixels: NaN, i.e. an edge
+                spread = maximum_filter(depth, size=window, mode="nearest") - minimum_filter(depth, size=window,
+                                                                                            mode="nearest")
             depth = np.where(np.isfinite(spread) & (spread <= edge), depth, np.inf).astype(np.float32)
         return cls(camera=camera, depth=depth, u0=u0, v0=v0)
 
