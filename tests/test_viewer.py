@@ -482,6 +482,22 @@ def test_a_run_is_shown_as_it_goes_then_its_final_result(app: Any) -> None:
     assert all(src.startswith(f"running: step {n} of ") for n, _, src in partial)
     accepted = [k for _, k, _ in partial]  # instances appear as their episodes end, never disappear
     assert accepted == sorted(accepted) and accepted[-1] <= len(res.instances)
+
+    # cancelled after its second shown state: the screen keeps what the run had, saying it stopped and is not saved
+    def cancel_at_two(result: Any, *, source: str) -> None:
+        original(result, source=source)
+        if source.startswith("running: step 2 "):
+            app.cancel_run()
+
+    app.set_result = cancel_at_two
+    try:
+        app.run_panel.progressive_every_s = 0.0
+        assert app.start_run(preset="fast", proposals=8, seed=3).result(timeout=600) is None
+    finally:
+        app.set_result = original
+        app.run_panel.progressive_every_s = None
+    assert app.state.result_source == "stopped run (not saved): as far as it went, step 2 of 20"
+    assert app.state.result.trace.num_steps == 2 and not app.state.running
     assert final[0] == res.trace.num_steps and final[2].startswith("run (fast, seed 3")
     assert app.wait_idle(60)
 

@@ -63,6 +63,7 @@ class RunPanel:
     def _run_job(self, settings: RunSettings, generation: int) -> EMResult | None:
         """The run, in the runner thread: progress per step, the buttons back at the end, the result shown."""
         last_shown = [-math.inf]
+        shown: list[tuple[EMResult, StepInfo]] = []  # the newest state shown while running
 
         def on_step(info: StepInfo) -> None:
             pv.show_run_progress(self.panels, info)
@@ -74,6 +75,7 @@ class RunPanel:
                 return
             last_shown[0] = now
             partial = info.partial()
+            shown[:] = [(partial, info)]
             self.show_result(partial, f"running: step {info.step + 1} of {info.num_steps}, "
                                       f"{info.active} proposals alive, {len(partial.instances)} accepted so far")
 
@@ -83,6 +85,10 @@ class RunPanel:
             with self.session.lock:
                 pv.show_running(self.panels, False)
         if result is None:
+            if shown and self.session.runs.is_current(generation):  # say what the screen still shows
+                partial, info = shown[0]
+                self.show_result(partial, f"stopped run (not saved): as far as it went, step {info.step + 1} of "
+                                          f"{info.num_steps}")
             return None
         self.show_result(result, self.session.last_run_source)
         return result
