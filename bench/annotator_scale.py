@@ -35,7 +35,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import common  # noqa: E402,F401 - the checkout on sys.path, the CLIs' OpenMP wait policy
 
 
 def make_surface(n_side: int, *, seed: int = 0) -> "object":

@@ -14,14 +14,12 @@ import argparse
 import json
 import platform
 import statistics
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))  # the checkout first
+from common import ROOT  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
 SCENES = ("real_tabletop_0", "real_tabletop_6", "real_tabletop_8")
 
 

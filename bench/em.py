@@ -32,14 +32,13 @@ import itertools
 import json
 import logging
 import os
-import platform
 import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
+from common import ROOT, machine  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
 sys.path[:0] = [str(ROOT), str(ROOT / "bench")]  # the checkout's efem_viz; em_stability's config parser
 CACHE = Path(os.environ.get("EFEM_BENCH_CACHE", Path.home() / ".cache" / "efem-viz" / "bench"))
 CONFIGS = ("z", "so3", "pile", "tree", "box", "shelf")
@@ -117,14 +116,6 @@ def stage_table(timings: list[dict[str, float]]) -> dict[str, float]:
     tot = {k: float(np.sum([t.get(k, 0.0) for t in timings])) for k in STAGES}  # wall seconds per stage
     total = float(np.sum([t["total"] for t in timings]))
     return {k: v / total for k, v in tot.items()} | {"other": max(0.0, 1 - sum(tot.values()) / total)}
-
-
-def machine(threads: int) -> dict[str, Any]:
-    """What the timings were measured on."""
-    import torch
-
-    return {"platform": platform.platform(), "cpus": os.cpu_count(), "torch_threads": threads,
-            "torch": torch.__version__}
 
 
 def write_json(path: Path, out: dict[str, Any]) -> None:

@@ -34,13 +34,11 @@ import json
 import platform
 import sys
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from common import ROOT  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
 sys.path.insert(0, str(ROOT / "bench"))
 
 LEVELS = ("0", "1", "2", "3", "5", "sensor")

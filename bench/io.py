@@ -33,8 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+from common import ROOT  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_tabletop"
 if not REAL.is_dir():
     REAL = Path("/work/shared/data/real_tabletop")

@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+from common import ROOT  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
 sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
 
 from efem_viz.em.look_alike import FEATURES, LookAlikeModel, fit_logistic, load_model, review_features  # noqa: E402

@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
+from common import ROOT  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
 YCB_MUG = ROOT.parent / "shared" / "data" / "ycb" / "025_mug" / "nontextured.ply"  # ../shared beside the repo
 if not YCB_MUG.exists():
     YCB_MUG = Path("/work/shared/data/ycb/025_mug/nontextured.ply")

@@ -36,7 +36,6 @@ import argparse
 import dataclasses
 import json
 import math
-import sys
 from collections import defaultdict
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
@@ -45,8 +44,7 @@ from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+import common  # noqa: E402,F401 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
 
 
 @dataclass

@@ -33,8 +33,7 @@ from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from common import ROOT  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
 FRAMES = Path(os.environ.get("EFEM_REAL_FRAMES", ROOT.parent / "shared" / "data" / "real_tabletop"))
 TUNE = (0, 1, 6)
 JUDGE = (2, 3, 4, 5, 7, 8)

@@ -15,14 +15,12 @@ from __future__ import annotations
 
 import json
 import os
-import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from common import ROOT  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
 DATA = Path(os.environ.get("EFEM_SHARED_DATA", ROOT.parent / "shared" / "data"))
 BINS = np.arange(0.4, 1.6, 0.1)
 

@@ -36,12 +36,11 @@ import pstats
 import statistics
 import sys
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+from common import ROOT  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
 sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
 
 VARIANTS: dict[str, tuple[dict[str, str], dict[str, Any]]] = {

@@ -22,8 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from common import ROOT  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
 sys.path.insert(0, str(ROOT / "bench"))
 FRAME = Path(os.environ.get("EFEM_STEREO_FRAME", ROOT.parent / "shared" / "data" / "pcl_tutorial_mug" / "frame.npz"))
 

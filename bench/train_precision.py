@@ -17,14 +17,12 @@ from __future__ import annotations
 import argparse
 import logging
 import statistics
-import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from common import ROOT  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
 
 DEFAULT = ("128x2:float32", "128x2:bfloat16", "256x4:float32", "256x4:bfloat16", "256x5:bfloat16",
            "384x5:bfloat16")

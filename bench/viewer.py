@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+from common import ROOT  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
 
 
 class ByteCounter:
