@@ -44,7 +44,6 @@ from efem_viz.batch import (
     WorkerInfo,
 )
 from efem_viz.batch.backends import cpu_count
-from efem_viz.batch.events import step_text
 
 
 class ThreadBackend:
@@ -68,7 +67,8 @@ class ThreadBackend:
     def run(self, job: BatchJob, tasks: Sequence[SceneTask], events: BatchObserver) -> Iterator[SceneOutcome]:
         import torch
 
-        from efem_viz.batch.worker import SceneWorker, one_line
+        from efem_viz.batch.worker import SceneWorker
+        from efem_viz.terminal import one_line
 
         if not tasks:
             return
@@ -95,7 +95,7 @@ class ThreadBackend:
                     msgs.put(("start", task, wid))
 
                     def on_step(s: Any, _task: SceneTask = task) -> None:
-                        msgs.put(("step", _task, wid, s.step + 1, s.num_steps, step_text(s.phase, s.active)))
+                        msgs.put(("step", _task, wid, s.step + 1, s.num_steps, s.status()))
 
                     t0 = time.perf_counter()
                     out = worker.process(task, on_step=on_step)  # never raises for a scene's own problems

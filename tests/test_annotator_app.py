@@ -1036,7 +1036,7 @@ def test_closing_during_an_efem_run_stops_it_first(spheres, monkeypatch: pytest.
     """Closing the app (Ctrl+C) during an EFEM run on the scan cancels it and waits for its thread before the journal
     closes: nothing is saved or added afterwards. Proposals 0 takes the preset's count."""
     import annotator.assist as assist
-    from efem_viz.em.solver import EMCancelled
+    from efem_viz.em.solver import EMCancelled, StepInfo
 
     d, scene, _ = spheres
     started = threading.Event()
@@ -1045,7 +1045,7 @@ def test_closing_during_an_efem_run_stops_it_first(spheres, monkeypatch: pytest.
     def slow(scene: object, *, prior_name: str, settings: Any, seed: int, on_step: Any,
              cancel: threading.Event) -> object:
         got.append(settings)
-        on_step(SimpleNamespace(step=0, num_steps=30, active=80, elapsed_s=1.0))
+        on_step(StepInfo(step=0, num_steps=30, phase=1, active=80, elapsed_s=1.0))
         started.set()
         assert cancel.wait(30), "never cancelled"
         raise EMCancelled("cancelled")

@@ -347,13 +347,15 @@ def test_schedule_real_paper(t: int, expected: tuple[float, ...]) -> None:
 
 
 def test_real_preset_is_the_paper_one_with_the_measured_changes() -> None:
-    """`real` = §3.12's real settings (`real_paper`) + the session-8 changes for noisy single-view frames + the
-    session-13 learned mug-vs-look-alike confidence + the session-14 inclusion rule that spares the better fit
-    (by stationary score; the synthetic presets compare the confidence)."""
+    """`real` = §3.12's real settings (`real_paper`) + the changes for noisy single-view frames (a free-space check
+    that ignores depth edges and widens with the range) + the learned mug-vs-look-alike confidence + the inclusion
+    rule that spares the better fit (by stationary score; the synthetic presets compare the confidence)."""
     real, paper = preset("real"), preset("real_paper")
     assert dataclasses.replace(real, name="real_paper", tau_d=paper.tau_d, tau_n=paper.tau_n, m_step_replace=True,
                                seen_through_margin=None, max_seen_through=paper.max_seen_through,
+                               seen_through_edge=None, seen_through_range=0.0,
                                mug_model=None, inclusion="paper") == paper
+    assert (real.seen_through_edge, real.seen_through_range) == (0.02, 0.01)
     assert real.mug_model == "mug_uois_tune" and paper.mug_model is None and real.pose_weight == 0.0
     assert real.inclusion == "score" and real.inclusion_by == "stationary" and paper.inclusion == "paper"
     for name in ("synthetic", "fast"):  # the better-explained fit is spared

@@ -498,6 +498,8 @@ def test_a_run_is_shown_as_it_goes_then_its_final_result(app: Any) -> None:
         app.run_panel.progressive_every_s = None
     assert app.state.result_source == "stopped run (not saved): as far as it went, step 2 of 20"
     assert app.state.result.trace.num_steps == 2 and not app.state.running
+    assert app.load_trace() is True  # back to the saved one, for the module's later tests
+    assert app.wait_idle(60)
     assert final[0] == res.trace.num_steps and final[2].startswith("run (fast, seed 3")
     assert app.wait_idle(60)
 

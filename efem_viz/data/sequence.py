@@ -21,6 +21,7 @@ import logging
 import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -203,9 +204,11 @@ def fuse_sequence(seq: Sequence, *, voxel: float = 0.004, trunc_voxels: float = 
     Raises:
         SceneError: an unreadable image, depth images of different sizes, no surface at all.
     """
-    import open3d as o3d
+    import importlib
 
     from efem_viz.data.rgbd import read_depth_image, read_rgb_image
+
+    o3d: Any = importlib.import_module("open3d")  # untyped where it matters (tensor API stubs disagree)
 
     f32 = o3d.core.float32
     grid = o3d.t.geometry.VoxelBlockGrid(

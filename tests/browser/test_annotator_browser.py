@@ -617,7 +617,6 @@ def test_run_efem_from_the_page_progress_cancel_then_prelabels(tmp_path: Path, n
     in for a shipped one) and accepts the best pre-labels with *Accept all ≥ cut*: every step by mouse and keyboard
     in the page, checked on the server."""
     import threading
-    from types import SimpleNamespace
 
     import torch
 
@@ -627,6 +626,7 @@ def test_run_efem_from_the_page_progress_cancel_then_prelabels(tmp_path: Path, n
     from efem_viz.data.io import save_scene
     from efem_viz.data.scene import Scene
     from efem_viz.em.solver import EMCancelled
+    from efem_viz.em.solver import StepInfo
     from efem_viz.prior import analytic
 
     torch.set_num_threads(1)
@@ -639,7 +639,7 @@ def test_run_efem_from_the_page_progress_cancel_then_prelabels(tmp_path: Path, n
 
     def slow_then_real(scene: Any, **kw: Any) -> Any:
         if not cancelled.is_set():  # the first run: steps until the person cancels it
-            kw["on_step"](SimpleNamespace(step=0, num_steps=30, active=80, elapsed_s=1.0))
+            kw["on_step"](StepInfo(step=0, num_steps=30, phase=1, active=80, elapsed_s=1.0))
             assert kw["cancel"].wait(60), "never cancelled"
             cancelled.set()
             raise EMCancelled("cancelled")
