@@ -76,10 +76,8 @@ def test_seen_through_is_space_in_front_of_the_observed_surface() -> None:
     assert view.seen_through(np.zeros((0, 3)), 0.01) == (0.0, 0.0)
 
 
-def test_sideways_tolerance_forgives_a_silhouette_overhang_but_not_free_space() -> None:
-    """A box 0.8 m from the camera in front of a far wall: a shape that overhangs the box's edge by 5 mm is seen
-    through there at pixel precision, not with a 1 cm sideways tolerance; a shape floating 5 cm beside the box,
-    over the wall, is seen through either way."""
+def box_before_wall() -> tuple[Camera, np.ndarray]:
+    """A camera at the origin looking down +Z, a 10 cm square box face at 0.8 m in front of a 60 cm wall at 1.5 m."""
     cam = Camera(K=K, T_world_camera=np.eye(4), width=320, height=240)
     g = np.linspace(-0.3, 0.3, 300)
     xx, yy = np.meshgrid(g, g)
@@ -87,7 +85,14 @@ def test_sideways_tolerance_forgives_a_silhouette_overhang_but_not_free_space() 
     b = np.linspace(-0.05, 0.05, 60)
     bx, by = np.meshgrid(b, b)
     box = np.stack([bx.ravel(), by.ravel(), np.full(bx.size, 0.8)], 1)
-    pts = np.vstack([wall, box])
+    return cam, np.vstack([wall, box])
+
+
+def test_sideways_tolerance_forgives_a_silhouette_overhang_but_not_free_space() -> None:
+    """A box 0.8 m from the camera in front of a far wall: a shape that overhangs the box's edge by 5 mm is seen
+    through there at pixel precision, not with a 1 cm sideways tolerance; a shape floating 5 cm beside the box,
+    over the wall, is seen through either way."""
+    cam, pts = box_before_wall()
     strict = DepthView.of_points(cam, pts)
     loose = DepthView.of_points(cam, pts, lateral=0.01)
     overhang = np.stack([np.full(20, 0.055), np.linspace(-0.04, 0.04, 20), np.full(20, 0.8)], 1)
@@ -139,14 +144,7 @@ def test_depth_edges_are_no_evidence_and_the_margin_grows_with_range() -> None:
     (where a mixed pixel or a slightly mis-scaled fit sits) say nothing; the middle of the wall and of the box
     still do. The range term widens the margin as depth² (a sample 2 cm in front of the wall at 1.5 m: seen
     through with a 1 cm margin, not with 1 cm + 0.01 x 1.5²)."""
-    cam = Camera(K=K, T_world_camera=np.eye(4), width=320, height=240)
-    g = np.linspace(-0.3, 0.3, 300)
-    xx, yy = np.meshgrid(g, g)
-    wall = np.stack([xx.ravel(), yy.ravel(), np.full(xx.size, 1.5)], 1)
-    b = np.linspace(-0.05, 0.05, 60)
-    bx, by = np.meshgrid(b, b)
-    box = np.stack([bx.ravel(), by.ravel(), np.full(bx.size, 0.8)], 1)
-    pts = np.vstack([wall, box])
+    cam, pts = box_before_wall()
     plain, edged = DepthView.of_points(cam, pts), DepthView.of_points(cam, pts, edge=0.05)
     beside = np.array([[0.0828, 0.0, 1.2]])  # in front of the wall, 3 pixels beside the box's silhouette
     assert plain.seen_through(beside, 0.01) == (1.0, 1.0)

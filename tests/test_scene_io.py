@@ -339,7 +339,7 @@ def test_glb_mesh_keeps_its_stored_normals(tmp_path: Path) -> None:
 
 
 def test_a_scannet_scene_folder_opens_with_its_instance_ground_truth(tmp_path: Path) -> None:
-    """`sceneXXXX_XX_vh_clean_2.ply` beside its `.aggregation.json` and `_vh_clean_2.0.010000.segs.json` (ScanNet's
+    """`scene0000_00_vh_clean_2.ply` beside its `.aggregation.json` and `_vh_clean_2.0.010000.segs.json` (ScanNet's
     layout, its `segmentsFile` prefixed "scannet."): the instances become the scene's ground truth, objectId + 1
     with the object's label as category; the annotator reads the same pair as labels."""
     import json

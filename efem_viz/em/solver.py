@@ -248,7 +248,6 @@ def run_em(
         EMCancelled: `cancel` was set.
     """
     from efem_viz.em.config import preset
-    from efem_viz.em.results import EMResult, Instances
     from efem_viz.prior.config import prior_category
 
     plist = _solve_priors(prior, priors)
@@ -273,37 +272,31 @@ def run_em(
         solver = _Solver(scene.name, points, normals, PriorTable.of(plist), run_cfg, cfgs, seed=seed,
                          on_step=on_step, cancel=cancel, anchor_candidates=anchor_candidates,
                          step_rules=step_rules, review_rules=review_rules, camera=camera)
-        solver.partial_result = lambda: _result_so_far(solver, scene, plist, run_cfg, cats, cfgs, seed, warnings)
-        inst_rows = solver.run()
+        solver.partial_result = lambda: _result_of(solver, scene, plist, run_cfg, cats, cfgs, seed, warnings)
+        solver.run()
     finally:
         for pr, was in zip(plist, was_training):
             if was and hasattr(pr, "train"):
                 pr.train(True)
-    timings = dict(solver.timer.t)
-    timings["total"] = time.perf_counter() - solver.t_start
-    timings["total_cpu"] = time.process_time() - solver.cpu_start
-    timings["decoder_queries"] = float(solver.n_queries)
-    timings["encoded_sets"] = float(solver.n_encoded)
-    timings["normal_queries"] = float(solver.stats["normal_queries"])
-    trace = solver.rec.finish(timings)
-    instances = Instances.from_rows(inst_rows)
+    result = _result_of(solver, scene, plist, run_cfg, cats, cfgs, seed, warnings)
     logger.info(
         "%s: %d instances, %d steps, %.1f s (%s)",
-        scene.name, len(instances), trace.num_steps, timings["total"],
-        ", ".join(f"{k} {v:.1f}" for k, v in timings.items() if k in STAGES and v > 0.05),
+        scene.name, len(result.instances), result.trace.num_steps, result.timings["total"],
+        ", ".join(f"{k} {v:.1f}" for k, v in result.timings.items() if k in STAGES and v > 0.05),
     )
-    categories = tuple(c.replace(tau_out=k.out_tau) for c, k in zip(cats, cfgs))
-    return EMResult(trace=trace, instances=instances, config=run_cfg, timings=timings, scene_name=scene.name,
-                    num_points=len(points), seed=int(seed), categories=categories, warnings=tuple(warnings),
-                    replay=TraceReplay(trace, scene, plist[0] if len(plist) == 1 else plist))
+    return result
 
 
-def _result_so_far(solver: _Solver, scene: "Scene", plist: list[Any], run_cfg: EMConfig, cats: list[Any],
+def _result_of(solver: _Solver, scene: "Scene", plist: list[Any], run_cfg: EMConfig, cats: list[Any],
                     cfgs: list[EMConfig], seed: int, warnings: list[str]) -> "EMResult":
-    """The run so far as an `EMResult`: the trace of the steps done, the instances accepted so far."""
+    """The run so far as an `EMResult` (the finished run's too): the trace of the steps done, the instances
+    accepted so far, the timings and counts."""
     from efem_viz.em.results import EMResult, Instances
 
-    timings = dict(solver.timer.t) | {"total": time.perf_counter() - solver.t_start}
+    timings = dict(solver.timer.t) | {
+        "total": time.perf_counter() - solver.t_start, "total_cpu": time.process_time() - solver.cpu_start,
+        "decoder_queries": float(solver.n_queries), "encoded_sets": float(solver.n_encoded),
+        "normal_queries": float(solver.stats["normal_queries"])}
     trace = solver.rec.finish(timings)
     categories = tuple(c.replace(tau_out=k.out_tau) for c, k in zip(cats, cfgs))
     return EMResult(trace=trace, instances=Instances.from_rows(list(solver.accepted)), config=run_cfg,

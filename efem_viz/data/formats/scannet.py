@@ -2,8 +2,8 @@
 ``<scene>.aggregation.json`` (``segGroups``: each object's id, label and segments).
 
 The one reader of the pair: `load_scene` attaches it as ground truth to a ScanNet scene mesh opened directly
-(`scannet_pair_of`: ``sceneXXXX_XX_vh_clean_2.ply`` with ``sceneXXXX_XX.aggregation.json`` and
-``sceneXXXX_XX_vh_clean_2.0.010000.segs.json`` beside it), and the annotator imports and exports labels in it.
+(`scannet_pair_of`: ``scene0000_00_vh_clean_2.ply`` with ``scene0000_00.aggregation.json`` and
+``scene0000_00_vh_clean_2.0.010000.segs.json`` beside it), and the annotator imports and exports labels in it.
 Instance ids are ``objectId + 1`` (0 = unlabelled); the category is the object's ``label``.
 """
 
