@@ -4,7 +4,6 @@ progress), result views and exports, the CLI, and a regression on a seeded mug s
 from __future__ import annotations
 
 import dataclasses
-
 import threading
 from pathlib import Path
 
@@ -392,6 +391,24 @@ def test_shipped_prior_regression_each_mug_found_once() -> None:
     assert len(set(claimed.tolist())) == len(claimed), "two confident instances claim the same mug"
     ev = evaluate_scene([np.asarray(k) for k in res.instances.masks], res.instances.confidence, scene.instance)
     assert ev.ap25 == pytest.approx(1.0), f"AP25 {ev.ap25:.3f} (AP50 {ev.ap50:.3f})"
+
+
+def test_a_family_prior_names_each_instance_by_its_codebook_class() -> None:
+    """A family prior (kitchen: one prior over mugs, bowls, bottles, cans) gives each accepted instance the class
+    of the codebook entries its pose search retrieved, not the prior's name: here the shipped prior's codebook
+    relabelled as one class "cup" of a two-class family."""
+    prior = _shipped_prior_or_skip()
+    cb = prior.codebook
+    prior.codebook = dataclasses.replace(cb, class_id=np.ones(len(cb), np.int32),
+                                         meta={**cb.meta, "classes": ["mug", "cup"]})
+    try:
+        res = run_em(_mug_scene(), prior, preset("fast").replace(n_init=(40,)), seed=0)
+    finally:
+        prior.codebook = cb
+    assert len(res.instances) >= 1
+    assert set(res.instances.category.tolist()) == {"cup"}
+    plain = run_em(_mug_scene(), prior, preset("fast").replace(n_init=(40,)), seed=0)
+    assert set(plain.instances.category.tolist()) == {"mug"}
 
 
 def test_bf16_solve_finds_the_same_mugs_and_replays_in_its_precision(tmp_path: Path) -> None:

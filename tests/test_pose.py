@@ -206,3 +206,28 @@ def test_pose_search_on_sample_subsets_finds_the_same_pose(codebook: Codebook, p
     assert np.abs(sub.aligned_cloud - samples).max() < 0.03 * s
     with pytest.raises(ValueError, match="search_points"):
         estimate_pose(prior, lat, samples, codebook=codebook, search_points=0)
+
+
+def test_a_family_codebook_classes_its_entries_and_names_an_instance_by_majority(prior: ShapePrior,
+                                                                                  tmp_path: Path) -> None:
+    """(category, seed) pairs give each entry its category's class id; the classes survive a save and load;
+    `category_of` takes the class most retrieved rows belong to (ties: the first retrieved), ignores rows out of
+    range, and falls back to the prior's name without classes or rows."""
+    pairs = [("mug", 0), ("bowl", 0), ("bottle", 0), ("can", 0), ("mug", 1), ("bowl", 1)]
+    cb = build_codebook(prior, pairs, n_store=200, noise=0.01, seed=0, classes=("mug", "bowl", "bottle", "can"))
+    np.testing.assert_array_equal(cb.class_id, [0, 1, 2, 3, 0, 1])
+    np.testing.assert_array_equal(cb.ids, [0, 0, 0, 0, 1, 1])
+    loaded = Codebook.load(cb.save(tmp_path / "kitchen_codebook.npz"))
+    assert loaded.classes == ["mug", "bowl", "bottle", "can"]
+    np.testing.assert_array_equal(loaded.class_id, cb.class_id)
+    assert cb.category_of([1, 5, 0], "kitchen") == "bowl"          # two bowls, one mug
+    assert cb.category_of([2, 0, 4, 2], "kitchen") == "bottle"     # tie 2:2, the bottle retrieved first
+    assert cb.category_of([3, 99, -1], "kitchen") == "can"         # out of range ignored
+    assert cb.category_of([], "kitchen") == "kitchen"
+    assert cb.category_of([99], "kitchen") == "kitchen"
+    inferred = build_codebook(prior, pairs[:3], n_store=50, noise=0.01, seed=0)
+    assert inferred.classes == ["mug", "bowl", "bottle"]
+    single = build_codebook(prior, [0, 1], n_store=50, noise=0.01, seed=0)  # seeds of one category: no classes
+    assert single.classes == [] and single.category_of([0, 1], "mug") == "mug"
+    with pytest.raises(ValueError, match="not among the classes"):
+        build_codebook(prior, [("chair", 0)], n_store=50, classes=("mug",))

@@ -129,6 +129,18 @@ def test_a_chair_prior_trains_on_the_procedural_chairs(tmp_path: Path, cache_dir
     assert prior.category.name == "chair"
 
 
+def test_a_kitchen_prior_trains_on_its_four_categories_and_validates_each(tmp_path: Path, cache_dir: Path) -> None:
+    """`train-prior --category kitchen` trains one prior over mugs, bowls, bottles and cans (interleaved) and
+    its validation reports the calibrated IoU of each category beside the mean of all."""
+    res = train(_args(tmp_path, cache_dir, category="kitchen", n_train=4, n_val=4, iterations=4, val_every=4),
+                max_iterations=4)
+    last = res["val_curve"][-1]
+    per = {c: last[f"iou_cal_{c}"] for c in ("mug", "bowl", "bottle", "can")}
+    assert all(0.0 <= v <= 1.0 for v in per.values())
+    assert np.mean(list(per.values())) == pytest.approx(last["iou_cal"], abs=1e-9)  # one object each
+    assert load_prior(tmp_path / "w" / "mug.pt").category.name == "kitchen"
+
+
 def test_resume_is_exact(tmp_path: Path, cache_dir: Path) -> None:
     straight = train(_args(tmp_path / "a", cache_dir, iterations=6, val_every=100))
     first = train(_args(tmp_path / "b", cache_dir, iterations=6, val_every=100), max_iterations=3)

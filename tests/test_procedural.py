@@ -177,3 +177,27 @@ def test_the_chair_family_is_varied_watertight_and_canonical() -> None:
     assert seen_bases == set(BASES) and seen_backs == set(BACKS) and seen_arms == {True, False}
     again, _ = chair_with_parts(7)
     assert np.array_equal(again.vertices, chair_with_parts(7)[0].vertices)
+
+
+def test_the_kitchen_family_interleaves_its_members_over_disjoint_splits() -> None:
+    """A training family's objects: member i mod k with seed i div k, balanced in every prefix, the same
+    disjoint splits as its members; a category is a family of itself; unknown names raise."""
+    from efem_viz.data.procedural import FAMILIES, family_members, family_seeds
+    from efem_viz.prior.data import procedural_sources
+
+    assert family_members("kitchen") == FAMILIES["kitchen"] == ("mug", "bowl", "bottle", "can")
+    assert family_members("mug") == ("mug",)
+    train = family_seeds("kitchen", "train", 10)
+    assert train[:5] == [("mug", 0), ("bowl", 0), ("bottle", 0), ("can", 0), ("mug", 1)]
+    assert [c for c, _ in train].count("mug") == 3 and [c for c, _ in train].count("can") == 2
+    val = family_seeds("kitchen", "val", 8)
+    assert {s for _, s in val}.isdisjoint({s for _, s in family_seeds("kitchen", "train", 4000)})
+    assert [n for n, _ in procedural_sources("kitchen", "val", 3)] == ["mug_100000", "bowl_100000", "bottle_100000"]
+    mesh = procedural_sources("kitchen", "train", 3)[2][1]()
+    assert mesh.is_watertight and mesh.extents[2] > 0.14  # a bottle: 15-26 cm tall
+    with pytest.raises(ValueError, match="unknown category"):
+        family_members("pantry")
+    with pytest.raises(ValueError, match="asked for"):
+        family_seeds("kitchen", "val", 4001)
+    with pytest.raises(ValueError, match="handled_only"):
+        procedural_sources("kitchen", "train", 4, handled_only=True)

@@ -252,3 +252,23 @@ def test_box_objects_inside_walls_and_shelf_levels_used() -> None:
     used = {int(np.argmin([abs(f - z) for z in levels])) for f in feet}
     assert all(min(abs(f - z) for z in levels) < 1e-4 for f in feet), "mugs rest on a level"
     assert len(used) == min(len(levels), 3), "every level holds a mug"
+
+
+def test_kitchen_scenes_label_mugs_bowls_bottles_and_cans_and_leave_mug_scenes_alone() -> None:
+    """`targets="kitchen"` (the paper's SynKit): the labelled objects are the family's members, each instance's
+    category its object's; the distractors are boxes; structures refuse it; mug scenes carry no targets key."""
+    scene = generate_scene("z", seed=3, n_objects=6, targets="kitchen", **FAST)  # type: ignore[arg-type]
+    objs = scene.provenance["objects"]
+    labelled = {o["instance_id"]: o["category"] for o in objs if o["instance_id"] > 0}
+    assert set(labelled.values()) <= {"mug", "bowl", "bottle", "can"} and len(set(labelled.values())) >= 2
+    assert {o["category"] for o in objs if o["instance_id"] == 0} <= {"box"}
+    assert scene.categories == {k: v for k, v in labelled.items() if k in scene.categories}
+    assert set(scene.instance_ids()) == set(scene.categories)
+    assert scene.provenance["targets"] == "kitchen" and "--targets kitchen" in scene.provenance["command"]
+    assert "targets" not in _scene("z", 0, 3).provenance
+    assert set(_scene("z", 0, 3).categories.values()) == {"mug"}
+    for bad in ("tree", "box", "shelf"):
+        with pytest.raises(ValueError, match="holds mugs only"):
+            generate_scene(bad, seed=0, targets="kitchen", **FAST)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="unknown targets"):
+        generate_scene("z", seed=0, targets="pantry", **FAST)  # type: ignore[arg-type]

@@ -679,6 +679,39 @@ def make_shape_with_parts(category: str, seed: int) -> tuple[trimesh.Trimesh, li
     return CATEGORIES[category].build(int(seed))
 
 
+FAMILIES: dict[str, tuple[str, ...]] = {"kitchen": ("mug", "bowl", "bottle", "can")}
+"""Training families: one prior over several categories, named by family (the paper's kitchen prior covers mugs,
+bowls, bottles and cans). A category is a family of itself."""
+
+
+def family_members(name: str) -> tuple[str, ...]:
+    """The categories of a training family (`FAMILIES`), or `(name,)` for a single category.
+
+    Raises:
+        ValueError: neither a family nor a registered category.
+    """
+    if name in FAMILIES:
+        return FAMILIES[name]
+    if name not in CATEGORIES:
+        raise ValueError(f"unknown category {name!r}; known: {sorted(CATEGORIES)}, families: {sorted(FAMILIES)}")
+    return (name,)
+
+
+def family_seeds(name: str, split: Split, n: int) -> list[tuple[str, int]]:
+    """The first `n` objects of a family's split as (category, seed): object i is member i mod k (k members)
+    with that member's seed number i div k, so every prefix is balanced over the members.
+
+    Raises:
+        ValueError: unknown family/category or split, or more objects than the split holds.
+    """
+    members = family_members(name)
+    seeds = split_seeds(members[0], split)
+    k = len(members)
+    if n < 0 or (n + k - 1) // k > len(seeds):
+        raise ValueError(f"split {split!r} of {name!r} has {len(seeds) * k} objects, asked for {n}")
+    return [(members[i % k], seeds[i // k]) for i in range(n)]
+
+
 def split_seeds(category: str, split: Split) -> range:
     """Seeds of a data split; the train, val and test ranges are disjoint (the same for every category).
 

@@ -538,7 +538,7 @@ class _Solver:
                 self.rec.death(int(pid), final_step, REASON_SURVIVE, -1, conf)
                 accepted.append({**rev._asdict(), "confidence": conf, "stationary": s_stat,
                                  "center": pool.latent["center"][r], "scale": float(pool.latent["scale"][r]),
-                                 "category": self.categories[rev.prior]})
+                                 "category": self._category(rev)})
                 assigned[rev.mask] = True
             self.timer.add("accept", t0)
         return accepted
@@ -723,6 +723,13 @@ class _Solver:
         cosang = np.clip((normals * self.full_normals[ball][j]).sum(1), -1.0, 1.0)
         ang = np.degrees(np.arccos(cosang))
         return float(np.mean((dist_c <= cfg.cov_tau) & (ang <= cfg.cov_gamma)))
+
+    def _category(self, rev: ReviewRecord) -> str:
+        """An accepted instance's category: its prior's name, or for a family prior (kitchen) the class of the
+        codebook entries its pose search retrieved (`Codebook.category_of`)."""
+        name = self.categories[rev.prior]
+        cb = getattr(self.table.priors[rev.prior], "codebook", None)
+        return cb.category_of(rev.neighbours, name) if cb is not None else name
 
     def _pose(
         self, k: int, lat: LatentArrays, Q: np.ndarray, fnorm: np.ndarray

@@ -199,6 +199,31 @@ class Codebook:
         stored = self.meta.get("prior_fingerprint")
         return stored is None or stored == prior_fingerprint(prior)
 
+    @property
+    def classes(self) -> list[str]:
+        """Class names of a training family's codebook (meta "classes", indexed by `class_id`); empty for a
+        single category."""
+        names = self.meta.get("classes")
+        return [str(c) for c in names] if isinstance(names, list) else []
+
+    def category_of(self, rows: Any, default: str) -> str:
+        """The category of an instance whose pose search retrieved codebook `rows`: the class most of them
+        belong to (ties: the one retrieved first), or `default` for a codebook without classes or no rows.
+
+        A family prior (mugs, bowls, bottles and cans in one) names each instance by the training objects its
+        latent lies nearest to; rows out of range are ignored.
+        """
+        names = self.classes
+        rows = np.asarray(rows, np.int64).reshape(-1)
+        rows = rows[(rows >= 0) & (rows < len(self))]
+        if not names or len(rows) == 0:
+            return default
+        ids = self.class_id[rows]
+        counts = np.bincount(ids, minlength=len(names))
+        best = np.flatnonzero(counts == counts.max())
+        first = next(int(i) for i in ids if int(i) in set(best.tolist()))
+        return names[first] if 0 <= first < len(names) else default
+
     def cloud(self, k: int) -> np.ndarray:
         """(n_store, 3) float64 canonical cloud of entry `k`."""
         return self.pcl[k].astype(np.float64)

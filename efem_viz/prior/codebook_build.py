@@ -24,7 +24,7 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 
-def _sample_objects(meshes_or_seeds: Sequence[trimesh.Trimesh | int], rng: np.random.Generator, *, n_store: int,
+def _sample_objects(meshes_or_seeds: Sequence[trimesh.Trimesh | int | tuple[str, int]], rng: np.random.Generator, *, n_store: int,
                     noise: float, n_pcl: int, category: str,
                     normalise: bool) -> tuple[list[int], np.ndarray, np.ndarray]:
     """Each object's stored cloud and encoder input (`build_codebook`), drawn from `rng` object by object.
@@ -37,11 +37,12 @@ def _sample_objects(meshes_or_seeds: Sequence[trimesh.Trimesh | int], rng: np.ra
 
     ids, clouds, input_idx = [], [], []
     for pos, item in enumerate(meshes_or_seeds):
-        if isinstance(item, (int, np.integer)):
+        if isinstance(item, (int, np.integer, tuple)):
             from efem_viz.data.procedural import make_shape
 
-            mesh = make_shape(category, int(item))
-            ids.append(int(item))
+            cat, seed = item if isinstance(item, tuple) else (category, item)
+            mesh = make_shape(cat, int(seed))
+            ids.append(int(seed))
         else:
             mesh = item
             ids.append(pos)
@@ -72,7 +73,7 @@ def _encode_batches(prior: ShapePrior, X: np.ndarray,
 
 def build_codebook(
     prior: ShapePrior,
-    meshes_or_seeds: Sequence[trimesh.Trimesh | int],
+    meshes_or_seeds: Sequence[trimesh.Trimesh | int | tuple[str, int]],
     *,
     n_store: int = 2000,
     noise: float = 0.01,
@@ -80,6 +81,7 @@ def build_codebook(
     category: str = DEFAULT_PRIOR,
     normalise: bool = True,
     batch: int = 16,
+    classes: Sequence[str] | None = None,
 ) -> Codebook:
     """Encode training objects into a codebook (spec §2.8).
 
@@ -90,7 +92,9 @@ def build_codebook(
 
     Args:
         prior: the trained `ShapePrior`.
-        meshes_or_seeds: trimesh meshes (canonical frame), or integer seeds of `category`'s generator.
+        meshes_or_seeds: trimesh meshes (canonical frame), integer seeds of `category`'s generator, or
+            (category, seed) pairs of a training family's members (`procedural.family_seeds`): each entry's
+            class id is then its category's position in `classes`.
         n_store: stored points per object.
         noise: Gaussian noise σ in canonical units.
         seed: RNG seed (the whole build is deterministic in it).
@@ -98,6 +102,8 @@ def build_codebook(
         normalise: apply the training normalisation (`efem_viz.prior.data.normalize_mesh`: bbox centre to the
             origin, longest side 1) to each mesh first.
         batch: objects per encoder call.
+        classes: the class names of a family's codebook (meta "classes"; `Codebook.category_of`); default:
+            the categories of the (category, seed) pairs in order of appearance, none for seeds or meshes.
 
     Returns:
         Codebook (ids = the seeds, or the positions of the meshes in the input).
@@ -106,6 +112,17 @@ def build_codebook(
         raise ValueError("build_codebook needs at least one mesh or seed")
     if n_store < 1:
         raise ValueError(f"n_store must be >= 1, got {n_store}")
+    pairs = [item for item in meshes_or_seeds if isinstance(item, tuple)]
+    if classes is None and pairs:
+        classes = list(dict.fromkeys(str(c) for c, _ in pairs))
+    class_id = np.zeros(len(meshes_or_seeds), np.int32)
+    if classes is not None:
+        names = [str(c) for c in classes]
+        for i, item in enumerate(meshes_or_seeds):
+            if isinstance(item, tuple):
+                if item[0] not in names:
+                    raise ValueError(f"category {item[0]!r} is not among the classes {names}")
+                class_id[i] = names.index(item[0])
     rng = np.random.default_rng(seed)
     n_pcl = int(prior.config.n_pcl)
     ids, pcl, idx = _sample_objects(meshes_or_seeds, rng, n_store=n_store, noise=noise, n_pcl=n_pcl,
@@ -128,12 +145,13 @@ def build_codebook(
         eigvals=evals.astype(np.float32),
         bbox_center=((lo + hi) / 2).astype(np.float32),
         bbox_half=((hi - lo) / 2).astype(np.float32),
-        class_id=np.zeros(len(ids), np.int32),
+        class_id=class_id,
         input_idx=idx,
         meta={
             "prior": str(getattr(prior, "name", "")),
             "prior_fingerprint": prior_fingerprint(prior),
             "category": category,
+            **({"classes": [str(c) for c in classes]} if classes is not None else {}),
             "n_store": int(n_store),
             "noise": float(noise),
             "n_pcl": n_pcl,

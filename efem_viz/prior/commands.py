@@ -11,7 +11,7 @@ import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import tyro
 from efem_viz.prior.config import DEFAULT_PRIOR
@@ -32,7 +32,8 @@ class BuildCodebookArgs:
     count: int = 150
     """Number of training-split objects (the first `count` seeds of the split)."""
     category: str = DEFAULT_PRIOR
-    """Procedural category of the training objects."""
+    """Procedural category of the training objects, or a training family ("kitchen": its members interleaved,
+    each entry classed by its category for `Codebook.category_of`)."""
     n_store: int = 2000
     """Stored noisy surface points per object (float16)."""
     noise: float = 0.01
@@ -42,7 +43,7 @@ class BuildCodebookArgs:
 
     def run(self) -> int:
         """Build and save; returns the process exit code."""
-        from efem_viz.data.procedural import split_seeds
+        from efem_viz.data.procedural import FAMILIES, family_seeds, split_seeds
         from efem_viz.prior.codebook_build import build_codebook
         from efem_viz.prior.model import load_prior, resolve_prior_path
 
@@ -52,7 +53,8 @@ class BuildCodebookArgs:
         out = self.out if self.out is not None else weights.with_name(f"{weights.stem}_codebook.npz")
         t0 = time.perf_counter()
         prior = load_prior(weights, load_codebook=False)
-        seeds = list(split_seeds(self.category, "train"))[: self.count]
+        seeds: list[Any] = (family_seeds(self.category, "train", self.count) if self.category in FAMILIES
+                            else list(split_seeds(self.category, "train"))[: self.count])
         cb = build_codebook(
             prior, seeds, n_store=self.n_store, noise=self.noise, seed=self.seed, category=self.category
         )

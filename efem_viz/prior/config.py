@@ -289,6 +289,7 @@ KNOWN_CATEGORIES: dict[str, CategorySettings] = {
     "bowl": CategorySettings(name="bowl", scale_horizontal=(0.04, 0.15), scale_height=(0.01, 0.09)),
     "sphere": CategorySettings(name="sphere", scale_horizontal=(0.03, 0.13), scale_height=(0.03, 0.13)),
     "chair": CategorySettings(name="chair", scale_horizontal=(0.12, 0.50), scale_height=(0.12, 0.65)),
+    "kitchen": CategorySettings(name="kitchen", scale_horizontal=(0.02, 0.13), scale_height=(0.01, 0.30)),
 }
 """Settings of the categories efem-viz ships priors for, used when a prior's metadata carries none. Mug sizes:
 real mugs lie within 3-8 cm radius and 20 cm height; synthetic scenes scale objects over a wider range of heights,
@@ -298,7 +299,9 @@ a pile are 6.7-9 cm: the synthetic radius range stops at 8 cm too (`bench/em.py
 tree 51.7 -> 55.1, so3 91.6 -> 92.5, z, pile and shelf unchanged on 3-4 scenes each). The unqualified range
 (3-13 cm) is for other domains. Bowls: the
 procedural bowls (12-20 cm across, shallow) with a margin. Chairs: the procedural chairs (`efem_viz.data.chairs`:
-stools 32 cm across to armchairs and swivel chairs 60 cm, 40 cm to 1.1 m tall) with a margin."""
+stools 32 cm across to armchairs and swivel chairs 60 cm, 40 cm to 1.1 m tall) with a margin. Kitchen (the
+family of mugs, bowls, bottles and cans, `procedural.FAMILIES`): the union of its members' sizes, from 2.5 cm cans
+to 13 cm bowls and mugs with handles, bottles up to 26 cm tall."""
 
 
 @runtime_checkable

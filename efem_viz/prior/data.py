@@ -381,25 +381,27 @@ def load_or_prepare(source: tuple[str, Callable[[], trimesh.Trimesh | MeshArrays
 
 def procedural_sources(category: str, split: str, n: int, *, handled_only: bool = False
                        ) -> list[tuple[str, Callable[[], trimesh.Trimesh]]]:
-    """(name, mesh factory) for the first ``n`` seeds of a procedural split (``handled_only``: of its mugs with
-    a handle, as every ShapeNet mug of the paper has one; about 15 % of the procedural mugs are handle-less cups)."""
-    from efem_viz.data.procedural import make_shape, sample_mug_params, split_seeds
+    """(name, mesh factory) for the first ``n`` objects of a procedural split: of one category, or of a training
+    family (``procedural.FAMILIES``, e.g. "kitchen": its members interleaved, ``procedural.family_seeds``), named
+    ``<category>_<seed>``. ``handled_only``: of the mugs with a handle only, as every ShapeNet mug of the paper has
+    one (about 15 % of the procedural mugs are handle-less cups)."""
+    from efem_viz.data.procedural import family_seeds, make_shape, sample_mug_params, split_seeds
 
-    seeds = split_seeds(category, split)  # type: ignore[arg-type]
     if handled_only:
         if category != "mug":
             raise ValueError(f"handled_only applies to mugs, not {category!r}")
-        kept: list[int] = []
-        for s in seeds:  # only as far as needed: the parameters of a mug cost a few ms each
+        kept: list[tuple[str, int]] = []
+        for s in split_seeds(category, split):  # type: ignore[arg-type]  # only as far as needed: a few ms each
             if len(kept) >= n:
                 break
             if sample_mug_params(s).handle != "none":
-                kept.append(s)
-        seeds = kept
-    if n > len(seeds):
-        raise ValueError(f"split {split!r} of {category!r} has {len(seeds)} seeds"
-                         f"{' with a handle' if handled_only else ''}, asked for {n}")
-    return [(f"{category}_{s:06d}", (lambda s=s: make_shape(category, s))) for s in seeds[:n]]
+                kept.append(("mug", s))
+        if n > len(kept):
+            raise ValueError(f"split {split!r} of {category!r} has {len(kept)} seeds with a handle, asked for {n}")
+        items = kept
+    else:
+        items = family_seeds(category, split, n)  # type: ignore[arg-type]
+    return [(f"{c}_{s:06d}", (lambda c=c, s=s: make_shape(c, s))) for c, s in items]
 
 
 MESH_PACK_FORMAT = "efem-viz mesh pack 1"

@@ -404,9 +404,15 @@ def validate(prior: ShapePrior, objs: list[ObjectData], cfg: SampleConfig, *, se
         iou_c = float(np.mean((pr & gt_all).sum(1) / np.maximum((pr | gt_all).sum(1), 1)))
         if iou_c > best_iou + 1e-9:
             best_c, best_iou = float(c), iou_c
-    return {"iou": float(np.mean(ious)), "iou_min": float(np.min(ious)), "iou_cal": best_iou,
-            "iso_offset": best_c, "center_err": float(np.mean(cerr)), "scale": float(np.mean(scales)),
-            "sdf_l1": float(np.mean(l1))}
+    out = {"iou": float(np.mean(ious)), "iou_min": float(np.min(ious)), "iou_cal": best_iou,
+           "iso_offset": best_c, "center_err": float(np.mean(cerr)), "scale": float(np.mean(scales)),
+           "sdf_l1": float(np.mean(l1))}
+    cats = np.array([o.name.rsplit("_", 1)[0] for o in objs])
+    if len(set(cats)) > 1:  # a family's prior: its calibrated IoU per category too
+        pr = pred_all < best_c
+        per = (pr & gt_all).sum(1) / np.maximum((pr | gt_all).sum(1), 1)
+        out.update({f"iou_cal_{c}": float(np.mean(per[cats == c])) for c in sorted(set(cats))})
+    return out
 
 
 def fixed_point_inputs(prior: ShapePrior, pcl: np.ndarray, rng: np.random.Generator, *, p: float,
@@ -770,6 +776,12 @@ class _TrainLoop:
                  m["scale"], m["sdf_l1"], m["val_time_s"],
                  f"; sensor inputs: calibrated IoU {m['sensor_iou_cal']:.4f} Θs {m['sensor_scale']:.3f}"
                  if "sensor_iou_cal" in m else "")
+        per_cat = {k[len("sensor_iou_cal_"):]: v for k, v in m.items() if k.startswith("sensor_iou_cal_")} or \
+            {k[len("iou_cal_"):]: v for k, v in m.items() if k.startswith("iou_cal_")}
+        if per_cat:
+            log.info("val @%d per category (calibrated IoU%s): %s", state.iteration,
+                     ", sensor inputs" if args.sensor_p > 0 else "",
+                     ", ".join(f"{c} {v:.4f}" for c, v in per_cat.items()))
         key = "iou_cal" if args.calibrate_iso else "iou"
         score = m[f"sensor_{key}"] if args.sensor_p > 0 else m[key]
         if score > state.best_iou:

@@ -39,6 +39,9 @@ class GenerateArgs:
     """TSDF voxel / point spacing in metres."""
     prefix: str = ""
     """Prefix of the file and scene names (e.g. "syn_" gives syn_z_0.ply)."""
+    targets: Literal["mug", "kitchen"] = "mug"
+    """The labelled objects: mugs, or kitchen objects mixed (mugs, bowls, bottles, cans: the paper's SynKit,
+    with --config z, so3 or pile; boxes are the distractors)."""
 
     def run(self) -> int:
         """Generate the scenes with a progress bar; returns the exit code."""
@@ -61,12 +64,14 @@ class GenerateArgs:
                 split=self.split,
                 voxel=self.voxel,
                 name=name,
+                targets=self.targets,
             )
             if self.prefix:
                 prov = dict(scene.provenance)
                 prov["command"] = f"{prov['command']} --prefix {self.prefix}"
                 scene = dataclasses.replace(scene, provenance=prov)
             path = save_scene(scene, self.out / f"{name}.ply")
-            bar.set_postfix(points=scene.num_points, mugs=len(scene.categories))
-            logger.info("wrote %s (%d points, %d mugs)", path, scene.num_points, len(scene.categories))
+            bar.set_postfix(points=scene.num_points, objects=len(scene.categories))
+            logger.info("wrote %s (%d points, %d %s)", path, scene.num_points, len(scene.categories),
+                        "mugs" if self.targets == "mug" else "objects")
         return 0

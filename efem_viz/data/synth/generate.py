@@ -63,6 +63,7 @@ def generate_scene(
     label_tolerance: float = 0.01,
     name: str | None = None,
     timings: dict[str, float] | None = None,
+    targets: str = "mug",
 ) -> "Scene":
     """Generate one synthetic tabletop scan with per-point instance ground truth.
 
@@ -84,10 +85,12 @@ def generate_scene(
         name: scene name (default "<config>_<seed>").
         timings: if given, filled with the seconds spent per stage (poses, scan, fusion, labels); kept out of
             the provenance so that regenerating a scene gives identical files.
+        targets: what the labelled objects are: "mug", or a training family ("kitchen": mugs, bowls, bottles
+            and cans mixed, the paper's SynKit; configurations z, so3 and pile only; boxes as distractors).
 
     Returns:
-        A `Scene` (world frame, metres, +Z up, table top at z = 0) with `instance` (mug k -> k, else 0),
-        categories {k: "mug"} for the mugs with labelled points, and provenance (config, seed, objects with
+        A `Scene` (world frame, metres, +Z up, table top at z = 0) with `instance` (labelled object k -> k,
+        else 0), categories {k: its category} for the labelled objects with labelled points, and provenance (config, seed, objects with
         category/seed/instance id/T_world_object, cameras, noise model, max penetration).
 
     Raises:
@@ -98,11 +101,12 @@ def generate_scene(
     from efem_viz.data.scene import Scene
 
     _check_arguments(config, mode=mode, split=split, n_objects=n_objects, voxel=voxel, image_size=image_size,
-                     n_cameras=n_cameras)
+                     n_cameras=n_cameras, targets=targets)
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
     clock = [time.perf_counter()]  # the end of each stage
     rng = np.random.default_rng([int(seed), CONFIGS.index(config), 0x5CE7E])
-    objs, structure = _draw_objects(config, seed, rng, n_objects=n_objects, distractors=distractors, split=split)
+    objs, structure = _draw_objects(config, seed, rng, n_objects=n_objects, distractors=distractors, split=split,
+                                    targets=targets)
     objs, poses = _pose_objects(config, seed, objs, structure, rng)
     clock.append(time.perf_counter())
     scan = _scan(config, objs, structure, rng, n_cameras=n_cameras, image_size=image_size, noise=noise)
@@ -114,6 +118,7 @@ def generate_scene(
     provenance = _provenance(
         config, seed, n_objects=n_objects, mode=mode, distractors=distractors, split=split, voxel=voxel,
         image_size=image_size, n_cameras=n_cameras, noise=noise, label_tolerance=label_tolerance, objs=objs,
+        targets=targets,
         structure=structure, poses=poses, scan=scan, counts=labels.counts,
     )  # fmt: skip
     clock.append(time.perf_counter())
@@ -130,11 +135,17 @@ def generate_scene(
 
 def _check_arguments(
     config: str, *, mode: str, split: str, n_objects: int | None, voxel: float, image_size: tuple[int, int],
-    n_cameras: int,
+    n_cameras: int, targets: str = "mug",
 ) -> None:
     """Raise ValueError for an argument of `generate_scene` out of its range."""
+    from efem_viz.data.procedural import FAMILIES
+
     if config not in CONFIGS:
         raise ValueError(f"unknown config {config!r}; expected one of {CONFIGS}")
+    if targets != "mug" and targets not in FAMILIES:
+        raise ValueError(f"unknown targets {targets!r}; expected 'mug' or one of {sorted(FAMILIES)}")
+    if targets != "mug" and config in STRUCTURE_CONFIGS:
+        raise ValueError(f"config {config!r} holds mugs only; {targets} scenes are z, so3 or pile")
     if mode not in ("tsdf", "points"):
         raise ValueError(f"unknown mode {mode!r}; expected 'tsdf' or 'points'")
     if split not in ("train", "val", "test"):
@@ -152,6 +163,7 @@ def _check_arguments(
 # ====================================================================================== layout
 def _draw_objects(
     config: str, seed: int, rng: np.random.Generator, *, n_objects: int | None, distractors: bool, split: str,
+    targets: str = "mug",
 ) -> tuple[list[_Object], "Structure | None"]:
     """The scene's supporting structure (tree, box, shelf configurations) and its objects: the mug count
     (drawn from the seed unless given; at most what the structure holds) and the mugs and distractors."""
@@ -172,7 +184,7 @@ def _draw_objects(
         objs = _sample_objects(rng, n_mugs=n_mugs, distractors=distractors, split=split,
                                hole=PEG_RADIUS + PEG_PLAY if config == "tree" else None)
     else:
-        objs = _sample_objects(rng, n_mugs=n_mugs, distractors=distractors, split=split)
+        objs = _sample_objects(rng, n_mugs=n_mugs, distractors=distractors, split=split, targets=targets)
     return objs, structure
 
 
@@ -374,14 +386,14 @@ def _fuse(scan: _Scan, *, mode: str, voxel: float, what: str) -> _Fused:
 def _provenance(
     config: str, seed: int, *, n_objects: int | None, mode: str, distractors: bool, split: str, voxel: float,
     image_size: tuple[int, int], n_cameras: int, noise: bool, label_tolerance: float, objs: list[_Object],
-    structure: "Structure | None", poses: _Poses, scan: _Scan, counts: np.ndarray,
+    structure: "Structure | None", poses: _Poses, scan: _Scan, counts: np.ndarray, targets: str = "mug",
 ) -> dict[str, Any]:
     """What made the scene: the arguments (and the command that repeats them), the table, the crop, every
     object (category, seed, instance id, pose, pixels seen, points labelled), the cameras, the physics outcome."""
     n_fix = scan.n_fixtures
     provenance: dict[str, Any] = {
         "generator": "efem_viz.data.synth",
-        "command": _command(config, seed, n_objects, mode, distractors, split, voxel),
+        "command": _command(config, seed, n_objects, mode, distractors, split, voxel, targets),
         "config": config,
         "seed": int(seed),
         "mode": mode,
@@ -414,6 +426,8 @@ def _provenance(
         "max_penetration_m": round(float(poses.penetration), 5),
         "drops": poses.attempts,
     }
+    if targets != "mug":
+        provenance["targets"] = targets
     if structure is not None:
         provenance["structure"] = structure.describe()
         provenance["misplaced_objects"] = int(poses.misplaced)
@@ -421,9 +435,12 @@ def _provenance(
 
 
 def _command(
-    config: str, seed: int, n_objects: int | None, mode: str, distractors: bool, split: str, voxel: float
+    config: str, seed: int, n_objects: int | None, mode: str, distractors: bool, split: str, voxel: float,
+    targets: str = "mug",
 ) -> str:
     cmd = f"efem-viz generate --config {config} --seed {seed} --count 1 --mode {mode}"
+    if targets != "mug":
+        cmd += f" --targets {targets}"
     if n_objects is not None:
         cmd += f" --objects {n_objects}"
     if not distractors:

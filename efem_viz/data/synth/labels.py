@@ -16,7 +16,7 @@ class PointLabels(NamedTuple):
     instance: np.ndarray
     """(N,) int32 instance id per point (mug k -> k; table, structure, distractors and unlabelled points 0)."""
     categories: dict[int, str]
-    """{k: "mug"} for the mugs with at least one labelled point."""
+    """{k: category} for the labelled objects with at least one labelled point ("mug" in mug scenes)."""
     counts: np.ndarray
     """(K + 1,) int64 labelled points per instance id (index 0: background and unlabelled)."""
 
@@ -45,6 +45,6 @@ def label_points(
     labels_of_geom = np.array([0] * n_fixtures + [o.label for o in objects], np.int32)
     instance = np.where(dist < tolerance, labels_of_geom[gid], 0).astype(np.int32)
     present = set(np.unique(instance[instance > 0]).tolist())
-    categories = {o.label: "mug" for o in objects if o.label in present}
+    categories = {o.label: o.category for o in objects if o.label in present}
     counts = np.bincount(instance, minlength=len(objects) + 1)
     return PointLabels(instance, categories, counts)

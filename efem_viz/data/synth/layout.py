@@ -72,13 +72,18 @@ class _Object:
 
 
 def _sample_objects(
-    rng: np.random.Generator, *, n_mugs: int, distractors: bool, split: str, hole: float | None = None
+    rng: np.random.Generator, *, n_mugs: int, distractors: bool, split: str, hole: float | None = None,
+    targets: str = "mug",
 ) -> list[_Object]:
     """The scene's mugs (labels 1..n) and 0-2 distractors (label 0). With `hole`, only mugs whose handle
-    opening clears that radius (m) are drawn (the tree configuration hangs them on pegs)."""
+    opening clears that radius (m) are drawn (the tree configuration hangs them on pegs). `targets` "kitchen"
+    (a training family, `procedural.FAMILIES`): the labelled objects are drawn from its members, each object's
+    category by the seed, and the distractors from the categories outside the family (boxes)."""
     from efem_viz.data.procedural import handle_hole, make_shape_with_parts, split_seeds
 
     seeds = split_seeds("mug", split)  # type: ignore[arg-type]
+    if targets != "mug":
+        return _sample_family(rng, targets, n_objects=n_mugs, distractors=distractors, seeds=seeds)
     # (seed, (mesh, parts), handle opening) of each mug, each mug built once
     mugs: list[tuple[int, tuple[trimesh.Trimesh, list[np.ndarray]], tuple[np.ndarray, float] | None]] = []
     if hole is None:
@@ -107,6 +112,30 @@ def _sample_objects(
             mesh, parts = make_shape_with_parts(cat, s)
             col = _DISTRACTOR_COLORS[int(rng.integers(len(_DISTRACTOR_COLORS)))]
             objs.append(_Object(cat, s, 0, mesh, parts, col))
+    return objs
+
+
+def _sample_family(rng: np.random.Generator, family: str, *, n_objects: int, distractors: bool,
+                   seeds: range) -> list[_Object]:
+    """`_sample_objects` for a training family's scene: labelled objects of its member categories (one seed
+    each, not repeated within a category), then 0-2 distractors of the other categories."""
+    from efem_viz.data.procedural import family_members, make_shape_with_parts
+
+    members = family_members(family)
+    others = tuple(c for c in DISTRACTOR_CATEGORIES if c not in members)
+    cats = [members[int(i)] for i in rng.integers(len(members), size=n_objects)]
+    picks = rng.choice(len(seeds), size=n_objects, replace=False)
+    colors = rng.permutation(len(_MUG_COLORS))
+    objs: list[_Object] = []
+    for k, (cat, i) in enumerate(zip(cats, picks)):
+        mesh, parts = make_shape_with_parts(cat, int(seeds[int(i)]))
+        objs.append(_Object(cat, int(seeds[int(i)]), k + 1, mesh, parts, _MUG_COLORS[colors[k % len(colors)]]))
+    if distractors and others:
+        for _ in range(int(rng.integers(0, 3))):
+            cat = others[int(rng.integers(len(others)))]
+            s = int(seeds[int(rng.integers(len(seeds)))])
+            mesh, parts = make_shape_with_parts(cat, s)
+            objs.append(_Object(cat, s, 0, mesh, parts, _DISTRACTOR_COLORS[int(rng.integers(len(_DISTRACTOR_COLORS)))]))
     return objs
 
 
