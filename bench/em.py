@@ -260,7 +260,7 @@ def main() -> int:
     cfg = preset(args.preset).with_proposals(args.proposals).replace(work_voxel=args.work_voxel)
     variants = dict(parse_config(spec) for spec in (args.config or [f"{args.preset}="]))
     cfgs = {name: cfg.replace(**changes) for name, changes in variants.items()}
-    if len(cfgs) > 1:
+    if len(cfgs) > 1 or len(args.em_seeds) > 1:  # several configs, or one over several solver seeds
         return compare(args, prior, cfgs)
     cfg = next(iter(cfgs.values()))  # one --config: its changes on the preset (they were dropped before)
     n_scenes = args.n_scenes or (2 if args.quick else 10)

@@ -15,7 +15,9 @@ Variants:
 * `two_pass`: fused VN kernels, pose search on 1000 samples, the E-step's SDF and band normals in two decoder
   passes (an SDF pass, then autograd on the band: `EFEM_VIZ_ONE_PASS=0`);
 * `fast`: as `two_pass`, with one decoder pass and a hand-made backward on the band (`EFEM_VIZ_ONE_PASS=1`,
-  the default: see `efem_viz.em.decoding.one_pass_enabled`).
+  the default: see `efem_viz.em.decoding.one_pass_enabled`);
+* `bf16`: as `fast`, the EM steps' encoder and decoder under bf16 autocast (`matmul_dtype="bfloat16"`);
+* `bf16_decoder`: as `fast`, the decoder alone in bf16 (`encoder_dtype="float32"`).
 
 `--busy N` runs N one-thread busy loops beside the solves (a solve must slow down by about its
 fair share). `--profile` prints the top functions of one run per variant.
@@ -47,6 +49,9 @@ VARIANTS: dict[str, tuple[dict[str, str], dict[str, Any]]] = {
     "baseline": ({"EFEM_VIZ_FUSED": "0", "EFEM_VIZ_ONE_PASS": "0"}, {"pose_points": None}),
     "two_pass": ({"EFEM_VIZ_FUSED": "1", "EFEM_VIZ_ONE_PASS": "0"}, {}),
     "fast": ({"EFEM_VIZ_FUSED": "1", "EFEM_VIZ_ONE_PASS": "1"}, {}),
+    "bf16": ({"EFEM_VIZ_FUSED": "1", "EFEM_VIZ_ONE_PASS": "1"}, {"matmul_dtype": "bfloat16"}),
+    "bf16_decoder": ({"EFEM_VIZ_FUSED": "1", "EFEM_VIZ_ONE_PASS": "1"},
+                     {"matmul_dtype": "bfloat16", "encoder_dtype": "float32"}),
 }
 """name -> (environment, EMConfig overrides)."""
 

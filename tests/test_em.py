@@ -411,6 +411,33 @@ def test_a_family_prior_names_each_instance_by_its_codebook_class() -> None:
     assert set(plain.instances.category.tolist()) == {"mug"}
 
 
+@pytest.mark.parametrize("encoder_dtype", [None, "float32"])
+def test_encoder_dtype_keeps_the_encoder_in_float32_beside_a_bf16_decoder(encoder_dtype: str | None) -> None:
+    """`matmul_dtype="bfloat16"` runs the EM steps' encoder and decoder under bf16 autocast; `encoder_dtype=
+    "float32"` takes the encoder out of it (its fused float32 kernels stay on) and leaves the decoder in bf16."""
+    import torch
+
+    scene, prior = make_sphere_scene(seed=11), make_sphere_prior()
+    seen: dict[str, set[bool]] = {"encode": set(), "decode": set()}
+    encode, sdf, sdf_and_normals = prior.encode, prior.sdf, prior.sdf_and_normals
+
+    def spy(kind: str, fn: object) -> object:
+        def call(*a: object, **kw: object) -> object:
+            seen[kind].add(torch.is_autocast_enabled("cpu"))
+            return fn(*a, **kw)  # type: ignore[operator]
+        return call
+
+    prior.encode, prior.sdf = spy("encode", encode), spy("decode", sdf)  # type: ignore[method-assign]
+    prior.sdf_and_normals = spy("decode", sdf_and_normals)  # type: ignore[method-assign]
+    cfg = preset("fast").replace(n_init=(16,), matmul_dtype="bfloat16", encoder_dtype=encoder_dtype)
+    res = run_em(scene, prior, cfg, seed=5)
+    assert res.config.encoder_dtype == encoder_dtype
+    assert True in seen["decode"]  # the E-steps (the reviews decode in float32)
+    assert seen["encode"] == ({False} if encoder_dtype == "float32" else {True})
+    with pytest.raises(ValueError, match="encoder_dtype"):
+        preset("fast").replace(encoder_dtype="float16")
+
+
 def test_bf16_solve_finds_the_same_mugs_and_replays_in_its_precision(tmp_path: Path) -> None:
     """EMConfig.matmul_dtype="bfloat16": the regression scene's bars hold (those of
     `test_shipped_prior_regression_each_mug_found_once`: the weakest mug sits at the 0.5 line, 0.493 here with

@@ -263,6 +263,10 @@ class EMConfig:
     and GPUs run 2-4× faster; k-NN graphs, SDF values, normals and every energy stay float32). The reviews
     (completed meshes, poses, coverage and the output masks) always decode in float32. A speed knob:
     docs/BENCHMARKS.md measures its effect on AP."""
+    encoder_dtype: MatmulDtype | None = None
+    """Precision of the encoder in the EM steps; None = `matmul_dtype`. "float32" with `matmul_dtype`
+    "bfloat16" runs only the decoder in bf16: the encoder keeps its fused float32 kernels (autocast switches
+    them off and costs it more than bf16 gains) and float32 latents."""
 
     # ------------------------------------------------------------------ helpers
     @property
@@ -365,6 +369,8 @@ class EMConfig:
                              f"(a review decodes resolution³ queries per shape)")
         if self.matmul_dtype not in MATMUL_DTYPES:
             raise ValueError(f"matmul_dtype must be one of {MATMUL_DTYPES}, got {self.matmul_dtype!r}")
+        if self.encoder_dtype is not None and self.encoder_dtype not in MATMUL_DTYPES:
+            raise ValueError(f"encoder_dtype must be None or one of {MATMUL_DTYPES}, got {self.encoder_dtype!r}")
         if self.pose_points is not None and self.pose_points < 1:
             raise ValueError(f"pose_points must be >= 1 or None, got {self.pose_points}")
         if self.encode_batch < 1 or self.decode_chunk < 1 or self.n_store < 1:

@@ -555,7 +555,7 @@ class _Solver:
             samples, _ = sample_joint(pool.rag, pool.w, pool.stationary, self.m, cfg.omega, self.rng,
                                       fallback=fallback)
         t0 = self.timer.add("m_step", t0)
-        with matmul_precision(cfg.matmul_dtype, self.table.priors[0]):  # the EM steps' networks only
+        with matmul_precision(cfg.encoder_dtype or cfg.matmul_dtype, self.table.priors[0]):  # EM steps only
             latent = encode_rows(self.table, pool.owner, self.points[samples], batch=cfg.encode_batch)
             self.n_encoded += len(samples)
             review_step = t in (cfg.t1 - 1, cfg.steps_per_episode - 1)

@@ -105,6 +105,15 @@ class SDFDecoder(nn.Module):
             return None
         return (q * q).sum(-1, keepdim=True).clamp_min(1e-24).sqrt() * self.fc_in.weight[:, self.latent_dim]
 
+    def _augmented(self, q: torch.Tensor, m: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``[q, ‖q‖]`` and ``[M, a_q]`` (``(B, Q, 4)``, ``(B, H, 4)``), so that ``M q + a_q ‖q‖`` is one batched
+        product; ``(q, M)`` without the ‖q‖ feature."""
+        if not self.use_qnorm:
+            return q, m
+        qn = (q * q).sum(-1, keepdim=True).clamp_min(1e-24).sqrt()
+        a_q = self.fc_in.weight[:, self.latent_dim].to(m.dtype)
+        return torch.cat([q, qn], -1), torch.cat([m, a_q.expand(m.shape[0], -1)[..., None]], -1)
+
     def forward_batched(self, q: torch.Tensor, m: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
         """SDF of canonical queries with one latent per batch row.
 
@@ -119,10 +128,12 @@ class SDFDecoder(nn.Module):
         return self._mlp(self._first_layer(q, m, bias))
 
     def _first_layer(self, q: torch.Tensor, m: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
-        """``h_0 = M q + a_q ‖q‖ + bias`` for batched queries ``(B, Q, 3)`` -> ``(B, Q, H)``."""
-        h = torch.matmul(q, m.transpose(1, 2)) + bias[:, None, :]
-        qf = self._qfeat(q)
-        return h + qf if qf is not None else h
+        """``h_0 = M q + a_q ‖q‖ + bias`` for batched queries ``(B, Q, 3)`` -> ``(B, Q, H)``: one batched product
+        of ``[q, ‖q‖, 1]`` and ``[M, a_q, bias]``, which writes the (B, Q, H) activations once (separate adds of
+        the bias and the ‖q‖ feature were a quarter of an E-step's decode)."""
+        q4, m4 = self._augmented(q, m)
+        ones = torch.ones(q4.shape[:-1] + (1,), dtype=q4.dtype, device=q4.device)
+        return torch.bmm(torch.cat([q4, ones], -1), torch.cat([m4, bias[..., None].to(m4.dtype)], -1).transpose(1, 2))
 
     def sdf_and_band_grad(self, q: torch.Tensor, m: torch.Tensor, bias: torch.Tensor, *, within: float
                           ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -147,22 +158,33 @@ class SDFDecoder(nn.Module):
         b, n, width = h.shape
         rows = h.reshape(-1, width)
         sdf = torch.empty(len(rows), dtype=q.dtype, device=q.device)
-        dh0 = torch.zeros(len(rows), width, dtype=q.dtype, device=q.device)
-        band = torch.zeros(len(rows), dtype=torch.bool, device=q.device)
+        band_rows: list[torch.Tensor] = []
+        band_grads: list[torch.Tensor] = []
         tile = TILE_ROWS if q.device.type == "cpu" else max(len(rows), 1)
         for s in range(0, len(rows), tile):  # tiles whose activations stay in cache through the backward
             sdf_t, sel, g = self._band_grad_tile(rows[s:s + tile], within)
             sdf[s:s + tile] = sdf_t.to(q.dtype)
             if len(sel):
-                dh0[s + sel] = g.to(q.dtype)
-                band[s + sel] = True
-        dh0 = dh0.reshape(b, n, width)
-        dq = torch.matmul(dh0, m)
-        if self.use_qnorm:
-            a_q = self.fc_in.weight[:, self.latent_dim].to(q.dtype)
-            qn = (q * q).sum(-1, keepdim=True).clamp_min(1e-24).sqrt()
-            dq = dq + torch.matmul(dh0, a_q)[..., None] * q / qn
-        return sdf.reshape(b, n), dq, band.reshape(b, n)
+                band_rows.append(s + sel)
+                band_grads.append(g.to(q.dtype))
+        band = torch.zeros(len(rows), dtype=torch.bool, device=q.device)
+        dq = torch.zeros(len(rows), 3, dtype=q.dtype, device=q.device)
+        if band_rows:  # ∂sdf/∂q = ∂sdf/∂h0 · [M, a_q] · ∂[q, ‖q‖]/∂q, for the band rows only, latent by latent
+            idx, grad = torch.cat(band_rows), torch.cat(band_grads)
+            band[idx] = True
+            q4, m4 = self._augmented(q.reshape(-1, 3)[idx], m)
+            d4 = torch.empty(len(idx), m4.shape[-1], dtype=q.dtype, device=q.device)
+            counts = torch.bincount(torch.div(idx, n, rounding_mode="floor"), minlength=b).tolist()
+            start = 0
+            for k, c in enumerate(counts):  # band rows are in row order: each latent's rows are contiguous
+                if c:
+                    d4[start:start + c] = torch.matmul(grad[start:start + c], m4[k])
+                start += c
+            d = d4[:, :3]
+            if self.use_qnorm:
+                d = d + d4[:, 3:] * q4[:, :3] / q4[:, 3:]
+            dq[idx] = d
+        return sdf.reshape(b, n), dq.reshape(b, n, 3), band.reshape(b, n)
 
     def _band_grad_tile(self, hf: torch.Tensor, within: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """One tile of `sdf_and_band_grad`: the SDF of rows ``hf`` (first-layer outputs), the band rows and

@@ -108,6 +108,37 @@ def test_page_renders_scene(viewer: Any, page: Any) -> None:
     _save(page, "viewer_overview.png")
 
 
+FRAME_COUNTER = """
+window.__efemFrames = 0;
+window.__efemLastClear = -1e9;
+for (const C of [window.WebGLRenderingContext, window.WebGL2RenderingContext]) {
+  if (!C) continue;
+  const clear = C.prototype.clear;
+  C.prototype.clear = function (...args) {  // three.js clears once or more per rendered frame
+    const now = performance.now();
+    if (now - window.__efemLastClear > 4) window.__efemFrames++;
+    window.__efemLastClear = now;
+    return clear.apply(this, args);
+  };
+}
+"""
+
+
+def test_an_idle_page_draws_on_demand_not_every_frame(viewer: Any, page: Any) -> None:
+    """With nothing moving and nothing changing, the page renders only when asked (viser's on-demand loop and
+    its 1 Hz safety heartbeat), not at the display's frame rate: a browser left open on the viewer idles. Counted
+    in rendered frames over 10 s of idle (a continuous loop renders ~600; measured 10-11, the heartbeat)."""
+    page.add_init_script(FRAME_COUNTER)
+    _open(page, viewer)
+    _settle(page)
+    assert page.evaluate("window.__efemFrames") > 0, "the frame counter saw no frame at all"
+    time.sleep(3)  # the settle windows of the last changes close
+    before = page.evaluate("window.__efemFrames")
+    time.sleep(10)
+    idle = page.evaluate("window.__efemFrames") - before
+    assert idle <= 25, f"{idle} frames rendered in 10 s of idle"
+
+
 def test_step_slider_changes_view(viewer: Any, page: Any) -> None:
     _open(page, viewer)
     page.get_by_role("tab", name="Timeline").click()
