@@ -212,7 +212,10 @@ def main() -> int:
     # 1 thread: on this 2-core machine shared with other jobs, 2 torch threads were 5-10x *slower* (spinning)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", default=str(ROOT / "bench/results/prior.json"))
+    ap.add_argument("--category", default="mug",
+                    help="the test objects: a category, or a family (kitchen: its members interleaved, a summary "
+                         "per member)")
+    ap.add_argument("--out", default=None, help="JSON (default bench/results/prior.json, or prior_<category>.json)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
 
@@ -220,7 +223,7 @@ def main() -> int:
     import trimesh
 
     from efem_viz.data.io import atomic_write_text
-    from efem_viz.data.procedural import make_mug, sample_mug_params, split_seeds
+    from efem_viz.data.procedural import family_seeds, make_shape, sample_mug_params
     from efem_viz.prior.data import normalize_mesh
     from efem_viz.prior.model import load_prior
 
@@ -233,10 +236,11 @@ def main() -> int:
     t_start = time.perf_counter()
 
     proc: list[dict[str, Any]] = []
-    for seed in list(split_seeds("mug", "test"))[: args.n_test]:
-        gt = normalize_mesh(make_mug(seed))
-        handle = sample_mug_params(seed).handle != "none"
-        proc.append(evaluate_object(prior, gt, has_handle=handle, rng=rng, args=args, name=f"mug_{seed}"))
+    for cat, seed in family_seeds(args.category, "test", args.n_test):
+        gt = normalize_mesh(make_shape(cat, seed))
+        handle = cat == "mug" and sample_mug_params(seed).handle != "none"  # the others: only the up axis
+        proc.append(evaluate_object(prior, gt, has_handle=handle, rng=rng, args=args, name=f"{cat}_{seed}"))
+    members = sorted({r["name"].rsplit("_", 1)[0] for r in proc})
     ycb_gt = normalize_mesh(trimesh.load(YCB_MUG, force="mesh"))
     ycb = [evaluate_object(prior, ycb_gt, has_handle=True, rng=rng, args=args, name=f"ycb_025_mug_trial{i}")
            for i in range(args.ycb_trials)]
@@ -249,13 +253,17 @@ def main() -> int:
         "codebook_entries": len(prior.codebook),
         "settings": {k: v for k, v in vars(args).items() if k != "out"},
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
+        "category": args.category,
         "procedural_test": _summary(proc),
+        "procedural_test_per_category": ({c: _summary([r for r in proc if r["name"].rsplit("_", 1)[0] == c])
+                                          for c in members} if len(members) > 1 else {}),
         "ycb_mug": _summary(ycb),
         "throughput": thr,
         "records": {"procedural_test": proc, "ycb_mug": ycb},
         "wall_s": time.perf_counter() - t_start,
     }
-    out = Path(args.out)
+    out = Path(args.out or ROOT / "bench" / "results" / ("prior.json" if args.category == "mug"
+                                                        else f"prior_{args.category}.json"))
     atomic_write_text(out, json.dumps(result, indent=1, default=float))
 
     def line(name: str, s: dict[str, Any]) -> str:
@@ -270,6 +278,8 @@ def main() -> int:
 
     print(f"prior {args.prior} ({len(prior.codebook)} codebook entries), medians:")
     print(line("procedural test", result["procedural_test"]))
+    for c, summ in result["procedural_test_per_category"].items():
+        print(line(f"  {c}", summ))
     print(line("YCB 025_mug", result["ycb_mug"]))
     print(f"encoder {thr['encoder_proposals_per_s']:.1f} proposals/s (batch {thr['encoder_batch']}, "
           f"{thr['torch_threads']} threads); "

@@ -541,8 +541,8 @@ class SceneNodes:
             col = rgb_tuple(want[k])
             if k < len(r.box_colors) and r.box_colors[k] == col:
                 continue
-            h.colors = np.broadcast_to(np.array(col, np.uint8), (12, 2, 3)).copy()
-            r.box_colors[k] = col
+            h.colors = np.array(col, np.uint8)  # one colour, as the box was made: viser's client draws a
+            r.box_colors[k] = col  # per-vertex (12, 2, 3) update of a one-colour line set in white
             changed += 1
         return changed
 

@@ -139,6 +139,40 @@ def test_an_idle_page_draws_on_demand_not_every_frame(viewer: Any, page: Any) ->
     assert idle <= 25, f"{idle} frames rendered in 10 s of idle"
 
 
+def _saturated(img: np.ndarray, *, green: bool = False) -> int:
+    """Clearly coloured pixels of the 3-D view left of the control panel (not white or grey; `green`: green ones
+    only; the legend's swatches sit in the panel)."""
+    rgb = img[:, : int(img.shape[1] * 0.66), :3].astype(int)
+    if green:
+        return int(((rgb[..., 1] > rgb[..., 0] + 40) & (rgb[..., 1] > rgb[..., 2] + 40)).sum())
+    return int((rgb.max(axis=-1) - rgb.min(axis=-1) > 60).sum())
+
+
+def test_tp_fp_view_draws_the_boxes_green_and_red_and_gives_them_back(viewer: Any, page: Any) -> None:
+    """The TP / FP / FN colouring redraws every box in green (TP) or red (FP), as the legend says, and the
+    instances colouring gives each box its own colour back (boxes were drawn white after the switch). The points
+    are hidden so that only the boxes and labels are on the canvas."""
+    _open(page, viewer)
+    points = viewer.nodes.points
+    try:
+        points.visible = False
+        own = _settle(page)
+        assert _saturated(own) > 200, "the boxes are not drawn in their instance colours"
+        viewer.set_color_mode("gt_match")
+        wait_until(lambda: viewer.state.color_mode == "gt_match", HANG_GUARD_S, "the TP/FP/FN colours")
+        points.visible = False  # a recolour may resend the cloud
+        tp = _settle(page)
+        assert _saturated(tp, green=True) > 200, "no green (TP) box on the canvas"
+        viewer.set_color_mode("instances")
+        points.visible = False
+        back = _settle(page)
+        assert _saturated(back, green=True) < _saturated(tp, green=True) / 4
+        assert _saturated(back) > 200, "the boxes did not get their own colours back"
+    finally:
+        viewer.set_color_mode("rgb")
+        points.visible = True
+
+
 def test_step_slider_changes_view(viewer: Any, page: Any) -> None:
     _open(page, viewer)
     page.get_by_role("tab", name="Timeline").click()
