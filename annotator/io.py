@@ -30,7 +30,7 @@ import numpy as np
 
 from annotator.journal import read_label_file, write_label_file
 from annotator.labels import InstanceInfo, table_from_json, table_to_json
-from efem_viz.colors import instance_color
+from efem_viz.colors import instance_color, result_colors, rgb_tuple
 from efem_viz.data.io import RESULT_SUFFIX
 from efem_viz.terminal import one_line
 
@@ -315,21 +315,23 @@ def labels_from_result(res: Any, n: int, *, where: str, threshold: float = 0.0) 
     if res.num_points != n:
         raise LabelIOError(f"{p}: the EFEM result was computed on {res.num_points} points, the scan has {n} vertices")
     try:
-        inst = res.instances.above(threshold) if threshold > 0 else res.instances
+        keep = res.instances.kept(threshold) if threshold > 0 else np.ones(len(res.instances), bool)
+        inst = res.instances.select(keep)
+        palette = result_colors(res.instances)[keep]  # the whole result's colours: a cut changes none
         labels = np.asarray(inst.label_array(n), np.int32)
     except (ValueError, IndexError) as exc:
         raise LabelIOError(f"{p}: could not use the EFEM result ({one_line(exc, limit=300)})") from exc
     labels = _check_labels(labels, n, p)
     rows: list[InstanceInfo] = []
     conf: dict[int, float] = {}
-    # `label_array` numbers instances by position: the k-th instance is label k + 1; its colour is the one of its
-    # proposal id, as in the viewer and the coloured PLY export (`efem_viz.colors`).
+    # `label_array` numbers instances by position: the k-th instance is label k + 1; its colour is its
+    # `result_colors` one, as in the viewer and the coloured PLY export (`efem_viz.colors`).
     for k in range(len(inst.confidence)):
         iid = k + 1
         cat = str(np.asarray(inst.category)[k]) if len(np.asarray(inst.category)) > k else "object"
         c = float(np.asarray(inst.confidence)[k])
         conf[iid] = c
-        color = instance_color(int(np.asarray(inst.ids)[k]))
+        color = rgb_tuple(palette[k])
         rows.append(InstanceInfo(iid, f"efem {cat} {iid}", category=cat, color=color, note=f"EFEM confidence {c:.3f}"))
     return LabelData(labels, _complete(labels, rows), conf)
 

@@ -3,10 +3,11 @@
 Which id each caller colours by, so that the same instance has the same colour everywhere:
 
 * an EFEM result's instance is coloured by its **proposal id** (`Instances.ids`, stable under any confidence
-  threshold): the viewer's points, mesh, box, legend swatch and "#id" label, the coloured PLY
-  (`Instances.to_colored_ply`) and the annotator's EFEM pre-labels (which are numbered k + 1 but keep the colour
-  of their proposal id in their instance table); the viewer's EM proposals use the same key, so an accepted
-  proposal keeps its colour from the timeline to the final result;
+  threshold), through `result_colors`: the viewer's points, mesh, box, legend swatch and "#id" label, the
+  coloured PLY (`Instances.to_colored_ply`) and the annotator's EFEM pre-labels (which are numbered k + 1 but keep
+  that colour in their instance table); the viewer's EM proposals use the same key, so an accepted proposal keeps
+  its colour from the timeline to the final result — unless its id's colour was too close to a neighbouring
+  instance's, which `result_colors` then replaces (deterministically, over the whole result);
 * an instance known only by a label id (the annotator's own instances, a labelled file without an instance
   table) is coloured by that **label id**.
 
@@ -41,6 +42,7 @@ __all__ = [
     "instance_colors",
     "instance_point_colors",
     "label_colors",
+    "result_colors",
     "rgb_tuple",
     "weights_colors",
 ]
@@ -81,6 +83,44 @@ def instance_colors(ids: np.ndarray | Sequence[int]) -> np.ndarray:
     return _hsv_to_rgb(h, s, v)
 
 
+NEIGHBOUR_COLOR_DISTANCE = 100.0
+"""Two neighbouring instances whose colours are closer than this (RGB, Euclidean) get different ones
+(`result_colors`)."""
+_SEPARATE = np.array([[230, 25, 75], [60, 180, 75], [255, 200, 25], [0, 130, 200], [245, 130, 48],
+                      [145, 30, 180], [70, 240, 240], [240, 50, 230], [128, 128, 0], [0, 128, 128],
+                      [170, 110, 40], [128, 0, 0], [0, 0, 128], [250, 190, 212]], np.float64)
+"""Well-separated colours `result_colors` chooses from when an id's own colour is too close to a neighbour's."""
+
+
+def result_colors(instances: InstancesLike) -> np.ndarray:
+    """(K, 3) uint8 colour of each instance of an EFEM result: `instance_colors` of its proposal id, except where
+    that is within `NEIGHBOUR_COLOR_DISTANCE` of the colour of an earlier neighbouring instance (boxes closer than
+    1.5 × the sum of their half-diagonals): then the colour of `_SEPARATE` farthest from its neighbours' colours.
+
+    Computed over the whole result in its order (the instances' order is the result's), so a confidence cut
+    never changes a colour: select the rows of this array for a subset.
+
+    Args:
+        instances: `efem_viz.em.Instances` (ids (K,), obb_center (K, 3), obb_half_extents (K, 3)).
+    """
+    ids = np.asarray(instances.ids, np.int64).reshape(-1)
+    own = instance_colors(ids).astype(np.float64)
+    k = len(ids)
+    if k < 2:
+        return own.astype(np.uint8)
+    centers = np.asarray(instances.obb_center, np.float64).reshape(k, 3)
+    radii = np.linalg.norm(np.asarray(instances.obb_half_extents, np.float64).reshape(k, 3), axis=1)
+    near = np.linalg.norm(centers[:, None] - centers[None], axis=-1) < 1.5 * (radii[:, None] + radii[None])
+    out = own.copy()
+    for i in range(1, k):
+        others = out[:i][near[i, :i]]
+        if not len(others) or np.linalg.norm(others - out[i], axis=1).min() >= NEIGHBOUR_COLOR_DISTANCE:
+            continue
+        gap = np.linalg.norm(_SEPARATE[:, None] - others[None], axis=-1).min(axis=1)
+        out[i] = _SEPARATE[int(np.argmax(gap))]
+    return np.round(out).astype(np.uint8)
+
+
 def instance_color(instance_id: int) -> tuple[int, int, int]:
     """`instance_colors` of one id as an `(r, g, b)` int triple (the form viser's `color=` and the annotator's
     instance table take).
@@ -116,6 +156,16 @@ class InstancesLike(Protocol):
 
     def select(self, keep: np.ndarray) -> InstancesLike:
         """The instances where `keep` (K,) bool is True (same type)."""
+        ...
+
+    @property
+    def obb_center(self) -> Any:
+        """(K, 3) box centres."""
+        ...
+
+    @property
+    def obb_half_extents(self) -> Any:
+        """(K, 3) box half extents."""
         ...
 
     def label_array(self, n_points: int) -> np.ndarray:
@@ -209,8 +259,8 @@ def label_colors(base: np.ndarray, labels: np.ndarray, *,
 
 
 def instance_point_colors(base: np.ndarray, instances: InstancesLike, keep: np.ndarray) -> np.ndarray:
-    """Colour the points of the kept instances of a result, each with `instance_colors` of its proposal id (the
-    colour of its mesh, box and legend swatch, of the coloured PLY export and of the annotator's EFEM import).
+    """Colour the points of the kept instances of a result, each with its `result_colors` colour (the colour of
+    its mesh, box and legend swatch, of the coloured PLY export and of the annotator's EFEM import).
 
     Args:
         base: (N, 3) uint8 scene colours.
@@ -220,9 +270,10 @@ def instance_point_colors(base: np.ndarray, instances: InstancesLike, keep: np.n
     Returns:
         (N, 3) uint8.
     """
-    shown = instances.select(np.asarray(keep, bool))
+    keep = np.asarray(keep, bool)
+    shown = instances.select(keep)
     labels = shown.label_array(base.shape[0])  # k + 1 for the k-th shown instance
-    cols = instance_colors(np.asarray(shown.ids))
+    cols = result_colors(instances)[keep]
     return label_colors(base, labels, ids_to_color={k + 1: cols[k] for k in range(len(cols))})
 
 

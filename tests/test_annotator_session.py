@@ -169,12 +169,21 @@ def test_instances_update_merge_delete(session: AnnotatorSession) -> None:
 
 def test_export_import_and_confinement(session: AnnotatorSession, tmp_path: Path) -> None:
     notes: list[str] = []
-    session.notify = lambda title, body: notes.append(title)
+    bodies: list[str] = []
+    session.notify = lambda title, body: (notes.append(title), bodies.append(body))
     iid = session.new_instance(category="mug")
     session.paint(np.arange(30))
     ply, = session.export("ply")
     npz, = session.export("npz")
     assert session.export("scannet") and notes.count("Exported") == 3
+    assert bodies[0] == f"{ply.name} in {session.out_dir}"  # the confirmation names the folder too
+    from annotator.labels import prelabel_note
+
+    pre = session.new_instance(category="mug")
+    session.paint(np.arange(30, 40))
+    session.update_instance(pre, note=prelabel_note("efem", 0.4))
+    session.export("npz")
+    assert "1 unreviewed EFEM pre-label exported as objects" in bodies[-1]
     assert ply.parent == session.out_dir and load_labels(npz, session.n).labels[:30].tolist() == [iid] * 30
     with pytest.raises(LabelIOError):
         session.export("ply", directory="../elsewhere")

@@ -1,5 +1,6 @@
 """Tests of efem_viz.colors: one palette, and the same colour for the same instance in the viewer, the coloured
-PLY export and the annotator (an EFEM instance with proposal id p → `instance_colors([p])` everywhere)."""
+PLY export and the annotator (an EFEM instance with proposal id p → `instance_colors([p])` everywhere, unless a
+neighbour's colour is too close: `result_colors`)."""
 
 from __future__ import annotations
 
@@ -61,7 +62,7 @@ def test_viewer_ply_export_and_annotator_agree(sphere_result: tuple, tmp_path: P
     from annotator.io import _read_efem
     from efem_viz.data.io import load_scene
     from efem_viz import colors as pal
-    from efem_viz.viewer.legend import result_colors
+    from efem_viz.colors import result_colors
 
     scene, res = sphere_result
     inst = res.instances
@@ -69,7 +70,8 @@ def test_viewer_ply_export_and_annotator_agree(sphere_result: tuple, tmp_path: P
     shown = inst.above(threshold)
     labels = shown.label_array(n)  # the label k + 1 of the k-th shown instance, in every export
     assert len(shown) == (3 if threshold == 0 else 2)
-    expected = {k + 1: instance_color(int(pid)) for k, pid in enumerate(shown.ids)}
+    every = result_colors(inst)  # over the whole result: a cut changes no colour
+    expected = {k + 1: tuple(int(c) for c in every[inst.kept(threshold)][k]) for k in range(len(shown))}
     assert len(set(expected.values())) == len(expected)
 
     # viewer: the points of each shown instance, and its mesh/box/swatch colour
@@ -106,3 +108,22 @@ def test_counts_read_as_words() -> None:
 
     assert count(1, "object") == "1 object" and count(0, "object") == "0 objects"
     assert count(1204, "point") == "1,204 points" and count(2, "vertex", "vertices") == "2 vertices"
+
+
+def test_neighbouring_instances_get_clearly_different_colours(sphere_result: tuple) -> None:
+    """Two touching instances whose proposal ids have near-identical palette colours (ids 150 and 294: 1.4 apart
+    in RGB) are drawn clearly apart; an instance far from every other keeps its id's colour; the colours do not
+    depend on which subset is shown (they are chosen over the whole result)."""
+    from efem_viz.colors import NEIGHBOUR_COLOR_DISTANCE, result_colors
+
+    _, res = sphere_result
+    inst = res.instances
+    assert np.linalg.norm(instance_colors([150])[0].astype(float) - instance_colors([294])[0]) < 5
+    half = np.full((3, 3), 0.05)
+    centers = np.array([[0.0, 0.0, 0.05], [0.09, 0.0, 0.05], [2.0, 2.0, 0.05]])  # two touch, one is far
+    near = dataclasses.replace(inst, ids=np.array([150, 294, 151]), obb_center=centers, obb_half_extents=half)
+    cols = result_colors(near).astype(float)
+    assert np.linalg.norm(cols[0] - cols[1]) >= NEIGHBOUR_COLOR_DISTANCE
+    np.testing.assert_array_equal(cols[[0, 2]], instance_colors([150, 151]))  # no neighbour in the way: its own
+    far = dataclasses.replace(near, obb_center=centers * np.array([30.0, 1, 1]))  # the first two far apart too
+    np.testing.assert_array_equal(result_colors(far), instance_colors([150, 294, 151]))

@@ -372,6 +372,7 @@ def test_legend_escapes_names_from_files() -> None:
     from efem_viz.viewer.legend import category_counts, legend_html, result_summary_markdown
 
     inst = SimpleNamespace(ids=np.array([3, 4]), confidence=np.array([0.9, 0.2]),
+                           obb_center=np.array([[0.0, 0, 0], [1.0, 0, 0]]), obb_half_extents=np.full((2, 3), 0.05),
                            category=np.array(["<img src=x onerror=alert(1)>", "cup_*x*"]))
     html = legend_html(inst, np.array([True, True]))
     assert "<img" not in html and "&lt;img" in html

@@ -6,8 +6,10 @@ import logging
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
+import numpy as np
+
 from annotator.io import LabelIOError, load_labels, resolve_inside, save_labels_npz, save_labels_ply, save_scannet
-from annotator.labels import Delta
+from annotator.labels import Delta, unreviewed_prelabels
 
 if TYPE_CHECKING:
     from annotator.rooms.context import SessionHooks, Toolbox
@@ -50,7 +52,11 @@ class FileRoom:
             out = list(save_scannet(labels, table, d, self.scan.stem))
         else:
             raise ValueError(f"unknown export format {fmt!r}; use ply, npz or scannet")
-        self.hooks.notify("Exported", ", ".join(p.name for p in out))
+        present = set(np.unique(labels[labels > 0]).tolist())
+        pending = [k for k in unreviewed_prelabels(table) if k in present]
+        warn = (f"; {len(pending)} unreviewed EFEM pre-label{'s' if len(pending) != 1 else ''} exported as "
+                "objects (review or delete them first)") if pending else ""
+        self.hooks.notify("Exported", f"{', '.join(p.name for p in out)} in {d}{warn}")
         log.info("exported %s", [str(p) for p in out])
         return out
 

@@ -346,12 +346,13 @@ class Instances:
             path: destination `.ply`.
             threshold: only instances with confidence ≥ threshold are coloured.
         """
-        from efem_viz.colors import instance_colors
+        from efem_viz.colors import result_colors
         from efem_viz.data.io import save_scene
 
-        inst = self.above(threshold)
+        keep = self.kept(threshold)
+        inst = self.select(keep)
         labels = inst.label_array(scene.num_points)
-        pal = instance_colors(inst.ids)  # colour of the proposal id, as in the viewer and the annotator's import
+        pal = result_colors(self)[keep]  # the colours of the viewer and the annotator's import
         colors = (np.asarray(scene.colors).astype(np.float32) * 0.35 + 90).astype(np.uint8)
         sel = labels > 0
         colors[sel] = pal[labels[sel] - 1]

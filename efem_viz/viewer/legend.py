@@ -20,7 +20,8 @@ from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
-from efem_viz.colors import DEAD_COLOR, FN_COLOR, FP_COLOR, HEAT_RGB, HEAT_STOPS, TP_COLOR, dim, hex_color, instance_colors
+from efem_viz.colors import (DEAD_COLOR, FN_COLOR, FP_COLOR, HEAT_RGB, HEAT_STOPS, TP_COLOR, dim, hex_color,
+                             instance_colors, result_colors)
 from efem_viz.eval.comparison import GTMetrics
 from efem_viz.serve.table import cell, swatch
 from efem_viz.viewer.texts import md_escape
@@ -33,15 +34,6 @@ MAX_LEGEND_ROWS = 40
 """The legend lists at most this many instances (highest confidence first), then says how many more."""
 MAX_TABLE_ROWS = 60
 """The instance table lists at most this many instances (highest confidence first), then says how many more."""
-
-
-def result_colors(instances: Instances) -> np.ndarray:
-    """(K, 3) uint8 colour of each instance: `instance_colors` of its proposal id (points, mesh, box, swatch).
-
-    Args:
-        instances: `efem_viz.em.Instances` (ids (K,)).
-    """
-    return instance_colors(np.asarray(instances.ids).reshape(-1))
 
 
 def category_color(category: str) -> tuple[int, int, int]:

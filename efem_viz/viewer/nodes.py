@@ -26,11 +26,11 @@ from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
 
-from efem_viz.colors import DEAD_COLOR, instance_colors, rgb_tuple
+from efem_viz.colors import DEAD_COLOR, instance_colors, result_colors, rgb_tuple
 from efem_viz.geometry.transforms import rotation_to_quat_wxyz, xyz_tuple
 from efem_viz.serve.camera import View, fitted_view
 from efem_viz.viewer.label_layout import leader_segments, place_labels
-from efem_viz.viewer.legend import instance_label, result_colors
+from efem_viz.viewer.legend import instance_label
 
 if TYPE_CHECKING:
     from viser import (
