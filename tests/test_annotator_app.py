@@ -950,6 +950,34 @@ def test_run_efem_on_the_open_scan_makes_prelabels(spheres, monkeypatch: pytest.
         a.close()
 
 
+def test_run_efem_on_a_millimetre_y_up_scan_solves_in_metres_and_labels_its_own_vertices(
+        spheres, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A bare scan saved by another tool in millimetres with +Y up: EFEM runs on it brought to metres and +Z up
+    (said once), the pre-labels land on the scan's own vertices, and the scan is shown and kept as it was."""
+    import annotator.assist as assist
+    from efem_viz.data.scan import _UP_ROTATIONS
+
+    d, scene, prior = spheres
+    monkeypatch.setattr(assist, "get_prior", lambda name: prior)
+    R = _UP_ROTATIONS["+y"].T  # scene +Z -> the file's +Y
+    raw = Scene.create("raw_mm", scene.points.astype(np.float64) @ R.T * 1000.0 + np.array([400.0, 120.0, -900.0]),
+                       normals=scene.normals @ R.T, colors=scene.colors)
+    save_scene(raw, d / "raw_mm.ply")
+    a = AnnotatorApp(d / "raw_mm.ply", out_dir=d / "out_mm", port=0, autosave_delay=0)
+    try:
+        notes: list[tuple[str, str]] = []
+        a.session.notify = lambda title, body: notes.append((title, body))
+        a.panels.gui_efem_proposals.value = 16
+        ids = a.run_efem(wait=True)
+        assert any("brought to metres" in body for _, body in notes), notes
+        np.testing.assert_allclose(a.session.scan.scene.points, raw.points, rtol=1e-6)  # the scan as it was
+        labels = a.session.store.labels
+        hits = [g for g in scene.instance_ids() if any(_iou(labels == i, scene.instance == g) > 0.5 for i in ids)]
+        assert len(hits) >= 2, "the spheres, found in metres, are labelled on the millimetre scan's vertices"
+    finally:
+        a.close()
+
+
 def test_run_efem_refuses_a_result_path_that_links_out_of_the_output_folder(spheres, tmp_path: Path) -> None:
     """The EFEM result `<scan>.annotate/<scan>.efem.npz` as a link to a folder elsewhere (or to a file): the run is
     refused before any work with one line, and nothing is written outside the output folder."""

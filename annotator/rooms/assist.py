@@ -54,6 +54,20 @@ class AssistRoom:
         """The last EFEM job's thread (joined on close)."""
         self.last_run_path: Path | None = None
         """Where the last EFEM run on the scan saved its result (None: none yet)."""
+        self._efem_scene: Any = None
+
+    def efem_scene(self) -> Any:
+        """The scan as EFEM sees it: brought to metres with +Z up when it is a bare scan in other units or axes
+        (`efem_viz.data.scan.scene_in_scene_frame`, said once). The vertices keep their order, so every mask EFEM
+        returns is a set of the scan's own vertex indices; the annotator shows and saves the scan as it is."""
+        if self._efem_scene is None:
+            from efem_viz.data.scan import scene_in_scene_frame
+
+            scene, notice = scene_in_scene_frame(self.scan.scene)
+            if notice:
+                self.hooks.notify("Scan frame for EFEM", f"{notice}; the labels stay on the scan's own vertices")
+            self._efem_scene = scene
+        return self._efem_scene
 
     def import_efem(self, path: str) -> list[int]:
         """Import an EFEM result as unreviewed pre-label instances on unlabelled vertices; returns their ids."""
@@ -175,7 +189,7 @@ class AssistRoom:
 
         t0 = time.perf_counter()
         try:
-            mask_idx = assist.segment_at_point(self.scan.scene, vertex, prior_name=prior_name, settings=self.solve,
+            mask_idx = assist.segment_at_point(self.efem_scene(), vertex, prior_name=prior_name, settings=self.solve,
                                                on_step=on_step, cancel=cancel)
         except EMCancelled:
             self.hooks.notify("Segmenting cancelled", f"the segmentation around vertex {vertex} was stopped")
@@ -263,7 +277,7 @@ class AssistRoom:
         from efem_viz.em.config import SolveSettings, suggested_preset
 
         big = self.scan.n > EFEM_FULL_RESOLUTION_POINTS
-        settings = SolveSettings(preset=preset or suggested_preset(self.scan.scene),  # type: ignore[arg-type]
+        settings = SolveSettings(preset=preset or suggested_preset(self.efem_scene()),  # type: ignore[arg-type]
                                  proposals=None if not proposals else int(proposals),
                                  work_voxel=EFEM_BIG_SCAN_VOXEL if big else None)
         settings.config()  # a bad preset or count: one clear error before anything starts
@@ -298,7 +312,7 @@ class AssistRoom:
 
         t0 = time.perf_counter()
         try:
-            result = assist.solve_scan(self.scan.scene, prior_name=prior_name, settings=settings, seed=seed,
+            result = assist.solve_scan(self.efem_scene(), prior_name=prior_name, settings=settings, seed=seed,
                                        on_step=on_step, cancel=cancel)
             if cancel.is_set():  # pressed after the last step: still nothing is added
                 raise EMCancelled("cancelled after the last step")

@@ -171,8 +171,8 @@ def _run_tab(gui: GuiApi) -> dict[str, Any]:
                                step=1, hint="the preset's number until you change it")
     seed = gui.add_number("Seed", 0, min=0, max=2**31 - 1, step=1)
     precision = gui.add_dropdown("Precision", em_config.MATMUL_DTYPES, initial_value="float32",
-                                 hint="bfloat16: the networks' matrix work in bf16, about 1.5x faster on CPUs "
-                                      "with AMX / AVX-512 bf16, AP within a point (docs/BENCHMARKS.md)")
+                                 hint="bfloat16: the networks' matrix work in bf16, for GPUs; on a CPU, even with "
+                                      "AMX, it is slower than float32 with the shipped prior (docs/BENCHMARKS.md)")
     run = gui.add_button("Run EFEM", hint="run EM on this scene in the background")
     cancel = gui.add_button("Cancel", disabled=True, color="red")
     load = gui.add_button("Load saved trace", hint="<scene>.efem.npz next to the scene file")
