@@ -214,6 +214,22 @@ def test_prelabels_import_and_review(session: AnnotatorSession) -> None:
         session.import_efem("../../etc/passwd")
 
 
+def test_a_second_import_adds_no_fragments_of_labelled_objects(session: AnnotatorSession) -> None:
+    """Importing pre-labels over a labelled scan leaves out the proposals whose vertices are mostly labelled
+    already (a fragment of a labelled object) or all labelled (an empty row), and says how many."""
+    hand = session.new_instance(category="mug")
+    session.paint(np.arange(0, 100))
+    labels = np.zeros(session.n, np.int32)
+    labels[30:130] = 1    # 30 of 100 free: a fragment of the labelled mug -> left out
+    labels[10:50] = 2     # all labelled -> left out
+    labels[200:260] = 3   # all free -> a pre-label
+    rows = [InstanceInfo(k, f"p{k}", category="mug") for k in (1, 2, 3)]
+    ids = session.add_prelabels(LabelData(labels, rows, confidence={1: 0.9, 2: 0.8, 3: 0.5}), source="x.efem.npz")
+    assert len(ids) == 1 and session.assist.skipped_prelabels == 2
+    assert (session.store.labels[200:260] == ids[0]).all() and (session.store.labels[:100] == hand).all()
+    assert set(session.store.labelset.instances) == {hand, ids[0]}  # no empty rows
+
+
 def test_click_to_segment_preview_accept_discard(session: AnnotatorSession,
                                                  monkeypatch: pytest.MonkeyPatch) -> None:
     import annotator.assist as assist

@@ -29,6 +29,9 @@ if TYPE_CHECKING:
     from annotator.rooms.instances import InstanceRoom
     from annotator.rooms.paint import PaintRoom
 
+PRELABEL_MIN_FREE = 0.5
+"""A pre-label is added only when at least this fraction of its vertices is unlabelled (`AssistRoom.add_prelabels`)."""
+
 
 class AssistRoom:
     """EFEM's help: unreviewed pre-label instances, their review, and the click-to-segment run and preview."""
@@ -55,6 +58,8 @@ class AssistRoom:
         self.last_run_path: Path | None = None
         """Where the last EFEM run on the scan saved its result (None: none yet)."""
         self._efem_scene: Any = None
+        self.skipped_prelabels = 0
+        """How many proposals the last `add_prelabels` left out (mostly on labelled vertices)."""
 
     def efem_scene(self) -> Any:
         """The scan as EFEM sees it: brought to metres with +Z up when it is a bare scan in other units or axes
@@ -78,13 +83,19 @@ class AssistRoom:
         return self.add_prelabels(data, source=p.name)
 
     def add_prelabels(self, data: LabelData, *, source: str) -> list[int]:
-        """Add proposals (labels + rows) as new unreviewed instances, painted only where nothing is labelled."""
+        """Add proposals (labels + rows) as new unreviewed instances, painted only where nothing is labelled.
+
+        A proposal that would keep less than `PRELABEL_MIN_FREE` of its vertices (they are labelled already, by
+        hand or by a more confident pre-label), or none, is not added: a second run over a labelled scan would
+        otherwise leave fragments of its objects (and empty rows) to review.
+        `skipped_prelabels` says how many were left out."""
         group = uuid.uuid4().hex[:12]
         conf = data.confidence or {}
         order = sorted((r for r in data.instances if (data.labels == r.id).any()),
                        key=lambda r: -conf.get(r.id, 0.0))
         with self.scan.store.lock:  # one undo step: no other edit (another browser, an undo) between its parts
             new_ids = self._add_rows(data, order, conf, source, group)
+        self.skipped_prelabels = len(order) - len(new_ids)
         self.hooks.on_change()
         return new_ids
 
@@ -92,6 +103,10 @@ class AssistRoom:
                   group: str) -> list[int]:
         new_ids: list[int] = []
         for row in order:
+            idx = np.flatnonzero(data.labels == row.id)
+            free = int((self.scan.store.labels[idx] == 0).sum())  # includes this batch's more confident ones
+            if free == 0 or free < PRELABEL_MIN_FREE * len(idx):
+                continue
             note = prelabel_note(source, conf.get(row.id))
             d = self.scan.store.do(lambda ls, row=row, note=note: ls.create_instance(category=row.category,
                                                                                 name=f"{row.category} (EFEM)"),
@@ -99,7 +114,6 @@ class AssistRoom:
             assert d is not None
             iid = int(next(iter(d.table_after)))
             self.scan.store.do(lambda ls, iid=iid, note=note: ls.update_instance(iid, note=note), group=group)
-            idx = np.flatnonzero(data.labels == row.id)
             self.scan.store.do(lambda ls, iid=iid, idx=idx: ls.paint(idx, iid, overwrite=False), group=group)
             new_ids.append(iid)
         return new_ids
@@ -331,8 +345,10 @@ class AssistRoom:
                 self._release()
                 self.hooks.on_segment(None)
         self.hooks.notify("EFEM pre-labels", f"{what} found {len(result.instances)} instance(s) in "
-                          f"{time.perf_counter() - t0:.0f} s: {len(ids)} pre-label(s) to review (result saved as "
-                          f"{path.name} beside the journal)")
+                          f"{time.perf_counter() - t0:.0f} s: {len(ids)} pre-label(s) to review"
+                          + (f", {self.skipped_prelabels} left out (mostly on labelled vertices)"
+                             if self.skipped_prelabels else "")
+                          + f" (result saved as {path.name} beside the journal)")
         return ids
 
     def set_preview(self, idx: np.ndarray | None) -> None:
