@@ -211,8 +211,8 @@ def test_pose_search_on_sample_subsets_finds_the_same_pose(codebook: Codebook, p
 def test_a_family_codebook_classes_its_entries_and_names_an_instance_by_majority(prior: ShapePrior,
                                                                                   tmp_path: Path) -> None:
     """(category, seed) pairs give each entry its category's class id; the classes survive a save and load;
-    `category_of` takes the class most retrieved rows belong to (ties: the first retrieved), ignores rows out of
-    range, and falls back to the prior's name without classes or rows."""
+    `category_of` takes the class with the largest total weight among the retrieved rows (ties: the first
+    retrieved), ignores rows out of range, and falls back to the prior's name without classes or rows."""
     pairs = [("mug", 0), ("bowl", 0), ("bottle", 0), ("can", 0), ("mug", 1), ("bowl", 1)]
     cb = build_codebook(prior, pairs, n_store=200, noise=0.01, seed=0, classes=("mug", "bowl", "bottle", "can"))
     np.testing.assert_array_equal(cb.class_id, [0, 1, 2, 3, 0, 1])
@@ -225,6 +225,11 @@ def test_a_family_codebook_classes_its_entries_and_names_an_instance_by_majority
     assert cb.category_of([3, 99, -1], "kitchen") == "can"         # out of range ignored
     assert cb.category_of([], "kitchen") == "kitchen"
     assert cb.category_of([99], "kitchen") == "kitchen"
+    # weighted by how well each entry aligned: one well-aligned can outvotes two poorly aligned bowls
+    assert cb.category_of([1, 5, 3], "kitchen", weights=[0.2, 0.3, 0.9]) == "can"
+    assert cb.category_of([1, 5, 3], "kitchen", weights=[0.5, 0.5, 0.9]) == "bowl"
+    with pytest.raises(ValueError, match="weights"):
+        cb.category_of([1, 5], "kitchen", weights=[1.0])
     inferred = build_codebook(prior, pairs[:3], n_store=50, noise=0.01, seed=0)
     assert inferred.classes == ["mug", "bowl", "bottle"]
     single = build_codebook(prior, [0, 1], n_store=50, noise=0.01, seed=0)  # seeds of one category: no classes

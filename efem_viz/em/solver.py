@@ -428,6 +428,9 @@ class _Solver:
                                  reasons=reason_names(self.step_rules, self.review_rules),
                                  prior_names=prior_names if len(table) > 1 else ())
         self.categories = prior_names
+        self.pose_votes: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        """Proposal id -> the codebook rows its last review's pose search retrieved and how well each aligned
+        (`_pose`; a family prior's class, `_category`)."""
         self.timer = _Timer()
         self.t_start = time.perf_counter()
         self.cpu_start = time.process_time()
@@ -648,7 +651,7 @@ class _Solver:
             t0 = time.perf_counter()
             mesh, Q, fnorm, center, scale = self._completed_shape(k, lat, pid)
             t0 = self.timer.add("review_mesh", t0)
-            R, R_raw, s_sel, db_sim, nbrs = self._pose(k, lat, Q, fnorm)
+            R, R_raw, s_sel, db_sim, nbrs = self._pose(k, lat, Q, fnorm, pid)
             t0 = self.timer.add("review_pose", t0)
             from efem_viz.geometry.obb import oriented_box
 
@@ -725,16 +728,20 @@ class _Solver:
         return float(np.mean((dist_c <= cfg.cov_tau) & (ang <= cfg.cov_gamma)))
 
     def _category(self, rev: ReviewRecord) -> str:
-        """An accepted instance's category: its prior's name, or for a family prior (kitchen) the class of the
-        codebook entries its pose search retrieved (`Codebook.category_of`)."""
+        """An accepted instance's category: its prior's name, or for a family prior (kitchen) the class its last
+        pose search's codebook entries vote for, each by how well it aligned (`Codebook.category_of`)."""
         name = self.categories[rev.prior]
         cb = getattr(self.table.priors[rev.prior], "codebook", None)
-        return cb.category_of(rev.neighbours, name) if cb is not None else name
+        if cb is None:
+            return name
+        rows, scores = self.pose_votes.get(rev.proposal_id, (rev.neighbours, None))
+        return cb.category_of(rows, name, weights=scores)
 
     def _pose(
-        self, k: int, lat: LatentArrays, Q: np.ndarray, fnorm: np.ndarray
+        self, k: int, lat: LatentArrays, Q: np.ndarray, fnorm: np.ndarray, pid: int = -1
     ) -> tuple[np.ndarray, np.ndarray, float, float, np.ndarray]:
-        """(R, R_raw, s_sel, db_sim, neighbour ids) from prior k's codebook, or identity without one."""
+        """(R, R_raw, s_sel, db_sim, neighbour ids) from prior k's codebook, or identity without one; the
+        rows it retrieved and their alignment scores are kept as `pose_votes[pid]` (a family prior's class)."""
         prior = self.table.priors[k]
         cb = getattr(prior, "codebook", None)
         if cb is None or not self.cfg.pose_retrieval:
@@ -748,6 +755,7 @@ class _Solver:
         s_sel = (float(est.scale_sel) if np.isfinite(est.scale_sel) and est.scale_sel > 0
                  else self.ref_scales[k])
         R = np.asarray(est.R, np.float64)
+        self.pose_votes[pid] = (np.asarray(est.neighbour_ids), np.asarray(est.scores, np.float64))
         return R, np.asarray(est.R_raw, np.float64), s_sel, float(est.score_db_sim), np.asarray(est.neighbour_ids)
 
 

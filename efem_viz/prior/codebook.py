@@ -206,22 +206,27 @@ class Codebook:
         names = self.meta.get("classes")
         return [str(c) for c in names] if isinstance(names, list) else []
 
-    def category_of(self, rows: Any, default: str) -> str:
-        """The category of an instance whose pose search retrieved codebook `rows`: the class most of them
-        belong to (ties: the one retrieved first), or `default` for a codebook without classes or no rows.
+    def category_of(self, rows: Any, default: str, *, weights: Any = None) -> str:
+        """The category of an instance whose pose search retrieved codebook `rows`: the class with the largest
+        total weight among them (`weights`: how well each row aligned, its inlier ratio; default 1 each), ties
+        to the class retrieved first; `default` for a codebook without classes or nothing to go by.
 
-        A family prior (mugs, bowls, bottles and cans in one) names each instance by the training objects its
-        latent lies nearest to; rows out of range are ignored.
+        A family prior (mugs, bowls, bottles and cans in one) names each instance by the training objects whose
+        latents lie nearest to its own and whose surfaces fit its completed shape; rows out of range are ignored.
         """
         names = self.classes
         rows = np.asarray(rows, np.int64).reshape(-1)
-        rows = rows[(rows >= 0) & (rows < len(self))]
+        w = np.ones(len(rows)) if weights is None else np.asarray(weights, np.float64).reshape(-1)
+        if len(w) != len(rows):
+            raise ValueError(f"{len(w)} weights for {len(rows)} rows")
+        ok = (rows >= 0) & (rows < len(self)) & np.isfinite(w)
+        rows, w = rows[ok], w[ok]
         if not names or len(rows) == 0:
             return default
         ids = self.class_id[rows]
-        counts = np.bincount(ids, minlength=len(names))
-        best = np.flatnonzero(counts == counts.max())
-        first = next(int(i) for i in ids if int(i) in set(best.tolist()))
+        total = np.bincount(ids, weights=w, minlength=len(names))
+        best = set(np.flatnonzero(total >= total.max() - 1e-12).tolist())
+        first = next(int(i) for i in ids if int(i) in best)
         return names[first] if 0 <= first < len(names) else default
 
     def cloud(self, k: int) -> np.ndarray:
