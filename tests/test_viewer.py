@@ -868,6 +868,27 @@ def test_the_proposals_field_follows_the_preset_until_a_person_edits_it(tmp_path
         a.stop()
 
 
+def test_a_mesh_scene_opened_with_its_result_shows_the_instance_colours(tmp_path: Path, prior: Any) -> None:
+    """A mesh scan opened with its saved result starts in the instances colouring, as the legend says: the
+    recoloured points are drawn over the mesh (the mesh alone showed the scan's own colours)."""
+    import shutil
+
+    from efem_viz.viewer.app import ViewerApp
+
+    repo = Path(__file__).resolve().parents[1]
+    for f in ("syn_pile_0.ply", "syn_pile_0.efem.npz"):
+        shutil.copy(repo / "sample_scenes" / f, tmp_path / f)
+    a = ViewerApp([tmp_path], port=0, prior=prior, open_first=False)
+    try:
+        assert a.open_scene("syn_pile_0") and a.wait_idle(600)
+        assert a.state.display == "mesh" and a.state.color_mode == "instances" and a.session.recolored()
+        assert a.nodes.points is not None and a.nodes.points.visible, "the instance colours are hidden under the mesh"
+        a.set_color_mode("rgb")
+        assert not a.nodes.points.visible and a.nodes.mesh is not None and a.nodes.mesh.visible
+    finally:
+        a.stop()
+
+
 def test_a_scene_with_astronomic_coordinates_is_refused_and_the_others_open(tmp_path: Path, prior: Any) -> None:
     """A scene of 1e30-metre coordinates first in the list aborted the viewer's start-up (an internal
     OverflowError): it is one status line, and the viewer starts on the next scene."""

@@ -99,7 +99,8 @@ def show_results(nodes: SceneNodes, session: ViewerSession) -> None:
 
 
 def draw_point_colors(nodes: SceneNodes, session: ViewerSession) -> str | None:
-    """Recolour the scene points (and the boxes, in the TP/FP view) for the colour mode (sends only (N,3) uint8).
+    """Recolour the scene points (and the boxes, in the TP/FP view) for the colour mode (sends only (N,3) uint8);
+    on a mesh scene the recoloured points are shown over the mesh (`SceneNodes.set_display`).
 
     Returns:
         The colouring in effect (its key is shown under the Colour control), or None without a scene.
@@ -109,4 +110,6 @@ def draw_point_colors(nodes: SceneNodes, session: ViewerSession) -> str | None:
         return None
     nodes.set_point_colors(pc.colors, key=pc.key)
     nodes.set_box_colors(pc.boxes)
+    # a mesh scene shows a recolouring on its points over the mesh: keep the two in step with the colours
+    nodes.set_display(session.state.display, recolored=session.recolored())
     return pc.shown
