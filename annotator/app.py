@@ -171,7 +171,6 @@ class AnnotatorApp(ServedApp):
         sent = self.view.draw_delta(d)
         st = self.view.stats
         st.last_edit_bytes, st.last_edit_ms, st.edits = sent, 1000 * (time.perf_counter() - t0), st.edits + 1
-        st.history = ([f"{how}: {d.label}"] + st.history)[:8]
         self._refresh_panel()
 
     # ================================================================== GUI
@@ -229,7 +228,7 @@ class AnnotatorApp(ServedApp):
             self._tls.panel_due = True  # an action is about to read its control: refresh after it
             return
         st = self.view.stats
-        v = panel_view(self.session.store, self.session.settings.active_id, history=st.history)
+        v = panel_view(self.session.store, self.session.settings.active_id)
         status = status_markdown(self.session.store, self.session.work_dir, last_edit_bytes=st.last_edit_bytes,
                                  last_edit_ms=st.last_edit_ms)
         self._tls.syncing = True

@@ -36,7 +36,7 @@ class PanelView(NamedTuple):
     table: str
     """Markdown: progress, per-category counts and the instance table."""
     history: str
-    """Markdown: undo / redo counts and the last edits."""
+    """Markdown: undo / redo counts and the last undo steps (`recent_steps`)."""
 
 
 def undo_steps(stack: Sequence[HistoryEntry]) -> int:
@@ -50,13 +50,27 @@ def undo_steps(stack: Sequence[HistoryEntry]) -> int:
     return steps
 
 
-def panel_view(store: LabelStore, active_id: int, *, history: Sequence[str]) -> PanelView:
+def recent_steps(stack: Sequence[HistoryEntry], n: int = 8) -> list[str]:
+    """The last `n` undo steps of a stack, newest first: one line per step (what one Ctrl+Z undoes: a whole brush
+    stroke), its newest edit's label and how many more edits it holds. Read from the undo stack itself, so the
+    list survives a restart as undo does (the stack is rebuilt from the journal)."""
+    out: list[str] = []
+    i = len(stack) - 1
+    while i >= 0 and len(out) < n:
+        e, k = stack[i], 1
+        while e.group and i - k >= 0 and stack[i - k].group == e.group:
+            k += 1
+        out.append(e.label + (f" (+{k - 1} more edit{'s' if k > 2 else ''} in this step)" if k > 1 else ""))
+        i -= k
+    return out
+
+
+def panel_view(store: LabelStore, active_id: int) -> PanelView:
     """The panels' content for the store's labels (read under its lock).
 
     Args:
         store: the label store.
         active_id: the active instance id.
-        history: the last edits, newest first.
     """
     with store.lock:
         ls = store.labelset
@@ -64,6 +78,7 @@ def panel_view(store: LabelStore, active_id: int, *, history: Sequence[str]) -> 
         counts = ls.counts()
         progress = ls.progress()
         n_undo, n_redo = undo_steps(ls.undo_stack), undo_steps(ls.redo_stack)
+        history = recent_steps(ls.undo_stack)
         n = len(ls.labels)
     if active_id not in table:
         active_id = max(table) if table else 0
@@ -84,7 +99,8 @@ def panel_view(store: LabelStore, active_id: int, *, history: Sequence[str]) -> 
                       f"({sum(c_ for c_, _ in m):,} vertices)" for c, m in per_cat.items())
     text = (f"**{100 * progress:.1f}%** of {n:,} vertices labelled"
             + (f"\n\nper category: {cats}" if cats else "") + "\n\n" + "\n".join(rows))
-    hist = f"{n_undo} undoable, {n_redo} redoable\n\n" + "\n".join(f"- {h}" for h in history)
+    hist = (f"{n_undo} undoable, {n_redo} redoable" + ("; the next undo takes back, newest first:" if history else "")
+            + "\n\n" + "\n".join(f"- {_md(h)}" for h in history))
     return PanelView(active_id, opts, pre, table.get(active_id), progress, text, hist)
 
 

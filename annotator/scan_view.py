@@ -13,7 +13,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import threading
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -53,7 +53,6 @@ class Stats:
     last_edit_bytes: int = 0
     last_edit_ms: float = 0.0
     edits: int = 0
-    history: list[str] = field(default_factory=list)
 
 
 def display_subset(n: int, budget: int, *, seed: int = 0) -> np.ndarray:

@@ -397,3 +397,30 @@ def test_region_grow_keeps_to_objects_on_an_imported_tabletop(tmp_path: Path) ->
         assert ball.settings.grow_min_height == 0.0
     finally:
         ball.close()
+
+
+def test_the_history_lists_undo_steps_and_survives_a_restart(tmp_path: Path) -> None:
+    """The edit history shows one line per undo step (a brush stroke's dabs are one line, as one Ctrl+Z takes
+    them back), newest first, and lists the same steps after a restart, whose undo history the journal restores."""
+    from annotator.panel_views import panel_view
+
+    scan = ball_scan(tmp_path)
+    s = AnnotatorSession(scan, out_dir=tmp_path / "out", autosave_delay=0)
+    try:
+        s.new_instance(category="mug")
+        for k in range(8):  # one stroke: eight dabs in one group
+            s.paint(np.arange(10 * k, 10 * k + 10), group="stroke-1")
+        s.paint(np.arange(200, 220))
+        before = panel_view(s.store, s.settings.active_id).history
+    finally:
+        s.close()
+    lines = [ln for ln in before.splitlines() if ln.startswith("- ")]
+    assert len(lines) == 3, before  # the lone paint, the stroke, the new instance
+    assert "(+7 more edits in this step)" in lines[1] and "200" not in lines[1]
+    again = AnnotatorSession(scan, out_dir=tmp_path / "out", autosave_delay=0)
+    try:
+        assert panel_view(again.store, again.settings.active_id).history == before
+        again.undo()
+        assert "(+7 more edits" in panel_view(again.store, again.settings.active_id).history.splitlines()[2]
+    finally:
+        again.close()
