@@ -257,6 +257,8 @@ class AnnotatorApp(ServedApp):
             self.notify(title, rec.summary(), client=client, color="yellow" if rec.complete else "red")
         if self.session.store.problem:
             self.notify("Autosave failed", self.session.store.problem, client=client, color="red")
+        if self.session.instances.restored_typing:
+            self.notify("Typed value restored", self.session.instances.restored_typing, client=client, color="yellow")
 
     def _forget_client(self, client: ClientHandle) -> None:
         """A client left: drop what the app kept for it (its cheat-sheet overlay)."""

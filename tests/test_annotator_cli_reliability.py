@@ -259,3 +259,24 @@ def test_a_restart_keeps_the_url_and_says_it_resumed(scan: Path, tmp_path: Path)
         assert "vertices labelled" in again.table()  # the client on the old token is served
     finally:
         assert again.stop() == 0
+
+
+def test_a_name_typed_just_before_a_kill_is_kept(scan: Path, tmp_path: Path) -> None:
+    """A name typed into the Name field and killed (-9) before its commit (the field waits for the typing to
+    pause) is not lost: each keystroke's value is kept in the work folder, and the restarted CLI saves it to the
+    instance and says so."""
+    out = tmp_path / "out"
+    cli = Cli(scan, out)
+    cli.edit(("new",))
+    cli.client.set_value("Name", "blue mug with a chip")
+    pending = out / f"{scan.stem}.annotate" / "typing.json"
+    cli.must(pending.is_file, 20.0, "the typed value to the work folder")
+    cli.kill()
+    again = Cli(scan, out)
+    try:
+        again.must(lambda: "blue mug with a chip" in again.table(), 20.0, "the restored name in the table")
+        again.must(lambda: any("typed just before" in t for t in again.client.notification_texts()), 20.0,
+                   "the notice that the name was restored")
+        assert not pending.exists()
+    finally:
+        assert again.stop() == 0

@@ -424,3 +424,24 @@ def test_the_history_lists_undo_steps_and_survives_a_restart(tmp_path: Path) -> 
         assert "(+7 more edits" in panel_view(again.store, again.settings.active_id).history.splitlines()[2]
     finally:
         again.close()
+
+
+def test_slow_typing_of_a_name_is_one_undo_step(session: AnnotatorSession) -> None:
+    """Each pause while typing commits the name so far, but the commits of one field with no other edit between
+    form one undo step: one Ctrl+Z brings back the name from before the typing; an edit in between starts a new
+    step."""
+    iid = session.new_instance(category="mug")
+    before = session.store.labelset.info(iid).name
+    for text in ("b", "bl", "blu", "blue"):  # the person pauses after each letter: each is committed
+        session.instances.type_text("name", text)
+        session.instances.flush_typing()
+    assert session.store.labelset.info(iid).name == "blue"
+    session.undo()
+    assert session.store.labelset.info(iid).name == before
+    session.redo()
+    session.paint(np.arange(10))
+    session.instances.type_text("name", "blue mug")
+    session.instances.flush_typing()
+    session.undo()
+    assert session.store.labelset.info(iid).name == "blue"  # the paint was between: a step of its own
+    assert not (session.work_dir / "typing.json").exists()

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import json
+import logging
+import threading
 import time
+import uuid
 from typing import TYPE_CHECKING, Any, Literal, cast
 
 from annotator.labels import Delta
@@ -13,6 +17,14 @@ LATE_KEYS_S = 1.0
 """A browser sends a text field's keystrokes and a hotkey on separate paths: the last keys of a name can reach the
 server after the N that followed them. Keys of a field this soon after its value was committed by an action go to
 the instance it was committed to, not to the one the action made active."""
+
+TYPING_FILE = "typing.json"
+"""In the work folder: the value of a Name / Category field being typed and not committed yet, written at every
+keystroke (a kill between a keystroke and its commit loses nothing: the next start commits it)."""
+MAX_TYPED_CHARS = 256
+"""Longest name or category the typing file may hold (a longer one is not restored)."""
+
+log = logging.getLogger(__name__)
 
 if TYPE_CHECKING:
     from annotator.rooms.context import SessionHooks, Toolbox
@@ -32,6 +44,12 @@ class InstanceRoom:
         self.typing = TypingBuffer(self._commit_text, on_error=lambda msg: self.hooks.notify("Not done", msg),
                                    idle_s=text_idle_s, on_idle=lambda: self.hooks.on_change())
         """The Name and Category fields being typed (each committed once: `type_text`, `flush_typing`)."""
+        self._typing_file_lock = threading.Lock()
+        self._text_group: tuple[tuple[int, str], str] | None = None
+        """The field the last typed commit went to and its undo group: a later commit to the same field with no
+        other edit between joins it, so slow typing is one undo step."""
+        self.restored_typing: str | None = self._restore_typing()
+        """What `_restore_typing` committed at start (a notice for the person), or None."""
 
     # ------------------------------------------------------------------ typed fields
     def type_text(self, field: Literal["name", "category"], value: str) -> None:
@@ -45,7 +63,51 @@ class InstanceRoom:
         typing_it = any(cast("tuple[int, str]", k)[1] == field for k in self.typing.pending())
         if last is not None and not typing_it and time.monotonic() - last[1] < self.late_keys_s:
             iid = last[0]  # the last keys of a typing that an action committed, arriving after that action
-        self.typing.typed((iid, field), value)
+        with self._typing_file_lock:
+            self.typing.typed((iid, field), value)
+            self._write_typing_file(int(iid), field, value)
+
+    @property
+    def typing_file(self) -> Any:
+        """`<work folder>/typing.json` (`TYPING_FILE`)."""
+        return self.scan.work_dir / TYPING_FILE
+
+    def _write_typing_file(self, iid: int, field: str, value: str) -> None:
+        from efem_viz.data.io import atomic_write_text
+
+        try:
+            atomic_write_text(self.typing_file, json.dumps({"instance": iid, "field": field, "value": value}))
+        except OSError as exc:  # the buffer still commits it; only a kill before then would lose it
+            log.warning("could not keep the typed %s in %s (%s)", field, self.typing_file, exc)
+
+    def _drop_typing_file(self) -> None:
+        with self._typing_file_lock:
+            if not self.typing.pending():
+                self.typing_file.unlink(missing_ok=True)
+
+    def _restore_typing(self) -> str | None:
+        """Commit a value typed just before the annotator stopped (its `typing.json`), once; returns a notice."""
+        path = self.typing_file
+        try:
+            if not path.is_file():
+                return None
+            if path.stat().st_size > 4 * MAX_TYPED_CHARS + 200:
+                raise ValueError("file too large")
+            d = json.loads(path.read_text(encoding="utf-8"))
+            iid, field, value = int(d["instance"]), str(d["field"]), str(d["value"]).strip()
+            if field not in ("name", "category") or not value or len(value) > MAX_TYPED_CHARS:
+                raise ValueError(f"unusable field {field!r} / value")
+            if iid not in self.scan.store.labelset.instances:
+                raise ValueError(f"instance {iid} no longer exists")
+            if getattr(self.scan.store.labelset.info(iid), field) != value:
+                self.update_instance(iid, **{field: value})
+                return f"the {field} {value!r} of instance {iid}, typed just before the annotator stopped, is saved"
+            return None
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            log.warning("typed value in %s not restored (%s)", path, exc)
+            return None
+        finally:
+            path.unlink(missing_ok=True)
 
     def flush_typing(self, *, refresh: bool = True) -> int:
         """Commit what was typed now (before any other action); returns the number of fields that were pending
@@ -63,15 +125,23 @@ class InstanceRoom:
     def _commit_text(self, key: object, value: str) -> None:
         iid, field = cast("tuple[int, str]", key)
         text = value.strip()
-        if field == "category":
-            if not text:
-                raise ValueError("a category cannot be empty; the stored one is kept")
-            self.toolbox.settings.category = text
-        elif not text:
-            raise ValueError("a name cannot be empty; the stored one is kept")
-        self._committed[field] = (int(iid), time.monotonic())
-        if iid > 0 and iid in self.scan.store.labelset.instances:
-            self.update_instance(int(iid), **{field: text})
+        try:
+            if field == "category":
+                if not text:
+                    raise ValueError("a category cannot be empty; the stored one is kept")
+                self.toolbox.settings.category = text
+            elif not text:
+                raise ValueError("a name cannot be empty; the stored one is kept")
+            self._committed[field] = (int(iid), time.monotonic())
+            if iid > 0 and iid in self.scan.store.labelset.instances:
+                stack = self.scan.store.labelset.undo_stack
+                key2 = (int(iid), field)
+                group = (self._text_group[1] if self._text_group is not None and self._text_group[0] == key2
+                         and stack and stack[-1].group == self._text_group[1] else f"type-{uuid.uuid4().hex[:12]}")
+                self._text_group = (key2, group)
+                self.scan.store.do(lambda ls: ls.update_instance(int(iid), **{field: text}), group=group)
+        finally:
+            self._drop_typing_file()
 
     def set_tool(self, tool: str) -> None:
         """Make a tool of the table active."""
