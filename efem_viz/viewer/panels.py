@@ -170,12 +170,13 @@ def _run_tab(gui: GuiApi) -> dict[str, Any]:
     proposals = gui.add_number("Proposals", em_config.preset("fast").n_init[0], min=1, max=em_config.MAX_PROPOSALS,
                                step=1, hint="the preset's number until you change it")
     seed = gui.add_number("Seed", 0, min=0, max=2**31 - 1, step=1)
-    precision = gui.add_dropdown("Precision", em_config.MATMUL_DTYPES, initial_value="float32",
-                                 hint="bfloat16: the networks' matrix work in bf16, for GPUs; on a CPU, even with "
-                                      "AMX, it is slower than float32 with the shipped prior (docs/BENCHMARKS.md)")
     run = gui.add_button("Run EFEM", hint="run EM on this scene in the background")
     cancel = gui.add_button("Cancel", disabled=True, color="red")
     load = gui.add_button("Load saved trace", hint="<scene>.efem.npz next to the scene file")
+    # below the buttons: Tab from Seed goes to Run EFEM, not into a dropdown that opens over it
+    precision = gui.add_dropdown("Precision", em_config.MATMUL_DTYPES, initial_value="float32",
+                                 hint="bfloat16: the networks' matrix work in bf16, for GPUs; on a CPU, even with "
+                                      "AMX, it is slower than float32 with the shipped prior (docs/BENCHMARKS.md)")
     progress = gui.add_progress_bar(0.0, visible=False)
     run_info = gui.add_markdown("")
     return dict(gui_preset=preset, gui_proposals=proposals, gui_seed=seed, gui_precision=precision, gui_run=run,
