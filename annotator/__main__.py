@@ -39,6 +39,9 @@ class AnnotateArgs:
     token: str | None = None
     """Access token to require (default: the one this scan's output folder keeps, `<scan>.annotate/server.token`,
     made on the first run: the URL stays the same across restarts). At least 16 characters."""
+    device: str = "auto"
+    """Where click-to-segment and EFEM runs solve: auto (CUDA when this machine has it, else the CPU), cpu or
+    cuda."""
     accept_scan_mismatch: bool = False
     """Resume a session whose journal was written for other scan geometry with the same vertex count (e.g. the
     same scan re-exported). Without it such a session is refused, so labels never land on the wrong points."""
@@ -46,10 +49,13 @@ class AnnotateArgs:
     def run(self) -> int:
         """Open the scan, print the URL, serve until Ctrl+C / SIGTERM (`efem_viz.serve.lifecycle`)."""
         from annotator.app import AnnotatorApp
-        from efem_viz.cli import check_port
+        from efem_viz.cli import check_device, check_port
         from efem_viz.serve.lifecycle import announce, stop_signals, wait_for_stop
 
         check_port(self.port)  # before the scan is read (a bad port used to hang in viser's server thread)
+        from annotator import assist
+
+        assist.use_device(check_device(self.device))  # CUDA asked for without CUDA: one line, before the scan
         with stop_signals("efem-annotate"):  # before loading: Ctrl+C stops a long load too
             app = AnnotatorApp(
                 self.scan,
@@ -68,7 +74,7 @@ class AnnotateArgs:
                 ses = app.session
                 if ses.store.recovery is not None:
                     print("efem-annotate: " + ses.store.recovery.summary().replace("\n", "\n  "), flush=True)
-                details = [f"autosave: {ses.work_dir}"]
+                details = [f"autosave: {ses.work_dir}", f"EFEM assist runs on: {assist.solve_device()}"]
                 if ses.store.resumed:
                     details.append(f"resumed from the journal: {ses.store.journal.next_seq:,} records, "
                                    f"{len(ses.store.labelset.undo_stack):,} undoable edits")

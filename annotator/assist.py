@@ -27,7 +27,21 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 _PRIORS = PriorSet()
-"""The shipped priors click-to-segment used so far, each loaded once (`efem_viz.prior.registry.PriorSet`)."""
+"""The shipped priors click-to-segment used so far, each loaded once (`efem_viz.prior.registry.PriorSet`), on the
+device `use_device` chose (the CPU until then)."""
+
+
+def use_device(device: str) -> None:
+    """Run the assist's solves (click-to-segment, EFEM on the scan) on `device` (a `resolve_device` result):
+    the priors are loaded there from now on."""
+    global _PRIORS
+    if device != _PRIORS.device:
+        _PRIORS = PriorSet(device=device)
+
+
+def solve_device() -> str:
+    """The device the assist's solves run on."""
+    return _PRIORS.device
 
 SEGMENT_SETTINGS = SolveSettings(preset="real", proposals=12)
 """The solve of a click: the real-capture preset, 12 proposals, one episode (`segment_at_point`)."""
@@ -121,7 +135,8 @@ def segment_at_point(
     torch.set_num_threads(max(1, min(2, torch.get_num_threads())))
     # crop-local indices within anchor_radius of the click (never empty: the clicked vertex is at distance 0)
     near = np.flatnonzero(np.linalg.norm(pts[crop] - centre, axis=1) <= max(float(anchor_radius), 0.0))
-    res = run_em(sub, cfg=cfg, priors=[pr], seed=seed, anchor_candidates=near, on_step=on_step, cancel=cancel)
+    res = run_em(sub, cfg=cfg, priors=[pr], seed=seed, anchor_candidates=near, on_step=on_step, cancel=cancel,
+                 device=solve_device())
     return _instance_at(res.instances, crop, int(vertex), centre)
 
 
@@ -151,7 +166,7 @@ def solve_scan(
 
     cfg = settings.config()
     prior = get_prior(prior_name)
-    return run_em(scene, cfg=cfg, priors=[prior], seed=seed, on_step=on_step, cancel=cancel)
+    return run_em(scene, cfg=cfg, priors=[prior], seed=seed, on_step=on_step, cancel=cancel, device=solve_device())
 
 
 def _instance_at(inst: Instances, crop: np.ndarray, vertex: int, centre: np.ndarray) -> np.ndarray:

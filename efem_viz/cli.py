@@ -70,6 +70,21 @@ def check_port(port: int, *, option: str = "--port") -> int:
     return int(port)
 
 
+def check_device(name: str) -> str:
+    """The torch device for a `--device` choice (`efem_viz.prior.registry.resolve_device`), checked before a
+    server is built.
+
+    Raises:
+        OptionError: an unknown name, or CUDA asked for on a machine without it.
+    """
+    from efem_viz.prior.registry import resolve_device
+
+    try:
+        return resolve_device(name)
+    except ValueError as exc:
+        raise OptionError(str(exc)) from None
+
+
 def pop_debug_flag(args: list[str]) -> tuple[list[str], bool]:
     """Remove `--debug` from command-line arguments (so subcommands must not define a `--debug` of their own).
 

@@ -521,3 +521,24 @@ def test_tables_written_to_a_file_keep_long_paths_whole(tmp_path: Path) -> None:
                    str(deep / "out"), "--no-scannet", "--no-ply")
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert str(deep / "out" / "batch.json") in proc.stdout and "…" not in proc.stdout, proc.stdout
+
+
+@pytest.mark.parametrize("prog", ["efem-viz", "efem-annotate"])
+def test_device_cuda_without_cuda_is_one_line_before_anything_starts(prog: str, tmp_path: Path) -> None:
+    """`--device cuda` on a machine without CUDA (this one; skipped where CUDA exists) is one line naming the
+    choices, exit 2, before a scene or scan is read; `--device auto` (the default) runs on the CPU here."""
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("this machine has CUDA")
+    if prog == "efem-viz":
+        cmd = [sys.executable, "-m", "efem_viz.cli", "view", str(REPO / "sample_scenes"), "--device", "cuda"]
+    else:
+        cmd = [sys.executable, "-m", "annotator", str(REPO / "sample_scenes" / "real_tabletop_8.ply"),
+               "--device", "cuda", "--out", str(tmp_path / "ann")]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=tmp_path,
+                          env={**os.environ, "PYTHONPATH": str(REPO)})
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert "CUDA is not available" in lines[0] and "--device cpu or auto" in lines[0]
+    assert not (tmp_path / "ann").exists()

@@ -95,3 +95,20 @@ def test_errors(counted: list[str]) -> None:
         missing.named(["no_such_prior_here"])
     with pytest.raises(FileNotFoundError):
         PriorSet().get("no_such_prior_here")
+
+
+def test_resolve_device_takes_cuda_only_where_it_is(monkeypatch: pytest.MonkeyPatch) -> None:
+    """auto is CUDA when the machine has it, else the CPU; cuda without CUDA and unknown names are one clear
+    ValueError."""
+    import torch
+
+    from efem_viz.prior.registry import resolve_device
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert resolve_device("auto") == "cpu" and resolve_device("CPU") == "cpu"
+    with pytest.raises(ValueError, match="CUDA is not available"):
+        resolve_device("cuda")
+    with pytest.raises(ValueError, match="unknown device 'tpu'"):
+        resolve_device("tpu")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert resolve_device("auto") == "cuda" and resolve_device("cuda:1") == "cuda:1"

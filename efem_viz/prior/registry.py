@@ -9,6 +9,7 @@ prior once and finds the prior of a trace or of one of its proposals.
 from __future__ import annotations
 
 import os
+import re
 import threading
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol
@@ -54,6 +55,32 @@ def available_priors() -> list[str]:
 
     shipped = {p.stem for p in WEIGHTS_DIR.glob("*.pt") if not p.stem.endswith("_resume")}
     return sorted(shipped | set(ANALYTIC_PRIORS))
+
+
+DEVICES = ("auto", "cpu", "cuda")
+"""Where the apps and `segment` run the networks: "auto" is CUDA when this machine has it, else the CPU."""
+
+
+def resolve_device(name: str) -> str:
+    """The torch device for a `--device` choice: "auto" → "cuda" when CUDA is available, else "cpu"; "cpu";
+    "cuda" or "cuda:N" only when CUDA is available.
+
+    Raises:
+        ValueError: an unknown name, or CUDA asked for on a machine without it (one line).
+    """
+    import torch
+
+    d = str(name).strip().lower()
+    if d == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if d == "cpu":
+        return "cpu"
+    if re.fullmatch(r"cuda(:\d+)?", d):
+        if not torch.cuda.is_available():
+            raise ValueError(f"--device {d}: CUDA is not available on this machine (torch {torch.__version__}); "
+                             "use --device cpu or auto")
+        return d
+    raise ValueError(f"unknown device {name!r}: use one of {', '.join(DEVICES)} (or cuda:N)")
 
 
 def check_prior_name(spec: str | os.PathLike[str]) -> None:

@@ -88,9 +88,10 @@ class ViewerApp(ServedApp):
         token: str | None = None,
         results: Sequence[str | Path] = (),
         max_points: int = DEFAULT_MAX_POINTS,
+        device: str = "cpu",
     ) -> None:
         self.session = ViewerSession(paths, prior=prior, prior_name=prior_name, run_priors=run_priors,
-                                     out_dir=out_dir, results=results, max_points=max_points)
+                                     out_dir=out_dir, results=results, max_points=max_points, device=device)
         """The headless viewer under this GUI: state and actions."""
         self._lock = self.session.lock
         self._quiet = False

@@ -41,15 +41,18 @@ class ViewArgs:
     (a line lists the results whose scene file is gone)."""
     max_points: int = DEFAULT_MAX_POINTS
     """Refuse scenes with more points than this."""
+    device: str = "auto"
+    """Where runs and shape decoding run: auto (CUDA when this machine has it, else the CPU), cpu or cuda."""
 
     def run(self) -> int:
         """Start the server, print its URL, serve until Ctrl+C / SIGTERM (`efem_viz.serve.lifecycle`)."""
-        from efem_viz.cli import check_port
+        from efem_viz.cli import check_device, check_port
         from efem_viz.serve.lifecycle import announce, stop_signals, wait_for_stop
         from efem_viz.serve.outputs import default_output_dir
         from efem_viz.viewer.app import ViewerApp, default_scene_dir
 
         check_port(self.port)  # before anything starts (a bad port used to hang in viser's server thread)
+        device = check_device(self.device)  # CUDA asked for without CUDA: one line, before anything starts
 
         if self.paths:
             paths = list(self.paths)
@@ -68,11 +71,12 @@ class ViewArgs:
             priors = list(self.prior) or [DEFAULT_PRIOR]
             out_dir = self.out_dir if self.out_dir is not None else default_output_dir("view")
             app = ViewerApp(paths, host=self.host, port=self.port, prior_name=priors[0], run_priors=priors[1:],
-                            out_dir=out_dir, token=self.token, results=self.results, max_points=self.max_points)
+                            out_dir=out_dir, token=self.token, results=self.results, max_points=self.max_points,
+                            device=device)
             try:
                 announce("efem-viz viewer", f"{app.url}  ({count(len(app.state.entries), 'scene')}; Ctrl+C to stop)",
                          url=app.url, local_url=app.local_url, exposure_warning=app.access.exposure_warning,
-                         details=(f"exports go to: {app.out_root}",))
+                         details=(f"exports go to: {app.out_root}", f"EFEM runs on: {device}"))
                 wait_for_stop()
             finally:
                 app.stop()

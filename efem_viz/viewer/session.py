@@ -88,9 +88,10 @@ class ViewerSession(ViewerCore):
         out_dir: str | Path | None = None,
         results: Sequence[str | Path] = (),
         max_points: int = DEFAULT_MAX_POINTS,
+        device: str = "cpu",
     ) -> None:
         super().__init__(paths, prior=prior, prior_name=prior_name, run_priors=run_priors, out_dir=out_dir,
-                         results=results, max_points=max_points)
+                         results=results, max_points=max_points, device=device)
         self.scenes = SceneRoom(self)
         """Opening scenes and the display choices."""
         self.results = ResultRoom(self)

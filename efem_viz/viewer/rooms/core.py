@@ -61,6 +61,7 @@ class ViewerCore:
         out_dir: str | Path | None = None,
         results: Sequence[str | Path] = (),
         max_points: int = DEFAULT_MAX_POINTS,
+        device: str = "cpu",
     ) -> None:
         self.max_points = int(max_points)
         """Scenes with more points are refused."""
@@ -71,8 +72,9 @@ class ViewerCore:
         """The given paths: nothing outside them is read."""
         self.out_root = Path(out_dir if out_dir is not None else default_output_dir("view")).expanduser().resolve()
         """The output root (fixed at start)."""
-        self.priors = PriorSet(prior_name, prior=prior, extra=run_priors)
-        """This viewer's priors, each loaded once (`efem_viz.prior.registry.PriorSet`)."""
+        self.priors = PriorSet(prior_name, prior=prior, extra=run_priors, device=device)
+        """This viewer's priors, each loaded once on its device (`efem_viz.prior.registry.PriorSet`); runs solve
+        there too."""
         self.lock = threading.RLock()
         """Guards the state (re-entrant: the app holds it while it draws)."""
         self.cancel_event = threading.Event()

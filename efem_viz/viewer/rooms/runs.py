@@ -115,10 +115,11 @@ class RunRoom:
         scene = self.core.state.require_scene()
         cfg = settings.config()
         self.core.set_status(f"Running EFEM ({settings.preset}, {cfg.n_init[0]} proposals, seed {settings.seed}"
-                             f"{', bf16' if settings.matmul_dtype == 'bfloat16' else ''}) …")
+                             f"{', bf16' if settings.matmul_dtype == 'bfloat16' else ''}"
+                             f"{', on ' + self.core.priors.device if self.core.priors.device != 'cpu' else ''}) …")
         priors = self.core.priors.solve_priors()
         return run_em(scene, cfg=cfg, priors=priors, seed=int(settings.seed), on_step=on_step,
-                      cancel=self.core.cancel_event)
+                      cancel=self.core.cancel_event, device=self.core.priors.device)
 
     def is_current(self, generation: int) -> bool:
         """Whether a run's ticket is still the open scene's (results of a run on another scene are dropped)."""
