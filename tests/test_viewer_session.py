@@ -260,6 +260,16 @@ def test_exports(session: ViewerSession, tmp_path: Path) -> None:
     session.set_threshold(0.3)
     out = session.export_results(tmp_path / "res")
     assert out is not None and any(out.rglob("*.txt"))
+    import json
+
+    import trimesh
+
+    objs = json.loads((out / "objects" / "objects.json").read_text())["instances"]
+    shown = session.state.require_result().instances.above(0.3)
+    assert len(objs) == len(shown) and all((out / "objects" / o["mesh"]).is_file() for o in objs)
+    assert objs, "the session fixture shows instances at 0.3"
+    mesh = trimesh.load(out / "objects" / objs[0]["mesh"], force="mesh")  # loads, in the scene frame (metres)
+    assert len(mesh.faces) and np.all(np.isfinite(mesh.vertices))
     with pytest.raises(Exception):  # noqa: B017 - confinement: outside the root nothing is written
         session.export_results(tmp_path / "outside", root=tmp_path / "res")
     assert not (tmp_path / "outside").exists()

@@ -202,18 +202,28 @@ class Instances:
         """
         from efem_viz.data.io import atomic_write_bytes, atomic_write_text
 
-        if fmt not in ("glb", "obj", "ply"):
-            raise ValueError(f"unknown object mesh format {fmt!r}; use glb, obj or ply")
+        names = self.object_files(fmt)
         out = Path(folder)
         out.mkdir(parents=True, exist_ok=True)
         objects = self.to_json_objects()
         for k, obj in enumerate(objects):
-            name = f"{k:03d}_{''.join(c if c.isalnum() else '_' for c in str(self.category[k]))[:40]}.{fmt}"
+            name = names[k]
             data: Any = self.mesh(k).export(file_type=fmt)
             atomic_write_bytes(out / name, data if isinstance(data, bytes) else str(data).encode())
             obj["mesh"] = name
         return atomic_write_text(out / "objects.json", json.dumps(
             {**(extra or {}), "frame": frame, "instances": objects}, indent=1) + "\n")
+
+    def object_files(self, fmt: str = "glb") -> list[str]:
+        """The mesh file names `export_objects` writes, one per instance in order (`<k>_<category>.<fmt>`).
+
+        Raises:
+            ValueError: an unknown mesh format.
+        """
+        if fmt not in ("glb", "obj", "ply"):
+            raise ValueError(f"unknown object mesh format {fmt!r}; use glb, obj or ply")
+        return [f"{k:03d}_{''.join(c if c.isalnum() else '_' for c in str(self.category[k]))[:40]}.{fmt}"
+                for k in range(len(self))]
 
     def above(self, threshold: float) -> "Instances":
         """Instances with confidence ≥ threshold (a view on the stored result; nothing is re-run)."""

@@ -51,7 +51,8 @@ def _atomic_write_text(path: Path, text: str) -> Path:
 
 def results_files(result: EMResult, scene: Scene, out_dir: Path, *, threshold: float = 0.0) -> list[Path]:
     """The folders and files `export_results` writes, in order: the folder, `pred_mask/`, one mask file per
-    instance (the ScanNet layout of `Instances.to_scannet`), `<scene>.txt` and `<scene>_instances.ply`.
+    instance (the ScanNet layout of `Instances.to_scannet`), `<scene>.txt`, `<scene>_instances.ply` and
+    `objects/` (each instance's completed mesh and `objects.json`, `Instances.export_objects`).
 
     Args:
         result: `efem_viz.em.EMResult`.
@@ -60,14 +61,17 @@ def results_files(result: EMResult, scene: Scene, out_dir: Path, *, threshold: f
         threshold: confidence threshold.
     """
     out = Path(out_dir).expanduser()
-    n = len(result.instances.above(float(threshold)))
-    masks = [out / "pred_mask" / f"{scene.name}_{k:03d}.txt" for k in range(n)]
-    return [out, out / "pred_mask", *masks, out / f"{scene.name}.txt", out / f"{scene.name}_instances.ply"]
+    shown = result.instances.above(float(threshold))
+    masks = [out / "pred_mask" / f"{scene.name}_{k:03d}.txt" for k in range(len(shown))]
+    objects = [out / "objects" / name for name in shown.object_files("glb")]
+    return [out, out / "pred_mask", *masks, out / f"{scene.name}.txt", out / f"{scene.name}_instances.ply",
+            out / "objects", *objects, out / "objects" / "objects.json"]
 
 
 def export_results(result: EMResult, scene: Scene, out_dir: Path, *, threshold: float = 0.0,
                    root: Path | None = None) -> Path:
-    """Write the instances with confidence ≥ threshold in the ScanNet benchmark layout and as a coloured PLY.
+    """Write the instances with confidence ≥ threshold in the ScanNet benchmark layout, as a coloured PLY and as
+    objects (each one's completed mesh, pose and box: `objects/objects.json`).
 
     Args:
         result: `efem_viz.em.EMResult`.
@@ -99,6 +103,8 @@ def export_results(result: EMResult, scene: Scene, out_dir: Path, *, threshold: 
     out.mkdir(parents=True, exist_ok=True)
     inst.to_scannet(out, scene.name, n)
     inst.to_colored_ply(scene, out / f"{scene.name}_instances.ply")
+    inst.export_objects(out / "objects", fmt="glb",
+                        extra={"scene": scene.name, "threshold": float(threshold), "units": "metres, +Z up"})
     logger.info("exported %d instances of %s to %s", len(inst.ids), scene.name, out)
     return out
 
