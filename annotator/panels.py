@@ -160,6 +160,10 @@ class Panels:
                 "Proposals", 0, min=0, max=2000, step=10,
                 hint="0: the preset's (real 400, fast 80); more finds more, slower (a real frame: ~1 min per 400)")
             self.gui_efem_cancel = gui.add_button("Cancel EFEM run", disabled=True)
+            # the run's progress and words right under its buttons: in view when Run is clicked (at the folder's
+            # end they were below the fold); they show only while a run goes
+            self.gui_efem_progress = gui.add_progress_bar(0.0, visible=False)
+            self.gui_efem_status = gui.add_markdown("")
             self.gui_efem_path = gui.add_text("EFEM result", efem_result)
             self.gui_efem_import = gui.add_button("Import EFEM pre-labels")
             self.gui_prelabel = gui.add_dropdown("Pre-label", NO_OPTIONS,
@@ -176,9 +180,6 @@ class Panels:
             self.gui_prior = gui.add_dropdown("Prior for Segment tool", priors, initial_value=prior)
             self.gui_seg_accept = gui.add_button("Accept segment preview", disabled=True)
             self.gui_seg_cancel = gui.add_button("Discard segment preview", disabled=True)
-            # the run's progress and words below every button of the folder: they grow while a person clicks
-            self.gui_efem_progress = gui.add_progress_bar(0.0, visible=False)
-            self.gui_efem_status = gui.add_markdown("")
         with gui.add_folder("History"):
             self.gui_undo = gui.add_button("Undo (Ctrl+Z)")
             self.gui_redo = gui.add_button("Redo (Ctrl+Y)")

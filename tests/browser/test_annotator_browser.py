@@ -656,8 +656,11 @@ def test_run_efem_from_the_page_progress_cancel_then_prelabels(tmp_path: Path, n
         proposals.press("Enter")
         wait_until(lambda: app.panels.gui_efem_proposals.value == 16, HANG_GUARD_S, "the proposal count")
         page.get_by_role("button", name="Run EFEM on this scan").click()
-        page.get_by_text("step 1 of 30", exact=False).first.wait_for(timeout=HANG_GUARD_MS)
+        status = page.get_by_text("step 1 of 30", exact=False).first
+        status.wait_for(timeout=HANG_GUARD_MS)
         assert app.session.efem_running
+        box, view = status.bounding_box(), page.viewport_size  # seen where Run was clicked, not below the fold
+        assert box is not None and 0 <= box["y"] and box["y"] + box["height"] <= view["height"], (box, view)
         page.get_by_role("button", name="Cancel EFEM run").click()
         wait_until(lambda: cancelled.is_set() and not app.session.efem_running, HANG_GUARD_S, "the run to stop")
         assert not unreviewed_prelabels(app.session.store.labelset.instances)
