@@ -364,6 +364,17 @@ def test_static_demo_draws_results_with_the_viewers_functions(
     assert np.array_equal(np.asarray(out.obbs[0].colors), np.asarray(app.nodes.results.obbs[k].colors))
     assert out.axes[0].axes_length == pytest.approx(app.nodes.results.axes[k].axes_length)
     assert np.allclose(out.axes[0].wxyz, app.nodes.results.axes[k].wxyz)
+    # the caption never covers an instance label in the page's framing
+    from efem_viz.serve.camera import fitted_view, framing
+    from efem_viz.viewer.label_layout import label_rects, overlapping_pairs
+
+    pts = np.asarray(app.state.scene.points, np.float32)
+    flo, fhi, sample = framing(pts)
+    view = fitted_view(flo, fhi, direction=nodes.VIEW_DIRECTION, points=sample)
+    cap = np.asarray([export.caption_position(pts.min(axis=0), pts.max(axis=0))])
+    rects = label_rects(np.concatenate([cap, out.label_positions]), ["result: 10 objects, confidence ≥ 0.50",
+                                                                    *[h.text for h in out.labels]], view=view)
+    assert not [pair for pair in overlapping_pairs(rects) if 0 in pair]
 
 
 def test_legend_escapes_names_from_files() -> None:

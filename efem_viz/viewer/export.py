@@ -195,6 +195,14 @@ def export_static_demo(
     return index
 
 
+def caption_position(lo: np.ndarray, hi: np.ndarray) -> tuple[float, float, float]:
+    """Where the static demo's caption sits: in front of the scene's box (the side the framed camera looks from,
+    `VIEW_DIRECTION`'s -y), at its lowest height, so that it reads below the objects and never covers the labels
+    that sit above their boxes (it sat over the middle of the scene)."""
+    diag = scene_diagonal(lo, hi)
+    return float((lo[0] + hi[0]) / 2), float(lo[1] - 0.06 * diag), float(lo[2])
+
+
 class _DemoRecording:
     """One static demo being recorded on a private, guarded server: the scan, each EM step, the final result."""
 
@@ -205,7 +213,7 @@ class _DemoRecording:
         lo, hi = self.pts.min(axis=0), self.pts.max(axis=0)
         diag = scene_diagonal(lo, hi)
         self.psize = default_point_size(diag)
-        self.caption_pos = (float((lo[0] + hi[0]) / 2), float((lo[1] + hi[1]) / 2), float(hi[2] + 0.08 * diag))
+        self.caption_pos = caption_position(lo, hi)
         self.step_seconds = step_seconds
         self.on_progress, self.cancel = on_progress, cancel
 
