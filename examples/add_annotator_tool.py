@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from annotator.panel_views import recent_steps
 from annotator.tools import DEFAULT_TOOLS, Control, Hit, Tool, ToolHost
 
 REPO = Path(__file__).resolve().parents[1]
@@ -112,8 +113,9 @@ def main(argv: list[str] | None = None) -> int:
             painted = app.session.store.labels == iid
             true = truth.instance == gid
             iou = (painted & true).sum() / max((painted | true).sum(), 1)
-            print(f"  instance {iid} ({app.view.stats.history[0]}): {int(painted.sum())} vertices, IoU with true "
-                  f"object {int(gid)}: {iou:.2f}")
+            step = recent_steps(app.session.store.labelset.undo_stack, 1)[0]
+            print(f"  instance {iid} ({step}): {int(painted.sum())} vertices, IoU with true object {int(gid)}: "
+                  f"{iou:.2f}")
         before = int((app.session.store.labels > 0).sum())
         app.session.undo()
         after_undo = int((app.session.store.labels > 0).sum())

@@ -166,3 +166,18 @@ def test_a_small_prior_file_whose_records_inflate_to_gigabytes_is_refused_before
     lines = r.stderr.strip().splitlines()
     assert r.returncode == 1 and len(lines) == 1 and "Traceback" not in r.stderr, r.stderr[-2000:]
     assert "declare" in lines[0] and str(bad) in lines[0] and "refused before loading" in lines[0]
+
+
+def test_the_shipped_kitchen_prior_names_its_members() -> None:
+    """The shipped kitchen prior (one prior over mugs, bowls, bottles and cans) loads with the codebook built
+    from its own weights, whose entries are classed by member, its calibrated mask band and its category."""
+    from efem_viz.prior.model import WEIGHTS_DIR, load_prior
+
+    if not (WEIGHTS_DIR / "kitchen.pt").is_file():
+        pytest.skip("no shipped kitchen prior in this checkout")
+    prior = load_prior("kitchen")
+    cb = prior.codebook
+    assert cb is not None and cb.matches(prior)
+    assert cb.classes == ["mug", "bowl", "bottle", "can"]
+    assert set(cb.class_id.tolist()) == {0, 1, 2, 3}
+    assert prior.category.name == "kitchen" and 0.0 < prior.category.out_tau <= 0.2
