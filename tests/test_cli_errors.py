@@ -403,19 +403,35 @@ def test_info_calls_a_segment_outputs_labels_predictions(tmp_path: Path, capsys:
     assert "ground truth" in out and "predicted" not in out
 
 
+BAD_OPTIONS = {
+    # option: (value for efem-viz view, value for efem-annotate, what the one line says)
+    "--port": ("99999", "-1", "--port must be 0-65535"),
+    "--device": ("cuda", "cuda", "CUDA is not available on this machine"),
+}
+
+
+@pytest.mark.parametrize("option", sorted(BAD_OPTIONS))
 @pytest.mark.parametrize("prog", ["efem-viz", "efem-annotate"])
-def test_a_port_out_of_range_is_one_line_and_exit_2_before_anything_starts(prog: str, tmp_path: Path) -> None:
-    """`--port 99999` printed viser's traceback from its server thread and then hung."""
+def test_a_bad_option_is_one_line_and_exit_2_before_anything_starts(prog: str, option: str, tmp_path: Path) -> None:
+    """`--port 99999` printed viser's traceback from its server thread and then hung; `--device cuda` on a machine
+    without CUDA (skipped where CUDA exists) names the choices. Each is one line, exit 2, before a scene or scan is
+    read."""
+    if option == "--device":
+        import torch
+
+        if torch.cuda.is_available():
+            pytest.skip("this machine has CUDA")
+    view_value, annotate_value, says = BAD_OPTIONS[option]
     if prog == "efem-viz":
-        cmd = [sys.executable, "-m", "efem_viz.cli", "view", str(REPO / "sample_scenes"), "--port", "99999"]
+        cmd = [sys.executable, "-m", "efem_viz.cli", "view", str(REPO / "sample_scenes"), option, view_value]
     else:
         cmd = [sys.executable, "-m", "annotator", str(REPO / "sample_scenes" / "real_tabletop_8.ply"),
-               "--port", "-1", "--out", str(tmp_path / "ann")]
+               option, annotate_value, "--out", str(tmp_path / "ann")]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=tmp_path,
                           env={**os.environ, "PYTHONPATH": str(REPO)})
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
-    assert "--port must be 0-65535" in lines[0] and lines[0].startswith(f"{prog}") and "error:" in lines[0]
+    assert says in lines[0] and lines[0].startswith(f"{prog}") and "error:" in lines[0]
     assert not (tmp_path / "ann").exists()  # nothing was started or written
 
 
@@ -521,24 +537,3 @@ def test_tables_written_to_a_file_keep_long_paths_whole(tmp_path: Path) -> None:
                    str(deep / "out"), "--no-scannet", "--no-ply")
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert str(deep / "out" / "batch.json") in proc.stdout and "…" not in proc.stdout, proc.stdout
-
-
-@pytest.mark.parametrize("prog", ["efem-viz", "efem-annotate"])
-def test_device_cuda_without_cuda_is_one_line_before_anything_starts(prog: str, tmp_path: Path) -> None:
-    """`--device cuda` on a machine without CUDA (this one; skipped where CUDA exists) is one line naming the
-    choices, exit 2, before a scene or scan is read; `--device auto` (the default) runs on the CPU here."""
-    import torch
-
-    if torch.cuda.is_available():
-        pytest.skip("this machine has CUDA")
-    if prog == "efem-viz":
-        cmd = [sys.executable, "-m", "efem_viz.cli", "view", str(REPO / "sample_scenes"), "--device", "cuda"]
-    else:
-        cmd = [sys.executable, "-m", "annotator", str(REPO / "sample_scenes" / "real_tabletop_8.ply"),
-               "--device", "cuda", "--out", str(tmp_path / "ann")]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=tmp_path,
-                          env={**os.environ, "PYTHONPATH": str(REPO)})
-    lines = proc.stderr.strip().splitlines()
-    assert proc.returncode == 2 and len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
-    assert "CUDA is not available" in lines[0] and "--device cpu or auto" in lines[0]
-    assert not (tmp_path / "ann").exists()
