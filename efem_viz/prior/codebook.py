@@ -215,13 +215,15 @@ class Codebook:
         latents lie nearest to its own and whose surfaces fit its completed shape; rows out of range are ignored.
         """
         names = self.classes
+        if not names:  # a single category's codebook: the prior's name, whatever was retrieved
+            return default
         rows = np.asarray(rows, np.int64).reshape(-1)
         w = np.ones(len(rows)) if weights is None else np.asarray(weights, np.float64).reshape(-1)
         if len(w) != len(rows):
             raise ValueError(f"{len(w)} weights for {len(rows)} rows")
         ok = (rows >= 0) & (rows < len(self)) & np.isfinite(w)
         rows, w = rows[ok], w[ok]
-        if not names or len(rows) == 0:
+        if len(rows) == 0:
             return default
         ids = self.class_id[rows]
         total = np.bincount(ids, weights=w, minlength=len(names))
