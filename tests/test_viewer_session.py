@@ -332,7 +332,7 @@ def test_run_cancel_and_one_at_a_time(sphere_dir: Path, tmp_path: Path) -> None:
 def test_a_run_while_the_encoder_kernels_build_says_so(sphere_dir: Path, tmp_path: Path,
                                                         monkeypatch: pytest.MonkeyPatch) -> None:
     """The first run on a new machine used to show no step or time while the kernels compiled: the apps now
-    build them in the background from the start, and a run started meanwhile says it waits for them."""
+    build them in the background from the start, and a run started meanwhile says it uses the eager encoder."""
     from efem_viz.prior import fused
 
     s = ViewerSession([sphere_dir], prior=analytic.make_sphere_prior(), out_dir=tmp_path)

@@ -323,7 +323,7 @@ class AssistRoom:
             f", on a {1000 * settings.work_voxel:g} mm working set" if settings.work_voxel else "") + ")"
         if fused.building():
             self.hooks.on_efem(f"{what}: starting … the encoder's kernels are still being built (once per machine, "
-                               "about 35 s): the run starts when they are ready", 0.0)
+                               "about 35 s): this run uses the slower eager encoder", 0.0)
 
         def on_step(info: Any) -> None:
             self.hooks.on_efem(f"{what}: step {info.step + 1} of {info.num_steps} · {info.status()} (Cancel stops it)",

@@ -114,24 +114,24 @@ def load() -> bool:
     """
     if _state["loaded"] is not None:  # decided: no lock on the encoder's hot path
         return bool(_state["loaded"])
-    with _lock:  # undecided: a build in another thread of this process (`warm_up`) is waited for
+    with _lock:
         if _state["loaded"] is None:
-            loaded = False
-            if os.environ.get("EFEM_VIZ_FUSED", "1") != "0":
-                try:
-                    loaded = _load_or_build()
-                except Exception as exc:  # noqa: BLE001 - no compiler, no headers, ...: keep working, eagerly
-                    msg = str(exc).strip().splitlines()
-                    log.warning("fused VN kernels unavailable (%s: %s); the encoder runs eagerly (slower)",
-                                type(exc).__name__, msg[-1][:200] if msg else "")
-            _state["loaded"] = loaded
+            _state["loaded"] = False
+            if os.environ.get("EFEM_VIZ_FUSED", "1") == "0":
+                return False
+            try:
+                _state["loaded"] = _load_or_build()
+            except Exception as exc:  # noqa: BLE001 - no compiler, no headers, ...: keep working, eagerly
+                msg = str(exc).strip().splitlines()
+                log.warning("fused VN kernels unavailable (%s: %s); the encoder runs eagerly (slower)",
+                            type(exc).__name__, msg[-1][:200] if msg else "")
         return bool(_state["loaded"])
 
 
 def warm_up() -> threading.Thread | None:
     """Load (building them the first time on this machine, about 35 s) the kernels in a background thread, so
     that an app's first EFEM run does not wait for the compiler; None when that was decided already. A run that
-    starts while the build goes on waits for it (`building` says so), so every run computes the same way."""
+    starts while the build goes on uses the eager encoder (`building` says so)."""
     if _state["loaded"] is not None or os.environ.get("EFEM_VIZ_FUSED", "1") == "0":
         return None
     t = threading.Thread(target=load, name="efem-fused-warm-up", daemon=True)

@@ -22,8 +22,8 @@ ProgressCallback = Callable[["StepInfo"], None]
 """Called after each EM step with the solver's step info (`step`, `num_steps`, `phase`, `active`, `elapsed_s`)."""
 
 
-KERNELS_BUILDING = (" The encoder's kernels are still being built (once per machine, about 35 s): the run starts "
-                    "when they are ready.")
+KERNELS_BUILDING = (" The encoder's kernels are still being built (once per machine, about 35 s): this run uses the "
+                    "slower eager encoder.")
 
 
 def _kernels_building() -> bool:
