@@ -114,9 +114,6 @@ class AnnotatorApp(ServedApp):
         stage = on_stage or (lambda _what: None)
         if display_points < 1:  # before the scan is read and its journal created
             raise ValueError(f"the display budget must be at least 1 point, got {display_points}")
-        from efem_viz.prior import fused
-
-        fused.warm_up()  # the encoder's kernels load (the first time on a machine: build) while nobody waits
         self.session = AnnotatorSession(scan_path, labels_path=labels_path, out_dir=out_dir, max_points=max_points,
                                         autosave_delay=autosave_delay, accept_scan_mismatch=accept_scan_mismatch,
                                         tools=tools, on_stage=on_stage)

@@ -327,34 +327,3 @@ def test_run_cancel_and_one_at_a_time(sphere_dir: Path, tmp_path: Path) -> None:
     assert done.wait(120)
     assert out == [None] and not s.state.running and s.state.result is None
     assert s.state.status == "Run cancelled."
-
-
-def test_a_run_while_the_encoder_kernels_build_says_so(sphere_dir: Path, tmp_path: Path,
-                                                        monkeypatch: pytest.MonkeyPatch) -> None:
-    """The first run on a new machine used to show no step or time while the kernels compiled: the apps now
-    build them in the background from the start, and a run started meanwhile says it uses the eager encoder."""
-    from efem_viz.prior import fused
-
-    s = ViewerSession([sphere_dir], prior=analytic.make_sphere_prior(), out_dir=tmp_path)
-    assert s.open_scene("spheres") is not None
-    statuses: list[str] = []
-    s.on_status = lambda text, error: statuses.append(text)
-    monkeypatch.setattr(fused, "building", lambda: True)
-    assert s.run(preset="fast", proposals=8, seed=0) is not None
-    assert any("kernels are still being built" in t for t in statuses), statuses
-    monkeypatch.setattr(fused, "building", lambda: False)
-    statuses.clear()
-    assert s.run(preset="fast", proposals=8, seed=0) is not None
-    assert not any("kernels" in t for t in statuses)
-
-
-def test_kernel_warm_up_runs_once_and_not_when_switched_off(monkeypatch: pytest.MonkeyPatch) -> None:
-    from efem_viz.prior import fused
-
-    t = fused.warm_up()
-    if t is not None:
-        t.join(600)  # a first build on this machine: about 35 s (a hang guard, 10x)
-    assert not fused.building() and fused.warm_up() is None  # decided: nothing more to do
-    monkeypatch.setitem(fused._state, "loaded", None)
-    monkeypatch.setenv("EFEM_VIZ_FUSED", "0")
-    assert fused.warm_up() is None

@@ -317,13 +317,8 @@ class AssistRoom:
         from annotator.io import labels_from_result
         from efem_viz.em.solver import EMCancelled
 
-        from efem_viz.prior import fused
-
         what = f"EFEM ({settings.preset}, prior {prior_name!r}" + (
             f", on a {1000 * settings.work_voxel:g} mm working set" if settings.work_voxel else "") + ")"
-        if fused.building():
-            self.hooks.on_efem(f"{what}: starting … the encoder's kernels are still being built (once per machine, "
-                               "about 35 s): this run uses the slower eager encoder", 0.0)
 
         def on_step(info: Any) -> None:
             self.hooks.on_efem(f"{what}: step {info.step + 1} of {info.num_steps} · {info.status()} (Cancel stops it)",

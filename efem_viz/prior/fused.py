@@ -128,24 +128,6 @@ def load() -> bool:
         return bool(_state["loaded"])
 
 
-def warm_up() -> threading.Thread | None:
-    """Load (building them the first time on this machine, about 35 s) the kernels in a background thread, so
-    that an app's first EFEM run does not wait for the compiler; None when that was decided already. A run that
-    starts while the build goes on uses the eager encoder (`building` says so)."""
-    if _state["loaded"] is not None or os.environ.get("EFEM_VIZ_FUSED", "1") == "0":
-        return None
-    t = threading.Thread(target=load, name="efem-fused-warm-up", daemon=True)
-    _state["warm_up"] = t
-    t.start()
-    return t
-
-
-def building() -> bool:
-    """Whether `warm_up`'s background load (perhaps a first build) is still going on."""
-    t = _state.get("warm_up")
-    return bool(t is not None and t.is_alive())
-
-
 def _registered() -> bool:
     return hasattr(torch.ops.efem_vn, "edge_mean") and hasattr(torch.ops.efem_vn, "act_mean")
 

@@ -95,9 +95,6 @@ class ViewerApp(ServedApp):
         """The headless viewer under this GUI: state and actions."""
         self._lock = self.session.lock
         self._quiet = False
-        from efem_viz.prior import fused
-
-        fused.warm_up()  # the encoder's kernels load (the first time on a machine: build) while nobody waits
         self.jobs = Jobs(on_error=lambda text: self.session.set_status(text, error=True))
         """Worker threads (`efem_viz.viewer.jobs`): loads and exports, decoding, EM runs."""
         self._worker, self._decoder, self._runner = self.jobs.worker, self.jobs.decoder, self.jobs.runner

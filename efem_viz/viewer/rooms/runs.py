@@ -22,16 +22,6 @@ ProgressCallback = Callable[["StepInfo"], None]
 """Called after each EM step with the solver's step info (`step`, `num_steps`, `phase`, `active`, `elapsed_s`)."""
 
 
-KERNELS_BUILDING = (" The encoder's kernels are still being built (once per machine, about 35 s): this run uses the "
-                    "slower eager encoder.")
-
-
-def _kernels_building() -> bool:
-    from efem_viz.prior import fused
-
-    return fused.building()
-
-
 @dataclass(frozen=True, kw_only=True)
 class RunSettings(SolveSettings):
     """What a viewer run solves with: the solver knobs of `SolveSettings` (preset, proposals, work_voxel, tau_out,
@@ -126,8 +116,7 @@ class RunRoom:
         cfg = settings.config()
         self.core.set_status(f"Running EFEM ({settings.preset}, {cfg.n_init[0]} proposals, seed {settings.seed}"
                              f"{', bf16' if settings.matmul_dtype == 'bfloat16' else ''}"
-                             f"{', on ' + self.core.priors.device if self.core.priors.device != 'cpu' else ''}) …"
-                             + (KERNELS_BUILDING if _kernels_building() else ""))
+                             f"{', on ' + self.core.priors.device if self.core.priors.device != 'cpu' else ''}) …")
         priors = self.core.priors.solve_priors()
         return run_em(scene, cfg=cfg, priors=priors, seed=int(settings.seed), on_step=on_step,
                       cancel=self.core.cancel_event, device=self.core.priors.device)
