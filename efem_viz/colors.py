@@ -95,7 +95,8 @@ _SEPARATE = np.array([[230, 25, 75], [60, 180, 75], [255, 200, 25], [0, 130, 200
 def result_colors(instances: InstancesLike) -> np.ndarray:
     """(K, 3) uint8 colour of each instance of an EFEM result: `instance_colors` of its proposal id, except where
     that is within `NEIGHBOUR_COLOR_DISTANCE` of the colour of an earlier neighbouring instance (boxes closer than
-    1.5 × the sum of their half-diagonals): then the colour of `_SEPARATE` farthest from its neighbours' colours.
+    1.5 × the sum of their half-diagonals): then the colour of `_SEPARATE` that no other instance has yet and is
+    farthest from its neighbours' colours (so that a colour still names one instance).
 
     Computed over the whole result in its order (the instances' order is the result's), so a confidence cut
     never changes a colour: select the rows of this array for a subset.
@@ -116,8 +117,10 @@ def result_colors(instances: InstancesLike) -> np.ndarray:
         others = out[:i][near[i, :i]]
         if not len(others) or np.linalg.norm(others - out[i], axis=1).min() >= NEIGHBOUR_COLOR_DISTANCE:
             continue
-        gap = np.linalg.norm(_SEPARATE[:, None] - others[None], axis=-1).min(axis=1)
-        out[i] = _SEPARATE[int(np.argmax(gap))]
+        free = [c for c in _SEPARATE if not np.any(np.all(np.abs(out[:i] - c) < 0.5, axis=1))]
+        cand = np.asarray(free) if free else _SEPARATE  # a colour no other instance has, while there is one
+        gap = np.linalg.norm(cand[:, None] - others[None], axis=-1).min(axis=1)
+        out[i] = cand[int(np.argmax(gap))]
     return np.round(out).astype(np.uint8)
 
 
