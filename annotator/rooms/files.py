@@ -52,7 +52,7 @@ class FileRoom:
             out = list(save_scannet(labels, table, d, self.scan.stem))
         else:
             raise ValueError(f"unknown export format {fmt!r}; use ply, npz or scannet")
-        present = set(np.unique(labels[labels > 0]).tolist())
+        present = set(np.flatnonzero(np.bincount(labels.clip(0)) > 0).tolist())  # O(N), not a sort of N
         pending = [k for k in unreviewed_prelabels(table) if k in present]
         warn = (f"; {len(pending)} unreviewed EFEM pre-label{'s' if len(pending) != 1 else ''} exported as "
                 "objects (review or delete them first)") if pending else ""

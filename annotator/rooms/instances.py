@@ -7,6 +7,7 @@ import logging
 import threading
 import time
 import uuid
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, cast
 
 from annotator.labels import Delta
@@ -68,7 +69,7 @@ class InstanceRoom:
             self._write_typing_file(int(iid), field, value)
 
     @property
-    def typing_file(self) -> Any:
+    def typing_file(self) -> Path:
         """`<work folder>/typing.json` (`TYPING_FILE`)."""
         return self.scan.work_dir / TYPING_FILE
 

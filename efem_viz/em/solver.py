@@ -755,7 +755,8 @@ class _Solver:
         s_sel = (float(est.scale_sel) if np.isfinite(est.scale_sel) and est.scale_sel > 0
                  else self.ref_scales[k])
         R = np.asarray(est.R, np.float64)
-        self.pose_votes[pid] = (np.asarray(est.neighbour_ids), np.asarray(est.scores, np.float64))
+        if cb.classes:  # a family prior's: what names the instance (`_category`)
+            self.pose_votes[pid] = (np.asarray(est.neighbour_ids), np.asarray(est.scores, np.float64))
         return R, np.asarray(est.R_raw, np.float64), s_sel, float(est.score_db_sim), np.asarray(est.neighbour_ids)
 
 

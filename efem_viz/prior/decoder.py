@@ -22,6 +22,11 @@ TILE_ROWS = 1024
 stays in the core's cache between the matrix products."""
 
 
+def _qnorm(q: torch.Tensor) -> torch.Tensor:
+    """``‖q‖`` of each query, ``(..., 1)`` (kept off zero so that its gradient stays finite)."""
+    return (q * q).sum(-1, keepdim=True).clamp_min(1e-24).sqrt()
+
+
 class ResnetBlockFC(nn.Module):
     """Pre-activation residual block ``h + fc_1(ReLU(fc_0(ReLU(h))))`` with ``fc_1`` zero-initialised.
 
@@ -103,16 +108,15 @@ class SDFDecoder(nn.Module):
     def _qfeat(self, q: torch.Tensor) -> torch.Tensor | None:
         if not self.use_qnorm:
             return None
-        return (q * q).sum(-1, keepdim=True).clamp_min(1e-24).sqrt() * self.fc_in.weight[:, self.latent_dim]
+        return _qnorm(q) * self.fc_in.weight[:, self.latent_dim]
 
     def _augmented(self, q: torch.Tensor, m: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``[q, ‖q‖]`` and ``[M, a_q]`` (``(B, Q, 4)``, ``(B, H, 4)``), so that ``M q + a_q ‖q‖`` is one batched
         product; ``(q, M)`` without the ‖q‖ feature."""
         if not self.use_qnorm:
             return q, m
-        qn = (q * q).sum(-1, keepdim=True).clamp_min(1e-24).sqrt()
         a_q = self.fc_in.weight[:, self.latent_dim].to(m.dtype)
-        return torch.cat([q, qn], -1), torch.cat([m, a_q.expand(m.shape[0], -1)[..., None]], -1)
+        return torch.cat([q, _qnorm(q)], -1), torch.cat([m, a_q.expand(m.shape[0], -1)[..., None]], -1)
 
     def forward_batched(self, q: torch.Tensor, m: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
         """SDF of canonical queries with one latent per batch row.
