@@ -445,3 +445,25 @@ def test_slow_typing_of_a_name_is_one_undo_step(session: AnnotatorSession) -> No
     session.undo()
     assert session.store.labelset.info(iid).name == "blue"  # the paint was between: a step of its own
     assert not (session.work_dir / "typing.json").exists()
+
+
+@pytest.mark.parametrize("content", [b"{not json", b'{"instance": 1, "field": "owner", "value": "x"}',
+                                     b'{"instance": 1, "field": "name", "value": "' + b"a" * 5000 + b'"}'])
+def test_a_hostile_typing_file_is_dropped_and_changes_nothing(tmp_path: Path, content: bytes) -> None:
+    """A damaged, foreign or oversized `typing.json` in the work folder is not applied: the session opens with
+    its labels as they were, and the file is gone."""
+    scan = ball_scan(tmp_path)
+    s = AnnotatorSession(scan, out_dir=tmp_path / "out", autosave_delay=0)
+    try:
+        iid = s.new_instance(category="mug")
+        name = s.store.labelset.info(iid).name
+    finally:
+        s.close()
+    typing = tmp_path / "out" / "ball.annotate" / "typing.json"
+    typing.write_bytes(content)
+    again = AnnotatorSession(scan, out_dir=tmp_path / "out", autosave_delay=0)
+    try:
+        assert again.store.labelset.info(iid).name == name and again.instances.restored_typing is None
+        assert not typing.exists()
+    finally:
+        again.close()
