@@ -13,7 +13,8 @@ from efem_viz.terminal import log_to_terminal, terminal_text
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "view": ("efem_viz.viewer.commands:ViewArgs", "open the viewer on scenes / folders (default: sample_scenes/)"),
     "info": ("efem_viz.data.commands:InfoArgs", "print what a scene file contains"),
-    "generate": ("efem_viz.data.synth:GenerateArgs", "generate synthetic tabletop scans with ground truth"),
+    "generate": ("efem_viz.data.synth:GenerateArgs",
+                 "generate synthetic scans with ground truth (mugs on a table, chairs on a floor)"),
     "import-rgbd": ("efem_viz.data.commands:ImportRgbdArgs", "import a real RGB-D frame as a scene"),
     "import-scan": ("efem_viz.data.commands:ImportScanArgs",
                     "bring your own scan (any units, any up axis) into the scene frame"),

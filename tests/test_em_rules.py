@@ -12,7 +12,7 @@ import scipy.sparse as sp
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from efem_viz.em.config import EMConfig, preset, resolve_for_prior
+from efem_viz.em.config import EMConfig, category_fields, preset, resolve_for_prior
 from efem_viz.em.estep import energy_weights, schedule
 from efem_viz.em.proposals import AvailableTree, Ragged, init_crops, lookup, sample_independent, sample_joint
 from efem_viz.em.rules import (
@@ -34,7 +34,7 @@ from efem_viz.em.rules import (
     set_matrix,
 )
 from efem_viz.em.solver import confidence
-from efem_viz.prior.config import CategorySettings, category_settings
+from efem_viz.prior.config import KNOWN_CATEGORIES, CategorySettings, category_settings
 
 N = 100
 
@@ -375,7 +375,13 @@ def test_schedule_synthetic_keeps_tau_d_and_phase2_uses_end_values() -> None:
 def test_presets_follow_the_spec_table() -> None:
     syn, real, fast = preset("synthetic"), preset("real_paper"), preset("fast")
     assert preset("synthetic_mugs") == syn and preset("real_mugs") == preset("real")  # the old names still work
-    assert syn.n_init == (400,) and syn.r_init == 0.07 and syn.r_err == 0.11 and syn.min_size == 300
+    assert syn.n_init == (400,) and syn.min_size == 300
+    # crop radii are the category's (spec: mugs 0.07 / 0.11 m, synthetic chairs 0.5 / 0.8 m); explicit values win
+    assert syn.r_init is None and syn.r_err is None
+    mug = category_fields(syn, KNOWN_CATEGORIES["mug"])
+    chair = category_fields(syn, KNOWN_CATEGORIES["chair"])
+    assert (mug["r_init"], mug["r_err"]) == (0.07, 0.11) and (chair["r_init"], chair["r_err"]) == (0.5, 0.8)
+    assert "r_init" not in category_fields(syn.replace(r_init=0.2), KNOWN_CATEGORIES["chair"])
     assert (syn.stat_tau, syn.stat_gamma, syn.cov_tau, syn.cov_gamma) == (0.04, 45.0, 0.04, 45.0)
     assert (real.stat_tau, real.stat_gamma, real.cov_tau, real.cov_gamma) == (0.03, 30.0, 0.03, 30.0)
     # sizes are the category's, per capture domain: the presets leave them to the prior
@@ -396,7 +402,12 @@ def test_presets_follow_the_spec_table() -> None:
     assert (syn.t1, syn.t2, syn.omega, syn.joint_incl) == (15, 5, 1e-4, 0.8)
     assert 50 <= fast.n_init[0] <= 100
     with pytest.raises(ValueError, match="unknown EM preset"):
-        preset("chairs")
+        preset("sofas")
+    # the synthetic-chairs column of the spec's table; the chair prior's category brings the 0.5 / 0.8 m crop radii
+    chairs = resolve_for_prior(preset("chairs"), _Named("chair"))
+    assert (chairs.n_init, chairs.alpha_d, chairs.tau_d, chairs.tau_n) == ((200,), (5.0, 20.0), (0.2, 0.15),
+                                                                          (120.0, 80.0))
+    assert (chairs.min_size, chairs.dup_iou, chairs.r_init, chairs.r_err) == (1000, 0.8, 0.5, 0.8)
     assert EMConfig.from_json(real.to_json()) == real
     assert syn.with_proposals(64).n_init == (64,)
 

@@ -348,6 +348,26 @@ def test_init_from_another_category_keeps_the_weights_not_the_settings(tmp_path:
     assert load_prior(again.resolved_export(), load_codebook=False).metadata["tau_out"] == 0.05
 
 
+def test_init_matching_takes_the_shared_weights_into_an_attention_encoder(tmp_path: Path, monkeypatch: Any) -> None:
+    """`--init-from P --init-matching`: the run keeps its own architecture (here VN attention in blocks 2-3, as the
+    chair preset's) and takes every tensor of P whose name and shape match; the attention layers start fresh."""
+    from efem_viz.prior import train as train_mod
+
+    src = save_prior(_trained_tiny(), tmp_path / "mug.pt")
+    att = dict(train_mod.PRESETS["tiny"], attention_blocks=(2, 3), att_head_dim=8)
+    monkeypatch.setitem(train_mod.PRESETS, "tiny-att", att)
+    args = _args(tmp_path, tmp_path, preset="tiny-att", init_from=src, init_matching=True)
+    prior, from_init = train_mod._build_prior(args, None)
+    assert from_init and prior.config.attention_blocks == (2, 3)
+    own, mug = prior.state_dict(), load_prior(src, load_codebook=False).state_dict()
+    shared = [k for k in own if k in mug]
+    assert shared and all(torch.equal(own[k], mug[k].to(own[k].dtype)) for k in shared)
+    assert any(k.startswith("encoder.Q_list") for k in own) and not any(k.startswith("encoder.Q_list") for k in mug)
+    # without --init-matching the saved prior's own architecture wins, as before
+    plain, _ = train_mod._build_prior(_args(tmp_path, tmp_path, preset="tiny-att", init_from=src), None)
+    assert plain.config.attention_blocks == ()
+
+
 # ------------------------------------------------------------------------------------------ growth and bf16
 def _trained_tiny(seed: int = 0) -> ShapePrior:
     """A tiny prior whose decoder weights are all non-zero (as a trained one's are)."""

@@ -591,6 +591,15 @@ def bottle_with_parts(seed: int) -> tuple[trimesh.Trimesh, list[np.ndarray]]:
     return finish_solid(mesh, parts, f"bottle {seed}")
 
 
+def cabinet_with_parts(seed: int) -> tuple[trimesh.Trimesh, list[np.ndarray]]:
+    """A furniture-sized block (a cabinet, chest of drawers or low table), 40-100 cm wide, 30-60 cm deep and
+    35-90 cm high; convex (one collision piece). The distractors of chair scenes."""
+    rng = np.random.default_rng([int(seed), 0x436162696E6574])
+    ext = np.array([rng.uniform(0.4, 1.0), rng.uniform(0.3, 0.6), rng.uniform(0.35, 0.9)])
+    mesh = trimesh.creation.box(extents=ext)
+    return finish_solid(mesh, _hull_parts(mesh), f"cabinet {seed}")
+
+
 def make_box(seed: int) -> trimesh.Trimesh:
     """A box with sides 3-15 cm, canonical frame, watertight."""
     return box_with_parts(seed)[0]
@@ -639,6 +648,8 @@ CATEGORIES: dict[str, CategorySpec] = {
     "can": CategorySpec("can", can_with_parts, (0.06, 0.15), description="closed cylinders (cans, jars)"),
     "bowl": CategorySpec("bowl", bowl_with_parts, (0.12, 0.20), description="open bowls"),
     "bottle": CategorySpec("bottle", bottle_with_parts, (0.15, 0.26), description="closed bottles"),
+    "cabinet": CategorySpec("cabinet", cabinet_with_parts, (0.40, 1.00),
+                            description="furniture-sized blocks (cabinets, low tables): chair scenes' distractors"),
     "chair": CategorySpec("chair", chair_with_parts, (0.40, 1.10), target=True,
                           description="four-legged chairs, stools, sled, cantilever and swivel chairs; solid, "
                                       "slatted and curved backs; with and without arms (efem_viz.data.chairs)"),
@@ -649,7 +660,7 @@ def make_shape(category: str, seed: int) -> trimesh.Trimesh:
     """Generate object `seed` of a registered category.
 
     Args:
-        category: a key of `CATEGORIES` ("mug", "box", "can", "bowl", "bottle", "chair").
+        category: a key of `CATEGORIES` ("mug", "box", "can", "bowl", "bottle", "cabinet", "chair").
         seed: non-negative integer.
 
     Returns:

@@ -257,7 +257,10 @@ def run_em(
         raise ValueError(f"the priors of one solve need distinct category names, got {names}")
     base = cfg if cfg is not None else preset("synthetic")
     cfgs = [resolve_for_prior(base, pr) for pr in plist]
-    run_cfg = cfgs[0] if len(plist) == 1 else base.replace(tau_out=max(c.out_tau for c in cfgs))
+    # a joint solve shares one crop and neighbourhood: the widest of its priors' (a narrower one only costs time)
+    run_cfg = cfgs[0] if len(plist) == 1 else base.replace(
+        tau_out=max(c.out_tau for c in cfgs), r_init=max(float(c.r_init or 0) for c in cfgs),
+        r_err=max(float(c.r_err or 0) for c in cfgs))
     points, normals = _scene_arrays(scene)
     if anchor_candidates is not None:
         anchor_candidates = _checked_anchor_candidates(anchor_candidates, len(points))

@@ -193,6 +193,12 @@ class CategorySettings:
     """Per capture domain ("synthetic", "real"): (scale_horizontal, scale_height) replacing the defaults."""
     tau_out: float | None = None
     """Output-mask SDF band (canonical units); None = `DEFAULT_TAU_OUT`."""
+    r_init: float = 0.07
+    """Initial crop radius of a proposal around its anchor (m): about one object across (spec: mugs and kitchen
+    0.07, synthetic chairs 0.5)."""
+    r_err: float = 0.11
+    """E-step neighbourhood radius around a proposal's centre (m): the object's reach from its centre with a margin
+    (spec: mugs 0.11, synthetic chairs 0.8)."""
 
     def __post_init__(self) -> None:
         if not str(self.name):
@@ -206,6 +212,9 @@ class CategorySettings:
                 raise ValueError(f"domain_sizes[{dom!r}] must be (scale_horizontal, scale_height), got {sizes}")
             _check_range(f"domain_sizes[{dom!r}][0]", sizes[0])
             _check_range(f"domain_sizes[{dom!r}][1]", sizes[1])
+        for nm in ("r_init", "r_err"):
+            if not 0.0 < float(getattr(self, nm)) <= 10.0:
+                raise ValueError(f"{nm} must be in (0, 10] m, got {getattr(self, nm)}")
         if self.tau_out is not None and not 0.0 < float(self.tau_out) <= MAX_TAU_OUT:
             raise ValueError(f"tau_out must be in (0, {MAX_TAU_OUT}] or None, got {self.tau_out}")
 
@@ -237,6 +246,8 @@ class CategorySettings:
             "up_range": enc(self.up_range),
             "domain_sizes": {d: [enc(h), enc(v)] for d, (h, v) in self.domain_sizes.items()},
             "tau_out": self.tau_out,
+            "r_init": self.r_init,
+            "r_err": self.r_err,
         }
 
     @classmethod
@@ -271,6 +282,12 @@ class CategorySettings:
         kw["domain_sizes"] = domain
         if d.get("tau_out") is not None:
             kw["tau_out"] = float(d["tau_out"])
+        for nm in ("r_init", "r_err"):  # absent in priors saved before categories carried their crop radii
+            if d.get(nm) is not None:
+                try:
+                    kw[nm] = float(d[nm])
+                except (TypeError, ValueError) as exc:
+                    raise ValueError(f"category {nm} must be a number, got {d[nm]!r}") from exc
         return cls(**kw)
 
 
@@ -288,7 +305,8 @@ KNOWN_CATEGORIES: dict[str, CategorySettings] = {
     ),
     "bowl": CategorySettings(name="bowl", scale_horizontal=(0.04, 0.15), scale_height=(0.01, 0.09)),
     "sphere": CategorySettings(name="sphere", scale_horizontal=(0.03, 0.13), scale_height=(0.03, 0.13)),
-    "chair": CategorySettings(name="chair", scale_horizontal=(0.12, 0.50), scale_height=(0.12, 0.65)),
+    "chair": CategorySettings(name="chair", scale_horizontal=(0.12, 0.50), scale_height=(0.12, 0.65), r_init=0.5,
+                              r_err=0.8),
     "kitchen": CategorySettings(name="kitchen", scale_horizontal=(0.02, 0.13), scale_height=(0.01, 0.30)),
 }
 """Settings of the categories efem-viz ships priors for, used when a prior's metadata carries none. Mug sizes:

@@ -32,7 +32,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-Preset = Literal["spec", "cpu", "cpu-small", "tiny"]
+Preset = Literal["spec", "cpu", "cpu-chair", "cpu-small", "tiny"]
 
 PRESETS: dict[str, dict[str, Any]] = {
     # the released mug architecture (§1.3)
@@ -44,6 +44,11 @@ PRESETS: dict[str, dict[str, Any]] = {
     # iterations was worse, 0.12 vs 0.079, so the shipped preset keeps them at 1.)
     "cpu": {"widths": (16, 16, 32, 32, 64, 128, 256), "latent_dim": 128, "center_hidden": 64, "n_pcl": 256,
             "decoder_hidden": 128, "decoder_blocks": 2, "center_times_sigma": True},
+    # chairs on a CPU budget: the "cpu" widths with the spec's chair design (VN attention in blocks 2..6,
+    # down-sampling factors 4, 4, 4) on 512 input points (spec 1024): 512, 512, 128, 128, 32, 8, 8 points per block
+    "cpu-chair": {"widths": (16, 16, 32, 32, 64, 128, 256), "latent_dim": 128, "center_hidden": 64, "n_pcl": 512,
+                  "down_factors": (4, 4, 4), "attention_blocks": (2, 3, 4, 5, 6), "decoder_hidden": 128,
+                  "decoder_blocks": 2, "center_times_sigma": True},
     # quarter widths
     "cpu-small": {"widths": (8, 8, 16, 16, 32, 64, 128), "latent_dim": 64, "center_hidden": 32, "n_pcl": 256,
                   "k": 16, "decoder_hidden": 128, "decoder_blocks": 2, "center_times_sigma": True},
@@ -134,6 +139,10 @@ class TrainArgs:
     init_from: Path | None = None
     """Start a new run (iteration 0, fresh optimiser, this run's schedule) from the weights of a saved prior,
     e.g. the shipped ``efem_viz/weights/mug.pt`` (fine-tuning). Ignored on resume."""
+    init_matching: bool = False
+    """With --init-from: keep this run's architecture (--preset and its overrides) and take from the saved prior
+    every weight whose name and shape match; the rest start fresh (e.g. a chair prior with VN attention from the
+    mug prior's encoder and decoder)."""
     grow_decoder_hidden: int | None = None
     """With --init-from: widen the decoder to this many units, function-preserving (`prior.widen`), before
     fine-tuning (the shipped 128-wide decoder is capacity-bound)."""
@@ -667,9 +676,19 @@ def _build_prior(args: TrainArgs, ckpt: dict[str, Any] | None) -> tuple[ShapePri
                                  seed=args.seed)
             log.info("decoder grown %dx%d -> %dx%d (function-preserving)", h0, b0,
                      init.config.decoder_hidden, init.config.decoder_blocks)
-        cfg = init.config
+        if not args.init_matching:
+            cfg = init.config
     prior = ShapePrior(cfg, name=args.category).to(args.device)
-    if init is not None:
+    if init is not None and args.init_matching:
+        own = prior.state_dict()
+        taken = {k: v for k, v in init.state_dict().items() if k in own and own[k].shape == v.shape}
+        if not taken:
+            raise ValueError(f"--init-matching: no weight of {args.init_from} matches this architecture")
+        prior.load_state_dict(taken, strict=False)
+        fresh = sorted(k for k in own if k not in taken)
+        log.info("took %d of %d weights from %s; fresh: %s", len(taken), len(own), args.init_from,
+                 ", ".join(fresh) if len(fresh) <= 12 else f"{len(fresh)} tensors ({', '.join(fresh[:6])}, ...)")
+    elif init is not None:
         prior.load_state_dict(init.state_dict())
         # Another category's prior gives weights only: its τ_out, calibration and category settings are not ours.
         kept = dict(init.metadata or {}) if prior_category(init).name == args.category else {}
@@ -960,7 +979,7 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
     state = _State()
     if ckpt is not None:
         state = _resume_state(args, prior, opt, rng, ckpt, resume_path)
-    elif not from_init:
+    elif not from_init or args.init_matching:  # a new architecture's σ is measured on its own inputs
         _calibrate_new_prior(args, prior, scfg, train_objs)
     args_dict = _args_dict(args)
     _write_text_atomic(out_dir / "config.json", json.dumps(

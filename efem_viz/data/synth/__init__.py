@@ -1,4 +1,4 @@
-"""Synthetic tabletop scans with per-point ground truth: procedural mugs (+ distractors) on a table.
+"""Synthetic scans with per-point ground truth: procedural mugs (+ distractors) on a table, or chairs on a floor.
 
 The six configurations of the EFEM paper's synthetic mug scenes:
   * ``"z"``: mugs upright with a random yaw, placed without overlap;
@@ -19,14 +19,20 @@ looking at the objects (open3d ray casting; pinhole 640 x 480, Kinect-like axial
 sigma(z) = 1.2 mm + 1.9 mm (z - 0.4)^2 and dropout at grazing angles), then fused by a projective TSDF into
 a mesh (``mode="tsdf"``) or merged and voxel-downsampled as points (``mode="points"``). Ground truth: each
 output point takes the label of the nearest true surface (table, object or distractor) when closer than
-`label_tolerance`; mug k has id k, everything else 0.
+`label_tolerance`; labelled object k has id k, everything else 0.
 
-World frame: metres, +Z up, table top at z = 0. Same arguments -> identical arrays.
+The labelled objects (``targets``) are mugs, the kitchen family (mugs, bowls, bottles and cans mixed, the
+paper's SynKit) or chairs (the paper's SynChairs; configurations z, so3 and pile). Each stands on a `Stage`
+(`stage.TARGET_STAGES`): mugs and kitchen objects on the table, chairs on a 6 m square floor, scanned from
+about 3 m away at 1.2-1.7 m height, fused with a 1 cm voxel, with furniture-sized blocks as distractors.
 
-One module per stage: `layout` (configurations, table, objects, placement without physics), `physics` (pybullet
-drops, `contact_report`), `render` (cameras, noisy depth frames), `fusion` (TSDF mesh or voxel-averaged points),
-`labels` (ground truth from the nearest true surface), `generate` (`generate_scene`, the stages in order) and
-`cli` (`GenerateArgs`, the `generate` command). This package re-exports their public names.
+World frame: metres, +Z up, the support's top (table or floor) at z = 0. Same arguments -> identical arrays.
+
+One module per step: `stage` (the support and the scale around it), `layout` (configurations, objects,
+placement without physics), `physics` (pybullet drops, `contact_report`), `render` (cameras, noisy depth
+frames), `fusion` (TSDF mesh or voxel-averaged points), `labels` (ground truth from the nearest true surface),
+`generate` (`generate_scene`, the steps in order) and `cli` (`GenerateArgs`, the `generate` command). This
+package re-exports their public names.
 """
 
 from __future__ import annotations
@@ -44,20 +50,26 @@ from efem_viz.data.synth.layout import (
     Mode,
 )
 from efem_viz.data.synth.physics import COLLISION_SHRINK, PENETRATION_TOLERANCE, contact_report
+from efem_viz.data.synth.stage import FLOOR, TABLETOP, TARGET_STAGES, Stage, stage_for
 
 __all__ = [
     "COLLISION_SHRINK",
     "CONFIGS",
     "DISTRACTOR_CATEGORIES",
+    "FLOOR",
     "PENETRATION_TOLERANCE",
     "STRUCTURE_CONFIGS",
     "TABLE_HALF",
+    "TABLETOP",
     "TABLE_THICKNESS",
+    "TARGET_STAGES",
     "Config",
     "GenerateArgs",
     "Mode",
     "PointLabels",
+    "Stage",
     "contact_report",
     "generate_scene",
     "label_points",
+    "stage_for",
 ]

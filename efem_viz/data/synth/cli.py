@@ -16,10 +16,11 @@ logger = logging.getLogger(__name__)
 
 @dataclass
 class GenerateArgs:
-    """Generate synthetic tabletop scans (procedural mugs on a table) with per-point ground truth."""
+    """Generate synthetic scans with per-point ground truth: procedural mugs (or kitchen objects) on a table, or
+    chairs on a floor."""
 
     config: Config = "z"
-    """Scene configuration: z (upright mugs), so3 (random orientations), pile (stacked, touching), tree (hanging
+    """Scene configuration: z (upright objects), so3 (random orientations), pile (stacked, touching), tree (hanging
     on a mug tree), box (inside an open box), shelf (on the levels of a shelf)."""
     count: int = 1
     """Number of scenes; scene i uses seed `seed + i`."""
@@ -30,18 +31,20 @@ class GenerateArgs:
     mode: Mode = "tsdf"
     """tsdf: fused mesh (like the paper's scans); points: merged depth points, voxel-downsampled."""
     objects: int | None = None
-    """Mugs per scene, 1..10 (default: 3..7 drawn by the seed)."""
+    """Labelled objects per scene, 1..10 (default: drawn by the seed, 3..7 on the table, 2..5 chairs)."""
     distractors: bool = True
-    """Add 0-2 unlabelled distractor objects (boxes, cans, bowls, bottles)."""
+    """Add 0-2 unlabelled distractor objects (boxes, cans, bowls, bottles on the table; cabinets on the
+    floor)."""
     split: Literal["train", "val", "test"] = "test"
-    """Mug seed split to draw from."""
-    voxel: float = 0.004
-    """TSDF voxel / point spacing in metres."""
+    """Object seed split to draw from."""
+    voxel: float | None = None
+    """TSDF voxel / point spacing in metres (default: 0.004 for mug and kitchen targets, 0.01 for chairs)."""
     prefix: str = ""
     """Prefix of the file and scene names (e.g. "syn_" gives syn_z_0.ply)."""
-    targets: Literal["mug", "kitchen"] = "mug"
-    """The labelled objects: mugs, or kitchen objects mixed (mugs, bowls, bottles, cans: the paper's SynKit,
-    with --config z, so3 or pile; boxes are the distractors)."""
+    targets: Literal["mug", "kitchen", "chair"] = "mug"
+    """The labelled objects: mugs; kitchen objects mixed (mugs, bowls, bottles, cans: the paper's SynKit, on
+    the table, boxes are the distractors); or chairs (the paper's SynChairs: on a 6 m square floor scanned from
+    about 3 m, cabinets are the distractors). kitchen and chair take --config z, so3 or pile."""
 
     def run(self) -> int:
         """Generate the scenes with a progress bar; returns the exit code."""

@@ -1,7 +1,8 @@
-"""`generate_scene`: one synthetic scan, stage after stage (layout → poses → scan → fusion → labels).
+"""`generate_scene`: one synthetic scan, step after step (layout → poses → scan → fusion → labels).
 
-Each stage is a function of its own; one NumPy Generator, seeded from (seed, config), is passed through them in
-the same order, so the same arguments give identical arrays.
+Each step is a function of its own; one NumPy Generator, seeded from (seed, config), is passed through them in
+the same order, so the same arguments give identical arrays. The scene's `Stage` (a table top, or a room floor
+for chairs; chosen by the targets) sets the scale every step works at.
 """
 
 from __future__ import annotations
@@ -23,11 +24,8 @@ from efem_viz.data.synth.fusion import (
 )
 from efem_viz.data.synth.labels import label_points
 from efem_viz.data.synth.layout import (
-    _TABLE_COLOR,
     CONFIGS,
     STRUCTURE_CONFIGS,
-    TABLE_HALF,
-    TABLE_THICKNESS,
     Config,
     Mode,
     _hang_on_tree,
@@ -39,6 +37,7 @@ from efem_viz.data.synth.layout import (
 )
 from efem_viz.data.synth.physics import PENETRATION_TOLERANCE, _simulate, contact_report
 from efem_viz.data.synth.render import _backproject, _Frame, _make_cameras, _render
+from efem_viz.data.synth.stage import Stage, stage_for
 
 if TYPE_CHECKING:
     from efem_viz.data.scene import Scene
@@ -56,60 +55,76 @@ def generate_scene(
     mode: Mode = "tsdf",
     distractors: bool = True,
     split: Literal["train", "val", "test"] = "test",
-    voxel: float = 0.004,
+    voxel: float | None = None,
     image_size: tuple[int, int] = (640, 480),
-    n_cameras: int = 4,
-    noise: bool = True,
-    label_tolerance: float = 0.01,
+    n_cameras: int | None = None,
+    noise: bool | None = None,
+    label_tolerance: float | None = None,
     name: str | None = None,
     timings: dict[str, float] | None = None,
     targets: str = "mug",
 ) -> "Scene":
-    """Generate one synthetic tabletop scan with per-point instance ground truth.
+    """Generate one synthetic scan (mugs or kitchen objects on a table, chairs on a floor) with per-point
+    instance ground truth.
 
     Args:
         config: "z" (upright, random yaw), "so3" (dropped with random orientation), "pile" (stacked), "tree"
             (3-6 mugs hanging by their handles on the pegs of a mug tree), "box" (3-6 mugs dropped into an open
             box) or "shelf" (mugs upright on the 2-3 levels of a shelf); see `efem_viz.data.structures`.
         seed: scene seed; the same arguments give identical arrays.
-        n_objects: number of mugs, 1..10 (default: drawn from 3..7 by the seed).
+        n_objects: number of labelled objects, 1..10 (default: drawn by the seed, 3..7 on the table, 2..5
+            chairs).
         mode: "tsdf" (fused triangle mesh, vertices are the points) or "points" (merged back-projected depth,
             voxel-downsampled).
-        distractors: add 0-2 unlabelled distractors (boxes, cans, bowls, bottles).
-        split: which mug seeds to draw from (`procedural.split_seeds`).
-        voxel: TSDF voxel / point downsampling voxel, metres.
+        distractors: add 0-2 unlabelled distractors (boxes, cans, bowls, bottles on the table; furniture-sized
+            blocks, `procedural.cabinet_with_parts`, on the floor).
+        split: which object seeds to draw from (`procedural.split_seeds`).
+        voxel: TSDF voxel / point downsampling voxel, metres (default: the stage's, 4 mm on the table, 1 cm on
+            the floor).
         image_size: (width, height) of the virtual depth cameras.
-        n_cameras: number of cameras around the table (at the corners for 4).
-        noise: add depth noise, dropout and colour noise.
-        label_tolerance: a point takes the nearest true surface's id when closer than this (metres).
+        n_cameras: number of cameras around the objects (default: the stage's, 4 at the table's corners, 8 on
+            the floor).
+        noise: add depth noise, dropout and colour noise (default: the stage's, on for the table, off, ideal
+            depth, on the floor).
+        label_tolerance: a point takes the nearest true surface's id when closer than this (metres; default:
+            the stage's, 1 cm on the table, 2.5 cm on the floor).
         name: scene name (default "<config>_<seed>").
-        timings: if given, filled with the seconds spent per stage (poses, scan, fusion, labels); kept out of
+        timings: if given, filled with the seconds spent per step (poses, scan, fusion, labels); kept out of
             the provenance so that regenerating a scene gives identical files.
-        targets: what the labelled objects are: "mug", or a training family ("kitchen": mugs, bowls, bottles
-            and cans mixed, the paper's SynKit; configurations z, so3 and pile only; boxes as distractors).
+        targets: what the labelled objects are (a key of `stage.TARGET_STAGES`): "mug"; "kitchen" (a training
+            family: mugs, bowls, bottles and cans mixed, the paper's SynKit; boxes as distractors); or "chair"
+            (the paper's SynChairs: procedural chairs on a 6 m square floor scanned from about 3 m, cabinets as
+            distractors). All but "mug" take the configurations z, so3 and pile only.
 
     Returns:
-        A `Scene` (world frame, metres, +Z up, table top at z = 0) with `instance` (labelled object k -> k,
-        else 0), categories {k: its category} for the labelled objects with labelled points, and provenance (config, seed, objects with
+        A `Scene` (world frame, metres, +Z up, the support's top (table or floor) at z = 0) with `instance`
+        (labelled object k -> k, else 0), categories {k: its category} for the labelled objects with labelled
+        points, and provenance (config, seed, the command that repeats it, voxel, the support, objects with
         category/seed/instance id/T_world_object, cameras, noise model, max penetration).
 
     Raises:
-        ValueError: bad config, mode, split, object count, voxel or image size.
+        ValueError: bad config, targets (or a configuration the targets do not take), mode, split, object
+            count, voxel or image size.
     """
     import open3d as o3d
 
     from efem_viz.data.scene import Scene
 
-    _check_arguments(config, mode=mode, split=split, n_objects=n_objects, voxel=voxel, image_size=image_size,
-                     n_cameras=n_cameras, targets=targets)
+    stage = _check_arguments(config, targets=targets, mode=mode, split=split, n_objects=n_objects, voxel=voxel,
+                             image_size=image_size, n_cameras=n_cameras)
+    voxel = stage.voxel if voxel is None else voxel
+    n_cameras = stage.n_cameras if n_cameras is None else n_cameras
+    noise = stage.noise if noise is None else noise
+    label_tolerance = stage.label_tolerance if label_tolerance is None else label_tolerance
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
-    clock = [time.perf_counter()]  # the end of each stage
+    clock = [time.perf_counter()]  # the end of each step
     rng = np.random.default_rng([int(seed), CONFIGS.index(config), 0x5CE7E])
     objs, structure = _draw_objects(config, seed, rng, n_objects=n_objects, distractors=distractors, split=split,
-                                    targets=targets)
-    objs, poses = _pose_objects(config, seed, objs, structure, rng)
+                                    targets=targets, stage=stage)
+    objs, poses = _pose_objects(config, seed, objs, structure, rng, stage=stage)
     clock.append(time.perf_counter())
-    scan = _scan(config, objs, structure, rng, n_cameras=n_cameras, image_size=image_size, noise=noise)
+    scan = _scan(config, objs, structure, rng, stage=stage, n_cameras=n_cameras, image_size=image_size,
+                 noise=noise)
     clock.append(time.perf_counter())
     fused = _fuse(scan, mode=mode, voxel=voxel, what=f"scene {config}_{seed}")
     clock.append(time.perf_counter())
@@ -118,14 +133,14 @@ def generate_scene(
     provenance = _provenance(
         config, seed, n_objects=n_objects, mode=mode, distractors=distractors, split=split, voxel=voxel,
         image_size=image_size, n_cameras=n_cameras, noise=noise, label_tolerance=label_tolerance, objs=objs,
-        targets=targets,
+        targets=targets, stage=stage,
         structure=structure, poses=poses, scan=scan, counts=labels.counts,
     )  # fmt: skip
     clock.append(time.perf_counter())
-    stages = {k: round(b - a, 3) for k, a, b in zip(("poses", "scan", "fusion", "labels"), clock, clock[1:])}
+    steps = {k: round(b - a, 3) for k, a, b in zip(("poses", "scan", "fusion", "labels"), clock, clock[1:])}
     if timings is not None:
-        timings.update(stages)
-    logger.debug("scene %s_%d stages (s): %s", config, seed, stages)
+        timings.update(steps)
+    logger.debug("scene %s_%d steps (s): %s", config, seed, steps)
     return Scene.create(name or f"{config}_{seed}", fused.points.astype(np.float32),
                         normals=fused.normals.astype(np.float32),
                         colors=np.clip(np.round(fused.colors), 0, 255).astype(np.uint8), faces=fused.faces,
@@ -134,16 +149,14 @@ def generate_scene(
 
 
 def _check_arguments(
-    config: str, *, mode: str, split: str, n_objects: int | None, voxel: float, image_size: tuple[int, int],
-    n_cameras: int, targets: str = "mug",
-) -> None:
-    """Raise ValueError for an argument of `generate_scene` out of its range."""
-    from efem_viz.data.procedural import FAMILIES
-
+    config: str, *, targets: str, mode: str, split: str, n_objects: int | None, voxel: float | None,
+    image_size: tuple[int, int], n_cameras: int | None,
+) -> Stage:
+    """The stage of `targets` (`stage.stage_for`); ValueError for an argument of `generate_scene` out of its
+    range, or a structure configuration (tree, box, shelf) with other targets than mugs."""
     if config not in CONFIGS:
         raise ValueError(f"unknown config {config!r}; expected one of {CONFIGS}")
-    if targets != "mug" and targets not in FAMILIES:
-        raise ValueError(f"unknown targets {targets!r}; expected 'mug' or one of {sorted(FAMILIES)}")
+    stage = stage_for(targets)
     if targets != "mug" and config in STRUCTURE_CONFIGS:
         raise ValueError(f"config {config!r} holds mugs only; {targets} scenes are z, so3 or pile")
     if mode not in ("tsdf", "points"):
@@ -152,22 +165,26 @@ def _check_arguments(
         raise ValueError(f"unknown split {split!r}; expected 'train', 'val' or 'test'")
     if n_objects is not None and not 1 <= int(n_objects) <= 10:
         raise ValueError(f"n_objects must be in 1..10, got {n_objects}")
-    if not 0.0005 <= voxel <= 0.05:
+    if voxel is not None and not 0.0005 <= voxel <= 0.05:
         raise ValueError(f"voxel must be in [0.0005, 0.05] m, got {voxel}")
     if len(image_size) != 2 or min(image_size) < 16:
         raise ValueError(f"image_size must be (width, height) >= 16, got {image_size}")
-    if n_cameras < 1:
+    if n_cameras is not None and n_cameras < 1:
         raise ValueError(f"n_cameras must be >= 1, got {n_cameras}")
+    return stage
 
 
 # ====================================================================================== layout
 def _draw_objects(
     config: str, seed: int, rng: np.random.Generator, *, n_objects: int | None, distractors: bool, split: str,
-    targets: str = "mug",
+    targets: str, stage: Stage,
 ) -> tuple[list[_Object], "Structure | None"]:
-    """The scene's supporting structure (tree, box, shelf configurations) and its objects: the mug count
-    (drawn from the seed unless given; at most what the structure holds) and the mugs and distractors."""
-    n_mugs = int(rng.integers(3, 7 if config in ("tree", "box") else 8)) if n_objects is None else int(n_objects)
+    """The scene's supporting structure (tree, box, shelf configurations) and its objects: the labelled object
+    count (drawn from the stage's range by the seed unless given; at most 6, or what the structure holds, in a
+    structure) and the labelled objects and distractors."""
+    lo, hi = stage.object_count
+    hi = min(hi, 6) if config in ("tree", "box") else hi
+    n_mugs = int(rng.integers(lo, hi + 1)) if n_objects is None else int(n_objects)
     structure: Structure | None = None
     if config in STRUCTURE_CONFIGS:
         from efem_viz.data.structures import PEG_PLAY, PEG_RADIUS, make_structure
@@ -182,9 +199,10 @@ def _draw_objects(
                            len(structure.pegs), len(structure.pegs), n_mugs)
             n_mugs = len(structure.pegs)
         objs = _sample_objects(rng, n_mugs=n_mugs, distractors=distractors, split=split,
-                               hole=PEG_RADIUS + PEG_PLAY if config == "tree" else None)
+                               hole=PEG_RADIUS + PEG_PLAY if config == "tree" else None, stage=stage)
     else:
-        objs = _sample_objects(rng, n_mugs=n_mugs, distractors=distractors, split=split, targets=targets)
+        objs = _sample_objects(rng, n_mugs=n_mugs, distractors=distractors, split=split, targets=targets,
+                               stage=stage)
     return objs, structure
 
 
@@ -202,7 +220,8 @@ class _Poses:
 
 
 def _pose_objects(
-    config: str, seed: int, objs: list[_Object], structure: "Structure | None", rng: np.random.Generator
+    config: str, seed: int, objs: list[_Object], structure: "Structure | None", rng: np.random.Generator, *,
+    stage: Stage,
 ) -> tuple[list[_Object], _Poses]:
     """Place the objects: by construction ("z", "shelf"; the shelf may keep fewer objects), else by physics,
     dropped again (at most 5 times) until nothing is misplaced or interpenetrates; the best drop is kept.
@@ -211,7 +230,7 @@ def _pose_objects(
         The objects (posed in place; the list the scene keeps) and how the poses were reached.
     """
     if config == "z":
-        _place_upright(objs, rng)  # disjoint footprints, resting on the table: no contact by construction
+        _place_upright(objs, rng, stage=stage)  # disjoint footprints, resting on the support: no contact
         return objs, _Poses(1, 0, 0.0)
     if config == "shelf":
         assert structure is not None
@@ -221,8 +240,8 @@ def _pose_objects(
     fixed = structure.pieces if structure is not None else []
     attempts = 0
     for attempts in range(1, 6):
-        _drop(config, objs, structure, rng)
-        rep = contact_report([o.world_mesh() for o in objs], fixed=fixed)
+        _drop(config, objs, structure, rng, stage=stage)
+        rep = contact_report([o.world_mesh() for o in objs], fixed=fixed, rays=stage.contact_rays)
         key = (_misplaced(config, objs, structure), rep["max_penetration"])
         if best is None or key < best[0]:
             best = (key, [o.T_world_object.copy() for o in objs])
@@ -245,17 +264,18 @@ def _pose_objects(
     return objs, _Poses(attempts, misplaced, penetration)
 
 
-def _drop(config: str, objs: list[_Object], structure: "Structure | None", rng: np.random.Generator) -> None:
-    """One physics drop of the configuration ("tree", "box", "so3" scattered, "pile")."""
+def _drop(config: str, objs: list[_Object], structure: "Structure | None", rng: np.random.Generator, *,
+          stage: Stage) -> None:
+    """One physics drop of the configuration ("tree", "box", "so3" scattered, "pile") onto the stage."""
     if config == "tree":
         assert structure is not None
         _hang_on_tree(objs, structure, rng)
-        _simulate(objs, rng, layout="hang", statics=structure.parts())
+        _simulate(objs, rng, layout="hang", stage=stage, statics=structure.parts())
     elif config == "box":
         assert structure is not None
-        _simulate(objs, rng, layout="box", statics=structure.parts(), floor=structure.floor)
+        _simulate(objs, rng, layout="box", stage=stage, statics=structure.parts(), floor=structure.floor)
     else:
-        _simulate(objs, rng, layout="scatter" if config == "so3" else "pile")
+        _simulate(objs, rng, layout="scatter" if config == "so3" else "pile", stage=stage)
 
 
 # ====================================================================================== scan
@@ -264,9 +284,10 @@ class _Scan:
     """The ray-casting scene and what the cameras saw."""
 
     raycaster: Any
-    """open3d `RaycastingScene`: geometry 0 = table, then the structure's pieces, then the objects."""
+    """open3d `RaycastingScene`: geometry 0 = the support (table or floor), then the structure's pieces, then
+    the objects."""
     n_fixtures: int
-    """Background geometries (the table and the structure's pieces) before the objects."""
+    """Background geometries (the support and the structure's pieces) before the objects."""
     crop_lo: np.ndarray
     """(3,) float64 lower corner of the box the scan keeps (world)."""
     crop_hi: np.ndarray
@@ -278,22 +299,23 @@ class _Scan:
 
 
 def _scan(
-    config: str, objs: list[_Object], structure: "Structure | None", rng: np.random.Generator, *, n_cameras: int,
-    image_size: tuple[int, int], noise: bool,
+    config: str, objs: list[_Object], structure: "Structure | None", rng: np.random.Generator, *, stage: Stage,
+    n_cameras: int, image_size: tuple[int, int], noise: bool,
 ) -> _Scan:
-    """Build the ray-casting scene (table, structure, objects), place the cameras for the configuration around
-    the objects' bounds and render one noisy depth frame per camera."""
+    """Build the ray-casting scene (the stage's support, structure, objects), place the cameras for the
+    configuration around the objects' bounds and render one noisy depth frame per camera."""
     import open3d as o3d
     import trimesh
 
     from efem_viz._typeshims import o3d_tensor
 
-    table = trimesh.creation.box(extents=[2 * TABLE_HALF, 2 * TABLE_HALF, TABLE_THICKNESS])
-    table.apply_translation([0, 0, -TABLE_THICKNESS / 2])
-    # geometry 0 = table, then the structure's pieces (background too), then the objects
+    half = stage.half_size
+    support = trimesh.creation.box(extents=[2 * half, 2 * half, stage.thickness])
+    support.apply_translation([0, 0, -stage.thickness / 2])
+    # geometry 0 = the support, then the structure's pieces (background too), then the objects
     fixtures = list(structure.pieces) if structure is not None else []
     n_fix = 1 + len(fixtures)
-    world = [table] + fixtures + [o.world_mesh() for o in objs]
+    world = [support] + fixtures + [o.world_mesh() for o in objs]
     rc = o3d.t.geometry.RaycastingScene()
     for m in world:
         rc.add_triangles(
@@ -301,28 +323,33 @@ def _scan(
             o3d_tensor(np.asarray(m.faces, np.uint32)),
         )
     fix_colors = [structure.color] * len(fixtures) if structure is not None else []
-    albedo = np.stack([_TABLE_COLOR] + fix_colors + [o.color for o in objs])
+    albedo = np.stack([np.array(stage.color, np.float64)] + fix_colors + [o.color for o in objs])
     obj_lo = np.min([m.bounds[0] for m in world[n_fix:]], axis=0)
     obj_hi = np.max([m.bounds[1] for m in world[n_fix:]], axis=0)
-    margin = 0.04
-    crop_lo = np.array([max(obj_lo[0] - margin, -TABLE_HALF), max(obj_lo[1] - margin, -TABLE_HALF), -0.02])
+    margin = stage.crop_margin
+    crop_lo = np.array([max(obj_lo[0] - margin, -half), max(obj_lo[1] - margin, -half), -stage.crop_below])
     crop_hi = np.array(
-        [min(obj_hi[0] + margin, TABLE_HALF), min(obj_hi[1] + margin, TABLE_HALF), obj_hi[2] + 0.03]
+        [min(obj_hi[0] + margin, half), min(obj_hi[1] + margin, half), obj_hi[2] + stage.crop_above]
     )
-    target = np.array([(obj_lo[0] + obj_hi[0]) / 2, (obj_lo[1] + obj_hi[1]) / 2, 0.04])
+    target = np.array([(obj_lo[0] + obj_hi[0]) / 2, (obj_lo[1] + obj_hi[1]) / 2, stage.aim_height])
+    heights: tuple[float, float] | None = None  # the stage's
+    front: np.ndarray | None = None
     if config == "tree":
         target[2] = (obj_lo[2] + obj_hi[2]) / 2
-        cams = _make_cameras(rng, target, n_cameras=n_cameras, image_size=image_size, heights=(0.35, 0.6))
+        heights = (0.35, 0.6)
     elif config == "box":
-        cams = _make_cameras(rng, target, n_cameras=n_cameras, image_size=image_size, heights=(0.6, 0.8))
+        heights = (0.6, 0.8)
     elif config == "shelf":
         assert structure is not None
         target[2] = (obj_lo[2] + obj_hi[2]) / 2
-        cams = _make_cameras(rng, target, n_cameras=n_cameras, image_size=image_size,
-                             heights=(0.1, obj_hi[2] + 0.2), front=structure.front)
-    else:
-        cams = _make_cameras(rng, target, n_cameras=n_cameras, image_size=image_size)
-    frames = [_render(rc, c, albedo, rng, noise=noise, crop_lo=crop_lo, crop_hi=crop_hi) for c in cams]
+        heights, front = (0.1, obj_hi[2] + 0.2), structure.front
+    reach = max(float(np.linalg.norm(np.asarray(m.vertices)[:, :2] - target[:2], axis=1).max()) for m in world[n_fix:])
+    cams = _make_cameras(rng, target, stage=stage, n_cameras=n_cameras, image_size=image_size, heights=heights,
+                         front=front, reach=reach)
+    frames = [
+        _render(rc, c, albedo, rng, noise=noise, crop_lo=crop_lo, crop_hi=crop_hi, max_range=stage.max_range)
+        for c in cams
+    ]
     visible_px = np.zeros(len(world), np.int64)
     for fr in frames:
         ids, cnt = np.unique(fr.visible_ids[fr.visible_ids >= 0], return_counts=True)
@@ -386,14 +413,15 @@ def _fuse(scan: _Scan, *, mode: str, voxel: float, what: str) -> _Fused:
 def _provenance(
     config: str, seed: int, *, n_objects: int | None, mode: str, distractors: bool, split: str, voxel: float,
     image_size: tuple[int, int], n_cameras: int, noise: bool, label_tolerance: float, objs: list[_Object],
-    structure: "Structure | None", poses: _Poses, scan: _Scan, counts: np.ndarray, targets: str = "mug",
+    structure: "Structure | None", poses: _Poses, scan: _Scan, counts: np.ndarray, targets: str, stage: Stage,
 ) -> dict[str, Any]:
-    """What made the scene: the arguments (and the command that repeats them), the table, the crop, every
-    object (category, seed, instance id, pose, pixels seen, points labelled), the cameras, the physics outcome."""
+    """What made the scene: the arguments (and the command that repeats them), the support (table or floor),
+    the crop, every object (category, seed, instance id, pose, pixels seen, points labelled), the cameras, the
+    physics outcome."""
     n_fix = scan.n_fixtures
     provenance: dict[str, Any] = {
         "generator": "efem_viz.data.synth",
-        "command": _command(config, seed, n_objects, mode, distractors, split, voxel, targets),
+        "command": _command(config, seed, n_objects, mode, distractors, split, voxel, targets, stage=stage),
         "config": config,
         "seed": int(seed),
         "mode": mode,
@@ -404,7 +432,7 @@ def _provenance(
         "n_cameras": n_cameras,
         "noise": "kinect sigma(z)=1.2mm+1.9mm*(z-0.4)^2, grazing dropout 65-85 deg" if noise else "none",
         "label_tolerance": label_tolerance,
-        "table": {"half_size": TABLE_HALF, "top_z": 0.0},
+        stage.support: {"half_size": stage.half_size, "top_z": 0.0},
         "crop": [scan.crop_lo.round(4).tolist(), scan.crop_hi.round(4).tolist()],
         "mug_seeds": [o.seed for o in objs if o.category == "mug"],
         "objects": [
@@ -436,8 +464,10 @@ def _provenance(
 
 def _command(
     config: str, seed: int, n_objects: int | None, mode: str, distractors: bool, split: str, voxel: float,
-    targets: str = "mug",
+    targets: str, *, stage: Stage,
 ) -> str:
+    """The `efem-viz generate` command line that makes this scene again (the voxel only when not the stage's
+    default)."""
     cmd = f"efem-viz generate --config {config} --seed {seed} --count 1 --mode {mode}"
     if targets != "mug":
         cmd += f" --targets {targets}"
@@ -447,6 +477,6 @@ def _command(
         cmd += " --no-distractors"
     if split != "test":
         cmd += f" --split {split}"
-    if voxel != 0.004:
+    if voxel != stage.voxel:
         cmd += f" --voxel {voxel}"
     return cmd

@@ -1,4 +1,4 @@
-"""Scene layout: the configurations, the table, the objects drawn for a scene and their placement
+"""Scene layout: the configurations, the objects drawn for a scene and their placement on the scene's stage
 (upright scatter, shelf levels, pegs of a mug tree) before physics.
 """
 
@@ -9,6 +9,8 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Literal, Sequence
 
 import numpy as np
+
+from efem_viz.data.synth.stage import TABLETOP, Stage
 
 if TYPE_CHECKING:
     import trimesh
@@ -23,10 +25,11 @@ CONFIGS: tuple[str, ...] = ("z", "so3", "pile", "tree", "box", "shelf")
 STRUCTURE_CONFIGS: tuple[str, ...] = ("tree", "box", "shelf")
 """Configurations with a supporting structure (`efem_viz.data.structures`)."""
 
-TABLE_HALF = 0.4
+TABLE_HALF = TABLETOP.half_size
 """Half side of the square table top (metres); the top face is at z = 0."""
-TABLE_THICKNESS = 0.04
-DISTRACTOR_CATEGORIES: tuple[str, ...] = ("box", "can", "bowl", "bottle")
+TABLE_THICKNESS = TABLETOP.thickness
+DISTRACTOR_CATEGORIES: tuple[str, ...] = TABLETOP.distractors
+"""The distractors of tabletop scenes."""
 
 _MUG_COLORS = np.array(
     [
@@ -43,7 +46,6 @@ _MUG_COLORS = np.array(
     ],
     dtype=np.float64,
 )
-_TABLE_COLOR = np.array([190, 155, 115], dtype=np.float64)
 _DISTRACTOR_COLORS = np.array(
     [[170, 170, 150], [120, 120, 200], [100, 160, 100], [200, 170, 120]], dtype=np.float64
 )
@@ -73,17 +75,19 @@ class _Object:
 
 def _sample_objects(
     rng: np.random.Generator, *, n_mugs: int, distractors: bool, split: str, hole: float | None = None,
-    targets: str = "mug",
+    targets: str = "mug", stage: Stage,
 ) -> list[_Object]:
     """The scene's mugs (labels 1..n) and 0-2 distractors (label 0). With `hole`, only mugs whose handle
-    opening clears that radius (m) are drawn (the tree configuration hangs them on pegs). `targets` "kitchen"
-    (a training family, `procedural.FAMILIES`): the labelled objects are drawn from its members, each object's
-    category by the seed, and the distractors from the categories outside the family (boxes)."""
+    opening clears that radius (m) are drawn (the tree configuration hangs them on pegs). Other `targets`, a
+    training family (`procedural.FAMILIES`, e.g. "kitchen") or a category ("chair"): the labelled objects are
+    drawn from its members, each object's category by the seed, and the distractors from the stage's
+    distractor categories outside the family (boxes on the table, cabinets on the floor)."""
     from efem_viz.data.procedural import handle_hole, make_shape_with_parts, split_seeds
 
     seeds = split_seeds("mug", split)  # type: ignore[arg-type]
     if targets != "mug":
-        return _sample_family(rng, targets, n_objects=n_mugs, distractors=distractors, seeds=seeds)
+        return _sample_family(rng, targets, n_objects=n_mugs, distractors=distractors, seeds=seeds,
+                              distractor_categories=stage.distractors)
     # (seed, (mesh, parts), handle opening) of each mug, each mug built once
     mugs: list[tuple[int, tuple[trimesh.Trimesh, list[np.ndarray]], tuple[np.ndarray, float] | None]] = []
     if hole is None:
@@ -107,7 +111,7 @@ def _sample_objects(
     if distractors:
         n_d = int(rng.integers(0, 3))
         for _ in range(n_d):
-            cat = DISTRACTOR_CATEGORIES[int(rng.integers(len(DISTRACTOR_CATEGORIES)))]
+            cat = stage.distractors[int(rng.integers(len(stage.distractors)))]
             s = int(seeds[int(rng.integers(len(seeds)))])
             mesh, parts = make_shape_with_parts(cat, s)
             col = _DISTRACTOR_COLORS[int(rng.integers(len(_DISTRACTOR_COLORS)))]
@@ -116,13 +120,14 @@ def _sample_objects(
 
 
 def _sample_family(rng: np.random.Generator, family: str, *, n_objects: int, distractors: bool,
-                   seeds: range) -> list[_Object]:
-    """`_sample_objects` for a training family's scene: labelled objects of its member categories (one seed
-    each, not repeated within a category), then 0-2 distractors of the other categories."""
+                   seeds: range, distractor_categories: Sequence[str]) -> list[_Object]:
+    """`_sample_objects` for a training family's (or a single category's) scene: labelled objects of its member
+    categories (one seed each, not repeated within a category), then 0-2 distractors of the
+    `distractor_categories` outside the family."""
     from efem_viz.data.procedural import family_members, make_shape_with_parts
 
     members = family_members(family)
-    others = tuple(c for c in DISTRACTOR_CATEGORIES if c not in members)
+    others = tuple(c for c in distractor_categories if c not in members)
     cats = [members[int(i)] for i in rng.integers(len(members), size=n_objects)]
     picks = rng.choice(len(seeds), size=n_objects, replace=False)
     colors = rng.permutation(len(_MUG_COLORS))
@@ -157,10 +162,13 @@ def _footprint_radius(mesh: "trimesh.Trimesh", R: np.ndarray) -> tuple[np.ndarra
     return c, float(np.linalg.norm(v[:, :2] - c, axis=1).max())
 
 
-def _scatter_xy(rng: np.random.Generator, radii: Sequence[float], *, gap: float = 0.01) -> np.ndarray:
-    """Non-overlapping disc centres (K, 2) around the origin (rejection sampling in a growing square)."""
+def _scatter_xy(rng: np.random.Generator, radii: Sequence[float], *, stage: Stage, gap: float = 0.01) -> np.ndarray:
+    """Non-overlapping disc centres (K, 2) around the origin (rejection sampling in a square that starts at the
+    stage's scatter size and grows towards the support's edge)."""
     n = len(radii)
-    half = min(0.04 + 0.02 * n, TABLE_HALF - 0.12)
+    start, per_object = stage.scatter_start
+    first_inset, last_inset = stage.scatter_inset
+    half = min(start + per_object * n, stage.half_size - first_inset)
     for _ in range(50):
         centres: list[np.ndarray] = []
         ok = True
@@ -175,15 +183,16 @@ def _scatter_xy(rng: np.random.Generator, radii: Sequence[float], *, gap: float 
                 break
         if ok:
             return np.array(centres).reshape(n, 2)
-        half = min(half * 1.15, TABLE_HALF - 0.05)
-    raise RuntimeError(f"could not place {n} objects without overlap on the table")
+        half = min(half * 1.15, stage.half_size - last_inset)
+    raise RuntimeError(f"could not place {n} objects without overlap on the {stage.support}")
 
 
-def _place_upright(objs: list[_Object], rng: np.random.Generator) -> None:
-    """z configuration: upright, random yaw, resting on the table, footprints disjoint."""
+def _place_upright(objs: list[_Object], rng: np.random.Generator, *, stage: Stage) -> None:
+    """z configuration: upright, random yaw, resting on the stage's support (table or floor), footprints
+    disjoint."""
     rots = [_yaw(float(rng.uniform(0, 2 * np.pi))) for _ in objs]
     foot = [_footprint_radius(o.mesh, R) for o, R in zip(objs, rots)]
-    xy = _scatter_xy(rng, [r for _, r in foot])
+    xy = _scatter_xy(rng, [r for _, r in foot], stage=stage)
     for o, R, (c, _), p in zip(objs, rots, foot, xy):
         _rest_upright(o, R, p, 0.0, c)
 

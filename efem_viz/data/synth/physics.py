@@ -8,7 +8,8 @@ from typing import TYPE_CHECKING, Any, Literal, Sequence, cast
 
 import numpy as np
 
-from efem_viz.data.synth.layout import TABLE_HALF, _Object, _random_rotation, _scatter_xy
+from efem_viz.data.synth.layout import _Object, _random_rotation, _scatter_xy
+from efem_viz.data.synth.stage import Stage
 from efem_viz.geometry.transforms import rotation_to_quat_wxyz
 
 if TYPE_CHECKING:
@@ -58,12 +59,14 @@ def _simulate(
     rng: np.random.Generator,
     *,
     layout: Literal["scatter", "pile", "box", "hang"],
+    stage: Stage,
     statics: Sequence[np.ndarray] = (),
     floor: tuple[np.ndarray, np.ndarray] | None = None,
     floor_top: float = 0.0,
     max_seconds: float = 6.0,
 ) -> None:
-    """Drop the objects with random orientations (pybullet, DIRECT mode) and store their resting poses.
+    """Drop the objects with random orientations (pybullet, DIRECT mode) onto the stage's support (a table or
+    a floor, its top at z = 0) and store their resting poses.
 
     scatter: all objects at once, each above its own non-overlapping spot. pile: one after the other, just
     above the top of the objects already lying there (near their centre), each settling before the next is
@@ -81,10 +84,10 @@ def _simulate(
         pb.setPhysicsEngineParameter(
             fixedTimeStep=dt, numSolverIterations=60, deterministicOverlappingPairs=1, physicsClientId=cid
         )
-        table = pb.createCollisionShape(
-            pb.GEOM_BOX, halfExtents=[TABLE_HALF, TABLE_HALF, 0.05], physicsClientId=cid
+        support = pb.createCollisionShape(
+            pb.GEOM_BOX, halfExtents=[stage.half_size, stage.half_size, 0.05], physicsClientId=cid
         )
-        tid = pb.createMultiBody(0, table, basePosition=[0, 0, -0.05], physicsClientId=cid)
+        tid = pb.createMultiBody(0, support, basePosition=[0, 0, -0.05], physicsClientId=cid)
         pb.changeDynamics(tid, -1, lateralFriction=0.8, physicsClientId=cid)
         coms = [np.asarray(o.mesh.center_mass, np.float64) for o in objs]
         if layout == "hang":
@@ -94,7 +97,7 @@ def _simulate(
         radii = [
             float(np.linalg.norm(np.asarray(o.mesh.vertices) - c, axis=1).max()) for o, c in zip(objs, coms)
         ]
-        xy = _scatter_xy(rng, radii, gap=0.005) if layout == "scatter" else None
+        xy = _scatter_xy(rng, radii, stage=stage, gap=0.005) if layout == "scatter" else None
         bodies: list[int] = []
         with tempfile.TemporaryDirectory(prefix="efem_synth_") as tmp:
             if len(statics):
@@ -113,7 +116,7 @@ def _simulate(
                     pos = [xy[k, 0], xy[k, 1], radii[k] + 0.005 + float(rng.uniform(0, 0.02))]
                 else:
                     pos = _drop_position(pb, cid, bodies, rng, radius=radii[k], floor=floor if layout == "box" else None,
-                                         floor_top=floor_top)
+                                         floor_top=floor_top, spread=stage.pile_spread)
                 bodies.append(_add_body(pb, cid, o, shape, pos, R, layout=layout))
                 if layout in ("pile", "box"):
                     _settle(pb, cid, bodies, max_steps=int(3.0 / dt), min_steps=240)
@@ -130,10 +133,10 @@ def _simulate(
 
 
 def _drop_position(pb: Any, cid: int, bodies: list[int], rng: np.random.Generator, *, radius: float,
-                   floor: tuple[np.ndarray, np.ndarray] | None, floor_top: float) -> list[float]:
+                   floor: tuple[np.ndarray, np.ndarray] | None, floor_top: float, spread: float) -> list[float]:
     """Where a piled or boxed object of bounding radius `radius` is dropped from: just clear of `floor_top` and of
     the top of the `bodies` already lying there, above a random spot of `floor` (box), else above the centre of
-    the pile so far (or near the origin for the first)."""
+    the pile so far (or near the origin for the first), moved by a normal offset of deviation `spread`."""
     top = floor_top
     if bodies:
         top = max(top, max(pb.getAABB(b, physicsClientId=cid)[1][2] for b in bodies))
@@ -143,9 +146,9 @@ def _drop_position(pb: Any, cid: int, bodies: list[int], rng: np.random.Generato
         centre = rng.uniform(lo + inset, hi - inset)
     elif bodies:  # pile: above the centre of the pile so far, just clear of its top
         poses = [pb.getBasePositionAndOrientation(b, physicsClientId=cid) for b in bodies]
-        centre = np.mean([q[0] for q in poses], axis=0)[:2] + rng.normal(0.0, 0.015, 2)
+        centre = np.mean([q[0] for q in poses], axis=0)[:2] + rng.normal(0.0, spread, 2)
     else:
-        centre = rng.normal(0.0, 0.015, 2)
+        centre = rng.normal(0.0, spread, 2)
     return [centre[0], centre[1], top + radius + 0.005]
 
 
@@ -199,9 +202,9 @@ def _settle(
 # ====================================================================================== checks
 def contact_report(
     objs_world: Sequence["trimesh.Trimesh"], *, samples: int = 3000, seed: int = 0,
-    fixed: Sequence["trimesh.Trimesh"] = (),
+    fixed: Sequence["trimesh.Trimesh"] = (), rays: int = 1,
 ) -> dict[str, Any]:
-    """Interpenetration and contact of posed meshes (world frame, table top at z = 0).
+    """Interpenetration and contact of posed meshes (world frame, the support's top (table or floor) at z = 0).
 
     Args:
         objs_world: watertight meshes in the world frame.
@@ -209,13 +212,16 @@ def contact_report(
         seed: seed of the surface sampling.
         fixed: watertight pieces of a fixed structure (world frame): objects must not penetrate them; the pieces
             may overlap each other.
+        rays: rays cast per probe to tell inside from outside (odd): one ray through an edge or a vertex can
+            flip a probe's sign, and a majority of three votes the flip away (solids built of boxes, as the
+            chairs, meet such rays often).
 
     Returns:
-        {"max_penetration": metres (objects into each other, into the structure, or below the table top),
+        {"max_penetration": metres (objects into each other, into the structure, or below the support's top),
          "pair_penetration": (K, K) array, [i, j] = deepest point of i inside j,
          "pair_gap": (K, K) array, [i, j] = smallest distance from i's surface to j (0 when touching or
          penetrating; inf when their bounding boxes are more than 1 cm apart),
-         "gap": (K,) distance from each object to the nearest other object, structure piece or the table top}.
+         "gap": (K,) distance from each object to the nearest other object, structure piece or the support's top}.
     """
     import open3d as o3d
     import trimesh
@@ -248,7 +254,7 @@ def contact_report(
             near = np.all((p >= lo) & (p <= hi), axis=1)
             if not near.any():
                 continue
-            sd = scene.compute_signed_distance(o3d_tensor(p[near])).numpy()
+            sd = scene.compute_signed_distance(o3d_tensor(p[near]), nsamples=rays).numpy()
             pen[i, j] = max(-float(sd.min()), 0.0)
             pair_gap[i, j] = max(float(sd.min()), 0.0)
             gap[i] = min(gap[i], pair_gap[i, j])

@@ -9,18 +9,26 @@ from typing import Any
 
 import numpy as np
 
-from efem_viz.data.synth.layout import TABLE_HALF
+from efem_viz.data.synth.stage import Stage
 from efem_viz.geometry.camera import Camera, look_at
 
 
 # ====================================================================================== scanning
 def _make_cameras(
-    rng: np.random.Generator, target: np.ndarray, *, n_cameras: int, image_size: tuple[int, int],
-    heights: tuple[float, float] = (0.45, 0.6), front: np.ndarray | None = None,
+    rng: np.random.Generator, target: np.ndarray, *, stage: Stage, n_cameras: int, image_size: tuple[int, int],
+    heights: tuple[float, float] | None = None, front: np.ndarray | None = None, reach: float = 0.0,
 ) -> list[Camera]:
-    """Depth cameras looking at `target`: around the table at its corners (eye heights drawn from `heights`),
-    or, with a `front` direction (a shelf), spread over ±55° about it, 0.6-0.75 m away, at heights rising
-    through `heights`."""
+    """Depth cameras looking at `target`: on the stage's camera ring, at its diagonals for 4 cameras (eye heights
+    drawn from `heights`, default the stage's), or, with a `front` direction (a shelf), spread over ±55° about
+    it, 0.6-0.75 m away, at heights rising through `heights`. The ring is centred on the support's centre
+    (a table: the cameras at its corners) or, where the stage has a camera standoff, on the target, widened
+    to the standoff beyond `reach` (the objects' farthest horizontal distance from the target). Each aim point
+    moves horizontally by up to the stage's aim jitter."""
+    heights = stage.camera_heights if heights is None else heights
+    jitter = stage.aim_jitter
+    centre, ring = np.zeros(2), stage.camera_ring
+    if stage.camera_standoff is not None:
+        centre, ring = np.asarray(target[:2], np.float64), max(ring, reach + stage.camera_standoff)
     w, h = image_size
     f = 525.0 * w / 640.0
     K = np.array([[f, 0.0, (w - 1) / 2], [0.0, f, (h - 1) / 2], [0.0, 0.0, 1.0]])
@@ -33,15 +41,15 @@ def _make_cameras(
             dist = rng.uniform(0.6, 0.75)
             z = heights[0] + (heights[1] - heights[0]) * ((i * 2 + 1) % n_cameras) / n_cameras
             eye = np.array([target[0] + dist * math.cos(az), target[1] + dist * math.sin(az), z])
-            tgt = target + np.array([*rng.uniform(-0.02, 0.02, 2), 0.0])
+            tgt = target + np.array([*rng.uniform(-jitter, jitter, 2), 0.0])
             cams.append(Camera(K, look_at(eye, tgt), w, h))
         return cams
     az0 = np.pi / 4 + rng.uniform(-0.15, 0.15)
     for i in range(n_cameras):
         az = az0 + 2 * np.pi * i / n_cameras + rng.uniform(-0.1, 0.1)
-        horiz = TABLE_HALF * math.sqrt(2) * rng.uniform(0.9, 1.05)
-        eye = np.array([horiz * math.cos(az), horiz * math.sin(az), rng.uniform(*heights)])
-        tgt = target + np.array([*rng.uniform(-0.02, 0.02, 2), 0.0])
+        horiz = ring * rng.uniform(0.9, 1.05)
+        eye = np.array([centre[0] + horiz * math.cos(az), centre[1] + horiz * math.sin(az), rng.uniform(*heights)])
+        tgt = target + np.array([*rng.uniform(-jitter, jitter, 2), 0.0])
         cams.append(Camera(K, look_at(eye, tgt), w, h))
     return cams
 
@@ -68,7 +76,11 @@ def _render(
     noise: bool,
     crop_lo: np.ndarray,
     crop_hi: np.ndarray,
+    max_range: float,
 ) -> _Frame:
+    """Ray-cast one depth frame of `scene` (geometry i coloured `albedo[i]`) from `cam`: depth up to `max_range`,
+    with Kinect-like noise (`_depth_sigma`, dropout at grazing angles) when `noise`, measurements outside the
+    box [crop_lo, crop_hi] removed."""
     from efem_viz._typeshims import o3d_tensor
 
     h, w = cam.height, cam.width
@@ -81,7 +93,7 @@ def _render(
     z = ans["t_hit"].numpy().astype(np.float64)  # ray direction has unit z in the camera: t = depth
     gid = ans["geometry_ids"].numpy().astype(np.int64)
     nrm = ans["primitive_normals"].numpy().astype(np.float64)
-    hit = np.isfinite(z) & (z < 3.0)
+    hit = np.isfinite(z) & (z < max_range)
     gid = np.where(hit, gid, -1)
     d_unit = d_world / np.linalg.norm(d_world, axis=-1, keepdims=True)
     cos = np.sum(nrm * d_unit, axis=-1)
