@@ -146,15 +146,15 @@ class VNDGCNNEncoder(nn.Module):
             elif str(b) in self.Q_list:
                 u = self._edge_linear(layer, feat, f_dst, nbr)  # (B, Nd, k, 3, C)
                 k_layer = cast(VNLinearLeakyReLU, self.K_list[str(b)])
-                kap = channel_normalize(self._edge_linear(k_layer, feat, f_dst, nbr))
+                kraw = self._edge_linear(k_layer, feat, f_dst, nbr)  # κ before ChNorm
                 q = channel_normalize(self.Q_list[str(b)](f_dst))  # (B, Nd, 3, C)
-                logits = (q[:, :, None] * kap).sum(dim=-2)  # (B, Nd, k, C)
-                heads = logits.shape[-1] // cfg.att_head_dim
-                logits = logits.unflatten(-1, (heads, cfg.att_head_dim)).sum(-1)
-                logits = logits / math.sqrt(3 * cfg.att_head_dim)
+                heads, hd = kraw.shape[-1] // cfg.att_head_dim, cfg.att_head_dim
+                # Σ_{c ∈ head} <q_c, ChNorm(κ)_c> = Σ_{c ∈ head} <q_c, κ_c> / ‖κ‖_F: ChNorm is one scalar per edge
+                dots = (q[:, :, None] * kraw).unflatten(-1, (heads, hd)).sum(dim=(-3, -1))  # (B, Nd, k, H)
+                k_norm = kraw.flatten(-2).norm(dim=-1).clamp_min(EPS)  # (B, Nd, k)
+                logits = dots / (k_norm[..., None] * math.sqrt(3 * hd))
                 att = logits.softmax(dim=2)  # (B, Nd, k, H)
-                att = att.repeat_interleave(cfg.att_head_dim, dim=-1)[..., None, :]  # (B, Nd, k, 1, C)
-                out = (att * u).sum(dim=2)
+                out = torch.einsum("bnkh,bnkxhd->bnxhd", att, u.unflatten(-1, (heads, hd))).flatten(-2)
             else:
                 w = layer.lin.weight
                 c_in = feat.shape[-1]
