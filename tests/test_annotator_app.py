@@ -959,6 +959,36 @@ def test_run_efem_on_the_open_scan_makes_prelabels(spheres, monkeypatch: pytest.
         a.close()
 
 
+def test_a_first_run_says_it_builds_the_kernels_before_its_first_step(spheres, monkeypatch: pytest.MonkeyPatch) -> None:
+    """On a machine where the encoder's kernels are not built yet, the progress line says so while they compile
+    (about half a minute without a step), then the steps follow."""
+    import annotator.assist as assist
+    from efem_viz.prior import fused
+
+    d, scene, prior = spheres
+    monkeypatch.setattr(assist, "get_prior", lambda name: prior)
+    monkeypatch.setattr(fused, "pending_build", lambda: True)
+    texts: list[str] = []
+    monkeypatch.setattr(fused, "load", lambda: texts.append("<load>") or False)  # the eager encoder serves
+    a = AnnotatorApp(d / "spheres.ply", out_dir=d / "out_build", port=0, autosave_delay=0)
+    try:
+        shown = a._show_efem_run
+
+        def spy(text: str | None, percent: float | None) -> None:
+            shown(text, percent)
+            if text is not None:
+                texts.append(text)
+
+        a.session.on_efem = spy
+        a.panels.gui_efem_proposals.value = 8
+        a.run_efem(wait=True)
+        notice = next(i for i, t in enumerate(texts) if fused.BUILD_NOTICE in t)
+        first_step = next(i for i, t in enumerate(texts) if "step 1 of" in t)
+        assert notice < texts.index("<load>") < first_step
+    finally:
+        a.close()
+
+
 def test_run_efem_on_a_millimetre_y_up_scan_solves_in_metres_and_labels_its_own_vertices(
         spheres, monkeypatch: pytest.MonkeyPatch) -> None:
     """A bare scan saved by another tool in millimetres with +Y up: EFEM runs on it brought to metres and +Z up

@@ -126,3 +126,25 @@ def test_a_killed_first_build_is_rebuilt_and_a_concurrent_one_means_eager_not_a_
     assert "LOADED True" in again.stdout and "interrupted build" in again.stdout, again.stdout + again.stderr
     warm = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
     assert "LOADED True" in warm.stdout and "building" not in warm.stdout  # a valid build is never rebuilt
+
+
+def test_a_pending_build_is_told_before_it_starts_and_a_finished_one_is_not(tmp_path, monkeypatch: pytest.MonkeyPatch
+                                                                            ) -> None:
+    """`prepare` tells its caller when `load` will compile (no finished build of this key on disk), and only
+    then; a process that has decided (loaded, or fell back) never asks again."""
+    monkeypatch.setattr(fused, "_build_dir", lambda: tmp_path)
+    monkeypatch.setattr(fused, "_state", {"loaded": None})
+    monkeypatch.setattr(fused, "load", lambda: True)
+    said: list[str] = []
+    assert fused.pending_build()
+    fused.prepare(said.append)
+    assert said == [fused.BUILD_NOTICE]
+    name = f"efem_vn_{fused.build_key(fused.SOURCE.read_text(encoding='utf-8'), fused._flags())}"
+    (tmp_path / name).mkdir()
+    (tmp_path / name / f"{name}.so").write_bytes(b"")
+    assert not fused.pending_build()
+    fused.prepare(said.append)
+    assert said == [fused.BUILD_NOTICE]
+    (tmp_path / name / f"{name}.so").unlink()
+    monkeypatch.setattr(fused, "_state", {"loaded": False})
+    assert not fused.pending_build()

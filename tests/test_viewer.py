@@ -472,6 +472,18 @@ def test_run_in_worker_with_progress_and_cancel(app: Any) -> None:
     assert app.wait_idle(60)
 
 
+def test_a_first_run_says_it_builds_the_kernels(app: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Where the encoder's kernels are not built yet, the Run's progress line says so while they compile."""
+    from efem_viz.prior import fused
+
+    seen: list[str] = []
+    monkeypatch.setattr(fused, "pending_build", lambda: True)
+    monkeypatch.setattr(fused, "load", lambda: seen.append(app.panels.gui_run_info.content) or False)
+    res = app.start_run(preset="fast", proposals=8, seed=3).result(timeout=120)
+    assert res is not None and seen == [fused.BUILD_NOTICE]
+    assert app.wait_idle(60)
+
+
 def test_a_run_is_shown_as_it_goes_then_its_final_result(app: Any) -> None:
     """Progressive results: with no wait between shown states, every step's state of a run (its proposals at the
     newest step, the instances accepted so far) is shown, each with more steps, then the finished result; the

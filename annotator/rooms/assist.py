@@ -203,6 +203,9 @@ class AssistRoom:
 
         t0 = time.perf_counter()
         try:
+            from efem_viz.prior import fused
+
+            fused.prepare(lambda notice: self.hooks.notify("Segmenting", notice))  # a first click builds them
             mask_idx = assist.segment_at_point(self.efem_scene(), vertex, prior_name=prior_name, settings=self.solve,
                                                on_step=on_step, cancel=cancel)
         except EMCancelled:
@@ -326,6 +329,9 @@ class AssistRoom:
 
         t0 = time.perf_counter()
         try:
+            from efem_viz.prior import fused
+
+            fused.prepare(lambda notice: self.hooks.on_efem(f"{what}: {notice}", 0.0))  # a first run builds them
             result = assist.solve_scan(self.efem_scene(), prior_name=prior_name, settings=settings, seed=seed,
                                        on_step=on_step, cancel=cancel)
             if cancel.is_set():  # pressed after the last step: still nothing is added

@@ -22,7 +22,7 @@ import logging
 import os
 import threading
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import torch
 import torch.nn.functional as F
@@ -128,6 +128,30 @@ def load() -> bool:
         return bool(_state["loaded"])
 
 
+BUILD_NOTICE = "building the fused VN kernels (once per machine, about 35 s) …"
+"""What an app shows while a first run on a machine compiles the kernels (`prepare`)."""
+
+
+def pending_build() -> bool:
+    """Whether the next `load` compiles the kernels: not decided in this process yet, not turned off, and no
+    finished build of this source, compiler and torch on disk."""
+    if _state["loaded"] is not None or os.environ.get("EFEM_VIZ_FUSED", "1") == "0":
+        return False
+    try:
+        name = f"efem_vn_{build_key(SOURCE.read_text(encoding='utf-8'), _flags())}"
+    except Exception:  # noqa: BLE001 - whatever stops the key stops the build too; `load` says why
+        return False
+    return not (_build_dir() / name / f"{name}.so").is_file()
+
+
+def prepare(say: Callable[[str], None] | None = None) -> bool:
+    """`load`, telling `say` first when that compiles the kernels (a first run on a machine, which otherwise
+    shows no step for the half minute the compiler takes). Returns what `load` returns."""
+    if say is not None and pending_build():
+        say(BUILD_NOTICE)
+    return load()
+
+
 def _registered() -> bool:
     return hasattr(torch.ops.efem_vn, "edge_mean") and hasattr(torch.ops.efem_vn, "act_mean")
 
@@ -163,7 +187,7 @@ def _load_or_build() -> bool:
             return _registered()
         from torch.utils.cpp_extension import load_inline
 
-        log.info("building the fused VN kernels (once per machine, about 35 s) in %s", build)
+        log.info("%s in %s", BUILD_NOTICE.rstrip(" …"), build)
         load_inline(name=name, cpp_sources=[src], is_python_module=False,
                     extra_cflags=["-O3", "-fopenmp", *flags], extra_ldflags=["-fopenmp"],
                     build_directory=str(build), verbose=False)

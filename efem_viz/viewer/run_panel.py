@@ -80,6 +80,9 @@ class RunPanel:
                                       f"{info.active} proposals alive, {len(partial.instances)} accepted so far")
 
         try:
+            from efem_viz.prior import fused
+
+            fused.prepare(lambda notice: setattr(self.panels.gui_run_info, "content", notice))  # a first run builds
             result = self.session.run(settings, show=False, on_step=on_step, generation=generation)
         finally:
             with self.session.lock:
