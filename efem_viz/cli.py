@@ -20,6 +20,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
                     "bring your own scan (any units, any up axis) into the scene frame"),
     "train-prior": ("efem_viz.prior.train:TrainArgs", "train a SIM(3)-equivariant shape prior"),
     "build-codebook": ("efem_viz.prior.commands:BuildCodebookArgs", "build the pose codebook of a prior"),
+    "fit-member-head": ("efem_viz.prior.commands:FitMemberHeadArgs",
+                        "fit a family prior's member classifier (which of mug, bowl, bottle, can)"),
     "pack-meshes": ("efem_viz.prior.commands:PackMeshesArgs",
                     "pack training meshes into one .npz for a machine without trimesh/open3d"),
     "convert-prior": ("efem_viz.prior.commands:ConvertArgs",

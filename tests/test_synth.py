@@ -10,6 +10,7 @@ import pytest
 
 from efem_viz.data.procedural import make_shape, split_seeds
 from efem_viz.data.scene import Scene
+from synth_helpers import distance_to, world_meshes
 from efem_viz.data.synth import PENETRATION_TOLERANCE, GenerateArgs, contact_report, generate_scene
 
 FAST = dict(image_size=(200, 150), voxel=0.006)
@@ -22,24 +23,8 @@ def _scene(config: str, seed: int, n: int, mode: str = "tsdf", distractors: bool
     )
 
 
-def _world_meshes(scene: Scene) -> list:
-    out = []
-    for o in scene.provenance["objects"]:
-        m = make_shape(o["category"], o["seed"])
-        m.apply_transform(np.asarray(o["T_world_object"]))
-        out.append(m)
-    return out
 
 
-def _distance_to(mesh, pts: np.ndarray) -> np.ndarray:
-    import open3d as o3d
-
-    rc = o3d.t.geometry.RaycastingScene()
-    rc.add_triangles(
-        o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
-        o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)),
-    )
-    return rc.compute_distance(o3d.core.Tensor(pts.astype(np.float32))).numpy()
 
 
 def test_same_seed_identical_different_seed_different() -> None:
@@ -56,7 +41,7 @@ def test_same_seed_identical_different_seed_different() -> None:
 def test_ground_truth_labels_visible_objects_and_lie_on_their_surface(config: str) -> None:
     s = _scene(config, 3, 3)
     assert s.is_mesh and s.has_gt
-    meshes = _world_meshes(s)
+    meshes = world_meshes(s)
     objs = s.provenance["objects"]
     mug_ids = {o["instance_id"] for o in objs if o["category"] == "mug"}
     assert set(s.instance_ids().tolist()) <= mug_ids
@@ -68,15 +53,15 @@ def test_ground_truth_labels_visible_objects_and_lie_on_their_surface(config: st
         if o["visible_pixels"] > 200:
             assert lab.sum() > 20, f"visible mug {o['instance_id']} has only {lab.sum()} labelled points"
         if lab.any():
-            d = _distance_to(m, s.points[lab])
+            d = distance_to(m, s.points[lab])
             assert d.max() < s.provenance["label_tolerance"] + 1e-6
             assert np.median(d) < 0.004, f"labelled points lie {np.median(d) * 1e3:.1f} mm from their mug"
     # unlabelled points near a mug surface would be missed ground truth: they must be nearer to something else
     table_or_other = s.instance == 0
     for o, m in zip(objs, meshes):
         if o["category"] == "mug" and table_or_other.any():
-            d = _distance_to(m, s.points[table_or_other])
-            others = [_distance_to(q, s.points[table_or_other]) for q in meshes if q is not m]
+            d = distance_to(m, s.points[table_or_other])
+            others = [distance_to(q, s.points[table_or_other]) for q in meshes if q is not m]
             table_d = np.abs(s.points[table_or_other, 2])
             nearest_other = np.minimum.reduce(others + [table_d])
             assert not np.any((d < 0.003) & (d + 1e-4 < nearest_other)), "points on a mug left unlabelled"
@@ -84,8 +69,8 @@ def test_ground_truth_labels_visible_objects_and_lie_on_their_surface(config: st
 
 def test_tsdf_surface_close_to_truth_and_sensible_size() -> None:
     s = _scene("z", 4, 3)
-    meshes = _world_meshes(s)
-    d_obj = np.minimum.reduce([_distance_to(m, s.points) for m in meshes])
+    meshes = world_meshes(s)
+    d_obj = np.minimum.reduce([distance_to(m, s.points) for m in meshes])
     d = np.minimum(d_obj, np.abs(s.points[:, 2]))
     vox = FAST["voxel"]
     assert np.median(d) < 0.25 * vox, f"median distance to the true surfaces {np.median(d) * 1e3:.1f} mm"
@@ -117,17 +102,17 @@ def test_points_mode_spacing_and_noise() -> None:
 
 def test_z_config_mugs_upright_and_resting() -> None:
     s = _scene("z", 5, 3)
-    for o, m in zip(s.provenance["objects"], _world_meshes(s)):
+    for o, m in zip(s.provenance["objects"], world_meshes(s)):
         T = np.asarray(o["T_world_object"])
         assert np.allclose(T[:3, 2], [0, 0, 1], atol=1e-6), f"{o['category']} not upright"
         assert abs(m.bounds[0, 2]) < 1e-6, "not resting on the table top"
-    rep = contact_report(_world_meshes(s))
+    rep = contact_report(world_meshes(s))
     assert rep["max_penetration"] < 1e-4
 
 
 def test_pile_contacts_without_interpenetration() -> None:
     s = _scene("pile", 6, 3, distractors=False)
-    rep = contact_report(_world_meshes(s))
+    rep = contact_report(world_meshes(s))
     assert rep["max_penetration"] <= PENETRATION_TOLERANCE
     assert rep["max_penetration"] == pytest.approx(s.provenance["max_penetration_m"], abs=1e-3)
     # every object rests on something (table or another object)
@@ -142,7 +127,7 @@ def test_so3_orientations_are_not_all_upright() -> None:
     for seed in (7, 8):
         s = _scene("so3", seed, 3, distractors=False)
         tilts += [np.asarray(o["T_world_object"])[2, 2] for o in s.provenance["objects"]]
-        rep = contact_report(_world_meshes(s))
+        rep = contact_report(world_meshes(s))
         assert rep["max_penetration"] <= PENETRATION_TOLERANCE
         assert rep["gap"].max() < 0.003  # resting, not floating
     assert min(tilts) < 0.7, f"all objects nearly upright: {np.round(tilts, 2)}"
@@ -203,13 +188,13 @@ def test_structure_scene_ground_truth_and_structure_is_background(config: str) -
     assert np.array_equal(s.points, again.points) and np.array_equal(s.instance, again.instance)
     p = s.provenance
     assert p["config"] == config and p["structure"]["kind"] == config and p["misplaced_objects"] == 0
-    meshes, fixed = _world_meshes(s), _structure_meshes(s)
+    meshes, fixed = world_meshes(s), _structure_meshes(s)
     assert set(s.instance_ids().tolist()) == {1, 2, 3}, "every mug is seen"
     for o, m in zip(p["objects"], meshes):
         lab = s.instance == o["instance_id"]
-        assert np.median(_distance_to(m, s.points[lab])) < 0.004
-    d_fix = np.minimum.reduce([_distance_to(q, s.points) for q in fixed])
-    d_obj = np.minimum.reduce([_distance_to(m, s.points) for m in meshes])
+        assert np.median(distance_to(m, s.points[lab])) < 0.004
+    d_fix = np.minimum.reduce([distance_to(q, s.points) for q in fixed])
+    d_obj = np.minimum.reduce([distance_to(m, s.points) for m in meshes])
     on_structure = (d_fix < 0.002) & (d_obj > 0.015)
     assert on_structure.sum() > 50, "the cameras see the structure"
     assert (s.instance[on_structure] == 0).all(), "structure points must be background"
@@ -224,7 +209,7 @@ def test_tree_mugs_hang_by_their_handles_tilted() -> None:
     s = _scene("tree", 2, 3, distractors=False)
     pegs = s.provenance["structure"]["pegs"]
     tilts = []
-    for o, m in zip(s.provenance["objects"], _world_meshes(s)):
+    for o, m in zip(s.provenance["objects"], world_meshes(s)):
         T = np.asarray(o["T_world_object"])
         assert m.bounds[0, 2] > 0.03, "a mug fell off its peg"
         centre, clearance = handle_hole(make_shape("mug", o["seed"]))
@@ -243,12 +228,12 @@ def test_tree_mugs_hang_by_their_handles_tilted() -> None:
 def test_box_objects_inside_walls_and_shelf_levels_used() -> None:
     s = _scene("box", 2, 3, distractors=False)
     lo, hi = (np.asarray(v) for v in s.provenance["structure"]["floor"])
-    for m in _world_meshes(s):
+    for m in world_meshes(s):
         c = m.vertices.mean(axis=0)[:2]
         assert np.all(c > lo) and np.all(c < hi), "an object lies outside the box"
     sh = _scene("shelf", 2, 3, distractors=False)
     levels = sh.provenance["structure"]["levels"]
-    feet = [m.bounds[0, 2] for m in _world_meshes(sh)]
+    feet = [m.bounds[0, 2] for m in world_meshes(sh)]
     used = {int(np.argmin([abs(f - z) for z in levels])) for f in feet}
     assert all(min(abs(f - z) for z in levels) < 1e-4 for f in feet), "mugs rest on a level"
     assert len(used) == min(len(levels), 3), "every level holds a mug"

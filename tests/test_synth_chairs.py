@@ -10,8 +10,8 @@ from functools import lru_cache
 import numpy as np
 import pytest
 
-from efem_viz.data.procedural import make_shape
 from efem_viz.data.scene import Scene
+from synth_helpers import distance_to, world_meshes
 from efem_viz.data.synth import (
     FLOOR,
     PENETRATION_TOLERANCE,
@@ -32,23 +32,8 @@ def _chairs(config: str, seed: int) -> Scene:
     return generate_scene(config, seed=seed, **SMALL)  # type: ignore[arg-type]
 
 
-def _world_meshes(scene: Scene) -> list:
-    out = []
-    for o in scene.provenance["objects"]:
-        m = make_shape(o["category"], o["seed"])
-        m.apply_transform(np.asarray(o["T_world_object"]))
-        out.append(m)
-    return out
 
 
-def _distance_to(mesh, pts: np.ndarray) -> np.ndarray:
-    import open3d as o3d
-
-    from efem_viz._typeshims import o3d_tensor
-
-    rc = o3d.t.geometry.RaycastingScene()
-    rc.add_triangles(o3d_tensor(np.asarray(mesh.vertices, np.float32)), o3d_tensor(np.asarray(mesh.faces, np.uint32)))
-    return rc.compute_distance(o3d_tensor(pts.astype(np.float32))).numpy()
 
 
 @pytest.mark.parametrize("config", ["z", "so3", "pile"])
@@ -65,13 +50,13 @@ def test_chair_scene_labels_each_chair_on_its_surface_within_the_floor_crop(conf
     assert [o["instance_id"] for o in objs if o["category"] == "chair"] == [1, 2]
     assert {o["category"] for o in objs if o["instance_id"] == 0} <= {"cabinet"}
     assert set(s.instance_ids().tolist()) == {1, 2} and s.categories == {1: "chair", 2: "chair"}
-    meshes = _world_meshes(s)
+    meshes = world_meshes(s)
     for o, m in zip(objs, meshes):
         if o["instance_id"] == 0:
             continue
         lab = s.instance == o["instance_id"]
         assert lab.sum() > 2000, f"chair {o['instance_id']}: {lab.sum()} points"
-        d = _distance_to(m, s.points[lab])
+        d = distance_to(m, s.points[lab])
         assert d.max() < FLOOR.label_tolerance + 1e-6
         assert np.median(d) < 0.5 * FLOOR.voxel, f"labelled points lie {np.median(d) * 1e3:.1f} mm from the chair"
     lo, hi = (np.asarray(c) for c in p["crop"])
@@ -93,7 +78,7 @@ def test_chair_scene_labels_each_chair_on_its_surface_within_the_floor_crop(conf
 
 def test_z_chairs_stand_upright_on_the_floor_with_disjoint_footprints() -> None:
     s = _chairs("z", SEEDS["z"])
-    meshes = _world_meshes(s)
+    meshes = world_meshes(s)
     for o, m in zip(s.provenance["objects"], meshes):
         T = np.asarray(o["T_world_object"])
         assert np.allclose(T[:3, 2], [0, 0, 1], atol=1e-6), f"{o['category']} not upright"
@@ -112,7 +97,7 @@ def test_so3_chairs_tip_over_and_pile_chairs_lean_on_each_other() -> None:
     ups = [np.asarray(o["T_world_object"])[2, 2] for o in so3.provenance["objects"] if o["instance_id"] > 0]
     assert min(ups) < 0.7, f"all chairs nearly upright: {np.round(ups, 2)}"
     pile = _chairs("pile", SEEDS["pile"])
-    chairs = [m for o, m in zip(pile.provenance["objects"], _world_meshes(pile)) if o["instance_id"] > 0]
+    chairs = [m for o, m in zip(pile.provenance["objects"], world_meshes(pile)) if o["instance_id"] > 0]
     rep = contact_report(chairs, rays=3)
     assert min(rep["pair_gap"][0, 1], rep["pair_gap"][1, 0]) < 0.005, "the chairs do not touch"
     assert max(m.bounds[0, 2] for m in chairs) > 0.03, "no chair lies on another"

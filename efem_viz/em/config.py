@@ -289,6 +289,16 @@ class EMConfig:
         cfg.validate()
         return cfg
 
+    def radii(self) -> tuple[float, float]:
+        """(r_init, r_err) of a config resolved for its prior (`resolve_for_prior` fills them from the category).
+
+        Raises:
+            ValueError: unresolved (None).
+        """
+        if self.r_init is None or self.r_err is None:
+            raise ValueError("crop radii unresolved: resolve the config for its prior first (resolve_for_prior)")
+        return float(self.r_init), float(self.r_err)
+
     def with_proposals(self, n: int) -> "EMConfig":
         """A copy with `n` proposals in the first episode (later episodes scaled proportionally)."""
         if n < 1:

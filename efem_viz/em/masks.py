@@ -91,7 +91,7 @@ def instance_distances(result: "EMResult", scene: "Scene", prior: "PriorArg", *,
     for ep in np.unique(episodes):  # neighbourhoods among the points available in each instance's episode
         tree = AvailableTree(points, trace.available_mask(int(ep)), crop=cfg.crop)
         ks = np.flatnonzero(episodes == ep)
-        nb = tree.query(np.stack([np.asarray(lats[k]["center"], np.float64) for k in ks]), cfg.r_err)
+        nb = tree.query(np.stack([np.asarray(lats[k]["center"], np.float64) for k in ks]), cfg.radii()[1])
         for j, k in enumerate(ks):
             balls[k] = nb.idx[nb.row_slice(j)]
     rag = Ragged.from_lists(balls)

@@ -100,9 +100,9 @@ def track_proposal(scene: "Scene", prior: "ShapePriorLike", cfg: EMConfig, *, ob
     else:
         anchor = np.zeros(len(points), bool)
         anchor[int(start)] = True
-        _, rag = init_crops(points, available, 1, cfg.r_init, solver.rng, crop=cfg.crop, tree=tree,
+        _, rag = init_crops(points, available, 1, cfg.radii()[0], solver.rng, crop=cfg.crop, tree=tree,
                             anchor_mask=anchor)
-    ids = solver.rec.birth(0, np.array([0], np.int64), cfg.r_init, cfg.r_err, owner=np.zeros(1, np.int64))
+    ids = solver.rec.birth(0, np.array([0], np.int64), *cfg.radii(), owner=np.zeros(1, np.int64))
     solver.rec.start_episode(np.zeros(0, np.int64), len(ids))
     pool = _Pool(ids=ids, rag=rag, w=np.ones(len(rag.idx), np.float32), owner=np.zeros(1, np.int64))
     track = ProposalTrack()

@@ -504,10 +504,10 @@ class _Solver:
             tree = AvailableTree(self.points, available, crop=cfg.crop)
             full_tree = tree if self.identity else None
             # every prior gets n_init proposals; anchors are iid, so prior k takes the k-th block of draws
-            anchors, crops = init_crops(self.points, available, n_init * k_priors, cfg.r_init, self.rng,
+            anchors, crops = init_crops(self.points, available, n_init * k_priors, cfg.radii()[0], self.rng,
                                         crop=cfg.crop, tree=tree, anchor_mask=self.anchor_mask if ep == 0 else None)
             owner = np.repeat(np.arange(k_priors, dtype=np.int64), n_init)[: len(anchors)]
-            ids = self.rec.birth(ep, self.work_idx[anchors], cfg.r_init, cfg.r_err, owner=owner)
+            ids = self.rec.birth(ep, self.work_idx[anchors], *cfg.radii(), owner=owner)
             self.rec.start_episode(np.flatnonzero(assigned), len(ids))
             pool = _Pool(ids=ids, rag=crops, w=np.ones(len(crops.idx), np.float32), owner=owner)
             last_review: dict[int, ReviewRecord] = {}
@@ -544,7 +544,8 @@ class _Solver:
                 self.rec.death(int(pid), final_step, REASON_SURVIVE, -1, conf)
                 accepted.append({**rev._asdict(), "confidence": conf, "stationary": s_stat,
                                  "center": pool.latent["center"][r], "scale": float(pool.latent["scale"][r]),
-                                 "category": self._category(rev)})
+                                 "category": self._category(rev, self.table.latent_of(
+                                     int(pool.owner[r]), {key: v[r] for key, v in pool.latent.items()}))})
                 assigned[rev.mask] = True
             self.timer.add("accept", t0)
         return accepted
@@ -571,7 +572,7 @@ class _Solver:
         if cfg.trust_scale is not None:
             latent = _trust_scale(latent, pool, cfg.trust_scale)
         t0 = self.timer.add("encode", t0)
-        rag = tree.query(latent["center"], cfg.r_err)
+        rag = tree.query(latent["center"], cfg.radii()[1])
         t0 = self.timer.add("neighbourhood", t0)
         sched = schedule(cfg, t)
         with matmul_precision(cfg.matmul_dtype, self.table.priors[0]):
@@ -639,7 +640,7 @@ class _Solver:
         if self.identity and cfg.matmul_dtype == "float32":
             full_rag, d_full, g_full = pool.rag, pool.d, pool.gamma
         else:  # masks and coverage at the scene's full resolution, in float32
-            full_rag = full_tree.query(pool.latent["center"], cfg.r_err)
+            full_rag = full_tree.query(pool.latent["center"], cfg.radii()[1])
             d_full, g_full = decode_owned_rows(
                 self.table, pool.owner, pool.latent, full_rag, self.full_points, self.full_normals,
                 chunk=cfg.decode_chunk, normals_within=cfg.out_tau if cfg.gamma_out < 180.0 else -1.0)
@@ -730,11 +731,18 @@ class _Solver:
         ang = np.degrees(np.arccos(cosang))
         return float(np.mean((dist_c <= cfg.cov_tau) & (ang <= cfg.cov_gamma)))
 
-    def _category(self, rev: ReviewRecord) -> str:
-        """An accepted instance's category: its prior's name, or for a family prior (kitchen) the class its last
-        pose search's codebook entries vote for, each by how well it aligned (`Codebook.category_of`)."""
+    def _category(self, rev: ReviewRecord, lat: LatentArrays) -> str:
+        """An accepted instance's category: its prior's name, or for a family prior (kitchen) the class its final
+        latent `lat` says (the prior's member head, `prior.member_head`), else the class its last pose search's
+        codebook entries vote for, each by how well it aligned (`Codebook.category_of`)."""
+        from efem_viz.prior.member_head import member_head_of
+
         name = self.categories[rev.prior]
-        cb = getattr(self.table.priors[rev.prior], "codebook", None)
+        prior = self.table.priors[rev.prior]
+        head = member_head_of(prior)
+        if head is not None:
+            return head.classify(np.asarray(lat["inv"]))
+        cb = getattr(prior, "codebook", None)
         if cb is None:
             return name
         rows, scores = self.pose_votes.get(rev.proposal_id, (rev.neighbours, None))

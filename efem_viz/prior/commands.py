@@ -68,6 +68,54 @@ class BuildCodebookArgs:
 
 
 @dataclass
+class FitMemberHeadArgs:
+    """Fit a family prior's member head: the classifier that names each instance's member (mug, bowl, bottle,
+    can) from its latent, in place of the codebook vote."""
+
+    prior: str = "kitchen"
+    """Prior weights: a .pt path, or a name under efem_viz/weights/."""
+    family: str = "kitchen"
+    """The training family the prior completes (`procedural.FAMILIES`)."""
+    n_train: int = 400
+    """Training-split objects (the members interleaved)."""
+    n_val: int = 96
+    """Val-split objects: the held-out accuracy and confusion table."""
+    views: int = 4
+    """Partial input clouds per object."""
+    seed: int = 0
+    """RNG seed of the views and the fit."""
+    augment: bool = True
+    """Inputs with a scene's clutter (table patch, crops of other objects), as the prior was trained on."""
+    cache_dir: Path = Path("runs/cache")
+    """Per-object data cache (shared with `train-prior`)."""
+    write: bool = False
+    """Store the head in the prior file's metadata; EFEM then names instances by it."""
+
+    def run(self) -> int:
+        """Fit, print the held-out accuracy and confusion table; with --write update the prior. Returns 0."""
+        from efem_viz.prior.member_head import METADATA_KEY, fit_member_head
+        from efem_viz.prior.model import load_prior, resolve_prior_path, save_prior
+
+        path = resolve_prior_path(self.prior)
+        prior = load_prior(path, load_codebook=False)
+        t0 = time.perf_counter()
+        head = fit_member_head(prior, self.family, n_train=self.n_train, n_val=self.n_val, views=self.views,
+                               seed=self.seed, cache_dir=self.cache_dir, augment=self.augment)
+        rep = head.report
+        print(f"member head of {path}: {len(head.classes)} classes, train accuracy {rep['train_accuracy']:.3f}, "
+              f"val accuracy {rep['val_accuracy']:.3f} ({self.n_val} objects x {self.views} views, "
+              f"{time.perf_counter() - t0:.0f} s)")
+        width = max(len(c) for c in head.classes)
+        print(" " * (width + 2) + "  ".join(f"{c:>{width}}" for c in head.classes) + "   (rows: true, columns: named)")
+        for c, row in zip(head.classes, rep["val_confusion"]):
+            print(f"{c:>{width}}  " + "  ".join(f"{v:>{width}d}" for v in row))
+        if self.write:
+            save_prior(prior, path, extra={METADATA_KEY: head.to_dict()})
+            print(f"wrote the member head into {path}")
+        return 0
+
+
+@dataclass
 class PackMeshesArgs:
     """Pack a training set's meshes into one .npz that `train-prior --meshes PACK` reads without trimesh or
     open3d (a GPU machine with only torch prepares its training data from it, on the GPU)."""
