@@ -331,3 +331,36 @@ def test_evaluate_cli(tmp_path: Path) -> None:
     assert data["ap50"] == pytest.approx(0.5)
     assert data["per_class"]["mug"]["n_gt"] == 4
     assert main(["evaluate", str(tmp_path / "res"), "--gt", str(gts_dir / "a.ply")]) == 1  # strict: b unmatched
+
+
+def test_the_viewer_comparison_reports_each_class_of_a_family_scene() -> None:
+    """A kitchen scene (a mug and two bowls): an instance named "bowl" on the mug is a false positive of "bowl"
+    and leaves the mug missed; the comparison gives AP50 per class (with the objects each has) and the panel
+    text shows them; a one-class scene shows no per-class line."""
+    from types import SimpleNamespace
+
+    from efem_viz.data.scene import Scene
+    from efem_viz.eval.comparison import gt_metrics
+    from efem_viz.viewer.texts import gt_markdown
+
+    inst = np.repeat(np.array([1, 2, 3], np.int32), 100)
+    scene = Scene.create("kit", np.random.default_rng(0).random((300, 3)).astype(np.float32), instance=inst,
+                         categories={1: "mug", 2: "bowl", 3: "bowl"})
+    masks = [np.arange(0, 100), np.arange(100, 200), np.arange(200, 300)]
+
+    class Shown(SimpleNamespace):
+        def above(self, t: float) -> "Shown":
+            return self
+
+    pred = Shown(masks=masks, confidence=np.array([0.9, 0.8, 0.7], np.float32),
+                 category=np.array(["bowl", "bowl", "bowl"]))
+    m = gt_metrics(pred, scene, 0.0)
+    per = {name: (ap50, n) for name, ap50, n in m.per_class}
+    assert per["mug"] == (0.0, 1) and per["bowl"][1] == 2 and 0.0 < per["bowl"][0] < 1.0
+    assert m.ap50 == pytest.approx((per["mug"][0] + per["bowl"][0]) / 2)
+    text = gt_markdown(3, 0.0, m)
+    assert "AP50 per class: bowl" in text and "mug 0.000 (1)" in text
+    one = Scene.create("one", scene.points, instance=inst, categories={1: "mug", 2: "mug", 3: "mug"})
+    pred.category = np.array(["mug", "mug", "mug"])
+    single = gt_metrics(pred, one, 0.0)
+    assert single.per_class == () and "per class" not in gt_markdown(3, 0.0, single)

@@ -30,6 +30,9 @@ class GTMetrics:
     ious: tuple[float, ...] = ()
     """Per shown prediction (as `masks`): IoU with its matched ground-truth object for a TP, the best IoU with
     any ground-truth object for an FP (0 when it touches none)."""
+    per_class: tuple[tuple[str, float, int], ...] = ()
+    """(class, AP50, ground-truth objects) of each class of a scene with several (a family prior's scene: the
+    instance's named member must match the object's category); empty for one class."""
 
 
 def best_ious(pred_masks: Sequence[np.ndarray], gt_instance: np.ndarray) -> np.ndarray:
@@ -82,6 +85,8 @@ def gt_metrics(instances: Any, scene: Any, threshold: float) -> GTMetrics:
         curves=_pr_curves(res),
         point=point,
         ious=tuple(float(v) for v in ious),
+        per_class=tuple((name, float(v["ap50"]), int(v["n_gt"])) for name, v in res.per_class().items())
+        if len(class_names) > 1 else (),
     )
 
 

@@ -63,18 +63,23 @@ def deaths_markdown(deaths: Sequence[Death], t: int) -> str:
 
 
 def gt_markdown(n_objects: int, threshold: float, metrics: GTMetrics) -> str:
-    """The ground-truth comparison: TP/FP/FN at the threshold and AP/AP50/AP25 of the whole result.
+    """The ground-truth comparison: TP/FP/FN at the threshold, AP/AP50/AP25 of the whole result and, for a scene
+    of several classes, AP50 per class (with its number of objects).
 
     Args:
         n_objects: ground-truth objects in the scene.
         threshold: the confidence threshold of the shown instances.
         metrics: `efem_viz.eval.comparison.gt_metrics` of the result at that threshold.
     """
-    return (
+    text = (
         f"**Ground truth** ({count(n_objects, 'object')}) at confidence ≥ {threshold:.2f}: "
         f"TP {len(metrics.tp)} · FP {len(metrics.fp)} · FN {len(metrics.fn)}\n\n"
         f"AP {metrics.ap:.3f} · AP50 {metrics.ap50:.3f} · AP25 {metrics.ap25:.3f}"
     )
+    if metrics.per_class:  # several classes: AP is their mean, each shown (a named member must be the right one)
+        text += "\n\nAP50 per class: " + " · ".join(
+            f"{name} {ap50:.3f} ({n_gt})" for name, ap50, n_gt in metrics.per_class)
+    return text
 
 
 def proposal_options(ids: np.ndarray, scores: np.ndarray, *, selected: int | None) -> tuple[str, ...]:
