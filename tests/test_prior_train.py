@@ -205,6 +205,17 @@ def test_save_load_round_trip(tmp_path: Path) -> None:
     torch.save({"foo": 1}, tmp_path / "bad.pt")
     with pytest.raises(ValueError, match="not an efem-viz prior"):
         load_prior(tmp_path / "bad.pt")
+    # float16 storage: half the bytes, weights rounded to float16, computed in float32; saving again keeps it
+    half = save_prior(prior, tmp_path / "cup16.pt", storage="float16")
+    assert half.stat().st_size < 0.7 * path.stat().st_size
+    h = load_prior(half)
+    assert h.metadata["storage"] == "float16" and next(h.parameters()).dtype == torch.float32
+    for k, v in prior.state_dict().items():
+        assert torch.equal(h.state_dict()[k], v.half().float())
+    again = save_prior(h, tmp_path / "again.pt")
+    assert load_prior(again).metadata["storage"] == "float16" and again.stat().st_size < 0.7 * path.stat().st_size
+    with pytest.raises(ValueError, match="storage"):
+        save_prior(prior, tmp_path / "x.pt", storage="int8")
 
 
 # ------------------------------------------------------------------------------------------ shipped weights
