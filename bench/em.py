@@ -220,8 +220,9 @@ def main() -> int:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--mode", default="points", choices=["points", "tsdf"])
     ap.add_argument("--preset", default="synthetic")
-    ap.add_argument("--proposals", type=int, default=400)
-    ap.add_argument("--work-voxel", type=float, default=None, help="EMConfig.work_voxel for every run (m)")
+    ap.add_argument("--proposals", type=int, default=None, help="proposals per scene (default: the preset's)")
+    ap.add_argument("--work-voxel", type=float, default=None,
+                    help="EMConfig.work_voxel for every run (m; default: the preset's)")
     ap.add_argument("--n-scenes", type=int, default=None, help="scenes per configuration (default 10, quick 2)")
     ap.add_argument("--seed0", type=int, default=SEED0,
                     help=f"first scene seed (default {SEED0}: the fixed test set; tune presets on other seeds)")
@@ -273,7 +274,12 @@ def main() -> int:
     from efem_viz.data.procedural import FAMILIES, family_members
 
     EVAL_CLASSES[:] = list(family_members(args.targets)) if args.targets in FAMILIES else CATEGORIES[:1]
-    cfg = preset(args.preset).with_proposals(args.proposals).replace(work_voxel=args.work_voxel)
+    cfg = preset(args.preset)
+    if args.proposals is not None:
+        cfg = cfg.with_proposals(args.proposals)
+    if args.work_voxel is not None:
+        cfg = cfg.replace(work_voxel=args.work_voxel)
+    args.proposals = cfg.n_init[0]  # what the printed lines and the JSON say
     variants = dict(parse_config(spec) for spec in (args.config or [f"{args.preset}="]))
     cfgs = {name: cfg.replace(**changes) for name, changes in variants.items()}
     if len(cfgs) > 1 or len(args.em_seeds) > 1:  # several configs, or one over several solver seeds
