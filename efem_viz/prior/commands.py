@@ -84,8 +84,6 @@ class FitMemberHeadArgs:
     """Partial input clouds per object."""
     seed: int = 0
     """RNG seed of the views and the fit."""
-    augment: bool = True
-    """Inputs with a scene's clutter (table patch, crops of other objects), as the prior was trained on."""
     cache_dir: Path = Path("runs/cache")
     """Per-object data cache (shared with `train-prior`)."""
     write: bool = False
@@ -100,7 +98,7 @@ class FitMemberHeadArgs:
         prior = load_prior(path, load_codebook=False)
         t0 = time.perf_counter()
         head = fit_member_head(prior, self.family, n_train=self.n_train, n_val=self.n_val, views=self.views,
-                               seed=self.seed, cache_dir=self.cache_dir, augment=self.augment)
+                               seed=self.seed, cache_dir=self.cache_dir)
         rep = head.report
         print(f"member head of {path}: {len(head.classes)} classes, train accuracy {rep['train_accuracy']:.3f}, "
               f"val accuracy {rep['val_accuracy']:.3f} ({self.n_val} objects x {self.views} views, "
