@@ -1,4 +1,4 @@
-"""Stability bench: does one EM proposal keep its grip on a mug? (issue 20; the development metric of real scans)
+"""Stability bench: does one EM proposal keep its grip on a mug? (the development metric of real scans)
 
 For every object of every set, `efem_viz.em.probe.track_proposal` runs one proposal through phase 1 of the
 solver's own code (M-step, encode, E-step in the r_err ball, annealing; 15 steps) and its phase-end review:
@@ -21,7 +21,7 @@ Sets:
 Usage: python bench/em_stability.py [--config "NAME=key=value;key=value" ...] [--mugs 8] [--anchors 2]
        [--sets single-view real-tune real-judge] [--levels 0 1 2 3 5 sensor] [--prior PATH] [--tag NAME]
 Configs: "base" (the `--preset`, default `real`) is always run; each --config adds one (EMConfig overrides on the
-preset). Since session 8 `real` holds the measured changes; the tables of session 7 used what is now `real_paper`.
+preset). `real` holds the measured changes; the earliest tables (docs/BENCHMARKS.md) used what is now `real_paper`.
 Writes bench/results/em_stability_<tag>.json and prints one table per set. 1 torch thread by default
 (``--threads``), so that it can run beside a training job.
 """

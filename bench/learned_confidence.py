@@ -190,7 +190,7 @@ def main() -> int:
           "found |\n|---|---:|---:|---:|---:|---:|")
     pose = lambda f: min(1.0, max(f.db_sim, 0.0) / 0.6) ** 2 if math.isfinite(f.db_sim) else 1.0  # noqa: E731
     out["solver (as run)"] = table_row("solver (as run)", lambda f: f.confidence)
-    out["x min(1, pose/0.6)^2 (session 12)"] = table_row("x min(1, pose/0.6)² (session 12's `real` preset)",
+    out["x min(1, pose/0.6)^2 (pose factor)"] = table_row("x min(1, pose/0.6)² (the earlier `real` preset)",
                                                          lambda f: conf(f) * pose(f))
     for name in a.model:
         shipped = load_model(name)

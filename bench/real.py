@@ -107,8 +107,8 @@ def main() -> int:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--frames", type=int, nargs="+", default=list(TUNE + JUDGE))
     ap.add_argument("--threads", type=int, default=2)
-    # extend, not store: `--set a=1 --set b=2` keeps both (a plain nargs list kept only the last --set, so runs
-    # before session 8 that passed several --set flags ran with their last override only)
+    # extend, not store: `--set a=1 --set b=2` keeps both (a plain nargs list kept only the last --set, so early
+    # runs that passed several --set flags ran with their last override only)
     ap.add_argument("--set", nargs="+", action="extend", default=[],
                     help="EMConfig overrides key=value (Python literals); repeat --set or list several")
     ap.add_argument("--tag", default=None)
