@@ -46,7 +46,7 @@ def wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_the_wheel_carries_a_demo_but_not_the_resume_state(wheel: Path) -> None:
-    """A few sample scenes with their results (not all ten), the prior and its codebook; no `*_resume.pt`."""
+    """A few sample scenes with their results (not all ten), the priors and their codebooks; no `*_resume.pt`."""
     names = zipfile.ZipFile(wheel).namelist()
     weights = {n for n in names if n.startswith("efem_viz/weights/")}
     assert "efem_viz/weights/mug.pt" in weights and "efem_viz/weights/mug_codebook.npz" in weights
@@ -59,7 +59,7 @@ def test_the_wheel_carries_a_demo_but_not_the_resume_state(wheel: Path) -> None:
     assert 1 <= len(scenes) <= 3, samples
     assert all(n.removesuffix(".ply") + ".efem.npz" in samples for n in scenes), samples
     assert "LICENSE-real_tabletop.txt" in samples  # the real scene's licence travels with it
-    assert wheel.stat().st_size < 15_000_000
+    assert wheel.stat().st_size < 20_000_000  # three priors (mug, kitchen, chair) with their codebooks and a demo
 
 
 @pytest.mark.slow
