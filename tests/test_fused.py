@@ -58,6 +58,48 @@ def test_edge_kernel_matches_the_reference(seed: int) -> None:
 
 
 @needs_kernels
+@pytest.mark.parametrize("seed", [0, 1])
+def test_attention_kernel_matches_the_reference(seed: int) -> None:
+    """The fused VN attention (values, keys, per-head softmax over the neighbours) against the eager reference,
+    with a zero key (the norm's floor) and zero directions among the edges."""
+    f_src, f_dst, nbr = _edge_inputs(seed, c=32)
+    g = torch.Generator().manual_seed(seed)
+    v = tuple(torch.randn(t.shape, generator=g) for t in (f_src, f_dst, f_src, f_dst))
+    k = tuple(torch.randn(t.shape, generator=g) for t in (f_src, f_dst, f_src, f_dst))
+    k[0][0].zero_()
+    k[1][0, 0].zero_()  # point 0's keys from source 0 are zero vectors
+    v[2][0, 1] = 0.0
+    q = torch.randn(f_dst.shape, generator=g)
+    q = q / q.flatten(-2).norm(dim=-1)[..., None, None]
+    for head_dim in (8, 16, 32):
+        ref = fused.attention_reference(v, k, q, nbr, 0.2, head_dim)
+        got = torch.ops.efem_vn.attention(*v, *k, q, nbr, 0.2, head_dim, 1e-12)
+        torch.testing.assert_close(got, ref, rtol=1e-5, atol=1e-5)
+    bad = nbr.clone()
+    bad[0, 0, 0] = f_src.shape[1]
+    with pytest.raises(RuntimeError, match="out of range"):
+        torch.ops.efem_vn.attention(*v, *k, q, bad, 0.2, 16, 1e-12)
+    with pytest.raises(RuntimeError, match="multiple of head_dim"):
+        torch.ops.efem_vn.attention(*v, *k, q, nbr, 0.2, 12, 1e-12)
+
+
+@needs_kernels
+def test_encoder_with_attention_and_kernels_matches_the_eager_encoder(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The chair design (VN attention in blocks 2-4) with the kernels and without, to float32 rounding."""
+    torch.manual_seed(0)
+    prior = ShapePrior(PriorConfig(widths=(16, 16, 32, 32, 32), down_blocks=(2, 4), down_factors=(4, 4), k=8,
+                                   n_pcl=256, attention_blocks=(2, 3, 4), att_head_dim=16, latent_dim=16,
+                                   center_hidden=8, decoder_hidden=32, decoder_blocks=2)).eval()
+    pts = torch.randn(3, 256, 3) * 0.2
+    with torch.no_grad():
+        fast = prior.encode(pts)
+        monkeypatch.setenv("EFEM_VIZ_FUSED", "0")
+        slow = prior.encode(pts)
+    for name in ("R", "inv", "center", "scale"):
+        torch.testing.assert_close(getattr(fast, name), getattr(slow, name), rtol=1e-4, atol=1e-5)
+
+
+@needs_kernels
 def test_edge_kernel_refuses_bad_indices_and_shapes() -> None:
     f_src, f_dst, nbr = _edge_inputs(2)
     bad = nbr.clone()

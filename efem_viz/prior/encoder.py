@@ -7,7 +7,6 @@ Tensors are channels-last VN features ``(B, N, 3, C)`` (see ``vn_layers``). Para
 
 from __future__ import annotations
 
-import math
 from typing import TYPE_CHECKING, Iterable, NamedTuple, cast
 
 import torch
@@ -89,25 +88,25 @@ class VNDGCNNEncoder(nn.Module):
         self.fc_center = VNResnetBlock(lat, cfg.center_hidden, 1, negative_slope=slope)
         self.down = dict(zip(cfg.down_blocks, cfg.down_factors))
 
-    def _edge_linear(self, layer: VNLinearLeakyReLU, f_src: torch.Tensor, f_dst: torch.Tensor,
-                     nbr: torch.Tensor) -> torch.Tensor:
-        """``layer([f_j − f_i ; f_i])`` for every edge, as ``W1 f_j + (W2 − W1) f_i`` (exact, k× cheaper).
+    @staticmethod
+    def _edge_terms(layer: VNLinearLeakyReLU, f_src: torch.Tensor, f_dst: torch.Tensor
+                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(a, c, U a, U c)`` of an edge layer: ``layer([f_j − f_i ; f_i]) = act(a[j] + c[i])`` with
+        ``a = W1 f_src``, ``c = (W2 − W1) f_dst`` (exact, k× cheaper than per edge) and the activation's directions
+        ``U a``, ``U c`` (``U x`` is linear), as `fused.attention` takes them.
 
         Args:
             layer: VNLA whose ``lin.weight`` is ``(C_out, 2 C_in)``.
             f_src: ``(B, Ns, 3, C_in)``.
             f_dst: ``(B, Nd, 3, C_in)``.
-            nbr: ``(B, Nd, k)`` indices into ``Ns``.
-
-        Returns:
-            ``(B, Nd, k, 3, C_out)`` activated edge features.
         """
         w = layer.lin.weight
         c_in = f_src.shape[-1]
-        w1, w2 = w[:, :c_in], w[:, c_in:]
-        a = F.linear(f_src, w1)  # (B, Ns, 3, Co)
-        c = F.linear(f_dst, w2 - w1)  # (B, Nd, 3, Co)
-        return layer.act(_gather(a, nbr) + c[:, :, None])
+        w1 = w[:, :c_in]
+        a = F.linear(f_src, w1)
+        c = F.linear(f_dst, w[:, c_in:] - w1)
+        u = layer.act.lin_dir.weight
+        return a, c, F.linear(a, u), F.linear(c, u)
 
     def forward(self, x: torch.Tensor) -> EncoderOutput:
         """Encode centred point clouds.
@@ -144,17 +143,10 @@ class VNDGCNNEncoder(nn.Module):
                 out = fused.lin_act_mean(edge, layer.lin.weight, layer.act.lin_dir.weight,
                                          layer.act.negative_slope)
             elif str(b) in self.Q_list:
-                u = self._edge_linear(layer, feat, f_dst, nbr)  # (B, Nd, k, 3, C)
                 k_layer = cast(VNLinearLeakyReLU, self.K_list[str(b)])
-                kraw = self._edge_linear(k_layer, feat, f_dst, nbr)  # κ before ChNorm
                 q = channel_normalize(self.Q_list[str(b)](f_dst))  # (B, Nd, 3, C)
-                heads, hd = kraw.shape[-1] // cfg.att_head_dim, cfg.att_head_dim
-                # Σ_{c ∈ head} <q_c, ChNorm(κ)_c> = Σ_{c ∈ head} <q_c, κ_c> / ‖κ‖_F: ChNorm is one scalar per edge
-                dots = (q[:, :, None] * kraw).unflatten(-1, (heads, hd)).sum(dim=(-3, -1))  # (B, Nd, k, H)
-                k_norm = kraw.flatten(-2).norm(dim=-1).clamp_min(EPS)  # (B, Nd, k)
-                logits = dots / (k_norm[..., None] * math.sqrt(3 * hd))
-                att = logits.softmax(dim=2)  # (B, Nd, k, H)
-                out = torch.einsum("bnkh,bnkxhd->bnxhd", att, u.unflatten(-1, (heads, hd))).flatten(-2)
+                out = fused.attention(self._edge_terms(layer, feat, f_dst), self._edge_terms(k_layer, feat, f_dst),
+                                      q, nbr, layer.act.negative_slope, cfg.att_head_dim)
             else:
                 w = layer.lin.weight
                 c_in = feat.shape[-1]

@@ -19,6 +19,7 @@ fails (one warning, then eager for the rest of the process). ``EFEM_VIZ_FUSED=0`
 from __future__ import annotations
 
 import logging
+import math
 import os
 import threading
 from pathlib import Path
@@ -27,7 +28,7 @@ from typing import Any, Callable
 import torch
 import torch.nn.functional as F
 
-from efem_viz.prior.vn_layers import vn_leaky_relu
+from efem_viz.prior.vn_layers import EPS, vn_leaky_relu
 
 log = logging.getLogger(__name__)
 
@@ -153,7 +154,7 @@ def prepare(say: Callable[[str], None] | None = None) -> bool:
 
 
 def _registered() -> bool:
-    return hasattr(torch.ops.efem_vn, "edge_mean") and hasattr(torch.ops.efem_vn, "act_mean")
+    return all(hasattr(torch.ops.efem_vn, op) for op in ("edge_mean", "act_mean", "attention"))
 
 
 def _load_or_build() -> bool:
@@ -221,6 +222,45 @@ def edge_mean(a: torch.Tensor, c: torch.Tensor, nbr: torch.Tensor, w_dir: torch.
     if usable(a, c, da, dc):
         return torch.ops.efem_vn.edge_mean(a, c, da, dc, nbr, float(slope))
     return edge_mean_reference(a, c, da, dc, nbr, slope)
+
+
+def attention_reference(v: tuple[torch.Tensor, ...], k: tuple[torch.Tensor, ...], q: torch.Tensor, nbr: torch.Tensor,
+                        slope: float, head_dim: int) -> torch.Tensor:
+    """Eager VN attention of each destination point over its ``k`` neighbours (the spec's chair aggregation).
+
+    Args:
+        v: the values' terms ``(a, c, da, dc)`` as `edge_mean_reference` takes them: ``u = act(a[nbr] + c)``.
+        k: the keys' terms, likewise: ``κ = act(a[nbr] + c)`` before ChNorm.
+        q: ``(B, Nd, 3, C)`` ChNorm'd queries.
+        nbr: ``(B, Nd, k)`` int64 indices into the sources.
+        slope: negative slope α of both activations.
+        head_dim: channels per head.
+
+    Returns:
+        ``(B, Nd, 3, C)``: ``Σ_j softmax_j(Σ_{c ∈ head} <q_c, κ_jc> / (‖κ_j‖_F √(3 head_dim))) u_jc``. ChNorm of the
+        keys is one scalar per edge, so it divides the per-head dot products instead of the keys.
+    """
+    b = q.shape[0]
+    ar = torch.arange(b, device=q.device).view(b, 1, 1)
+
+    def act(terms: tuple[torch.Tensor, ...]) -> torch.Tensor:
+        a, c, da, dc = terms
+        return vn_leaky_relu(a[ar, nbr] + c[:, :, None], da[ar, nbr] + dc[:, :, None], slope)
+
+    u, kraw = act(v), act(k)  # (B, Nd, k, 3, C)
+    heads = kraw.shape[-1] // head_dim
+    dots = (q[:, :, None] * kraw).unflatten(-1, (heads, head_dim)).sum(dim=(-3, -1))  # (B, Nd, k, H)
+    k_norm = kraw.flatten(-2).norm(dim=-1).clamp_min(EPS)  # (B, Nd, k)
+    att = (dots / (k_norm[..., None] * math.sqrt(3 * head_dim))).softmax(dim=2)
+    return torch.einsum("bnkh,bnkxhd->bnxhd", att, u.unflatten(-1, (heads, head_dim))).flatten(-2)
+
+
+def attention(v: tuple[torch.Tensor, ...], k: tuple[torch.Tensor, ...], q: torch.Tensor, nbr: torch.Tensor,
+              slope: float, head_dim: int) -> torch.Tensor:
+    """`attention_reference`, in one pass per point that never writes the ``k``-fold tensors when `usable`."""
+    if usable(*v, *k, q):
+        return torch.ops.efem_vn.attention(*v, *k, q, nbr, float(slope), int(head_dim), float(EPS))
+    return attention_reference(v, k, q, nbr, slope, head_dim)
 
 
 def lin_act_mean(x: torch.Tensor, w_lin: torch.Tensor, w_dir: torch.Tensor, slope: float) -> torch.Tensor:

@@ -4,6 +4,8 @@
 #include <ATen/Parallel.h>
 #include <torch/library.h>
 #include <algorithm>
+#include <cmath>
+#include <limits>
 #include <vector>
 
 namespace {
@@ -96,9 +98,100 @@ at::Tensor act_mean(const at::Tensor& x_, const at::Tensor& d_, double slope) {
   return out;
 }
 
+inline void vn_act(const float* x, const float* d, float* out, int64_t C, float f) {
+  // out[0..3C) = VN-LeakyReLU(x; d) for one edge (the terms of `vn_acc`, written instead of summed)
+  for (int64_t ch = 0; ch < C; ++ch) {
+    const float x0 = x[ch], x1 = x[C + ch], x2 = x[2 * C + ch];
+    const float d0 = d[ch], d1 = d[C + ch], d2 = d[2 * C + ch];
+    const float dot = x0 * d0 + x1 * d1 + x2 * d2;
+    const float dn2 = d0 * d0 + d1 * d1 + d2 * d2;
+    const float coef = std::min(dot, 0.0f) / std::max(dn2, 1e-24f) * f;
+    out[ch] = x0 - coef * d0;
+    out[C + ch] = x1 - coef * d1;
+    out[2 * C + ch] = x2 - coef * d2;
+  }
+}
+
+at::Tensor attention(const at::Tensor& av_, const at::Tensor& cv_, const at::Tensor& dav_, const at::Tensor& dcv_,
+                     const at::Tensor& ak_, const at::Tensor& ck_, const at::Tensor& dak_, const at::Tensor& dck_,
+                     const at::Tensor& q_, const at::Tensor& nbr_, double slope, int64_t head_dim, double eps) {
+  // VN attention over each point's k neighbours in one pass (fused.attention_reference is the same math): values
+  // u = act(av[nbr] + cv), keys kappa = act(ak[nbr] + ck) (directions da[nbr] + dc likewise), per head
+  // logits sum_{c in head} <q_c, kappa_c> / (max(|kappa|_F, eps) sqrt(3 head_dim)), softmax over the neighbours,
+  // out = sum_j att_j u_j.
+  TORCH_CHECK(av_.dim() == 4 && av_.size(2) == 3 && av_.scalar_type() == at::kFloat, "av must be (B, Ns, 3, C) float32");
+  const int64_t B = av_.size(0), Ns = av_.size(1), C = av_.size(3);
+  TORCH_CHECK(cv_.dim() == 4 && cv_.size(0) == B && cv_.size(2) == 3 && cv_.size(3) == C, "cv must be (B, Nd, 3, C)");
+  const int64_t Nd = cv_.size(1);
+  for (const at::Tensor* t : {&av_, &dav_, &ak_, &dak_})
+    TORCH_CHECK(t->sizes() == av_.sizes() && t->scalar_type() == at::kFloat, "source terms must be (B, Ns, 3, C) float32");
+  for (const at::Tensor* t : {&cv_, &dcv_, &ck_, &dck_, &q_})
+    TORCH_CHECK(t->sizes() == cv_.sizes() && t->scalar_type() == at::kFloat, "point terms must be (B, Nd, 3, C) float32");
+  TORCH_CHECK(nbr_.dim() == 3 && nbr_.size(0) == B && nbr_.size(1) == Nd && nbr_.scalar_type() == at::kLong,
+              "nbr must be (B, Nd, k) int64");
+  TORCH_CHECK(head_dim >= 1 && C % head_dim == 0, "C must be a multiple of head_dim");
+  TORCH_CHECK(av_.device().is_cpu(), "CPU tensors only");
+  const auto av = av_.contiguous(), cv = cv_.contiguous(), dav = dav_.contiguous(), dcv = dcv_.contiguous();
+  const auto ak = ak_.contiguous(), ck = ck_.contiguous(), dak = dak_.contiguous(), dck = dck_.contiguous();
+  const auto q = q_.contiguous(), nbr = nbr_.contiguous();
+  const int64_t K = nbr.size(2), S = 3 * C, H = C / head_dim;
+  auto out = at::empty({B, Nd, 3, C}, av.options());
+  if (out.numel() == 0) return out;
+  TORCH_CHECK(K > 0, "k must be >= 1");
+  const int64_t* pn = nbr.data_ptr<int64_t>();
+  for (int64_t t = 0; t < nbr.numel(); ++t) TORCH_CHECK(pn[t] >= 0 && pn[t] < Ns, "neighbour index out of range");
+  const float *pav = av.data_ptr<float>(), *pcv = cv.data_ptr<float>(), *pdav = dav.data_ptr<float>();
+  const float *pdcv = dcv.data_ptr<float>(), *pak = ak.data_ptr<float>(), *pck = ck.data_ptr<float>();
+  const float *pdak = dak.data_ptr<float>(), *pdck = dck.data_ptr<float>(), *pq = q.data_ptr<float>();
+  float* po = out.data_ptr<float>();
+  const float f = 1.0f - static_cast<float>(slope);
+  const float epsf = static_cast<float>(eps);
+  const float scale = 1.0f / std::sqrt(3.0f * static_cast<float>(head_dim));
+  at::parallel_for(0, B * Nd, 8, [&](int64_t begin, int64_t end) {
+    std::vector<float> x(S), d(S), kap(S), u(K * S), logit(K * H);
+    for (int64_t bi = begin; bi < end; ++bi) {
+      const int64_t b = bi / Nd;
+      const float* qi = pq + bi * S;
+      for (int64_t j = 0; j < K; ++j) {
+        const int64_t s = (b * Ns + pn[bi * K + j]) * S;
+        for (int64_t t = 0; t < S; ++t) { x[t] = pav[s + t] + pcv[bi * S + t]; d[t] = pdav[s + t] + pdcv[bi * S + t]; }
+        vn_act(x.data(), d.data(), u.data() + j * S, C, f);
+        for (int64_t t = 0; t < S; ++t) { x[t] = pak[s + t] + pck[bi * S + t]; d[t] = pdak[s + t] + pdck[bi * S + t]; }
+        vn_act(x.data(), d.data(), kap.data(), C, f);
+        float n2 = 0.0f;
+        for (int64_t t = 0; t < S; ++t) n2 += kap[t] * kap[t];
+        const float inv = scale / std::max(std::sqrt(n2), epsf);
+        for (int64_t h = 0; h < H; ++h) {
+          float acc = 0.0f;
+          for (int64_t r = 0; r < 3; ++r)
+            for (int64_t ch = h * head_dim; ch < (h + 1) * head_dim; ++ch) acc += qi[r * C + ch] * kap[r * C + ch];
+          logit[j * H + h] = acc * inv;
+        }
+      }
+      for (int64_t h = 0; h < H; ++h) {  // softmax over the neighbours, per head
+        float mx = -std::numeric_limits<float>::infinity();
+        for (int64_t j = 0; j < K; ++j) mx = std::max(mx, logit[j * H + h]);
+        float z = 0.0f;
+        for (int64_t j = 0; j < K; ++j) { logit[j * H + h] = std::exp(logit[j * H + h] - mx); z += logit[j * H + h]; }
+        for (int64_t j = 0; j < K; ++j) logit[j * H + h] /= z;
+      }
+      float* o = po + bi * S;
+      std::fill(o, o + S, 0.0f);
+      for (int64_t j = 0; j < K; ++j) {
+        const float* uj = u.data() + j * S;
+        for (int64_t r = 0; r < 3; ++r)
+          for (int64_t ch = 0; ch < C; ++ch) o[r * C + ch] += logit[j * H + ch / head_dim] * uj[r * C + ch];
+      }
+    }
+  });
+  return out;
+}
+
 }  // namespace
 
 TORCH_LIBRARY(efem_vn, m) {
   m.def("edge_mean(Tensor a, Tensor c, Tensor da, Tensor dc, Tensor nbr, float slope) -> Tensor", &edge_mean);
   m.def("act_mean(Tensor x, Tensor d, float slope) -> Tensor", &act_mean);
+  m.def("attention(Tensor av, Tensor cv, Tensor dav, Tensor dcv, Tensor ak, Tensor ck, Tensor dak, Tensor dck, "
+        "Tensor q, Tensor nbr, float slope, int head_dim, float eps) -> Tensor", &attention);
 }
