@@ -10,19 +10,30 @@
 
 namespace {
 
-inline void vn_acc(const float* x, const float* d, float* acc, int64_t C, float f) {
-  // acc[0..3C) += VN-LeakyReLU(x; d) for one edge; x, d, acc are (3, C) with C contiguous
+template <bool Accumulate>
+inline void vn_leaky(const float* x, const float* d, float* out, int64_t C, float f) {
+  // VN-LeakyReLU(x; d) of one edge, added to out[0..3C) (Accumulate) or written there; x, d, out are (3, C) with
+  // C contiguous
   for (int64_t ch = 0; ch < C; ++ch) {
     const float x0 = x[ch], x1 = x[C + ch], x2 = x[2 * C + ch];
     const float d0 = d[ch], d1 = d[C + ch], d2 = d[2 * C + ch];
     const float dot = x0 * d0 + x1 * d1 + x2 * d2;
     const float dn2 = d0 * d0 + d1 * d1 + d2 * d2;
     const float coef = std::min(dot, 0.0f) / std::max(dn2, 1e-24f) * f;
-    acc[ch] += x0 - coef * d0;
-    acc[C + ch] += x1 - coef * d1;
-    acc[2 * C + ch] += x2 - coef * d2;
+    if constexpr (Accumulate) {
+      out[ch] += x0 - coef * d0;
+      out[C + ch] += x1 - coef * d1;
+      out[2 * C + ch] += x2 - coef * d2;
+    } else {
+      out[ch] = x0 - coef * d0;
+      out[C + ch] = x1 - coef * d1;
+      out[2 * C + ch] = x2 - coef * d2;
+    }
   }
 }
+
+inline void vn_acc(const float* x, const float* d, float* acc, int64_t C, float f) { vn_leaky<true>(x, d, acc, C, f); }
+inline void vn_act(const float* x, const float* d, float* out, int64_t C, float f) { vn_leaky<false>(x, d, out, C, f); }
 
 at::Tensor edge_mean(const at::Tensor& a_, const at::Tensor& c_, const at::Tensor& da_, const at::Tensor& dc_,
                      const at::Tensor& nbr_, double slope) {
@@ -96,20 +107,6 @@ at::Tensor act_mean(const at::Tensor& x_, const at::Tensor& d_, double slope) {
     }
   });
   return out;
-}
-
-inline void vn_act(const float* x, const float* d, float* out, int64_t C, float f) {
-  // out[0..3C) = VN-LeakyReLU(x; d) for one edge (the terms of `vn_acc`, written instead of summed)
-  for (int64_t ch = 0; ch < C; ++ch) {
-    const float x0 = x[ch], x1 = x[C + ch], x2 = x[2 * C + ch];
-    const float d0 = d[ch], d1 = d[C + ch], d2 = d[2 * C + ch];
-    const float dot = x0 * d0 + x1 * d1 + x2 * d2;
-    const float dn2 = d0 * d0 + d1 * d1 + d2 * d2;
-    const float coef = std::min(dot, 0.0f) / std::max(dn2, 1e-24f) * f;
-    out[ch] = x0 - coef * d0;
-    out[C + ch] = x1 - coef * d1;
-    out[2 * C + ch] = x2 - coef * d2;
-  }
 }
 
 at::Tensor attention(const at::Tensor& av_, const at::Tensor& cv_, const at::Tensor& dav_, const at::Tensor& dcv_,
