@@ -171,7 +171,9 @@ def fit_member_head(prior: Any, family: str, *, n_train: int = 400, n_val: int =
                          f"{n_train}, n_val {n_val}, views {views})")
     kw: dict[str, Any] = {"category": family, "n_train": n_train, "n_val": n_val, "seed": 12345}
     if cache_dir is not None:
-        kw["cache_dir"] = cache_dir
+        from pathlib import Path
+
+        kw["cache_dir"] = Path(cache_dir)
     args = TrainArgs(**kw)  # type: ignore[arg-type]
     train_x, train_y = _encoded_views(prior, load_objects(args, "train"), len(members), views, seed)
     val_x, val_y = _encoded_views(prior, load_objects(args, "val"), len(members), views, seed + 1)
