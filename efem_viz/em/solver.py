@@ -259,8 +259,8 @@ def run_em(
     cfgs = [resolve_for_prior(base, pr) for pr in plist]
     # a joint solve shares one crop and neighbourhood: the widest of its priors' (a narrower one only costs time)
     run_cfg = cfgs[0] if len(plist) == 1 else base.replace(
-        tau_out=max(c.out_tau for c in cfgs), r_init=max(float(c.r_init or 0) for c in cfgs),
-        r_err=max(float(c.r_err or 0) for c in cfgs))
+        tau_out=max(c.out_tau for c in cfgs), r_init=max(c.radii()[0] for c in cfgs),
+        r_err=max(c.radii()[1] for c in cfgs))
     points, normals = _scene_arrays(scene)
     if anchor_candidates is not None:
         anchor_candidates = _checked_anchor_candidates(anchor_candidates, len(points))

@@ -139,10 +139,10 @@ def pending_build() -> bool:
     if _state["loaded"] is not None or os.environ.get("EFEM_VIZ_FUSED", "1") == "0":
         return False
     try:
-        name = f"efem_vn_{build_key(SOURCE.read_text(encoding='utf-8'), _flags())}"
+        _, _, lib = _library()
     except Exception:  # noqa: BLE001 - whatever stops the key stops the build too; `load` says why
         return False
-    return not (_build_dir() / name / f"{name}.so").is_file()
+    return not lib.is_file()
 
 
 def prepare(say: Callable[[str], None] | None = None) -> bool:
@@ -157,15 +157,20 @@ def _registered() -> bool:
     return all(hasattr(torch.ops.efem_vn, op) for op in ("edge_mean", "act_mean", "attention"))
 
 
-def _load_or_build() -> bool:
-    import fcntl
-
+def _library() -> tuple[str, list[str], Path]:
+    """(source, compiler flags, path of the built library) of this source, compiler and torch."""
     src = SOURCE.read_text(encoding="utf-8")
     flags = _flags()
     name = f"efem_vn_{build_key(src, flags)}"
-    build = _build_dir() / name
+    return src, flags, _build_dir() / name / f"{name}.so"
+
+
+def _load_or_build() -> bool:
+    import fcntl
+
+    src, flags, lib = _library()
+    build, name = lib.parent, lib.stem
     build.mkdir(parents=True, exist_ok=True)
-    lib = build / f"{name}.so"
     if lib.is_file():
         try:
             torch.ops.load_library(str(lib))

@@ -16,6 +16,7 @@ fitted on: a head left over from other weights (a prior trained on from this one
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import logging
 from dataclasses import dataclass
@@ -201,8 +202,7 @@ def fit_member_head(prior: Any, family: str, *, n_train: int = 400, n_val: int =
     report = {"family": family, "n_train": n_train, "n_val": n_val, "views": views, "epochs": int(epochs),
               "train_accuracy": float(np.mean(pred_t == train_y)), "val_accuracy": float(np.mean(pred_v == val_y)),
               "val_confusion": confusion.tolist(), "final_loss": float(loss.detach())}
-    return MemberHead(classes=head.classes, mean=head.mean, std=head.std, weight=head.weight, bias=head.bias,
-                      fingerprint=head.fingerprint, report=report)
+    return dataclasses.replace(head, report=report)
 
 
 def _encoded_views(prior: Any, objs: list[Any], n_classes: int, views: int, seed: int
