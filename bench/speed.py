@@ -1,7 +1,8 @@
 """EFEM in seconds: per-phase seconds of one solve, before and after the speed work, same answers.
 
 For each scene (default: the bundled real frames `real_tabletop_{0,6,8}` with the `real` preset and the fixed
-synthetic scene `z_7000` of bench/em.py with the `synthetic` preset; 400 proposals) and each variant, runs the
+synthetic scene `z_7000` of bench/em.py with the `synthetic` preset, 400 proposals; `chair_z_7000` is its chair
+scene with the chair prior and the `chairs` preset, 200 proposals) and each variant, runs the
 solver `--repeats` times and reports the median seconds per phase (the solver's own `EMResult.timings`), the
 total, and what the answers are:
 
@@ -62,17 +63,21 @@ def _busy() -> None:
         x += 1
 
 
-def load(name: str) -> tuple[Any, str]:
-    """A scene by name (a bundled sample, or a bench/em.py fixed-set scene `<config>_<seed>`) and its preset."""
+def load(name: str) -> tuple[Any, str, str]:
+    """A scene by name (a bundled sample, a bench/em.py fixed-set scene `<config>_<seed>`, or one of its chair
+    scenes `chair_<config>_<seed>`), its preset and its prior."""
     from efem_viz.data.io import load_scene
 
     p = ROOT / "sample_scenes" / f"{name}.ply"
     if p.is_file():
-        return load_scene(p), "real" if name.startswith("real_") else "synthetic"
+        return load_scene(p), "real" if name.startswith("real_") else "synthetic", "mug"
     from em import get_scene
 
+    if name.startswith("chair_"):
+        config, seed = name.removeprefix("chair_").rsplit("_", 1)
+        return get_scene(config, int(seed), "tsdf", targets="chair"), "chairs", "chair"
     config, seed = name.rsplit("_", 1)
-    return get_scene(config, int(seed), "points"), "synthetic"
+    return get_scene(config, int(seed), "points"), "synthetic", "mug"
 
 
 def masks_of(res: Any, cut: float) -> list[np.ndarray]:
@@ -95,12 +100,10 @@ def mask_iou_to(base: list[np.ndarray], other: list[np.ndarray]) -> float:
 def ap50(scene: Any, res: Any) -> float | None:
     if scene.instance is None or not len(scene.instance_ids()):
         return None
-    from em import mug_prediction
+    from efem_viz.eval.ap import evaluate_instances
 
-    from efem_viz.eval import SceneGroundTruth, evaluate
-
-    rep = evaluate([mug_prediction(res, scene.name)], [SceneGroundTruth.from_scene(scene)], class_names=("mug",))
-    return float(rep.ap50) * 100.0
+    classes = tuple(sorted({str(c) for c in dict(scene.categories).values()})) or ("mug",)
+    return float(evaluate_instances(res.instances, scene, class_names=classes).ap50) * 100.0
 
 
 def main() -> int:
@@ -108,7 +111,7 @@ def main() -> int:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--proposals", type=int, default=400)
+    ap.add_argument("--proposals", type=int, default=None, help="proposals per scene (default: the preset's)")
     ap.add_argument("--scenes", nargs="+", default=["real_tabletop_0", "real_tabletop_6", "real_tabletop_8",
                                                     "z_7000"])
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
@@ -129,7 +132,7 @@ def main() -> int:
     from efem_viz.em.config import preset
     from efem_viz.prior.model import load_prior
 
-    prior = load_prior("mug")
+    priors: dict[str, Any] = {}
     try:
         from efem_viz.prior import fused
 
@@ -142,9 +145,11 @@ def main() -> int:
     rows: list[dict[str, Any]] = []
     try:
         for name in a.scenes:
-            scene, pname = load(name)
+            scene, pname, prior_name = load(name)
+            prior = priors.setdefault(prior_name, load_prior(prior_name))
             cfg0 = preset(pname)
-            cfg0 = cfg0.replace(n_init=(a.proposals, *cfg0.n_init[1:]))
+            if a.proposals is not None:
+                cfg0 = cfg0.replace(n_init=(a.proposals, *cfg0.n_init[1:]))
             base_masks: list[np.ndarray] | None = None
             for var in a.variants:
                 env, over = VARIANTS[var]
