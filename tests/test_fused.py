@@ -99,6 +99,45 @@ def test_edge_kernel_refuses_bad_indices_and_shapes() -> None:
         torch.ops.efem_vn.edge_mean(f_src, f_dst, f_src[:, :5], f_dst, nbr, 0.2)
 
 
+@needs_kernels
+@pytest.mark.parametrize(("b", "nq", "nr", "dim", "k"), [(4, 64, 64, 3, 16), (3, 16, 64, 48, 16), (2, 40, 40, 96, 16),
+                                                         (2, 7, 5, 4, 5), (2, 9, 2000, 3, 8), (1, 3, 11, 2, 1)])
+def test_knn_selection_gives_the_eager_neighbours_index_for_index(b: int, nq: int, nr: int, dim: int, k: int) -> None:
+    """`fused.knn` returns what `knn_indices` (the eager topk) returns, to the index and its place, including
+    equal distances: duplicate points (the M-step draws with replacement), coordinates on a coarse grid (many
+    exact ties), a NaN row, both of torch's selection paths (k * 64 <= Nr and not)."""
+    from efem_viz.geometry.knn import knn_indices
+
+    g = torch.Generator().manual_seed(b * 1000 + nr)
+    ref = torch.randn(b, nr, dim, generator=g)
+    ref[:, nr // 2] = ref[:, 0]  # duplicates
+    ref[:, -1] = ref[:, 0]
+    query = ref[:, :nq].clone() if nq <= nr else torch.randn(b, nq, dim, generator=g)
+    grid = torch.round(torch.randn(b, nr, dim, generator=g) * 2.0) / 2.0  # half-unit grid: ties everywhere
+    nan = ref.clone()
+    nan[0, 1, 0] = float("nan")
+    for q, r in ((query, ref), (torch.randn(b, nq, dim, generator=g), ref), (grid[:, :nq], grid),
+                 (query, nan)):
+        with torch.no_grad():
+            want = knn_indices(q, r, k)
+            got = fused.knn(q, r, k)
+        assert got.dtype == torch.int64 and got.shape == (b, min(nq, q.shape[1]), k)
+        assert torch.equal(got, want)
+
+
+@needs_kernels
+def test_knn_selection_refuses_bad_shapes_and_k() -> None:
+    gram, qq, rr = torch.randn(2, 5, 7), torch.randn(2, 5), torch.randn(2, 7)
+    with pytest.raises(RuntimeError, match=r"k must be in \[1, Nr\]"):
+        torch.ops.efem_vn.knn_select(gram, qq, rr, 8)
+    with pytest.raises(RuntimeError, match="rr must be"):
+        torch.ops.efem_vn.knn_select(gram, qq, rr[:, :6], 3)
+    with pytest.raises(RuntimeError, match="float32"):
+        torch.ops.efem_vn.knn_select(gram.double(), qq, rr, 3)
+    with pytest.raises(ValueError, match="k must be in"):  # the Python entry gives the eager function's message
+        fused.knn(torch.randn(2, 5, 3), torch.randn(2, 7, 3), 0)
+
+
 def test_kernels_leave_autograd_float64_and_a_switched_off_process_to_the_references(
         monkeypatch: pytest.MonkeyPatch) -> None:
     x = torch.randn(2, 4, 3, 8, requires_grad=True)

@@ -15,7 +15,6 @@ from torch import nn
 
 from efem_viz.prior import fused
 from efem_viz.geometry.fps import farthest_point_sample
-from efem_viz.geometry.knn import knn_indices
 from efem_viz.prior.vn_layers import (
     EPS,
     VNLinear,
@@ -132,7 +131,7 @@ class VNDGCNNEncoder(nn.Module):
             else:
                 f_dst = feat
             k = min(cfg.k, n_src)
-            nbr = knn_indices(f_dst.flatten(2), feat.flatten(2), k)  # (B, Nd, k)
+            nbr = fused.knn(f_dst.flatten(2), feat.flatten(2), k)  # (B, Nd, k)
             if b == 0:
                 xi = f_dst[..., 0]  # (B, Nd, 3)
                 xj = _gather(feat[..., 0], nbr)  # (B, Nd, k, 3)

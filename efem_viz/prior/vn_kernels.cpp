@@ -4,6 +4,7 @@
 #include <ATen/Parallel.h>
 #include <torch/library.h>
 #include <algorithm>
+#include <utility>
 #include <cmath>
 #include <limits>
 #include <vector>
@@ -184,11 +185,104 @@ at::Tensor attention(const at::Tensor& av_, const at::Tensor& cv_, const at::Ten
   return out;
 }
 
+inline bool topk_less(const std::pair<float, int64_t>& x, const std::pair<float, int64_t>& y) {
+  // torch's comparator of topk(largest=False): NaN sorts last
+  return (!std::isnan(x.first) && std::isnan(y.first)) || (x.first < y.first);
+}
+
+void topk_smallest_like_torch(const float* d, int64_t n, int64_t k, int64_t* out,
+                              std::vector<std::pair<float, int64_t>>& queue) {
+  // torch.topk(largest=False, sorted=True) of one row, step for step as ATen's CPU loop does it (TopKImpl.h): the
+  // same algorithms on the same (value, index) pairs, so equal distances come out in torch's order
+  queue.resize(n);
+  for (int64_t j = 0; j < n; ++j) queue[j] = {d[j], j};
+  if (k * 64 <= n) {
+    std::partial_sort(queue.begin(), queue.begin() + k, queue.end(), topk_less);
+  } else {
+    std::nth_element(queue.begin(), queue.begin() + k - 1, queue.end(), topk_less);
+    std::sort(queue.begin(), queue.begin() + k - 1, topk_less);
+  }
+  for (int64_t j = 0; j < k; ++j) out[j] = queue[j].second;
+}
+
+at::Tensor knn_select(const at::Tensor& gram_, const at::Tensor& qq_, const at::Tensor& rr_, int64_t k) {
+  // The k nearest reference rows of every query row from the Gram matrix G = q r^T and the squared norms, with
+  // the answer of the eager `((qq_i - 2 G_ij) + rr_j).topk(k, largest=False)`: the distances rounded as it
+  // rounds them, the k smallest found by one insertion pass per row (no sort of the row); a row with equal
+  // distances among or at the edge of its k (duplicate points, mostly) or a NaN takes torch's own selection, so
+  // ties come out in torch's order too.
+  TORCH_CHECK(gram_.dim() == 3 && gram_.scalar_type() == at::kFloat, "gram must be (B, Nq, Nr) float32");
+  TORCH_CHECK(qq_.dim() == 2 && qq_.size(0) == gram_.size(0) && qq_.size(1) == gram_.size(1) &&
+              qq_.scalar_type() == at::kFloat, "qq must be (B, Nq) float32");
+  TORCH_CHECK(rr_.dim() == 2 && rr_.size(0) == gram_.size(0) && rr_.size(1) == gram_.size(2) &&
+              rr_.scalar_type() == at::kFloat, "rr must be (B, Nr) float32");
+  TORCH_CHECK(gram_.device().is_cpu(), "CPU tensors only");
+  const int64_t B = gram_.size(0), Nq = gram_.size(1), Nr = gram_.size(2);
+  TORCH_CHECK(k >= 1 && k <= Nr, "k must be in [1, Nr]");
+  const auto gram = gram_.contiguous(), qq = qq_.contiguous(), rr = rr_.contiguous();
+  auto out = at::empty({B, Nq, k}, gram.options().dtype(at::kLong));
+  if (out.numel() == 0) return out;
+  const float* pg = gram.data_ptr<float>();
+  const float* pq = qq.data_ptr<float>();
+  const float* pr = rr.data_ptr<float>();
+  int64_t* po = out.data_ptr<int64_t>();
+  at::parallel_for(0, B * Nq, 16, [&](int64_t begin, int64_t end) {
+    std::vector<float> d(Nr), bd(k);
+    std::vector<int64_t> bi(k);
+    std::vector<std::pair<float, int64_t>> queue;
+    for (int64_t row = begin; row < end; ++row) {
+      const int64_t b = row / Nq;
+      const float* g = pg + row * Nr;
+      const float* r = pr + b * Nr;
+      const float q = pq[row];
+      bool nan = false;
+      for (int64_t j = 0; j < Nr; ++j) {
+        const float t = q - 2.0f * g[j];  // 2 g is exact: the eager (qq - 2 G) + rr, rounding for rounding
+        d[j] = t + r[j];
+        nan |= std::isnan(d[j]);
+      }
+      int64_t* o = po + row * k;
+      if (nan) {
+        topk_smallest_like_torch(d.data(), Nr, k, o, queue);
+        continue;
+      }
+      int64_t n = 0;  // filled entries of the buffer, ascending
+      for (int64_t j = 0; j < Nr; ++j) {
+        const float v = d[j];
+        if (n == k && !(v < bd[k - 1])) continue;
+        int64_t pos = n < k ? n++ : k - 1;
+        while (pos > 0 && v < bd[pos - 1]) {
+          bd[pos] = bd[pos - 1];
+          bi[pos] = bi[pos - 1];
+          --pos;
+        }
+        bd[pos] = v;
+        bi[pos] = j;
+      }
+      bool tie = false;
+      for (int64_t i = 0; i + 1 < k && !tie; ++i) tie = bd[i] == bd[i + 1];
+      if (!tie) {  // the k-th distance unique in the row too?
+        const float last = bd[k - 1];
+        int64_t equal = 0;
+        for (int64_t j = 0; j < Nr; ++j) equal += d[j] == last;
+        tie = equal != 1;
+      }
+      if (tie) {
+        topk_smallest_like_torch(d.data(), Nr, k, o, queue);
+      } else {
+        std::copy(bi.begin(), bi.end(), o);
+      }
+    }
+  });
+  return out;
+}
+
 }  // namespace
 
 TORCH_LIBRARY(efem_vn, m) {
   m.def("edge_mean(Tensor a, Tensor c, Tensor da, Tensor dc, Tensor nbr, float slope) -> Tensor", &edge_mean);
   m.def("act_mean(Tensor x, Tensor d, float slope) -> Tensor", &act_mean);
+  m.def("knn_select(Tensor gram, Tensor qq, Tensor rr, int k) -> Tensor", &knn_select);
   m.def("attention(Tensor av, Tensor cv, Tensor dav, Tensor dcv, Tensor ak, Tensor ck, Tensor dak, Tensor dck, "
         "Tensor q, Tensor nbr, float slope, int head_dim, float eps) -> Tensor", &attention);
 }
