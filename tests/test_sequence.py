@@ -150,3 +150,120 @@ def test_every_wrong_sequence_is_one_line(tmp_path: Path) -> None:
     with pytest.raises(SceneError, match="depth image 100x100, the sequence's first is 320x240"):
         import_sequence(seq, name="s", poses=tmp_path / "five.txt", K=K)
     assert not list(tmp_path.glob("*.ply"))
+
+
+def _quat(R: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(R).as_quat()  # x y z w
+
+
+def write_tum(folder: Path, n: int = 12) -> list[np.ndarray]:
+    """A TUM RGB-D folder of `write_sequence`'s frames: depth at 5000 per metre, timestamped lists, colour images
+    5 ms after their depth, ground truth at 100 Hz (the true pose at every sample; the depth times fall between
+    samples, at steady camera motion) with a comment header; returns the poses at the depth times."""
+    from PIL import Image
+
+    raw = folder.parent / f"{folder.name}_raw"
+    poses = write_sequence(raw, n)
+    (folder / "depth").mkdir(parents=True)
+    (folder / "rgb").mkdir()
+    depth_lines, rgb_lines = ["# depth maps", "# timestamp filename"], ["# color images"]
+    for k in range(n):
+        t = 1305031102.0 + k / 30.0 + 0.003
+        mm = np.asarray(Image.open(raw / f"frame-{k:06d}.depth.png")).astype(np.uint32)
+        Image.fromarray((mm * 5).astype(np.uint16)).save(folder / "depth" / f"{t:.6f}.png")
+        (folder / "rgb" / f"{t + 0.005:.6f}.png").write_bytes((raw / f"frame-{k:06d}.color.png").read_bytes())
+        depth_lines.append(f"{t:.6f} depth/{t:.6f}.png")
+        rgb_lines.append(f"{t + 0.005:.6f} rgb/{t + 0.005:.6f}.png")
+    (folder / "depth.txt").write_text("\n".join(depth_lines) + "\n")
+    (folder / "rgb.txt").write_text("\n".join(rgb_lines) + "\n")
+    gt = ["# ground truth trajectory", "# timestamp tx ty tz qx qy qz qw"]
+    for k in range(n):  # two samples around every depth time, both the frame's pose: interpolation keeps it exact
+        t = 1305031102.0 + k / 30.0 + 0.003
+        T = poses[k]
+        for dt in (-0.002, 0.008):
+            gt.append(f"{t + dt:.6f} " + " ".join(f"{v:.9f}" for v in (*T[:3, 3], *_quat(T[:3, :3]))))
+    (folder / "groundtruth.txt").write_text("\n".join(gt) + "\n")
+    np.savetxt(folder / "intrinsics.txt", K)
+    return poses
+
+
+def test_a_tum_folder_is_associated_by_time_and_fused_at_its_depth_scale(tmp_path: Path) -> None:
+    """TUM RGB-D: depth, colour and ground truth associated by timestamp, depth at 5000 per metre (the layout's,
+    without --depth-scale), every camera where its ground truth puts it — through the full CLI."""
+    poses = write_tum(tmp_path / "rgbd_dataset_freiburg1_desk")
+    out = tmp_path / "fused.ply"
+    run = subprocess.run([sys.executable, "-m", "efem_viz.cli", "import-rgbd", "--sequence",
+                          str(tmp_path / "rgbd_dataset_freiburg1_desk"), "--out", str(out)],
+                         capture_output=True, text=True, timeout=600,
+                         env={"PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"})
+    assert run.returncode == 0, run.stderr
+    assert "12 frames (tum) fused into" in run.stdout
+    scene = load_scene(out)
+    pts = scene.points
+    table = np.abs(pts[:, 0]) < 0.28
+    assert abs(float(np.median(pts[table & (pts[:, 2] < 0.01), 2]))) < 0.004  # metres: the depth scale was 5000
+    r = np.hypot(pts[:, 0] + 0.1, pts[:, 1] - 0.05)
+    wall = (np.abs(r - 0.04) < 0.006) & (pts[:, 2] > 0.02) & (pts[:, 2] < 0.09)
+    assert wall.sum() > 200
+    assert (scene.colors[:, 0] > 150).mean() > 0.8  # each depth image found its colour image 5 ms later
+    cams = scene.provenance["cameras"]
+    S = np.array(scene.provenance["scan_frame"]["T_scene_file"])
+    for cam, T in zip(cams, poses):
+        assert np.allclose(S @ T, np.array(cam["T_world_camera"]), atol=1e-6)
+    assert np.allclose(cams[0]["K"], K)  # the folder's intrinsics file wins over the published ones
+
+
+def test_tum_poses_interpolate_between_samples_and_skip_gaps(tmp_path: Path) -> None:
+    from scipy.spatial.transform import Rotation, Slerp
+
+    from efem_viz.data.sequence import TUM_INTRINSICS, tum_pose_at
+
+    rots = Rotation.from_euler("xyz", [[0, 0, 0], [0.2, -0.4, 1.0], [0.3, 0.1, 2.5]])
+    stamps = np.array([10.0, 10.04, 10.5])  # a 0.46 s gap between the last two
+    trans = np.array([[0.0, 0, 0], [0.1, 0.2, -0.3], [1.0, 1.0, 1.0]])
+    gt = np.concatenate([trans, rots.as_quat()], axis=1)
+    T = tum_pose_at(10.01, stamps, gt)
+    assert T is not None
+    want = Slerp(stamps[:2], rots[:2])([10.01]).as_matrix()[0]
+    assert np.allclose(T[:3, :3], want, atol=1e-9) and np.allclose(T[:3, 3], 0.25 * trans[1], atol=1e-12)
+    assert np.allclose(tum_pose_at(10.04, stamps, gt)[:3, 3], trans[1])  # type: ignore[index] - on a sample
+    assert tum_pose_at(10.2, stamps, gt) is None  # inside the gap
+    assert tum_pose_at(9.9, stamps, gt) is None and tum_pose_at(10.6, stamps, gt) is None  # outside the span
+    # a folder without intrinsics named after a Freiburg sequence takes the published ones
+    write_tum(tmp_path / "rgbd_dataset_freiburg3_office", 3)
+    (tmp_path / "rgbd_dataset_freiburg3_office" / "intrinsics.txt").unlink()
+    seq = find_sequence(tmp_path / "rgbd_dataset_freiburg3_office")
+    fx, fy, cx, cy = TUM_INTRINSICS["freiburg3"]
+    assert seq.layout == "tum" and seq.depth_scale == 5000.0 and len(seq.frames) == 3
+    assert np.allclose(seq.K, [[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
+
+
+def test_every_wrong_tum_folder_is_one_line(tmp_path: Path) -> None:
+    folder = tmp_path / "mine"
+    write_tum(folder, 3)
+    (folder / "intrinsics.txt").unlink()
+    with pytest.raises(SceneError, match="no intrinsics file"):
+        find_sequence(folder)  # not a Freiburg name: no guess
+    np.savetxt(folder / "intrinsics.txt", K)
+    depth_txt = (folder / "depth.txt").read_text()
+    (folder / "depth.txt").write_text(depth_txt + "1305031109.0 ../../etc/passwd\n1305031109.1 x.png\n")
+    gt = (folder / "groundtruth.txt").read_text()
+    (folder / "groundtruth.txt").write_text(gt + "".join(f"{t} 0 0 0 0 0 0 1\n" for t in
+                                                         (1305031108.98, 1305031109.03, 1305031109.08, 1305031109.13)))
+    with pytest.raises(SceneError, match="lies outside the sequence folder"):
+        find_sequence(folder)
+    (folder / "depth.txt").write_text(depth_txt + "1305031109.1 depth/none.png\n")
+    with pytest.raises(SceneError, match="none.png: missing"):
+        find_sequence(folder)
+    (folder / "depth.txt").write_text(depth_txt + "nan-ish depth/x.png\n")
+    with pytest.raises(SceneError, match="timestamp is not a number"):
+        find_sequence(folder)
+    (folder / "depth.txt").write_text(depth_txt)
+    (folder / "groundtruth.txt").write_text("# nothing\n1.0 0 0 0\n")
+    with pytest.raises(SceneError, match="a TUM list line has 8"):
+        find_sequence(folder)
+    (folder / "groundtruth.txt").write_text("# far in the past\n5.0 0 0 0 0 0 0 1\n5.01 0 0 0 0 0 0 1\n")
+    with pytest.raises(SceneError, match="no depth frames found with a ground-truth pose"):
+        find_sequence(folder)

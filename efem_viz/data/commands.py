@@ -164,7 +164,8 @@ class ImportRgbdArgs:
 
     Either give FRAME.npz (arrays rgb, depth_mm or depth, K), or --depth with the intrinsics --fx --fy --cx --cy,
     or --sequence DIR: a 7-Scenes style folder (frame-*.depth.png / .color.png / .pose.txt), ScanNet's exported
-    frames (depth/, color/, pose/, intrinsic/), or depth (and color) images with --poses FILE. Every frame is
+    frames (depth/, color/, pose/, intrinsic/), a TUM RGB-D folder (depth.txt, rgb.txt, groundtruth.txt: associated
+    by time), or depth (and color) images with --poses FILE. Every frame is
     fused (TSDF), the support plane put at z = 0 and every camera recorded (docs/OWN_DATA.md).
     """
 
@@ -203,8 +204,9 @@ class ImportRgbdArgs:
     """With --sequence: a poses file, one camera-to-world 4x4 per depth image (16 numbers per line or 4 lines)."""
     every: int = 1
     """With --sequence: fuse every N-th frame."""
-    depth_scale: float = 1000.0
-    """With --sequence: depth PNG units per metre (1000: millimetres; TUM's files: 5000)."""
+    depth_scale: float | None = None
+    """With --sequence: depth PNG units per metre (default: the layout's, 5000 for TUM RGB-D folders, else 1000:
+    millimetres)."""
 
     def run(self) -> int:
         """Import the frame and save it; returns 0."""
@@ -263,7 +265,7 @@ class ImportRgbdArgs:
 
         if self.frame is not None or self.depth is not None:
             raise SceneError("give FRAME.npz, --depth or --sequence, not several")
-        if self.every < 1 or not self.depth_scale > 0:
+        if self.every < 1 or (self.depth_scale is not None and not self.depth_scale > 0):
             raise SceneError(f"--every must be >= 1 and --depth-scale > 0, got {self.every} and {self.depth_scale}")
         assert self.sequence is not None
         name = self.name or self.out.name.split(".")[0]
