@@ -1,7 +1,7 @@
 """Fuzz every loader: each input gives a valid object or one clear error, in bounded time and
 memory, and nothing is written.
 
-Loaders: `load_scene` on PLY (binary and ASCII), OBJ, OFF, NPZ (scene and RGB-D frame) and GLB; RGB-D frame
+Loaders: `load_scene` on PLY (binary and ASCII), OBJ, OFF, NPZ (scene and RGB-D frame), GLB, PCD and LAS/LAZ; RGB-D frame
 import (`import_rgbd_file`); the annotator's `load_labels` on every label format (PLY `instance`, checkpoint and
 plain NPZ, ScanNet segs/aggregation JSON, EFEM `.efem.npz`); `EMResult.load`; the prior `load_prior` (weights
 and codebook). Each starts from small valid seed files made in a temporary folder (tiny scenes through
@@ -282,6 +282,8 @@ def _make_loaders(tmp: Path) -> list[_Loader]:
                 lambda p: load_scene(p), _check_scene, scene_kinds + ("header-number",), b"VERSION 0.7\n"),
         _Loader("scene-pcd-ascii", [one("a.pcd", saved(cloud, "a.pcd", ascii=True), text=True)],
                 lambda p: load_scene(p), _check_scene, scene_kinds + text_kinds, b"VERSION 0.7\n"),
+        _Loader("scene-las", [one("a.las", saved(cloud, "a.las")), one("b.laz", saved(cloud, "b.laz"))],
+                lambda p: load_scene(p), _check_scene, scene_kinds, b"LASF"),
         _Loader("rgbd-frame", [one("frame.npz", npz_bytes(frame)), one("frame.npz", npz_bytes(frame, compressed=True))],
                 lambda p: import_rgbd_file(p), _check_scene, scene_kinds + zip_kinds, b"PK\x03\x04"),
     ]

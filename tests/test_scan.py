@@ -223,3 +223,55 @@ def test_segment_picks_each_scenes_preset_and_refuses_a_scan_far_from_metric(tmp
     assert re.search(r"capture: \d+ instances in .* \(local, preset real\)", out), out
     assert re.search(r"fused: \d+ instances in .* \(local, preset synthetic\)", out), out
     assert re.search(r"huge: failed: SceneError: the scene spans [\d.e+]+ m: not a scan in metres", out), out
+
+
+# ------------------------------------------------------------------------------------------------ LAS / LAZ
+def test_a_georeferenced_laz_comes_in_near_the_origin_and_goes_back_to_its_own_coordinates(tmp_path: Path) -> None:
+    """A LAZ scan in UTM-like coordinates (metres, +Z up, the table 312 m above sea level): the loader keeps
+    millimetres by subtracting the whole-metre corner (recorded), the scan is brought to the scene frame with a
+    notice that says so, and the recorded frame maps the file's own coordinates (float64) onto the scene."""
+    import laspy
+
+    base = tabletop()
+    offset = np.array([512345.25, 4123456.5, 312.0])
+    pts = base.points.astype(np.float64) + offset
+    header = laspy.LasHeader(point_format=3, version="1.2")
+    header.offsets = np.floor(pts.min(axis=0))
+    header.scales = np.array([0.0001, 0.0001, 0.0001])
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = pts[:, 0], pts[:, 1], pts[:, 2]
+    las.red = las.green = las.blue = np.full(len(pts), 200 * 257, np.uint16)
+    las.write(str(tmp_path / "survey.laz"))
+    file_xyz = np.stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)], axis=1)
+
+    loaded = load_scene(tmp_path / "survey.laz")
+    origin = np.array(loaded.provenance["file_origin"])
+    assert np.array_equal(origin, np.floor(file_xyz.min(axis=0)))
+    assert np.abs(loaded.points - (file_xyz - origin)).max() < 1e-4  # float32 near the origin: sub-millimetre
+    assert (loaded.colors == 200).all()
+    scene, notice = scene_in_scene_frame(loaded)
+    assert notice is not None and "georeferenced origin" in notice
+    frame = ScanFrame.from_provenance(scene.provenance)
+    assert frame is not None
+    table = scene.points[base.instance == 0]
+    assert abs(float(np.median(table[:, 2]))) < 0.002  # the table at z = 0
+    back = frame.to_scene.inverse().apply(scene.points.astype(np.float64))
+    assert np.abs(back - file_xyz).max() < 1e-3  # the file's own coordinates, to the millimetre
+
+
+@pytest.mark.parametrize("damage", ["count", "truncate", "garbage"])
+def test_a_hostile_las_is_one_line_before_any_allocation(tmp_path: Path, damage: str) -> None:
+    save_scene(tabletop(), tmp_path / "a.las")
+    raw = bytearray((tmp_path / "a.las").read_bytes())
+    if damage == "count":  # LAS 1.4: the 64-bit point count at byte 247
+        raw[247:255] = (10**12).to_bytes(8, "little")
+        match = "more than the limit"
+    elif damage == "truncate":
+        raw = raw[: len(raw) // 2]
+        match = "truncated"
+    else:
+        raw[:4] = b"NOPE"
+        match = "not a readable LAS/LAZ file"
+    (tmp_path / "b.las").write_bytes(bytes(raw))
+    with pytest.raises(SceneError, match=match):
+        load_scene(tmp_path / "b.las")

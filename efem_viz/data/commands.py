@@ -172,7 +172,7 @@ class ImportRgbdArgs:
     frame: Annotated[Path | None, tyro.conf.Positional] = None
     """An .npz frame with `rgb` (H,W,3) uint8, `depth_mm` (H,W) uint16 (or `depth` float metres) and `K` (3,3)."""
     out: Path = Path("scene.ply")
-    """Output scene file (.ply, .pcd, .npz, .glb, .obj, .off)."""
+    """Output scene file (.ply, .pcd, .las, .laz, .npz, .glb, .obj, .off)."""
     depth: Path | None = None
     """Depth image instead of FRAME: .npy in metres, or a 16-bit .png in millimetres."""
     rgb: Path | None = None
@@ -311,7 +311,7 @@ class ImportScanArgs:
     kept, so per-point masks and labels line up with the file's vertices. See docs/OWN_DATA.md."""
 
     scan: Annotated[Path, tyro.conf.Positional]
-    """The scan: .ply, .pcd, .obj, .off, .glb or .npz."""
+    """The scan: .ply, .pcd, .las, .laz, .obj, .off, .glb or .npz."""
     out: Path | None = None
     """Output scene file (any scene format by its suffix); default: SCAN's folder, <stem>.scene.ply."""
     units: str = "auto"

@@ -85,7 +85,7 @@ def load_scene(
     max_points: int = DEFAULT_MAX_POINTS,
     name: str | None = None,
 ) -> Scene:
-    """Load a scene (mesh or point cloud) from .ply, .pcd, .obj, .off, .glb or .npz.
+    """Load a scene (mesh or point cloud) from .ply, .pcd, .las, .laz, .obj, .off, .glb or .npz.
 
     Missing normals are estimated on first use of `Scene.normals` (area-weighted face normals for meshes, PCA
     normals oriented consistently for point clouds; `Scene.normals_pending` tells), so a caller that never
@@ -145,7 +145,7 @@ def load_scene(
 
 # ---------------------------------------------------------------------------------------------- save
 def save_scene(scene: Scene, path: str | os.PathLike[str], *, ascii: bool = False) -> Path:
-    """Save a scene; the format comes from the suffix (.ply, .pcd, .obj, .off, .glb, .npz). Atomic.
+    """Save a scene; the format comes from the suffix (.ply, .pcd, .las, .laz, .obj, .off, .glb, .npz). Atomic.
 
     Args:
         scene: the scene.

@@ -249,20 +249,44 @@ def import_scan(scene: Scene, *, units: UnitsChoice = "auto", up: UpChoice = "au
     if "scan_frame" in scene.provenance:
         raise SceneError(f"{scene.name} was imported already (its scan frame is recorded); open it directly")
     frame = detect_scan_frame(scene.points, units=units, up=up, seed=seed)
+    origin = file_origin(scene.provenance)
+    sim = frame.to_scene  # of the points as loaded
+    if origin.any():  # a georeferenced file loaded minus its origin: the recorded frame maps the file's coordinates
+        frame = ScanFrame(Sim3(sim.scale, sim.R, sim.t - sim.scale * (sim.R @ origin)), frame.units, frame.up,
+                          frame.decided)
     prov = {**dict(scene.provenance), "scan_frame": frame.to_provenance()}
-    if frame.is_identity:
+    if sim.scale == 1.0 and np.array_equal(sim.R, np.eye(3)) and not sim.t.any():
         return scene.replace(provenance=prov), frame
-    sim = frame.to_scene
     changes: dict[str, Any] = {"points": sim.apply(scene.points), "provenance": prov}
     if not scene.normals_pending:
         changes["normals"] = scene.normals @ sim.R.T
     return scene.replace(**changes), frame
 
 
+def file_origin(provenance: Any) -> np.ndarray:
+    """(3,) float64 the loader subtracted from a georeferenced file's coordinates (``provenance["file_origin"]``,
+    e.g. `data.formats.las`), zeros when none.
+
+    Raises:
+        SceneError: a damaged record.
+    """
+    rec = provenance.get("file_origin") if hasattr(provenance, "get") else None
+    if rec is None:
+        return np.zeros(3)
+    try:
+        origin = np.asarray(rec, dtype=np.float64).reshape(3)
+    except (TypeError, ValueError):
+        raise SceneError("the scene's recorded file origin is damaged (not three numbers)") from None
+    if not np.isfinite(origin).all():
+        raise SceneError("the scene's recorded file origin is damaged (not finite)")
+    return origin
+
+
 def scene_in_scene_frame(scene: Scene, *, seed: int = 0) -> tuple[Scene, str | None]:
     """A scan opened directly (`view`, `segment`): brought into the scene frame when it is clearly not in it.
 
-    A scene with provenance (made by efem-viz: generated, imported, annotated) is used as it is. A bare file is
+    A scene with provenance (made by efem-viz: generated, imported, annotated; a loader's ``file_origin`` alone
+    does not count) is used as it is. A bare file is
     checked with `detect_scan_frame`; when both the units and the up axis are decided and the scan is not already
     in metres with +Z up, it is transformed as `import_scan` would (the frame recorded in its provenance) and a
     one-line notice says so. A scan whose frame cannot be decided is used as it is (no notice: `import-scan` says
@@ -271,7 +295,7 @@ def scene_in_scene_frame(scene: Scene, *, seed: int = 0) -> tuple[Scene, str | N
     Returns:
         (the scene to use, the notice or None).
     """
-    if scene.provenance:
+    if set(scene.provenance) - {"file_origin"}:  # a loader's own record does not make a scene efem-viz's
         return scene, None
     try:
         imported, frame = import_scan(scene, seed=seed)
@@ -280,5 +304,7 @@ def scene_in_scene_frame(scene: Scene, *, seed: int = 0) -> tuple[Scene, str | N
         return scene, None
     if frame.is_identity:
         return scene, None
+    origin = file_origin(scene.provenance)
+    geo = f"; its georeferenced origin {origin.tolist()} subtracted" if origin.any() else ""
     return imported, (f"{scene.name}: read as {frame.describe()} and brought to metres, +Z up, the support plane "
-                      "at z = 0 (efem-viz import-scan --units/--up to override)")
+                      f"at z = 0{geo} (efem-viz import-scan --units/--up to override)")

@@ -12,7 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Callable, NamedTuple
 
-from efem_viz.data.formats import glb, npz, obj_off, pcd, ply
+from efem_viz.data.formats import glb, las, npz, obj_off, pcd, ply
 
 
 class SceneFormat(NamedTuple):
@@ -35,6 +35,8 @@ FORMATS: dict[str, SceneFormat] = {
     ".glb": SceneFormat(glb.load, glb.save),
     ".npz": SceneFormat(npz.load, npz.save),
     ".pcd": SceneFormat(pcd.load, pcd.save, keeps_faces=False),
+    ".las": SceneFormat(las.load, las.save, keeps_faces=False),
+    ".laz": SceneFormat(las.load, las.save_laz, keeps_faces=False),
 }
 """Scene formats by lower-case file suffix."""
 
