@@ -157,6 +157,10 @@ def test_instances_move_with_the_frame_and_back() -> None:
     back = moved.transformed(sim.inverse())
     assert back.R == pytest.approx(inst.R, abs=1e-5) and back.center == pytest.approx(inst.center, abs=1e-4)
     assert [m.tolist() for m in back.masks] == [m.tolist() for m in inst.masks]
+    geo = Sim3(1.0, np.eye(3), np.array([512345.25, 4123456.5, 312.0]))  # a georeferenced file's frame
+    far = inst.transformed(geo)
+    assert np.abs(far.center - (inst.center.astype(np.float64) + geo.t)).max() < 1e-6  # no float32 rounding (3 cm)
+    assert np.abs(far.obb_center - (inst.obb_center.astype(np.float64) + geo.t)).max() < 1e-6
 
 
 # ------------------------------------------------------------------------------------------------ full CLI

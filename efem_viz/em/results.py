@@ -163,11 +163,12 @@ class Instances:
     def transformed(self, sim: "Sim3") -> "Instances":
         """The instances in another frame, `x ↦ s R x + t` (e.g. a scan's own frame: `ScanFrame.to_scene.inverse()`):
         meshes, poses (R, centre, scale Θ_s) and boxes move with it; masks (point indices), confidences and scores
-        are unchanged."""
+        are unchanged. Positions (mesh vertices, centres) come out in float64, so a georeferenced frame
+        (coordinates of 10⁵-10⁷ m, `data.formats.las`) keeps its millimetres."""
         import dataclasses
 
-        Rf, s, t = sim.R.astype(np.float32), np.float32(sim.scale), sim.t.astype(np.float32)
-        move = lambda x: (s * np.asarray(x, np.float32) @ Rf.T + t).astype(np.float32)  # noqa: E731
+        Rf, s = sim.R.astype(np.float32), np.float32(sim.scale)
+        move = lambda x: float(sim.scale) * np.asarray(x, np.float64) @ sim.R.T + sim.t  # noqa: E731
         return dataclasses.replace(
             self,
             mesh_vertices=[move(v) for v in self.mesh_vertices],
