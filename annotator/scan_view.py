@@ -20,8 +20,7 @@ import numpy as np
 
 from annotator.labels import Delta
 from annotator.render import Chunks, build_chunks, color_lut, compose_colors, ring_segments, splat_proxy
-from efem_viz.geometry.transforms import xyz_tuple
-from efem_viz.serve.camera import CameraGuard, View, fly_to_view
+from efem_viz.serve.camera import CameraGuard, fitted_view, fly_to_view, framing
 
 if TYPE_CHECKING:
     import viser
@@ -74,6 +73,10 @@ def display_subset(n: int, budget: int, *, seed: int = 0) -> np.ndarray:
     return np.sort(np.random.default_rng(seed).choice(n, size=budget, replace=False)).astype(np.int32)
 
 
+HOME_DIRECTION = (0.0, -1.0, 0.8)
+"""From the scan's centre toward the camera of the fitted view: from the front (-Y), looking down at about 40°."""
+
+
 class ScanView:
     """Draws a session's scan and keeps it up to date (every client sees the same scene).
 
@@ -102,7 +105,6 @@ class ScanView:
         self._cursor_lock = threading.Lock()
         self._lasso_lock = threading.Lock()
         pts = scene.points
-        centre = pts.mean(axis=0)
         self.extent = float(np.linalg.norm(np.ptp(pts, axis=0))) or 1.0
         # Points drawn from a subset of D of the n vertices are sqrt(n / D) times further apart on a surface.
         n = scene.num_points
@@ -117,9 +119,10 @@ class ScanView:
         self.surface = self._add_surface((2.5 if k == n else 1.6) * splat_spacing, max_splats)
         """The mesh that receives drag gestures (the scan's own when it is drawn in full, else an invisible proxy)."""
         self.chunk_handles = self._add_chunks()
-        self.home_view = View(look_at=xyz_tuple(centre),
-                              position=xyz_tuple(centre + np.array([0.0, -1.0, 0.8]) * self.extent * 0.8))
-        """The fitted view: where every client starts, and where R (reset view) puts the camera."""
+        flo, fhi, sample = framing(pts)
+        self.home_view = fitted_view(flo, fhi, direction=HOME_DIRECTION, points=sample)
+        """The fitted view (the scan's central 99 % filling the view, as the viewer frames its scenes): where every
+        client starts, and where R (reset view) puts the camera."""
         self.camera_guard = CameraGuard(server, self.home_view, pts.min(axis=0), pts.max(axis=0),
                                         hint="R (reset view) brings it back any time.")
         """Puts a camera that left the scan back on `home_view` (see `efem_viz.serve.camera`)."""

@@ -149,6 +149,27 @@ def test_click_tools_grow_fill_pick_erase(app: AnnotatorApp) -> None:
     assert app.session.click(np.array([5.0, 5, 5]), np.array([1.0, 0, 0])) is None  # a miss changes nothing
 
 
+def test_the_home_view_fills_the_view_with_the_scan(app: AnnotatorApp) -> None:
+    """Where every client starts and where R returns: the scan fills most of the view planned for (it filled a
+    third of it), and none of it is cut off."""
+    from annotator.selection import project
+    from efem_viz.geometry.transforms import rotation_to_quat_wxyz
+    from efem_viz.serve.camera import FIT_ASPECT, VISER_FOV
+
+    home = app.view.home_view
+    forward = np.subtract(home.look_at, home.position)
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, home.up)
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    wxyz = rotation_to_quat_wxyz(np.stack([right, down, forward], axis=1))
+    uv, z = project(app.session.scene.points, position=np.asarray(home.position), wxyz=wxyz, fov=VISER_FOV,
+                    aspect=FIT_ASPECT)
+    assert (z > 0).all() and (uv >= 0.0).all() and (uv <= 1.0).all()  # all of it in front, in the view
+    span = uv.max(axis=0) - uv.min(axis=0)
+    assert span.max() > 0.7, f"the scan spans {span} of the view"
+
+
 def test_rect_select_uses_client_camera(app: AnnotatorApp) -> None:
     iid = app.session.new_instance()
     ev = SimpleNamespace(client_id=3, client=_client(), screen_min=(0.45, 0.45), screen_max=(0.55, 0.55))
