@@ -150,6 +150,29 @@ def test_box_and_lasso_select_from_a_camera(session: AnnotatorSession) -> None:
                                 camera=TOP_CAMERA)
 
 
+def test_a_box_that_takes_other_instances_vertices_says_so_at_once(session: AnnotatorSession) -> None:
+    """A box select over an instance's vertices relabels them (the default) and the user is told how many and how to
+    undo or avoid it; with *Only unlabelled vertices* nothing is taken and nothing is said; an erasing box says
+    nothing either."""
+    notes: list[str] = []
+    session.notify = lambda title, body: notes.append(f"{title}: {body}")
+    box = dict(position=TOP_CAMERA.position, wxyz=TOP_CAMERA.wxyz, fov=TOP_CAMERA.fov, aspect=TOP_CAMERA.aspect,
+               screen_min=(0.4, 0.4), screen_max=(0.6, 0.6))
+    first = session.new_instance()
+    d = session.box(**box)
+    assert d is not None and not notes  # unlabelled vertices only: nothing to say
+    session.new_instance()
+    d = session.box(**box)
+    assert d is not None and len(notes) == 1
+    assert f"took {int((d.before == first).sum()):,} labelled vertices" in notes[0] and "Ctrl+Z" in notes[0]
+    session.undo()
+    session.settings.only_unlabelled = True
+    assert session.box(**box) is None and len(notes) == 1
+    session.settings.only_unlabelled = False
+    session.set_tool("erase")
+    assert session.box(**box) is not None and len(notes) == 1
+
+
 def test_instances_update_merge_delete(session: AnnotatorSession) -> None:
     a = session.new_instance(category="mug")
     session.paint(np.arange(10))

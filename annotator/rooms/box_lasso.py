@@ -31,7 +31,7 @@ class BoxLassoRoom:
         idx = sel.box_select(self.scan.geom, position=position, wxyz=wxyz, fov=fov, aspect=aspect,
                              screen_min=screen_min, screen_max=screen_max, facing=self._facing(), counts=counts)
         with self.painting.edit_source(_source("box select", counts)):
-            return self.painting.paint(idx, erase=self.toolbox.tool.erase, client=client)
+            return self._told(self.painting.paint(idx, erase=self.toolbox.tool.erase, client=client), "box select")
 
     def lasso(self, *, position: np.ndarray, wxyz: np.ndarray, fov: float, aspect: float, polygon: np.ndarray,
               client: str = "") -> Delta | None:
@@ -41,7 +41,18 @@ class BoxLassoRoom:
         idx = sel.lasso_select(self.scan.geom, position=position, wxyz=wxyz, fov=fov, aspect=aspect, polygon=polygon,
                                facing=self._facing(), counts=counts)
         with self.painting.edit_source(_source("lasso", counts)):
-            return self.painting.paint(idx, erase=self.toolbox.tool.erase, client=client)
+            return self._told(self.painting.paint(idx, erase=self.toolbox.tool.erase, client=client), "lasso")
+
+    def _told(self, delta: Delta | None, what: str) -> Delta | None:
+        """A box or lasso selection reaches far more vertices than a brush dab, hidden ones included: when it took
+        vertices of other instances the user is told at once (and how to undo or avoid it), not only in the edit
+        history."""
+        taken = 0 if delta is None or self.toolbox.tool.erase else int(np.count_nonzero(delta.before > 0))
+        if taken:
+            self.hooks.notify(f"The {what} took {taken:,} labelled vertices",
+                              "they belonged to other instances: Ctrl+Z undoes it, and 'Only unlabelled vertices' "
+                              "keeps labelled vertices out of a selection")
+        return delta
 
     def _facing(self) -> sel.Facing:
         mode = self.toolbox.settings.box_facing
