@@ -14,11 +14,13 @@ from efem_viz.serve.camera import (
     FIT_ASPECT,
     FIT_FILL,
     LOST_MARGIN,
+    PANEL_PX,
     VISER_CAMERA_KEYS,
     VISER_FOV,
     CameraGuard,
     fitted_view,
     framing,
+    free_aspect,
     view_lost,
 )
 
@@ -175,7 +177,11 @@ def test_the_viewer_fits_every_camera_on_a_scene_change(tmp_path: Path) -> None:
             for name in ("a", "b"):
                 assert app.open_scene(name)
                 lo, hi, sample = framing(app.state.scene.points)
-                view = fitted_view(lo, hi, direction=(0.5, -0.95, 0.85), points=sample)
+                # fitted to the part of this client's 640 x 480 canvas the control panel leaves free (too narrow
+                # to move the scene sideways: the look-at point stays at the centre)
+                view = fitted_view(lo, hi, direction=(0.5, -0.95, 0.85), points=sample,
+                                   aspect=free_aspect(640, 480, PANEL_PX))
+                assert np.allclose(app.camera_guard.view_for(handle).position, view.position, atol=1e-9)
                 assert np.allclose(handle.camera.look_at, view.look_at, atol=1e-5), (name, handle.camera.look_at)
                 assert np.allclose(handle.camera.position, view.position, atol=1e-5), name
             client.send(_camera_message((3.1, 3.0, 3.0), (3.5, 2.0, 4.0)))
@@ -187,3 +193,53 @@ def test_the_viewer_fits_every_camera_on_a_scene_change(tmp_path: Path) -> None:
     finally:
         app.stop()
 
+
+
+def test_a_view_clear_of_the_panel_centres_the_scene_in_the_free_part() -> None:
+    """`clear_of_panel` moves camera and look-at point together so that the point looked at projects at the middle
+    of the canvas part a right-hand panel leaves free; `free_aspect` is that part's aspect."""
+    from annotator.selection import project
+    from efem_viz.geometry.transforms import rotation_to_quat_wxyz
+    from efem_viz.serve.camera import clear_of_panel
+
+    v = fitted_view(LO, HI)
+    w, h, panel = 1280, 800, 416
+    moved = clear_of_panel(v, w, h, panel_px=panel)
+    assert np.allclose(np.subtract(moved.position, moved.look_at), np.subtract(v.position, v.look_at))  # same view
+    forward = np.subtract(moved.look_at, moved.position)
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, moved.up)
+    right /= np.linalg.norm(right)
+    wxyz = rotation_to_quat_wxyz(np.stack([right, np.cross(forward, right), forward], axis=1))
+    uv, _ = project(np.asarray([v.look_at]), position=np.asarray(moved.position), wxyz=wxyz, fov=VISER_FOV,
+                    aspect=w / h)
+    assert abs(uv[0, 0] * w - (w - panel) / 2) < 0.5 and abs(uv[0, 1] - 0.5) < 1e-9
+    assert clear_of_panel(v, w, h, panel_px=0) == v and clear_of_panel(v, 600, h, panel_px=panel) == v  # too narrow
+    assert free_aspect(w, h, panel) == pytest.approx((w - panel) / h) and free_aspect(w, h, 0) == w / h
+
+
+def test_with_a_panel_each_client_gets_the_view_fitted_to_its_free_canvas() -> None:
+    """A guard with a panel: before a client reports its canvas it gets the shared view; after, the scene's view
+    fitted to the free part of its canvas, moved clear of the panel (and so does any view placed for it)."""
+    from types import SimpleNamespace
+
+    from efem_viz.serve.camera import clear_of_panel
+
+    server = SimpleNamespace(initial_camera=SimpleNamespace(up=None, position=None, look_at=None),
+                             get_clients=lambda: {})
+    fit = lambda aspect: fitted_view(LO, HI, aspect=aspect)  # noqa: E731
+    guard = CameraGuard(server, fitted_view(LO, HI), LO, HI, panel_px=416)
+    guard.set_scene(fitted_view(LO, HI), LO, HI, fit=fit)
+
+    class Camera:
+        @property
+        def image_width(self) -> int:
+            raise AssertionError("no camera state yet")  # what viser does before the first report
+
+    early = SimpleNamespace(camera=Camera())
+    assert guard.view_for(early) == guard.view
+    client = SimpleNamespace(camera=SimpleNamespace(image_width=1600, image_height=900))
+    want = clear_of_panel(fit(free_aspect(1600, 900, 416)), 1600, 900, panel_px=416)
+    assert guard.view_for(client) == want
+    other = fitted_view(LO / 2, HI / 2)
+    assert guard.view_for(client, other) == clear_of_panel(other, 1600, 900, panel_px=416)

@@ -31,7 +31,7 @@ import logging
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -69,6 +69,9 @@ FIT_ASPECT = 1.2
 narrower."""
 FIT_FILL = 0.85
 """A fitted scene's box spans this fraction of the view's height or width (whichever binds first)."""
+PANEL_PX = 24 * 16 + 32
+"""Pixels of the canvas's right side the viewer's control panel covers (viser 1.1.1 floats it over the canvas:
+`control_width="large"` is 24 em of 16 px, plus its margins)."""
 
 
 def fitted_view(lo: Sequence[float] | np.ndarray, hi: Sequence[float] | np.ndarray, *,
@@ -202,6 +205,36 @@ def view_lost(look_at: Sequence[float] | np.ndarray, lo: Sequence[float] | np.nd
     return bool(np.linalg.norm(outside) > margin * diagonal)
 
 
+def clear_of_panel(view: View, width: float, height: float, *, panel_px: float, fov: float = VISER_FOV) -> View:
+    """The view moved sideways (camera and look-at point together) so that what it centres on appears in the middle
+    of the canvas part the control panel leaves free, not under the panel.
+
+    Args:
+        view: a view planned for the canvas's centre.
+        width: the canvas width (pixels).
+        height: the canvas height (pixels).
+        panel_px: pixels the panel covers at the right of the canvas (0: nothing moves).
+        fov: the camera's vertical field of view (radians).
+    """
+    if not (panel_px > 0 and width > 2 * panel_px and height > 0):
+        return view
+    look, pos = np.asarray(view.look_at, np.float64), np.asarray(view.position, np.float64)
+    forward = look - pos
+    dist = float(np.linalg.norm(forward))
+    right = np.cross(forward, np.asarray(view.up, np.float64))
+    if not (dist > 0 and float(np.linalg.norm(right)) > 1e-12):
+        return view
+    right /= np.linalg.norm(right)
+    # the free part's centre lies panel_px / 2 left of the canvas centre: f = (height / 2) / tan(fov / 2) pixels
+    shift = 0.5 * float(panel_px) * dist * np.tan(0.5 * float(fov)) / (0.5 * float(height))
+    return View(xyz_tuple(look + shift * right), xyz_tuple(pos + shift * right), view.up)
+
+
+def free_aspect(width: float, height: float, panel_px: float) -> float:
+    """Width / height of the canvas part the control panel leaves free (the whole canvas's without a panel)."""
+    return max(float(width) - max(float(panel_px), 0.0), 0.5 * float(width)) / max(float(height), 1.0)
+
+
 def place_camera(camera: Any, view: View) -> None:
     """Put a client's camera (a viser `CameraHandle`) on a view.
 
@@ -223,18 +256,27 @@ class CameraGuard:
         hi: (3,) max corner, world frame.
         margin: `LOST_MARGIN` (scene diagonals outside the box).
         hint: the last sentence of the notification (how to get the fitted view back).
+        panel_px: pixels a control panel covers at the right of every canvas (`PANEL_PX` in the viewer; 0: none).
+            Each client's views are then fitted to the free part of its canvas (`set_scene`'s `fit`) and moved
+            clear of the panel (`clear_of_panel`) once the client has reported its canvas size (a new page starts
+            on the shared initial view and is moved on its first report).
     """
 
     def __init__(self, server: Any, view: View, lo: Sequence[float] | np.ndarray, hi: Sequence[float] | np.ndarray,
-                 *, margin: float = LOST_MARGIN, hint: str = "Reset view brings it back any time.") -> None:
+                 *, margin: float = LOST_MARGIN, hint: str = "Reset view brings it back any time.",
+                 panel_px: float = 0.0) -> None:
         self.server = server
         self.margin = float(margin)
         self.hint = hint
+        self.panel_px = float(panel_px)
         self.resets: dict[int, int] = {}
         """Times each client's camera was brought back because it had left the scene, by client id."""
         self._lock = threading.Lock()
         self._notified: dict[int, float] = {}
         self.view = view
+        """The fitted view for the planned canvas (`FIT_ASPECT`, no panel): the initial camera."""
+        self.fit: Callable[[float], View] | None = None
+        """The fitted view for a canvas of a given free aspect (`set_scene`), None: `view` for every canvas."""
         self.lo = xyz_tuple(lo)
         self.hi = xyz_tuple(hi)
         self._set_initial()
@@ -246,20 +288,51 @@ class CameraGuard:
         cam.look_at = self.view.look_at
 
     def attach(self, client: Any) -> None:
-        """Watch a client's camera (call it from `server.on_client_connect`)."""
-        client.camera.on_update(lambda camera, client=client: self.check(client, camera))
+        """Watch a client's camera (call it from `server.on_client_connect`); with a panel, the client's first
+        camera report (its canvas size) puts it on the view fitted to its canvas."""
+        client.camera.on_update(lambda camera, client=client: self._on_update(client, camera))
+
+    def _on_update(self, client: Any, camera: Any) -> None:
+        """A camera report: the lost-camera check, then (with a panel) a camera sitting exactly on the shared
+        initial view (a new page, or viser's own reset to it) goes to the view fitted to its canvas."""
+        if self.check(client, camera) or not self.panel_px or _canvas(client) is None:
+            return
+        with self._lock:
+            home, lo, hi = self.view, self.lo, self.hi
+        tol = 1e-5 * (float(np.linalg.norm(np.subtract(hi, lo))) or 1.0)
+        try:
+            at_home = (np.allclose(camera.look_at, home.look_at, rtol=0.0, atol=tol)
+                       and np.allclose(camera.position, home.position, rtol=0.0, atol=tol))
+        except Exception:  # noqa: BLE001 - no camera state yet
+            return
+        if at_home and not np.allclose(self.view_for(client).look_at, home.look_at, rtol=0.0, atol=tol):
+            self._place(client)
 
     def forget(self, client: Any) -> None:
         """Drop what the guard kept about a client that left (call it from `server.on_client_disconnect`)."""
         with self._lock:
             self._notified.pop(int(getattr(client, "client_id", -1)), None)
 
-    def set_scene(self, view: View, lo: Sequence[float] | np.ndarray, hi: Sequence[float] | np.ndarray, *,
-                  move_clients: bool = True) -> None:
-        """Another scene: its fitted view becomes the initial camera, and (with `move_clients`) every connected
-        camera is put on it."""
+    def view_for(self, client: Any, view: View | None = None) -> View:
+        """A view as one client gets it: `view` (default: the scene's fitted view, fitted again to the free part of
+        the client's canvas) moved clear of the panel; unchanged without a panel or before the client reported its
+        canvas size."""
         with self._lock:
-            self.view, self.lo, self.hi = view, xyz_tuple(lo), xyz_tuple(hi)
+            home, fit = self.view, self.fit
+        size = _canvas(client) if self.panel_px else None
+        if view is None:
+            view = fit(free_aspect(size[0], size[1], self.panel_px)) if size is not None and fit is not None else home
+        if size is None:
+            return view
+        return clear_of_panel(view, size[0], size[1], panel_px=self.panel_px)
+
+    def set_scene(self, view: View, lo: Sequence[float] | np.ndarray, hi: Sequence[float] | np.ndarray, *,
+                  move_clients: bool = True, fit: Callable[[float], View] | None = None) -> None:
+        """Another scene: its fitted view becomes the initial camera, and (with `move_clients`) every connected
+        camera is put on it (`fit(aspect)`: the fitted view for a canvas of that free aspect, used per client
+        with a panel)."""
+        with self._lock:
+            self.view, self.fit, self.lo, self.hi = view, fit, xyz_tuple(lo), xyz_tuple(hi)
         self._set_initial()
         if move_clients:
             for client in list(self.server.get_clients().values()):
@@ -310,9 +383,7 @@ class CameraGuard:
         return True
 
     def _place(self, client: Any, view: View | None = None) -> None:
-        if view is None:
-            with self._lock:
-                view = self.view
+        view = self.view_for(client, view)
         try:
             with client.atomic():
                 place_camera(client.camera, view)
@@ -330,3 +401,11 @@ class CameraGuard:
         except Exception:  # noqa: BLE001 - a client may disconnect meanwhile
             log.debug("notification to %r failed", client, exc_info=True)
 
+
+def _canvas(client: Any) -> tuple[int, int] | None:
+    """(width, height) in pixels of a client's canvas, None before it reported one."""
+    try:
+        w, h = int(client.camera.image_width), int(client.camera.image_height)
+    except Exception:  # noqa: BLE001 - no camera state yet (viser asserts), or a stand-in without one
+        return None
+    return (w, h) if w > 0 and h > 0 else None

@@ -226,7 +226,9 @@ class ViewerApp(ServedApp):
             pv.show_scene_info(self.panels, self.session)
             lo, hi = scene.bounds  # the initial camera (new clients, "Reset view") and every connected one
             flo, fhi, sample = framing(scene.points)
-            self.camera_guard.set_scene(fitted_view(flo, fhi, direction=VIEW_DIRECTION, points=sample), lo, hi)
+            self.camera_guard.set_scene(
+                fitted_view(flo, fhi, direction=VIEW_DIRECTION, points=sample), lo, hi,
+                fit=lambda aspect: fitted_view(flo, fhi, direction=VIEW_DIRECTION, points=sample, aspect=aspect))
             self._draw_no_result()
             self.session.set_status(f"Opened {entry.name} ({scene.num_points:,} points).")
         if self.session.saved_result_path() is not None:

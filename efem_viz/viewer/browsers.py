@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from efem_viz.serve.camera import CameraGuard, fitted_view
+from efem_viz.serve.camera import PANEL_PX, CameraGuard, fitted_view
 from efem_viz.serve.guard import start_server
 from efem_viz.viewer.nodes import VIEW_DIRECTION
 
@@ -49,7 +49,7 @@ def start_viewer_server(
     server.scene.set_up_direction("+z")
     unit = (np.full(3, -0.5), np.full(3, 0.5))  # until a scene opens
     camera_guard = CameraGuard(server, fitted_view(*unit, direction=VIEW_DIRECTION), *unit,
-                               hint="Reset view (Scene tab) brings it back any time.")
+                               hint="Reset view (Scene tab) brings it back any time.", panel_px=PANEL_PX)
     return server, access, camera_guard
 
 

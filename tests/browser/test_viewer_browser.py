@@ -413,9 +413,13 @@ def test_instance_table_cut_visibility_and_fly_to(viewer: Any, page: Any) -> Non
     k = int(np.flatnonzero(np.asarray(inst.ids) == nxt)[0])
     pts = viewer.state.scene.points[np.asarray(inst.masks[k])]
     lo, hi = viewer.state.scene.bounds
-    want = fly_to_view(pts.min(axis=0), pts.max(axis=0), home=viewer.camera_guard.view,
-                       scene_diagonal=float(np.linalg.norm(np.subtract(hi, lo))))
-    wait_until(lambda: np.allclose(client.camera.look_at, want.look_at, atol=1e-3), HANG_GUARD_S, "the camera at the instance")
+    flown = fly_to_view(pts.min(axis=0), pts.max(axis=0), home=viewer.camera_guard.view,
+                        scene_diagonal=float(np.linalg.norm(np.subtract(hi, lo))))
+
+    def at_instance() -> bool:  # as this browser gets it: clear of the panel at its canvas's current size
+        return bool(np.allclose(client.camera.look_at, viewer.camera_guard.view_for(client, flown).look_at, atol=1e-3))
+
+    wait_until(at_instance, HANG_GUARD_S, "the camera at the instance")
 
     # ---- Visible off / on, by a mouse click on the checkbox
     visible = page.get_by_role("checkbox", name="Visible")
@@ -430,10 +434,10 @@ def test_instance_table_cut_visibility_and_fly_to(viewer: Any, page: Any) -> Non
 
     # ---- Fly to: back at the fitted view first, then the button brings the camera to the chosen row again
     viewer.reset_view(client)
-    wait_until(lambda: np.allclose(client.camera.look_at, viewer.camera_guard.view.look_at, atol=1e-3), HANG_GUARD_S,
-               "the fitted view")
+    wait_until(lambda: np.allclose(client.camera.look_at, viewer.camera_guard.view_for(client).look_at, atol=1e-3),
+               HANG_GUARD_S, "the fitted view")
     page.get_by_role("button", name="Fly to").click()
-    wait_until(lambda: np.allclose(client.camera.look_at, want.look_at, atol=1e-3), HANG_GUARD_S, "the camera flown to it")
+    wait_until(at_instance, HANG_GUARD_S, "the camera flown to it")
     if SAVE:
         _settle(page)
         _save(page, "viewer_instance_table.png")
@@ -474,6 +478,49 @@ def test_tab_from_seed_goes_to_run_without_opening_a_dropdown(viewer: Any, page:
     assert page.get_by_role("listbox").count() == 0 or not page.get_by_role("listbox").first.is_visible()
     assert page.evaluate("document.activeElement && document.activeElement.textContent") == "Run EFEM"
     page.keyboard.press("Escape")
+
+
+def test_a_wide_scene_opens_clear_of_the_control_panel(tmp_path: Path, new_page: Any) -> None:
+    """A 4 m long table with boxes at both ends opens framed in the part of the canvas the floating control panel
+    leaves free: its box projects left of the panel with the browser's own camera, and no scene pixel is drawn
+    right of the panel's left edge (below the panel, where the canvas shows, it ran on to the right end)."""
+    from annotator.selection import project
+    from efem_viz.data.io import save_scene
+    from efem_viz.data.scene import Scene
+    from efem_viz.serve.camera import PANEL_PX
+    from efem_viz.viewer.app import ViewerApp
+
+    g = np.random.default_rng(0)
+    table = np.column_stack([g.uniform(-2, 2, 20000), g.uniform(-0.3, 0.3, 20000), np.zeros(20000)])
+    boxes = [np.column_stack([g.uniform(x - 0.1, x + 0.1, 1500), g.uniform(-0.1, 0.1, 1500), g.uniform(0, 0.2, 1500)])
+             for x in (-1.8, 0.0, 1.8)]
+    pts = np.concatenate([table, *boxes])
+    (tmp_path / "s").mkdir()
+    save_scene(Scene.create("wide", pts, colors=np.tile(np.array([[200, 40, 40]], np.uint8), (len(pts), 1))),
+               tmp_path / "s" / "wide.ply")
+    app = ViewerApp([tmp_path / "s"], port=0)
+    try:
+        assert app.wait_idle(120)
+        page = new_page()
+        _open(page, app)
+        client = next(iter(app.server.get_clients().values()))
+        wait_until(lambda: np.allclose(client.camera.look_at, app.camera_guard.view_for(client).look_at, atol=1e-3),
+                   HANG_GUARD_S, "the camera fitted to this canvas")
+        cam = client.camera
+        w = cam.image_width
+        corners = np.array([[x, y, z] for x in (-2, 2) for y in (-0.3, 0.3) for z in (0, 0.2)])
+        uv, depth = project(corners, position=np.asarray(cam.position), wxyz=np.asarray(cam.wxyz), fov=float(cam.fov),
+                            aspect=float(cam.aspect))
+        assert (depth > 0).all() and uv[:, 0].min() > 0.0 and uv[:, 0].max() < 1.0 - PANEL_PX / w, uv[:, 0]
+        img = _settle(page)  # the left 70 % of the page
+        full = png_to_array(page.screenshot())
+        red = (full[..., 0] > 150) & (full[..., 1] < 110) & (full[..., 2] < 110)
+        cols = np.flatnonzero(red.any(axis=0))
+        assert len(cols) and cols.max() < w - PANEL_PX, f"scene pixels reach x = {cols.max()} of {w}"
+        assert cols.max() - cols.min() > 0.5 * (w - PANEL_PX), "the scene fills the free part of the canvas"
+        assert img.std() > 8.0
+    finally:
+        app.stop()
 
 
 def test_a_changing_status_moves_no_button(viewer: Any, page: Any) -> None:
