@@ -111,6 +111,33 @@ def test_each_result_opens_with_a_cut_that_shows_it(tmp_path: Path) -> None:
     assert s.state.threshold_by_user  # (still the person's earlier choice)
 
 
+def test_a_result_on_a_labelled_scene_opens_showing_every_object_evaluate_finds(tmp_path: Path) -> None:
+    """On a scene with ground truth the first cut shows every instance that matches an object at IoU 0.5, however
+    low its confidence (a correct second mug at 0.0101 was hidden by the 0.05 cut); unmatched ones below stay
+    hidden, and a scene without ground truth keeps the plain default."""
+    import dataclasses
+
+    from efem_viz.eval.matching import match_instances
+
+    s = ViewerSession([SAMPLES], out_dir=tmp_path)
+    assert s.open_scene("syn_z_1") is not None
+    res = s.load_result()
+    assert res is not None
+    inst = res.instances
+    tp = match_instances([np.asarray(m) for m in inst.masks], s.state.scene.instance, iou=0.5,
+                         confidences=np.asarray(inst.confidence)).tp_pred
+    assert len(tp) >= 2
+    conf = np.asarray(inst.confidence, np.float64).copy()
+    low = int(tp[-1])
+    conf[low] = 0.0101  # a correct instance far below the default cut
+    res2 = dataclasses.replace(res, instances=dataclasses.replace(inst, confidence=conf.astype(inst.confidence.dtype)))
+    s.set_result(res2, source="run")
+    assert s.state.threshold == 0.01 and s.kept_mask()[low]
+    bare = s.state.scene.replace(instance=None)
+    s.state.scene = bare  # the same result on the scene without its labels
+    assert s.default_threshold(res2) == 0.05
+
+
 def test_the_cut_stays_within_the_slider(tmp_path: Path) -> None:
     """A script's cut above the slider's top (or below 0) is kept at the end of the range: the field never shows
     a value the slider cannot (0.1 was seen on a slider ending at 0.02); the instances shown are the same."""

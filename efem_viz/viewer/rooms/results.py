@@ -141,11 +141,22 @@ class ResultRoom:
 
     def default_threshold(self, result: EMResult) -> float:
         """The cut a result opens with: `DEFAULT_CONFIDENCE_CUT`, lowered to its best instance's confidence when
-        that is below (a real frame whose best instance is 0.11 opened with every instance hidden)."""
+        that is below (a real frame whose best instance is 0.11 opened with every instance hidden) and, on a scene
+        with ground truth, to the least confident instance that matches an object at IoU 0.5 (what `evaluate`
+        counts as found is shown: a second correct mug at 0.0101 was hidden by a 0.05 cut)."""
         conf = np.asarray(result.instances.confidence, float)
         if not conf.size:
             return DEFAULT_CONFIDENCE_CUT
-        return float(min(DEFAULT_CONFIDENCE_CUT, np.floor(float(conf.max()) * 100.0) / 100.0))
+        cut = min(DEFAULT_CONFIDENCE_CUT, float(conf.max()))
+        scene = self.core.state.scene
+        if scene is not None and scene.has_gt and len(scene.instance) == result.trace.num_points:
+            from efem_viz.eval.matching import match_instances
+
+            masks = [np.asarray(m, np.int64) for m in result.instances.masks]
+            tp = match_instances(masks, scene.instance, iou=0.5, confidences=conf).tp_pred
+            if len(tp):
+                cut = min(cut, float(conf[np.asarray(tp, int)].min()))
+        return float(np.floor(cut * 100.0) / 100.0)
 
     def set_mask_band(self, tau_out: float) -> bool:
         """Re-derive the output masks at SDF band `tau_out` (clamped to `MASK_BAND_RANGE`) from the stored
