@@ -20,7 +20,7 @@ import numpy as np
 
 from annotator.labels import Delta
 from annotator.render import Chunks, build_chunks, color_lut, compose_colors, ring_segments, splat_proxy
-from efem_viz.serve.camera import CameraGuard, fitted_view, fly_to_view, framing
+from efem_viz.serve.camera import PANEL_PX, CameraGuard, fitted_view, fly_to_view, framing
 
 if TYPE_CHECKING:
     import viser
@@ -121,11 +121,15 @@ class ScanView:
         self.chunk_handles = self._add_chunks()
         flo, fhi, sample = framing(pts)
         self.home_view = fitted_view(flo, fhi, direction=HOME_DIRECTION, points=sample)
-        """The fitted view (the scan's central 99 % filling the view, as the viewer frames its scenes): where every
-        client starts, and where R (reset view) puts the camera."""
-        self.camera_guard = CameraGuard(server, self.home_view, pts.min(axis=0), pts.max(axis=0),
-                                        hint="R (reset view) brings it back any time.")
-        """Puts a camera that left the scan back on `home_view` (see `efem_viz.serve.camera`)."""
+        """The fitted view (the scan's central 99 % filling the view, as the viewer frames its scenes) for the planned
+        canvas: where a new page starts; each browser is then moved to it fitted to its own canvas, clear of the
+        control panel (`camera_guard.view_for`), where R (reset view) also puts it."""
+        self.camera_guard = CameraGuard(
+            server, self.home_view, pts.min(axis=0), pts.max(axis=0), hint="R (reset view) brings it back any time.",
+            panel_px=PANEL_PX,
+            fit=lambda aspect: fitted_view(flo, fhi, direction=HOME_DIRECTION, points=sample, aspect=aspect))
+        """Puts a camera that left the scan back on its home view, fitted to the part of each browser's canvas the
+        control panel leaves free (`CameraGuard.view_for`; see `efem_viz.serve.camera`)."""
 
     def _add_surface(self, splat_size: float, max_splats: int) -> viser.MeshHandle:
         scene = self.session.scene

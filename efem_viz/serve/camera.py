@@ -260,11 +260,12 @@ class CameraGuard:
             Each client's views are then fitted to the free part of its canvas (`set_scene`'s `fit`) and moved
             clear of the panel (`clear_of_panel`) once the client has reported its canvas size (a new page starts
             on the shared initial view and is moved on its first report).
+        fit: the scene's fitted view for a canvas of a given free aspect (as `set_scene` takes it).
     """
 
     def __init__(self, server: Any, view: View, lo: Sequence[float] | np.ndarray, hi: Sequence[float] | np.ndarray,
                  *, margin: float = LOST_MARGIN, hint: str = "Reset view brings it back any time.",
-                 panel_px: float = 0.0) -> None:
+                 panel_px: float = 0.0, fit: Callable[[float], View] | None = None) -> None:
         self.server = server
         self.margin = float(margin)
         self.hint = hint
@@ -275,7 +276,7 @@ class CameraGuard:
         self._notified: dict[int, float] = {}
         self.view = view
         """The fitted view for the planned canvas (`FIT_ASPECT`, no panel): the initial camera."""
-        self.fit: Callable[[float], View] | None = None
+        self.fit = fit
         """The fitted view for a canvas of a given free aspect (`set_scene`), None: `view` for every canvas."""
         self.lo = xyz_tuple(lo)
         self.hi = xyz_tuple(hi)
