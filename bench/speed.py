@@ -1,8 +1,9 @@
 """EFEM in seconds: per-phase seconds of one solve, before and after the speed work, same answers.
 
-For each scene (default: the bundled real frames `real_tabletop_{0,6,8}` with the `real` preset and the fixed
-synthetic scene `z_7000` of bench/em.py with the `synthetic` preset, 400 proposals; `chair_z_7000` is its chair
-scene with the chair prior and the `chairs` preset, 200 proposals) and each variant, runs the
+For each scene (default: the bundled real frames `real_tabletop_{0,6,8}` with the `real` preset, 200 proposals
+spread over the frame, and the fixed synthetic scene `z_7000` of bench/em.py with the `synthetic` preset, 400
+proposals; `chair_z_7000` is its chair scene with the chair prior and the `chairs` preset, 200 proposals) and each
+variant, runs the
 solver `--repeats` times and reports the median seconds per phase (the solver's own `EMResult.timings`), the
 total, and what the answers are:
 
@@ -18,7 +19,8 @@ Variants:
 * `fast`: as `two_pass`, with one decoder pass and a hand-made backward on the band (`EFEM_VIZ_ONE_PASS=1`,
   the default: see `efem_viz.em.decoding.one_pass_enabled`);
 * `bf16`: as `fast`, the EM steps' encoder and decoder under bf16 autocast (`matmul_dtype="bfloat16"`);
-* `bf16_decoder`: as `fast`, the decoder alone in bf16 (`encoder_dtype="float32"`).
+* `bf16_decoder`: as `fast`, the decoder alone in bf16 (`encoder_dtype="float32"`);
+* `random400`: as `fast`, with 400 proposals drawn uniformly (the `real` preset's anchors before they were spread).
 
 `--busy N` runs N one-thread busy loops beside the solves (a solve must slow down by about its
 fair share). `--profile` prints the top functions of one run per variant.
@@ -53,6 +55,7 @@ VARIANTS: dict[str, tuple[dict[str, str], dict[str, Any]]] = {
     "bf16": ({"EFEM_VIZ_FUSED": "1", "EFEM_VIZ_ONE_PASS": "1"}, {"matmul_dtype": "bfloat16"}),
     "bf16_decoder": ({"EFEM_VIZ_FUSED": "1", "EFEM_VIZ_ONE_PASS": "1"},
                      {"matmul_dtype": "bfloat16", "encoder_dtype": "float32"}),
+    "random400": ({"EFEM_VIZ_FUSED": "1", "EFEM_VIZ_ONE_PASS": "1"}, {"anchors": "random", "n_init": (400,)}),
 }
 """name -> (environment, EMConfig overrides)."""
 

@@ -3,9 +3,10 @@
 #   1. its pose codebook (efem_viz/weights/mug_codebook.npz)
 #   2. its output-mask threshold tau_out (metadata of mug.pt), calibrated on six generated synthetic table scenes
 #      (z, so3, pile; seeds 0 and 1, regenerated here bit-identically; the bench/em.py test scenes are never used)
-#   3. the precomputed EFEM traces of every bundled scene that ships one (sample_scenes/<scene>.efem.npz: 400
-#      proposals, seed 0, today's presets; saved compact, latents in float16; traces replay by re-decoding stored
-#      latents, so old traces are wrong with new weights)
+#   3. the precomputed EFEM traces of every bundled scene that ships one (sample_scenes/<scene>.efem.npz: seed 0,
+#      today's presets: 400 proposals on the synthetic scenes, the real preset's 200 spread ones on the real frames;
+#      saved compact, latents in float16; traces replay by re-decoding stored latents, so old traces are wrong with
+#      new weights)
 #   4. the static demo of syn_tree_0 (static/syn_tree_0/)
 # Usage: bash scripts/refresh_prior_outputs.sh [--skip-codebook] [--skip-demo]
 # Time on a 2-core CPU: about 1 min (codebook) + 1 min (scenes) + 20-60 s per run (synthetic ones twice) + 1 min (demo).
@@ -46,7 +47,7 @@ for f in "${SHIPPED[@]}"; do
 done
 (( ${#SYN[@]} )) && $PY -m efem_viz.cli segment "${SYN[@]}" --prior mug --preset synthetic --proposals 400 \
   --seed 0 --out "$OUT/runs" --no-scannet --no-ply
-(( ${#REAL[@]} )) && $PY -m efem_viz.cli segment "${REAL[@]}" --prior mug --preset real --proposals 400 \
+(( ${#REAL[@]} )) && $PY -m efem_viz.cli segment "${REAL[@]}" --prior mug --preset real \
   --seed 0 --out "$OUT/runs" --no-scannet --no-ply
 for f in "$OUT"/runs/*.efem.npz; do
   $PY -c "import sys; from efem_viz.em.results import EMResult; EMResult.load(sys.argv[1]).save(sys.argv[2], compact=True)" \

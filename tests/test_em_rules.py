@@ -349,12 +349,14 @@ def test_schedule_real_paper(t: int, expected: tuple[float, ...]) -> None:
 def test_real_preset_is_the_paper_one_with_the_measured_changes() -> None:
     """`real` = §3.12's real settings (`real_paper`) + the changes for noisy single-view frames (a free-space check
     that ignores depth edges and widens with the range) + the learned mug-vs-look-alike confidence + the inclusion
-    rule that spares the better fit (by stationary score; the synthetic presets compare the confidence)."""
+    rule that spares the better fit (by stationary score; the synthetic presets compare the confidence) + 200
+    proposals spread over the frame instead of 400 uniform ones."""
     real, paper = preset("real"), preset("real_paper")
     assert dataclasses.replace(real, name="real_paper", tau_d=paper.tau_d, tau_n=paper.tau_n, m_step_replace=True,
                                seen_through_margin=None, max_seen_through=paper.max_seen_through,
                                seen_through_edge=None, seen_through_range=0.0,
-                               mug_model=None, inclusion="paper") == paper
+                               mug_model=None, inclusion="paper", n_init=paper.n_init, anchors="random") == paper
+    assert real.n_init == (200,) and real.anchors == "spread" and paper.n_init == (400,)
     assert (real.seen_through_edge, real.seen_through_range) == (0.02, 0.01)
     assert real.mug_model == "mug_uois_tune" and paper.mug_model is None and real.pose_weight == 0.0
     assert real.inclusion == "score" and real.inclusion_by == "stationary" and paper.inclusion == "paper"
@@ -536,6 +538,39 @@ def test_init_crops_anchor_mask_restricts_anchors_not_crops() -> None:
         init_crops(pts, avail, 4, 0.5, rng, anchor_mask=np.eye(1, 400, 350, dtype=bool)[0])
     with pytest.raises(ValueError, match="anchor_mask has shape"):
         init_crops(pts, avail, 4, 0.5, rng, anchor_mask=np.ones(10, bool))
+
+
+def test_spread_anchors_cover_space_not_density() -> None:
+    """A dense blob (90 % of the points in a 4 cm cube) beside a sparse 1 m table: random anchors go mostly to the
+    blob, spread anchors to every part of the table, one per grid cell at most; among available points only,
+    deterministic for a seed, with `anchor_mask` honoured."""
+    from efem_viz.em.proposals import spread_anchors
+
+    g = np.random.default_rng(0)
+    blob = g.uniform(0, 0.04, (9000, 3))
+    table = np.column_stack([g.uniform(-0.5, 0.5, 1000), g.uniform(-0.5, 0.5, 1000), np.zeros(1000)])
+    pts = np.concatenate([blob, table]).astype(np.float32)
+    avail = np.ones(len(pts), bool)
+    avail[-100:] = False
+    a_rand, _ = init_crops(pts, avail, 100, 0.05, np.random.default_rng(1))
+    a_spread, crops = init_crops(pts, avail, 100, 0.05, np.random.default_rng(1), spread=True)
+    in_blob = lambda a: float((a < 9000).mean())  # noqa: E731
+    assert in_blob(a_rand) > 0.8 and in_blob(a_spread) < 0.1
+    assert len(a_spread) == 100 and avail[a_spread].all() and len(crops.offsets) == 101
+    quads = np.sign(pts[a_spread][:, :2]).astype(int)
+    assert len({tuple(q) for q in quads.tolist()}) == 4  # all four quarters of the table
+    again, _ = init_crops(pts, avail, 100, 0.05, np.random.default_rng(1), spread=True)
+    assert np.array_equal(again, a_spread)
+    idx = spread_anchors(pts[:9000], 30, np.random.default_rng(2))  # the blob alone: spread within it
+    cells = {tuple(c) for c in np.floor(pts[idx] / 0.01).astype(int).tolist()}
+    assert len(idx) == 30 and len(cells) > 15
+    mask = np.zeros(len(pts), bool)
+    mask[[3, 9500]] = True
+    masked, _ = init_crops(pts, avail, 10, 0.05, np.random.default_rng(3), anchor_mask=mask, spread=True)
+    assert set(masked.tolist()) == {3, 9500}
+    assert spread_anchors(pts[:0], 5, np.random.default_rng(0)).shape == (0,)
+    with pytest.raises(ValueError, match="anchors must be"):
+        EMConfig(anchors="grid")  # type: ignore[arg-type]
 
 
 def test_cylinder_neighbourhood_ignores_height() -> None:

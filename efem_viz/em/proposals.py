@@ -145,6 +145,7 @@ def init_crops(
     crop: str = "sphere",
     tree: AvailableTree | None = None,
     anchor_mask: np.ndarray | None = None,
+    spread: bool = False,
 ) -> tuple[np.ndarray, Ragged]:
     """Draw `n` anchors with replacement among the available points and crop around them (§3.3).
 
@@ -158,6 +159,7 @@ def init_crops(
         tree: optional prebuilt AvailableTree for (points, available, crop).
         anchor_mask: optional (N,) bool: anchors are drawn only among available points where it is True (the
             crops still take every available point).
+        spread: anchors spread over space instead (`spread_anchors`: one random point per occupied grid cell).
 
     Returns:
         anchors (n,) int64 scene indices, and the crops as Ragged rows (initial weights are 1 on every entry).
@@ -174,9 +176,50 @@ def init_crops(
     avail_idx = np.flatnonzero(avail)
     if len(avail_idx) == 0:
         raise ValueError("no available points to draw proposal anchors from")
-    anchors = avail_idx[rng.integers(0, len(avail_idx), size=int(n))].astype(np.int64)
+    if spread:
+        anchors = avail_idx[spread_anchors(np.asarray(points)[avail_idx], int(n), rng)].astype(np.int64)
+    else:
+        anchors = avail_idx[rng.integers(0, len(avail_idx), size=int(n))].astype(np.int64)
     t = tree if tree is not None else AvailableTree(points, available, crop=crop)
     return anchors, t.query(np.asarray(points)[anchors], r_init)
+
+
+def spread_anchors(points: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """`n` anchor rows of `points` spread over space: the finest cubic grid with at most `n` occupied cells
+    (found by bisection on the cell size), one random point per cell, the rest drawn uniformly (with replacement);
+    shuffled, so any block of them is spread too.
+
+    Random draws put anchors where the points are dense (a near object, a large table); these put about the same
+    number in every region the scan covers.
+
+    Returns:
+        (n,) int64 row indices into `points`.
+    """
+    pts = np.asarray(points, np.float64)
+    m = len(pts)
+    if m == 0 or n <= 0:
+        return np.zeros(0, np.int64)
+    lo = pts.min(axis=0)
+    ext = float((pts.max(axis=0) - lo).max())
+    order = rng.permutation(m)  # a random member of each cell: the first of the cell in this order
+
+    def cells(h: float) -> np.ndarray:
+        q = np.floor((pts[order] - lo) / h).astype(np.int64)
+        span = q.max(axis=0) + 1
+        return (q[:, 0] * span[1] + q[:, 1]) * span[2] + q[:, 2]
+
+    h_lo, h_hi = max(ext, 1e-9) * 1e-4, max(ext, 1e-9) * 2.0  # many cells / one cell
+    for _ in range(20):
+        h = float(np.sqrt(h_lo * h_hi))
+        if len(np.unique(cells(h))) > n:
+            h_lo = h
+        else:
+            h_hi = h
+    _, first = np.unique(cells(h_hi), return_index=True)
+    picked = order[first]
+    if len(picked) < n:
+        picked = np.concatenate([picked, rng.integers(0, m, size=n - len(picked))])
+    return rng.permutation(picked[:n]).astype(np.int64)
 
 
 def _categorical_rows(

@@ -505,7 +505,8 @@ class _Solver:
             full_tree = tree if self.identity else None
             # every prior gets n_init proposals; anchors are iid, so prior k takes the k-th block of draws
             anchors, crops = init_crops(self.points, available, n_init * k_priors, cfg.radii()[0], self.rng,
-                                        crop=cfg.crop, tree=tree, anchor_mask=self.anchor_mask if ep == 0 else None)
+                                        crop=cfg.crop, tree=tree, anchor_mask=self.anchor_mask if ep == 0 else None,
+                                        spread=cfg.anchors == "spread")
             owner = np.repeat(np.arange(k_priors, dtype=np.int64), n_init)[: len(anchors)]
             ids = self.rec.birth(ep, self.work_idx[anchors], *cfg.radii(), owner=owner)
             self.rec.start_episode(np.flatnonzero(assigned), len(ids))
