@@ -83,20 +83,27 @@ def write_sequence(folder: Path, n: int = 16, *, layout: str = "7-scenes", world
     return poses
 
 
+def fuse_with_the_cli(folder: Path, out: Path, said: str):  # noqa: ANN201 - Scene
+    """`efem-viz import-rgbd --sequence folder --out out` as a user runs it: it succeeds, says `said`, and the
+    fused scan's table top lies at z = 0 (within 4 mm); returns the scan."""
+    run = subprocess.run([sys.executable, "-m", "efem_viz.cli", "import-rgbd", "--sequence", str(folder), "--out",
+                          str(out)], capture_output=True, text=True, timeout=600,
+                         env={"PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"})
+    assert run.returncode == 0, run.stderr
+    assert said in run.stdout
+    scene = load_scene(out)
+    pts = scene.points
+    table = np.abs(pts[:, 0]) < 0.28
+    assert abs(float(np.median(pts[table & (pts[:, 2] < 0.01), 2]))) < 0.004
+    return scene
+
+
 def test_a_16_view_sequence_fuses_into_one_scan_in_the_scene_frame(tmp_path: Path) -> None:
     """7-Scenes layout, poses in a Y-up world: the full CLI fuses it, puts the table at z = 0 with +Z up, and records
     every camera in the scene frame (each camera still sees the table's centre in front of it)."""
     poses = write_sequence(tmp_path / "seq")
-    out = tmp_path / "fused.ply"
-    run = subprocess.run([sys.executable, "-m", "efem_viz.cli", "import-rgbd", "--sequence", str(tmp_path / "seq"),
-                          "--out", str(out)], capture_output=True, text=True, timeout=600,
-                         env={"PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"})
-    assert run.returncode == 0, run.stderr
-    assert "16 frames (7-scenes) fused into" in run.stdout
-    scene = load_scene(out)
+    scene = fuse_with_the_cli(tmp_path / "seq", tmp_path / "fused.ply", "16 frames (7-scenes) fused into")
     pts = scene.points
-    table = np.abs(pts[:, 0]) < 0.28
-    assert abs(float(np.median(pts[table & (pts[:, 2] < 0.01), 2]))) < 0.004  # the table top at z = 0
     # the cylinders' walls, in the scene frame (up to a rotation about z, which the import leaves as it was)
     r = np.hypot(pts[:, 0] + 0.1, pts[:, 1] - 0.05)
     wall = (np.abs(r - 0.04) < 0.006) & (pts[:, 2] > 0.02) & (pts[:, 2] < 0.09)
@@ -193,17 +200,10 @@ def test_a_tum_folder_is_associated_by_time_and_fused_at_its_depth_scale(tmp_pat
     """TUM RGB-D: depth, colour and ground truth associated by timestamp, depth at 5000 per metre (the layout's,
     without --depth-scale), every camera where its ground truth puts it — through the full CLI."""
     poses = write_tum(tmp_path / "rgbd_dataset_freiburg1_desk")
-    out = tmp_path / "fused.ply"
-    run = subprocess.run([sys.executable, "-m", "efem_viz.cli", "import-rgbd", "--sequence",
-                          str(tmp_path / "rgbd_dataset_freiburg1_desk"), "--out", str(out)],
-                         capture_output=True, text=True, timeout=600,
-                         env={"PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"})
-    assert run.returncode == 0, run.stderr
-    assert "12 frames (tum) fused into" in run.stdout
-    scene = load_scene(out)
+    # the table at z = 0 in metres: the depth scale was 5000
+    scene = fuse_with_the_cli(tmp_path / "rgbd_dataset_freiburg1_desk", tmp_path / "fused.ply",
+                              "12 frames (tum) fused into")
     pts = scene.points
-    table = np.abs(pts[:, 0]) < 0.28
-    assert abs(float(np.median(pts[table & (pts[:, 2] < 0.01), 2]))) < 0.004  # metres: the depth scale was 5000
     r = np.hypot(pts[:, 0] + 0.1, pts[:, 1] - 0.05)
     wall = (np.abs(r - 0.04) < 0.006) & (pts[:, 2] > 0.02) & (pts[:, 2] < 0.09)
     assert wall.sum() > 200
