@@ -149,11 +149,12 @@ class ResultRoom:
             return DEFAULT_CONFIDENCE_CUT
         cut = min(DEFAULT_CONFIDENCE_CUT, float(conf.max()))
         scene = self.core.state.scene
-        if scene is not None and scene.has_gt and len(scene.instance) == result.trace.num_points:
+        gt = scene.instance if scene is not None and scene.has_gt else None
+        if gt is not None and len(gt) == result.trace.num_points:
             from efem_viz.eval.matching import match_instances
 
             masks = [np.asarray(m, np.int64) for m in result.instances.masks]
-            tp = match_instances(masks, scene.instance, iou=0.5, confidences=conf).tp_pred
+            tp = match_instances(masks, gt, iou=0.5, confidences=conf).tp_pred
             if len(tp):
                 cut = min(cut, float(conf[np.asarray(tp, int)].min()))
         return float(np.floor(cut * 100.0) / 100.0)
