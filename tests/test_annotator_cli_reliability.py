@@ -270,13 +270,13 @@ def test_a_name_typed_just_before_a_kill_is_kept(scan: Path, tmp_path: Path) -> 
     cli.edit(("new",))
     cli.client.set_value("Name", "blue mug with a chip")
     pending = out / f"{scan.stem}.annotate" / "typing.json"
-    cli.must(pending.is_file, 20.0, "the typed value to the work folder")
+    cli.must(pending.is_file, what="the typed value to the work folder")
     cli.kill()
     again = Cli(scan, out)
     try:
-        again.must(lambda: "blue mug with a chip" in again.table(), 20.0, "the restored name in the table")
-        again.must(lambda: any("typed just before" in t for t in again.client.notification_texts()), 20.0,
-                   "the notice that the name was restored")
+        again.must(lambda: "blue mug with a chip" in again.table(), what="the restored name in the table")
+        again.must(lambda: any("typed just before" in t for t in again.client.notification_texts()),
+                   what="the notice that the name was restored")
         assert not pending.exists()
     finally:
         assert again.stop() == 0

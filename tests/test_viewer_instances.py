@@ -138,14 +138,17 @@ def _with_confidences(app: Any, conf: np.ndarray) -> Any:
 def test_default_cut_hides_near_zero_instances_and_says_how_many(app: Any) -> None:
     """A new viewer starts at `DEFAULT_CONFIDENCE_CUT`: instances below it are hidden (meshes, boxes, labels,
     point colours), the Results tab says how many, and the table marks them "below cut"; the slider at 0 shows
-    them."""
+    them. (On a scan without ground truth: with it, instances that match an object stay shown, tested in
+    test_viewer_session.py.)"""
     assert st.ViewerState().threshold == st.DEFAULT_CONFIDENCE_CUT > 0.0
     assert app.state.threshold == st.DEFAULT_CONFIDENCE_CUT
     assert app.panels.gui_threshold.value == pytest.approx(st.DEFAULT_CONFIDENCE_CUT)
     k = len(app.state.result.instances)
     conf = np.linspace(0.9, 0.5, k)
     conf[-2:] = [0.01, 0.0]  # two near-zero instances, as EM leaves on real scans
+    labelled = app.state.scene
     try:
+        app.state.scene = labelled.replace(instance=None)  # a user's scan: no ground truth
         _with_confidences(app, conf)
         shown = app.shown_mask()
         assert shown.tolist() == (conf >= st.DEFAULT_CONFIDENCE_CUT).tolist() and int((~shown).sum()) == 2
@@ -157,6 +160,7 @@ def test_default_cut_hides_near_zero_instances_and_says_how_many(app: Any) -> No
         app.set_threshold(0.0)
         assert all(h.visible for h in r.labels) and "hidden** below" not in app.panels.gui_result_info.content
     finally:
+        app.state.scene = labelled
         assert app.load_trace() and app.wait_idle(60)
         app.set_threshold(st.DEFAULT_CONFIDENCE_CUT)
 

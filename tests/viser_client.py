@@ -35,6 +35,9 @@ from websockets.sync.client import ClientConnection, connect
 
 SUBPROTOCOL = f"viser-v{viser.__version__}"
 
+HANG_GUARD_S = 200.0
+"""Every wait of a scripted client on an app is a hang guard (10x what the slowest took beside a busy load)."""
+
 
 def ws_url(url: str) -> str:
     """ws://host:port/?token=... from an http:// URL (ws:// URLs pass unchanged)."""
@@ -323,8 +326,9 @@ class AnnotateProcess:
         """The instance table as the server last sent it (the markdown that says how much is labelled)."""
         return next((m for m in self.client.markdowns() if "vertices labelled" in m), "")
 
-    def must(self, cond: Callable[[], bool], timeout: float = 20.0, what: str = "the expected update") -> None:
-        """Wait for `cond`; raise TimeoutError if it does not come."""
+    def must(self, cond: Callable[[], bool], timeout: float = HANG_GUARD_S, what: str = "the expected update") -> None:
+        """Wait for `cond`; raise TimeoutError if it does not come (`timeout` is a hang guard: a restarted CLI on a
+        machine with four busy threads took over 20 s to send its first table)."""
         if not self.client.wait_for(cond, timeout):
             raise TimeoutError(f"efem-annotate did not send {what} within {timeout:.0f} s")
 
@@ -332,7 +336,7 @@ class AnnotateProcess:
         return {int(m.group(1)): int(m.group(2).replace(",", ""))
                 for m in re.finditer(r"^\| (\d+)[^|]*\|[^|]*\|[^|]*\| ([\d,]+) \|", self.table(), re.M)}
 
-    def edit(self, step: tuple, *, expect_change: bool = True, timeout: float = 20.0) -> str:
+    def edit(self, step: tuple, *, expect_change: bool = True, timeout: float = HANG_GUARD_S) -> str:
         """Run one edit and wait for the table that shows it; returns that table."""
         c = self.client
         before = self.table()
