@@ -283,7 +283,8 @@ def lin_act_mean(x: torch.Tensor, w_lin: torch.Tensor, w_dir: torch.Tensor, slop
 def knn(query: torch.Tensor, ref: torch.Tensor, k: int) -> torch.Tensor:
     """`efem_viz.geometry.knn.knn_indices` (the same neighbours, ascending distance), with the selection in one
     pass per row when `usable` instead of a `topk` over the distance matrix: the distances are formed as the
-    eager formula forms them (float32, the same rounding), and among equal distances the lower index comes first.
+    eager formula forms them (float32, the same rounding), and a row with equal distances among its k takes
+    torch's own selection, so the indices equal `topk`'s, ties included.
 
     Args:
         query: ``(B, Nq, D)`` float.
