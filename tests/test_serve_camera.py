@@ -18,7 +18,9 @@ from efem_viz.serve.camera import (
     VISER_CAMERA_KEYS,
     VISER_FOV,
     CameraGuard,
+    View,
     fitted_view,
+    fly_to_view,
     framing,
     free_aspect,
     view_lost,
@@ -243,3 +245,46 @@ def test_with_a_panel_each_client_gets_the_view_fitted_to_its_free_canvas() -> N
     assert guard.view_for(client) == want
     other = fitted_view(LO / 2, HI / 2)
     assert guard.view_for(client, other) == clear_of_panel(other, 1600, 900, panel_px=416)
+
+
+def test_a_resized_canvas_keeps_the_fitted_view_and_a_moved_camera_stays() -> None:
+    """A camera the guard put on the fitted view follows its canvas when the window is resized (the view fitted to
+    the new free part); once the person moved it (or it flew to an object) a resize leaves it where it is."""
+    import contextlib
+    from types import SimpleNamespace
+
+    server = SimpleNamespace(initial_camera=SimpleNamespace(up=None, position=None, look_at=None),
+                             get_clients=lambda: {})
+    guard = CameraGuard(server, fitted_view(LO, HI), LO, HI, panel_px=416,
+                        fit=lambda aspect: fitted_view(LO, HI, aspect=aspect))
+    camera = SimpleNamespace(image_width=1600, image_height=900, position=None, look_at=None, up_direction=None)
+    reports: list[Any] = []
+    camera.on_update = reports.append
+    client = SimpleNamespace(client_id=7, camera=camera, atomic=contextlib.nullcontext, flush=lambda: None)
+    guard.attach(client)
+
+    def report() -> None:  # the browser reports its camera (and canvas size)
+        reports[0](camera)
+
+    def placed() -> View:
+        return View(tuple(camera.look_at), tuple(camera.position))
+
+    guard.reset(client)
+    wide = guard.view_for(client)
+    assert placed() == wide
+    camera.image_width, camera.image_height = 1000, 900  # the window made narrower
+    report()
+    narrow = guard.view_for(client)
+    assert narrow != wide and placed() == narrow
+    report()  # the report of that placement: nothing moves again
+    assert placed() == narrow
+    camera.position = tuple(np.add(camera.position, (0.0, 0.0, 0.3)))  # the person orbits
+    moved = placed()
+    camera.image_width = 1600
+    report()
+    assert placed() == moved
+    guard.place(fly_to_view(LO / 4, HI / 4, home=guard.view, scene_diagonal=1.0), client)  # fly to an object
+    flown = placed()
+    camera.image_width = 1000
+    report()
+    assert placed() == flown

@@ -274,6 +274,8 @@ class CameraGuard:
         """Times each client's camera was brought back because it had left the scene, by client id."""
         self._lock = threading.Lock()
         self._notified: dict[int, float] = {}
+        self._homed: dict[int, View] = {}
+        """The fitted view each client was last put on (by client id), as its canvas was then."""
         self.view = view
         """The fitted view for the planned canvas (`FIT_ASPECT`, no panel): the initial camera."""
         self.fit = fit
@@ -294,25 +296,35 @@ class CameraGuard:
         client.camera.on_update(lambda camera, client=client: self._on_update(client, camera))
 
     def _on_update(self, client: Any, camera: Any) -> None:
-        """A camera report: the lost-camera check, then (with a panel) a camera sitting exactly on the shared
-        initial view (a new page, or viser's own reset to it) goes to the view fitted to its canvas."""
+        """A camera report: the lost-camera check, then (with a panel) a camera sitting exactly on a home view it
+        no longer fits goes to the view fitted to its canvas: the shared initial view (a new page, or viser's own
+        reset to it), or the fitted view this client was last put on when its canvas has changed size since (a
+        resized window keeps the scene framed; a camera the person moved stays where it is)."""
         if self.check(client, camera) or not self.panel_px or _canvas(client) is None:
             return
+        cid = int(getattr(client, "client_id", -1))
         with self._lock:
             home, lo, hi = self.view, self.lo, self.hi
+            homes = [home] + ([self._homed[cid]] if cid in self._homed else [])
         tol = 1e-5 * (float(np.linalg.norm(np.subtract(hi, lo))) or 1.0)
         try:
-            at_home = (np.allclose(camera.look_at, home.look_at, rtol=0.0, atol=tol)
-                       and np.allclose(camera.position, home.position, rtol=0.0, atol=tol))
+            look, pos = np.asarray(camera.look_at, np.float64), np.asarray(camera.position, np.float64)
         except Exception:  # noqa: BLE001 - no camera state yet
             return
-        if at_home and not np.allclose(self.view_for(client).look_at, home.look_at, rtol=0.0, atol=tol):
+        on_home = any(np.allclose(look, h.look_at, rtol=0.0, atol=tol) and np.allclose(pos, h.position, rtol=0.0, atol=tol)
+                      for h in homes)
+        if not on_home:
+            return
+        fitted = self.view_for(client)
+        if not (np.allclose(look, fitted.look_at, rtol=0.0, atol=tol)
+                and np.allclose(pos, fitted.position, rtol=0.0, atol=tol)):
             self._place(client)
 
     def forget(self, client: Any) -> None:
         """Drop what the guard kept about a client that left (call it from `server.on_client_disconnect`)."""
         with self._lock:
             self._notified.pop(int(getattr(client, "client_id", -1)), None)
+            self._homed.pop(int(getattr(client, "client_id", -1)), None)
 
     def view_for(self, client: Any, view: View | None = None) -> View:
         """A view as one client gets it: `view` (default: the scene's fitted view, fitted again to the free part of
@@ -384,7 +396,14 @@ class CameraGuard:
         return True
 
     def _place(self, client: Any, view: View | None = None) -> None:
+        home = view is None
         view = self.view_for(client, view)
+        cid = int(getattr(client, "client_id", -1))
+        with self._lock:
+            if home:
+                self._homed[cid] = view
+            else:
+                self._homed.pop(cid, None)
         try:
             with client.atomic():
                 place_camera(client.camera, view)

@@ -465,6 +465,11 @@ def test_camera_thrown_off_the_scan_comes_back(keyed: tuple[Any, Any]) -> None:
         page.keyboard.up("w")
     page.get_by_text("View reset", exact=True).first.wait_for(timeout=HANG_GUARD_MS)
     wait_until(lambda: not view_lost(handle.camera.look_at, lo, hi), HANG_GUARD_S, "the camera back at the scan")
+    # the camera glides on for a moment after the key is released, and its reports (20 Hz) trail it: wait until it
+    # has stopped, so that no report of the glide reaches the server after R's placement
+    last = [time.monotonic()]
+    handle.camera.on_update(lambda _cam: last.__setitem__(0, time.monotonic()))
+    wait_until(lambda: time.monotonic() - last[0] > 1.0, HANG_GUARD_S, "the camera at rest")
     page.keyboard.press("r")
 
     def at_home() -> bool:  # the fitted view as this browser gets it: clear of the control panel
@@ -472,7 +477,15 @@ def test_camera_thrown_off_the_scan_comes_back(keyed: tuple[Any, Any]) -> None:
         return bool(np.allclose(handle.camera.look_at, home.look_at, atol=1e-4)
                     and np.allclose(handle.camera.position, home.position, atol=1e-4))
 
-    wait_until(at_home, HANG_GUARD_S, "the fitted view (R)")
+    try:
+        wait_until(at_home, HANG_GUARD_S, "the fitted view (R)")
+    except AssertionError as exc:  # say where the camera is, so that a failure elsewhere can be read
+        home = app.view.camera_guard.view_for(handle)
+        raise AssertionError(
+            f"{exc}: camera at {np.round(handle.camera.position, 4).tolist()} looking at "
+            f"{np.round(handle.camera.look_at, 4).tolist()}, fitted view {home}, canvas "
+            f"{handle.camera.image_width}x{handle.camera.image_height}, clients {list(app.server.get_clients())}, "
+            f"resets {app.view.camera_guard.resets}") from None
 
 
 def test_a_click_off_the_scan_says_so(keyed: tuple[Any, Any]) -> None:
