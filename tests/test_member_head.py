@@ -62,8 +62,8 @@ def test_a_head_fitted_on_other_weights_or_damaged_is_ignored_with_a_warning(cap
 
 
 def test_the_solver_names_a_family_instance_by_its_head_before_the_codebook_vote() -> None:
-    """`_Solver._category`: the head's class when the prior has one; else the codebook vote; else the name."""
-    from efem_viz.em.solver import _Solver
+    """`Solver._category`: the head's class when the prior has one; else the codebook vote; else the name."""
+    from efem_viz.em.solver import Solver
 
     class Codebook:
         def category_of(self, rows: Any, default: str, *, weights: Any = None) -> str:
@@ -73,14 +73,14 @@ def test_the_solver_names_a_family_instance_by_its_head_before_the_codebook_vote
     fake = SimpleNamespace(categories=["kitchen"], table=SimpleNamespace(priors=[prior]), pose_votes={})
     rev = SimpleNamespace(prior=0, proposal_id=3, neighbours=np.zeros(0, np.int32))
     lat = {"inv": np.zeros(8, np.float32), "scale": np.float32(0.1)}
-    assert _Solver._category(fake, rev, lat) == "can"  # type: ignore[arg-type]
+    assert Solver._category(fake, rev, lat) == "can"  # type: ignore[arg-type]
     prior.metadata = {METADATA_KEY: _head(8, favour=1).to_dict()}
     prior.encoder = SimpleNamespace(state_dict=lambda: {})  # the fingerprint of an encoder without weights
     prior.metadata[METADATA_KEY]["fingerprint"] = encoder_fingerprint(prior)
-    assert _Solver._category(fake, rev, lat) == "bowl"  # type: ignore[arg-type]
+    assert Solver._category(fake, rev, lat) == "bowl"  # type: ignore[arg-type]
     prior.codebook = None
     prior.metadata = {}
-    assert _Solver._category(fake, rev, lat) == "kitchen"  # type: ignore[arg-type]
+    assert Solver._category(fake, rev, lat) == "kitchen"  # type: ignore[arg-type]
 
 
 @pytest.mark.skipif(not KITCHEN.is_file(), reason="needs the shipped kitchen prior")

@@ -2,7 +2,7 @@
 
 `track_proposal` starts one proposal from a given crop (an oracle crop: exactly one object's points; or an
 anchor ball of radius ``r_init`` around a point, as real proposals start) and runs it through phase 1 of the
-solver (`_Solver._em_step`: M-step, encode, E-step in the r_err ball, annealing) for ``steps`` steps, then the
+solver (`Solver._em_step`: M-step, encode, E-step in the r_err ball, annealing) for ``steps`` steps, then the
 phase-end review (completed shape, pose, output mask). No other proposal competes and nothing is eliminated;
 instead every step records what the elimination rule would see (inliers, SDF-band support, the size rule
 `min_size_count` chooses) and how much of a labelled object the fit explains. ``bench/em_stability.py`` runs it
@@ -79,7 +79,7 @@ def track_proposal(scene: "Scene", prior: "ShapePriorLike", cfg: EMConfig, *, ob
     Returns:
         The `ProposalTrack`.
     """
-    from efem_viz.em.solver import _Pool, _Solver
+    from efem_viz.em.solver import ProposalPool, Solver
 
     cfg = resolve_for_prior(cfg, prior)
     n_steps = int(steps if steps is not None else cfg.t1)
@@ -89,7 +89,7 @@ def track_proposal(scene: "Scene", prior: "ShapePriorLike", cfg: EMConfig, *, ob
     obj = None if object_mask is None else np.asarray(object_mask, bool)
     if hasattr(prior, "eval"):
         prior.eval()
-    solver = _Solver(scene.name, points, normals, PriorTable.of([prior]), cfg, [cfg], seed=seed, on_step=None,
+    solver = Solver(scene.name, points, normals, PriorTable.of([prior]), cfg, [cfg], seed=seed, on_step=None,
                      cancel=None)
     available = np.ones(len(points), bool)
     tree = AvailableTree(points, available, crop=cfg.crop)
@@ -104,7 +104,7 @@ def track_proposal(scene: "Scene", prior: "ShapePriorLike", cfg: EMConfig, *, ob
                             anchor_mask=anchor)
     ids = solver.rec.birth(0, np.array([0], np.int64), *cfg.radii(), owner=np.zeros(1, np.int64))
     solver.rec.start_episode(np.zeros(0, np.int64), len(ids))
-    pool = _Pool(ids=ids, rag=rag, w=np.ones(len(rag.idx), np.float32), owner=np.zeros(1, np.int64))
+    pool = ProposalPool(ids=ids, rag=rag, w=np.ones(len(rag.idx), np.float32), owner=np.zeros(1, np.int64))
     track = ProposalTrack()
     n_obj = max(1, int(obj.sum())) if obj is not None else 1
     step = 0

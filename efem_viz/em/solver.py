@@ -149,7 +149,7 @@ def working_set(points: np.ndarray, voxel: float | None) -> np.ndarray:
 
 # ---------------------------------------------------------------------------------------------- pool state
 @dataclass
-class _Pool:
+class ProposalPool:
     """Live proposals of an episode, rows in increasing id order."""
 
     ids: np.ndarray  # (P,) int64
@@ -272,7 +272,7 @@ def run_em(
             pr.eval()
     try:
         camera, warnings = _capture_camera(scene) if run_cfg.seen_through_margin is not None else (None, [])
-        solver = _Solver(scene.name, points, normals, PriorTable.of(plist), run_cfg, cfgs, seed=seed,
+        solver = Solver(scene.name, points, normals, PriorTable.of(plist), run_cfg, cfgs, seed=seed,
                          on_step=on_step, cancel=cancel, anchor_candidates=anchor_candidates,
                          step_rules=step_rules, review_rules=review_rules, camera=camera)
         solver.partial_result = lambda: _result_of(solver, scene, plist, run_cfg, cats, cfgs, seed, warnings)
@@ -290,7 +290,7 @@ def run_em(
     return result
 
 
-def _result_of(solver: _Solver, scene: "Scene", plist: list[Any], run_cfg: EMConfig, cats: list[Any],
+def _result_of(solver: Solver, scene: "Scene", plist: list[Any], run_cfg: EMConfig, cats: list[Any],
                     cfgs: list[EMConfig], seed: int, warnings: list[str]) -> "EMResult":
     """The run so far as an `EMResult` (the finished run's too): the trace of the steps done, the instances
     accepted so far, the timings and counts."""
@@ -383,7 +383,7 @@ def _move_prior(prior: Any, device: str) -> None:
         prior.to(dev)
 
 
-class _Solver:
+class Solver:
     def __init__(
         self,
         name: str,
@@ -510,7 +510,7 @@ class _Solver:
             owner = np.repeat(np.arange(k_priors, dtype=np.int64), n_init)[: len(anchors)]
             ids = self.rec.birth(ep, self.work_idx[anchors], *cfg.radii(), owner=owner)
             self.rec.start_episode(np.flatnonzero(assigned), len(ids))
-            pool = _Pool(ids=ids, rag=crops, w=np.ones(len(crops.idx), np.float32), owner=owner)
+            pool = ProposalPool(ids=ids, rag=crops, w=np.ones(len(crops.idx), np.float32), owner=owner)
             last_review: dict[int, ReviewRecord] = {}
             for t in range(cfg.steps_per_episode):
                 if pool.size == 0:
@@ -552,7 +552,7 @@ class _Solver:
         return accepted
 
     # ------------------------------------------------------------------ one EM step
-    def _em_step(self, pool: _Pool, tree: AvailableTree, ep: int, t: int, phase: int) -> int:
+    def _em_step(self, pool: ProposalPool, tree: AvailableTree, ep: int, t: int, phase: int) -> int:
         cfg = self.cfg
         fallback = tree.avail_idx
         t0 = time.perf_counter()
@@ -612,7 +612,7 @@ class _Solver:
         return out
 
     # ------------------------------------------------------------------ eliminations (§3.8)
-    def _eliminate(self, pool: _Pool, step: int, local: int, phase: int) -> None:
+    def _eliminate(self, pool: ProposalPool, step: int, local: int, phase: int) -> None:
         t0 = time.perf_counter()
         assert pool.inliers is not None and pool.d is not None and pool.stationary is not None
         ctx = StepContext(phase=phase, step=step, local_step=local, cfg=self.cfg, inliers=pool.inliers,
@@ -629,7 +629,7 @@ class _Solver:
 
     # ------------------------------------------------------------------ review (§3.9)
     def _review(
-        self, pool: _Pool, full_tree: AvailableTree, step: int, phase: int
+        self, pool: ProposalPool, full_tree: AvailableTree, step: int, phase: int
     ) -> dict[int, ReviewRecord]:
         """§3.9 at the end of a phase: every live proposal's completed shape, pose, box, coverage, size and up
         checks and tentative mask (a `ReviewRecord` each); the review rules kill the failures."""
@@ -772,7 +772,7 @@ class _Solver:
         return R, np.asarray(est.R_raw, np.float64), s_sel, float(est.score_db_sim), np.asarray(est.neighbour_ids)
 
 
-def _trust_scale(latent: LatentArrays, pool: _Pool, trust: float) -> LatentArrays:
+def _trust_scale(latent: LatentArrays, pool: ProposalPool, trust: float) -> LatentArrays:
     """Θ_s ≥ (1 − trust) × the row's largest Θ_s so far (Θ_R is scale-free, so only Θ_s changes)."""
     s = np.asarray(latent["scale"], np.float32)
     if pool.scale_max is not None and len(pool.scale_max) == len(s):

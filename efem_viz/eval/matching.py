@@ -160,7 +160,7 @@ def gt_classes(gt: SceneGroundTruth, class_names: Sequence[str]) -> tuple[np.nda
     return ids.astype(np.int64), cls
 
 
-def _bool_mask(m: np.ndarray, n: int, where: str) -> np.ndarray:
+def bool_mask(m: np.ndarray, n: int, where: str) -> np.ndarray:
     a = np.asarray(m)
     if a.dtype == bool:
         if a.shape != (n,):
@@ -212,7 +212,7 @@ def scene_overlaps(
     for k, (m, c, conf) in enumerate(zip(pred.masks, pred.labels, pred.confidences)):  # type: ignore[arg-type]
         if c < 1 or c > len(class_names):
             continue
-        b = _bool_mask(m, n, f"prediction {k} of scene {pred.name!r}")
+        b = bool_mask(m, n, f"prediction {k} of scene {pred.name!r}")
         size = int(b.sum())
         if size < min_region_size:
             continue
@@ -362,7 +362,7 @@ def match_instances(
     fp: list[int] = []
     pairs: list[tuple[int, int, float]] = []
     for p in order:
-        b = _bool_mask(pred_masks[int(p)], n, f"prediction {p}")
+        b = bool_mask(pred_masks[int(p)], n, f"prediction {p}")
         size = int(b.sum())
         c = col[b]
         inter = np.bincount(c[c >= 0], minlength=len(ids)).astype(np.float64)

@@ -122,7 +122,7 @@ def write_scannet_predictions(
         The written `<scene>.txt`.
     """
     from efem_viz.data.io import atomic_write, atomic_write_text
-    from efem_viz.eval.matching import _bool_mask
+    from efem_viz.eval.matching import bool_mask
 
     root = Path(path)
     (root / mask_dir).mkdir(parents=True, exist_ok=True)
@@ -132,7 +132,7 @@ def write_scannet_predictions(
     )
     for k, (m, lab, conf) in enumerate(zip(pred.masks, labels, pred.confidences)):
         rel = f"{mask_dir}/{pred.name}_{k:03d}.txt"
-        b = _bool_mask(m, num_points, f"prediction {k}").astype(np.uint8)
+        b = bool_mask(m, num_points, f"prediction {k}").astype(np.uint8)
         if npy:
             atomic_write(root / (rel + ".npy"), lambda t, b=b: np.save(t, b))
         else:

@@ -193,11 +193,11 @@ class ConvertArgs:
 
     def run(self) -> int:
         """Convert, then build the codebook; returns the process exit code."""
-        from efem_viz.prior.convert import RELEASES, _convert  # _convert also returns the release it resolved
+        from efem_viz.prior.convert import RELEASES, convert_with_release  # convert_with_release also returns the release it resolved
 
         release = None if self.release == "auto" else self.release
         out = self.out if self.out is not None else self.src.with_name(f"{self.src.stem}_efemviz.pt")
-        path, release = _convert(
+        path, release = convert_with_release(
             self.src, out, name=self.name, release=release, center_times_sigma=self.center_times_sigma,
             n_pcl=self.n_pcl, down_blocks=self.down_blocks, down_factors=self.down_factors, k=16,
             att_head_dim=16, scale_factor=64000.0, allow_pickle=self.allow_pickle, overwrite=self.overwrite,

@@ -445,13 +445,13 @@ def convert_released_checkpoint(
         ValueError: If the file is not a released checkpoint, cannot be loaded safely, has missing or unexpected
             keys or wrong shapes (the message names each key), or the architecture cannot be inferred.
     """
-    path, _ = _convert(src, dst, name=name, release=release, center_times_sigma=center_times_sigma, n_pcl=n_pcl,
+    path, _ = convert_with_release(src, dst, name=name, release=release, center_times_sigma=center_times_sigma, n_pcl=n_pcl,
                        down_blocks=down_blocks, down_factors=down_factors, k=k, att_head_dim=att_head_dim,
                        scale_factor=scale_factor, allow_pickle=allow_pickle, overwrite=overwrite, check=check)
     return path
 
 
-def _convert(src: str | Path, dst: str | Path, *, name: str | None, release: ReleaseName | None,
+def convert_with_release(src: str | Path, dst: str | Path, *, name: str | None, release: ReleaseName | None,
              center_times_sigma: bool | None, n_pcl: int | None, down_blocks: tuple[int, ...] | None,
              down_factors: tuple[int, ...] | None, k: int, att_head_dim: int, scale_factor: float,
              allow_pickle: bool, overwrite: bool, check: bool) -> tuple[Path, ReleaseName]:

@@ -290,7 +290,7 @@ class ShapePrior(nn.Module):
         return sdf, normals
 
 
-def _atomic_torch_save(obj: Any, path: Path) -> None:
+def atomic_torch_save(obj: Any, path: Path) -> None:
     from efem_viz.data.io import atomic_write
 
     atomic_write(path, lambda tmp: torch.save(obj, tmp))
@@ -325,7 +325,7 @@ def save_prior(prior: ShapePrior, path: str | os.PathLike[str], *,
         meta.pop("storage", None)
     dtype = torch.float16 if storage == "float16" else torch.float32
     state = {k: v.detach().to("cpu", dtype).clone() for k, v in prior.state_dict().items()}
-    _atomic_torch_save({"format": CHECKPOINT_FORMAT, "name": prior.name, "config": prior.config.to_dict(),
+    atomic_torch_save({"format": CHECKPOINT_FORMAT, "name": prior.name, "config": prior.config.to_dict(),
                         "state_dict": state, "metadata": meta}, path)
     return path
 
@@ -435,7 +435,7 @@ def load_prior(name_or_path: str | os.PathLike[str] = DEFAULT_PRIOR, *, device: 
     if not isinstance(ckpt, dict) or "config" not in ckpt or "state_dict" not in ckpt:
         keys = sorted(map(str, ckpt))[:12] if isinstance(ckpt, dict) else type(ckpt).__name__
         raise ValueError(f"{path} is not an efem-viz prior checkpoint (keys: {keys})")
-    config, state = _checked_prior_parts(ckpt, path)
+    config, state = checked_prior_parts(ckpt, path)
     name = str(ckpt.get("name") or path.stem)
     meta = ckpt.get("metadata") or {}
     if not isinstance(meta, dict):
@@ -464,7 +464,7 @@ def load_prior(name_or_path: str | os.PathLike[str] = DEFAULT_PRIOR, *, device: 
     return prior
 
 
-def _checked_prior_parts(ckpt: dict[str, Any], path: Path) -> tuple[PriorConfig, dict[str, torch.Tensor]]:
+def checked_prior_parts(ckpt: dict[str, Any], path: Path) -> tuple[PriorConfig, dict[str, torch.Tensor]]:
     """The config and state dict of a checkpoint, checked before any layer is allocated.
 
     The network is first built on the meta device (no memory), so a config with absurd sizes costs nothing; its

@@ -508,9 +508,9 @@ def save_checkpoint(path: Path, prior: ShapePrior, opt: Any, state: _State, rng:
     """Full resume checkpoint (atomic)."""
     import torch
 
-    from efem_viz.prior.model import CHECKPOINT_FORMAT, _atomic_torch_save
+    from efem_viz.prior.model import CHECKPOINT_FORMAT, atomic_torch_save
 
-    _atomic_torch_save({
+    atomic_torch_save({
         "format": CHECKPOINT_FORMAT, "kind": "train", "name": prior.name, "config": prior.config.to_dict(),
         "state_dict": {k: v.detach().cpu().clone() for k, v in prior.state_dict().items()},
         "optimizer": opt.state_dict(), "state": dataclasses.asdict(state), "np_rng": _rng_state(rng),
@@ -603,7 +603,7 @@ def _read_resume_checkpoint(args: TrainArgs, last: Path) -> tuple[Path | None, d
         return None, None
     if not Path(resume_path).is_file():
         raise FileNotFoundError(f"no checkpoint to resume from: {resume_path}")
-    from efem_viz.prior.model import _checked_prior_parts, read_checkpoint
+    from efem_viz.prior.model import checked_prior_parts, read_checkpoint
 
     ckpt = read_checkpoint(resume_path)
     need = ("config", "state_dict", "optimizer", "state")
@@ -611,7 +611,7 @@ def _read_resume_checkpoint(args: TrainArgs, last: Path) -> tuple[Path | None, d
         raise ValueError(f"{resume_path}: not a train-prior resume checkpoint (needs {', '.join(need)})")
     # the prior loaders' checks (sizes declared, shapes, views, finite values) before anything is allocated or
     # any data is prepared (a 16 KB file declaring a 20,000-wide decoder cost 90 s and 6.5 GB)
-    _checked_prior_parts(ckpt, Path(resume_path))
+    checked_prior_parts(ckpt, Path(resume_path))
     return resume_path, ckpt
 
 

@@ -7,12 +7,12 @@ from typing import Sequence
 
 import numpy as np
 
-from efem_viz.data.synth.render import _backproject, _Frame
+from efem_viz.data.synth.render import frame_points, RenderedFrame
 from efem_viz.geometry.camera import Camera
 
 
 # ====================================================================================== fusion
-def _voxel_average(
+def voxel_average(
     points: np.ndarray, colors: np.ndarray, normals: np.ndarray, voxel: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Average points/colours/normals per voxel; output sorted by voxel key (deterministic)."""
@@ -29,15 +29,15 @@ def _voxel_average(
     return avg(points), avg(colors.astype(np.float64)), avg(normals)
 
 
-def _band_voxels(frames: Sequence[_Frame], cams: Sequence[Camera], *, lo: np.ndarray, dims: np.ndarray, voxel: float,
+def _band_voxels(frames: Sequence[RenderedFrame], cams: Sequence[Camera], *, lo: np.ndarray, dims: np.ndarray, voxel: float,
                  trunc_voxels: float) -> np.ndarray:
     """Flat indices (into the `dims` grid with origin `lo`) of the voxels within the truncation band of some
-    measurement: only they can carry |tsdf| < 1 (`_fuse_tsdf`)."""
+    measurement: only they can carry |tsdf| < 1 (`fuse_tsdf`)."""
     from scipy.ndimage import binary_dilation
 
     occ = np.zeros(tuple(dims), bool)
     for fr, cam in zip(frames, cams):
-        p, _, _ = _backproject(fr, cam)
+        p, _, _ = frame_points(fr, cam)
         ijk = np.round((p - lo) / voxel).astype(np.int64)
         ijk = ijk[np.all((ijk >= 0) & (ijk < dims), axis=1)]
         occ[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
@@ -46,7 +46,7 @@ def _band_voxels(frames: Sequence[_Frame], cams: Sequence[Camera], *, lo: np.nda
     return np.nonzero(binary_dilation(occ, structure=ball).ravel())[0]
 
 
-def _integrate(frames: Sequence[_Frame], cams: Sequence[Camera], centres: np.ndarray, *,
+def _integrate(frames: Sequence[RenderedFrame], cams: Sequence[Camera], centres: np.ndarray, *,
                trunc: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Projective TSDF at the (n, 3) voxel `centres`: the running mean over cameras of the truncated signed
     distance (voxels in front of a measurement or less than `trunc` behind it), and of the colour (within
@@ -93,8 +93,8 @@ def _meshable_cubes(seen: np.ndarray) -> np.ndarray:
     return cube
 
 
-def _fuse_tsdf(
-    frames: Sequence[_Frame],
+def fuse_tsdf(
+    frames: Sequence[RenderedFrame],
     cams: Sequence[Camera],
     *,
     voxel: float,
@@ -156,7 +156,7 @@ def _fuse_tsdf(
     return uniq.astype(np.float64) + lo, faces, vcol[first]
 
 
-def _remove_small_components(v: np.ndarray, f: np.ndarray, min_faces: int) -> tuple[np.ndarray, np.ndarray]:
+def remove_small_components(v: np.ndarray, f: np.ndarray, min_faces: int) -> tuple[np.ndarray, np.ndarray]:
     """Drop connected components with fewer than `min_faces` faces (TSDF speckles from noise)."""
     import scipy.sparse as sp
     from scipy.sparse.csgraph import connected_components
@@ -176,7 +176,7 @@ def _remove_small_components(v: np.ndarray, f: np.ndarray, min_faces: int) -> tu
     return keep_vert, f[keep_face]
 
 
-def _vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+def area_weighted_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
     """(V, 3) area-weighted unit vertex normals of a mesh ((0, 0, 1) for vertices without area)."""
     fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
     acc = np.zeros_like(v)
@@ -187,7 +187,7 @@ def _vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
     return out
 
 
-def _crop_mesh(
+def crop_mesh(
     v: np.ndarray, f: np.ndarray, keep: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Keep the vertices in `keep` and the faces whose three vertices are kept; returns (index, faces)."""

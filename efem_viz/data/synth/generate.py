@@ -16,11 +16,11 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 
 from efem_viz.data.synth.fusion import (
-    _crop_mesh,
-    _fuse_tsdf,
-    _remove_small_components,
-    _vertex_normals,
-    _voxel_average,
+    crop_mesh,
+    fuse_tsdf,
+    remove_small_components,
+    area_weighted_normals,
+    voxel_average,
 )
 from efem_viz.data.synth.labels import label_points
 from efem_viz.data.synth.layout import (
@@ -28,15 +28,15 @@ from efem_viz.data.synth.layout import (
     STRUCTURE_CONFIGS,
     Config,
     Mode,
-    _hang_on_tree,
-    _misplaced,
-    _Object,
-    _place_on_shelf,
-    _place_upright,
-    _sample_objects,
+    hang_on_tree,
+    count_misplaced,
+    SceneObject,
+    place_on_shelf,
+    place_upright,
+    sample_objects,
 )
-from efem_viz.data.synth.physics import PENETRATION_TOLERANCE, _simulate, contact_report
-from efem_viz.data.synth.render import _backproject, _Frame, _make_cameras, _render
+from efem_viz.data.synth.physics import PENETRATION_TOLERANCE, simulate, contact_report
+from efem_viz.data.synth.render import frame_points, RenderedFrame, make_cameras, render_frames
 from efem_viz.data.synth.stage import Stage, stage_for
 
 if TYPE_CHECKING:
@@ -178,7 +178,7 @@ def _check_arguments(
 def _draw_objects(
     config: str, seed: int, rng: np.random.Generator, *, n_objects: int | None, distractors: bool, split: str,
     targets: str, stage: Stage,
-) -> tuple[list[_Object], "Structure | None"]:
+) -> tuple[list[SceneObject], "Structure | None"]:
     """The scene's supporting structure (tree, box, shelf configurations) and its objects: the labelled object
     count (drawn from the stage's range by the seed unless given; at most 6, or what the structure holds, in a
     structure) and the labelled objects and distractors."""
@@ -198,10 +198,10 @@ def _draw_objects(
             logger.warning("scene %s_%d: the tree has %d pegs, hanging %d of the %d mugs", config, seed,
                            len(structure.pegs), len(structure.pegs), n_mugs)
             n_mugs = len(structure.pegs)
-        objs = _sample_objects(rng, n_mugs=n_mugs, distractors=distractors, split=split,
+        objs = sample_objects(rng, n_mugs=n_mugs, distractors=distractors, split=split,
                                hole=PEG_RADIUS + PEG_PLAY if config == "tree" else None, stage=stage)
     else:
-        objs = _sample_objects(rng, n_mugs=n_mugs, distractors=distractors, split=split, targets=targets,
+        objs = sample_objects(rng, n_mugs=n_mugs, distractors=distractors, split=split, targets=targets,
                                stage=stage)
     return objs, structure
 
@@ -220,9 +220,9 @@ class _Poses:
 
 
 def _pose_objects(
-    config: str, seed: int, objs: list[_Object], structure: "Structure | None", rng: np.random.Generator, *,
+    config: str, seed: int, objs: list[SceneObject], structure: "Structure | None", rng: np.random.Generator, *,
     stage: Stage,
-) -> tuple[list[_Object], _Poses]:
+) -> tuple[list[SceneObject], _Poses]:
     """Place the objects: by construction ("z", "shelf"; the shelf may keep fewer objects), else by physics,
     dropped again (at most 5 times) until nothing is misplaced or interpenetrates; the best drop is kept.
 
@@ -230,11 +230,11 @@ def _pose_objects(
         The objects (posed in place; the list the scene keeps) and how the poses were reached.
     """
     if config == "z":
-        _place_upright(objs, rng, stage=stage)  # disjoint footprints, resting on the support: no contact
+        place_upright(objs, rng, stage=stage)  # disjoint footprints, resting on the support: no contact
         return objs, _Poses(1, 0, 0.0)
     if config == "shelf":
         assert structure is not None
-        objs = _place_on_shelf(objs, structure, rng)  # upright on the levels, disjoint footprints: no contact
+        objs = place_on_shelf(objs, structure, rng)  # upright on the levels, disjoint footprints: no contact
         return objs, _Poses(1, 0, 0.0)
     best: tuple[tuple[int, float], list[np.ndarray]] | None = None
     fixed = structure.pieces if structure is not None else []
@@ -242,7 +242,7 @@ def _pose_objects(
     for attempts in range(1, 6):
         _drop(config, objs, structure, rng, stage=stage)
         rep = contact_report([o.world_mesh() for o in objs], fixed=fixed, rays=stage.contact_rays)
-        key = (_misplaced(config, objs, structure), rep["max_penetration"])
+        key = (count_misplaced(config, objs, structure), rep["max_penetration"])
         if best is None or key < best[0]:
             best = (key, [o.T_world_object.copy() for o in objs])
         if key[0] == 0 and key[1] <= PENETRATION_TOLERANCE:
@@ -264,18 +264,18 @@ def _pose_objects(
     return objs, _Poses(attempts, misplaced, penetration)
 
 
-def _drop(config: str, objs: list[_Object], structure: "Structure | None", rng: np.random.Generator, *,
+def _drop(config: str, objs: list[SceneObject], structure: "Structure | None", rng: np.random.Generator, *,
           stage: Stage) -> None:
     """One physics drop of the configuration ("tree", "box", "so3" scattered, "pile") onto the stage."""
     if config == "tree":
         assert structure is not None
-        _hang_on_tree(objs, structure, rng)
-        _simulate(objs, rng, layout="hang", stage=stage, statics=structure.parts())
+        hang_on_tree(objs, structure, rng)
+        simulate(objs, rng, layout="hang", stage=stage, statics=structure.parts())
     elif config == "box":
         assert structure is not None
-        _simulate(objs, rng, layout="box", stage=stage, statics=structure.parts(), floor=structure.floor)
+        simulate(objs, rng, layout="box", stage=stage, statics=structure.parts(), floor=structure.floor)
     else:
-        _simulate(objs, rng, layout="scatter" if config == "so3" else "pile", stage=stage)
+        simulate(objs, rng, layout="scatter" if config == "so3" else "pile", stage=stage)
 
 
 # ====================================================================================== scan
@@ -293,13 +293,13 @@ class _Scan:
     crop_hi: np.ndarray
     """(3,) float64 upper corner."""
     cameras: list["Camera"]
-    frames: list[_Frame]
+    frames: list[RenderedFrame]
     visible_px: np.ndarray
     """(G,) int64 pixels per geometry seen over all frames."""
 
 
 def _scan(
-    config: str, objs: list[_Object], structure: "Structure | None", rng: np.random.Generator, *, stage: Stage,
+    config: str, objs: list[SceneObject], structure: "Structure | None", rng: np.random.Generator, *, stage: Stage,
     n_cameras: int, image_size: tuple[int, int], noise: bool,
 ) -> _Scan:
     """Build the ray-casting scene (the stage's support, structure, objects), place the cameras for the
@@ -344,10 +344,10 @@ def _scan(
         target[2] = (obj_lo[2] + obj_hi[2]) / 2
         heights, front = (0.1, obj_hi[2] + 0.2), structure.front
     reach = max(float(np.linalg.norm(np.asarray(m.vertices)[:, :2] - target[:2], axis=1).max()) for m in world[n_fix:])
-    cams = _make_cameras(rng, target, stage=stage, n_cameras=n_cameras, image_size=image_size, heights=heights,
+    cams = make_cameras(rng, target, stage=stage, n_cameras=n_cameras, image_size=image_size, heights=heights,
                          front=front, reach=reach)
     frames = [
-        _render(rc, c, albedo, rng, noise=noise, crop_lo=crop_lo, crop_hi=crop_hi, max_range=stage.max_range)
+        render_frames(rc, c, albedo, rng, noise=noise, crop_lo=crop_lo, crop_hi=crop_hi, max_range=stage.max_range)
         for c in cams
     ]
     visible_px = np.zeros(len(world), np.int64)
@@ -383,23 +383,23 @@ def _fuse(scan: _Scan, *, mode: str, voxel: float, what: str) -> _Fused:
 
     crop_lo, crop_hi, frames, cams = scan.crop_lo, scan.crop_hi, scan.frames, scan.cameras
     if mode == "tsdf":
-        v, f, c = _fuse_tsdf(frames, cams, voxel=voxel, lo=crop_lo, hi=crop_hi)
+        v, f, c = fuse_tsdf(frames, cams, voxel=voxel, lo=crop_lo, hi=crop_hi)
         inside = np.all((v >= crop_lo - voxel) & (v <= crop_hi + voxel), axis=1)
-        idx, f = _crop_mesh(v, f, inside)
+        idx, f = crop_mesh(v, f, inside)
         v, c = v[idx], c[idx]
-        keep, f = _remove_small_components(v, f, min_faces=20)
-        idx, f = _crop_mesh(v, f, keep)
+        keep, f = remove_small_components(v, f, min_faces=20)
+        idx, f = crop_mesh(v, f, keep)
         points, colors, faces = v[idx], c[idx], f
         if len(points) == 0:
             raise RuntimeError(f"{what}: TSDF fusion produced an empty mesh")
-        return _Fused(points, colors, _vertex_normals(points, faces), faces)
-    parts = [_backproject(fr, cam) for fr, cam in zip(frames, cams)]
+        return _Fused(points, colors, area_weighted_normals(points, faces), faces)
+    parts = [frame_points(fr, cam) for fr, cam in zip(frames, cams)]
     p_all = np.concatenate([q[0] for q in parts])
     c_all = np.concatenate([q[1] for q in parts])
     n_all = np.concatenate([q[2] for q in parts])
     if len(p_all) == 0:
         raise RuntimeError(f"{what}: the cameras saw nothing")
-    points, colors, n_avg = _voxel_average(p_all, c_all, n_all, voxel)
+    points, colors, n_avg = voxel_average(p_all, c_all, n_all, voxel)
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(20))
     normals = np.asarray(pcd.normals, np.float64).copy()
@@ -412,7 +412,7 @@ def _fuse(scan: _Scan, *, mode: str, voxel: float, what: str) -> _Fused:
 # ====================================================================================== provenance
 def _provenance(
     config: str, seed: int, *, n_objects: int | None, mode: str, distractors: bool, split: str, voxel: float,
-    image_size: tuple[int, int], n_cameras: int, noise: bool, label_tolerance: float, objs: list[_Object],
+    image_size: tuple[int, int], n_cameras: int, noise: bool, label_tolerance: float, objs: list[SceneObject],
     structure: "Structure | None", poses: _Poses, scan: _Scan, counts: np.ndarray, targets: str, stage: Stage,
 ) -> dict[str, Any]:
     """What made the scene: the arguments (and the command that repeats them), the support (table or floor),

@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import numpy as np
 
 if TYPE_CHECKING:
-    from efem_viz.data.synth.layout import _Object
+    from efem_viz.data.synth.layout import SceneObject
 
 
 class PointLabels(NamedTuple):
@@ -22,7 +22,7 @@ class PointLabels(NamedTuple):
 
 
 def label_points(
-    raycaster: Any, points: np.ndarray, *, n_fixtures: int, objects: "list[_Object]", tolerance: float
+    raycaster: Any, points: np.ndarray, *, n_fixtures: int, objects: "list[SceneObject]", tolerance: float
 ) -> PointLabels:
     """Label each point with the instance of the nearest true surface when closer than `tolerance`.
 

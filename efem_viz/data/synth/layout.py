@@ -53,7 +53,7 @@ _DISTRACTOR_COLORS = np.array(
 
 # ====================================================================================== objects and poses
 @dataclass
-class _Object:
+class SceneObject:
     category: str
     seed: int
     label: int
@@ -73,10 +73,10 @@ class _Object:
         return m
 
 
-def _sample_objects(
+def sample_objects(
     rng: np.random.Generator, *, n_mugs: int, distractors: bool, split: str, hole: float | None = None,
     targets: str = "mug", stage: Stage,
-) -> list[_Object]:
+) -> list[SceneObject]:
     """The scene's mugs (labels 1..n) and 0-2 distractors (label 0). With `hole`, only mugs whose handle
     opening clears that radius (m) are drawn (the tree configuration hangs them on pegs). Other `targets`, a
     training family (`procedural.FAMILIES`, e.g. "kitchen") or a category ("chair"): the labelled objects are
@@ -104,10 +104,10 @@ def _sample_objects(
         if len(mugs) < n_mugs:
             raise RuntimeError(f"only {len(mugs)} of the {split} mugs drawn have a handle opening of "
                                f"{hole * 1000:.0f} mm")
-    objs: list[_Object] = []
+    objs: list[SceneObject] = []
     colors = rng.permutation(len(_MUG_COLORS))
     for k, (s, (mesh, parts), opening) in enumerate(mugs):
-        objs.append(_Object("mug", s, k + 1, mesh, parts, _MUG_COLORS[colors[k % len(colors)]], hole=opening))
+        objs.append(SceneObject("mug", s, k + 1, mesh, parts, _MUG_COLORS[colors[k % len(colors)]], hole=opening))
     if distractors:
         n_d = int(rng.integers(0, 3))
         for _ in range(n_d):
@@ -115,13 +115,13 @@ def _sample_objects(
             s = int(seeds[int(rng.integers(len(seeds)))])
             mesh, parts = make_shape_with_parts(cat, s)
             col = _DISTRACTOR_COLORS[int(rng.integers(len(_DISTRACTOR_COLORS)))]
-            objs.append(_Object(cat, s, 0, mesh, parts, col))
+            objs.append(SceneObject(cat, s, 0, mesh, parts, col))
     return objs
 
 
 def _sample_family(rng: np.random.Generator, family: str, *, n_objects: int, distractors: bool,
-                   seeds: range, distractor_categories: Sequence[str]) -> list[_Object]:
-    """`_sample_objects` for a training family's (or a single category's) scene: labelled objects of its member
+                   seeds: range, distractor_categories: Sequence[str]) -> list[SceneObject]:
+    """`sample_objects` for a training family's (or a single category's) scene: labelled objects of its member
     categories (one seed each, not repeated within a category), then 0-2 distractors of the
     `distractor_categories` outside the family."""
     from efem_viz.data.procedural import family_members, make_shape_with_parts
@@ -131,28 +131,22 @@ def _sample_family(rng: np.random.Generator, family: str, *, n_objects: int, dis
     cats = [members[int(i)] for i in rng.integers(len(members), size=n_objects)]
     picks = rng.choice(len(seeds), size=n_objects, replace=False)
     colors = rng.permutation(len(_MUG_COLORS))
-    objs: list[_Object] = []
+    objs: list[SceneObject] = []
     for k, (cat, i) in enumerate(zip(cats, picks)):
         mesh, parts = make_shape_with_parts(cat, int(seeds[int(i)]))
-        objs.append(_Object(cat, int(seeds[int(i)]), k + 1, mesh, parts, _MUG_COLORS[colors[k % len(colors)]]))
+        objs.append(SceneObject(cat, int(seeds[int(i)]), k + 1, mesh, parts, _MUG_COLORS[colors[k % len(colors)]]))
     if distractors and others:
         for _ in range(int(rng.integers(0, 3))):
             cat = others[int(rng.integers(len(others)))]
             s = int(seeds[int(rng.integers(len(seeds)))])
             mesh, parts = make_shape_with_parts(cat, s)
-            objs.append(_Object(cat, s, 0, mesh, parts, _DISTRACTOR_COLORS[int(rng.integers(len(_DISTRACTOR_COLORS)))]))
+            objs.append(SceneObject(cat, s, 0, mesh, parts, _DISTRACTOR_COLORS[int(rng.integers(len(_DISTRACTOR_COLORS)))]))
     return objs
 
 
 def _yaw(theta: float) -> np.ndarray:
     c, s = math.cos(theta), math.sin(theta)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def _random_rotation(rng: np.random.Generator) -> np.ndarray:
-    from efem_viz.geometry.transforms import random_rotation
-
-    return random_rotation(rng)
 
 
 def _footprint_radius(mesh: "trimesh.Trimesh", R: np.ndarray) -> tuple[np.ndarray, float]:
@@ -162,7 +156,7 @@ def _footprint_radius(mesh: "trimesh.Trimesh", R: np.ndarray) -> tuple[np.ndarra
     return c, float(np.linalg.norm(v[:, :2] - c, axis=1).max())
 
 
-def _scatter_xy(rng: np.random.Generator, radii: Sequence[float], *, stage: Stage, gap: float = 0.01) -> np.ndarray:
+def scatter_xy(rng: np.random.Generator, radii: Sequence[float], *, stage: Stage, gap: float = 0.01) -> np.ndarray:
     """Non-overlapping disc centres (K, 2) around the origin (rejection sampling in a square that starts at the
     stage's scatter size and grows towards the support's edge)."""
     n = len(radii)
@@ -187,12 +181,12 @@ def _scatter_xy(rng: np.random.Generator, radii: Sequence[float], *, stage: Stag
     raise RuntimeError(f"could not place {n} objects without overlap on the {stage.support}")
 
 
-def _place_upright(objs: list[_Object], rng: np.random.Generator, *, stage: Stage) -> None:
+def place_upright(objs: list[SceneObject], rng: np.random.Generator, *, stage: Stage) -> None:
     """z configuration: upright, random yaw, resting on the stage's support (table or floor), footprints
     disjoint."""
     rots = [_yaw(float(rng.uniform(0, 2 * np.pi))) for _ in objs]
     foot = [_footprint_radius(o.mesh, R) for o, R in zip(objs, rots)]
-    xy = _scatter_xy(rng, [r for _, r in foot], stage=stage)
+    xy = scatter_xy(rng, [r for _, r in foot], stage=stage)
     for o, R, (c, _), p in zip(objs, rots, foot, xy):
         _rest_upright(o, R, p, 0.0, c)
 
@@ -218,7 +212,7 @@ def _scatter_in(
     return np.array(centres).reshape(len(radii), 2)
 
 
-def _rest_upright(o: _Object, R: np.ndarray, xy: np.ndarray, z: float, foot_centre: np.ndarray) -> None:
+def _rest_upright(o: SceneObject, R: np.ndarray, xy: np.ndarray, z: float, foot_centre: np.ndarray) -> None:
     """Pose `o` with rotation R so that its footprint centre is at xy and its lowest point at height z."""
     zmin = float((np.asarray(o.mesh.vertices) @ R.T)[:, 2].min())
     T = np.eye(4)
@@ -227,7 +221,7 @@ def _rest_upright(o: _Object, R: np.ndarray, xy: np.ndarray, z: float, foot_cent
     o.T_world_object = T
 
 
-def _place_on_shelf(objs: list[_Object], shelf: "Structure", rng: np.random.Generator) -> list[_Object]:
+def place_on_shelf(objs: list[SceneObject], shelf: "Structure", rng: np.random.Generator) -> list[SceneObject]:
     """shelf configuration: upright, random yaw, disjoint footprints, one object after the other on the level
     that holds the fewest so far (ties broken at random) where it fits. A distractor that fits nowhere is left
     out; returns the objects placed.
@@ -239,7 +233,7 @@ def _place_on_shelf(objs: list[_Object], shelf: "Structure", rng: np.random.Gene
 
     levels = shelf.levels
     placed: list[list[tuple[np.ndarray, float]]] = [[] for _ in levels]
-    kept: list[_Object] = []
+    kept: list[SceneObject] = []
     for o in objs:
         R = _yaw(float(rng.uniform(0, 2 * np.pi)))
         foot_c, r = _footprint_radius(o.mesh, R)
@@ -268,10 +262,10 @@ def _place_on_shelf(objs: list[_Object], shelf: "Structure", rng: np.random.Gene
     return kept
 
 
-def _hang_on_tree(objs: list[_Object], tree: "Structure", rng: np.random.Generator) -> None:
+def hang_on_tree(objs: list[SceneObject], tree: "Structure", rng: np.random.Generator) -> None:
     """tree configuration, start poses: each mug threaded on its own peg (the peg through the middle of its
     handle opening, 55-75 % out along the peg) and turned about the peg so that its centre of mass hangs
-    below; distractors upright on the table around the base. Physics (`_simulate(layout="hang")`) settles
+    below; distractors upright on the table around the base. Physics (`simulate(layout="hang")`) settles
     them: the mugs drop onto the pegs, swing and tilt as they hang."""
     from efem_viz.geometry.transforms import rotation_about_axis, rotation_between
 
@@ -306,7 +300,7 @@ def _hang_on_tree(objs: list[_Object], tree: "Structure", rng: np.random.Generat
             _rest_upright(o, R, p, 0.0, c)
 
 
-def _misplaced(config: str, objs: list[_Object], structure: "Structure | None") -> int:
+def count_misplaced(config: str, objs: list[SceneObject], structure: "Structure | None") -> int:
     """How many objects did not end where the configuration puts them: tree mugs that fell off their pegs
     (lowest point within 3 cm of the table, or more than 25 cm from the post), box objects outside the walls."""
     if structure is None or config not in ("tree", "box"):

@@ -8,7 +8,8 @@ from typing import TYPE_CHECKING, Any, Literal, Sequence, cast
 
 import numpy as np
 
-from efem_viz.data.synth.layout import _Object, _random_rotation, _scatter_xy
+from efem_viz.data.synth.layout import SceneObject, scatter_xy
+from efem_viz.geometry.transforms import random_rotation
 from efem_viz.data.synth.stage import Stage
 from efem_viz.geometry.transforms import rotation_to_quat_wxyz
 
@@ -54,8 +55,8 @@ def _write_parts_obj(parts: Sequence[np.ndarray], path: str, *, shrink: float = 
         fh.write("\n".join(lines) + "\n")
 
 
-def _simulate(
-    objs: list[_Object],
+def simulate(
+    objs: list[SceneObject],
     rng: np.random.Generator,
     *,
     layout: Literal["scatter", "pile", "box", "hang"],
@@ -93,11 +94,11 @@ def _simulate(
         if layout == "hang":
             rots = [o.T_world_object[:3, :3].copy() for o in objs]
         else:
-            rots = [_random_rotation(rng) for _ in objs]
+            rots = [random_rotation(rng) for _ in objs]
         radii = [
             float(np.linalg.norm(np.asarray(o.mesh.vertices) - c, axis=1).max()) for o, c in zip(objs, coms)
         ]
-        xy = _scatter_xy(rng, radii, stage=stage, gap=0.005) if layout == "scatter" else None
+        xy = scatter_xy(rng, radii, stage=stage, gap=0.005) if layout == "scatter" else None
         bodies: list[int] = []
         with tempfile.TemporaryDirectory(prefix="efem_synth_") as tmp:
             if len(statics):
@@ -152,7 +153,7 @@ def _drop_position(pb: Any, cid: int, bodies: list[int], rng: np.random.Generato
     return [centre[0], centre[1], top + radius + 0.005]
 
 
-def _add_body(pb: Any, cid: int, o: _Object, shape: int, pos: list[float], R: np.ndarray, *,
+def _add_body(pb: Any, cid: int, o: SceneObject, shape: int, pos: list[float], R: np.ndarray, *,
               layout: Literal["scatter", "pile", "box", "hang"]) -> int:
     """Add one object as a rigid body at `pos` (its centre of mass, world frame) turned by `R`: mass from its
     volume, friction and damping for the layout (hanging objects damped more). Returns the body id."""

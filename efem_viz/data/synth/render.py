@@ -14,7 +14,7 @@ from efem_viz.geometry.camera import Camera, look_at
 
 
 # ====================================================================================== scanning
-def _make_cameras(
+def make_cameras(
     rng: np.random.Generator, target: np.ndarray, *, stage: Stage, n_cameras: int, image_size: tuple[int, int],
     heights: tuple[float, float] | None = None, front: np.ndarray | None = None, reach: float = 0.0,
 ) -> list[Camera]:
@@ -60,14 +60,14 @@ def _depth_sigma(z: np.ndarray) -> np.ndarray:
 
 
 @dataclass
-class _Frame:
+class RenderedFrame:
     depth: np.ndarray  # (H, W) float32, 0 = no measurement
     color: np.ndarray  # (H, W, 3) uint8
     normal: np.ndarray  # (H, W, 3) float32, true surface normal towards the camera
     visible_ids: np.ndarray  # (H, W) int32 geometry index (-1 none)
 
 
-def _render(
+def render_frames(
     scene: Any,
     cam: Camera,
     albedo: np.ndarray,
@@ -77,7 +77,7 @@ def _render(
     crop_lo: np.ndarray,
     crop_hi: np.ndarray,
     max_range: float,
-) -> _Frame:
+) -> RenderedFrame:
     """Ray-cast one depth frame of `scene` (geometry i coloured `albedo[i]`) from `cam`: depth up to `max_range`,
     with Kinect-like noise (`_depth_sigma`, dropout at grazing angles) when `noise`, measurements outside the
     box [crop_lo, crop_hi] removed."""
@@ -114,10 +114,10 @@ def _render(
     if noise:
         col = col + rng.normal(0.0, 3.0, col.shape)
     color = np.where(hit[..., None], np.clip(np.round(col), 0, 255), 0).astype(np.uint8)
-    return _Frame(depth, color, nrm.astype(np.float32), np.where(valid, gid, -1).astype(np.int32))
+    return RenderedFrame(depth, color, nrm.astype(np.float32), np.where(valid, gid, -1).astype(np.int32))
 
 
-def _backproject(frame: _Frame, cam: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def frame_points(frame: RenderedFrame, cam: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     m = frame.depth > 0
     v, u = np.nonzero(m)
     z = frame.depth[m].astype(np.float64)
