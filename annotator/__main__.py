@@ -96,10 +96,11 @@ def main(argv: list[str] | None = None) -> int:
     ValueErrors); `--debug` (or EFEM_DEBUG=1) shows the traceback instead. `--version` prints the version.
     """
     from efem_viz.cli import package_version, pop_debug_flag, run_reporting_errors
-    from efem_viz.cpu import configure_openmp
+    from efem_viz.cpu import configure_allocator, configure_openmp
     from efem_viz.terminal import log_to_terminal
 
     configure_openmp()  # before torch is imported: OpenMP threads sleep at barriers (sharing busy cores)
+    configure_allocator()  # a long-lived server: large freed arrays go back to the system, not to the heap
 
     rest, debug = pop_debug_flag(list(sys.argv[1:] if argv is None else argv))
     if rest and rest[0] in ("--version", "-V"):
