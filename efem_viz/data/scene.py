@@ -1,6 +1,6 @@
 """The `Scene` data object: a scanned scene as points (or mesh vertices) with normals, colours and labels.
 
-Frames: world frame, metres, +Z up (see ARCHITECTURE.md). A scene with `faces` is a triangle mesh whose
+Frames: world frame, metres, +Z up (see docs/design/ARCHITECTURE.md). A scene with `faces` is a triangle mesh whose
 vertices are `points`; without `faces` it is a point cloud.
 """
 

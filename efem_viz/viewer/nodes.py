@@ -1,7 +1,7 @@
 """Scene nodes of the viewer: every `draw_*` function that touches `server.scene` lives here.
 
-Rules (VISER-NOTES.md): heavy geometry is sent once and switched by `visible`; per-step and per-threshold updates
-only resend colours (uint8) or flip visibility. Node paths:
+Rules (docs/design/VISER-NOTES.md): heavy geometry is sent once and switched by `visible`; per-step and
+per-threshold updates only resend colours (uint8) or flip visibility. Node paths:
 
 * `/scene/points`, `/scene/mesh` — the scan (points always exist: they carry every recolouring);
 * `/em/samples` — sampled points of the drawn proposals at the current step, coloured by id;
