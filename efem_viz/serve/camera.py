@@ -311,13 +311,7 @@ class CameraGuard:
             look, pos = np.asarray(camera.look_at, np.float64), np.asarray(camera.position, np.float64)
         except Exception:  # noqa: BLE001 - no camera state yet
             return
-        on_home = any(np.allclose(look, h.look_at, rtol=0.0, atol=tol) and np.allclose(pos, h.position, rtol=0.0, atol=tol)
-                      for h in homes)
-        if not on_home:
-            return
-        fitted = self.view_for(client)
-        if not (np.allclose(look, fitted.look_at, rtol=0.0, atol=tol)
-                and np.allclose(pos, fitted.position, rtol=0.0, atol=tol)):
+        if any(_on_view(look, pos, h, tol) for h in homes) and not _on_view(look, pos, self.view_for(client), tol):
             self._place(client)
 
     def forget(self, client: Any) -> None:
@@ -420,6 +414,11 @@ class CameraGuard:
                 auto_close_seconds=8.0, color="yellow")
         except Exception:  # noqa: BLE001 - a client may disconnect meanwhile
             log.debug("notification to %r failed", client, exc_info=True)
+
+
+def _on_view(look: np.ndarray, pos: np.ndarray, view: View, tol: float) -> bool:
+    """Whether a camera looking at `look` from `pos` sits on `view` (each coordinate within `tol`)."""
+    return bool(np.allclose(look, view.look_at, rtol=0.0, atol=tol) and np.allclose(pos, view.position, rtol=0.0, atol=tol))
 
 
 def _canvas(client: Any) -> tuple[int, int] | None:
