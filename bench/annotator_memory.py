@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common import ROOT, machine  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
+from common import ROOT, machine, rss_mb  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
 
 
 class _MallInfo2(ctypes.Structure):
@@ -58,7 +58,7 @@ def main() -> int:
     from annotator.app import AnnotatorApp
     from annotator.io import save_labels_npz
     from annotator.labels import InstanceInfo
-    from annotator_scale import _rss_mb, make_surface
+    from annotator_scale import make_surface
     from efem_viz.data.io import save_scene
 
     n = a.n_side ** 2
@@ -79,13 +79,13 @@ def main() -> int:
         t0 = time.perf_counter()
         app = AnnotatorApp(scan, out_dir=tmp / "out", port=0, autosave_delay=0.5, max_points=max(n, 2_000_000))
         app.wait_idle(600)
-        rows = [{"edit": 0, "rss_mb": _rss_mb(), **_heap()}]
+        rows = [{"edit": 0, "rss_mb": rss_mb(), **_heap()}]
         print(f"open: {time.perf_counter() - t0:.0f} s, RSS {rows[0]['rss_mb']} MB", flush=True)
         for e in range(a.edits):
             app.session.import_labels(str(files[e % 2]))
             app.wait_idle(600)
             time.sleep(1.0)  # the autosave (0.5 s after the edit) has run
-            rows.append({"edit": e + 1, "rss_mb": _rss_mb(), **_heap()})
+            rows.append({"edit": e + 1, "rss_mb": rss_mb(), **_heap()})
             print(f"edit {e + 1}: RSS {rows[-1]['rss_mb']} MB {_heap()}", flush=True)
         app.close()
     finally:

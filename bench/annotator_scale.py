@@ -35,7 +35,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-import common  # noqa: E402,F401 - the checkout on sys.path, the CLIs' OpenMP wait policy
+from common import rss_mb  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
 
 
 def make_surface(n_side: int, *, seed: int = 0) -> "object":
@@ -58,13 +58,6 @@ def make_surface(n_side: int, *, seed: int = 0) -> "object":
     faces = np.concatenate([np.stack([a, a + n_side, a + 1], 1), np.stack([a + 1, a + n_side, a + n_side + 1], 1)])
     return Scene.create("bench_surface", pts, faces=faces.astype(np.int32), max_points=len(pts))
 
-
-def _rss_mb() -> int:
-    """Resident set of this process now, MB."""
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return round(int(line.split()[1]) / 1024)
-    return -1
 
 
 FRAMES_JS = """() => new Promise(done => {
@@ -158,10 +151,10 @@ def main() -> int:
     budget = {} if args.display_points is None else {"display_points": args.display_points}
     app = AnnotatorApp(scan, out_dir=tmp / "out", port=0, autosave_delay=0.5, max_points=max(n, 2_000_000), **budget)
     open_s = time.perf_counter() - t0
-    rss_open = _rss_mb()
+    rss_open = rss_mb()
     app.session.geom.warm_up()
     ready_s = time.perf_counter() - t0
-    rss_ready = _rss_mb()
+    rss_ready = rss_mb()
     try:
         page_stats = _browser_stage(app) if args.browser else {}
         iid = app.session.new_instance(category="mug")

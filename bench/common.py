@@ -3,7 +3,8 @@ machine a number was measured on.
 
 Import it first (`from common import ROOT, machine`), before anything imports torch: OpenMP reads its wait policy
 once, and the CLIs make waiting threads sleep (`efem_viz.cpu.configure_openmp`), so a bench measures what a user
-runs, and two threads cost no more than one on a shared machine.
+runs, and two threads cost no more than one on a shared machine. `rss_mb` is the resident set the memory benches
+record.
 """
 
 from __future__ import annotations
@@ -22,6 +23,17 @@ if str(ROOT) not in sys.path[:1]:
 from efem_viz.cpu import configure_openmp  # noqa: E402 - after the path: this checkout's efem_viz
 
 configure_openmp()
+
+
+def rss_mb() -> int:
+    """Resident set of this process now, MB (Linux; -1 elsewhere)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return round(int(line.split()[1]) / 1024)
+    except OSError:
+        pass
+    return -1
 
 
 def cpu_model() -> str:

@@ -20,15 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from common import ROOT  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
+from common import ROOT, rss_mb  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
 
-
-def _rss_mb() -> int:
-    """Resident set of this process now, MB."""
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return round(int(line.split()[1]) / 1024)
-    return -1
 
 
 def main() -> int:
@@ -44,23 +37,23 @@ def main() -> int:
                               "edits": a.edits, "history_mb": a.history_mb}
     with tempfile.TemporaryDirectory() as tmp:
         paths = {"journal_path": Path(tmp) / "s.journal", "label_path": Path(tmp) / "s.labels.npz"}
-        rss0 = _rss_mb()
+        rss0 = rss_mb()
         s = LabelStore(a.n, autosave_delay=0, history_bytes=a.history_mb << 20, **paths)
         s.do(lambda ls: ls.create_instance(category="mug"))
         s.do(lambda ls: ls.create_instance(category="bowl"))
-        after_open = _rss_mb()
+        after_open = rss_mb()
         rss = []
         for i in range(a.edits):
             s.do(lambda ls, i=i: ls.paint(np.arange(ls.n), 1 + i % 2))
-            rss.append(_rss_mb())
+            rss.append(rss_mb())
         final = s.labels.copy()
         s.close()
         del s
         t0 = time.perf_counter()
-        before_reopen = _rss_mb()
+        before_reopen = rss_mb()
         s2 = LabelStore(a.n, autosave_delay=0, history_bytes=a.history_mb << 20, **paths)
         reopen_s = time.perf_counter() - t0
-        reopen_mb = _rss_mb() - before_reopen
+        reopen_mb = rss_mb() - before_reopen
         assert np.array_equal(s2.labels, final)
         t0 = time.perf_counter()
         for _ in range(a.edits):
