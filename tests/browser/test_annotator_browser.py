@@ -488,6 +488,30 @@ def test_camera_thrown_off_the_scan_comes_back(keyed: tuple[Any, Any]) -> None:
             f"resets {app.view.camera_guard.resets}") from None
 
 
+def test_a_resized_window_keeps_the_scan_framed(keyed: tuple[Any, Any]) -> None:
+    """R, then the browser window made narrower: the camera moves to the view fitted to the new canvas (the server
+    sees the new size and the camera on that view); back to the old size, back to the old view."""
+    app, page = keyed
+    handle, _, _ = _camera(app)
+    guard = app.view.camera_guard
+
+    def on_fitted(width: int) -> bool:
+        home = guard.view_for(handle)
+        return bool(handle.camera.image_width == width and np.allclose(handle.camera.look_at, home.look_at, atol=1e-4)
+                    and np.allclose(handle.camera.position, home.position, atol=1e-4))
+
+    page.keyboard.press("r")
+    wait_until(lambda: on_fitted(SMALL["width"]), HANG_GUARD_S, "the fitted view (R)")
+    wide = guard.view_for(handle)
+    try:
+        page.set_viewport_size({"width": 700, "height": SMALL["height"]})
+        wait_until(lambda: on_fitted(700), HANG_GUARD_S, "the view fitted to the narrower window")
+        assert guard.view_for(handle) != wide
+    finally:
+        page.set_viewport_size(SMALL)
+    wait_until(lambda: on_fitted(SMALL["width"]), HANG_GUARD_S, "the view fitted to the window again")
+
+
 def test_a_click_off_the_scan_says_so(keyed: tuple[Any, Any]) -> None:
     """With the segment tool (C), a Ctrl+click beside the scan tells the user that it missed the scan (it used to
     do nothing, silently)."""
