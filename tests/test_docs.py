@@ -58,3 +58,17 @@ def test_the_code_cites_documents_that_ship() -> None:
             if m.group(1) not in ("README.md", "CHANGELOG.md"):
                 missing.append(f"{f.relative_to(ROOT)}: {m.group(1)} (name it as docs/.../{m.group(1)})")
     assert not missing, missing
+
+
+def test_the_project_speaks_of_the_product() -> None:
+    """No work period or tracker number in the docs, the code, the benches or the tests (the word session or issue followed by a number):
+    a reader has neither; history goes to CHANGELOG.md by date."""
+    said = []
+    files = [*_markdown(), *[p for top in TOP for p in (ROOT / top).rglob("*") if p.suffix in (".py", ".sh", ".md")]]
+    for f in sorted(set(files)):
+        if f.is_relative_to(ROOT / "docs" / "design"):
+            continue
+        for n, line in enumerate(f.read_text(encoding="utf-8").splitlines(), 1):
+            if re.search(r"\b(?:[Ss]essions?|[Ii]ssues?)[ -]#?\d+\b", line):
+                said.append(f"{f.relative_to(ROOT)}:{n}: {line.strip()[:100]}")
+    assert not said, said

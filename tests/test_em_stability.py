@@ -1,4 +1,4 @@
-"""The real-scan stability work (issues 20/21): depth-sensor model, one-proposal probe, M-step without
+"""The real-scan stability work: depth-sensor model, one-proposal probe, M-step without
 replacement, size rule on the SDF band / density-relative, plain-text batch progress."""
 
 from __future__ import annotations

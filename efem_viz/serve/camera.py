@@ -274,8 +274,9 @@ class CameraGuard:
         """Times each client's camera was brought back because it had left the scene, by client id."""
         self._lock = threading.Lock()
         self._notified: dict[int, float] = {}
-        self._homed: dict[int, View] = {}
-        """The fitted view each client was last put on (by client id), as its canvas was then."""
+        self._placed: dict[int, tuple[View, float | None, bool]] = {}
+        """By client id: the view the guard last put the client on, its canvas's aspect then (None before the client
+        reported one) and whether it was the fitted view."""
         self.view = view
         """The fitted view for the planned canvas (`FIT_ASPECT`, no panel): the initial camera."""
         self.fit = fit
@@ -298,27 +299,44 @@ class CameraGuard:
     def _on_update(self, client: Any, camera: Any) -> None:
         """A camera report: the lost-camera check, then (with a panel) a camera sitting exactly on a home view it
         no longer fits goes to the view fitted to its canvas: the shared initial view (a new page, or viser's own
-        reset to it), or the fitted view this client was last put on when its canvas has changed size since (a
-        resized window keeps the scene framed; a camera the person moved stays where it is)."""
-        if self.check(client, camera) or not self.panel_px or _canvas(client) is None:
+        reset to it), or the fitted view this client was last put on when its canvas has changed shape since (a
+        resized window keeps the scene framed; a camera the person moved stays where it is).
+
+        Only a change of the canvas's aspect counts as a resize: viser scales its canvas's pixels with the
+        browser's frame rate (0.75-1.0 of the device's pixel ratio), which changes the reported size but not the
+        window, and the camera must not jump each time."""
+        size = _canvas(client)
+        if self.check(client, camera) or not self.panel_px or size is None:
             return
         cid = int(getattr(client, "client_id", -1))
         with self._lock:
-            home, lo, hi = self.view, self.lo, self.hi
-            homes = [home] + ([self._homed[cid]] if cid in self._homed else [])
+            home, lo, hi, placed = self.view, self.lo, self.hi, self._placed.get(cid)
         tol = 1e-5 * (float(np.linalg.norm(np.subtract(hi, lo))) or 1.0)
         try:
             look, pos = np.asarray(camera.look_at, np.float64), np.asarray(camera.position, np.float64)
         except Exception:  # noqa: BLE001 - no camera state yet
             return
-        if any(_on_view(look, pos, h, tol) for h in homes) and not _on_view(look, pos, self.view_for(client), tol):
+        if _on_view(look, pos, home, tol):
+            follow = not _on_view(look, pos, self.view_for(client), tol)
+        else:
+            follow = (placed is not None and placed[2] and placed[1] is not None and _on_view(look, pos, placed[0], tol)
+                      and not _same_shape(placed[1], size[0] / size[1]))
+        if follow:
             self._place(client)
+
+    def last_placed(self, client: Any, *, home: bool = False) -> View | None:
+        """The view the guard last put this client on (as sent: fitted to its canvas then, clear of the panel), None
+        if never; with `home`, None unless it was the fitted view (R, a reset, a resize) rather than a fly-to.
+        Whether the camera is still there is for the client's reports to tell."""
+        with self._lock:
+            placed = self._placed.get(int(getattr(client, "client_id", -1)))
+        return None if placed is None or (home and not placed[2]) else placed[0]
 
     def forget(self, client: Any) -> None:
         """Drop what the guard kept about a client that left (call it from `server.on_client_disconnect`)."""
         with self._lock:
             self._notified.pop(int(getattr(client, "client_id", -1)), None)
-            self._homed.pop(int(getattr(client, "client_id", -1)), None)
+            self._placed.pop(int(getattr(client, "client_id", -1)), None)
 
     def view_for(self, client: Any, view: View | None = None) -> View:
         """A view as one client gets it: `view` (default: the scene's fitted view, fitted again to the free part of
@@ -393,11 +411,9 @@ class CameraGuard:
         home = view is None
         view = self.view_for(client, view)
         cid = int(getattr(client, "client_id", -1))
+        size = _canvas(client)
         with self._lock:
-            if home:
-                self._homed[cid] = view
-            else:
-                self._homed.pop(cid, None)
+            self._placed[cid] = (view, None if size is None else size[0] / size[1], home)
         try:
             with client.atomic():
                 place_camera(client.camera, view)
@@ -419,6 +435,12 @@ class CameraGuard:
 def _on_view(look: np.ndarray, pos: np.ndarray, view: View, tol: float) -> bool:
     """Whether a camera looking at `look` from `pos` sits on `view` (each coordinate within `tol`)."""
     return bool(np.allclose(look, view.look_at, rtol=0.0, atol=tol) and np.allclose(pos, view.position, rtol=0.0, atol=tol))
+
+
+def _same_shape(aspect: float, other: float) -> bool:
+    """Whether two canvas aspects (width / height) are one shape: within 1 %, what rounding a canvas's pixel count
+    to a scaled pixel ratio can make of one window."""
+    return abs(aspect - other) <= 0.01 * max(aspect, other)
 
 
 def _canvas(client: Any) -> tuple[int, int] | None:

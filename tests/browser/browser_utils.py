@@ -26,6 +26,12 @@ def wait_until(cond: Callable[[], bool], timeout: float = HANG_GUARD_S, what: st
         time.sleep(0.05)
 
 
+def on_view(client: Any, view: Any, atol: float = 1e-4) -> bool:
+    """Whether a viser client's camera, as the server last heard it, sits on `view` (a `View`; None: False)."""
+    return bool(view is not None and np.allclose(client.camera.look_at, view.look_at, atol=atol)
+                and np.allclose(client.camera.position, view.position, atol=atol))
+
+
 def png_to_array(png: bytes) -> np.ndarray:
     """(H, W, 3) int16 RGB of a PNG screenshot (signed, so differences do not wrap)."""
     from PIL import Image

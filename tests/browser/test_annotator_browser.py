@@ -17,7 +17,8 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 import pytest
-from browser_utils import HANG_GUARD_MS, HANG_GUARD_S, changed_mask, ctrl_drag, open_viser_pages, settle_canvas, wait_until
+from browser_utils import (HANG_GUARD_MS, HANG_GUARD_S, changed_mask, ctrl_drag, on_view, open_viser_pages, settle_canvas,
+                           wait_until)
 
 pytestmark = [pytest.mark.browser, pytest.mark.timeout(600)]
 
@@ -471,45 +472,47 @@ def test_camera_thrown_off_the_scan_comes_back(keyed: tuple[Any, Any]) -> None:
     handle.camera.on_update(lambda _cam: last.__setitem__(0, time.monotonic()))
     wait_until(lambda: time.monotonic() - last[0] > 1.0, HANG_GUARD_S, "the camera at rest")
     page.keyboard.press("r")
+    _wait_on_fitted_view(app, handle, "the fitted view (R)")
 
-    def at_home() -> bool:  # the fitted view as this browser gets it: clear of the control panel
-        home = app.view.camera_guard.view_for(handle)
-        return bool(np.allclose(handle.camera.look_at, home.look_at, atol=1e-4)
-                    and np.allclose(handle.camera.position, home.position, atol=1e-4))
+
+def _wait_on_fitted_view(app: Any, handle: Any, what: str, canvas: Callable[[float], bool] = lambda _a: True) -> Any:
+    """Wait until the page's camera sits on the fitted view the server last put it on (for its canvas, clear of the
+    control panel) and the canvas's aspect (width / height) satisfies `canvas`; returns that view. A timeout says
+    where the camera, that view and the canvas are. (The canvas's pixel count follows viser's frame-rate-scaled
+    pixel ratio, so views are compared with what the server placed, not recomputed from the size now.)"""
+    guard = app.view.camera_guard
+
+    def aspect() -> float:
+        return float(handle.camera.image_width) / max(float(handle.camera.image_height), 1.0)
 
     try:
-        wait_until(at_home, HANG_GUARD_S, "the fitted view (R)")
+        wait_until(lambda: canvas(aspect()) and on_view(handle, guard.last_placed(handle, home=True)), HANG_GUARD_S, what)
     except AssertionError as exc:  # say where the camera is, so that a failure elsewhere can be read
-        home = app.view.camera_guard.view_for(handle)
         raise AssertionError(
             f"{exc}: camera at {np.round(handle.camera.position, 4).tolist()} looking at "
-            f"{np.round(handle.camera.look_at, 4).tolist()}, fitted view {home}, canvas "
+            f"{np.round(handle.camera.look_at, 4).tolist()}, fitted view {guard.last_placed(handle, home=True)}, canvas "
             f"{handle.camera.image_width}x{handle.camera.image_height}, clients {list(app.server.get_clients())}, "
-            f"resets {app.view.camera_guard.resets}") from None
+            f"resets {guard.resets}") from None
+    return guard.last_placed(handle, home=True)
 
 
 def test_a_resized_window_keeps_the_scan_framed(keyed: tuple[Any, Any]) -> None:
     """R, then the browser window made narrower: the camera moves to the view fitted to the new canvas (the server
-    sees the new size and the camera on that view); back to the old size, back to the old view."""
+    sees the new shape and the camera on that view); back to the old size, back to a view fitted to it."""
     app, page = keyed
     handle, _, _ = _camera(app)
-    guard = app.view.camera_guard
-
-    def on_fitted(width: int) -> bool:
-        home = guard.view_for(handle)
-        return bool(handle.camera.image_width == width and np.allclose(handle.camera.look_at, home.look_at, atol=1e-4)
-                    and np.allclose(handle.camera.position, home.position, atol=1e-4))
-
     page.keyboard.press("r")
-    wait_until(lambda: on_fitted(SMALL["width"]), HANG_GUARD_S, "the fitted view (R)")
-    wide = guard.view_for(handle)
+    wide = _wait_on_fitted_view(app, handle, "the fitted view (R)")
+    shape = SMALL["width"] / SMALL["height"]
+    narrow = (SMALL["width"] - 260) / SMALL["height"]
     try:
-        page.set_viewport_size({"width": 700, "height": SMALL["height"]})
-        wait_until(lambda: on_fitted(700), HANG_GUARD_S, "the view fitted to the narrower window")
-        assert guard.view_for(handle) != wide
+        page.set_viewport_size({"width": SMALL["width"] - 260, "height": SMALL["height"]})
+        moved = _wait_on_fitted_view(app, handle, "the view fitted to the narrower window",
+                                     lambda a: abs(a - narrow) < 0.05)
+        assert moved != wide
     finally:
         page.set_viewport_size(SMALL)
-    wait_until(lambda: on_fitted(SMALL["width"]), HANG_GUARD_S, "the view fitted to the window again")
+    _wait_on_fitted_view(app, handle, "the view fitted to the window again", lambda a: abs(a - shape) < 0.05)
 
 
 def test_a_click_off_the_scan_says_so(keyed: tuple[Any, Any]) -> None:
