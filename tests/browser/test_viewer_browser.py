@@ -514,7 +514,7 @@ def test_a_wide_scene_opens_clear_of_the_control_panel(tmp_path: Path, new_page:
         wait_until(lambda: on_view(client, app.camera_guard.last_placed(client, home=True)), HANG_GUARD_S,
                    "the camera fitted to this canvas")
         cam = client.camera
-        w = cam.image_width
+        w = page.viewport_size["width"]  # CSS pixels (the camera's image_width follows viser's scaled pixel ratio)
         corners = np.array([[x, y, z] for x in (-2, 2) for y in (-0.3, 0.3) for z in (0, 0.2)])
         uv, depth = project(corners, position=np.asarray(cam.position), wxyz=np.asarray(cam.wxyz), fov=float(cam.fov),
                             aspect=float(cam.aspect))
