@@ -72,3 +72,12 @@ def test_the_project_speaks_of_the_product() -> None:
             if re.search(r"\b(?:[Ss]essions?|[Ii]ssues?)[ -]#?\d+\b", line):
                 said.append(f"{f.relative_to(ROOT)}:{n}: {line.strip()[:100]}")
     assert not said, said
+
+
+def test_the_tests_map_names_every_test_file() -> None:
+    """tests/README.md (the map of the tests by package) names every test module, and only ones that exist."""
+    text = (ROOT / "tests" / "README.md").read_text(encoding="utf-8")
+    named = set(re.findall(r"`((?:browser/)?test_\w+\.py)`", text))
+    have = {p.relative_to(ROOT / "tests").as_posix() for p in (ROOT / "tests").rglob("test_*.py")}
+    assert not have - named, f"not in tests/README.md: {sorted(have - named)}"
+    assert not named - have, f"named in tests/README.md but missing: {sorted(named - have)}"

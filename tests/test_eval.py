@@ -364,3 +364,47 @@ def test_the_viewer_comparison_reports_each_class_of_a_family_scene() -> None:
     pred.category = np.array(["mug", "mug", "mug"])
     single = gt_metrics(pred, one, 0.0)
     assert single.per_class == () and "per class" not in gt_markdown(3, 0.0, single)
+
+
+def test_evaluate_takes_its_classes_from_the_labelled_scenes(tmp_path: Path) -> None:
+    """Without --classes, `evaluate` scores the categories the labelled scenes name (a chair scene is scored as
+    chairs, not as zero mugs); a scene naming two categories gives a row each, the predictions matched by category;
+    --classes still decides when given."""
+    import dataclasses
+
+    from efem_viz.cli import main
+    from efem_viz.data.io import load_scene, save_scene
+    from efem_viz.em import EMResult
+
+    repo = Path(__file__).resolve().parents[1]
+    scene = load_scene(repo / "sample_scenes" / "syn_pile_0.ply")
+    res = EMResult.load(repo / "sample_scenes" / "syn_pile_0.efem.npz")
+    ids = [int(i) for i in np.unique(scene.instance) if i > 0]
+    assert len(ids) == 5
+
+    def run(folder: str, categories: dict[int, str], pred_category: Any, *args: str) -> dict[str, Any]:
+        d = tmp_path / folder
+        save_scene(dataclasses.replace(scene, categories=categories), d / "syn_pile_0.ply")
+        cats = pred_category(res) if callable(pred_category) else np.full(len(res.instances), pred_category)
+        dataclasses.replace(res, instances=dataclasses.replace(res.instances, category=cats)).save(
+            d / "syn_pile_0.efem.npz")
+        assert main(["evaluate", str(d), "--gt", str(d), "--json-out", str(d / "ev.json"), *args]) == 0
+        return json.loads((d / "ev.json").read_text())
+
+    chairs = run("chairs", {i: "chair" for i in ids}, "chair")
+    assert set(chairs["per_class"]) == {"chair"} and chairs["per_class"]["chair"]["n_gt"] == 5
+    mugs = run("mugs", {i: "mug" for i in ids}, "mug")
+    assert chairs["ap50"] == pytest.approx(mugs["ap50"]) and mugs["ap50"] > 0.5  # the same masks, either name
+
+    # two categories: each instance's prediction named after the object it covers best
+    two = {i: ("chair" if i in ids[:2] else "mug") for i in ids}
+
+    def named(r: Any) -> np.ndarray:
+        best = [np.bincount(scene.instance[np.asarray(m)], minlength=max(ids) + 1)[1:].argmax() + 1
+                for m in r.instances.masks]
+        return np.array([two[int(b)] for b in best])
+
+    both = run("two", two, named)
+    assert {k: v["n_gt"] for k, v in both["per_class"].items()} == {"chair": 2, "mug": 3}
+    only_mug = run("given", two, named, "--classes", "mug")
+    assert {k: v["n_gt"] for k, v in only_mug["per_class"].items()} == {"mug": 3}

@@ -33,9 +33,11 @@ class EvaluateArgs:
     layout; also looked for in `scannet/`; give `OUT/scannet` to score a batch's ScanNet export instead)."""
     gt: list[Path] = field(default_factory=list)
     """Labelled scene files (per-vertex `instance`) and/or folders of them; names must match the results."""
-    classes: tuple[str, ...] = (DEFAULT_PRIOR,)
-    """Evaluated classes (a multi-prior run: every category, e.g. --classes mug sphere); class id k in ScanNet-layout
-    predictions is classes[k-1], `.efem.npz` instances are matched by their category name."""
+    classes: tuple[str, ...] | None = None
+    """Evaluated classes, e.g. --classes mug sphere; `.efem.npz` instances are matched by their category name (with
+    one class, every instance counts as it), class id k of ScanNet-layout predictions is classes[k-1]. Default: the
+    categories of the labelled objects in --gt, in the order met (mug when they name none); ScanNet-layout
+    predictions: mug."""
     threshold: float = 0.0
     """Drop predictions with a lower confidence."""
     strict: bool = True
@@ -62,6 +64,8 @@ class EvaluateArgs:
             check_output_file(self.json_out, option="--json-out")
         gt_files = find_scenes(self.gt)  # missing paths are reported first, before anything is read
         sources, from_efem = self._prediction_sources()
+        classes = tuple(self.classes) if self.classes else (
+            labelled_categories(gt_files) if from_efem else (DEFAULT_PRIOR,))
         # one scene at a time: its labels and predictions are dropped once its overlaps (a few numbers per
         # instance pair) are computed, so a folder of any size is scored in the memory of its largest scene
         overlaps: dict[str, SceneOverlaps] = {}
@@ -78,11 +82,11 @@ class EvaluateArgs:
             src = sources.get(gt.name)
             pred = None
             if src is not None:
-                pred = self._prediction(src, gt, from_efem=from_efem)
+                pred = self._prediction(src, gt, from_efem=from_efem, classes=classes)
             elif self.strict:
                 raise SceneError(f"no prediction for the labelled scene {gt.name!r} ({p}) in {self.results}; "
                                  "pass --no-strict to count it as having none")
-            overlaps[gt.name] = overlaps_of(pred, gt, class_names=self.classes)
+            overlaps[gt.name] = overlaps_of(pred, gt, class_names=classes)
         extra = sorted(set(sources) - set(gt_paths))
         if extra and self.strict:
             raise SceneError(f"predictions without a labelled scene in --gt: {extra[:10]}; pass --no-strict to ignore "
@@ -91,7 +95,7 @@ class EvaluateArgs:
             log.warning("ignoring predictions for %d scenes without ground truth: %s", len(extra), extra[:10])
         if not overlaps:
             raise SceneError(f"no labelled scenes found in {[str(g) for g in self.gt]}")
-        result = evaluate_overlaps(overlaps, class_names=self.classes, scannet_flag=self.scannet_flag)
+        result = evaluate_overlaps(overlaps, class_names=classes, scannet_flag=self.scannet_flag)
         console = console()
         console.print(_ap_table(result))
         if self.json_out is not None:
@@ -129,7 +133,8 @@ class EvaluateArgs:
             raise SceneError(f"{self.results}: no predictions found (<scene>.txt or <scene>.efem.npz)")
         return sources, from_efem
 
-    def _prediction(self, src: Path, gt: "SceneGroundTruth", *, from_efem: bool) -> "ScenePrediction":
+    def _prediction(self, src: Path, gt: "SceneGroundTruth", *, from_efem: bool,
+                    classes: tuple[str, ...]) -> "ScenePrediction":
         """One scene's predictions from its `.efem.npz` or ScanNet `<scene>.txt`, checked and thresholded."""
         import numpy as np
 
@@ -144,7 +149,7 @@ class EvaluateArgs:
             if res.num_points != gt.num_points:
                 raise SceneError(f"{src} was computed on {res.num_points} points but the ground-truth scene "
                                  f"{gt.name!r} has {gt.num_points}")
-            pred = prediction_from_instances(res.instances, name=gt.name, class_names=self.classes)
+            pred = prediction_from_instances(res.instances, name=gt.name, class_names=classes)
         else:
             from efem_viz.eval.scannet import load_scannet_prediction
 
@@ -159,6 +164,25 @@ class EvaluateArgs:
             pred = ScenePrediction(name=pred.name, masks=[pred.masks[int(i)] for i in np.flatnonzero(keep)],
                                    confidences=conf[keep], labels=None if pred.labels is None else pred.labels[keep])
         return pred
+
+
+def labelled_categories(gt_files: list[Path]) -> tuple[str, ...]:
+    """The categories of the labelled objects (instance > 0) in these scenes, in the order met (files in order,
+    objects by id); mug when they name none. Reads one scene at a time."""
+    import numpy as np
+
+    from efem_viz.data.io import load_scene
+
+    names: list[str] = []
+    for p in gt_files:
+        scene = load_scene(p)
+        if scene.instance is None:
+            continue
+        for i in np.unique(scene.instance):
+            c = scene.categories.get(int(i)) if i > 0 else None
+            if c is not None and c not in names:
+                names.append(str(c))
+    return tuple(names) or (DEFAULT_PRIOR,)
 
 
 def _ap_table(result: EvalResult) -> Table:
