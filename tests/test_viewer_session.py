@@ -270,6 +270,29 @@ def test_inspect_a_proposal(session: ViewerSession) -> None:
     assert shape is None or (shape[0].shape[1] == 3 and shape[1].shape[1] == 3)
 
 
+def test_a_demo_decimates_the_steps_shapes(session: ViewerSession) -> None:
+    """A static demo's step shapes are the run's decoded shapes decimated to `STEP_SHAPE_FACES` faces: the same
+    surface (within a few millimetres of it), fewer faces."""
+    from efem_viz.em.replay import prior_latent
+    from efem_viz.viewer.trace_queries import decode_shape
+
+    trace = session.state.require_result().trace
+    v = session.set_step(1)
+    assert v is not None
+    for pid in (int(p) for p in v.drawn):
+        prior, latent = prior_latent(trace, pid, 1, session.priors.for_run(trace))
+        full = decode_shape(prior, latent, resolution=trace.config.mesh_resolution)
+        if full is None or len(full[1]) <= 400:
+            continue
+        small = decode_shape(prior, latent, resolution=trace.config.mesh_resolution, max_faces=400)
+        assert small is not None and 0 < len(small[1]) <= 400 < len(full[1])
+        assert small[1].max() < len(small[0])
+        lo, hi = full[0].min(axis=0), full[0].max(axis=0)
+        assert np.all(small[0] >= lo - 0.005) and np.all(small[0] <= hi + 0.005)
+        return
+    pytest.fail("no decoded shape at step 1")
+
+
 def test_mask_band(session: ViewerSession) -> None:
     res = session.state.require_result()
     tau0 = float(res.config.out_tau)

@@ -42,6 +42,11 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 
+STEP_SHAPE_FACES = 1500
+"""Faces of each decoded shape a static demo shows at the EM steps (the run's meshes have 5,000): the steps' 80
+shapes, seen for 0.6 s each, made up half of a demo page (the mug tree scene's page: 5.6 MB with 5,000 faces, 3.1 MB
+with 1,500); the final instances keep their full meshes."""
+
 
 def _atomic_write_text(path: Path, text: str) -> Path:
     from efem_viz.data.io import atomic_write_text
@@ -284,7 +289,7 @@ class _DemoRecording:
         if prior is not None and shapes_per_step > 0:
             for pid in drawn[:shapes_per_step]:
                 pri, lat = prior_latent(trace, int(pid), t, prior)
-                shape = decode_shape(pri, lat, resolution=trace.config.mesh_resolution)
+                shape = decode_shape(pri, lat, resolution=trace.config.mesh_resolution, max_faces=STEP_SHAPE_FACES)
                 if shape is None:
                     continue
                 n_shapes += 1

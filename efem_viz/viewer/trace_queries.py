@@ -135,7 +135,7 @@ def proposal_samples(
 
 
 def decode_shape(
-    prior: ShapePriorLike, latent: dict[str, np.ndarray], *, resolution: int
+    prior: ShapePriorLike, latent: dict[str, np.ndarray], *, resolution: int, max_faces: int | None = None
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """World-frame mesh of a stored latent, or None when its SDF has no zero crossing on the grid.
 
@@ -143,6 +143,7 @@ def decode_shape(
         prior: the run's shape prior.
         latent: `EMTrace.latent(pid, step)`.
         resolution: meshing grid (the run's `EMConfig.mesh_resolution`).
+        max_faces: decimate to at most this many faces (`simplify_mesh`; None: the marching-cubes mesh).
 
     Returns:
         (V, 3) float32 vertices and (F, 3) int32 faces, or None.
@@ -152,4 +153,8 @@ def decode_shape(
     mesh = mesh_of_latent(prior, latent, resolution=int(resolution))
     if mesh is None or not len(getattr(mesh, "faces", ())):
         return None
+    if max_faces is not None:
+        from efem_viz.prior.meshing import simplify_mesh
+
+        mesh = simplify_mesh(mesh, int(max_faces))
     return np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32)
