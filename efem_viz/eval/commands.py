@@ -168,7 +168,9 @@ class EvaluateArgs:
 
 def labelled_categories(gt_files: list[Path]) -> tuple[str, ...]:
     """The categories of the labelled objects (instance > 0) in these scenes, in the order met (files in order,
-    objects by id); mug when they name none. Reads one scene at a time."""
+    objects by id); mug when they name none. Reads one scene at a time, so `evaluate` without --classes reads each
+    labelled scene twice (no scene format has a header-only reader; the classes must be known before the first
+    scene's overlaps are computed, and keeping every scene would cost a folder's memory)."""
     import numpy as np
 
     from efem_viz.data.io import load_scene
