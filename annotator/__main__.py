@@ -53,9 +53,9 @@ class AnnotateArgs:
         from efem_viz.serve.lifecycle import announce, stop_signals, wait_for_stop
 
         check_port(self.port)  # before the scan is read (a bad port used to hang in viser's server thread)
-        from annotator import assist
+        from annotator import efem_runs
 
-        assist.use_device(check_device(self.device))  # CUDA asked for without CUDA: one line, before the scan
+        efem_runs.use_device(check_device(self.device))  # CUDA asked for without CUDA: one line, before the scan
         with stop_signals("efem-annotate"):  # before loading: Ctrl+C stops a long load too
             app = AnnotatorApp(
                 self.scan,
@@ -72,15 +72,15 @@ class AnnotateArgs:
             )
             try:
                 ses = app.session
-                if ses.store.recovery is not None:
-                    print("efem-annotate: " + ses.store.recovery.summary().replace("\n", "\n  "), flush=True)
-                details = [f"autosave: {ses.work_dir}", f"EFEM assist runs on: {assist.solve_device()}"]
-                if ses.store.resumed:
-                    details.append(f"resumed from the journal: {ses.store.journal.next_seq:,} records, "
-                                   f"{len(ses.store.labelset.undo_stack):,} undoable edits")
+                if ses.scan.store.recovery is not None:
+                    print("efem-annotate: " + ses.scan.store.recovery.summary().replace("\n", "\n  "), flush=True)
+                details = [f"autosave: {ses.scan.work_dir}", f"EFEM assist runs on: {efem_runs.solve_device()}"]
+                if ses.scan.store.resumed:
+                    details.append(f"resumed from the journal: {ses.scan.store.journal.next_seq:,} records, "
+                                   f"{len(ses.scan.store.labelset.undo_stack):,} undoable edits")
                 if app.token_kept:
                     details.append("same URL as the last run on this scan: a tab left open reconnects by itself")
-                announce("efem-annotate", f"{ses.scan_path.name} ({ses.n:,} vertices) at {app.url}  — Ctrl+C to quit",
+                announce("efem-annotate", f"{ses.scan.scan_path.name} ({ses.scan.n:,} vertices) at {app.url}  — Ctrl+C to quit",
                          url=app.url, local_url=app.local_url, exposure_warning=app.access.exposure_warning,
                          details=tuple(details))
                 wait_for_stop()

@@ -38,7 +38,7 @@ import numpy as np
 from annotator.io import MAX_SCAN_POINTS
 from annotator.labels import Delta, unreviewed_prelabels
 from annotator.cheat_sheet import CheatSheets
-from annotator.events import MISSED_SCAN, check_event, coalesce_drag_updates
+from annotator.scene_events import MISSED_SCAN, check_event, coalesce_drag_updates
 from annotator.panel_views import panel_view, status_markdown
 from annotator.panels import Panels
 from annotator.wiring import wire
@@ -119,7 +119,7 @@ class AnnotatorApp(ServedApp):
                                         tools=tools, on_stage=on_stage)
         """Every action and the state it acts on (`annotator.session`); this class draws it."""
         ses = self.session
-        self._sheets = CheatSheets(self.session.tools)
+        self._sheets = CheatSheets(self.session.toolbox.tools)
         self.cheat_sheets = self._sheets.open
         """The open `?` cheat-sheet overlays, by client id."""
         self._edits: queue.Queue[tuple[str, Any]] = queue.Queue()
@@ -130,7 +130,7 @@ class AnnotatorApp(ServedApp):
             self.token_kept = False
             """True when the token (and so the URL) is the one this scan's folder kept from an earlier run."""
             if token is None:  # the scan's folder keeps it: a tab left open reconnects after a restart
-                token, self.token_kept = saved_token(ses.work_dir)
+                token, self.token_kept = saved_token(ses.scan.work_dir)
             stage("starting the server")
             self.server, self.access = start_server(host=host, port=port, token=token)
         except BaseException:
@@ -154,15 +154,15 @@ class AnnotatorApp(ServedApp):
         ses.on_segment, ses.report = self._show_segmenting, self.run_reporting
         ses.on_efem = self._show_efem_run
         ses.notify = lambda title, body: self.notify(title, body)  # late-bound: tests replace `notify`
-        self.session.store.listeners.append(self._on_labels_changed)
-        self.session.store.problem_listeners.append(self._on_store_problem)
+        self.session.scan.store.listeners.append(self._on_labels_changed)
+        self.session.scan.store.problem_listeners.append(self._on_store_problem)
         self.server.on_client_connect(self._greet)
         self.server.on_client_disconnect(self._forget_client)
         self._worker = threading.Thread(target=self._edit_loop, name="annotator-edits", daemon=True)
         self._worker.start()
         ses.scan.start_warm_up(self._show_warm_up)
         self.open_s = time.perf_counter() - t0
-        log.info("opened %s: %d vertices (%d drawn), %d chunks, %.2f s", self.session.scan_path.name, self.session.n,
+        log.info("opened %s: %d vertices (%d drawn), %d chunks, %.2f s", self.session.scan.scan_path.name, self.session.scan.n,
                  len(self.view.display), self.view.chunks.count, self.open_s)
 
     # ================================================================== drawing
@@ -177,9 +177,9 @@ class AnnotatorApp(ServedApp):
     def _build_gui(self) -> None:
         from efem_viz.prior.registry import available_priors
 
-        default_efem = self.session.scan_path.with_name(self.session.stem + RESULT_SUFFIX)
+        default_efem = self.session.scan.scan_path.with_name(self.session.scan.stem + RESULT_SUFFIX)
         priors = tuple(available_priors()) or (DEFAULT_PRIOR,)
-        self.panels = Panels(self.server.gui, self.session.tools, self.session.settings,
+        self.panels = Panels(self.server.gui, self.session.toolbox.tools, self.session.toolbox.settings,
                              efem_result=default_efem.name if default_efem.exists() else "", priors=priors,
                              prior=DEFAULT_PRIOR if DEFAULT_PRIOR in priors else priors[0],
                              preset=suggested_preset(self.session.scan.scene))
@@ -192,7 +192,7 @@ class AnnotatorApp(ServedApp):
     @property
     def tool(self) -> Tool:
         """The active tool's entry."""
-        return self.session.tool
+        return self.session.toolbox.tool
 
     def refuse(self, exc: ClientValueError, client: ClientHandle | None, handle: GuiInputHandle[Any],
                old: object) -> None:
@@ -207,8 +207,8 @@ class AnnotatorApp(ServedApp):
 
     def show_tool(self) -> None:
         """Show the active tool's controls, buttons and help line (`Panels.show_tool`)."""
-        self.panels.show_tool(self.tool, self.session.tools)
-        self.session.refresh_cursor()
+        self.panels.show_tool(self.tool, self.session.toolbox.tools)
+        self.session.brush.refresh_cursor()
 
     def write_back(self, handle: GuiInputHandle[Any], value: object) -> None:
         """Show the value actually used (a clamped client value) in every client, without re-reading it."""
@@ -228,13 +228,13 @@ class AnnotatorApp(ServedApp):
             self._tls.panel_due = True  # an action is about to read its control: refresh after it
             return
         st = self.view.stats
-        v = panel_view(self.session.store, self.session.settings.active_id)
-        status = status_markdown(self.session.store, self.session.work_dir, last_edit_bytes=st.last_edit_bytes,
+        v = panel_view(self.session.scan.store, self.session.toolbox.settings.active_id)
+        status = status_markdown(self.session.scan.store, self.session.scan.work_dir, last_edit_bytes=st.last_edit_bytes,
                                  last_edit_ms=st.last_edit_ms)
         self._tls.syncing = True
         try:
-            self.session.settings.active_id = v.active_id
-            self.panels.show(v, status, typing=self.session.fields_typing())
+            self.session.toolbox.settings.active_id = v.active_id
+            self.panels.show(v, status, typing=self.session.instances.fields_typing())
         finally:
             self._tls.syncing = False
 
@@ -250,13 +250,13 @@ class AnnotatorApp(ServedApp):
         """A newly connected client: its camera is watched (`camera_guard`), and it hears about a recovery or a
         standing autosave problem."""
         self.view.camera_guard.attach(client)
-        rec = self.session.store.recovery
+        rec = self.session.scan.store.recovery
         if rec is not None:
             title = ("Session recovered" if rec.verified_complete else "Session recovered with losses"
                      if not rec.complete else "Session recovered, not everything verifiable")
             self.notify(title, rec.summary(), client=client, color="yellow" if rec.complete else "red")
-        if self.session.store.problem:
-            self.notify("Autosave failed", self.session.store.problem, client=client, color="red")
+        if self.session.scan.store.problem:
+            self.notify("Autosave failed", self.session.scan.store.problem, client=client, color="red")
         if self.session.instances.restored_typing:
             self.notify("Typed value restored", self.session.instances.restored_typing, client=client, color="yellow")
 
@@ -284,7 +284,7 @@ class AnnotatorApp(ServedApp):
             if not typing:
                 self._tls.defer_panel = True  # the action reads its own control before the panels are redrawn
                 try:
-                    typed = self.session.flush_typing(refresh=False)
+                    typed = self.session.instances.flush_typing(refresh=False)
                 finally:
                     self._tls.defer_panel = False
                 typed = typed or bool(getattr(self._tls, "panel_due", False))
@@ -317,7 +317,7 @@ class AnnotatorApp(ServedApp):
     # ================================================================== actions (GUI callbacks call these)
     def set_tool(self, tool: str) -> None:
         """Make a tool of the table active (its controls and help are shown)."""
-        self.session.set_tool(tool)
+        self.session.instances.set_tool(tool)
         self._tls.syncing = True
         try:
             self.panels.gui_tool.value = tool
@@ -328,8 +328,8 @@ class AnnotatorApp(ServedApp):
     def resize_brush(self, factor: float) -> float:
         """Multiply the brush radius by `factor` (the `[` / `]` keys, `AnnotatorSession.resize_brush`); the slider
         shows the new value. Returns the radius in metres."""
-        radius = self.session.resize_brush(factor)
-        control = next((c for c in all_controls(self.session.tools) if c.setting == "radius"), RADIUS)
+        radius = self.session.instances.resize_brush(factor)
+        control = next((c for c in all_controls(self.session.toolbox.tools) if c.setting == "radius"), RADIUS)
         handle = self.panels.gui_controls.get("radius")
         if handle is not None:
             self.write_back(handle, round(radius * control.scale, 6))
@@ -357,8 +357,8 @@ class AnnotatorApp(ServedApp):
 
     def set_labels_only(self, on: bool) -> None:
         """The labels-only view (unlabelled vertices dimmed) on or off; every chunk is redrawn."""
-        self.session.settings.labels_only = bool(on)
-        self.write_back(self.panels.gui_labels_only, self.session.settings.labels_only)
+        self.session.toolbox.settings.labels_only = bool(on)
+        self.write_back(self.panels.gui_labels_only, self.session.toolbox.settings.labels_only)
         self.view.redraw()
 
     def add_lasso_point(self, event: SceneClickEvent) -> int:
@@ -374,7 +374,7 @@ class AnnotatorApp(ServedApp):
 
     def _draw_lasso(self) -> None:
         self.view.draw_lasso()
-        self.panels.enable_lasso(len(self.session.lasso_outline))
+        self.panels.enable_lasso(len(self.session.box_lasso.lasso_outline))
 
     # ---- files
     # ---- EFEM assist
@@ -386,37 +386,37 @@ class AnnotatorApp(ServedApp):
         Raises:
             ValueError: no unreviewed pre-label is left.
         """
-        ids = unreviewed_prelabels(self.session.store.labelset.instances)
+        ids = unreviewed_prelabels(self.session.scan.store.labelset.instances)
         if not ids:
             raise ValueError("no unreviewed pre-labels: import an EFEM result first")
         current = str(self.panels.gui_prelabel.value).split(":", 1)[0]
-        started = self.session.prelabel_cursor is not None
+        started = self.session.assist.prelabel_cursor is not None
         iid = step_row(ids, int(current) if started and current.isdigit() else None, step)
-        self.session.prelabel_cursor = iid
+        self.session.assist.prelabel_cursor = iid
         self.write_back(self.panels.gui_prelabel, _option_for(tuple(self.panels.gui_prelabel.options), iid))
-        self.view.fly_to(np.flatnonzero(self.session.store.labels == iid), client)
+        self.view.fly_to(np.flatnonzero(self.session.scan.store.labels == iid), client)
         return iid
 
     def run_efem(self, *, wait: bool = False) -> list[int] | None:
         """EFEM on the whole scan with the preset, proposal count and prior the EFEM assist folder shows
         (`AnnotatorSession.run_efem`); every value read is checked."""
         p = self.panels
-        self.session.settings.prior = read_choice(p.gui_prior)
-        return self.session.run_efem(preset=read_choice(p.gui_efem_preset),  # proposals 0: the preset's count
+        self.session.toolbox.settings.prior = read_choice(p.gui_prior)
+        return self.session.assist.run_efem(preset=read_choice(p.gui_efem_preset),  # proposals 0: the preset's count
                                      proposals=read_int(p.gui_efem_proposals, write_back=self.write_back) or None,
                                      wait=wait)
 
     def segment_at(self, vertex: int, *, wait: bool = False) -> np.ndarray | None:
         """Click-to-segment with the prior the dropdown shows (`AnnotatorSession.segment_at`)."""
-        self.session.settings.prior = read_choice(self.panels.gui_prior)
-        return self.session.segment_at(vertex, wait=wait)
+        self.session.toolbox.settings.prior = read_choice(self.panels.gui_prior)
+        return self.session.assist.segment_at(vertex, wait=wait)
 
     def _show_segmenting(self, percent: float | None) -> None:
         """The segment run's progress (None: it ended, or the preview changed) and the segment buttons."""
         if percent is not None:
             self.panels.gui_seg_progress.value = percent
             self.panels.gui_seg_progress.visible = True
-        elif not self.session.segmenting:
+        elif not self.session.assist.segmenting:
             self.panels.gui_seg_progress.visible = False
         self._enable_segment_buttons()
 
@@ -432,13 +432,13 @@ class AnnotatorApp(ServedApp):
             return
         self.panels.show_efem_run(text, percent)
         if text is None:
-            self.panels.gui_prelabel_cut.value = self.session.prelabel_cut(float(self.panels.gui_prelabel_cut.value))
+            self.panels.gui_prelabel_cut.value = self.session.assist.prelabel_cut(float(self.panels.gui_prelabel_cut.value))
             if self.session.assist.last_run_path is not None:  # the saved run, ready to import again
                 self.panels.gui_efem_path.value = str(self.session.assist.last_run_path)
 
     def _enable_segment_buttons(self) -> None:
         ses = self.session
-        self.panels.enable_segment(has_preview=ses.pending_segment is not None, running=ses.segmenting)
+        self.panels.enable_segment(has_preview=ses.assist.pending_segment is not None, running=ses.assist.segmenting)
 
     # ================================================================== viser events
     def _on_scene_click(self, event: SceneClickEvent) -> None:
@@ -479,21 +479,21 @@ class AnnotatorApp(ServedApp):
         cid = f"client{getattr(event, 'client_id', '?')}"
         on_click = self.tool.on_click
         if kind == "click" and on_click is not None:
-            with self.session.edit_source(self.tool.label):
+            with self.session.painting.edit_source(self.tool.label):
                 on_click(self.session, event)
         elif kind == "click":
-            v = self.session.click(np.asarray(event.ray_origin), np.asarray(event.ray_direction), client=cid)
+            v = self.session.painting.click(np.asarray(event.ray_origin), np.asarray(event.ray_direction), client=cid)
             if v is None and self.tool.apply_at is not None:
                 self.notify("Missed the scan", MISSED_SCAN, client=getattr(event, "client", None), color="yellow")
         elif kind == "rect":
             cam = event.client.camera
-            self.session.box(position=np.asarray(cam.position), wxyz=np.asarray(cam.wxyz), fov=float(cam.fov),
+            self.session.box_lasso.box(position=np.asarray(cam.position), wxyz=np.asarray(cam.wxyz), fov=float(cam.fov),
                      aspect=float(cam.aspect), screen_min=tuple(event.screen_min), screen_max=tuple(event.screen_max),
                      client=cid)
         elif kind == "drag" and event.phase == "start":
-            self.session.stroke_start(int(event.client_id), np.asarray(event.start_position), client=cid)
+            self.session.painting.stroke_start(int(event.client_id), np.asarray(event.start_position), client=cid)
         elif kind == "drag":
-            self.session.stroke_to(int(event.client_id), np.asarray(event.client.camera.position),
+            self.session.painting.stroke_to(int(event.client_id), np.asarray(event.client.camera.position),
                                    np.asarray(event.end_position), end=event.phase == "end", client=cid)
         self.server.flush()
 

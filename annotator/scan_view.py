@@ -91,7 +91,7 @@ class ScanView:
     def __init__(self, server: viser.ViserServer, session: AnnotatorSession, *, chunk_size: int = 16384,
                  display_points: int = DISPLAY_POINTS, max_splats: int | None = None) -> None:
         self.server, self.session = server, session
-        scene = session.scene
+        scene = session.scan.scene
         self.display = display_subset(scene.num_points, display_points)
         """(D,) int32 vertex ids drawn."""
         self.reduced = len(self.display) < scene.num_points
@@ -108,14 +108,14 @@ class ScanView:
         self.extent = float(np.linalg.norm(np.ptp(pts, axis=0))) or 1.0
         # Points drawn from a subset of D of the n vertices are sqrt(n / D) times further apart on a surface.
         n = scene.num_points
-        spacing = session.geom.spacing * float(np.sqrt(n / max(len(self.display), 1)))
+        spacing = session.scan.geom.spacing * float(np.sqrt(n / max(len(self.display), 1)))
         self.point_size = float(max(spacing * 1.6, self.extent * 5e-4))
         # The proxy's k splats (at most `max_splats`) must cover the surface at their own spacing: 2.5 spacings
         # when every vertex has one (as always), 1.6 of the wider spacing of a subset (fewer overlapping
         # transparent triangles keep software-rendered pages fast).
         max_splats = MAX_SPLATS if max_splats is None else int(max_splats)
         k = min(len(self.display), max_splats)
-        splat_spacing = session.geom.spacing * float(np.sqrt(n / max(k, 1)))
+        splat_spacing = session.scan.geom.spacing * float(np.sqrt(n / max(k, 1)))
         self.surface = self._add_surface((2.5 if k == n else 1.6) * splat_spacing, max_splats)
         """The mesh that receives drag gestures (the scan's own when it is drawn in full, else an invisible proxy)."""
         self.chunk_handles = self._add_chunks()
@@ -132,14 +132,14 @@ class ScanView:
         control panel leaves free (`CameraGuard.view_for`; see `efem_viz.serve.camera`)."""
 
     def _add_surface(self, splat_size: float, max_splats: int) -> viser.MeshHandle:
-        scene = self.session.scene
+        scene = self.session.scan.scene
         if scene.is_mesh and not self.reduced:
             assert scene.faces is not None
             return self.server.scene.add_mesh_simple("/scan/surface", scene.points, scene.faces,
                                                      color=(205, 205, 205), side="double")
         # An invisible proxy surface: it receives the drag gestures that point clouds do not.
         shown = self.display
-        verts, faces = splat_proxy(scene.points[shown], self.session.geom.normals[shown], size=splat_size,
+        verts, faces = splat_proxy(scene.points[shown], self.session.scan.geom.normals[shown], size=splat_size,
                                    max_splats=max_splats)
         return self.server.scene.add_mesh_simple("/scan/surface", verts, faces, color=(200, 200, 200), opacity=0.0,
                                                  side="double")
@@ -150,21 +150,21 @@ class ScanView:
         for c in range(self.chunks.count):
             m = self.chunks.members(c)
             handles.append(self.server.scene.add_point_cloud(
-                f"/scan/labels/chunk_{c:04d}", points=self.session.scene.points[m], colors=self._colors(m, lut_show),
+                f"/scan/labels/chunk_{c:04d}", points=self.session.scan.scene.points[m], colors=self._colors(m, lut_show),
                 point_size=self.point_size, point_shape="circle"))
         return handles
 
     def _lut(self) -> tuple[np.ndarray, np.ndarray]:
         """The label colour table (`color_lut`) of the labels now."""
-        store = self.session.store
+        store = self.session.scan.store
         return color_lut(store.labelset.instances, int(store.labels.max(initial=0)))
 
     def _colors(self, m: np.ndarray, lut_show: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
         ses = self.session
         lut, show = lut_show
-        hl = None if ses.preview is None else ses.preview[m]
-        return compose_colors(ses.scene.colors[m], ses.store.labels[m], lut, show, highlight=hl,
-                              dim_unlabelled=ses.settings.labels_only)
+        hl = None if ses.assist.preview is None else ses.assist.preview[m]
+        return compose_colors(ses.scan.scene.colors[m], ses.scan.store.labels[m], lut, show, highlight=hl,
+                              dim_unlabelled=ses.toolbox.settings.labels_only)
 
     def draw_chunks(self, chunk_ids: np.ndarray) -> int:
         """Recompute and send the colours of some chunks; returns the payload bytes sent."""
@@ -193,7 +193,7 @@ class ScanView:
         touched = self.chunks.touched(d.idx)
         visual = [k for k, after in d.table_after.items() if _looks_different(d.table_before.get(k), after)]
         if visual:
-            mask = np.isin(self.session.store.labels, np.array(visual, np.int32))
+            mask = np.isin(self.session.scan.store.labels, np.array(visual, np.int32))
             touched = np.union1d(touched, self.chunks.touched(np.flatnonzero(mask)))
         return self.draw_chunks(touched)
 
@@ -201,7 +201,7 @@ class ScanView:
     def draw_cursor(self) -> None:
         """Draw the brush cursor where the session has it (hidden for tools without a brush radius)."""
         with self._cursor_lock:
-            cur = self.session.cursor
+            cur = self.session.brush.cursor
             if cur is None:
                 return
             try:
@@ -215,7 +215,7 @@ class ScanView:
     def draw_lasso(self) -> None:
         """Draw the lasso outline (removed when it has fewer than two points)."""
         with self._lasso_lock:
-            seg = self.session.lasso_outline.segments()
+            seg = self.session.box_lasso.lasso_outline.segments()
             if seg is not None:
                 self.lasso_handle = self.server.scene.add_line_segments(
                     "/annotator/lasso", seg, colors=LASSO_COLOR, thickness=2.0, thickness_units="screen")
@@ -231,7 +231,7 @@ class ScanView:
         idx = np.asarray(idx, np.int64)
         if idx.size == 0:
             return
-        pts = self.session.scene.points[idx]
+        pts = self.session.scan.scene.points[idx]
         self.camera_guard.place(fly_to_view(pts.min(axis=0), pts.max(axis=0), home=self.home_view,
                                             scene_diagonal=self.extent), client)
 

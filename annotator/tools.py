@@ -9,8 +9,8 @@ it has no per-tool branches. Adding a tool is one `Tool` entry plus its function
 
 ```python
 def paint_ball(host, hit):  # everything within 3 cm of the click becomes the active instance
-    idx = np.asarray(host.geom.tree.query_ball_point(hit.position, 0.03), np.int64)
-    host.paint(idx, client=hit.client)
+    idx = np.asarray(host.scan.geom.tree.query_ball_point(hit.position, 0.03), np.int64)
+    host.painting.paint(idx, client=hit.client)
 
 AnnotatorApp(scan, tools=(*DEFAULT_TOOLS, Tool("ball", "Ball", "P", "click paints a 3 cm ball", apply_at=paint_ball)))
 ```
@@ -99,21 +99,29 @@ class ToolSettings:
         return initial
 
 
-class ToolHost(Protocol):
-    """What a tool's functions may use of their host (`annotator.session.AnnotatorSession` provides it)."""
+class HostToolbox(Protocol):
+    """The part of a tool's host that holds the tool settings (`annotator.parts.context.Toolbox`)."""
 
     @property
     def settings(self) -> ToolSettings:
         """What the tool controls say."""
         ...
 
+
+class HostScan(Protocol):
+    """The part of a tool's host that holds the scan (`annotator.parts.scan.ScanPart`)."""
+
     @property
     def geom(self) -> ScanGeometry:
         """The scan's selection geometry."""
         ...
 
+
+class HostPainting(Protocol):
+    """The painting part of a tool's host (`annotator.parts.paint.PaintPart`): one journalled edit per call."""
+
     def paint(self, idx: np.ndarray, *, erase: bool = False, group: str = "", client: str = "") -> Delta | None:
-        """Paint vertices with the active instance (or erase them); one journalled edit."""
+        """Paint vertices with the active instance (or erase them)."""
         ...
 
     def dab(self, vertex: int, position: np.ndarray, *, erase: bool, client: str = "") -> Delta | None:
@@ -132,17 +140,9 @@ class ToolHost(Protocol):
         """Make the instance under a vertex active."""
         ...
 
-    def segment_at(self, vertex: int, *, wait: bool = False) -> np.ndarray | None:
-        """Click-to-segment with the shape prior (`ToolSettings.prior`)."""
-        ...
 
-    def accept_segment(self) -> Delta | None:
-        """Paint the previewed segment as a new instance."""
-        ...
-
-    def discard_segment(self) -> None:
-        """Drop the segment preview (or cancel the segmentation running)."""
-        ...
+class HostLasso(Protocol):
+    """The box-and-lasso part of a tool's host (`annotator.parts.box_lasso.BoxLassoPart`)."""
 
     def add_lasso_point(self, screen_pos: Sequence[float] | Sequence[Sequence[float]], *,
                         ray_origin: Sequence[float] | np.ndarray, ray_direction: Sequence[float] | np.ndarray,
@@ -156,6 +156,52 @@ class ToolHost(Protocol):
 
     def clear_lasso(self) -> None:
         """Drop the lasso outline."""
+        ...
+
+
+class HostAssist(Protocol):
+    """The EFEM-assist part of a tool's host (`annotator.parts.assist.AssistPart`)."""
+
+    def segment_at(self, vertex: int, *, wait: bool = False) -> np.ndarray | None:
+        """Click-to-segment with the shape prior (`ToolSettings.prior`)."""
+        ...
+
+    def accept_segment(self) -> Delta | None:
+        """Paint the previewed segment as a new instance."""
+        ...
+
+    def discard_segment(self) -> None:
+        """Drop the segment preview (or cancel the segmentation running)."""
+        ...
+
+
+class ToolHost(Protocol):
+    """What a tool's functions may use of their host: parts of the session (`annotator.session.AnnotatorSession`
+    provides it), e.g. `host.toolbox.settings`, `host.scan.geom`, `host.painting.grow(vertex)`."""
+
+    @property
+    def toolbox(self) -> HostToolbox:
+        """The tool settings (`toolbox.settings`)."""
+        ...
+
+    @property
+    def scan(self) -> HostScan:
+        """The scan's selection geometry (`scan.geom`)."""
+        ...
+
+    @property
+    def painting(self) -> HostPainting:
+        """Paint, erase, dab, region grow, fill, pick."""
+        ...
+
+    @property
+    def box_lasso(self) -> HostLasso:
+        """The lasso outline: add a point, apply, clear."""
+        ...
+
+    @property
+    def assist(self) -> HostAssist:
+        """Click-to-segment: run, accept, discard."""
         ...
 
 
@@ -294,27 +340,27 @@ unlabelled vertices."""
 
 # ---------------------------------------------------------------------------------------------- tool functions
 def _brush(host: ToolHost, hit: Hit) -> object:
-    return host.dab(hit.vertex, hit.position, erase=False, client=hit.client)
+    return host.painting.dab(hit.vertex, hit.position, erase=False, client=hit.client)
 
 
 def _erase(host: ToolHost, hit: Hit) -> object:
-    return host.dab(hit.vertex, hit.position, erase=True, client=hit.client)
+    return host.painting.dab(hit.vertex, hit.position, erase=True, client=hit.client)
 
 
 def _grow(host: ToolHost, hit: Hit) -> object:
-    return host.grow(hit.vertex, client=hit.client)
+    return host.painting.grow(hit.vertex, client=hit.client)
 
 
 def _fill(host: ToolHost, hit: Hit) -> object:
-    return host.fill(hit.vertex, client=hit.client)
+    return host.painting.fill(hit.vertex, client=hit.client)
 
 
 def _pick(host: ToolHost, hit: Hit) -> object:
-    return host.pick_instance(hit.vertex)
+    return host.painting.pick_instance(hit.vertex)
 
 
 def _segment(host: ToolHost, hit: Hit) -> object:
-    return host.segment_at(hit.vertex)
+    return host.assist.segment_at(hit.vertex)
 
 
 def lasso_click(host: ToolHost, event: Any) -> int:
@@ -322,7 +368,7 @@ def lasso_click(host: ToolHost, event: Any) -> int:
     cam = event.client.camera
     camera = LassoCamera(np.asarray(cam.position, np.float64), np.asarray(cam.wxyz, np.float64), float(cam.fov),
                          float(cam.aspect))
-    return host.add_lasso_point(event.screen_pos, ray_origin=event.ray_origin, ray_direction=event.ray_direction,
+    return host.box_lasso.add_lasso_point(event.screen_pos, ray_origin=event.ray_origin, ray_direction=event.ray_direction,
                                 camera=camera)
 
 
@@ -339,17 +385,17 @@ DEFAULT_TOOLS: tuple[Tool, ...] = (
     Tool("segment", "Click to segment", "C", "click runs EFEM with the shape prior (EFEM assist) and previews the "
          "object; Enter accepts it, Esc discards it (or cancels the run)", apply_at=_segment,
          commands=(
-             ToolCommand("segment_accept", "Accept segment", lambda h: h.accept_segment(), hotkey="Enter",
+             ToolCommand("segment_accept", "Accept segment", lambda h: h.assist.accept_segment(), hotkey="Enter",
                          hint="paint the previewed object as a new instance", disabled=True),
-             ToolCommand("segment_discard", "Discard segment", lambda h: h.discard_segment(), hotkey="Escape",
+             ToolCommand("segment_discard", "Discard segment", lambda h: h.assist.discard_segment(), hotkey="Escape",
                          hint="drop the preview, or cancel the segmentation running", disabled=True),
          )),
     Tool("lasso", "Lasso", "O", "each click adds an outline point; Enter applies (paints, or erases)",
          on_click=lasso_click,
          commands=(
-             ToolCommand("lasso_apply", "Apply lasso", lambda h: h.apply_lasso(), hotkey="Enter",
+             ToolCommand("lasso_apply", "Apply lasso", lambda h: h.box_lasso.apply_lasso(), hotkey="Enter",
                          hint="Lasso tool: Ctrl/Cmd+click the outline, then apply", disabled=True),
-             ToolCommand("lasso_clear", "Clear lasso", lambda h: h.clear_lasso(), disabled=True),
+             ToolCommand("lasso_clear", "Clear lasso", lambda h: h.box_lasso.clear_lasso(), disabled=True),
          )),
 )
 """The annotator's tools, in toolbar order."""

@@ -79,7 +79,7 @@ def _typed(app: AnnotatorControls, field: Literal["name", "category"], handle: G
     def cb(event: Event) -> None:
         if app.quiet():
             return  # the app set the field itself
-        app.run_reporting(lambda: app.session.type_text(field, read_text(handle, max_len=MAX_NAME)), event.client,
+        app.run_reporting(lambda: app.session.instances.type_text(field, read_text(handle, max_len=MAX_NAME)), event.client,
                           typing=True)
 
     return cb
@@ -95,8 +95,8 @@ def _for_client(app: AnnotatorControls, fn: Callable[[ClientHandle | None], obje
 
 def _wire_settings(app: AnnotatorControls) -> None:
     """The tool dropdown and the setting controls: every change re-reads them all into the settings."""
-    s, p = app.session.settings, app.panels
-    controls = {c.setting: c for c in all_controls(app.session.tools)}
+    s, p = app.session.toolbox.settings, app.panels
+    controls = {c.setting: c for c in all_controls(app.session.toolbox.tools)}
 
     def read_one(name: str, handle: ControlHandle, client: ClientHandle | None) -> None:
         c = controls[name]
@@ -139,49 +139,49 @@ def _wire_buttons(app: AnnotatorControls) -> None:
     def prelabel() -> int:
         return option_id(read_choice(p.gui_prelabel))
 
-    p.gui_active.on_update(on(lambda: ses.set_active(option_id(read_choice(p.gui_active)))))
+    p.gui_active.on_update(on(lambda: ses.instances.set_active(option_id(read_choice(p.gui_active)))))
     p.gui_name.on_update(_typed(app, "name", p.gui_name))
     p.gui_category.on_update(_typed(app, "category", p.gui_category))
-    p.gui_color.on_update(on(lambda: ses.update_active(color=read_rgb(p.gui_color, write_back=wb))))
-    p.gui_visible.on_update(on(lambda: ses.update_active(visible=read_bool(p.gui_visible))))
+    p.gui_color.on_update(on(lambda: ses.instances.update_active(color=read_rgb(p.gui_color, write_back=wb))))
+    p.gui_visible.on_update(on(lambda: ses.instances.update_active(visible=read_bool(p.gui_visible))))
     p.gui_labels_only.on_update(on(lambda: app.set_labels_only(read_bool(p.gui_labels_only))))
-    p.gui_locked.on_update(on(lambda: ses.update_active(locked=read_bool(p.gui_locked))))
-    p.gui_new.on_click(on(lambda: ses.new_instance(category=ses.settings.category)))
-    p.gui_merge.on_click(on(lambda: ses.merge([ses.settings.active_id], option_id(read_choice(p.gui_merge_into)))))
-    p.gui_delete.on_click(on(lambda: ses.delete_instance(ses.settings.active_id)))
-    p.gui_undo.on_click(on(ses.undo))
-    p.gui_redo.on_click(on(ses.redo))
-    p.gui_export_ply.on_click(on(lambda: ses.export("ply")))
-    p.gui_export_npz.on_click(on(lambda: ses.export("npz")))
-    p.gui_export_scannet.on_click(on(lambda: ses.export("scannet")))
-    p.gui_import.on_click(on(lambda: ses.import_labels(read_text(p.gui_import_path))))
+    p.gui_locked.on_update(on(lambda: ses.instances.update_active(locked=read_bool(p.gui_locked))))
+    p.gui_new.on_click(on(lambda: ses.instances.new_instance(category=ses.toolbox.settings.category)))
+    p.gui_merge.on_click(on(lambda: ses.instances.merge([ses.toolbox.settings.active_id], option_id(read_choice(p.gui_merge_into)))))
+    p.gui_delete.on_click(on(lambda: ses.instances.delete_instance(ses.toolbox.settings.active_id)))
+    p.gui_undo.on_click(on(ses.instances.undo))
+    p.gui_redo.on_click(on(ses.instances.redo))
+    p.gui_export_ply.on_click(on(lambda: ses.files.export("ply")))
+    p.gui_export_npz.on_click(on(lambda: ses.files.export("npz")))
+    p.gui_export_scannet.on_click(on(lambda: ses.files.export("scannet")))
+    p.gui_import.on_click(on(lambda: ses.files.import_labels(read_text(p.gui_import_path))))
     def import_efem() -> None:
-        ses.import_efem(read_text(p.gui_efem_path))
-        p.gui_prelabel_cut.value = ses.prelabel_cut(float(p.gui_prelabel_cut.value))  # shows the best ones
+        ses.assist.import_efem(read_text(p.gui_efem_path))
+        p.gui_prelabel_cut.value = ses.assist.prelabel_cut(float(p.gui_prelabel_cut.value))  # shows the best ones
 
     p.gui_efem_import.on_click(on(import_efem))
     p.gui_efem_run.on_click(on(lambda: app.run_efem()))
-    p.gui_efem_cancel.on_click(on(ses.cancel_efem))
-    p.gui_accept.on_click(on(lambda: ses.review_prelabel(prelabel(), "accept")))
-    p.gui_reject.on_click(on(lambda: ses.review_prelabel(prelabel(), "reject")))
-    p.gui_accept_merge.on_click(on(lambda: ses.review_prelabel(prelabel(), "merge")))
-    p.gui_accept_above.on_click(on(lambda: ses.review_prelabels(read_number(p.gui_prelabel_cut, write_back=wb),
+    p.gui_efem_cancel.on_click(on(ses.assist.cancel_efem))
+    p.gui_accept.on_click(on(lambda: ses.assist.review_prelabel(prelabel(), "accept")))
+    p.gui_reject.on_click(on(lambda: ses.assist.review_prelabel(prelabel(), "reject")))
+    p.gui_accept_merge.on_click(on(lambda: ses.assist.review_prelabel(prelabel(), "merge")))
+    p.gui_accept_above.on_click(on(lambda: ses.assist.review_prelabels(read_number(p.gui_prelabel_cut, write_back=wb),
                                                                 "accept")))
-    p.gui_reject_below.on_click(on(lambda: ses.review_prelabels(read_number(p.gui_prelabel_cut, write_back=wb),
+    p.gui_reject_below.on_click(on(lambda: ses.assist.review_prelabels(read_number(p.gui_prelabel_cut, write_back=wb),
                                                                 "reject")))
     p.gui_prelabel_next.on_click(_for_client(app, lambda client: app.step_prelabel(+1, client=client)))
     p.gui_prelabel_prev.on_click(_for_client(app, lambda client: app.step_prelabel(-1, client=client)))
-    p.gui_prior.on_update(on(lambda: setattr(ses.settings, "prior", read_choice(p.gui_prior))))
-    ses.settings.prior = read_choice(p.gui_prior)
-    p.gui_seg_accept.on_click(on(ses.accept_segment))
-    p.gui_seg_cancel.on_click(on(ses.discard_segment))
+    p.gui_prior.on_update(on(lambda: setattr(ses.toolbox.settings, "prior", read_choice(p.gui_prior))))
+    ses.toolbox.settings.prior = read_choice(p.gui_prior)
+    p.gui_seg_accept.on_click(on(ses.assist.accept_segment))
+    p.gui_seg_cancel.on_click(on(ses.assist.discard_segment))
 
 
 def _wire_tool_commands(app: AnnotatorControls, gui: GuiApi) -> None:
     """The tools' palette entries, buttons and command hotkeys."""
     command_keys: dict[str, list[str]] = {}
     """Command hotkeys → the labels of the commands (of different tools) that use them."""
-    for t in app.session.tools:
+    for t in app.session.toolbox.tools:
         gui.add_command(f"Tool: {t.label}", hotkey=t.hotkey).on_trigger(  # type: ignore[arg-type]
             _guarded(app, lambda name=t.name: app.set_tool(name)))
         for cmd in t.commands:
@@ -200,15 +200,15 @@ def _wire_app_keys(app: AnnotatorControls, gui: GuiApi) -> None:
     """The app's own hotkeys: the table `annotator.tools.APP_KEYS`, each action bound here."""
     ses = app.session
     actions: dict[str, Callback] = {
-        "new_instance": _guarded(app, lambda: ses.new_instance(category=ses.settings.category)),
-        "next_instance": _guarded(app, lambda: ses.cycle_active(+1)),
-        "previous_instance": _guarded(app, lambda: ses.cycle_active(-1)),
-        "toggle_visible": _guarded(app, lambda: ses.toggle_active("visible")),
-        "toggle_locked": _guarded(app, lambda: ses.toggle_active("locked")),
+        "new_instance": _guarded(app, lambda: ses.instances.new_instance(category=ses.toolbox.settings.category)),
+        "next_instance": _guarded(app, lambda: ses.instances.cycle_active(+1)),
+        "previous_instance": _guarded(app, lambda: ses.instances.cycle_active(-1)),
+        "toggle_visible": _guarded(app, lambda: ses.instances.toggle_active("visible")),
+        "toggle_locked": _guarded(app, lambda: ses.instances.toggle_active("locked")),
         "brush_smaller": _guarded(app, lambda: app.resize_brush(1.0 / BRUSH_STEP)),
         "brush_larger": _guarded(app, lambda: app.resize_brush(BRUSH_STEP)),
-        "undo": _guarded(app, ses.undo),
-        "redo": _guarded(app, ses.redo),
+        "undo": _guarded(app, ses.instances.undo),
+        "redo": _guarded(app, ses.instances.redo),
         "cheat_sheet": _for_client(app, app.toggle_cheat_sheet),
         "reset_view": _for_client(app, app.reset_view),
     }

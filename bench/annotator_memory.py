@@ -82,7 +82,7 @@ def main() -> int:
         rows = [{"edit": 0, "rss_mb": rss_mb(), **_heap()}]
         print(f"open: {time.perf_counter() - t0:.0f} s, RSS {rows[0]['rss_mb']} MB", flush=True)
         for e in range(a.edits):
-            app.session.import_labels(str(files[e % 2]))
+            app.session.files.import_labels(str(files[e % 2]))
             app.wait_idle(600)
             time.sleep(1.0)  # the autosave (0.5 s after the edit) has run
             rows.append({"edit": e + 1, "rss_mb": rss_mb(), **_heap()})

@@ -77,8 +77,8 @@ def _browser_stage(app: "object") -> dict[str, float]:
     from conftest import CHROMIUM_ARGS, CHROMIUM_PATH, VIEWPORT
     from playwright.sync_api import sync_playwright
 
-    iid = app.session.new_instance(category="mug")  # type: ignore[attr-defined]
-    app.session.settings.radius = 0.03  # type: ignore[attr-defined]
+    iid = app.session.instances.new_instance(category="mug")  # type: ignore[attr-defined]
+    app.session.toolbox.settings.radius = 0.03  # type: ignore[attr-defined]
     with sync_playwright() as p:
         browser = p.chromium.launch(executable_path=CHROMIUM_PATH, headless=True, args=CHROMIUM_ARGS)
         try:
@@ -107,14 +107,14 @@ def _browser_stage(app: "object") -> dict[str, float]:
             t1 = time.perf_counter()
             ctrl_drag(page, (cx - 60, cy), (cx + 60, cy + 20))
             drag_s = time.perf_counter() - t1
-            wait_until(lambda: bool((app.session.store.labels == iid).any()), 120,  # type: ignore[attr-defined]
+            wait_until(lambda: bool((app.session.scan.store.labels == iid).any()), 120,  # type: ignore[attr-defined]
                        "the stroke on the server")
             stroke_s = time.perf_counter() - t1
         finally:
             browser.close()
     return {"page_gui_s": round(gui_s, 1), "page_scan_visible_s": round(first_s, 1),
             "page_frames_per_s": round(float(fps), 2), "page_canvas_drawn": round(shown[-1], 3), "page_drag_s": round(drag_s, 1),
-            "page_stroke_on_server_s": round(stroke_s, 1), "page_painted": int((app.session.store.labels == iid).sum())}  # type: ignore[attr-defined]
+            "page_stroke_on_server_s": round(stroke_s, 1), "page_painted": int((app.session.scan.store.labels == iid).sum())}  # type: ignore[attr-defined]
 
 
 def main() -> int:
@@ -152,13 +152,13 @@ def main() -> int:
     app = AnnotatorApp(scan, out_dir=tmp / "out", port=0, autosave_delay=0.5, max_points=max(n, 2_000_000), **budget)
     open_s = time.perf_counter() - t0
     rss_open = rss_mb()
-    app.session.geom.warm_up()
+    app.session.scan.geom.warm_up()
     ready_s = time.perf_counter() - t0
     rss_ready = rss_mb()
     try:
         page_stats = _browser_stage(app) if args.browser else {}
-        iid = app.session.new_instance(category="mug")
-        app.session.settings.radius = 0.02
+        iid = app.session.instances.new_instance(category="mug")
+        app.session.toolbox.settings.radius = 0.02
         cam = SimpleNamespace(position=np.array([0.0, -0.3, 1.0]), wxyz=np.array([0.0, 1.0, 0.0, 0.0]),
                               fov=0.9, aspect=1.5)
         client = SimpleNamespace(camera=cam)
@@ -186,36 +186,36 @@ def main() -> int:
                 event_ms.append(1000 * (time.perf_counter() - t1))
                 event_bytes.append(app.view.stats.bytes_sent - bb)
             stroke_bytes.append(app.view.stats.bytes_sent - b0)
-        painted = int((app.session.store.labels == iid).sum())
+        painted = int((app.session.scan.store.labels == iid).sum())
 
         # region grow on a bump top: seed = highest vertex
-        app.session.settings.grow_angle_deg = 20.0
-        app.session.settings.grow_distance = 0.15
+        app.session.toolbox.settings.grow_angle_deg = 20.0
+        app.session.toolbox.settings.grow_distance = 0.15
         grow_ms = []
         grow_sel_ms = []
-        tops = np.argsort(app.session.scene.points[:, 2])[-1:]
+        tops = np.argsort(app.session.scan.scene.points[:, 2])[-1:]
         seeds = [int(tops[0])] + [int(i) for i in np.random.default_rng(1).choice(n, size=4, replace=False)]
         from annotator import selection as sel
 
         for sd in seeds:
-            b = app.session.new_instance()
+            b = app.session.instances.new_instance()
             t1 = time.perf_counter()
-            idx = sel.region_grow(app.session.geom, sd, max_angle_deg=20.0, max_distance=0.15)
+            idx = sel.region_grow(app.session.scan.geom, sd, max_angle_deg=20.0, max_distance=0.15)
             grow_sel_ms.append(1000 * (time.perf_counter() - t1))
             t1 = time.perf_counter()
-            d = app.session.grow(sd)
+            d = app.session.painting.grow(sd)
             grow_ms.append(1000 * (time.perf_counter() - t1))
             assert d is None or d.num_vertices <= len(idx)
             assert b > 0
-        grown_sizes = [int(len(sel.region_grow(app.session.geom, sd, max_angle_deg=20.0, max_distance=0.15))) for sd in seeds]
+        grown_sizes = [int(len(sel.region_grow(app.session.scan.geom, sd, max_angle_deg=20.0, max_distance=0.15))) for sd in seeds]
 
         save_ms = []
         for k in range(5):
-            app.session.paint(np.arange(k * 10, k * 10 + 10))
+            app.session.painting.paint(np.arange(k * 10, k * 10 + 10))
             t1 = time.perf_counter()
-            app.session.store.save_now()
+            app.session.scan.store.save_now()
             save_ms.append(1000 * (time.perf_counter() - t1))
-        journal_bytes = app.session.store.journal.bytes_written
+        journal_bytes = app.session.scan.store.journal.bytes_written
     finally:
         app.close()
         shutil.rmtree(tmp, ignore_errors=True)

@@ -1,9 +1,9 @@
 """Click-to-segment on the real tabletop sample scenes: mask IoU with the annotated ground truth and seconds per click.
 
 For every labelled mug of `sample_scenes/real_tabletop_{0,6,8}.ply` two clicks are simulated: the mug's point
-nearest its centroid, and one random point of it (seeded). Each goes through `annotator.assist.segment_at_point`
+nearest its centroid, and one random point of it (seeded). Each goes through `annotator.efem_runs.segment_at_point`
 with the shipped prior (what the annotator's segment tool calls, in the calling thread, one torch thread).
-Prints one row per click and the medians; writes bench/results/click_segment.json.
+Prints one row per click and the medians; writes bench/results/efem_runs.json.
 
 Usage: `python bench/click_segment.py [--prior mug] [--seed 0]`.
 """
@@ -27,12 +27,12 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--prior", default="mug", help="a prior shipped in efem_viz/weights/ (name)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the random clicks")
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "click_segment.json")
+    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "efem_runs.json")
     args = ap.parse_args()
 
     import torch
 
-    from annotator.assist import get_prior, segment_at_point
+    from annotator.efem_runs import get_prior, segment_at_point
     from efem_viz.data.io import load_scene
 
     torch.set_num_threads(1)

@@ -179,7 +179,7 @@ def compare(args: argparse.Namespace, prior: Any, cfgs: dict[str, Any]) -> int:
                         save_scene(scene, out / f"{scene.name}.ply")
                     res.save(out)
                 preds[name].append(mug_prediction(res, f"{scene.name}_s{em_seed}"))
-                one = evaluate([preds[name][-1]], [gts[-1]], class_names=("mug",))
+                one = evaluate([preds[name][-1]], [gts[-1]], class_names=tuple(EVAL_CLASSES))
                 per[name].setdefault("per_run_ap50", []).append(one.ap50 * 100)
                 per[name]["seconds"].append(res.timings["total"])
                 per[name]["cpu_seconds"].append(res.timings["total_cpu"])
@@ -187,7 +187,7 @@ def compare(args: argparse.Namespace, prior: Any, cfgs: dict[str, Any]) -> int:
                 line.append(f"{name} AP50 {one.ap50 * 100:5.1f} {res.timings['total']:5.1f} s")
             print("  ".join(line), flush=True)
         for name in cfgs:
-            ev = evaluate(preds[name], gts, class_names=("mug",))
+            ev = evaluate(preds[name], gts, class_names=tuple(EVAL_CLASSES))
             per[name]["accuracy"][config] = {"ap": ev.ap * 100, "ap50": ev.ap50 * 100, "ap25": ev.ap25 * 100}
             print(f"{config:>5} {name:>10}: AP {ev.ap * 100:5.1f}  AP50 {ev.ap50 * 100:5.1f}  AP25 {ev.ap25 * 100:5.1f}")
     print(f"{'config':>10} {'median s':>9} {'median cpu s':>13}  " + "  ".join(f"{c:>12}" for c in args.configs))

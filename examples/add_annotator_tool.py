@@ -42,9 +42,9 @@ def lift(host: ToolHost, hit: Hit) -> object:
     import scipy.sparse as sp
     from scipy.sparse.csgraph import connected_components
 
-    radius = float(host.settings.extra["lift_radius"])  # metres (the slider shows cm: Control.scale)
-    above = float(host.settings.extra["lift_above"])
-    geom = host.geom
+    radius = float(host.toolbox.settings.extra["lift_radius"])  # metres (the slider shows cm: Control.scale)
+    above = float(host.toolbox.settings.extra["lift_above"])
+    geom = host.scan.geom
     near = np.asarray(geom.tree.query_ball_point(hit.position, radius), np.int64)
     cand = np.sort(near[geom.points[near, 2] > above])
     if hit.vertex not in cand:
@@ -53,7 +53,7 @@ def lift(host: ToolHost, hit: Hit) -> object:
     graph = sp.csr_matrix((np.ones(len(indices), np.int8), indices, indptr), shape=(geom.n, geom.n))
     _, comp = connected_components(graph[cand][:, cand], directed=False)
     idx = cand[comp == comp[np.searchsorted(cand, hit.vertex)]]
-    return host.paint(idx, client=hit.client)  # one journalled, undoable edit
+    return host.painting.paint(idx, client=hit.client)  # one journalled, undoable edit
 
 
 LIFT = Tool("lift", "Lift", "U",
@@ -102,27 +102,27 @@ def main(argv: list[str] | None = None) -> int:
         print(f"help line: {line}")
         app.set_tool("lift")  # what pressing U (or picking it in the Tool dropdown) does
         app.panels.gui_controls["lift_radius"].value = args.radius_cm  # the slider, in cm
-        print(f"lift settings: radius {app.session.settings.extra['lift_radius']:.3f} m, "
-              f"above {app.session.settings.extra['lift_above']:.3f} m; controls shown "
+        print(f"lift settings: radius {app.session.toolbox.settings.extra['lift_radius']:.3f} m, "
+              f"above {app.session.toolbox.settings.extra['lift_above']:.3f} m; controls shown "
               f"{[k for k, c in app.panels.gui_controls.items() if c.visible]}")
         for gid in truth.instance_ids()[: args.objects]:
-            iid = app.session.new_instance(category=truth.categories.get(int(gid), "object"))
-            origin, direction = click_ray(app.session.geom, truth, int(gid))
-            v = app.session.click(origin, direction)
+            iid = app.session.instances.new_instance(category=truth.categories.get(int(gid), "object"))
+            origin, direction = click_ray(app.session.scan.geom, truth, int(gid))
+            v = app.session.painting.click(origin, direction)
             assert v is not None, "the ray missed the scan"
-            painted = app.session.store.labels == iid
+            painted = app.session.scan.store.labels == iid
             true = truth.instance == gid
             iou = (painted & true).sum() / max((painted | true).sum(), 1)
-            step = recent_steps(app.session.store.labelset.undo_stack, 1)[0]
+            step = recent_steps(app.session.scan.store.labelset.undo_stack, 1)[0]
             print(f"  instance {iid} ({step}): {int(painted.sum())} vertices, IoU with true object {int(gid)}: "
                   f"{iou:.2f}")
-        before = int((app.session.store.labels > 0).sum())
-        app.session.undo()
-        after_undo = int((app.session.store.labels > 0).sum())
-        app.session.redo()
-        after_redo = int((app.session.store.labels > 0).sum())
+        before = int((app.session.scan.store.labels > 0).sum())
+        app.session.instances.undo()
+        after_undo = int((app.session.scan.store.labels > 0).sum())
+        app.session.instances.redo()
+        after_redo = int((app.session.scan.store.labels > 0).sum())
         print(f"labelled vertices {before}; after undo {after_undo}; after redo {after_redo}")
-        for p in app.session.export("ply"):
+        for p in app.session.files.export("ply"):
             print(f"exported {p.name}")
     finally:
         app.close()

@@ -42,37 +42,37 @@ def main(argv: list[str] | None = None) -> int:
     # ---- 1. open: the journal and checkpoint go to <out>/<scan>.annotate/
     s = AnnotatorSession(scan, out_dir=out, autosave_delay=0.0)
     s.notify = lambda title, body: print(f"  [{title}] {body}")
-    labels = s.store.labelset
-    print(f"opened {scan.name}: {s.n} vertices, {len(labels.instances)} instances to start with")
+    labels = s.scan.store.labelset
+    print(f"opened {scan.name}: {s.scan.n} vertices, {len(labels.instances)} instances to start with")
 
     # ---- 2. EFEM pre-labels, reviewed by a confidence cut
-    pre = s.import_efem(str(scan.with_suffix("").with_suffix(".efem.npz")))
+    pre = s.assist.import_efem(str(scan.with_suffix("").with_suffix(".efem.npz")))
     print(f"imported {len(pre)} pre-labels")
-    accepted = s.review_prelabels(args.cut, "accept")
-    rejected = s.review_prelabels(args.cut, "reject")
+    accepted = s.assist.review_prelabels(args.cut, "accept")
+    rejected = s.assist.review_prelabels(args.cut, "reject")
     print(f"accepted {len(accepted)} at confidence >= {args.cut}, rejected {len(rejected)} below it")
 
     # ---- 3. a new instance by region growing from the highest unlabelled vertex, with undo / redo
-    free = np.flatnonzero(s.store.labels == 0)
-    seed = int(free[np.argmax(s.scene.points[free, 2])])
-    new_id = s.new_instance(category="object")
-    s.grow(seed)
-    grown = int((s.store.labels == new_id).sum())
-    s.undo()
-    after_undo = int((s.store.labels == new_id).sum())
-    s.redo()
+    free = np.flatnonzero(s.scan.store.labels == 0)
+    seed = int(free[np.argmax(s.scan.scene.points[free, 2])])
+    new_id = s.instances.new_instance(category="object")
+    s.painting.grow(seed)
+    grown = int((s.scan.store.labels == new_id).sum())
+    s.instances.undo()
+    after_undo = int((s.scan.store.labels == new_id).sum())
+    s.instances.redo()
     print(f"region grow from vertex {seed}: {grown} vertices; after undo {after_undo}; after redo "
-          f"{int((s.store.labels == new_id).sum())}")
+          f"{int((s.scan.store.labels == new_id).sum())}")
 
     # ---- 4. export, close, reopen from the journal
-    written = s.export("ply")
-    snapshot = s.store.labels.copy()
+    written = s.files.export("ply")
+    snapshot = s.scan.store.labels.copy()
     s.close()
     print(f"exported {[p.name for p in written]}")
     again = AnnotatorSession(scan, out_dir=out, autosave_delay=0.0)
-    same = bool(np.array_equal(again.store.labels, snapshot))
+    same = bool(np.array_equal(again.scan.store.labels, snapshot))
     print(f"reopened from the journal: labels identical {same}, "
-          f"{len(again.store.labelset.instances)} instances")
+          f"{len(again.scan.store.labelset.instances)} instances")
     again.close()
     return 0 if same else 1
 

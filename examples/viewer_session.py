@@ -43,13 +43,13 @@ def main(argv: list[str] | None = None) -> int:
     session = ViewerSession([REPO / "sample_scenes"], out_dir=out)
     session.on_status = lambda text, error: print(f"  [{'error' if error else 'status'}] {text}")
     print(f"scenes: {[e.name for e in session.state.entries]}")
-    scene = session.open_scene(args.scene)
+    scene = session.scenes.open_scene(args.scene)
     if scene is None:
         print(f"could not open {args.scene}: {session.state.error}")
         return 1
 
     # ---- 2. its saved result (the trace and the final instances)
-    result = session.load_result()
+    result = session.results.load_result()
     if result is None:
         print(f"no result for {args.scene}: {session.state.error}")
         return 1
@@ -58,24 +58,24 @@ def main(argv: list[str] | None = None) -> int:
 
     # ---- 3. the EM iterations
     for t in (0, result.trace.num_steps // 2, result.trace.num_steps - 1):
-        v = session.set_step(t)
+        v = session.timeline.set_step(t)
         assert v is not None
         print(f"step {v.step}: {len(v.ids)} live proposals, top {v.drawn.tolist()}")
 
     # ---- 4. threshold and the instances kept
-    session.set_threshold(args.threshold)
-    kept = np.flatnonzero(session.kept_mask())
+    session.results.set_threshold(args.threshold)
+    kept = np.flatnonzero(session.results.kept_mask())
     inst = result.instances
     print(f"threshold {args.threshold} keeps {kept.size} of {len(inst)} instances:")
     for k in kept:
         print(f"  #{int(inst.ids[k])} {inst.category[k]} confidence {float(inst.confidence[k]):.2f}, "
               f"{len(inst.masks[k])} points")
     if scene.has_gt:
-        m = session.gt_metrics()
+        m = session.results.gt_metrics()
         print(f"ground truth: {len(m.tp)} TP, {len(m.fp)} FP, {len(m.fn)} FN")
 
     # ---- 5. export (into the output root; `root=` refuses anything outside it)
-    written = session.export_results(out / "exported", root=out)
+    written = session.export.export_results(out / "exported", root=out)
     print(f"exported results to {written}")
     return 0
 

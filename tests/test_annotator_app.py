@@ -49,32 +49,32 @@ def _drag(phase: str, start, end, client_id: int = 7) -> SimpleNamespace:
 
 
 def test_open_builds_chunks_and_panel(app: AnnotatorApp) -> None:
-    assert app.session.n == 2562 and app.view.chunks.count >= 9
+    assert app.session.scan.n == 2562 and app.view.chunks.count >= 9
     assert app.url.startswith("http://127.0.0.1:")
     assert len(app.view.chunk_handles) == app.view.chunks.count
     assert "0.0%" in app.panels.gui_table.content
 
 
 def test_drag_stroke_paints_only_touched_chunks_and_undoes_as_one(app: AnnotatorApp) -> None:
-    iid = app.session.new_instance(category="mug")
-    app.session.settings.radius = 0.015
+    iid = app.session.instances.new_instance(category="mug")
+    app.session.toolbox.settings.radius = 0.015
     sent0 = app.view.stats.bytes_sent
     app.handle_event("drag", _drag("start", (0, 0, 0.1), (0, 0, 0.1)))
     for x in (0.01, 0.02, 0.03):
         app.handle_event("drag", _drag("update", (0, 0, 0.1), (x, 0.0, 0.5)))
     app.handle_event("drag", _drag("end", (0, 0, 0.1), (0.04, 0.0, 0.5)))
-    lab = app.session.store.labels
+    lab = app.session.scan.store.labels
     painted = np.flatnonzero(lab == iid)
     assert len(painted) > 20
-    pts = app.session.scene.points[painted]
+    pts = app.session.scan.scene.points[painted]
     assert pts[:, 2].min() > 0.045 and pts[:, 0].max() > 0.05  # along the stroke over the top of the ball
     sent = app.view.stats.bytes_sent - sent0
-    assert 0 < sent < 3 * app.session.n  # partial update: fewer bytes than resending every colour
+    assert 0 < sent < 3 * app.session.scan.n  # partial update: fewer bytes than resending every colour
     # the history panel counts what Ctrl+Z undoes: the new instance and the stroke, not 1 + 5 dabs
     assert app.panels.gui_history.content.startswith("2 undoable, 0 redoable")
-    assert len(app.session.undo()) == 5  # start + 3 updates + end undo together
+    assert len(app.session.instances.undo()) == 5  # start + 3 updates + end undo together
     assert app.panels.gui_history.content.startswith("1 undoable, 1 redoable")
-    assert (app.session.store.labels == iid).sum() == 0
+    assert (app.session.scan.store.labels == iid).sum() == 0
 
 
 def test_a_scan_over_the_display_budget_is_drawn_from_a_subset_and_labelled_in_full(mesh_path: Path,
@@ -90,21 +90,21 @@ def test_a_scan_over_the_display_budget_is_drawn_from_a_subset_and_labelled_in_f
         assert np.array_equal(np.sort(drawn), v.display)
         assert sum(len(h.points) for h in v.chunk_handles) == 700
         assert v.surface.opacity == 0.0 and len(v.surface.vertices) == 3 * 700  # an invisible splat proxy
-        hidden = np.setdiff1d(np.arange(a.session.n), v.display)
+        hidden = np.setdiff1d(np.arange(a.session.scan.n), v.display)
         assert (v.chunks.chunk_of[hidden] == -1).all() and len(v.chunks.touched(hidden)) == 0
-        iid = a.session.new_instance(category="mug")
-        a.session.settings.radius = 0.02
+        iid = a.session.instances.new_instance(category="mug")
+        a.session.toolbox.settings.radius = 0.02
         sent0 = v.stats.bytes_sent
         a.handle_event("drag", _drag("start", (0, 0, 0.1), (0, 0, 0.1)))
         a.handle_event("drag", _drag("end", (0, 0, 0.1), (0.02, 0.0, 0.5)))
-        painted = np.flatnonzero(a.session.store.labels == iid)
+        painted = np.flatnonzero(a.session.scan.store.labels == iid)
         assert np.isin(painted, hidden).sum() > 10  # every vertex under the brush, drawn or not
         touched = v.chunks.touched(painted)
         # two edits (start, end), each resending the colours of the drawn points of the chunks it touched
         assert 0 < v.stats.bytes_sent - sent0 <= 2 * 3 * sum(len(v.chunks.members(c)) for c in touched) < 2 * 3 * 700
         col = v.chunk_handles[int(touched[0])].colors
         shown = np.isin(v.chunks.members(int(touched[0])), painted)
-        assert shown.any() and not np.array_equal(col[shown][0], a.session.scene.colors[v.chunks.members(int(touched[0]))][
+        assert shown.any() and not np.array_equal(col[shown][0], a.session.scan.scene.colors[v.chunks.members(int(touched[0]))][
             shown][0])  # the drawn painted points show the instance colour
     finally:
         a.close()
@@ -114,39 +114,39 @@ def test_a_scan_over_the_display_budget_is_drawn_from_a_subset_and_labelled_in_f
 
 
 def test_queued_events_are_processed_in_order(app: AnnotatorApp) -> None:
-    iid = app.session.new_instance()
+    iid = app.session.instances.new_instance()
     app._edits.put(("drag", _drag("start", (0, 0, 0.1), (0, 0, 0.1))))
     for x in np.linspace(0.0, 0.05, 8):
         app._edits.put(("drag", _drag("update", (0, 0, 0.1), (x, 0.0, 0.5))))
     app._edits.put(("drag", _drag("end", (0, 0, 0.1), (0.05, 0.0, 0.5))))
     app.wait_idle()
-    assert (app.session.store.labels == iid).sum() > 20
-    assert not app.session.strokes
+    assert (app.session.scan.store.labels == iid).sum() > 20
+    assert not app.session.painting.strokes
 
 
 def test_click_tools_grow_fill_pick_erase(app: AnnotatorApp) -> None:
-    a = app.session.new_instance()
+    a = app.session.instances.new_instance()
     app.set_tool("grow")
-    app.session.settings.grow_angle_deg = 60
-    app.session.settings.grow_distance = 0.05
-    v = app.session.click(np.array([0, 0, 1.0]), np.array([0, 0, -1.0]))
+    app.session.toolbox.settings.grow_angle_deg = 60
+    app.session.toolbox.settings.grow_distance = 0.05
+    v = app.session.painting.click(np.array([0, 0, 1.0]), np.array([0, 0, -1.0]))
     assert v is not None
-    grown = np.flatnonzero(app.session.store.labels == a)
+    grown = np.flatnonzero(app.session.scan.store.labels == a)
     assert len(grown) > 50
-    assert np.linalg.norm(app.session.scene.points[grown] - app.session.scene.points[v], axis=1).max() <= 0.05 + 1e-6
-    b = app.session.new_instance()
+    assert np.linalg.norm(app.session.scan.scene.points[grown] - app.session.scan.scene.points[v], axis=1).max() <= 0.05 + 1e-6
+    b = app.session.instances.new_instance()
     app.set_tool("fill")
-    app.session.click(np.array([0, 0, 1.0]), np.array([0, 0, -1.0]))  # fill the connected region of `a` with `b`
-    assert (app.session.store.labels == a).sum() == 0 and (app.session.store.labels == b).sum() == len(grown)
+    app.session.painting.click(np.array([0, 0, 1.0]), np.array([0, 0, -1.0]))  # fill the connected region of `a` with `b`
+    assert (app.session.scan.store.labels == a).sum() == 0 and (app.session.scan.store.labels == b).sum() == len(grown)
     app.set_tool("pick")
-    app.session.set_active(a)
-    app.session.click(np.array([0, 0, 1.0]), np.array([0, 0, -1.0]))
-    assert app.session.settings.active_id == b
+    app.session.instances.set_active(a)
+    app.session.painting.click(np.array([0, 0, 1.0]), np.array([0, 0, -1.0]))
+    assert app.session.toolbox.settings.active_id == b
     app.set_tool("erase")
-    app.session.settings.radius = 0.5
-    app.session.click(np.array([0, 0, 1.0]), np.array([0, 0, -1.0]))
-    assert (app.session.store.labels > 0).sum() == 0
-    assert app.session.click(np.array([5.0, 5, 5]), np.array([1.0, 0, 0])) is None  # a miss changes nothing
+    app.session.toolbox.settings.radius = 0.5
+    app.session.painting.click(np.array([0, 0, 1.0]), np.array([0, 0, -1.0]))
+    assert (app.session.scan.store.labels > 0).sum() == 0
+    assert app.session.painting.click(np.array([5.0, 5, 5]), np.array([1.0, 0, 0])) is None  # a miss changes nothing
 
 
 def test_the_home_view_fills_the_view_with_the_scan(app: AnnotatorApp) -> None:
@@ -163,7 +163,7 @@ def test_the_home_view_fills_the_view_with_the_scan(app: AnnotatorApp) -> None:
     right /= np.linalg.norm(right)
     down = np.cross(forward, right)
     wxyz = rotation_to_quat_wxyz(np.stack([right, down, forward], axis=1))
-    uv, z = project(app.session.scene.points, position=np.asarray(home.position), wxyz=wxyz, fov=VISER_FOV,
+    uv, z = project(app.session.scan.scene.points, position=np.asarray(home.position), wxyz=wxyz, fov=VISER_FOV,
                     aspect=FIT_ASPECT)
     assert (z > 0).all() and (uv >= 0.0).all() and (uv <= 1.0).all()  # all of it in front, in the view
     span = uv.max(axis=0) - uv.min(axis=0)
@@ -171,54 +171,54 @@ def test_the_home_view_fills_the_view_with_the_scan(app: AnnotatorApp) -> None:
 
 
 def test_rect_select_uses_client_camera(app: AnnotatorApp) -> None:
-    iid = app.session.new_instance()
+    iid = app.session.instances.new_instance()
     ev = SimpleNamespace(client_id=3, client=_client(), screen_min=(0.45, 0.45), screen_max=(0.55, 0.55))
     app.handle_event("rect", ev)
-    sel = np.flatnonzero(app.session.store.labels == iid)
+    sel = np.flatnonzero(app.session.scan.store.labels == iid)
     assert len(sel) > 0
-    assert app.session.scene.points[sel, 2].min() > 0.0  # front-facing only: the top half seen from above
-    assert np.abs(app.session.scene.points[sel, :2]).max() < 0.06
+    assert app.session.scan.scene.points[sel, 2].min() > 0.0  # front-facing only: the top half seen from above
+    assert np.abs(app.session.scan.scene.points[sel, :2]).max() < 0.06
 
 
 def test_instance_panel_through_gui_handles(app: AnnotatorApp) -> None:
-    a = app.session.new_instance(category="mug")
-    app.session.paint(np.arange(0, 100))
+    a = app.session.instances.new_instance(category="mug")
+    app.session.painting.paint(np.arange(0, 100))
     app.panels.gui_name.value = "left mug"  # programmatic update runs the same callback as a client edit
     app.panels.gui_category.value = "cup"
     app.panels.gui_color.value = (1, 2, 3)
-    info = app.session.store.labelset.info(a)
+    info = app.session.scan.store.labelset.info(a)
     assert (info.name, info.category, info.color) == ("left mug", "cup", (1, 2, 3))
     c0 = app.view.chunks.chunk_of[0]
     m = app.view.chunks.members(c0)
     first = int(np.flatnonzero(m == 0)[0])
     app.panels.gui_visible.value = False  # hidden: drawn in scan colour
-    assert tuple(app.view.chunk_handles[c0].colors[first]) == tuple(app.session.scene.colors[0])
+    assert tuple(app.view.chunk_handles[c0].colors[first]) == tuple(app.session.scan.scene.colors[0])
     app.panels.gui_visible.value = True
     app.panels.gui_locked.value = True
     with pytest.raises(ValueError, match="locked"):
-        app.session.paint(np.arange(0, 10))
+        app.session.painting.paint(np.arange(0, 10))
     app.panels.gui_locked.value = False
-    b = app.session.new_instance()
-    app.session.paint(np.arange(200, 250))
-    app.session.merge([b], a)
-    assert app.session.store.labelset.counts() == {a: 150}
-    app.session.delete_instance(a)
-    assert (app.session.store.labels > 0).sum() == 0
-    app.session.undo()
-    assert app.session.store.labelset.counts() == {a: 150}
+    b = app.session.instances.new_instance()
+    app.session.painting.paint(np.arange(200, 250))
+    app.session.instances.merge([b], a)
+    assert app.session.scan.store.labelset.counts() == {a: 150}
+    app.session.instances.delete_instance(a)
+    assert (app.session.scan.store.labels > 0).sum() == 0
+    app.session.instances.undo()
+    assert app.session.scan.store.labelset.counts() == {a: 150}
     assert "150" in app.panels.gui_table.content and "left mug" in app.panels.gui_table.content
 
 
 def test_two_clients_concurrent_edits_are_all_kept(app: AnnotatorApp) -> None:
-    a = app.session.new_instance()
-    b = app.session.new_instance()
+    a = app.session.instances.new_instance()
+    b = app.session.instances.new_instance()
     errors: list[BaseException] = []
 
     def worker(iid: int, start: int) -> None:
         try:
             for k in range(40):
                 idx = np.arange(start + 10 * k, start + 10 * k + 10)
-                app.session.store.do(lambda ls, idx=idx, iid=iid: ls.paint(idx, iid), client=f"c{iid}")
+                app.session.scan.store.do(lambda ls, idx=idx, iid=iid: ls.paint(idx, iid), client=f"c{iid}")
         except BaseException as exc:  # pragma: no cover - reported below
             errors.append(exc)
 
@@ -228,62 +228,62 @@ def test_two_clients_concurrent_edits_are_all_kept(app: AnnotatorApp) -> None:
     for t in ts:
         t.join()
     assert not errors
-    assert app.session.store.labelset.counts() == {a: 400, b: 400}
-    kinds = [r.kind for r in app.session.store.journal.records]
+    assert app.session.scan.store.labelset.counts() == {a: 400, b: 400}
+    kinds = [r.kind for r in app.session.scan.store.journal.records]
     assert kinds.count("do") == 2 + 80
 
 
 def test_restart_resumes_labels_and_undo(mesh_path: Path, tmp_path: Path) -> None:
     a1 = AnnotatorApp(mesh_path, out_dir=tmp_path / "o", port=0, autosave_delay=0)
-    iid = a1.session.new_instance(category="mug")
-    a1.session.paint(np.arange(0, 300))
-    a1.session.paint(np.arange(300, 400))
+    iid = a1.session.instances.new_instance(category="mug")
+    a1.session.painting.paint(np.arange(0, 300))
+    a1.session.painting.paint(np.arange(300, 400))
     a1.close()
     a2 = AnnotatorApp(mesh_path, out_dir=tmp_path / "o", port=0, autosave_delay=0)
     try:
-        assert (a2.session.store.labels == iid).sum() == 400 and a2.session.settings.active_id == iid
-        a2.session.undo()
-        assert (a2.session.store.labels == iid).sum() == 300
+        assert (a2.session.scan.store.labels == iid).sum() == 400 and a2.session.toolbox.settings.active_id == iid
+        a2.session.instances.undo()
+        assert (a2.session.scan.store.labels == iid).sum() == 300
     finally:
         a2.close()
 
 
 def test_exports_round_trip_and_never_touch_the_scan(app: AnnotatorApp, mesh_path: Path) -> None:
     before = mesh_path.read_bytes()
-    app.session.new_instance(category="mug")
-    app.session.paint(np.arange(50, 500))
-    ply, = app.session.export("ply")
-    npz, = app.session.export("npz")
-    segs, agg = app.session.export("scannet")
+    app.session.instances.new_instance(category="mug")
+    app.session.painting.paint(np.arange(50, 500))
+    ply, = app.session.files.export("ply")
+    npz, = app.session.files.export("npz")
+    segs, agg = app.session.files.export("scannet")
     for p in (ply, npz, agg):
-        assert np.array_equal(load_labels(p, app.session.n).labels, app.session.store.labels)
+        assert np.array_equal(load_labels(p, app.session.scan.n).labels, app.session.scan.store.labels)
     assert load_scene(ply).instance is not None
     assert mesh_path.read_bytes() == before
     with pytest.raises(LabelIOError):
-        app.session.export("ply", directory="../../..")
+        app.session.files.export("ply", directory="../../..")
 
 
 def test_gui_import_refuses_traversal_and_bad_files_server_stays_up(app: AnnotatorApp, tmp_path: Path) -> None:
-    app.session.new_instance()
-    app.session.paint(np.arange(10))
-    state = app.session.store.labels.copy()
+    app.session.instances.new_instance()
+    app.session.painting.paint(np.arange(10))
+    state = app.session.scan.store.labels.copy()
     app.panels.gui_import_path.value = "../../../../etc/passwd"
     app.panels.gui_import.value = True  # a button "click" from Python: runs the callback; refusal is a notification
-    assert np.array_equal(app.session.store.labels, state)
+    assert np.array_equal(app.session.scan.store.labels, state)
     bad = tmp_path / "out" / "short.npz"
     np.savez(bad, instance=np.zeros(7, np.int32))
     with pytest.raises(LabelIOError, match="7"):
-        app.session.import_labels(str(bad))
-    assert app.run_reporting(lambda: app.session.import_labels(str(bad))) is None
-    assert np.array_equal(app.session.store.labels, state)
+        app.session.files.import_labels(str(bad))
+    assert app.run_reporting(lambda: app.session.files.import_labels(str(bad))) is None
+    assert np.array_equal(app.session.scan.store.labels, state)
     good = tmp_path / "out" / "good.npz"
-    lab = np.zeros(app.session.n, np.int32)
+    lab = np.zeros(app.session.scan.n, np.int32)
     lab[100:120] = 5
     np.savez(good, instance=lab)
-    app.session.import_labels(str(good))
-    assert (app.session.store.labels == 5).sum() == 20
-    app.session.undo()
-    assert np.array_equal(app.session.store.labels, state)
+    app.session.files.import_labels(str(good))
+    assert (app.session.scan.store.labels == 5).sum() == 20
+    app.session.instances.undo()
+    assert np.array_equal(app.session.scan.store.labels, state)
     assert app.server.get_port() > 0
 
 
@@ -296,29 +296,29 @@ def test_point_cloud_scan_and_prelabels(tmp_path: Path, monkeypatch: pytest.Monk
     save_scene(Scene.create("pc", (0.1 * p).astype(np.float32), normals=p.astype(np.float32)), scan)
     a = AnnotatorApp(scan, port=0, autosave_delay=0)
     try:
-        assert not a.session.scene.is_mesh
-        iid = a.session.new_instance()
-        a.session.settings.radius = 0.02
-        a.session.click(np.array([0, 0, 1.0]), np.array([0, 0, -1.0]))
-        assert (a.session.store.labels == iid).sum() > 5
+        assert not a.session.scan.scene.is_mesh
+        iid = a.session.instances.new_instance()
+        a.session.toolbox.settings.radius = 0.02
+        a.session.painting.click(np.array([0, 0, 1.0]), np.array([0, 0, -1.0]))
+        assert (a.session.scan.store.labels == iid).sum() > 5
         from annotator.io import LabelData
         from annotator.labels import InstanceInfo
 
-        pre = np.zeros(a.session.n, np.int32)
-        pre[a.session.scene.points[:, 0] > 0.05] = 1
-        pre[a.session.scene.points[:, 0] < -0.05] = 2
-        ids = a.session.add_prelabels(LabelData(pre, [InstanceInfo(1, "x", "mug"), InstanceInfo(2, "y", "mug")],
+        pre = np.zeros(a.session.scan.n, np.int32)
+        pre[a.session.scan.scene.points[:, 0] > 0.05] = 1
+        pre[a.session.scan.scene.points[:, 0] < -0.05] = 2
+        ids = a.session.assist.add_prelabels(LabelData(pre, [InstanceInfo(1, "x", "mug"), InstanceInfo(2, "y", "mug")],
                                         {1: 0.9, 2: 0.4}), source="test.efem.npz")
         assert len(ids) == 2
-        assert all("unreviewed" in a.session.store.labelset.info(i).note for i in ids)
-        a.session.review_prelabel(ids[0], "accept")
-        assert "accepted" in a.session.store.labelset.info(ids[0]).note
-        a.session.review_prelabel(ids[1], "reject")
-        assert ids[1] not in a.session.store.labelset.instances
-        a.session.undo()
-        a.session.set_active(iid)
-        a.session.review_prelabel(ids[1], "merge")
-        assert ids[1] not in a.session.store.labelset.instances and (a.session.store.labels == iid).sum() > 100
+        assert all("unreviewed" in a.session.scan.store.labelset.info(i).note for i in ids)
+        a.session.assist.review_prelabel(ids[0], "accept")
+        assert "accepted" in a.session.scan.store.labelset.info(ids[0]).note
+        a.session.assist.review_prelabel(ids[1], "reject")
+        assert ids[1] not in a.session.scan.store.labelset.instances
+        a.session.instances.undo()
+        a.session.instances.set_active(iid)
+        a.session.assist.review_prelabel(ids[1], "merge")
+        assert ids[1] not in a.session.scan.store.labelset.instances and (a.session.scan.store.labels == iid).sum() > 100
     finally:
         a.close()
     assert (tmp_path / "pc.annotate" / "pc.journal").exists()
@@ -357,8 +357,8 @@ def _last_step(app: AnnotatorApp) -> str:
     """The newest line of the edit history panel (what the next undo takes back)."""
     from annotator.panel_views import recent_steps
 
-    with app.session.store.lock:
-        steps = recent_steps(app.session.store.labelset.undo_stack, 1)
+    with app.session.scan.store.lock:
+        steps = recent_steps(app.session.scan.store.labelset.undo_stack, 1)
     return steps[0] if steps else ""
 
 
@@ -372,16 +372,16 @@ def test_the_prelabel_cut_opens_where_accept_all_accepts_the_best(spheres) -> No
     d, _, _ = spheres
     a = AnnotatorApp(d / "spheres.ply", out_dir=d / "out_cut", port=0, autosave_delay=0)
     try:
-        a.session.store.do(lambda ls: ls.replace_all(np.zeros(a.session.n, np.int32), []))
+        a.session.scan.store.do(lambda ls: ls.replace_all(np.zeros(a.session.scan.n, np.int32), []))
         a.panels.gui_prelabel_cut.value = 0.99
         a.panels.gui_efem_path.value = "spheres.efem.npz"
         a.panels.gui_efem_import.value = True  # the click
-        table = a.session.store.labelset.instances
+        table = a.session.scan.store.labelset.instances
         best = max(float(table[k].confidence) for k in table)
         assert a.panels.gui_prelabel_cut.value <= best
         a.panels.gui_accept_above.value = True
-        assert any("accepted" in a.session.store.labelset.info(k).note for k in a.session.store.labelset.instances)
-        assert a.session.prelabel_cut() == 0.5  # nothing left to review: the usual default
+        assert any("accepted" in a.session.scan.store.labelset.info(k).note for k in a.session.scan.store.labelset.instances)
+        assert a.session.assist.prelabel_cut() == 0.5  # nothing left to review: the usual default
     finally:
         a.close()
 
@@ -390,23 +390,23 @@ def test_efem_prelabels_import_and_review(spheres) -> None:
     d, scene, _ = spheres
     a = AnnotatorApp(d / "spheres.ply", out_dir=d / "out_import", port=0, autosave_delay=0)
     try:
-        a.session.store.do(lambda ls: ls.replace_all(np.zeros(a.session.n, np.int32), []))  # start unlabelled (file has GT)
-        ids = a.session.import_efem("spheres.efem.npz")
+        a.session.scan.store.do(lambda ls: ls.replace_all(np.zeros(a.session.scan.n, np.int32), []))  # start unlabelled (file has GT)
+        ids = a.session.assist.import_efem("spheres.efem.npz")
         assert ids, "EFEM found no sphere"
         gt = scene.instance
-        best = [max(_iou(a.session.store.labels == i, gt == g) for g in scene.instance_ids()) for i in ids]
+        best = [max(_iou(a.session.scan.store.labels == i, gt == g) for g in scene.instance_ids()) for i in ids]
         assert max(best) > 0.5
         assert a.panels.gui_prelabel.options[0] != "(none)"
-        a.session.review_prelabel(ids[0], "accept")
-        assert "accepted" in a.session.store.labelset.info(ids[0]).note
+        a.session.assist.review_prelabel(ids[0], "accept")
+        assert "accepted" in a.session.scan.store.labelset.info(ids[0]).note
         with pytest.raises(LabelIOError):
-            a.session.import_efem("spheres.ply")  # not an EFEM result
+            a.session.assist.import_efem("spheres.ply")  # not an EFEM result
     finally:
         a.close()
 
 
 def test_click_to_segment_previews_then_accepts(spheres) -> None:
-    from annotator.assist import segment_at_point
+    from annotator.efem_runs import segment_at_point
     from efem_viz.em.config import SolveSettings
 
     d, scene, prior = spheres
@@ -418,24 +418,24 @@ def test_click_to_segment_previews_then_accepts(spheres) -> None:
     assert _iou(np.isin(np.arange(scene.num_points), idx), scene.instance == g) > 0.5
     a = AnnotatorApp(d / "spheres.ply", out_dir=d / "out_seg", port=0, autosave_delay=0)
     try:
-        before = a.session.store.labels.copy()
-        a.session.set_preview(idx)
-        assert np.array_equal(a.session.store.labels, before)  # a preview is not an edit
+        before = a.session.scan.store.labels.copy()
+        a.session.assist.set_preview(idx)
+        assert np.array_equal(a.session.scan.store.labels, before)  # a preview is not an edit
         assert not a.panels.gui_seg_accept.disabled
-        a.session.accept_segment()
-        new = a.session.settings.active_id
-        assert a.session.store.labelset.info(new).category == a.panels.gui_prior.value  # the prior's category
-        assert set(np.flatnonzero(a.session.store.labels == new)) <= set(idx.tolist())
-        assert a.session.pending_segment is None and a.panels.gui_seg_accept.disabled
+        a.session.assist.accept_segment()
+        new = a.session.toolbox.settings.active_id
+        assert a.session.scan.store.labelset.info(new).category == a.panels.gui_prior.value  # the prior's category
+        assert set(np.flatnonzero(a.session.scan.store.labels == new)) <= set(idx.tolist())
+        assert a.session.assist.pending_segment is None and a.panels.gui_seg_accept.disabled
         with pytest.raises(ValueError, match="no segment preview"):
-            a.session.accept_segment()
+            a.session.assist.accept_segment()
     finally:
         a.close()
 
 
 @pytest.mark.parametrize("name", ["/etc/passwd", "../../weights/mug", "mug.pt", "x; rm", ""])
 def test_prior_names_from_the_gui_are_never_paths(name: str) -> None:
-    from annotator.assist import get_prior
+    from annotator.efem_runs import get_prior
 
     with pytest.raises(ValueError, match="unknown shape prior"):
         get_prior(name)
@@ -461,25 +461,25 @@ def _click(uv: tuple[float, float], client: SimpleNamespace, client_id: int = 7)
 
 def test_lasso_tool_outline_by_clicks_then_apply(app: AnnotatorApp) -> None:
     """Lasso: Ctrl+clicks add screen points with the client camera, Apply paints the inside, one undo step."""
-    app.session.new_instance(category="mug")
+    app.session.instances.new_instance(category="mug")
     app.set_tool("lasso")
     client = _client()  # looking straight down at the ball from z = 1
     outline = [(0.45, 0.45), (0.55, 0.45), (0.55, 0.55), (0.45, 0.55)]
     for uv in outline:
         app.handle_event("click", _click(uv, client))
-    assert app.session.lasso_outline.points == outline
-    assert app.session.store.labelset.count(app.session.settings.active_id) == 0, "clicks only draw the outline"
+    assert app.session.box_lasso.lasso_outline.points == outline
+    assert app.session.scan.store.labelset.count(app.session.toolbox.settings.active_id) == 0, "clicks only draw the outline"
     assert not app.panels.gui_tool_buttons["lasso_apply"].disabled
-    app.session.apply_lasso()
-    idx = sel.lasso_select(app.session.geom, position=client.camera.position, wxyz=client.camera.wxyz,
+    app.session.box_lasso.apply_lasso()
+    idx = sel.lasso_select(app.session.scan.geom, position=client.camera.position, wxyz=client.camera.wxyz,
                            fov=float(client.camera.fov), aspect=1.0, polygon=np.array(outline))
-    n = app.session.store.labelset.count(app.session.settings.active_id)
+    n = app.session.scan.store.labelset.count(app.session.toolbox.settings.active_id)
     assert n == len(idx) > 20
-    assert app.panels.gui_tool_buttons["lasso_apply"].disabled and not app.session.lasso_outline.points
+    assert app.panels.gui_tool_buttons["lasso_apply"].disabled and not app.session.box_lasso.lasso_outline.points
     with pytest.raises(ValueError, match="at least 3"):
-        app.session.apply_lasso()
-    app.session.undo()
-    assert app.session.store.labelset.count(app.session.settings.active_id) == 0
+        app.session.box_lasso.apply_lasso()
+    app.session.instances.undo()
+    assert app.session.scan.store.labelset.count(app.session.toolbox.settings.active_id) == 0
 
 
 def test_lasso_takes_the_legacy_pointer_shape_and_refuses_bad_screen_positions(app: AnnotatorApp) -> None:
@@ -490,11 +490,11 @@ def test_lasso_takes_the_legacy_pointer_shape_and_refuses_bad_screen_positions(a
     legacy = SimpleNamespace(client_id=7, client=_client(), ray_origin=(0.0, 0.0, 1.0), ray_direction=(0.0, 0.0, -1.0),
                              screen_pos=((0.4, 0.6),))
     app.handle_event("click", legacy)
-    assert app.session.lasso_outline.points == [(0.4, 0.6)]
+    assert app.session.box_lasso.lasso_outline.points == [(0.4, 0.6)]
     for bad in (0.5, ((0.1, 0.1), (0.9, 0.9)), (float("nan"), 0.5)):
         with pytest.raises(ClientValueError):
             app.handle_event("click", SimpleNamespace(**{**vars(legacy), "screen_pos": bad}))
-    assert len(app.session.lasso_outline) == 1
+    assert len(app.session.box_lasso.lasso_outline) == 1
 
 
 def test_a_failing_tool_tells_the_user(mesh_path: Path, tmp_path: Path) -> None:
@@ -515,11 +515,11 @@ def test_a_failing_tool_tells_the_user(mesh_path: Path, tmp_path: Path) -> None:
         a.wait_idle()
         assert [(t, c) for t, _, c in notes] == [("Error", client)]
         assert "TypeError" in notes[0][1] and "not iterable" in notes[0][1]
-        iid = a.session.new_instance()
+        iid = a.session.instances.new_instance()
         a.set_tool("brush")
         a._on_scene_click(_click((0.5, 0.5), client))
         a.wait_idle()
-        assert int((a.session.store.labels == iid).sum()) > 0
+        assert int((a.session.scan.store.labels == iid).sum()) > 0
     finally:
         a.close()
 
@@ -556,7 +556,7 @@ def test_a_click_that_misses_the_scan_says_so(app: AnnotatorApp) -> None:
         assert notes and notes[-1][0] == "Missed the scan" and notes[-1][2] is client, notes
         assert "R (reset view)" in notes[-1][1]
     n = len(notes)
-    app.session.new_instance()
+    app.session.instances.new_instance()
     hit = SimpleNamespace(ray_origin=(0.0, 0.0, 1.0), ray_direction=(0.0, 0.0, -1.0), screen_pos=((0.5, 0.5),),
                           client=client, client_id=3)
     app.handle_event("click", hit)
@@ -570,8 +570,8 @@ def test_a_click_that_misses_the_scan_says_so(app: AnnotatorApp) -> None:
 def test_instance_table_shows_colours_and_escapes_names(app: AnnotatorApp) -> None:
     """The instance table and the per-category line show each instance's colour (which colour is which), and a
     name from a label file cannot inject HTML or break the table (viser renders raw HTML in markdown)."""
-    iid = app.session.new_instance(category="bowl", name="<img src=x onerror=alert(1)>|two")
-    app.session.update_instance(iid, color=(255, 0, 16))
+    iid = app.session.instances.new_instance(category="bowl", name="<img src=x onerror=alert(1)>|two")
+    app.session.instances.update_instance(iid, color=(255, 0, 16))
     content = app.panels.gui_table.content
     assert f"| {iid} " in content and '<span style="color:#ff0010">■</span>' in content
     assert "<img" not in content and "&lt;img src=x onerror=alert(1)&gt;\\|two" in content
@@ -581,33 +581,33 @@ def test_instance_table_shows_colours_and_escapes_names(app: AnnotatorApp) -> No
 def test_new_instances_take_the_category_chosen_last(app: AnnotatorApp) -> None:
     """N makes an "object" until the user chooses a category (not "mug N", category mug); a category typed into
     the panel renames the active instance's category and is what the next N takes."""
-    first = app.session.new_instance(category=app.session.settings.category)  # what N and the New instance button do
-    assert app.session.store.labelset.info(first).category == "object"
+    first = app.session.instances.new_instance(category=app.session.toolbox.settings.category)  # what N and the New instance button do
+    assert app.session.scan.store.labelset.info(first).category == "object"
     for typed in ("b", "bo", "bow", "bowl"):  # the user types a category for the active instance, key by key
         app.panels.gui_category.value = typed
-    assert app.session.store.labelset.info(first).category == "object", "typing is not an edit yet"
-    assert app.session.fields_typing() == {"category"}
+    assert app.session.scan.store.labelset.info(first).category == "object", "typing is not an edit yet"
+    assert app.session.instances.fields_typing() == {"category"}
     app.panels.gui_new.value = True  # the New instance button: doing anything else commits what was typed, once
-    assert app.session.store.labelset.info(first).category == "bowl" and app.session.settings.category == "bowl"
-    second = app.session.settings.active_id
-    assert second != first and app.session.store.labelset.info(second).category == "bowl"
+    assert app.session.scan.store.labelset.info(first).category == "bowl" and app.session.toolbox.settings.category == "bowl"
+    second = app.session.toolbox.settings.active_id
+    assert second != first and app.session.scan.store.labelset.info(second).category == "bowl"
     assert app.panels.gui_category.value == "bowl"
-    renames = [r for r in app.session.store.journal.records if r.kind == "do" and "category" in r.header["label"]]
+    renames = [r for r in app.session.scan.store.journal.records if r.kind == "do" and "category" in r.header["label"]]
     assert len(renames) == 1, "four keystrokes, one edit"
 
 
 def test_painting_over_other_instances_says_how_many_were_taken(app: AnnotatorApp) -> None:
     """A paint that relabels another instance's vertices says so in the history (and the journal); with *Only
     unlabelled vertices* nothing is taken and nothing is said."""
-    a = app.session.new_instance()
-    app.session.paint(np.arange(100))
-    app.session.new_instance()
-    app.session.paint(np.arange(60, 160))
+    a = app.session.instances.new_instance()
+    app.session.painting.paint(np.arange(100))
+    app.session.instances.new_instance()
+    app.session.painting.paint(np.arange(60, 160))
     assert _last_step(app).endswith(", 40 taken from other instances"), _last_step(app)
-    assert int((app.session.store.labels == a).sum()) == 60
-    app.session.settings.only_unlabelled = True
-    app.session.paint(np.arange(0, 200))
-    assert "taken" not in _last_step(app) and int((app.session.store.labels == a).sum()) == 60
+    assert int((app.session.scan.store.labels == a).sum()) == 60
+    app.session.toolbox.settings.only_unlabelled = True
+    app.session.painting.paint(np.arange(0, 200))
+    assert "taken" not in _last_step(app) and int((app.session.scan.store.labels == a).sum()) == 60
 
 
 def test_prelabel_review_by_confidence_in_bulk_and_one_by_one(app: AnnotatorApp) -> None:
@@ -618,11 +618,11 @@ def test_prelabel_review_by_confidence_in_bulk_and_one_by_one(app: AnnotatorApp)
     from annotator.labels import InstanceInfo
     from annotator.render import color_lut
 
-    z = app.session.scene.points[:, 2]
+    z = app.session.scan.scene.points[:, 2]
     labels = np.select([z > 0.06, z < -0.06, np.abs(z) < 0.02], [1, 2, 3], 0).astype(np.int32)
     rows = [InstanceInfo(i, f"p{i}", category="mug", color=(200, 0, 0)) for i in (1, 2, 3)]
-    ids = app.session.add_prelabels(LabelData(labels, rows, confidence={1: 0.9, 2: 0.3, 3: 0.6}), source="x.efem.npz")
-    table = app.session.store.labelset.instances
+    ids = app.session.assist.add_prelabels(LabelData(labels, rows, confidence={1: 0.9, 2: 0.3, 3: 0.6}), source="x.efem.npz")
+    table = app.session.scan.store.labelset.instances
     conf = {i: table[i].confidence for i in ids}
     assert sorted(conf.values(), reverse=True) == [0.9, 0.6, 0.3]
     opts = list(app.panels.gui_prelabel.options)
@@ -636,23 +636,23 @@ def test_prelabel_review_by_confidence_in_bulk_and_one_by_one(app: AnnotatorApp)
     app.view.camera_guard.place = lambda view, client=None: flown.append(view)  # type: ignore[method-assign]
     first = app.step_prelabel(+1)
     assert first == _id_of_option(opts[0]) and str(app.panels.gui_prelabel.value) == opts[0]
-    members = app.session.scene.points[app.session.store.labels == first]
+    members = app.session.scan.scene.points[app.session.scan.store.labels == first]
     assert np.allclose(flown[-1].look_at, (members.min(0) + members.max(0)) / 2, atol=1e-5)  # type: ignore[attr-defined]
     assert app.step_prelabel(+1) == _id_of_option(opts[1])
     assert app.step_prelabel(-1) == first and app.step_prelabel(-1) == _id_of_option(opts[2])  # wraps around
 
     sent = app.view.stats.chunks_sent
-    accepted = app.session.review_prelabels(0.5, "accept")
+    accepted = app.session.assist.review_prelabels(0.5, "accept")
     assert sorted(accepted) == sorted(i for i in ids if conf[i] >= 0.5)
-    assert all(not app.session.store.labelset.info(i).unreviewed for i in accepted)
+    assert all(not app.session.scan.store.labelset.info(i).unreviewed for i in accepted)
     assert app.view.stats.chunks_sent > sent  # redrawn in their full colour
-    lut, _ = color_lut(app.session.store.labelset.instances, max(ids))
+    lut, _ = color_lut(app.session.scan.store.labelset.instances, max(ids))
     assert all(lut[i].tolist() == own[i] for i in accepted)
     assert list(app.panels.gui_prelabel.options) == [opts[2]]
-    app.session.undo()  # one step undoes the bulk accept
-    assert all(app.session.store.labelset.info(i).unreviewed for i in accepted)
-    rejected = app.session.review_prelabels(0.5, "reject")
-    assert rejected == [i for i in ids if conf[i] < 0.5] and rejected[0] not in app.session.store.labelset.instances
+    app.session.instances.undo()  # one step undoes the bulk accept
+    assert all(app.session.scan.store.labelset.info(i).unreviewed for i in accepted)
+    rejected = app.session.assist.review_prelabels(0.5, "reject")
+    assert rejected == [i for i in ids if conf[i] < 0.5] and rejected[0] not in app.session.scan.store.labelset.instances
 
 
 def _id_of_option(option: str) -> int:
@@ -662,32 +662,32 @@ def _id_of_option(option: str) -> int:
 def test_labels_only_view_dims_unlabelled_vertices(app: AnnotatorApp) -> None:
     """*Labels only* draws unlabelled vertices in a faint grey (labelled ones keep their colour), and off again
     restores the scan's colours; the labels do not change."""
-    iid = app.session.new_instance()
-    app.session.paint(np.arange(50))
-    labels = app.session.store.labels.copy()
+    iid = app.session.instances.new_instance()
+    app.session.painting.paint(np.arange(50))
+    labels = app.session.scan.store.labels.copy()
 
     def drawn() -> np.ndarray:
-        out = np.zeros((app.session.n, 3), np.uint8)
+        out = np.zeros((app.session.scan.n, 3), np.uint8)
         for c, h in enumerate(app.view.chunk_handles):
             out[app.view.chunks.members(c)] = np.asarray(h.colors)
         return out
 
     before = drawn()
     app.panels.gui_labels_only.value = True  # as a browser ticks it
-    assert app.session.settings.labels_only
+    assert app.session.toolbox.settings.labels_only
     on = drawn()
     rest = on[labels == 0]
     assert (rest[:, 0] == rest[:, 1]).all() and (rest[:, 1] == rest[:, 2]).all() and rest.min() >= 180
     assert np.array_equal(on[labels == iid], before[labels == iid])
     app.set_labels_only(False)
-    assert np.array_equal(drawn(), before) and np.array_equal(app.session.store.labels, labels)
+    assert np.array_equal(drawn(), before) and np.array_equal(app.session.scan.store.labels, labels)
 
 
 def test_click_to_segment_progress_cancel_and_enter_esc(app: AnnotatorApp, monkeypatch: pytest.MonkeyPatch) -> None:
     """Click-to-segment shows its progress (EM steps) next to the tools; Esc cancels a run, Enter accepts the
     preview and Esc discards it, both with the segment tool's buttons in the Tools panel (Enter still applies the
     lasso when the lasso is the active tool)."""
-    import annotator.assist as assist
+    import annotator.efem_runs as efem_runs
     from efem_viz.em.solver import EMCancelled
 
     seen: list[float] = []
@@ -704,7 +704,7 @@ def test_click_to_segment_progress_cancel_and_enter_esc(app: AnnotatorApp, monke
             raise EMCancelled("cancelled")
         return np.arange(40, dtype=np.int32)
 
-    monkeypatch.setattr(assist, "segment_at_point", fake)
+    monkeypatch.setattr(efem_runs, "segment_at_point", fake)
     notes: list[str] = []
     app.notify = lambda title, body, *, client=None, color=None: notes.append(title)  # type: ignore[method-assign]
     app.set_tool("segment")
@@ -714,16 +714,16 @@ def test_click_to_segment_progress_cancel_and_enter_esc(app: AnnotatorApp, monke
 
     # a run, cancelled with Esc
     app.segment_at(0)
-    assert started.wait(30) and app.session.segmenting and app.panels.gui_seg_progress.visible
+    assert started.wait(30) and app.session.assist.segmenting and app.panels.gui_seg_progress.visible
     assert not buttons["segment_discard"].disabled
     with pytest.raises(ValueError, match="still segmenting"):
         app.segment_at(5)
     app.run_tool_hotkey("Escape")
     deadline = time.monotonic() + 30
-    while app.session.segmenting and time.monotonic() < deadline:
+    while app.session.assist.segmenting and time.monotonic() < deadline:
         time.sleep(0.02)
-    assert not app.session.segmenting and not app.panels.gui_seg_progress.visible and "Segmenting cancelled" in notes
-    assert app.session.pending_segment is None and buttons["segment_discard"].disabled
+    assert not app.session.assist.segmenting and not app.panels.gui_seg_progress.visible and "Segmenting cancelled" in notes
+    assert app.session.assist.pending_segment is None and buttons["segment_discard"].disabled
 
     # a run to the end: progress up to 100 %, Enter accepts
     seen.clear()
@@ -733,16 +733,16 @@ def test_click_to_segment_progress_cancel_and_enter_esc(app: AnnotatorApp, monke
     app.set_tool("lasso")
     with pytest.raises(ValueError):
         app.run_tool_hotkey("Enter")  # the lasso's Enter (no outline yet), not the segment's
-    assert app.session.pending_segment is not None
+    assert app.session.assist.pending_segment is not None
     app.set_tool("segment")
     app.run_tool_hotkey("enter")
-    new = app.session.settings.active_id
-    assert np.array_equal(np.flatnonzero(app.session.store.labels == new), np.arange(40)) and app.session.pending_segment is None
+    new = app.session.toolbox.settings.active_id
+    assert np.array_equal(np.flatnonzero(app.session.scan.store.labels == new), np.arange(40)) and app.session.assist.pending_segment is None
 
     # Esc discards a preview
     app.segment_at(3, wait=True)
     app.run_tool_hotkey("Escape")
-    assert app.session.pending_segment is None and app.session.preview is None
+    assert app.session.assist.pending_segment is None and app.session.assist.preview is None
     assert app.run_tool_hotkey("X") is None  # a key no command of the active tool has: nothing
 
 
@@ -768,20 +768,20 @@ def test_app_keys_next_instance_and_brush_size(app: AnnotatorApp) -> None:
     from annotator.tools import APP_KEYS, BRUSH_STEP, RADIUS
 
     with pytest.raises(ValueError, match="no instances"):
-        app.session.cycle_active(1)
-    a, b, c = (app.session.new_instance() for _ in range(3))
-    assert app.session.settings.active_id == c
-    assert [app.session.cycle_active(1) for _ in range(3)] == [a, b, c]
-    assert [app.session.cycle_active(-1) for _ in range(2)] == [b, a]
-    app.session.settings.radius = 0.01
+        app.session.instances.cycle_active(1)
+    a, b, c = (app.session.instances.new_instance() for _ in range(3))
+    assert app.session.toolbox.settings.active_id == c
+    assert [app.session.instances.cycle_active(1) for _ in range(3)] == [a, b, c]
+    assert [app.session.instances.cycle_active(-1) for _ in range(2)] == [b, a]
+    app.session.toolbox.settings.radius = 0.01
     assert app.resize_brush(BRUSH_STEP) == pytest.approx(0.012)  # 1 cm x 1.25, on the slider's 0.1 cm steps
     assert app.panels.gui_controls["radius"].value == pytest.approx(1.2)
     assert app.resize_brush(1 / BRUSH_STEP) == pytest.approx(0.01)
-    app.session.settings.radius = RADIUS.min / RADIUS.scale
+    app.session.toolbox.settings.radius = RADIUS.min / RADIUS.scale
     assert app.resize_brush(BRUSH_STEP) == pytest.approx((RADIUS.min + RADIUS.step) / RADIUS.scale)  # one step
     assert app.resize_brush(1 / BRUSH_STEP) == pytest.approx(RADIUS.min / RADIUS.scale)
     assert app.resize_brush(1 / BRUSH_STEP) == pytest.approx(RADIUS.min / RADIUS.scale)  # stays in range
-    app.session.settings.radius = RADIUS.max / RADIUS.scale
+    app.session.toolbox.settings.radius = RADIUS.max / RADIUS.scale
     assert app.resize_brush(BRUSH_STEP) == pytest.approx(RADIUS.max / RADIUS.scale)
     assert app.panels.gui_controls["radius"].value == pytest.approx(RADIUS.max)
     assert {k.shown for k in APP_KEYS} >= {"[", "]", "Tab", "?"}
@@ -792,17 +792,17 @@ def test_app_keys_next_instance_and_brush_size(app: AnnotatorApp) -> None:
 def test_tool_table_drives_toolbar_controls_help_and_history(app: AnnotatorApp) -> None:
     """The toolbar, the controls shown, the help and the history lines all come from the tool table."""
     assert tuple(app.panels.gui_tool.options) == TOOLS == tuple(t.name for t in DEFAULT_TOOLS)
-    assert app.session.settings.tool == "brush" and "**B** Brush" in app.panels.gui_tool_help.content
+    assert app.session.toolbox.settings.tool == "brush" and "**B** Brush" in app.panels.gui_tool_help.content
     assert app.panels.gui_controls["radius"].visible and not app.panels.gui_controls["grow_angle_deg"].visible
     assert app.panels.gui_controls["box_facing"].visible  # box select works with every tool
     app.panels.gui_tool.value = "grow"  # as a browser does: the dropdown's callback switches the tool
-    assert app.session.settings.tool == "grow"
+    assert app.session.toolbox.settings.tool == "grow"
     assert app.panels.gui_controls["grow_angle_deg"].visible and not app.panels.gui_controls["radius"].visible
     assert "**G** Region grow" in app.panels.gui_tool_help.content
     assert "- ▶ **G** Region grow" in app.panels.gui_help.content and "- **O** Lasso" in app.panels.gui_help.content
-    app.session.new_instance(category="mug")
-    app.session.settings.grow_angle_deg, app.session.settings.grow_distance = 60, 0.05
-    app.session.click(np.array([0, 0, 1.0]), np.array([0, 0, -1.0]))
+    app.session.instances.new_instance(category="mug")
+    app.session.toolbox.settings.grow_angle_deg, app.session.toolbox.settings.grow_distance = 60, 0.05
+    app.session.painting.click(np.array([0, 0, 1.0]), np.array([0, 0, -1.0]))
     assert _last_step(app).endswith("(Region grow)")
     app.handle_event("rect", SimpleNamespace(client_id=3, client=_client(), screen_min=(0.4, 0.4),
                                              screen_max=(0.6, 0.6)))
@@ -818,24 +818,24 @@ def test_a_new_tool_is_one_entry_plus_its_function(mesh_path: Path, tmp_path: Pa
     ball = Control("ball_radius", "Ball radius (cm)", "slider", 3.0, min=1.0, max=10.0, step=0.5, scale=100.0)
 
     def paint_ball(host: AnnotatorApp, hit: Hit) -> None:
-        r = float(host.settings.extra["ball_radius"])
-        host.paint(np.asarray(host.geom.tree.query_ball_point(hit.position, r), np.int64), client=hit.client)
+        r = float(host.toolbox.settings.extra["ball_radius"])
+        host.painting.paint(np.asarray(host.scan.geom.tree.query_ball_point(hit.position, r), np.int64), client=hit.client)
 
     tools = (*DEFAULT_TOOLS, Tool("ball", "Ball", "P", "click paints a ball", controls=(ball,), apply_at=paint_ball))
     a = AnnotatorApp(mesh_path, out_dir=tmp_path / "o", port=0, autosave_delay=0, tools=tools)
     try:
         assert a.panels.gui_tool.options[-1] == "ball" and "**P** Ball" in a.panels.gui_help.content
-        assert a.session.settings.extra["ball_radius"] == pytest.approx(0.03) and not a.panels.gui_controls["ball_radius"].visible
+        assert a.session.toolbox.settings.extra["ball_radius"] == pytest.approx(0.03) and not a.panels.gui_controls["ball_radius"].visible
         a.set_tool("ball")
         assert a.panels.gui_controls["ball_radius"].visible
         a.panels.gui_controls["ball_radius"].value = 5.0  # cm in the GUI, metres in the setting
-        assert a.session.settings.extra["ball_radius"] == pytest.approx(0.05)
-        iid = a.session.new_instance()
-        v = a.session.click(np.array([0, 0, 1.0]), np.array([0, 0, -1.0]))
+        assert a.session.toolbox.settings.extra["ball_radius"] == pytest.approx(0.05)
+        iid = a.session.instances.new_instance()
+        v = a.session.painting.click(np.array([0, 0, 1.0]), np.array([0, 0, -1.0]))
         assert v is not None
-        painted = np.flatnonzero(a.session.store.labels == iid)
+        painted = np.flatnonzero(a.session.scan.store.labels == iid)
         assert len(painted) > 10
-        assert np.linalg.norm(a.session.scene.points[painted] - a.session.scene.points[v], axis=1).max() <= 0.05 + 1e-6
+        assert np.linalg.norm(a.session.scan.scene.points[painted] - a.session.scan.scene.points[v], axis=1).max() <= 0.05 + 1e-6
         assert _last_step(a).endswith("(Ball)")
     finally:
         a.close()
@@ -865,11 +865,11 @@ def test_efem_prelabels_carry_their_categories(spheres) -> None:
     dataclasses.replace(res, instances=dataclasses.replace(res.instances, category=cats)).save(d / "two.efem.npz")
     a = AnnotatorApp(d / "spheres.ply", out_dir=d / "out_cats", port=0, autosave_delay=0)
     try:
-        a.session.store.do(lambda ls: ls.replace_all(np.zeros(a.session.n, np.int32), []))  # start unlabelled (file has GT)
-        ids = a.session.import_efem("two.efem.npz")
-        got = sorted(a.session.store.labelset.info(i).category for i in ids)
+        a.session.scan.store.do(lambda ls: ls.replace_all(np.zeros(a.session.scan.n, np.int32), []))  # start unlabelled (file has GT)
+        ids = a.session.assist.import_efem("two.efem.npz")
+        got = sorted(a.session.scan.store.labelset.info(i).category for i in ids)
         assert got == sorted(cats.tolist())[: len(got)] and "mug" in got and "sphere" in got
-        assert all(a.session.store.labelset.info(i).name == f"{a.session.store.labelset.info(i).category} (EFEM)" for i in ids)
+        assert all(a.session.scan.store.labelset.info(i).name == f"{a.session.scan.store.labelset.info(i).category} (EFEM)" for i in ids)
         n_sphere = got.count("sphere")
         assert "per category: " in a.panels.gui_table.content
         assert "mug: 1 (" in a.panels.gui_table.content and f"sphere: {n_sphere} (" in a.panels.gui_table.content
@@ -934,17 +934,17 @@ def test_run_efem_on_the_open_scan_makes_prelabels(spheres, monkeypatch: pytest.
     of a shipped one): the Run button's run shows progress with what it does, its instances become unreviewed
     pre-labels on unlabelled vertices only, the result is saved beside the journal and imports again, and the
     pre-label cut opens where "Accept all ≥ cut" takes the best."""
-    import annotator.assist as assist
+    import annotator.efem_runs as efem_runs
     from efem_viz.em.results import EMResult
 
     d, scene, prior = spheres
-    monkeypatch.setattr(assist, "get_prior", lambda name: prior)
+    monkeypatch.setattr(efem_runs, "get_prior", lambda name: prior)
     save_scene(Scene.create("bare", scene.points, normals=scene.normals, colors=scene.colors), d / "bare.ply")
     a = AnnotatorApp(d / "bare.ply", out_dir=d / "out_run", port=0, autosave_delay=0)  # no labels to start from
     try:
         assert a.panels.gui_efem_preset.value == "fast"  # a synthetic scan: no capture camera
-        kept = a.session.new_instance(category="table")
-        a.session.paint(np.arange(50))
+        kept = a.session.instances.new_instance(category="table")
+        a.session.painting.paint(np.arange(50))
         texts: list[str] = []
         shown = a._show_efem_run
 
@@ -962,9 +962,9 @@ def test_run_efem_on_the_open_scan_makes_prelabels(spheres, monkeypatch: pytest.
         assert any("step 1 of" in t and "proposals alive" in t for t in texts)
         assert not a.panels.gui_efem_progress.visible and not a.panels.gui_efem_run.disabled
         assert a.panels.gui_efem_cancel.disabled and a.panels.gui_efem_status.content == ""
-        labels = a.session.store.labels
+        labels = a.session.scan.store.labels
         assert (labels[:50] == kept).all()  # labelled vertices stay
-        table = a.session.store.labelset.instances
+        table = a.session.scan.store.labelset.instances
         assert all("unreviewed" in table[i].note for i in ids)
         best = max(table[i].confidence for i in ids)
         assert float(a.panels.gui_prelabel_cut.value) <= best
@@ -975,7 +975,7 @@ def test_run_efem_on_the_open_scan_makes_prelabels(spheres, monkeypatch: pytest.
         hits = [g for g in scene.instance_ids() if any(
             _iou(labels == i, scene.instance == g) > 0.5 for i in ids)]
         assert len(hits) >= 2, "the pre-labels cover the spheres"
-        assert a.session.import_efem(str(saved.relative_to(d))) is not None  # the saved run imports again
+        assert a.session.assist.import_efem(str(saved.relative_to(d))) is not None  # the saved run imports again
     finally:
         a.close()
 
@@ -983,11 +983,11 @@ def test_run_efem_on_the_open_scan_makes_prelabels(spheres, monkeypatch: pytest.
 def test_a_first_run_says_it_builds_the_kernels_before_its_first_step(spheres, monkeypatch: pytest.MonkeyPatch) -> None:
     """On a machine where the encoder's kernels are not built yet, the progress line says so while they compile
     (about half a minute without a step), then the steps follow."""
-    import annotator.assist as assist
+    import annotator.efem_runs as efem_runs
     from efem_viz.prior import fused
 
     d, scene, prior = spheres
-    monkeypatch.setattr(assist, "get_prior", lambda name: prior)
+    monkeypatch.setattr(efem_runs, "get_prior", lambda name: prior)
     monkeypatch.setattr(fused, "pending_build", lambda: True)
     texts: list[str] = []
     monkeypatch.setattr(fused, "load", lambda: texts.append("<load>") or False)  # the eager encoder serves
@@ -1014,11 +1014,11 @@ def test_run_efem_on_a_millimetre_y_up_scan_solves_in_metres_and_labels_its_own_
         spheres, monkeypatch: pytest.MonkeyPatch) -> None:
     """A bare scan saved by another tool in millimetres with +Y up: EFEM runs on it brought to metres and +Z up
     (said once), the pre-labels land on the scan's own vertices, and the scan is shown and kept as it was."""
-    import annotator.assist as assist
+    import annotator.efem_runs as efem_runs
     from efem_viz.data.scan import _UP_ROTATIONS
 
     d, scene, prior = spheres
-    monkeypatch.setattr(assist, "get_prior", lambda name: prior)
+    monkeypatch.setattr(efem_runs, "get_prior", lambda name: prior)
     R = _UP_ROTATIONS["+y"].T  # scene +Z -> the file's +Y
     raw = Scene.create("raw_mm", scene.points.astype(np.float64) @ R.T * 1000.0 + np.array([400.0, 120.0, -900.0]),
                        normals=scene.normals @ R.T, colors=scene.colors)
@@ -1031,7 +1031,7 @@ def test_run_efem_on_a_millimetre_y_up_scan_solves_in_metres_and_labels_its_own_
         ids = a.run_efem(wait=True)
         assert any("brought to metres" in body for _, body in notes), notes
         np.testing.assert_allclose(a.session.scan.scene.points, raw.points, rtol=1e-6)  # the scan as it was
-        labels = a.session.store.labels
+        labels = a.session.scan.store.labels
         hits = [g for g in scene.instance_ids() if any(_iou(labels == i, scene.instance == g) > 0.5 for i in ids)]
         assert len(hits) >= 2, "the spheres, found in metres, are labelled on the millimetre scan's vertices"
     finally:
@@ -1052,11 +1052,11 @@ def test_run_efem_refuses_a_result_path_that_links_out_of_the_output_folder(sphe
         link = a.session.scan.work_dir / f"linked{RESULT_SUFFIX}"
         link.symlink_to(outside, target_is_directory=True)
         with pytest.raises(LabelIOError, match="outside|link"):
-            a.session.run_efem(wait=True)
+            a.session.assist.run_efem(wait=True)
         link.unlink()
         link.symlink_to(outside / "x.efem.npz")
         with pytest.raises(LabelIOError, match="outside|link"):
-            a.session.run_efem(wait=True)
+            a.session.assist.run_efem(wait=True)
         assert list(outside.iterdir()) == []
     finally:
         a.close()
@@ -1065,7 +1065,7 @@ def test_run_efem_refuses_a_result_path_that_links_out_of_the_output_folder(sphe
 def test_run_efem_progress_and_cancel(app: AnnotatorApp, monkeypatch: pytest.MonkeyPatch) -> None:
     """The EFEM run on the scan reports its steps and the Cancel button stops it: nothing is added, the buttons
     come back, one run at a time (click-to-segment waits for it too), and bad values are refused."""
-    import annotator.assist as assist
+    import annotator.efem_runs as efem_runs
     from efem_viz.em.solver import EMCancelled, StepInfo
 
     started = threading.Event()
@@ -1077,29 +1077,29 @@ def test_run_efem_progress_and_cancel(app: AnnotatorApp, monkeypatch: pytest.Mon
         assert cancel.wait(30), "never cancelled"
         raise EMCancelled("cancelled")
 
-    monkeypatch.setattr(assist, "solve_scan", slow)
+    monkeypatch.setattr(efem_runs, "solve_scan", slow)
     notes: list[str] = []
     app.notify = lambda title, body, *, client=None, color=None: notes.append(title)  # type: ignore[method-assign]
-    before = dict(app.session.store.labelset.instances)
+    before = dict(app.session.scan.store.labelset.instances)
     app.run_efem()
-    assert started.wait(30) and app.session.efem_running
+    assert started.wait(30) and app.session.assist.efem_running
     assert "step 1 of 30" in app.panels.gui_efem_status.content and app.panels.gui_efem_progress.value > 0
     with pytest.raises(ValueError, match="still running EFEM"):
         app.run_efem()
     with pytest.raises(ValueError, match="still running EFEM"):
         app.segment_at(0)
-    app.session.discard_segment()  # Esc of the Segment tool: the scan run goes on
-    assert app.session.efem_running and not app.session.segmenting
-    app.session.set_preview(np.arange(5))  # a segment preview from before stays: Cancel stops only the run
-    assert app.session.cancel_efem()  # the Cancel button's action
+    app.session.assist.discard_segment()  # Esc of the Segment tool: the scan run goes on
+    assert app.session.assist.efem_running and not app.session.assist.segmenting
+    app.session.assist.set_preview(np.arange(5))  # a segment preview from before stays: Cancel stops only the run
+    assert app.session.assist.cancel_efem()  # the Cancel button's action
     deadline = time.monotonic() + 30
-    while app.session.efem_running and time.monotonic() < deadline:
+    while app.session.assist.efem_running and time.monotonic() < deadline:
         time.sleep(0.02)
-    assert not app.session.efem_running and "EFEM run cancelled" in notes
-    assert dict(app.session.store.labelset.instances) == before
+    assert not app.session.assist.efem_running and "EFEM run cancelled" in notes
+    assert dict(app.session.scan.store.labelset.instances) == before
     assert not app.panels.gui_efem_run.disabled and app.panels.gui_efem_cancel.disabled
-    assert app.session.pending_segment is not None and not app.session.cancel_efem()
-    app.session.set_preview(None)
+    assert app.session.assist.pending_segment is not None and not app.session.assist.cancel_efem()
+    app.session.assist.set_preview(None)
     app.panels.gui_efem_preset.value = "turbo"  # a hostile client value
     with pytest.raises(ClientValueError):
         app.run_efem()
@@ -1123,7 +1123,7 @@ def test_tools_show_their_warm_up_until_ready(app: AnnotatorApp) -> None:
 def test_closing_during_an_efem_run_stops_it_first(spheres, monkeypatch: pytest.MonkeyPatch) -> None:
     """Closing the app (Ctrl+C) during an EFEM run on the scan cancels it and waits for its thread before the journal
     closes: nothing is saved or added afterwards. Proposals 0 takes the preset's count."""
-    import annotator.assist as assist
+    import annotator.efem_runs as efem_runs
     from efem_viz.em.solver import EMCancelled, StepInfo
 
     d, scene, _ = spheres
@@ -1138,14 +1138,14 @@ def test_closing_during_an_efem_run_stops_it_first(spheres, monkeypatch: pytest.
         assert cancel.wait(30), "never cancelled"
         raise EMCancelled("cancelled")
 
-    monkeypatch.setattr(assist, "solve_scan", slow)
+    monkeypatch.setattr(efem_runs, "solve_scan", slow)
     a = AnnotatorApp(d / "spheres.ply", out_dir=d / "out_close", port=0, autosave_delay=0)
     assert a.panels.gui_efem_proposals.value == 0
     a.run_efem()
     assert started.wait(30)
     thread = a.session.assist._thread
     a.close()
-    assert thread is not None and not thread.is_alive() and not a.session.efem_running
+    assert thread is not None and not thread.is_alive() and not a.session.assist.efem_running
     assert got[0].proposals is None and got[0].preset == "fast"  # type: ignore[attr-defined]
     assert not list((d / "out_close").glob("*.annotate/*.efem.npz"))
 

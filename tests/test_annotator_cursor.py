@@ -60,27 +60,27 @@ def _ring_radius(app: AnnotatorApp) -> float:
 def test_cursor_follows_the_brush_and_its_radius(app: AnnotatorApp) -> None:
     """No cursor before the brush touches the scan; a drag puts it where the stroke is now; [ / ] (and the radius
     slider) redraw it at the new radius; tools without a radius hide it, the brush shows it again."""
-    app.session.new_instance(category="mug")
-    assert app.session.cursor is None and app.view.cursor_handle is None
-    app.session.settings.radius = 0.02
+    app.session.instances.new_instance(category="mug")
+    assert app.session.brush.cursor is None and app.view.cursor_handle is None
+    app.session.toolbox.settings.radius = 0.02
     app.handle_event("drag", _drag("start", (0.0, 0.0, 0.1), (0.0, 0.0, 0.1)))
-    assert app.session.cursor is not None and app.session.cursor.visible
-    assert np.allclose(app.session.cursor.position, (0.0, 0.0, 0.1), atol=0.01)
+    assert app.session.brush.cursor is not None and app.session.brush.cursor.visible
+    assert np.allclose(app.session.brush.cursor.position, (0.0, 0.0, 0.1), atol=0.01)
     app.handle_event("drag", _drag("update", (0.0, 0.0, 0.1), (0.03, 0.0, 0.5)))
     app.handle_event("drag", _drag("end", (0.0, 0.0, 0.1), (0.03, 0.0, 0.5)))
-    assert app.session.cursor.position[0] > 0.01, "the cursor should follow the stroke"
-    cur = app.session.cursor
+    assert app.session.brush.cursor.position[0] > 0.01, "the cursor should follow the stroke"
+    cur = app.session.brush.cursor
     assert np.allclose(cur.normal, cur.position / np.linalg.norm(cur.position), atol=0.1)
     assert _ring_radius(app) == pytest.approx(0.02, rel=1e-3) and app.view.cursor_handle.visible
 
     r = app.resize_brush(2.0)  # ]
-    assert app.session.cursor.radius == r and _ring_radius(app) == pytest.approx(r, rel=1e-3)
+    assert app.session.brush.cursor.radius == r and _ring_radius(app) == pytest.approx(r, rel=1e-3)
     app.panels.gui_controls["radius"].value = 1.0  # the slider (cm), as a browser moves it
-    assert app.session.cursor.radius == pytest.approx(0.01) and _ring_radius(app) == pytest.approx(0.01, rel=1e-3)
+    assert app.session.brush.cursor.radius == pytest.approx(0.01) and _ring_radius(app) == pytest.approx(0.01, rel=1e-3)
 
     app.set_tool("grow")
-    assert not app.session.cursor.visible and not app.view.cursor_handle.visible
+    assert not app.session.brush.cursor.visible and not app.view.cursor_handle.visible
     app.set_tool("erase")
-    assert app.session.cursor.visible and app.view.cursor_handle.visible
-    app.session.dab(5, app.session.scene.points[5], erase=True)  # a click dab moves it too
-    assert np.allclose(app.session.cursor.position, app.session.scene.points[5])
+    assert app.session.brush.cursor.visible and app.view.cursor_handle.visible
+    app.session.painting.dab(5, app.session.scan.scene.points[5], erase=True)  # a click dab moves it too
+    assert np.allclose(app.session.brush.cursor.position, app.session.scan.scene.points[5])

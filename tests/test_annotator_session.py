@@ -30,7 +30,7 @@ def session(tmp_path: Path):
 
 
 def _top_vertex(s: AnnotatorSession) -> int:
-    return int(np.argmax(s.scene.points[:, 2]))
+    return int(np.argmax(s.scan.scene.points[:, 2]))
 
 
 def test_session_imports_without_viser() -> None:
@@ -48,105 +48,105 @@ def test_tools_do_not_import_the_app() -> None:
 
 def test_paint_erase_undo_redo_and_the_journal(session: AnnotatorSession) -> None:
     with pytest.raises(ValueError, match="no active instance"):
-        session.paint(np.arange(10))
+        session.painting.paint(np.arange(10))
     changes: list[int] = []
     session.on_change = lambda: changes.append(1)
-    iid = session.new_instance(category="mug")
-    assert session.settings.active_id == iid and changes
-    d = session.paint(np.arange(10))
-    assert d is not None and d.num_vertices == 10 and (session.store.labels[:10] == iid).all()
-    session.paint(np.arange(5), erase=True)
-    assert (session.store.labels[:5] == 0).all() and (session.store.labels[5:10] == iid).all()
-    session.undo()
-    assert (session.store.labels[:10] == iid).all()
-    session.redo()
-    assert (session.store.labels[:5] == 0).all()
-    journal = session.work_dir / f"{session.stem}.journal"
+    iid = session.instances.new_instance(category="mug")
+    assert session.toolbox.settings.active_id == iid and changes
+    d = session.painting.paint(np.arange(10))
+    assert d is not None and d.num_vertices == 10 and (session.scan.store.labels[:10] == iid).all()
+    session.painting.paint(np.arange(5), erase=True)
+    assert (session.scan.store.labels[:5] == 0).all() and (session.scan.store.labels[5:10] == iid).all()
+    session.instances.undo()
+    assert (session.scan.store.labels[:10] == iid).all()
+    session.instances.redo()
+    assert (session.scan.store.labels[:5] == 0).all()
+    journal = session.scan.work_dir / f"{session.scan.stem}.journal"
     assert journal.exists() and journal.stat().st_size > 0
 
 
 def test_edits_inside_a_tool_name_the_tool(session: AnnotatorSession) -> None:
-    session.new_instance()
-    session.set_tool("grow")
+    session.instances.new_instance()
+    session.instances.set_tool("grow")
     v = _top_vertex(session)
-    session.apply_tool(Hit(v, session.scene.points[v]))
-    assert "(Region grow)" in session.store.labelset.undo_stack[-1].label
+    session.painting.apply_tool(Hit(v, session.scan.scene.points[v]))
+    assert "(Region grow)" in session.scan.store.labelset.undo_stack[-1].label
 
 
 def test_dab_stroke_and_cursor(session: AnnotatorSession) -> None:
-    session.new_instance()
-    session.settings.radius = 0.02
+    session.instances.new_instance()
+    session.toolbox.settings.radius = 0.02
     drawn: list[int] = []
     session.on_cursor = lambda: drawn.append(1)
     v = _top_vertex(session)
-    d = session.dab(v, session.scene.points[v], erase=False)
+    d = session.painting.dab(v, session.scan.scene.points[v], erase=False)
     assert d is not None and d.num_vertices > 0 and drawn
-    assert session.cursor is not None and session.cursor.visible and session.cursor.radius == pytest.approx(0.02)
-    session.set_tool("grow")
-    cur = session.refresh_cursor()
+    assert session.brush.cursor is not None and session.brush.cursor.visible and session.brush.cursor.radius == pytest.approx(0.02)
+    session.instances.set_tool("grow")
+    cur = session.brush.refresh_cursor()
     assert cur is not None and not cur.visible
-    session.set_tool("erase")
-    pts = session.scene.points[session.scene.points[:, 2] > 0.09][:3]
-    assert session.paint_stroke(pts, erase=True) > 0
+    session.instances.set_tool("erase")
+    pts = session.scan.scene.points[session.scan.scene.points[:, 2] > 0.09][:3]
+    assert session.painting.paint_stroke(pts, erase=True) > 0
 
 
 def test_drag_stroke_is_one_undo_step(session: AnnotatorSession) -> None:
-    iid = session.new_instance()
-    session.settings.radius = 0.015
-    session.stroke_start(7, np.array([0.0, 0.0, 0.1]))
+    iid = session.instances.new_instance()
+    session.toolbox.settings.radius = 0.015
+    session.painting.stroke_start(7, np.array([0.0, 0.0, 0.1]))
     for x in (0.01, 0.02, 0.03):
-        session.stroke_to(7, np.array([0.0, 0.0, 1.0]), np.array([x, 0.0, 0.5]))
-    session.stroke_to(7, np.array([0.0, 0.0, 1.0]), np.array([0.04, 0.0, 0.5]), end=True)
-    assert not session.strokes
-    painted = int((session.store.labels == iid).sum())
+        session.painting.stroke_to(7, np.array([0.0, 0.0, 1.0]), np.array([x, 0.0, 0.5]))
+    session.painting.stroke_to(7, np.array([0.0, 0.0, 1.0]), np.array([0.04, 0.0, 0.5]), end=True)
+    assert not session.painting.strokes
+    painted = int((session.scan.store.labels == iid).sum())
     assert painted > 0
-    session.undo()
-    assert not (session.store.labels == iid).any()
+    session.instances.undo()
+    assert not (session.scan.store.labels == iid).any()
 
 
 def test_grow_fill_pick_and_min_height(session: AnnotatorSession) -> None:
-    a = session.new_instance()
-    session.settings.grow_distance = 0.05
+    a = session.instances.new_instance()
+    session.toolbox.settings.grow_distance = 0.05
     v = _top_vertex(session)
-    d = session.grow(v)
-    assert d is not None and 0 < d.num_vertices < session.n
-    b = session.new_instance()
-    session.settings.grow_min_height = 0.05
-    d2 = session.fill(v)
-    assert d2 is not None and (session.scene.points[d2.idx, 2] >= 0.05).all()
-    assert session.pick_instance(v) == b and session.settings.active_id == b
-    session.cycle_active(1)
-    assert session.settings.active_id == a
+    d = session.painting.grow(v)
+    assert d is not None and 0 < d.num_vertices < session.scan.n
+    b = session.instances.new_instance()
+    session.toolbox.settings.grow_min_height = 0.05
+    d2 = session.painting.fill(v)
+    assert d2 is not None and (session.scan.scene.points[d2.idx, 2] >= 0.05).all()
+    assert session.painting.pick_instance(v) == b and session.toolbox.settings.active_id == b
+    session.instances.cycle_active(1)
+    assert session.toolbox.settings.active_id == a
 
 
 def test_click_applies_the_active_tool_or_misses(session: AnnotatorSession) -> None:
-    iid = session.new_instance()
-    session.set_tool("brush")
-    v = session.click(np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, -1.0]))
-    assert v is not None and (session.store.labels == iid).any()
-    assert session.click(np.array([5.0, 5.0, 1.0]), np.array([0.0, 0.0, 1.0])) is None
+    iid = session.instances.new_instance()
+    session.instances.set_tool("brush")
+    v = session.painting.click(np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, -1.0]))
+    assert v is not None and (session.scan.store.labels == iid).any()
+    assert session.painting.click(np.array([5.0, 5.0, 1.0]), np.array([0.0, 0.0, 1.0])) is None
 
 
 def test_box_and_lasso_select_from_a_camera(session: AnnotatorSession) -> None:
-    iid = session.new_instance()
-    d = session.box(position=TOP_CAMERA.position, wxyz=TOP_CAMERA.wxyz, fov=TOP_CAMERA.fov,
+    iid = session.instances.new_instance()
+    d = session.box_lasso.box(position=TOP_CAMERA.position, wxyz=TOP_CAMERA.wxyz, fov=TOP_CAMERA.fov,
                     aspect=TOP_CAMERA.aspect, screen_min=(0.4, 0.4), screen_max=(0.6, 0.6))
     assert d is not None and d.num_vertices > 0
-    assert (session.scene.points[d.idx, 2] > 0).all()  # front: the top of the ball only
-    session.undo()
+    assert (session.scan.scene.points[d.idx, 2] > 0).all()  # front: the top of the ball only
+    session.instances.undo()
     lasso_changes: list[int] = []
-    session.on_lasso = lambda: lasso_changes.append(len(session.lasso_outline))
+    session.on_lasso = lambda: lasso_changes.append(len(session.box_lasso.lasso_outline))
     for uv in ((0.4, 0.4), (0.6, 0.4), (0.6, 0.6), (0.4, 0.6)):
-        session.add_lasso_point(uv, ray_origin=TOP_CAMERA.position, ray_direction=(0.0, 0.0, -1.0),
+        session.box_lasso.add_lasso_point(uv, ray_origin=TOP_CAMERA.position, ray_direction=(0.0, 0.0, -1.0),
                                 camera=TOP_CAMERA)
     assert lasso_changes == [1, 2, 3, 4]
-    d = session.apply_lasso()
-    assert d is not None and d.num_vertices > 0 and len(session.lasso_outline) == 0
-    assert "(lasso)" in d.label and (session.store.labels[d.idx] == iid).all()
+    d = session.box_lasso.apply_lasso()
+    assert d is not None and d.num_vertices > 0 and len(session.box_lasso.lasso_outline) == 0
+    assert "(lasso)" in d.label and (session.scan.store.labels[d.idx] == iid).all()
     with pytest.raises(ValueError, match="at least 3"):
-        session.apply_lasso()
+        session.box_lasso.apply_lasso()
     with pytest.raises(ValueError):
-        session.add_lasso_point((float("nan"), 0.5), ray_origin=(0, 0, 1), ray_direction=(0, 0, -1),
+        session.box_lasso.add_lasso_point((float("nan"), 0.5), ray_origin=(0, 0, 1), ray_direction=(0, 0, -1),
                                 camera=TOP_CAMERA)
 
 
@@ -158,104 +158,104 @@ def test_a_box_that_takes_other_instances_vertices_says_so_at_once(session: Anno
     session.notify = lambda title, body: notes.append(f"{title}: {body}")
     box = dict(position=TOP_CAMERA.position, wxyz=TOP_CAMERA.wxyz, fov=TOP_CAMERA.fov, aspect=TOP_CAMERA.aspect,
                screen_min=(0.4, 0.4), screen_max=(0.6, 0.6))
-    first = session.new_instance()
-    d = session.box(**box)
+    first = session.instances.new_instance()
+    d = session.box_lasso.box(**box)
     assert d is not None and not notes  # unlabelled vertices only: nothing to say
-    session.new_instance()
-    d = session.box(**box)
+    session.instances.new_instance()
+    d = session.box_lasso.box(**box)
     assert d is not None and len(notes) == 1
     assert f"took {int((d.before == first).sum()):,} labelled vertices" in notes[0] and "Ctrl+Z" in notes[0]
-    session.undo()
-    session.settings.only_unlabelled = True
-    assert session.box(**box) is None and len(notes) == 1
-    session.settings.only_unlabelled = False
-    session.set_tool("erase")
-    assert session.box(**box) is not None and len(notes) == 1
+    session.instances.undo()
+    session.toolbox.settings.only_unlabelled = True
+    assert session.box_lasso.box(**box) is None and len(notes) == 1
+    session.toolbox.settings.only_unlabelled = False
+    session.instances.set_tool("erase")
+    assert session.box_lasso.box(**box) is not None and len(notes) == 1
 
 
 def test_instances_update_merge_delete(session: AnnotatorSession) -> None:
-    a = session.new_instance(category="mug")
-    session.paint(np.arange(10))
-    b = session.new_instance(category="bowl")
-    session.paint(np.arange(10, 20))
-    session.choose_category("cup")
-    assert session.store.labelset.info(b).category == "cup" and session.settings.category == "cup"
-    session.toggle_active("visible")
-    assert not session.store.labelset.info(b).visible
-    session.update_instance(a, name="first")
-    assert session.store.labelset.info(a).name == "first"
-    session.merge([b], a)
-    assert session.settings.active_id == a and (session.store.labels[:20] == a).all()
-    session.delete_instance(a)
-    assert not session.store.labels.any()
+    a = session.instances.new_instance(category="mug")
+    session.painting.paint(np.arange(10))
+    b = session.instances.new_instance(category="bowl")
+    session.painting.paint(np.arange(10, 20))
+    session.instances.choose_category("cup")
+    assert session.scan.store.labelset.info(b).category == "cup" and session.toolbox.settings.category == "cup"
+    session.instances.toggle_active("visible")
+    assert not session.scan.store.labelset.info(b).visible
+    session.instances.update_instance(a, name="first")
+    assert session.scan.store.labelset.info(a).name == "first"
+    session.instances.merge([b], a)
+    assert session.toolbox.settings.active_id == a and (session.scan.store.labels[:20] == a).all()
+    session.instances.delete_instance(a)
+    assert not session.scan.store.labels.any()
 
 
 def test_export_import_and_confinement(session: AnnotatorSession, tmp_path: Path) -> None:
     notes: list[str] = []
     bodies: list[str] = []
     session.notify = lambda title, body: (notes.append(title), bodies.append(body))
-    iid = session.new_instance(category="mug")
-    session.paint(np.arange(30))
-    ply, = session.export("ply")
-    npz, = session.export("npz")
-    assert session.export("scannet") and notes.count("Exported") == 3
-    assert bodies[0] == f"{ply.name} in {session.out_dir}"  # the confirmation names the folder too
+    iid = session.instances.new_instance(category="mug")
+    session.painting.paint(np.arange(30))
+    ply, = session.files.export("ply")
+    npz, = session.files.export("npz")
+    assert session.files.export("scannet") and notes.count("Exported") == 3
+    assert bodies[0] == f"{ply.name} in {session.scan.out_dir}"  # the confirmation names the folder too
     from annotator.labels import prelabel_note
 
-    pre = session.new_instance(category="mug")
-    session.paint(np.arange(30, 40))
-    session.update_instance(pre, note=prelabel_note("efem", 0.4))
-    session.export("npz")
+    pre = session.instances.new_instance(category="mug")
+    session.painting.paint(np.arange(30, 40))
+    session.instances.update_instance(pre, note=prelabel_note("efem", 0.4))
+    session.files.export("npz")
     assert "1 unreviewed EFEM pre-label exported as objects" in bodies[-1]
-    assert ply.parent == session.out_dir and load_labels(npz, session.n).labels[:30].tolist() == [iid] * 30
+    assert ply.parent == session.scan.out_dir and load_labels(npz, session.scan.n).labels[:30].tolist() == [iid] * 30
     with pytest.raises(LabelIOError):
-        session.export("ply", directory="../elsewhere")
-    session.paint(np.arange(30), erase=True)
-    session.import_labels(str(npz))
-    assert (session.store.labels[:30] == iid).all()
+        session.files.export("ply", directory="../elsewhere")
+    session.painting.paint(np.arange(30), erase=True)
+    session.files.import_labels(str(npz))
+    assert (session.scan.store.labels[:30] == iid).all()
 
 
 def test_prelabels_import_and_review(session: AnnotatorSession) -> None:
-    labels = np.zeros(session.n, np.int32)
+    labels = np.zeros(session.scan.n, np.int32)
     labels[:20], labels[20:50], labels[50:60] = 1, 2, 3
     rows = [InstanceInfo(k, f"p{k}", category="mug") for k in (1, 2, 3)]
     data = LabelData(labels, rows, confidence={1: 0.9, 2: 0.3, 3: 0.6})
-    ids = session.add_prelabels(data, source="scan.efem.npz")
-    assert len(ids) == 3 and all(session.store.labelset.info(i).unreviewed for i in ids)
+    ids = session.assist.add_prelabels(data, source="scan.efem.npz")
+    assert len(ids) == 3 and all(session.scan.store.labelset.info(i).unreviewed for i in ids)
     first = ids[0]  # most confident first
-    assert session.store.labelset.info(first).confidence == pytest.approx(0.9)
-    session.review_prelabel(first, "accept")
-    assert not session.store.labelset.info(first).unreviewed
-    rejected = session.review_prelabels(0.5, "reject")
-    assert len(rejected) == 1 and rejected[0] not in session.store.labelset.instances
-    session.undo()  # the bulk review is one undo step
-    assert rejected[0] in session.store.labelset.instances
-    session.set_active(first)
-    session.review_prelabel(ids[1], "merge")
-    assert ids[1] not in session.store.labelset.instances
+    assert session.scan.store.labelset.info(first).confidence == pytest.approx(0.9)
+    session.assist.review_prelabel(first, "accept")
+    assert not session.scan.store.labelset.info(first).unreviewed
+    rejected = session.assist.review_prelabels(0.5, "reject")
+    assert len(rejected) == 1 and rejected[0] not in session.scan.store.labelset.instances
+    session.instances.undo()  # the bulk review is one undo step
+    assert rejected[0] in session.scan.store.labelset.instances
+    session.instances.set_active(first)
+    session.assist.review_prelabel(ids[1], "merge")
+    assert ids[1] not in session.scan.store.labelset.instances
     with pytest.raises(LabelIOError):
-        session.import_efem("../../etc/passwd")
+        session.assist.import_efem("../../etc/passwd")
 
 
 def test_a_second_import_adds_no_fragments_of_labelled_objects(session: AnnotatorSession) -> None:
     """Importing pre-labels over a labelled scan leaves out the proposals whose vertices are mostly labelled
     already (a fragment of a labelled object) or all labelled (an empty row), and says how many."""
-    hand = session.new_instance(category="mug")
-    session.paint(np.arange(0, 100))
-    labels = np.zeros(session.n, np.int32)
+    hand = session.instances.new_instance(category="mug")
+    session.painting.paint(np.arange(0, 100))
+    labels = np.zeros(session.scan.n, np.int32)
     labels[30:130] = 1    # 30 of 100 free: a fragment of the labelled mug -> left out
     labels[10:50] = 2     # all labelled -> left out
     labels[200:260] = 3   # all free -> a pre-label
     rows = [InstanceInfo(k, f"p{k}", category="mug") for k in (1, 2, 3)]
-    ids = session.add_prelabels(LabelData(labels, rows, confidence={1: 0.9, 2: 0.8, 3: 0.5}), source="x.efem.npz")
+    ids = session.assist.add_prelabels(LabelData(labels, rows, confidence={1: 0.9, 2: 0.8, 3: 0.5}), source="x.efem.npz")
     assert len(ids) == 1 and session.assist.skipped_prelabels == 2
-    assert (session.store.labels[200:260] == ids[0]).all() and (session.store.labels[:100] == hand).all()
-    assert set(session.store.labelset.instances) == {hand, ids[0]}  # no empty rows
+    assert (session.scan.store.labels[200:260] == ids[0]).all() and (session.scan.store.labels[:100] == hand).all()
+    assert set(session.scan.store.labelset.instances) == {hand, ids[0]}  # no empty rows
 
 
 def test_click_to_segment_preview_accept_discard(session: AnnotatorSession,
                                                  monkeypatch: pytest.MonkeyPatch) -> None:
-    import annotator.assist as assist
+    import annotator.efem_runs as efem_runs
 
     solves: list[object] = []
 
@@ -265,47 +265,47 @@ def test_click_to_segment_preview_accept_discard(session: AnnotatorSession,
         solves.append(settings)
         return np.arange(40, dtype=np.int32)
 
-    monkeypatch.setattr(assist, "segment_at_point", fake)
+    monkeypatch.setattr(efem_runs, "segment_at_point", fake)
     progress: list[float | None] = []
     redrawn: list[int] = []
     session.on_segment = progress.append
     session.on_preview = lambda idx: redrawn.append(len(idx))
-    session.settings.prior = "bowl"
+    session.toolbox.settings.prior = "bowl"
     session.assist.solve = dataclasses.replace(session.assist.solve, work_voxel=0.005, tau_out=0.06)
-    mask = session.segment_at(5, wait=True)
+    mask = session.assist.segment_at(5, wait=True)
     assert solves == [session.assist.solve]  # the room's solver knobs reach the solve
-    assert mask is not None and len(mask) == 40 and session.preview is not None and session.preview[:40].all()
-    assert progress[0] == 0.0 and None in progress and redrawn == [40] and not session.segmenting
-    d = session.accept_segment()
-    assert d is not None and d.num_vertices == 40 and session.pending_segment is None
-    assert session.store.labelset.info(session.settings.active_id).category == "bowl"
-    session.segment_at(5, wait=True)
-    session.discard_segment()
-    assert session.preview is None
+    assert mask is not None and len(mask) == 40 and session.assist.preview is not None and session.assist.preview[:40].all()
+    assert progress[0] == 0.0 and None in progress and redrawn == [40] and not session.assist.segmenting
+    d = session.assist.accept_segment()
+    assert d is not None and d.num_vertices == 40 and session.assist.pending_segment is None
+    assert session.scan.store.labelset.info(session.toolbox.settings.active_id).category == "bowl"
+    session.assist.segment_at(5, wait=True)
+    session.assist.discard_segment()
+    assert session.assist.preview is None
     with pytest.raises(ValueError, match="no segment preview"):
-        session.accept_segment()
+        session.assist.accept_segment()
 
 
 def test_resume_keeps_the_labels(tmp_path: Path) -> None:
     scan = ball_scan(tmp_path)
     s = AnnotatorSession(scan, out_dir=tmp_path / "out", autosave_delay=0)
-    iid = s.new_instance(category="mug")
-    s.paint(np.arange(25))
+    iid = s.instances.new_instance(category="mug")
+    s.painting.paint(np.arange(25))
     s.close()
     s2 = AnnotatorSession(scan, out_dir=tmp_path / "out", autosave_delay=0)
     try:
-        assert (s2.store.labels[:25] == iid).all() and s2.settings.active_id == iid
-        assert s2.settings.category == "mug"
+        assert (s2.scan.store.labels[:25] == iid).all() and s2.toolbox.settings.active_id == iid
+        assert s2.toolbox.settings.category == "mug"
     finally:
         s2.close()
 
 
 def test_brush_resize_and_bad_tool(session: AnnotatorSession) -> None:
-    r0 = session.settings.radius
-    assert session.resize_brush(1.25) > r0
-    assert session.resize_brush(0.8) < session.settings.radius * 1.25 + 1e-9
+    r0 = session.toolbox.settings.radius
+    assert session.instances.resize_brush(1.25) > r0
+    assert session.instances.resize_brush(0.8) < session.toolbox.settings.radius * 1.25 + 1e-9
     with pytest.raises(ValueError, match="unknown tool"):
-        session.set_tool("nope")
+        session.instances.set_tool("nope")
 
 
 def test_tool_settings_by_name() -> None:
@@ -343,7 +343,7 @@ def test_lasso_takes_only_the_visible_surface_and_says_what_it_left_out(tmp_path
         right = np.array([1.0, 0.0, 0.0])
         cam = dict(position=position, wxyz=rotation_to_quat_wxyz(np.stack([right, np.cross(fwd, right), fwd], 1)),
                    fov=float(np.deg2rad(50)), aspect=1.0)
-        pts = s.scene.points
+        pts = s.scan.scene.points
         in_box = (np.abs(pts[:, 0]) <= 0.0501) & (np.abs(pts[:, 1]) <= 0.0501) & (pts[:, 2] >= -1e-6)
         uv, _ = sel_project(pts[in_box], cam)
         lo, hi = uv.min(axis=0) - 0.02, uv.max(axis=0) + 0.02
@@ -352,19 +352,19 @@ def test_lasso_takes_only_the_visible_surface_and_says_what_it_left_out(tmp_path
         top = (pts[:, 2] > -1e-6) & (pts[:, 2] < 1e-6) & ~in_box
         hidden = top & _ray_hits_box(position, pts)
         assert hidden.sum() > 100
-        s.new_instance(category="box")
-        d = s.lasso(polygon=polygon, **cam)
+        s.instances.new_instance(category="box")
+        d = s.box_lasso.lasso(polygon=polygon, **cam)
         assert d is not None
-        taken = np.flatnonzero(s.store.labels == s.settings.active_id)
+        taken = np.flatnonzero(s.scan.store.labels == s.toolbox.settings.active_id)
         assert hidden[taken].sum() <= 0.05 * hidden.sum()
         seen_faces = in_box & ((np.abs(pts[:, 1] + 0.05) < 1e-6) | (np.abs(pts[:, 2] - 0.15) < 1e-6))
         assert np.isin(np.flatnonzero(seen_faces), taken).mean() > 0.95  # the front and top faces
-        label = s.store.labelset.undo_stack[-1].label
+        label = s.scan.store.labelset.undo_stack[-1].label
         assert "hidden left out" in label and "(lasso" in label
-        s.undo()
-        s.settings.box_facing = "front"
-        s.lasso(polygon=polygon, **cam)
-        taken = np.flatnonzero(s.store.labels == s.settings.active_id)
+        s.instances.undo()
+        s.toolbox.settings.box_facing = "front"
+        s.box_lasso.lasso(polygon=polygon, **cam)
+        taken = np.flatnonzero(s.scan.store.labels == s.toolbox.settings.active_id)
         assert hidden[taken].sum() > 0.5 * hidden.sum(), "the old rule, on request, takes the hidden table"
     finally:
         s.close()
@@ -404,20 +404,20 @@ def test_region_grow_keeps_to_objects_on_an_imported_tabletop(tmp_path: Path) ->
     repo = Path(__file__).resolve().parents[1]
     s = AnnotatorSession(repo / "sample_scenes" / "real_tabletop_0.ply", out_dir=tmp_path / "out", autosave_delay=0)
     try:
-        assert s.settings.grow_min_height == pytest.approx(0.008)
-        s.new_instance(category="mug")
-        mug = s.scene.instance == int(np.bincount(s.scene.instance[s.scene.instance > 0]).argmax())
-        pts = s.scene.points
+        assert s.toolbox.settings.grow_min_height == pytest.approx(0.008)
+        s.instances.new_instance(category="mug")
+        mug = s.scan.scene.instance == int(np.bincount(s.scan.scene.instance[s.scan.scene.instance > 0]).argmax())
+        pts = s.scan.scene.points
         seed = int(np.flatnonzero(mug & (pts[:, 2] > 0.03))[0])
-        s.grow(seed)
-        grown = np.flatnonzero(s.store.labels == s.settings.active_id)
+        s.painting.grow(seed)
+        grown = np.flatnonzero(s.scan.store.labels == s.toolbox.settings.active_id)
         assert len(grown) > 50 and pts[grown, 2].min() >= 0.008
         assert (~mug[grown]).mean() < 0.2, "the grow stays (mostly) on the mug, not the table"
     finally:
         s.close()
     ball = AnnotatorSession(ball_scan(tmp_path), out_dir=tmp_path / "out2", autosave_delay=0)
     try:
-        assert ball.settings.grow_min_height == 0.0
+        assert ball.toolbox.settings.grow_min_height == 0.0
     finally:
         ball.close()
 
@@ -430,11 +430,11 @@ def test_the_history_lists_undo_steps_and_survives_a_restart(tmp_path: Path) -> 
     scan = ball_scan(tmp_path)
     s = AnnotatorSession(scan, out_dir=tmp_path / "out", autosave_delay=0)
     try:
-        s.new_instance(category="mug")
+        s.instances.new_instance(category="mug")
         for k in range(8):  # one stroke: eight dabs in one group
-            s.paint(np.arange(10 * k, 10 * k + 10), group="stroke-1")
-        s.paint(np.arange(200, 220))
-        before = panel_view(s.store, s.settings.active_id).history
+            s.painting.paint(np.arange(10 * k, 10 * k + 10), group="stroke-1")
+        s.painting.paint(np.arange(200, 220))
+        before = panel_view(s.scan.store, s.toolbox.settings.active_id).history
     finally:
         s.close()
     lines = [ln for ln in before.splitlines() if ln.startswith("- ")]
@@ -442,9 +442,9 @@ def test_the_history_lists_undo_steps_and_survives_a_restart(tmp_path: Path) -> 
     assert "(+7 more edits in this step)" in lines[1] and "200" not in lines[1]
     again = AnnotatorSession(scan, out_dir=tmp_path / "out", autosave_delay=0)
     try:
-        assert panel_view(again.store, again.settings.active_id).history == before
-        again.undo()
-        assert "(+7 more edits" in panel_view(again.store, again.settings.active_id).history.splitlines()[2]
+        assert panel_view(again.scan.store, again.toolbox.settings.active_id).history == before
+        again.instances.undo()
+        assert "(+7 more edits" in panel_view(again.scan.store, again.toolbox.settings.active_id).history.splitlines()[2]
     finally:
         again.close()
 
@@ -453,21 +453,21 @@ def test_slow_typing_of_a_name_is_one_undo_step(session: AnnotatorSession) -> No
     """Each pause while typing commits the name so far, but the commits of one field with no other edit between
     form one undo step: one Ctrl+Z brings back the name from before the typing; an edit in between starts a new
     step."""
-    iid = session.new_instance(category="mug")
-    before = session.store.labelset.info(iid).name
+    iid = session.instances.new_instance(category="mug")
+    before = session.scan.store.labelset.info(iid).name
     for text in ("b", "bl", "blu", "blue"):  # the person pauses after each letter: each is committed
         session.instances.type_text("name", text)
         session.instances.flush_typing()
-    assert session.store.labelset.info(iid).name == "blue"
-    session.undo()
-    assert session.store.labelset.info(iid).name == before
-    session.redo()
-    session.paint(np.arange(10))
+    assert session.scan.store.labelset.info(iid).name == "blue"
+    session.instances.undo()
+    assert session.scan.store.labelset.info(iid).name == before
+    session.instances.redo()
+    session.painting.paint(np.arange(10))
     session.instances.type_text("name", "blue mug")
     session.instances.flush_typing()
-    session.undo()
-    assert session.store.labelset.info(iid).name == "blue"  # the paint was between: a step of its own
-    assert not (session.work_dir / "typing.json").exists()
+    session.instances.undo()
+    assert session.scan.store.labelset.info(iid).name == "blue"  # the paint was between: a step of its own
+    assert not (session.scan.work_dir / "typing.json").exists()
 
 
 @pytest.mark.parametrize("content", [b"{not json", b'{"instance": 1, "field": "owner", "value": "x"}',
@@ -478,15 +478,15 @@ def test_a_hostile_typing_file_is_dropped_and_changes_nothing(tmp_path: Path, co
     scan = ball_scan(tmp_path)
     s = AnnotatorSession(scan, out_dir=tmp_path / "out", autosave_delay=0)
     try:
-        iid = s.new_instance(category="mug")
-        name = s.store.labelset.info(iid).name
+        iid = s.instances.new_instance(category="mug")
+        name = s.scan.store.labelset.info(iid).name
     finally:
         s.close()
     typing = tmp_path / "out" / "ball.annotate" / "typing.json"
     typing.write_bytes(content)
     again = AnnotatorSession(scan, out_dir=tmp_path / "out", autosave_delay=0)
     try:
-        assert again.store.labelset.info(iid).name == name and again.instances.restored_typing is None
+        assert again.scan.store.labelset.info(iid).name == name and again.instances.restored_typing is None
         assert not typing.exists()
     finally:
         again.close()

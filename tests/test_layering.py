@@ -570,7 +570,7 @@ def test_every_subcommand_resolves(name: str) -> None:
 HEADLESS_SESSIONS = ("efem_viz.viewer.session", "annotator.session")
 """The apps' headless sessions (ARCHITECTURE.md "The apps"): drivable from a script with no GUI library loaded."""
 DRAWING_MODULES = (
-    "efem_viz.viewer.app", "efem_viz.viewer.events", "efem_viz.viewer.nodes", "efem_viz.viewer.panels",
+    "efem_viz.viewer.app", "efem_viz.viewer.wiring", "efem_viz.viewer.nodes", "efem_viz.viewer.panels",
     "efem_viz.viewer.panel_views", "efem_viz.viewer.scene_views", "efem_viz.viewer.legend",
     "efem_viz.viewer.label_layout", "annotator.app", "annotator.panels", "annotator.panel_views",
     "annotator.scan_view", "annotator.render", "annotator.wiring", "annotator.cheat_sheet",

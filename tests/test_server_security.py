@@ -244,14 +244,14 @@ def test_a_refused_client_cannot_drive_the_annotator(annotator: AnnotatorApp) ->
     """Delete via a hostile page: refused at the handshake, the instance survives."""
     from websockets.exceptions import InvalidStatus
 
-    iid = annotator.session.new_instance(category="mug")
+    iid = annotator.session.instances.new_instance(category="mug")
     with pytest.raises(InvalidStatus):
         RawClient(ws_url(annotator.url), origin="http://evil.example")
-    assert iid in annotator.session.store.labelset.instances
+    assert iid in annotator.session.scan.store.labelset.instances
     with RawClient(annotator.url) as c:  # the token holder can
         assert wait_for(lambda: len(annotator.server.get_clients()) == 1)
         c.press(annotator.panels.gui_delete)
-        assert wait_for(lambda: iid not in annotator.session.store.labelset.instances)
+        assert wait_for(lambda: iid not in annotator.session.scan.store.labelset.instances)
 
 
 def test_guard_fails_loudly_when_the_hook_point_is_gone(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -291,12 +291,12 @@ def test_client_cannot_rewrite_control_bounds(annotator: AnnotatorApp) -> None:
         c.set_gui(annotator.panels.gui_controls["radius"], max=1e9, min=-1e9, value=1e6)
         c.set_gui(annotator.panels.gui_tool, options=("brush", "rm"), value="rm")
         c.set_gui(annotator.panels.gui_delete, disabled=True)
-        assert wait_for(lambda: abs(annotator.session.settings.radius - 0.20) < 1e-9)
+        assert wait_for(lambda: abs(annotator.session.toolbox.settings.radius - 0.20) < 1e-9)
         radius = annotator.panels.gui_controls["radius"]
         assert radius.max == 20.0 and radius.min == pytest.approx(0.1)
         assert tuple(annotator.panels.gui_tool.options) == TOOLS
         assert annotator.panels.gui_delete.disabled is False
-        assert annotator.session.settings.tool == "brush"
+        assert annotator.session.toolbox.settings.tool == "brush"
         c.send({"type": "ShareUrlRequest"})  # would open a public tunnel to this server
         time.sleep(0.2)
         assert annotator.server._share_tunnel is None
@@ -479,44 +479,44 @@ def test_annotator_clamps_a_raw_brush_radius_before_painting(annotator: Annotato
 
     big = trimesh.creation.box(extents=(2.0, 2.0, 0.02)).subdivide().subdivide().subdivide()
     assert big is not None
-    iid = annotator.session.new_instance(category="mug")
+    iid = annotator.session.instances.new_instance(category="mug")
     with RawClient(annotator.url) as c:
         assert wait_for(lambda: len(annotator.server.get_clients()) == 1)
         c.set_gui(annotator.panels.gui_controls["radius"], value=1e6)
-        assert wait_for(lambda: annotator.session.settings.radius == pytest.approx(0.20))
+        assert wait_for(lambda: annotator.session.toolbox.settings.radius == pytest.approx(0.20))
         assert wait_for(lambda: annotator.panels.gui_controls["radius"].value == 20.0), "the clamped value is shown to all"
         c.set_gui(annotator.panels.gui_controls["brush_max_angle_deg"], value=float("nan"))  # refused: the setting stays
         c.set_gui(annotator.panels.gui_controls["grow_distance"], value=-1e9)
-        assert wait_for(lambda: annotator.session.settings.grow_distance == pytest.approx(0.01))
-        assert annotator.session.settings.brush_max_angle_deg == 180.0
+        assert wait_for(lambda: annotator.session.toolbox.settings.grow_distance == pytest.approx(0.01))
+        assert annotator.session.toolbox.settings.brush_max_angle_deg == 180.0
         c.set_gui(annotator.panels.gui_tool, value="no-such-tool")
         time.sleep(0.2)
-        assert annotator.session.settings.tool == "brush"
+        assert annotator.session.toolbox.settings.tool == "brush"
     # the computation sees the clamped radius: a click paints exactly the 20 cm ball
-    hit = sel.pick(annotator.session.geom, np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, -1.0]))
+    hit = sel.pick(annotator.session.scan.geom, np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, -1.0]))
     assert hit is not None
-    annotator.session.click(np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, -1.0]))
-    expect = sel.brush(annotator.session.geom, hit[1], 0.20)
-    assert np.array_equal(np.flatnonzero(annotator.session.store.labels == iid), np.sort(expect))
+    annotator.session.painting.click(np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, -1.0]))
+    expect = sel.brush(annotator.session.scan.geom, hit[1], 0.20)
+    assert np.array_equal(np.flatnonzero(annotator.session.scan.store.labels == iid), np.sort(expect))
 
 
 def test_annotator_refuses_non_finite_scene_events(annotator: AnnotatorApp) -> None:
-    annotator.session.new_instance()
+    annotator.session.instances.new_instance()
     ev = SimpleNamespace(ray_origin=(0.0, 0.0, math.nan), ray_direction=(0.0, 0.0, -1.0), client_id=1)
     with pytest.raises(ClientValueError):
         annotator.handle_event("click", ev)
-    assert not (annotator.session.store.labels > 0).any()
+    assert not (annotator.session.scan.store.labels > 0).any()
 
 
 def test_annotator_text_fields_are_bounded(annotator: AnnotatorApp) -> None:
-    iid = annotator.session.new_instance(category="mug")
+    iid = annotator.session.instances.new_instance(category="mug")
     with RawClient(annotator.url) as c:
         assert wait_for(lambda: len(annotator.server.get_clients()) == 1)
         c.set_gui(annotator.panels.gui_name, value="n" * 100_000)
         time.sleep(0.3)
-        assert len(annotator.session.store.labelset.info(iid).name) < 300
+        assert len(annotator.session.scan.store.labelset.info(iid).name) < 300
         c.set_gui(annotator.panels.gui_name, value="cup A")
-        assert wait_for(lambda: annotator.session.store.labelset.info(iid).name == "cup A")
+        assert wait_for(lambda: annotator.session.scan.store.labelset.info(iid).name == "cup A")
 
 
 def test_viewer_clamps_raw_proposals_and_rejects_nan(viewer: Any) -> None:
@@ -742,15 +742,15 @@ def test_resolve_inside_root_refuses_escapes(tmp_path: Path) -> None:
 
 
 def test_annotator_exports_only_into_the_output_folder(annotator: AnnotatorApp, scan: Path, tmp_path: Path) -> None:
-    annotator.session.new_instance()
-    annotator.session.paint(np.arange(10))
-    out = annotator.session.out_dir
+    annotator.session.instances.new_instance()
+    annotator.session.painting.paint(np.arange(10))
+    out = annotator.session.scan.out_dir
     (out / "sub").mkdir()
     os.symlink(tmp_path, out / "escape")
     for bad in (str(scan.parent), "../scans", str(tmp_path), "escape", "/tmp"):
         with pytest.raises(LabelIOError):
-            annotator.session.export("ply", directory=bad)
-    assert [p.name for p in annotator.session.export("npz", directory="sub")] == ["ball.labels.npz"]
+            annotator.session.files.export("ply", directory=bad)
+    assert [p.name for p in annotator.session.files.export("npz", directory="sub")] == ["ball.labels.npz"]
     assert (out / "sub" / "ball.labels.npz").is_file()
     assert sorted(p.name for p in scan.parent.iterdir()) == ["ball.ply"], "nothing written next to the scan"
 

@@ -74,41 +74,41 @@ def session(tmp_path: Path):
 def test_the_typed_name_lands_on_the_instance_it_was_typed_for(session: AnnotatorSession) -> None:
     """Typing into mug 1's Name, then making mug 2 active (an action: it commits first) names mug 1, not mug 2;
     the history has one rename; the panels were told to refresh after the commit."""
-    a = session.new_instance(category="mug")
-    b = session.new_instance(category="mug")
-    session.set_active(a)
+    a = session.instances.new_instance(category="mug")
+    b = session.instances.new_instance(category="mug")
+    session.instances.set_active(a)
     refreshed: list[int] = []
     session.on_change = lambda: refreshed.append(1)
     for v in ("l", "le", "left", "left mug"):
-        session.type_text("name", v)
-    assert session.fields_typing() == {"name"}
-    session.flush_typing()  # what the app does before the next action
-    session.set_active(b)
-    ls = session.store.labelset
+        session.instances.type_text("name", v)
+    assert session.instances.fields_typing() == {"name"}
+    session.instances.flush_typing()  # what the app does before the next action
+    session.instances.set_active(b)
+    ls = session.scan.store.labelset
     assert ls.info(a).name == "left mug" and ls.info(b).name != "left mug"
     assert sum("name=" in e.label for e in ls.undo_stack) == 1
-    assert refreshed and session.fields_typing() == frozenset()
+    assert refreshed and session.instances.fields_typing() == frozenset()
 
 
 def test_an_empty_category_is_refused_and_the_stored_one_kept(session: AnnotatorSession) -> None:
     notes: list[tuple[str, str]] = []
     session.notify = lambda title, body: notes.append((title, body))
-    a = session.new_instance(category="mug")
-    session.type_text("category", "   ")
-    assert session.flush_typing() == 1  # pending, then refused
-    assert session.store.labelset.info(a).category == "mug" and notes and "cannot be empty" in notes[0][1]
+    a = session.instances.new_instance(category="mug")
+    session.instances.type_text("category", "   ")
+    assert session.instances.flush_typing() == 1  # pending, then refused
+    assert session.scan.store.labelset.info(a).category == "mug" and notes and "cannot be empty" in notes[0][1]
 
 
 def test_closing_commits_what_was_typed(tmp_path: Path) -> None:
     """Never lose work: a name typed just before the annotator stops is stored."""
     s = AnnotatorSession(ball_scan(tmp_path), out_dir=tmp_path / "out", autosave_delay=0)
-    a = s.new_instance(category="mug")
-    s.paint(np.arange(5))
-    s.type_text("name", "last mug")
+    a = s.instances.new_instance(category="mug")
+    s.painting.paint(np.arange(5))
+    s.instances.type_text("name", "last mug")
     s.close()
     s2 = AnnotatorSession(ball_scan(tmp_path), out_dir=tmp_path / "out", autosave_delay=0)
     try:
-        assert s2.store.labelset.info(a).name == "last mug"
+        assert s2.scan.store.labelset.info(a).name == "last mug"
     finally:
         s2.close()
 
@@ -117,15 +117,15 @@ def test_late_keys_after_an_action_go_to_the_instance_they_were_typed_for(sessio
     """The browser sends a field's keystrokes and a hotkey on separate paths: the last keys of a name typed for mug
     A can reach the server after the N that made mug B active. Keys arriving that soon after the field was committed
     belong to A; later typing is B's."""
-    a = session.new_instance(category="mug")
-    session.type_text("name", "left b")
-    session.flush_typing()  # what the app does before N
-    b = session.new_instance(category="mug")
-    session.type_text("name", "left box")  # the late keys
-    session.flush_typing()
-    ls = session.store.labelset
+    a = session.instances.new_instance(category="mug")
+    session.instances.type_text("name", "left b")
+    session.instances.flush_typing()  # what the app does before N
+    b = session.instances.new_instance(category="mug")
+    session.instances.type_text("name", "left box")  # the late keys
+    session.instances.flush_typing()
+    ls = session.scan.store.labelset
     assert ls.info(a).name == "left box" and ls.info(b).name != "left box"
     session.instances.late_keys_s = 0.0  # long after: typing is for the active instance
-    session.type_text("name", "right box")
-    session.flush_typing()
+    session.instances.type_text("name", "right box")
+    session.instances.flush_typing()
     assert ls.info(b).name == "right box" and ls.info(a).name == "left box"

@@ -19,7 +19,7 @@ from efem_viz import em
 from efem_viz.colors import instance_colors
 from efem_viz.prior import analytic
 from efem_viz import colors as pal
-from efem_viz.viewer import scenes as sc
+from efem_viz.viewer import scene_list as sc
 from efem_viz.viewer import trace_queries as tq
 from efem_viz.viewer.panels import slider_marks
 from helpers import sample_scene
@@ -904,7 +904,7 @@ def test_a_mesh_scene_opened_with_its_result_shows_the_instance_colours(tmp_path
     a = ViewerApp([tmp_path], port=0, prior=prior, open_first=False)
     try:
         assert a.open_scene("syn_pile_0") and a.wait_idle(600)
-        assert a.state.display == "mesh" and a.state.color_mode == "instances" and a.session.recolored()
+        assert a.state.display == "mesh" and a.state.color_mode == "instances" and a.session.scenes.recolored()
         assert a.nodes.points is not None and a.nodes.points.visible, "the instance colours are hidden under the mesh"
         a.set_color_mode("rgb")
         assert not a.nodes.points.visible and a.nodes.mesh is not None and a.nodes.mesh.visible

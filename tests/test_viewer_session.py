@@ -18,6 +18,7 @@ import pytest
 from efem_viz.prior import analytic
 from efem_viz.viewer.legend import color_key_html
 from efem_viz.viewer.session import FlyTarget, Inspection, PointColors, RunSettings, StepView, ViewerSession
+from efem_viz.viewer.parts.results import ResultPart
 from helpers import sample_scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -31,8 +32,8 @@ def session(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ViewerSession]
 
     torch.set_num_threads(1)
     s = ViewerSession([SAMPLES], out_dir=tmp_path_factory.mktemp("out"))
-    assert s.open_scene(SCENE) is not None
-    assert s.load_result() is not None
+    assert s.scenes.open_scene(SCENE) is not None
+    assert s.results.load_result() is not None
     yield s
 
 
@@ -58,15 +59,15 @@ def test_open_scene_from_the_list_and_refusals(tmp_path: Path) -> None:
     assert SCENE in [e.name for e in s.state.entries]
     statuses: list[tuple[str, bool]] = []
     s.on_status = lambda text, error: statuses.append((text, error))
-    assert s.open_scene("no_such_scene") is None and s.state.error and "unknown scene" in s.state.error
-    scene = s.open_scene(SCENE)
+    assert s.scenes.open_scene("no_such_scene") is None and s.state.error and "unknown scene" in s.state.error
+    scene = s.scenes.open_scene(SCENE)
     assert scene is not None and s.state.scene is scene and s.state.scene_name == SCENE
     assert s.state.result is None and s.state.view_mode == "result" and s.state.color_mode == "rgb"
     assert statuses[-1] == (f"Opened {SCENE} ({scene.num_points:,} points).", False) and s.state.error is None
-    assert s.saved_result_path() == SAMPLES / f"{SCENE}.efem.npz"
-    assert s.read_result(tmp_path / "elsewhere.efem.npz") is None and "outside the given paths" in str(s.state.error)
+    assert s.scenes.saved_result_path() == SAMPLES / f"{SCENE}.efem.npz"
+    assert s.results.read_result(tmp_path / "elsewhere.efem.npz") is None and "outside the given paths" in str(s.state.error)
     generation = s.generation
-    assert s.load_result() is not None and s.generation == generation + 1
+    assert s.results.load_result() is not None and s.generation == generation + 1
 
 
 def test_load_result_state(session: ViewerSession) -> None:
@@ -74,8 +75,8 @@ def test_load_result_state(session: ViewerSession) -> None:
     res = st.require_result()
     assert st.result_source == f"{SCENE}.efem.npz"
     assert st.step == st.num_steps - 1 and st.color_mode == "instances" and st.selected is None
-    assert 0.0 <= st.threshold <= session.threshold_max(res)
-    assert session.threshold_max(res) > float(np.max(res.instances.confidence))
+    assert 0.0 <= st.threshold <= session.results.threshold_max(res)
+    assert session.results.threshold_max(res) > float(np.max(res.instances.confidence))
 
 
 def test_a_result_with_warnings_says_them_in_the_status(tmp_path: Path) -> None:
@@ -84,11 +85,11 @@ def test_a_result_with_warnings_says_them_in_the_status(tmp_path: Path) -> None:
     import dataclasses
 
     s = ViewerSession([SAMPLES], out_dir=tmp_path)
-    assert s.open_scene(SCENE) is not None
-    res = s.load_result()
+    assert s.scenes.open_scene(SCENE) is not None
+    res = s.results.load_result()
     assert res is not None and s.state.error is None and s.state.status.startswith("Loaded result")
     warned = dataclasses.replace(res, warnings=("the recorded capture camera is unusable (K missing)",))
-    s.set_result(warned, source="run")
+    s.results.set_result(warned, source="run")
     assert s.state.error is not None and "camera is unusable (K missing)" in s.state.status
 
 
@@ -96,18 +97,18 @@ def test_each_result_opens_with_a_cut_that_shows_it(tmp_path: Path) -> None:
     """after a cut of 0.25 on one real frame, switching to another whose best instance is below
     it hid every instance. A person's cut is kept only while it still shows something, and the status says so."""
     s = ViewerSession([SAMPLES], out_dir=tmp_path)
-    assert s.open_scene("syn_pile_0") is not None and s.load_result() is not None
-    s.set_threshold(0.99)  # above every instance of every bundled result
-    assert s.open_scene("real_tabletop_6") is not None
-    res = s.load_result()
+    assert s.scenes.open_scene("syn_pile_0") is not None and s.results.load_result() is not None
+    s.results.set_threshold(0.99)  # above every instance of every bundled result
+    assert s.scenes.open_scene("real_tabletop_6") is not None
+    res = s.results.load_result()
     assert res is not None
     best = float(np.max(res.instances.confidence))
-    assert s.state.threshold <= best and s.state.threshold == s.default_threshold(res)
+    assert s.state.threshold <= best and s.state.threshold == s.results.default_threshold(res)
     assert "would hide every instance" in s.state.status and not s.state.threshold_by_user
-    s.set_threshold(0.01)
-    assert s.open_scene("syn_z_1") is not None and s.load_result() is not None
+    s.results.set_threshold(0.01)
+    assert s.scenes.open_scene("syn_z_1") is not None and s.results.load_result() is not None
     assert s.state.threshold == 0.01 and "is kept" in s.state.status
-    s.set_threshold(0.01, by_user=False)  # redraws do not count as a person's choice
+    s.results.set_threshold(0.01, by_user=False)  # redraws do not count as a person's choice
     assert s.state.threshold_by_user  # (still the person's earlier choice)
 
 
@@ -120,8 +121,8 @@ def test_a_result_on_a_labelled_scene_opens_showing_every_object_evaluate_finds(
     from efem_viz.eval.matching import match_instances
 
     s = ViewerSession([SAMPLES], out_dir=tmp_path)
-    assert s.open_scene("syn_z_1") is not None
-    res = s.load_result()
+    assert s.scenes.open_scene("syn_z_1") is not None
+    res = s.results.load_result()
     assert res is not None
     inst = res.instances
     tp = match_instances([np.asarray(m) for m in inst.masks], s.state.scene.instance, iou=0.5,
@@ -131,26 +132,26 @@ def test_a_result_on_a_labelled_scene_opens_showing_every_object_evaluate_finds(
     low = int(tp[-1])
     conf[low] = 0.0101  # a correct instance far below the default cut
     res2 = dataclasses.replace(res, instances=dataclasses.replace(inst, confidence=conf.astype(inst.confidence.dtype)))
-    s.set_result(res2, source="run")
-    assert s.state.threshold == 0.01 and s.kept_mask()[low]
+    s.results.set_result(res2, source="run")
+    assert s.state.threshold == 0.01 and s.results.kept_mask()[low]
     bare = s.state.scene.replace(instance=None)
     s.state.scene = bare  # the same result on the scene without its labels
-    assert s.default_threshold(res2) == 0.05
+    assert s.results.default_threshold(res2) == 0.05
 
 
 def test_the_cut_stays_within_the_slider(tmp_path: Path) -> None:
     """A script's cut above the slider's top (or below 0) is kept at the end of the range: the field never shows
     a value the slider cannot (0.1 was seen on a slider ending at 0.02); the instances shown are the same."""
     s = ViewerSession([SAMPLES], out_dir=tmp_path)
-    assert s.open_scene("real_tabletop_6") is not None
-    res = s.load_result()
+    assert s.scenes.open_scene("real_tabletop_6") is not None
+    res = s.results.load_result()
     assert res is not None
-    top = s.threshold_max(res)
-    s.set_threshold(top + 0.5)
-    assert s.state.threshold == top and not s.kept_mask().any()
-    s.set_threshold(-0.3)
-    assert s.state.threshold == 0.0 and s.kept_mask().all()
-    s.set_threshold(top / 2)
+    top = s.results.threshold_max(res)
+    s.results.set_threshold(top + 0.5)
+    assert s.state.threshold == top and not s.results.kept_mask().any()
+    s.results.set_threshold(-0.3)
+    assert s.state.threshold == 0.0 and s.results.kept_mask().all()
+    s.results.set_threshold(top / 2)
     assert s.state.threshold == top / 2
 
 
@@ -159,114 +160,114 @@ def test_the_run_preset_fits_the_scene() -> None:
     a synthetic scan (whose generator records only its renders' image size) with `fast`."""
     from efem_viz.data.io import load_scene
 
-    assert ViewerSession.suggested_preset(load_scene(SAMPLES / "real_tabletop_8.ply")) == "real"
-    assert ViewerSession.suggested_preset(load_scene(sample_scene("syn_z_0"))) == "fast"
+    assert ResultPart.suggested_preset(load_scene(SAMPLES / "real_tabletop_8.ply")) == "real"
+    assert ResultPart.suggested_preset(load_scene(sample_scene("syn_z_0"))) == "fast"
 
 
 def test_step_through_iterations(session: ViewerSession) -> None:
-    v = session.set_step(0)
+    v = session.timeline.set_step(0)
     assert isinstance(v, StepView) and v.step == 0 and session.state.step == 0
     assert len(v.ids) == len(v.scores) and set(v.drawn.tolist()) <= set(v.ids.tolist())
     assert len(v.drawn) <= session.state.max_shapes
-    assert session.set_step(10_000).step == session.state.num_steps - 1  # type: ignore[union-attr]
-    session.set_step(0)
-    assert session.next_step().step == 1  # type: ignore[union-attr]
-    session.set_step(session.state.num_steps - 1)
-    assert session.next_step() is None and not session.state.playing  # playback stops at the end
-    session.set_max_shapes(2)
-    assert len(session.step_view(0).drawn) <= 2  # type: ignore[union-attr]
-    session.set_max_shapes(8)
-    session.set_proposal_layers(shapes=False, samples=False)
+    assert session.timeline.set_step(10_000).step == session.state.num_steps - 1  # type: ignore[union-attr]
+    session.timeline.set_step(0)
+    assert session.timeline.next_step().step == 1  # type: ignore[union-attr]
+    session.timeline.set_step(session.state.num_steps - 1)
+    assert session.timeline.next_step() is None and not session.state.playing  # playback stops at the end
+    session.timeline.set_max_shapes(2)
+    assert len(session.timeline.step_view(0).drawn) <= 2  # type: ignore[union-attr]
+    session.timeline.set_max_shapes(8)
+    session.timeline.set_proposal_layers(shapes=False, samples=False)
     assert not session.state.show_shapes and not session.state.show_samples
-    session.set_proposal_layers(shapes=True, samples=True)
-    v0 = session.step_view(0)
+    session.timeline.set_proposal_layers(shapes=True, samples=True)
+    v0 = session.timeline.step_view(0)
     assert v0 is not None
-    pts, cols = session.samples(v0.drawn, 0)
+    pts, cols = session.timeline.samples(v0.drawn, 0)
     assert pts.shape[1] == 3 and cols.shape == pts.shape and cols.dtype == np.uint8
     pid = int(v0.drawn[0])
-    assert session.is_dead_at(pid, 0) is False
+    assert session.timeline.is_dead_at(pid, 0) is False
 
 
 def test_modes_and_validation(session: ViewerSession) -> None:
     with pytest.raises(ValueError):
-        session.set_color_mode("rainbow")
+        session.scenes.set_color_mode("rainbow")
     with pytest.raises(ValueError):
-        session.set_view_mode("movie")
+        session.scenes.set_view_mode("movie")
     with pytest.raises(ValueError):
-        session.set_display("voxels")
-    session.set_view_mode("step")
-    session.set_color_mode("instances")
-    assert not session.recolored()  # a step on screen: scene colours
-    pc = session.point_colors()
+        session.scenes.set_display("voxels")
+    session.scenes.set_view_mode("step")
+    session.scenes.set_color_mode("instances")
+    assert not session.scenes.recolored()  # a step on screen: scene colours
+    pc = session.results.point_colors()
     assert isinstance(pc, PointColors) and pc.shown == "step"  # the EM-step view's key
     assert "terminated at this step" in color_key_html(pc.shown)
-    session.set_view_mode("result")
-    assert session.recolored() and session.point_colors().shown == "instances"  # type: ignore[union-attr]
-    session.set_result_layers(meshes=False, obbs=True, axes=True)
+    session.scenes.set_view_mode("result")
+    assert session.scenes.recolored() and session.results.point_colors().shown == "instances"  # type: ignore[union-attr]
+    session.scenes.set_result_layers(meshes=False, obbs=True, axes=True)
     assert (session.state.show_meshes, session.state.show_obbs, session.state.show_axes) == (False, True, True)
-    session.set_result_layers(meshes=True, obbs=True, axes=False)
+    session.scenes.set_result_layers(meshes=True, obbs=True, axes=False)
 
 
 def test_threshold_and_ground_truth(session: ViewerSession) -> None:
     res = session.state.require_result()
-    session.set_threshold(0.0)
-    assert session.kept_mask().all()
-    session.set_threshold(session.threshold_max(res))
-    assert not session.kept_mask().any() and not session.shown_mask().any()
-    session.set_threshold(0.3)
-    np.testing.assert_array_equal(session.kept_mask(), res.instances.kept(0.3))
-    m = session.gt_metrics()
-    assert session.gt_metrics() is m  # cached per threshold
-    assert len(m.tp) + len(m.fp) == int(session.kept_mask().sum())
-    session.set_color_mode("gt_match")
+    session.results.set_threshold(0.0)
+    assert session.results.kept_mask().all()
+    session.results.set_threshold(session.results.threshold_max(res))
+    assert not session.results.kept_mask().any() and not session.results.shown_mask().any()
+    session.results.set_threshold(0.3)
+    np.testing.assert_array_equal(session.results.kept_mask(), res.instances.kept(0.3))
+    m = session.results.gt_metrics()
+    assert session.results.gt_metrics() is m  # cached per threshold
+    assert len(m.tp) + len(m.fp) == int(session.results.kept_mask().sum())
+    session.scenes.set_color_mode("gt_match")
     boxes = np.zeros((len(res.instances), 3), np.uint8)
-    pc = session.point_colors(boxes)
+    pc = session.results.point_colors(boxes)
     assert pc is not None and pc.shown == "gt_match" and pc.boxes is not None and pc.boxes.shape == boxes.shape
     assert pc.colors.shape == (session.state.require_scene().num_points, 3)
-    session.set_color_mode("instances")
+    session.scenes.set_color_mode("instances")
 
 
 def test_instance_table_actions(session: ViewerSession) -> None:
-    session.set_threshold(0.0)
+    session.results.set_threshold(0.0)
     res = session.state.require_result()
     ids = [int(i) for i in np.asarray(res.instances.ids).reshape(-1)]
-    opts = session.table_options()
+    opts = session.instances.table_options()
     assert len(opts) == len(ids) and session.state.table_row is not None
     first = session.state.table_row
-    session.choose_instance(ids[-1])
+    session.instances.choose_instance(ids[-1])
     assert session.state.table_row == ids[-1]
     with pytest.raises(ValueError, match="no instance #"):
-        session.choose_instance(10_000)
-    session.set_instance_visible(ids[0], False)
-    assert ids[0] in session.state.hidden and not session.shown_mask()[0] and session.kept_mask()[0]
-    session.set_instance_visible(ids[0], True)
+        session.instances.choose_instance(10_000)
+    session.instances.set_instance_visible(ids[0], False)
+    assert ids[0] in session.state.hidden and not session.results.shown_mask()[0] and session.results.kept_mask()[0]
+    session.instances.set_instance_visible(ids[0], True)
     assert not session.state.hidden
-    nxt = session.next_instance(+1)
+    nxt = session.instances.next_instance(+1)
     assert nxt in ids
-    target = session.fly_target(nxt)
+    target = session.instances.fly_target(nxt)
     assert isinstance(target, FlyTarget) and target.pid == nxt and session.state.table_row == nxt
     assert np.all(target.lo <= target.hi) and target.scene_diagonal > 0 and not target.below_threshold
     session.state.table_row = None
-    session.table_options()
+    session.instances.table_options()
     assert session.state.table_row == first  # the first row (most confident) when none is chosen
 
 
 def test_inspect_a_proposal(session: ViewerSession) -> None:
-    v = session.set_step(1)
+    v = session.timeline.set_step(1)
     assert v is not None
     pid = int(v.drawn[0])
-    assert session.select_proposal(pid) and session.state.selected == pid
-    ins = session.inspect(pid)
+    assert session.inspection.select_proposal(pid) and session.state.selected == pid
+    ins = session.inspection.inspect(pid)
     assert isinstance(ins, Inspection) and ins.pid == pid and ins.step == 1
     n = session.state.require_scene().num_points
     assert ins.weights.shape == (n,) and ins.crop_points.shape == ins.crop_colors.shape
     assert ins.radius > 0 and ins.sampled_points.shape[1] == 3
-    assert session.show_inspection(ins) and session.state.color_mode == "weights"
-    assert session.point_colors().shown == "weights"  # type: ignore[union-attr]
-    session.set_step(2)
-    assert not session.show_inspection(ins)  # stale: another step
-    assert not session.select_proposal(None) and session.state.color_mode == "instances"
-    shape = session.decode_shape(pid, 1)
+    assert session.inspection.show_inspection(ins) and session.state.color_mode == "weights"
+    assert session.results.point_colors().shown == "weights"  # type: ignore[union-attr]
+    session.timeline.set_step(2)
+    assert not session.inspection.show_inspection(ins)  # stale: another step
+    assert not session.inspection.select_proposal(None) and session.state.color_mode == "instances"
+    shape = session.timeline.decode_shape(pid, 1)
     assert shape is None or (shape[0].shape[1] == 3 and shape[1].shape[1] == 3)
 
 
@@ -277,7 +278,7 @@ def test_a_demo_decimates_the_steps_shapes(session: ViewerSession) -> None:
     from efem_viz.viewer.trace_queries import decode_shape
 
     trace = session.state.require_result().trace
-    v = session.set_step(1)
+    v = session.timeline.set_step(1)
     assert v is not None
     for pid in (int(p) for p in v.drawn):
         prior, latent = prior_latent(trace, pid, 1, session.priors.for_run(trace))
@@ -296,19 +297,19 @@ def test_a_demo_decimates_the_steps_shapes(session: ViewerSession) -> None:
 def test_mask_band(session: ViewerSession) -> None:
     res = session.state.require_result()
     tau0 = float(res.config.out_tau)
-    assert session.set_mask_band(tau0)  # unchanged: nothing re-derived
+    assert session.results.set_mask_band(tau0)  # unchanged: nothing re-derived
     version = session.mask_version
-    assert session.set_mask_band(tau0 * 2)
+    assert session.results.set_mask_band(tau0 * 2)
     assert session.mask_version == version + 1
     assert session.state.require_result().config.out_tau == pytest.approx(tau0 * 2)
-    assert session.set_mask_band(tau0)
+    assert session.results.set_mask_band(tau0)
     np.testing.assert_array_equal(np.concatenate(session.state.require_result().instances.masks),
                                   np.concatenate(res.instances.masks))
 
 
 def test_exports(session: ViewerSession, tmp_path: Path) -> None:
-    session.set_threshold(0.3)
-    out = session.export_results(tmp_path / "res")
+    session.results.set_threshold(0.3)
+    out = session.export.export_results(tmp_path / "res")
     assert out is not None and any(out.rglob("*.txt"))
     import json
 
@@ -321,56 +322,56 @@ def test_exports(session: ViewerSession, tmp_path: Path) -> None:
     mesh = trimesh.load(out / "objects" / objs[0]["mesh"], force="mesh")  # loads, in the scene frame (metres)
     assert len(mesh.faces) and np.all(np.isfinite(mesh.vertices))
     with pytest.raises(Exception):  # noqa: B017 - confinement: outside the root nothing is written
-        session.export_results(tmp_path / "outside", root=tmp_path / "res")
+        session.export.export_results(tmp_path / "outside", root=tmp_path / "res")
     assert not (tmp_path / "outside").exists()
-    target = session.static_target()
+    target = session.export.static_target()
     assert target is not None and target.parent == session.out_root / "static"
-    page = session.export_static(tmp_path / "demo")
+    page = session.export.export_static(tmp_path / "demo")
     assert page is not None and (tmp_path / "demo" / "index.html").is_file()
 
 
 def test_nothing_to_export_or_run_without_a_scene(tmp_path: Path) -> None:
     s = ViewerSession([SAMPLES], out_dir=tmp_path)
-    assert s.export_results(tmp_path) is None and "Nothing to export" in str(s.state.error)
-    assert s.run() is None and s.state.error == "Open a scene first."
-    assert s.step_view() is None and s.set_step(3) is None and s.point_colors() is None
-    assert s.kept_mask().size == 0 and s.shown_mask().size == 0
+    assert s.export.export_results(tmp_path) is None and "Nothing to export" in str(s.state.error)
+    assert s.runs.run() is None and s.state.error == "Open a scene first."
+    assert s.timeline.step_view() is None and s.timeline.set_step(3) is None and s.results.point_colors() is None
+    assert s.results.kept_mask().size == 0 and s.results.shown_mask().size == 0
     with pytest.raises(ValueError):
-        s.next_instance(1)
+        s.instances.next_instance(1)
 
 
 def test_run_efem_with_progress(sphere_dir: Path, tmp_path: Path) -> None:
     s = ViewerSession([sphere_dir], prior=analytic.make_sphere_prior(), out_dir=tmp_path)
-    assert s.open_scene("spheres") is not None
+    assert s.scenes.open_scene("spheres") is not None
     steps: list[Any] = []
-    res = s.run(preset="fast", proposals=8, seed=0, on_step=steps.append)
+    res = s.runs.run(preset="fast", proposals=8, seed=0, on_step=steps.append)
     assert res is not None and s.state.result is res and not s.state.running
     assert s.state.result_source.startswith("run (fast, seed 0, ") and steps
     assert all(0 <= int(i.step) < int(i.num_steps) for i in steps)
-    again = s.run(RunSettings(preset="fast", proposals=8, seed=0), show=False)  # the settings object: the same run
+    again = s.runs.run(RunSettings(preset="fast", proposals=8, seed=0), show=False)  # the settings object: the same run
     assert again is not None and s.state.result is res  # not shown
     np.testing.assert_array_equal(again.instances.confidence, res.instances.confidence)  # fixed seed: same
-    bf16 = s.run(preset="fast", proposals=8, seed=0, show=False, matmul_dtype="bfloat16")  # the Run tab's Precision
+    bf16 = s.runs.run(preset="fast", proposals=8, seed=0, show=False, matmul_dtype="bfloat16")  # the Run tab's Precision
     assert bf16 is not None and bf16.config.matmul_dtype == "bfloat16" and res.config.matmul_dtype == "float32"
-    assert s.run(preset="fast", proposals=8, matmul_dtype="float16") is None and "matmul_dtype" in s.state.error
+    assert s.runs.run(preset="fast", proposals=8, matmul_dtype="float16") is None and "matmul_dtype" in s.state.error
     with pytest.raises(TypeError):
-        s.run(bogus=1)  # a knob that is no RunSettings field
+        s.runs.run(bogus=1)  # a knob that is no RunSettings field
     assert RunSettings.of(RunSettings(seed=2), tau_out=0.05, work_voxel=0.004).config().tau_out == 0.05
 
 
 def test_run_cancel_and_one_at_a_time(sphere_dir: Path, tmp_path: Path) -> None:
     s = ViewerSession([sphere_dir], prior=analytic.make_sphere_prior(), out_dir=tmp_path)
-    assert s.open_scene("spheres") is not None
-    ticket = s.begin_run()
+    assert s.scenes.open_scene("spheres") is not None
+    ticket = s.runs.begin_run()
     assert ticket is not None and s.state.running
-    assert s.begin_run() is None and s.state.error == "A run is already in progress."
-    s.cancel_run()  # set before the first step: the run stops there
+    assert s.runs.begin_run() is None and s.state.error == "A run is already in progress."
+    s.runs.cancel_run()  # set before the first step: the run stops there
     done = threading.Event()
     out: list[Any] = []
 
     def job() -> None:
         s.cancel_event.set()
-        out.append(s.run(preset="fast", proposals=8, generation=ticket))
+        out.append(s.runs.run(preset="fast", proposals=8, generation=ticket))
         done.set()
 
     threading.Thread(target=job).start()

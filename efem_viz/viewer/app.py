@@ -28,13 +28,13 @@ from efem_viz.serve.camera import fitted_view, framing
 from efem_viz.serve.guard import ServedApp
 from efem_viz.viewer import panel_views as pv, scene_views as sv, state as st
 from efem_viz.viewer.browsers import Browsers, start_viewer_server
-from efem_viz.viewer.events import wire
+from efem_viz.viewer.wiring import wire
 from efem_viz.viewer.export_tab import ExportTab
 from efem_viz.viewer.instance_table import InstanceTable
 from efem_viz.viewer.jobs import Jobs
 from efem_viz.viewer.legend import color_key_html
 from efem_viz.viewer.nodes import VIEW_DIRECTION, SceneNodes
-from efem_viz.viewer.rooms.runs import RunSettings
+from efem_viz.viewer.parts.runs import RunSettings
 from efem_viz.viewer.panels import COLOR_MODES, MASK_BAND_RANGE, NO_PROPOSAL, VIEW_MODES, build_panels
 from efem_viz.viewer.playback import Playback
 from efem_viz.viewer.run_panel import RunPanel
@@ -158,7 +158,7 @@ class ViewerApp(ServedApp):
         """Stop playback, cancel a run and a static-demo export, shut the workers and the server down."""
         self.pause()
         self.session.cancel_event.set()  # a running EM stops at its next step
-        self.session.cancel_export()  # a static demo stops at its next step, unwritten
+        self.session.export.cancel_export()  # a static demo stops at its next step, unwritten
         self.session.generation += 1  # running decode/inspect jobs drop their results
         self.jobs.shutdown()
         self.server.stop()
@@ -167,7 +167,7 @@ class ViewerApp(ServedApp):
         """Block until every submitted job (loads, runs, decodes) has finished. Returns False on timeout."""
         return self.jobs.wait_idle(timeout)
 
-    # ================================================================== GUI events (`viewer/events.py`)
+    # ================================================================== GUI events (`viewer/wiring.py`)
     def quiet(self) -> bool:
         """Whether the app is setting a control itself (its callback then does nothing)."""
         with self._lock:  # our own programmatic updates set _quiet while holding the lock
@@ -204,7 +204,7 @@ class ViewerApp(ServedApp):
         Returns:
             True on success; on failure the error is shown in the GUI and the previous scene stays.
         """
-        got = self.session.read_scene(name)
+        got = self.session.scenes.read_scene(name)
         if got is None:
             if self.state.scene_name is not None:
                 self.gui_set(self.panels.gui_scene, self.state.scene_name)
@@ -212,7 +212,7 @@ class ViewerApp(ServedApp):
         entry, scene = got
         with self._lock:
             self.pause()
-            self.session.show_scene(entry, scene)
+            self.session.scenes.show_scene(entry, scene)
             s = self.state
             self._set_view_mode("result")
             self.nodes.draw_scene(scene, display=s.display)
@@ -220,8 +220,8 @@ class ViewerApp(ServedApp):
             self.gui_set(self.panels.gui_scene, entry.name)
             self.gui_set(self.panels.gui_display, s.display)
             self.gui_set(self.panels.gui_color, "scene colours")
-            self.gui_set(self.panels.gui_preset, self.session.suggested_preset(scene))
-            self.choose_preset(self.session.suggested_preset(scene))
+            self.gui_set(self.panels.gui_preset, self.session.results.suggested_preset(scene))
+            self.choose_preset(self.session.results.suggested_preset(scene))
             self.gui_set(self.panels.gui_point_size, float(np.clip(round(s.point_size * 2000) / 2, 0.5, 20.0)))
             pv.show_scene_info(self.panels, self.session)
             lo, hi = scene.bounds  # the initial camera (new clients, "Reset view") and every connected one
@@ -231,7 +231,7 @@ class ViewerApp(ServedApp):
                 fit=lambda aspect: fitted_view(flo, fhi, direction=VIEW_DIRECTION, points=sample, aspect=aspect))
             self._draw_no_result()
             self.session.set_status(f"Opened {entry.name} ({scene.num_points:,} points).")
-        if self.session.saved_result_path() is not None:
+        if self.session.scenes.saved_result_path() is not None:
             self.load_trace()
         return True
 
@@ -242,8 +242,8 @@ class ViewerApp(ServedApp):
     def set_display(self, display: str) -> None:
         """'points' or 'mesh'."""
         with self._lock:
-            self.session.set_display(display)
-            self.nodes.set_display(display, recolored=self.session.recolored())
+            self.session.scenes.set_display(display)
+            self.nodes.set_display(display, recolored=self.session.scenes.recolored())
 
     def set_point_size(self, size_m: float) -> None:
         with self._lock:
@@ -254,7 +254,7 @@ class ViewerApp(ServedApp):
     def set_color_mode(self, mode: str) -> None:
         """How the scene points are coloured: 'rgb', 'instances', 'gt_match' or 'weights'."""
         with self._lock:
-            self.session.set_color_mode(mode)
+            self.session.scenes.set_color_mode(mode)
             label = next(k for k, v in COLOR_MODES.items() if v == mode)
             self.gui_set(self.panels.gui_color, label)
             if mode in ("instances", "gt_match"):
@@ -264,7 +264,7 @@ class ViewerApp(ServedApp):
     # ================================================================== 2. results: load / run
     def load_trace(self, path: str | Path | None = None) -> bool:
         """Load `<scene>.efem.npz` (or `path`, which must lie inside the given paths) for the open scene."""
-        got = self.session.read_result(path)
+        got = self.session.results.read_result(path)
         if got is None:
             return False
         result, name = got
@@ -283,13 +283,13 @@ class ViewerApp(ServedApp):
 
     def cancel_run(self) -> None:
         """Ask a running EM to stop at its next step."""
-        self.session.cancel_run()
+        self.session.runs.cancel_run()
 
     def set_result(self, result: EMResult, *, source: str) -> None:
         """Show an EMResult: timeline, proposals at the last step, final instances and ground truth."""
         with self._lock:
             self.pause()
-            self.session.set_result(result, source=source)
+            self.session.results.set_result(result, source=source)
             pv.show_result(self.panels, self.session, self.gui_set)
             self.nodes.clear_inspector()
             self.nodes.remove_shapes()  # old per-step shapes; the final instances are drawn once
@@ -305,7 +305,7 @@ class ViewerApp(ServedApp):
         """Show one EM step ("step": its decoded shapes and samples, no final instances) or the final instances
         ("result": meshes, boxes, labels and their colours, no step layers)."""
         with self._lock:
-            self.session.set_view_mode(mode)
+            self.session.scenes.set_view_mode(mode)
             self._set_view_mode(self.state.view_mode)
             if self.state.result is not None:
                 self.set_step(self.state.step, view_mode=self.state.view_mode)
@@ -318,7 +318,7 @@ class ViewerApp(ServedApp):
 
     def _set_view_mode(self, mode: st.ViewMode) -> None:
         """Record the mode and show it in the Show dropdown (no redraw)."""
-        self.session.set_view_mode(mode)
+        self.session.scenes.set_view_mode(mode)
         self.gui_set(self.panels.gui_view_mode, next(k for k, v in VIEW_MODES.items() if v == mode))
 
     def set_step(self, step: int, *, view_mode: st.ViewMode = "step") -> None:
@@ -337,7 +337,7 @@ class ViewerApp(ServedApp):
             was = s.view_mode
             if view_mode != was:
                 self._set_view_mode(view_mode)
-            v = self.session.set_step(step)
+            v = self.session.timeline.set_step(step)
             assert v is not None
             self.gui_set(self.panels.gui_step, v.step)
             missing = sv.draw_step(self.nodes, self.session, v)
@@ -363,12 +363,12 @@ class ViewerApp(ServedApp):
     # ================================================================== 4. proposals
     def set_max_shapes(self, n: int) -> None:
         with self._lock:
-            self.session.set_max_shapes(n)
+            self.session.timeline.set_max_shapes(n)
             self.set_step(self.state.step)
 
     def set_proposal_layers(self, *, shapes: bool | None = None, samples: bool | None = None) -> None:
         with self._lock:
-            self.session.set_proposal_layers(shapes=shapes, samples=samples)
+            self.session.timeline.set_proposal_layers(shapes=shapes, samples=samples)
             self.set_step(self.state.step)
 
     def select_proposal(self, pid: int | None) -> Future[None] | None:
@@ -376,7 +376,7 @@ class ViewerApp(ServedApp):
         with self._lock:
             s = self.state
             was_weights = s.color_mode == "weights"
-            if not self.session.select_proposal(pid):
+            if not self.session.inspection.select_proposal(pid):
                 self.nodes.clear_inspector()
                 self.panels.gui_inspect_info.content = ""
                 if was_weights:
@@ -398,12 +398,12 @@ class ViewerApp(ServedApp):
 
     def _inspect_job(self, pid: int, t: int, generation: int) -> None:
         try:
-            ins = self.session.inspect(pid, t)
+            ins = self.session.inspection.inspect(pid, t)
         except ValueError as exc:
             self.session.set_status(f"Cannot inspect #{pid} at step {t}: {exc}", error=True)
             return
         with self._lock:
-            if generation != self.session.generation or not self.session.show_inspection(ins):
+            if generation != self.session.generation or not self.session.inspection.show_inspection(ins):
                 return
             sv.draw_inspection(self.nodes, ins)
             pv.show_inspection(self.panels, self.session, ins, self.gui_set)
@@ -415,7 +415,7 @@ class ViewerApp(ServedApp):
         redraws (only a person's cut carries over to the next result)."""
         with self._lock:
             s = self.state
-            self.session.set_threshold(threshold, by_user=by_user)
+            self.session.results.set_threshold(threshold, by_user=by_user)
             self.gui_set(self.panels.gui_threshold, s.threshold)
             if s.result is None:
                 return
@@ -436,7 +436,7 @@ class ViewerApp(ServedApp):
                 return False
             self.gui_set(self.panels.gui_mask_band, float(np.clip(tau_out, *MASK_BAND_RANGE)))
             before = self.session.mask_version
-            if not self.session.set_mask_band(tau_out):
+            if not self.session.results.set_mask_band(tau_out):
                 return False
             if self.session.mask_version != before:
                 self.set_threshold(s.threshold, by_user=False)
@@ -444,11 +444,11 @@ class ViewerApp(ServedApp):
 
     def kept_mask(self) -> np.ndarray:
         """(K,) bool: final instances at or above the threshold (what the metrics and exports take)."""
-        return self.session.kept_mask()
+        return self.session.results.kept_mask()
 
     def shown_mask(self) -> np.ndarray:
         """(K,) bool: final instances drawn: at or above the threshold and not hidden in the instance table."""
-        return self.session.shown_mask()
+        return self.session.results.shown_mask()
 
     # ---------------------------------------------------------------- the instance table
     def choose_instance(self, pid: int | None) -> None:
@@ -469,7 +469,7 @@ class ViewerApp(ServedApp):
 
     def set_result_layers(self, *, meshes: bool, obbs: bool, axes: bool) -> None:
         with self._lock:
-            self.session.set_result_layers(meshes=meshes, obbs=obbs, axes=axes)
+            self.session.scenes.set_result_layers(meshes=meshes, obbs=obbs, axes=axes)
             self._show_result_view()
             sv.show_results(self.nodes, self.session)
 
@@ -477,11 +477,11 @@ class ViewerApp(ServedApp):
         """Result layers, point colours and the mesh display's overlay after a mode change."""
         sv.show_results(self.nodes, self.session)
         self.draw_point_colors()
-        self.nodes.set_display(self.state.display, recolored=self.session.recolored())
+        self.nodes.set_display(self.state.display, recolored=self.session.scenes.recolored())
 
     def _gt_metrics(self) -> GTMetrics:
         """Ground-truth metrics of the current result at the current threshold (`ViewerSession.gt_metrics`)."""
-        return self.session.gt_metrics()
+        return self.session.results.gt_metrics()
 
     def draw_point_colors(self) -> None:
         """Recolour the scene points for the current colour mode (sends only (N,3) uint8)."""

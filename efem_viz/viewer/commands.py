@@ -130,7 +130,7 @@ def check_view_inputs(paths: list[Path], results: tuple[Path, ...], *, max_point
             no scene file was found.
     """
     from efem_viz.data.io import load_scene
-    from efem_viz.viewer.scenes import discover_scenes
+    from efem_viz.viewer.scene_list import discover_scenes
 
     for p in paths:
         if not Path(p).exists():

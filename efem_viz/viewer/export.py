@@ -22,7 +22,7 @@ import numpy as np
 
 from efem_viz.colors import dim, instance_point_colors
 from efem_viz.em.replay import prior_latent
-from efem_viz.viewer.scenes import trace_path_for
+from efem_viz.viewer.scene_list import trace_path_for
 from efem_viz.viewer.trace_queries import decode_shape, proposal_samples, top_n
 from efem_viz.terminal import count
 from efem_viz.viewer.legend import category_summary

@@ -1,6 +1,6 @@
 """The Export tab's actions: its output folder field, its two buttons, and what each export shows in the tab.
 
-The writing itself is the session's (`efem_viz.viewer.rooms.export`); this module confines the GUI's folder to the
+The writing itself is the session's (`efem_viz.viewer.parts.exporting`); this module confines the GUI's folder to the
 output root chosen at start, runs the exports in the worker thread (`efem_viz.viewer.jobs`) and reports where they
 went. No viser import at run time.
 """
@@ -53,12 +53,12 @@ class ExportTab:
         root = self.session.out_root
         if kind == "results":
             return self.jobs.submit(self.jobs.worker, self.export_results, folder, root=root)
-        return self.jobs.submit(self.jobs.worker, self.export_static, self.session.static_target(folder), root=root)
+        return self.jobs.submit(self.jobs.worker, self.export_static, self.session.export.static_target(folder), root=root)
 
     def export_results(self, out_dir: str | Path, *, root: Path | None = None) -> Path | None:
         """Write the thresholded result: ScanNet layout + coloured PLY under `out_dir` (see
         `ViewerSession.export_results`); the tab says where."""
-        out = self.session.export_results(out_dir, root=root)
+        out = self.session.export.export_results(out_dir, root=root)
         if out is not None:
             self.panels.gui_export_info.content = f"Results written to `{out}`"
         return out
@@ -67,7 +67,7 @@ class ExportTab:
         """Write the static demo page `<out_dir>/index.html` (final result + playback of the steps); None =
         `<output root>/static/<scene>/` (see `ViewerSession.export_static`); the tab says where."""
         self.panels.gui_export_info.content = ""  # a cancelled or failed export must not show the last one's path
-        out = self.session.export_static(out_dir, root=root, on_progress=self._show_progress)
+        out = self.session.export.export_static(out_dir, root=root, on_progress=self._show_progress)
         if out is not None:
             self.panels.gui_export_info.content = f"Static demo written to `{out}`"
         return out
@@ -84,4 +84,4 @@ class ExportTab:
 
     def cancel(self) -> None:
         """The Cancel export button: the static demo stops at its next step, nothing is written."""
-        self.session.cancel_export()
+        self.session.export.cancel_export()

@@ -1,6 +1,6 @@
 """The Results tab's instance table as the GUI drives it: choose a row, show or hide it, fly the camera to it.
 
-The table's rows and choices are the session's (`efem_viz.viewer.rooms.instances`); this module draws them into
+The table's rows and choices are the session's (`efem_viz.viewer.parts.instances`); this module draws them into
 the panels (`efem_viz.viewer.panel_views.show_instance_table`) and points a browser's camera at an instance
 (`efem_viz.serve.camera.fly_to_view`). No viser import at run time.
 """
@@ -44,7 +44,7 @@ class InstanceTable:
     def choose_instance(self, pid: int | None) -> None:
         """Choose a row of the instance table (None: none); its *Visible* box and mark follow."""
         with self.session.lock:
-            self.session.choose_instance(pid)
+            self.session.instances.choose_instance(pid)
             pv.show_instance_table(self.panels, self.session, self.gui_set)
 
     def set_instance_visible(self, pid: int | None, visible: bool) -> None:
@@ -54,7 +54,7 @@ class InstanceTable:
             ValueError: no such instance.
         """
         with self.session.lock:
-            self.session.set_instance_visible(pid, visible)
+            self.session.instances.set_instance_visible(pid, visible)
             self.redraw_results()
 
     def fly_to_instance(self, pid: int | None, *, client: ClientHandle | None = None) -> None:
@@ -65,7 +65,7 @@ class InstanceTable:
             ValueError: no such instance.
         """
         with self.session.lock:
-            f = self.session.fly_target(pid)
+            f = self.session.instances.fly_target(pid)
             view = fly_to_view(f.lo, f.hi, home=self.camera_guard.view, scene_diagonal=f.scene_diagonal)
             pv.show_instance_table(self.panels, self.session, self.gui_set)
         self.camera_guard.place(view, client)
@@ -77,6 +77,6 @@ class InstanceTable:
         Raises:
             ValueError: no result or no instance.
         """
-        pid = self.session.next_instance(step)
+        pid = self.session.instances.next_instance(step)
         self.fly_to_instance(pid, client=client)
         return pid

@@ -107,7 +107,7 @@ def show_result(p: Panels, session: ViewerSession, gui_set: GuiSet) -> None:
     p.gui_play.disabled = T == 0
     gui_set(p.gui_step, s.step)
     gui_set(p.gui_proposal, NO_PROPOSAL)
-    p.gui_threshold.max = session.threshold_max(result)  # the top hides every instance
+    p.gui_threshold.max = session.results.threshold_max(result)  # the top hides every instance
     gui_set(p.gui_threshold, s.threshold)
     p.gui_mask_band.disabled = len(result.instances) == 0
     gui_set(p.gui_mask_band, float(np.clip(result.config.out_tau, *MASK_BAND_RANGE)))
@@ -161,13 +161,13 @@ def show_threshold(p: Panels, session: ViewerSession, gui_set: GuiSet) -> None:
     s = session.state
     if s.result is None:
         return
-    keep = session.kept_mask()
+    keep = session.results.kept_mask()
     inst = s.result.instances
     p.gui_result_info.content = result_summary_markdown(
         inst, keep, threshold=s.threshold, out_tau=s.result.config.out_tau,
-        hidden_by_hand=int((keep & ~session.shown_mask()).sum()),
+        hidden_by_hand=int((keep & ~session.results.shown_mask()).sum()),
     )
-    p.gui_legend.content = legend_html(inst, session.shown_mask())
+    p.gui_legend.content = legend_html(inst, session.results.shown_mask())
     show_gt(p, session)
     show_instance_table(p, session, gui_set)
 
@@ -176,7 +176,7 @@ def show_instance_table(p: Panels, session: ViewerSession, gui_set: GuiSet) -> N
     """The instance table, its dropdown (options and choice), *Visible* box and buttons."""
     s = session.state
     buttons = (p.gui_instance_visible, p.gui_fly_to, p.gui_instance_prev, p.gui_instance_next)
-    opts = session.table_options()
+    opts = session.instances.table_options()
     if not opts:
         p.gui_instance.options = (NO_ROW,)
         gui_set(p.gui_instance, NO_ROW)
@@ -190,7 +190,7 @@ def show_instance_table(p: Panels, session: ViewerSession, gui_set: GuiSet) -> N
     gui_set(p.gui_instance_visible, s.table_row not in s.hidden)
     for h in buttons:
         h.disabled = False
-    metrics = session.gt_metrics_or_none() if s.scene is not None and s.scene.has_gt else None
+    metrics = session.results.gt_metrics_or_none() if s.scene is not None and s.scene.has_gt else None
     p.gui_instance_table.content = instance_table_markdown(s.require_result().instances, threshold=s.threshold,
                                                            hidden=s.hidden, metrics=metrics, selected=s.table_row)
 
@@ -203,7 +203,7 @@ def show_gt(p: Panels, session: ViewerSession) -> None:
         p.gui_pr_plot.visible = False
         return
     try:
-        metrics = session.gt_metrics()
+        metrics = session.results.gt_metrics()
     except Exception as exc:  # noqa: BLE001 - evaluation problems must not break the threshold view
         logger.exception("ground-truth evaluation failed")
         p.gui_gt_info.content = f"_Ground-truth evaluation failed: {exc}_"

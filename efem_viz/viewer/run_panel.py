@@ -1,6 +1,6 @@
 """The Run button's job: EFEM on the open scene in the runner thread, its progress in the panels, its result shown.
 
-The run itself is the session's (`efem_viz.viewer.rooms.runs`: one run at a time, cancel at the next step); this
+The run itself is the session's (`efem_viz.viewer.parts.runs`: one run at a time, cancel at the next step); this
 module submits it to `Jobs.runner` (a run never queues loads or decodes behind it), keeps the Run/Load/Cancel
 buttons and the progress bar current, and hands the finished result to the app's `set_result`. No viser import at
 run time.
@@ -14,7 +14,7 @@ from concurrent.futures import Future
 from typing import TYPE_CHECKING, Any, Callable
 
 from efem_viz.viewer import panel_views as pv
-from efem_viz.viewer.rooms.runs import RunSettings
+from efem_viz.viewer.parts.runs import RunSettings
 
 if TYPE_CHECKING:
     from efem_viz.em.results import EMResult
@@ -54,7 +54,7 @@ class RunPanel:
         **knobs)` (`knobs`: its fields, e.g. `preset="fast"`). Returns the job's Future (None: a run is going)."""
         settings = RunSettings.of(settings, **knobs)
         with self.session.lock:
-            generation = self.session.begin_run()
+            generation = self.session.runs.begin_run()
             if generation is None:
                 return None
             pv.show_running(self.panels, True)
@@ -83,7 +83,7 @@ class RunPanel:
             from efem_viz.prior import fused
 
             fused.prepare(lambda notice: setattr(self.panels.gui_run_info, "content", notice))  # a first run builds
-            result = self.session.run(settings, show=False, on_step=on_step, generation=generation)
+            result = self.session.runs.run(settings, show=False, on_step=on_step, generation=generation)
         finally:
             with self.session.lock:
                 pv.show_running(self.panels, False)
@@ -93,5 +93,5 @@ class RunPanel:
                 self.show_result(partial, f"stopped run (not saved): as far as it went, step {info.step + 1} of "
                                           f"{info.num_steps}")
             return None
-        self.show_result(result, self.session.last_run_source)
+        self.show_result(result, self.session.runs.last_run_source)
         return result

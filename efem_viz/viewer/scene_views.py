@@ -27,7 +27,7 @@ def draw_step(nodes: SceneNodes, session: ViewerSession, v: StepView) -> list[tu
     in_step = s.view_mode == "step"
     pts = np.zeros((0, 3), np.float32)
     if s.show_samples and v.drawn.size and in_step:
-        pts, cols = session.samples(v.drawn, v.step)
+        pts, cols = session.timeline.samples(v.drawn, v.step)
         if len(pts):
             nodes.draw_samples(pts, cols)
     if not len(pts):
@@ -45,7 +45,7 @@ def decode_shapes(nodes: SceneNodes, session: ViewerSession, keys: list[tuple[in
             if generation != session.generation or session.state.step != t or nodes.has_shape(pid, t):
                 continue  # the user moved on (decoded again when asked) or it is already there
         try:
-            shape = session.decode_shape(pid, t)
+            shape = session.timeline.decode_shape(pid, t)
         except RuntimeError as exc:
             session.no_shapes_generation = generation  # say it once, do not retry on every step
             session.set_status(f"Decoded shapes unavailable: {exc}", error=True)
@@ -61,9 +61,9 @@ def add_decoded_shape(nodes: SceneNodes, session: ViewerSession, pid: int, t: in
     """Add one decoded shape (sent once) and re-show the step's shapes when step `t` is still on screen."""
     s = session.state
     if shape is not None:
-        nodes.add_shape(pid, t, *shape, dead=session.is_dead_at(pid, t))
+        nodes.add_shape(pid, t, *shape, dead=session.timeline.is_dead_at(pid, t))
     if s.step == t and s.show_shapes and s.view_mode == "step":
-        v = session.step_view(t)
+        v = session.timeline.step_view(t)
         nodes.show_shapes([(int(p_), t) for p_ in (() if v is None else v.drawn)])
 
 
@@ -87,7 +87,7 @@ def show_results(nodes: SceneNodes, session: ViewerSession) -> None:
     """Result layers per the toggles and the threshold; meshes step aside while the points carry a weight heat
     map or the TP/FP/FN colours (they would hide them); none while one EM step is on screen."""
     s = session.state
-    keep = session.shown_mask()
+    keep = session.results.shown_mask()
     if s.view_mode != "result":  # one EM step on screen: no final instance over it
         keep = np.zeros_like(keep)
     nodes.show_results(
@@ -105,11 +105,11 @@ def draw_point_colors(nodes: SceneNodes, session: ViewerSession) -> str | None:
     Returns:
         The colouring in effect (its key is shown under the Colour control), or None without a scene.
     """
-    pc = session.point_colors(nodes.results.colors)
+    pc = session.results.point_colors(nodes.results.colors)
     if pc is None:
         return None
     nodes.set_point_colors(pc.colors, key=pc.key)
     nodes.set_box_colors(pc.boxes)
     # a mesh scene shows a recolouring on its points over the mesh: keep the two in step with the colours
-    nodes.set_display(session.state.display, recolored=session.recolored())
+    nodes.set_display(session.state.display, recolored=session.scenes.recolored())
     return pc.shown

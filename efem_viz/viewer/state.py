@@ -1,9 +1,9 @@
 """The viewer's state (no viser here): everything the viewer shows, as plain typed values.
 
 `ViewerSession` (`viewer/session.py`, headless) owns a `ViewerState` and changes it through its actions; the GUI
-callbacks in `app.py` call those actions (heavy ones in worker threads) and draw the state. The pure functions the callbacks use live in their own rooms:
+callbacks in `app.py` call those actions (heavy ones in worker threads) and draw the state. The pure functions the callbacks use live in their own parts:
 colours in `efem_viz.colors`, the ground-truth comparison in `efem_viz.eval.comparison`, scene discovery in
-`viewer/scenes.py`, trace queries and the timeline in `viewer/trace_queries.py`.
+`viewer/scene_list.py`, trace queries and the timeline in `viewer/trace_queries.py`.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
-from efem_viz.viewer.scenes import SceneEntry
+from efem_viz.viewer.scene_list import SceneEntry
 
 if TYPE_CHECKING:
     from efem_viz.data.scene import Scene

@@ -13,7 +13,7 @@ import numpy as np
 from efem_viz.data.io import holds_predictions
 from efem_viz.eval.comparison import GTMetrics
 from efem_viz.serve.table import row_option
-from efem_viz.viewer.scenes import SceneEntry
+from efem_viz.viewer.scene_list import SceneEntry
 from efem_viz.viewer.state import NO_PROPOSAL
 from efem_viz.viewer.trace_queries import Death, top_n
 from efem_viz.terminal import count

@@ -30,8 +30,8 @@ def _last_step(app: Any) -> str:
     """The newest line of the edit history panel (what the next undo takes back)."""
     from annotator.panel_views import recent_steps
 
-    with app.session.store.lock:
-        steps = recent_steps(app.session.store.labelset.undo_stack, 1)
+    with app.session.scan.store.lock:
+        steps = recent_steps(app.session.scan.store.labelset.undo_stack, 1)
     return steps[0] if steps else ""
 
 
@@ -57,8 +57,8 @@ def annotator(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Any]:
     app = AnnotatorApp(scan, out_dir=tmp_path / "out", port=0, autosave_delay=0,
                        display_points=900 if request.param == "reduced" else 1_000_000)
     assert app.view.reduced == (request.param == "reduced")
-    app.session.new_instance(category="mug")
-    app.session.settings.radius = 0.03
+    app.session.instances.new_instance(category="mug")
+    app.session.toolbox.settings.radius = 0.03
     app.kind = request.param
     yield app
     app.close()
@@ -68,7 +68,7 @@ def annotator(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Any]:
 def test_ctrl_drag_on_mesh_paints_vertices(annotator: Any, page: Any) -> None:
     """A ctrl-drag paints: the label store changes (one undoable stroke) and so does the canvas."""
     app = annotator
-    iid = app.session.settings.active_id
+    iid = app.session.toolbox.settings.active_id
     page.goto(app.url)
     page.get_by_text("Tools", exact=True).first.wait_for(timeout=HANG_GUARD_MS)
     wait_until(lambda: len(app.server.get_clients()) > 0, HANG_GUARD_S, "client connection")
@@ -80,17 +80,17 @@ def test_ctrl_drag_on_mesh_paints_vertices(annotator: Any, page: Any) -> None:
     for attempt in range(3):  # the first gesture can land while the scene is still streaming in
         ctrl_drag(page, (cx - 40, cy), (cx + 44, cy + 24))
         try:
-            wait_until(lambda: int((app.session.store.labels == iid).sum()) > 0, HANG_GUARD_S, "painted vertices")
+            wait_until(lambda: int((app.session.scan.store.labels == iid).sum()) > 0, HANG_GUARD_S, "painted vertices")
         except AssertionError:
             continue
         app.wait_idle()
-        painted = int((app.session.store.labels == iid).sum())
+        painted = int((app.session.scan.store.labels == iid).sum())
         break
     assert painted > 10, "a ctrl-drag on the mesh did not paint any vertex"
     if app.view.reduced:  # the stroke labels the vertices that are not drawn too
-        assert np.isin(np.flatnonzero(app.session.store.labels == iid), app.view.display, invert=True).sum() > 5
+        assert np.isin(np.flatnonzero(app.session.scan.store.labels == iid), app.view.display, invert=True).sum() > 5
     # the whole stroke is one undoable journal group
-    groups = {r.header.get("group") for r in app.session.store.journal.records if r.kind == "do" and r.arrays["idx"].size}
+    groups = {r.header.get("group") for r in app.session.scan.store.journal.records if r.kind == "do" and r.arrays["idx"].size}
     assert len(groups) == 1  # one stroke landed (earlier attempts, if any, painted nothing)
     after = settle_canvas(page)
     changed = int(changed_mask(after, before).sum())
@@ -98,15 +98,15 @@ def test_ctrl_drag_on_mesh_paints_vertices(annotator: Any, page: Any) -> None:
     if SAVE:
         DOCS_IMG.mkdir(parents=True, exist_ok=True)
         page.screenshot(path=str(DOCS_IMG / f"annotator_brush_{app.kind}.png"))
-    app.session.undo()
-    assert int((app.session.store.labels == iid).sum()) == 0
+    app.session.instances.undo()
+    assert int((app.session.scan.store.labels == iid).sum()) == 0
 
 
 
 def _strokes(app: Any) -> list[tuple[str, str, np.ndarray]]:
     """(client, group, vertices) of each stroke in the journal, in order (adjacent edits of one group merged)."""
     out: list[tuple[str, str, np.ndarray]] = []
-    for r in app.session.store.journal.records:
+    for r in app.session.scan.store.journal.records:
         if r.kind != "do" or not r.arrays["idx"].size:
             continue
         client, group = str(r.header.get("client")), str(r.header.get("group"))
@@ -164,15 +164,15 @@ def test_two_tabs_see_each_others_edits(annotator: Any, new_page: Callable[..., 
     B's, and the journal holds the two strokes in order under the two tabs' client ids.
     """
     app = annotator
-    iid = app.session.settings.active_id
+    iid = app.session.toolbox.settings.active_id
     tab_a, tab_b = new_page(SMALL), new_page(SMALL)
     open_viser_pages([tab_a, tab_b], app.url)
     wait_until(lambda: len(app.server.get_clients()) >= 2, HANG_GUARD_S, "two connected tabs")
     b0 = settle_canvas(tab_b)
 
     # ---- tab A paints; tab B shows it
-    _stroke(tab_a, app, STROKE_A, painted=lambda: bool((app.session.store.labels == iid).any()))
-    by_a = app.session.store.labels == iid
+    _stroke(tab_a, app, STROKE_A, painted=lambda: bool((app.session.scan.store.labels == iid).any()))
+    by_a = app.session.scan.store.labels == iid
     strokes = _strokes(app)
     assert len(strokes) == 1, strokes
     client_a = strokes[0][0]
@@ -183,8 +183,8 @@ def test_two_tabs_see_each_others_edits(annotator: Any, new_page: Callable[..., 
 
     # ---- tab B paints elsewhere; tab A shows it; nothing of A's edit is lost
     a1 = settle_canvas(tab_a)
-    _stroke(tab_b, app, STROKE_B, painted=lambda: bool(((app.session.store.labels == iid) & ~by_a).any()))
-    labels = app.session.store.labels
+    _stroke(tab_b, app, STROKE_B, painted=lambda: bool(((app.session.scan.store.labels == iid) & ~by_a).any()))
+    labels = app.session.scan.store.labels
     assert (labels[by_a] == iid).all(), "tab B's stroke lost vertices painted by tab A"
     by_b = (labels == iid) & ~by_a
     assert by_b.sum() > 0
@@ -227,31 +227,31 @@ def test_lasso_by_ctrl_clicks_then_enter_paints_inside(annotator: Any, new_page:
     from annotator import selection as sel
 
     app = annotator
-    iid = app.session.settings.active_id
+    iid = app.session.toolbox.settings.active_id
     page = new_page(SMALL)
     _open(app, page)
     page.keyboard.press("o")
-    wait_until(lambda: app.session.settings.tool == "lasso", HANG_GUARD_S, "the lasso tool (O)")
+    wait_until(lambda: app.session.toolbox.settings.tool == "lasso", HANG_GUARD_S, "the lasso tool (O)")
     cx, cy, box = _centre(page)
     corners = [(cx - 40, cy - 35), (cx + 40, cy - 35), (cx + 40, cy + 35), (cx - 40, cy + 35)]
     for k, (x, y) in enumerate(corners):
         _ctrl_click(page, x, y)
-        wait_until(lambda k=k: len(app.session.lasso_outline) == k + 1, HANG_GUARD_S, f"lasso point {k + 1} on the server")
+        wait_until(lambda k=k: len(app.session.box_lasso.lasso_outline) == k + 1, HANG_GUARD_S, f"lasso point {k + 1} on the server")
     expect = [((x - box["x"]) / box["width"], (y - box["y"]) / box["height"]) for x, y in corners]
-    assert np.allclose(app.session.lasso_outline.points, expect, atol=0.01), (app.session.lasso_outline.points, expect)
-    camera, polygon = app.session.lasso_outline.polygon()
-    assert int((app.session.store.labels == iid).sum()) == 0, "clicks only draw the outline"
+    assert np.allclose(app.session.box_lasso.lasso_outline.points, expect, atol=0.01), (app.session.box_lasso.lasso_outline.points, expect)
+    camera, polygon = app.session.box_lasso.lasso_outline.polygon()
+    assert int((app.session.scan.store.labels == iid).sum()) == 0, "clicks only draw the outline"
     page.keyboard.press("Enter")
     # the edit is done (labels, redraw, history) when its history line is there
     wait_until(lambda: "(lasso" in _last_step(app), HANG_GUARD_S, "the lasso's paint (Enter)")
-    inside = sel.lasso_select(app.session.geom, position=camera.position, wxyz=camera.wxyz, fov=camera.fov,
+    inside = sel.lasso_select(app.session.scan.geom, position=camera.position, wxyz=camera.wxyz, fov=camera.fov,
                               aspect=camera.aspect, polygon=polygon)
-    painted = np.flatnonzero(app.session.store.labels == iid)
+    painted = np.flatnonzero(app.session.scan.store.labels == iid)
     assert len(painted) > 10 and np.array_equal(painted, np.sort(inside))
-    assert len(app.session.lasso_outline) == 0
+    assert len(app.session.box_lasso.lasso_outline) == 0
     assert page.get_by_text("that did not work").count() == 0
-    app.session.undo()
-    assert int((app.session.store.labels == iid).sum()) == 0
+    app.session.instances.undo()
+    assert int((app.session.scan.store.labels == iid).sum()) == 0
 
 
 def test_lasso_around_a_box_takes_no_hidden_table(tmp_path: Path, new_page: Callable[..., Any]) -> None:
@@ -274,14 +274,14 @@ def test_lasso_around_a_box_takes_no_hidden_table(tmp_path: Path, new_page: Call
     mesh.export(scan)
     app = AnnotatorApp(scan, out_dir=tmp_path / "out", port=0, autosave_delay=0)
     try:
-        iid = app.session.new_instance(category="box")
+        iid = app.session.instances.new_instance(category="box")
         page = new_page(SMALL)
         _open(app, page)
         page.keyboard.press("o")
-        wait_until(lambda: app.session.settings.tool == "lasso", HANG_GUARD_S, "the lasso tool (O)")
+        wait_until(lambda: app.session.toolbox.settings.tool == "lasso", HANG_GUARD_S, "the lasso tool (O)")
         client = next(iter(app.server.get_clients().values()))
         _, _, box = _centre(page)
-        pts = app.session.geom.points
+        pts = app.session.scan.geom.points
         on_block = (np.abs(pts[:, 0]) <= 0.0401) & (np.abs(pts[:, 1]) <= 0.0401) & (pts[:, 2] > 0.001)
         uv, _ = sel.project(pts[on_block], position=np.asarray(client.camera.position),
                             wxyz=np.asarray(client.camera.wxyz), fov=float(client.camera.fov),
@@ -291,13 +291,13 @@ def test_lasso_around_a_box_takes_no_hidden_table(tmp_path: Path, new_page: Call
         corners = [(lo[0], lo[1]), (hi[0], lo[1]), (hi[0], hi[1]), (lo[0], hi[1])]
         for k, (u, v) in enumerate(corners):
             _ctrl_click(page, box["x"] + u * box["width"], box["y"] + v * box["height"])
-            wait_until(lambda k=k: len(app.session.lasso_outline) == k + 1, HANG_GUARD_S, f"lasso point {k + 1} on the server")
-        camera, polygon = app.session.lasso_outline.polygon()
+            wait_until(lambda k=k: len(app.session.box_lasso.lasso_outline) == k + 1, HANG_GUARD_S, f"lasso point {k + 1} on the server")
+        camera, polygon = app.session.box_lasso.lasso_outline.polygon()
         page.keyboard.press("Enter")
         wait_until(lambda: "(lasso" in _last_step(app), HANG_GUARD_S, "the lasso's paint (Enter)")
-        painted = np.flatnonzero(app.session.store.labels == iid)
+        painted = np.flatnonzero(app.session.scan.store.labels == iid)
         scene = o3d.t.geometry.RaycastingScene()
-        scene.add_triangles(o3d.core.Tensor(pts), o3d.core.Tensor(app.session.geom.faces.astype(np.uint32)))
+        scene.add_triangles(o3d.core.Tensor(pts), o3d.core.Tensor(app.session.scan.geom.faces.astype(np.uint32)))
 
         def hidden(idx: np.ndarray) -> np.ndarray:
             d = pts[idx].astype(np.float64) - camera.position
@@ -306,7 +306,7 @@ def test_lasso_around_a_box_takes_no_hidden_table(tmp_path: Path, new_page: Call
             t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
             return t < dist - 0.003  # something is in front of the vertex on its ray
 
-        front = sel.lasso_select(app.session.geom, position=camera.position, wxyz=camera.wxyz, fov=camera.fov,
+        front = sel.lasso_select(app.session.scan.geom, position=camera.position, wxyz=camera.wxyz, fov=camera.fov,
                                  aspect=camera.aspect, polygon=polygon, facing="front")
         assert hidden(front).sum() > 20, "the old rule takes hidden table here (else the test shows nothing)"
         assert len(painted) > 50 and on_block[painted].sum() > 20
@@ -334,7 +334,7 @@ def test_a_failing_tool_shows_its_error_in_the_page(tmp_path: Path, new_page: Ca
         page = new_page(SMALL)
         _open(app, page)
         page.keyboard.press("k")
-        wait_until(lambda: app.session.settings.tool == "broken", HANG_GUARD_S, "the broken tool (K)")
+        wait_until(lambda: app.session.toolbox.settings.tool == "broken", HANG_GUARD_S, "the broken tool (K)")
         cx, cy, _ = _centre(page)
         _ctrl_click(page, cx, cy)
         page.get_by_text("TypeError: 'float' object is not iterable", exact=False).first.wait_for(timeout=HANG_GUARD_MS)
@@ -367,34 +367,34 @@ def keyed(browser: Any, tmp_path_factory: pytest.TempPathFactory) -> Iterator[tu
 def test_bracket_keys_resize_the_brush(keyed: tuple[Any, Any]) -> None:
     """] makes the brush larger, [ smaller: the radius the tools use changes, and the slider shows it."""
     app, page = keyed
-    r0 = app.session.settings.radius
+    r0 = app.session.toolbox.settings.radius
     def slider_shows_radius() -> bool:
         # the key handler sets the radius, then the slider: wait for both, not for the first alone
-        return app.panels.gui_controls["radius"].value == pytest.approx(100 * app.session.settings.radius)
+        return app.panels.gui_controls["radius"].value == pytest.approx(100 * app.session.toolbox.settings.radius)
 
     page.keyboard.press("]")
-    wait_until(lambda: app.session.settings.radius > r0 and slider_shows_radius(), HANG_GUARD_S, "a larger brush (]) on the slider")
+    wait_until(lambda: app.session.toolbox.settings.radius > r0 and slider_shows_radius(), HANG_GUARD_S, "a larger brush (]) on the slider")
     page.keyboard.press("[")
     page.keyboard.press("[")
-    wait_until(lambda: app.session.settings.radius < r0 and slider_shows_radius(), HANG_GUARD_S,
+    wait_until(lambda: app.session.toolbox.settings.radius < r0 and slider_shows_radius(), HANG_GUARD_S,
                "a smaller brush ([ [) on the slider")
 
 
 def test_tab_makes_the_next_instance_active(keyed: tuple[Any, Any]) -> None:
     """Tab makes the next instance active (wrapping around), Shift+Tab the previous one; the Active dropdown follows."""
     app, page = keyed
-    ids = [app.session.new_instance(category="mug") for _ in range(3)]
-    first = min(app.session.store.labelset.instances)
-    assert app.session.settings.active_id == ids[-1]
+    ids = [app.session.instances.new_instance(category="mug") for _ in range(3)]
+    first = min(app.session.scan.store.labelset.instances)
+    assert app.session.toolbox.settings.active_id == ids[-1]
     page.keyboard.press("Tab")
-    wait_until(lambda: app.session.settings.active_id == first, HANG_GUARD_S, "the first instance active (Tab wraps)")
+    wait_until(lambda: app.session.toolbox.settings.active_id == first, HANG_GUARD_S, "the first instance active (Tab wraps)")
     page.keyboard.press("Tab")
-    second = sorted(app.session.store.labelset.instances)[1]
+    second = sorted(app.session.scan.store.labelset.instances)[1]
     # the key handler sets the active id, then the dropdown: wait for both (reading between the two was a race)
-    wait_until(lambda: app.session.settings.active_id == second and str(app.panels.gui_active.value).startswith(f"{second}:"), HANG_GUARD_S,
+    wait_until(lambda: app.session.toolbox.settings.active_id == second and str(app.panels.gui_active.value).startswith(f"{second}:"), HANG_GUARD_S,
                "the next instance active (Tab), shown in the Active dropdown")
     page.keyboard.press("Shift+Tab")
-    wait_until(lambda: app.session.settings.active_id == first, HANG_GUARD_S, "the previous instance active (Shift+Tab)")
+    wait_until(lambda: app.session.toolbox.settings.active_id == first, HANG_GUARD_S, "the previous instance active (Shift+Tab)")
 
 
 def test_question_mark_toggles_the_cheat_sheet(keyed: tuple[Any, Any]) -> None:
@@ -433,14 +433,14 @@ def test_tool_hotkeys_leave_the_camera_alone(keyed: tuple[Any, Any]) -> None:
     handle, pos0, look0 = _camera(app)
     seen: list[tuple[np.ndarray, np.ndarray]] = []
     handle.camera.on_update(lambda cam: seen.append((np.array(cam.position), np.array(cam.look_at))))
-    diag = float(np.linalg.norm(np.ptp(app.session.scene.points, axis=0)))
-    order = [t for t in DEFAULT_TOOLS if t.name != app.session.settings.tool] + [
-        t for t in DEFAULT_TOOLS if t.name == app.session.settings.tool]
+    diag = float(np.linalg.norm(np.ptp(app.session.scan.scene.points, axis=0)))
+    order = [t for t in DEFAULT_TOOLS if t.name != app.session.toolbox.settings.tool] + [
+        t for t in DEFAULT_TOOLS if t.name == app.session.toolbox.settings.tool]
     for t in order:
         page.wait_for_timeout(600)  # idle first: the first frame after a pause spans it
         page.keyboard.down(t.hotkey.lower())
         try:
-            wait_until(lambda t=t: app.session.settings.tool == t.name, HANG_GUARD_S, f"the {t.name} tool ({t.hotkey})")
+            wait_until(lambda t=t: app.session.toolbox.settings.tool == t.name, HANG_GUARD_S, f"the {t.name} tool ({t.hotkey})")
             page.wait_for_timeout(400)  # held: frames are drawn meanwhile
         finally:
             page.keyboard.up(t.hotkey.lower())
@@ -457,7 +457,7 @@ def test_camera_thrown_off_the_scan_comes_back(keyed: tuple[Any, Any]) -> None:
 
     app, page = keyed
     handle, _, _ = _camera(app)
-    lo, hi = app.session.scene.points.min(axis=0), app.session.scene.points.max(axis=0)
+    lo, hi = app.session.scan.scene.points.min(axis=0), app.session.scan.scene.points.max(axis=0)
     page.wait_for_timeout(1000)
     page.keyboard.down("w")
     try:
@@ -520,12 +520,12 @@ def test_a_click_off_the_scan_says_so(keyed: tuple[Any, Any]) -> None:
     do nothing, silently)."""
     app, page = keyed
     page.keyboard.press("c")
-    wait_until(lambda: app.session.settings.tool == "segment", HANG_GUARD_S, "the segment tool (C)")
+    wait_until(lambda: app.session.toolbox.settings.tool == "segment", HANG_GUARD_S, "the segment tool (C)")
     app.reset_view()
     _, _, box = _centre(page)
     _ctrl_click(page, box["x"] + 0.12 * box["width"], box["y"] + 0.88 * box["height"])
     page.get_by_text("Missed the scan", exact=True).first.wait_for(timeout=HANG_GUARD_MS)
-    assert app.session.pending_segment is None
+    assert app.session.assist.pending_segment is None
 
 
 # ============================================================================ brush cursor and labels-only view (item 13)
@@ -535,48 +535,48 @@ def test_brush_cursor_and_labels_only_view(annotator: Any, new_page: Callable[..
     the ring larger; the eraser keeps it, region grow hides it. A mouse click on *Labels only* dims every unlabelled
     vertex on the server (the painted ones keep their colour) and the canvas changes; a second click restores."""
     app = annotator
-    iid = app.session.settings.active_id
+    iid = app.session.toolbox.settings.active_id
     page = new_page(SMALL)
     _open(app, page)
-    assert app.session.cursor is None
-    _stroke(page, app, STROKE_A, painted=lambda: bool((app.session.store.labels == iid).any()))
-    wait_until(lambda: app.session.cursor is not None and app.view.cursor_handle is not None, HANG_GUARD_S, "the brush cursor drawn")
-    cur = app.session.cursor
-    assert cur.visible and app.view.cursor_handle.visible and cur.radius == pytest.approx(app.session.settings.radius)
-    painted = np.flatnonzero(app.session.store.labels == iid)
-    gap = np.min(np.linalg.norm(app.session.scene.points[painted] - cur.position, axis=1))
-    assert gap <= app.session.settings.radius, f"the cursor is {gap:.3f} m from the painted vertices"
+    assert app.session.brush.cursor is None
+    _stroke(page, app, STROKE_A, painted=lambda: bool((app.session.scan.store.labels == iid).any()))
+    wait_until(lambda: app.session.brush.cursor is not None and app.view.cursor_handle is not None, HANG_GUARD_S, "the brush cursor drawn")
+    cur = app.session.brush.cursor
+    assert cur.visible and app.view.cursor_handle.visible and cur.radius == pytest.approx(app.session.toolbox.settings.radius)
+    painted = np.flatnonzero(app.session.scan.store.labels == iid)
+    gap = np.min(np.linalg.norm(app.session.scan.scene.points[painted] - cur.position, axis=1))
+    assert gap <= app.session.toolbox.settings.radius, f"the cursor is {gap:.3f} m from the painted vertices"
     r0 = cur.radius
     page.keyboard.press("]")
-    wait_until(lambda: app.session.cursor.radius > r0, HANG_GUARD_S, "a larger ring (])")
+    wait_until(lambda: app.session.brush.cursor.radius > r0, HANG_GUARD_S, "a larger ring (])")
 
     def ring() -> float:
         seg = np.asarray(app.view.cursor_handle.points, np.float64)
         return float(np.linalg.norm(seg[:, 0] - seg[:, 0].mean(axis=0), axis=1).mean())
 
     # the key sets the radius, then the ring is redrawn: wait for both (reading between the two was a race)
-    wait_until(lambda: abs(ring() - app.session.settings.radius) <= 1e-3 * app.session.settings.radius, HANG_GUARD_S,
+    wait_until(lambda: abs(ring() - app.session.toolbox.settings.radius) <= 1e-3 * app.session.toolbox.settings.radius, HANG_GUARD_S,
                "the ring redrawn at the new radius")
     page.keyboard.press("x")
-    wait_until(lambda: app.session.settings.tool == "erase", HANG_GUARD_S, "the erase tool (X)")
-    assert app.session.cursor.visible
+    wait_until(lambda: app.session.toolbox.settings.tool == "erase", HANG_GUARD_S, "the erase tool (X)")
+    assert app.session.brush.cursor.visible
     page.keyboard.press("g")
-    wait_until(lambda: app.session.settings.tool == "grow", HANG_GUARD_S, "the grow tool (G)")
+    wait_until(lambda: app.session.toolbox.settings.tool == "grow", HANG_GUARD_S, "the grow tool (G)")
     wait_until(lambda: not app.view.cursor_handle.visible, HANG_GUARD_S, "the ring hidden for region grow")
     page.keyboard.press("b")
-    wait_until(lambda: app.session.settings.tool == "brush" and app.view.cursor_handle.visible, HANG_GUARD_S, "the ring back (B)")
+    wait_until(lambda: app.session.toolbox.settings.tool == "brush" and app.view.cursor_handle.visible, HANG_GUARD_S, "the ring back (B)")
 
     def drawn() -> np.ndarray:
-        out = np.zeros((app.session.n, 3), np.uint8)
+        out = np.zeros((app.session.scan.n, 3), np.uint8)
         for c, h in enumerate(app.view.chunk_handles):
             out[app.view.chunks.members(c)] = np.asarray(h.colors)
         return out
 
     before_cols, before_img = drawn(), settle_canvas(page)
-    labels = app.session.store.labels.copy()
+    labels = app.session.scan.store.labels.copy()
     box = page.get_by_role("checkbox", name="Labels only")
     box.click()
-    wait_until(lambda: app.session.settings.labels_only, HANG_GUARD_S, "the labels-only view on (click)")
+    wait_until(lambda: app.session.toolbox.settings.labels_only, HANG_GUARD_S, "the labels-only view on (click)")
     wait_until(lambda: not np.array_equal(drawn()[labels == 0], before_cols[labels == 0]), HANG_GUARD_S, "dimmed vertices")
     on = drawn()
     rest = on[labels == 0]
@@ -590,9 +590,9 @@ def test_brush_cursor_and_labels_only_view(annotator: Any, new_page: Callable[..
         DOCS_IMG.mkdir(parents=True, exist_ok=True)
         page.screenshot(path=str(DOCS_IMG / "annotator_labels_only.png"))
     box.click()
-    wait_until(lambda: not app.session.settings.labels_only, HANG_GUARD_S, "the labels-only view off (click)")
+    wait_until(lambda: not app.session.toolbox.settings.labels_only, HANG_GUARD_S, "the labels-only view off (click)")
     wait_until(lambda: np.array_equal(drawn(), before_cols), HANG_GUARD_S, "the scan's colours back")
-    assert np.array_equal(app.session.store.labels, labels)
+    assert np.array_equal(app.session.scan.store.labels, labels)
 
 
 def _text_field(page: Any, label: str) -> Any:
@@ -605,10 +605,10 @@ def test_typing_a_category_is_one_edit_and_the_field_shows_what_is_stored(keyed:
     "box". Typed with real keys (with pauses, as a person types), the category is committed once, after the field
     is left alone or on the next action, and the field and the store agree."""
     app, page = keyed
-    iid = app.session.new_instance(category="object")
+    iid = app.session.instances.new_instance(category="object")
     field = _text_field(page, "Category")
     wait_until(lambda: field.input_value() == "object", HANG_GUARD_S, "the active instance's category in the field")
-    before = len(app.session.store.journal.records)
+    before = len(app.session.scan.store.journal.records)
     typing = app.session.instances.typing
     idle_s, typing.idle_s = typing.idle_s, 25 * 0.4  # the pauses below are 1/25 of it: a busy machine may stretch them
     try:
@@ -617,10 +617,10 @@ def test_typing_a_category_is_one_edit_and_the_field_shows_what_is_stored(keyed:
         for key in "box":
             page.keyboard.type(key)
             page.wait_for_timeout(400)  # a person's pause between keys (shorter than the commit's idle time)
-        wait_until(lambda: app.session.store.labelset.info(iid).category == "box", HANG_GUARD_S, "the typed category stored")
+        wait_until(lambda: app.session.scan.store.labelset.info(iid).category == "box", HANG_GUARD_S, "the typed category stored")
     finally:
         typing.idle_s = idle_s
-    edits = [r for r in app.session.store.journal.records[before:] if r.kind == "do"]
+    edits = [r for r in app.session.scan.store.journal.records[before:] if r.kind == "do"]
     assert len(edits) == 1 and "category='box'" in edits[0].header["label"], [r.header.get("label") for r in edits]
     assert field.input_value() == "box" and app.panels.gui_category.value == "box"
     # typing, then an action at once (N: a new instance) commits the typed name first, to the instance it was for
@@ -630,9 +630,9 @@ def test_typing_a_category_is_one_edit_and_the_field_shows_what_is_stored(keyed:
     page.keyboard.type("left box")
     page.mouse.click(40, 40)  # leave the field: a plain click on the view's corner (no edit)
     page.keyboard.press("n")
-    wait_until(lambda: app.session.settings.active_id != iid, HANG_GUARD_S, "a new instance (N)")
-    wait_until(lambda: app.session.store.labelset.info(iid).name == "left box", HANG_GUARD_S, "the typed name stored")
-    assert app.session.store.labelset.info(app.session.settings.active_id).category == "box"
+    wait_until(lambda: app.session.toolbox.settings.active_id != iid, HANG_GUARD_S, "a new instance (N)")
+    wait_until(lambda: app.session.scan.store.labelset.info(iid).name == "left box", HANG_GUARD_S, "the typed name stored")
+    assert app.session.scan.store.labelset.info(app.session.toolbox.settings.active_id).category == "box"
 
 
 def _settled_boxes(page: Any, locators: list[Any], *, timeout: float = HANG_GUARD_S) -> list[Any]:
@@ -656,10 +656,10 @@ def test_growing_table_and_history_move_no_button(keyed: tuple[Any, Any]) -> Non
     buttons = [page.get_by_role("button", name=n, exact=True) for n in ("Next pre-label ▶", "Accept", "Undo (Ctrl+Z)")]
     buttons[0].wait_for(timeout=HANG_GUARD_MS)
     before = _settled_boxes(page, buttons)  # the folder opens with an animation: measure once it has ended
-    n0 = len(app.session.store.labelset.instances)
+    n0 = len(app.session.scan.store.labelset.instances)
     for _ in range(6):  # six more rows in the table, six more lines in the history
-        app.session.new_instance(category="mug")
-    app.session.paint(np.arange(20))
+        app.session.instances.new_instance(category="mug")
+    app.session.painting.paint(np.arange(20))
     wait_until(lambda: page.get_by_text(f"{n0 + 6} ", exact=False).count() > 0, HANG_GUARD_S, "the table's new rows")
     page.wait_for_timeout(300)
     after = _settled_boxes(page, buttons)
@@ -678,7 +678,7 @@ def test_run_efem_from_the_page_progress_cancel_then_prelabels(tmp_path: Path, n
 
     import torch
 
-    import annotator.assist as assist
+    import annotator.efem_runs as efem_runs
     from annotator.app import AnnotatorApp
     from annotator.labels import unreviewed_prelabels
     from efem_viz.data.io import save_scene
@@ -691,8 +691,8 @@ def test_run_efem_from_the_page_progress_cancel_then_prelabels(tmp_path: Path, n
     spheres = analytic.make_sphere_scene(seed=0, spacing=0.01, name="spheres")
     save_scene(Scene.create("bare", spheres.points, normals=spheres.normals, colors=spheres.colors), tmp_path / "bare.ply")
     prior = analytic.make_sphere_prior()
-    monkeypatch.setattr(assist, "get_prior", lambda name: prior)
-    real_solve = assist.solve_scan
+    monkeypatch.setattr(efem_runs, "get_prior", lambda name: prior)
+    real_solve = efem_runs.solve_scan
     cancelled = threading.Event()
 
     def slow_then_real(scene: Any, **kw: Any) -> Any:
@@ -703,7 +703,7 @@ def test_run_efem_from_the_page_progress_cancel_then_prelabels(tmp_path: Path, n
             raise EMCancelled("cancelled")
         return real_solve(scene, **kw)
 
-    monkeypatch.setattr(assist, "solve_scan", slow_then_real)
+    monkeypatch.setattr(efem_runs, "solve_scan", slow_then_real)
     app = AnnotatorApp(tmp_path / "bare.ply", out_dir=tmp_path / "out", port=0, autosave_delay=0)
     try:
         page = new_page(SMALL)
@@ -716,20 +716,20 @@ def test_run_efem_from_the_page_progress_cancel_then_prelabels(tmp_path: Path, n
         page.get_by_role("button", name="Run EFEM on this scan").click()
         status = page.get_by_text("step 1 of 30", exact=False).first
         status.wait_for(timeout=HANG_GUARD_MS)
-        assert app.session.efem_running
+        assert app.session.assist.efem_running
         box, view = status.bounding_box(), page.viewport_size  # seen where Run was clicked, not below the fold
         assert box is not None and 0 <= box["y"] and box["y"] + box["height"] <= view["height"], (box, view)
         page.get_by_role("button", name="Cancel EFEM run").click()
-        wait_until(lambda: cancelled.is_set() and not app.session.efem_running, HANG_GUARD_S, "the run to stop")
-        assert not unreviewed_prelabels(app.session.store.labelset.instances)
+        wait_until(lambda: cancelled.is_set() and not app.session.assist.efem_running, HANG_GUARD_S, "the run to stop")
+        assert not unreviewed_prelabels(app.session.scan.store.labelset.instances)
         page.get_by_role("button", name="Run EFEM on this scan").click()
-        wait_until(lambda: bool(unreviewed_prelabels(app.session.store.labelset.instances))
-                   and not app.session.efem_running, 120, "the pre-labels of a finished run")
-        pre = unreviewed_prelabels(app.session.store.labelset.instances)
+        wait_until(lambda: bool(unreviewed_prelabels(app.session.scan.store.labelset.instances))
+                   and not app.session.assist.efem_running, 120, "the pre-labels of a finished run")
+        pre = unreviewed_prelabels(app.session.scan.store.labelset.instances)
         page.get_by_role("button", name="Accept all ≥ cut").click()
-        wait_until(lambda: len(unreviewed_prelabels(app.session.store.labelset.instances)) < len(pre), HANG_GUARD_S,
+        wait_until(lambda: len(unreviewed_prelabels(app.session.scan.store.labelset.instances)) < len(pre), HANG_GUARD_S,
                    "the best pre-labels accepted")
-        accepted = [i for i in pre if "accepted" in app.session.store.labelset.instances[i].note]
-        assert accepted and all((app.session.store.labels == i).any() for i in accepted)
+        accepted = [i for i in pre if "accepted" in app.session.scan.store.labelset.instances[i].note]
+        assert accepted and all((app.session.scan.store.labels == i).any() for i in accepted)
     finally:
         app.close()

@@ -1,4 +1,4 @@
-"""The EFEM assistance room: pre-labels from an EFEM result and their review, and click-to-segment with the
+"""The EFEM assistance part: pre-labels from an EFEM result and their review, and click-to-segment with the
 shape prior (its background thread, preview, accept, discard)."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
-from annotator.assist import SEGMENT_SETTINGS
+from annotator.efem_runs import SEGMENT_SETTINGS
 from annotator.io import LabelData, LabelIOError, load_labels, resolve_inside
 from annotator.labels import Delta, prelabel_note, unreviewed_prelabels
 from efem_viz.data.io import RESULT_SUFFIX
@@ -24,20 +24,20 @@ EFEM_BIG_SCAN_VOXEL = 0.005
 
 if TYPE_CHECKING:
     from efem_viz.em.config import SolveSettings
-    from annotator.rooms.context import SessionHooks, Toolbox
-    from annotator.rooms.scan import ScanRoom
-    from annotator.rooms.instances import InstanceRoom
-    from annotator.rooms.paint import PaintRoom
+    from annotator.parts.context import SessionHooks, Toolbox
+    from annotator.parts.scan import ScanPart
+    from annotator.parts.instances import InstancePart
+    from annotator.parts.paint import PaintPart
 
 PRELABEL_MIN_FREE = 0.5
-"""A pre-label is added only when at least this fraction of its vertices is unlabelled (`AssistRoom.add_prelabels`)."""
+"""A pre-label is added only when at least this fraction of its vertices is unlabelled (`AssistPart.add_prelabels`)."""
 
 
-class AssistRoom:
+class AssistPart:
     """EFEM's help: unreviewed pre-label instances, their review, and the click-to-segment run and preview."""
 
-    def __init__(self, scan: ScanRoom, toolbox: Toolbox, hooks: SessionHooks, instances: InstanceRoom,
-                 painting: PaintRoom) -> None:
+    def __init__(self, scan: ScanPart, toolbox: Toolbox, hooks: SessionHooks, instances: InstancePart,
+                 painting: PaintPart) -> None:
         self.scan, self.toolbox, self.hooks = scan, toolbox, hooks
         self.instances, self.painting = instances, painting
         self.preview: np.ndarray | None = None
@@ -195,7 +195,7 @@ class AssistRoom:
         return None
 
     def _segment_job(self, vertex: int, prior_name: str, cancel: threading.Event) -> np.ndarray | None:
-        from annotator import assist
+        from annotator import efem_runs
         from efem_viz.em.solver import EMCancelled
 
         def on_step(info: Any) -> None:
@@ -206,7 +206,7 @@ class AssistRoom:
             from efem_viz.prior import fused
 
             fused.prepare(lambda notice: self.hooks.notify("Segmenting", notice))  # a first click builds them
-            mask_idx = assist.segment_at_point(self.efem_scene(), vertex, prior_name=prior_name, settings=self.solve,
+            mask_idx = efem_runs.segment_at_point(self.efem_scene(), vertex, prior_name=prior_name, settings=self.solve,
                                                on_step=on_step, cancel=cancel)
         except EMCancelled:
             self.hooks.notify("Segmenting cancelled", f"the segmentation around vertex {vertex} was stopped")
@@ -316,7 +316,7 @@ class AssistRoom:
         return None
 
     def _efem_job(self, settings: SolveSettings, prior_name: str, seed: int, cancel: threading.Event) -> list[int]:
-        from annotator import assist
+        from annotator import efem_runs
         from annotator.io import labels_from_result
         from efem_viz.em.solver import EMCancelled
 
@@ -332,7 +332,7 @@ class AssistRoom:
             from efem_viz.prior import fused
 
             fused.prepare(lambda notice: self.hooks.on_efem(f"{what}: {notice}", 0.0))  # a first run builds them
-            result = assist.solve_scan(self.efem_scene(), prior_name=prior_name, settings=settings, seed=seed,
+            result = efem_runs.solve_scan(self.efem_scene(), prior_name=prior_name, settings=settings, seed=seed,
                                        on_step=on_step, cancel=cancel)
             if cancel.is_set():  # pressed after the last step: still nothing is added
                 raise EMCancelled("cancelled after the last step")

@@ -1,4 +1,4 @@
-"""The export room: write the thresholded result (ScanNet layout, coloured PLY) and the static demo page."""
+"""The export part: write the thresholded result (ScanNet layout, coloured PLY) and the static demo page."""
 
 from __future__ import annotations
 
@@ -10,12 +10,12 @@ from typing import TYPE_CHECKING, Callable
 from efem_viz.viewer.texts import safe_name
 
 if TYPE_CHECKING:
-    from efem_viz.viewer.rooms.core import ViewerCore
+    from efem_viz.viewer.parts.core import ViewerCore
 
 logger = logging.getLogger(__name__)
 
 
-class ExportRoom:
+class ExportPart:
     """Writes the shown result's exports (paths confined to a root when given)."""
 
     def __init__(self, core: ViewerCore) -> None:

@@ -1,4 +1,4 @@
-"""The brush cursor's room: the ring of the brush radius where the brush last touched the scan."""
+"""The brush cursor's part: the ring of the brush radius where the brush last touched the scan."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ import numpy as np
 from annotator.tools import shown_settings
 
 if TYPE_CHECKING:
-    from annotator.rooms.context import SessionHooks, Toolbox
-    from annotator.rooms.scan import ScanRoom
+    from annotator.parts.context import SessionHooks, Toolbox
+    from annotator.parts.scan import ScanPart
 
 
 @dataclass(frozen=True)
@@ -31,10 +31,10 @@ class BrushCursor:
     """Drawn: the active tool has a brush radius (brush, erase)."""
 
 
-class CursorRoom:
+class CursorPart:
     """Where the brush cursor is drawn (it follows clicks and drags: viser sends no pointer moves)."""
 
-    def __init__(self, scan: ScanRoom, toolbox: Toolbox, hooks: SessionHooks) -> None:
+    def __init__(self, scan: ScanPart, toolbox: Toolbox, hooks: SessionHooks) -> None:
         self.scan, self.toolbox, self.hooks = scan, toolbox, hooks
         self.cursor: BrushCursor | None = None
         """The brush cursor (None until the brush first touches the scan)."""

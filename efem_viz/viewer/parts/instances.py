@@ -1,4 +1,4 @@
-"""The instance table's room: choose, show or hide, fly to and step through the final instances of the result."""
+"""The instance table's part: choose, show or hide, fly to and step through the final instances of the result."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ from efem_viz.serve.table import option_id, step_row
 from efem_viz.viewer.texts import instance_options
 
 if TYPE_CHECKING:
-    from efem_viz.viewer.rooms.core import ViewerCore
-    from efem_viz.viewer.rooms.results import ResultRoom
+    from efem_viz.viewer.parts.core import ViewerCore
+    from efem_viz.viewer.parts.results import ResultPart
 
 
 class FlyTarget(NamedTuple):
@@ -28,14 +28,14 @@ class FlyTarget(NamedTuple):
     confidence: float
 
 
-class InstanceRoom:
+class InstancePart:
     """The Results tab's instance table over the shown result (rows most confident first)."""
 
-    def __init__(self, core: ViewerCore, results: ResultRoom) -> None:
+    def __init__(self, core: ViewerCore, results: ResultPart) -> None:
         self.core = core
         """The session's shared parts."""
         self.results = results
-        """The results room (the drawn instances)."""
+        """The results part (the drawn instances)."""
 
     def instance_index(self, pid: int | None) -> int:
         """Position in the result's instances of proposal id `pid`.

@@ -1,4 +1,4 @@
-"""What the annotator session's rooms share: the GUI hooks and the tool table with its settings."""
+"""What the annotator session's parts share: the GUI hooks and the tool table with its settings."""
 
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ def _log_errors(fn: Callable[[], Any]) -> Any:
 
 
 class SessionHooks:
-    """The hooks a GUI sets on the session (a headless session leaves them doing nothing); the rooms call them."""
+    """The hooks a GUI sets on the session (a headless session leaves them doing nothing); the parts call them."""
 
     def __init__(self) -> None:
         self.on_change: Callable[[], None] = _nothing

@@ -1,4 +1,4 @@
-"""The results room: load or show an EMResult, the confidence cut, the mask band, ground truth and point colours."""
+"""The results part: load or show an EMResult, the confidence cut, the mask band, ground truth and point colours."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ if TYPE_CHECKING:
     from efem_viz.data.scene import Scene
     from efem_viz.em.masks import InstanceDistances
     from efem_viz.em.results import EMResult
-    from efem_viz.viewer.rooms.core import ViewerCore
+    from efem_viz.viewer.parts.core import ViewerCore
 
 logger = logging.getLogger(__name__)
 
@@ -38,7 +38,7 @@ class PointColors(NamedTuple):
     """(K, 3) uint8 box colours of the final instances (TP/FP in the ground-truth view), or None: their own."""
 
 
-class ResultRoom:
+class ResultPart:
     """Shows one result at a time: which instances the cut keeps and draws, their masks, their colours."""
 
     def __init__(self, core: ViewerCore) -> None:

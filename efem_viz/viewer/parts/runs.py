@@ -1,4 +1,4 @@
-"""The runs room: run EFEM on the open scene (one run at a time, progress per step, cancel at the next step)."""
+"""The runs part: run EFEM on the open scene (one run at a time, progress per step, cancel at the next step)."""
 
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ from efem_viz.em.config import PresetName, SolveSettings
 if TYPE_CHECKING:
     from efem_viz.em.results import EMResult
     from efem_viz.em.solver import StepInfo
-    from efem_viz.viewer.rooms.core import ViewerCore
-    from efem_viz.viewer.rooms.results import ResultRoom
+    from efem_viz.viewer.parts.core import ViewerCore
+    from efem_viz.viewer.parts.results import ResultPart
 
 logger = logging.getLogger(__name__)
 
@@ -43,10 +43,10 @@ class RunSettings(SolveSettings):
         return cls(**knobs) if settings is None else dataclasses.replace(settings, **knobs)
 
 
-class RunRoom:
-    """Starts, runs and cancels EFEM runs; a finished run is shown through the results room."""
+class RunPart:
+    """Starts, runs and cancels EFEM runs; a finished run is shown through the results part."""
 
-    def __init__(self, core: ViewerCore, results: ResultRoom) -> None:
+    def __init__(self, core: ViewerCore, results: ResultPart) -> None:
         self.core = core
         """The session's shared parts."""
         self.results = results
@@ -69,11 +69,12 @@ class RunRoom:
             return self.core.scene_generation
 
     def run(self, settings: RunSettings | None = None, *, on_step: ProgressCallback | None = None, show: bool = True,
-            generation: int | None = None) -> EMResult | None:
+            generation: int | None = None, **knobs: Any) -> EMResult | None:
         """Run EFEM on the open scene (synchronously; `cancel_run()` from another thread stops it).
 
         Args:
             settings: preset, proposals, seed, precision, ... (None: `RunSettings()`, the "fast" preset).
+            knobs: `RunSettings` fields replaced in `settings` (`run(preset="real", seed=3)`).
             on_step: called after each EM step with the solver's step info.
             show: show the result when done (unless the scene changed meanwhile).
             generation: the ticket of a `begin_run()` already called (None: begin here).
@@ -83,7 +84,7 @@ class RunRoom:
         """
         from efem_viz.em import EMCancelled
 
-        settings = settings if settings is not None else RunSettings()
+        settings = RunSettings.of(settings, **knobs)
         if generation is None:
             generation = self.begin_run()
             if generation is None:

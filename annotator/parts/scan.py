@@ -1,4 +1,4 @@
-"""The scan room: open the scan and its label store (journal, checkpoint, recovery), and warm up its geometry.
+"""The scan part: open the scan and its label store (journal, checkpoint, recovery), and warm up its geometry.
 
 The scan is read once and never written; the label store lives in `<out>/<stem>.annotate/` (`LabelStore`). The
 ray-casting structures are built in a background thread (`start_warm_up`) so that the first click is fast; closing
@@ -23,7 +23,7 @@ from efem_viz.colors import instance_color
 log = logging.getLogger("annotator.session")
 
 
-class ScanRoom:
+class ScanPart:
     """One scan, its geometry and its label store.
 
     Args:

@@ -1,4 +1,4 @@
-"""The files room: export the labels (PLY, NPZ, ScanNet) and import a label file, confined to the session's folders."""
+"""The files part: export the labels (PLY, NPZ, ScanNet) and import a label file, confined to the session's folders."""
 
 from __future__ import annotations
 
@@ -12,16 +12,16 @@ from annotator.io import LabelIOError, load_labels, resolve_inside, save_labels_
 from annotator.labels import Delta, unreviewed_prelabels
 
 if TYPE_CHECKING:
-    from annotator.rooms.context import SessionHooks, Toolbox
-    from annotator.rooms.scan import ScanRoom
+    from annotator.parts.context import SessionHooks, Toolbox
+    from annotator.parts.scan import ScanPart
 
 log = logging.getLogger("annotator.session")
 
 
-class FileRoom:
+class FilePart:
     """Label files in and out: writes resolve inside the output folder, reads inside the scan's or output folder."""
 
-    def __init__(self, scan: ScanRoom, toolbox: Toolbox, hooks: SessionHooks) -> None:
+    def __init__(self, scan: ScanPart, toolbox: Toolbox, hooks: SessionHooks) -> None:
         self.scan, self.toolbox, self.hooks = scan, toolbox, hooks
 
     def safe_path(self, name: str, *, what: str) -> Path:

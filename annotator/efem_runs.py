@@ -1,7 +1,8 @@
-"""Click-to-segment: one EFEM run seeded at a clicked point, with a shape prior (torch; imported lazily).
+"""The annotator's EFEM runs, with a shipped shape prior (torch; imported lazily): click-to-segment
+(`segment_at_point`: one run seeded at a clicked point) and a run on the whole scan for pre-labels (`solve_scan`).
 
-EFEM runs on a *crop* of the scene (the points within `crop_radius` of the click, which bounds the cost on big
-scans) with a few proposals whose anchors are forced near the click (`run_em(anchor_candidates=...)`: the points
+Click-to-segment runs EFEM on a *crop* of the scene (the points within `crop_radius` of the click, which bounds the
+cost on big scans) with a few proposals whose anchors are forced near the click (`run_em(anchor_candidates=...)`: the points
 within `anchor_radius` of it). The instance whose mask contains the clicked point (else the one whose centre is
 nearest) is returned, mapped back to the scene's vertex indices.
 """

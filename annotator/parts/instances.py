@@ -1,4 +1,4 @@
-"""The instances room: the active tool and the instance table (create, change, delete, merge, undo, redo)."""
+"""The instances part: the active tool and the instance table (create, change, delete, merge, undo, redo)."""
 
 from __future__ import annotations
 
@@ -28,17 +28,17 @@ MAX_TYPED_CHARS = 256
 log = logging.getLogger(__name__)
 
 if TYPE_CHECKING:
-    from annotator.rooms.context import SessionHooks, Toolbox
-    from annotator.rooms.scan import ScanRoom
-    from annotator.rooms.cursor import CursorRoom
+    from annotator.parts.context import SessionHooks, Toolbox
+    from annotator.parts.scan import ScanPart
+    from annotator.parts.cursor import CursorPart
 
 
-class InstanceRoom:
+class InstancePart:
     """Which tool and which instance are active, and every undoable change of the instance table."""
 
-    def __init__(self, scan: ScanRoom, toolbox: Toolbox, hooks: SessionHooks, cursor_room: CursorRoom, *,
+    def __init__(self, scan: ScanPart, toolbox: Toolbox, hooks: SessionHooks, brush: CursorPart, *,
                  text_idle_s: float = TEXT_IDLE_S) -> None:
-        self.scan, self.toolbox, self.hooks, self.cursor_room = scan, toolbox, hooks, cursor_room
+        self.scan, self.toolbox, self.hooks, self.brush = scan, toolbox, hooks, brush
         self.late_keys_s = LATE_KEYS_S
         """Keystrokes this soon after a field was committed belong to the instance it was committed to."""
         self._committed: dict[str, tuple[int, float]] = {}
@@ -149,7 +149,7 @@ class InstanceRoom:
         if tool not in self.toolbox.tool_of:
             raise ValueError(f"unknown tool {tool!r}; tools: {tuple(self.toolbox.tool_of)}")
         self.toolbox.settings.tool = tool
-        self.cursor_room.refresh_cursor()
+        self.brush.refresh_cursor()
 
     def set_active(self, instance_id: int) -> None:
         """Make an instance the one brushes paint."""
@@ -187,7 +187,7 @@ class InstanceRoom:
             snapped = min(snapped, shown - control.step)
         snapped = round(min(max(snapped, control.min), control.max), 6)
         self.toolbox.settings.radius = snapped / control.scale
-        self.cursor_room.refresh_cursor()
+        self.brush.refresh_cursor()
         return self.toolbox.settings.radius
 
     def choose_category(self, category: str) -> None:

@@ -1,4 +1,4 @@
-"""The scenes room: read a scene of the discovered list, make it the open one, and the display settings."""
+"""The scenes part: read a scene of the discovered list, make it the open one, and the display settings."""
 
 from __future__ import annotations
 
@@ -7,14 +7,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from efem_viz.viewer.scenes import SceneEntry, is_inside
+from efem_viz.viewer.scene_list import SceneEntry, is_inside
 from efem_viz.viewer.state import COLOR_MODES, VIEW_MODES
 
 if TYPE_CHECKING:
     from pathlib import Path
 
     from efem_viz.data.scene import Scene
-    from efem_viz.viewer.rooms.core import ViewerCore
+    from efem_viz.viewer.parts.core import ViewerCore
 
 log = logging.getLogger(__name__)
 
@@ -23,7 +23,7 @@ MAX_VIEW_COORDINATE = 1e5
 units, or damaged), and the drawing maths would overflow."""
 
 
-class SceneRoom:
+class ScenePart:
     """Opens scenes (only inside the given paths) and holds the display choices (points or mesh, colours, view)."""
 
     def __init__(self, core: ViewerCore) -> None:

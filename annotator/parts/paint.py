@@ -1,4 +1,4 @@
-"""The paint room: paint and erase (dabs, strokes), region grow, fill, pick, and the active tool at a point."""
+"""The paint part: paint and erase (dabs, strokes), region grow, fill, pick, and the active tool at a point."""
 
 from __future__ import annotations
 
@@ -16,10 +16,10 @@ from annotator.labels import Delta
 from annotator.tools import Hit
 
 if TYPE_CHECKING:
-    from annotator.rooms.context import SessionHooks, Toolbox
-    from annotator.rooms.scan import ScanRoom
-    from annotator.rooms.cursor import CursorRoom
-    from annotator.rooms.instances import InstanceRoom
+    from annotator.parts.context import SessionHooks, Toolbox
+    from annotator.parts.scan import ScanPart
+    from annotator.parts.cursor import CursorPart
+    from annotator.parts.instances import InstancePart
     from annotator.tools import ToolHost
 
 
@@ -36,13 +36,13 @@ class Stroke:
     """Label of the tool that paints the stroke (history)."""
 
 
-class PaintRoom:
+class PaintPart:
     """Every edit that paints vertices with the active instance (or erases them); one journalled edit each."""
 
-    def __init__(self, scan: ScanRoom, toolbox: Toolbox, hooks: SessionHooks, cursor_room: CursorRoom,
-                 instances: InstanceRoom, host: ToolHost) -> None:
+    def __init__(self, scan: ScanPart, toolbox: Toolbox, hooks: SessionHooks, brush: CursorPart,
+                 instances: InstancePart, host: ToolHost) -> None:
         self.scan, self.toolbox, self.hooks = scan, toolbox, hooks
-        self.cursor_room, self.instances = cursor_room, instances
+        self.brush, self.instances = brush, instances
         self.host = host
         """What the tools' functions get (the session)."""
         self.strokes: dict[int, Stroke] = {}
@@ -112,7 +112,7 @@ class PaintRoom:
         prev = None
         for p in pts:
             v = int(self.scan.geom.tree.query(p)[1])
-            self.cursor_room.move_cursor(p, v)
+            self.brush.move_cursor(p, v)
             d = self.paint(self._brush_at(p, v, prev), erase=erase, group=group, client=client)
             changed += 0 if d is None else d.num_vertices
             prev = p
@@ -126,7 +126,7 @@ class PaintRoom:
             position: (3,) float, the point on the surface, world frame.
             erase: erase instead of painting the active instance.
         """
-        self.cursor_room.move_cursor(position, int(vertex))
+        self.brush.move_cursor(position, int(vertex))
         return self.paint(self._brush_at(position, int(vertex)), erase=erase, client=client)
 
     def grow(self, seed: int, *, client: str = "") -> Delta | None:
@@ -187,7 +187,7 @@ class PaintRoom:
         p = self.scan.scene.points[v] if self.scan.geom.is_mesh is False else start
         stroke = Stroke(group=uuid.uuid4().hex[:12], last=np.asarray(p, np.float32), normal=self.scan.geom.normals[v],
                         erase=tool.erase, source=tool.label)
-        self.cursor_room.move_cursor(stroke.last, v)
+        self.brush.move_cursor(stroke.last, v)
         self.strokes[key] = stroke
         with self.edit_source(stroke.source):
             self.paint(self._brush_at(stroke.last, v), erase=stroke.erase, group=stroke.group, client=client)
@@ -212,7 +212,7 @@ class PaintRoom:
         if hit is None:
             return
         v, pos = hit
-        self.cursor_room.move_cursor(pos, v)
+        self.brush.move_cursor(pos, v)
         idx = self._brush_at(pos, v, stroke.last)
         stroke.last = np.asarray(pos, np.float32)
         with self.edit_source(stroke.source):

@@ -1,4 +1,4 @@
-"""The proposal inspection room: replay one proposal at one step (the paper's Fig. S9 views)."""
+"""The proposal inspection part: replay one proposal at one step (the paper's Fig. S9 views)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from efem_viz.colors import DEAD_COLOR, heatmap, instance_colors
 if TYPE_CHECKING:
     from efem_viz.em.trace import ProposalView
     from efem_viz.prior.config import ShapePriorLike
-    from efem_viz.viewer.rooms.core import ViewerCore
+    from efem_viz.viewer.parts.core import ViewerCore
 
 logger = logging.getLogger(__name__)
 
@@ -40,7 +40,7 @@ class Inspection(NamedTuple):
     """(N,) float32: per-point weights over the whole scene."""
 
 
-class InspectRoom:
+class InspectPart:
     """The inspected proposal: its choice, its replayed views (cached in the core) and its weights colouring."""
 
     def __init__(self, core: ViewerCore) -> None:

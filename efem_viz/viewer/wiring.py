@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any, Callable, Literal, Protocol, TypeVar, cas
 from efem_viz.serve.inputs import ClientValueError, read_bool, read_choice, read_int, read_number
 from efem_viz.serve.table import NO_ROW, option_id
 from efem_viz.viewer.panels import COLOR_MODES, VIEW_MODES
-from efem_viz.viewer.rooms.runs import RunSettings
+from efem_viz.viewer.parts.runs import RunSettings
 from efem_viz.viewer.texts import parse_pid
 
 if TYPE_CHECKING:

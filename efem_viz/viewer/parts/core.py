@@ -1,7 +1,7 @@
-"""What every room of the viewer session shares: the state, its lock, the status line, the priors, the paths.
+"""What every part of the viewer session shares: the state, its lock, the status line, the priors, the paths.
 
-`ViewerCore` is the base of `efem_viz.viewer.session.ViewerSession`; each room (`efem_viz.viewer.rooms`) gets the
-session as its `ViewerCore` and reads or changes only these shared parts, so a room never needs another room's
+`ViewerCore` is the base of `efem_viz.viewer.session.ViewerSession`; each part (`efem_viz.viewer.parts`) gets the
+session as its `ViewerCore` and reads or changes only these shared parts, so a part never needs another part's
 internals.
 """
 
@@ -18,7 +18,7 @@ from efem_viz.data.scene import DEFAULT_MAX_POINTS
 from efem_viz.prior.config import DEFAULT_PRIOR
 from efem_viz.prior.registry import PriorSet
 from efem_viz.serve.outputs import default_output_dir
-from efem_viz.viewer.scenes import discover_scenes, is_inside, trace_path_for
+from efem_viz.viewer.scene_list import discover_scenes, is_inside, trace_path_for
 from efem_viz.viewer.state import ViewerState
 
 if TYPE_CHECKING:

@@ -1,4 +1,4 @@
-"""The box and lasso room: select the vertices inside a screen rectangle or outline seen from a camera."""
+"""The box and lasso part: select the vertices inside a screen rectangle or outline seen from a camera."""
 
 from __future__ import annotations
 
@@ -11,15 +11,15 @@ from annotator.labels import Delta
 from annotator.lasso import LassoCamera, LassoOutline
 
 if TYPE_CHECKING:
-    from annotator.rooms.context import SessionHooks, Toolbox
-    from annotator.rooms.scan import ScanRoom
-    from annotator.rooms.paint import PaintRoom
+    from annotator.parts.context import SessionHooks, Toolbox
+    from annotator.parts.scan import ScanPart
+    from annotator.parts.paint import PaintPart
 
 
-class BoxLassoRoom:
+class BoxLassoPart:
     """Box and lasso selection, painted with the active instance (erased with an erasing tool)."""
 
-    def __init__(self, scan: ScanRoom, toolbox: Toolbox, hooks: SessionHooks, painting: PaintRoom) -> None:
+    def __init__(self, scan: ScanPart, toolbox: Toolbox, hooks: SessionHooks, painting: PaintPart) -> None:
         self.scan, self.toolbox, self.hooks, self.painting = scan, toolbox, hooks, painting
         self.lasso_outline = LassoOutline()
         """The lasso tool's outline (screen points of one view)."""

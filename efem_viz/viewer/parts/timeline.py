@@ -1,4 +1,4 @@
-"""The timeline room: step through the EM iterations of the shown result (live proposals, samples, shapes)."""
+"""The timeline part: step through the EM iterations of the shown result (live proposals, samples, shapes)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 from efem_viz.viewer.trace_queries import decode_shape, proposal_samples, top_n
 
 if TYPE_CHECKING:
-    from efem_viz.viewer.rooms.core import ViewerCore
+    from efem_viz.viewer.parts.core import ViewerCore
 
 
 class StepView(NamedTuple):
@@ -25,7 +25,7 @@ class StepView(NamedTuple):
     """(D,) int: the proposals whose samples and decoded shapes are drawn (top `max_shapes` by score)."""
 
 
-class TimelineRoom:
+class TimelinePart:
     """The EM step on show, what it shows, and the step's samples and decoded shapes."""
 
     def __init__(self, core: ViewerCore) -> None:

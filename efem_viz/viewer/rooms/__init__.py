@@ -1,9 +1,0 @@
-"""The rooms of the viewer's headless session (`efem_viz.viewer.session.ViewerSession`): one job each.
-
-`core` holds what every room shares (the `ViewerState`, the lock, the status line, the priors, the scene
-generation); `scenes` opens scenes and sets the display; `results` loads and shows results, the confidence cut, the
-mask band, the ground-truth comparison and the point colours; `instances` is the instance table; `runs` runs EFEM
-(thread-safe start, progress, cancel); `timeline` steps through the EM iterations; `inspect` replays one proposal
-(the Fig. S9 views); `export` writes results and the static demo. No room imports viser or a drawing module
-(`tests/test_layering.py` checks it); docs/INTERFACES.md has the table.
-"""
