@@ -267,8 +267,8 @@ class EMConfig:
     """Precision of the networks' matrix products in the EM steps: "float32" (the method), or "bfloat16"
     (`torch.autocast`: the encoder's and decoder's linear layers in bf16; k-NN graphs, SDF values, normals and
     every energy stay float32). The reviews (completed meshes, poses, coverage and the output masks) always
-    decode in float32. A speed knob for GPUs: on a CPU (even one with AMX) the shipped prior's small matrix
-    products gain nothing and the solver runs slower; docs/BENCHMARKS.md measures speed and AP."""
+    decode in float32. A speed knob for GPUs: on a CPU (even one with AMX or AVX-512 BF16) the shipped prior's
+    small matrix products gain nothing and the solver runs no faster or slower; docs/BENCHMARKS.md measures speed and AP."""
     encoder_dtype: MatmulDtype | None = None
     """Precision of the encoder in the EM steps; None = `matmul_dtype`. "float32" with `matmul_dtype`
     "bfloat16" runs only the decoder in bf16: the encoder keeps its fused float32 kernels (autocast switches
@@ -431,7 +431,7 @@ class SolveSettings:
     """Output-mask SDF band (canonical units); default: the prior's calibrated value (`calibrate-masks`), else 0.04."""
     matmul_dtype: MatmulDtype = "float32"
     """Precision of the networks' matrix products: float32 (the method) or bfloat16 (`torch.autocast`; with the
-    shipped prior it is no faster than float32 on a CPU, even one with AMX: docs/BENCHMARKS.md;
+    shipped prior it is no faster than float32 on a CPU, even one with AMX or AVX-512 BF16: docs/BENCHMARKS.md;
     `EMConfig.matmul_dtype`)."""
 
     def config(self, scene: Any = None) -> EMConfig:

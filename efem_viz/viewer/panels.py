@@ -176,7 +176,8 @@ def _run_tab(gui: GuiApi) -> dict[str, Any]:
     # below the buttons: Tab from Seed goes to Run EFEM, not into a dropdown that opens over it
     precision = gui.add_dropdown("Precision", em_config.MATMUL_DTYPES, initial_value="float32",
                                  hint="bfloat16: the networks' matrix work in bf16, for GPUs; on a CPU, even with "
-                                      "AMX, it is slower than float32 with the shipped prior (docs/BENCHMARKS.md)")
+                                      "AMX or AVX-512 BF16, it is no faster than float32 with the shipped prior "
+                                      "(docs/BENCHMARKS.md)")
     progress = gui.add_progress_bar(0.0, visible=False)
     run_info = gui.add_markdown("")
     return dict(gui_preset=preset, gui_proposals=proposals, gui_seed=seed, gui_precision=precision, gui_run=run,
