@@ -182,6 +182,31 @@ def save_scannet(
     return sp, ap
 
 
+@dataclass(frozen=True)
+class LabelWriter:
+    """One label export format of the annotator (`FilePart.export(name)`): the files it writes are
+    `<folder>/<stem><suffix>` for each of its suffixes, every one of which `load_labels` reads back."""
+
+    name: str
+    """What `export` is asked for ("ply", "npz", "scannet")."""
+    suffixes: tuple[str, ...]
+    """The file-name endings it writes, after the scan's stem."""
+    write: Callable[[Any, np.ndarray, Mapping[int, InstanceInfo], Path, str], list[Path]]
+    """(scene, labels, instance table, folder, stem) -> the written paths (atomic writes)."""
+
+
+LABEL_WRITERS: dict[str, LabelWriter] = {w.name: w for w in (
+    LabelWriter("ply", (".labels.ply",),
+                lambda scene, lab, table, d, stem: [save_labels_ply(scene, lab, table, d / f"{stem}.labels.ply")]),
+    LabelWriter("npz", (".labels.npz",),
+                lambda scene, lab, table, d, stem: [save_labels_npz(lab, table, d / f"{stem}.labels.npz",
+                                                                    scan_name=stem)]),
+    LabelWriter("scannet", (".segs.json", ".aggregation.json"),
+                lambda scene, lab, table, d, stem: list(save_scannet(lab, table, d, stem))),
+)}
+"""The label formats the annotator exports, by name (one row per format; `load_labels` reads each back)."""
+
+
 # ---------------------------------------------------------------------------------------------- readers
 def _read_ply_labels(p: Path, n: int) -> LabelData:
     import plyfile

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from annotator.io import LabelData, LabelIOError, load_labels
+from annotator.io import LABEL_WRITERS, LabelData, LabelIOError, load_labels
 from annotator.labels import InstanceInfo
 from annotator.lasso import LassoCamera
 from annotator.session import AnnotatorSession
@@ -188,6 +188,35 @@ def test_instances_update_merge_delete(session: AnnotatorSession) -> None:
     assert session.toolbox.settings.active_id == a and (session.scan.store.labels[:20] == a).all()
     session.instances.delete_instance(a)
     assert not session.scan.store.labels.any()
+
+
+@pytest.mark.parametrize("fmt", sorted(LABEL_WRITERS))
+def test_every_export_format_reads_back_and_stays_in_the_output_folder(fmt: str, session: AnnotatorSession,
+                                                                         tmp_path: Path) -> None:
+    """Each row of the export table: every file it writes is named as the row says and `load_labels` reads it back
+    to the same labels and categories; a file of the row that is a symbolic link out of the output folder is
+    refused before anything is written (a format added to the table is tested here without a new test)."""
+    mug = session.instances.new_instance(category="mug")
+    session.painting.paint(np.arange(30))
+    bowl = session.instances.new_instance(category="bowl")
+    session.painting.paint(np.arange(100, 140))
+    labels = session.scan.store.labels.copy()
+    writer = LABEL_WRITERS[fmt]
+    out = session.files.export(fmt)
+    assert sorted(p.name for p in out) == sorted(f"{session.scan.stem}{s}" for s in writer.suffixes)
+    for p in out:
+        assert p.parent == session.scan.out_dir
+        back = load_labels(p, session.scan.n)
+        assert np.array_equal(back.labels, labels)
+        assert {r.id: r.category for r in back.instances} == {mug: "mug", bowl: "bowl"}
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    for p in out:
+        p.unlink()
+    (session.scan.out_dir / f"{session.scan.stem}{writer.suffixes[-1]}").symlink_to(outside / "victim")
+    with pytest.raises(LabelIOError):
+        session.files.export(fmt)
+    assert not any(outside.iterdir()) and not any(p.exists() for p in out if not p.is_symlink())
 
 
 def test_export_import_and_confinement(session: AnnotatorSession, tmp_path: Path) -> None:

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from annotator.io import LabelIOError, load_labels, resolve_inside, save_labels_npz, save_labels_ply, save_scannet
+from annotator.io import LABEL_WRITERS, LabelIOError, load_labels, resolve_inside
 from annotator.labels import Delta, unreviewed_prelabels
 
 if TYPE_CHECKING:
@@ -31,27 +31,25 @@ class FilePart:
             raise LabelIOError(f"refusing to write {what} over the source scan {p}")
         return p
 
-    def export(self, fmt: Literal["ply", "npz", "scannet"], *, directory: str | None = None) -> list[Path]:
-        """Write the labels to `<out>/<stem>.labels.ply|.labels.npz` or ScanNet JSON; returns the paths.
+    def export(self, fmt: str, *, directory: str | None = None) -> list[Path]:
+        """Write the labels in one of `annotator.io.LABEL_WRITERS` (`<out>/<stem>.labels.ply`, `.labels.npz`, or
+        ScanNet's `.segs.json` + `.aggregation.json`); returns the paths.
 
         Args:
-            fmt: "ply", "npz" or "scannet".
+            fmt: a `LABEL_WRITERS` name: "ply", "npz" or "scannet".
             directory: a folder inside the output folder (relative paths are taken below it); default: the
-                output folder. Anything resolving elsewhere (`..`, the scan's folder, symlinks out) is refused.
+                output folder. Anything resolving elsewhere (`..`, the scan's folder, symlinks out) is refused,
+                the folder and every file written.
         """
+        writer = LABEL_WRITERS.get(fmt)
+        if writer is None:
+            raise ValueError(f"unknown export format {fmt!r}; use {', '.join(LABEL_WRITERS)}")
         d = self.safe_path(directory, what="export directory") if directory else self.scan.out_dir
-        labels, table = self.scan.store.snapshot()
         stem = self.scan.stem
-        if fmt == "ply":
-            out = [save_labels_ply(self.scan.scene, labels, table,
-                                   self.safe_path(str(d / f"{stem}.labels.ply"), what="export file"))]
-        elif fmt == "npz":
-            out = [save_labels_npz(labels, table, self.safe_path(str(d / f"{stem}.labels.npz"), what="export file"),
-                                   scan_name=stem)]
-        elif fmt == "scannet":
-            out = list(save_scannet(labels, table, d, self.scan.stem))
-        else:
-            raise ValueError(f"unknown export format {fmt!r}; use ply, npz or scannet")
+        for suffix in writer.suffixes:
+            self.safe_path(str(d / f"{stem}{suffix}"), what="export file")
+        labels, table = self.scan.store.snapshot()
+        out = writer.write(self.scan.scene, labels, table, d, stem)
         present = set(np.flatnonzero(np.bincount(labels.clip(0)) > 0).tolist())  # O(N), not a sort of N
         pending = [k for k in unreviewed_prelabels(table) if k in present]
         warn = (f"; {len(pending)} unreviewed EFEM pre-label{'s' if len(pending) != 1 else ''} exported as "
