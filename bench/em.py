@@ -163,7 +163,8 @@ def compare(args: argparse.Namespace, prior: Any, cfgs: dict[str, Any]) -> int:
         preds: dict[str, list[Any]] = {n: [] for n in cfgs}
         gts = []
         for i, em_seed in itertools.product(range(n_scenes), args.em_seeds):
-            scene = get_scene(config, args.seed0 + i, args.mode, distractors=not args.no_distractors)
+            scene = get_scene(config, args.seed0 + i, args.mode, distractors=not args.no_distractors,
+                              targets=args.targets)
             gt = SceneGroundTruth.from_scene(scene)
             gts.append(dataclasses.replace(gt, name=f"{scene.name}_s{em_seed}"))
             line = [f"  {scene.name:>10} s{em_seed}:"]
@@ -205,6 +206,7 @@ def compare(args: argparse.Namespace, prior: Any, cfgs: dict[str, Any]) -> int:
            "prior": {"name": args.prior, "metadata": {k: v for k, v in prior.metadata.items()
                                                       if k in ("iteration", "val_iou", "tau_out")}},
            "scene_mode": args.mode, "distractors": not args.no_distractors, "n_scenes": n_scenes,
+           "targets": args.targets, "eval_classes": list(EVAL_CLASSES),
            "em_seeds": list(args.em_seeds), "config_env": args.config_env,
            "proposals": args.proposals, "configs": per}
     write_json(args.out, out)
@@ -357,7 +359,7 @@ def main() -> int:
         print(f"median runtime per scene at {args.proposals} proposals: {np.median(runtimes):.1f} s wall, "
               f"{np.median(cpu_times):.1f} s CPU (process time, all threads)")
     if not args.skip_speed:
-        scene = get_scene("z", SEED0, args.mode, distractors=not args.no_distractors)
+        scene = get_scene("z", SEED0, args.mode, distractors=not args.no_distractors, targets=args.targets)
         props = (50, 200, 400) if args.quick else (50, 100, 200, 400)
         rows = []
         print(f"runtime vs proposals ({scene.name}, {scene.num_points} points):")
