@@ -172,13 +172,14 @@ def compare(args: argparse.Namespace, prior: Any, cfgs: dict[str, Any]) -> int:
                 with config_env(args.config_env.get(name, {})):
                     res = run_one(scene, prior, c, seed=em_seed)
                 if args.save_results is not None:  # one folder per config: <dir>/<name>/<scene>.efem.npz
-                    from efem_viz.data.io import save_scene
+                    from efem_viz.data.io import RESULT_SUFFIX, save_scene
 
                     out = args.save_results / name
                     out.mkdir(parents=True, exist_ok=True)
                     if not (out / f"{scene.name}.ply").is_file():
                         save_scene(scene, out / f"{scene.name}.ply")
-                    res.save(out)
+                    res.save(out / (f"{scene.name}{RESULT_SUFFIX}" if len(args.em_seeds) == 1
+                                    else f"{scene.name}_s{em_seed}{RESULT_SUFFIX}"))
                 preds[name].append(mug_prediction(res, f"{scene.name}_s{em_seed}"))
                 one = evaluate([preds[name][-1]], [gts[-1]], class_names=tuple(EVAL_CLASSES))
                 per[name].setdefault("per_run_ap50", []).append(one.ap50 * 100)
@@ -237,7 +238,8 @@ def main() -> int:
                     help="JSON output (default bench/results/em.json, or em_no_distractors.json)")
     ap.add_argument("--save-results", type=Path, default=None,
                     help="also write every accuracy run's scene (.ply) and result (.efem.npz) here, to open them in "
-                         "the viewer (efem-viz view DIR) or re-score them; with --config, one sub-folder per config)")
+                         "the viewer (efem-viz view DIR) or re-score them; with --config, one sub-folder per config; over "
+                         "several --em-seeds, each result named <scene>_s<seed>)")
     ap.add_argument("--targets", default="mug", choices=sorted(PAPER_BY_TARGETS),
                     help="the scenes' labelled objects: mugs, kitchen objects (mugs, bowls, bottles, cans: the "
                          "paper's SynKit; z so3 pile; evaluate with --prior kitchen) or chairs (the paper's "
