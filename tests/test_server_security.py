@@ -571,12 +571,12 @@ def test_viewer_gui_exports_stay_inside_the_output_root(viewer: Any, tmp_path: P
     for bad in ("../escape", str(outside), "/etc", "link/sub", "sub/../../x"):
         viewer.gui_set(viewer.panels.gui_out_dir, bad)
         with pytest.raises(ClientValueError, match="refusing output folder|not allowed"):
-            viewer.export_from_gui("results")
+            viewer.export_tab.export_from_gui("results")
         with pytest.raises(ClientValueError):
-            viewer.export_from_gui("static")
+            viewer.export_tab.export_from_gui("static")
     assert not any(outside.iterdir())
     viewer.gui_set(viewer.panels.gui_out_dir, "run1")
-    fut = viewer.export_from_gui("results")
+    fut = viewer.export_tab.export_from_gui("results")
     assert fut is not None and fut.result(60) == root / "run1"
     assert (root / "run1" / "spheres_instances.ply").is_file()
 
@@ -721,7 +721,7 @@ def test_viewer_static_demo_defaults_into_the_output_root(viewer: Any, tmp_path:
     """"Export static demo" writes <output folder>/static/<scene>/, never into the checkout or the package."""
     assert viewer.open_scene("spheres")
     before = {p: p.stat().st_mtime for p in (REPO / "static").rglob("*") if p.is_file()} if (REPO / "static").exists() else {}
-    fut = viewer.export_from_gui("static")  # the field holds the root itself
+    fut = viewer.export_tab.export_from_gui("static")  # the field holds the root itself
     assert fut is not None
     index = fut.result(120)
     assert index == viewer.out_root / "static" / "spheres" / "index.html" and index.is_file()

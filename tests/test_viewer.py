@@ -214,7 +214,7 @@ def test_colour_keys_tp_fp_boxes_and_grey_background(app: Any) -> None:
     key = app.panels.gui_color_key.content
     assert key == color_key_html("gt_match") and all(w in key for w in ("TP", "FP", "FN", "grey"))
     m = app._gt_metrics()
-    kept = np.flatnonzero(app.kept_mask())
+    kept = np.flatnonzero(app.session.results.kept_mask())
     boxes = app.nodes.results.box_colors
     for k in m.tp:
         assert boxes[kept[k]] == tuple(int(c) for c in pal.TP_COLOR)
@@ -413,7 +413,7 @@ def test_mask_band_rederives_masks_without_rerun(app: Any, tmp_path: Path) -> No
     assert grew, "a band 4x wider must take in more points"
     assert not np.array_equal(colors0, np.array(app.nodes.points.colors))
     assert "SDF\\| < 0.15" in app.panels.gui_result_info.content
-    out = app.export_results(tmp_path / "exp")
+    out = app.export_tab.export_results(tmp_path / "exp")
     assert out is not None
     assert app.set_mask_band(tau0)
     for a, b in zip(res0.instances.masks, app.state.result.instances.masks, strict=True):
@@ -458,7 +458,7 @@ def test_run_in_worker_with_progress_and_cancel(app: Any) -> None:
     # The UI stays usable during a run: loading a trace (worker thread) does not wait for it.
     assert app._submit(app._worker, app.load_trace).result(timeout=30) is True
     before = app.state.result
-    app.cancel_run()
+    app.session.runs.cancel_run()
     gate.set()
     assert fut.result(timeout=120) is None
     assert app.state.status == "Run cancelled." and app.state.result is before
@@ -511,7 +511,7 @@ def test_a_run_is_shown_as_it_goes_then_its_final_result(app: Any) -> None:
     def cancel_at_two(result: Any, *, source: str) -> None:
         original(result, source=source)
         if source.startswith("running: step 2 "):
-            app.cancel_run()
+            app.session.runs.cancel_run()
 
     app.set_result = cancel_at_two
     try:
@@ -530,12 +530,12 @@ def test_a_run_is_shown_as_it_goes_then_its_final_result(app: Any) -> None:
 
 def test_export_results_and_static_demo(app: Any, tmp_path: Path) -> None:
     app.set_threshold(0.0)
-    out = app.export_results(tmp_path / "res")
+    out = app.export_tab.export_results(tmp_path / "res")
     assert out is not None
     txt = (out / "spheres.txt").read_text().splitlines()
     assert len(txt) == len(app.state.result.instances)
     assert (out / "spheres_instances.ply").is_file()
-    index = app.export_static(tmp_path / "static" / "spheres")
+    index = app.export_tab.export_static(tmp_path / "static" / "spheres")
     assert index is not None and index.name == "index.html"
     html = index.read_text()
     assert "__VISER_EMBED_DATA__" in html and len(html) < 20_000_000
@@ -565,14 +565,14 @@ def test_static_demo_export_shows_progress_and_cancels(app: Any, tmp_path: Path,
 
     monkeypatch.setattr(export._DemoRecording, "_step", step)
     target = tmp_path / "static" / "cancelled"
-    assert app.export_static(target) is None
+    assert app.export_tab.export_static(target) is None
     assert not target.exists()  # not even the folder
     assert "cancelled: nothing was written" in app.state.status
     assert seen[0][0].endswith("EM step 1 of %d … (Cancel export stops it)" % app.state.result.trace.num_steps)
     assert all(visible and not disabled for _, visible, disabled in seen) and len(seen) == 3
     p = app.panels
     assert not p.gui_export_progress.visible and p.gui_export_cancel.disabled and not p.gui_export_static.disabled
-    assert app.export_static(tmp_path / "static" / "again") is not None  # the next export runs to the end
+    assert app.export_tab.export_static(tmp_path / "static" / "again") is not None  # the next export runs to the end
     assert len(seen) == 3 + app.state.result.trace.num_steps
 
 
@@ -674,7 +674,7 @@ def test_playback_advances_and_stops_at_the_end(app: Any) -> None:
 
     app.set_step(0)
     app.state.speed = 40.0
-    app.play()
+    app.playback.play()
     assert app.state.playing and app.panels.gui_play.label == "Pause"
     deadline = time.monotonic() + 30
     while app.state.playing and time.monotonic() < deadline:
@@ -690,9 +690,9 @@ def test_gui_callbacks_drive_the_app(app: Any) -> None:
     app.panels.gui_step.value = 1
     assert app.state.step == 1
     app.panels.gui_threshold.value = app.panels.gui_threshold.max
-    assert app.state.threshold == app.panels.gui_threshold.max and app.kept_mask().sum() == 0
+    assert app.state.threshold == app.panels.gui_threshold.max and app.session.results.kept_mask().sum() == 0
     app.panels.gui_threshold.value = 0.0
-    assert app.kept_mask().all()
+    assert app.session.results.kept_mask().all()
     app.panels.gui_max_shapes.value = 2
     assert app.state.max_shapes == 2
     app.panels.gui_max_shapes.value = 8

@@ -150,7 +150,7 @@ def test_default_cut_hides_near_zero_instances_and_says_how_many(app: Any) -> No
     try:
         app.state.scene = labelled.replace(instance=None)  # a user's scan: no ground truth
         _with_confidences(app, conf)
-        shown = app.shown_mask()
+        shown = app.session.results.shown_mask()
         assert shown.tolist() == (conf >= st.DEFAULT_CONFIDENCE_CUT).tolist() and int((~shown).sum()) == 2
         assert "**2 hidden** below the cut" in app.panels.gui_result_info.content
         r = app.nodes.results
@@ -182,7 +182,7 @@ def test_shown_labels_do_not_overlap_in_the_fitted_view(app: Any) -> None:
         assert overlapping_pairs(label_rects(positions, texts, view=r.label_view)) == []
         assert r.leaders is not None and r.leaders.visible
         top = int(np.argmax(np.asarray(heap.confidence)))
-        app.set_instance_visible(int(heap.ids[top]), False)  # the lowest label goes: the others move down
+        app.instance_table.set_instance_visible(int(heap.ids[top]), False)  # the lowest label goes: the others move down
         positions2 = np.array([h.position for h in r.labels], np.float64)
         on = [i for i, h in enumerate(r.labels) if h.visible]
         assert top not in on and len(on) == k - 1
@@ -223,7 +223,7 @@ def test_instance_table_rows_visibility_and_next(app: Any) -> None:
     k_idx = int(order[1])
     colors_before = np.array(app.nodes.points.colors)
     app.panels.gui_instance_visible.value = False  # as a browser unticks it
-    assert pid in app.state.hidden and not app.shown_mask()[k_idx]
+    assert pid in app.state.hidden and not app.session.results.shown_mask()[k_idx]
     r = app.nodes.results
     assert not r.labels[k_idx].visible and not r.obbs[k_idx].visible
     assert r.meshes[k_idx] is None or not r.meshes[k_idx].visible
@@ -231,15 +231,15 @@ def test_instance_table_rows_visibility_and_next(app: Any) -> None:
     assert not np.array_equal(np.array(app.nodes.points.colors)[mask], colors_before[mask])
     assert "1 hidden in the table" in app.panels.gui_result_info.content
     assert f"| {pid} " in app.panels.gui_instance_table.content and "| hidden |" in app.panels.gui_instance_table.content
-    assert app.kept_mask()[k_idx], "hiding is a view: the threshold (metrics, exports) still keeps it"
-    app.set_instance_visible(pid, True)
-    assert app.shown_mask()[k_idx] and r.labels[k_idx].visible
+    assert app.session.results.kept_mask()[k_idx], "hiding is a view: the threshold (metrics, exports) still keeps it"
+    app.instance_table.set_instance_visible(pid, True)
+    assert app.session.results.shown_mask()[k_idx] and r.labels[k_idx].visible
     assert np.array_equal(np.array(app.nodes.points.colors), colors_before)
 
-    assert app.step_instance(+1) == int(inst.ids[order[2 % k]])
-    assert app.step_instance(-1) == pid
+    assert app.instance_table.step_instance(+1) == int(inst.ids[order[2 % k]])
+    assert app.instance_table.step_instance(-1) == pid
     with pytest.raises(ValueError, match="no instance #"):
-        app.fly_to_instance(10_000)
+        app.instance_table.fly_to_instance(10_000)
     app.set_threshold(st.DEFAULT_CONFIDENCE_CUT)
 
 
@@ -258,7 +258,7 @@ def test_table_without_ground_truth_and_without_result(app: Any, tmp_path: Path)
         assert p.gui_fly_to.disabled and p.gui_instance_visible.disabled and p.gui_instance_next.disabled
         assert p.gui_instance_table.content == "" and p.gui_instance.options == ("(none)",)
         with pytest.raises(ValueError, match="no result"):
-            app.fly_to_instance(1)
+            app.instance_table.fly_to_instance(1)
     finally:
         assert app.load_trace() and app.wait_idle(60)
     assert not app.panels.gui_fly_to.disabled

@@ -17,7 +17,7 @@ from __future__ import annotations
 import logging
 from concurrent.futures import Future
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Literal, Sequence, TypeVar
+from typing import TYPE_CHECKING, Any, Callable, Sequence, TypeVar
 
 import numpy as np
 
@@ -156,7 +156,7 @@ class ViewerApp(ServedApp):
     # ================================================================== lifecycle
     def stop(self) -> None:
         """Stop playback, cancel a run and a static-demo export, shut the workers and the server down."""
-        self.pause()
+        self.playback.pause()
         self.session.cancel_event.set()  # a running EM stops at its next step
         self.session.export.cancel_export()  # a static demo stops at its next step, unwritten
         self.session.generation += 1  # running decode/inspect jobs drop their results
@@ -211,7 +211,7 @@ class ViewerApp(ServedApp):
             return False
         entry, scene = got
         with self._lock:
-            self.pause()
+            self.playback.pause()
             self.session.scenes.show_scene(entry, scene)
             s = self.state
             self._set_view_mode("result")
@@ -281,14 +281,10 @@ class ViewerApp(ServedApp):
         """`RunPanel.start_run`: EFEM on the open scene in the runner thread with `RunSettings.of(settings, **knobs)`."""
         return self.run_panel.start_run(settings, **knobs)
 
-    def cancel_run(self) -> None:
-        """Ask a running EM to stop at its next step."""
-        self.session.runs.cancel_run()
-
     def set_result(self, result: EMResult, *, source: str) -> None:
         """Show an EMResult: timeline, proposals at the last step, final instances and ground truth."""
         with self._lock:
-            self.pause()
+            self.playback.pause()
             self.session.results.set_result(result, source=source)
             pv.show_result(self.panels, self.session, self.gui_set)
             self.nodes.clear_inspector()
@@ -349,16 +345,6 @@ class ViewerApp(ServedApp):
                 self._request_inspect(s.selected, v.step)
             if view_mode != was:  # the other layers step aside
                 self._redraw_layers()
-
-    def play(self) -> None:
-        """Start playback from the current step (from 0 when at the end)."""
-        self.playback.play()
-
-    def pause(self) -> None:
-        self.playback.pause()
-
-    def toggle_play(self) -> None:
-        self.playback.toggle()
 
     # ================================================================== 4. proposals
     def set_max_shapes(self, n: int) -> None:
@@ -442,31 +428,7 @@ class ViewerApp(ServedApp):
                 self.set_threshold(s.threshold, by_user=False)
             return True
 
-    def kept_mask(self) -> np.ndarray:
-        """(K,) bool: final instances at or above the threshold (what the metrics and exports take)."""
-        return self.session.results.kept_mask()
-
-    def shown_mask(self) -> np.ndarray:
-        """(K,) bool: final instances drawn: at or above the threshold and not hidden in the instance table."""
-        return self.session.results.shown_mask()
-
     # ---------------------------------------------------------------- the instance table
-    def choose_instance(self, pid: int | None) -> None:
-        """`InstanceTable.choose_instance`: choose a row of the instance table (None: none)."""
-        self.instance_table.choose_instance(pid)
-
-    def set_instance_visible(self, pid: int | None, visible: bool) -> None:
-        """`InstanceTable.set_instance_visible`: show or hide one final instance (ValueError: no such instance)."""
-        self.instance_table.set_instance_visible(pid, visible)
-
-    def fly_to_instance(self, pid: int | None, *, client: ClientHandle | None = None) -> None:
-        """`InstanceTable.fly_to_instance`: point one browser's camera (every browser's when None) at an instance."""
-        self.instance_table.fly_to_instance(pid, client=client)
-
-    def step_instance(self, step: int, *, client: ClientHandle | None = None) -> int:
-        """`InstanceTable.step_instance`: choose the next (1) or previous (-1) row and fly to it; its id."""
-        return self.instance_table.step_instance(step, client=client)
-
     def set_result_layers(self, *, meshes: bool, obbs: bool, axes: bool) -> None:
         with self._lock:
             self.session.scenes.set_result_layers(meshes=meshes, obbs=obbs, axes=axes)
@@ -490,18 +452,3 @@ class ViewerApp(ServedApp):
             self.panels.gui_color_key.content = color_key_html(shown)
 
     # ================================================================== 7. export
-    def gui_out_folder(self) -> Path:
-        """`ExportTab.gui_out_folder`: the GUI's output folder, inside the output root."""
-        return self.export_tab.gui_out_folder()
-
-    def export_from_gui(self, kind: Literal["results", "static"]) -> Future[Path | None] | None:
-        """`ExportTab.export_from_gui`: the Export buttons (writes confined to the output root)."""
-        return self.export_tab.export_from_gui(kind)
-
-    def export_results(self, out_dir: str | Path, *, root: Path | None = None) -> Path | None:
-        """`ExportTab.export_results`: the thresholded result (ScanNet layout + coloured PLY) under `out_dir`."""
-        return self.export_tab.export_results(out_dir, root=root)
-
-    def export_static(self, out_dir: str | Path | None = None, *, root: Path | None = None) -> Path | None:
-        """`ExportTab.export_static`: the static demo page (None: `<output root>/static/<scene>/`)."""
-        return self.export_tab.export_static(out_dir, root=root)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 from concurrent.futures import Future
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Literal, Protocol, TypeVar, cast
+from typing import TYPE_CHECKING, Any, Callable, Protocol, TypeVar, cast
 
 from efem_viz.serve.inputs import ClientValueError, read_bool, read_choice, read_int, read_number
 from efem_viz.serve.table import NO_ROW, option_id
@@ -26,7 +26,10 @@ if TYPE_CHECKING:
     from efem_viz.em.config import PresetName
     from efem_viz.prior.config import MatmulDtype
     from efem_viz.viewer.export_tab import ExportTab
+    from efem_viz.viewer.instance_table import InstanceTable
     from efem_viz.viewer.panels import Panels
+    from efem_viz.viewer.playback import Playback
+    from efem_viz.viewer.session import ViewerSession
     from efem_viz.viewer.state import ViewerState, ViewMode
 
 logger = logging.getLogger(__name__)
@@ -38,9 +41,13 @@ if TYPE_CHECKING:
 
 
 class ViewerControls(Protocol):
-    """The viewer actions the GUI events call (`efem_viz.viewer.app.ViewerApp`)."""
+    """The viewer actions the GUI events call (`efem_viz.viewer.app.ViewerApp`): its own, and its parts'."""
 
     panels: Panels
+    session: ViewerSession
+    playback: Playback
+    instance_table: InstanceTable
+    export_tab: ExportTab
 
     @property
     def state(self) -> ViewerState: ...
@@ -55,23 +62,15 @@ class ViewerControls(Protocol):
     def set_color_mode(self, mode: str) -> None: ...
     def set_point_size(self, size_m: float) -> None: ...
     def start_run(self, settings: RunSettings | None = ..., **knobs: Any) -> object: ...
-    def cancel_run(self) -> None: ...
     def set_view_mode(self, mode: str) -> None: ...
     def set_step(self, step: int, *, view_mode: ViewMode = ...) -> None: ...
-    def toggle_play(self) -> None: ...
     def set_proposal_layers(self, *, shapes: bool | None = ..., samples: bool | None = ...) -> None: ...
     def set_max_shapes(self, n: int) -> None: ...
     def select_proposal(self, pid: int | None) -> object: ...
     def set_threshold(self, threshold: float, *, by_user: bool = True) -> None: ...
     def set_mask_band(self, tau_out: float) -> bool: ...
     def set_result_layers(self, *, meshes: bool, obbs: bool, axes: bool) -> None: ...
-    def choose_instance(self, pid: int | None) -> None: ...
-    def set_instance_visible(self, pid: int | None, visible: bool) -> None: ...
-    def fly_to_instance(self, pid: int | None, *, client: ClientHandle | None = ...) -> None: ...
-    def step_instance(self, step: int, *, client: ClientHandle | None = ...) -> int: ...
     def reset_view(self, client: ClientHandle | None = ...) -> None: ...
-    def export_from_gui(self, kind: Literal["results", "static"]) -> object: ...
-    export_tab: ExportTab
 
 
 def row_id(option: str) -> int | None:
@@ -122,11 +121,11 @@ def wire(app: ViewerControls) -> None:
     )
     p.gui_preset.on_update(guard(lambda: app.choose_preset(read_choice(p.gui_preset))))
     p.gui_proposals.on_update(guard(lambda: setattr(app.state, "proposals_by_user", True)))
-    p.gui_cancel.on_click(guard(app.cancel_run))
+    p.gui_cancel.on_click(guard(app.session.runs.cancel_run))
     p.gui_load.on_click(guard(lambda: app.submit_work(app.load_trace)))
     p.gui_view_mode.on_update(guard(lambda: app.set_view_mode(VIEW_MODES[read_choice(p.gui_view_mode)])))
     p.gui_step.on_update(guard(lambda: app.set_step(read_int(p.gui_step))))
-    p.gui_play.on_click(guard(app.toggle_play))
+    p.gui_play.on_click(guard(app.playback.toggle))
     p.gui_speed.on_update(guard(lambda: setattr(app.state, "speed", read_number(p.gui_speed, write_back=wb))))
     p.gui_show_shapes.on_update(guard(lambda: app.set_proposal_layers(shapes=read_bool(p.gui_show_shapes))))
     p.gui_show_samples.on_update(guard(lambda: app.set_proposal_layers(samples=read_bool(p.gui_show_samples))))
@@ -136,14 +135,14 @@ def wire(app: ViewerControls) -> None:
     p.gui_mask_band.on_update(guard(lambda: app.submit_work(app.set_mask_band, read_number(p.gui_mask_band))))
     for h in (p.gui_show_meshes, p.gui_show_obbs, p.gui_show_axes):
         h.on_update(guard(layers))
-    p.gui_instance.on_update(guard(lambda: app.choose_instance(row_id(read_choice(p.gui_instance)))))
+    p.gui_instance.on_update(guard(lambda: app.instance_table.choose_instance(row_id(read_choice(p.gui_instance)))))
     p.gui_instance_visible.on_update(
-        guard(lambda: app.set_instance_visible(app.state.table_row, read_bool(p.gui_instance_visible))))
+        guard(lambda: app.instance_table.set_instance_visible(app.state.table_row, read_bool(p.gui_instance_visible))))
     p.gui_fly_to.on_click(
-        lambda event: guard(lambda: app.fly_to_instance(app.state.table_row, client=event.client))(event))
-    p.gui_instance_prev.on_click(lambda event: guard(lambda: app.step_instance(-1, client=event.client))(event))
-    p.gui_instance_next.on_click(lambda event: guard(lambda: app.step_instance(+1, client=event.client))(event))
+        lambda event: guard(lambda: app.instance_table.fly_to_instance(app.state.table_row, client=event.client))(event))
+    p.gui_instance_prev.on_click(lambda event: guard(lambda: app.instance_table.step_instance(-1, client=event.client))(event))
+    p.gui_instance_next.on_click(lambda event: guard(lambda: app.instance_table.step_instance(+1, client=event.client))(event))
     p.gui_reset_view.on_click(lambda event: app.reset_view(event.client))
-    p.gui_export_results.on_click(guard(lambda: app.export_from_gui("results")))
-    p.gui_export_static.on_click(guard(lambda: app.export_from_gui("static")))
+    p.gui_export_results.on_click(guard(lambda: app.export_tab.export_from_gui("results")))
+    p.gui_export_static.on_click(guard(lambda: app.export_tab.export_from_gui("static")))
     p.gui_export_cancel.on_click(guard(lambda: app.export_tab.cancel()))

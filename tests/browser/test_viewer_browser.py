@@ -337,7 +337,7 @@ def test_guide_ground_truth(viewer: Any, page: Any) -> None:
 def test_guide_export(viewer: Any, page: Any, tmp_path: Path) -> None:
     _open(page, viewer)
     page.get_by_role("tab", name="Export").click()
-    index = viewer.export_static(tmp_path / "demo")
+    index = viewer.export_tab.export_static(tmp_path / "demo")
     assert index is not None and index.is_file()
     page.wait_for_timeout(800)
     _save(page, "viewer_export.png")
@@ -395,13 +395,13 @@ def test_instance_table_cut_visibility_and_fly_to(viewer: Any, page: Any) -> Non
     page.keyboard.press("End")
     wait_until(lambda: viewer.state.threshold > float(np.max(inst.confidence)), HANG_GUARD_S, "the cut above every instance")
     wait_until(lambda: table.locator("td", has_text="below cut").count() == len(inst), HANG_GUARD_S, "rows below the cut")
-    wait_until(lambda: not viewer.shown_mask().any() and not any(h.visible for h in viewer.nodes.results.labels),
+    wait_until(lambda: not viewer.session.results.shown_mask().any() and not any(h.visible for h in viewer.nodes.results.labels),
                HANG_GUARD_S, "no mask and no label shown")  # the labels are redrawn after the table
     page.get_by_text(f"{len(inst)} hidden", exact=False).first.wait_for(timeout=HANG_GUARD_MS)
     slider.focus()
     page.keyboard.press("Home")
     wait_until(lambda: viewer.state.threshold == 0.0, HANG_GUARD_S, "the cut at 0")
-    wait_until(lambda: viewer.shown_mask().all(), HANG_GUARD_S, "every instance shown")
+    wait_until(lambda: viewer.session.results.shown_mask().all(), HANG_GUARD_S, "every instance shown")
 
     # ---- Next ▶ chooses a row and flies this browser's camera to it
     client = next(iter(viewer.server.get_clients().values()))
@@ -434,11 +434,11 @@ def test_instance_table_cut_visibility_and_fly_to(viewer: Any, page: Any) -> Non
     assert visible.is_checked()
     visible.click()
     wait_until(lambda: nxt in viewer.state.hidden, HANG_GUARD_S, "the instance hidden on the server")
-    assert not viewer.shown_mask()[k] and not viewer.nodes.results.labels[k].visible
+    assert not viewer.session.results.shown_mask()[k] and not viewer.nodes.results.labels[k].visible
     assert not viewer.nodes.results.obbs[k].visible
     wait_until(lambda: table.locator("td", has_text="hidden").count() == 1, HANG_GUARD_S, "its row says hidden")
     visible.click()
-    wait_until(lambda: nxt not in viewer.state.hidden and viewer.shown_mask()[k], HANG_GUARD_S, "the instance shown again")
+    wait_until(lambda: nxt not in viewer.state.hidden and viewer.session.results.shown_mask()[k], HANG_GUARD_S, "the instance shown again")
 
     # ---- Fly to: back at the fitted view first, then the button brings the camera to the chosen row again
     viewer.reset_view(client)
