@@ -26,11 +26,6 @@ holds it while it draws. `runs.run()` and `results.load_result()` are synchronou
 
 from __future__ import annotations
 
-from pathlib import Path
-from typing import TYPE_CHECKING, Sequence
-
-from efem_viz.data.scene import DEFAULT_MAX_POINTS
-from efem_viz.prior.config import DEFAULT_PRIOR
 from efem_viz.viewer.parts.core import (
     BUNDLED_SCENE_DIR,
     CHECKOUT_SCENE_DIR,
@@ -48,9 +43,6 @@ from efem_viz.viewer.parts.runs import ProgressCallback, RunPart, RunSettings
 from efem_viz.viewer.parts.scenes import ScenePart
 from efem_viz.viewer.parts.timeline import StepView, TimelinePart
 
-if TYPE_CHECKING:
-    from efem_viz.prior.config import ShapePriorLike
-
 __all__ = [
     "BUNDLED_SCENE_DIR", "CHECKOUT_SCENE_DIR", "DEFAULT_SCENE_DIR", "REPO_ROOT", "FlyTarget", "Inspection",
     "PointColors", "ProgressCallback", "RunSettings", "StatusListener", "StepView", "ViewerSession", "default_scene_dir",
@@ -58,44 +50,32 @@ __all__ = [
 
 
 class ViewerSession(ViewerCore):
-    """The viewer without its GUI: state and every action.
+    """The viewer without its GUI: state and every action, each in its part.
 
-    Args:
-        paths: scene files and/or folders; only scene files inside them are listed and opened.
-        prior: a `ShapePrior`, or None to load `prior_name` lazily when first needed (decoding, runs).
-        prior_name: the prior's spec (`efem_viz.prior.registry.PriorSet`).
-        run_priors: specs of more priors for runs started here (a joint solve over the prior and these).
-        out_dir: the output root (exports confined to it by the app); default `view/` in the user's data folder.
-        results: folders of saved results searched after each scene's own folder; with no `paths`, the scenes
-            are the scene files in these folders.
-        max_points: refuse scenes with more points than this.
+    Built like `ViewerCore` (`ViewerSession(paths, prior=..., prior_name=..., run_priors=..., out_dir=..., results=...,
+    max_points=..., device=...)`; the parameters are declared and documented there only).
     """
 
-    def __init__(
-        self,
-        paths: Sequence[str | Path] = (),
-        *,
-        prior: ShapePriorLike | None = None,
-        prior_name: str = DEFAULT_PRIOR,
-        run_priors: Sequence[str] = (),
-        out_dir: str | Path | None = None,
-        results: Sequence[str | Path] = (),
-        max_points: int = DEFAULT_MAX_POINTS,
-        device: str = "cpu",
-    ) -> None:
-        super().__init__(paths, prior=prior, prior_name=prior_name, run_priors=run_priors, out_dir=out_dir,
-                         results=results, max_points=max_points, device=device)
+    scenes: ScenePart
+    """Opening scenes and the display choices."""
+    results: ResultPart
+    """The shown result: cut, mask band, ground truth, point colours."""
+    runs: RunPart
+    """EFEM runs (start, progress, cancel)."""
+    timeline: TimelinePart
+    """Stepping through the EM iterations."""
+    inspection: InspectPart
+    """The inspected proposal (Fig. S9 views)."""
+    instances: InstancePart
+    """The instance table."""
+    export: ExportPart
+    """Result and static-demo exports."""
+
+    def attach_parts(self) -> None:
         self.scenes = ScenePart(self)
-        """Opening scenes and the display choices."""
         self.results = ResultPart(self)
-        """The shown result: cut, mask band, ground truth, point colours."""
         self.runs = RunPart(self, self.results)
-        """EFEM runs (start, progress, cancel)."""
         self.timeline = TimelinePart(self)
-        """Stepping through the EM iterations."""
         self.inspection = InspectPart(self)
-        """The inspected proposal (Fig. S9 views)."""
         self.instances = InstancePart(self, self.results)
-        """The instance table."""
         self.export = ExportPart(self)
-        """Result and static-demo exports."""

@@ -49,7 +49,19 @@ StatusListener = Callable[[str, bool], None]
 
 
 class ViewerCore:
-    """The shared parts of the viewer session (the arguments are `ViewerSession`'s)."""
+    """The shared parts of the viewer session.
+
+    Args:
+        paths: scene files and/or folders; only scene files inside them are listed and opened.
+        prior: a `ShapePrior`, or None to load `prior_name` lazily when first needed (decoding, runs).
+        prior_name: the prior's spec (`efem_viz.prior.registry.PriorSet`).
+        run_priors: specs of more priors for runs started here (a joint solve over the prior and these).
+        out_dir: the output root (exports confined to it by the app); default `view/` in the user's data folder.
+        results: folders of saved results searched after each scene's own folder; with no `paths`, the scenes
+            are the scene files in these folders.
+        max_points: refuse scenes with more points than this.
+        device: where runs started here solve ("cpu" or "cuda").
+    """
 
     def __init__(
         self,
@@ -94,6 +106,11 @@ class ViewerCore:
         """(N,) float32 weights of the inspected proposal (the "proposal weights" colouring)."""
         self.view_cache: dict[tuple[int, int], ProposalView] = {}
         """Replayed proposal views by (proposal id, step) of the shown result (cleared with every new one)."""
+        self.attach_parts()
+
+    def attach_parts(self) -> None:
+        """Build the parts that share this core (the session's, `efem_viz.viewer.session.ViewerSession`); called
+        once, at the end of `__init__`, so that the constructor's parameters are declared here only."""
 
     def set_status(self, text: str, *, error: bool = False) -> None:
         """Record a status line (and the error, when it is one) and tell `on_status`."""
