@@ -80,7 +80,8 @@ class AnnotateArgs:
                                    f"{len(ses.scan.store.labelset.undo_stack):,} undoable edits")
                 if app.token_kept:
                     details.append("same URL as the last run on this scan: a tab left open reconnects by itself")
-                announce("efem-annotate", f"{ses.scan.scan_path.name} ({ses.scan.n:,} vertices) at {app.url}  — Ctrl+C to quit",
+                announce("efem-annotate",
+                         f"{ses.scan.scan_path.name} ({ses.scan.n:,} vertices) at {app.url}  — Ctrl+C to quit",
                          url=app.url, local_url=app.local_url, exposure_warning=app.access.exposure_warning,
                          details=tuple(details))
                 wait_for_stop()

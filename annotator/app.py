@@ -162,8 +162,8 @@ class AnnotatorApp(ServedApp):
         self._worker.start()
         ses.scan.start_warm_up(self._show_warm_up)
         self.open_s = time.perf_counter() - t0
-        log.info("opened %s: %d vertices (%d drawn), %d chunks, %.2f s", self.session.scan.scan_path.name, self.session.scan.n,
-                 len(self.view.display), self.view.chunks.count, self.open_s)
+        log.info("opened %s: %d vertices (%d drawn), %d chunks, %.2f s", self.session.scan.scan_path.name,
+                 self.session.scan.n, len(self.view.display), self.view.chunks.count, self.open_s)
 
     # ================================================================== drawing
     def _on_labels_changed(self, d: Delta, how: str) -> None:
@@ -229,8 +229,8 @@ class AnnotatorApp(ServedApp):
             return
         st = self.view.stats
         v = panel_view(self.session.scan.store, self.session.toolbox.settings.active_id)
-        status = status_markdown(self.session.scan.store, self.session.scan.work_dir, last_edit_bytes=st.last_edit_bytes,
-                                 last_edit_ms=st.last_edit_ms)
+        status = status_markdown(self.session.scan.store, self.session.scan.work_dir,
+                                 last_edit_bytes=st.last_edit_bytes, last_edit_ms=st.last_edit_ms)
         self._tls.syncing = True
         try:
             self.session.toolbox.settings.active_id = v.active_id
@@ -432,7 +432,8 @@ class AnnotatorApp(ServedApp):
             return
         self.panels.show_efem_run(text, percent)
         if text is None:
-            self.panels.gui_prelabel_cut.value = self.session.assist.prelabel_cut(float(self.panels.gui_prelabel_cut.value))
+            cut = self.panels.gui_prelabel_cut
+            cut.value = self.session.assist.prelabel_cut(float(cut.value))
             if self.session.assist.last_run_path is not None:  # the saved run, ready to import again
                 self.panels.gui_efem_path.value = str(self.session.assist.last_run_path)
 

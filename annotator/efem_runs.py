@@ -2,8 +2,8 @@
 (`segment_at_point`: one run seeded at a clicked point) and a run on the whole scan for pre-labels (`solve_scan`).
 
 Click-to-segment runs EFEM on a *crop* of the scene (the points within `crop_radius` of the click, which bounds the
-cost on big scans) with a few proposals whose anchors are forced near the click (`run_em(anchor_candidates=...)`: the points
-within `anchor_radius` of it). The instance whose mask contains the clicked point (else the one whose centre is
+cost on big scans) with a few proposals whose anchors are forced near the click
+(`run_em(anchor_candidates=...)`: the points within `anchor_radius` of it). The instance whose mask contains the clicked point (else the one whose centre is
 nearest) is returned, mapped back to the scene's vertex indices.
 """
 

@@ -150,8 +150,8 @@ class ScanView:
         for c in range(self.chunks.count):
             m = self.chunks.members(c)
             handles.append(self.server.scene.add_point_cloud(
-                f"/scan/labels/chunk_{c:04d}", points=self.session.scan.scene.points[m], colors=self._colors(m, lut_show),
-                point_size=self.point_size, point_shape="circle"))
+                f"/scan/labels/chunk_{c:04d}", points=self.session.scan.scene.points[m],
+                colors=self._colors(m, lut_show), point_size=self.point_size, point_shape="circle"))
         return handles
 
     def _lut(self) -> tuple[np.ndarray, np.ndarray]:

@@ -368,8 +368,8 @@ def lasso_click(host: ToolHost, event: Any) -> int:
     cam = event.client.camera
     camera = LassoCamera(np.asarray(cam.position, np.float64), np.asarray(cam.wxyz, np.float64), float(cam.fov),
                          float(cam.aspect))
-    return host.box_lasso.add_lasso_point(event.screen_pos, ray_origin=event.ray_origin, ray_direction=event.ray_direction,
-                                camera=camera)
+    return host.box_lasso.add_lasso_point(event.screen_pos, ray_origin=event.ray_origin,
+                                          ray_direction=event.ray_direction, camera=camera)
 
 
 DEFAULT_TOOLS: tuple[Tool, ...] = (

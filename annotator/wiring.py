@@ -79,8 +79,8 @@ def _typed(app: AnnotatorControls, field: Literal["name", "category"], handle: G
     def cb(event: Event) -> None:
         if app.quiet():
             return  # the app set the field itself
-        app.run_reporting(lambda: app.session.instances.type_text(field, read_text(handle, max_len=MAX_NAME)), event.client,
-                          typing=True)
+        app.run_reporting(lambda: app.session.instances.type_text(field, read_text(handle, max_len=MAX_NAME)),
+                          event.client, typing=True)
 
     return cb
 
@@ -147,7 +147,8 @@ def _wire_buttons(app: AnnotatorControls) -> None:
     p.gui_labels_only.on_update(on(lambda: app.set_labels_only(read_bool(p.gui_labels_only))))
     p.gui_locked.on_update(on(lambda: ses.instances.update_active(locked=read_bool(p.gui_locked))))
     p.gui_new.on_click(on(lambda: ses.instances.new_instance(category=ses.toolbox.settings.category)))
-    p.gui_merge.on_click(on(lambda: ses.instances.merge([ses.toolbox.settings.active_id], option_id(read_choice(p.gui_merge_into)))))
+    p.gui_merge.on_click(on(lambda: ses.instances.merge([ses.toolbox.settings.active_id],
+                                                        option_id(read_choice(p.gui_merge_into)))))
     p.gui_delete.on_click(on(lambda: ses.instances.delete_instance(ses.toolbox.settings.active_id)))
     p.gui_undo.on_click(on(ses.instances.undo))
     p.gui_redo.on_click(on(ses.instances.redo))

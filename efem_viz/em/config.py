@@ -268,7 +268,8 @@ class EMConfig:
     (`torch.autocast`: the encoder's and decoder's linear layers in bf16; k-NN graphs, SDF values, normals and
     every energy stay float32). The reviews (completed meshes, poses, coverage and the output masks) always
     decode in float32. A speed knob for GPUs: on a CPU (even one with AMX or AVX-512 BF16) the shipped prior's
-    small matrix products gain nothing and the solver runs no faster or slower; docs/BENCHMARKS.md measures speed and AP."""
+    small matrix products gain nothing and the solver runs no faster or slower; docs/BENCHMARKS.md measures speed
+    and AP."""
     encoder_dtype: MatmulDtype | None = None
     """Precision of the encoder in the EM steps; None = `matmul_dtype`. "float32" with `matmul_dtype`
     "bfloat16" runs only the decoder in bf16: the encoder keeps its fused float32 kernels (autocast switches

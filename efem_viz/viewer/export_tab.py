@@ -53,7 +53,8 @@ class ExportTab:
         root = self.session.out_root
         if kind == "results":
             return self.jobs.submit(self.jobs.worker, self.export_results, folder, root=root)
-        return self.jobs.submit(self.jobs.worker, self.export_static, self.session.export.static_target(folder), root=root)
+        target = self.session.export.static_target(folder)
+        return self.jobs.submit(self.jobs.worker, self.export_static, target, root=root)
 
     def export_results(self, out_dir: str | Path, *, root: Path | None = None) -> Path | None:
         """Write the thresholded result: ScanNet layout + coloured PLY under `out_dir` (see

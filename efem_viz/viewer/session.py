@@ -21,7 +21,8 @@ A script or a notebook drives it directly (`examples/viewer_session.py`)::
     print(session.results.shown_mask())
 
 Threading: the methods are safe to call from several threads; `lock` (re-entrant) guards the state, and the app
-holds it while it draws. `runs.run()` and `results.load_result()` are synchronous: the app calls them from its worker threads.
+holds it while it draws. `runs.run()` and `results.load_result()` are synchronous: the app calls them from its
+worker threads.
 """
 
 from __future__ import annotations

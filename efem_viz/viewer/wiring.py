@@ -135,13 +135,14 @@ def wire(app: ViewerControls) -> None:
     p.gui_mask_band.on_update(guard(lambda: app.submit_work(app.set_mask_band, read_number(p.gui_mask_band))))
     for h in (p.gui_show_meshes, p.gui_show_obbs, p.gui_show_axes):
         h.on_update(guard(layers))
-    p.gui_instance.on_update(guard(lambda: app.instance_table.choose_instance(row_id(read_choice(p.gui_instance)))))
+    table = app.instance_table
+    p.gui_instance.on_update(guard(lambda: table.choose_instance(row_id(read_choice(p.gui_instance)))))
     p.gui_instance_visible.on_update(
-        guard(lambda: app.instance_table.set_instance_visible(app.state.table_row, read_bool(p.gui_instance_visible))))
+        guard(lambda: table.set_instance_visible(app.state.table_row, read_bool(p.gui_instance_visible))))
     p.gui_fly_to.on_click(
-        lambda event: guard(lambda: app.instance_table.fly_to_instance(app.state.table_row, client=event.client))(event))
-    p.gui_instance_prev.on_click(lambda event: guard(lambda: app.instance_table.step_instance(-1, client=event.client))(event))
-    p.gui_instance_next.on_click(lambda event: guard(lambda: app.instance_table.step_instance(+1, client=event.client))(event))
+        lambda event: guard(lambda: table.fly_to_instance(app.state.table_row, client=event.client))(event))
+    p.gui_instance_prev.on_click(lambda event: guard(lambda: table.step_instance(-1, client=event.client))(event))
+    p.gui_instance_next.on_click(lambda event: guard(lambda: table.step_instance(+1, client=event.client))(event))
     p.gui_reset_view.on_click(lambda event: app.reset_view(event.client))
     p.gui_export_results.on_click(guard(lambda: app.export_tab.export_from_gui("results")))
     p.gui_export_static.on_click(guard(lambda: app.export_tab.export_from_gui("static")))
