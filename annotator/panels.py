@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Sequence, Union
 
+from annotator.io import EXPORT_FRAMES
 from annotator.panel_views import NO_OPTIONS, PanelView
 from annotator.tools import Control, Tool, ToolSettings, all_controls, help_markdown, shown_settings
 from efem_viz.em.config import PRESETS
@@ -78,6 +79,7 @@ class Panels:
     gui_history: GuiMarkdownHandle
     # ---- Files
     gui_status: GuiMarkdownHandle
+    gui_export_frame: GuiDropdownHandle[str]
     gui_export_ply: GuiButtonHandle
     gui_export_npz: GuiButtonHandle
     gui_export_scannet: GuiButtonHandle
@@ -184,6 +186,10 @@ class Panels:
             self.gui_undo = gui.add_button("Undo (Ctrl+Z)")
             self.gui_redo = gui.add_button("Redo (Ctrl+Y)")
         with gui.add_folder("Files", expand_by_default=False):
+            self.gui_export_frame = gui.add_dropdown(
+                "Export frame", EXPORT_FRAMES, initial_value="scene",
+                hint="original: a scan brought in by import-scan is written back on its file's own coordinates and "
+                     "units (labels always follow the file's vertex order)")
             self.gui_export_ply = gui.add_button("Export PLY")
             self.gui_export_npz = gui.add_button("Export NPZ")
             self.gui_export_scannet = gui.add_button("Export ScanNet JSON")

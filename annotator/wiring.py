@@ -152,9 +152,8 @@ def _wire_buttons(app: AnnotatorControls) -> None:
     p.gui_delete.on_click(on(lambda: ses.instances.delete_instance(ses.toolbox.settings.active_id)))
     p.gui_undo.on_click(on(ses.instances.undo))
     p.gui_redo.on_click(on(ses.instances.redo))
-    p.gui_export_ply.on_click(on(lambda: ses.files.export("ply")))
-    p.gui_export_npz.on_click(on(lambda: ses.files.export("npz")))
-    p.gui_export_scannet.on_click(on(lambda: ses.files.export("scannet")))
+    for fmt, button in (("ply", p.gui_export_ply), ("npz", p.gui_export_npz), ("scannet", p.gui_export_scannet)):
+        button.on_click(on(lambda fmt=fmt: ses.files.export(fmt, frame=read_choice(p.gui_export_frame))))
     p.gui_import.on_click(on(lambda: ses.files.import_labels(read_text(p.gui_import_path))))
     def import_efem() -> None:
         ses.assist.import_efem(read_text(p.gui_efem_path))

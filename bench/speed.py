@@ -22,6 +22,10 @@ Variants:
 * `bf16_decoder`: as `fast`, the decoder alone in bf16 (`encoder_dtype="float32"`);
 * `random400`: as `fast`, with 400 proposals drawn uniformly (the `real` preset's anchors before they were spread).
 
+The decode phase is also set against its floor on the machine it runs on: the decoder's FLOPs (every query's
+forward, the band queries' input-gradient backward) at this machine's measured GEMM peak for the decoder's tile
+(float32, and bfloat16 where the CPU has native bf16), printed and written as `decode_vs_floor`.
+
 `--busy N` runs N one-thread busy loops beside the solves (a solve must slow down by about its
 fair share). `--profile` prints the top functions of one run per variant.
 
@@ -83,6 +87,48 @@ def load(name: str) -> tuple[Any, str, str]:
     return get_scene(config, int(seed), "points"), "synthetic", "mug"
 
 
+def gemm_peak(width: int, dtype: str = "float32", rows: int = 1024) -> float:
+    """GFLOP/s of the decoder's hidden product on this machine at the set torch threads: (rows x width) times
+    (width x width) plus bias, the decoder's tile shape (`efem_viz.prior.decoder.TILE_ROWS`); the best of three
+    timings of 200 products (a measured ceiling, not the data sheet's)."""
+    import torch
+
+    dt = getattr(torch, dtype)
+    x = torch.randn(rows, width).to(dt)
+    w = torch.randn(width, width).to(dt)
+    b = torch.randn(width).to(dt)
+    best = float("inf")
+    for _ in range(3):
+        torch.nn.functional.linear(x, w, b)
+        t0 = time.perf_counter()
+        for _ in range(200):
+            torch.nn.functional.linear(x, w, b)
+        best = min(best, (time.perf_counter() - t0) / 200)
+    return 2.0 * rows * width * width / best / 1e9
+
+
+def decoder_flops(prior: Any) -> tuple[float, float, int]:
+    """(FLOPs of one SDF query's forward, FLOPs of one band query's input-gradient backward, hidden width) of a
+    prior's decoder: the first layer, the residual blocks' products and the output (the products dominate; the
+    element-wise work is not counted, so the floor below is a floor)."""
+    dec = prior.decoder
+    h = int(dec.fc_in.out_features)
+    blocks = 2 * int(dec.n_blocks) * 2 * h * h  # two products per block, 2 FLOPs per multiply-add
+    return float(2 * 5 * h + blocks + 2 * h), float(blocks + 2 * h + 2 * 4 * h), h
+
+
+def decode_row(phases: dict[str, float], prior: Any, peaks: dict[str, float], dtype: str) -> dict[str, float]:
+    """The decode phase against its floor: GFLOP/s achieved (forward of every query, backward of the band
+    queries), the share of the machine's measured GEMM peak for the run's precision, and the seconds the same
+    products would take at that peak."""
+    f_fwd, f_bwd, _ = decoder_flops(prior)
+    flops = phases.get("decoder_queries", 0.0) * f_fwd + phases.get("normal_queries", 0.0) * f_bwd
+    peak = peaks.get(dtype, peaks["float32"])
+    seconds = max(phases.get("decode", 0.0), 1e-9)
+    return {"decode_gflop": flops / 1e9, "decode_gflops": flops / seconds / 1e9, "peak_gflops": peak,
+            "share_of_peak": flops / seconds / 1e9 / peak, "decode_floor_s": flops / 1e9 / peak}
+
+
 def masks_of(res: Any, cut: float) -> list[np.ndarray]:
     """The masks of the instances a confidence cut keeps (`Instances.above`, the one thresholding rule)."""
     return [np.asarray(m) for m in res.instances.above(cut).masks]
@@ -142,6 +188,9 @@ def main() -> int:
         fused.load()  # a first build is not a solve's time
     except ImportError:  # a checkout from before the fused kernels
         pass
+    from efem_viz.prior.config import fast_cpu_bf16
+
+    peaks: dict[str, float] = {}
     busy = [mp.Process(target=_busy, daemon=True) for _ in range(a.busy)]
     for p in busy:
         p.start()
@@ -150,6 +199,13 @@ def main() -> int:
         for name in a.scenes:
             scene, pname, prior_name = load(name)
             prior = priors.setdefault(prior_name, load_prior(prior_name))
+            width = decoder_flops(prior)[2]
+            if "float32" not in peaks:  # the machine's ceiling for the decoder's products, once per process
+                peaks["float32"] = gemm_peak(width)
+                if fast_cpu_bf16():
+                    peaks["bfloat16"] = gemm_peak(width, "bfloat16")
+                print("GEMM peak (%d x %d, %d threads): %s" % (width, width, a.threads, ", ".join(
+                    f"{k} {v:.0f} GFLOP/s" for k, v in peaks.items())), flush=True)
             cfg0 = preset(pname)
             if a.proposals is not None:
                 cfg0 = cfg0.replace(n_init=(a.proposals, *cfg0.n_init[1:]))
@@ -177,8 +233,9 @@ def main() -> int:
                     base_masks = masks
                 phases = {k: statistics.median(float(x.get(k, 0.0)) for x in runs)
                           for k in runs[0] if isinstance(runs[0][k], (int, float))}
+                floor = decode_row(phases, prior, peaks, cfg.matmul_dtype)
                 row = {"scene": name, "preset": pname, "variant": var, "points": scene.num_points,
-                       "median": phases, "runs": runs, "instances": len(masks),
+                       "median": phases, "runs": runs, "instances": len(masks), "decode_vs_floor": floor,
                        "mask_iou_to_baseline": mask_iou_to(base_masks, masks), "ap50": ap50(scene, res)}
                 rows.append(row)
                 ph = " ".join(f"{k} {phases[k]:.1f}" for k in ("encode", "decode", "review_mesh", "review_pose")
@@ -188,11 +245,19 @@ def main() -> int:
                       f"{a.repeats} ({ph}); "
                       f"{len(masks)} instances, AP50 {ap50_txt}, mask IoU to baseline "
                       f"{row['mask_iou_to_baseline']:.3f}", flush=True)
+                print(f"{'':>27}decode {phases.get('decode', 0.0):.1f} s for "
+                      f"{phases.get('decoder_queries', 0.0) / 1e6:.2f} M queries "
+                      f"({phases.get('normal_queries', 0.0) / 1e6:.2f} M with normals): "
+                      f"{floor['decode_gflops']:.0f} GFLOP/s, {100 * floor['share_of_peak']:.0f} % of the "
+                      f"{cfg.matmul_dtype} peak; floor {floor['decode_floor_s']:.1f} s; encode "
+                      f"{phases.get('encode', 0.0):.1f} s for {phases.get('encoded_sets', 0.0):.0f} point sets",
+                      flush=True)
     finally:
         for p in busy:
             p.terminate()
     out = ROOT / "bench" / "results" / (f"speed_{a.tag}.json" if a.tag else "speed.json")
-    write_json(out, {"machine": machine(a.threads) | {"busy_loops": a.busy}, "proposals": a.proposals,
+    write_json(out, {"machine": machine(a.threads) | {"busy_loops": a.busy, "gemm_peak_gflops": peaks},
+                     "proposals": a.proposals,
                      "seed": a.seed, "rows": rows})
     return 0
 

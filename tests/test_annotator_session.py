@@ -519,3 +519,43 @@ def test_a_hostile_typing_file_is_dropped_and_changes_nothing(tmp_path: Path, co
         assert not typing.exists()
     finally:
         again.close()
+
+
+def test_an_imported_scan_exports_back_on_its_own_file_frame(tmp_path: Path) -> None:
+    """A user's scan in millimetres with +Y up, brought in by `import-scan` (metres, +Z up, frame recorded), is
+    labelled in the annotator: the PLY export in the original frame lands on the file's own coordinates and units
+    with the same per-vertex labels (and no frame record: it is no longer in the scene frame); the default export
+    stays in the scene frame; the label-only formats are the same either way."""
+    from efem_viz.data.io import load_scene, save_scene
+    from efem_viz.data.scan import import_scan
+    from tests.helpers import sample_scene
+
+    scene = load_scene(sample_scene("syn_z_1"))
+    y_up = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # +Z of the scene becomes +Y
+    file_pts = (scene.points.astype(np.float64) @ y_up.T * 1000.0 + np.array([120.0, 35.0, -40.0])).astype(np.float32)
+    mine = scene.__class__.create("mine", file_pts, colors=scene.colors)
+    imported, frame = import_scan(load_scene(save_scene(mine, tmp_path / "raw" / "mine.ply")))
+    assert (frame.units, frame.up) == ("mm", "+y")
+    scan = save_scene(imported, tmp_path / "scans" / "mine.ply")
+    notes: list[str] = []
+    s = AnnotatorSession(scan, out_dir=tmp_path / "out", autosave_delay=0)
+    try:
+        s.notify = lambda title, body: notes.append(body)
+        s.instances.new_instance(category="mug")
+        s.painting.paint(np.arange(0, len(file_pts), 7))
+        labels = s.scan.store.labels.copy()
+        ply, = s.files.export("ply", directory="original", frame="original")
+        assert "on the scan file's own coordinates (millimetres, +Y up (detected))" in notes[-1]
+        back = load_scene(ply)
+        assert np.allclose(back.points, file_pts, atol=0.05)  # 0.05 mm: float32 rounding of the round trip
+        assert np.array_equal(back.instance, labels) and "scan_frame" not in back.provenance
+        plain, = s.files.export("ply", directory="scene")
+        assert np.array_equal(load_scene(plain).points, s.scan.scene.points)
+        for fmt in ("npz", "scannet"):
+            a = s.files.export(fmt, directory=f"{fmt}_scene")
+            b = s.files.export(fmt, directory=f"{fmt}_original", frame="original")
+            assert [p.read_bytes() for p in a] == [p.read_bytes() for p in b]
+        with pytest.raises(ValueError, match="export frame"):
+            s.files.export("ply", frame="file")
+    finally:
+        s.close()

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from efem_viz.data.rgbd import backproject
-from efem_viz.geometry.camera import Camera, DepthView, look_at
+from efem_viz.geometry.camera import MAX_FREE_SPACE_VIEWS, MAX_RECORDED_CAMERAS, Camera, DepthView, FreeSpace, look_at
 
 K = np.array([[500.0, 0.0, 159.5], [0.0, 500.0, 119.5], [0.0, 0.0, 1.0]])
 
@@ -154,3 +154,73 @@ def test_depth_edges_are_no_evidence_and_the_margin_grows_with_range() -> None:
     near_wall = np.array([[0.2, 0.1, 1.48]])
     assert plain.seen_through(near_wall, 0.01) == (1.0, 1.0)
     assert plain.seen_through(near_wall, 0.01, per_depth2=0.01) == (0.0, 1.0)
+
+
+def _record(cam: Camera, size_key: str = "image_size") -> dict:
+    return {"K": cam.K.tolist(), "T_world_camera": cam.T_world_camera.tolist(), size_key: [cam.width, cam.height]}
+
+
+def test_every_recorded_camera_is_read_and_each_unusable_one_says_why() -> None:
+    """A fused scan's provenance lists its cameras (`import-rgbd --sequence` writes ``image_size``, the generator
+    ``size``); a frame records one. Each unusable entry is named with its position; a hostile list is read only
+    up to `MAX_RECORDED_CAMERAS`."""
+    a = _camera()
+    b = Camera(K=K, T_world_camera=look_at(np.array([1.0, 0.0, 0.6]), np.zeros(3)), width=320, height=240)
+    cams, problems = Camera.parse_all({"cameras": [_record(a), _record(b, "size")]})
+    assert problems == [] and len(cams) == 2
+    assert np.allclose(cams[1].T_world_camera, b.T_world_camera) and (cams[1].width, cams[1].height) == (320, 240)
+    one, problems = Camera.parse_all(_record(a))
+    assert len(one) == 1 and problems == [] and np.allclose(one[0].K, K)
+    assert Camera.parse_all({}) == ([], []) and Camera.parse_all(None) == ([], [])
+    bad = {**_record(b), "K": [[1, 2], [3, 4]]}
+    cams, problems = Camera.parse_all({"cameras": [_record(a), bad, "junk", {"note": 1}]})
+    assert len(cams) == 1
+    assert len(problems) == 3 and problems[0].startswith("camera 2 of 4: K has shape")
+    assert problems[1].startswith("camera 3 of 4") and problems[2].startswith("camera 4 of 4")
+    assert Camera.parse_all({"cameras": "many"})[1] == ["the recorded cameras are a str, not a list"]
+    flood = [_record(a)] * (MAX_RECORDED_CAMERAS + 10)
+    cams, problems = Camera.parse_all({"cameras": flood})
+    assert len(cams) == MAX_RECORDED_CAMERAS and "only the first" in problems[0]
+
+
+def test_free_space_of_several_cameras_is_what_any_of_them_saw_empty() -> None:
+    """A box 0.8 m in front of a wall, seen from the front and from the side: a shape sample beside the box is
+    seen through by the front camera; a sample 10 cm behind the box's front face is hidden from the front
+    camera (occluded: no evidence) but the side camera sees the wall through it — only the two cameras together
+    find it. One camera's `FreeSpace` is exactly its `DepthView`."""
+    front, pts = box_before_wall()
+    # the box as a solid 10 cm cube (its side faces too), so that the side camera sees its side face
+    b = np.linspace(-0.05, 0.05, 40)
+    yy, zz = np.meshgrid(b, b + 0.85)
+    side_face = np.stack([np.full(yy.size, 0.05), yy.ravel(), zz.ravel()], 1)
+    g = np.linspace(-0.3, 0.3, 200)
+    gy, gz = np.meshgrid(g, np.linspace(0.5, 1.5, 200))
+    far_wall = np.stack([np.full(gy.size, -0.3), gy.ravel(), gz.ravel()], 1)  # what the side camera looks at
+    pts = np.vstack([pts, side_face, far_wall])
+    side = Camera(K=K, T_world_camera=look_at(np.array([1.0, 0.0, 0.85]), np.array([0.0, 0.0, 0.85])),
+                  width=320, height=240)
+    behind_box = np.array([[0.0, 0.0, 1.0], [0.01, 0.01, 1.05]])  # behind the cube, hidden from the front
+    beside_box = np.array([[0.15, 0.0, 0.8]])
+    only_front = FreeSpace.of_points([front], pts)
+    both = FreeSpace.of_points([front, side], pts)
+    assert only_front.seen_through(behind_box, 0.01)[0] == 0.0  # occluded from the front: no evidence
+    assert both.seen_through(behind_box, 0.01)[0] == pytest.approx(1.0)  # the side camera saw the far wall
+    assert both.seen_through(beside_box, 0.01) == only_front.seen_through(beside_box, 0.01) == (1.0, 1.0)
+    mixed = np.vstack([behind_box, np.array([[0.0, 0.0, 1.6]])])  # + a point behind the wall: occluded for both
+    frac, known = both.seen_through(mixed, 0.01)
+    assert frac == pytest.approx(2 / 3) and known == 1.0
+    rng = np.random.default_rng(3)
+    samples = rng.uniform([-0.3, -0.3, 0.3], [0.3, 0.3, 1.7], (500, 3))
+    view = DepthView.of_points(front, pts, edge=0.02)
+    assert FreeSpace.of_points([front], pts, edge=0.02).seen_through(samples, 0.01, per_depth2=0.01) == \
+        view.seen_through(samples, 0.01, per_depth2=0.01)
+    assert FreeSpace(views=()).seen_through(samples, 0.01) == (0.0, 0.0)
+
+
+def test_a_long_sequence_keeps_a_bounded_number_of_evenly_spaced_views() -> None:
+    cams = [Camera(K=K, T_world_camera=look_at(np.array([np.cos(a), np.sin(a), 0.6]), np.zeros(3)), width=320,
+                   height=240) for a in np.linspace(0, 2 * np.pi, 3 * MAX_FREE_SPACE_VIEWS, endpoint=False)]
+    pts = np.random.default_rng(0).uniform(-0.2, 0.2, (2000, 3))
+    fs = FreeSpace.of_points(cams, pts)
+    assert len(fs.views) == MAX_FREE_SPACE_VIEWS
+    assert fs.views[0].camera is cams[0] and fs.views[-1].camera is cams[-1]

@@ -452,6 +452,14 @@ def test_info_summarises_and_escapes_what_a_file_says(tmp_path: Path, capsys: py
     assert "T_world_camera" not in out and "capture camera" in out and "--full" in out
     assert cli.main(["info", str(path), "--full"]) == 0
     assert "T_world_camera" in capsys.readouterr().out
+    # a fused scan's camera list: how many can check free space, and what is wrong with the others
+    prov = {k: v for k, v in dict(scene.provenance).items() if k not in ("K", "T_world_camera", "image_size")}
+    cam = {k: scene.provenance[k] for k in ("K", "T_world_camera", "image_size")}
+    fused = save_scene(scene.replace(provenance={**prov, "cameras": [cam, {**cam, "K": [[1]]}, cam]}),
+                       tmp_path / "fused.ply")
+    assert cli.main(["info", str(fused)]) == 0
+    out = " ".join(capsys.readouterr().out.split())
+    assert "2 recorded" in out and "1 unusable: camera 2 of 3" in out
     proc = run_cli("info", str(REPO / "sample_scenes" / "real_tabletop_6.efem.npz"))
     assert proc.returncode == 1 and "real_tabletop_6.ply" in proc.stderr and "instead" in proc.stderr
 

@@ -83,6 +83,30 @@ def test_free_space_check_scales_confidence_and_is_recorded(sphere_run: tuple, t
     assert np.allclose(plain.instances.confidence, base.instances.confidence)
 
 
+def test_a_fused_scans_cameras_all_check_free_space_and_a_bad_one_is_said(sphere_run: tuple) -> None:
+    """A scene whose provenance lists several cameras (a fused scan) is checked against every usable one: the
+    same instances as the plain run (spheres fitted where they are), each review's seen-through fraction
+    measured; an unusable entry among them is named in the result's warnings and the others still check."""
+    from efem_viz.geometry.camera import look_at
+
+    scene, prior, base, _ = sphere_run
+    K = [[300.0, 0.0, 159.5], [0.0, 300.0, 119.5], [0.0, 0.0, 1.0]]
+    cams = [{"K": K, "T_world_camera": look_at(np.array(eye), np.array([0.0, 0.0, 0.03])).tolist(),
+             "image_size": [320, 240]} for eye in ([0.0, -0.6, 0.45], [0.6, 0.0, 0.45], [-0.4, 0.4, 0.5])]
+    cfg = preset("fast").replace(n_init=(64,), seen_through_margin=0.01)
+    fused = dataclasses.replace(scene, provenance={**scene.provenance, "cameras": cams})
+    res = run_em(fused, prior, cfg, seed=5)
+    assert res.warnings == ()
+    tr = res.trace
+    assert tr.rev_seen_through is not None and np.isfinite(tr.rev_seen_through).all()
+    assert np.array_equal(res.instances.ids, base.instances.ids)
+    bad = {**cams[1], "T_world_camera": np.full((4, 4), np.nan).tolist()}
+    partly = dataclasses.replace(scene, provenance={**scene.provenance, "cameras": [cams[0], bad, cams[2]]})
+    res2 = run_em(partly, prior, cfg, seed=5)
+    assert len(res2.warnings) == 1 and "camera 2 of 3" in res2.warnings[0] and "uses the other 2" in res2.warnings[0]
+    assert res2.trace.rev_seen_through is not None and np.isfinite(res2.trace.rev_seen_through).all()
+
+
 def test_sphere_scene_each_object_found_once(sphere_run: tuple) -> None:
     scene, _, res, _ = sphere_run
     m = ious(res.instances, scene.instance)

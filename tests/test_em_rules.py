@@ -366,6 +366,26 @@ def test_real_preset_is_the_paper_one_with_the_measured_changes() -> None:
     assert not real.m_step_replace and real.seen_through_margin == 0.01 and real.max_seen_through == 0.15
 
 
+def test_the_free_space_switch_adds_or_removes_the_real_presets_check() -> None:
+    """`SolveSettings.free_space`: auto keeps each preset's check (real: on), on adds the fused scans' check to
+    a preset without one (looser than a single frame's: several cameras see every side of an imperfect fit), off
+    removes it; anything else is refused."""
+    from efem_viz.em.config import FREE_SPACE, FREE_SPACE_FUSED, SolveSettings
+
+    real, syn = preset("real"), preset("synthetic")
+    assert SolveSettings(preset="real").config() == real
+    assert SolveSettings(preset="synthetic").config() == syn and syn.seen_through_margin is None
+    on = SolveSettings(preset="synthetic", free_space="on").config()
+    assert on == syn.replace(**FREE_SPACE_FUSED)
+    assert on.seen_through_margin > real.seen_through_margin and on.max_seen_through > real.max_seen_through
+    assert SolveSettings(preset="real", free_space="on").config() == real
+    assert {k: getattr(real, k) for k in FREE_SPACE} == FREE_SPACE
+    off = SolveSettings(preset="real", free_space="off").config()
+    assert off.seen_through_margin is None and off.replace(seen_through_margin=0.01) == real
+    with pytest.raises(ValueError, match="free_space"):
+        SolveSettings(preset="real", free_space="maybe").config()  # type: ignore[arg-type]
+
+
 def test_schedule_synthetic_keeps_tau_d_and_phase2_uses_end_values() -> None:
     cfg = preset("synthetic")
     assert schedule(cfg, 5)[1] == pytest.approx(0.1)

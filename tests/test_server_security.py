@@ -544,11 +544,18 @@ def test_viewer_clamps_raw_proposals_and_rejects_nan(viewer: Any) -> None:
         assert wait_for(lambda: "not one of the options" in (viewer.state.error or ""))
         assert not calls, "an unknown precision is refused before anything runs"
         c.set_gui(p.gui_precision, value="bfloat16")
+        viewer.state.error = None
+        c.set_gui(p.gui_free_space, value="always")  # not one of the Free space options
+        c.press(p.gui_run)
+        assert wait_for(lambda: "not one of the options" in (viewer.state.error or ""))
+        assert not calls, "an unknown free-space choice is refused before anything runs"
+        c.set_gui(p.gui_free_space, value="on")
         time.sleep(0.1)
         c.press(p.gui_run)
         assert wait_for(lambda: bool(calls))
         got = calls[0]
-        assert (got.preset, got.proposals, got.seed, got.matmul_dtype) == ("fast", 2000, 0, "bfloat16")
+        assert (got.preset, got.proposals, got.seed, got.matmul_dtype, got.free_space) == \
+            ("fast", 2000, 0, "bfloat16", "on")
         assert wait_for(lambda: p.gui_proposals.value == 2000)
         c.set_gui(p.gui_point_size, value=float("nan"))
         assert wait_for(lambda: "finite" in (viewer.state.error or ""))

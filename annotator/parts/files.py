@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from annotator.io import LABEL_WRITERS, LabelIOError, load_labels, resolve_inside
+from annotator.io import EXPORT_FRAMES, LABEL_WRITERS, LabelIOError, load_labels, resolve_inside
 from annotator.labels import Delta, unreviewed_prelabels
 
 if TYPE_CHECKING:
@@ -31,7 +31,7 @@ class FilePart:
             raise LabelIOError(f"refusing to write {what} over the source scan {p}")
         return p
 
-    def export(self, fmt: str, *, directory: str | None = None) -> list[Path]:
+    def export(self, fmt: str, *, directory: str | None = None, frame: str = "scene") -> list[Path]:
         """Write the labels in one of `annotator.io.LABEL_WRITERS` (`<out>/<stem>.labels.ply`, `.labels.npz`, or
         ScanNet's `.segs.json` + `.aggregation.json`); returns the paths.
 
@@ -40,21 +40,40 @@ class FilePart:
             directory: a folder inside the output folder (relative paths are taken below it); default: the
                 output folder. Anything resolving elsewhere (`..`, the scan's folder, symlinks out) is refused,
                 the folder and every file written.
+            frame: "scene" (the scan as it was opened) or "original": a scan brought in by `import-scan`
+                (units and up axis recorded) is written back on its original file's coordinates and units, so the
+                labelled PLY lines up with the user's data (`efem_viz.data.scan.scene_in_file_frame`). Labels
+                always index the vertices in the file's order, so the label-only formats are the same either way.
         """
         writer = LABEL_WRITERS.get(fmt)
         if writer is None:
             raise ValueError(f"unknown export format {fmt!r}; use {', '.join(LABEL_WRITERS)}")
+        if frame not in EXPORT_FRAMES:
+            raise ValueError(f"unknown export frame {frame!r}; use {', '.join(EXPORT_FRAMES)}")
         d = self.safe_path(directory, what="export directory") if directory else self.scan.out_dir
         stem = self.scan.stem
         for suffix in writer.suffixes:
             self.safe_path(str(d / f"{stem}{suffix}"), what="export file")
         labels, table = self.scan.store.snapshot()
-        out = writer.write(self.scan.scene, labels, table, d, stem)
+        scene, back = self.scan.scene, None
+        if frame == "original":
+            from efem_viz.data.scan import scene_in_file_frame
+            from efem_viz.data.scene import SceneError
+
+            try:
+                scene, back = scene_in_file_frame(scene)
+            except SceneError as exc:
+                raise LabelIOError(str(exc)) from None
+        out = writer.write(scene, labels, table, d, stem)
         present = set(np.flatnonzero(np.bincount(labels.clip(0)) > 0).tolist())  # O(N), not a sort of N
         pending = [k for k in unreviewed_prelabels(table) if k in present]
         warn = (f"; {len(pending)} unreviewed EFEM pre-label{'s' if len(pending) != 1 else ''} exported as "
                 "objects (review or delete them first)") if pending else ""
-        self.hooks.notify("Exported", f"{', '.join(p.name for p in out)} in {d}{warn}")
+        where = ""
+        if frame == "original":
+            where = (f", on the scan file's own coordinates ({back.describe()})" if back is not None
+                     else ", in the scan's own frame (it has no other)")
+        self.hooks.notify("Exported", f"{', '.join(p.name for p in out)} in {d}{where}{warn}")
         log.info("exported %s", [str(p) for p in out])
         return out
 

@@ -107,7 +107,7 @@ class SceneWorker:
         from efem_viz.data.io import load_scene
         from efem_viz.data.io import atomic_write_text
         from efem_viz.data.scene import SceneError
-        from efem_viz.data.scan import ScanFrame, scene_in_scene_frame
+        from efem_viz.data.scan import ScanFrame, scene_in_file_frame, scene_in_scene_frame
         from efem_viz.em.solver import EMCancelled, run_em
 
         t0 = time.perf_counter()
@@ -152,9 +152,8 @@ class SceneWorker:
             out_scene, out_instances, frame_name = scene, result.instances, "scene"
             scan_frame = ScanFrame.from_provenance(scene.provenance)
             if self.job.frame == "original" and scan_frame is not None and not scan_frame.is_identity:
+                out_scene, _ = scene_in_file_frame(scene)
                 back = scan_frame.to_scene.inverse()
-                out_scene = scene.replace(points=back.apply(scene.points),
-                                          normals=None if scene.normals_pending else scene.normals @ back.R.T)
                 out_instances, frame_name = result.instances.transformed(back), f"original ({scan_frame.units})"
             if self.job.ply:
                 out_instances.to_colored_ply(out_scene, task.ply_path, threshold=self.job.threshold)

@@ -123,6 +123,12 @@ class InfoArgs:
                           "recorded (free-space check available)")
         elif problem is not None:
             table.add_row("capture camera", console_text(f"[unusable: {problem}]"))
+        elif "cameras" in prov:
+            cams, problems = Camera.parse_all({"cameras": prov["cameras"]})
+            text = f"{len(cams)} recorded (free-space check: segment --free-space on)" if cams else "none usable"
+            if problems:
+                text += f"; {len(problems)} unusable: {problems[0]}"
+            table.add_row("cameras", console_text(text))
         shown = 0
         for key, val in prov.items():
             if not self.full and key in ("K", "T_world_camera", "image_size", "plane_camera"):

@@ -308,3 +308,26 @@ def scene_in_scene_frame(scene: Scene, *, seed: int = 0) -> tuple[Scene, str | N
     geo = f"; its georeferenced origin {origin.tolist()} subtracted" if origin.any() else ""
     return imported, (f"{scene.name}: read as {frame.describe()} and brought to metres, +Z up, the support plane "
                       f"at z = 0{geo} (efem-viz import-scan --units/--up to override)")
+
+
+def scene_in_file_frame(scene: Scene) -> tuple[Scene, ScanFrame | None]:
+    """The scene back on its scan file's own coordinates and units (`import_scan`'s recorded frame undone: points,
+    normals), so that what is written from it lines up with the user's file; the frame record is dropped from
+    the provenance (the points are no longer in the scene frame) and ``frame`` says which they are in. A scene
+    without a recorded frame, or with an identity one, is returned as it is.
+
+    Returns:
+        (the scene in its file's frame, the frame undone or None).
+
+    Raises:
+        SceneError: a damaged frame record.
+    """
+    frame = ScanFrame.from_provenance(scene.provenance)
+    if frame is None or frame.is_identity:
+        return scene, None
+    back = frame.to_scene.inverse()
+    prov = {k: v for k, v in dict(scene.provenance).items() if k != "scan_frame"}
+    prov["frame"] = f"original ({frame.units}), {frame.describe()}"
+    return scene.replace(points=back.apply(scene.points).astype(np.float32),
+                         normals=None if scene.normals_pending else scene.normals @ back.R.T,
+                         provenance=prov), frame

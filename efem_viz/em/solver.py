@@ -59,7 +59,7 @@ if TYPE_CHECKING:
 
     from efem_viz.data.scene import Scene
     from efem_viz.em.results import EMResult
-    from efem_viz.geometry.camera import Camera, DepthView
+    from efem_viz.geometry.camera import Camera, FreeSpace
     from efem_viz.prior.config import ShapePriorLike
 
 logger = logging.getLogger(__name__)
@@ -271,10 +271,10 @@ def run_em(
         if hasattr(pr, "eval"):
             pr.eval()
     try:
-        camera, warnings = _capture_camera(scene) if run_cfg.seen_through_margin is not None else (None, [])
+        cameras, warnings = _capture_cameras(scene) if run_cfg.seen_through_margin is not None else ([], [])
         solver = Solver(scene.name, points, normals, PriorTable.of(plist), run_cfg, cfgs, seed=seed,
                          on_step=on_step, cancel=cancel, anchor_candidates=anchor_candidates,
-                         step_rules=step_rules, review_rules=review_rules, camera=camera)
+                         step_rules=step_rules, review_rules=review_rules, cameras=cameras)
         solver.partial_result = lambda: _result_of(solver, scene, plist, run_cfg, cats, cfgs, seed, warnings)
         solver.run()
     finally:
@@ -358,18 +358,25 @@ def _checked_anchor_candidates(anchor_candidates: np.ndarray, n_points: int) -> 
     return anchor_candidates
 
 
-def _capture_camera(scene: Scene) -> tuple[Camera | None, list[str]]:
-    """The capture camera recorded in the scene's provenance, for the free-space check, and the run's warning
-    when the recorded one is unusable (never silently off: the CLI log, the result and the viewer say it)."""
+def _capture_cameras(scene: Scene) -> tuple[list[Camera], list[str]]:
+    """Every camera recorded in the scene's provenance (a frame's capture camera, a fused scan's cameras:
+    `Camera.parse_all`), for the free-space check, and the run's warning when recorded ones are unusable (never
+    silently off: the CLI log, the result and the viewer say it)."""
     from efem_viz.geometry.camera import Camera
 
     warnings: list[str] = []
-    camera, problem = Camera.parse(getattr(scene, "provenance", None))
-    if problem is not None:  # never silently off: the CLI log, the result and the viewer say it
-        warnings.append(f"the recorded capture camera is unusable ({problem}): the free-space check is off "
-                        "for this run")
-        logger.warning("%s: %s", scene.name, warnings[-1])
-    return camera, warnings
+    cameras, problems = Camera.parse_all(getattr(scene, "provenance", None))
+    if problems and not cameras:
+        what = "the recorded capture camera is" if len(problems) == 1 else "the recorded cameras are"
+        warnings.append(f"{what} unusable ({problems[0]}{'; ...' if len(problems) > 1 else ''}): the free-space "
+                        "check is off for this run")
+    elif problems:
+        warnings.append(f"{len(problems)} of the recorded cameras unusable ({problems[0]}"
+                        f"{'; ...' if len(problems) > 1 else ''}): the free-space check uses the other "
+                        f"{len(cameras)}")
+    for w in warnings:
+        logger.warning("%s: %s", scene.name, w)
+    return cameras, warnings
 
 
 def _move_prior(prior: Any, device: str) -> None:
@@ -399,7 +406,7 @@ class Solver:
         anchor_candidates: np.ndarray | None = None,
         step_rules: Sequence[StepRule] = STEP_RULES,
         review_rules: Sequence[ReviewRule] = REVIEW_RULES,
-        camera: Camera | None = None,
+        cameras: Sequence[Camera] = (),
     ) -> None:
         self.name = name
         self.full_points = points
@@ -440,11 +447,12 @@ class Solver:
         self.n_queries = 0
         self.n_encoded = 0
         self.stats: dict[str, float] = {"normal_queries": 0.0}
-        self.depth_view: DepthView | None = None
-        if camera is not None and cfg.seen_through_margin is not None:
-            from efem_viz.geometry.camera import DepthView
+        self.free_space: FreeSpace | None = None
+        """What the recorded cameras saw empty (`EMConfig.seen_through_margin`); None: no check."""
+        if len(cameras) and cfg.seen_through_margin is not None:
+            from efem_viz.geometry.camera import FreeSpace
 
-            self.depth_view = DepthView.of_points(camera, points, lateral=cfg.seen_through_lateral,
+            self.free_space = FreeSpace.of_points(list(cameras), points, lateral=cfg.seen_through_lateral,
                                                   edge=cfg.seen_through_edge)
         self.planned_steps = cfg.num_episodes * cfg.steps_per_episode
         self.accepted: list[dict[str, Any]] = []
@@ -666,8 +674,8 @@ class Solver:
             cov = self._coverage(ball, Q, center, fnorm, s_sel / scale)
             radii, scale_pass, up_angle, pose_pass = _size_and_up(Q, R, R_raw, cfg_k)
             st = float("nan")
-            if self.depth_view is not None and cfg.seen_through_margin is not None and np.any(Q):
-                st = self.depth_view.seen_through(Q + center, cfg.seen_through_margin,
+            if self.free_space is not None and cfg.seen_through_margin is not None and np.any(Q):
+                st = self.free_space.seen_through(Q + center, cfg.seen_through_margin,
                                                   per_depth2=cfg.seen_through_range)[0]
             m_ok = np.abs(d_full[sl]) < cfg_k.out_tau
             if cfg.gamma_out < 180.0:

@@ -7,7 +7,8 @@ coordinates to the world). The scene generator scans with it, and real frames ca
 A single-view depth frame says more than where surfaces are: along every pixel's ray, the space in front of
 the measured depth is empty. A completed shape that puts surface where the camera saw through to something
 behind it (a mug's handle or body over the table, a bowl's far rim in front of the wall) contradicts the frame;
-`DepthView.seen_through` measures the fraction of a shape's surface samples that do.
+`DepthView.seen_through` measures the fraction of a shape's surface samples that do; `FreeSpace` does it over
+every camera of a fused scan (each camera's view rebuilt from the fused points).
 """
 
 from __future__ import annotations
@@ -59,6 +60,44 @@ class Camera:
         return cls.parse(prov)[0]
 
     @classmethod
+    def parse_all(cls, prov: Mapping[str, Any] | None) -> tuple[list["Camera"], list[str]]:
+        """Every camera the provenance records, and what is wrong with each one that cannot be used: the capture
+        camera of a single frame (``K``, ``T_world_camera``, ``image_size``: `parse`) and the list
+        ``cameras`` of a fused sequence (`import-rgbd --sequence`) or a generated scene (the same three
+        entries each; ``size`` is read as ``image_size``). At most `MAX_RECORDED_CAMERAS` are read.
+
+        Returns:
+            (usable cameras, problems in words: "camera 3 of 16: K has shape (2, 2), not (3, 3)").
+        """
+        cams: list[Camera] = []
+        problems: list[str] = []
+        single, problem = cls.parse(prov)
+        if single is not None:
+            cams.append(single)
+        elif problem is not None:
+            problems.append(problem)
+        listed = prov.get("cameras") if prov else None
+        if listed is None:
+            return cams, problems
+        if not isinstance(listed, (list, tuple)):
+            return cams, problems + [f"the recorded cameras are a {type(listed).__name__}, not a list"]
+        if len(listed) > MAX_RECORDED_CAMERAS:
+            problems.append(f"{len(listed)} cameras recorded: only the first {MAX_RECORDED_CAMERAS} are read")
+        n = min(len(listed), MAX_RECORDED_CAMERAS)
+        for i, rec in enumerate(listed[:n]):
+            if not isinstance(rec, Mapping):
+                problems.append(f"camera {i + 1} of {n}: not a record of K, T_world_camera and image_size")
+                continue
+            if "image_size" not in rec and "size" in rec:
+                rec = {**rec, "image_size": rec["size"]}
+            cam, problem = cls.parse(rec)
+            if cam is not None:
+                cams.append(cam)
+            else:
+                problems.append(f"camera {i + 1} of {n}: {problem or 'K and T_world_camera missing'}")
+        return cams, problems
+
+    @classmethod
     def parse(cls, prov: Mapping[str, Any] | None) -> tuple["Camera | None", str | None]:
         """(camera, problem): the recorded capture camera, or None and — when a camera *was* recorded (``K`` or
         ``T_world_camera`` present) but cannot be used — what is wrong with it, in words. No camera recorded:
@@ -93,6 +132,9 @@ class Camera:
             return None, "the rotation of T_world_camera is not a rotation"
         return cls(K=K, T_world_camera=T, width=w, height=h), None
 
+
+MAX_RECORDED_CAMERAS = 4096
+"""Most entries of a provenance's camera list `Camera.parse_all` reads (a hostile header may declare millions)."""
 
 MAX_VIEW_PIXELS = 1 << 22
 """Most pixels of a `DepthView` window (4.2 M, 16 MB): a camera whose declared focal length and image size would
@@ -196,14 +238,66 @@ class DepthView:
         """
         if not len(points):
             return 0.0, 0.0
+        return _fractions(*self.evidence(points, margin, per_depth2=per_depth2))
+
+    def evidence(self, points: np.ndarray, margin: float, *, per_depth2: float = 0.0
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """Per point: (known — it projects onto an observed pixel —, seen through — more than the margin in
+        front of the observed surface there), two (N,) bool arrays (`seen_through`'s terms)."""
         u, v, z, ok = self.camera.project(points)
         rows, cols = self.depth.shape
         ok = ok & (u >= self.u0) & (u < self.u0 + cols) & (v >= self.v0) & (v < self.v0 + rows)
         d = np.full(len(z), np.inf)
         d[ok] = self.depth[v[ok] - self.v0, u[ok] - self.u0]
         known = np.isfinite(d)
-        n_known = int(known.sum())
-        if n_known == 0:
-            return 0.0, 0.0
         through = known & (d > z + margin + per_depth2 * np.where(known, d, 0.0) ** 2)
-        return float(through.sum()) / n_known, n_known / len(z)
+        return known, through
+
+
+def _fractions(known: np.ndarray, through: np.ndarray) -> tuple[float, float]:
+    """(seen-through fraction of the known points, known fraction of all); (0, 0) when none is known."""
+    n_known = int(known.sum())
+    if n_known == 0:
+        return 0.0, 0.0
+    return float(np.count_nonzero(through)) / n_known, n_known / len(known)
+
+
+MAX_FREE_SPACE_VIEWS = 32
+"""Most cameras one free-space check keeps (`FreeSpace.of_points`): a long sequence records hundreds of nearly
+identical views; evenly spaced ones among them see the same free space at a bounded memory and time."""
+
+
+@dataclass(frozen=True)
+class FreeSpace:
+    """The free space that one or several cameras saw: a point is seen through when *any* camera saw past it on
+    its pixel (space one camera saw empty is empty, whatever the others saw behind something nearer), and known
+    when any camera observed its pixel. One camera: exactly `DepthView.seen_through`. Fused scans (`import-rgbd
+    --sequence`, generated scenes) record every camera; each view is rebuilt from the fused points, so the
+    nearest surface along each of its rays is the one that camera saw."""
+
+    views: tuple[DepthView, ...]
+
+    @classmethod
+    def of_points(cls, cameras: "list[Camera] | tuple[Camera, ...]", points: np.ndarray, *, splat: int = 5,
+                  lateral: float = 0.0, edge: float | None = None) -> "FreeSpace":
+        """The depth views of at most `MAX_FREE_SPACE_VIEWS` of `cameras` (evenly spaced when there are more),
+        with `DepthView.of_points`'s arguments."""
+        cams = list(cameras)
+        if len(cams) > MAX_FREE_SPACE_VIEWS:
+            keep = np.unique(np.linspace(0, len(cams) - 1, MAX_FREE_SPACE_VIEWS).round().astype(int))
+            cams = [cams[i] for i in keep]
+        return cls(views=tuple(DepthView.of_points(c, points, splat=splat, lateral=lateral, edge=edge)
+                               for c in cams))
+
+    def seen_through(self, points: np.ndarray, margin: float, *, per_depth2: float = 0.0) -> tuple[float, float]:
+        """(fraction of the known points that some camera saw through, fraction of the points some camera
+        observed); (0, 0) when none is known (`DepthView.seen_through`, over every view)."""
+        if not len(points) or not self.views:
+            return 0.0, 0.0
+        known = np.zeros(len(points), bool)
+        through = np.zeros(len(points), bool)
+        for view in self.views:
+            k, t = view.evidence(points, margin, per_depth2=per_depth2)
+            known |= k
+            through |= t
+        return _fractions(known, through)

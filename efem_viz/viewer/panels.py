@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Sequence, cast
+from typing import TYPE_CHECKING, Any, Sequence, cast, get_args
 
 import numpy as np
 
@@ -65,6 +65,7 @@ class Panels:
     gui_proposals: GuiNumberHandle[int]
     gui_seed: GuiNumberHandle[int]
     gui_precision: GuiDropdownHandle[str]
+    gui_free_space: GuiDropdownHandle[str]
     gui_run: GuiButtonHandle
     gui_cancel: GuiButtonHandle
     gui_load: GuiButtonHandle
@@ -178,10 +179,15 @@ def _run_tab(gui: GuiApi) -> dict[str, Any]:
                                  hint="bfloat16: the networks' matrix work in bf16, for GPUs; on a CPU, even with "
                                       "AMX or AVX-512 BF16, it is no faster than float32 with the shipped prior "
                                       "(docs/BENCHMARKS.md)")
+    free_space = gui.add_dropdown("Free space", get_args(em_config.FreeSpaceMode), initial_value="auto",
+                                  hint="check fits against what the scene's recorded cameras saw empty: auto (the "
+                                       "preset's: on for real), on (also a fused scan, against all its cameras) "
+                                       "or off")
     progress = gui.add_progress_bar(0.0, visible=False)
     run_info = gui.add_markdown("")
-    return dict(gui_preset=preset, gui_proposals=proposals, gui_seed=seed, gui_precision=precision, gui_run=run,
-                gui_cancel=cancel, gui_load=load, gui_progress=progress, gui_run_info=run_info)
+    return dict(gui_preset=preset, gui_proposals=proposals, gui_seed=seed, gui_precision=precision,
+                gui_free_space=free_space, gui_run=run, gui_cancel=cancel, gui_load=load, gui_progress=progress,
+                gui_run_info=run_info)
 
 
 def _timeline_tab(gui: GuiApi) -> dict[str, Any]:
