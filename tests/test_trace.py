@@ -103,6 +103,38 @@ def test_reviews_recorded_at_phase_ends(run: tuple) -> None:
         assert np.abs(final.mesh_vertices - res.instances.mesh_vertices[k]).max() < 1e-3
 
 
+def test_every_review_measure_is_declared_once_and_round_trips(run: tuple, tmp_path: Path) -> None:
+    """`REVIEW_COLUMNS` is the one declaration of what a review stores: its rows are exactly the `ReviewRecord`
+    fields (but the prior, which the proposal table gives) and the trace's review arrays; every record read back
+    from a saved trace equals the recorded one, field by field; the replay's review scores are the table's."""
+    import dataclasses
+
+    from efem_viz.em.replay import TraceReplay
+    from efem_viz.em.rules import REVIEW_COLUMNS, ReviewRecord
+    from efem_viz.em.trace import EMTrace
+
+    assert [c.field for c in REVIEW_COLUMNS] == [f for f in ReviewRecord._fields if f != "prior"]
+    declared = {n for c in REVIEW_COLUMNS for n in (c.trace, c.offsets) if n}
+    assert declared == {f.name for f in dataclasses.fields(EMTrace) if f.name.startswith("rev_")}
+    scene, prior, res = run
+    back = EMResult.load(res.save(tmp_path / "r.efem.npz")).trace
+    for v in range(len(res.trace.rev_id)):
+        a, b = res.trace.review_record(v), back.review_record(v)
+        for name in ReviewRecord._fields:
+            x, y = getattr(a, name), getattr(b, name)
+            assert type(x) is type(y), name
+            assert np.array_equal(np.asarray(x), np.asarray(y), equal_nan=True), name
+    pid = int(res.instances.ids[0])
+    step = int(res.trace.last_step(pid))
+    scores = TraceReplay(back, scene, prior).view(pid, step, mesh=False).scores
+    v = int(np.flatnonzero((back.rev_id == pid) & (back.rev_step == step))[0])
+    assert scores["radius_horizontal"] == pytest.approx(float(back.rev_radii[v, 0]))
+    assert scores["coverage"] == pytest.approx(float(back.rev_coverage[v]))
+    assert "seen_through" not in scores  # not measured in this run: not shown
+    named = {n for c in REVIEW_COLUMNS if not c.optional for n in c.scores}
+    assert named <= set(scores) and {"stationary", "inliers"} <= set(scores)
+
+
 def test_confidence_matches_recorded_scores(run: tuple) -> None:
     _, _, res = run
     tr = res.trace

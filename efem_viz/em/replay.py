@@ -17,6 +17,7 @@ import numpy as np
 
 from efem_viz.em.proposals import AvailableTree
 from efem_viz.em.estep import energy_weights, normals_threshold
+from efem_viz.em.rules import REVIEW_COLUMNS
 from efem_viz.em.trace import EMTrace, ProposalView
 
 if TYPE_CHECKING:
@@ -232,17 +233,14 @@ class TraceReplay:
         alive = not (dead is not None and dead[1] != "survive" and dead[0] <= step)
         scores: dict[str, float] = {"stationary": float(tr.row_stationary[r]), "inliers": float(tr.row_inliers[r])}
         for v in np.flatnonzero((tr.rev_id == proposal_id) & (tr.rev_step == shown)):
-            scores.update(
-                coverage=float(tr.rev_coverage[v]),
-                db_sim=float(tr.rev_db_sim[v]),
-                radius_horizontal=float(tr.rev_radii[v, 0]),
-                half_height=float(tr.rev_radii[v, 1]),
-                up_angle=float(tr.rev_up_angle[v]),
-                scale_pass=float(tr.rev_scale_pass[v]),
-                pose_pass=float(tr.rev_pose_pass[v]),
-            )
-            if tr.rev_seen_through is not None and np.isfinite(tr.rev_seen_through[v]):
-                scores["seen_through"] = float(tr.rev_seen_through[v])
+            for col in REVIEW_COLUMNS:  # the review's measures, by the names the table gives them
+                arr = getattr(tr, col.trace) if col.scores else None
+                if arr is None:
+                    continue
+                values = np.asarray(arr[v], np.float64).reshape(-1)
+                for name, value in zip(col.scores, values):
+                    if not col.optional or np.isfinite(value):  # an optional measure shows only where measured
+                        scores[name] = float(value)
         sch = tr.schedule[shown]
         lat = tr.latent(proposal_id, shown)
         mesh_obj = None

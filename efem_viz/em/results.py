@@ -21,6 +21,7 @@ import numpy as np
 from efem_viz.em.config import EMConfig
 from efem_viz.data.io import RESULT_SUFFIX
 from efem_viz.em.replay import TraceReplay
+from efem_viz.em.rules import REVIEW_COLUMNS
 from efem_viz.em.trace import EMTrace
 from efem_viz.prior.config import CategorySettings
 
@@ -598,7 +599,7 @@ REQUIRED_RESULT_KEYS: tuple[str, ...] = (
 """Every key `EMResult.save` writes (schema 1); `EMResult.load` refuses a file without one of them."""
 OPTIONAL_RESULT_KEYS: tuple[str, ...] = (
     "categories_json", "warnings_json", "trace/reason_names_json", "trace/prior_names_json", "trace/prop_prior",
-    "trace/rev_seen_through",
+    *(f"trace/{col.trace}" for col in REVIEW_COLUMNS if col.optional),
 )
 """Keys `EMResult.save` writes that older results lack. `load` reads these and the required keys only: any other
 member of the archive is never inflated (a 5 MB result with an extra 2 GiB deflated member cost 2.2 GB)."""

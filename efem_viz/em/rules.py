@@ -391,6 +391,56 @@ class ReviewRecord(NamedTuple):
 
 
 @dataclass(frozen=True)
+class ReviewColumn:
+    """How one `ReviewRecord` field is kept in a trace (`REVIEW_COLUMNS`): the `EMTrace` array `trace`, one row
+    per review of `shape` and `dtype`; a ragged field (`offsets`: the offsets array's name) as flat values plus
+    offsets. An `optional` one is stored only when its check ran (`measured(config)`): older traces and runs
+    without the check lack it, and their records hold NaN. `scores`: the names the trace replay's review scores
+    (`em.replay.ProposalView.scores`, the viewer's inspector) give it, one per element of its row."""
+
+    field: str
+    trace: str
+    shape: tuple[int, ...] = ()
+    dtype: Any = np.float32
+    offsets: str | None = None
+    measured: "Callable[[Any], bool] | None" = None
+    scores: tuple[str, ...] = ()
+
+    @property
+    def optional(self) -> bool:
+        return self.measured is not None
+
+
+REVIEW_COLUMNS: tuple[ReviewColumn, ...] = (
+    ReviewColumn("step", "rev_step", dtype=np.int32),
+    ReviewColumn("phase", "rev_phase", dtype=np.int8),
+    ReviewColumn("proposal_id", "rev_id", dtype=np.int32),
+    ReviewColumn("R", "rev_R", (3, 3)),
+    ReviewColumn("R_raw", "rev_R_raw", (3, 3)),
+    ReviewColumn("scale_sel", "rev_scale_sel"),
+    ReviewColumn("db_sim", "rev_db_sim", scores=("db_sim",)),
+    ReviewColumn("coverage", "rev_coverage", scores=("coverage",)),
+    ReviewColumn("radii", "rev_radii", (2,), scores=("radius_horizontal", "half_height")),
+    ReviewColumn("scale_pass", "rev_scale_pass", dtype=bool, scores=("scale_pass",)),
+    ReviewColumn("up_angle", "rev_up_angle", scores=("up_angle",)),
+    ReviewColumn("pose_pass", "rev_pose_pass", dtype=bool, scores=("pose_pass",)),
+    ReviewColumn("obb_center", "rev_obb_center", (3,)),
+    ReviewColumn("obb_axes", "rev_obb_axes", (3, 3)),
+    ReviewColumn("obb_half_extents", "rev_obb_half", (3,)),
+    ReviewColumn("mask", "rev_mask", dtype=np.int32, offsets="rev_mask_offsets"),
+    ReviewColumn("mesh_vertices", "rev_mesh_vertices", (3,), np.float16, offsets="rev_mesh_vertex_offsets"),
+    ReviewColumn("mesh_faces", "rev_mesh_faces", (3,), np.int32, offsets="rev_mesh_face_offsets"),
+    ReviewColumn("neighbours", "rev_neighbours", dtype=np.int32, offsets="rev_neighbour_offsets"),
+    ReviewColumn("seen_through", "rev_seen_through", measured=lambda cfg: cfg.seen_through_margin is not None,
+                 scores=("seen_through",)),
+)
+"""Every measure a review records, declared once: the trace's arrays, the recorder, `EMTrace.review_record`,
+saving and loading, and the replay's scores are derived from this table (`ReviewRecord.prior` is not a column:
+it comes from the trace's per-proposal prior table). A new measure is a `ReviewRecord` field, a row here and
+its `EMTrace` array (tests check that the three agree)."""
+
+
+@dataclass(frozen=True)
 class ReviewRule:
     """A review check: `check(record, cfg)` → (passed, ratio recorded with the death)."""
 

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, NamedTuple
 import numpy as np
 
 from efem_viz.em.config import EMConfig
-from efem_viz.em.rules import LEGACY_REASONS, REASON_SURVIVE, ReviewRecord, reason_names
+from efem_viz.em.rules import LEGACY_REASONS, REASON_SURVIVE, REVIEW_COLUMNS, ReviewRecord, reason_names
 
 if TYPE_CHECKING:
     import trimesh
@@ -85,6 +85,12 @@ class ProposalView(NamedTuple):
 def _ragged_to_npz(prefix: str, values: np.ndarray, offsets: np.ndarray, out: dict[str, np.ndarray]) -> None:
     out[prefix] = values
     out[prefix + "_offsets"] = np.asarray(offsets, np.int64)
+
+
+def _scalar(x: Any) -> Any:
+    """A stored scalar as the Python type of its record field (bool, int or float)."""
+    kind = np.asarray(x).dtype.kind
+    return bool(x) if kind == "b" else int(x) if kind in "iu" else float(x)
 
 
 def _ragged_get(values: np.ndarray, offsets: np.ndarray, i: int) -> np.ndarray:
@@ -328,36 +334,23 @@ class EMTrace:
         return out
 
     def review_record(self, v: int) -> ReviewRecord:
-        """Review record `v` (mesh vertices in world coordinates)."""
-        verts = _ragged_get(self.rev_mesh_vertices, self.rev_mesh_vertex_offsets, v).astype(np.float32)
-        pid = int(self.rev_id[v])
-        step = int(self.rev_step[v])
+        """Review record `v` (mesh vertices in world coordinates; an optional measure the trace lacks is NaN)."""
+        got: dict[str, Any] = {}
+        for col in REVIEW_COLUMNS:
+            arr = getattr(self, col.trace)
+            if col.offsets is not None:
+                got[col.field] = _ragged_get(arr, getattr(self, col.offsets), v)
+            elif arr is None:
+                got[col.field] = float("nan")
+            elif col.shape:
+                got[col.field] = arr[v]
+            else:
+                got[col.field] = _scalar(arr[v])
+        pid, step = got["proposal_id"], got["step"]
         r = self.row_of(pid, step)
         center = self.row_center[r] if r is not None else np.zeros(3, np.float32)
-        return ReviewRecord(
-            step=step,
-            phase=int(self.rev_phase[v]),
-            proposal_id=pid,
-            R=self.rev_R[v],
-            R_raw=self.rev_R_raw[v],
-            scale_sel=float(self.rev_scale_sel[v]),
-            db_sim=float(self.rev_db_sim[v]),
-            coverage=float(self.rev_coverage[v]),
-            radii=self.rev_radii[v],
-            scale_pass=bool(self.rev_scale_pass[v]),
-            up_angle=float(self.rev_up_angle[v]),
-            pose_pass=bool(self.rev_pose_pass[v]),
-            obb_center=self.rev_obb_center[v],
-            obb_axes=self.rev_obb_axes[v],
-            obb_half_extents=self.rev_obb_half[v],
-            mask=_ragged_get(self.rev_mask, self.rev_mask_offsets, v),
-            mesh_vertices=verts + center[None, :],
-            mesh_faces=_ragged_get(self.rev_mesh_faces, self.rev_mesh_face_offsets, v),
-            neighbours=_ragged_get(self.rev_neighbours, self.rev_neighbour_offsets, v),
-            prior=self.prior_index(pid),
-            seen_through=(float(self.rev_seen_through[v]) if self.rev_seen_through is not None
-                          else float("nan")),
-        )
+        got["mesh_vertices"] = got["mesh_vertices"].astype(np.float32) + center[None, :]
+        return ReviewRecord(**got, prior=self.prior_index(pid))
 
     def check_step(self, step: int) -> None:
         """Raise ValueError unless 0 <= step < num_steps."""
@@ -408,10 +401,7 @@ class EMTrace:
         "prop_episode", "prop_anchor", "prop_r_init", "prop_r_err", "prop_birth_step",
         "death_step", "death_reason", "death_partner", "death_ratio", "death_order",
         "episode_unavailable", "episode_unavailable_offsets",
-        "rev_step", "rev_phase", "rev_id", "rev_R", "rev_R_raw", "rev_scale_sel", "rev_db_sim", "rev_coverage",
-        "rev_radii", "rev_scale_pass", "rev_up_angle", "rev_pose_pass", "rev_obb_center", "rev_obb_axes",
-        "rev_obb_half", "rev_mask", "rev_mask_offsets", "rev_mesh_vertices", "rev_mesh_vertex_offsets",
-        "rev_mesh_faces", "rev_mesh_face_offsets", "rev_neighbours", "rev_neighbour_offsets",
+        *(name for col in REVIEW_COLUMNS if not col.optional for name in (col.trace, col.offsets) if name),
     )
 
     def to_npz_dict(self, prefix: str = "trace/", *, compact: bool = False) -> dict[str, np.ndarray]:
@@ -440,8 +430,9 @@ class EMTrace:
         out[prefix + "prior_names_json"] = np.array(json.dumps(list(self.prior_names)))
         if self.prop_prior is not None:
             out[prefix + "prop_prior"] = np.asarray(self.prop_prior, np.int8)
-        if self.rev_seen_through is not None:
-            out[prefix + "rev_seen_through"] = np.asarray(self.rev_seen_through, np.float32)
+        for col in REVIEW_COLUMNS:
+            if col.optional and getattr(self, col.trace) is not None:
+                out[prefix + col.trace] = np.asarray(getattr(self, col.trace), col.dtype)
         return out
 
     @classmethod
@@ -490,12 +481,14 @@ class EMTrace:
                     or (n_prop and (int(prop_prior.min()) < 0 or int(prop_prior.max()) >= len(prior_names)))):
                 raise ValueError(f"trace prop_prior {prop_prior.dtype} {prop_prior.shape} does not index its "
                                  f"{len(prior_names)} priors for {n_prop} proposals")
-        seen = None
-        if prefix + "rev_seen_through" in keys:
-            seen = np.asarray(data[prefix + "rev_seen_through"])
-            if seen.shape != arrays["rev_id"].shape or seen.dtype.kind != "f":
-                raise ValueError(f"trace rev_seen_through {seen.dtype} {seen.shape} does not match its "
-                                 f"{len(arrays['rev_id'])} reviews")
+        measured: dict[str, Any] = {}
+        for col in REVIEW_COLUMNS:
+            if col.optional and prefix + col.trace in keys:
+                got = np.asarray(data[prefix + col.trace])
+                if got.shape != (len(arrays["rev_id"]), *col.shape) or got.dtype.kind != np.dtype(col.dtype).kind:
+                    raise ValueError(f"trace {col.trace} {got.dtype} {got.shape} does not match its "
+                                     f"{len(arrays['rev_id'])} reviews")
+                measured[col.trace] = got
         return cls(
             config=EMConfig.from_json(str(np.asarray(data[prefix + "config_json"]))),
             num_points=int(np.asarray(data[prefix + "num_points"])),
@@ -506,7 +499,7 @@ class EMTrace:
             reason_names=reasons,
             prop_prior=prop_prior,
             prior_names=prior_names,
-            rev_seen_through=seen,
+            **measured,
             **arrays,
         )
 
@@ -694,52 +687,24 @@ class TraceRecorder:
         return death_step, death_reason, death_partner, death_ratio, death_order
 
     def _review_fields(self) -> dict[str, Any]:
-        """The review records as the `EMTrace` fields `rev_*`: one row per review, the masks, meshes and
-        neighbours ragged (values + offsets); `rev_seen_through` only when the free-space check ran."""
+        """The review records as the `EMTrace` arrays of `REVIEW_COLUMNS`: one row per review, the ragged ones
+        as values + offsets; an optional measure only when its check ran."""
         revs = self.reviews
-
-        def rv(key: str, shape: tuple[int, ...], dtype: Any) -> np.ndarray:
-            if not revs:
-                return np.zeros((0, *shape), dtype)
-            return np.stack([np.asarray(r[key], dtype) for r in revs]).reshape(len(revs), *shape)
-
-        def rr(key: str, shape: tuple[int, ...], dtype: Any) -> tuple[np.ndarray, np.ndarray]:
-            parts = [np.asarray(r[key], dtype).reshape(-1, *shape) for r in revs]
-            offs = _offsets([len(p) for p in parts])
-            vals = np.concatenate(parts) if parts else np.zeros((0, *shape), dtype)
-            return vals.astype(dtype), offs
-
-        mask, mask_off = rr("mask", (), np.int32)
-        mv, mv_off = rr("mesh_vertices", (3,), np.float16)
-        mf, mf_off = rr("mesh_faces", (3,), np.int32)
-        nb, nb_off = rr("neighbours", (), np.int32)
-        return dict(
-            rev_step=rv("step", (), np.int32),
-            rev_phase=rv("phase", (), np.int8),
-            rev_id=rv("proposal_id", (), np.int32),
-            rev_R=rv("R", (3, 3), np.float32),
-            rev_R_raw=rv("R_raw", (3, 3), np.float32),
-            rev_scale_sel=rv("scale_sel", (), np.float32),
-            rev_db_sim=rv("db_sim", (), np.float32),
-            rev_coverage=rv("coverage", (), np.float32),
-            rev_radii=rv("radii", (2,), np.float32),
-            rev_scale_pass=rv("scale_pass", (), bool),
-            rev_up_angle=rv("up_angle", (), np.float32),
-            rev_pose_pass=rv("pose_pass", (), bool),
-            rev_obb_center=rv("obb_center", (3,), np.float32),
-            rev_obb_axes=rv("obb_axes", (3, 3), np.float32),
-            rev_obb_half=rv("obb_half_extents", (3,), np.float32),
-            rev_mask=mask,
-            rev_mask_offsets=mask_off,
-            rev_mesh_vertices=mv,
-            rev_mesh_vertex_offsets=mv_off,
-            rev_mesh_faces=mf,
-            rev_mesh_face_offsets=mf_off,
-            rev_neighbours=nb,
-            rev_neighbour_offsets=nb_off,
-            rev_seen_through=(rv("seen_through", (), np.float32) if self.config.seen_through_margin is not None
-                              else None),
-        )
+        out: dict[str, Any] = {}
+        for col in REVIEW_COLUMNS:
+            if col.offsets is not None:
+                parts = [np.asarray(r[col.field], col.dtype).reshape(-1, *col.shape) for r in revs]
+                out[col.offsets] = _offsets([len(p) for p in parts])
+                out[col.trace] = (np.concatenate(parts) if parts else np.zeros((0, *col.shape), col.dtype)
+                                  ).astype(col.dtype)
+            elif col.measured is not None and not col.measured(self.config):
+                out[col.trace] = None
+            elif not revs:
+                out[col.trace] = np.zeros((0, *col.shape), col.dtype)
+            else:
+                out[col.trace] = np.stack([np.asarray(r[col.field], col.dtype) for r in revs]).reshape(
+                    len(revs), *col.shape)
+        return out
 
 
 def _concat_rows(rows: list[dict[str, np.ndarray]], key: str, shape: tuple[int, ...], dtype: Any) -> np.ndarray:
