@@ -206,7 +206,7 @@ LABEL_WRITERS: dict[str, LabelWriter] = {w.name: w for w in (
 )}
 """The label formats the annotator exports, by name (one row per format; `load_labels` reads each back)."""
 
-EXPORT_FRAMES = ("scene", "original")
+EXPORT_FRAMES: tuple[str, ...] = ("scene", "original")
 """Frames an export is written in: the scan as opened, or an imported scan's original file frame
 (`annotator.parts.files.FilePart.export`)."""
 

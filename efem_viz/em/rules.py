@@ -445,10 +445,10 @@ class ReviewRule:
     """A review check: `check(record, cfg)` → (passed, ratio recorded with the death)."""
 
     reason: str
-    check: Callable[[ReviewRecord, Any], tuple[bool, float]]
+    check: Callable[[ReviewRecord, EMConfig | None], tuple[bool, float]]
 
 
-def size_passes(radii: np.ndarray, cfg: Any) -> bool:
+def size_passes(radii: np.ndarray, cfg: EMConfig) -> bool:
     """§3.9 size verdict: the completed shape's (horizontal radius, half-height) within the config's resolved
     ranges (`scale_horizontal`, `scale_height`, metres)."""
     h_rng, v_rng = cfg.scale_horizontal, cfg.scale_height
@@ -457,7 +457,7 @@ def size_passes(radii: np.ndarray, cfg: Any) -> bool:
     return bool(h_rng[0] <= float(radii[0]) <= h_rng[1] and v_rng[0] <= float(radii[1]) <= v_rng[1])
 
 
-def up_passes(up_angle: float, cfg: Any) -> bool:
+def up_passes(up_angle: float, cfg: EMConfig) -> bool:
     """§3.9 up verdict: the angle between the canonical up axis and world +Z within the config's `up_range`."""
     rng = cfg.up_range
     if rng is None:
@@ -465,22 +465,23 @@ def up_passes(up_angle: float, cfg: Any) -> bool:
     return bool(rng[0] <= float(up_angle) <= rng[1])
 
 
-def _resolved(cfg: Any, *names: str) -> bool:
+def _resolved(cfg: EMConfig | None, *names: str) -> bool:
     return cfg is not None and all(getattr(cfg, n, None) is not None for n in names)
 
 
-def _scale_check(rec: ReviewRecord, cfg: Any) -> tuple[bool, float]:
+def _scale_check(rec: ReviewRecord, cfg: EMConfig | None) -> tuple[bool, float]:
     # the rule decides from the record's measures; a record read back without its config keeps its stored verdict
-    ok = size_passes(rec.radii, cfg) if _resolved(cfg, "scale_horizontal", "scale_height") else bool(rec.scale_pass)
+    ok = (size_passes(rec.radii, cfg) if cfg is not None and _resolved(cfg, "scale_horizontal", "scale_height")
+          else bool(rec.scale_pass))
     return ok, float(np.max(rec.radii))
 
 
-def _pose_check(rec: ReviewRecord, cfg: Any) -> tuple[bool, float]:
-    ok = up_passes(rec.up_angle, cfg) if _resolved(cfg, "up_range") else bool(rec.pose_pass)
+def _pose_check(rec: ReviewRecord, cfg: EMConfig | None) -> tuple[bool, float]:
+    ok = up_passes(rec.up_angle, cfg) if cfg is not None and _resolved(cfg, "up_range") else bool(rec.pose_pass)
     return ok, float(rec.up_angle)
 
 
-def _seen_through_check(rec: ReviewRecord, cfg: Any) -> tuple[bool, float]:
+def _seen_through_check(rec: ReviewRecord, cfg: EMConfig | None) -> tuple[bool, float]:
     st = float(rec.seen_through)
     limit = getattr(cfg, "max_seen_through", 1.0) if cfg is not None else 1.0
     return bool(not math.isfinite(st) or st <= limit), st
@@ -495,7 +496,7 @@ REVIEW_RULES: tuple[ReviewRule, ...] = (
 check of single-view frames (`EMConfig.seen_through_margin`; passes when it was not measured)."""
 
 
-def first_failed_review(rec: ReviewRecord, cfg: Any, rules: Sequence[ReviewRule] = REVIEW_RULES
+def first_failed_review(rec: ReviewRecord, cfg: EMConfig | None, rules: Sequence[ReviewRule] = REVIEW_RULES
                         ) -> tuple[str, float] | None:
     """(reason, ratio) of the first review rule the record fails, or None when it passes them all."""
     for rule in rules:
