@@ -16,7 +16,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -182,5 +182,19 @@ class SceneWorker:
             name=task.name, path=str(task.path), status="ok", instances=len(result.instances), points=points,
             seconds=time.perf_counter() - t0, worker=self.worker, load_s=load_s, solve_s=solve_s, write_s=write_s,
             rss_mb=peak_rss_mb(), fingerprint=fp, cpu_s=time.process_time() - c0, scene_stamp=stamp,
-            preset=cfg.name,
+            preset=cfg.name + _free_space_words(cfg, scene),
         )
+
+
+def _free_space_words(cfg: Any, scene: Any) -> str:
+    """What a scene's line adds to its preset about the free-space check: ", free space from 4 cameras" when the
+    run checked against recorded cameras, nothing otherwise."""
+    if cfg.seen_through_margin is None:
+        return ""
+    from efem_viz.geometry.camera import Camera
+
+    try:
+        n = len(Camera.parse_all(scene.provenance)[0])
+    except (TypeError, ValueError, AttributeError):
+        return ""
+    return f", free space from {n} camera{'s' if n != 1 else ''}" if n else ""
