@@ -286,7 +286,7 @@ def main() -> int:
     args.proposals = cfg.n_init[0]  # what the printed lines and the JSON say
     variants = dict(parse_config(spec) for spec in (args.config or [f"{args.preset}="]))
     cfgs = {name: cfg.replace(**changes) for name, changes in variants.items()}
-    if len(cfgs) > 1 or len(args.em_seeds) > 1:  # several configs, or one over several solver seeds
+    if len(cfgs) > 1 or list(args.em_seeds) != [0]:  # several configs, or solver seeds other than the default
         return compare(args, prior, cfgs)
     cfg = next(iter(cfgs.values()))  # one --config: its changes on the preset (they were dropped before)
     n_scenes = args.n_scenes or (2 if args.quick else 10)
