@@ -55,13 +55,13 @@ class FilePart:
         for suffix in writer.suffixes:
             self.safe_path(str(d / f"{stem}{suffix}"), what="export file")
         labels, table = self.scan.store.snapshot()
-        scene, back = self.scan.scene, None
+        scene, undone = self.scan.scene, None
         if frame == "original":
             from efem_viz.data.scan import scene_in_file_frame
             from efem_viz.data.scene import SceneError
 
             try:
-                scene, back = scene_in_file_frame(scene)
+                scene, undone = scene_in_file_frame(scene)
             except SceneError as exc:
                 raise LabelIOError(str(exc)) from None
         out = writer.write(scene, labels, table, d, stem)
@@ -71,7 +71,7 @@ class FilePart:
                 "objects (review or delete them first)") if pending else ""
         where = ""
         if frame == "original":
-            where = (f", on the scan file's own coordinates ({back.describe()})" if back is not None
+            where = (f", on the scan file's own coordinates ({undone.describe()})" if undone is not None
                      else ", in the scan's own frame (it has no other)")
         self.hooks.notify("Exported", f"{', '.join(p.name for p in out)} in {d}{where}{warn}")
         log.info("exported %s", [str(p) for p in out])

@@ -153,8 +153,8 @@ class SceneWorker:
             scan_frame = ScanFrame.from_provenance(scene.provenance)
             if self.job.frame == "original" and scan_frame is not None and not scan_frame.is_identity:
                 out_scene, _ = scene_in_file_frame(scene)
-                back = scan_frame.to_scene.inverse()
-                out_instances, frame_name = result.instances.transformed(back), f"original ({scan_frame.units})"
+                out_instances = result.instances.transformed(scan_frame.to_scene.inverse())
+                frame_name = f"original ({scan_frame.units})"
             if self.job.ply:
                 out_instances.to_colored_ply(out_scene, task.ply_path, threshold=self.job.threshold)
             about = {"scene": task.name, "scan_frame": None if scan_frame is None else scan_frame.to_provenance()}
