@@ -96,6 +96,24 @@ def test_examples_and_augmentation(cache_dir: Path) -> None:
     assert noisy.shape == base.shape and not np.array_equal(noisy, base)
 
 
+def test_top_only_probability_chooses_the_views_an_input_comes_from(tmp_path: Path, cache_dir: Path) -> None:
+    src = procedural_sources("mug", "train", 1)[0]
+    obj = load_or_prepare(src, cache_dir=cache_dir / "data", cfg=SMALL_PREP, seed=0)
+    n_top = int(np.sum(obj.view_elev_deg >= 30.0 - 1e-3))
+    top = {tuple(p) for i in range(n_top) for p in obj.view(i).tolist()}
+
+    def outside_top(p_top: float) -> int:
+        cfg = dataclasses.replace(_args(tmp_path, cache_dir, top_only_p=p_top).sample_config(256), noise_std=0.0)
+        assert cfg.p_top_only == p_top
+        rng = np.random.default_rng(0)
+        return sum(tuple(p) not in top for _ in range(20) for p in input_cloud(obj, cfg, rng).tolist())
+
+    assert outside_top(1.0) == 0  # only the views from above
+    assert outside_top(0.0) > 0  # side and bottom views too
+    with pytest.raises(ValueError, match="top_only_p"):
+        _args(tmp_path, cache_dir, top_only_p=1.5).sample_config(256)
+
+
 def test_lr_schedule() -> None:
     kw = dict(base=1e-4, total=80000, decay_at=(0.625, 0.75, 0.875), factor=0.3)
     assert lr_at(0, **kw) == 1e-4 and lr_at(49999, **kw) == 1e-4

@@ -206,12 +206,12 @@ class SDFDecoder(nn.Module):
         if len(sel) == 0:
             return sdf, sel, hf.new_zeros(0, width)
         relu_grad = torch.ops.aten.threshold_backward  # grad where x > 0 else 0: ReLU's own backward, vectorised
-        g = relu_grad(self.fc_out.weight[0].to(hf.dtype).expand(len(sel), width), hf[sel], 0.0)
+        g = relu_grad(self.fc_out.weight[0].to(hf.dtype).expand(len(sel), width), hf.index_select(0, sel), 0.0)
         for i in reversed(range(self.n_blocks)):
             blk = getattr(self, f"block{i}")
             h_i, u_i = stream[2 * i], stream[2 * i + 1]
-            t = relu_grad(torch.matmul(g, blk.fc_1.weight.to(g.dtype)), u_i[sel], 0.0)
-            g = g + relu_grad(torch.matmul(t, blk.fc_0.weight.to(g.dtype)), h_i[sel], 0.0)
+            t = relu_grad(torch.matmul(g, blk.fc_1.weight.to(g.dtype)), u_i.index_select(0, sel), 0.0)
+            g = g + relu_grad(torch.matmul(t, blk.fc_0.weight.to(g.dtype)), h_i.index_select(0, sel), 0.0)
         return sdf, sel, g
 
     def forward_ragged(self, q: torch.Tensor, m: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:

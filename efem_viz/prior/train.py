@@ -159,6 +159,10 @@ class TrainArgs:
     min_views: int = 4
     """Fewest depth views in an input cloud (spec: 4 for mugs; 1 also trains single-view inputs, as real RGB-D
     frames are). Validation inputs are drawn with the same setting."""
+    top_only_p: float = 0.6
+    """Probability that an example's input uses only the views from above (elevation 30-60°); the rest draw
+    from every view, side and below included. Lower it for objects seen in any orientation (tumbled chairs).
+    Validation inputs are drawn with the same setting."""
     sensor_p: float = 0.0
     """Probability that a training example is a depth-sensor view (`prior.data.sensor_cloud`: 1-2 views
     mostly, Kinect/RealSense axial noise ×U(0.5, 2), quantisation, jitter, grazing dropout, 300-3000 visible
@@ -235,8 +239,10 @@ class TrainArgs:
             raise ValueError(f"near_fraction must be in (0, 1) (got {self.near_fraction})")
         total = SampleConfig.n_query_uniform + SampleConfig.n_query_near
         near = int(round(total * self.near_fraction))
+        if not 0.0 <= self.top_only_p <= 1.0:
+            raise ValueError(f"top_only_p must be in [0, 1] (got {self.top_only_p})")
         return SampleConfig(n_pcl=n_pcl, p_table=self.p_table, min_views=self.min_views, sensor_p=self.sensor_p,
-                            n_query_near=near, n_query_uniform=total - near)
+                            p_top_only=self.top_only_p, n_query_near=near, n_query_uniform=total - near)
 
     def resolved_out_dir(self) -> Path:
         """``out_dir`` or ``runs/<category>``."""
