@@ -398,13 +398,13 @@ class AnnotatorApp(ServedApp):
         return iid
 
     def run_efem(self, *, wait: bool = False) -> list[int] | None:
-        """EFEM on the whole scan with the preset, proposal count and prior the EFEM assist folder shows
+        """EFEM on the whole scan with the preset, proposal count, free-space mode and prior the EFEM assist folder shows
         (`AnnotatorSession.run_efem`); every value read is checked."""
         p = self.panels
         self.session.toolbox.settings.prior = read_choice(p.gui_prior)
         return self.session.assist.run_efem(preset=read_choice(p.gui_efem_preset),  # proposals 0: the preset's count
                                      proposals=read_int(p.gui_efem_proposals, write_back=self.write_back) or None,
-                                     wait=wait)
+                                     free_space=read_choice(p.gui_efem_free_space), wait=wait)
 
     def segment_at(self, vertex: int, *, wait: bool = False) -> np.ndarray | None:
         """Click-to-segment with the prior the dropdown shows (`AnnotatorSession.segment_at`)."""

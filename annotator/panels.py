@@ -6,12 +6,12 @@ GUI is shared (`server.gui`): every connected browser sees and drives the same c
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Sequence, Union
+from typing import TYPE_CHECKING, Sequence, Union, get_args
 
 from annotator.io import EXPORT_FRAMES
 from annotator.panel_views import NO_OPTIONS, PanelView
 from annotator.tools import Control, Tool, ToolSettings, all_controls, help_markdown, shown_settings
-from efem_viz.em.config import PRESETS
+from efem_viz.em.config import PRESETS, FreeSpaceMode
 from efem_viz.serve.table import option_for
 
 if TYPE_CHECKING:
@@ -90,6 +90,7 @@ class Panels:
     """Run EFEM on the open scan (its instances become pre-labels)."""
     gui_efem_preset: GuiDropdownHandle[str]
     gui_efem_proposals: GuiNumberHandle[int]
+    gui_efem_free_space: GuiDropdownHandle[str]
     gui_efem_cancel: GuiButtonHandle
     gui_efem_progress: GuiProgressBarHandle
     gui_efem_status: GuiMarkdownHandle
@@ -160,7 +161,11 @@ class Panels:
                                                     hint="'real' for single-view captures, 'fast' for a quick look")
             self.gui_efem_proposals = gui.add_number(
                 "Proposals", 0, min=0, max=2000, step=10,
-                hint="0: the preset's (real 400, fast 80); more finds more, slower (a real frame: ~1 min per 400)")
+                hint="0: the preset's (real 200, fast 80); more finds more, slower")
+            self.gui_efem_free_space = gui.add_dropdown(
+                "Free space", get_args(FreeSpaceMode), initial_value="auto",
+                hint="remove fits the scan's cameras saw through: auto = the preset's (on for 'real'); "
+                     "'on' adds it for a fused scan with several cameras; 'off' keeps every fit")
             self.gui_efem_cancel = gui.add_button("Cancel EFEM run", disabled=True)
             # the run's progress and words right under its buttons: in view when Run is clicked (at the folder's
             # end they were below the fold); they show only while a run goes

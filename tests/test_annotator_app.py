@@ -980,6 +980,43 @@ def test_run_efem_on_the_open_scan_makes_prelabels(spheres, monkeypatch: pytest.
         a.close()
 
 
+def test_run_efem_takes_the_free_space_mode_the_panel_shows(spheres, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The EFEM assist folder's *Free space* dropdown reaches the solver (auto: the preset's, none for `fast`;
+    on: the fused scans' check; off: none), the progress line names a mode other than auto, and a forged value
+    is refused before any run starts."""
+    import annotator.efem_runs as efem_runs
+    import efem_viz.em as em
+    from efem_viz.em.config import FREE_SPACE_FUSED
+
+    d, scene, prior = spheres
+    monkeypatch.setattr(efem_runs, "get_prior", lambda name: prior)
+    margins: list[float | None] = []
+    real_run = em.run_em
+
+    def spy_run(*args: Any, **kw: Any) -> Any:
+        margins.append(kw["cfg"].seen_through_margin)
+        return real_run(*args, **kw)
+
+    monkeypatch.setattr(em, "run_em", spy_run)
+    a = AnnotatorApp(d / "spheres.ply", out_dir=d / "out_free_space", port=0, autosave_delay=0)
+    try:
+        texts: list[str] = []
+        a.session.on_efem = lambda text, percent: texts.append(text or "")
+        a.panels.gui_efem_proposals.value = 8
+        assert a.panels.gui_efem_free_space.value == "auto"
+        for mode in ("auto", "on", "off"):
+            a.panels.gui_efem_free_space.value = mode
+            a.run_efem(wait=True)
+        assert margins == [None, FREE_SPACE_FUSED["seen_through_margin"], None]
+        assert any("free space on" in t for t in texts) and not any("free space auto" in t for t in texts)
+        a.panels.gui_efem_free_space.value = "sideways"
+        with pytest.raises(ClientValueError):
+            a.run_efem(wait=True)
+        assert len(margins) == 3
+    finally:
+        a.close()
+
+
 def test_a_first_run_says_it_builds_the_kernels_before_its_first_step(spheres, monkeypatch: pytest.MonkeyPatch) -> None:
     """On a machine where the encoder's kernels are not built yet, the progress line says so while they compile
     (about half a minute without a step), then the steps follow."""

@@ -270,8 +270,8 @@ class AssistPart:
                                "nothing was written")
         return path
 
-    def run_efem(self, *, preset: str | None = None, proposals: int | None = None, seed: int = 0,
-                 wait: bool = False) -> list[int] | None:
+    def run_efem(self, *, preset: str | None = None, proposals: int | None = None, free_space: str = "auto",
+                 seed: int = 0, wait: bool = False) -> list[int] | None:
         """Run EFEM on the whole scan with the chosen prior (`settings.prior`); its instances become unreviewed
         pre-labels (painted only where nothing is labelled), and the result is saved beside the journal
         (`<scan>.annotate/<scan>.efem.npz`, the last run) so that it can be imported again.
@@ -282,6 +282,8 @@ class AssistPart:
         Args:
             preset: solver preset (None: the one that fits the scan, `efem_viz.em.config.suggested_preset`).
             proposals: first-episode proposals (None: the preset's).
+            free_space: the free-space check against the scan's recorded cameras, auto | on | off
+                (`SolveSettings.free_space`: auto is the preset's; on adds the check for fused scans).
             seed: EM seed.
             wait: run in the calling thread and return the new pre-label ids (tests, scripts).
 
@@ -289,15 +291,16 @@ class AssistPart:
             With `wait`, the new pre-label instance ids ([] when cancelled or nothing was found); else None.
 
         Raises:
-            ValueError: another EFEM job is running, or a bad preset / proposal count.
+            ValueError: another EFEM job is running, or a bad preset / proposal count / free-space mode.
         """
         from efem_viz.em.config import SolveSettings, suggested_preset
 
         big = self.scan.n > EFEM_FULL_RESOLUTION_POINTS
         settings = SolveSettings(preset=preset or suggested_preset(self.efem_scene()),  # type: ignore[arg-type]
                                  proposals=None if not proposals else int(proposals),
-                                 work_voxel=EFEM_BIG_SCAN_VOXEL if big else None)
-        settings.config()  # a bad preset or count: one clear error before anything starts
+                                 work_voxel=EFEM_BIG_SCAN_VOXEL if big else None,
+                                 free_space=free_space)  # type: ignore[arg-type]  # checked by config()
+        settings.config()  # a bad preset, count or mode: one clear error before anything starts
         self.result_path()  # and an output that would land outside the output folder
         prior_name = self.toolbox.settings.prior
         cancel = self._claim("efem")
@@ -321,7 +324,8 @@ class AssistPart:
         from efem_viz.em.solver import EMCancelled
 
         what = f"EFEM ({settings.preset}, prior {prior_name!r}" + (
-            f", on a {1000 * settings.work_voxel:g} mm working set" if settings.work_voxel else "") + ")"
+            f", on a {1000 * settings.work_voxel:g} mm working set" if settings.work_voxel else "") + (
+            f", free space {settings.free_space}" if settings.free_space != "auto" else "") + ")"
 
         def on_step(info: Any) -> None:
             self.hooks.on_efem(f"{what}: step {info.step + 1} of {info.num_steps} · {info.status()} (Cancel stops it)",
