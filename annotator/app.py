@@ -398,8 +398,8 @@ class AnnotatorApp(ServedApp):
         return iid
 
     def run_efem(self, *, wait: bool = False) -> list[int] | None:
-        """EFEM on the whole scan with the preset, proposal count, free-space mode and prior the EFEM assist folder shows
-        (`AnnotatorSession.run_efem`); every value read is checked."""
+        """EFEM on the whole scan with the preset, proposal count, free-space mode and prior the EFEM assist folder
+        shows (`AnnotatorSession.run_efem`); every value read is checked."""
         p = self.panels
         self.session.toolbox.settings.prior = read_choice(p.gui_prior)
         return self.session.assist.run_efem(preset=read_choice(p.gui_efem_preset),  # proposals 0: the preset's count

@@ -3,8 +3,8 @@
 
 Click-to-segment runs EFEM on a *crop* of the scene (the points within `crop_radius` of the click, which bounds the
 cost on big scans) with a few proposals whose anchors are forced near the click
-(`run_em(anchor_candidates=...)`: the points within `anchor_radius` of it). The instance whose mask contains the clicked point (else the one whose centre is
-nearest) is returned, mapped back to the scene's vertex indices.
+(`run_em(anchor_candidates=...)`: the points within `anchor_radius` of it). The instance whose mask contains the clicked
+point (else the one whose centre is nearest) is returned, mapped back to the scene's vertex indices.
 """
 
 from __future__ import annotations

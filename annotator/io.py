@@ -59,7 +59,8 @@ class LabelData:
 
 
 # ---------------------------------------------------------------------------------------------- path safety
-def resolve_inside(path: str | os.PathLike[str], roots: Iterable[str | os.PathLike[str]], *, what: str = "path") -> Path:
+def resolve_inside(path: str | os.PathLike[str], roots: Iterable[str | os.PathLike[str]], *,
+                   what: str = "path") -> Path:
     """Resolve `path` (following symlinks) and check it lies inside one of `roots`.
 
     Relative paths are taken relative to the first root.
@@ -93,7 +94,8 @@ def _table_rows(table: Mapping[int, InstanceInfo] | Iterable[InstanceInfo]) -> l
 def _check_labels(labels: np.ndarray, n: int, path: Path | str) -> np.ndarray:
     lab = np.asarray(labels)
     if lab.ndim != 1 or lab.shape[0] != n:
-        raise LabelIOError(f"{path}: has {lab.shape[0] if lab.ndim == 1 else lab.shape} labels, the scan has {n} vertices")
+        raise LabelIOError(f"{path}: has {lab.shape[0] if lab.ndim == 1 else lab.shape} labels, "
+                           f"the scan has {n} vertices")
     if not np.issubdtype(lab.dtype, np.integer):
         if np.issubdtype(lab.dtype, np.floating) and np.isfinite(lab).all() and (np.round(lab) == lab).all():
             lab = lab.astype(np.int64)
@@ -106,7 +108,8 @@ def _check_labels(labels: np.ndarray, n: int, path: Path | str) -> np.ndarray:
     return lab.astype(np.int32)
 
 
-def _complete(labels: np.ndarray, rows: list[InstanceInfo], categories: Mapping[int, str] | None = None) -> list[InstanceInfo]:
+def _complete(labels: np.ndarray, rows: list[InstanceInfo],
+              categories: Mapping[int, str] | None = None) -> list[InstanceInfo]:
     have = {r.id for r in rows}
     out = list(rows)
     for iid in np.unique(labels):
@@ -118,7 +121,8 @@ def _complete(labels: np.ndarray, rows: list[InstanceInfo], categories: Mapping[
 
 
 # ---------------------------------------------------------------------------------------------- writers
-def save_labels_ply(scene: Any, labels: np.ndarray, table: Mapping[int, InstanceInfo], path: str | os.PathLike[str]) -> Path:
+def save_labels_ply(scene: Any, labels: np.ndarray, table: Mapping[int, InstanceInfo],
+                    path: str | os.PathLike[str]) -> Path:
     """Write the scan with an `instance` vertex property (efem-viz ground-truth PLY). Atomic.
 
     Args:
@@ -176,7 +180,8 @@ def save_scannet(
                 "name": info.name if info else f"instance {iid}",
             }
         )
-    agg = {"sceneId": scan_name, "appId": "efem-annotate", "segGroups": groups, "segmentsFile": f"{scan_name}.segs.json"}
+    agg = {"sceneId": scan_name, "appId": "efem-annotate", "segGroups": groups,
+           "segmentsFile": f"{scan_name}.segs.json"}
     sp = atomic_write_text(d / f"{scan_name}.segs.json", json.dumps(segs, separators=(",", ":")))
     ap = atomic_write_text(d / f"{scan_name}.aggregation.json", json.dumps(agg, indent=1))
     return sp, ap

@@ -132,7 +132,8 @@ def delta_to_record(d: Delta) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
         "table_after": table_to_json(d.table_after),
         "group": d.group,
     }
-    return header, {"idx": d.idx.astype(np.int32), "before": d.before.astype(np.int32), "after": d.after.astype(np.int32)}
+    return header, {"idx": d.idx.astype(np.int32), "before": d.before.astype(np.int32),
+                    "after": d.after.astype(np.int32)}
 
 
 def record_to_delta(r: Record) -> Delta:

@@ -113,8 +113,9 @@ def _browser_stage(app: "object") -> dict[str, float]:
         finally:
             browser.close()
     return {"page_gui_s": round(gui_s, 1), "page_scan_visible_s": round(first_s, 1),
-            "page_frames_per_s": round(float(fps), 2), "page_canvas_drawn": round(shown[-1], 3), "page_drag_s": round(drag_s, 1),
-            "page_stroke_on_server_s": round(stroke_s, 1), "page_painted": int((app.session.scan.store.labels == iid).sum())}  # type: ignore[attr-defined]
+            "page_frames_per_s": round(float(fps), 2), "page_canvas_drawn": round(shown[-1], 3),
+            "page_drag_s": round(drag_s, 1), "page_stroke_on_server_s": round(stroke_s, 1),
+            "page_painted": int((app.session.scan.store.labels == iid).sum())}  # type: ignore[attr-defined]
 
 
 def main() -> int:
@@ -207,7 +208,8 @@ def main() -> int:
             grow_ms.append(1000 * (time.perf_counter() - t1))
             assert d is None or d.num_vertices <= len(idx)
             assert b > 0
-        grown_sizes = [int(len(sel.region_grow(app.session.scan.geom, sd, max_angle_deg=20.0, max_distance=0.15))) for sd in seeds]
+        grown_sizes = [int(len(sel.region_grow(app.session.scan.geom, sd, max_angle_deg=20.0, max_distance=0.15)))
+                       for sd in seeds]
 
         save_ms = []
         for k in range(5):

@@ -67,7 +67,8 @@ def main() -> int:
         "clicks_with_a_mask": sum(r["mask_points"] > 0 for r in rows),
         "median_seconds": statistics.median(r["seconds"] for r in rows),
     }
-    print(f"{len(rows)} clicks: {out['clicks_with_a_mask']} with a mask, {out['clicks_with_iou_ge_0_5']} at IoU >= 0.5; "
+    print(f"{len(rows)} clicks: {out['clicks_with_a_mask']} with a mask, "
+          f"{out['clicks_with_iou_ge_0_5']} at IoU >= 0.5; "
           f"median IoU {out['median_iou']:.2f}, median {out['median_seconds']:.1f} s per click")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     tmp = args.out.with_suffix(".json.tmp")

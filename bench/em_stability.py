@@ -209,7 +209,8 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--config", action="append", default=[], help="NAME=key=value;key=value (EMConfig overrides, Python literals)")
+    ap.add_argument("--config", action="append", default=[],
+                    help="NAME=key=value;key=value (EMConfig overrides, Python literals)")
     ap.add_argument("--preset", default="real")
     ap.add_argument("--sets", nargs="+", default=["single-view", "real-tune", "real-judge"])
     ap.add_argument("--levels", nargs="+", default=list(LEVELS))

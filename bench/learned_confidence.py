@@ -170,15 +170,16 @@ def main() -> int:
         pool = [f for f in tr_all if kept(revive)(f)]
         y = np.array([is_mug(f) for f in pool], np.float64)
         model = fit_logistic(matrix(pool, names), y, names, l2=best, trained_on=(
-            f"bench/learned_confidence.py: accepted{f' and free-space-killed (<= {revive:g})' if revive else ''} fits of "
+            f"bench/learned_confidence.py: accepted"
+            f"{f' and free-space-killed (<= {revive:g})' if revive else ''} fits of "
             f"{split} {sorted(tune) if split == 'frames' else ', '.join(map(str, a.folders))} in "
             f"{len(a.folders)} saved runs, L2 {best:g}"), times_confidence=use_conf)
 
         def rule(f: Fit) -> float:
             return float(model.probs(matrix([f], names))[0]) * (conf(f) if use_conf else 1.0)
 
-        label = (f"{f'revived <= {revive:g}: ' if revive else ''}{'confidence x ' if use_conf else ''}p(mug | {sname}), L2 {best:g} "
-                 f"(LOFO tune AP50 {inner:.1f})")
+        label = (f"{f'revived <= {revive:g}: ' if revive else ''}{'confidence x ' if use_conf else ''}"
+                 f"p(mug | {sname}), L2 {best:g} (LOFO tune AP50 {inner:.1f})")
         r = table_row(label, rule, revive)
         r["revive_limit"] = revive
         r["weights"] = dict(zip(["bias", *names], (model.bias, *model.weights)))
@@ -186,8 +187,8 @@ def main() -> int:
         out[label] = r
         models[label] = model
 
-    print("\n| candidate (fitted on tune frames) | AP50 tune | AP50 judge | AP judge | judge: top is a mug | judge: mugs "
-          "found |\n|---|---:|---:|---:|---:|---:|")
+    print("\n| candidate (fitted on tune frames) | AP50 tune | AP50 judge | AP judge | judge: top is a mug "
+          "| judge: mugs found |\n|---|---:|---:|---:|---:|---:|")
     pose = lambda f: min(1.0, max(f.db_sim, 0.0) / 0.6) ** 2 if math.isfinite(f.db_sim) else 1.0  # noqa: E731
     out["solver (as run)"] = table_row("solver (as run)", lambda f: f.confidence)
     out["x min(1, pose/0.6)^2 (pose factor)"] = table_row("x min(1, pose/0.6)² (the earlier `real` preset)",
@@ -242,7 +243,8 @@ def main() -> int:
         from efem_viz.data.io import atomic_write_text
 
         atomic_write_text(a.json, json.dumps({"folders": [str(p) for p in a.folders], "tune": sorted(map(str, tune)),
-                                              "judge": sorted(map(str, judge)), "candidates": out}, indent=1, default=float))
+                                              "judge": sorted(map(str, judge)), "candidates": out},
+                                             indent=1, default=float))
         print(f"wrote {a.json}")
     return 0
 

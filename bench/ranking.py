@@ -258,7 +258,8 @@ def lateral_rule(lat: float, limit: float) -> tuple[Callable[[Fit], float], Call
 
         return confidence(f.stationary, f.coverage, cap=0.4, seen_through=st(f))
 
-    def keep(f: Fit) -> bool:  # survived the review (as run) or was killed only by the free-space check, and passes it now
+    # survived the review (as run) or was killed only by the free-space check, and passes it now
+    def keep(f: Fit) -> bool:
         return (f.accepted or f.killed_by == "seen-through") and st(f) <= limit
 
     return score, keep

@@ -115,7 +115,8 @@ def svg_plot(series: list[tuple[str, str, list[tuple[float, float]], bool]], pat
                f'noise across the table (mm, robust std)</text>')
     for i, (label, colour, pts, dashed) in enumerate(series):
         if pts:
-            path_d = " ".join(f"{'M' if j == 0 else 'L'}{px(x, y)[0]:.1f},{px(x, y)[1]:.1f}" for j, (x, y) in enumerate(pts))
+            path_d = " ".join(f"{'M' if j == 0 else 'L'}{px(x, y)[0]:.1f},{px(x, y)[1]:.1f}"
+                              for j, (x, y) in enumerate(pts))
             dash = ' stroke-dasharray="6,4"' if dashed else ""
             out.append(f'<path d="{path_d}" fill="none" stroke="{colour}" stroke-width="2"{dash}/>')
         ly = mt + 16 * i

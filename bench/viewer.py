@@ -93,7 +93,8 @@ def main() -> int:
 
     tmpdir = tempfile.TemporaryDirectory()
     if args.scene is None:
-        scene_path, prior = make_default(Path(tmpdir.name), spacing=args.spacing, proposals=args.proposals, seed=args.seed)
+        scene_path, prior = make_default(Path(tmpdir.name), spacing=args.spacing, proposals=args.proposals,
+                                         seed=args.seed)
     else:
         scene_path = args.scene.resolve()
         prior = None

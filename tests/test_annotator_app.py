@@ -104,8 +104,9 @@ def test_a_scan_over_the_display_budget_is_drawn_from_a_subset_and_labelled_in_f
         assert 0 < v.stats.bytes_sent - sent0 <= 2 * 3 * sum(len(v.chunks.members(c)) for c in touched) < 2 * 3 * 700
         col = v.chunk_handles[int(touched[0])].colors
         shown = np.isin(v.chunks.members(int(touched[0])), painted)
-        assert shown.any() and not np.array_equal(col[shown][0], a.session.scan.scene.colors[v.chunks.members(int(touched[0]))][
-            shown][0])  # the drawn painted points show the instance colour
+        assert shown.any() and not np.array_equal(
+            col[shown][0], a.session.scan.scene.colors[v.chunks.members(int(touched[0]))][shown][0]
+        )  # the drawn painted points show the instance colour
     finally:
         a.close()
     with pytest.raises(ValueError, match="at least 1"):
@@ -133,11 +134,14 @@ def test_click_tools_grow_fill_pick_erase(app: AnnotatorApp) -> None:
     assert v is not None
     grown = np.flatnonzero(app.session.scan.store.labels == a)
     assert len(grown) > 50
-    assert np.linalg.norm(app.session.scan.scene.points[grown] - app.session.scan.scene.points[v], axis=1).max() <= 0.05 + 1e-6
+    assert (np.linalg.norm(app.session.scan.scene.points[grown] - app.session.scan.scene.points[v], axis=1).max()
+            <= 0.05 + 1e-6)
     b = app.session.instances.new_instance()
     app.set_tool("fill")
-    app.session.painting.click(np.array([0, 0, 1.0]), np.array([0, 0, -1.0]))  # fill the connected region of `a` with `b`
-    assert (app.session.scan.store.labels == a).sum() == 0 and (app.session.scan.store.labels == b).sum() == len(grown)
+    # fill the connected region of `a` with `b`
+    app.session.painting.click(np.array([0, 0, 1.0]), np.array([0, 0, -1.0]))
+    assert ((app.session.scan.store.labels == a).sum() == 0
+            and (app.session.scan.store.labels == b).sum() == len(grown))
     app.set_tool("pick")
     app.session.instances.set_active(a)
     app.session.painting.click(np.array([0, 0, 1.0]), np.array([0, 0, -1.0]))
@@ -318,7 +322,8 @@ def test_point_cloud_scan_and_prelabels(tmp_path: Path, monkeypatch: pytest.Monk
         a.session.instances.undo()
         a.session.instances.set_active(iid)
         a.session.assist.review_prelabel(ids[1], "merge")
-        assert ids[1] not in a.session.scan.store.labelset.instances and (a.session.scan.store.labels == iid).sum() > 100
+        assert (ids[1] not in a.session.scan.store.labelset.instances
+                and (a.session.scan.store.labels == iid).sum() > 100)
     finally:
         a.close()
     assert (tmp_path / "pc.annotate" / "pc.journal").exists()
@@ -380,7 +385,8 @@ def test_the_prelabel_cut_opens_where_accept_all_accepts_the_best(spheres) -> No
         best = max(float(table[k].confidence) for k in table)
         assert a.panels.gui_prelabel_cut.value <= best
         a.panels.gui_accept_above.value = True
-        assert any("accepted" in a.session.scan.store.labelset.info(k).note for k in a.session.scan.store.labelset.instances)
+        assert any("accepted" in a.session.scan.store.labelset.info(k).note
+                   for k in a.session.scan.store.labelset.instances)
         assert a.session.assist.prelabel_cut() == 0.5  # nothing left to review: the usual default
     finally:
         a.close()
@@ -390,7 +396,8 @@ def test_efem_prelabels_import_and_review(spheres) -> None:
     d, scene, _ = spheres
     a = AnnotatorApp(d / "spheres.ply", out_dir=d / "out_import", port=0, autosave_delay=0)
     try:
-        a.session.scan.store.do(lambda ls: ls.replace_all(np.zeros(a.session.scan.n, np.int32), []))  # start unlabelled (file has GT)
+        # start unlabelled (file has GT)
+        a.session.scan.store.do(lambda ls: ls.replace_all(np.zeros(a.session.scan.n, np.int32), []))
         ids = a.session.assist.import_efem("spheres.efem.npz")
         assert ids, "EFEM found no sphere"
         gt = scene.instance
@@ -468,7 +475,8 @@ def test_lasso_tool_outline_by_clicks_then_apply(app: AnnotatorApp) -> None:
     for uv in outline:
         app.handle_event("click", _click(uv, client))
     assert app.session.box_lasso.lasso_outline.points == outline
-    assert app.session.scan.store.labelset.count(app.session.toolbox.settings.active_id) == 0, "clicks only draw the outline"
+    assert app.session.scan.store.labelset.count(app.session.toolbox.settings.active_id) == 0, (
+        "clicks only draw the outline")
     assert not app.panels.gui_tool_buttons["lasso_apply"].disabled
     app.session.box_lasso.apply_lasso()
     idx = sel.lasso_select(app.session.scan.geom, position=client.camera.position, wxyz=client.camera.wxyz,
@@ -507,7 +515,8 @@ def test_a_failing_tool_tells_the_user(mesh_path: Path, tmp_path: Path) -> None:
     tools = (*DEFAULT_TOOLS, Tool("broken", "Broken", "K", "raises", on_click=broken))
     a = AnnotatorApp(mesh_path, out_dir=tmp_path / "o", port=0, autosave_delay=0, tools=tools)
     notes: list[tuple[str, str, object]] = []
-    a.notify = lambda title, body, *, client=None, color=None: notes.append((title, body, client))  # type: ignore[method-assign]
+    a.notify = lambda title, body, *, client=None, color=None: (  # type: ignore[method-assign]
+        notes.append((title, body, client)))
     try:
         a.set_tool("broken")
         client = _client()
@@ -546,7 +555,8 @@ def test_a_click_that_misses_the_scan_says_so(app: AnnotatorApp) -> None:
     to get the scan back (R), instead of doing nothing silently; R (`reset_view`) puts that client's camera on the
     fitted view."""
     notes: list[tuple[str, str, object]] = []
-    app.notify = lambda title, body, *, client=None, color=None: notes.append((title, body, client))  # type: ignore[method-assign]
+    app.notify = lambda title, body, *, client=None, color=None: (  # type: ignore[method-assign]
+        notes.append((title, body, client)))
     client = _client()
     for tool in ("segment", "brush"):
         app.set_tool(tool)
@@ -581,14 +591,16 @@ def test_instance_table_shows_colours_and_escapes_names(app: AnnotatorApp) -> No
 def test_new_instances_take_the_category_chosen_last(app: AnnotatorApp) -> None:
     """N makes an "object" until the user chooses a category (not "mug N", category mug); a category typed into
     the panel renames the active instance's category and is what the next N takes."""
-    first = app.session.instances.new_instance(category=app.session.toolbox.settings.category)  # what N and the New instance button do
+    # what N and the New instance button do
+    first = app.session.instances.new_instance(category=app.session.toolbox.settings.category)
     assert app.session.scan.store.labelset.info(first).category == "object"
     for typed in ("b", "bo", "bow", "bowl"):  # the user types a category for the active instance, key by key
         app.panels.gui_category.value = typed
     assert app.session.scan.store.labelset.info(first).category == "object", "typing is not an edit yet"
     assert app.session.instances.fields_typing() == {"category"}
     app.panels.gui_new.value = True  # the New instance button: doing anything else commits what was typed, once
-    assert app.session.scan.store.labelset.info(first).category == "bowl" and app.session.toolbox.settings.category == "bowl"
+    assert (app.session.scan.store.labelset.info(first).category == "bowl"
+            and app.session.toolbox.settings.category == "bowl")
     second = app.session.toolbox.settings.active_id
     assert second != first and app.session.scan.store.labelset.info(second).category == "bowl"
     assert app.panels.gui_category.value == "bowl"
@@ -621,7 +633,8 @@ def test_prelabel_review_by_confidence_in_bulk_and_one_by_one(app: AnnotatorApp)
     z = app.session.scan.scene.points[:, 2]
     labels = np.select([z > 0.06, z < -0.06, np.abs(z) < 0.02], [1, 2, 3], 0).astype(np.int32)
     rows = [InstanceInfo(i, f"p{i}", category="mug", color=(200, 0, 0)) for i in (1, 2, 3)]
-    ids = app.session.assist.add_prelabels(LabelData(labels, rows, confidence={1: 0.9, 2: 0.3, 3: 0.6}), source="x.efem.npz")
+    ids = app.session.assist.add_prelabels(LabelData(labels, rows, confidence={1: 0.9, 2: 0.3, 3: 0.6}),
+                                           source="x.efem.npz")
     table = app.session.scan.store.labelset.instances
     conf = {i: table[i].confidence for i in ids}
     assert sorted(conf.values(), reverse=True) == [0.9, 0.6, 0.3]
@@ -637,7 +650,8 @@ def test_prelabel_review_by_confidence_in_bulk_and_one_by_one(app: AnnotatorApp)
     first = app.step_prelabel(+1)
     assert first == _id_of_option(opts[0]) and str(app.panels.gui_prelabel.value) == opts[0]
     members = app.session.scan.scene.points[app.session.scan.store.labels == first]
-    assert np.allclose(flown[-1].look_at, (members.min(0) + members.max(0)) / 2, atol=1e-5)  # type: ignore[attr-defined]
+    assert np.allclose(flown[-1].look_at, (members.min(0) + members.max(0)) / 2,  # type: ignore[attr-defined]
+                       atol=1e-5)
     assert app.step_prelabel(+1) == _id_of_option(opts[1])
     assert app.step_prelabel(-1) == first and app.step_prelabel(-1) == _id_of_option(opts[2])  # wraps around
 
@@ -652,7 +666,8 @@ def test_prelabel_review_by_confidence_in_bulk_and_one_by_one(app: AnnotatorApp)
     app.session.instances.undo()  # one step undoes the bulk accept
     assert all(app.session.scan.store.labelset.info(i).unreviewed for i in accepted)
     rejected = app.session.assist.review_prelabels(0.5, "reject")
-    assert rejected == [i for i in ids if conf[i] < 0.5] and rejected[0] not in app.session.scan.store.labelset.instances
+    assert (rejected == [i for i in ids if conf[i] < 0.5]
+            and rejected[0] not in app.session.scan.store.labelset.instances)
 
 
 def _id_of_option(option: str) -> int:
@@ -722,7 +737,8 @@ def test_click_to_segment_progress_cancel_and_enter_esc(app: AnnotatorApp, monke
     deadline = time.monotonic() + 30
     while app.session.assist.segmenting and time.monotonic() < deadline:
         time.sleep(0.02)
-    assert not app.session.assist.segmenting and not app.panels.gui_seg_progress.visible and "Segmenting cancelled" in notes
+    assert (not app.session.assist.segmenting and not app.panels.gui_seg_progress.visible
+            and "Segmenting cancelled" in notes)
     assert app.session.assist.pending_segment is None and buttons["segment_discard"].disabled
 
     # a run to the end: progress up to 100 %, Enter accepts
@@ -737,7 +753,8 @@ def test_click_to_segment_progress_cancel_and_enter_esc(app: AnnotatorApp, monke
     app.set_tool("segment")
     app.run_tool_hotkey("enter")
     new = app.session.toolbox.settings.active_id
-    assert np.array_equal(np.flatnonzero(app.session.scan.store.labels == new), np.arange(40)) and app.session.assist.pending_segment is None
+    assert (np.array_equal(np.flatnonzero(app.session.scan.store.labels == new), np.arange(40))
+            and app.session.assist.pending_segment is None)
 
     # Esc discards a preview
     app.segment_at(3, wait=True)
@@ -819,13 +836,15 @@ def test_a_new_tool_is_one_entry_plus_its_function(mesh_path: Path, tmp_path: Pa
 
     def paint_ball(host: AnnotatorApp, hit: Hit) -> None:
         r = float(host.toolbox.settings.extra["ball_radius"])
-        host.painting.paint(np.asarray(host.scan.geom.tree.query_ball_point(hit.position, r), np.int64), client=hit.client)
+        host.painting.paint(np.asarray(host.scan.geom.tree.query_ball_point(hit.position, r), np.int64),
+                            client=hit.client)
 
     tools = (*DEFAULT_TOOLS, Tool("ball", "Ball", "P", "click paints a ball", controls=(ball,), apply_at=paint_ball))
     a = AnnotatorApp(mesh_path, out_dir=tmp_path / "o", port=0, autosave_delay=0, tools=tools)
     try:
         assert a.panels.gui_tool.options[-1] == "ball" and "**P** Ball" in a.panels.gui_help.content
-        assert a.session.toolbox.settings.extra["ball_radius"] == pytest.approx(0.03) and not a.panels.gui_controls["ball_radius"].visible
+        assert (a.session.toolbox.settings.extra["ball_radius"] == pytest.approx(0.03)
+                and not a.panels.gui_controls["ball_radius"].visible)
         a.set_tool("ball")
         assert a.panels.gui_controls["ball_radius"].visible
         a.panels.gui_controls["ball_radius"].value = 5.0  # cm in the GUI, metres in the setting
@@ -835,7 +854,8 @@ def test_a_new_tool_is_one_entry_plus_its_function(mesh_path: Path, tmp_path: Pa
         assert v is not None
         painted = np.flatnonzero(a.session.scan.store.labels == iid)
         assert len(painted) > 10
-        assert np.linalg.norm(a.session.scan.scene.points[painted] - a.session.scan.scene.points[v], axis=1).max() <= 0.05 + 1e-6
+        assert (np.linalg.norm(a.session.scan.scene.points[painted] - a.session.scan.scene.points[v], axis=1).max()
+                <= 0.05 + 1e-6)
         assert _last_step(a).endswith("(Ball)")
     finally:
         a.close()
@@ -865,11 +885,13 @@ def test_efem_prelabels_carry_their_categories(spheres) -> None:
     dataclasses.replace(res, instances=dataclasses.replace(res.instances, category=cats)).save(d / "two.efem.npz")
     a = AnnotatorApp(d / "spheres.ply", out_dir=d / "out_cats", port=0, autosave_delay=0)
     try:
-        a.session.scan.store.do(lambda ls: ls.replace_all(np.zeros(a.session.scan.n, np.int32), []))  # start unlabelled (file has GT)
+        # start unlabelled (file has GT)
+        a.session.scan.store.do(lambda ls: ls.replace_all(np.zeros(a.session.scan.n, np.int32), []))
         ids = a.session.assist.import_efem("two.efem.npz")
         got = sorted(a.session.scan.store.labelset.info(i).category for i in ids)
         assert got == sorted(cats.tolist())[: len(got)] and "mug" in got and "sphere" in got
-        assert all(a.session.scan.store.labelset.info(i).name == f"{a.session.scan.store.labelset.info(i).category} (EFEM)" for i in ids)
+        assert all(a.session.scan.store.labelset.info(i).name
+                   == f"{a.session.scan.store.labelset.info(i).category} (EFEM)" for i in ids)
         n_sphere = got.count("sphere")
         assert "per category: " in a.panels.gui_table.content
         assert "mug: 1 (" in a.panels.gui_table.content and f"sphere: {n_sphere} (" in a.panels.gui_table.content

@@ -81,7 +81,8 @@ def test_dab_stroke_and_cursor(session: AnnotatorSession) -> None:
     v = _top_vertex(session)
     d = session.painting.dab(v, session.scan.scene.points[v], erase=False)
     assert d is not None and d.num_vertices > 0 and drawn
-    assert session.brush.cursor is not None and session.brush.cursor.visible and session.brush.cursor.radius == pytest.approx(0.02)
+    assert (session.brush.cursor is not None and session.brush.cursor.visible
+            and session.brush.cursor.radius == pytest.approx(0.02))
     session.instances.set_tool("grow")
     cur = session.brush.refresh_cursor()
     assert cur is not None and not cur.visible
@@ -276,7 +277,8 @@ def test_a_second_import_adds_no_fragments_of_labelled_objects(session: Annotato
     labels[10:50] = 2     # all labelled -> left out
     labels[200:260] = 3   # all free -> a pre-label
     rows = [InstanceInfo(k, f"p{k}", category="mug") for k in (1, 2, 3)]
-    ids = session.assist.add_prelabels(LabelData(labels, rows, confidence={1: 0.9, 2: 0.8, 3: 0.5}), source="x.efem.npz")
+    ids = session.assist.add_prelabels(LabelData(labels, rows, confidence={1: 0.9, 2: 0.8, 3: 0.5}),
+                                       source="x.efem.npz")
     assert len(ids) == 1 and session.assist.skipped_prelabels == 2
     assert (session.scan.store.labels[200:260] == ids[0]).all() and (session.scan.store.labels[:100] == hand).all()
     assert set(session.scan.store.labelset.instances) == {hand, ids[0]}  # no empty rows
@@ -303,7 +305,8 @@ def test_click_to_segment_preview_accept_discard(session: AnnotatorSession,
     session.assist.solve = dataclasses.replace(session.assist.solve, work_voxel=0.005, tau_out=0.06)
     mask = session.assist.segment_at(5, wait=True)
     assert solves == [session.assist.solve]  # the room's solver knobs reach the solve
-    assert mask is not None and len(mask) == 40 and session.assist.preview is not None and session.assist.preview[:40].all()
+    assert (mask is not None and len(mask) == 40 and session.assist.preview is not None
+            and session.assist.preview[:40].all())
     assert progress[0] == 0.0 and None in progress and redrawn == [40] and not session.assist.segmenting
     d = session.assist.accept_segment()
     assert d is not None and d.num_vertices == 40 and session.assist.pending_segment is None
@@ -473,7 +476,8 @@ def test_the_history_lists_undo_steps_and_survives_a_restart(tmp_path: Path) -> 
     try:
         assert panel_view(again.scan.store, again.toolbox.settings.active_id).history == before
         again.instances.undo()
-        assert "(+7 more edits" in panel_view(again.scan.store, again.toolbox.settings.active_id).history.splitlines()[2]
+        assert ("(+7 more edits"
+                in panel_view(again.scan.store, again.toolbox.settings.active_id).history.splitlines()[2])
     finally:
         again.close()
 

@@ -293,7 +293,8 @@ def test_console_errors_have_no_traceback(sample: dict[str, Any], tmp_path: Path
         lines = proc.stderr.splitlines()
         assert proc.returncode == 1 and len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
         assert lines[0].startswith(f"efem-viz {args[0]}: error: ") and needle in lines[0], proc.stderr
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["dir", "nan", "nocfg"] and not any((tmp_path / "dir").iterdir())
+    assert (sorted(p.name for p in tmp_path.iterdir()) == ["dir", "nan", "nocfg"]
+            and not any((tmp_path / "dir").iterdir()))
     proc = run_cli("--debug", "calibrate-masks", str(no_cfg), "--gt", gt)
     assert proc.returncode == 1 and "Traceback" in proc.stderr and "ResultFileError" in proc.stderr
 
@@ -324,7 +325,8 @@ def test_view_refuses_what_it_cannot_show_before_serving(tmp_path: Path, monkeyp
 
     monkeypatch.setattr(viewer_app.ViewerApp, "__init__", no_server)
     corrupt = tmp_path / "corrupt.ply"
-    corrupt.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 1000\nproperty float x\nend_header\n\x00")
+    corrupt.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 1000\nproperty float x\n"
+                        b"end_header\n\x00")
     empty = tmp_path / "empty"
     empty.mkdir()
     (empty / "notes.txt").write_text("no scenes here\n")

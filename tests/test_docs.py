@@ -61,8 +61,8 @@ def test_the_code_cites_documents_that_ship() -> None:
 
 
 def test_the_project_speaks_of_the_product() -> None:
-    """No work period or tracker number in the docs, the code, the benches or the tests (the word session or issue followed by a number):
-    a reader has neither; history goes to CHANGELOG.md by date."""
+    """No work period or tracker number in the docs, the code, the benches or the tests (the word session or issue
+    followed by a number): a reader has neither; history goes to CHANGELOG.md by date."""
     said = []
     files = [*_markdown(), *[p for top in TOP for p in (ROOT / top).rglob("*") if p.suffix in (".py", ".sh", ".md")]]
     for f in sorted(set(files)):

@@ -1,4 +1,5 @@
-"""SIM(3) equivariance of the shape prior, layer by layer and end to end (docs/design/efem-method.md §1.8), in float64."""
+"""SIM(3) equivariance of the shape prior, layer by layer and end to end (docs/design/efem-method.md §1.8), in
+float64."""
 
 from __future__ import annotations
 

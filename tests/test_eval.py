@@ -1,4 +1,5 @@
-"""Instance AP (docs/design/efem-method.md §5): hand-worked cases, duplicate/size/class rules, a naive §5.4 reference, IO, CLI."""
+"""Instance AP (docs/design/efem-method.md §5): hand-worked cases, duplicate/size/class rules, a naive §5.4 reference,
+IO, CLI."""
 
 from __future__ import annotations
 

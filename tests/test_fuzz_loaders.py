@@ -1,8 +1,8 @@
 """Fuzz every loader: each input gives a valid object or one clear error, in bounded time and
 memory, and nothing is written.
 
-Loaders: `load_scene` on PLY (binary and ASCII), OBJ, OFF, NPZ (scene and RGB-D frame), GLB, PCD and LAS/LAZ; RGB-D frame
-import (`import_rgbd_file`); the annotator's `load_labels` on every label format (PLY `instance`, checkpoint and
+Loaders: `load_scene` on PLY (binary and ASCII), OBJ, OFF, NPZ (scene and RGB-D frame), GLB, PCD and LAS/LAZ; RGB-D
+frame import (`import_rgbd_file`); the annotator's `load_labels` on every label format (PLY `instance`, checkpoint and
 plain NPZ, ScanNet segs/aggregation JSON, EFEM `.efem.npz`); `EMResult.load`; the prior `load_prior` (weights
 and codebook). Each starts from small valid seed files made in a temporary folder (tiny scenes through
 `save_scene`, a bundled `sample_scenes/*.efem.npz`, a small ray-cast frame, the shipped `weights/mug.pt`) and
@@ -435,7 +435,8 @@ def _json_mutate(rng: np.random.Generator, obj: Any) -> tuple[Any, str]:
                 spots.append((o, k, f"{path}.{k}"))
                 walk(v, f"{path}.{k}", depth + 1)
         elif isinstance(o, list):
-            idx = range(len(o)) if len(o) <= 8 else sorted({0, len(o) - 1, *(int(i) for i in rng.integers(0, len(o), 6))})
+            idx = (range(len(o)) if len(o) <= 8
+                   else sorted({0, len(o) - 1, *(int(i) for i in rng.integers(0, len(o), 6))}))
             for i in idx:
                 spots.append((o, i, f"{path}[{i}]"))
                 walk(o[i], f"{path}[{i}]", depth + 1)
@@ -882,7 +883,8 @@ def run_fuzz(*, budget_s: float, seed: int, per_loader: int | None = None,
 
     Returns:
         A JSON-serialisable dict: ``loaders`` (per loader: inputs, ok / clean_error / bad counts, counts per
-        mutation kind, error types, up to 3 sample error messages, worst seconds and peak MB), ``totals``, ``worst_s`` and ``worst_peak_mb``
+        mutation kind, error types, up to 3 sample error messages, worst seconds and peak MB), ``totals``, ``worst_s``
+        and ``worst_peak_mb``
         (with the loader and kind), ``bad`` (the count and up to 5 examples of each bad reason per loader),
         ``budget_exhausted``, ``elapsed_s`` and the limits used.
     """
@@ -1134,7 +1136,8 @@ def _found_cases(tmp: Path) -> dict[str, tuple[Callable[[Path], Any], Path, Call
     ckpt = torch.load(PRIOR_WEIGHTS, map_location="cpu", weights_only=True)
     for name, edit in {"prior-nan-weights": lambda c: c["state_dict"][sorted(c["state_dict"])[0]].fill_(np.nan),
                        "prior-huge-config": lambda c: c["config"].__setitem__("widths", [10**6] * 7)}.items():
-        c = {**ckpt, "config": dict(ckpt["config"]), "state_dict": {k: v.clone() for k, v in ckpt["state_dict"].items()}}
+        c = {**ckpt, "config": dict(ckpt["config"]),
+             "state_dict": {k: v.clone() for k, v in ckpt["state_dict"].items()}}
         edit(c)
         buf = io.BytesIO()
         torch.save(c, buf)

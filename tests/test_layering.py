@@ -4,9 +4,9 @@ The import graph is read with `ast` from every module of the package: module-lev
 relative imports resolved, imports under `if TYPE_CHECKING:` left out (they never run). The rules:
 
 - **Direction**: every edge points down the layer order of `LAYERS` (ARCHITECTURE.md: base utilities → geometry →
-  data → prior → em → eval → serve → {viewer, annotator, batch} → cli). A module may import its own layer and lower ones;
-  sibling layers (viewer, annotator, batch) never import each other. CLI modules (`efem_viz.cli`, `*.commands`,
-  `annotator.__main__`) sit on top of their own layer: only CLI modules import them (and their package's
+  data → prior → em → eval → serve → {viewer, annotator, batch} → cli). A module may import its own layer
+  and lower ones; sibling layers (viewer, annotator, batch) never import each other. CLI modules (`efem_viz.cli`,
+  `*.commands`, `annotator.__main__`) sit on top of their own layer: only CLI modules import them (and their package's
   `__init__`, for a lazy re-export); every CLI module may use the dispatcher's helpers.
 - **No cycles** between modules, function-level imports included: a lazy import hides a cycle, it does not remove it.
 - **UI libraries**: viser only in `LAYERS.viser`; rich, tyro and tqdm never at import time in the core (geometry,

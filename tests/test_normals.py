@@ -41,5 +41,6 @@ def test_coincident_points_are_estimated_on_the_distinct_positions() -> None:
     # 300k copies of one point: seconds, not the quadratic scan (the timeout is a hang guard, 10x the expected)
     root = Path(__file__).resolve().parents[1]
     code = ("import numpy as np, sys; sys.path.insert(0, %r); from efem_viz.geometry.normals import estimate_normals;"
-            " n = estimate_normals(np.zeros((300000, 3))); assert np.allclose(np.linalg.norm(n, axis=1), 1)" % str(root))
+            " n = estimate_normals(np.zeros((300000, 3)));"
+            " assert np.allclose(np.linalg.norm(n, axis=1), 1)" % str(root))
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)

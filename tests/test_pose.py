@@ -178,7 +178,8 @@ def test_pose_edge_cases(codebook: Codebook, prior: ShapePrior) -> None:
         estimate_pose(prior, lat, np.ones((10, 3)), np.ones((9, 3)), codebook=codebook)
 
 
-def test_load_prior_refuses_a_codebook_of_other_weights(prior: ShapePrior, codebook: Codebook, tmp_path) -> None:  # noqa: ANN001
+def test_load_prior_refuses_a_codebook_of_other_weights(prior: ShapePrior, codebook: Codebook,
+                                                         tmp_path) -> None:  # noqa: ANN001
     """A codebook built from other weights is not attached by load_prior (its poses would be meaningless)."""
     from efem_viz.prior.model import load_prior, save_prior
 

@@ -159,7 +159,8 @@ def _released_parts(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, torc
 
 # ------------------------------------------------------------------------------------------------------ tests
 def _expected_released_keys(widths: tuple[int, ...], attention: tuple[int, ...]) -> dict[str, tuple[int, ...]]:
-    """The released key/shape table (docs/design/efem-method.md §1.7, confirmed against the released module structure)."""
+    """The released key/shape table (docs/design/efem-method.md §1.7, confirmed against the released module
+    structure)."""
     out: dict[str, tuple[int, ...]] = {}
     e, d = "network_dict.encoder.", "network_dict.decoder."
     for b, c in enumerate(widths):

@@ -241,8 +241,8 @@ SHIPPED = WEIGHTS_DIR / "mug.pt"
 #: Measured 2026-12-01 on the shipped iteration-29000 export with exactly this test: mean IoU 0.653 from
 #: 4-12 top views (0.78/0.63/0.63/0.57) and 0.660 from 1-12 views incl. single ones (0.75/0.63/0.67/0.59); Θ_s/s
 #: 0.93-1.04; centre error 0.01-0.08 (relative to s). (Earlier exports: iteration-21000 export: 0.659 / 0.626;
-#: iteration-14500 export: 0.639 / 0.580; iteration-2500 export: 0.35 from top views.) The bars leave a margin for float and platform differences, not for
-#: a worse prior.
+#: iteration-14500 export: 0.639 / 0.580; iteration-2500 export: 0.35 from top views.) The bars leave a margin for float
+#: and platform differences, not for a worse prior.
 SHIPPED_IOU_BAR = {"top views": 0.6, "1-12 views": 0.57}
 #: weights exported before this many iterations are snapshots of a training run still in progress
 MIN_SHIPPED_ITERATIONS = 2000

@@ -35,7 +35,8 @@ def tabletop_mesh():  # noqa: ANN201 - trimesh
     return trimesh.util.concatenate([table, a, b])
 
 
-def write_sequence(folder: Path, n: int = 16, *, layout: str = "7-scenes", world: np.ndarray = Y_UP) -> list[np.ndarray]:
+def write_sequence(folder: Path, n: int = 16, *, layout: str = "7-scenes",
+                   world: np.ndarray = Y_UP) -> list[np.ndarray]:
     """Render `n` depth (+ colour) frames of `tabletop_mesh` from cameras around it into `folder`; returns the
     camera-to-world poses (in `world`)."""
     import open3d as o3d

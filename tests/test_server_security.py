@@ -151,7 +151,8 @@ def test_policy_refuses_foreign_origin_rebinding_and_missing_token() -> None:
                                      local_port=8080)  # DNS rebinding
     assert "token" in pol.refusal(path="/", headers=_h(host="127.0.0.1:8080"), local_port=8080)
     # a port forward / SSH tunnel must keep the port: the printed origin is the only one accepted
-    assert pol.refusal(path=ok, headers=_h(host="localhost:8080", origin="http://localhost:8080"), local_port=8080) is None
+    assert pol.refusal(path=ok, headers=_h(host="localhost:8080", origin="http://localhost:8080"),
+                       local_port=8080) is None
     assert "cross-origin" in pol.refusal(path=ok, headers=_h(host="localhost:9000", origin="http://localhost:9000"),
                                          local_port=8080)
     assert "token" in pol.refusal(path="/?token=" + "x" * 32, headers=_h(host="127.0.0.1:8080"), local_port=8080)
@@ -165,7 +166,8 @@ def test_policy_refuses_foreign_origin_rebinding_and_missing_token() -> None:
     # a network bind accepts the machine's own name as Host, still only same-origin pages and the token
     net = guard.AccessPolicy(token=tok, bind_host="0.0.0.0", url_host="10.1.2.3")
     assert net.origin_hosts == {"10.1.2.3", "127.0.0.1", "localhost"}, "the URL and the 'on this machine' URL"
-    assert net.refusal(path=ok, headers=_h(host="10.1.2.3:8080", origin="http://10.1.2.3:8080"), local_port=8080) is None
+    assert net.refusal(path=ok, headers=_h(host="10.1.2.3:8080", origin="http://10.1.2.3:8080"),
+                       local_port=8080) is None
     assert "cross-origin" in net.refusal(path=ok, headers=_h(host="myhost:8080", origin="http://myhost:8080"),
                                          local_port=8080), "a name that resolves here (DNS rebinding) is not printed"
     assert "cross-origin" in net.refusal(path=ok, headers=_h(host="10.1.2.3:8080", origin="http://evil.example"),
@@ -484,8 +486,10 @@ def test_annotator_clamps_a_raw_brush_radius_before_painting(annotator: Annotato
         assert wait_for(lambda: len(annotator.server.get_clients()) == 1)
         c.set_gui(annotator.panels.gui_controls["radius"], value=1e6)
         assert wait_for(lambda: annotator.session.toolbox.settings.radius == pytest.approx(0.20))
-        assert wait_for(lambda: annotator.panels.gui_controls["radius"].value == 20.0), "the clamped value is shown to all"
-        c.set_gui(annotator.panels.gui_controls["brush_max_angle_deg"], value=float("nan"))  # refused: the setting stays
+        assert wait_for(lambda: annotator.panels.gui_controls["radius"].value == 20.0), (
+            "the clamped value is shown to all")
+        # refused: the setting stays
+        c.set_gui(annotator.panels.gui_controls["brush_max_angle_deg"], value=float("nan"))
         c.set_gui(annotator.panels.gui_controls["grow_distance"], value=-1e9)
         assert wait_for(lambda: annotator.session.toolbox.settings.grow_distance == pytest.approx(0.01))
         assert annotator.session.toolbox.settings.brush_max_angle_deg == 180.0
@@ -727,12 +731,14 @@ def test_confine_writes_follows_every_link(tmp_path: Path) -> None:
 def test_viewer_static_demo_defaults_into_the_output_root(viewer: Any, tmp_path: Path) -> None:
     """"Export static demo" writes <output folder>/static/<scene>/, never into the checkout or the package."""
     assert viewer.open_scene("spheres")
-    before = {p: p.stat().st_mtime for p in (REPO / "static").rglob("*") if p.is_file()} if (REPO / "static").exists() else {}
+    before = ({p: p.stat().st_mtime for p in (REPO / "static").rglob("*") if p.is_file()}
+              if (REPO / "static").exists() else {})
     fut = viewer.export_tab.export_from_gui("static")  # the field holds the root itself
     assert fut is not None
     index = fut.result(120)
     assert index == viewer.out_root / "static" / "spheres" / "index.html" and index.is_file()
-    after = {p: p.stat().st_mtime for p in (REPO / "static").rglob("*") if p.is_file()} if (REPO / "static").exists() else {}
+    after = ({p: p.stat().st_mtime for p in (REPO / "static").rglob("*") if p.is_file()}
+             if (REPO / "static").exists() else {})
     assert before == after, "nothing in the checkout's static/ changed"
 
 

@@ -182,7 +182,8 @@ def test_shown_labels_do_not_overlap_in_the_fitted_view(app: Any) -> None:
         assert overlapping_pairs(label_rects(positions, texts, view=r.label_view)) == []
         assert r.leaders is not None and r.leaders.visible
         top = int(np.argmax(np.asarray(heap.confidence)))
-        app.instance_table.set_instance_visible(int(heap.ids[top]), False)  # the lowest label goes: the others move down
+        # the lowest label goes: the others move down
+        app.instance_table.set_instance_visible(int(heap.ids[top]), False)
         positions2 = np.array([h.position for h in r.labels], np.float64)
         on = [i for i, h in enumerate(r.labels) if h.visible]
         assert top not in on and len(on) == k - 1
@@ -230,7 +231,8 @@ def test_instance_table_rows_visibility_and_next(app: Any) -> None:
     mask = np.asarray(inst.masks[k_idx])
     assert not np.array_equal(np.array(app.nodes.points.colors)[mask], colors_before[mask])
     assert "1 hidden in the table" in app.panels.gui_result_info.content
-    assert f"| {pid} " in app.panels.gui_instance_table.content and "| hidden |" in app.panels.gui_instance_table.content
+    assert (f"| {pid} " in app.panels.gui_instance_table.content
+            and "| hidden |" in app.panels.gui_instance_table.content)
     assert app.session.results.kept_mask()[k_idx], "hiding is a view: the threshold (metrics, exports) still keeps it"
     app.instance_table.set_instance_visible(pid, True)
     assert app.session.results.shown_mask()[k_idx] and r.labels[k_idx].visible

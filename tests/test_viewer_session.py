@@ -65,7 +65,8 @@ def test_open_scene_from_the_list_and_refusals(tmp_path: Path) -> None:
     assert s.state.result is None and s.state.view_mode == "result" and s.state.color_mode == "rgb"
     assert statuses[-1] == (f"Opened {SCENE} ({scene.num_points:,} points).", False) and s.state.error is None
     assert s.scenes.saved_result_path() == SAMPLES / f"{SCENE}.efem.npz"
-    assert s.results.read_result(tmp_path / "elsewhere.efem.npz") is None and "outside the given paths" in str(s.state.error)
+    assert (s.results.read_result(tmp_path / "elsewhere.efem.npz") is None
+            and "outside the given paths" in str(s.state.error))
     generation = s.generation
     assert s.results.load_result() is not None and s.generation == generation + 1
 
@@ -202,7 +203,8 @@ def test_modes_and_validation(session: ViewerSession) -> None:
     assert isinstance(pc, PointColors) and pc.shown == "step"  # the EM-step view's key
     assert "terminated at this step" in color_key_html(pc.shown)
     session.scenes.set_view_mode("result")
-    assert session.scenes.recolored() and session.results.point_colors().shown == "instances"  # type: ignore[union-attr]
+    assert (session.scenes.recolored()
+            and session.results.point_colors().shown == "instances")  # type: ignore[union-attr]
     session.scenes.set_result_layers(meshes=False, obbs=True, axes=True)
     assert (session.state.show_meshes, session.state.show_obbs, session.state.show_axes) == (False, True, True)
     session.scenes.set_result_layers(meshes=True, obbs=True, axes=False)
@@ -351,7 +353,8 @@ def test_run_efem_with_progress(sphere_dir: Path, tmp_path: Path) -> None:
     again = s.runs.run(RunSettings(preset="fast", proposals=8, seed=0), show=False)  # the settings object: the same run
     assert again is not None and s.state.result is res  # not shown
     np.testing.assert_array_equal(again.instances.confidence, res.instances.confidence)  # fixed seed: same
-    bf16 = s.runs.run(preset="fast", proposals=8, seed=0, show=False, matmul_dtype="bfloat16")  # the Run tab's Precision
+    # the Run tab's Precision
+    bf16 = s.runs.run(preset="fast", proposals=8, seed=0, show=False, matmul_dtype="bfloat16")
     assert bf16 is not None and bf16.config.matmul_dtype == "bfloat16" and res.config.matmul_dtype == "float32"
     assert s.runs.run(preset="fast", proposals=8, matmul_dtype="float16") is None and "matmul_dtype" in s.state.error
     with pytest.raises(TypeError):

@@ -95,7 +95,8 @@ class RawClient:
         announce: send a first camera message (viser fires GUI callbacks only for clients that sent one).
     """
 
-    def __init__(self, url: str, *, origin: str | None = None, cookie: str | None = None, announce: bool = True) -> None:
+    def __init__(self, url: str, *, origin: str | None = None, cookie: str | None = None,
+                 announce: bool = True) -> None:
         self.ws = _connect(url, origin, cookie)
         self._reader = threading.Thread(target=self._read, name="viser-test-client", daemon=True)
         self._reader.start()
@@ -159,7 +160,8 @@ class ViserClient(RawClient):
         notifications: props of every notification shown or updated, in arrival order.
     """
 
-    def __init__(self, url: str, *, origin: str | None = None, cookie: str | None = None, timeout: float = 30.0) -> None:
+    def __init__(self, url: str, *, origin: str | None = None, cookie: str | None = None,
+                 timeout: float = 30.0) -> None:
         self.components: dict[str, dict[str, Any]] = {}
         self.notifications: list[dict[str, Any]] = []
         self._lock = threading.Lock()

@@ -19,8 +19,8 @@ from efem_viz.prior.config import DEFAULT_PRIOR
 
 @dataclass(frozen=True, kw_only=True)
 class SegmentArgs(SolveSettings):
-    """Segment scanned scenes with EFEM (unsupervised, shape-prior EM) and record the full trace: one scene or a batch of
-    hundreds, in this process (default), a local process pool (--workers N) or on Ray (--ray, --ray-address).
+    """Segment scanned scenes with EFEM (unsupervised, shape-prior EM) and record the full trace: one scene or a batch
+    of hundreds, in this process (default), a local process pool (--workers N) or on Ray (--ray, --ray-address).
     Resumable: scenes whose valid results of the same settings are in --out are skipped (see docs/BATCH.md).
     The solver knobs (--preset, --proposals, --work-voxel, --tau-out, --matmul-dtype) are `SolveSettings`."""
 

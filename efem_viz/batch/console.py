@@ -77,12 +77,14 @@ class RichBatchDisplay(BatchObserver):
         skipped = f", {len(plan.skipped)} skipped (valid results there)" if plan.skipped else ""
         preset = ("" if not self.preset else ", preset auto (real for single-view captures, else synthetic)"
                   if self.preset == "auto" else f", preset {self.preset}")
-        self.console.print(f"{plan.total} scene(s) -> {_shown(plan.out)}: {len(plan.tasks)} to segment{skipped}{preset}",
+        self.console.print(f"{plan.total} scene(s) -> {_shown(plan.out)}: "
+                           f"{len(plan.tasks)} to segment{skipped}{preset}",
                            soft_wrap=True)  # the folder stays one piece, to copy
         self.overall = self.progress.add_task("scenes", total=len(plan.tasks), info="")
 
     def on_worker(self, info: WorkerInfo) -> None:
-        self.console.print(f"[dim]{_shown(info.worker)} ready on {_shown(info.host)} (pid {info.pid}, {info.threads} thread(s), "
+        self.console.print(f"[dim]{_shown(info.worker)} ready on {_shown(info.host)} "
+                           f"(pid {info.pid}, {info.threads} thread(s), "
                            f"priors {info.prior_load_s:.1f} s, {info.rss_mb:.0f} MiB)[/]")
 
     def on_start(self, task: SceneTask, worker: str) -> None:

@@ -117,7 +117,8 @@ def _base(p: ChairParams) -> list[trimesh.Trimesh]:
         out = [m for sx in (-1, 1) for sy in (-1, 1) for m in _leg(sx * ix, sy * iy, 0.0, under, p)]
         if p.base == "stool" or p.seat_height > 0.6:  # a foot ring of rails
             zr = 0.35 * h
-            out += [_box([-ix, sy * iy - r * 0.6, zr - r * 0.6], [ix, sy * iy + r * 0.6, zr + r * 0.6]) for sy in (-1, 1)]
+            out += [_box([-ix, sy * iy - r * 0.6, zr - r * 0.6], [ix, sy * iy + r * 0.6, zr + r * 0.6])
+                    for sy in (-1, 1)]
         return out
     if p.base == "sled":  # a closed loop per side: floor runner, two uprights, a bar under the seat
         out = []

@@ -9,9 +9,12 @@ Which format keeps what (a round trip through `save_scene` then `load_scene`):
 |--------|--------|---------|---------|-------|-----------------|------------------------|
 | .ply   | yes    | yes     | yes     | yes   | yes (`instance` int vertex property) | yes (comment lines) |
 | .npz   | yes    | yes     | yes     | yes   | yes             | yes                    |
-| .glb   | yes    | meshes  | yes     | yes   | yes (`_instance` vertex attribute, meshes; scene extras, point clouds) | yes (scene extras) |
+| .glb   | yes    | meshes¹ | yes     | yes   | yes¹            | yes (scene extras)     |
 | .obj   | yes    | yes     | yes (`v x y z r g b`) | yes | no  | no                     |
 | .off   | yes    | yes (NOFF) | yes (COFF) | yes | no         | no                     |
+
+¹ GLB meshes carry normals and an `_instance` vertex attribute; GLB point clouds carry both in the scene's JSON
+extras.
 
 (An `.npz` holding an RGB-D frame — `depth_mm` or `depth`, `K`, optional `rgb` — instead of a scene is imported
 with `efem_viz.data.rgbd.import_rgbd_file` and its default settings.)

@@ -48,7 +48,8 @@ def check_npz_headers(p: Path, max_points: int) -> dict[str, tuple[int, ...]]:
 
     try:
         zf = zipfile.ZipFile(p)
-    except (zipfile.BadZipFile, OSError, NotImplementedError, ValueError) as exc:  # NotImplementedError: "zip file version"
+    # NotImplementedError: "zip file version"
+    except (zipfile.BadZipFile, OSError, NotImplementedError, ValueError) as exc:
         raise SceneError(f"{p}: not a valid .npz (zip) archive ({exc})") from exc
     with zf:
         for info in zf.infolist():

@@ -182,9 +182,9 @@ def find_support_plane(
     max_planes: int = 4,
     cluster_eps: float = 0.03,
 ) -> PlaneFit:
-    """Find the table plane: RANSAC planes (seeded, `ransac_plane`), keep those facing the camera with normal toward image-up,
-    take each one's largest connected region, prefer the plane nearest the camera among the large ones (a table
-    above a floor), refit by least squares.
+    """Find the table plane: RANSAC planes (seeded, `ransac_plane`), keep those facing the camera with normal toward
+    image-up, take each one's largest connected region, prefer the plane nearest the camera among the large ones (a
+    table above a floor), refit by least squares.
 
     Args:
         points_cam: (N, 3) float, camera frame, already thinned (e.g. a 1 cm voxel grid).

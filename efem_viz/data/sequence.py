@@ -313,7 +313,8 @@ def find_sequence(folder: Path, *, poses: Path | None = None, K: np.ndarray | No
     elif poses is not None:
         layout = "poses-file"
         depth_dir = folder / "depth" if (folder / "depth").is_dir() else folder
-        depths = sorted((p for p in depth_dir.glob("*.png") if "color" not in p.name), key=lambda p: (_number(p), p.name))
+        depths = sorted((p for p in depth_dir.glob("*.png") if "color" not in p.name),
+                        key=lambda p: (_number(p), p.name))
         color_dir = folder / "color" if (folder / "color").is_dir() else None
         colors = sorted(color_dir.glob("*.*"), key=lambda p: (_number(p), p.name)) if color_dir else []
         if colors and len(colors) != len(depths):

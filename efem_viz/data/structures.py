@@ -138,7 +138,8 @@ def piece_mesh(spec: dict[str, object]) -> "trimesh.Trimesh":
             return m
         if "cylinder" in spec:
             a, b = (np.asarray(v, np.float64).reshape(3) for v in spec["cylinder"])  # type: ignore[union-attr]
-            return trimesh.creation.cylinder(radius=float(spec["radius"]), segment=np.stack([a, b]),  # type: ignore[arg-type]
+            return trimesh.creation.cylinder(radius=float(spec["radius"]),  # type: ignore[arg-type]
+                                             segment=np.stack([a, b]),
                                              sections=int(spec.get("sections", 16)))  # type: ignore[call-overload]
     except (TypeError, ValueError, KeyError) as e:
         raise ValueError(f"malformed structure piece {spec!r}: {e}") from None

@@ -28,8 +28,8 @@ from efem_viz.prior.config import (
 if TYPE_CHECKING:
     from efem_viz.prior.config import ShapePriorLike
 
-__all__ = ["DEFAULT_TAU_OUT", "FREE_SPACE", "FREE_SPACE_FUSED", "MAX_TAU_OUT", "PRESETS", "EMConfig", "FreeSpaceMode", "PresetName",
-           "SolvePresetName", "SolveSettings", "preset", "preset_for_scene",
+__all__ = ["DEFAULT_TAU_OUT", "FREE_SPACE", "FREE_SPACE_FUSED", "MAX_TAU_OUT", "PRESETS", "EMConfig", "FreeSpaceMode",
+           "PresetName", "SolvePresetName", "SolveSettings", "preset", "preset_for_scene",
            "resolve_for_prior", "suggested_preset"]
 
 PresetName = Literal["synthetic", "real", "real_paper", "fast", "chairs"]
@@ -543,7 +543,8 @@ _REAL = dataclasses.replace(
 docs/BENCHMARKS.md): §3.12's settings, but the E-step does not truncate on normals (depth
 noise tilts estimated normals, and the truncated points started the shrink spiral), a wider SDF band, M-step
 draws without replacement, and the free-space check of the capture camera. The confidence is the paper's times
-the learned probability that a fit is a mug (`mug_model`: fitted on the tune frames' accepted fits of 12 saved runs, chosen by leave-one-frame-out AP50 inside the tune frames;
+the learned probability that a fit is a mug (`mug_model`: fitted on the tune frames' accepted fits of 12 saved runs,
+chosen by leave-one-frame-out AP50 inside the tune frames;
 `bench/learned_confidence.py`: judge AP50 22.4 -> 25.2, the most confident fit a mug in 18 of 32 judge scenes
 instead of 15); it replaced a pose-score weighting, whose pose score is one of its features. The instances
 themselves do not change (one episode: the confidence decides no elimination). An inclusion spares the included
@@ -590,9 +591,9 @@ def preset(name: str) -> EMConfig:
 
     Args:
         name: "synthetic" (§3.12 synthetic scenes), "real" (single-view real depth frames: §3.12's real
-            settings with the changes measured on real frames, see `_REAL`; also the demo config), "real_paper" (§3.12's real
-            settings as specified) or "fast" (synthetic settings with 80 proposals and cheaper reviews, for tests
-            and interactive runs) or "chairs" (§3.12's synthetic chairs, for the chair prior); the old names
+            settings with the changes measured on real frames, see `_REAL`; also the demo config), "real_paper"
+            (§3.12's real settings as specified) or "fast" (synthetic settings with 80 proposals and cheaper reviews,
+            for tests and interactive runs) or "chairs" (§3.12's synthetic chairs, for the chair prior); the old names
             "synthetic_mugs" and "real_mugs" are accepted.
 
     Raises:

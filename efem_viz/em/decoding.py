@@ -107,8 +107,8 @@ def decode_rows(
 
     With `normals_within`, the normal angle is computed only for entries with |d| ≤ normals_within (the others
     get γ = 180°): in one decoder pass with a hand-made backward on those rows where the prior offers it
-    (`ShapePrior.sdf_and_band_normals`, `one_pass_enabled`), else an SDF pass and then autograd on them. The solver sets it to the
-    largest SDF threshold any later test applies (τ_D(t), the stationary and output thresholds), so every
+    (`ShapePrior.sdf_and_band_normals`, `one_pass_enabled`), else an SDF pass and then autograd on them. The solver sets
+    it to the largest SDF threshold any later test applies (τ_D(t), the stationary and output thresholds), so every
     result is unchanged: an entry beyond it fails the SDF test anyway, and its weight exp(−U − E_N) is 0.
 
     Args:

@@ -1,4 +1,5 @@
-"""The E-step (docs/design/efem-method.md §3.6–3.7): annealed parameters, truncated energies, weights, inliers, stationary score.
+"""The E-step (docs/design/efem-method.md §3.6–3.7): annealed parameters, truncated energies, weights, inliers,
+stationary score.
 
 One op per function, each vectorised over the flat (K,) entries of a step's error balls (a `Ragged` of P rows):
 

@@ -434,7 +434,8 @@ class EMResult:
         return atomic_write(p, lambda t: np.savez_compressed(t, **kwds))
 
     @classmethod
-    def load(cls, path: str | os.PathLike[str], *, scene: "Scene | None" = None, prior: "PriorArg | None" = None) -> "EMResult":
+    def load(cls, path: str | os.PathLike[str], *, scene: "Scene | None" = None,
+             prior: "PriorArg | None" = None) -> "EMResult":
         """Read a file written by `save`; optionally bind the scene and prior(s) for replays (`result.replay`).
 
         The file is checked before anything is built from it (`validate_result_arrays`): every key `save` writes is

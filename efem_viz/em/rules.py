@@ -171,7 +171,8 @@ def find_duplicates(
 
 
 def capped_confidence(stationary: np.ndarray | float, coverage: np.ndarray | float, cap: float) -> np.ndarray:
-    """The paper's confidence (docs/design/efem-method.md §3.10): stationary score · min(coverage, cap) / cap, elementwise."""
+    """The paper's confidence (docs/design/efem-method.md §3.10): stationary score · min(coverage, cap) / cap,
+    elementwise."""
     if not cap > 0:
         raise ValueError(f"coverage cap must be > 0, got {cap}")
     return np.asarray(stationary, np.float64) * np.minimum(np.asarray(coverage, np.float64), cap) / cap

@@ -7,8 +7,8 @@ encoded, decoded, meshed and reviewed with its own prior and its category's sett
 Batched over proposals: one decoder pass per step over the
 error balls of all live proposals at once (rows of similar size padded into batches, see `decode_rows`),
 encoder calls in chunks of `cfg.encode_batch` proposals, eliminations on sparse P×N sets. A dead proposal
-costs nothing after its death. Randomness: one NumPy Generator seeded from `seed` draws anchors, Bernoulli masks and all categorical
-draws (on the CPU), so a run is reproducible on any device; the network itself is deterministic.
+costs nothing after its death. Randomness: one NumPy Generator seeded from `seed` draws anchors, Bernoulli masks and all
+categorical draws (on the CPU), so a run is reproducible on any device; the network itself is deterministic.
 """
 
 from __future__ import annotations
@@ -113,8 +113,8 @@ class StepInfo:
 
 def confidence(stationary: float, coverage: float, *, cap: float = 0.4, seen_through: float = float("nan"),
                pose: float = float("nan"), pose_weight: float = 0.0, pose_ref: float = 0.6) -> float:
-    """Final confidence of an accepted proposal: s_stat · min(coverage, cap) / cap (docs/design/efem-method.md §3.10), times
-    (1 − seen-through fraction) when the free-space check measured one (`EMConfig.seen_through_margin`), times
+    """Final confidence of an accepted proposal: s_stat · min(coverage, cap) / cap (docs/design/efem-method.md §3.10),
+    times (1 − seen-through fraction) when the free-space check measured one (`EMConfig.seen_through_margin`), times
     min(1, pose score / `pose_ref`)^`pose_weight` when the codebook gave a pose score (`EMConfig.pose_weight`)."""
     conf = float(capped_confidence(float(stationary), float(coverage), cap))
     st = float(seen_through)

@@ -8,8 +8,9 @@ phase) and proposal: pose, OBB, coverage, codebook similarity, scale radii, up a
 tentative mask and the mesh (vertices float16 relative to Θ_c, faces int32).
 
 Not stored: the weights over the scene and the decoded shapes. `em.replay.TraceReplay.view` re-derives them
-from the stored latents with the same code the solver uses (`em.estep.energy_weights`), and caches the result (LRU). The weights that
-produced step t's samples are `W_out` of step t−1; at the first step of an episode they are the crop mask.
+from the stored latents with the same code the solver uses (`em.estep.energy_weights`), and caches the result (LRU).
+The weights that produced step t's samples are `W_out` of step t−1; at the first step of an episode they are
+the crop mask.
 """
 
 from __future__ import annotations

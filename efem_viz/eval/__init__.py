@@ -1,4 +1,5 @@
-"""Instance-segmentation evaluation as in EFEM's `standalone_eval_v2` (docs/design/efem-method.md §5): AP, AP50, AP25, PR curves.
+"""Instance-segmentation evaluation as in EFEM's `standalone_eval_v2` (docs/design/efem-method.md §5): AP, AP50, AP25,
+PR curves.
 
 Public API: `evaluate(preds, gts) -> EvalResult`, `evaluate_scene(...)` and `evaluate_instances(...)` for one scene
 (viewer), `match_instances(...)` for TP/FP/FN colouring, `average_precision` (§5.4), and the ScanNet prediction

@@ -1,7 +1,7 @@
 """Per-prior calibration of the output-mask threshold τ_out on labelled tuning scenes.
 
-docs/design/efem-method.md §3.9.12 takes a point into an instance's output mask when |d| < τ_out (0.04 canonical units for
-mugs). A prior with blurrier surfaces than the authors' leaves true object points outside that band, so τ_out is a
+docs/design/efem-method.md §3.9.12 takes a point into an instance's output mask when |d| < τ_out (0.04 canonical units
+for mugs). A prior with blurrier surfaces than the authors' leaves true object points outside that band, so τ_out is a
 property of the prior: `calibrate_tau_out` re-thresholds the masks of saved runs (`efem_viz.em.masks`, every other
 output of the run unchanged), scores each candidate by AP over IoU 0.50:0.95 against the ground truth and picks
 the smallest within a tolerance of the best. `efem-viz calibrate-masks` (`efem_viz.eval.commands`) stores the

@@ -1,5 +1,6 @@
-"""`efem-viz evaluate`: AP / AP50 / AP25 of saved predictions against labelled scenes (docs/design/efem-method.md §5); `efem-viz
-calibrate-masks`: a prior's output-mask threshold τ_out chosen on labelled tuning scenes (`efem_viz.eval.calibrate`)."""
+"""`efem-viz evaluate`: AP / AP50 / AP25 of saved predictions against labelled scenes (docs/design/efem-method.md §5);
+`efem-viz calibrate-masks`: a prior's output-mask threshold τ_out chosen on labelled tuning scenes
+(`efem_viz.eval.calibrate`)."""
 
 from __future__ import annotations
 

@@ -30,7 +30,8 @@ _LAZY = {
     "convert_released_checkpoint": "efem_viz.prior.convert",
 }
 
-__all__ = ["CategorySettings", "Latent", "PriorConfig", "ShapePriorLike", "PriorSet", "load_priors", "ShapePrior", "convert_released_checkpoint", "load_prior", "save_prior"]
+__all__ = ["CategorySettings", "Latent", "PriorConfig", "ShapePriorLike", "PriorSet", "load_priors", "ShapePrior",
+           "convert_released_checkpoint", "load_prior", "save_prior"]
 
 
 def __getattr__(name: str) -> Any:

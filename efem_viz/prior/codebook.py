@@ -1,5 +1,5 @@
-"""Pose codebook ("database") of a shape prior (docs/design/efem-method.md §2.8): the stored data and its queries; it is built
-by `efem_viz.prior.codebook_build.build_codebook` (`efem-viz build-codebook` is
+"""Pose codebook ("database") of a shape prior (docs/design/efem-method.md §2.8): the stored data and its queries; it
+is built by `efem_viz.prior.codebook_build.build_codebook` (`efem-viz build-codebook` is
 `efem_viz.prior.commands.BuildCodebookArgs`).
 
 For every training object we store its latent (Θ_R, Θ_inv, Θ_s, Θ_c), a noisy canonical surface cloud and a

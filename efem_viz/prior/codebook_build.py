@@ -24,8 +24,8 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 
-def _sample_objects(meshes_or_seeds: Sequence[trimesh.Trimesh | int | tuple[str, int]], rng: np.random.Generator, *, n_store: int,
-                    noise: float, n_pcl: int, category: str,
+def _sample_objects(meshes_or_seeds: Sequence[trimesh.Trimesh | int | tuple[str, int]], rng: np.random.Generator, *,
+                    n_store: int, noise: float, n_pcl: int, category: str,
                     normalise: bool) -> tuple[list[int], np.ndarray, np.ndarray]:
     """Each object's stored cloud and encoder input (`build_codebook`), drawn from `rng` object by object.
 

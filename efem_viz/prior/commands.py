@@ -193,7 +193,8 @@ class ConvertArgs:
 
     def run(self) -> int:
         """Convert, then build the codebook; returns the process exit code."""
-        from efem_viz.prior.convert import RELEASES, convert_with_release  # convert_with_release also returns the release it resolved
+        # convert_with_release also returns the release it resolved
+        from efem_viz.prior.convert import RELEASES, convert_with_release
 
         release = None if self.release == "auto" else self.release
         out = self.out if self.out is not None else self.src.with_name(f"{self.src.stem}_efemviz.pt")
@@ -209,7 +210,8 @@ class ConvertArgs:
         category = self.category if self.category is not None else RELEASES[release]["category"]
         if category is None:
             logger.warning("no procedural category for the %s prior: codebook skipped. Build one from your own "
-                           "+Z-up meshes with efem_viz.prior.codebook_build.build_codebook, or pass --category", release)
+                           "+Z-up meshes with efem_viz.prior.codebook_build.build_codebook, or pass --category",
+                           release)
             return 0
         return BuildCodebookArgs(prior=str(path), out=None, count=self.count, category=category,
                                  n_store=self.n_store, noise=self.noise, seed=self.seed).run()

@@ -30,7 +30,8 @@ logger = logging.getLogger(__name__)
 Range = tuple[float, float]
 
 DEFAULT_TAU_OUT = 0.04
-"""Output-mask SDF threshold of docs/design/efem-method.md §3.9.12 (canonical units) for a prior that was not calibrated."""
+"""Output-mask SDF threshold of docs/design/efem-method.md §3.9.12 (canonical units) for a prior that was not
+calibrated."""
 MAX_TAU_OUT = 0.5
 """Largest accepted τ_out: half an object size (a larger band would take in the neighbours)."""
 TAU_OUT_KEY = "tau_out"

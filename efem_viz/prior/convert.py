@@ -445,8 +445,8 @@ def convert_released_checkpoint(
         ValueError: If the file is not a released checkpoint, cannot be loaded safely, has missing or unexpected
             keys or wrong shapes (the message names each key), or the architecture cannot be inferred.
     """
-    path, _ = convert_with_release(src, dst, name=name, release=release, center_times_sigma=center_times_sigma, n_pcl=n_pcl,
-                       down_blocks=down_blocks, down_factors=down_factors, k=k, att_head_dim=att_head_dim,
+    path, _ = convert_with_release(src, dst, name=name, release=release, center_times_sigma=center_times_sigma,
+                       n_pcl=n_pcl, down_blocks=down_blocks, down_factors=down_factors, k=k, att_head_dim=att_head_dim,
                        scale_factor=scale_factor, allow_pickle=allow_pickle, overwrite=overwrite, check=check)
     return path
 

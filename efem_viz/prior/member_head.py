@@ -85,7 +85,8 @@ class MemberHead:
             raise ValueError(f"member head must be a dict, got {type(d).__name__}")
         classes = d.get("classes")
         if (not isinstance(classes, (list, tuple)) or not 2 <= len(classes) <= MAX_CLASSES
-                or not all(isinstance(c, str) and 0 < len(c) <= 64 for c in classes) or len(set(classes)) != len(classes)):
+                or not all(isinstance(c, str) and 0 < len(c) <= 64 for c in classes)
+                or len(set(classes)) != len(classes)):
             raise ValueError(f"member head classes must be 2..{MAX_CLASSES} distinct names")
         k, f = len(classes), int(width)
 
@@ -144,9 +145,9 @@ def fit_member_head(prior: Any, family: str, *, n_train: int = 400, n_val: int =
 
     Each training object gives `views` partial input clouds (1-12 of its rendered depth views, `data.input_cloud`),
     encoded by the prior (inputs as the prior's training makes them, with the depth-sensor model and a scene's
-    clutter, were measured worse on the SynKit-like scenes: per-class AP50 z 61.0 -> 55.5, so3 32.3 -> 21.5); a multinomial logistic regression (Adam, full batch, `epochs` steps) is fitted on their
-    standardised features. The val split's objects, encoded the same way, give the held-out accuracy and the
-    confusion table (the report).
+    clutter, were measured worse on the SynKit-like scenes: per-class AP50 z 61.0 -> 55.5, so3 32.3 -> 21.5); a
+    multinomial logistic regression (Adam, full batch, `epochs` steps) is fitted on their standardised features. The val
+    split's objects, encoded the same way, give the held-out accuracy and the confusion table (the report).
 
     Args:
         prior: a trained family prior (`prior.encoder`).

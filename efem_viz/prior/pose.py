@@ -1,4 +1,5 @@
-"""Pose of a proposal: codebook retrieval, latent Procrustes and rotation-only ICP (docs/design/efem-method.md §3.9, 2-7).
+"""Pose of a proposal: codebook retrieval, latent Procrustes and rotation-only ICP
+(docs/design/efem-method.md §3.9, 2-7).
 
 Steps for one latent Θ with centred surface samples `Q` (samples of its decoded mesh minus Θ_c, world scale):
 

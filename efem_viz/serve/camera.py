@@ -434,7 +434,8 @@ class CameraGuard:
 
 def _on_view(look: np.ndarray, pos: np.ndarray, view: View, tol: float) -> bool:
     """Whether a camera looking at `look` from `pos` sits on `view` (each coordinate within `tol`)."""
-    return bool(np.allclose(look, view.look_at, rtol=0.0, atol=tol) and np.allclose(pos, view.position, rtol=0.0, atol=tol))
+    return bool(np.allclose(look, view.look_at, rtol=0.0, atol=tol)
+                and np.allclose(pos, view.position, rtol=0.0, atol=tol))
 
 
 def _same_shape(aspect: float, other: float) -> bool:

@@ -261,7 +261,8 @@ class AccessPolicy:
 
     def token_ok(self, path: str, headers: _Headers, local_port: int) -> bool:
         """True when the query (`?token=`) or this server's cookie carries the token (constant-time compare)."""
-        return any(hmac.compare_digest(c.encode(), self.token.encode()) for c in self._candidates(path, headers, local_port))
+        return any(hmac.compare_digest(c.encode(), self.token.encode())
+                   for c in self._candidates(path, headers, local_port))
 
     def query_token_ok(self, path: str) -> bool:
         """True when the URL query itself carries the right token (the response then sets the cookie)."""
@@ -498,7 +499,8 @@ class ServedApp:
         return self.access.local_url
 
 
-def start_server(*, host: str = "127.0.0.1", port: int = 8080, token: str | None = None) -> tuple[viser.ViserServer, ServerAccess]:
+def start_server(*, host: str = "127.0.0.1", port: int = 8080,
+                 token: str | None = None) -> tuple[viser.ViserServer, ServerAccess]:
     """Start a `viser.ViserServer` behind the access guard.
 
     Args:

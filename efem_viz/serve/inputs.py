@@ -235,7 +235,8 @@ def resolve_inside(
     for r in root_list:
         if resolved == r or r in resolved.parents:
             return resolved
-    where = f"the folder {root_list[0]}" if len(root_list) == 1 else f"the allowed folders {[str(r) for r in root_list]}"
+    where = (f"the folder {root_list[0]}" if len(root_list) == 1
+             else f"the allowed folders {[str(r) for r in root_list]}")
     raise error(f"refusing {what} {s!r}: it resolves to {resolved}, outside {where}")
 
 

@@ -278,7 +278,8 @@ class ViewerApp(ServedApp):
         return True
 
     def start_run(self, settings: RunSettings | None = None, **knobs: Any) -> Future[EMResult | None] | None:
-        """`RunPanel.start_run`: EFEM on the open scene in the runner thread with `RunSettings.of(settings, **knobs)`."""
+        """`RunPanel.start_run`: EFEM on the open scene in the runner thread with
+        `RunSettings.of(settings, **knobs)`."""
         return self.run_panel.start_run(settings, **knobs)
 
     def set_result(self, result: EMResult, *, source: str) -> None:

@@ -1,7 +1,8 @@
 """Exports from the viewer: results (ScanNet layout + coloured PLY) and a static, self-contained demo page.
 
 The static demo is recorded with viser's scene serializer on a private, short-lived server bound to 127.0.0.1
-(port 0, behind the access guard; its token is shown to no one): the scan, then one frame per EM step (sampled points of the live proposals, coloured by id, the decoded
+(port 0, behind the access guard; its token is shown to no one): the scan, then one frame per EM step (sampled points of
+the live proposals, coloured by id, the decoded
 shapes of the best few when the prior is given, and a caption with the phase and the number of active proposals), then
 the final result (instance colours, meshes, boxes, pose axes and category labels, drawn by the same
 `efem_viz.viewer.nodes` functions as the live viewer).
@@ -104,7 +105,8 @@ def export_results(result: EMResult, scene: Scene, out_dir: Path, *, threshold: 
     for k, m in enumerate(inst.masks):
         m = np.asarray(m)
         if m.size and (m.min() < 0 or m.max() >= n):
-            raise ValueError(f"instance {k} has point indices outside [0, {n}): the result does not match {scene.name!r}")
+            raise ValueError(f"instance {k} has point indices outside [0, {n}): "
+                             f"the result does not match {scene.name!r}")
     out.mkdir(parents=True, exist_ok=True)
     inst.to_scannet(out, scene.name, n)
     inst.to_colored_ply(scene, out / f"{scene.name}_instances.ply")

@@ -210,8 +210,8 @@ def instance_table_markdown(
         pid = int(ids[k])
         mark = " ◀" if selected is not None and pid == int(selected) else ""
         shown = "below cut" if not kept[k] else ("hidden" if pid in hidden else "yes")
-        row = (f"| {pid} {swatch(tuple(int(c) for c in cols[k]))}{mark} | {cell(instances.category[k])} | {conf[k]:.2f} | "
-               f"{len(instances.masks[k]):,} |")
+        row = (f"| {pid} {swatch(tuple(int(c) for c in cols[k]))}{mark} | {cell(instances.category[k])} | "
+               f"{conf[k]:.2f} | {len(instances.masks[k]):,} |")
         if metrics is not None:
             if kept[k]:
                 j = int(slot[k])

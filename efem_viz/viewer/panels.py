@@ -343,7 +343,8 @@ def active_figure(active_count: np.ndarray, marks: list[tuple[int, str]], step: 
     return PlotlyJSON({"data": data, "layout": layout})
 
 
-def pr_figure(curves: list[tuple[str, np.ndarray, np.ndarray]], *, point: tuple[float, float] | None = None) -> PlotlyJSON:
+def pr_figure(curves: list[tuple[str, np.ndarray, np.ndarray]], *,
+              point: tuple[float, float] | None = None) -> PlotlyJSON:
     """Precision-recall curves.
 
     Args:

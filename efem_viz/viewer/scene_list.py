@@ -37,8 +37,8 @@ class SceneEntry:
     @property
     def trace_path(self) -> Path:
         """The saved result to open with this scene, looked up when asked (a result written meanwhile is found):
-        `<scene>.efem.npz` in each results folder, then next to the scene; for an annotated copy `<base>.labels.ply` or a
-        `segment` output `<base>.seg.ply`, the result of `<base>` (same points). When none exists, the path next
+        `<scene>.efem.npz` in each results folder, then next to the scene; for an annotated copy `<base>.labels.ply` or
+        a `segment` output `<base>.seg.ply`, the result of `<base>` (same points). When none exists, the path next
         to the scene (where a run would be saved)."""
         stem = self.path.name[: -len(self.path.suffix)] if self.path.suffix else self.path.name
         stems = [stem] + [stem[: -len(infix)] for infix in (LABELS_INFIX, SEG_INFIX) if stem.endswith(infix)]

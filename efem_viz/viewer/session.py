@@ -46,7 +46,8 @@ from efem_viz.viewer.parts.timeline import StepView, TimelinePart
 
 __all__ = [
     "BUNDLED_SCENE_DIR", "CHECKOUT_SCENE_DIR", "DEFAULT_SCENE_DIR", "REPO_ROOT", "FlyTarget", "Inspection",
-    "PointColors", "ProgressCallback", "RunSettings", "StatusListener", "StepView", "ViewerSession", "default_scene_dir",
+    "PointColors", "ProgressCallback", "RunSettings", "StatusListener", "StepView", "ViewerSession",
+    "default_scene_dir",
 ]
 
 

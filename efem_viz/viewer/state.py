@@ -2,8 +2,9 @@
 
 `ViewerSession` (`viewer/session.py`, headless) owns a `ViewerState` and changes it through its actions; the GUI
 callbacks in `app.py` call those actions (heavy ones in worker threads) and draw the state. The pure functions the
-callbacks use live in their own modules: colours in `efem_viz.colors`, the ground-truth comparison in `efem_viz.eval.comparison`, scene discovery in
-`viewer/scene_list.py`, trace queries and the timeline in `viewer/trace_queries.py`.
+callbacks use live in their own modules: colours in `efem_viz.colors`, the ground-truth comparison in
+`efem_viz.eval.comparison`, scene discovery in `viewer/scene_list.py`, trace queries and the timeline in
+`viewer/trace_queries.py`.
 """
 
 from __future__ import annotations

@@ -134,7 +134,8 @@ def scene_info_markdown(scene: Scene, entry: SceneEntry) -> str:
     ]
     if scene.has_gt:
         cats = ", ".join(f"{k}: {v}" for k, v in summ.get("categories", {}).items())
-        lines.append(f"- ground truth: {count(len(scene.instance_ids()), 'instance')} ({cats}), {summ.get('labelled_points', 0):,} labelled points")
+        lines.append(f"- ground truth: {count(len(scene.instance_ids()), 'instance')} ({cats}), "
+                     f"{summ.get('labelled_points', 0):,} labelled points")
     else:
         lines.append("- ground truth: none")
     if holds_predictions(entry.path):

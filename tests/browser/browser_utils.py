@@ -76,7 +76,8 @@ def open_viser_pages(pages: Sequence[Any], url: str, *, ready_text: str = "Tools
     for page in pages:
         page.get_by_text(ready_text, exact=True).first.wait_for(timeout=HANG_GUARD_MS)
         page.wait_for_function(
-            "Array.from(document.querySelectorAll('canvas')).some(c => c.width > 0 && c.height > 0)", timeout=HANG_GUARD_MS
+            "Array.from(document.querySelectorAll('canvas')).some(c => c.width > 0 && c.height > 0)",
+            timeout=HANG_GUARD_MS
         )
         if hide_notice:
             page.add_style_tag(content="#webgl-software-rendering { display: none !important; }")

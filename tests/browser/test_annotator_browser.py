@@ -1,6 +1,7 @@
 """Real-browser test of the annotator (headless Debian chromium, software WebGL): run with `-m browser`.
 
-A Ctrl+left-drag across the scan (a mesh, and a point cloud) in the page must paint vertices: the label store changes, and the canvas
+A Ctrl+left-drag across the scan (a mesh, and a point cloud) in the page must paint vertices: the label store changes,
+and the canvas
 changes colour where the stroke went. Two tabs on one scan see each other's strokes, and the store keeps both.
 Tools and keys are driven only by playwright mouse and keyboard events, their effect checked on the server: the
 lasso (O, Ctrl+clicks, Enter), a failing tool's error shown in the page, [ / ] brush size, Tab / Shift+Tab active
@@ -17,8 +18,8 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 import pytest
-from browser_utils import (HANG_GUARD_MS, HANG_GUARD_S, changed_mask, ctrl_drag, on_view, open_viser_pages, settle_canvas,
-                           wait_until)
+from browser_utils import (HANG_GUARD_MS, HANG_GUARD_S, changed_mask, ctrl_drag, on_view, open_viser_pages,
+                           settle_canvas, wait_until)
 
 pytestmark = [pytest.mark.browser, pytest.mark.timeout(600)]
 
@@ -90,7 +91,8 @@ def test_ctrl_drag_on_mesh_paints_vertices(annotator: Any, page: Any) -> None:
     if app.view.reduced:  # the stroke labels the vertices that are not drawn too
         assert np.isin(np.flatnonzero(app.session.scan.store.labels == iid), app.view.display, invert=True).sum() > 5
     # the whole stroke is one undoable journal group
-    groups = {r.header.get("group") for r in app.session.scan.store.journal.records if r.kind == "do" and r.arrays["idx"].size}
+    groups = {r.header.get("group") for r in app.session.scan.store.journal.records
+              if r.kind == "do" and r.arrays["idx"].size}
     assert len(groups) == 1  # one stroke landed (earlier attempts, if any, painted nothing)
     after = settle_canvas(page)
     changed = int(changed_mask(after, before).sum())
@@ -236,9 +238,11 @@ def test_lasso_by_ctrl_clicks_then_enter_paints_inside(annotator: Any, new_page:
     corners = [(cx - 40, cy - 35), (cx + 40, cy - 35), (cx + 40, cy + 35), (cx - 40, cy + 35)]
     for k, (x, y) in enumerate(corners):
         _ctrl_click(page, x, y)
-        wait_until(lambda k=k: len(app.session.box_lasso.lasso_outline) == k + 1, HANG_GUARD_S, f"lasso point {k + 1} on the server")
+        wait_until(lambda k=k: len(app.session.box_lasso.lasso_outline) == k + 1, HANG_GUARD_S,
+                   f"lasso point {k + 1} on the server")
     expect = [((x - box["x"]) / box["width"], (y - box["y"]) / box["height"]) for x, y in corners]
-    assert np.allclose(app.session.box_lasso.lasso_outline.points, expect, atol=0.01), (app.session.box_lasso.lasso_outline.points, expect)
+    assert np.allclose(app.session.box_lasso.lasso_outline.points, expect, atol=0.01), (
+        app.session.box_lasso.lasso_outline.points, expect)
     camera, polygon = app.session.box_lasso.lasso_outline.polygon()
     assert int((app.session.scan.store.labels == iid).sum()) == 0, "clicks only draw the outline"
     page.keyboard.press("Enter")
@@ -291,7 +295,8 @@ def test_lasso_around_a_box_takes_no_hidden_table(tmp_path: Path, new_page: Call
         corners = [(lo[0], lo[1]), (hi[0], lo[1]), (hi[0], hi[1]), (lo[0], hi[1])]
         for k, (u, v) in enumerate(corners):
             _ctrl_click(page, box["x"] + u * box["width"], box["y"] + v * box["height"])
-            wait_until(lambda k=k: len(app.session.box_lasso.lasso_outline) == k + 1, HANG_GUARD_S, f"lasso point {k + 1} on the server")
+            wait_until(lambda k=k: len(app.session.box_lasso.lasso_outline) == k + 1, HANG_GUARD_S,
+                       f"lasso point {k + 1} on the server")
         camera, polygon = app.session.box_lasso.lasso_outline.polygon()
         page.keyboard.press("Enter")
         wait_until(lambda: "(lasso" in _last_step(app), HANG_GUARD_S, "the lasso's paint (Enter)")
@@ -373,7 +378,8 @@ def test_bracket_keys_resize_the_brush(keyed: tuple[Any, Any]) -> None:
         return app.panels.gui_controls["radius"].value == pytest.approx(100 * app.session.toolbox.settings.radius)
 
     page.keyboard.press("]")
-    wait_until(lambda: app.session.toolbox.settings.radius > r0 and slider_shows_radius(), HANG_GUARD_S, "a larger brush (]) on the slider")
+    wait_until(lambda: app.session.toolbox.settings.radius > r0 and slider_shows_radius(), HANG_GUARD_S,
+               "a larger brush (]) on the slider")
     page.keyboard.press("[")
     page.keyboard.press("[")
     wait_until(lambda: app.session.toolbox.settings.radius < r0 and slider_shows_radius(), HANG_GUARD_S,
@@ -387,14 +393,17 @@ def test_tab_makes_the_next_instance_active(keyed: tuple[Any, Any]) -> None:
     first = min(app.session.scan.store.labelset.instances)
     assert app.session.toolbox.settings.active_id == ids[-1]
     page.keyboard.press("Tab")
-    wait_until(lambda: app.session.toolbox.settings.active_id == first, HANG_GUARD_S, "the first instance active (Tab wraps)")
+    wait_until(lambda: app.session.toolbox.settings.active_id == first, HANG_GUARD_S,
+               "the first instance active (Tab wraps)")
     page.keyboard.press("Tab")
     second = sorted(app.session.scan.store.labelset.instances)[1]
     # the key handler sets the active id, then the dropdown: wait for both (reading between the two was a race)
-    wait_until(lambda: app.session.toolbox.settings.active_id == second and str(app.panels.gui_active.value).startswith(f"{second}:"), HANG_GUARD_S,
+    wait_until(lambda: (app.session.toolbox.settings.active_id == second
+                        and str(app.panels.gui_active.value).startswith(f"{second}:")), HANG_GUARD_S,
                "the next instance active (Tab), shown in the Active dropdown")
     page.keyboard.press("Shift+Tab")
-    wait_until(lambda: app.session.toolbox.settings.active_id == first, HANG_GUARD_S, "the previous instance active (Shift+Tab)")
+    wait_until(lambda: app.session.toolbox.settings.active_id == first, HANG_GUARD_S,
+               "the previous instance active (Shift+Tab)")
 
 
 def test_question_mark_toggles_the_cheat_sheet(keyed: tuple[Any, Any]) -> None:
@@ -440,7 +449,8 @@ def test_tool_hotkeys_leave_the_camera_alone(keyed: tuple[Any, Any]) -> None:
         page.wait_for_timeout(600)  # idle first: the first frame after a pause spans it
         page.keyboard.down(t.hotkey.lower())
         try:
-            wait_until(lambda t=t: app.session.toolbox.settings.tool == t.name, HANG_GUARD_S, f"the {t.name} tool ({t.hotkey})")
+            wait_until(lambda t=t: app.session.toolbox.settings.tool == t.name, HANG_GUARD_S,
+                       f"the {t.name} tool ({t.hotkey})")
             page.wait_for_timeout(400)  # held: frames are drawn meanwhile
         finally:
             page.keyboard.up(t.hotkey.lower())
@@ -461,7 +471,8 @@ def test_camera_thrown_off_the_scan_comes_back(keyed: tuple[Any, Any]) -> None:
     page.wait_for_timeout(1000)
     page.keyboard.down("w")
     try:
-        wait_until(lambda: app.view.camera_guard.resets.get(handle.client_id, 0) >= 1, HANG_GUARD_S, "the camera put back")
+        wait_until(lambda: app.view.camera_guard.resets.get(handle.client_id, 0) >= 1, HANG_GUARD_S,
+                   "the camera put back")
     finally:
         page.keyboard.up("w")
     page.get_by_text("View reset", exact=True).first.wait_for(timeout=HANG_GUARD_MS)
@@ -486,12 +497,14 @@ def _wait_on_fitted_view(app: Any, handle: Any, what: str, canvas: Callable[[flo
         return float(handle.camera.image_width) / max(float(handle.camera.image_height), 1.0)
 
     try:
-        wait_until(lambda: canvas(aspect()) and on_view(handle, guard.last_placed(handle, home=True)), HANG_GUARD_S, what)
+        wait_until(lambda: canvas(aspect()) and on_view(handle, guard.last_placed(handle, home=True)), HANG_GUARD_S,
+                   what)
     except AssertionError as exc:  # say where the camera is, so that a failure elsewhere can be read
         raise AssertionError(
             f"{exc}: camera at {np.round(handle.camera.position, 4).tolist()} looking at "
-            f"{np.round(handle.camera.look_at, 4).tolist()}, fitted view {guard.last_placed(handle, home=True)}, canvas "
-            f"{handle.camera.image_width}x{handle.camera.image_height}, clients {list(app.server.get_clients())}, "
+            f"{np.round(handle.camera.look_at, 4).tolist()}, fitted view {guard.last_placed(handle, home=True)}, "
+            f"canvas {handle.camera.image_width}x{handle.camera.image_height}, "
+            f"clients {list(app.server.get_clients())}, "
             f"resets {guard.resets}") from None
     return guard.last_placed(handle, home=True)
 
@@ -528,7 +541,7 @@ def test_a_click_off_the_scan_says_so(keyed: tuple[Any, Any]) -> None:
     assert app.session.assist.pending_segment is None
 
 
-# ============================================================================ brush cursor and labels-only view (item 13)
+# ====================================================================== brush cursor and labels-only view (item 13)
 @pytest.mark.parametrize("annotator", ["mesh"], indirect=True)
 def test_brush_cursor_and_labels_only_view(annotator: Any, new_page: Callable[..., Any]) -> None:
     """A Ctrl+drag paints and leaves the brush cursor (a ring of the brush radius) where the stroke ended; ] makes
@@ -540,9 +553,11 @@ def test_brush_cursor_and_labels_only_view(annotator: Any, new_page: Callable[..
     _open(app, page)
     assert app.session.brush.cursor is None
     _stroke(page, app, STROKE_A, painted=lambda: bool((app.session.scan.store.labels == iid).any()))
-    wait_until(lambda: app.session.brush.cursor is not None and app.view.cursor_handle is not None, HANG_GUARD_S, "the brush cursor drawn")
+    wait_until(lambda: app.session.brush.cursor is not None and app.view.cursor_handle is not None, HANG_GUARD_S,
+               "the brush cursor drawn")
     cur = app.session.brush.cursor
-    assert cur.visible and app.view.cursor_handle.visible and cur.radius == pytest.approx(app.session.toolbox.settings.radius)
+    assert (cur.visible and app.view.cursor_handle.visible
+            and cur.radius == pytest.approx(app.session.toolbox.settings.radius))
     painted = np.flatnonzero(app.session.scan.store.labels == iid)
     gap = np.min(np.linalg.norm(app.session.scan.scene.points[painted] - cur.position, axis=1))
     assert gap <= app.session.toolbox.settings.radius, f"the cursor is {gap:.3f} m from the painted vertices"
@@ -555,8 +570,8 @@ def test_brush_cursor_and_labels_only_view(annotator: Any, new_page: Callable[..
         return float(np.linalg.norm(seg[:, 0] - seg[:, 0].mean(axis=0), axis=1).mean())
 
     # the key sets the radius, then the ring is redrawn: wait for both (reading between the two was a race)
-    wait_until(lambda: abs(ring() - app.session.toolbox.settings.radius) <= 1e-3 * app.session.toolbox.settings.radius, HANG_GUARD_S,
-               "the ring redrawn at the new radius")
+    wait_until(lambda: abs(ring() - app.session.toolbox.settings.radius) <= 1e-3 * app.session.toolbox.settings.radius,
+               HANG_GUARD_S, "the ring redrawn at the new radius")
     page.keyboard.press("x")
     wait_until(lambda: app.session.toolbox.settings.tool == "erase", HANG_GUARD_S, "the erase tool (X)")
     assert app.session.brush.cursor.visible
@@ -564,7 +579,8 @@ def test_brush_cursor_and_labels_only_view(annotator: Any, new_page: Callable[..
     wait_until(lambda: app.session.toolbox.settings.tool == "grow", HANG_GUARD_S, "the grow tool (G)")
     wait_until(lambda: not app.view.cursor_handle.visible, HANG_GUARD_S, "the ring hidden for region grow")
     page.keyboard.press("b")
-    wait_until(lambda: app.session.toolbox.settings.tool == "brush" and app.view.cursor_handle.visible, HANG_GUARD_S, "the ring back (B)")
+    wait_until(lambda: app.session.toolbox.settings.tool == "brush" and app.view.cursor_handle.visible, HANG_GUARD_S,
+               "the ring back (B)")
 
     def drawn() -> np.ndarray:
         out = np.zeros((app.session.scan.n, 3), np.uint8)
@@ -577,7 +593,8 @@ def test_brush_cursor_and_labels_only_view(annotator: Any, new_page: Callable[..
     box = page.get_by_role("checkbox", name="Labels only")
     box.click()
     wait_until(lambda: app.session.toolbox.settings.labels_only, HANG_GUARD_S, "the labels-only view on (click)")
-    wait_until(lambda: not np.array_equal(drawn()[labels == 0], before_cols[labels == 0]), HANG_GUARD_S, "dimmed vertices")
+    wait_until(lambda: not np.array_equal(drawn()[labels == 0], before_cols[labels == 0]), HANG_GUARD_S,
+               "dimmed vertices")
     on = drawn()
     rest = on[labels == 0]
     assert (rest[:, 0] == rest[:, 1]).all() and (rest[:, 1] == rest[:, 2]).all() and rest.min() >= 180
@@ -617,7 +634,8 @@ def test_typing_a_category_is_one_edit_and_the_field_shows_what_is_stored(keyed:
         for key in "box":
             page.keyboard.type(key)
             page.wait_for_timeout(400)  # a person's pause between keys (shorter than the commit's idle time)
-        wait_until(lambda: app.session.scan.store.labelset.info(iid).category == "box", HANG_GUARD_S, "the typed category stored")
+        wait_until(lambda: app.session.scan.store.labelset.info(iid).category == "box", HANG_GUARD_S,
+                   "the typed category stored")
     finally:
         typing.idle_s = idle_s
     edits = [r for r in app.session.scan.store.journal.records[before:] if r.kind == "do"]
@@ -631,7 +649,8 @@ def test_typing_a_category_is_one_edit_and_the_field_shows_what_is_stored(keyed:
     page.mouse.click(40, 40)  # leave the field: a plain click on the view's corner (no edit)
     page.keyboard.press("n")
     wait_until(lambda: app.session.toolbox.settings.active_id != iid, HANG_GUARD_S, "a new instance (N)")
-    wait_until(lambda: app.session.scan.store.labelset.info(iid).name == "left box", HANG_GUARD_S, "the typed name stored")
+    wait_until(lambda: app.session.scan.store.labelset.info(iid).name == "left box", HANG_GUARD_S,
+               "the typed name stored")
     assert app.session.scan.store.labelset.info(app.session.toolbox.settings.active_id).category == "box"
 
 
@@ -689,7 +708,8 @@ def test_run_efem_from_the_page_progress_cancel_then_prelabels(tmp_path: Path, n
 
     torch.set_num_threads(1)
     spheres = analytic.make_sphere_scene(seed=0, spacing=0.01, name="spheres")
-    save_scene(Scene.create("bare", spheres.points, normals=spheres.normals, colors=spheres.colors), tmp_path / "bare.ply")
+    save_scene(Scene.create("bare", spheres.points, normals=spheres.normals, colors=spheres.colors),
+               tmp_path / "bare.ply")
     prior = analytic.make_sphere_prior()
     monkeypatch.setattr(efem_runs, "get_prior", lambda name: prior)
     real_solve = efem_runs.solve_scan
@@ -727,8 +747,8 @@ def test_run_efem_from_the_page_progress_cancel_then_prelabels(tmp_path: Path, n
                    and not app.session.assist.efem_running, 120, "the pre-labels of a finished run")
         pre = unreviewed_prelabels(app.session.scan.store.labelset.instances)
         page.get_by_role("button", name="Accept all ≥ cut").click()
-        wait_until(lambda: len(unreviewed_prelabels(app.session.scan.store.labelset.instances)) < len(pre), HANG_GUARD_S,
-                   "the best pre-labels accepted")
+        wait_until(lambda: len(unreviewed_prelabels(app.session.scan.store.labelset.instances)) < len(pre),
+                   HANG_GUARD_S, "the best pre-labels accepted")
         accepted = [i for i in pre if "accepted" in app.session.scan.store.labelset.instances[i].note]
         assert accepted and all((app.session.scan.store.labels == i).any() for i in accepted)
     finally:

@@ -84,7 +84,8 @@ def _open(page: Any, app: Any, *, close_notice: bool = True, canvas: bool = True
     page.goto(app.url)
     if canvas:
         page.wait_for_function(
-            "Array.from(document.querySelectorAll('canvas')).some(c => c.width > 0 && c.height > 0)", timeout=HANG_GUARD_MS
+            "Array.from(document.querySelectorAll('canvas')).some(c => c.width > 0 && c.height > 0)",
+            timeout=HANG_GUARD_MS
         )
     wait_until(lambda: len(app.server.get_clients()) >= 1, HANG_GUARD_S, "the client to connect")
     page.get_by_role("tab", name="Scene").wait_for(timeout=HANG_GUARD_MS)
@@ -225,7 +226,8 @@ def test_step_slider_keeps_its_arrow_keys(viewer: Any, page: Any) -> None:
     page.keyboard.down("ArrowLeft")
     page.wait_for_timeout(400)
     page.keyboard.up("ArrowLeft")
-    wait_until(lambda: not np.allclose(pose(), before, atol=1e-4), HANG_GUARD_S, "the camera to move with a key on the view")
+    wait_until(lambda: not np.allclose(pose(), before, atol=1e-4), HANG_GUARD_S,
+               "the camera to move with a key on the view")
     assert viewer.state.step == start - 3  # and the step stayed
 
 
@@ -239,12 +241,14 @@ def test_threshold_changes_view(viewer: Any, page: Any) -> None:
     # the legend names each instance's category, in the category's colour
     category = str(viewer.state.result.instances.category[0])  # "sphere" here, "mug" on the guide's scenes
     legend = page.locator("b", has_text=category)
-    wait_until(lambda: legend.count() == len(viewer.state.result.instances), HANG_GUARD_S, "one legend row per instance")
+    wait_until(lambda: legend.count() == len(viewer.state.result.instances), HANG_GUARD_S,
+               "one legend row per instance")
     before = _settle(page)
     _save(page, "viewer_results.png")
     slider.focus()
     page.keyboard.press("End")  # above every confidence: all instances hidden, points back to scene colours
-    wait_until(lambda: viewer.state.threshold > float(np.max(viewer.state.result.instances.confidence)), HANG_GUARD_S, "threshold")
+    wait_until(lambda: viewer.state.threshold > float(np.max(viewer.state.result.instances.confidence)), HANG_GUARD_S,
+               "threshold")
     after = _settle(page)
     changed = _changed_pixels(after, before)
     assert changed > 1500, f"moving the threshold did not change the canvas ({changed} pixels changed)"
@@ -393,9 +397,12 @@ def test_instance_table_cut_visibility_and_fly_to(viewer: Any, page: Any) -> Non
     slider = page.get_by_role("slider").first
     slider.focus()
     page.keyboard.press("End")
-    wait_until(lambda: viewer.state.threshold > float(np.max(inst.confidence)), HANG_GUARD_S, "the cut above every instance")
-    wait_until(lambda: table.locator("td", has_text="below cut").count() == len(inst), HANG_GUARD_S, "rows below the cut")
-    wait_until(lambda: not viewer.session.results.shown_mask().any() and not any(h.visible for h in viewer.nodes.results.labels),
+    wait_until(lambda: viewer.state.threshold > float(np.max(inst.confidence)), HANG_GUARD_S,
+               "the cut above every instance")
+    wait_until(lambda: table.locator("td", has_text="below cut").count() == len(inst), HANG_GUARD_S,
+               "rows below the cut")
+    wait_until(lambda: (not viewer.session.results.shown_mask().any()
+                        and not any(h.visible for h in viewer.nodes.results.labels)),
                HANG_GUARD_S, "no mask and no label shown")  # the labels are redrawn after the table
     page.get_by_text(f"{len(inst)} hidden", exact=False).first.wait_for(timeout=HANG_GUARD_MS)
     slider.focus()
@@ -438,11 +445,13 @@ def test_instance_table_cut_visibility_and_fly_to(viewer: Any, page: Any) -> Non
     assert not viewer.nodes.results.obbs[k].visible
     wait_until(lambda: table.locator("td", has_text="hidden").count() == 1, HANG_GUARD_S, "its row says hidden")
     visible.click()
-    wait_until(lambda: nxt not in viewer.state.hidden and viewer.session.results.shown_mask()[k], HANG_GUARD_S, "the instance shown again")
+    wait_until(lambda: nxt not in viewer.state.hidden and viewer.session.results.shown_mask()[k], HANG_GUARD_S,
+               "the instance shown again")
 
     # ---- Fly to: back at the fitted view first, then the button brings the camera to the chosen row again
     viewer.reset_view(client)
-    wait_until(lambda: on_view(client, viewer.camera_guard.last_placed(client, home=True)), HANG_GUARD_S, "the fitted view")
+    wait_until(lambda: on_view(client, viewer.camera_guard.last_placed(client, home=True)), HANG_GUARD_S,
+               "the fitted view")
     page.get_by_role("button", name="Fly to").click()
     wait_until(at_instance, HANG_GUARD_S, "the camera flown to it")
     if SAVE:
@@ -459,7 +468,8 @@ def test_run_tab_precision_and_run_button(viewer: Any, page: Any) -> None:
     precision = page.get_by_role("combobox", name="Precision")
     precision.click()
     page.get_by_role("option", name="bfloat16").click()
-    wait_until(lambda: viewer.panels.gui_precision.value == "bfloat16", HANG_GUARD_S, "the dropdown's value on the server")
+    wait_until(lambda: viewer.panels.gui_precision.value == "bfloat16", HANG_GUARD_S,
+               "the dropdown's value on the server")
     proposals = page.get_by_role("textbox", name="Proposals")
     proposals.click()
     page.keyboard.press("Control+A")

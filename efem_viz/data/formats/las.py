@@ -103,7 +103,8 @@ def load(p: Path, max_points: int) -> dict[str, Any]:
         if n <= 0:
             raise SceneError("LAS file holds no points")
         if n > max_points:
-            raise SceneError(f"LAS header declares {n:,} points, more than the limit {max_points:,} ({LIMIT_FLAG_HINT})")
+            raise SceneError(f"LAS header declares {n:,} points, more than the limit {max_points:,} "
+                             f"({LIMIT_FLAG_HINT})")
         if header.are_points_compressed and n > _LAZ_POINTS_PER_BYTE * p.stat().st_size:
             raise SceneError(f"LAZ header declares {n:,} points in a file of {p.stat().st_size:,} bytes: more than "
                              f"{_LAZ_POINTS_PER_BYTE} a byte, a damaged header")

@@ -43,7 +43,8 @@ def _header(p: Path) -> tuple[dict[str, list[str]], dict[str, str], int]:
     while True:
         end = head.find(b"\n", pos)
         if end < 0:
-            raise SceneError(f"no DATA line within the first {_HEADER_LIMIT >> 20} MB: not a PCD file or a damaged header")
+            raise SceneError(f"no DATA line within the first {_HEADER_LIMIT >> 20} MB: "
+                             "not a PCD file or a damaged header")
         line = head[pos:end].decode("utf-8", errors="replace").strip()
         pos = end + 1
         if not line:

@@ -29,8 +29,8 @@ def voxel_average(
     return avg(points), avg(colors.astype(np.float64)), avg(normals)
 
 
-def _band_voxels(frames: Sequence[RenderedFrame], cams: Sequence[Camera], *, lo: np.ndarray, dims: np.ndarray, voxel: float,
-                 trunc_voxels: float) -> np.ndarray:
+def _band_voxels(frames: Sequence[RenderedFrame], cams: Sequence[Camera], *, lo: np.ndarray, dims: np.ndarray,
+                 voxel: float, trunc_voxels: float) -> np.ndarray:
     """Flat indices (into the `dims` grid with origin `lo`) of the voxels within the truncation band of some
     measurement: only they can carry |tsdf| < 1 (`fuse_tsdf`)."""
     from scipy.ndimage import binary_dilation

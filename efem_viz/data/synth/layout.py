@@ -140,7 +140,8 @@ def _sample_family(rng: np.random.Generator, family: str, *, n_objects: int, dis
             cat = others[int(rng.integers(len(others)))]
             s = int(seeds[int(rng.integers(len(seeds)))])
             mesh, parts = make_shape_with_parts(cat, s)
-            objs.append(SceneObject(cat, s, 0, mesh, parts, _DISTRACTOR_COLORS[int(rng.integers(len(_DISTRACTOR_COLORS)))]))
+            objs.append(SceneObject(cat, s, 0, mesh, parts,
+                                    _DISTRACTOR_COLORS[int(rng.integers(len(_DISTRACTOR_COLORS)))]))
     return objs
 
 

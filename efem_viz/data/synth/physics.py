@@ -116,7 +116,8 @@ def simulate(
                 elif xy is not None:
                     pos = [xy[k, 0], xy[k, 1], radii[k] + 0.005 + float(rng.uniform(0, 0.02))]
                 else:
-                    pos = _drop_position(pb, cid, bodies, rng, radius=radii[k], floor=floor if layout == "box" else None,
+                    pos = _drop_position(pb, cid, bodies, rng, radius=radii[k],
+                                         floor=floor if layout == "box" else None,
                                          floor_top=floor_top, spread=stage.pile_spread)
                 bodies.append(_add_body(pb, cid, o, shape, pos, R, layout=layout))
                 if layout in ("pile", "box"):
