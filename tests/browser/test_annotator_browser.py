@@ -689,10 +689,10 @@ def test_growing_table_and_history_move_no_button(keyed: tuple[Any, Any]) -> Non
 
 def test_run_efem_from_the_page_progress_cancel_then_prelabels(tmp_path: Path, new_page: Callable[..., Any],
                                                                monkeypatch: pytest.MonkeyPatch) -> None:
-    """and 14: a person opens EFEM assist, clicks *Run EFEM on this scan*, sees what it does, clicks
-    *Cancel EFEM run* (nothing is added), then runs it to the end (the real solver; the analytic sphere prior stands
-    in for a shipped one) and accepts the best pre-labels with *Accept all ≥ cut*: every step by mouse and keyboard
-    in the page, checked on the server."""
+    """A person opens EFEM assist, clicks *Run EFEM on this scan*, sees what it does, clicks *Cancel EFEM run*
+    (nothing is added), chooses *Free space* off, then runs it to the end (the real solver; the analytic sphere prior
+    stands in for a shipped one) and accepts the best pre-labels with *Accept all ≥ cut*: every step by mouse and
+    keyboard in the page, checked on the server."""
     import threading
 
     import torch
@@ -714,8 +714,10 @@ def test_run_efem_from_the_page_progress_cancel_then_prelabels(tmp_path: Path, n
     monkeypatch.setattr(efem_runs, "get_prior", lambda name: prior)
     real_solve = efem_runs.solve_scan
     cancelled = threading.Event()
+    modes: list[str] = []
 
     def slow_then_real(scene: Any, **kw: Any) -> Any:
+        modes.append(kw["settings"].free_space)
         if not cancelled.is_set():  # the first run: steps until the person cancels it
             kw["on_step"](StepInfo(step=0, num_steps=30, phase=1, active=80, elapsed_s=1.0))
             assert kw["cancel"].wait(60), "never cancelled"
@@ -742,6 +744,9 @@ def test_run_efem_from_the_page_progress_cancel_then_prelabels(tmp_path: Path, n
         page.get_by_role("button", name="Cancel EFEM run").click()
         wait_until(lambda: cancelled.is_set() and not app.session.assist.efem_running, HANG_GUARD_S, "the run to stop")
         assert not unreviewed_prelabels(app.session.scan.store.labelset.instances)
+        page.get_by_role("combobox", name="Free space").click()  # the second run without the free-space check
+        page.get_by_role("option", name="off", exact=True).click()
+        wait_until(lambda: app.panels.gui_efem_free_space.value == "off", HANG_GUARD_S, "the mode on the server")
         page.get_by_role("button", name="Run EFEM on this scan").click()
         wait_until(lambda: bool(unreviewed_prelabels(app.session.scan.store.labelset.instances))
                    and not app.session.assist.efem_running, 120, "the pre-labels of a finished run")
@@ -751,5 +756,6 @@ def test_run_efem_from_the_page_progress_cancel_then_prelabels(tmp_path: Path, n
                    HANG_GUARD_S, "the best pre-labels accepted")
         accepted = [i for i in pre if "accepted" in app.session.scan.store.labelset.instances[i].note]
         assert accepted and all((app.session.scan.store.labels == i).any() for i in accepted)
+        assert modes == ["auto", "off"]
     finally:
         app.close()

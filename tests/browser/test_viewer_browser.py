@@ -461,8 +461,11 @@ def test_instance_table_cut_visibility_and_fly_to(viewer: Any, page: Any) -> Non
 
 
 def test_run_tab_precision_and_run_button(viewer: Any, page: Any) -> None:
-    """The Run tab, with the mouse and keyboard only: choose Precision bfloat16 in its dropdown, type a proposal
-    count, press Run EFEM; the server runs EFEM with those settings (the knob reaches the solver)."""
+    """The Run tab, with the mouse and keyboard only: choose Precision bfloat16 and Free space on in their
+    dropdowns, type a proposal count, press Run EFEM; the server runs EFEM with those settings (the knobs reach the
+    solver)."""
+    from efem_viz.em.config import FREE_SPACE_FUSED
+
     _open(page, viewer, canvas=False)
     page.get_by_role("tab", name="Run").click()
     precision = page.get_by_role("combobox", name="Precision")
@@ -470,6 +473,9 @@ def test_run_tab_precision_and_run_button(viewer: Any, page: Any) -> None:
     page.get_by_role("option", name="bfloat16").click()
     wait_until(lambda: viewer.panels.gui_precision.value == "bfloat16", HANG_GUARD_S,
                "the dropdown's value on the server")
+    page.get_by_role("combobox", name="Free space").click()
+    page.get_by_role("option", name="on", exact=True).click()
+    wait_until(lambda: viewer.panels.gui_free_space.value == "on", HANG_GUARD_S, "the free-space mode on the server")
     proposals = page.get_by_role("textbox", name="Proposals")
     proposals.click()
     page.keyboard.press("Control+A")
@@ -482,6 +488,7 @@ def test_run_tab_precision_and_run_button(viewer: Any, page: Any) -> None:
                "the run's result shown")
     cfg = viewer.state.result.config
     assert cfg.matmul_dtype == "bfloat16" and cfg.n_init[0] == 12
+    assert cfg.seen_through_margin == FREE_SPACE_FUSED["seen_through_margin"]
 
 
 def test_tab_from_seed_goes_to_run_without_opening_a_dropdown(viewer: Any, page: Any) -> None:
