@@ -325,11 +325,16 @@ def test_review_rules_first_failure_wins() -> None:
     # the free-space check: unmeasured (NaN) passes; above the config's limit fails with the fraction
     from efem_viz.em import preset
 
-    cfg = preset("real").replace(seen_through_margin=0.01, max_seen_through=0.2)
+    cfg = preset("real").replace(seen_through_margin=0.01, max_seen_through=0.2, seen_through_final=False)
     ok = rec._replace(scale_pass=True, pose_pass=True)
     assert first_failed_review(ok._replace(seen_through=0.2), cfg) is None
     assert first_failed_review(ok._replace(seen_through=0.35), cfg) == ("seen-through", 0.35)
     assert first_failed_review(ok._replace(seen_through=float("nan")), cfg) is None
+    # seen_through_final: the independent phase's review measures only, the joint phase's (the last) removes
+    final = cfg.replace(seen_through_final=True)
+    assert first_failed_review(ok._replace(seen_through=0.35), final) is None
+    assert first_failed_review(ok._replace(seen_through=0.35, phase=2), final) == ("seen-through", 0.35)
+    assert first_failed_review(ok._replace(seen_through=0.35), final.replace(t2=0)) == ("seen-through", 0.35)
 
 
 # ---------------------------------------------------------------------------------------------- schedule
@@ -354,10 +359,10 @@ def test_real_preset_is_the_paper_one_with_the_measured_changes() -> None:
     real, paper = preset("real"), preset("real_paper")
     assert dataclasses.replace(real, name="real_paper", tau_d=paper.tau_d, tau_n=paper.tau_n, m_step_replace=True,
                                seen_through_margin=None, max_seen_through=paper.max_seen_through,
-                               seen_through_edge=None, seen_through_range=0.0,
+                               seen_through_edge=None, seen_through_range=0.0, seen_through_final=False,
                                mug_model=None, inclusion="paper", n_init=paper.n_init, anchors="random") == paper
     assert real.n_init == (200,) and real.anchors == "spread" and paper.n_init == (400,)
-    assert (real.seen_through_edge, real.seen_through_range) == (0.02, 0.01)
+    assert (real.seen_through_edge, real.seen_through_range, real.seen_through_final) == (0.02, 0.01, True)
     assert real.mug_model == "mug_uois_tune" and paper.mug_model is None and real.pose_weight == 0.0
     assert real.inclusion == "score" and real.inclusion_by == "stationary" and paper.inclusion == "paper"
     for name in ("synthetic", "fast"):  # the better-explained fit is spared

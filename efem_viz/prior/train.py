@@ -268,6 +268,31 @@ def _json_default(o: Any) -> Any:
     raise TypeError(f"not JSON-serialisable: {type(o).__name__}")
 
 
+REPORT_CURVES = ("val_curve", "train_curve")
+"""The per-validation and per-log-step curves of a training report (one JSON object per entry)."""
+
+
+def report_json(rep: dict[str, Any]) -> str:
+    """A training report as JSON text: its settings indented, each curve entry on one line with its numbers to five
+    significant digits (the curves are most of a report: a shipped report stays small and diffs line by line)."""
+    def rounded(o: Any) -> Any:
+        if isinstance(o, float):
+            return float(f"{o:.5g}")
+        if isinstance(o, dict):
+            return {k: rounded(v) for k, v in o.items()}
+        if isinstance(o, (list, tuple)):
+            return [rounded(v) for v in o]
+        return o
+
+    head = {k: v for k, v in rep.items() if k not in REPORT_CURVES}
+    text = json.dumps(head, indent=1, default=_json_default)[:-2]  # without the closing "\n}"
+    for name in REPORT_CURVES:
+        if name in rep:
+            rows = ",\n  ".join(json.dumps(rounded(e), default=_json_default) for e in rep[name])
+            text += f',\n "{name}": [' + (f"\n  {rows}\n ]" if rows else "]")
+    return text + "\n}\n"
+
+
 def _write_text_atomic(path: Path, text: str) -> None:
     from efem_viz.data.io import atomic_write_text
 
@@ -540,8 +565,7 @@ def _report(args: TrainArgs, prior: ShapePrior, state: _State, *, sec_per_iter: 
         "train_curve": state.curve[-400:],
         "updated_utc": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime()),
     }
-    _write_text_atomic(Path(f"{stem}_training_report.json"),
-                       json.dumps(rep, indent=1, default=_json_default) + "\n")
+    _write_text_atomic(Path(f"{stem}_training_report.json"), report_json(rep))
     notes_path = args.report_notes if args.report_notes is not None else out_dir / "report_notes.md"
     notes = notes_path.read_text(encoding="utf-8") if notes_path.is_file() else ""
     lines = [f"# Training report: `{export.name}`", "", notes.strip(), "",
