@@ -46,9 +46,8 @@ def check_npz_headers(p: Path, max_points: int) -> dict[str, tuple[int, ...]]:
     """
     shapes: dict[str, tuple[int, ...]] = {}
 
-    try:
+    try:  # zipfile raises NotImplementedError for an entry that needs a newer zip version than it reads
         zf = zipfile.ZipFile(p)
-    # NotImplementedError: "zip file version"
     except (zipfile.BadZipFile, OSError, NotImplementedError, ValueError) as exc:
         raise SceneError(f"{p}: not a valid .npz (zip) archive ({exc})") from exc
     with zf:

@@ -484,10 +484,9 @@ def _pose_check(rec: ReviewRecord, cfg: EMConfig | None) -> tuple[bool, float]:
 
 def _seen_through_check(rec: ReviewRecord, cfg: EMConfig | None) -> tuple[bool, float]:
     st = float(rec.seen_through)
-    limit = getattr(cfg, "max_seen_through", 1.0) if cfg is not None else 1.0
-    if (cfg is not None and getattr(cfg, "seen_through_final", False) and int(rec.phase) == 1
-            and getattr(cfg, "t2", 1) > 0):
-        limit = 1.0  # measured, not yet held against the fit: the joint phase's review decides
+    limit = 1.0
+    if cfg is not None and not (cfg.seen_through_final and int(rec.phase) == 1 and cfg.t2 > 0):
+        limit = cfg.max_seen_through  # with seen_through_final the independent phase's review only measures
     return bool(not math.isfinite(st) or st <= limit), st
 
 
