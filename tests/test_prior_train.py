@@ -96,6 +96,43 @@ def test_examples_and_augmentation(cache_dir: Path) -> None:
     assert noisy.shape == base.shape and not np.array_equal(noisy, base)
 
 
+def test_table_patch_from_a_random_side_touches_the_object(tmp_path: Path, cache_dir: Path) -> None:
+    """With ``table_side_p`` = 1 the support patch is a plane of any orientation tangent to the object (the whole
+    surface on one side, touching it); with 0 it is the plane under the canonical bottom."""
+    obj = load_or_prepare(procedural_sources("mug", "train", 1)[0], cache_dir=cache_dir / "data", cfg=SMALL_PREP,
+                          seed=0)
+
+    def patch_normals(side_p: float) -> list[np.ndarray]:
+        cfg = dataclasses.replace(_args(tmp_path, cache_dir, table_side_p=side_p).sample_config(256),
+                                  noise_std=0.0, aug_ratio=1.0, p_obj=0.0, p_ball=0.0, p_table=1.0)
+        assert cfg.p_table_any_side == side_p
+        rng = np.random.default_rng(7)
+        base = input_cloud(obj, cfg, rng)
+        seen = {tuple(p) for p in base.tolist()}
+        normals = []
+        for _ in range(12):
+            out = augment_v1(base, obj, obj.uni[:1024], [obj], cfg, rng)
+            new = np.array([p for p in out.tolist() if tuple(p) not in seen])
+            if len(new) < 20:
+                continue
+            centre = new.mean(axis=0)
+            normal = np.linalg.svd(new - centre)[2][-1]
+            assert np.abs((new - centre) @ normal).max() < 1e-4  # one plane
+            heights = (obj.surface - centre) @ normal
+            if np.median(heights) < 0:
+                normal, heights = -normal, -heights
+            assert heights.min() == pytest.approx(0.0, abs=1e-4)  # touching, the object on one side
+            normals.append(normal)
+        assert len(normals) >= 5
+        return normals
+
+    assert all(n[2] == pytest.approx(1.0, abs=1e-6) for n in patch_normals(0.0))
+    sides = patch_normals(1.0)
+    assert sum(abs(n[2]) < 0.9 for n in sides) >= 3  # not only under the object
+    with pytest.raises(ValueError, match="table_side_p"):
+        _args(tmp_path, cache_dir, table_side_p=-0.1).sample_config(256)
+
+
 def test_top_only_probability_chooses_the_views_an_input_comes_from(tmp_path: Path, cache_dir: Path) -> None:
     src = procedural_sources("mug", "train", 1)[0]
     obj = load_or_prepare(src, cache_dir=cache_dir / "data", cfg=SMALL_PREP, seed=0)

@@ -128,6 +128,9 @@ class SampleConfig:
     """Probability of ball removal."""
     p_table: float = 0.3
     """Probability of a table-plane patch at the object bottom (deviation: replaces the unused plane aug)."""
+    p_table_any_side: float = 0.0
+    """Probability that a table patch touches the object from a random direction instead of from below (an
+    object lying on its side or back, as tumbled chairs do, has its support plane there)."""
     crop_radius: tuple[float, float] = (0.15, 0.09)
     """Crop radius mean / std."""
     crop_scale: tuple[float, float] = (0.5, 1.5)
@@ -711,6 +714,23 @@ def _object_crops(n_obj: int, pcl: np.ndarray, uni: np.ndarray, others: Sequence
     return np.concatenate(crops, axis=0)[:n_obj]
 
 
+def _support_direction(cfg: SampleConfig, rng: np.random.Generator) -> np.ndarray:
+    """Unit normal of a table patch, pointing from the plane to the object: +Z, or with probability
+    ``p_table_any_side`` uniform on the sphere."""
+    if cfg.p_table_any_side > 0 and rng.random() < cfg.p_table_any_side:
+        d = rng.normal(size=3)
+        return d / max(float(np.linalg.norm(d)), 1e-12)
+    return np.array([0.0, 0.0, 1.0])
+
+
+def _frame_with_z(up: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation whose third column is the unit vector ``up`` (columns: an orthonormal basis)."""
+    helper = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = np.cross(helper, up)
+    e1 /= np.linalg.norm(e1)
+    return np.stack([e1, np.cross(up, e1), up], axis=1)
+
+
 def augment_v1(pcl: np.ndarray, obj: ObjectData, uni: np.ndarray, others: Sequence[ObjectData],
                cfg: SampleConfig, rng: np.random.Generator) -> np.ndarray:
     """Content augmentation "v1" (§2.3) with a table patch in place of the (unused for mugs) planes.
@@ -762,8 +782,13 @@ def augment_v1(pcl: np.ndarray, obj: ObjectData, uni: np.ndarray, others: Sequen
         half = rng.uniform(*cfg.table_scale)
         c = rng.uniform(-0.2, 0.2, 2)
         uv = rng.uniform(-1.0, 1.0, (n_table, 2)) * half + c
-        z = obj.z_bottom + rng.normal(0.0, cfg.noise_std, n_table)
-        added.append(np.concatenate([uv, z[:, None]], axis=1))
+        up = _support_direction(cfg, rng)
+        height = float((obj.surface @ up).min())
+        z = height + rng.normal(0.0, cfg.noise_std, n_table)
+        patch = np.concatenate([uv, z[:, None]], axis=1)
+        if up[2] != 1.0:
+            patch = patch @ _frame_with_z(up).T
+        added.append(patch)
     if n_noise > 0:
         added.append(rng.uniform(-0.5, 0.5, (n_noise, 3)))
     out = np.concatenate([*added, reduced], axis=0)

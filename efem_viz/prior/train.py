@@ -156,6 +156,9 @@ class TrainArgs:
     as it was. With --init-from, for fine-tuning the encoder's response to sensor inputs."""
     p_table: float = 0.3
     """Probability of the table-plane augmentation."""
+    table_side_p: float = 0.0
+    """Probability that a table-plane patch touches the object from a random side instead of from below (objects
+    that lie on their side or back in scenes, e.g. tumbled chairs). Validation inputs have no table patch."""
     min_views: int = 4
     """Fewest depth views in an input cloud (spec: 4 for mugs; 1 also trains single-view inputs, as real RGB-D
     frames are). Validation inputs are drawn with the same setting."""
@@ -241,8 +244,11 @@ class TrainArgs:
         near = int(round(total * self.near_fraction))
         if not 0.0 <= self.top_only_p <= 1.0:
             raise ValueError(f"top_only_p must be in [0, 1] (got {self.top_only_p})")
+        if not 0.0 <= self.table_side_p <= 1.0:
+            raise ValueError(f"table_side_p must be in [0, 1] (got {self.table_side_p})")
         return SampleConfig(n_pcl=n_pcl, p_table=self.p_table, min_views=self.min_views, sensor_p=self.sensor_p,
-                            p_top_only=self.top_only_p, n_query_near=near, n_query_uniform=total - near)
+                            p_top_only=self.top_only_p, p_table_any_side=self.table_side_p,
+                            n_query_near=near, n_query_uniform=total - near)
 
     def resolved_out_dir(self) -> Path:
         """``out_dir`` or ``runs/<category>``."""
