@@ -96,7 +96,8 @@ def segment_at_point(
         seed: EM seed.
         on_step: called with `efem_viz.em.StepInfo` after every EM step (progress).
         cancel: when set, EM stops at its next check and `efem_viz.em.solver.EMCancelled` is raised.
-        **overrides: further `EMConfig` fields (e.g. min_size=30 for small test objects).
+        **overrides: further `EMConfig` changes as `EMConfig.replace` takes them (per group, e.g.
+            ``elimination={"min_size": 30}`` for small test objects).
 
     Returns:
         (K,) int32 sorted scene vertex indices of the proposed object; empty when EFEM found nothing here.
@@ -118,11 +119,11 @@ def segment_at_point(
         settings = dataclasses.replace(settings, proposals=int(n_proposals))
     cfg = settings.config()
     cfg = cfg.replace(**overrides) if overrides else cfg
-    if len(crop) <= cfg.min_size:
+    if len(crop) <= cfg.elimination.min_size:
         raise ValueError(
-            f"only {len(crop)} points within {crop_radius:.2f} m of the click (EFEM needs > {cfg.min_size})"
+            f"only {len(crop)} points within {crop_radius:.2f} m of the click (EFEM needs > {cfg.elimination.min_size})"
         )
-    cfg = cfg.replace(n_init=(int(cfg.n_init[0]),))
+    cfg = cfg.replace(proposals={"n_init": (int(cfg.proposals.n_init[0]),)})
     sub = Scene.create(
         f"{scene.name}_click{int(vertex)}",
         pts[crop],

@@ -18,7 +18,7 @@ writes bench/results/em_no_distractors.json. The targets stay judged on the defa
 
 `--config NAME=key=value;...` (repeated) compares solver configs in one run: every scene is run by each config in
 turn, and the table gives AP per configuration and the median seconds of each (`--config fp32=
---config "bf16=matmul_dtype='bfloat16'"`).
+--config "bf16=compute.matmul_dtype='bfloat16'"`; keys are the solver settings' dotted names).
 
 Usage: python bench/em.py [--quick] [--prior mug] [--threads 2] [--mode points] [--skip-accuracy]
        [--no-distractors] [--save-results DIR] [--config NAME=... --config NAME=...]
@@ -227,7 +227,7 @@ def main() -> int:
     ap.add_argument("--preset", default="synthetic")
     ap.add_argument("--proposals", type=int, default=None, help="proposals per scene (default: the preset's)")
     ap.add_argument("--work-voxel", type=float, default=None,
-                    help="EMConfig.work_voxel for every run (m; default: the preset's)")
+                    help="EMConfig.compute.work_voxel for every run (m; default: the preset's)")
     ap.add_argument("--n-scenes", type=int, default=None, help="scenes per configuration (default 10, quick 2)")
     ap.add_argument("--seed0", type=int, default=SEED0,
                     help=f"first scene seed (default {SEED0}: the fixed test set; tune presets on other seeds)")
@@ -251,8 +251,8 @@ def main() -> int:
                          "shelf are their own rows)")
     ap.add_argument("--config", action="append", default=None, metavar="NAME=key=value;...",
                     help="compare solver configs in one run: each scene is run with every config in turn (values are "
-                         "Python literals on top of --preset), e.g. --config fp32= --config "
-                         "\"bf16=matmul_dtype='bfloat16'\"; default: the preset alone")
+                         "Python literals on top of --preset, keys dotted names), e.g. --config fp32= --config "
+                         "\"bf16=compute.matmul_dtype='bfloat16'\"; default: the preset alone")
     ap.add_argument("--config-env", action="append", default=[], metavar="NAME=VAR=VALUE",
                     help="an environment switch for one compared config's runs, e.g. onepass=EFEM_VIZ_ONE_PASS=1")
     ap.add_argument("--em-seeds", type=int, nargs="+", default=[0],
@@ -284,10 +284,10 @@ def main() -> int:
     if args.proposals is not None:
         cfg = cfg.with_proposals(args.proposals)
     if args.work_voxel is not None:
-        cfg = cfg.replace(work_voxel=args.work_voxel)
-    args.proposals = cfg.n_init[0]  # what the printed lines and the JSON say
+        cfg = cfg.replace(compute={"work_voxel": args.work_voxel})
+    args.proposals = cfg.proposals.n_init[0]  # what the printed lines and the JSON say
     variants = dict(parse_config(spec) for spec in (args.config or [f"{args.preset}="]))
-    cfgs = {name: cfg.replace(**changes) for name, changes in variants.items()}
+    cfgs = {name: cfg.with_values(changes) for name, changes in variants.items()}
     if len(cfgs) > 1 or list(args.em_seeds) != [0]:  # several configs, or solver seeds other than the default
         return compare(args, prior, cfgs)
     cfg = next(iter(cfgs.values()))  # one --config: its changes on the preset (they were dropped before)

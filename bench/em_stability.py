@@ -20,8 +20,9 @@ Sets:
 
 Usage: python bench/em_stability.py [--config "NAME=key=value;key=value" ...] [--mugs 8] [--anchors 2]
        [--sets single-view real-tune real-judge] [--levels 0 1 2 3 5 sensor] [--prior PATH] [--tag NAME]
-Configs: "base" (the `--preset`, default `real`) is always run; each --config adds one (EMConfig overrides on the
-preset). `real` holds the measured changes; the earliest tables (docs/BENCHMARKS.md) used what is now `real_paper`.
+Configs: "base" (the `--preset`, default `real`) is always run; each --config adds one (overrides on the
+preset by the solver settings' dotted names, e.g. "band=elimination.min_size_on='band'"). `real` holds the
+measured changes; the earliest tables (docs/BENCHMARKS.md) used what is now `real_paper`.
 Writes bench/results/em_stability_<tag>.json and prints one table per set. 1 torch thread by default
 (``--threads``), so that it can run beside a training job.
 """
@@ -165,7 +166,7 @@ def probe_object(item: dict[str, Any], prior: Any, cfg: Any, *, anchors: int, rn
     n_obj = int(mask.sum())
     res: dict[str, Any] = {"name": item["name"], "is_mug": item["is_mug"], "points": n_obj}
     if item["is_mug"]:
-        tr = track_proposal(scene, prior, cfg, object_mask=mask, start="oracle", steps=cfg.t1, seed=0)
+        tr = track_proposal(scene, prior, cfg, object_mask=mask, start="oracle", steps=cfg.steps.t1, seed=0)
         # step-0 split of the inlier test into its SDF and normal parts (the oracle crop's own E-step)
         res["oracle"] = {"inlier_frac0": tr.explained[0], "sdf_frac0": tr.explained_band[0],
                          "kept": tr.explained[-1], "kept_band": tr.explained_band[-1],
@@ -176,7 +177,7 @@ def probe_object(item: dict[str, Any], prior: Any, cfg: Any, *, anchors: int, rn
     idx = np.flatnonzero(mask)
     for a in range(anchors):
         start = int(idx[rng.integers(len(idx))])
-        tr = track_proposal(scene, prior, cfg, object_mask=mask, start=start, steps=cfg.t1, seed=a)
+        tr = track_proposal(scene, prior, cfg, object_mask=mask, start=start, steps=cfg.steps.t1, seed=a)
         runs.append({"kept": tr.explained[-1], "inliers": tr.inliers[-1], "size_count": tr.size_count[-1],
                      "min_size": tr.min_size[-1], "scale_ratio": tr.scale[-1] / item["size"], "alive": tr.alive,
                      "iou": tr.output_iou, "good": bool(tr.alive and tr.output_iou >= 0.5)})
@@ -234,7 +235,7 @@ def main() -> int:
     configs: dict[str, Any] = {} if args.no_base else {"base": base}
     for spec in args.config:
         name, changes = parse_config(spec)
-        configs[name] = base.replace(**changes)
+        configs[name] = base.with_values(changes)
     t0 = time.time()
     sets: dict[str, list[dict[str, Any]]] = {}
     if "single-view" in args.sets:
@@ -264,9 +265,10 @@ def main() -> int:
                   f"[{summ['seconds']:.0f}s]", flush=True)
     out = {"command": " ".join(sys.argv), "machine": platform.processor() or platform.machine(),
            "threads": args.threads, "prior": args.prior or "mug (shipped)", "preset": args.preset,
-           "configs": {k: {f: getattr(v, f) for f in ("tau_d", "tau_n", "min_size", "min_size_on",
-                                                      "min_size_spacing", "m_step_replace")}
-                       for k, v in configs.items()},
+           "configs": {k: {"tau_d": v.steps.tau_d, "tau_n": v.steps.tau_n, "min_size": v.elimination.min_size,
+                           "min_size_on": v.elimination.min_size_on,
+                           "min_size_spacing": v.elimination.min_size_spacing,
+                           "m_step_replace": v.steps.m_step_replace} for k, v in configs.items()},
            "results": results, "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
     path = ROOT / "bench" / "results" / f"em_stability_{args.tag}.json"
     path.write_text(json.dumps(out, indent=1, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))

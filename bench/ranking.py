@@ -21,7 +21,7 @@ The rules re-score what the solver produced; a rule that revives killed fits is 
 fit would also hold its points against later episodes). Screen rules here, then confirm the best with a re-run.
 
 `--lateral 0 0.005 0.01` re-measures every fit's seen-through fraction with the free-space check's sideways
-tolerance (`EMConfig.seen_through_lateral`) from its stored mesh and scores "kill above `--limit`, confidence x
+tolerance (`EMConfig.free_space.lateral`) from its stored mesh and scores "kill above `--limit`, confidence x
 (1 - fraction)" for each, without a re-run.
 
 `--lost` says why each mug that no accepted instance matches was lost: the best reviewed fit of it and how that
@@ -76,7 +76,7 @@ class Fit:
     """That object's ground-truth id (0: background)."""
     seen_lateral: dict[float, float] = dataclasses.field(default_factory=dict)
     """Seen-through fraction of the same completed shape with the free-space check's sideways tolerance
-    (`EMConfig.seen_through_lateral`, m) as the key; filled for `--lateral` values on scenes with a camera."""
+    (`EMConfig.free_space.lateral`, m) as the key; filled for `--lateral` values on scenes with a camera."""
 
 
 def _category_of(scene: Any, gt_id: int) -> str:
@@ -89,7 +89,7 @@ def _seen_lateral(scene: Any, res: Any, laterals: list[float]) -> Callable[[Any]
 
     camera = Camera.from_provenance(getattr(scene, "provenance", None))
     cfg = res.config
-    if camera is None or cfg.seen_through_margin is None or not laterals:
+    if camera is None or cfg.free_space.margin is None or not laterals:
         return lambda rec: {}
     views = {lat: DepthView.of_points(camera, scene.points, lateral=lat) for lat in laterals}
 
@@ -101,8 +101,8 @@ def _seen_lateral(scene: Any, res: Any, laterals: list[float]) -> Callable[[Any]
         if not len(rec.mesh_faces):
             return {lat: float("nan") for lat in laterals}
         mesh = trimesh.Trimesh(rec.mesh_vertices, rec.mesh_faces, process=False)
-        pts = sample_surface(mesh, cfg.n_store, seed=res.seed * 1_000_003 + int(rec.proposal_id)).points
-        return {lat: float(v.seen_through(pts, cfg.seen_through_margin)[0]) for lat, v in views.items()}
+        pts = sample_surface(mesh, cfg.review.n_store, seed=res.seed * 1_000_003 + int(rec.proposal_id)).points
+        return {lat: float(v.seen_through(pts, cfg.free_space.margin)[0]) for lat, v in views.items()}
 
     return measure
 

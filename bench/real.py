@@ -14,7 +14,7 @@ Per configuration and seed: AP / AP50 for the mug class pooled over each split, 
 frame the category under the most confident instance (a mug, or the can / bowl / cup it sits on).
 
 Usage: python bench/real.py [--preset synthetic] [--proposals 400] [--seeds 0 1 2] [--tag NAME]
-       [--set key=value ...]  (EMConfig overrides, e.g. --set min_size=150) [--save-results DIR]
+       [--set key=value ...]  (solver settings by dotted name, e.g. --set elimination.min_size=150) [--save-results DIR]
 Writes bench/results/real_<tag>.json. Run with 2 torch threads on a quiet machine.
 """
 
@@ -110,7 +110,8 @@ def main() -> int:
     # extend, not store: `--set a=1 --set b=2` keeps both (a plain nargs list kept only the last --set, so early
     # runs that passed several --set flags ran with their last override only)
     ap.add_argument("--set", nargs="+", action="extend", default=[],
-                    help="EMConfig overrides key=value (Python literals); repeat --set or list several")
+                    help="solver settings key=value (dotted names as elimination.min_size, Python "
+                         "literals); repeat --set or list several")
     ap.add_argument("--tag", default=None)
     ap.add_argument("--save-results", type=Path, default=None, metavar="DIR",
                     help="also save every run as DIR/seed<S>/<scene>.efem.npz (+ the scene with its labels) for "
@@ -131,7 +132,7 @@ def main() -> int:
             overrides[k] = ast.literal_eval(v)
         except (ValueError, SyntaxError):
             overrides[k] = v
-    cfg = preset(a.preset).with_proposals(a.proposals).replace(**overrides)
+    cfg = preset(a.preset).with_proposals(a.proposals).with_values(overrides)
     tag = a.tag or f"{a.preset}_{a.proposals}" + "".join(f"_{k}{v}" for k, v in overrides.items())
     print(f"preset {a.preset}, {a.proposals} proposals, overrides {overrides}", flush=True)
     scenes = {k: load_frame(k) for k in a.frames}

@@ -458,7 +458,7 @@ def bench_links(tmp: Path) -> dict[str, Any]:
     scenes.mkdir(parents=True, exist_ok=True)
     scene = analytic.make_sphere_scene(seed=0, spacing=0.012, name="spheres")
     save_scene(scene, scenes / "spheres.ply")
-    cfg = em.preset("fast").with_proposals(8).replace(min_size=30)
+    cfg = em.preset("fast").with_proposals(8).replace(elimination={"min_size": 30})
     em.run_em(scene, analytic.make_sphere_prior(), cfg, seed=0).save(scenes / "spheres.efem.npz")
     root, outside = tmp / "root", tmp / "outside"
     outside.mkdir()

@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import argparse
 import cProfile
-import dataclasses
 import multiprocessing as mp
 import os
 import pstats
@@ -53,15 +52,16 @@ from common import ROOT  # noqa: E402 - first: the checkout on sys.path, the CLI
 sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
 
 VARIANTS: dict[str, tuple[dict[str, str], dict[str, Any]]] = {
-    "baseline": ({"EFEM_VIZ_FUSED": "0", "EFEM_VIZ_ONE_PASS": "0"}, {"pose_points": None}),
+    "baseline": ({"EFEM_VIZ_FUSED": "0", "EFEM_VIZ_ONE_PASS": "0"}, {"review.pose_points": None}),
     "two_pass": ({"EFEM_VIZ_FUSED": "1", "EFEM_VIZ_ONE_PASS": "0"}, {}),
     "fast": ({"EFEM_VIZ_FUSED": "1", "EFEM_VIZ_ONE_PASS": "1"}, {}),
-    "bf16": ({"EFEM_VIZ_FUSED": "1", "EFEM_VIZ_ONE_PASS": "1"}, {"matmul_dtype": "bfloat16"}),
+    "bf16": ({"EFEM_VIZ_FUSED": "1", "EFEM_VIZ_ONE_PASS": "1"}, {"compute.matmul_dtype": "bfloat16"}),
     "bf16_decoder": ({"EFEM_VIZ_FUSED": "1", "EFEM_VIZ_ONE_PASS": "1"},
-                     {"matmul_dtype": "bfloat16", "encoder_dtype": "float32"}),
-    "random400": ({"EFEM_VIZ_FUSED": "1", "EFEM_VIZ_ONE_PASS": "1"}, {"anchors": "random", "n_init": (400,)}),
+                     {"compute.matmul_dtype": "bfloat16", "compute.encoder_dtype": "float32"}),
+    "random400": ({"EFEM_VIZ_FUSED": "1", "EFEM_VIZ_ONE_PASS": "1"}, {"proposals.anchors": "random",
+                                                                           "proposals.n_init": (400,)}),
 }
-"""name -> (environment, EMConfig overrides)."""
+"""name -> (environment, solver settings by dotted name)."""
 
 
 def _busy() -> None:
@@ -208,13 +208,12 @@ def main() -> int:
                     f"{k} {v:.0f} GFLOP/s" for k, v in peaks.items())), flush=True)
             cfg0 = preset(pname)
             if a.proposals is not None:
-                cfg0 = cfg0.replace(n_init=(a.proposals, *cfg0.n_init[1:]))
+                cfg0 = cfg0.replace(proposals={"n_init": (a.proposals, *cfg0.proposals.n_init[1:])})
             base_masks: list[np.ndarray] | None = None
             for var in a.variants:
                 env, over = VARIANTS[var]
                 os.environ.update(env)
-                known = {f.name for f in dataclasses.fields(cfg0)}  # a checkout older than a knob runs without it
-                cfg = cfg0.replace(**{k: v for k, v in over.items() if k in known})
+                cfg = cfg0.with_values(over)
                 runs, res = [], None
                 for r in range(a.repeats):
                     prof = cProfile.Profile() if (a.profile and r == 0) else None
@@ -233,7 +232,7 @@ def main() -> int:
                     base_masks = masks
                 phases = {k: statistics.median(float(x.get(k, 0.0)) for x in runs)
                           for k in runs[0] if isinstance(runs[0][k], (int, float))}
-                floor = decode_row(phases, prior, peaks, cfg.matmul_dtype)
+                floor = decode_row(phases, prior, peaks, cfg.compute.matmul_dtype)
                 row = {"scene": name, "preset": pname, "variant": var, "points": scene.num_points,
                        "median": phases, "runs": runs, "instances": len(masks), "decode_vs_floor": floor,
                        "mask_iou_to_baseline": mask_iou_to(base_masks, masks), "ap50": ap50(scene, res)}
@@ -249,7 +248,7 @@ def main() -> int:
                       f"{phases.get('decoder_queries', 0.0) / 1e6:.2f} M queries "
                       f"({phases.get('normal_queries', 0.0) / 1e6:.2f} M with normals): "
                       f"{floor['decode_gflops']:.0f} GFLOP/s, {100 * floor['share_of_peak']:.0f} % of the "
-                      f"{cfg.matmul_dtype} peak; floor {floor['decode_floor_s']:.1f} s; encode "
+                      f"{cfg.compute.matmul_dtype} peak; floor {floor['decode_floor_s']:.1f} s; encode "
                       f"{phases.get('encode', 0.0):.1f} s for {phases.get('encoded_sets', 0.0):.0f} point sets",
                       flush=True)
     finally:

@@ -74,7 +74,7 @@ def main() -> int:
     configs = ([] if a.no_base else [("base", {})]) + [parse_config(c) for c in a.config]
     rows = []
     for name, over in configs:
-        cfg = preset(a.preset).with_proposals(a.proposals).replace(**over)
+        cfg = preset(a.preset).with_proposals(a.proposals).with_values(over)
         for seed in a.seeds:
             t0 = time.perf_counter()
             res = run_em(scene, prior, cfg, seed=seed)

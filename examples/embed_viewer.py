@@ -69,7 +69,8 @@ def main(argv: list[str] | None = None) -> int:
         scene = make_sphere_scene(seed=0, spacing=0.008, name="spheres")
         path = save_scene(scene, out / "spheres.ply")
         prior: Any = make_sphere_prior()
-        cfg = preset("fast").with_proposals(args.proposals).replace(min_size=30)  # a sparse scene: small sets
+        # a sparse scene: small sets
+        cfg = preset("fast").with_proposals(args.proposals).replace(elimination={"min_size": 30})
         result = run_em(scene, prior, cfg, seed=0)
         print(f"ran EFEM on {scene.name}: {len(result.instances)} instances in "
               f"{result.timings['total']:.1f} s")

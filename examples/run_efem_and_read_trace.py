@@ -50,7 +50,7 @@ def main(argv: list[str] | None = None) -> int:
     prior = load_prior("mug")
     cfg = preset("fast").with_proposals(args.proposals)
     print(f"scene {scene.name}: {scene.num_points} points; prior {prior.name!r} "
-          f"(category {prior.category.name!r}); preset {cfg.name!r} with {cfg.n_init[0]} proposals")
+          f"(category {prior.category.name!r}); preset {cfg.name!r} with {cfg.proposals.n_init[0]} proposals")
 
     # ---- 1. run, with a progress callback (a CLI would drive a progress bar with it)
     def on_step(info: StepInfo) -> None:
@@ -61,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     result = run_em(scene, prior, cfg, seed=args.seed, on_step=on_step)
     trace, inst = result.trace, result.instances
     print(f"run: {trace.num_steps} steps, {trace.num_proposals} proposals, "
-          f"tau_out {result.config.out_tau:g}, {result.timings['total']:.1f} s")
+          f"tau_out {result.config.output.out_tau:g}, {result.timings['total']:.1f} s")
 
     # ---- 2. the instances
     print(f"instances: {len(inst)}")

@@ -353,7 +353,7 @@ def spheres(tmp_path_factory: pytest.TempPathFactory):
     scene = analytic.make_sphere_scene(seed=0, spacing=0.008, name="spheres")
     save_scene(scene, d / "spheres.ply")
     prior = analytic.make_sphere_prior()
-    result = em.run_em(scene, prior, em.preset("fast").with_proposals(16).replace(min_size=30), seed=0)
+    result = em.run_em(scene, prior, em.preset("fast").with_proposals(16).replace(elimination={"min_size": 30}), seed=0)
     result.save(d / "spheres.efem.npz")
     return d, scene, prior
 
@@ -421,7 +421,7 @@ def test_click_to_segment_previews_then_accepts(spheres) -> None:
     members = np.flatnonzero(scene.instance == g)
     top = int(members[np.argmax(scene.points[members, 2])])
     idx = segment_at_point(scene, top, prior=prior, settings=SolveSettings(preset="fast"), n_proposals=8,
-                           crop_radius=0.1, min_size=30)
+                           crop_radius=0.1, elimination={"min_size": 30})
     assert _iou(np.isin(np.arange(scene.num_points), idx), scene.instance == g) > 0.5
     a = AnnotatorApp(d / "spheres.ply", out_dir=d / "out_seg", port=0, autosave_delay=0)
     try:
@@ -1016,7 +1016,7 @@ def test_run_efem_takes_the_free_space_mode_the_panel_shows(spheres, monkeypatch
     real_run = em.run_em
 
     def spy_run(*args: Any, **kw: Any) -> Any:
-        margins.append(kw["cfg"].seen_through_margin)
+        margins.append(kw["cfg"].free_space.margin)
         return real_run(*args, **kw)
 
     monkeypatch.setattr(em, "run_em", spy_run)
@@ -1029,7 +1029,7 @@ def test_run_efem_takes_the_free_space_mode_the_panel_shows(spheres, monkeypatch
         for mode in ("auto", "on", "off"):
             a.panels.gui_efem_free_space.value = mode
             a.run_efem(wait=True)
-        assert margins == [None, FREE_SPACE_FUSED["seen_through_margin"], None]
+        assert margins == [None, FREE_SPACE_FUSED.margin, None]
         assert any("free space on" in t for t in texts) and not any("free space auto" in t for t in texts)
         a.panels.gui_efem_free_space.value = "sideways"
         with pytest.raises(ClientValueError):

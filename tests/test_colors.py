@@ -21,7 +21,7 @@ def sphere_result() -> tuple[Any, Any]:
     from efem_viz.prior.analytic import make_sphere_prior, make_sphere_scene
 
     scene = make_sphere_scene(seed=11)
-    res = run_em(scene, make_sphere_prior(), preset("fast").replace(n_init=(16,)), seed=5)
+    res = run_em(scene, make_sphere_prior(), preset("fast").replace(proposals={"n_init": (16,)}), seed=5)
     inst = res.instances
     assert len(inst) >= 2
     # a third instance (a copy of the first, holding unassigned points) and confidences that make a threshold

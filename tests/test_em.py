@@ -40,7 +40,7 @@ def sphere_run() -> tuple[object, object, EMResult, list[StepInfo]]:
     scene = make_sphere_scene(seed=11)
     prior = make_sphere_prior()
     steps: list[StepInfo] = []
-    res = run_em(scene, prior, preset("fast").replace(n_init=(64,)), seed=5, on_step=steps.append)
+    res = run_em(scene, prior, preset("fast").replace(proposals={"n_init": (64,)}), seed=5, on_step=steps.append)
     return scene, prior, res, steps
 
 
@@ -59,7 +59,7 @@ def test_free_space_check_scales_confidence_and_is_recorded(sphere_run: tuple, t
     K = [[300.0, 0.0, 159.5], [0.0, 300.0, 119.5], [0.0, 0.0, 1.0]]
     cam_scene = dataclasses.replace(scene, provenance={**scene.provenance, "K": K, "T_world_camera": T.tolist(),
                                                        "image_size": [320, 240]})
-    cfg = preset("fast").replace(n_init=(64,), seen_through_margin=0.01)
+    cfg = preset("fast").replace(proposals={"n_init": (64,)}, free_space={"margin": 0.01})
     res = run_em(cam_scene, prior, cfg, seed=5)
     tr = res.trace
     assert tr.rev_seen_through is not None and len(tr.rev_seen_through) == len(tr.rev_id)
@@ -93,7 +93,7 @@ def test_a_fused_scans_cameras_all_check_free_space_and_a_bad_one_is_said(sphere
     K = [[300.0, 0.0, 159.5], [0.0, 300.0, 119.5], [0.0, 0.0, 1.0]]
     cams = [{"K": K, "T_world_camera": look_at(np.array(eye), np.array([0.0, 0.0, 0.03])).tolist(),
              "image_size": [320, 240]} for eye in ([0.0, -0.6, 0.45], [0.6, 0.0, 0.45], [-0.4, 0.4, 0.5])]
-    cfg = preset("fast").replace(n_init=(64,), seen_through_margin=0.01)
+    cfg = preset("fast").replace(proposals={"n_init": (64,)}, free_space={"margin": 0.01})
     fused = dataclasses.replace(scene, provenance={**scene.provenance, "cameras": cams})
     res = run_em(fused, prior, cfg, seed=5)
     assert res.warnings == ()
@@ -131,7 +131,7 @@ def test_progress_and_active_counts(sphere_run: tuple) -> None:
 
 def test_same_seed_same_run_other_seed_other_anchors(sphere_run: tuple) -> None:
     scene, prior, res, _ = sphere_run
-    cfg = res.config.replace(t1=2, t2=1, end_step=2)
+    cfg = res.config.replace(steps={"t1": 2, "t2": 1, "end_step": 2})
     a = run_em(scene, prior, cfg, seed=5)
     b = run_em(scene, prior, cfg, seed=5)
     c = run_em(scene, prior, cfg, seed=6)
@@ -144,13 +144,13 @@ def test_anchor_candidates_seed_the_first_episode_there(sphere_run: tuple) -> No
     scene, prior, _, _ = sphere_run
     g = int(scene.instance_ids()[1])
     members = np.flatnonzero(scene.instance == g)[:5]
-    cfg = preset("fast").replace(n_init=(12,), t1=4, t2=2, end_step=3)
+    cfg = preset("fast").replace(proposals={"n_init": (12,)}, steps={"t1": 4, "t2": 2, "end_step": 3})
     res = run_em(scene, prior, cfg, seed=3, anchor_candidates=members)
     assert set(res.trace.prop_anchor.tolist()) <= set(members.tolist())
     m = ious(res.instances, scene.instance)
     k = list(scene.instance_ids()).index(g)
     assert len(res.instances) >= 1 and m[:, k].max() >= 0.9  # the seeded sphere is found
-    thin = run_em(scene, prior, cfg.replace(work_voxel=0.02), seed=3, anchor_candidates=members)
+    thin = run_em(scene, prior, cfg.replace(compute={"work_voxel": 0.02}), seed=3, anchor_candidates=members)
     d = np.linalg.norm(scene.points[thin.trace.prop_anchor][:, None] - scene.points[members][None], axis=2)
     assert d.min(axis=1).max() < 0.02 * np.sqrt(3)  # thinned working set: the kept point nearest a candidate
     for bad in (np.array([], np.int64), np.array([0.5]), np.array([scene.num_points]), np.array([[1]])):
@@ -169,7 +169,7 @@ def test_cancel_raises(sphere_run: tuple) -> None:
             ev.set()
 
     with pytest.raises(EMCancelled):
-        run_em(scene, prior, preset("fast").replace(n_init=(16,)), on_step=on_step, cancel=ev)
+        run_em(scene, prior, preset("fast").replace(proposals={"n_init": (16,)}), on_step=on_step, cancel=ev)
     assert seen == [0, 1]
 
 
@@ -178,7 +178,7 @@ def test_bad_inputs_raise_clear_errors(sphere_run: tuple) -> None:
     with pytest.raises(ValueError, match="no encode"):
         run_em(scene, object(), preset("fast"))
     with pytest.raises(ValueError, match="n_init"):
-        preset("fast").replace(n_init=())
+        preset("fast").replace(proposals={"n_init": ()})
     with pytest.raises(ValueError, match="CUDA|cuda"):
         import torch
 
@@ -189,7 +189,7 @@ def test_bad_inputs_raise_clear_errors(sphere_run: tuple) -> None:
 
 def test_episodes_reseed_only_unassigned_points(sphere_run: tuple) -> None:
     scene, prior, _, _ = sphere_run
-    cfg = preset("fast").replace(n_init=(40, 30), t1=4, t2=2, end_step=3)
+    cfg = preset("fast").replace(proposals={"n_init": (40, 30)}, steps={"t1": 4, "t2": 2, "end_step": 3})
     res = run_em(scene, prior, cfg, seed=2)
     tr = res.trace
     assert tr.num_proposals == 70
@@ -204,8 +204,8 @@ def test_episodes_reseed_only_unassigned_points(sphere_run: tuple) -> None:
 
 
 def test_phase_two_rules_see_each_rows_phase_one_review_coverage() -> None:
-    """`EMConfig.inclusion_by` = "confidence" needs each live row's review coverage: the solver hands the step
-    rules the phase-1 review's coverage of exactly the rows alive in every phase-2 step (none in phase 1), and
+    """`EMConfig.elimination.inclusion_by` = "confidence" needs each live row's review coverage: the solver hands
+    the step rules the phase-1 review's coverage of exactly the rows alive in every phase-2 step (none in phase 1), and
     a solve with that mode runs through and finds each sphere once."""
     from efem_viz.em.rules import STEP_RULES, StepContext, StepRule
 
@@ -217,10 +217,11 @@ def test_phase_two_rules_see_each_rows_phase_one_review_coverage() -> None:
         seen.append((ctx.phase, ctx.step, None if ctx.coverage is None else ctx.coverage.copy(), len(ctx.inliers)))
         return []
 
-    cfg = preset("fast").replace(n_init=(64,), inclusion="score", inclusion_by="confidence")
+    cfg = preset("fast").replace(proposals={"n_init": (64,)}, elimination={"inclusion": "score",
+                                                                           "inclusion_by": "confidence"})
     res = run_em(scene, prior, cfg, seed=5, step_rules=(StepRule("record", record), *STEP_RULES))
     tr = res.trace
-    assert [p for p, *_ in seen] == [1] * cfg.t1 + [2] * cfg.t2
+    assert [p for p, *_ in seen] == [1] * cfg.steps.t1 + [2] * cfg.steps.t2
     assert all(cov is None for p, _, cov, _ in seen if p == 1)
     for phase, step, cov, rows in seen:
         if phase == 2:
@@ -243,9 +244,11 @@ def test_random_shape_prior_smoke() -> None:
                                    center_hidden=8, n_pcl=64, k=8, decoder_hidden=32, decoder_blocks=1),
                        name="rand").eval()
     scene = make_sphere_scene(seed=1, radii=(0.05, 0.05))
-    cfg = preset("fast").replace(n_init=(24,), t1=3, t2=2, end_step=2, min_size=1, tau_d=(5.0, 5.0),
-                                 scale_horizontal=(0.0, 100.0), scale_height=(0.0, 100.0), mesh_resolution=16,
-                                 n_store=200)
+    cfg = preset("fast").replace(proposals={"n_init": (24,)},
+                                 steps={"t1": 3, "t2": 2, "end_step": 2, "tau_d": (5.0, 5.0)},
+                                 elimination={"min_size": 1},
+                                 review={"scale_horizontal": (0.0, 100.0), "scale_height": (0.0, 100.0),
+                                         "mesh_resolution": 16, "n_store": 200})
     steps: list[StepInfo] = []
     res = run_em(scene, prior, cfg, seed=0, on_step=steps.append)
     tr = res.trace
@@ -381,7 +384,7 @@ def _shipped_prior_or_skip() -> object:
 def test_trained_prior_finds_mugs() -> None:
     prior = _shipped_prior_or_skip()
     scene = _mug_scene()
-    res = run_em(scene, prior, preset("fast").replace(n_init=(100,)), seed=0)
+    res = run_em(scene, prior, preset("fast").replace(proposals={"n_init": (100,)}), seed=0)
     m = ious(res.instances, scene.instance)
     assert m.shape[1] == len(scene.instance_ids())
     best = m.max(axis=0) if len(res.instances) else np.zeros(m.shape[1])
@@ -405,10 +408,10 @@ def test_shipped_prior_regression_each_mug_found_once() -> None:
 
     prior = _shipped_prior_or_skip()
     scene = _mug_scene()
-    res = run_em(scene, prior, preset("fast").replace(n_init=(100,)), seed=0)
+    res = run_em(scene, prior, preset("fast").replace(proposals={"n_init": (100,)}), seed=0)
     m = ious(res.instances, scene.instance)
     assert m.shape[1] == 3 and 3 <= m.shape[0] <= 5, f"expected 3-5 instances for 3 mugs, got {m.shape[0]}"
-    assert res.config.tau_out == pytest.approx(0.07), "the shipped prior's calibrated mask band"
+    assert res.config.output.tau_out == pytest.approx(0.07), "the shipped prior's calibrated mask band"
     assert (m.max(axis=0) >= 0.45).all(), f"per-mug best IoU {np.round(m.max(axis=0), 3)}"
     confident = res.instances.confidence >= 0.1
     claimed = m[confident].argmax(axis=1)
@@ -426,12 +429,12 @@ def test_a_family_prior_names_each_instance_by_its_codebook_class() -> None:
     prior.codebook = dataclasses.replace(cb, class_id=np.ones(len(cb), np.int32),
                                          meta={**cb.meta, "classes": ["mug", "cup"]})
     try:
-        res = run_em(_mug_scene(), prior, preset("fast").replace(n_init=(40,)), seed=0)
+        res = run_em(_mug_scene(), prior, preset("fast").replace(proposals={"n_init": (40,)}), seed=0)
     finally:
         prior.codebook = cb
     assert len(res.instances) >= 1
     assert set(res.instances.category.tolist()) == {"cup"}
-    plain = run_em(_mug_scene(), prior, preset("fast").replace(n_init=(40,)), seed=0)
+    plain = run_em(_mug_scene(), prior, preset("fast").replace(proposals={"n_init": (40,)}), seed=0)
     assert set(plain.instances.category.tolist()) == {"mug"}
 
 
@@ -453,13 +456,14 @@ def test_encoder_dtype_keeps_the_encoder_in_float32_beside_a_bf16_decoder(encode
 
     prior.encode, prior.sdf = spy("encode", encode), spy("decode", sdf)  # type: ignore[method-assign]
     prior.sdf_and_normals = spy("decode", sdf_and_normals)  # type: ignore[method-assign]
-    cfg = preset("fast").replace(n_init=(16,), matmul_dtype="bfloat16", encoder_dtype=encoder_dtype)
+    cfg = preset("fast").replace(proposals={"n_init": (16,)}, compute={"matmul_dtype": "bfloat16",
+                                                                       "encoder_dtype": encoder_dtype})
     res = run_em(scene, prior, cfg, seed=5)
-    assert res.config.encoder_dtype == encoder_dtype
+    assert res.config.compute.encoder_dtype == encoder_dtype
     assert True in seen["decode"]  # the E-steps (the reviews decode in float32)
     assert seen["encode"] == ({False} if encoder_dtype == "float32" else {True})
     with pytest.raises(ValueError, match="encoder_dtype"):
-        preset("fast").replace(encoder_dtype="float16")
+        preset("fast").replace(compute={"encoder_dtype": "float16"})
 
 
 def test_bf16_solve_finds_the_same_mugs_and_replays_in_its_precision(tmp_path: Path) -> None:
@@ -471,21 +475,22 @@ def test_bf16_solve_finds_the_same_mugs_and_replays_in_its_precision(tmp_path: P
 
     prior = _shipped_prior_or_skip()
     scene = _mug_scene()
-    res = run_em(scene, prior, preset("fast").replace(n_init=(100,), matmul_dtype="bfloat16"), seed=0)
+    res = run_em(scene, prior, preset("fast").replace(proposals={"n_init": (100,)},
+                                                      compute={"matmul_dtype": "bfloat16"}), seed=0)
     m = ious(res.instances, scene.instance)
     assert (m.max(axis=0) >= 0.45).all(), f"per-mug best IoU {np.round(m.max(axis=0), 3)}"
     ev = evaluate_scene([np.asarray(k) for k in res.instances.masks], res.instances.confidence, scene.instance)
     assert ev.ap25 == pytest.approx(1.0), f"AP25 {ev.ap25:.3f} (AP50 {ev.ap50:.3f})"
-    assert res.config.matmul_dtype == "bfloat16"
+    assert res.config.compute.matmul_dtype == "bfloat16"
     back = EMResult.load(res.save(tmp_path), scene=scene, prior=prior)
-    assert back.config.matmul_dtype == "bfloat16"
+    assert back.config.compute.matmul_dtype == "bfloat16"
     tr = back.trace
     pid = int(back.instances.ids[0])
     for t in (0, tr.last_step(pid)):
         w = back.replay.weights_out(pid, t, full_resolution=False)
         assert int((w > 1e-30).sum()) == int(tr.row_inliers[tr.row_of(pid, t)])
     with pytest.raises(ValueError, match="matmul_dtype"):
-        preset("fast").replace(matmul_dtype="float16")
+        preset("fast").replace(compute={"matmul_dtype": "float16"})
 
 
 def test_instances_npz_round_trip_including_empty() -> None:

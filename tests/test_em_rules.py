@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 
 import json
 
@@ -12,7 +11,7 @@ import scipy.sparse as sp
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from efem_viz.em.config import EMConfig, category_fields, preset, resolve_for_prior
+from efem_viz.em.config import EMConfig, ProposalSettings, category_fields, preset, resolve_for_prior
 from efem_viz.em.estep import energy_weights, schedule
 from efem_viz.em.proposals import AvailableTree, Ragged, init_crops, lookup, sample_independent, sample_joint
 from efem_viz.em.rules import (
@@ -225,25 +224,25 @@ def test_step_rules_run_in_order_and_each_kill_hides_the_row_from_later_rules() 
     assert ctx.active.tolist() == [False, True, False]
     # phase 2 with a duplicate threshold above 1: no duplicate, but b lies inside a (19/19 > 0.8)
     ctx = _ctx(2, [20, 19], [a, b], [0.1, 0.9])
-    ctx.cfg = ctx.cfg.replace(joint_dup_iou=1.01)
+    ctx.cfg = ctx.cfg.replace(elimination={"joint_dup_iou": 1.01})
     assert [(k.row, k.partner, k.reason) for k in apply_step_rules(ctx)] == [(0, 1, REASON_INCLUDED)]
 
 
 def test_the_inclusion_mode_of_the_config_reaches_the_step_rule() -> None:
-    """`EMConfig.inclusion` through `apply_step_rules`: b (19 points) lies inside a (20) and a inside b; a is
-    visited first and scores higher. The paper kills a; "score" spares it and b dies inside a; "swap" kills b
+    """`EMConfig.elimination.inclusion` through `apply_step_rules`: b (19 points) lies inside a (20) and a inside
+    b; a is visited first and scores higher. The paper kills a; "score" spares it and b dies inside a; "swap" kills b
     as the includer of a better fit, and that reason is in the name table."""
     a, b = list(range(0, 20)), list(range(0, 19))
     got = {}
     for mode in ("paper", "score", "swap"):
         ctx = _ctx(2, [20, 19], [a, b], [0.9, 0.1])
-        ctx.cfg = ctx.cfg.replace(joint_dup_iou=1.01, inclusion=mode)
+        ctx.cfg = ctx.cfg.replace(elimination={"joint_dup_iou": 1.01, "inclusion": mode})
         got[mode] = [(k.row, k.partner, k.reason) for k in apply_step_rules(ctx)]
     assert got == {"paper": [(0, 1, REASON_INCLUDED)], "score": [(1, 0, REASON_INCLUDED)],
                    "swap": [(1, 0, REASON_INCLUDES_BETTER)]}
     assert REASON_INCLUDES_BETTER in reason_names()
     with pytest.raises(ValueError, match="inclusion must be one of"):
-        preset("fast").replace(inclusion="largest").validate()
+        preset("fast").replace(elimination={"inclusion": "largest"}).validate()
 
 
 def test_capped_confidence_is_the_papers_confidence() -> None:
@@ -267,7 +266,7 @@ def test_confidence_inclusion_spares_a_tight_fit_inside_a_wide_one() -> None:
         for by in ("stationary", "confidence"):
             ctx = _ctx(2, [30, 19], [a, b], [0.9, 0.6])
             ctx.coverage = np.array([0.05, 0.35])
-            ctx.cfg = ctx.cfg.replace(joint_dup_iou=1.01, inclusion=mode, inclusion_by=by)
+            ctx.cfg = ctx.cfg.replace(elimination={"joint_dup_iou": 1.01, "inclusion": mode, "inclusion_by": by})
             got[mode, by] = [(k.row, k.partner, k.reason) for k in apply_step_rules(ctx)]
     assert got == {("paper", "stationary"): [(1, 0, REASON_INCLUDED)],
                    ("paper", "confidence"): [(1, 0, REASON_INCLUDED)],
@@ -278,16 +277,16 @@ def test_confidence_inclusion_spares_a_tight_fit_inside_a_wide_one() -> None:
     # the same pair with the coverages swapped: the wide fit is also the better explained one and wins
     ctx = _ctx(2, [30, 19], [a, b], [0.9, 0.6])
     ctx.coverage = np.array([0.35, 0.05])
-    ctx.cfg = ctx.cfg.replace(joint_dup_iou=1.01, inclusion="swap", inclusion_by="confidence")
+    ctx.cfg = ctx.cfg.replace(elimination={"joint_dup_iou": 1.01, "inclusion": "swap", "inclusion_by": "confidence"})
     assert [(k.row, k.partner) for k in apply_step_rules(ctx)] == [(1, 0)]
     # a context without review coverage cannot decide by confidence: one clear error, not a silent fallback
     ctx = _ctx(2, [30, 19], [a, b], [0.9, 0.6])
     ctx.coverage = None
-    ctx.cfg = ctx.cfg.replace(joint_dup_iou=1.01, inclusion="score", inclusion_by="confidence")
+    ctx.cfg = ctx.cfg.replace(elimination={"joint_dup_iou": 1.01, "inclusion": "score", "inclusion_by": "confidence"})
     with pytest.raises(ValueError, match="needs the rows' review coverage"):
         apply_step_rules(ctx)
     with pytest.raises(ValueError, match="inclusion_by must be one of"):
-        preset("fast").replace(inclusion_by="coverage").validate()
+        preset("fast").replace(elimination={"inclusion_by": "coverage"}).validate()
 
 
 def test_a_registered_rule_runs_and_its_reason_enters_the_name_table() -> None:
@@ -325,16 +324,16 @@ def test_review_rules_first_failure_wins() -> None:
     # the free-space check: unmeasured (NaN) passes; above the config's limit fails with the fraction
     from efem_viz.em import preset
 
-    cfg = preset("real").replace(seen_through_margin=0.01, max_seen_through=0.2, seen_through_final=False)
+    cfg = preset("real").replace(free_space={"margin": 0.01, "max_seen_through": 0.2, "final": False})
     ok = rec._replace(scale_pass=True, pose_pass=True)
     assert first_failed_review(ok._replace(seen_through=0.2), cfg) is None
     assert first_failed_review(ok._replace(seen_through=0.35), cfg) == ("seen-through", 0.35)
     assert first_failed_review(ok._replace(seen_through=float("nan")), cfg) is None
     # seen_through_final: the independent phase's review measures only, the joint phase's (the last) removes
-    final = cfg.replace(seen_through_final=True)
+    final = cfg.replace(free_space={"final": True})
     assert first_failed_review(ok._replace(seen_through=0.35), final) is None
     assert first_failed_review(ok._replace(seen_through=0.35, phase=2), final) == ("seen-through", 0.35)
-    assert first_failed_review(ok._replace(seen_through=0.35), final.replace(t2=0)) == ("seen-through", 0.35)
+    assert first_failed_review(ok._replace(seen_through=0.35), final.replace(steps={"t2": 0})) == ("seen-through", 0.35)
 
 
 # ---------------------------------------------------------------------------------------------- schedule
@@ -357,18 +356,20 @@ def test_real_preset_is_the_paper_one_with_the_measured_changes() -> None:
     rule that spares the better fit (by stationary score; the synthetic presets compare the confidence) + 200
     proposals spread over the frame instead of 400 uniform ones."""
     real, paper = preset("real"), preset("real_paper")
-    assert dataclasses.replace(real, name="real_paper", tau_d=paper.tau_d, tau_n=paper.tau_n, m_step_replace=True,
-                               seen_through_margin=None, max_seen_through=paper.max_seen_through,
-                               seen_through_edge=None, seen_through_range=0.0, seen_through_final=False,
-                               mug_model=None, inclusion="paper", n_init=paper.n_init, anchors="random") == paper
-    assert real.n_init == (200,) and real.anchors == "spread" and paper.n_init == (400,)
-    assert (real.seen_through_edge, real.seen_through_range, real.seen_through_final) == (0.02, 0.01, True)
-    assert real.mug_model == "mug_uois_tune" and paper.mug_model is None and real.pose_weight == 0.0
-    assert real.inclusion == "score" and real.inclusion_by == "stationary" and paper.inclusion == "paper"
+    assert real.replace(name="real_paper", steps={"tau_d": paper.steps.tau_d, "tau_n": paper.steps.tau_n,
+                                                   "m_step_replace": True},
+                        free_space=paper.free_space, confidence={"look_alike": None},
+                        elimination={"inclusion": "paper"}, proposals=paper.proposals) == paper
+    assert real.proposals.n_init == (200,) and real.proposals.anchors == "spread" and paper.proposals.n_init == (400,)
+    assert (real.free_space.edge, real.free_space.range_growth, real.free_space.final) == (0.02, 0.01, True)
+    assert real.confidence.look_alike == "mug_uois_tune" and paper.confidence.look_alike is None
+    assert real.confidence.pose_weight == 0.0
+    assert (real.elimination.inclusion, real.elimination.inclusion_by) == ("score", "stationary")
+    assert paper.elimination.inclusion == "paper"
     for name in ("synthetic", "fast"):  # the better-explained fit is spared
-        assert (preset(name).inclusion, preset(name).inclusion_by) == ("score", "confidence")
+        assert (preset(name).elimination.inclusion, preset(name).elimination.inclusion_by) == ("score", "confidence")
     assert schedule(real, 0) == pytest.approx((3.0, 0.15, 0.003, 180.0))
-    assert not real.m_step_replace and real.seen_through_margin == 0.01 and real.max_seen_through == 0.15
+    assert not real.steps.m_step_replace and real.free_space.margin == 0.01 and real.free_space.max_seen_through == 0.15
 
 
 def test_the_free_space_switch_adds_or_removes_the_real_presets_check() -> None:
@@ -379,14 +380,15 @@ def test_the_free_space_switch_adds_or_removes_the_real_presets_check() -> None:
 
     real, syn = preset("real"), preset("synthetic")
     assert SolveSettings(preset="real").config() == real
-    assert SolveSettings(preset="synthetic").config() == syn and syn.seen_through_margin is None
+    assert SolveSettings(preset="synthetic").config() == syn and syn.free_space.margin is None
     on = SolveSettings(preset="synthetic", free_space="on").config()
-    assert on == syn.replace(**FREE_SPACE_FUSED)
-    assert on.seen_through_margin > real.seen_through_margin and on.max_seen_through > real.max_seen_through
+    assert on == syn.replace(free_space=FREE_SPACE_FUSED)
+    assert on.free_space.margin > real.free_space.margin
+    assert on.free_space.max_seen_through > real.free_space.max_seen_through
     assert SolveSettings(preset="real", free_space="on").config() == real
-    assert {k: getattr(real, k) for k in FREE_SPACE} == FREE_SPACE
+    assert real.free_space == FREE_SPACE.replace(final=True)
     off = SolveSettings(preset="real", free_space="off").config()
-    assert off.seen_through_margin is None and off.replace(seen_through_margin=0.01) == real
+    assert off.free_space.margin is None and off.replace(free_space={"margin": 0.01}) == real
     with pytest.raises(ValueError, match="free_space"):
         SolveSettings(preset="real", free_space="maybe").config()  # type: ignore[arg-type]
 
@@ -394,7 +396,7 @@ def test_the_free_space_switch_adds_or_removes_the_real_presets_check() -> None:
 def test_schedule_synthetic_keeps_tau_d_and_phase2_uses_end_values() -> None:
     cfg = preset("synthetic")
     assert schedule(cfg, 5)[1] == pytest.approx(0.1)
-    long = cfg.replace(end_step=30)  # phase 2 must use the end values even if annealing is not finished
+    long = cfg.replace(steps={"end_step": 30})  # phase 2 must use the end values even if annealing is not finished
     assert schedule(long, 15) == pytest.approx((30.0, 0.1, 0.006, 60.0))
     assert schedule(long, 14)[0] < 30.0
 
@@ -402,41 +404,47 @@ def test_schedule_synthetic_keeps_tau_d_and_phase2_uses_end_values() -> None:
 def test_presets_follow_the_spec_table() -> None:
     syn, real, fast = preset("synthetic"), preset("real_paper"), preset("fast")
     assert preset("synthetic_mugs") == syn and preset("real_mugs") == preset("real")  # the old names still work
-    assert syn.n_init == (400,) and syn.min_size == 300
+    assert syn.proposals.n_init == (400,) and syn.elimination.min_size == 300
     # crop radii are the category's (spec: mugs 0.07 / 0.11 m, synthetic chairs 0.5 / 0.8 m); explicit values win
-    assert syn.r_init is None and syn.r_err is None
+    assert syn.proposals.r_init is None and syn.proposals.r_err is None
     mug = category_fields(syn, KNOWN_CATEGORIES["mug"])
     chair = category_fields(syn, KNOWN_CATEGORIES["chair"])
-    assert (mug["r_init"], mug["r_err"]) == (0.07, 0.11) and (chair["r_init"], chair["r_err"]) == (0.5, 0.8)
-    assert "r_init" not in category_fields(syn.replace(r_init=0.2), KNOWN_CATEGORIES["chair"])
-    assert (syn.stat_tau, syn.stat_gamma, syn.cov_tau, syn.cov_gamma) == (0.04, 45.0, 0.04, 45.0)
-    assert (real.stat_tau, real.stat_gamma, real.cov_tau, real.cov_gamma) == (0.03, 30.0, 0.03, 30.0)
+    assert mug["proposals"] == {"r_init": 0.07, "r_err": 0.11} and chair["proposals"] == {"r_init": 0.5, "r_err": 0.8}
+    assert category_fields(syn.replace(proposals={"r_init": 0.2}), KNOWN_CATEGORIES["chair"])["proposals"] == {
+        "r_err": 0.8}
+    assert (syn.confidence.stat_tau, syn.confidence.stat_gamma, syn.confidence.cov_tau,
+            syn.confidence.cov_gamma) == (0.04, 45.0, 0.04, 45.0)
+    assert (real.confidence.stat_tau, real.confidence.stat_gamma, real.confidence.cov_tau,
+            real.confidence.cov_gamma) == (0.03, 30.0, 0.03, 30.0)
     # sizes are the category's, per capture domain: the presets leave them to the prior
-    assert real.scale_horizontal is None and syn.scale_height is None and real.domain == "real"
+    assert real.review.scale_horizontal is None and syn.review.scale_height is None and real.domain == "real"
     mug = category_settings("mug")
     real_mug, syn_mug = resolve_for_prior(real, _Named("mug")), resolve_for_prior(syn, _Named("mug"))
-    assert real_mug.scale_horizontal == (0.03, 0.08) and real_mug.scale_height == (0.015, 0.10)
-    assert syn_mug.scale_horizontal == (0.03, 0.08) and syn_mug.scale_height == (0.015, 0.30)
-    assert syn_mug.up_range == mug.up_range == (0.0, 180.0) and syn_mug.tau_out == 0.04
+    assert real_mug.review.scale_horizontal == (0.03, 0.08) and real_mug.review.scale_height == (0.015, 0.10)
+    assert syn_mug.review.scale_horizontal == (0.03, 0.08) and syn_mug.review.scale_height == (0.015, 0.30)
+    assert syn_mug.review.up_range == mug.up_range == (0.0, 180.0) and syn_mug.output.tau_out == 0.04
     # an explicit value in the config wins over the category's
-    assert resolve_for_prior(real.replace(scale_horizontal=(0.01, 0.5)), _Named("mug")).scale_horizontal == (0.01, 0.5)
+    assert resolve_for_prior(real.replace(review={"scale_horizontal": (0.01, 0.5)}),
+                             _Named("mug")).review.scale_horizontal == (0.01, 0.5)
     # an unknown category checks no size; metadata can carry its settings
     free = resolve_for_prior(syn, _Named("teapot"))
-    assert free.scale_horizontal == (0.0, float("inf"))
+    assert free.review.scale_horizontal == (0.0, float("inf"))
     meta = {"category": CategorySettings("teapot", scale_horizontal=(0.05, 0.2)).to_dict(), "tau_out": 0.06}
     tea = resolve_for_prior(syn, _Named("teapot", meta))
-    assert tea.scale_horizontal == (0.05, 0.2) and tea.tau_out == 0.06 and tea.scale_height == (0.0, float("inf"))
-    assert (syn.t1, syn.t2, syn.omega, syn.joint_incl) == (15, 5, 1e-4, 0.8)
-    assert 50 <= fast.n_init[0] <= 100
+    assert tea.review.scale_horizontal == (0.05, 0.2) and tea.review.scale_height == (0.0, float("inf"))
+    assert tea.output.tau_out == 0.06
+    assert (syn.steps.t1, syn.steps.t2, syn.steps.omega, syn.elimination.joint_incl) == (15, 5, 1e-4, 0.8)
+    assert 50 <= fast.proposals.n_init[0] <= 100
     with pytest.raises(ValueError, match="unknown EM preset"):
         preset("sofas")
     # the synthetic-chairs column of the spec's table; the chair prior's category brings the 0.5 / 0.8 m crop radii
     chairs = resolve_for_prior(preset("chairs"), _Named("chair"))
-    assert (chairs.n_init, chairs.alpha_d, chairs.tau_d, chairs.tau_n) == ((200,), (5.0, 20.0), (0.2, 0.15),
-                                                                          (120.0, 80.0))
-    assert (chairs.min_size, chairs.dup_iou, chairs.r_init, chairs.r_err) == (1000, 0.8, 0.5, 0.8)
+    assert (chairs.proposals.n_init, chairs.steps.alpha_d, chairs.steps.tau_d, chairs.steps.tau_n) == (
+        (200,), (5.0, 20.0), (0.2, 0.15), (120.0, 80.0))
+    assert (chairs.elimination.min_size, chairs.elimination.dup_iou, chairs.proposals.r_init,
+            chairs.proposals.r_err) == (1000, 0.8, 0.5, 0.8)
     assert EMConfig.from_json(real.to_json()) == real
-    assert syn.with_proposals(64).n_init == (64,)
+    assert syn.with_proposals(64).proposals.n_init == (64,)
 
 
 class _Named:
@@ -595,7 +603,7 @@ def test_spread_anchors_cover_space_not_density() -> None:
     assert set(masked.tolist()) == {3, 9500}
     assert spread_anchors(pts[:0], 5, np.random.default_rng(0)).shape == (0,)
     with pytest.raises(ValueError, match="anchors must be"):
-        EMConfig(anchors="grid")  # type: ignore[arg-type]
+        EMConfig(proposals=ProposalSettings(anchors="grid"))  # type: ignore[arg-type]
 
 
 def test_cylinder_neighbourhood_ignores_height() -> None:
@@ -639,7 +647,7 @@ def test_review_rules_decide_from_the_measures() -> None:
     big = rec._replace(radii=np.array([0.2, 0.05]), scale_pass=True)
     assert first_failed_review(big, cfg) == ("scale-fail", 0.2)
     tilted = rec._replace(up_angle=80.0, pose_pass=True)
-    upright = cfg.replace(up_range=(0.0, 30.0))
+    upright = cfg.replace(review={"up_range": (0.0, 30.0)})
     assert up_passes(80.0, cfg)  # real captures leave the up axis free
     assert not up_passes(80.0, upright) and first_failed_review(tilted, upright) == ("pose-fail", 80.0)
     with pytest.raises(ValueError, match="unresolved"):

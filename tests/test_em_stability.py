@@ -114,14 +114,16 @@ def test_size_rule_on_band_ignores_normals_and_scales_with_density() -> None:
     cfg = preset("real")
     counts, thr = size_counts(cfg, inliers, d, rag, 5, 0.1)
     assert counts.tolist() == [2, 3] and thr.tolist() == [5, 5]
-    counts, thr = size_counts(cfg.replace(min_size_on="band"), inliers, d, rag, 5, 0.1)
+    counts, thr = size_counts(cfg.replace(elimination={"min_size_on": "band"}), inliers, d, rag, 5, 0.1)
     assert counts.tolist() == [6, 10]
     # row 0's points 2× as far apart as the reference: a quarter of the points cover the same area
     spacing = np.array([0.008] * 10 + [0.004] * 10)
-    _, thr = size_counts(cfg.replace(min_size_on="band", min_size_spacing=0.004), inliers, d, rag, 8, 0.1,
+    _, thr = size_counts(cfg.replace(elimination={"min_size_on": "band", "min_size_spacing": 0.004}), inliers, d, rag,
+                         8, 0.1,
                          spacing=spacing)
     assert thr.tolist() == [2.0, 8.0]
-    ctx = StepContext(phase=1, step=0, local_step=0, cfg=cfg.replace(min_size_on="band"), inliers=inliers,
+    ctx = StepContext(phase=1, step=0, local_step=0, cfg=cfg.replace(elimination={"min_size_on": "band"}),
+                      inliers=inliers,
                       stationary=np.ones(2), d=d, rag=rag, n_points=20, min_size=7,
                       owner=np.zeros(2, np.int64), tau_d=0.1)
     kills = apply_step_rules(ctx)
@@ -135,9 +137,9 @@ def test_point_spacing_of_a_grid() -> None:
 
 def test_config_refuses_bad_size_rule_settings() -> None:
     with pytest.raises(ValueError, match="min_size_on"):
-        preset("real").replace(min_size_on="normals")
+        preset("real").replace(elimination={"min_size_on": "normals"})
     with pytest.raises(ValueError, match="min_size_spacing"):
-        preset("real").replace(min_size_spacing=-1.0)
+        preset("real").replace(elimination={"min_size_spacing": -1.0})
 
 
 # ---------------------------------------------------------------------------------------------- probe
@@ -149,7 +151,7 @@ def test_probe_keeps_a_sphere_from_oracle_and_anchor_starts() -> None:
     scene = make_sphere_scene(seed=0, radii=(0.05,), spacing=0.006)
     prior = make_sphere_prior()
     mask = scene.instance == 1
-    cfg = preset("fast").replace(t1=6, min_size=50)
+    cfg = preset("fast").replace(steps={"t1": 6}, elimination={"min_size": 50})
     tr = track_proposal(scene, prior, cfg, object_mask=mask, start="oracle", steps=6)
     assert len(tr.inliers) == 6 and tr.explained[-1] > 0.9 and tr.alive
     assert tr.output_iou > 0.8
@@ -157,7 +159,8 @@ def test_probe_keeps_a_sphere_from_oracle_and_anchor_starts() -> None:
     tr2 = track_proposal(scene, prior, cfg, object_mask=mask, start=start, steps=6)
     assert tr2.explained[-1] > 0.8 and tr2.output_iou > 0.8
     # a size rule above the object's point count: the probe reports it dead
-    tr3 = track_proposal(scene, prior, cfg.replace(min_size=int(mask.sum()) * 2), object_mask=mask, start="oracle",
+    tr3 = track_proposal(scene, prior, cfg.replace(elimination={"min_size": int(mask.sum()) * 2}), object_mask=mask,
+                         start="oracle",
                          steps=3)
     assert not tr3.alive
 

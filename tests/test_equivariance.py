@@ -301,7 +301,8 @@ def test_latent_refinement_is_sim3_equivariant(prior: ShapePrior, seed: int) -> 
     """Refining Θ on samples, then transforming, equals refining on transformed samples (float64)."""
     import numpy as np
 
-    from efem_viz.em.refine import RefineSettings, refine_latents
+    from efem_viz.em.config import RefineSettings
+    from efem_viz.em.refine import refine_latents
 
     s, R, t = random_similarity(300 + seed)
     P = torch.stack([mug_like(128, seed), mug_like(128, seed + 7) * 0.8])

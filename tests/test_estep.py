@@ -140,9 +140,9 @@ def test_stationary_score_without_samples_or_entries() -> None:
 
 def _naive_schedule(cfg: EMConfig, t: int) -> tuple[float, float, float, float]:
     """§3.6.3: λ(t) = min(t, T_e)/T_e, linear from start to end; phase-2 steps (t ≥ t1) use the end values."""
-    lam = 1.0 if t >= cfg.t1 else min(t, cfg.end_step) / cfg.end_step
+    lam = 1.0 if t >= cfg.steps.t1 else min(t, cfg.steps.end_step) / cfg.steps.end_step
     vals = []
-    for start, end in (cfg.alpha_d, cfg.tau_d, cfg.alpha_n, cfg.tau_n):
+    for start, end in (cfg.steps.alpha_d, cfg.steps.tau_d, cfg.steps.alpha_n, cfg.steps.tau_n):
         vals.append(start + (end - start) * lam)
     return vals[0], vals[1], vals[2], vals[3]
 
@@ -150,15 +150,18 @@ def _naive_schedule(cfg: EMConfig, t: int) -> tuple[float, float, float, float]:
 @pytest.mark.parametrize("name", ["synthetic", "real", "real_paper", "fast"])
 def test_schedule_matches_the_formula(name: str) -> None:
     cfg = preset(name)
-    for t in range(cfg.steps_per_episode):
+    for t in range(cfg.steps.per_episode):
         assert schedule(cfg, t) == pytest.approx(_naive_schedule(cfg, t), rel=1e-12)
-    assert schedule(cfg, cfg.t1) == pytest.approx(tuple(p[1] for p in (cfg.alpha_d, cfg.tau_d, cfg.alpha_n,
-                                                                         cfg.tau_n)))
+    assert schedule(cfg, cfg.steps.t1) == pytest.approx(tuple(p[1] for p in (cfg.steps.alpha_d, cfg.steps.tau_d,
+                                                                             cfg.steps.alpha_n,
+                                                                         cfg.steps.tau_n)))
 
 
 def test_normals_threshold_covers_every_test_that_reads_a_normal() -> None:
     cfg = preset("synthetic")
-    assert normals_threshold(cfg, 0.01) == pytest.approx(max(0.01, cfg.stat_tau, *(
-        [cfg.out_tau] if cfg.gamma_out < 180.0 else [])))
-    assert normals_threshold(cfg.replace(gamma_out=180.0, stat_tau=0.02), 0.3) == pytest.approx(0.3)
-    assert normals_threshold(cfg.replace(gamma_out=90.0, stat_tau=0.02, tau_out=0.5), 0.3) == pytest.approx(0.5)
+    assert normals_threshold(cfg, 0.01) == pytest.approx(max(0.01, cfg.confidence.stat_tau, *(
+        [cfg.output.out_tau] if cfg.output.gamma_out < 180.0 else [])))
+    assert normals_threshold(cfg.replace(output={"gamma_out": 180.0}, confidence={"stat_tau": 0.02}),
+                             0.3) == pytest.approx(0.3)
+    assert normals_threshold(cfg.replace(output={"gamma_out": 90.0, "tau_out": 0.5}, confidence={"stat_tau": 0.02}),
+                             0.3) == pytest.approx(0.5)

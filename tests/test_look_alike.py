@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from efem_viz.em import look_alike
-from efem_viz.em.config import EMConfig, preset
+from efem_viz.em.config import ConfidenceSettings, EMConfig, preset
 from efem_viz.em.look_alike import FEATURES, LookAlikeModel, fit_logistic, load_model, review_features
 
 
@@ -108,10 +108,10 @@ def test_only_shipped_names(name: str) -> None:
     with pytest.raises(ValueError, match="look-alike model"):
         load_model(name)
     if name == "no_such_model":  # a plain name: a config (a saved result) holding it still loads
-        EMConfig(mug_model=name).validate()
+        EMConfig(confidence=ConfidenceSettings(look_alike=name)).validate()
     else:
         with pytest.raises(ValueError, match="look-alike model"):
-            EMConfig(mug_model=name).validate()
+            EMConfig(confidence=ConfidenceSettings(look_alike=name)).validate()
 
 
 def test_values_that_are_not_numbers_and_missing_measurements() -> None:
@@ -131,13 +131,13 @@ def test_shipped_models_load_and_configure() -> None:
     for name in names:
         m = load_model(name)
         assert 0.0 < m.prob(_features()) < 1.0
-        cfg = preset("real").replace(mug_model=name)
-        assert EMConfig.from_json(cfg.to_json()).mug_model == name
+        cfg = preset("real").replace(confidence={"look_alike": name})
+        assert EMConfig.from_json(cfg.to_json()).confidence.look_alike == name
 
 
 def test_solver_confidence_is_the_models_and_instances_do_not_change(tmp_path, monkeypatch) -> None:
-    """`EMConfig.mug_model`: each accepted fit's confidence is the model's (from its last review and stationary
-    score, as `bench/learned_confidence.py` scores saved runs), and the instances are those of the same run
+    """`EMConfig.confidence.look_alike`: each accepted fit's confidence is the model's (from its last review and
+    stationary score, as `bench/learned_confidence.py` scores saved runs), and the instances are those of the same run
     without it (one episode: the confidence decides no elimination)."""
     import torch
 
@@ -154,10 +154,11 @@ def test_solver_confidence_is_the_models_and_instances_do_not_change(tmp_path, m
                    category="mug").save(tmp_path / "other.json")
     scene = analytic.make_sphere_scene(seed=0, spacing=0.008, name="spheres")
     prior = analytic.make_sphere_prior()
-    cfg = em.preset("fast").with_proposals(16).replace(min_size=30)
+    cfg = em.preset("fast").with_proposals(16).replace(elimination={"min_size": 30})
     plain = em.run_em(scene, prior, cfg, seed=0)
-    learned = em.run_em(scene, prior, cfg.replace(mug_model="toy"), seed=0)
-    other = em.run_em(scene, prior, cfg.replace(mug_model="other"), seed=0)  # scores mugs: spheres keep theirs
+    learned = em.run_em(scene, prior, cfg.replace(confidence={"look_alike": "toy"}), seed=0)
+    other = em.run_em(scene, prior, cfg.replace(confidence={"look_alike": "other"}),
+                      seed=0)  # scores mugs: spheres keep theirs
     load_model.cache_clear()
     assert np.array_equal(other.instances.confidence, plain.instances.confidence)
     assert len(plain.instances) == len(learned.instances) > 0

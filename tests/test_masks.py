@@ -46,12 +46,13 @@ def _offset_sphere_prior() -> Any:
 
 
 def _cfg(**changes: Any) -> EMConfig:
-    return preset("fast").replace(n_init=(48,), **changes)
+    """The fast preset with 48 proposals and ``changes`` per group (`EMConfig.replace`)."""
+    return preset("fast").with_proposals(48).replace(**changes)
 
 
 def _offset_cfg(**changes: Any) -> EMConfig:
     """Every SDF band but τ_out widened to 0.1, as a run with an offset prior would need (so it finds the spheres)."""
-    return _cfg(stat_tau=0.1, cov_tau=0.1, dup_sdf=0.1, **changes)
+    return _cfg(confidence={"stat_tau": 0.1, "cov_tau": 0.1}, elimination={"dup_sdf": 0.1}, **changes)
 
 
 @pytest.fixture(scope="module")
@@ -64,8 +65,8 @@ def sphere_runs() -> dict[str, Any]:
         "prior": prior,
         "offset_prior": offset,
         "exact": run_em(scene, prior, _cfg(), seed=5),
-        "thinned": run_em(scene, prior, _cfg(work_voxel=0.012), seed=5),
-        "gated": run_em(scene, prior, _cfg(gamma_out=60.0), seed=5),
+        "thinned": run_em(scene, prior, _cfg(compute={"work_voxel": 0.012}), seed=5),
+        "gated": run_em(scene, prior, _cfg(output={"gamma_out": 60.0}), seed=5),
         "offset": run_em(scene, offset, _offset_cfg(), seed=5),
     }
 
@@ -73,11 +74,11 @@ def sphere_runs() -> dict[str, Any]:
 # ---------------------------------------------------------------------------------------------- config
 def test_tau_out_resolves_from_the_prior_or_the_spec() -> None:
     prior = make_sphere_prior()
-    assert resolve_for_prior(_cfg(), prior).tau_out == DEFAULT_TAU_OUT  # no metadata: the spec's 0.04
+    assert resolve_for_prior(_cfg(), prior).output.tau_out == DEFAULT_TAU_OUT  # no metadata: the spec's 0.04
     prior.metadata = {"tau_out": 0.07}
     assert prior_category(prior).out_tau == 0.07
-    assert resolve_for_prior(_cfg(), prior).tau_out == 0.07
-    assert resolve_for_prior(_cfg(tau_out=0.05), prior).tau_out == 0.05  # an explicit value wins
+    assert resolve_for_prior(_cfg(), prior).output.tau_out == 0.07
+    assert resolve_for_prior(_cfg(output={"tau_out": 0.05}), prior).output.tau_out == 0.05  # an explicit value wins
     for bad in (float("nan"), -1.0, 0.0, 3.0, "wide", None):
         prior.metadata = {"tau_out": bad}
         assert prior_category(prior).out_tau == DEFAULT_TAU_OUT
@@ -86,17 +87,17 @@ def test_tau_out_resolves_from_the_prior_or_the_spec() -> None:
 def test_tau_out_validation_and_json_round_trip() -> None:
     for bad in (0.0, -0.01, 0.51):
         with pytest.raises(ValueError, match="tau_out"):
-            _cfg(tau_out=bad)
+            _cfg(output={"tau_out": bad})
     for value in (None, 0.08):
-        cfg = _cfg(tau_out=value)
+        cfg = _cfg(output={"tau_out": value})
         back = EMConfig.from_json(cfg.to_json())
-        assert back == cfg and back.out_tau == (DEFAULT_TAU_OUT if value is None else value)
+        assert back == cfg and back.output.out_tau == (DEFAULT_TAU_OUT if value is None else value)
 
 
 def test_run_records_the_prior_tau_out_and_masks_follow_it(sphere_runs: dict[str, Any]) -> None:
     scene, offset = sphere_runs["scene"], sphere_runs["offset_prior"]
     res = sphere_runs["offset"]
-    assert res.config.tau_out == DEFAULT_TAU_OUT  # recorded, not None
+    assert res.config.output.tau_out == DEFAULT_TAU_OUT  # recorded, not None
     # the offset prior puts the scan's surface at d ≈ 0.05: with the spec's 0.04 the masks miss most points
     assert len(res.instances) == 3
     assert max(len(m) for m in res.instances.masks) < 0.3 * min((scene.instance == g).sum() for g in (1, 2, 3))
@@ -105,8 +106,8 @@ def test_run_records_the_prior_tau_out_and_masks_follow_it(sphere_runs: dict[str
         wide = run_em(scene, offset, _offset_cfg(), seed=5)
     finally:
         offset.metadata = {}
-    assert wide.config.tau_out == 0.09
-    explicit = run_em(scene, offset, _offset_cfg(tau_out=0.09), seed=5)
+    assert wide.config.output.tau_out == 0.09
+    explicit = run_em(scene, offset, _offset_cfg(output={"tau_out": 0.09}), seed=5)
     for a, b in zip(wide.instances.masks, explicit.instances.masks, strict=True):
         assert np.array_equal(a, b)
     ev = evaluate_scene([np.asarray(m) for m in wide.instances.masks], wide.instances.confidence, scene.instance)
@@ -120,7 +121,8 @@ def test_rederived_masks_equal_the_run_at_its_own_threshold(sphere_runs: dict[st
     prior = sphere_runs["offset_prior" if key == "offset" else "prior"]
     dist = instance_distances(res, sphere_runs["scene"], prior)
     assert len(dist.idx) == len(res.instances) >= 2
-    for got, want in zip(dist.masks(res.config.out_tau, res.config.gamma_out), res.instances.masks, strict=True):
+    for got, want in zip(dist.masks(res.config.output.out_tau, res.config.output.gamma_out), res.instances.masks,
+                         strict=True):
         assert np.array_equal(np.sort(got), np.sort(want))
     # wider thresholds only add points
     for small, big in zip(dist.masks(0.03), dist.masks(0.08), strict=True):
@@ -218,10 +220,11 @@ def test_calibrate_masks_cli_writes_the_prior_metadata(tmp_path: Path, capsys: p
     out = tmp_path / "out"
     assert cli.main(["segment", str(sp), "--prior", str(pt), "--out", str(out), "--preset", "fast",
                      "--proposals", "8"]) == 0
-    assert EMResult.load(out / "one.efem.npz").config.tau_out == DEFAULT_TAU_OUT  # no calibration yet: the spec's
+    # no calibration yet: the spec's
+    assert EMResult.load(out / "one.efem.npz").config.output.tau_out == DEFAULT_TAU_OUT
     assert cli.main(["segment", str(sp), "--prior", str(pt), "--out", str(tmp_path / "o2"), "--preset", "fast",
                      "--proposals", "8", "--tau-out", "0.07"]) == 0
-    assert EMResult.load(tmp_path / "o2" / "one.efem.npz").config.tau_out == 0.07  # explicit band
+    assert EMResult.load(tmp_path / "o2" / "one.efem.npz").config.output.tau_out == 0.07  # explicit band
     assert cli.main(["segment", str(sp), "--prior", str(pt), "--out", str(tmp_path / "o3"), "--tau-out", "0.9"]) == 1
     assert cli.main(["calibrate-masks", str(out), "--gt", str(sp), "--prior", str(pt), "--classes", "sphere"]) == 0
     assert "tau_out" in capsys.readouterr().out

@@ -294,7 +294,7 @@ def test_a_scan_in_other_units_and_axes_gives_the_same_answer_after_the_round_tr
 
     sc = make_sphere_scene(seed=3).replace(provenance={})
     prior = make_sphere_prior()
-    cfg = preset("fast").replace(n_init=(48,))
+    cfg = preset("fast").replace(proposals={"n_init": (48,)})
     base = run_em(load_scene(save_scene(sc.replace(instance=None, categories={}), tmp_path / "orig.ply")), prior,
                   cfg, seed=1)
     R = _UP_ROTATIONS[up].T  # scene +Z -> the file's `up` axis

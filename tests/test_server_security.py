@@ -74,7 +74,7 @@ def scene_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     d = tmp_path_factory.mktemp("scenes")
     scene = analytic.make_sphere_scene(seed=0, spacing=0.012, name="spheres")
     save_scene(scene, d / "spheres.ply")
-    cfg = em.preset("fast").with_proposals(8).replace(min_size=30)
+    cfg = em.preset("fast").with_proposals(8).replace(elimination={"min_size": 30})
     em.run_em(scene, analytic.make_sphere_prior(), cfg, seed=0).save(d / "spheres.efem.npz")
     return d
 

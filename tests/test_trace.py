@@ -20,7 +20,7 @@ def run() -> tuple[object, object, EMResult]:
     torch.set_num_threads(1)
     scene = make_sphere_scene(seed=3)
     prior = make_sphere_prior()
-    cfg = preset("fast").replace(n_init=(48,), t1=6, t2=3, end_step=4)
+    cfg = preset("fast").replace(proposals={"n_init": (48,)}, steps={"t1": 6, "t2": 3, "end_step": 4})
     return scene, prior, run_em(scene, prior, cfg, seed=7)
 
 
@@ -61,7 +61,7 @@ def test_events_are_complete_and_ordered(run: tuple) -> None:
             # the partner was alive at that step
             assert e.partner in tr.alive(e.step)
         if e.reason == "proposal too small":
-            assert e.ratio < res.config.min_size
+            assert e.ratio < res.config.elimination.min_size
 
 
 def test_the_viewers_questions_are_trace_methods(run: tuple) -> None:
@@ -240,11 +240,12 @@ def test_load_rejects_other_files(tmp_path: Path) -> None:
 def test_working_set_run_records_full_resolution_indices() -> None:
     scene = make_sphere_scene(seed=4, radii=(0.05, 0.05))
     prior = make_sphere_prior()
-    cfg = preset("fast").replace(n_init=(32,), t1=4, t2=2, end_step=3, work_voxel=0.007)
+    cfg = preset("fast").replace(proposals={"n_init": (32,)}, steps={"t1": 4, "t2": 2, "end_step": 3},
+                                 compute={"work_voxel": 0.007})
     res = run_em(scene, prior, cfg, seed=1)
     tr = res.trace
     assert tr.work_idx is not None and len(tr.work_idx) < scene.num_points
-    assert tr.work_min_size < cfg.min_size
+    assert tr.work_min_size < cfg.elimination.min_size
     assert np.isin(tr.row_samples, tr.work_idx).all()
     assert np.isin(tr.prop_anchor, tr.work_idx).all()
     assert len(res.instances) == 2
@@ -307,7 +308,7 @@ def test_a_custom_rule_is_recorded_under_its_name_and_survives_a_round_trip(tmp_
                 for r in np.flatnonzero(ctx.active & (ctx.stationary < 0.2))]
 
     scene = make_sphere_scene(seed=3, radii=(0.05, 0.045))
-    cfg = preset("fast").replace(n_init=(24,), t1=3, t2=1, end_step=2)
+    cfg = preset("fast").replace(proposals={"n_init": (24,)}, steps={"t1": 3, "t2": 1, "end_step": 2})
     res = run_em(scene, make_sphere_prior(), cfg, seed=2,
                  step_rules=(*STEP_RULES, StepRule("low stationary", low_stationary)))
     assert "low stationary" in res.trace.reason_names

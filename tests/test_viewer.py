@@ -38,7 +38,7 @@ def scene_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     scene = analytic.make_sphere_scene(seed=0, spacing=0.008, name="spheres")
     save_scene(scene, d / "spheres.ply")
     prior = analytic.make_sphere_prior()
-    cfg = em.preset("fast").with_proposals(16).replace(min_size=30)
+    cfg = em.preset("fast").with_proposals(16).replace(elimination={"min_size": 30})
     result = em.run_em(scene, prior, cfg, seed=0)
     assert len(result.instances) >= 1, "the sphere scene should give at least one instance"
     result.save(d / "spheres.efem.npz")
@@ -279,7 +279,7 @@ def test_threshold_filters_instances_without_rerun(app: Any) -> None:
     assert not any(h.visible for h in app.nodes.results.axes)
     assert not any(h.visible for h in app.nodes.results.labels)
     assert "**0 of" in app.panels.gui_result_info.content
-    assert f"SDF\\| < {app.state.result.config.out_tau:g} (τ_out" in app.panels.gui_result_info.content
+    assert f"SDF\\| < {app.state.result.config.output.out_tau:g} (τ_out" in app.panels.gui_result_info.content
     assert not np.array_equal(colors_all, np.array(app.nodes.points.colors))
     assert app.state.result.instances is inst  # a view, not a re-run
     app.set_threshold(0.0)
@@ -398,14 +398,14 @@ def test_mask_band_rederives_masks_without_rerun(app: Any, tmp_path: Path) -> No
     """The τ_out slider re-derives the masks from the stored latents: wider band ⊇ narrower; colours, GT metrics
     and exports follow; back at the run's band the run's masks return exactly."""
     res0 = app.state.result
-    tau0 = res0.config.out_tau
+    tau0 = res0.config.output.out_tau
     assert app.panels.gui_mask_band.value == pytest.approx(tau0) and not app.panels.gui_mask_band.disabled
     app.set_color_mode("instances")
     app.set_threshold(0.0)
     colors0 = np.array(app.nodes.points.colors)
     assert app.set_mask_band(0.15)
     res1 = app.state.result
-    assert res1.trace is res0.trace and res1.config.out_tau == pytest.approx(0.15)  # no re-run
+    assert res1.trace is res0.trace and res1.config.output.out_tau == pytest.approx(0.15)  # no re-run
     grew = False
     for a, b in zip(res0.instances.masks, res1.instances.masks, strict=True):
         assert set(a.tolist()) <= set(b.tolist())
@@ -419,7 +419,8 @@ def test_mask_band_rederives_masks_without_rerun(app: Any, tmp_path: Path) -> No
     for a, b in zip(res0.instances.masks, app.state.result.instances.masks, strict=True):
         assert np.array_equal(np.sort(a), np.sort(b))
     assert np.array_equal(colors0, np.array(app.nodes.points.colors))
-    assert app.set_mask_band(5.0) and app.state.result.config.out_tau == pytest.approx(0.2)  # clamped to the slider
+    # clamped to the slider
+    assert app.set_mask_band(5.0) and app.state.result.config.output.out_tau == pytest.approx(0.2)
     assert app.set_mask_band(tau0)
 
 
@@ -794,7 +795,7 @@ def test_a_two_prior_result_decodes_and_inspects_each_proposal_with_its_own_prio
     scene = analytic.add_spheres(load_scene(sample_scene("syn_z_0")), [0.045], seed=0)
     scene = scene.replace(name="mixed")
     mug, sphere = load_priors(["mug", "sphere"])
-    cfg = em.preset("fast").replace(n_init=(12,), t1=3, t2=1, end_step=2)
+    cfg = em.preset("fast").replace(proposals={"n_init": (12,)}, steps={"t1": 3, "t2": 1, "end_step": 2})
     res = em.run_em(scene, priors=[mug, sphere], cfg=cfg, seed=0)
     save_scene(scene, tmp_path / "mixed.ply")
     res.save(tmp_path / "mixed.efem.npz")
@@ -877,11 +878,11 @@ def test_the_proposals_field_follows_the_preset_until_a_person_edits_it(tmp_path
     a = ViewerApp([tmp_path], port=0, prior=prior, open_first=False)
     try:
         p = a.panels
-        assert p.gui_proposals.value == preset("fast").n_init[0]
+        assert p.gui_proposals.value == preset("fast").proposals.n_init[0]
         assert a.open_scene("real_tabletop_6") and a.wait_idle(600)
-        assert p.gui_preset.value == "real" and p.gui_proposals.value == preset("real").n_init[0] == 200
+        assert p.gui_preset.value == "real" and p.gui_proposals.value == preset("real").proposals.n_init[0] == 200
         p.gui_preset.value = "synthetic"  # a person's choice (the handle's callbacks run as for a client)
-        assert p.gui_proposals.value == preset("synthetic").n_init[0]
+        assert p.gui_proposals.value == preset("synthetic").proposals.n_init[0]
         p.gui_proposals.value = 123  # typed by a person: kept from now on
         p.gui_preset.value = "fast"
         assert p.gui_proposals.value == 123

@@ -118,7 +118,7 @@ def app(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
     scene = analytic.make_sphere_scene(seed=0, spacing=0.008, name="spheres")
     save_scene(scene, d / "spheres.ply")
     prior = analytic.make_sphere_prior()
-    result = em.run_em(scene, prior, em.preset("fast").with_proposals(16).replace(min_size=30), seed=0)
+    result = em.run_em(scene, prior, em.preset("fast").with_proposals(16).replace(elimination={"min_size": 30}), seed=0)
     assert len(result.instances) >= 2, "the sphere scene should give several instances"
     result.save(d / "spheres.efem.npz")
     a = ViewerApp([d], port=0, prior=prior)

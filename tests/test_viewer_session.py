@@ -284,10 +284,10 @@ def test_a_demo_decimates_the_steps_shapes(session: ViewerSession) -> None:
     assert v is not None
     for pid in (int(p) for p in v.drawn):
         prior, latent = prior_latent(trace, pid, 1, session.priors.for_run(trace))
-        full = decode_shape(prior, latent, resolution=trace.config.mesh_resolution)
+        full = decode_shape(prior, latent, resolution=trace.config.review.mesh_resolution)
         if full is None or len(full[1]) <= 400:
             continue
-        small = decode_shape(prior, latent, resolution=trace.config.mesh_resolution, max_faces=400)
+        small = decode_shape(prior, latent, resolution=trace.config.review.mesh_resolution, max_faces=400)
         assert small is not None and 0 < len(small[1]) <= 400 < len(full[1])
         assert small[1].max() < len(small[0])
         lo, hi = full[0].min(axis=0), full[0].max(axis=0)
@@ -298,12 +298,12 @@ def test_a_demo_decimates_the_steps_shapes(session: ViewerSession) -> None:
 
 def test_mask_band(session: ViewerSession) -> None:
     res = session.state.require_result()
-    tau0 = float(res.config.out_tau)
+    tau0 = float(res.config.output.out_tau)
     assert session.results.set_mask_band(tau0)  # unchanged: nothing re-derived
     version = session.mask_version
     assert session.results.set_mask_band(tau0 * 2)
     assert session.mask_version == version + 1
-    assert session.state.require_result().config.out_tau == pytest.approx(tau0 * 2)
+    assert session.state.require_result().config.output.out_tau == pytest.approx(tau0 * 2)
     assert session.results.set_mask_band(tau0)
     np.testing.assert_array_equal(np.concatenate(session.state.require_result().instances.masks),
                                   np.concatenate(res.instances.masks))
@@ -355,11 +355,12 @@ def test_run_efem_with_progress(sphere_dir: Path, tmp_path: Path) -> None:
     np.testing.assert_array_equal(again.instances.confidence, res.instances.confidence)  # fixed seed: same
     # the Run tab's Precision
     bf16 = s.runs.run(preset="fast", proposals=8, seed=0, show=False, matmul_dtype="bfloat16")
-    assert bf16 is not None and bf16.config.matmul_dtype == "bfloat16" and res.config.matmul_dtype == "float32"
+    assert bf16 is not None and bf16.config.compute.matmul_dtype == "bfloat16"
+    assert res.config.compute.matmul_dtype == "float32"
     assert s.runs.run(preset="fast", proposals=8, matmul_dtype="float16") is None and "matmul_dtype" in s.state.error
     with pytest.raises(TypeError):
         s.runs.run(bogus=1)  # a knob that is no RunSettings field
-    assert RunSettings.of(RunSettings(seed=2), tau_out=0.05, work_voxel=0.004).config().tau_out == 0.05
+    assert RunSettings.of(RunSettings(seed=2), tau_out=0.05, work_voxel=0.004).config().output.tau_out == 0.05
 
 
 def test_run_cancel_and_one_at_a_time(sphere_dir: Path, tmp_path: Path) -> None:

@@ -189,7 +189,7 @@ class SceneWorker:
 def _free_space_words(cfg: Any, scene: Any) -> str:
     """What a scene's line adds to its preset about the free-space check: ", free space from 4 cameras" when the
     run checked against recorded cameras, nothing otherwise."""
-    if cfg.seen_through_margin is None:
+    if cfg.free_space.margin is None:
         return ""
     from efem_viz.geometry.camera import Camera
 

@@ -8,10 +8,12 @@ group is {z} of the canonical object frame.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import json
 import math
 import types
 import typing
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal, get_args
 
@@ -28,9 +30,11 @@ from efem_viz.prior.config import (
 if TYPE_CHECKING:
     from efem_viz.prior.config import ShapePriorLike
 
-__all__ = ["DEFAULT_TAU_OUT", "FREE_SPACE", "FREE_SPACE_FUSED", "MAX_TAU_OUT", "PRESETS", "EMConfig", "FreeSpaceMode",
-           "PresetName", "SolvePresetName", "SolveSettings", "preset", "preset_for_scene",
-           "resolve_for_prior", "suggested_preset"]
+__all__ = ["DEFAULT_TAU_OUT", "FLAT_NAMES", "FREE_SPACE", "FREE_SPACE_FUSED", "GROUPS", "MAX_TAU_OUT", "PRESETS",
+           "ComputeSettings", "ConfidenceSettings", "EMConfig", "EliminationSettings", "FreeSpaceMode",
+           "FreeSpaceSettings", "OutputSettings", "PresetName", "ProposalSettings", "RefineSettings", "ReviewSettings",
+           "SolvePresetName", "SolveSettings", "StepSettings", "preset", "preset_for_scene", "resolve_for_prior",
+           "setting_names", "suggested_preset"]
 
 PresetName = Literal["synthetic", "real", "real_paper", "fast", "chairs"]
 SolvePresetName = Literal["auto", "synthetic", "real", "real_paper", "fast", "chairs"]
@@ -104,14 +108,30 @@ def _check_field_types(cfg: Any) -> None:
 _FIELD_HINTS: dict[type, dict[str, Any]] = {}
 
 
-@dataclass(frozen=True)
-class EMConfig:
-    """Every knob of the EFEM solver. Build one with `preset(name)` and adjust with `.replace(...)`."""
+@dataclass(frozen=True, kw_only=True)
+class _Settings:
+    """Shared behaviour of the solver's setting groups: type-checked and validated where built, `replace`d."""
 
-    name: str = "synthetic"
-    """Preset this config was derived from (informational)."""
-    domain: Domain = "synthetic"
-    """Capture domain: chooses each category's size ranges (`CategorySettings.sizes`)."""
+    def __post_init__(self) -> None:
+        _check_field_types(self)
+        self.validate()
+
+    def validate(self) -> None:
+        """Raise ValueError (one line naming the field, its value and what is allowed) on a bad value."""
+
+    def replace(self, **changes: Any) -> Any:
+        """A copy with some fields changed (validated)."""
+        known = {f.name for f in dataclasses.fields(self)}
+        unknown = sorted(set(changes) - known)
+        if unknown:
+            raise ValueError(f"unknown {type(self).__name__} field(s) {unknown}; known: {sorted(known)}")
+        return dataclasses.replace(self, **changes)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ProposalSettings(_Settings):
+    """How an episode's proposals start (§3.3): how many, where, and the crop around each."""
+
     n_init: tuple[int, ...] = (400,)
     """Proposals initialised per episode; the number of episodes is len(n_init)."""
     anchors: AnchorMode = "random"
@@ -125,6 +145,41 @@ class EMConfig:
     r_err: float | None = None
     """E-step neighbourhood radius around the proposal centre Θ_c (m); None = the prior's category's (mugs 0.11,
     chairs 0.8)."""
+
+    @property
+    def num_episodes(self) -> int:
+        return len(self.n_init)
+
+    def radii(self) -> tuple[float, float]:
+        """(r_init, r_err) of a config resolved for its prior (`resolve_for_prior` fills them from the category).
+
+        Raises:
+            ValueError: unresolved (None).
+        """
+        if self.r_init is None or self.r_err is None:
+            raise ValueError("crop radii unresolved: resolve the config for its prior first (resolve_for_prior)")
+        return float(self.r_init), float(self.r_err)
+
+    def validate(self) -> None:
+        if not self.n_init or any(int(k) < 1 for k in self.n_init):
+            raise ValueError(f"n_init must be a non-empty tuple of positive ints, got {self.n_init}")
+        if any(int(k) > MAX_PROPOSALS for k in self.n_init):
+            raise ValueError(f"n_init (proposals per episode) must be at most {MAX_PROPOSALS}, got {self.n_init} "
+                             f"(each proposal is encoded and decoded every step: memory and time grow with it)")
+        if self.anchors not in ("random", "spread"):
+            raise ValueError(f"anchors must be 'random' or 'spread', got {self.anchors!r}")
+        if self.crop not in ("sphere", "cylinder"):
+            raise ValueError(f"crop must be 'sphere' or 'cylinder', got {self.crop!r}")
+        for nm in ("r_init", "r_err"):
+            if getattr(self, nm) is not None and getattr(self, nm) <= 0:
+                raise ValueError(f"{nm} must be > 0, got {getattr(self, nm)}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class StepSettings(_Settings):
+    """What every EM step does (§3.4-3.6): the E-step's energies and their annealing, the two phases' lengths and
+    the M-step's draws."""
+
     alpha_d: tuple[float, float] = (3.0, 30.0)
     """SDF energy slope α_D, start → end (per canonical unit)."""
     tau_d: tuple[float, float] = (0.1, 0.1)
@@ -143,6 +198,30 @@ class EMConfig:
     """Background weight ω (Bernoulli w/(w+ω) in phase 1, background class in phase 2)."""
     out_value: float = 100.0
     """Energy U of a truncated term."""
+    m_step_replace: bool = True
+    """M-step draws with replacement (the method). False: without replacement while a proposal has at least
+    n_pcl weighted points (a smaller support is drawn whole, then topped up with replacement)."""
+
+    @property
+    def per_episode(self) -> int:
+        """Steps of one episode (t1 + t2)."""
+        return self.t1 + self.t2
+
+    def validate(self) -> None:
+        for nm in ("omega", "end_step"):
+            if getattr(self, nm) <= 0:
+                raise ValueError(f"{nm} must be > 0, got {getattr(self, nm)}")
+        if self.t1 < 0 or self.t2 < 0 or self.t1 + self.t2 == 0:
+            raise ValueError(f"need t1, t2 >= 0 and t1 + t2 > 0, got t1={self.t1} t2={self.t2}")
+        for nm in ("alpha_d", "tau_d", "alpha_n", "tau_n"):
+            if len(getattr(self, nm)) != 2:
+                raise ValueError(f"{nm} must be a pair, got {getattr(self, nm)}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class EliminationSettings(_Settings):
+    """§3.8's elimination rules of every step: too small, duplicates and inclusions."""
+
     min_size: int = 300
     """A proposal with fewer inliers than this dies ("proposal too small")."""
     min_size_on: Literal["inliers", "band"] = "inliers"
@@ -155,32 +234,6 @@ class EMConfig:
     trust_scale: float | None = None
     """Trust region on Θ_s: a proposal's scale may not fall below (1 − trust_scale) × the largest Θ_s it had
     in earlier steps of the episode (the shrink spiral of noisy scans); None = off (the method)."""
-    seen_through_margin: float | None = None
-    """Free-space check of single-view frames (scenes whose provenance records the capture camera, as
-    `import-rgbd` writes): a review measures the fraction of the completed shape's surface samples that lie more
-    than this many metres in front of the observed depth on their pixel, where the camera saw through them.
-    The confidence is multiplied by (1 − that fraction) and a review with more than `max_seen_through` fails
-    ("seen-through"). None = off (the method; scenes without a camera are never checked)."""
-    max_seen_through: float = 0.2
-    """Largest seen-through fraction a completed shape may have (with `seen_through_margin`)."""
-    seen_through_final: bool = False
-    """Remove seen-through fits only at an episode's last review (after the joint phase): the independent phase's
-    review measures the fraction without removing anything, so the joint phase's fits compete for the same
-    points as without a camera. False = both reviews remove them."""
-    seen_through_lateral: float = 0.0
-    """Sideways tolerance of the free-space check (m, `DepthView.of_points(lateral=...)`): a shape point counts
-    as seen through only where the camera saw past it on its pixel *and* on every pixel within about this
-    distance, so silhouette overhangs of a slightly mis-scaled fit are not held against it. 0 = per pixel."""
-    seen_through_edge: float | None = None
-    """Depth edges are not evidence of free space: a pixel whose observed depth varies by more than this (m)
-    within its splat window (an object's silhouette, mixed pixels, the border of a hole) counts as unobserved in
-    the free-space check. None = every observed pixel counts."""
-    seen_through_range: float = 0.0
-    """The free-space margin grows with the observed depth as `seen_through_margin` + this x depth² (m; depth
-    sensors' noise grows with the square of the range). 0 = a fixed margin."""
-    m_step_replace: bool = True
-    """M-step draws with replacement (the method). False: without replacement while a proposal has at least
-    n_pcl weighted points (a smaller support is drawn whole, then topped up with replacement)."""
     dup_sdf: float = 0.04
     """δ_dup: the duplicate/inclusion sets are {j : |d_ij| < δ_dup} (canonical units)."""
     dup_iou: float = 0.7
@@ -204,12 +257,77 @@ class EMConfig:
     times the capped coverage of the phase-1 review, `rules.capped_confidence`): a wide fit over two objects
     explains its samples well but leaves most of its completed shape unobserved, so by confidence it no longer
     outranks a tight fit of one of them."""
-    tau_out: float | None = None
-    """Output mask SDF threshold (canonical units). None = the prior's (its category's `tau_out`, i.e. the
-    metadata `tau_out` written by `efem-viz calibrate-masks`, else the spec's 0.04); `run_em` resolves it per
-    prior and records the value it used."""
-    gamma_out: float = 180.0
-    """Output mask normal-angle threshold (degrees; 180 = normals ignored)."""
+
+    def validate(self) -> None:
+        for nm in ("dup_iou", "joint_dup_iou", "early_dup_iou", "joint_incl"):
+            v = getattr(self, nm)
+            if v is not None and not v > 0.0:  # above 1: the rule never fires
+                raise ValueError(f"{nm} must be > 0, got {v}")
+        if self.early_dup_steps < 0:
+            raise ValueError(f"early_dup_steps must be >= 0, got {self.early_dup_steps}")
+        if self.inclusion not in INCLUSION_MODES:
+            raise ValueError(f"inclusion must be one of {INCLUSION_MODES}, got {self.inclusion!r}")
+        if self.inclusion_by not in INCLUSION_SCORES:
+            raise ValueError(f"inclusion_by must be one of {INCLUSION_SCORES}, got {self.inclusion_by!r}")
+        if self.min_size_on not in ("inliers", "band"):
+            raise ValueError(f"min_size_on must be 'inliers' or 'band', got {self.min_size_on!r}")
+        if self.min_size_spacing is not None and not (0.0 < self.min_size_spacing < 1.0):
+            raise ValueError(f"min_size_spacing must be in (0, 1) m or None, got {self.min_size_spacing}")
+        if self.trust_scale is not None and not (0.0 <= self.trust_scale < 1.0):
+            raise ValueError(f"trust_scale must be in [0, 1) or None, got {self.trust_scale}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class FreeSpaceSettings(_Settings):
+    """The free-space check against the scene's recorded cameras (single-view frames whose provenance records
+    the capture camera, as `import-rgbd` writes, and fused scans with every camera): a review measures the
+    fraction of the completed shape's surface samples that lie in front of the observed depth on their pixel,
+    where the camera saw through them. The confidence is multiplied by (1 − that fraction) and a review with
+    more than `max_seen_through` fails ("seen-through"). Scenes without a camera are never checked."""
+
+    margin: float | None = None
+    """How far (m) in front of the observed depth a sample must lie to count as seen through. None = the check
+    is off (the method)."""
+    max_seen_through: float = 0.2
+    """Largest seen-through fraction a completed shape may have."""
+    final: bool = False
+    """Remove seen-through fits only at an episode's last review (after the joint phase): the independent phase's
+    review measures the fraction without removing anything, so the joint phase's fits compete for the same
+    points as without a camera. False = both reviews remove them."""
+    lateral: float = 0.0
+    """Sideways tolerance (m, `DepthView.of_points(lateral=...)`): a shape point counts as seen through only where
+    the camera saw past it on its pixel *and* on every pixel within about this distance, so silhouette overhangs
+    of a slightly mis-scaled fit are not held against it. 0 = per pixel."""
+    edge: float | None = None
+    """Depth edges are not evidence of free space: a pixel whose observed depth varies by more than this (m)
+    within its splat window (an object's silhouette, mixed pixels, the border of a hole) counts as unobserved.
+    None = every observed pixel counts."""
+    range_growth: float = 0.0
+    """The margin grows with the observed depth as `margin` + this x depth² (m; depth sensors' noise grows with
+    the square of the range). 0 = a fixed margin."""
+
+    @property
+    def enabled(self) -> bool:
+        return self.margin is not None
+
+    def validate(self) -> None:
+        if self.margin is not None and not (0.0 <= self.margin < 1.0):
+            raise ValueError(f"free_space.margin must be in [0, 1) m or None, got {self.margin}")
+        if self.edge is not None and not (0.0 < self.edge < 1.0):
+            raise ValueError(f"free_space.edge must be in (0, 1) m or None, got {self.edge}")
+        if not (0.0 <= self.range_growth < 1.0):
+            raise ValueError(f"free_space.range_growth must be in [0, 1) m per m², got {self.range_growth}")
+        if not (0.0 <= self.lateral < 1.0):
+            raise ValueError(f"free_space.lateral must be in [0, 1) m, got {self.lateral}")
+        if not (0.0 <= self.max_seen_through <= 1.0):
+            raise ValueError(f"free_space.max_seen_through must be in [0, 1], got {self.max_seen_through}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ConfidenceSettings(_Settings):
+    """What a fit's scores and confidence count (§3.9): the stationary score, the coverage, and the optional pose
+    score and look-alike model on top."""
+
     stat_tau: float = 0.04
     """Stationary score SDF threshold (canonical units)."""
     stat_gamma: float = 45.0
@@ -226,13 +344,29 @@ class EMConfig:
     mug (on the real frames mug fits score 0.52 (median), cups, cans and boxes 0.36-0.40)."""
     pose_ref: float = 0.6
     """Pose score at and above which `pose_weight` leaves the confidence unchanged."""
-    mug_model: str | None = None
+    look_alike: str | None = None
     """Name of a shipped look-alike model (`efem_viz/em/models/<name>.json`, `efem_viz.em.look_alike`): each
-    accepted fit's confidence becomes the model's probability that it is a mug (times the confidence above, as
-    the model says). None = off."""
+    accepted fit's confidence becomes the model's probability that it is an object of the prior's category
+    rather than a look-alike (times the confidence above, as the model says). None = off."""
+
+    def validate(self) -> None:
+        if not (0.0 <= self.pose_weight <= 16.0) or not (0.0 < self.pose_ref <= 1.0):
+            raise ValueError(f"pose_weight must be in [0, 16] and pose_ref in (0, 1], got {self.pose_weight}, "
+                             f"{self.pose_ref}")
+        if self.look_alike is not None:
+            from efem_viz.em.look_alike import check_name
+
+            check_name(self.look_alike)  # the file itself is read when a run starts (`run_em`)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ReviewSettings(_Settings):
+    """The reviews at the end of each phase (§3.7): the completed meshes, the pose search and the size and
+    up-axis checks (left to the prior's category when None)."""
+
     scale_horizontal: tuple[float, float] | None = None
     """Allowed range of the horizontal radius max ‖Q̃_xy‖ of the completed shape (m); None = the prior's
-    category sizes for `domain`."""
+    category sizes for the config's `domain`."""
     scale_height: tuple[float, float] | None = None
     """Allowed range of the half-height max |Q̃_z| of the completed shape (m); None = the category's."""
     up_range: tuple[float, float] | None = None
@@ -241,6 +375,83 @@ class EMConfig:
     """Surface samples drawn on each review mesh."""
     mesh_resolution: int = 40
     """Grid resolution (voxels per side) of review meshes; the hot spot of the reviews."""
+    pose_retrieval: bool = True
+    """Estimate the pose with the prior's codebook (when it has one); else R = identity."""
+    pose_points: int | None = 1000
+    """Samples (of the proposal and of each codebook cloud) the pose search aligns and scores
+    (`estimate_pose(search_points=...)`); None = all `n_store` (the release). 1000 of 5000 cut the search's
+    cost about 5x (docs/BENCHMARKS.md)."""
+
+    def validate(self) -> None:
+        for nm in ("scale_horizontal", "scale_height", "up_range"):
+            v = getattr(self, nm)
+            if v is not None and len(v) != 2:
+                raise ValueError(f"{nm} must be a pair, got {v}")
+        if not 8 <= self.mesh_resolution <= MAX_MESH_RESOLUTION:
+            raise ValueError(f"mesh_resolution must be in [8, {MAX_MESH_RESOLUTION}], got {self.mesh_resolution} "
+                             f"(a review decodes resolution³ queries per shape)")
+        if self.pose_points is not None and self.pose_points < 1:
+            raise ValueError(f"pose_points must be >= 1 or None, got {self.pose_points}")
+        if self.n_store < 1:
+            raise ValueError(f"n_store must be >= 1, got {self.n_store}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class OutputSettings(_Settings):
+    """The output masks (§3.10)."""
+
+    tau_out: float | None = None
+    """Output mask SDF threshold (canonical units). None = the prior's (its category's `tau_out`, i.e. the
+    metadata `tau_out` written by `efem-viz calibrate-masks`, else the spec's 0.04); `run_em` resolves it per
+    prior and records the value it used."""
+    gamma_out: float = 180.0
+    """Output mask normal-angle threshold (degrees; 180 = normals ignored)."""
+
+    @property
+    def out_tau(self) -> float:
+        """τ_out in effect: `tau_out`, or the spec's value when it is unresolved (None)."""
+        return DEFAULT_TAU_OUT if self.tau_out is None else float(self.tau_out)
+
+    def validate(self) -> None:
+        if self.tau_out is not None and not 0.0 < self.tau_out <= MAX_TAU_OUT:
+            raise ValueError(f"tau_out must be in (0, {MAX_TAU_OUT}] or None, got {self.tau_out}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class RefineSettings(_Settings):
+    """Test-time latent refinement (`efem_viz.em.refine.refine_latents`): gradient steps fitting each proposal's
+    latent to its M-step samples through the decoder, regularised toward the encoder's code. Off in the paper's
+    method (``steps`` 0)."""
+
+    steps: int = 0
+    """Gradient steps per refinement (0 = off)."""
+    at: Literal["every_step", "review_steps"] = "every_step"
+    """When the solver refines: every EM step, or only in the last step of each phase (the steps the reviews
+    use)."""
+    max_pool: int = 64
+    """The solver refines only in steps with at most this many live proposals (most die in the first steps)."""
+    lr: float = 0.05
+    """Step size (canonical units; the same for every tensor group)."""
+    momentum: float = 0.5
+    """Heavy-ball momentum."""
+    tau: float = 0.1
+    """Truncation of |SDF| in the data term (canonical units)."""
+    reg: float = 0.01
+    """λ: pull of Θ_R, Θ_inv toward the encoder's code (per latent channel)."""
+    reg_pose: float = 1.0
+    """λ_c = λ_s: pull of the centre offset δ_c (normalised units) and log-scale δ_s toward 0."""
+
+    def validate(self) -> None:
+        if self.at not in ("every_step", "review_steps"):
+            raise ValueError(f"refine.at must be 'every_step' or 'review_steps', got {self.at!r}")
+        if self.steps < 0 or self.max_pool < 0 or self.lr <= 0 or self.reg < 0 or self.reg_pose < 0 or self.tau <= 0:
+            raise ValueError("refine: steps, max_pool, reg and reg_pose must be >= 0, lr and tau > 0")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ComputeSettings(_Settings):
+    """How the solver spends its arithmetic: batch sizes, a thinned working set and the matrix precision."""
+
     encode_batch: int = 30
     """Proposals per encoder call."""
     decode_chunk: int = 10000
@@ -252,23 +463,6 @@ class EMConfig:
     knob (not in the release): decoder queries fall with the square of the thinning on surface scans."""
     n_pcl: int | None = None
     """Points sampled per proposal per M-step; None = the prior's training size."""
-    pose_retrieval: bool = True
-    """Estimate the pose with the prior's codebook in reviews (when it has one); else R = identity."""
-    pose_points: int | None = 1000
-    """Samples (of the proposal and of each codebook cloud) the review's pose search aligns and scores
-    (`estimate_pose(search_points=...)`); None = all `n_store` (the release). 1000 of 5000 cut the search's
-    cost about 5x (docs/BENCHMARKS.md)."""
-    refine_steps: int = 0
-    """Test-time latent refinement (efem_viz/em/refine.py): gradient steps fitting each proposal's latent to its
-    M-step samples through the decoder, regularised toward the encoder's code; 0 = off (the paper's method)."""
-    refine_at: Literal["every_step", "review_steps"] = "every_step"
-    """When to refine: every EM step, or only in the last step of each phase (the steps the reviews use)."""
-    refine_max_pool: int = 64
-    """Refine only in steps with at most this many live proposals (most die in the first steps)."""
-    refine_lr: float = 0.05
-    """Refinement step size (canonical units)."""
-    refine_reg: float = 0.01
-    """Refinement pull toward the encoder's code."""
     matmul_dtype: MatmulDtype = "float32"
     """Precision of the networks' matrix products in the EM steps: "float32" (the method), or "bfloat16"
     (`torch.autocast`: the encoder's and decoder's linear layers in bf16; k-NN graphs, SDF values, normals and
@@ -281,142 +475,152 @@ class EMConfig:
     "bfloat16" runs only the decoder in bf16: the encoder keeps its fused float32 kernels (autocast switches
     them off and costs it more than bf16 gains) and float32 latents."""
 
-    # ------------------------------------------------------------------ helpers
-    @property
-    def out_tau(self) -> float:
-        """τ_out in effect: `tau_out`, or the spec's value when it is unresolved (None)."""
-        return DEFAULT_TAU_OUT if self.tau_out is None else float(self.tau_out)
+    def validate(self) -> None:
+        if self.work_voxel is not None and self.work_voxel < 0:
+            raise ValueError(f"work_voxel must be >= 0 or None, got {self.work_voxel}")
+        if self.n_pcl is not None and self.n_pcl < 1:
+            raise ValueError(f"n_pcl must be >= 1, got {self.n_pcl}")
+        if self.matmul_dtype not in MATMUL_DTYPES:
+            raise ValueError(f"matmul_dtype must be one of {MATMUL_DTYPES}, got {self.matmul_dtype!r}")
+        if self.encoder_dtype is not None and self.encoder_dtype not in MATMUL_DTYPES:
+            raise ValueError(f"encoder_dtype must be None or one of {MATMUL_DTYPES}, got {self.encoder_dtype!r}")
+        if self.encode_batch < 1 or self.decode_chunk < 1:
+            raise ValueError("encode_batch and decode_chunk must be >= 1")
 
-    @property
-    def num_episodes(self) -> int:
-        return len(self.n_init)
 
-    @property
-    def steps_per_episode(self) -> int:
-        return self.t1 + self.t2
+GROUPS: dict[str, type[_Settings]] = {
+    "proposals": ProposalSettings, "steps": StepSettings, "elimination": EliminationSettings,
+    "free_space": FreeSpaceSettings, "confidence": ConfidenceSettings, "review": ReviewSettings,
+    "output": OutputSettings, "refine": RefineSettings, "compute": ComputeSettings,
+}
+"""The setting groups of `EMConfig`, by the field that holds each."""
+
+_RENAMED: dict[str, str] = {
+    "seen_through_margin": "free_space.margin", "max_seen_through": "free_space.max_seen_through",
+    "seen_through_final": "free_space.final", "seen_through_lateral": "free_space.lateral",
+    "seen_through_edge": "free_space.edge", "seen_through_range": "free_space.range_growth",
+    "mug_model": "confidence.look_alike", "refine_steps": "refine.steps", "refine_at": "refine.at",
+    "refine_max_pool": "refine.max_pool", "refine_lr": "refine.lr", "refine_reg": "refine.reg",
+}
+FLAT_NAMES: dict[str, str] = {
+    **{f.name: f"{group}.{f.name}" for group, cls in GROUPS.items() if group not in ("free_space", "refine")
+       for f in dataclasses.fields(cls)},
+    **_RENAMED,
+}
+"""The flat names of the solver settings before they were grouped -> their dotted names (saved configs of older
+traces and results load through it; `EMConfig.with_values` accepts them)."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class EMConfig:
+    """Every knob of the EFEM solver, in groups. Build one with `preset(name)` and adjust with `.replace(...)`
+    (a group, or a mapping of that group's changes: ``cfg.replace(elimination={"min_size": 150})``) or
+    `.with_values({"elimination.min_size": 150})`."""
+
+    name: str = "synthetic"
+    """Preset this config was derived from (informational)."""
+    domain: Domain = "synthetic"
+    """Capture domain: chooses each category's size ranges (`CategorySettings.sizes`)."""
+    proposals: ProposalSettings = ProposalSettings()
+    steps: StepSettings = StepSettings()
+    elimination: EliminationSettings = EliminationSettings()
+    free_space: FreeSpaceSettings = FreeSpaceSettings()
+    confidence: ConfidenceSettings = ConfidenceSettings()
+    review: ReviewSettings = ReviewSettings()
+    output: OutputSettings = OutputSettings()
+    refine: RefineSettings = RefineSettings()
+    compute: ComputeSettings = ComputeSettings()
 
     def replace(self, **changes: Any) -> "EMConfig":
-        """A copy with some fields changed (validated)."""
-        cfg = dataclasses.replace(self, **changes)
-        cfg.validate()
-        return cfg
+        """A copy with some fields changed (validated); a group's value may be a mapping of its changes."""
+        for key, value in list(changes.items()):
+            if key in GROUPS and isinstance(value, Mapping):
+                changes[key] = getattr(self, key).replace(**value)
+        known = {f.name for f in dataclasses.fields(self)}
+        unknown = sorted(set(changes) - known)
+        if unknown:
+            raise ValueError(f"unknown EMConfig field(s) {unknown}: groups are {sorted(GROUPS)}; use "
+                             f"with_values for dotted names")
+        return dataclasses.replace(self, **changes)
 
-    def radii(self) -> tuple[float, float]:
-        """(r_init, r_err) of a config resolved for its prior (`resolve_for_prior` fills them from the category).
+    def with_values(self, values: Mapping[str, Any]) -> "EMConfig":
+        """A copy with settings given by dotted name (``"elimination.min_size"``), top-level name (``"name"``) or
+        flat name from before the grouping (``"min_size"``); lists become tuples.
 
         Raises:
-            ValueError: unresolved (None).
+            ValueError: an unknown name (with the closest known ones) or a bad value.
         """
-        if self.r_init is None or self.r_err is None:
-            raise ValueError("crop radii unresolved: resolve the config for its prior first (resolve_for_prior)")
-        return float(self.r_init), float(self.r_err)
+        top: dict[str, Any] = {}
+        grouped: dict[str, dict[str, Any]] = {}
+        for key, value in values.items():
+            dotted = FLAT_NAMES.get(key, key)
+            group, _, field = dotted.partition(".")
+            value = tuple(value) if isinstance(value, list) else value
+            if not field and group in ("name", "domain"):
+                top[group] = value
+            elif group in GROUPS and field in {f.name for f in dataclasses.fields(GROUPS[group])}:
+                grouped.setdefault(group, {})[field] = value
+            else:
+                close = difflib.get_close_matches(key, [*setting_names(), *FLAT_NAMES], n=3)
+                hint = f"; did you mean {', '.join(close)}?" if close else f" (see {', '.join(sorted(GROUPS))})"
+                raise ValueError(f"unknown solver setting {key!r}{hint}")
+        return self.replace(**top, **grouped)
 
     def with_proposals(self, n: int) -> "EMConfig":
         """A copy with `n` proposals in the first episode (later episodes scaled proportionally)."""
         if n < 1:
             raise ValueError(f"number of proposals must be >= 1, got {n}")
-        first = self.n_init[0]
-        scaled = tuple([n] + [max(1, round(k * n / first)) for k in self.n_init[1:]])
-        return self.replace(n_init=scaled)
+        first = self.proposals.n_init[0]
+        scaled = tuple([n] + [max(1, round(k * n / first)) for k in self.proposals.n_init[1:]])
+        return self.replace(proposals={"n_init": scaled})
 
     def __post_init__(self) -> None:
         self.validate()  # every value checked where the config is built, whoever builds it
 
     def validate(self) -> None:
-        """Raise ValueError (one line naming the field, its value and what is allowed) on a value of the wrong
-        type, a non-finite number or a value out of its range."""
+        """Raise ValueError (one line naming the field, its value and what is allowed) on a bad value; each group
+        checked its own values where it was built."""
         _check_field_types(self)
-        if not self.n_init or any(int(k) < 1 for k in self.n_init):
-            raise ValueError(f"n_init must be a non-empty tuple of positive ints, got {self.n_init}")
-        if any(int(k) > MAX_PROPOSALS for k in self.n_init):
-            raise ValueError(f"n_init (proposals per episode) must be at most {MAX_PROPOSALS}, got {self.n_init} "
-                             f"(each proposal is encoded and decoded every step: memory and time grow with it)")
-        if self.anchors not in ("random", "spread"):
-            raise ValueError(f"anchors must be 'random' or 'spread', got {self.anchors!r}")
-        if self.crop not in ("sphere", "cylinder"):
-            raise ValueError(f"crop must be 'sphere' or 'cylinder', got {self.crop!r}")
-        for nm in ("r_init", "r_err", "omega", "end_step"):
-            if getattr(self, nm) is not None and getattr(self, nm) <= 0:
-                raise ValueError(f"{nm} must be > 0, got {getattr(self, nm)}")
-        if self.t1 < 0 or self.t2 < 0 or self.t1 + self.t2 == 0:
-            raise ValueError(f"need t1, t2 >= 0 and t1 + t2 > 0, got t1={self.t1} t2={self.t2}")
-        for nm in ("alpha_d", "tau_d", "alpha_n", "tau_n", "scale_horizontal", "scale_height", "up_range"):
-            v = getattr(self, nm)
-            if v is not None and len(v) != 2:
-                raise ValueError(f"{nm} must be a pair, got {v}")
+        for group, cls in GROUPS.items():
+            if not isinstance(getattr(self, group), cls):
+                raise ValueError(f"EMConfig.{group} must be a {cls.__name__}, got {type(getattr(self, group))}")
         if self.domain not in DOMAINS:
             raise ValueError(f"domain must be one of {DOMAINS}, got {self.domain!r}")
-        if self.work_voxel is not None and self.work_voxel < 0:
-            raise ValueError(f"work_voxel must be >= 0 or None, got {self.work_voxel}")
-        if self.tau_out is not None and not 0.0 < self.tau_out <= MAX_TAU_OUT:
-            raise ValueError(f"tau_out must be in (0, {MAX_TAU_OUT}] or None, got {self.tau_out}")
-        for nm in ("dup_iou", "joint_dup_iou", "early_dup_iou", "joint_incl"):
-            v = getattr(self, nm)
-            if v is not None and not v > 0.0:  # above 1: the rule never fires
-                raise ValueError(f"{nm} must be > 0, got {v}")
-        if self.early_dup_steps < 0:
-            raise ValueError(f"early_dup_steps must be >= 0, got {self.early_dup_steps}")
-        if self.inclusion not in INCLUSION_MODES:
-            raise ValueError(f"inclusion must be one of {INCLUSION_MODES}, got {self.inclusion!r}")
-        if self.inclusion_by not in INCLUSION_SCORES:
-            raise ValueError(f"inclusion_by must be one of {INCLUSION_SCORES}, got {self.inclusion_by!r}")
-        if self.min_size_on not in ("inliers", "band"):
-            raise ValueError(f"min_size_on must be 'inliers' or 'band', got {self.min_size_on!r}")
-        if self.min_size_spacing is not None and not (0.0 < self.min_size_spacing < 1.0):
-            raise ValueError(f"min_size_spacing must be in (0, 1) m or None, got {self.min_size_spacing}")
-        if self.seen_through_margin is not None and not (0.0 <= self.seen_through_margin < 1.0):
-            raise ValueError(f"seen_through_margin must be in [0, 1) m or None, got {self.seen_through_margin}")
-        if self.seen_through_edge is not None and not (0.0 < self.seen_through_edge < 1.0):
-            raise ValueError(f"seen_through_edge must be in (0, 1) m or None, got {self.seen_through_edge}")
-        if not (0.0 <= self.seen_through_range < 1.0):
-            raise ValueError(f"seen_through_range must be in [0, 1) m per m², got {self.seen_through_range}")
-        if not (0.0 <= self.seen_through_lateral < 1.0):
-            raise ValueError(f"seen_through_lateral must be in [0, 1) m, got {self.seen_through_lateral}")
-        if not (0.0 <= self.pose_weight <= 16.0) or not (0.0 < self.pose_ref <= 1.0):
-            raise ValueError(f"pose_weight must be in [0, 16] and pose_ref in (0, 1], got {self.pose_weight}, "
-                             f"{self.pose_ref}")
-        if self.mug_model is not None:
-            from efem_viz.em.look_alike import check_name
 
-            check_name(self.mug_model)  # the file itself is read when a run starts (`run_em`)
-        if not (0.0 <= self.max_seen_through <= 1.0):
-            raise ValueError(f"max_seen_through must be in [0, 1], got {self.max_seen_through}")
-        if self.trust_scale is not None and not (0.0 <= self.trust_scale < 1.0):
-            raise ValueError(f"trust_scale must be in [0, 1) or None, got {self.trust_scale}")
-        if self.n_pcl is not None and self.n_pcl < 1:
-            raise ValueError(f"n_pcl must be >= 1, got {self.n_pcl}")
-        if self.refine_at not in ("every_step", "review_steps"):
-            raise ValueError(f"refine_at must be 'every_step' or 'review_steps', got {self.refine_at!r}")
-        if self.refine_steps < 0 or self.refine_max_pool < 0 or self.refine_lr <= 0 or self.refine_reg < 0:
-            raise ValueError("refine_steps and refine_max_pool must be >= 0, refine_lr > 0, refine_reg >= 0")
-        if not 8 <= self.mesh_resolution <= MAX_MESH_RESOLUTION:
-            raise ValueError(f"mesh_resolution must be in [8, {MAX_MESH_RESOLUTION}], got {self.mesh_resolution} "
-                             f"(a review decodes resolution³ queries per shape)")
-        if self.matmul_dtype not in MATMUL_DTYPES:
-            raise ValueError(f"matmul_dtype must be one of {MATMUL_DTYPES}, got {self.matmul_dtype!r}")
-        if self.encoder_dtype is not None and self.encoder_dtype not in MATMUL_DTYPES:
-            raise ValueError(f"encoder_dtype must be None or one of {MATMUL_DTYPES}, got {self.encoder_dtype!r}")
-        if self.pose_points is not None and self.pose_points < 1:
-            raise ValueError(f"pose_points must be >= 1 or None, got {self.pose_points}")
-        if self.encode_batch < 1 or self.decode_chunk < 1 or self.n_store < 1:
-            raise ValueError("encode_batch, decode_chunk and n_store must be >= 1")
+    def to_dict(self) -> dict[str, Any]:
+        """Nested plain values (JSON-ready)."""
+        return dataclasses.asdict(self)
 
     def to_json(self) -> str:
-        return json.dumps(dataclasses.asdict(self), sort_keys=True)
+        return json.dumps(self.to_dict(), sort_keys=True)
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> "EMConfig":
+        """A config from `to_dict`'s nested form or the flat form saved before the grouping (older traces)."""
+        d = dict(d)
+        for group in GROUPS:
+            if group in d and not isinstance(d[group], Mapping):
+                raise ValueError(f"saved config: {group} must be a mapping of its settings, "
+                                 f"got {type(d[group]).__name__}")
+        top = {k: d.pop(k) for k in ("name", "domain") if k in d}
+        groups = {k: d.pop(k) for k in list(d) if k in GROUPS and isinstance(d[k], Mapping)}
+        flat: dict[str, Any] = dict(top)
+        for group, values in groups.items():
+            flat.update({f"{group}.{k}": v for k, v in values.items()})
+        unknown = sorted(k for k in d if k not in FLAT_NAMES)
+        if unknown:
+            raise ValueError(f"unknown EMConfig fields in saved config: {unknown}")
+        flat.update(d)
+        return cls().with_values(flat)
 
     @classmethod
     def from_json(cls, text: str) -> "EMConfig":
-        d = json.loads(text)
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(d) - known
-        if unknown:
-            raise ValueError(f"unknown EMConfig fields in saved config: {sorted(unknown)}")
-        for k, v in list(d.items()):
-            if isinstance(v, list):
-                d[k] = tuple(v)
-        cfg = cls(**d)
-        cfg.validate()
-        return cfg
+        return cls.from_dict(json.loads(text))
+
+
+def setting_names() -> list[str]:
+    """Every solver setting's dotted name (``"elimination.min_size"``), in declaration order."""
+    return ["name", "domain", *(f"{group}.{f.name}" for group, cls in GROUPS.items() for f in dataclasses.fields(cls))]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -462,16 +666,16 @@ class SolveSettings:
         if self.proposals is not None:
             cfg = cfg.with_proposals(int(self.proposals))
         if self.work_voxel is not None:
-            cfg = cfg.replace(work_voxel=float(self.work_voxel) or None)
+            cfg = cfg.replace(compute={"work_voxel": float(self.work_voxel) or None})
         if self.tau_out is not None:
-            cfg = cfg.replace(tau_out=float(self.tau_out))
+            cfg = cfg.replace(output={"tau_out": float(self.tau_out)})
         if self.free_space == "off":
-            cfg = cfg.replace(seen_through_margin=None)
-        elif self.free_space == "on" and cfg.seen_through_margin is None:
-            cfg = cfg.replace(**FREE_SPACE_FUSED)
+            cfg = cfg.replace(free_space={"margin": None})
+        elif self.free_space == "on" and not cfg.free_space.enabled:
+            cfg = cfg.replace(free_space=FREE_SPACE_FUSED)
         elif self.free_space not in ("auto", "on"):
             raise ValueError(f"free_space must be auto, on or off, got {self.free_space!r}")
-        return cfg.replace(matmul_dtype=self.matmul_dtype)
+        return cfg.replace(compute={"matmul_dtype": self.matmul_dtype})
 
     def settings(self) -> dict[str, Any]:
         """These fields as keyword arguments (to build another `SolveSettings` subclass from them)."""
@@ -498,7 +702,7 @@ def preset_for_scene(scene: Any) -> PresetName:
     return got if got in ("real", "chairs") else "synthetic"
 
 
-_SYNTHETIC = EMConfig(inclusion="score", inclusion_by="confidence")
+_SYNTHETIC = EMConfig(elimination=EliminationSettings(inclusion="score", inclusion_by="confidence"))
 """§3.12's synthetic settings, but an inclusion spares the included fit when it is the better one (`inclusion`,
 `inclusion_by`: a fit wider than its object — two mugs in a box, a mug and its peg — killed better fits of those
 mugs as "included"). The better one is the one with the higher confidence (stationary score x capped phase-1
@@ -510,58 +714,48 @@ higher on the tune scenes but kills whole mugs for sphere part-fits in a joint m
 _REAL_PAPER = EMConfig(
     name="real_paper",
     domain="real",
-    tau_d=(0.1, 0.07),
-    stat_tau=0.03,
-    stat_gamma=30.0,
-    cov_tau=0.03,
-    cov_gamma=30.0,
+    steps=StepSettings(tau_d=(0.1, 0.07)),
+    confidence=ConfidenceSettings(stat_tau=0.03, stat_gamma=30.0, cov_tau=0.03, cov_gamma=30.0),
 )
 """§3.12's settings for real captures, as specified."""
 
-FREE_SPACE: dict[str, Any] = {"seen_through_margin": 0.01, "seen_through_edge": 0.02, "seen_through_range": 0.01,
-                              "max_seen_through": 0.15}
+FREE_SPACE = FreeSpaceSettings(margin=0.01, edge=0.02, range_growth=0.01, max_seen_through=0.15)
 """The `real` preset's free-space check of a single-view frame: 1 cm margin growing by 1 cm/m² of range, no
 evidence from depth edges over 2 cm, at most 15 % of a completed shape seen through."""
 
-FREE_SPACE_FUSED: dict[str, Any] = {**FREE_SPACE, "seen_through_margin": 0.02, "seen_through_lateral": 0.01,
-                                    "max_seen_through": 0.3}
+FREE_SPACE_FUSED = FREE_SPACE.replace(margin=0.02, lateral=0.01, max_seen_through=0.3)
 """The free-space check `SolveSettings.free_space="on"` adds to a preset without one (the synthetic presets, i.e.
 fused scans and generated scenes, whose several cameras see every side): a 2 cm margin, 1 cm sideways, at most 30 %
 seen through. With `FREE_SPACE` instead, the fused scenes lost true mugs (tune scenes, AP50 pile / box / tree
 93.6 / 68.6 / 74.3 without the check, 85.0 / 49.3 / 30.1 with it); with these 93.6 / 69.4 / 73.7
 (docs/BENCHMARKS.md). It is off by default there: the check found nothing to remove on those scenes."""
 
-_REAL = dataclasses.replace(
-    _REAL_PAPER,
+_REAL = _REAL_PAPER.replace(
     name="real",
-    tau_d=(0.15, 0.15),
-    tau_n=(180.0, 180.0),
-    m_step_replace=False,
-    **FREE_SPACE,
-    seen_through_final=True,
-    mug_model="mug_uois_tune",
-    inclusion="score",
-    n_init=(200,),
-    anchors="spread",
+    proposals={"n_init": (200,), "anchors": "spread"},
+    steps={"tau_d": (0.15, 0.15), "tau_n": (180.0, 180.0), "m_step_replace": False},
+    elimination={"inclusion": "score"},
+    free_space=FREE_SPACE.replace(final=True),
+    confidence={"look_alike": "mug_uois_tune"},
 )
 """Real single-view depth frames (measured with bench/em_stability.py, bench/real.py and bench/stereo_mug.py;
 docs/BENCHMARKS.md): §3.12's settings, but the E-step does not truncate on normals (depth
 noise tilts estimated normals, and the truncated points started the shrink spiral), a wider SDF band, M-step
 draws without replacement, and the free-space check of the capture camera. The confidence is the paper's times
-the learned probability that a fit is a mug (`mug_model`: fitted on the tune frames' accepted fits of 12 saved runs,
-chosen by leave-one-frame-out AP50 inside the tune frames;
+the learned probability that a fit is a mug (`confidence.look_alike`: fitted on the tune frames' accepted fits of 12
+saved runs, chosen by leave-one-frame-out AP50 inside the tune frames;
 `bench/learned_confidence.py`: judge AP50 22.4 -> 25.2, the most confident fit a mug in 18 of 32 judge scenes
 instead of 15); it replaced a pose-score weighting, whose pose score is one of its features. The instances
 themselves do not change (one episode: the confidence decides no elimination). An inclusion spares the included
 fit when it scores higher than its includer (`inclusion`: tune frames AP50 74.8 -> 90.0 on seeds 0/1, judge frames
-equal; `bench/real.py --set "inclusion='score'"`). The comparison by confidence (the synthetic presets'
+equal; `bench/real.py --set "elimination.inclusion='score'"`). The comparison by confidence (the synthetic presets'
 `inclusion_by`) ties on the tune frames (AP50 90.0 either way, AP 35.8 by stationary score
 against 34.4-35.2), so `real` keeps the stationary score. The free-space check takes no evidence from depth
-edges (`seen_through_edge` 2 cm) and widens its margin with the range (`seen_through_range` 1 cm/m²): with the
+edges (`free_space.edge` 2 cm) and widens its margin with the range (`free_space.range_growth` 1 cm/m²): with the
 camera the check had killed good fits (on the judge frames 5 of 15 mugs found over seeds 0-2 against 8 of 10
 without the camera); with both, 12 of 15 (tune 13 of 15, AP50 86.7 against 76.1; judge AP50 22.2 against 17.8;
-`bench/real.py --set "seen_through_edge=0.02" "seen_through_range=0.01"`, docs/BENCHMARKS.md). The check removes
-fits only at the episode's last review (`seen_through_final`): removed after the independent phase, the look-alikes
+`bench/real.py --set "free_space.edge=0.02" "free_space.range_growth=0.01"`, docs/BENCHMARKS.md). The check removes
+fits only at the episode's last review (`free_space.final`): removed after the independent phase, the look-alikes
 no longer held their points in the joint phase, and mugs next to them grew into those points and failed the size
 check (UOIS frames, seeds 0-3, 400 proposals: judge mugs found 13 of 20 against 18 of 20 without the camera; with
 the later removal 18 of 20, tune 16 of 20 either way, judge AP50 29.0 -> 24.9, no camera 17.6). 200 proposals
@@ -571,23 +765,18 @@ docs/BENCHMARKS.md)."""
 
 _FAST = EMConfig(
     name="fast",
-    inclusion="score",
-    inclusion_by="confidence",
-    n_init=(80,),
-    n_store=2000,
-    mesh_resolution=32,
+    proposals=ProposalSettings(n_init=(80,)),
+    elimination=EliminationSettings(inclusion="score", inclusion_by="confidence"),
+    review=ReviewSettings(n_store=2000, mesh_resolution=32),
 )
 
 
 _CHAIRS = _SYNTHETIC.replace(
     name="chairs",
-    n_init=(200,),
-    alpha_d=(5.0, 20.0),
-    tau_d=(0.2, 0.15),
-    tau_n=(120.0, 80.0),
-    min_size=1000,
-    dup_iou=0.8,
-    work_voxel=0.025,
+    proposals={"n_init": (200,)},
+    steps={"alpha_d": (5.0, 20.0), "tau_d": (0.2, 0.15), "tau_n": (120.0, 80.0)},
+    elimination={"min_size": 1000, "dup_iou": 0.8},
+    compute={"work_voxel": 0.025},
 )
 """§3.12's synthetic-chairs column (200 proposals, the chairs' SDF and normal bands, 1,000 inliers, duplicates at
 IoU 0.8; the crop radii 0.5 / 0.8 m come with the chair prior's category) on a 2.5 cm working set: a chair's
@@ -632,20 +821,17 @@ def resolve_for_prior(cfg: EMConfig, prior: "ShapePriorLike | Any") -> EMConfig:
     return cfg.replace(**category_fields(cfg, cat))
 
 
-def category_fields(cfg: EMConfig, cat: CategorySettings) -> dict[str, Any]:
-    """The per-category values `cfg` leaves unset (None), taken from `cat` for `cfg.domain`."""
+def category_fields(cfg: EMConfig, cat: CategorySettings) -> dict[str, dict[str, Any]]:
+    """The per-category values `cfg` leaves unset (None), taken from `cat` for `cfg.domain`, as changes per
+    group (for `EMConfig.replace`)."""
     horiz, height = cat.sizes(cfg.domain)
-    out: dict[str, Any] = {}
-    if cfg.tau_out is None:
-        out["tau_out"] = cat.out_tau
-    if cfg.scale_horizontal is None:
-        out["scale_horizontal"] = horiz
-    if cfg.scale_height is None:
-        out["scale_height"] = height
-    if cfg.up_range is None:
-        out["up_range"] = cat.up_range
-    if cfg.r_init is None:
-        out["r_init"] = cat.r_init
-    if cfg.r_err is None:
-        out["r_err"] = cat.r_err
+    out: dict[str, dict[str, Any]] = {}
+    if cfg.output.tau_out is None:
+        out.setdefault("output", {})["tau_out"] = cat.out_tau
+    for name, value in (("scale_horizontal", horiz), ("scale_height", height), ("up_range", cat.up_range)):
+        if getattr(cfg.review, name) is None:
+            out.setdefault("review", {})[name] = value
+    for name, value in (("r_init", cat.r_init), ("r_err", cat.r_err)):
+        if getattr(cfg.proposals, name) is None:
+            out.setdefault("proposals", {})[name] = value
     return out

@@ -63,7 +63,7 @@ def prior_dtype(prior: "ShapePriorLike") -> Any:
 
 
 def matmul_precision(dtype: str, prior: "ShapePriorLike | None" = None) -> AbstractContextManager[Any]:
-    """The context in which the solver runs the networks for `EMConfig.matmul_dtype`
+    """The context in which the solver runs the networks for `EMConfig.compute.matmul_dtype`
     (`prior.config.matmul_precision` on the prior's device type). Outputs leave the networks as float32
     (`decode_rows`, `encode_samples` convert)."""
     from efem_viz.prior.config import matmul_precision as _precision

@@ -42,12 +42,12 @@ def schedule(cfg: "EMConfig", t: int) -> Schedule:
     Returns:
         (α_D, τ_D, α_N, τ_N).
     """
-    lam = 1.0 if t >= cfg.t1 else min(t, cfg.end_step) / cfg.end_step
+    lam = 1.0 if t >= cfg.steps.t1 else min(t, cfg.steps.end_step) / cfg.steps.end_step
 
     def lerp(p: tuple[float, float]) -> float:
         return float(p[0] + (p[1] - p[0]) * lam)
 
-    return lerp(cfg.alpha_d), lerp(cfg.tau_d), lerp(cfg.alpha_n), lerp(cfg.tau_n)
+    return lerp(cfg.steps.alpha_d), lerp(cfg.steps.tau_d), lerp(cfg.steps.alpha_n), lerp(cfg.steps.tau_n)
 
 
 def normals_threshold(cfg: "EMConfig", tau_d: float) -> float:
@@ -64,9 +64,9 @@ def normals_threshold(cfg: "EMConfig", tau_d: float) -> float:
     Returns:
         The threshold in canonical SDF units.
     """
-    out = [tau_d, cfg.stat_tau]
-    if cfg.gamma_out < 180.0:
-        out.append(cfg.out_tau)
+    out = [tau_d, cfg.confidence.stat_tau]
+    if cfg.output.gamma_out < 180.0:
+        out.append(cfg.output.out_tau)
     return float(max(out))
 
 
@@ -155,8 +155,8 @@ def stationary_score(
         samples: (P, M) int point indices each proposal's latent was encoded from (row r: proposal r).
         d: (K,) canonical SDF values of the entries of `rag`.
         gamma: (K,) signed normal angles in degrees of the entries of `rag`.
-        tau: τ_st (`EMConfig.stat_tau`).
-        gamma_max: γ_st in degrees (`EMConfig.stat_gamma`).
+        tau: τ_st (`EMConfig.confidence.stat_tau`).
+        gamma_max: γ_st in degrees (`EMConfig.confidence.stat_gamma`).
 
     Returns:
         (P,) float32 fraction of each row's M samples explained (zeros when M = 0).

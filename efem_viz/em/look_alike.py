@@ -4,8 +4,8 @@ A completed shape that passed the review can still be a cup, a can, a box or par
 measures what tells them apart (`bench/ranking.py`, `bench/learned_confidence.py`): how still the fit is, how much of
 the shape the points cover, how well its pose matches a training pose, its size, its tilt, how much of it lies in
 front of the observed depth, and how many points it claims. `LookAlikeModel` is a logistic regression on those eight
-numbers (standardised); `EMConfig.mug_model` names a shipped one (`efem_viz/em/models/<name>.json`), and the solver
-multiplies each accepted fit's confidence by its probability of being a mug.
+numbers (standardised); `EMConfig.confidence.look_alike` names a shipped one (`efem_viz/em/models/<name>.json`),
+and the solver multiplies each accepted fit's confidence by its probability of being a mug.
 
 Models are fitted by `bench/learned_confidence.py` on saved runs of *tune* frames only and written with `save`;
 `load_model` reads only shipped names and checks every number (a model file is data, never code).

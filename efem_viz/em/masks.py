@@ -82,16 +82,16 @@ def instance_distances(result: "EMResult", scene: "Scene", prior: "PriorArg", *,
     if len(inst) == 0:
         return InstanceDistances([], [], [])
     if normals_within is None:
-        normals_within = MAX_TAU_OUT if cfg.gamma_out < 180.0 else -1.0
+        normals_within = MAX_TAU_OUT if cfg.output.gamma_out < 180.0 else -1.0
     points = np.ascontiguousarray(scene.points, np.float32)
     normals = np.ascontiguousarray(scene.normals, np.float32)
     lats = [trace.latent(int(pid), trace.last_step(int(pid))) for pid in inst.ids]
     episodes = trace.prop_episode[np.asarray(inst.ids, np.int64)]
     balls: list[np.ndarray] = [np.zeros(0, np.int64)] * len(inst)
     for ep in np.unique(episodes):  # neighbourhoods among the points available in each instance's episode
-        tree = AvailableTree(points, trace.available_mask(int(ep)), crop=cfg.crop)
+        tree = AvailableTree(points, trace.available_mask(int(ep)), crop=cfg.proposals.crop)
         ks = np.flatnonzero(episodes == ep)
-        nb = tree.query(np.stack([np.asarray(lats[k]["center"], np.float64) for k in ks]), cfg.radii()[1])
+        nb = tree.query(np.stack([np.asarray(lats[k]["center"], np.float64) for k in ks]), cfg.proposals.radii()[1])
         for j, k in enumerate(ks):
             balls[k] = nb.idx[nb.row_slice(j)]
     rag = Ragged.from_lists(balls)
@@ -100,7 +100,7 @@ def instance_distances(result: "EMResult", scene: "Scene", prior: "PriorArg", *,
     if len(table) != max(1, len(trace.prior_names)):
         raise ValueError(f"the run used {max(1, len(trace.prior_names))} prior(s), got {len(table)}")
     owner = np.array([trace.prior_index(int(pid)) for pid in inst.ids], np.int64)
-    d, g = decode_owned_rows(table, owner, lat_all, rag, points, normals, chunk=cfg.decode_chunk,
+    d, g = decode_owned_rows(table, owner, lat_all, rag, points, normals, chunk=cfg.compute.decode_chunk,
                              normals_within=normals_within)
     split = rag.offsets[1:-1]
     return InstanceDistances(list(np.split(rag.idx, split)), list(np.split(d, split)), list(np.split(g, split)))

@@ -72,8 +72,9 @@ def track_proposal(scene: "Scene", prior: "ShapePriorLike", cfg: EMConfig, *, ob
         prior: Shape prior.
         cfg: Solver config (resolved for the prior here).
         object_mask: (N,) bool, the labelled object the proposal should explain (None: no object metrics).
-        start: ``"oracle"`` (exactly ``object_mask``), or a scene point index: an anchor ball of ``cfg.r_init``.
-        steps: Phase-1 steps (default ``cfg.t1``).
+        start: ``"oracle"`` (exactly ``object_mask``), or a scene point index: an anchor ball of
+        ``cfg.proposals.r_init``.
+        steps: Phase-1 steps (default ``cfg.steps.t1``).
         seed: Seed of the solver's generator.
 
     Returns:
@@ -82,8 +83,8 @@ def track_proposal(scene: "Scene", prior: "ShapePriorLike", cfg: EMConfig, *, ob
     from efem_viz.em.solver import ProposalPool, Solver
 
     cfg = resolve_for_prior(cfg, prior)
-    n_steps = int(steps if steps is not None else cfg.t1)
-    cfg = cfg.replace(t1=n_steps, t2=0)
+    n_steps = int(steps if steps is not None else cfg.steps.t1)
+    cfg = cfg.replace(steps={"t1": n_steps, "t2": 0})
     points = np.ascontiguousarray(scene.points, np.float32)
     normals = np.ascontiguousarray(scene.normals, np.float32)
     obj = None if object_mask is None else np.asarray(object_mask, bool)
@@ -92,7 +93,7 @@ def track_proposal(scene: "Scene", prior: "ShapePriorLike", cfg: EMConfig, *, ob
     solver = Solver(scene.name, points, normals, PriorTable.of([prior]), cfg, [cfg], seed=seed, on_step=None,
                      cancel=None)
     available = np.ones(len(points), bool)
-    tree = AvailableTree(points, available, crop=cfg.crop)
+    tree = AvailableTree(points, available, crop=cfg.proposals.crop)
     if start == "oracle":
         if obj is None:
             raise ValueError("an oracle start needs object_mask")
@@ -100,9 +101,10 @@ def track_proposal(scene: "Scene", prior: "ShapePriorLike", cfg: EMConfig, *, ob
     else:
         anchor = np.zeros(len(points), bool)
         anchor[int(start)] = True
-        _, rag = init_crops(points, available, 1, cfg.radii()[0], solver.rng, crop=cfg.crop, tree=tree,
+        _, rag = init_crops(points, available, 1, cfg.proposals.radii()[0], solver.rng, crop=cfg.proposals.crop,
+                            tree=tree,
                             anchor_mask=anchor)
-    ids = solver.rec.birth(0, np.array([0], np.int64), *cfg.radii(), owner=np.zeros(1, np.int64))
+    ids = solver.rec.birth(0, np.array([0], np.int64), *cfg.proposals.radii(), owner=np.zeros(1, np.int64))
     solver.rec.start_episode(np.zeros(0, np.int64), len(ids))
     pool = ProposalPool(ids=ids, rag=rag, w=np.ones(len(rag.idx), np.float32), owner=np.zeros(1, np.int64))
     track = ProposalTrack()

@@ -292,7 +292,7 @@ def sample_independent(
         rng: NumPy generator.
         fallback: (F,) int scene indices drawn uniformly for rows without weight (available points).
         replace: False = draws without replacement where a row has enough weighted entries
-            (`EMConfig.m_step_replace`).
+            (`EMConfig.steps.m_step_replace`).
 
     Returns:
         (P, m) int64 scene indices.

@@ -17,31 +17,14 @@ tests/test_equivariance.py checks it in float64.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from efem_viz.em.config import RefineSettings
+
 if TYPE_CHECKING:
     from efem_viz.prior.model import ShapePrior
-
-
-@dataclass(frozen=True)
-class RefineSettings:
-    """Knobs of `refine_latents`."""
-
-    steps: int = 8
-    """Gradient steps (0 = off)."""
-    lr: float = 0.05
-    """Step size (canonical units; the same for every tensor group)."""
-    momentum: float = 0.5
-    """Heavy-ball momentum."""
-    tau: float = 0.1
-    """Truncation of |SDF| in the data term (canonical units)."""
-    reg: float = 0.01
-    """λ: pull of Θ_R, Θ_inv toward the encoder's code (per latent channel)."""
-    reg_pose: float = 1.0
-    """λ_c = λ_s: pull of the centre offset δ_c (normalised units) and log-scale δ_s toward 0."""
 
 
 def refine_latents(

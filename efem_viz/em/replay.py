@@ -159,7 +159,7 @@ class TraceReplay:
             return self.weights_out(proposal_id, step - 1, prior, full_resolution=full_resolution)
         pts = self.points()
         tree = AvailableTree(pts, tr.replay_mask(int(tr.step_episode[step]), full_resolution=full_resolution),
-                             crop=tr.config.crop)
+                             crop=tr.config.proposals.crop)
         rag = tree.query(pts[int(tr.prop_anchor[proposal_id])][None], float(tr.prop_r_init[proposal_id]))
         w = np.zeros(tr.num_points, np.float32)
         w[rag.idx] = 1.0
@@ -179,17 +179,17 @@ class TraceReplay:
             raise ValueError(f"proposal {proposal_id} did not take part in step {step}")
         pts, nrm = self.points(), self.normals()
         tree = AvailableTree(pts, tr.replay_mask(int(tr.step_episode[step]), full_resolution=full_resolution),
-                             crop=tr.config.crop)
+                             crop=tr.config.proposals.crop)
         rag = tree.query(tr.row_center[r][None], float(tr.prop_r_err[proposal_id]))
         lat = {k: np.asarray(v)[None] for k, v in tr.latent(proposal_id, step).items()}
         lat["scale"] = np.asarray(lat["scale"]).reshape(1)
         if tr.prop_prior is not None:
             lat = trim_latent(lat, latent_width(pri))
         sched = tuple(float(v) for v in tr.schedule[step])
-        with matmul_precision(tr.config.matmul_dtype, pri):  # the precision the run decoded with
-            d, gamma = decode_rows(pri, lat, rag, pts, nrm, chunk=tr.config.decode_chunk,
+        with matmul_precision(tr.config.compute.matmul_dtype, pri):  # the precision the run decoded with
+            d, gamma = decode_rows(pri, lat, rag, pts, nrm, chunk=tr.config.compute.decode_chunk,
                                    normals_within=normals_threshold(tr.config, sched[1]))
-        wk, _ = energy_weights(d, gamma, (sched[0], sched[1], sched[2], sched[3]), out_value=tr.config.out_value)
+        wk, _ = energy_weights(d, gamma, (sched[0], sched[1], sched[2], sched[3]), out_value=tr.config.steps.out_value)
         w = np.zeros(tr.num_points, np.float32)
         w[rag.idx] = wk
         return w
@@ -248,7 +248,7 @@ class TraceReplay:
             from efem_viz.em.decoding import latent_width, mesh_of_latent, trim_latent
 
             lat_k = trim_latent(lat, latent_width(pri)) if tr.prop_prior is not None else lat
-            mesh_obj = mesh_of_latent(pri, lat_k, resolution=tr.config.mesh_resolution)  # float32, as reviews
+            mesh_obj = mesh_of_latent(pri, lat_k, resolution=tr.config.review.mesh_resolution)  # float32, as reviews
         view = ProposalView(
             proposal_id=int(proposal_id),
             step=shown,

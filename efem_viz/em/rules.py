@@ -35,7 +35,7 @@ REASON_TOO_SMALL = "proposal too small"
 REASON_DUPLICATE = "duplicated"
 REASON_INCLUDED = "included"
 REASON_INCLUDES_BETTER = "includes a better fit"
-"""An includer that scores lower than the fit it includes (`EMConfig.inclusion` = "swap")."""
+"""An includer that scores lower than the fit it includes (`EMConfig.elimination.inclusion` = "swap")."""
 REASON_SCALE = "scale-fail"
 REASON_POSE = "pose-fail"
 REASON_SEEN_THROUGH = "seen-through"
@@ -91,9 +91,10 @@ def size_counts(cfg: "EMConfig", inliers: np.ndarray, d: np.ndarray, rag: Ragged
                 tau_d: float, *, spacing: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """What the "too small" rule compares, per row: (counts, thresholds).
 
-    ``cfg.min_size_on`` picks the count (inliers, or the SDF-band support |d| ≤ ``tau_d``);
-    ``cfg.min_size_spacing`` makes the threshold density-relative: ``min_size`` × (reference spacing / median
-    nearest-neighbour spacing of the row's band points)², so it asks for the same surface area at any density.
+    ``cfg.elimination.min_size_on`` picks the count (inliers, or the SDF-band support |d| ≤ ``tau_d``);
+    ``cfg.elimination.min_size_spacing`` makes the threshold density-relative: ``min_size`` × (reference spacing /
+    median nearest-neighbour spacing of the row's band points)², so it asks for the same surface area at any
+    density.
 
     Args:
         cfg: Solver config.
@@ -109,19 +110,19 @@ def size_counts(cfg: "EMConfig", inliers: np.ndarray, d: np.ndarray, rag: Ragged
     """
     p = rag.num_rows
     band = np.abs(np.asarray(d)) <= tau_d
-    if cfg.min_size_on == "band":
+    if cfg.elimination.min_size_on == "band":
         counts = np.bincount(rag.row[band], minlength=p).astype(np.float64)
     else:
         counts = np.asarray(inliers, np.float64)
     thr = np.full(p, float(min_size))
-    if cfg.min_size_spacing is not None:
+    if cfg.elimination.min_size_spacing is not None:
         if spacing is None:
             raise ValueError("min_size_spacing needs the points' spacing")
         for r in range(p):
             sl = rag.row_slice(r)
             sp_r = spacing[rag.idx[sl][band[sl]]]
             if len(sp_r):
-                ratio = cfg.min_size_spacing / max(float(np.median(sp_r)), 1e-6)
+                ratio = cfg.elimination.min_size_spacing / max(float(np.median(sp_r)), 1e-6)
                 thr[r] = float(min_size) * ratio * ratio
     return counts, thr
 
@@ -195,7 +196,7 @@ def find_inclusions(
         threshold: θ_incl.
         active: rows still alive.
         scores: (P,) the rows' scores (modes other than "paper"): stationary scores or confidences
-            (`EMConfig.inclusion_by`).
+            (`EMConfig.elimination.inclusion_by`).
         mode: "paper" (§3.8c: the included row dies), "score" (it dies only when its includer scores at least as
             high; else both stay) or "swap" (as "score", but an includer that scores lower than the row it
             includes dies instead: a fit wider than its object swallowing a better fit of that object).
@@ -240,7 +241,7 @@ class StepContext:
     Attributes:
         phase: 1 = independent, 2 = joint.
         step: global step index (over all episodes).
-        local_step: step within the episode (0 .. t1 + t2 − 1; phase 2 starts at `cfg.t1`).
+        local_step: step within the episode (0 .. t1 + t2 − 1; phase 2 starts at `cfg.steps.t1`).
         cfg: solver config.
         inliers: (P,) int inlier counts.
         stationary: (P,) float stationary scores.
@@ -249,11 +250,11 @@ class StepContext:
         n_points: size of the working set.
         min_size: the "too small" threshold on the working set.
         owner: (P,) int prior of each row (index into the solve's priors).
-        tau_d: this step's SDF truncation τ_D (for `cfg.min_size_on` = "band").
-        spacing: (N,) nearest-neighbour spacing of the working set (for `cfg.min_size_spacing`), or None.
+        tau_d: this step's SDF truncation τ_D (for `cfg.elimination.min_size_on` = "band").
+        spacing: (N,) nearest-neighbour spacing of the working set (for `cfg.elimination.min_size_spacing`), or None.
         active: (P,) bool rows still alive; the runner clears the rows each rule kills.
         coverage: (P,) coverage of each row's last review (in phase 2 its phase-1 review; for
-            `cfg.inclusion_by` = "confidence"), or None before any review.
+            `cfg.elimination.inclusion_by` = "confidence"), or None before any review.
     """
 
     phase: int
@@ -279,7 +280,7 @@ class StepContext:
     @cached_property
     def sets(self) -> "sp.csr_matrix":
         """(P, N) sparse sets {j : |d_ij| < δ_dup} of every row (built once per step, on first use)."""
-        return set_matrix(self.rag, np.abs(self.d) < self.cfg.dup_sdf, self.n_points)
+        return set_matrix(self.rag, np.abs(self.d) < self.cfg.elimination.dup_sdf, self.n_points)
 
 
 @dataclass(frozen=True)
@@ -307,19 +308,20 @@ def _too_small(ctx: StepContext) -> list[Kill]:
 
 
 def _duplicates(ctx: StepContext) -> list[Kill]:
-    thr = ctx.cfg.dup_iou if ctx.phase == 1 else ctx.cfg.joint_dup_iou
-    if ctx.cfg.early_dup_iou is not None and ctx.local_step < ctx.cfg.early_dup_steps:
-        thr = ctx.cfg.early_dup_iou
+    thr = ctx.cfg.elimination.dup_iou if ctx.phase == 1 else ctx.cfg.elimination.joint_dup_iou
+    if ctx.cfg.elimination.early_dup_iou is not None and ctx.local_step < ctx.cfg.elimination.early_dup_steps:
+        thr = ctx.cfg.elimination.early_dup_iou
     return find_duplicates(ctx.sets, ctx.stationary, thr, active=ctx.active)
 
 
 def _inclusions(ctx: StepContext) -> list[Kill]:
     scores = ctx.stationary
-    if ctx.cfg.inclusion != "paper" and ctx.cfg.inclusion_by == "confidence":
+    if ctx.cfg.elimination.inclusion != "paper" and ctx.cfg.elimination.inclusion_by == "confidence":
         if ctx.coverage is None:
             raise ValueError("inclusion_by 'confidence' needs the rows' review coverage (StepContext.coverage)")
-        scores = capped_confidence(ctx.stationary, ctx.coverage, ctx.cfg.cov_cap)
-    return find_inclusions(ctx.sets, ctx.cfg.joint_incl, active=ctx.active, scores=scores, mode=ctx.cfg.inclusion)
+        scores = capped_confidence(ctx.stationary, ctx.coverage, ctx.cfg.confidence.cov_cap)
+    return find_inclusions(ctx.sets, ctx.cfg.elimination.joint_incl, active=ctx.active, scores=scores,
+                           mode=ctx.cfg.elimination.inclusion)
 
 
 STEP_RULES: tuple[StepRule, ...] = (
@@ -432,7 +434,7 @@ REVIEW_COLUMNS: tuple[ReviewColumn, ...] = (
     ReviewColumn("mesh_vertices", "rev_mesh_vertices", (3,), np.float16, offsets="rev_mesh_vertex_offsets"),
     ReviewColumn("mesh_faces", "rev_mesh_faces", (3,), np.int32, offsets="rev_mesh_face_offsets"),
     ReviewColumn("neighbours", "rev_neighbours", dtype=np.int32, offsets="rev_neighbour_offsets"),
-    ReviewColumn("seen_through", "rev_seen_through", measured=lambda cfg: cfg.seen_through_margin is not None,
+    ReviewColumn("seen_through", "rev_seen_through", measured=lambda cfg: cfg.free_space.margin is not None,
                  scores=("seen_through",)),
 )
 """Every measure a review records, declared once: the trace's arrays, the recorder, `EMTrace.review_record`,
@@ -452,7 +454,7 @@ class ReviewRule:
 def size_passes(radii: np.ndarray, cfg: EMConfig) -> bool:
     """§3.9 size verdict: the completed shape's (horizontal radius, half-height) within the config's resolved
     ranges (`scale_horizontal`, `scale_height`, metres)."""
-    h_rng, v_rng = cfg.scale_horizontal, cfg.scale_height
+    h_rng, v_rng = cfg.review.scale_horizontal, cfg.review.scale_height
     if h_rng is None or v_rng is None:
         raise ValueError("size ranges unresolved: resolve the config for its prior first (resolve_for_prior)")
     return bool(h_rng[0] <= float(radii[0]) <= h_rng[1] and v_rng[0] <= float(radii[1]) <= v_rng[1])
@@ -460,14 +462,15 @@ def size_passes(radii: np.ndarray, cfg: EMConfig) -> bool:
 
 def up_passes(up_angle: float, cfg: EMConfig) -> bool:
     """§3.9 up verdict: the angle between the canonical up axis and world +Z within the config's `up_range`."""
-    rng = cfg.up_range
+    rng = cfg.review.up_range
     if rng is None:
         raise ValueError("up range unresolved: resolve the config for its prior first (resolve_for_prior)")
     return bool(rng[0] <= float(up_angle) <= rng[1])
 
 
 def _resolved(cfg: EMConfig | None, *names: str) -> bool:
-    return cfg is not None and all(getattr(cfg, n, None) is not None for n in names)
+    """Whether the config's review settings ``names`` are filled (by `resolve_for_prior`)."""
+    return cfg is not None and all(getattr(cfg.review, n) is not None for n in names)
 
 
 def _scale_check(rec: ReviewRecord, cfg: EMConfig | None) -> tuple[bool, float]:
@@ -485,8 +488,8 @@ def _pose_check(rec: ReviewRecord, cfg: EMConfig | None) -> tuple[bool, float]:
 def _seen_through_check(rec: ReviewRecord, cfg: EMConfig | None) -> tuple[bool, float]:
     st = float(rec.seen_through)
     limit = 1.0
-    if cfg is not None and not (cfg.seen_through_final and int(rec.phase) == 1 and cfg.t2 > 0):
-        limit = cfg.max_seen_through  # with seen_through_final the independent phase's review only measures
+    if cfg is not None and not (cfg.free_space.final and int(rec.phase) == 1 and cfg.steps.t2 > 0):
+        limit = cfg.free_space.max_seen_through  # with free_space.final the independent phase's review only measures
     return bool(not math.isfinite(st) or st <= limit), st
 
 
@@ -496,7 +499,7 @@ REVIEW_RULES: tuple[ReviewRule, ...] = (
     ReviewRule(REASON_SEEN_THROUGH, _seen_through_check),
 )
 """The review checks: the method's (§3.9: the completed shape's size, then its up axis), then the free-space
-check of single-view frames (`EMConfig.seen_through_margin`; passes when it was not measured)."""
+check of single-view frames (`EMConfig.free_space.margin`; passes when it was not measured)."""
 
 
 def first_failed_review(rec: ReviewRecord, cfg: EMConfig | None, rules: Sequence[ReviewRule] = REVIEW_RULES

@@ -6,7 +6,7 @@ phase's competition for points, the duplicate and the inclusion rules act across
 encoded, decoded, meshed and reviewed with its own prior and its category's settings (sizes, up range, τ_out).
 Batched over proposals: one decoder pass per step over the
 error balls of all live proposals at once (rows of similar size padded into batches, see `decode_rows`),
-encoder calls in chunks of `cfg.encode_batch` proposals, eliminations on sparse P×N sets. A dead proposal
+encoder calls in chunks of `cfg.compute.encode_batch` proposals, eliminations on sparse P×N sets. A dead proposal
 costs nothing after its death. Randomness: one NumPy Generator seeded from `seed` draws anchors, Bernoulli masks and all
 categorical draws (on the CPU), so a run is reproducible on any device; the network itself is deterministic.
 """
@@ -114,8 +114,9 @@ class StepInfo:
 def confidence(stationary: float, coverage: float, *, cap: float = 0.4, seen_through: float = float("nan"),
                pose: float = float("nan"), pose_weight: float = 0.0, pose_ref: float = 0.6) -> float:
     """Final confidence of an accepted proposal: s_stat · min(coverage, cap) / cap (docs/design/efem-method.md §3.10),
-    times (1 − seen-through fraction) when the free-space check measured one (`EMConfig.seen_through_margin`), times
-    min(1, pose score / `pose_ref`)^`pose_weight` when the codebook gave a pose score (`EMConfig.pose_weight`)."""
+    times (1 − seen-through fraction) when the free-space check measured one (`EMConfig.free_space.margin`), times
+    min(1, pose score / `pose_ref`)^`pose_weight` when the codebook gave a pose score
+    (`EMConfig.confidence.pose_weight`)."""
     conf = float(capped_confidence(float(stationary), float(coverage), cap))
     st = float(seen_through)
     if math.isfinite(st):
@@ -161,7 +162,7 @@ class ProposalPool:
     latent: LatentArrays | None = None
     stationary: np.ndarray | None = None  # (P,)
     inliers: np.ndarray | None = None  # (P,)
-    scale_max: np.ndarray | None = None  # (P,) largest Θ_s so far (EMConfig.trust_scale)
+    scale_max: np.ndarray | None = None  # (P,) largest Θ_s so far (EMConfig.elimination.trust_scale)
     coverage: np.ndarray | None = None  # (P,) coverage of the last review (EMConfig.inclusion_by = "confidence")
 
     @property
@@ -259,8 +260,9 @@ def run_em(
     cfgs = [resolve_for_prior(base, pr) for pr in plist]
     # a joint solve shares one crop and neighbourhood: the widest of its priors' (a narrower one only costs time)
     run_cfg = cfgs[0] if len(plist) == 1 else base.replace(
-        tau_out=max(c.out_tau for c in cfgs), r_init=max(c.radii()[0] for c in cfgs),
-        r_err=max(c.radii()[1] for c in cfgs))
+        output={"tau_out": max(c.output.out_tau for c in cfgs)},
+        proposals={"r_init": max(c.proposals.radii()[0] for c in cfgs),
+                   "r_err": max(c.proposals.radii()[1] for c in cfgs)})
     points, normals = _scene_arrays(scene)
     if anchor_candidates is not None:
         anchor_candidates = _checked_anchor_candidates(anchor_candidates, len(points))
@@ -271,7 +273,7 @@ def run_em(
         if hasattr(pr, "eval"):
             pr.eval()
     try:
-        cameras, warnings = _capture_cameras(scene) if run_cfg.seen_through_margin is not None else ([], [])
+        cameras, warnings = _capture_cameras(scene) if run_cfg.free_space.margin is not None else ([], [])
         solver = Solver(scene.name, points, normals, PriorTable.of(plist), run_cfg, cfgs, seed=seed,
                          on_step=on_step, cancel=cancel, anchor_candidates=anchor_candidates,
                          step_rules=step_rules, review_rules=review_rules, cameras=cameras)
@@ -301,7 +303,7 @@ def _result_of(solver: Solver, scene: "Scene", plist: list[Any], run_cfg: EMConf
         "decoder_queries": float(solver.n_queries), "encoded_sets": float(solver.n_encoded),
         "normal_queries": float(solver.stats["normal_queries"])}
     trace = solver.rec.finish(timings)
-    categories = tuple(c.replace(tau_out=k.out_tau) for c, k in zip(cats, cfgs))
+    categories = tuple(c.replace(tau_out=k.output.out_tau) for c, k in zip(cats, cfgs))
     return EMResult(trace=trace, instances=Instances.from_rows(list(solver.accepted)), config=run_cfg,
                     timings=timings, scene_name=scene.name, num_points=len(solver.full_points), seed=int(seed),
                     categories=categories, warnings=tuple(warnings),
@@ -412,7 +414,7 @@ class Solver:
         self.full_points = points
         self.full_normals = normals
         self.n_full = len(points)
-        self.work_idx = working_set(points, cfg.work_voxel)
+        self.work_idx = working_set(points, cfg.compute.work_voxel)
         self.identity = len(self.work_idx) == self.n_full
         self.points = points[self.work_idx] if not self.identity else points
         self.normals = normals[self.work_idx] if not self.identity else normals
@@ -421,7 +423,7 @@ class Solver:
         if anchor_candidates is not None:
             self.anchor_mask = self._anchor_mask(points, anchor_candidates)
         # min_size is defined at the scene's resolution; on a thinned working set it scales with the density
-        self.min_size = max(1, int(round(cfg.min_size * self.n / self.n_full)))
+        self.min_size = max(1, int(round(cfg.elimination.min_size * self.n / self.n_full)))
         self.table = table
         self.cfg = cfg  # shared settings (with several priors: τ_out = the largest, used for decode bounds)
         self.cfgs = cfgs  # per prior: the category's sizes, up range and τ_out filled in
@@ -431,7 +433,7 @@ class Solver:
         self.seed = int(seed)
         self.on_step = on_step
         self.cancel = cancel
-        self.m = int(cfg.n_pcl or max(_n_pcl(p) for p in table.priors))
+        self.m = int(cfg.compute.n_pcl or max(_n_pcl(p) for p in table.priors))
         self._spacing: np.ndarray | None = None
         prior_names = tuple(c.name for c in (_category(p) for p in table.priors))
         self.rec = TraceRecorder(cfg, self.n_full, work_idx=self.work_idx, work_min_size=self.min_size,
@@ -448,27 +450,27 @@ class Solver:
         self.n_encoded = 0
         self.stats: dict[str, float] = {"normal_queries": 0.0}
         self.free_space: FreeSpace | None = None
-        """What the recorded cameras saw empty (`EMConfig.seen_through_margin`); None: no check."""
-        if len(cameras) and cfg.seen_through_margin is not None:
+        """What the recorded cameras saw empty (`EMConfig.free_space.margin`); None: no check."""
+        if len(cameras) and cfg.free_space.margin is not None:
             from efem_viz.geometry.camera import FreeSpace
 
-            self.free_space = FreeSpace.of_points(list(cameras), points, lateral=cfg.seen_through_lateral,
-                                                  edge=cfg.seen_through_edge)
-        self.planned_steps = cfg.num_episodes * cfg.steps_per_episode
+            self.free_space = FreeSpace.of_points(list(cameras), points, lateral=cfg.free_space.lateral,
+                                                  edge=cfg.free_space.edge)
+        self.planned_steps = cfg.proposals.num_episodes * cfg.steps.per_episode
         self.accepted: list[dict[str, Any]] = []
         """The instances' rows accepted so far (the end of each episode adds its survivors)."""
         self.partial_result: Callable[[], EMResult] | None = None
         """Builds the run so far as an `EMResult` (`StepInfo.partial`); set by `run_em`."""
         self.ref_scales = [float(cb.mean_scale) if (cb := getattr(p, "codebook", None)) is not None else 1.0
                            for p in table.priors]
-        if not self.identity and cfg.work_voxel:  # a thinned working set implies work_voxel > 0
+        if not self.identity and cfg.compute.work_voxel:  # a thinned working set implies work_voxel > 0
             logger.info("%s: EM on a %.1f mm working set of %d of %d points (min_size %d -> %d)", name,
-                        cfg.work_voxel * 1000, self.n, self.n_full, cfg.min_size, self.min_size)
+                        cfg.compute.work_voxel * 1000, self.n, self.n_full, cfg.elimination.min_size, self.min_size)
 
     @property
     def spacing(self) -> np.ndarray | None:
-        """Nearest-neighbour spacing of the working set (computed once, only for `cfg.min_size_spacing`)."""
-        if self.cfg.min_size_spacing is None:
+        """Nearest-neighbour spacing of the working set (computed once, only for `cfg.elimination.min_size_spacing`)."""
+        if self.cfg.elimination.min_size_spacing is None:
             return None
         if self._spacing is None:
             from efem_viz.geometry.knn import point_spacing
@@ -499,8 +501,8 @@ class Solver:
         k_priors = len(self.table)
         assigned = np.zeros(self.n_full, bool)  # full resolution
         accepted = self.accepted
-        mug_model = load_model(cfg.mug_model) if cfg.mug_model is not None else None
-        for ep, n_init in enumerate(cfg.n_init):
+        look_alike = load_model(cfg.confidence.look_alike) if cfg.confidence.look_alike is not None else None
+        for ep, n_init in enumerate(cfg.proposals.n_init):
             self._check_cancel()
             available_full = ~assigned
             available = available_full[self.work_idx]
@@ -509,27 +511,28 @@ class Solver:
                 logger.info("episode %d skipped: %d available points <= min_size %d", ep, n_avail,
                             self.min_size)
                 break
-            tree = AvailableTree(self.points, available, crop=cfg.crop)
+            tree = AvailableTree(self.points, available, crop=cfg.proposals.crop)
             full_tree = tree if self.identity else None
             # every prior gets n_init proposals; anchors are iid, so prior k takes the k-th block of draws
-            anchors, crops = init_crops(self.points, available, n_init * k_priors, cfg.radii()[0], self.rng,
-                                        crop=cfg.crop, tree=tree, anchor_mask=self.anchor_mask if ep == 0 else None,
-                                        spread=cfg.anchors == "spread")
+            anchors, crops = init_crops(self.points, available, n_init * k_priors, cfg.proposals.radii()[0], self.rng,
+                                        crop=cfg.proposals.crop, tree=tree,
+                                        anchor_mask=self.anchor_mask if ep == 0 else None,
+                                        spread=cfg.proposals.anchors == "spread")
             owner = np.repeat(np.arange(k_priors, dtype=np.int64), n_init)[: len(anchors)]
-            ids = self.rec.birth(ep, self.work_idx[anchors], *cfg.radii(), owner=owner)
+            ids = self.rec.birth(ep, self.work_idx[anchors], *cfg.proposals.radii(), owner=owner)
             self.rec.start_episode(np.flatnonzero(assigned), len(ids))
             pool = ProposalPool(ids=ids, rag=crops, w=np.ones(len(crops.idx), np.float32), owner=owner)
             last_review: dict[int, ReviewRecord] = {}
-            for t in range(cfg.steps_per_episode):
+            for t in range(cfg.steps.per_episode):
                 if pool.size == 0:
                     break
                 self._check_cancel()
-                phase = 1 if t < cfg.t1 else 2
+                phase = 1 if t < cfg.steps.t1 else 2
                 step = self._em_step(pool, tree, ep, t, phase)
                 self._eliminate(pool, step, t, phase)
-                if (phase == 1 and t == cfg.t1 - 1) or (phase == 2 and t == cfg.steps_per_episode - 1):
+                if (phase == 1 and t == cfg.steps.t1 - 1) or (phase == 2 and t == cfg.steps.per_episode - 1):
                     if full_tree is None:
-                        full_tree = AvailableTree(self.full_points, available_full, crop=cfg.crop)
+                        full_tree = AvailableTree(self.full_points, available_full, crop=cfg.proposals.crop)
                     last_review = self._review(pool, full_tree, step, phase)  # float32 (matmul_dtype: E-steps)
                 elapsed = time.perf_counter() - self.t_start
                 self.rec.end_step(pool.size, elapsed)
@@ -543,10 +546,12 @@ class Solver:
                 assert pool.stationary is not None and pool.latent is not None
                 rev = last_review[int(pid)]
                 s_stat = float(pool.stationary[r])
-                conf = confidence(s_stat, float(rev.coverage), cap=cfg.cov_cap, seen_through=rev.seen_through,
-                                  pose=float(rev.db_sim), pose_weight=cfg.pose_weight, pose_ref=cfg.pose_ref)
-                if mug_model is not None and self.categories[rev.prior] == mug_model.category:
-                    conf = mug_model.confidence(conf, review_features(
+                conf = confidence(s_stat, float(rev.coverage), cap=cfg.confidence.cov_cap,
+                                  seen_through=rev.seen_through,
+                                  pose=float(rev.db_sim), pose_weight=cfg.confidence.pose_weight,
+                                  pose_ref=cfg.confidence.pose_ref)
+                if look_alike is not None and self.categories[rev.prior] == look_alike.category:
+                    conf = look_alike.confidence(conf, review_features(
                         stationary=s_stat, coverage=float(rev.coverage), pose=float(rev.db_sim),
                         radius=float(rev.radii[0]), half_height=float(rev.radii[1]), up_angle=float(rev.up_angle),
                         seen_through=float(rev.seen_through), mask_size=len(rev.mask)))
@@ -565,34 +570,37 @@ class Solver:
         fallback = tree.avail_idx
         t0 = time.perf_counter()
         if phase == 1 or pool.stationary is None:
-            samples = sample_independent(pool.rag, pool.w, self.m, cfg.omega, self.rng, fallback=fallback,
-                                         replace=cfg.m_step_replace)
+            samples = sample_independent(pool.rag, pool.w, self.m, cfg.steps.omega, self.rng, fallback=fallback,
+                                         replace=cfg.steps.m_step_replace)
         else:
-            samples, _ = sample_joint(pool.rag, pool.w, pool.stationary, self.m, cfg.omega, self.rng,
+            samples, _ = sample_joint(pool.rag, pool.w, pool.stationary, self.m, cfg.steps.omega, self.rng,
                                       fallback=fallback)
         t0 = self.timer.add("m_step", t0)
-        with matmul_precision(cfg.encoder_dtype or cfg.matmul_dtype, self.table.priors[0]):  # EM steps only
-            latent = encode_rows(self.table, pool.owner, self.points[samples], batch=cfg.encode_batch)
+        with matmul_precision(cfg.compute.encoder_dtype or cfg.compute.matmul_dtype,
+                              self.table.priors[0]):  # EM steps only
+            latent = encode_rows(self.table, pool.owner, self.points[samples], batch=cfg.compute.encode_batch)
             self.n_encoded += len(samples)
-            review_step = t in (cfg.t1 - 1, cfg.steps_per_episode - 1)
-            if cfg.refine_steps > 0 and pool.size <= cfg.refine_max_pool and (cfg.refine_at == "every_step"
+            review_step = t in (cfg.steps.t1 - 1, cfg.steps.per_episode - 1)
+            if cfg.refine.steps > 0 and pool.size <= cfg.refine.max_pool and (cfg.refine.at == "every_step"
                                                                               or review_step):
                 latent = self._refine(latent, self.points[samples], pool.owner)
-        if cfg.trust_scale is not None:
-            latent = _trust_scale(latent, pool, cfg.trust_scale)
+        if cfg.elimination.trust_scale is not None:
+            latent = _trust_scale(latent, pool, cfg.elimination.trust_scale)
         t0 = self.timer.add("encode", t0)
-        rag = tree.query(latent["center"], cfg.radii()[1])
+        rag = tree.query(latent["center"], cfg.proposals.radii()[1])
         t0 = self.timer.add("neighbourhood", t0)
         sched = schedule(cfg, t)
-        with matmul_precision(cfg.matmul_dtype, self.table.priors[0]):
+        with matmul_precision(cfg.compute.matmul_dtype, self.table.priors[0]):
             d, gamma = decode_owned_rows(self.table, pool.owner, latent, rag, self.points, self.normals,
-                                         chunk=cfg.decode_chunk, normals_within=normals_threshold(cfg, sched[1]),
+                                         chunk=cfg.compute.decode_chunk, normals_within=normals_threshold(cfg,
+                                                                                                          sched[1]),
                                          stats=self.stats)
         self.n_queries += len(rag.idx)
         t0 = self.timer.add("decode", t0)
-        w, inlier = energy_weights(d, gamma, sched, out_value=cfg.out_value)
+        w, inlier = energy_weights(d, gamma, sched, out_value=cfg.steps.out_value)
         inliers = np.bincount(rag.row[inlier], minlength=pool.size).astype(np.int32)
-        stationary = stationary_score(rag, samples, d, gamma, tau=cfg.stat_tau, gamma_max=cfg.stat_gamma)
+        stationary = stationary_score(rag, samples, d, gamma, tau=cfg.confidence.stat_tau,
+                                      gamma_max=cfg.confidence.stat_gamma)
         pool.rag, pool.w, pool.d, pool.gamma = rag, w, d, gamma
         pool.latent, pool.stationary, pool.inliers = latent, stationary, inliers
         self.timer.add("score", t0)
@@ -601,10 +609,10 @@ class Solver:
 
     def _refine(self, latent: LatentArrays, pts: np.ndarray, owner: np.ndarray) -> LatentArrays:
         """Test-time latent refinement (EMConfig.refine_*) of every row with its own prior."""
-        from efem_viz.em.refine import RefineSettings, refine_latents
+        from efem_viz.em.refine import refine_latents
 
         cfg = self.cfg
-        settings = RefineSettings(steps=cfg.refine_steps, lr=cfg.refine_lr, reg=cfg.refine_reg)
+        settings = cfg.refine
         if len(self.table) == 1:
             return refine_latents(self.table.priors[0], latent, pts, settings)[0]
         out = {k: v.copy() for k, v in latent.items()}
@@ -646,13 +654,14 @@ class Solver:
         records: dict[int, ReviewRecord] = {}
         keep = np.ones(pool.size, bool)
         t0 = time.perf_counter()
-        if self.identity and cfg.matmul_dtype == "float32":
+        if self.identity and cfg.compute.matmul_dtype == "float32":
             full_rag, d_full, g_full = pool.rag, pool.d, pool.gamma
         else:  # masks and coverage at the scene's full resolution, in float32
-            full_rag = full_tree.query(pool.latent["center"], cfg.radii()[1])
+            full_rag = full_tree.query(pool.latent["center"], cfg.proposals.radii()[1])
             d_full, g_full = decode_owned_rows(
                 self.table, pool.owner, pool.latent, full_rag, self.full_points, self.full_normals,
-                chunk=cfg.decode_chunk, normals_within=cfg.out_tau if cfg.gamma_out < 180.0 else -1.0)
+                chunk=cfg.compute.decode_chunk,
+                normals_within=cfg.output.out_tau if cfg.output.gamma_out < 180.0 else -1.0)
             self.n_queries += len(full_rag.idx)
         self.timer.add("review_coverage", t0)
         for r in range(pool.size):
@@ -674,12 +683,12 @@ class Solver:
             cov = self._coverage(ball, Q, center, fnorm, s_sel / scale)
             radii, scale_pass, up_angle, pose_pass = _size_and_up(Q, R, R_raw, cfg_k)
             st = float("nan")
-            if self.free_space is not None and cfg.seen_through_margin is not None and np.any(Q):
-                st = self.free_space.seen_through(Q + center, cfg.seen_through_margin,
-                                                  per_depth2=cfg.seen_through_range)[0]
-            m_ok = np.abs(d_full[sl]) < cfg_k.out_tau
-            if cfg.gamma_out < 180.0:
-                m_ok &= g_full[sl] < cfg.gamma_out
+            if self.free_space is not None and cfg.free_space.margin is not None and np.any(Q):
+                st = self.free_space.seen_through(Q + center, cfg.free_space.margin,
+                                                  per_depth2=cfg.free_space.range_growth)[0]
+            m_ok = np.abs(d_full[sl]) < cfg_k.output.out_tau
+            if cfg.output.gamma_out < 180.0:
+                m_ok &= g_full[sl] < cfg.output.gamma_out
             rec = ReviewRecord(
                 step=step, phase=phase, proposal_id=pid, R=R, R_raw=R_raw, scale_sel=s_sel, db_sim=db_sim,
                 coverage=cov, radii=radii, scale_pass=scale_pass, up_angle=up_angle, pose_pass=pose_pass,
@@ -703,7 +712,7 @@ class Solver:
 
     def _completed_shape(self, k: int, lat: LatentArrays, pid: int
                          ) -> tuple["trimesh.Trimesh", np.ndarray, np.ndarray, np.ndarray, float]:
-        """Prior k's mesh of a latent and `cfg.n_store` surface samples Q (relative to Θ_c) with their normals;
+        """Prior k's mesh of a latent and `cfg.review.n_store` surface samples Q (relative to Θ_c) with their normals;
         returns (mesh, Q, normals, Θ_c, Θ_s). A degenerate latent (non-finite, Θ_s ≤ 0) has an empty mesh and
         all-zero samples (it fails the size check)."""
         from efem_viz.geometry.sampling import sample_surface
@@ -712,7 +721,7 @@ class Solver:
         center = lat["center"].astype(np.float64)
         scale = float(lat["scale"])
         if np.isfinite(center).all() and np.isfinite(scale) and scale > 0:
-            mesh = mesh_of_latent(self.table.priors[k], lat, resolution=cfg.mesh_resolution)
+            mesh = mesh_of_latent(self.table.priors[k], lat, resolution=cfg.review.mesh_resolution)
         else:
             import trimesh
 
@@ -720,9 +729,9 @@ class Solver:
             center = np.nan_to_num(center)
             scale = 1.0
         if len(mesh.faces) and np.isfinite(np.asarray(mesh.vertices)).all():
-            surf = sample_surface(mesh, cfg.n_store, seed=self.seed * 1_000_003 + pid)
+            surf = sample_surface(mesh, cfg.review.n_store, seed=self.seed * 1_000_003 + pid)
             return mesh, surf.points - center, surf.normals, center, scale
-        return mesh, np.zeros((cfg.n_store, 3)), np.zeros((cfg.n_store, 3)), center, scale
+        return mesh, np.zeros((cfg.review.n_store, 3)), np.zeros((cfg.review.n_store, 3)), center, scale
 
     def _coverage(self, ball: np.ndarray, Q: np.ndarray, center: np.ndarray, normals: np.ndarray,
                   to_canonical: float) -> float:
@@ -738,7 +747,7 @@ class Solver:
         dist_c = dist * to_canonical
         cosang = np.clip((normals * self.full_normals[ball][j]).sum(1), -1.0, 1.0)
         ang = np.degrees(np.arccos(cosang))
-        return float(np.mean((dist_c <= cfg.cov_tau) & (ang <= cfg.cov_gamma)))
+        return float(np.mean((dist_c <= cfg.confidence.cov_tau) & (ang <= cfg.confidence.cov_gamma)))
 
     def _category(self, rev: ReviewRecord, lat: LatentArrays) -> str:
         """An accepted instance's category: its prior's name, or for a family prior (kitchen) the class its final
@@ -764,14 +773,14 @@ class Solver:
         rows it retrieved and their alignment scores are kept as `pose_votes[pid]` (a family prior's class)."""
         prior = self.table.priors[k]
         cb = getattr(prior, "codebook", None)
-        if cb is None or not self.cfg.pose_retrieval:
+        if cb is None or not self.cfg.review.pose_retrieval:
             eye = np.eye(3)
             return eye, eye.copy(), self.ref_scales[k], float("nan"), np.zeros(0, np.int32)
         from efem_viz.em.decoding import latent_from_numpy
         from efem_viz.prior.pose import estimate_pose
 
         one = {key: np.asarray(v)[None] if key != "scale" else np.asarray(v).reshape(1) for key, v in lat.items()}
-        est = estimate_pose(prior, latent_from_numpy(prior, one), Q, fnorm, search_points=self.cfg.pose_points)
+        est = estimate_pose(prior, latent_from_numpy(prior, one), Q, fnorm, search_points=self.cfg.review.pose_points)
         s_sel = (float(est.scale_sel) if np.isfinite(est.scale_sel) and est.scale_sel > 0
                  else self.ref_scales[k])
         R = np.asarray(est.R, np.float64)

@@ -203,7 +203,7 @@ class EMTrace:
     """Flat int32 codebook neighbour ids (ragged by rev_neighbour_offsets)."""
     rev_neighbour_offsets: np.ndarray
     work_idx: np.ndarray | None = None
-    """(N_w,) int32 scene indices of the EM working set (None = every point; see EMConfig.work_voxel)."""
+    """(N_w,) int32 scene indices of the EM working set (None = every point; see EMConfig.compute.work_voxel)."""
     work_min_size: int = 0
     """min_size applied on the working set."""
     timings: dict[str, float] = field(default_factory=dict)
@@ -215,7 +215,7 @@ class EMTrace:
     """Category names of the priors of the solve, in order (empty for traces older than multi-prior runs)."""
     rev_seen_through: np.ndarray | None = None
     """(V,) float32 seen-through fraction of each review's shape (NaN: not checked); None in traces of runs
-    without the free-space check (`EMConfig.seen_through_margin`) and in older traces."""
+    without the free-space check (`EMConfig.free_space.margin`) and in older traces."""
 
     # ------------------------------------------------------------------ basic queries
     @property
@@ -535,7 +535,7 @@ class TraceRecorder:
         self.num_points = int(num_points)
         full = work_idx is None or len(work_idx) == num_points
         self.work_idx = None if full else np.asarray(work_idx, np.int32)
-        self.work_min_size = int(work_min_size if work_min_size is not None else config.min_size)
+        self.work_min_size = int(work_min_size if work_min_size is not None else config.elimination.min_size)
         self.steps: list[tuple[int, int, int, tuple[float, float, float, float]]] = []
         self.active_count: list[int] = []
         self.elapsed: list[float] = []
@@ -672,7 +672,7 @@ class TraceRecorder:
         for r in self.rows:
             if len(r["id"]):
                 return r["R"].shape[1], r["samples"].shape[1]
-        return 0, self.config.n_pcl or 0
+        return 0, self.config.compute.n_pcl or 0
 
     def _death_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Per proposal: death step, reason code, partner, ratio and order among the deaths (-1 / NaN: alive)."""

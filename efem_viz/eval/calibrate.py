@@ -130,7 +130,7 @@ def calibrate_tau_out(
     for t in taus:
         preds = []
         for (res, scene), dist in zip(runs, dists, strict=True):
-            inst = dataclasses.replace(res.instances, masks=dist.masks(t, res.config.gamma_out))
+            inst = dataclasses.replace(res.instances, masks=dist.masks(t, res.config.output.gamma_out))
             preds.append(prediction_from_instances(inst, name=scene.name, class_names=tuple(class_names)))
         ev = evaluate(preds, gts, class_names=tuple(class_names))
         if not np.isfinite(ev.ap):

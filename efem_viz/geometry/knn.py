@@ -31,7 +31,7 @@ def knn_indices(query: torch.Tensor, ref: torch.Tensor, k: int) -> torch.Tensor:
                          f"got {tuple(query.shape)} / {tuple(ref.shape)}")
     if not 1 <= k <= ref.shape[1]:
         raise ValueError(f"k must be in [1, {ref.shape[1]}], got {k}")
-    # float32 distances even inside a bf16 autocast region (EMConfig.matmul_dtype): bf16 keeps 8 bits of
+    # float32 distances even inside a bf16 autocast region (EMConfig.compute.matmul_dtype): bf16 keeps 8 bits of
     # mantissa, too few to order neighbours in feature space
     with torch.no_grad(), torch.autocast(query.device.type, enabled=False):
         q = query.detach().float() if query.dtype in (torch.bfloat16, torch.float16) else query.detach()

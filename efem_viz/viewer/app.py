@@ -195,7 +195,7 @@ class ViewerApp(ServedApp):
         from efem_viz.em.config import preset
 
         if not self.state.proposals_by_user:
-            self.gui_set(self.panels.gui_proposals, int(preset(name).n_init[0]))
+            self.gui_set(self.panels.gui_proposals, int(preset(name).proposals.n_init[0]))
 
     # ================================================================== 1. scenes
     def open_scene(self, name: str) -> bool:

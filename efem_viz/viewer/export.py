@@ -291,7 +291,8 @@ class _DemoRecording:
         if prior is not None and shapes_per_step > 0:
             for pid in drawn[:shapes_per_step]:
                 pri, lat = prior_latent(trace, int(pid), t, prior)
-                shape = decode_shape(pri, lat, resolution=trace.config.mesh_resolution, max_faces=STEP_SHAPE_FACES)
+                shape = decode_shape(pri, lat, resolution=trace.config.review.mesh_resolution,
+                                     max_faces=STEP_SHAPE_FACES)
                 if shape is None:
                     continue
                 n_shapes += 1

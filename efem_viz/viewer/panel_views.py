@@ -110,7 +110,7 @@ def show_result(p: Panels, session: ViewerSession, gui_set: GuiSet) -> None:
     p.gui_threshold.max = session.results.threshold_max(result)  # the top hides every instance
     gui_set(p.gui_threshold, s.threshold)
     p.gui_mask_band.disabled = len(result.instances) == 0
-    gui_set(p.gui_mask_band, float(np.clip(result.config.out_tau, *MASK_BAND_RANGE)))
+    gui_set(p.gui_mask_band, float(np.clip(result.config.output.out_tau, *MASK_BAND_RANGE)))
     counts = md_escape(category_summary(result.instances.category))
     p.gui_run_info.content = (
         f"**Result**: {s.result_source} · {T} steps · {count(len(result.instances.ids), 'instance')}"
@@ -164,7 +164,7 @@ def show_threshold(p: Panels, session: ViewerSession, gui_set: GuiSet) -> None:
     keep = session.results.kept_mask()
     inst = s.result.instances
     p.gui_result_info.content = result_summary_markdown(
-        inst, keep, threshold=s.threshold, out_tau=s.result.config.out_tau,
+        inst, keep, threshold=s.threshold, out_tau=s.result.config.output.out_tau,
         hidden_by_hand=int((keep & ~session.results.shown_mask()).sum()),
     )
     p.gui_legend.content = legend_html(inst, session.results.shown_mask())

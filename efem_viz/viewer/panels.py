@@ -168,7 +168,8 @@ def _scene_tab(gui: GuiApi, *, scene_names: list[str]) -> dict[str, Any]:
 def _run_tab(gui: GuiApi) -> dict[str, Any]:
     """The Run tab's controls: the solve's settings, Run / Cancel / Load, the progress bar and line."""
     preset = gui.add_dropdown("Preset", PRESETS, initial_value="fast")
-    proposals = gui.add_number("Proposals", em_config.preset("fast").n_init[0], min=1, max=em_config.MAX_PROPOSALS,
+    proposals = gui.add_number("Proposals", em_config.preset("fast").proposals.n_init[0], min=1,
+                               max=em_config.MAX_PROPOSALS,
                                step=1, hint="the preset's number until you change it")
     seed = gui.add_number("Seed", 0, min=0, max=2**31 - 1, step=1)
     run = gui.add_button("Run EFEM", hint="run EM on this scene in the background")

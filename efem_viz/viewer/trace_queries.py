@@ -142,7 +142,7 @@ def decode_shape(
     Args:
         prior: the run's shape prior.
         latent: `EMTrace.latent(pid, step)`.
-        resolution: meshing grid (the run's `EMConfig.mesh_resolution`).
+        resolution: meshing grid (the run's `EMConfig.review.mesh_resolution`).
         max_faces: decimate to at most this many faces (`simplify_mesh`; None: the marching-cubes mesh).
 
     Returns:

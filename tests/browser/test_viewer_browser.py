@@ -54,7 +54,7 @@ def viewer(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
     scene = analytic.make_sphere_scene(seed=0, spacing=0.008, name="spheres")
     save_scene(scene, d / "spheres.ply")
     prior = analytic.make_sphere_prior()
-    result = em.run_em(scene, prior, em.preset("fast").with_proposals(16).replace(min_size=30), seed=0)
+    result = em.run_em(scene, prior, em.preset("fast").with_proposals(16).replace(elimination={"min_size": 30}), seed=0)
     result.save(d / "spheres.efem.npz")
     app = ViewerApp([d], port=0, prior=prior)
     assert app.wait_idle(60)
@@ -487,8 +487,8 @@ def test_run_tab_precision_and_run_button(viewer: Any, page: Any) -> None:
     wait_until(lambda: viewer.state.result is not before and viewer.state.result_source.startswith("run"), HANG_GUARD_S,
                "the run's result shown")
     cfg = viewer.state.result.config
-    assert cfg.matmul_dtype == "bfloat16" and cfg.n_init[0] == 12
-    assert cfg.seen_through_margin == FREE_SPACE_FUSED["seen_through_margin"]
+    assert cfg.compute.matmul_dtype == "bfloat16" and cfg.proposals.n_init[0] == 12
+    assert cfg.free_space.margin == FREE_SPACE_FUSED.margin
 
 
 def test_tab_from_seed_goes_to_run_without_opening_a_dropdown(viewer: Any, page: Any) -> None:

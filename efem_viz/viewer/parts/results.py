@@ -171,7 +171,7 @@ class ResultPart:
             if s.result is None or s.scene is None:
                 return False
             tau = float(np.clip(tau_out, *MASK_BAND_RANGE))
-            if abs(tau - s.result.config.out_tau) < 1e-9:
+            if abs(tau - s.result.config.output.out_tau) < 1e-9:
                 return True
             try:
                 if self._mask_dist is None or self._mask_dist[0] != self.core.generation:
@@ -181,12 +181,13 @@ class ResultPart:
                     self._mask_dist = (self.core.generation,
                                        instance_distances(s.result, s.scene,
                                                           self.core.priors.for_run(s.result.trace)))
-                masks = self._mask_dist[1].masks(tau, s.result.config.gamma_out)
+                masks = self._mask_dist[1].masks(tau, s.result.config.output.gamma_out)
             except (RuntimeError, ValueError) as exc:
                 self.core.set_status(f"Mask band unavailable: {exc}", error=True)
                 return False
             inst = dataclasses.replace(s.result.instances, masks=masks)
-            s.result = dataclasses.replace(s.result, instances=inst, config=s.result.config.replace(tau_out=tau))
+            s.result = dataclasses.replace(s.result, instances=inst,
+                                           config=s.result.config.replace(output={"tau_out": tau}))
             self._gt_cache.clear()
             self.core.mask_version += 1
             self.core.set_status(f"Masks re-derived at τ_out = {tau:g} from the stored latents; nothing was re-run.")

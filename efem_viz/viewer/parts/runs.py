@@ -115,7 +115,8 @@ class RunPart:
 
         scene = self.core.state.require_scene()
         cfg = settings.config()
-        self.core.set_status(f"Running EFEM ({settings.preset}, {cfg.n_init[0]} proposals, seed {settings.seed}"
+        self.core.set_status(f"Running EFEM ({settings.preset}, {cfg.proposals.n_init[0]} proposals, "
+                             f"seed {settings.seed}"
                              f"{', bf16' if settings.matmul_dtype == 'bfloat16' else ''}"
                              f"{', on ' + self.core.priors.device if self.core.priors.device != 'cpu' else ''}) …")
         priors = self.core.priors.solve_priors()

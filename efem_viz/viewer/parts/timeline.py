@@ -88,7 +88,7 @@ class TimelinePart:
 
         trace = self.core.state.require_result().trace
         prior, latent = prior_latent(trace, pid, step, self.core.priors.for_run(trace))
-        return decode_shape(prior, latent, resolution=trace.config.mesh_resolution)
+        return decode_shape(prior, latent, resolution=trace.config.review.mesh_resolution)
 
     def is_dead_at(self, pid: int, step: int) -> bool:
         """Whether proposal `pid` has been eliminated by `step`."""

@@ -1,0 +1,97 @@
+"""The solver's configuration (`efem_viz.em.config`): its groups, the names a user types, saved configs old and new."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from efem_viz.em.config import (
+    FLAT_NAMES,
+    GROUPS,
+    PRESETS,
+    EMConfig,
+    preset,
+    resolve_for_prior,
+    setting_names,
+)
+from efem_viz.prior.model import load_prior
+
+SAMPLES = Path(__file__).resolve().parents[1] / "sample_scenes"
+
+
+def test_the_config_is_a_few_typed_groups() -> None:
+    top = [f.name for f in dataclasses.fields(EMConfig)]
+    assert len(top) <= 12 and top[:2] == ["name", "domain"] and set(top[2:]) == set(GROUPS)
+    cfg = preset("real")
+    for group, cls in GROUPS.items():
+        assert isinstance(getattr(cfg, group), cls)
+    # every setting has one dotted name, and every flat name of before points at one of them
+    names = setting_names()
+    assert len(names) == len(set(names))
+    assert set(FLAT_NAMES.values()) <= set(names)
+
+
+@pytest.mark.parametrize("name", PRESETS)
+def test_presets_round_trip_through_json(name: str) -> None:
+    cfg = preset(name)
+    text = cfg.to_json()
+    assert isinstance(json.loads(text)["elimination"], dict)
+    assert EMConfig.from_json(text) == cfg
+
+
+def test_changes_by_group_by_dotted_name_and_by_old_flat_name_agree() -> None:
+    base = preset("synthetic")
+    by_group = base.replace(elimination={"min_size": 150, "inclusion": "swap"}, free_space={"margin": 0.02})
+    by_name = base.with_values({"elimination.min_size": 150, "elimination.inclusion": "swap",
+                                "free_space.margin": 0.02})
+    by_flat = base.with_values({"min_size": 150, "inclusion": "swap", "seen_through_margin": 0.02})
+    assert by_group == by_name == by_flat
+    assert by_group.elimination.min_size == 150 and by_group.free_space.enabled
+    assert base.elimination.min_size == 300  # frozen: the preset itself is untouched
+    # lists (JSON, literal_eval of a command line) become tuples
+    assert base.with_values({"steps.tau_d": [0.2, 0.1]}).steps.tau_d == (0.2, 0.1)
+
+
+def test_unknown_or_bad_settings_are_one_clear_line() -> None:
+    base = preset("fast")
+    with pytest.raises(ValueError, match=r"unknown solver setting 'elimination.min_sise'; did you mean "
+                                         r"elimination.min_size"):
+        base.with_values({"elimination.min_sise": 10})
+    with pytest.raises(ValueError, match="unknown solver setting 'bogus'"):
+        base.with_values({"bogus": 1})
+    with pytest.raises(ValueError, match=r"unknown EliminationSettings field\(s\) \['min_sise'\]"):
+        base.replace(elimination={"min_sise": 10})
+    with pytest.raises(ValueError, match="unknown EMConfig field"):
+        base.replace(min_size=10)
+    with pytest.raises(ValueError, match="mesh_resolution must be in"):
+        base.with_values({"review.mesh_resolution": 600})
+    with pytest.raises(ValueError, match="r_init = inf: must be float"):
+        base.with_values({"proposals.r_init": float("inf")})
+    with pytest.raises(ValueError, match="unknown EMConfig fields in saved config"):
+        EMConfig.from_dict({**preset("fast").to_dict(), "colour": 1})
+    for bad in (base.to_dict(), {"name": "x"}):
+        err = None
+        try:
+            EMConfig.from_dict({**bad, "steps": {"t1": "many"}})
+        except ValueError as e:
+            err = str(e)
+        assert err is not None and "\n" not in err and "t1" in err
+
+
+def test_a_trace_saved_with_the_flat_config_loads_grouped() -> None:
+    """The bundled real-frame trace was written before the grouping (a flat config of 63 fields): it loads, and
+    its config is the `real` preset resolved for the mug prior, as the run used."""
+    from efem_viz.em.results import EMResult
+
+    with np.load(SAMPLES / "real_tabletop_6.efem.npz", allow_pickle=False) as data:
+        flat = json.loads(str(data["config_json"]))
+    assert "seen_through_margin" in flat and "free_space" not in flat
+    res = EMResult.load(SAMPLES / "real_tabletop_6.efem.npz")
+    want = resolve_for_prior(preset("real"), load_prior("mug", load_codebook=False))
+    assert res.config == want
+    assert res.config.free_space.margin == flat["seen_through_margin"]
+    assert res.config.confidence.look_alike == flat["mug_model"]
