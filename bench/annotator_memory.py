@@ -5,15 +5,14 @@ then imports a pre-label file K times (two files in turn, each relabelling every
 records the resident set and glibc's heap/mmap split after each. With `--allocator default` it runs without the
 allocator setting `efem-annotate` starts with (`efem_viz.cpu.configure_allocator`), to show what it fixes.
 
-Usage: python bench/annotator_memory.py [--n-side 3146] [--edits 25] [--allocator fixed|default]
-Writes bench/results/annotator_memory_<allocator>.json.
+Usage: python -m bench.annotator_memory [--n-side 3146] [--edits 25] [--allocator fixed|default]
+Writes bench/results/annotator_memory/annotator_memory_<allocator>.json.
 """
 
 from __future__ import annotations
 
 import argparse
 import ctypes
-import json
 import logging
 import shutil
 import tempfile
@@ -22,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common import ROOT, machine, rss_mb  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
+from bench.common import machine, result_path, rss_mb, write_result  # first: the OpenMP wait policy, before torch
 
 
 class _MallInfo2(ctypes.Structure):
@@ -94,9 +93,8 @@ def main() -> int:
     out = {"machine": machine(1), "vertices": n, "edits": a.edits, "allocator": a.allocator,
            "allocator_setting_applied": applied, "rows": rows,
            "rss_growth_after_edit_2_mb": (max(after2) - after2[0]) if after2 else None}
-    path = ROOT / "bench" / "results" / f"annotator_memory_{a.allocator}.json"
-    path.write_text(json.dumps(out, indent=1))
-    print(f"RSS growth from edit 2 to {a.edits}: {out['rss_growth_after_edit_2_mb']} MB; wrote {path}")
+    write_result(result_path("annotator_memory", a.allocator), out)
+    print(f"RSS growth from edit 2 to {a.edits}: {out['rss_growth_after_edit_2_mb']} MB")
     return 0
 
 

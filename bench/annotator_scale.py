@@ -15,13 +15,13 @@ opens it in `AnnotatorApp` (port 0, no browser) and drives the same handlers the
   stops changing, then a real Ctrl+drag (playwright mouse events) and the seconds until the server has the stroke.
 
 Scans over the display budget (1M vertices) are drawn from a subset (`annotator.scan_view`). Writes
-bench/results/annotator[_<n>].json. Usage: `python bench/annotator_scale.py [--n-side 1000|2236] [--browser]`.
+bench/results/annotator_scale/latest.json (annotator_scale_<n>[_display<k>].json for other sizes). Usage:
+`python -m bench.annotator_scale [--n-side 1000|2236] [--browser]`.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import platform
 import resource
@@ -35,7 +35,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from common import rss_mb  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
+from bench.common import result_path, rss_mb, write_result  # first: the OpenMP wait policy, before torch
 
 
 def make_surface(n_side: int, *, seed: int = 0) -> "object":
@@ -126,10 +126,10 @@ def main() -> int:
     ap.add_argument("--display-points", type=int, default=None, help="display budget (default: the annotator's)")
     args = ap.parse_args()
     if args.out is None:
-        name = "annotator.json" if args.n_side == 1000 else f"annotator_{args.n_side ** 2}.json"
+        tag = "" if args.n_side == 1000 else f"{args.n_side ** 2}"
         if args.display_points is not None:
-            name = name.replace(".json", f"_display{args.display_points}.json")
-        args.out = Path(__file__).parent / "results" / name
+            tag = f"{tag}_display{args.display_points}".lstrip("_")
+        args.out = result_path("annotator_scale", tag or None)
     logging.basicConfig(level=logging.WARNING)
     import torch
 
@@ -252,7 +252,7 @@ def main() -> int:
         "threads": 1,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(res, indent=1))
+    write_result(args.out, res)
     for k, v in res.items():
         print(f"{k:36s} {v}")
     return 0

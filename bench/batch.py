@@ -16,7 +16,7 @@ runs/bench_batch/scenes). Measured per backend:
 `local` runs with `--threads CPUS` (torch's intra-op threads); `local_1thread` is the same with one thread, the
 reference for the bit-identity check (process and Ray workers run one thread each).
 
-Usage: `python bench/batch.py [--n-scenes 12] [--proposals 16] [--cpus 2]`. Writes bench/results/batch.json.
+Usage: `python -m bench.batch [--n-scenes 12] [--proposals 16] [--cpus 2]`. Writes bench/results/batch/latest.json.
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from common import ROOT  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
+from bench.common import ROOT, result_path, write_result  # first: the OpenMP wait policy, before torch
 
 VOLATILE = ("timings_json", "trace/timings_json", "trace/step_elapsed")
 
@@ -163,7 +163,7 @@ def main() -> int:
     ap.add_argument("--backends", nargs="+", default=["local", "local_1thread", "process", "ray"],
                     choices=["local", "local_1thread", "process", "ray"])
     ap.add_argument("--root", type=Path, default=ROOT / "runs" / "bench_batch")
-    ap.add_argument("--json", type=Path, default=ROOT / "bench" / "results" / "batch.json")
+    ap.add_argument("--json", type=Path, default=result_path("batch"))
     a = ap.parse_args()
     scenes_dir = a.root / "scenes"
     paths = make_scenes(scenes_dir, a.n_scenes)
@@ -215,8 +215,7 @@ def main() -> int:
         "rows": rows,
     }
     a.json.parent.mkdir(parents=True, exist_ok=True)
-    a.json.write_text(json.dumps(doc, indent=1) + "\n")
-    print(f"wrote {a.json}")
+    write_result(a.json, doc)
     return 0
 
 

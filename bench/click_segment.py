@@ -3,15 +3,14 @@
 For every labelled mug of `sample_scenes/real_tabletop_{0,6,8}.ply` two clicks are simulated: the mug's point
 nearest its centroid, and one random point of it (seeded). Each goes through `annotator.efem_runs.segment_at_point`
 with the shipped prior (what the annotator's segment tool calls, in the calling thread, one torch thread).
-Prints one row per click and the medians; writes bench/results/efem_runs.json.
+Prints one row per click and the medians; writes bench/results/click_segment/latest.json.
 
-Usage: `python bench/click_segment.py [--prior mug] [--seed 0]`.
+Usage: `python -m bench.click_segment [--prior mug] [--seed 0]`.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import statistics
 import time
@@ -19,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common import ROOT  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
+from bench.common import ROOT, result_path, write_result  # first: the OpenMP wait policy, before torch
 SCENES = ("real_tabletop_0", "real_tabletop_6", "real_tabletop_8")
 
 
@@ -27,7 +26,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--prior", default="mug", help="a prior shipped in efem_viz/weights/ (name)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the random clicks")
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "efem_runs.json")
+    ap.add_argument("--out", type=Path, default=result_path("click_segment"))
     args = ap.parse_args()
 
     import torch
@@ -71,10 +70,7 @@ def main() -> int:
           f"{out['clicks_with_iou_ge_0_5']} at IoU >= 0.5; "
           f"median IoU {out['median_iou']:.2f}, median {out['median_seconds']:.1f} s per click")
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(out, indent=1))
-    tmp.replace(args.out)
-    print(f"wrote {args.out}")
+    write_result(args.out, out)
     return 0
 
 

@@ -1,17 +1,20 @@
-"""What every bench script shares: the checkout on `sys.path`, the CLIs' OpenMP wait policy, and the record of the
-machine a number was measured on.
+"""What every bench shares: the checkout on `sys.path`, the CLIs' OpenMP wait policy, the record of the machine a
+number was measured on, and where results are written.
 
-Import it first (`from common import ROOT, machine`), before anything imports torch: OpenMP reads its wait policy
-once, and the CLIs make waiting threads sleep (`efem_viz.cpu.configure_openmp`), so a bench measures what a user
-runs, and two threads cost no more than one on a shared machine. `rss_mb` is the resident set the memory benches
-record.
+Import it first (`from bench.common import ROOT, machine`), before anything imports torch: OpenMP reads its wait
+policy once, and the CLIs make waiting threads sleep (`efem_viz.cpu.configure_openmp`), so a bench measures what a
+user runs, and two threads cost no more than one on a shared machine. `rss_mb` is the resident set the memory
+benches record. A bench writes `result_path(NAME)` (``bench/results/NAME/latest.json``) or, for a named candidate,
+`result_path(NAME, tag)` (``bench/results/NAME/NAME_<tag>.json``), through `write_result`.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import platform
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +26,32 @@ if str(ROOT) not in sys.path[:1]:
 from efem_viz.cpu import configure_openmp  # noqa: E402 - after the path: this checkout's efem_viz
 
 configure_openmp()
+
+RESULTS = ROOT / "bench" / "results"
+"""One folder per bench under it."""
+
+
+def result_path(bench: str, tag: str | None = None) -> Path:
+    """Where bench ``bench`` writes: its ``latest.json``, or ``<bench>_<tag>.json`` for a named run."""
+    return RESULTS / bench / ("latest.json" if not tag else f"{bench}_{tag}.json")
+
+
+def write_result(path: Path, out: Any, *, indent: int = 1, archive: bool = True) -> Path:
+    """Write a result atomically (JSON; numpy scalars and arrays as numbers and lists) and say where. A new
+    ``latest.json`` first moves the one it replaces aside as ``<bench>_<date>.json`` (its file date), unless that
+    name is taken or ``archive`` is False (a bench that updates some sections of its record). Returns ``path``."""
+    from efem_viz.data.io import atomic_write_text
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if archive and path.name == "latest.json" and path.exists():
+        day = time.strftime("%Y-%m-%d", time.gmtime(path.stat().st_mtime))
+        archive = path.with_name(f"{path.parent.name}_{day}.json")
+        if not archive.exists():
+            path.replace(archive)
+    text = json.dumps(out, indent=indent, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
+    atomic_write_text(path, text)
+    print(f"wrote {path.relative_to(ROOT) if path.is_relative_to(ROOT) else path}")
+    return path
 
 
 def rss_mb() -> int:

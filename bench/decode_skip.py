@@ -17,21 +17,19 @@ for each cell size and ``L`` counts, over every E-step entry:
 * the largest measured slope ``|d(x) - d(rep)| / |x - rep|`` between entries of a cell (the decoder's empirical
   Lipschitz constant in canonical units) and its 99.99th percentile.
 
-Usage: python bench/decode_skip.py [--scenes real_tabletop_0 z_7000] [--cells 0.01 0.02 0.03] [--lipschitz 1.5 2]
+Usage: python -m bench.decode_skip [--scenes real_tabletop_0 z_7000] [--cells 0.01 0.02 0.03] [--lipschitz 1.5 2]
        [--threads 1] [--tag NAME]
-Writes bench/results/decode_skip[_TAG].json.
+Writes bench/results/decode_skip/latest.json (decode_skip_<TAG>.json with --tag).
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 from typing import Any
 
 import numpy as np
 
-from common import ROOT  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
-sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
+from bench.common import result_path, write_result  # first: the OpenMP wait policy, before torch
 
 
 def record_decodes(name: str, threads: int) -> tuple[np.ndarray, list[dict[str, Any]]]:
@@ -43,7 +41,7 @@ def record_decodes(name: str, threads: int) -> tuple[np.ndarray, list[dict[str, 
     from efem_viz.em.config import preset
     from efem_viz.em.solver import run_em
     from efem_viz.prior.model import load_prior
-    from speed import load
+    from bench.speed import load
 
     torch.set_num_threads(threads)
     scene, pname, prior_name = load(name)
@@ -109,7 +107,7 @@ def main() -> int:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--tag", default=None)
     a = ap.parse_args()
-    from em import machine, write_json
+    from bench.common import machine
 
     rows: list[dict[str, Any]] = []
     for name in a.scenes:
@@ -124,9 +122,7 @@ def main() -> int:
                 print(f"  cell {1000 * cell:.0f} mm, L {lip:g}: reps {100 * r['reps']:.1f} %, skipped "
                       f"{100 * r['skipped']:.1f} %, wrong {r['wrong']}, forward passes {100 * r['forward_evals']:.0f} "
                       f"% of today's; slope max {r['slope_max']:.2f} (99.99 % {r['slope_p9999']:.2f})", flush=True)
-    out = ROOT / "bench" / "results" / (f"decode_skip_{a.tag}.json" if a.tag else "decode_skip.json")
-    write_json(out, {"machine": machine(a.threads), "rows": rows})
-    print(f"wrote {out}")
+    write_result(result_path("decode_skip", a.tag), {"machine": machine(a.threads), "rows": rows})
     return 0
 
 

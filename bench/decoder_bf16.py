@@ -10,7 +10,7 @@ the median and 99th percentile |Δ SDF| (canonical units) and the fraction of qu
 decoder's matrix work can move to bf16 (`EMConfig` knob).
 
 Usage: python bench/decoder_bf16.py [--threads 2] [--repeats 5] [--profile]
-Writes bench/results/decoder_bf16.json. Run on a quiet machine; say the thread count with the numbers.
+Writes bench/results/decoder_bf16/latest.json. Run on a quiet machine; say the thread count with the numbers.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import time
 
 import numpy as np
 
-from common import ROOT  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
+from bench.common import ROOT, result_path, write_result  # first: the OpenMP wait policy, before torch
 
 
 def main() -> int:
@@ -114,11 +114,8 @@ def main() -> int:
                 fn()
             print(f"--- {name}")
             print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=8))
-    from efem_viz.data.io import atomic_write_text
 
-    path = ROOT / "bench" / "results" / "decoder_bf16.json"
-    atomic_write_text(path, json.dumps(res, indent=1))
-    print(f"wrote {path}")
+    write_result(result_path("decoder_bf16"), res)
     return 0
 
 

@@ -9,18 +9,18 @@
    (50/100/200/400 on one scene) and vs scene points (the same scene thinned to 25/50/100 % of its points), and
    where the time goes: the per-stage timers the solver records in `EMResult.timings`.
 
-Prints tables and writes bench/results/em.json. Scenes are cached under ~/.cache/efem-viz/bench (generation
+Prints tables and writes bench/results/em/latest.json. Scenes are cached under ~/.cache/efem-viz/bench (generation
 is slower than EM on this machine).
 
 `--no-distractors` runs the same seeds without the 0-2 box/can/bowl/bottle distractors (mugs only; our method
 notes do not say whether the paper's synthetic mug scenes held other objects, so the two sets bracket it) and
-writes bench/results/em_no_distractors.json. The targets stay judged on the default set.
+writes bench/results/em/em_no_distractors.json. The targets stay judged on the default set.
 
 `--config NAME=key=value;...` (repeated) compares solver configs in one run: every scene is run by each config in
 turn, and the table gives AP per configuration and the median seconds of each (`--config fp32=
 --config "bf16=compute.matmul_dtype='bfloat16'"`; keys are the solver settings' dotted names).
 
-Usage: python bench/em.py [--quick] [--prior mug] [--threads 2] [--mode points] [--skip-accuracy]
+Usage: python -m bench.em [--quick] [--prior mug] [--threads 2] [--mode points] [--skip-accuracy]
        [--no-distractors] [--save-results DIR] [--config NAME=... --config NAME=...]
 """
 
@@ -33,14 +33,12 @@ import itertools
 import json
 import logging
 import os
-import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from common import ROOT, machine  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
-sys.path[:0] = [str(ROOT), str(ROOT / "bench")]  # the checkout's efem_viz; em_stability's config parser
+from bench.common import machine, result_path, write_result  # first: the OpenMP wait policy, before torch
 CACHE = Path(os.environ.get("EFEM_BENCH_CACHE", Path.home() / ".cache" / "efem-viz" / "bench"))
 CONFIGS = ("z", "so3", "pile", "tree", "box", "shelf")
 PAPER_AP50 = {"z": 99.8, "so3": 99.8, "pile": 96.8, "tree": 99.0, "box": 77.0, "shelf": 72.4}
@@ -141,14 +139,6 @@ def stage_table(timings: list[dict[str, float]]) -> dict[str, float]:
     return {k: v / total for k, v in tot.items()} | {"other": max(0.0, 1 - sum(tot.values()) / total)}
 
 
-def write_json(path: Path, out: dict[str, Any]) -> None:
-    """Write the results atomically and say where."""
-    from efem_viz.data.io import atomic_write_text
-
-    atomic_write_text(path, json.dumps(out, indent=2, default=float))
-    print(f"wrote {path}")
-
-
 def compare(args: argparse.Namespace, prior: Any, cfgs: dict[str, Any]) -> int:
     """Accuracy and speed of several solver configs on the same scenes, each scene run by every config in turn
     (so machine load falls on all of them alike)."""
@@ -212,7 +202,7 @@ def compare(args: argparse.Namespace, prior: Any, cfgs: dict[str, Any]) -> int:
            "targets": args.targets, "eval_classes": list(EVAL_CLASSES),
            "em_seeds": list(args.em_seeds), "config_env": args.config_env,
            "proposals": args.proposals, "configs": per}
-    write_json(args.out, out)
+    write_result(args.out, out)
     return 0
 
 
@@ -237,7 +227,7 @@ def main() -> int:
                     help="mugs-only scenes (the same seeds without the 0-2 box/can/bowl/bottle distractors); the "
                          "targets are judged on the default set")
     ap.add_argument("--out", type=Path, default=None,
-                    help="JSON output (default bench/results/em.json, or em_no_distractors.json)")
+                    help="JSON output (default bench/results/em/latest.json, or em_no_distractors.json)")
     ap.add_argument("--save-results", type=Path, default=None,
                     help="also write every accuracy run's scene (.ply) and result (.efem.npz) here, to open them in "
                          "the viewer (efem-viz view DIR) or re-score them; with --config, one sub-folder per config; "
@@ -261,7 +251,7 @@ def main() -> int:
     args = ap.parse_args()
     args.config_env = parse_config_env(args.config_env)
     if args.out is None:
-        args.out = ROOT / "bench" / "results" / ("em_no_distractors.json" if args.no_distractors else "em.json")
+        args.out = result_path("em", "no_distractors" if args.no_distractors else None)
     logging.basicConfig(level=logging.WARNING)
 
     import torch
@@ -271,7 +261,7 @@ def main() -> int:
     from efem_viz.prior.config import prior_category
     from efem_viz.prior.model import load_prior
 
-    from em_stability import parse_config
+    from bench.em_stability import parse_config
 
     torch.set_num_threads(args.threads)
     prior = load_prior(args.prior)
@@ -401,7 +391,7 @@ def main() -> int:
         for k, v in sorted(share.items(), key=lambda kv: -kv[1]):
             if v > 0.005:
                 print(f"  {k:>16}: {v * 100:5.1f} %")
-    write_json(args.out, out)
+    write_result(args.out, out)
     return 0
 
 

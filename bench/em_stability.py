@@ -18,12 +18,12 @@ Sets:
 * ``real-tune`` / ``real-judge``: the labelled mugs and non-mug objects of the UOIS RealSense frames
   (bench/real.py's split: tune 0, 1, 6; judge 2, 3, 4, 5, 7, 8).
 
-Usage: python bench/em_stability.py [--config "NAME=key=value;key=value" ...] [--mugs 8] [--anchors 2]
+Usage: python -m bench.em_stability [--config "NAME=key=value;key=value" ...] [--mugs 8] [--anchors 2]
        [--sets single-view real-tune real-judge] [--levels 0 1 2 3 5 sensor] [--prior PATH] [--tag NAME]
 Configs: "base" (the `--preset`, default `real`) is always run; each --config adds one (overrides on the
 preset by the solver settings' dotted names, e.g. "band=elimination.min_size_on='band'"). `real` holds the
 measured changes; the earliest tables (docs/BENCHMARKS.md) used what is now `real_paper`.
-Writes bench/results/em_stability_<tag>.json and prints one table per set. 1 torch thread by default
+Writes bench/results/em_stability/em_stability_<tag>.json and prints one table per set. 1 torch thread by default
 (``--threads``), so that it can run beside a training job.
 """
 
@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import argparse
 import ast
-import json
 import platform
 import sys
 import time
@@ -39,8 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from common import ROOT  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
-sys.path.insert(0, str(ROOT / "bench"))
+from bench.common import result_path, write_result  # first: the OpenMP wait policy, before torch
 
 LEVELS = ("0", "1", "2", "3", "5", "sensor")
 
@@ -140,7 +138,7 @@ def single_view_objects(n_mugs: int, levels: list[str], seed: int) -> dict[str, 
 
 def real_objects(frames: tuple[int, ...]) -> list[dict[str, Any]]:
     """Every labelled object (mugs and non-mugs) of the given UOIS frames."""
-    from real import load_frame
+    from bench.real import load_frame
 
     items = []
     for k in frames:
@@ -240,7 +238,7 @@ def main() -> int:
     sets: dict[str, list[dict[str, Any]]] = {}
     if "single-view" in args.sets:
         sets.update(single_view_objects(args.mugs, args.levels, args.seed))
-    from real import JUDGE, TUNE
+    from bench.real import JUDGE, TUNE
 
     if "real-tune" in args.sets:
         sets["real-tune"] = real_objects(TUNE)
@@ -270,9 +268,7 @@ def main() -> int:
                            "min_size_spacing": v.elimination.min_size_spacing,
                            "m_step_replace": v.steps.m_step_replace} for k, v in configs.items()},
            "results": results, "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
-    path = ROOT / "bench" / "results" / f"em_stability_{args.tag}.json"
-    path.write_text(json.dumps(out, indent=1, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
-    print(f"wrote {path}")
+    write_result(result_path("em_stability", args.tag), out)
     return 0
 
 

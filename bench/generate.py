@@ -1,19 +1,19 @@
 """Benchmark of the synthetic scan generator: time per 6-object TSDF scene, points per scene, point spacing.
 
-Usage: python bench/generate.py [--seeds 3] [--objects 6] [--mode tsdf]
-Writes bench/results/generate.json and prints a table (medians over the seeds, per configuration).
+Usage: python -m bench.generate [--seeds 3] [--objects 6] [--mode tsdf]
+Writes bench/results/generate/latest.json and prints a table (medians over the seeds, per configuration).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import statistics
 import time
 from pathlib import Path
 
+from bench.common import result_path, write_result  # first: the OpenMP wait policy, before torch
 import numpy as np
 
 
@@ -22,7 +22,7 @@ def main() -> int:
     ap.add_argument("--seeds", type=int, default=3, help="scenes per configuration (seeds 0..n-1)")
     ap.add_argument("--objects", type=int, default=6, help="mugs per scene")
     ap.add_argument("--mode", choices=["tsdf", "points"], default="tsdf")
-    ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "generate.json")
+    ap.add_argument("--out", type=Path, default=result_path("generate"))
     args = ap.parse_args()
 
     import torch
@@ -30,7 +30,6 @@ def main() -> int:
     torch.set_num_threads(1)
     from efem_viz.geometry.knn import point_spacing
 
-    from efem_viz.data.io import atomic_write_text
     from efem_viz.data.synth import generate_scene
 
     generate_scene("z", seed=999, n_objects=1, image_size=(64, 48))  # warm-up: imports, caches
@@ -90,8 +89,7 @@ def main() -> int:
         "note": "wall-clock on a shared 2-core machine; other jobs were running",
         "results": results,
     }
-    atomic_write_text(args.out, json.dumps(payload, indent=2))
-    print(f"wrote {args.out}")
+    write_result(args.out, payload, indent=2)
     return 0
 
 

@@ -5,7 +5,7 @@
    labelled triangle mesh (a height-field grid) with about `--points` vertices and twice as many faces.
 2. Import each real tabletop frame (`shared/data/real_tabletop/*.npz`): time, points, plane residual.
 
-Prints medians and writes bench/results/io.json. `--only` runs just the named format rows (no RGB-D import)
+Prints medians and writes bench/results/io/latest.json. `--only` runs just the named format rows (no RGB-D import)
 and updates those rows in an existing io.json measured at the same `--points`.
 
 3. `--normals N [N ...]` runs only the point-cloud-without-normals benchmark: a binary PLY
@@ -15,8 +15,8 @@ and updates those rows in an existing io.json measured at the same `--points`.
    checkout (e.g. the previous commit unpacked with `git archive HEAD | tar -x -C DIR`). Results go to the
    "normals" record of io.json, keyed by root label and N.
 
-Usage: python bench/io.py [--points 200000] [--repeats 3] [--only ".ply ascii" ".ply ascii mesh"]
-       python bench/io.py --normals 550000 2000000 [--root /tmp/before --label before]
+Usage: python -m bench.io [--points 200000] [--repeats 3] [--only ".ply ascii" ".ply ascii mesh"]
+       python -m bench.io --normals 550000 2000000 [--root /tmp/before --label before]
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common import ROOT  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
+from bench.common import ROOT, result_path, write_result  # first: the OpenMP wait policy, before torch
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_tabletop"
 if not REAL.is_dir():
     REAL = Path("/work/shared/data/real_tabletop")
@@ -63,7 +63,7 @@ def main() -> None:
         torch.set_num_threads(1)
     except ImportError:
         pass
-    from efem_viz.data.io import atomic_write_text, load_scene, save_scene
+    from efem_viz.data.io import load_scene, save_scene
     from efem_viz.data.rgbd import import_rgbd, load_rgbd_npz
     from efem_viz.data.scene import Scene
 
@@ -121,14 +121,13 @@ def main() -> None:
             rms = s.provenance["plane_residual_rms_m"] * 1000
             out["rgbd"][f.stem] = {"points": s.num_points, "time_s": float(np.median(times)), "plane_rms_mm": rms}
             print(f"{f.stem:<16}{s.num_points:>10,}{np.median(times):>10.2f}{rms:>14.2f}")
-    res = ROOT / "bench" / "results" / "io.json"
+    res = result_path("io")
     if args.only is not None and res.is_file():  # a partial run updates its rows of the full record
         previous = json.loads(res.read_text())
         if previous.get("points") == n:
             previous["formats"].update(out["formats"])
             out = previous
-    atomic_write_text(res, json.dumps(out, indent=1))
-    print(f"\nwrote {res}")
+    write_result(res, out, archive=False)
 
 
 def random_surface(n: int, seed: int = 0) -> np.ndarray:
@@ -162,21 +161,19 @@ def _bench_normals(sizes: list[int], *, root: Path, label: str) -> None:
             plyfile.PlyData([plyfile.PlyElement.describe(v, "vertex")]).write(str(ply))
             for mode in ("info", "normals"):
                 proc = subprocess.run(
-                    [sys.executable, __file__, "--child", str(root), str(ply), mode],
-                    capture_output=True, text=True, env=env,
+                    [sys.executable, "-m", "bench.io", "--child", str(root), str(ply), mode],
+                    capture_output=True, text=True, env=env, cwd=ROOT,
                 )
                 if proc.returncode != 0:
                     raise SystemExit(proc.stderr[-2000:])
                 rec = json.loads(proc.stdout.strip().splitlines()[-1])
                 out["runs"][f"{n} {mode}"] = rec
                 print(f"{n:>10,}{mode:>9}{rec['time_s']:>10.2f}{rec['peak_mb']:>10.0f}")
-    res = ROOT / "bench" / "results" / "io.json"
-    from efem_viz.data.io import atomic_write_text
+    res = result_path("io")
 
     record = json.loads(res.read_text()) if res.is_file() else {}
     record.setdefault("normals", {})[label] = out
-    atomic_write_text(res, json.dumps(record, indent=1))
-    print(f"\nwrote {res}")
+    write_result(res, record, archive=False)
 
 
 def _normals_child(root: str, ply: str, mode: str) -> None:

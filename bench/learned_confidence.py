@@ -15,9 +15,9 @@ Candidates (all fitted on tune frames only, never on a judge frame):
 
 A single-episode run's instances do not depend on the confidence, so a re-scored ranking is exact end to end.
 
-Usage: python bench/learned_confidence.py DIR/seed0 DIR/seed1 ... [--tune 0 1 6] [--judge 2 3 4 5 7 8]
-       [--json bench/results/learned_confidence.json]
-       python bench/learned_confidence.py TUNE_DIR ... --judge-folders JUDGE_DIR ...   (generated scenes: every
+Usage: python -m bench.learned_confidence DIR/seed0 DIR/seed1 ... [--tune 0 1 6] [--judge 2 3 4 5 7 8]
+       [--json bench/results/learned_confidence/learned_confidence_<tag>.json]
+       python -m bench.learned_confidence TUNE_DIR ... --judge-folders JUDGE_DIR ...   (generated scenes: every
        scene of the positional folders is a tune scene, every scene of --judge-folders a judge scene; the held-out
        score inside the tune set leaves one scene out at a time)
 """
@@ -28,19 +28,16 @@ import argparse
 import json
 import math
 import pickle
-import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from common import ROOT  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
-sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
-
-from efem_viz.em.look_alike import FEATURES, LookAlikeModel, fit_logistic, load_model, review_features  # noqa: E402
-from efem_viz.em.solver import confidence  # noqa: E402
-from ranking import Fit, fits_of, run_key, score_rule  # noqa: E402
+import bench.common  # noqa: F401 - first: the OpenMP wait policy, before torch
+from bench.ranking import Fit, fits_of, run_key, score_rule
+from efem_viz.em.look_alike import FEATURES, LookAlikeModel, fit_logistic, load_model, review_features
+from efem_viz.em.solver import confidence
 
 def features_of(f: Fit) -> dict[str, float]:
     """A fit's review features as the shipped model sees them (`efem_viz.em.look_alike.review_features`)."""
@@ -86,7 +83,7 @@ def main() -> int:
     ap.add_argument("--judge", type=int, nargs="+", default=[2, 3, 4, 5, 7, 8])
     ap.add_argument("--judge-folders", type=Path, nargs="+", default=None,
                     help="split by folder instead of by frame: the positional folders are the tune scenes (e.g. "
-                         "`bench/em.py --seed0 9000 --save-results`), these the judge scenes (the fixed set)")
+                         "`python -m bench.em --seed0 9000 --save-results`), these the judge scenes (the fixed set)")
     ap.add_argument("--model", nargs="*", default=["mug_uois_tune"],
                     help="shipped models (efem_viz/em/models/NAME.json) to score as they are")
     ap.add_argument("--l2", type=float, nargs="+", default=[0.3, 1.0, 3.0, 10.0])

@@ -18,17 +18,16 @@ like the training meshes (bbox centre at the origin, longest side 1; both are +Z
 4. throughput at the shipped size: encoder proposals/s (batch of 16 clouds of n_pcl points) and decoder SDF
    and SDF+normal queries/s (ragged batch with `index`, as the EM E-step calls it), mesh and pose times.
 
-Prints medians and writes bench/results/prior.json.
+Prints medians and writes bench/results/prior/latest.json.
 
-Usage: python bench/prior.py [--prior efem_viz/weights/mug.pt] [--n-test 50] [--ycb-trials 20]
-       python bench/prior.py --prior efem_viz/weights/kitchen.pt --category kitchen  (a table per member; a can's
+Usage: python -m bench.prior [--prior efem_viz/weights/mug.pt] [--n-test 50] [--ycb-trials 20]
+       python -m bench.prior --prior efem_viz/weights/kitchen.pt --category kitchen  (a table per member; a can's
        up error modulo its top-bottom flip)
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
 import platform
@@ -38,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from common import ROOT  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
+from bench.common import ROOT, result_path, write_result  # first: the OpenMP wait policy, before torch
 YCB_MUG = ROOT.parent / "shared" / "data" / "ycb" / "025_mug" / "nontextured.ply"  # ../shared beside the repo
 if not YCB_MUG.exists():
     YCB_MUG = Path("/work/shared/data/ycb/025_mug/nontextured.ply")
@@ -219,14 +218,14 @@ def main() -> int:
     ap.add_argument("--category", default="mug",
                     help="the test objects: a category, or a family (kitchen: its members interleaved, a summary "
                          "per member)")
-    ap.add_argument("--out", default=None, help="JSON (default bench/results/prior.json, or prior_<category>.json)")
+    ap.add_argument("--out", default=None,
+                    help="JSON (default bench/results/prior/latest.json, or prior_<category>.json)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
 
     import torch
     import trimesh
 
-    from efem_viz.data.io import atomic_write_text
     from efem_viz.data.procedural import family_seeds, make_shape, sample_mug_params
     from efem_viz.prior.data import normalize_mesh
     from efem_viz.prior.model import load_prior
@@ -267,9 +266,8 @@ def main() -> int:
         "records": {"procedural_test": proc, "ycb_mug": ycb},
         "wall_s": time.perf_counter() - t_start,
     }
-    out = Path(args.out or ROOT / "bench" / "results" / ("prior.json" if args.category == "mug"
-                                                        else f"prior_{args.category}.json"))
-    atomic_write_text(out, json.dumps(result, indent=1, default=float))
+    out = Path(args.out) if args.out else result_path("prior", None if args.category == "mug" else args.category)
+    write_result(out, result)
 
     def line(name: str, s: dict[str, Any]) -> str:
         return (f"{name:<18} n={s['n']:<3} IoU {s['median_iou']:.3f} (mean {s['mean_iou']:.3f})  "

@@ -13,23 +13,21 @@ depth-sensor model's single-view inputs:
 A prior whose training error equals its held-out error is not overfitting: more capacity or more optimisation, not
 more data or regularisation, is what it lacks.
 
-Usage: python bench/prior_diagnosis.py [--prior efem_viz/weights/mug.pt runs/cap_256x4/mug.pt ...] [--n 48]
+Usage: python -m bench.prior_diagnosis [--prior efem_viz/weights/mug.pt runs/cap_256x4/mug.pt ...] [--n 48]
        [--threads 1] [--tag NAME]
-Writes bench/results/prior_diagnosis[_TAG].json.
+Writes bench/results/prior_diagnosis/latest.json (prior_diagnosis_<TAG>.json with --tag).
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
-import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from common import ROOT  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
-sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
+from bench.common import ROOT, result_path, write_result  # first: the OpenMP wait policy, before torch
 
 REGIONS = ("walls", "bottom", "rim", "handle")
 
@@ -88,7 +86,7 @@ def main() -> int:
     import torch
 
     torch.set_num_threads(a.threads)
-    from em import machine, write_json
+    from bench.common import machine
 
     from efem_viz.prior.data import input_cloud, sensor_cloud
     from efem_viz.prior.model import load_prior
@@ -116,8 +114,7 @@ def main() -> int:
                       f"{m['iou_cal']:.3f}, SDF L1 {m['sdf_l1']:.4f}; near-surface |err| / wrong side: "
                       + ", ".join(f"{k} {v['sdf_l1']:.4f} / {v['wrong_side']:.3f}" for k, v in reg.items()),
                       flush=True)
-    out = ROOT / "bench" / "results" / (f"prior_diagnosis_{a.tag}.json" if a.tag else "prior_diagnosis.json")
-    write_json(out, {"machine": machine(a.threads), "n": a.n, "rows": rows})
+    write_result(result_path("prior_diagnosis", a.tag), {"machine": machine(a.threads), "n": a.n, "rows": rows})
     return 0
 
 

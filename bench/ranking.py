@@ -2,7 +2,7 @@
 it covers in the ground truth, and AP50 / top-1 under any scoring rule in seconds.
 
 Input: folders of saved runs, each holding `<scene>.ply` (with instance labels and categories) and
-`<scene>.efem.npz` (e.g. `bench/real.py --save-results DIR` writes DIR/seed<S>/...). For every scene it reads
+`<scene>.efem.npz` (e.g. `python -m bench.real --save-results DIR` writes DIR/seed<S>/...). For every scene it reads
 
 * the **accepted instances** (their masks, confidence, stationary score, coverage, pose score) and
 * every **proposal killed by a review rule** (its last review record: mask, coverage, seen-through fraction, size,
@@ -27,7 +27,8 @@ tolerance (`EMConfig.free_space.lateral`) from its stored mesh and scores "kill 
 `--lost` says why each mug that no accepted instance matches was lost: the best reviewed fit of it and how that
 proposal ended ("included" in a wider fit, "duplicated", a review rule) or "no good fit".
 
-Usage: python bench/ranking.py DIR [DIR ...] [--lateral M ...] [--lost] [--json bench/results/ranking_<tag>.json]
+Usage: python -m bench.ranking DIR [DIR ...] [--lateral M ...] [--lost]
+       [--json bench/results/ranking/ranking_<tag>.json]
 """
 
 from __future__ import annotations
@@ -44,7 +45,7 @@ from typing import Any
 
 import numpy as np
 
-import common  # noqa: E402,F401 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
+import bench.common  # noqa: F401 - first: the OpenMP wait policy, before torch
 
 
 @dataclass

@@ -13,9 +13,9 @@ Split (fixed before any tuning, so that changes are judged on frames they were n
 Per configuration and seed: AP / AP50 for the mug class pooled over each split, mugs found at IoU >= 0.5, and per
 frame the category under the most confident instance (a mug, or the can / bowl / cup it sits on).
 
-Usage: python bench/real.py [--preset synthetic] [--proposals 400] [--seeds 0 1 2] [--tag NAME]
+Usage: python -m bench.real [--preset synthetic] [--proposals 400] [--seeds 0 1 2] [--tag NAME]
        [--set key=value ...]  (solver settings by dotted name, e.g. --set elimination.min_size=150) [--save-results DIR]
-Writes bench/results/real_<tag>.json. Run with 2 torch threads on a quiet machine.
+Writes bench/results/real/real_<tag>.json. Run with 2 torch threads on a quiet machine.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from common import ROOT  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
+from bench.common import ROOT, result_path, write_result  # first: the OpenMP wait policy, before torch
 FRAMES = Path(os.environ.get("EFEM_REAL_FRAMES", ROOT.parent / "shared" / "data" / "real_tabletop"))
 TUNE = (0, 1, 6)
 JUDGE = (2, 3, 4, 5, 7, 8)
@@ -182,11 +182,8 @@ def main() -> int:
            "prior": a.prior, "config": json.loads(cfg.to_json()), "overrides": overrides, "seeds": a.seeds,
            "summary": summary, "median_seconds": statistics.median(r["seconds"] for r in runs),
            "runs": [{k: v for k, v in r.items() if k != "_pred"} for r in runs]}
-    from efem_viz.data.io import atomic_write_text
 
-    path = ROOT / "bench" / "results" / f"real_{tag}.json"
-    atomic_write_text(path, json.dumps(out, indent=1, default=str))
-    print(f"wrote {path}")
+    write_result(result_path("real", tag), out)
     return 0
 
 

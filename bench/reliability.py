@@ -22,8 +22,8 @@ Every number comes from the real CLI process driven by the scripted WebSocket cl
   the output root where a link leads out (a `pred_mask` folder link, a file link, a folder link inside the root
   whose `pred_mask` leads out): refused or not, and files written outside and inside.
 
-Writes bench/results/reliability.json (sections not run keep their previous results). Usage:
-`python bench/reliability.py [--kills 20] [--clients 4] [--edits 50] [--only hostile-prior links]`
+Writes bench/results/reliability/latest.json (sections not run keep their previous results). Usage:
+`python -m bench.reliability [--kills 20] [--clients 4] [--edits 50] [--only hostile-prior links]`
 (1 torch/OMP thread per process).
 """
 
@@ -47,7 +47,7 @@ from typing import Any
 
 import numpy as np
 
-from common import ROOT  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
+from bench.common import ROOT, result_path, write_result  # first: the OpenMP wait policy, before torch
 sys.path.insert(0, str(ROOT / "tests"))
 
 from viser_client import JOURNAL_FAULTS_SITECUSTOMIZE, AnnotateProcess, ViserClient  # noqa: E402
@@ -524,7 +524,7 @@ def main() -> int:
     ap.add_argument("--only", nargs="*",
                     default=["kill", "damage", "faults", "load", "fuzz", "hostile-prior", "links"])
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "reliability.json")
+    ap.add_argument("--out", type=Path, default=result_path("reliability"))
     a = ap.parse_args()
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     result: dict[str, Any] = {"machine": f"{platform.machine()}, {os.cpu_count()} cores", "threads": 1}
@@ -547,10 +547,7 @@ def main() -> int:
     a.out.parent.mkdir(parents=True, exist_ok=True)
     if a.out.is_file():  # sections not run this time keep their previous results
         result = {**json.loads(a.out.read_text()), **result}
-    from efem_viz.data.io import atomic_write_text
-
-    atomic_write_text(a.out, json.dumps(result, indent=1))
-    print(f"wrote {a.out}")
+    write_result(a.out, result, archive=False)
     return 0
 
 

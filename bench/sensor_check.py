@@ -8,19 +8,18 @@ more than 2 cm from both horizontal neighbours, among all valid pixels).
 Then the same table pixels are generated: the exact plane depth along each pixel's ray, measured by the sensor
 model (RealSense and Kinect, k = 1, the frame's own intrinsics and incidence angles), and measured the same way.
 
-Usage: python bench/sensor_check.py   → bench/results/sensor_check.json, docs/img/sensor_noise.svg
+Usage: python -m bench.sensor_check   → bench/results/sensor_check/latest.json, docs/img/sensor_noise.svg
 """
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from common import ROOT  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
+from bench.common import ROOT, result_path, write_result  # first: the OpenMP wait policy, before torch
 DATA = Path(os.environ.get("EFEM_SHARED_DATA", ROOT.parent / "shared" / "data"))
 BINS = np.arange(0.4, 1.6, 0.1)
 
@@ -141,7 +140,7 @@ def main() -> int:
         print(f"{r['frame']}: real [{rb}] mm; generated RealSense [{gb}] mm; spacing real "
               f"{r['real']['spacing_mm']:.2f} / gen {r['generated']['realsense']['spacing_mm']:.2f} mm; flying "
               f"{100 * r['real']['flying']:.2f} %", flush=True)
-    (ROOT / "bench" / "results" / "sensor_check.json").write_text(json.dumps(rows, indent=1))
+    write_result(result_path("sensor_check"), rows)
 
     def pooled(getter: Any, subset: list[dict[str, Any]]) -> list[tuple[float, float]]:
         acc: dict[float, list[tuple[float, int]]] = {}
@@ -161,7 +160,7 @@ def main() -> int:
               ("  generated Kinect", "#aec7e8", pooled(lambda r: r["generated"]["kinect"]["bins"], pcl), True)]
     svg_plot(series, ROOT / "docs" / "img" / "sensor_noise.svg",
              title="Depth noise on the table plane: real frames vs the sensor model")
-    print("wrote bench/results/sensor_check.json and docs/img/sensor_noise.svg")
+    print("wrote docs/img/sensor_noise.svg")
     return 0
 
 

@@ -29,9 +29,10 @@ forward, the band queries' input-gradient backward) at this machine's measured G
 `--busy N` runs N one-thread busy loops beside the solves (a solve must slow down by about its
 fair share). `--profile` prints the top functions of one run per variant.
 
-Usage: python bench/speed.py [--threads 2] [--repeats 3] [--scenes real_tabletop_0 z_7000] [--busy 1]
+Usage: python -m bench.speed [--threads 2] [--repeats 3] [--scenes real_tabletop_0 z_7000] [--busy 1]
        [--variants baseline fast] [--tag NAME]
-Writes bench/results/speed[_TAG].json. Say the threads, and what else ran, with every number.
+Writes bench/results/speed/latest.json (speed_<TAG>.json with --tag). Say the threads, and what else ran, with
+every number.
 """
 
 from __future__ import annotations
@@ -42,14 +43,12 @@ import multiprocessing as mp
 import os
 import pstats
 import statistics
-import sys
 import time
 from typing import Any
 
 import numpy as np
 
-from common import ROOT  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
-sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
+from bench.common import ROOT, result_path, write_result  # first: the OpenMP wait policy, before torch
 
 VARIANTS: dict[str, tuple[dict[str, str], dict[str, Any]]] = {
     "baseline": ({"EFEM_VIZ_FUSED": "0", "EFEM_VIZ_ONE_PASS": "0"}, {"review.pose_points": None}),
@@ -78,7 +77,7 @@ def load(name: str) -> tuple[Any, str, str]:
     p = ROOT / "sample_scenes" / f"{name}.ply"
     if p.is_file():
         return load_scene(p), "real" if name.startswith("real_") else "synthetic", "mug"
-    from em import get_scene
+    from bench.em import get_scene
 
     if name.startswith("chair_"):
         config, seed = name.removeprefix("chair_").rsplit("_", 1)
@@ -175,7 +174,7 @@ def main() -> int:
     import torch
 
     torch.set_num_threads(a.threads)
-    from em import machine, write_json
+    from bench.common import machine
 
     from efem_viz.em import run_em
     from efem_viz.em.config import preset
@@ -254,10 +253,9 @@ def main() -> int:
     finally:
         for p in busy:
             p.terminate()
-    out = ROOT / "bench" / "results" / (f"speed_{a.tag}.json" if a.tag else "speed.json")
-    write_json(out, {"machine": machine(a.threads) | {"busy_loops": a.busy, "gemm_peak_gflops": peaks},
-                     "proposals": a.proposals,
-                     "seed": a.seed, "rows": rows})
+    write_result(result_path("speed", a.tag), {
+        "machine": machine(a.threads) | {"busy_loops": a.busy, "gemm_peak_gflops": peaks},
+        "proposals": a.proposals, "seed": a.seed, "rows": rows})
     return 0
 
 

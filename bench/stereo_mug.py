@@ -6,14 +6,13 @@ seed 0); the mug is the largest connected cluster of points more than 1 cm above
 distance), which is how it was checked by eye in the viewer. Per configuration and seed: the best IoU of an
 instance with the mug, that instance's confidence and rank, and the number of instances.
 
-Usage: python bench/stereo_mug.py [--preset real] [--proposals 400] [--seeds 0] [--config "NAME=k=v;k=v" ...]
-Writes bench/results/stereo_mug_<tag>.json.
+Usage: python -m bench.stereo_mug [--preset real] [--proposals 400] [--seeds 0] [--config "NAME=k=v;k=v" ...]
+Writes bench/results/stereo_mug/stereo_mug_<tag>.json.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
@@ -22,8 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common import ROOT  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
-sys.path.insert(0, str(ROOT / "bench"))
+from bench.common import ROOT, result_path, write_result  # first: the OpenMP wait policy, before torch
 FRAME = Path(os.environ.get("EFEM_STEREO_FRAME", ROOT.parent / "shared" / "data" / "pcl_tutorial_mug" / "frame.npz"))
 
 
@@ -58,7 +56,7 @@ def main() -> int:
     a = ap.parse_args()
     import torch
 
-    from em_stability import parse_config
+    from bench.em_stability import parse_config
 
     from efem_viz.data.rgbd import import_rgbd_file
     from efem_viz.em import preset, run_em
@@ -90,13 +88,10 @@ def main() -> int:
             rows.append(row)
             print(f"{name:>14} seed {seed}: best IoU {row['best_iou']}, confidence {row['confidence']}, "
                   f"rank {rank} of {len(ious)} (top {row['top_confidence']}) [{row['seconds']} s]", flush=True)
-    from efem_viz.data.io import atomic_write_text
 
     out = {"machine": f"{platform.machine()}, {os.cpu_count()} cores, {a.threads} torch threads", "prior": a.prior,
            "preset": a.preset, "proposals": a.proposals, "mug_points": int(gt.sum()), "rows": rows}
-    path = ROOT / "bench" / "results" / f"stereo_mug_{a.tag}.json"
-    atomic_write_text(path, json.dumps(out, indent=1, default=str))
-    print(f"wrote {path}")
+    write_result(result_path("stereo_mug", a.tag), out)
     return 0
 
 

@@ -8,8 +8,8 @@ the training SDF loss of every step. Candidates: decoder width x blocks, fp32 or
 On a CPU without AMX or AVX-512 BF16 (`efem_viz.prior.config.fast_cpu_bf16()` False, recorded in the JSON) the
 bf16 rows are 5-12x *slower* than float32: run them only where the hardware has bf16 matrix units.
 
-Usage: python bench/train_precision.py [--threads 1] [--iterations 40] [--candidates 128x2:float32 ...]
-Writes bench/results/train_precision.json (after every candidate). Say the thread count and what else ran.
+Usage: python -m bench.train_precision [--threads 1] [--iterations 40] [--candidates 128x2:float32 ...]
+Writes bench/results/train_precision/latest.json (after every candidate). Say the thread count and what else ran.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common import ROOT  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
+from bench.common import ROOT, result_path  # first: the OpenMP wait policy, before torch
 
 DEFAULT = ("128x2:float32", "128x2:bfloat16", "256x4:float32", "256x4:bfloat16", "256x5:bfloat16",
            "384x5:bfloat16")
@@ -36,10 +36,10 @@ def main() -> int:
     ap.add_argument("--prior", default=str(ROOT / "efem_viz" / "weights" / "mug.pt"))
     ap.add_argument("--n-train", type=int, default=400)
     ap.add_argument("--candidates", nargs="+", default=list(DEFAULT), help="WIDTHxBLOCKS:DTYPE")
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "train_precision.json")
+    ap.add_argument("--out", type=Path, default=result_path("train_precision"))
     a = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
-    from bench.em import machine, write_json
+    from bench.common import machine, write_result
     from efem_viz.prior.config import fast_cpu_bf16
     from efem_viz.prior.train import TrainArgs, train
 
@@ -64,7 +64,7 @@ def main() -> int:
         print(f"{cand:>16}: {row['sec_per_iter_median']:.3f} s/iter; train SDF loss first 10 "
               f"{row['sdf_first10']:.4f}, last 10 {row['sdf_last10']:.4f}", flush=True)
         # after every candidate: a run stopped part-way keeps the rows it has
-        write_json(a.out, {"machine": machine(a.threads) | {"fast_cpu_bf16": fast_cpu_bf16()},
+        write_result(a.out, {"machine": machine(a.threads) | {"fast_cpu_bf16": fast_cpu_bf16()},
                            "iterations": a.iterations, "rows": rows})
     return 0
 

@@ -5,8 +5,8 @@ repaint every vertex (the worst case: a whole-scan import or fill). Prints and r
 edit, then closes (final checkpoint), reopens and reports the reopening seconds and its memory, and the seconds of
 undoing all K edits after the reopen (each is read back from the journal).
 
-Usage: python bench/undo_history.py [--n 9900000] [--edits 10] [--history-mb 256]
-Writes bench/results/undo_history.json.
+Usage: python -m bench.undo_history [--n 9900000] [--edits 10] [--history-mb 256]
+Writes bench/results/undo_history/latest.json.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common import ROOT, rss_mb  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
+from bench.common import result_path, rss_mb, write_result  # first: the OpenMP wait policy, before torch
 
 
 
@@ -31,7 +31,6 @@ def main() -> int:
     ap.add_argument("--history-mb", type=int, default=256)
     a = ap.parse_args()
     from annotator.store import LabelStore
-    from efem_viz.data.io import atomic_write_text
 
     out: dict[str, object] = {"machine": f"{platform.machine()}, {platform.processor() or 'cpu'}", "n": a.n,
                               "edits": a.edits, "history_mb": a.history_mb}
@@ -67,7 +66,7 @@ def main() -> int:
                 "reopen_s": round(reopen_s, 2), "reopen_rss_growth_mb": reopen_mb,
                 "undo_s_per_edit_after_reopen": round(undo_s, 3)})
     print(json.dumps(out, indent=1))
-    atomic_write_text(ROOT / "bench" / "results" / "undo_history.json", json.dumps(out, indent=1))
+    write_result(result_path("undo_history"), out)
     return 0
 
 

@@ -7,8 +7,8 @@ its saved `<scene>.efem.npz` instead (e.g. a sample scene with its precomputed r
 Bytes are measured by wrapping the server's `queue_message` and serialising every queued message exactly as the
 websocket path does (msgpack metadata + raw binary buffers), so the numbers are what each client receives.
 
-    python bench/viewer.py                       # writes bench/results/viewer.json
-    python bench/viewer.py --scene sample_scenes/real_tabletop_0.ply --prior mug
+    python -m bench.viewer                       # writes bench/results/viewer/latest.json
+    python -m bench.viewer --scene sample_scenes/real_tabletop_0.ply --prior mug
 """
 
 from __future__ import annotations
@@ -22,9 +22,9 @@ import time
 from pathlib import Path
 from typing import Any
 
+from bench.common import result_path  # first: the OpenMP wait policy, before torch
 import numpy as np
 
-from common import ROOT  # noqa: E402 - first: the checkout on sys.path, the CLIs' OpenMP wait policy
 
 
 class ByteCounter:
@@ -82,7 +82,7 @@ def main() -> int:
     ap.add_argument("--proposals", type=int, default=80)
     ap.add_argument("--repeats", type=int, default=40)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "viewer.json")
+    ap.add_argument("--out", type=Path, default=result_path("viewer"))
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     import torch

@@ -708,8 +708,8 @@ _SYNTHETIC = EMConfig(elimination=EliminationSettings(inclusion="score", inclusi
 mugs as "included"). The better one is the one with the higher confidence (stationary score x capped phase-1
 coverage: a fit over two objects leaves most of its completed shape unobserved); the stationary score alone was
 tried first. Chosen on tune scenes (seeds 9000-9003, box/tree/pile/z: mean AP50 79.9 -> 80.7, AP 55.0 -> 58.2),
-judged on the 10-scene fixed set (`bench/em.py --mode tsdf`, docs/BENCHMARKS.md). "swap" (kill the includer) scored
-higher on the tune scenes but kills whole mugs for sphere part-fits in a joint mug + sphere solve."""
+judged on the 10-scene fixed set (`python -m bench.em --mode tsdf`, docs/BENCHMARKS.md). "swap" (kill the includer)
+scored higher on the tune scenes but kills whole mugs for sphere part-fits in a joint mug + sphere solve."""
 
 _REAL_PAPER = EMConfig(
     name="real_paper",
@@ -739,26 +739,25 @@ _REAL = _REAL_PAPER.replace(
     confidence={"look_alike": "mug_uois_tune"},
 )
 """Real single-view depth frames (measured with bench/em_stability.py, bench/real.py and bench/stereo_mug.py;
-docs/BENCHMARKS.md): §3.12's settings, but the E-step does not truncate on normals (depth
-noise tilts estimated normals, and the truncated points started the shrink spiral), a wider SDF band, M-step
-draws without replacement, and the free-space check of the capture camera. The confidence is the paper's times
-the learned probability that a fit is a mug (`confidence.look_alike`: fitted on the tune frames' accepted fits of 12
-saved runs, chosen by leave-one-frame-out AP50 inside the tune frames;
-`bench/learned_confidence.py`: judge AP50 22.4 -> 25.2, the most confident fit a mug in 18 of 32 judge scenes
-instead of 15); it replaced a pose-score weighting, whose pose score is one of its features. The instances
-themselves do not change (one episode: the confidence decides no elimination). An inclusion spares the included
-fit when it scores higher than its includer (`inclusion`: tune frames AP50 74.8 -> 90.0 on seeds 0/1, judge frames
-equal; `bench/real.py --set "elimination.inclusion='score'"`). The comparison by confidence (the synthetic presets'
-`inclusion_by`) ties on the tune frames (AP50 90.0 either way, AP 35.8 by stationary score
-against 34.4-35.2), so `real` keeps the stationary score. The free-space check takes no evidence from depth
-edges (`free_space.edge` 2 cm) and widens its margin with the range (`free_space.range_growth` 1 cm/m²): with the
-camera the check had killed good fits (on the judge frames 5 of 15 mugs found over seeds 0-2 against 8 of 10
+docs/BENCHMARKS.md): §3.12's settings, but the E-step does not truncate on normals (depth noise tilts estimated
+normals, and the truncated points started the shrink spiral), a wider SDF band, M-step draws without replacement, and
+the free-space check of the capture camera. The confidence is the paper's times the learned probability that a fit is
+a mug (`confidence.look_alike`: fitted on the tune frames' accepted fits of 12 saved runs, chosen by
+leave-one-frame-out AP50 inside the tune frames; `bench/learned_confidence.py`: judge AP50 22.4 -> 25.2, the most
+confident fit a mug in 18 of 32 judge scenes instead of 15); it replaced a pose-score weighting, whose pose score is
+one of its features. The instances themselves do not change (one episode: the confidence decides no elimination). An
+inclusion spares the included fit when it scores higher than its includer (`inclusion`: tune frames AP50 74.8 -> 90.0
+on seeds 0/1, judge frames equal; `python -m bench.real --set "elimination.inclusion='score'"`). The comparison by
+confidence (the synthetic presets' `inclusion_by`) ties on the tune frames (AP50 90.0 either way, AP 35.8 by
+stationary score against 34.4-35.2), so `real` keeps the stationary score. The free-space check takes no evidence
+from depth edges (`free_space.edge` 2 cm) and widens its margin with the range (`free_space.range_growth` 1 cm/m²):
+with the camera the check had killed good fits (on the judge frames 5 of 15 mugs found over seeds 0-2 against 8 of 10
 without the camera); with both, 12 of 15 (tune 13 of 15, AP50 86.7 against 76.1; judge AP50 22.2 against 17.8;
-`bench/real.py --set "free_space.edge=0.02" "free_space.range_growth=0.01"`, docs/BENCHMARKS.md). The check removes
-fits only at the episode's last review (`free_space.final`): removed after the independent phase, the look-alikes
-no longer held their points in the joint phase, and mugs next to them grew into those points and failed the size
-check (UOIS frames, seeds 0-3, 400 proposals: judge mugs found 13 of 20 against 18 of 20 without the camera; with
-the later removal 18 of 20, tune 16 of 20 either way, judge AP50 29.0 -> 24.9, no camera 17.6). 200 proposals
+`python -m bench.real --set "free_space.edge=0.02" "free_space.range_growth=0.01"`, docs/BENCHMARKS.md). The check
+removes fits only at the episode's last review (`free_space.final`): removed after the independent phase, the
+look-alikes no longer held their points in the joint phase, and mugs next to them grew into those points and failed
+the size check (UOIS frames, seeds 0-3, 400 proposals: judge mugs found 13 of 20 against 18 of 20 without the camera;
+with the later removal 18 of 20, tune 16 of 20 either way, judge AP50 29.0 -> 24.9, no camera 17.6). 200 proposals
 spread over space (`anchors="spread"`) instead of 400 uniform draws: the same mugs found in two thirds of the time
 (UOIS seeds 0-2, tune 13 of 15 either way, judge 12 of 15 against 11, judge AP50 28.2 against 21.1;
 docs/BENCHMARKS.md)."""

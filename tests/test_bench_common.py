@@ -1,0 +1,52 @@
+"""The benches as a package (`bench/`): every bench imports as ``bench.NAME`` (what ``python -m bench.NAME`` runs), and
+`bench.common` writes results where docs/BENCHMARKS.md says, keeping the record a new run replaces."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+BENCHES = sorted(p.stem for p in (ROOT / "bench").glob("*.py") if p.stem not in ("__init__", "common"))
+
+
+def test_every_bench_imports_as_a_module_of_the_package() -> None:
+    assert len(BENCHES) >= 20
+    code = "import importlib, sys\nfor n in sys.argv[1:]:\n    importlib.import_module('bench.' + n)\nprint('ok')"
+    out = subprocess.run([sys.executable, "-c", code, *BENCHES], cwd=ROOT, capture_output=True, text=True,
+                         timeout=600)
+    assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-3000:]
+
+
+def test_results_go_to_one_folder_per_bench(tmp_path: Path) -> None:
+    sys.path.insert(0, str(ROOT))
+    try:
+        from bench.common import RESULTS, result_path, write_result
+    finally:
+        sys.path.remove(str(ROOT))
+    assert result_path("real") == RESULTS / "real" / "latest.json"
+    assert result_path("real", "fs_final") == RESULTS / "real" / "real_fs_final.json"
+    # every record in the folder belongs to a bench that exists
+    for folder in RESULTS.iterdir():
+        assert folder.is_dir() and folder.name in BENCHES, folder
+
+    latest = tmp_path / "speed" / "latest.json"
+    write_result(latest, {"run": 1, "median": np.float32(2.5), "rows": np.arange(3)})
+    assert json.loads(latest.read_text()) == {"run": 1, "median": 2.5, "rows": [0, 1, 2]}
+    day = "2026-12-01"
+    stamp = time.mktime(time.strptime(day + " 12", "%Y-%m-%d %H"))
+    os.utime(latest, (stamp, stamp))
+    write_result(latest, {"run": 2})  # the first run is kept, named by its date
+    archived = tmp_path / "speed" / f"speed_{day}.json"
+    assert json.loads(archived.read_text())["run"] == 1 and json.loads(latest.read_text()) == {"run": 2}
+    os.utime(latest, (stamp, stamp))
+    write_result(latest, {"run": 3})  # the same day's archive is not overwritten
+    assert json.loads(archived.read_text())["run"] == 1 and json.loads(latest.read_text()) == {"run": 3}
+    write_result(latest, {"run": 4}, archive=False)  # a bench that updates sections of its record in place
+    assert sorted(p.name for p in latest.parent.iterdir()) == ["latest.json", f"speed_{day}.json"]
