@@ -58,6 +58,11 @@ EXPECTED: dict[str, tuple[list[str], list[str]]] = {
         ["'lift'", "**U** Lift", "IoU with true object", "(Lift)", "after undo", "exported "],
         ["syn_z_1_unlabelled.ply", "syn_z_1_unlabelled.labels.ply"],
     ),
+    "add_scene_format": (
+        [".laz, .xyz", "find_scenes lists: ['spheres.xyz']", "same points, normals and labels: True",
+         "not numeric columns", "more than the limit of 10", "EFEM on spheres.xyz: 3 instances"],
+        ["spheres.xyz", "spheres.efem.npz"],
+    ),
     "add_batch_backend": (
         ["'thread'", "on thread-", "same instances on both backends: True",
          "resumes: counts {'ok': 0, 'skipped': 3"],

@@ -1,8 +1,8 @@
 """Files on disk: the one atomic write of efem-viz and the annotator, and the one scene walk (`find_scenes`).
 
 Every write goes through `atomic_write`: a temporary file in the destination directory, fsync, then `os.replace`,
-so a crash never leaves a half-written file behind. `find_scenes` lists the scene files (`SCENE_SUFFIXES`, the
-suffixes of the format table in efem_viz/data/formats/) among files and folders, skipping EFEM results
+so a crash never leaves a half-written file behind. `find_scenes` lists the scene files (the suffixes of the
+format table `FORMATS` in efem_viz/data/formats/) among files and folders, skipping EFEM results
 (`RESULT_SUFFIX`).
 """
 
@@ -13,7 +13,7 @@ import tempfile
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
-from efem_viz.data.formats import SCENE_SUFFIXES
+from efem_viz.data.formats import FORMATS
 from efem_viz.data.scene import SceneError
 
 RESULT_SUFFIX = ".efem.npz"
@@ -151,7 +151,7 @@ def is_scene_file(path: str | os.PathLike[str]) -> bool:
 
 
 def _has_scene_suffix(p: Path) -> bool:
-    return not p.name.lower().endswith(RESULT_SUFFIX) and p.suffix.lower() in SCENE_SUFFIXES
+    return not p.name.lower().endswith(RESULT_SUFFIX) and p.suffix.lower() in FORMATS
 
 
 def find_scenes(
@@ -190,13 +190,13 @@ def find_scenes(
                 if p.name.lower().endswith(RESULT_SUFFIX):
                     stem = p.name[: -len(RESULT_SUFFIX)]
                     near = [c for c in (p.with_name(f"{stem}.seg.ply"), *(p.with_name(stem + s)
-                                                                        for s in SCENE_SUFFIXES)) if c.is_file()]
+                                                                        for s in FORMATS)) if c.is_file()]
                     hint = (f"; open {near[0]}" + (" (its coloured segmentation)" if near[0].name.endswith(".seg.ply")
                                                    else "") + " instead, or view both with `efem-viz view "
                             f"{p.parent}`") if near else "; `efem-viz view --results` shows it over its scene"
                     raise SceneError(f"{p} is an EFEM result file, not a scene{hint}")
                 raise SceneError(
-                    f"{p}: unknown scene format {p.suffix!r}; expected one of {', '.join(SCENE_SUFFIXES)}"
+                    f"{p}: unknown scene format {p.suffix!r}; expected one of {', '.join(FORMATS)}"
                 )
             found = [p]
         else:

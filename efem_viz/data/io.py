@@ -50,7 +50,7 @@ from efem_viz.data.files import (
     holds_predictions,
     is_scene_file,
 )
-from efem_viz.data.formats import FORMATS, SCENE_SUFFIXES, SceneFormat
+from efem_viz.data.formats import FORMATS, SceneFormat
 from efem_viz.data.formats.scannet import read_scannet_instances, scannet_pair_of
 from efem_viz.data.formats.npz import scene_from_npz
 from efem_viz.data.formats.ply import PlyElementHeader, PlyHeader, check_ply_counts, read_ply_header
@@ -59,7 +59,6 @@ from efem_viz.data.scene import DEFAULT_MAX_POINTS, Scene, SceneError
 __all__ = [
     "FORMATS",
     "RESULT_SUFFIX",
-    "SCENE_SUFFIXES",
     "SEG_SUFFIX",
     "PlyElementHeader",
     "PlyHeader",
@@ -121,8 +120,8 @@ def load_scene(
     if p.name.lower().endswith(RESULT_SUFFIX):
         raise SceneError(f"{p} is an EFEM result file (load it with EMResult.load), not a scene")
     suffix = p.suffix.lower()
-    if suffix not in SCENE_SUFFIXES:
-        raise SceneError(f"{p}: unknown scene format {suffix!r}; expected one of {', '.join(SCENE_SUFFIXES)}")
+    if suffix not in FORMATS:
+        raise SceneError(f"{p}: unknown scene format {suffix!r}; expected one of {', '.join(FORMATS)}")
     if p.stat().st_size == 0:
         raise SceneError(f"{p}: file is empty (0 bytes)")
     scene_name = name if name is not None else p.name[: -len(p.suffix)]
@@ -167,7 +166,7 @@ def save_scene(scene: Scene, path: str | os.PathLike[str], *, ascii: bool = Fals
         raise SceneError(f"{p}: the suffix {RESULT_SUFFIX} is reserved for EFEM results; choose another name")
     fmt = FORMATS.get(suffix)
     if fmt is None:
-        raise SceneError(f"{p}: unknown scene format {suffix!r}; expected one of {', '.join(SCENE_SUFFIXES)}")
+        raise SceneError(f"{p}: unknown scene format {suffix!r}; expected one of {', '.join(FORMATS)}")
     if not fmt.keeps_labels and scene.has_gt:
         log.warning("%s: %s cannot hold instance labels; they are not saved (use .ply or .npz)", p, suffix)
     if not fmt.keeps_faces and scene.is_mesh:

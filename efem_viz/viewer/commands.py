@@ -91,7 +91,8 @@ def scenes_of_results(results: Sequence[Path]) -> list[Path]:
         FileNotFoundError: a results folder does not exist.
         SceneError: none of the named scenes exists (the line says how to give them).
     """
-    from efem_viz.data.files import RESULT_SUFFIX, SCENE_SUFFIXES, recorded_scene_paths
+    from efem_viz.data.files import RESULT_SUFFIX, recorded_scene_paths
+    from efem_viz.data.formats import FORMATS
 
     found: list[Path] = []
     missing: list[str] = []
@@ -103,7 +104,7 @@ def scenes_of_results(results: Sequence[Path]) -> list[Path]:
         for result in sorted(folder.glob(f"*{RESULT_SUFFIX}")):
             name = result.name[: -len(RESULT_SUFFIX)]
             scene = recorded.get(name)
-            if scene is not None and scene.suffix.lower() in SCENE_SUFFIXES and scene.is_file():
+            if scene is not None and scene.suffix.lower() in FORMATS and scene.is_file():
                 if scene not in found:
                     found.append(scene)
             else:

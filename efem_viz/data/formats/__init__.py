@@ -4,7 +4,8 @@
 with a `load(path, max_points) -> dict` (the keyword arguments of `Scene.create`: points, normals, colors, faces,
 instance, categories, provenance; bounds-checked before anything is allocated, errors as `SceneError`) and a
 `save(scene, tmp_path, *, ascii)` (writes the whole file to the temporary path `atomic_write` gives it), plus one
-row here.
+row here. The table is read at each call, so a row added at run time (`FORMATS[".xyz"] = SceneFormat(...)`,
+examples/add_scene_format.py) is a format `load_scene`, `save_scene` and `find_scenes` know from then on.
 """
 
 from __future__ import annotations
@@ -38,9 +39,6 @@ FORMATS: dict[str, SceneFormat] = {
     ".las": SceneFormat(las.load, las.save, keeps_faces=False),
     ".laz": SceneFormat(las.load, las.save_laz, keeps_faces=False),
 }
-"""Scene formats by lower-case file suffix."""
+"""Scene formats by lower-case file suffix (its keys are the suffixes `load_scene` understands)."""
 
-SCENE_SUFFIXES: tuple[str, ...] = tuple(FORMATS)
-"""File suffixes `load_scene` understands (lower case)."""
-
-__all__ = ["FORMATS", "SCENE_SUFFIXES", "SceneFormat"]
+__all__ = ["FORMATS", "SceneFormat"]
