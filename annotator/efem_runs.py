@@ -23,6 +23,7 @@ from efem_viz.prior.registry import PriorSet, available_priors
 
 if TYPE_CHECKING:
     from efem_viz.em.results import EMResult, Instances
+    from efem_viz.em.solver import StepInfo
     from efem_viz.prior.config import ShapePriorLike
 
 log = logging.getLogger(__name__)
@@ -76,7 +77,7 @@ def segment_at_point(
     n_proposals: int | None = None,
     settings: SolveSettings = SEGMENT_SETTINGS,
     seed: int = 0,
-    on_step: Callable[[Any], None] | None = None,
+    on_step: Callable[[StepInfo], None] | None = None,
     cancel: threading.Event | None = None,
     **overrides: Any,
 ) -> np.ndarray:
@@ -148,7 +149,7 @@ def solve_scan(
     prior_name: str = DEFAULT_PRIOR,
     settings: SolveSettings,
     seed: int = 0,
-    on_step: Callable[[Any], None] | None = None,
+    on_step: Callable[[StepInfo], None] | None = None,
     cancel: threading.Event | None = None,
 ) -> EMResult:
     """EFEM on the whole open scan with a shipped prior (the annotator's "Run EFEM on this scan").

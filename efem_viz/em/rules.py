@@ -406,7 +406,7 @@ class ReviewColumn:
     shape: tuple[int, ...] = ()
     dtype: Any = np.float32
     offsets: str | None = None
-    measured: "Callable[[Any], bool] | None" = None
+    measured: "Callable[[EMConfig], bool] | None" = None
     scores: tuple[str, ...] = ()
 
     @property
