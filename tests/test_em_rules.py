@@ -362,7 +362,13 @@ def test_real_preset_is_the_paper_one_with_the_measured_changes() -> None:
                         elimination={"inclusion": "paper"}, proposals=paper.proposals) == paper
     assert real.proposals.n_init == (200,) and real.proposals.anchors == "spread" and paper.proposals.n_init == (400,)
     assert (real.free_space.edge, real.free_space.range_growth, real.free_space.final) == (0.02, 0.01, True)
-    assert real.confidence.look_alike == "mug_uois_tune" and paper.confidence.look_alike is None
+    # the look-alike model is the category's: the mug prior's for real frames, none for a chair or in synthetic scenes
+    assert real.confidence.look_alike == "category" and paper.confidence.look_alike is None
+    assert resolve_for_prior(real, _Named("mug")).confidence.look_alike == "mug_uois_tune"
+    assert resolve_for_prior(real, _Named("chair")).confidence.look_alike is None
+    assert resolve_for_prior(real.replace(domain="synthetic"), _Named("mug")).confidence.look_alike is None
+    assert resolve_for_prior(real.replace(confidence={"look_alike": "mug_uois_tune"}),
+                             _Named("chair")).confidence.look_alike == "mug_uois_tune"  # named: as given
     assert real.confidence.pose_weight == 0.0
     assert (real.elimination.inclusion, real.elimination.inclusion_by) == ("score", "stationary")
     assert paper.elimination.inclusion == "paper"
@@ -459,10 +465,13 @@ def test_category_settings_round_trip_and_validation() -> None:
     cat = category_settings("mug", {"tau_out": 0.07})
     back = CategorySettings.from_dict(json.loads(json.dumps(cat.to_dict())))
     assert back == cat and back.sizes("real") == ((0.03, 0.08), (0.015, 0.10))
+    assert back.look_alike == {"real": "mug_uois_tune"}
     assert CategorySettings.from_dict(CategorySettings("x").to_dict()).scale_height == (0.0, float("inf"))
     for bad in ({"name": "x", "scale_height": [0.2, 0.1]}, {"name": "x", "colour": 1},
                 {"name": "x", "domain_sizes": {"mars": [[0, 1], [0, 1]]}}, {"name": ""},
-                {"name": "x", "domain_sizes": {"real": [[0, 1]]}}, {"name": "x", "domain_sizes": {"real": 5}}):
+                {"name": "x", "domain_sizes": {"real": [[0, 1]]}}, {"name": "x", "domain_sizes": {"real": 5}},
+                {"name": "x", "look_alike": {"mars": "m"}}, {"name": "x", "look_alike": {"real": "../etc/passwd"}},
+                {"name": "x", "look_alike": ["real"]}):
         with pytest.raises(ValueError):
             CategorySettings.from_dict(bad)
 

@@ -323,6 +323,10 @@ class FreeSpaceSettings(_Settings):
             raise ValueError(f"free_space.max_seen_through must be in [0, 1], got {self.max_seen_through}")
 
 
+CATEGORY_LOOK_ALIKE = "category"
+"""`ConfidenceSettings.look_alike` value: each prior's category's own model for the capture domain."""
+
+
 @dataclass(frozen=True, kw_only=True)
 class ConfidenceSettings(_Settings):
     """What a fit's scores and confidence count (§3.9): the stationary score, the coverage, and the optional pose
@@ -345,15 +349,18 @@ class ConfidenceSettings(_Settings):
     pose_ref: float = 0.6
     """Pose score at and above which `pose_weight` leaves the confidence unchanged."""
     look_alike: str | None = None
-    """Name of a shipped look-alike model (`efem_viz/em/models/<name>.json`, `efem_viz.em.look_alike`): each
-    accepted fit's confidence becomes the model's probability that it is an object of the prior's category
-    rather than a look-alike (times the confidence above, as the model says). None = off."""
+    """A look-alike model (`efem_viz.em.look_alike`): each accepted fit's confidence becomes the model's
+    probability that it is an object of the prior's category rather than a look-alike (times the confidence above,
+    as the model says). "category" = the model each prior's category names for the config's `domain`
+    (`CategorySettings.look_alike`; `resolve_for_prior` puts its name, or None, in the prior's config), or the name
+    of a shipped model (`efem_viz/em/models/<name>.json`; it scores the fits of its own category). None = off (the
+    method)."""
 
     def validate(self) -> None:
         if not (0.0 <= self.pose_weight <= 16.0) or not (0.0 < self.pose_ref <= 1.0):
             raise ValueError(f"pose_weight must be in [0, 16] and pose_ref in (0, 1], got {self.pose_weight}, "
                              f"{self.pose_ref}")
-        if self.look_alike is not None:
+        if self.look_alike not in (None, CATEGORY_LOOK_ALIKE):
             from efem_viz.em.look_alike import check_name
 
             check_name(self.look_alike)  # the file itself is read when a run starts (`run_em`)
@@ -736,31 +743,31 @@ _REAL = _REAL_PAPER.replace(
     steps={"tau_d": (0.15, 0.15), "tau_n": (180.0, 180.0), "m_step_replace": False},
     elimination={"inclusion": "score"},
     free_space=FREE_SPACE.replace(final=True),
-    confidence={"look_alike": "mug_uois_tune"},
+    confidence={"look_alike": CATEGORY_LOOK_ALIKE},
 )
 """Real single-view depth frames (measured with bench/em_stability.py, bench/real.py and bench/stereo_mug.py;
 docs/BENCHMARKS.md): §3.12's settings, but the E-step does not truncate on normals (depth noise tilts estimated
 normals, and the truncated points started the shrink spiral), a wider SDF band, M-step draws without replacement, and
 the free-space check of the capture camera. The confidence is the paper's times the learned probability that a fit is
-a mug (`confidence.look_alike`: fitted on the tune frames' accepted fits of 12 saved runs, chosen by
-leave-one-frame-out AP50 inside the tune frames; `bench/learned_confidence.py`: judge AP50 22.4 -> 25.2, the most
-confident fit a mug in 18 of 32 judge scenes instead of 15); it replaced a pose-score weighting, whose pose score is
-one of its features. The instances themselves do not change (one episode: the confidence decides no elimination). An
-inclusion spares the included fit when it scores higher than its includer (`inclusion`: tune frames AP50 74.8 -> 90.0
-on seeds 0/1, judge frames equal; `python -m bench.real --set "elimination.inclusion='score'"`). The comparison by
-confidence (the synthetic presets' `inclusion_by`) ties on the tune frames (AP50 90.0 either way, AP 35.8 by
-stationary score against 34.4-35.2), so `real` keeps the stationary score. The free-space check takes no evidence
-from depth edges (`free_space.edge` 2 cm) and widens its margin with the range (`free_space.range_growth` 1 cm/m²):
-with the camera the check had killed good fits (on the judge frames 5 of 15 mugs found over seeds 0-2 against 8 of 10
-without the camera); with both, 12 of 15 (tune 13 of 15, AP50 86.7 against 76.1; judge AP50 22.2 against 17.8;
-`python -m bench.real --set "free_space.edge=0.02" "free_space.range_growth=0.01"`, docs/BENCHMARKS.md). The check
-removes fits only at the episode's last review (`free_space.final`): removed after the independent phase, the
-look-alikes no longer held their points in the joint phase, and mugs next to them grew into those points and failed
-the size check (UOIS frames, seeds 0-3, 400 proposals: judge mugs found 13 of 20 against 18 of 20 without the camera;
-with the later removal 18 of 20, tune 16 of 20 either way, judge AP50 29.0 -> 24.9, no camera 17.6). 200 proposals
-spread over space (`anchors="spread"`) instead of 400 uniform draws: the same mugs found in two thirds of the time
-(UOIS seeds 0-2, tune 13 of 15 either way, judge 12 of 15 against 11, judge AP50 28.2 against 21.1;
-docs/BENCHMARKS.md)."""
+a mug (`confidence.look_alike`, the mug category's model for real frames: fitted on the tune frames' accepted fits of
+12 saved runs, chosen by leave-one-frame-out AP50 inside the tune frames; `bench/learned_confidence.py`: judge AP50
+22.4 -> 25.2, the most confident fit a mug in 18 of 32 judge scenes instead of 15); it replaced a pose-score
+weighting, whose pose score is one of its features. The instances themselves do not change (one episode: the
+confidence decides no elimination). An inclusion spares the included fit when it scores higher than its includer
+(`inclusion`: tune frames AP50 74.8 -> 90.0 on seeds 0/1, judge frames equal; `python -m bench.real --set
+"elimination.inclusion='score'"`). The comparison by confidence (the synthetic presets' `inclusion_by`) ties on the
+tune frames (AP50 90.0 either way, AP 35.8 by stationary score against 34.4-35.2), so `real` keeps the stationary
+score. The free-space check takes no evidence from depth edges (`free_space.edge` 2 cm) and widens its margin with
+the range (`free_space.range_growth` 1 cm/m²): with the camera the check had killed good fits (on the judge frames 5
+of 15 mugs found over seeds 0-2 against 8 of 10 without the camera); with both, 12 of 15 (tune 13 of 15, AP50 86.7
+against 76.1; judge AP50 22.2 against 17.8; `python -m bench.real --set "free_space.edge=0.02"
+"free_space.range_growth=0.01"`, docs/BENCHMARKS.md). The check removes fits only at the episode's last review
+(`free_space.final`): removed after the independent phase, the look-alikes no longer held their points in the joint
+phase, and mugs next to them grew into those points and failed the size check (UOIS frames, seeds 0-3, 400 proposals:
+judge mugs found 13 of 20 against 18 of 20 without the camera; with the later removal 18 of 20, tune 16 of 20 either
+way, judge AP50 29.0 -> 24.9, no camera 17.6). 200 proposals spread over space (`anchors="spread"`) instead of 400
+uniform draws: the same mugs found in two thirds of the time (UOIS seeds 0-2, tune 13 of 15 either way, judge 12 of
+15 against 11, judge AP50 28.2 against 21.1; docs/BENCHMARKS.md)."""
 
 _FAST = EMConfig(
     name="fast",
@@ -808,8 +815,9 @@ PRESETS: tuple[str, ...] = ("synthetic", "real", "real_paper", "fast", "chairs")
 
 
 def resolve_for_prior(cfg: EMConfig, prior: "ShapePriorLike | Any") -> EMConfig:
-    """`cfg` with the fields it leaves to the prior (τ_out, size ranges, up range, crop radii) filled from the prior's
-    category settings for `cfg.domain`; explicit values in `cfg` win. Validated.
+    """`cfg` with the fields it leaves to the prior (τ_out, size ranges, up range, crop radii, the look-alike model
+    when it asks for the category's) filled from the prior's category settings for `cfg.domain`; explicit values
+    in `cfg` win. Validated.
 
     Args:
         cfg: solver config.
@@ -833,4 +841,6 @@ def category_fields(cfg: EMConfig, cat: CategorySettings) -> dict[str, dict[str,
     for name, value in (("r_init", cat.r_init), ("r_err", cat.r_err)):
         if getattr(cfg.proposals, name) is None:
             out.setdefault("proposals", {})[name] = value
+    if cfg.confidence.look_alike == CATEGORY_LOOK_ALIKE:
+        out["confidence"] = {"look_alike": cat.look_alike.get(cfg.domain)}
     return out

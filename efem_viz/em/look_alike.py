@@ -17,13 +17,14 @@ import functools
 import json
 import math
 import os
-import re
 import stat
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from efem_viz.prior.config import LOOK_ALIKE_NAME
 
 FEATURES = ("log stationary", "log coverage", "pose score", "radius (cm)", "half height (cm)", "cos up angle",
             "seen-through", "log mask size")
@@ -32,7 +33,6 @@ FEATURES = ("log stationary", "log coverage", "pose score", "radius (cm)", "half
 MODELS = Path(__file__).with_name("models")
 """Where the shipped models live."""
 
-_NAME = re.compile(r"[A-Za-z0-9_\-]{1,64}")
 _MAX_BYTES = 64 * 1024
 
 
@@ -87,7 +87,7 @@ class LookAlikeModel:
         if (not 0 < n <= len(FEATURES) or not all(isinstance(x, str) for x in self.names)
                 or len(set(self.names)) != n or any(x not in FEATURES for x in self.names)):
             raise ValueError(f"look-alike model features must be distinct names from {FEATURES}, got {self.names}")
-        if not isinstance(self.category, str) or not _NAME.fullmatch(self.category):
+        if not isinstance(self.category, str) or not LOOK_ALIKE_NAME.fullmatch(self.category):
             raise ValueError(f"look-alike model category must be a plain name, got {self.category!r}")
         if not (len(self.mean) == len(self.scale) == len(self.weights) == n):
             raise ValueError("look-alike model: mean, scale and weights need one value per feature")
@@ -163,7 +163,7 @@ def check_name(name: object) -> None:
     Raises:
         ValueError: not a plain name.
     """
-    if not isinstance(name, str) or not _NAME.fullmatch(name):
+    if not isinstance(name, str) or not LOOK_ALIKE_NAME.fullmatch(name):
         raise ValueError(f"look-alike model name must be a plain name ([A-Za-z0-9_-], <= 64), got {name!r}")
 
 
@@ -179,7 +179,7 @@ def load_model(name: str) -> LookAlikeModel:
     Raises:
         ValueError: not a shipped name, or a file that is not a valid model (one line saying why).
     """
-    if not isinstance(name, str) or not _NAME.fullmatch(name) or name not in available_models():
+    if not isinstance(name, str) or not LOOK_ALIKE_NAME.fullmatch(name) or name not in available_models():
         raise ValueError(f"unknown look-alike model {name!r}; shipped: {available_models()}")
     path = MODELS / f"{name}.json"
     try:

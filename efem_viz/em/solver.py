@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
-from efem_viz.em.config import EMConfig, resolve_for_prior
+from efem_viz.em.config import CATEGORY_LOOK_ALIKE, EMConfig, resolve_for_prior
 from efem_viz.em.decoding import (
     LatentArrays,
     PriorTable,
@@ -34,7 +34,7 @@ from efem_viz.em.decoding import (
     prior_device,
 )
 from efem_viz.em.estep import energy_weights, normals_threshold, schedule, stationary_score
-from efem_viz.em.look_alike import load_model, review_features
+from efem_viz.em.look_alike import LookAlikeModel, load_model, review_features
 from efem_viz.em.replay import TraceReplay
 from efem_viz.em.proposals import AvailableTree, Ragged, init_crops, sample_independent, sample_joint
 from efem_viz.em.rules import (
@@ -501,7 +501,7 @@ class Solver:
         k_priors = len(self.table)
         assigned = np.zeros(self.n_full, bool)  # full resolution
         accepted = self.accepted
-        look_alike = load_model(cfg.confidence.look_alike) if cfg.confidence.look_alike is not None else None
+        look_alike = _look_alike_models(self.cfgs)
         for ep, n_init in enumerate(cfg.proposals.n_init):
             self._check_cancel()
             available_full = ~assigned
@@ -550,8 +550,9 @@ class Solver:
                                   seen_through=rev.seen_through,
                                   pose=float(rev.db_sim), pose_weight=cfg.confidence.pose_weight,
                                   pose_ref=cfg.confidence.pose_ref)
-                if look_alike is not None and self.categories[rev.prior] == look_alike.category:
-                    conf = look_alike.confidence(conf, review_features(
+                model = look_alike[rev.prior]
+                if model is not None and self.categories[rev.prior] == model.category:
+                    conf = model.confidence(conf, review_features(
                         stationary=s_stat, coverage=float(rev.coverage), pose=float(rev.db_sim),
                         radius=float(rev.radii[0]), half_height=float(rev.radii[1]), up_angle=float(rev.up_angle),
                         seen_through=float(rev.seen_through), mask_size=len(rev.mask)))
@@ -787,6 +788,13 @@ class Solver:
         if cb.classes:  # a family prior's: what names the instance (`_category`)
             self.pose_votes[pid] = (np.asarray(est.neighbour_ids), np.asarray(est.scores, np.float64))
         return R, np.asarray(est.R_raw, np.float64), s_sel, float(est.score_db_sim), np.asarray(est.neighbour_ids)
+
+
+def _look_alike_models(cfgs: Sequence[EMConfig]) -> list[LookAlikeModel | None]:
+    """The look-alike model of each prior's (resolved) config, or None; each file read once."""
+    names = [c.confidence.look_alike for c in cfgs]
+    models = {n: load_model(n) for n in set(names) if n is not None and n != CATEGORY_LOOK_ALIKE}
+    return [models.get(n) if n is not None else None for n in names]
 
 
 def _trust_scale(latent: LatentArrays, pool: ProposalPool, trust: float) -> LatentArrays:

@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import re
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
@@ -200,6 +201,10 @@ class CategorySettings:
     r_err: float = 0.11
     """E-step neighbourhood radius around a proposal's centre (m): the object's reach from its centre with a margin
     (spec: mugs 0.11, synthetic chairs 0.8)."""
+    look_alike: Mapping[str, str] = field(default_factory=dict)
+    """Per capture domain, the shipped look-alike model (`efem_viz/em/models/<name>.json`) that scores this
+    category's fits when a solver config asks for the category's (`ConfidenceSettings.look_alike = "category"`, as
+    the `real` preset does); a domain without one keeps the plain confidence."""
 
     def __post_init__(self) -> None:
         if not str(self.name):
@@ -218,6 +223,12 @@ class CategorySettings:
                 raise ValueError(f"{nm} must be in (0, 10] m, got {getattr(self, nm)}")
         if self.tau_out is not None and not 0.0 < float(self.tau_out) <= MAX_TAU_OUT:
             raise ValueError(f"tau_out must be in (0, {MAX_TAU_OUT}] or None, got {self.tau_out}")
+        for dom, model in self.look_alike.items():
+            if dom not in DOMAINS:
+                raise ValueError(f"unknown capture domain {dom!r} in category {self.name!r}'s look_alike; use one of "
+                                 f"{DOMAINS}")
+            if not isinstance(model, str) or not LOOK_ALIKE_NAME.fullmatch(model):
+                raise ValueError(f"look-alike model name must be a plain name ([A-Za-z0-9_-], <= 64), got {model!r}")
 
     @property
     def out_tau(self) -> float:
@@ -249,6 +260,7 @@ class CategorySettings:
             "tau_out": self.tau_out,
             "r_init": self.r_init,
             "r_err": self.r_err,
+            "look_alike": dict(self.look_alike),
         }
 
     @classmethod
@@ -289,8 +301,15 @@ class CategorySettings:
                     kw[nm] = float(d[nm])
                 except (TypeError, ValueError) as exc:
                     raise ValueError(f"category {nm} must be a number, got {d[nm]!r}") from exc
+        models = d.get("look_alike") or {}
+        if not isinstance(models, Mapping):
+            raise ValueError(f"category look_alike must be a dict {{domain: model}}, got {type(models).__name__}")
+        kw["look_alike"] = {str(k): v for k, v in models.items()}
         return cls(**kw)
 
+
+LOOK_ALIKE_NAME = re.compile(r"[A-Za-z0-9_-]{1,64}")
+"""A look-alike model's name: a plain file name (`efem_viz.em.look_alike` reads `models/<name>.json`)."""
 
 def _check_range(name: str, r: Any) -> None:
     if len(r) != 2 or any(np.isnan(float(x)) for x in r) or float(r[0]) > float(r[1]) or float(r[0]) < 0:
@@ -303,6 +322,7 @@ KNOWN_CATEGORIES: dict[str, CategorySettings] = {
         scale_horizontal=(0.03, 0.13),
         scale_height=(0.015, 0.30),
         domain_sizes={"real": ((0.03, 0.08), (0.015, 0.10)), "synthetic": ((0.03, 0.08), (0.015, 0.30))},
+        look_alike={"real": "mug_uois_tune"},
     ),
     "bowl": CategorySettings(name="bowl", scale_horizontal=(0.04, 0.15), scale_height=(0.01, 0.09)),
     "sphere": CategorySettings(name="sphere", scale_horizontal=(0.03, 0.13), scale_height=(0.03, 0.13)),
