@@ -1,6 +1,6 @@
 """The annotator server's memory over whole-scan edits on a big scan (the whole app, not only its label store).
 
-Opens `AnnotatorApp` (no browser) on an N-vertex height-field mesh (the one `annotator_scale.py` builds, cached),
+Opens `AnnotatorApp` (no browser) on an N-vertex height-field mesh (the one `bench.annotator_scale` builds, cached),
 then imports a pre-label file K times (two files in turn, each relabelling every vertex: the worst edit) and
 records the resident set and glibc's heap/mmap split after each. With `--allocator default` it runs without the
 allocator setting `efem-annotate` starts with (`efem_viz.cpu.configure_allocator`), to show what it fixes.
@@ -57,7 +57,7 @@ def main() -> int:
     from annotator.app import AnnotatorApp
     from annotator.io import save_labels_npz
     from annotator.labels import InstanceInfo
-    from annotator_scale import make_surface
+    from bench.annotator_scale import make_surface
     from efem_viz.data.io import save_scene
 
     n = a.n_side ** 2

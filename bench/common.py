@@ -38,16 +38,20 @@ def result_path(bench: str, tag: str | None = None) -> Path:
 
 def write_result(path: Path, out: Any, *, indent: int = 1, archive: bool = True) -> Path:
     """Write a result atomically (JSON; numpy scalars and arrays as numbers and lists) and say where. A new
-    ``latest.json`` first moves the one it replaces aside as ``<bench>_<date>.json`` (its file date), unless that
-    name is taken or ``archive`` is False (a bench that updates some sections of its record). Returns ``path``."""
+    ``latest.json`` first moves the one it replaces aside as ``<bench>_<date>.json`` (its file date; ``_2``, ``_3``
+    ... when that name is taken), unless ``archive`` is False (a bench that updates sections of its record, or
+    writes its record again after each part). Returns ``path``."""
     from efem_viz.data.io import atomic_write_text
 
     path.parent.mkdir(parents=True, exist_ok=True)
     if archive and path.name == "latest.json" and path.exists():
         day = time.strftime("%Y-%m-%d", time.gmtime(path.stat().st_mtime))
-        archive = path.with_name(f"{path.parent.name}_{day}.json")
-        if not archive.exists():
-            path.replace(archive)
+        kept = path.with_name(f"{path.parent.name}_{day}.json")
+        n = 1
+        while kept.exists():  # a second run of the day, or a tag that reads like a date
+            n += 1
+            kept = path.with_name(f"{path.parent.name}_{day}_{n}.json")
+        path.replace(kept)
     text = json.dumps(out, indent=indent, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
     atomic_write_text(path, text)
     print(f"wrote {path.relative_to(ROOT) if path.is_relative_to(ROOT) else path}")

@@ -32,8 +32,10 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--proposals", type=int, default=30, help="latents per decode batch (EMConfig.encode_batch)")
-    ap.add_argument("--queries", type=int, default=10000, help="queries per decode call (EMConfig.decode_chunk)")
+    ap.add_argument("--proposals", type=int, default=30,
+                    help="latents per decode batch (EMConfig.compute.encode_batch)")
+    ap.add_argument("--queries", type=int, default=10000,
+                    help="queries per decode call (EMConfig.compute.decode_chunk)")
     ap.add_argument("--profile", action="store_true", help="print the torch profiler's top ops for both paths")
     a = ap.parse_args()
     import torch

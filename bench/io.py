@@ -6,14 +6,14 @@
 2. Import each real tabletop frame (`shared/data/real_tabletop/*.npz`): time, points, plane residual.
 
 Prints medians and writes bench/results/io/latest.json. `--only` runs just the named format rows (no RGB-D import)
-and updates those rows in an existing io.json measured at the same `--points`.
+and updates those rows in an existing io/latest.json measured at the same `--points`.
 
 3. `--normals N [N ...]` runs only the point-cloud-without-normals benchmark: a binary PLY
    of N points on a random surface (a wavy table plus 8 spheres, 1 mm noise, seed 0) and no normals; each
    measurement runs in a fresh 1-thread process (so peak RSS is its own): `info` = `load_scene` + `summary`
    (what `efem-viz info` does), `normals` = that plus reading `scene.normals`. `--root DIR` measures another
    checkout (e.g. the previous commit unpacked with `git archive HEAD | tar -x -C DIR`). Results go to the
-   "normals" record of io.json, keyed by root label and N.
+   "normals" record of io/latest.json, keyed by root label and N.
 
 Usage: python -m bench.io [--points 200000] [--repeats 3] [--only ".ply ascii" ".ply ascii mesh"]
        python -m bench.io --normals 550000 2000000 [--root /tmp/before --label before]
@@ -48,7 +48,7 @@ def main() -> None:
     ap.add_argument("--normals", nargs="+", type=int, metavar="N", default=None,
                     help="only the bare-point-cloud benchmark (info time vs normals time) at these sizes")
     ap.add_argument("--root", type=Path, default=ROOT, help="with --normals: the checkout to measure")
-    ap.add_argument("--label", default="current", help="with --normals: the name of this run in io.json")
+    ap.add_argument("--label", default="current", help="with --normals: the name of this run in io/latest.json")
     ap.add_argument("--child", nargs=3, metavar=("ROOT", "PLY", "MODE"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child is not None:

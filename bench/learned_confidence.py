@@ -28,6 +28,7 @@ import argparse
 import json
 import math
 import pickle
+import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -35,6 +36,7 @@ from typing import Any
 import numpy as np
 
 import bench.common  # noqa: F401 - first: the OpenMP wait policy, before torch
+import bench.ranking
 from bench.ranking import Fit, fits_of, run_key, score_rule
 from efem_viz.em.look_alike import FEATURES, LookAlikeModel, fit_logistic, load_model, review_features
 from efem_viz.em.solver import confidence
@@ -64,6 +66,7 @@ def load_fits(folders: Sequence[Path], cache: Path | None) -> tuple[list[Fit], d
     from efem_viz.data.io import load_scene
 
     if cache is not None and cache.is_file():
+        sys.modules.setdefault("ranking", bench.ranking)  # caches pickled when the benches ran as scripts
         fits, keys = pickle.loads(cache.read_bytes())
     else:
         fits = [f for folder in folders for f in fits_of(folder)]

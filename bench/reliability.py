@@ -277,17 +277,12 @@ def bench_faults(tmp: Path, seed: int) -> dict[str, Any]:
 
 def _surface_file(folder: Path, n_side: int) -> Path:
     """bench/annotator_scale.py's height-field tabletop (n_side^2 vertices) as a PLY."""
-    import importlib.util
-
+    from bench.annotator_scale import make_surface
     from efem_viz.data.io import save_scene
 
-    spec = importlib.util.spec_from_file_location("bench_annotator", ROOT / "bench" / "annotator.py")
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / "surface.ply"
-    save_scene(mod.make_surface(n_side), path)
+    save_scene(make_surface(n_side), path)
     return path
 
 

@@ -13,13 +13,13 @@ total, and what the answers are:
 
 Variants:
 * `baseline`: the landed main's code paths: eager VN encoder (`EFEM_VIZ_FUSED=0`), pose search on every
-  sample (`pose_points=None`);
+  sample (`review.pose_points=None`);
 * `two_pass`: fused VN kernels, pose search on 1000 samples, the E-step's SDF and band normals in two decoder
   passes (an SDF pass, then autograd on the band: `EFEM_VIZ_ONE_PASS=0`);
 * `fast`: as `two_pass`, with one decoder pass and a hand-made backward on the band (`EFEM_VIZ_ONE_PASS=1`,
   the default: see `efem_viz.em.decoding.one_pass_enabled`);
-* `bf16`: as `fast`, the EM steps' encoder and decoder under bf16 autocast (`matmul_dtype="bfloat16"`);
-* `bf16_decoder`: as `fast`, the decoder alone in bf16 (`encoder_dtype="float32"`);
+* `bf16`: as `fast`, the EM steps' encoder and decoder under bf16 autocast (`compute.matmul_dtype="bfloat16"`);
+* `bf16_decoder`: as `fast`, the decoder alone in bf16 (`compute.encoder_dtype="float32"`);
 * `random400`: as `fast`, with 400 proposals drawn uniformly (the `real` preset's anchors before they were spread).
 
 The decode phase is also set against its floor on the machine it runs on: the decoder's FLOPs (every query's

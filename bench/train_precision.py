@@ -65,7 +65,7 @@ def main() -> int:
               f"{row['sdf_first10']:.4f}, last 10 {row['sdf_last10']:.4f}", flush=True)
         # after every candidate: a run stopped part-way keeps the rows it has
         write_result(a.out, {"machine": machine(a.threads) | {"fast_cpu_bf16": fast_cpu_bf16()},
-                           "iterations": a.iterations, "rows": rows})
+                           "iterations": a.iterations, "rows": rows}, archive=len(rows) == 1)
     return 0
 
 

@@ -14,7 +14,6 @@ websocket path does (msgpack metadata + raw binary buffers), so the numbers are 
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import statistics
 import tempfile
@@ -22,7 +21,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from bench.common import result_path  # first: the OpenMP wait policy, before torch
+from bench.common import result_path, write_result  # first: the OpenMP wait policy, before torch
 import numpy as np
 
 
@@ -205,10 +204,7 @@ def main() -> int:
     out["meets_targets"] = {
         k: bool(out[k] <= v) for k, v in out["targets"].items()
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(out, indent=2))
-    tmp.replace(args.out)
+    write_result(args.out, out, indent=2)
     for k, v in out.items():
         if not isinstance(v, dict):
             print(f"{k:45s} {v:.4g}" if isinstance(v, float) else f"{k:45s} {v}")

@@ -36,16 +36,21 @@ from efem_viz.data.formats import FORMATS, SceneFormat
 from efem_viz.data.scene import Scene, SceneError
 
 MAX_LINE_BYTES = 256
-"""Longest line a point may take: with the file size it bounds the points a file can hold before it is parsed."""
+"""Longest line a point may take: with ``max_points`` it bounds the file size a reader accepts before parsing."""
 
 
 def load_xyz(path: Path, max_points: int) -> dict[str, Any]:
     """The `Scene.create` arguments of an .xyz file: 3 columns (points), 6 (and normals) or 7 (and labels)."""
-    with open(path, "rb") as fh:
-        head = fh.read(MAX_LINE_BYTES)
-    if b"\x00" in head:
-        raise SceneError("binary data in an .xyz file (expected text lines `x y z [nx ny nz [instance]]`)")
-    lines = sum(1 for line in open(path, "rb") if line.strip())  # streamed: memory stays bounded
+    size = path.stat().st_size
+    if size > max_points * MAX_LINE_BYTES:  # refused before anything is parsed
+        raise SceneError(f"{size:,} bytes is more than {max_points:,} points (max_points) of at most "
+                         f"{MAX_LINE_BYTES} bytes each")
+    lines = 0
+    with open(path, "rb") as fh:  # counted in blocks: memory stays bounded whatever the file holds
+        while block := fh.read(1 << 20):
+            if b"\x00" in block:
+                raise SceneError("binary data in an .xyz file (expected text lines `x y z [nx ny nz [instance]]`)")
+            lines += block.count(b"\n")
     if lines > max_points:
         raise SceneError(f"{lines:,} points is more than the limit of {max_points:,} (max_points)")
     try:
@@ -106,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
     bad = out / "damaged.xyz"
     bad.write_text("0.1 0.2 0.3\n0.4 zero 0.6\n")
     big = out / "big.xyz"
-    big.write_text("0 0 0\n" * 20)
+    big.write_text("0 0 0\n" * 20)  # 120 bytes: within 10 points' bytes, but 20 lines
     for p, limit in ((bad, 1000), (big, 10)):
         try:
             load_scene(p, max_points=limit)

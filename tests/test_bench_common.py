@@ -46,7 +46,9 @@ def test_results_go_to_one_folder_per_bench(tmp_path: Path) -> None:
     archived = tmp_path / "speed" / f"speed_{day}.json"
     assert json.loads(archived.read_text())["run"] == 1 and json.loads(latest.read_text()) == {"run": 2}
     os.utime(latest, (stamp, stamp))
-    write_result(latest, {"run": 3})  # the same day's archive is not overwritten
-    assert json.loads(archived.read_text())["run"] == 1 and json.loads(latest.read_text()) == {"run": 3}
+    write_result(latest, {"run": 3})  # a second run of the same day: kept too, the first not overwritten
+    second = tmp_path / "speed" / f"speed_{day}_2.json"
+    assert json.loads(archived.read_text())["run"] == 1 and json.loads(second.read_text())["run"] == 2
     write_result(latest, {"run": 4}, archive=False)  # a bench that updates sections of its record in place
-    assert sorted(p.name for p in latest.parent.iterdir()) == ["latest.json", f"speed_{day}.json"]
+    assert json.loads(latest.read_text()) == {"run": 4}
+    assert sorted(p.name for p in latest.parent.iterdir()) == ["latest.json", f"speed_{day}.json", second.name]

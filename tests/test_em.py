@@ -467,7 +467,7 @@ def test_encoder_dtype_keeps_the_encoder_in_float32_beside_a_bf16_decoder(encode
 
 
 def test_bf16_solve_finds_the_same_mugs_and_replays_in_its_precision(tmp_path: Path) -> None:
-    """EMConfig.matmul_dtype="bfloat16": the regression scene's bars hold (those of
+    """compute.matmul_dtype="bfloat16": the regression scene's bars hold (those of
     `test_shipped_prior_regression_each_mug_found_once`: the weakest mug sits at the 0.5 line, 0.493 here with
     the one-pass decoder on an AVX-512 Intel), the trace records the precision through a save/load round trip,
     and replay re-derives each step's inliers in that precision."""

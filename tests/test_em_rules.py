@@ -466,6 +466,10 @@ def test_category_settings_round_trip_and_validation() -> None:
     back = CategorySettings.from_dict(json.loads(json.dumps(cat.to_dict())))
     assert back == cat and back.sizes("real") == ((0.03, 0.08), (0.015, 0.10))
     assert back.look_alike == {"real": "mug_uois_tune"}
+    # a mug category saved before categories carried their look-alike model keeps the known mug's
+    old = {k: v for k, v in cat.to_dict().items() if k != "look_alike"}
+    assert category_settings("mug", {"category": old}).look_alike == {"real": "mug_uois_tune"}
+    assert category_settings("mug", {"category": {**old, "look_alike": {}}}).look_alike == {}
     assert CategorySettings.from_dict(CategorySettings("x").to_dict()).scale_height == (0.0, float("inf"))
     for bad in ({"name": "x", "scale_height": [0.2, 0.1]}, {"name": "x", "colour": 1},
                 {"name": "x", "domain_sizes": {"mars": [[0, 1], [0, 1]]}}, {"name": ""},

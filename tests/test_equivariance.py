@@ -148,7 +148,7 @@ def test_knn_matches_cdist() -> None:
 
 
 def test_knn_keeps_float32_distances_under_bf16_autocast() -> None:
-    """EMConfig.matmul_dtype="bfloat16" runs the encoder under autocast; its k-NN graph must not change: the
+    """compute.matmul_dtype="bfloat16" runs the encoder under autocast; its k-NN graph must not change: the
     distance matrix stays float32 (in bf16 many of these neighbours would swap)."""
     gen = torch.Generator().manual_seed(13)
     q = torch.randn(3, 64, 48, generator=gen)  # encoder-like: 16 VN channels x 3

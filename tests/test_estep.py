@@ -152,9 +152,8 @@ def test_schedule_matches_the_formula(name: str) -> None:
     cfg = preset(name)
     for t in range(cfg.steps.per_episode):
         assert schedule(cfg, t) == pytest.approx(_naive_schedule(cfg, t), rel=1e-12)
-    assert schedule(cfg, cfg.steps.t1) == pytest.approx(tuple(p[1] for p in (cfg.steps.alpha_d, cfg.steps.tau_d,
-                                                                             cfg.steps.alpha_n,
-                                                                         cfg.steps.tau_n)))
+    ends = tuple(p[1] for p in (cfg.steps.alpha_d, cfg.steps.tau_d, cfg.steps.alpha_n, cfg.steps.tau_n))
+    assert schedule(cfg, cfg.steps.t1) == pytest.approx(ends)
 
 
 def test_normals_threshold_covers_every_test_that_reads_a_normal() -> None:

@@ -30,11 +30,11 @@ from efem_viz.prior.config import (
 if TYPE_CHECKING:
     from efem_viz.prior.config import ShapePriorLike
 
-__all__ = ["DEFAULT_TAU_OUT", "FLAT_NAMES", "FREE_SPACE", "FREE_SPACE_FUSED", "GROUPS", "MAX_TAU_OUT", "PRESETS",
-           "ComputeSettings", "ConfidenceSettings", "EMConfig", "EliminationSettings", "FreeSpaceMode",
-           "FreeSpaceSettings", "OutputSettings", "PresetName", "ProposalSettings", "RefineSettings", "ReviewSettings",
-           "SolvePresetName", "SolveSettings", "StepSettings", "preset", "preset_for_scene", "resolve_for_prior",
-           "setting_names", "suggested_preset"]
+__all__ = ["CATEGORY_LOOK_ALIKE", "DEFAULT_TAU_OUT", "FLAT_NAMES", "FREE_SPACE", "FREE_SPACE_FUSED", "GROUPS",
+           "MAX_TAU_OUT", "PRESETS", "ComputeSettings", "ConfidenceSettings", "EMConfig", "EliminationSettings",
+           "FreeSpaceMode", "FreeSpaceSettings", "OutputSettings", "PresetName", "ProposalSettings", "RefineSettings",
+           "ReviewSettings", "SolvePresetName", "SolveSettings", "StepSettings", "preset", "preset_for_scene",
+           "resolve_for_prior", "setting_names", "suggested_preset"]
 
 PresetName = Literal["synthetic", "real", "real_paper", "fast", "chairs"]
 SolvePresetName = Literal["auto", "synthetic", "real", "real_paper", "fast", "chairs"]
@@ -49,10 +49,10 @@ AnchorMode = Literal["random", "spread"]
 Domain = Literal["synthetic", "real"]
 InclusionMode = Literal["paper", "score", "swap"]
 INCLUSION_MODES: tuple[str, ...] = get_args(InclusionMode)
-"""Which row of a §3.8c inclusion dies (`EMConfig.inclusion`, `rules.find_inclusions`)."""
+"""Which row of a §3.8c inclusion dies (`EMConfig.elimination.inclusion`, `rules.find_inclusions`)."""
 InclusionScore = Literal["stationary", "confidence"]
 INCLUSION_SCORES: tuple[str, ...] = get_args(InclusionScore)
-"""What the "score" and "swap" inclusion modes compare (`EMConfig.inclusion_by`)."""
+"""What the "score" and "swap" inclusion modes compare (`EMConfig.elimination.inclusion_by`)."""
 
 
 MAX_PROPOSALS = 2000
@@ -509,9 +509,20 @@ _RENAMED: dict[str, str] = {
     "mug_model": "confidence.look_alike", "refine_steps": "refine.steps", "refine_at": "refine.at",
     "refine_max_pool": "refine.max_pool", "refine_lr": "refine.lr", "refine_reg": "refine.reg",
 }
+_SAME_NAMES: dict[str, tuple[str, ...]] = {
+    "proposals": ("n_init", "anchors", "crop", "r_init", "r_err"),
+    "steps": ("alpha_d", "tau_d", "alpha_n", "tau_n", "end_step", "t1", "t2", "omega", "out_value", "m_step_replace"),
+    "elimination": ("min_size", "min_size_on", "min_size_spacing", "trust_scale", "dup_sdf", "dup_iou", "joint_dup_iou",
+                    "early_dup_iou", "early_dup_steps", "joint_incl", "inclusion", "inclusion_by"),
+    "output": ("tau_out", "gamma_out"),
+    "confidence": ("stat_tau", "stat_gamma", "cov_tau", "cov_gamma", "cov_cap", "pose_weight", "pose_ref"),
+    "review": ("scale_horizontal", "scale_height", "up_range", "n_store", "mesh_resolution", "pose_retrieval",
+               "pose_points"),
+    "compute": ("encode_batch", "decode_chunk", "work_voxel", "n_pcl", "matmul_dtype", "encoder_dtype"),
+}
+"""The settings that kept their name in their group, by group (the flat names of before the grouping)."""
 FLAT_NAMES: dict[str, str] = {
-    **{f.name: f"{group}.{f.name}" for group, cls in GROUPS.items() if group not in ("free_space", "refine")
-       for f in dataclasses.fields(cls)},
+    **{name: f"{group}.{name}" for group, names in _SAME_NAMES.items() for name in names},
     **_RENAMED,
 }
 """The flat names of the solver settings before they were grouped -> their dotted names (saved configs of older
@@ -650,7 +661,7 @@ class SolveSettings:
     matmul_dtype: MatmulDtype = "float32"
     """Precision of the networks' matrix products: float32 (the method) or bfloat16 (`torch.autocast`; with the
     shipped prior it is no faster than float32 on a CPU, even one with AMX or AVX-512 BF16: docs/BENCHMARKS.md;
-    `EMConfig.matmul_dtype`)."""
+    `EMConfig.compute.matmul_dtype`)."""
     free_space: FreeSpaceMode = "auto"
     """The free-space check against the scene's recorded cameras (a frame's capture camera, every camera of a
     fused scan): auto (the preset's: on for real, off otherwise), on (where the preset has none, the check for

@@ -73,7 +73,7 @@ def track_proposal(scene: "Scene", prior: "ShapePriorLike", cfg: EMConfig, *, ob
         cfg: Solver config (resolved for the prior here).
         object_mask: (N,) bool, the labelled object the proposal should explain (None: no object metrics).
         start: ``"oracle"`` (exactly ``object_mask``), or a scene point index: an anchor ball of
-        ``cfg.proposals.r_init``.
+            ``cfg.proposals.r_init``.
         steps: Phase-1 steps (default ``cfg.steps.t1``).
         seed: Seed of the solver's generator.
 
@@ -102,8 +102,7 @@ def track_proposal(scene: "Scene", prior: "ShapePriorLike", cfg: EMConfig, *, ob
         anchor = np.zeros(len(points), bool)
         anchor[int(start)] = True
         _, rag = init_crops(points, available, 1, cfg.proposals.radii()[0], solver.rng, crop=cfg.proposals.crop,
-                            tree=tree,
-                            anchor_mask=anchor)
+                            tree=tree, anchor_mask=anchor)
     ids = solver.rec.birth(0, np.array([0], np.int64), *cfg.proposals.radii(), owner=np.zeros(1, np.int64))
     solver.rec.start_episode(np.zeros(0, np.int64), len(ids))
     pool = ProposalPool(ids=ids, rag=rag, w=np.ones(len(rag.idx), np.float32), owner=np.zeros(1, np.int64))

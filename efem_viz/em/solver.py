@@ -163,7 +163,7 @@ class ProposalPool:
     stationary: np.ndarray | None = None  # (P,)
     inliers: np.ndarray | None = None  # (P,)
     scale_max: np.ndarray | None = None  # (P,) largest Θ_s so far (EMConfig.elimination.trust_scale)
-    coverage: np.ndarray | None = None  # (P,) coverage of the last review (EMConfig.inclusion_by = "confidence")
+    coverage: np.ndarray | None = None  # (P,) coverage of the last review (elimination.inclusion_by = "confidence")
 
     @property
     def size(self) -> int:
@@ -593,9 +593,8 @@ class Solver:
         sched = schedule(cfg, t)
         with matmul_precision(cfg.compute.matmul_dtype, self.table.priors[0]):
             d, gamma = decode_owned_rows(self.table, pool.owner, latent, rag, self.points, self.normals,
-                                         chunk=cfg.compute.decode_chunk, normals_within=normals_threshold(cfg,
-                                                                                                          sched[1]),
-                                         stats=self.stats)
+                                         chunk=cfg.compute.decode_chunk,
+                                         normals_within=normals_threshold(cfg, sched[1]), stats=self.stats)
         self.n_queries += len(rag.idx)
         t0 = self.timer.add("decode", t0)
         w, inlier = energy_weights(d, gamma, sched, out_value=cfg.steps.out_value)
@@ -609,7 +608,7 @@ class Solver:
                              stationary=stationary, inliers=inliers, samples=self.work_idx[samples])
 
     def _refine(self, latent: LatentArrays, pts: np.ndarray, owner: np.ndarray) -> LatentArrays:
-        """Test-time latent refinement (EMConfig.refine_*) of every row with its own prior."""
+        """Test-time latent refinement (`EMConfig.refine`) of every row with its own prior."""
         from efem_viz.em.refine import refine_latents
 
         cfg = self.cfg

@@ -44,7 +44,8 @@ DEFAULT_PRIOR = "mug"
 DOMAINS: tuple[str, ...] = ("synthetic", "real")
 """Capture domains a category may give its own sizes for (the solver's presets choose one)."""
 MatmulDtype = Literal["float32", "bfloat16"]
-"""Precision of the networks' matrix work (the solver's `EMConfig.matmul_dtype`, training's `--matmul-dtype`)."""
+"""Precision of the networks' matrix work (the solver's `EMConfig.compute.matmul_dtype`, training's
+`--matmul-dtype`)."""
 MATMUL_DTYPES: tuple[str, ...] = ("float32", "bfloat16")
 
 
@@ -311,6 +312,7 @@ class CategorySettings:
 LOOK_ALIKE_NAME = re.compile(r"[A-Za-z0-9_-]{1,64}")
 """A look-alike model's name: a plain file name (`efem_viz.em.look_alike` reads `models/<name>.json`)."""
 
+
 def _check_range(name: str, r: Any) -> None:
     if len(r) != 2 or any(np.isnan(float(x)) for x in r) or float(r[0]) > float(r[1]) or float(r[0]) < 0:
         raise ValueError(f"{name} must be a pair 0 <= lo <= hi, got {r}")
@@ -400,9 +402,10 @@ PriorArg = Union[ShapePriorLike, Sequence[ShapePriorLike]]
 def category_settings(name: str, metadata: Mapping[str, Any] | None = None) -> CategorySettings:
     """The category settings of a prior from its name and metadata.
 
-    Metadata "category" (a dict) wins over `KNOWN_CATEGORIES[name]`; an unknown category without metadata
-    gets unbounded sizes (logged). Metadata "tau_out" (the calibrated band) fills `tau_out`; a bad value is
-    logged and ignored.
+    Metadata "category" (a dict) wins over `KNOWN_CATEGORIES[name]` (a dict without "look_alike", saved before
+    categories carried their look-alike models, takes the known category's of its name); an unknown category
+    without metadata gets unbounded sizes (logged). Metadata "tau_out" (the calibrated band) fills `tau_out`; a
+    bad value is logged and ignored.
 
     Args:
         name: the prior's name.
@@ -415,6 +418,10 @@ def category_settings(name: str, metadata: Mapping[str, Any] | None = None) -> C
     raw = meta.get(CATEGORY_KEY)
     if raw is not None:
         cat = CategorySettings.from_dict(raw)
+        known = KNOWN_CATEGORIES.get(cat.name)
+        if known is not None and isinstance(raw, Mapping) and "look_alike" not in raw:
+            # saved before categories carried their look-alike models: the known category's
+            cat = cat.replace(look_alike=known.look_alike)
     elif name in KNOWN_CATEGORIES:
         cat = KNOWN_CATEGORIES[name]
     else:

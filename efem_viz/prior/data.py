@@ -129,8 +129,8 @@ class SampleConfig:
     p_table: float = 0.3
     """Probability of a table-plane patch at the object bottom (deviation: replaces the unused plane aug)."""
     p_table_any_side: float = 0.0
-    """Probability that a table patch touches the object from a random direction instead of from below (an
-    object lying on its side or back, as tumbled chairs do, has its support plane there)."""
+    """Probability that a table patch touches the object from a random direction (uniform on the sphere) instead of
+    from below (an object lying on its side, back or top, as tumbled chairs do, has its support plane there)."""
     crop_radius: tuple[float, float] = (0.15, 0.09)
     """Crop radius mean / std."""
     crop_scale: tuple[float, float] = (0.5, 1.5)

@@ -157,8 +157,9 @@ class TrainArgs:
     p_table: float = 0.3
     """Probability of the table-plane augmentation."""
     table_side_p: float = 0.0
-    """Probability that a table-plane patch touches the object from a random side instead of from below (objects
-    that lie on their side or back in scenes, e.g. tumbled chairs). Validation inputs have no table patch."""
+    """Probability that a table-plane patch touches the object from a random direction (uniform on the sphere,
+    above included) instead of from below: objects that lie on their side, back or top in scenes, as tumbled
+    chairs do. Validation inputs have no table patch."""
     min_views: int = 4
     """Fewest depth views in an input cloud (spec: 4 for mugs; 1 also trains single-view inputs, as real RGB-D
     frames are). Validation inputs are drawn with the same setting."""
