@@ -368,3 +368,19 @@ def test_a_scannet_scene_folder_opens_with_its_instance_ground_truth(tmp_path: P
     (folder / "scene0007_00_vh_clean_2.0.010000.segs.json").write_text(json.dumps({"segIndices": [0, 1]}))
     with pytest.raises(SceneError, match="segIndices, the scan has"):
         load_scene(folder / "scene0007_00_vh_clean_2.ply")
+
+
+def test_help_texts_name_every_scene_format() -> None:
+    """Every help text or docstring that lists the scene suffixes lists all of `FORMATS` (a format added to the
+    table and not to the texts users read fails here)."""
+    import re
+
+    root = Path(__file__).resolve().parents[1]
+    stale = []
+    for f in [*root.glob("efem_viz/**/*.py"), *root.glob("annotator/**/*.py")]:
+        for n, line in enumerate(f.read_text(encoding="utf-8").splitlines(), 1):
+            if re.search(r"\.ply\W", line) and ".npz" in line and ".pcd" in line:  # a list of scene suffixes
+                missing = [s for s in FORMATS if s not in line]
+                if missing:
+                    stale.append(f"{f.relative_to(root)}:{n} lacks {missing}")
+    assert not stale, stale

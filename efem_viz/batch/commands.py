@@ -25,7 +25,7 @@ class SegmentArgs(SolveSettings):
     The solver knobs (--preset, --proposals, --work-voxel, --tau-out, --matmul-dtype) are `SolveSettings`."""
 
     scenes: Annotated[list[Path], tyro.conf.Positional]
-    """Scene files (.ply/.pcd/.obj/.off/.glb/.npz) and/or folders of them."""
+    """Scene files (.ply/.pcd/.las/.laz/.obj/.off/.glb/.npz) and/or folders of them."""
     prior: tyro.conf.UseAppendAction[list[str]] = field(default_factory=list)
     """Shape prior (repeat for several categories in one solve): a name under efem_viz/weights/, "sphere" (the
     analytic sphere) or a .pt path. Default: mug."""

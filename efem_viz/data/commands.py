@@ -32,7 +32,7 @@ class InfoArgs:
     bare point clouds."""
 
     scenes: Annotated[list[Path], tyro.conf.Positional]
-    """Scene files (.ply/.pcd/.obj/.off/.glb/.npz) and/or folders of them."""
+    """Scene files (.ply/.pcd/.las/.laz/.obj/.off/.glb/.npz) and/or folders of them."""
     json: bool = False
     """Print one JSON object per scene instead of tables."""
     full: bool = False

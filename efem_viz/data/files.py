@@ -17,8 +17,7 @@ from efem_viz.data.formats import FORMATS
 from efem_viz.data.scene import SceneError
 
 RESULT_SUFFIX = ".efem.npz"
-NO_SCENES_GIVEN = ("no scenes given: name scene files (.ply, .pcd, .las, .laz, .obj, .off, .glb, .npz) "
-                   "or folders of them")
+NO_SCENES_GIVEN = f"no scenes given: name scene files ({', '.join(FORMATS)}) or folders of them"
 """The one line of a command called without any scene."""
 BATCH_FILE = "batch.json"
 """The record `efem-viz segment --out DIR` keeps of its scenes (written and read in full by `efem_viz.batch`)."""
