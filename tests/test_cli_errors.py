@@ -531,8 +531,8 @@ def test_segment_names_the_valid_priors_and_an_empty_call_says_what_to_give(tmp_
     assert not (tmp_path / "o").exists()
     empty = run_cli("segment")
     assert empty.returncode == 1 and empty.stdout == ""
-    assert empty.stderr.strip() == ("efem-viz segment: error: no scenes given: name scene files (.ply, .pcd, .las, "
-                                    ".laz, .obj, .off, .glb, .npz) or folders of them")
+    assert empty.stderr.strip() == ("efem-viz segment: error: no scenes given: name scene files (.ply, .obj, .off, "
+                                    ".glb, .npz, .pcd, .las, .laz) or folders of them")  # the format table's order
 
 
 def test_tables_written_to_a_file_keep_long_paths_whole(tmp_path: Path) -> None:
