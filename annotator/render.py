@@ -116,8 +116,10 @@ PRELABEL_PALE = 0.55
 """Unreviewed pre-labels are drawn in their colour blended this far toward white."""
 UNLABELLED_DIM = 0.8
 """The labels-only view draws unlabelled vertices in their grey shade blended this far toward light grey."""
-
-
+SEARCH_COLOR = (255, 170, 0)
+"""A running EFEM's live proposals: the points they sampled at the newest step are tinted this colour."""
+SEARCH_ALPHA = 0.5
+"""Weight of `SEARCH_COLOR` over the scan colour."""
 def compose_colors(
     base: np.ndarray,
     labels: np.ndarray,
@@ -127,6 +129,7 @@ def compose_colors(
     alpha: float = 0.7,
     highlight: np.ndarray | None = None,
     dim_unlabelled: bool = False,
+    overlay: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Display colours: label colour blended over the scan colour where labelled and visible.
 
@@ -138,6 +141,10 @@ def compose_colors(
         highlight: (K,) bool vertices drawn bright white-ish (preview of a proposal), or None.
         dim_unlabelled: the labels-only view: vertices drawn without a label colour become a faint grey
             (`UNLABELLED_DIM`), so what is labelled stands out.
+        overlay: a running EFEM's progress (`annotator.parts.assist.RunOverlay`): ((K,) uint16 codes of the same
+            vertices — 0 nothing, 1 sampled by a live proposal (`SEARCH_COLOR` at `SEARCH_ALPHA`), k + 2 the k-th
+            accepted instance (its colour made pale as a pre-label's, at `alpha`) — and (A, 3) uint8 colours of
+            the accepted instances), drawn over unlabelled vertices only; None: none.
 
     Returns:
         (K, 3) uint8.
@@ -152,6 +159,16 @@ def compose_colors(
     if m.any():
         a = np.float32(alpha)
         out[m] = (a * lut[lab[m]].astype(np.float32) + (1 - a) * base[m].astype(np.float32)).astype(np.uint8)
+    if overlay is not None:
+        codes, accepted = overlay
+        o = (codes > 0) & (labels <= 0)
+        if o.any():
+            pale = np.asarray(accepted, np.float32).reshape(-1, 3)
+            pale = np.round(pale + PRELABEL_PALE * (255.0 - pale))
+            palette = np.concatenate([np.zeros((1, 3), np.float32), np.asarray([SEARCH_COLOR], np.float32), pale])
+            c = np.minimum(codes[o], len(palette) - 1)
+            w = np.where(c == 1, SEARCH_ALPHA, alpha).astype(np.float32)[:, None]
+            out[o] = (w * palette[c] + (1 - w) * out[o].astype(np.float32)).astype(np.uint8)
     if highlight is not None and highlight.any():
         out[highlight] = (0.5 * out[highlight].astype(np.float32) + 127.0).astype(np.uint8)
     return out

@@ -163,8 +163,10 @@ class ScanView:
         ses = self.session
         lut, show = lut_show
         hl = None if ses.assist.preview is None else ses.assist.preview[m]
+        run = ses.assist.run_overlay
         return compose_colors(ses.scan.scene.colors[m], ses.scan.store.labels[m], lut, show, highlight=hl,
-                              dim_unlabelled=ses.toolbox.settings.labels_only)
+                              dim_unlabelled=ses.toolbox.settings.labels_only,
+                              overlay=None if run is None else (run.codes[m], run.colors))
 
     def draw_chunks(self, chunk_ids: np.ndarray) -> int:
         """Recompute and send the colours of some chunks; returns the payload bytes sent."""
@@ -184,7 +186,7 @@ class ScanView:
         return self.draw_chunks(np.arange(self.chunks.count))
 
     def draw_preview(self, idx: np.ndarray) -> int:
-        """Redraw the chunks holding some vertices (a segment preview appeared or went)."""
+        """Redraw the chunks holding some vertices (a segment preview or a running EFEM's overlay changed)."""
         return self.draw_chunks(self.chunks.touched(idx))
 
     def draw_delta(self, d: Delta) -> int:

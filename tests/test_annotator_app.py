@@ -1002,6 +1002,77 @@ def test_run_efem_on_the_open_scan_makes_prelabels(spheres, monkeypatch: pytest.
         a.close()
 
 
+def test_run_efem_is_drawn_as_it_goes_and_leaves_only_prelabels(spheres, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A running EFEM on the scan is drawn over the scan as it goes (the real solver, two episodes so that some
+    instances are accepted while it still runs): as soon as its proposals are drawn the scan around their anchors
+    is tinted, from its first step the points its live proposals sample, the instances of the first episode
+    appear in their pre-label colours during the second, nothing is drawn over labelled vertices, the labels and
+    the journal are not touched until the end, and at the end the overlay is gone and only the pre-labels
+    remain."""
+    import annotator.efem_runs as efem_runs
+    from annotator.render import SEARCH_COLOR, compose_colors
+    from efem_viz import em
+
+    d, scene, prior = spheres
+    save_scene(Scene.create("bare", scene.points, normals=scene.normals, colors=scene.colors), d / "bare2.ply")
+
+    def two_episodes(scene_: Any, *, prior_name: str, settings: Any, seed: int, on_step: Any,
+                     cancel: threading.Event) -> Any:
+        cfg = em.preset("fast").replace(proposals={"n_init": (16, 8)}, elimination={"min_size": 30})
+        return em.run_em(scene_, prior, cfg, seed=seed, on_step=on_step, cancel=cancel)
+
+    monkeypatch.setattr(efem_runs, "solve_scan", two_episodes)
+    a = AnnotatorApp(d / "bare2.ply", out_dir=d / "out_live", port=0, autosave_delay=0)
+    try:
+        ses = a.session
+        ses.assist.progressive_every_s = 0.0  # every step (a count, not a clock)
+        kept = ses.instances.new_instance(category="table")
+        ses.painting.paint(np.arange(50))
+        labels_before = ses.scan.store.labels.copy()
+        records_before = len(ses.scan.store.journal.records)
+        seen: list[tuple[int, int, int, int, bool]] = []  # step, tinted, accepted codes, on labelled, colour ok
+        draw = a.view.draw_preview
+
+        def spy(idx: np.ndarray) -> int:
+            sent = draw(idx)
+            ov = ses.assist.run_overlay
+            if ov is not None:
+                tinted = np.flatnonzero(ov.codes == 1)
+                colour_ok = True
+                if len(tinted):  # the colour sent for a tinted vertex leans toward the search colour
+                    v = int(tinted[len(tinted) // 2])
+                    chunk = int(a.view.chunks.chunk_of[v])
+                    members = a.view.chunks.members(chunk)
+                    col = np.asarray(a.view.chunk_handles[chunk].colors)[int(np.flatnonzero(members == v)[0])]
+                    base = scene.colors[v].astype(float)
+                    colour_ok = np.linalg.norm(col - np.asarray(SEARCH_COLOR)) < np.linalg.norm(base - SEARCH_COLOR)
+                lut, show = a.view._lut()
+                hand = compose_colors(scene.colors[:50], ses.scan.store.labels[:50], lut, show)
+                seen.append((ov.step, len(tinted), int((ov.codes >= 2).sum()),
+                             int((a.view._colors(np.arange(50), (lut, show)) != hand).any(axis=1).sum()),
+                             bool(colour_ok)))
+                assert np.array_equal(ses.scan.store.labels, labels_before), "a running EFEM changed labels"
+            return sent
+
+        ses.on_preview = spy
+        ids = a.run_efem(wait=True)
+        assert seen and seen[0][0] == -1 and seen[0][1] > 0, "the drawn proposals show before the first step"
+        assert seen[1][0] == 0 and seen[1][1] > 0, "then the first step's samples"
+        assert all(ok for *_, ok in seen), "tinted vertices were sent in the search colour"
+        assert all(over == 0 for *_, over, _ in seen), "nothing is drawn over the labelled vertices"
+        steps = [s for s, *_ in seen]
+        assert steps == sorted(steps) and len(set(steps)) >= 10
+        assert any(acc > 0 for _, _, acc, _, _ in seen), "the first episode's instances show during the second"
+        assert ses.assist.run_overlay is None, "the overlay goes when the run ends"
+        assert ids and (ses.scan.store.labels[:50] == kept).all()
+        assert len(ses.scan.store.journal.records) > records_before
+        drawn = a.view._colors(np.arange(ses.scan.n), a.view._lut())
+        free = ses.scan.store.labels == 0
+        assert np.array_equal(drawn[free], scene.colors[free]), "nothing of the run is left on unlabelled vertices"
+    finally:
+        a.close()
+
+
 def test_run_efem_takes_the_free_space_mode_the_panel_shows(spheres, monkeypatch: pytest.MonkeyPatch) -> None:
     """The EFEM assist folder's *Free space* dropdown reaches the solver (auto: the preset's, none for `fast`;
     on: the fused scans' check; off: none), the progress line names a mode other than auto, and a forged value

@@ -144,6 +144,12 @@ def test_chunks_partition_and_colours() -> None:
     lut, show = color_lut({1: InstanceInfo(1, "a", color=(255, 0, 0)), 2: InstanceInfo(2, "b", visible=False)}, 2)
     out = compose_colors(base, np.array([0, 1, 2, 9]), lut, show, alpha=1.0)
     assert out.tolist() == [[100] * 3, [255, 0, 0], [100] * 3, [100] * 3]
+    # a running EFEM's overlay: drawn over unlabelled vertices only, the search tint at its own weight
+    out = compose_colors(base, np.array([0, 1, 0, 0]), lut, show, alpha=1.0,
+                         overlay=(np.array([1, 1, 2, 0], np.uint16), np.array([[0, 200, 200]], np.uint8)))
+    assert out[1].tolist() == [255, 0, 0] and out[3].tolist() == [100] * 3  # labelled: its label; code 0: the scan
+    assert out[0].tolist() == [177, 135, 50]  # half search colour (255, 170, 0), half scan colour
+    assert out[2].tolist() == [140, 230, 230]  # an accepted instance as a pale pre-label, at the label weight (1.0)
     v, f = splat_proxy(pts[:50], np.tile([[0, 0, 1.0]], (50, 1)), size=0.01)
     assert v.shape == (150, 3) and f.shape == (50, 3) and f.max() == 149
 

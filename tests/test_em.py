@@ -121,6 +121,8 @@ def test_sphere_scene_each_object_found_once(sphere_run: tuple) -> None:
 def test_progress_and_active_counts(sphere_run: tuple) -> None:
     _, _, res, steps = sphere_run
     tr = res.trace
+    drawn, steps = steps[0], steps[1:]  # the first report: the proposals are drawn, no step done
+    assert drawn.step == -1 and drawn.active == tr.active_count[0] and drawn.time_left_s is None
     assert [s.step for s in steps] == list(range(tr.num_steps))
     assert all(s.num_steps == 20 for s in steps)
     assert [s.active for s in steps] == tr.active_count[1:].tolist()
@@ -170,7 +172,7 @@ def test_cancel_raises(sphere_run: tuple) -> None:
 
     with pytest.raises(EMCancelled):
         run_em(scene, prior, preset("fast").replace(proposals={"n_init": (16,)}), on_step=on_step, cancel=ev)
-    assert seen == [0, 1]
+    assert seen == [-1, 0, 1]
 
 
 def test_bad_inputs_raise_clear_errors(sphere_run: tuple) -> None:
@@ -252,7 +254,7 @@ def test_random_shape_prior_smoke() -> None:
     steps: list[StepInfo] = []
     res = run_em(scene, prior, cfg, seed=0, on_step=steps.append)
     tr = res.trace
-    assert len(steps) == tr.num_steps >= 1
+    assert len(steps) == tr.num_steps + 1 and tr.num_steps >= 1  # the proposals drawn, then every step
     assert np.all(np.diff(tr.active_count) <= 0)
     for e in tr.events():
         assert e.reason in ("proposal too small", "duplicated", "included", "includes a better fit", "scale-fail",

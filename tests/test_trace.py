@@ -64,6 +64,21 @@ def test_events_are_complete_and_ordered(run: tuple) -> None:
             assert e.ratio < res.config.elimination.min_size
 
 
+def test_live_samples_are_the_samples_of_the_proposals_alive_after_the_step(run: tuple) -> None:
+    _, _, res = run
+    tr = res.trace
+    for t in range(tr.num_steps):
+        want = [tr.sample_indices(int(pid), t) for pid in tr.alive(t) if not tr.is_dead_at(int(pid), t)]
+        expect = np.unique(np.concatenate(want)) if want else np.zeros(0, np.int64)
+        got = tr.live_samples(t)
+        np.testing.assert_array_equal(got, expect)
+        assert got.dtype == np.int64
+    t = tr.num_steps - 1  # one episode: after the last step only the accepted proposals live
+    assert len(res.instances) > 0
+    np.testing.assert_array_equal(tr.live_samples(t), np.unique(np.concatenate(
+        [tr.sample_indices(int(p), t) for p in res.instances.ids])))
+
+
 def test_the_viewers_questions_are_trace_methods(run: tuple) -> None:
     _, _, res = run
     tr = res.trace

@@ -501,7 +501,9 @@ def test_a_run_is_shown_as_it_goes_then_its_final_result(app: Any) -> None:
         app.set_result = original
         app.run_panel.progressive_every_s = None
     assert res is not None and app.state.result is res
-    partial, final = shown[:-1], shown[-1]
+    drawn, partial, final = shown[0], shown[1:-1], shown[-1]
+    assert drawn[0] == 0 and drawn[2] == "running: 8 proposals drawn, step 1 of 20 under way"  # at once
+    assert app.session.timeline.step_view() is not None
     steps = [n for n, _, _ in partial]
     assert steps == list(range(1, res.trace.num_steps + 1)), steps  # one state per step, in order
     assert all(src.startswith(f"running: step {n} of ") for n, _, src in partial)

@@ -346,10 +346,15 @@ def test_run_efem_with_progress(sphere_dir: Path, tmp_path: Path) -> None:
     s = ViewerSession([sphere_dir], prior=analytic.make_sphere_prior(), out_dir=tmp_path)
     assert s.scenes.open_scene("spheres") is not None
     steps: list[Any] = []
-    res = s.runs.run(preset="fast", proposals=8, seed=0, on_step=steps.append)
+    firsts: list[Any] = []  # the run so far, built when reported (`partial` builds the run as it is when called)
+    res = s.runs.run(preset="fast", proposals=8, seed=0,
+                     on_step=lambda i: (steps.append(i), firsts.append(i.partial()) if not firsts else None))
     assert res is not None and s.state.result is res and not s.state.running
     assert s.state.result_source.startswith("run (fast, seed 0, ") and steps
-    assert all(0 <= int(i.step) < int(i.num_steps) for i in steps)
+    assert int(steps[0].step) == -1 and steps[0].active == 8  # the proposals are drawn: a first report at once
+    assert all(0 <= int(i.step) < int(i.num_steps) for i in steps[1:])
+    first = firsts[0]
+    assert first.trace.num_steps == 0 and first.trace.num_proposals == 8 and len(first.instances) == 0
     again = s.runs.run(RunSettings(preset="fast", proposals=8, seed=0), show=False)  # the settings object: the same run
     assert again is not None and s.state.result is res  # not shown
     np.testing.assert_array_equal(again.instances.confidence, res.instances.confidence)  # fixed seed: same

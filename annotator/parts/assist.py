@@ -6,6 +6,7 @@ from __future__ import annotations
 import threading
 import time
 import uuid
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -15,6 +16,7 @@ from annotator.efem_runs import SEGMENT_SETTINGS
 from annotator.io import LabelData, LabelIOError, load_labels, resolve_inside
 from annotator.labels import Delta, prelabel_note, unreviewed_prelabels
 from efem_viz.data.io import RESULT_SUFFIX
+from efem_viz.em.solver import PROGRESSIVE_EVERY_S
 
 EFEM_FULL_RESOLUTION_POINTS = 250_000
 """Scans with more vertices run EFEM on a thinned working set (`EFEM_BIG_SCAN_VOXEL`; masks stay full resolution):
@@ -31,6 +33,68 @@ if TYPE_CHECKING:
 
 PRELABEL_MIN_FREE = 0.5
 """A pre-label is added only when at least this fraction of its vertices is unlabelled (`AssistPart.add_prelabels`)."""
+SEED_RADIUS = 0.02
+"""Before its first step, a running EFEM's overlay marks the scan within this distance (m, EFEM's metric frame) of
+each proposal's anchor."""
+
+
+@dataclass(frozen=True)
+class RunOverlay:
+    """What a running EFEM on the scan has found so far (`AssistPart.run_overlay`), drawn over the vertices nobody
+    has labelled, where its pre-labels would go (`annotator.render.compose_colors`): where its live proposals are
+    looking and the instances it accepted so far."""
+
+    codes: np.ndarray
+    """(N,) uint16 per scan vertex: 0 nothing, 1 sampled by a live proposal at the newest step (before the first
+    step: near a proposal's anchor), k + 2 the k-th instance accepted so far."""
+    colors: np.ndarray
+    """(A, 3) uint8 colour of each accepted instance (`efem_viz.colors.result_colors`: its pre-label's)."""
+    step: int
+    """The solver's step shown (0-based; −1: its proposals are drawn, no step done yet)."""
+
+    @classmethod
+    def of_result(cls, result: Any, points: np.ndarray) -> RunOverlay:
+        """The overlay of a running solve's result so far (`StepInfo.partial()`, an `EMResult` on the scan's
+        points as EFEM sees them, (N, 3) metres): its newest step's live samples, or before the first step the
+        scan within `SEED_RADIUS` of its proposals' anchors, and its accepted instances (these win where both are).
+
+        Raises:
+            ValueError: the result belongs to another point count.
+        """
+        from scipy.spatial import cKDTree
+
+        from efem_viz.colors import result_colors
+
+        n = len(points)
+        if int(result.num_points) != n:
+            raise ValueError(f"the running EFEM result has {result.num_points} points, the scan {n} vertices")
+        codes = np.zeros(n, np.uint16)
+        trace = result.trace
+        step = trace.num_steps - 1
+        if step >= 0:
+            codes[trace.live_samples(step)] = 1
+        elif trace.num_proposals:
+            anchors = np.asarray(points, np.float64)[np.asarray(trace.prop_anchor, np.int64)]
+            d, _ = cKDTree(anchors).query(np.asarray(points, np.float64), distance_upper_bound=SEED_RADIUS)
+            codes[np.isfinite(d)] = 1
+        inst = result.instances
+        if len(inst):
+            labels = np.asarray(inst.label_array(n), np.int64)
+            codes[labels > 0] = (labels[labels > 0] + 1).astype(np.uint16)
+        colors = result_colors(inst) if len(inst) else np.zeros((0, 3), np.uint8)
+        return cls(codes=codes, colors=np.asarray(colors, np.uint8).reshape(-1, 3), step=step)
+
+    @property
+    def accepted(self) -> int:
+        """Instances accepted so far."""
+        return len(self.colors)
+
+    def changed(self, before: RunOverlay | None) -> np.ndarray:
+        """(K,) int64 vertices to draw again after `before` (None: no overlay was drawn): those whose code changed,
+        and every accepted instance's."""
+        if before is None:
+            return np.flatnonzero(self.codes)
+        return np.flatnonzero((self.codes != before.codes) | (self.codes >= 2))
 
 
 class AssistPart:
@@ -60,6 +124,11 @@ class AssistPart:
         self._efem_scene: Any = None
         self.skipped_prelabels = 0
         """How many proposals the last `add_prelabels` left out (mostly on labelled vertices)."""
+        self.run_overlay: RunOverlay | None = None
+        """What a running EFEM on the scan has found so far, drawn over the unlabelled vertices (None: no run)."""
+        self.progressive_every_s: float | None = PROGRESSIVE_EVERY_S
+        """A running EFEM is drawn as it goes at most this often, from its first step (None: only its end; 0:
+        every step)."""
 
     def efem_scene(self) -> Any:
         """The scan as EFEM sees it: brought to metres with +Z up when it is a bare scan in other units or axes
@@ -327,9 +396,18 @@ class AssistPart:
             f", on a {1000 * settings.work_voxel:g} mm working set" if settings.work_voxel else "") + (
             f", free space {settings.free_space}" if settings.free_space != "auto" else "") + ")"
 
+        last_drawn = [-float("inf")]
+
         def on_step(info: Any) -> None:
-            self.hooks.on_efem(f"{what}: step {info.step + 1} of {info.num_steps} · {info.status()} (Cancel stops it)",
-                               round(100.0 * (info.step + 1) / max(info.num_steps, 1), 1))
+            found = ""
+            every, now = self.progressive_every_s, time.monotonic()
+            if every is not None and info.partial is not None and (info.step <= 0 or now - last_drawn[0] >= every):
+                last_drawn[0] = now
+                overlay = RunOverlay.of_result(info.partial(), self.efem_scene().points)
+                self._draw_run_overlay(overlay)
+                found = f" · {overlay.accepted} found so far" if overlay.accepted else ""
+            self.hooks.on_efem(f"{what}: step {info.step + 1} of {info.num_steps} · {info.status()}{found} "
+                               "(Cancel stops it)", round(100.0 * (info.step + 1) / max(info.num_steps, 1), 1))
 
         t0 = time.perf_counter()
         try:
@@ -350,6 +428,7 @@ class AssistPart:
             return []
         finally:
             try:
+                self._draw_run_overlay(None)  # the pre-labels (if any) are painted: the run's overlay goes
                 self.hooks.on_efem(None, None)  # the panel first: once the job is released, it shows the end
             finally:
                 self._release()
@@ -360,6 +439,16 @@ class AssistPart:
                              if self.skipped_prelabels else "")
                           + f" (result saved as {path.name} beside the journal)")
         return ids
+
+    def _draw_run_overlay(self, overlay: RunOverlay | None) -> None:
+        """Show a running EFEM's progress over the scan (None: remove it); redraws the vertices it changed."""
+        before, self.run_overlay = self.run_overlay, overlay
+        if overlay is not None:
+            touched = overlay.changed(before)
+        else:
+            touched = np.zeros(0, np.int64) if before is None else np.flatnonzero(before.codes)
+        if len(touched):
+            self.hooks.on_preview(touched)
 
     def set_preview(self, idx: np.ndarray | None) -> None:
         """Highlight a proposed mask (None clears it) without touching the labels."""

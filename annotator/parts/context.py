@@ -36,7 +36,7 @@ class SessionHooks:
         self.on_lasso: Callable[[], None] = _nothing
         """The lasso outline changed."""
         self.on_preview: Callable[[np.ndarray], object] = _nothing
-        """The segment preview changed: (K,) int64 vertices whose highlight changed."""
+        """The segment preview or a running EFEM's overlay changed: (K,) int64 vertices to draw again."""
         self.on_segment: Callable[[float | None], None] = _nothing
         """Click-to-segment progress in percent (None: the run ended, or the preview changed)."""
         self.on_efem: Callable[[str | None, float | None], None] = _nothing

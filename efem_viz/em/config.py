@@ -145,6 +145,10 @@ class ProposalSettings(_Settings):
     r_err: float | None = None
     """E-step neighbourhood radius around the proposal centre Θ_c (m); None = the prior's category's (mugs 0.11,
     chairs 0.8)."""
+    anchor_min_height: float | None = None
+    """Anchors only among points at least this high (m) above the support plane at z = 0 (a room's floor: its points
+    still join the crops and E-steps); where no available point is that high, anywhere. None: anywhere (the
+    method)."""
 
     @property
     def num_episodes(self) -> int:
@@ -170,6 +174,9 @@ class ProposalSettings(_Settings):
             raise ValueError(f"anchors must be 'random' or 'spread', got {self.anchors!r}")
         if self.crop not in ("sphere", "cylinder"):
             raise ValueError(f"crop must be 'sphere' or 'cylinder', got {self.crop!r}")
+        h = self.anchor_min_height
+        if h is not None and not (isinstance(h, (int, float)) and math.isfinite(h)):
+            raise ValueError(f"anchor_min_height must be a finite height in metres or None, got {h!r}")
         for nm in ("r_init", "r_err"):
             if getattr(self, nm) is not None and getattr(self, nm) <= 0:
                 raise ValueError(f"{nm} must be > 0, got {getattr(self, nm)}")

@@ -70,6 +70,11 @@ STAGES: tuple[str, ...] = (
 )
 
 
+PROGRESSIVE_EVERY_S = 1.0
+"""Seconds between two shown states of a running EFEM in the viewer's Run and the annotator's EFEM run (the first
+step is always shown, the finished result replaces the last)."""
+
+
 class EMCancelled(RuntimeError):
     """Raised by `run_em` when its `cancel` event is set."""
 
@@ -79,7 +84,8 @@ class StepInfo:
     """Progress report passed to `on_step` after every EM step."""
 
     step: int
-    """Global step index (0-based, over all episodes)."""
+    """Global step index (0-based, over all episodes); −1 for the first report of a run, when its first proposals
+    are drawn and no step is done yet (`partial()` then holds their anchors and no step)."""
     num_steps: int
     """Planned number of steps (episodes × (t1 + t2)); a run may end earlier when every proposal died."""
     phase: int
@@ -491,6 +497,19 @@ class Solver:
         mask[np.asarray(near, np.int64)] = True
         return mask
 
+    def _episode_anchor_mask(self, ep: int, available: np.ndarray) -> np.ndarray | None:
+        """Where episode `ep` may anchor its proposals (None: every available point): the first episode's anchor
+        candidates, and only points at least `proposals.anchor_min_height` above z = 0 while any available one
+        is (else that restriction is dropped)."""
+        mask = self.anchor_mask if ep == 0 else None
+        h = self.cfg.proposals.anchor_min_height
+        if h is None:
+            return mask
+        high = self.points[:, 2] >= h
+        if mask is not None:
+            high &= mask
+        return high if np.any(high & available) else mask
+
     def _check_cancel(self) -> None:
         if self.cancel is not None and self.cancel.is_set():
             raise EMCancelled(f"EM on {self.name!r} cancelled after {self.rec.num_steps} steps")
@@ -516,12 +535,15 @@ class Solver:
             # every prior gets n_init proposals; anchors are iid, so prior k takes the k-th block of draws
             anchors, crops = init_crops(self.points, available, n_init * k_priors, cfg.proposals.radii()[0], self.rng,
                                         crop=cfg.proposals.crop, tree=tree,
-                                        anchor_mask=self.anchor_mask if ep == 0 else None,
+                                        anchor_mask=self._episode_anchor_mask(ep, available),
                                         spread=cfg.proposals.anchors == "spread")
             owner = np.repeat(np.arange(k_priors, dtype=np.int64), n_init)[: len(anchors)]
             ids = self.rec.birth(ep, self.work_idx[anchors], *cfg.proposals.radii(), owner=owner)
             self.rec.start_episode(np.flatnonzero(assigned), len(ids))
             pool = ProposalPool(ids=ids, rag=crops, w=np.ones(len(crops.idx), np.float32), owner=owner)
+            if ep == 0 and self.on_step is not None:  # the proposals are drawn: a front end can show them already
+                self.on_step(StepInfo(-1, self.planned_steps, 1, pool.size, time.perf_counter() - self.t_start, ep,
+                                      partial=self.partial_result))
             last_review: dict[int, ReviewRecord] = {}
             for t in range(cfg.steps.per_episode):
                 if pool.size == 0:

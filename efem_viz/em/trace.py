@@ -302,6 +302,16 @@ class EMTrace:
         r = self.row_of(int(proposal_id), int(step))
         return None if r is None else np.asarray(self.row_samples[r], dtype=np.int64).reshape(-1)
 
+    def live_samples(self, step: int) -> np.ndarray:
+        """(M,) int64 sorted scene-point indices sampled at `step` by the proposals still alive after it (not
+        terminated at or before it): where the run is looking at that step (a running solve's progress view)."""
+        rows = self.rows(int(step))
+        ids = np.asarray(self.row_id[rows], np.int64)
+        survive = self.reason_names.index(REASON_SURVIVE)
+        dead = ((self.death_order[ids] >= 0) & (self.death_reason[ids] != survive)
+                & (self.death_step[ids] <= int(step)))
+        return np.unique(np.asarray(self.row_samples[rows][~dead], np.int64))
+
     def is_dead_at(self, proposal_id: int, step: int) -> bool:
         """True when the proposal was terminated (not accepted) at or before `step`."""
         d = self.death(int(proposal_id))

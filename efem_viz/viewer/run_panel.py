@@ -13,6 +13,7 @@ import time
 from concurrent.futures import Future
 from typing import TYPE_CHECKING, Any, Callable
 
+from efem_viz.em.solver import PROGRESSIVE_EVERY_S
 from efem_viz.viewer import panel_views as pv
 from efem_viz.viewer.parts.runs import RunSettings
 
@@ -22,10 +23,6 @@ if TYPE_CHECKING:
     from efem_viz.viewer.jobs import Jobs
     from efem_viz.viewer.panels import Panels
     from efem_viz.viewer.session import ViewerSession
-
-
-PROGRESSIVE_EVERY_S = 1.0
-"""Seconds between two shown states of a running EFEM (the first step and the last are always shown)."""
 
 
 class RunPanel:
@@ -76,8 +73,10 @@ class RunPanel:
             last_shown[0] = now
             partial = info.partial()
             shown[:] = [(partial, info)]
-            self.show_result(partial, f"running: step {info.step + 1} of {info.num_steps}, "
-                                      f"{info.active} proposals alive, {len(partial.instances)} accepted so far")
+            self.show_result(partial, f"running: {info.active} proposals drawn, step 1 of {info.num_steps} under way"
+                             if info.step < 0 else f"running: step {info.step + 1} of {info.num_steps}, "
+                                                   f"{info.active} proposals alive, {len(partial.instances)} accepted "
+                                                   "so far")
 
         try:
             from efem_viz.prior import fused

@@ -32,7 +32,8 @@ def draw_step(nodes: SceneNodes, session: ViewerSession, v: StepView) -> list[tu
             nodes.draw_samples(pts, cols)
     if not len(pts):
         nodes.hide_samples()
-    keys = [(int(pid), v.step) for pid in v.drawn] if s.show_shapes and in_step else []
+    started = s.num_steps > 0  # before a running solve's first step its proposals have no shape yet
+    keys = [(int(pid), v.step) for pid in v.drawn] if s.show_shapes and in_step and started else []
     nodes.show_shapes(keys)
     return [k for k in keys if not nodes.has_shape(*k)]
 

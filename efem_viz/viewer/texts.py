@@ -43,6 +43,8 @@ def step_markdown(t: int, num_steps: int, *, phase: int, alive: int, initial: in
         initial: proposals in the initial pool.
         schedule: (4,) α_D, τ_D, α_N, τ_N at `t`.
     """
+    if num_steps <= 0:  # a running solve before its first step
+        return f"**{alive} proposals drawn** · their first step is under way (each dot: a proposal's anchor)"
     sched = np.asarray(schedule).reshape(-1)
     return (
         f"**Step {t}** / {num_steps - 1} · phase {phase} · **{alive} alive** (of {initial} initial)\n\n"

@@ -106,6 +106,18 @@ def deaths(trace: EMTrace) -> list[Death]:
     return out
 
 
+def proposal_anchors(trace: EMTrace, drawn: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The anchor points of some proposals (where their first crops are centred), each coloured by its proposal
+    id as its samples are (`proposal_samples`).
+
+    Returns:
+        (D, 3) float32 points and (D, 3) uint8 colours.
+    """
+    ids = np.asarray(drawn, np.int64).reshape(-1)
+    anchors = np.asarray(trace.prop_anchor, np.int64)[ids]
+    return np.asarray(points, np.float32)[anchors], np.asarray(instance_colors(ids), np.uint8).reshape(-1, 3)
+
+
 def proposal_samples(
     trace: EMTrace, step: int, drawn: np.ndarray, points: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:

@@ -6,7 +6,7 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from efem_viz.viewer.trace_queries import decode_shape, proposal_samples, top_n
+from efem_viz.viewer.trace_queries import decode_shape, proposal_anchors, proposal_samples, top_n
 
 if TYPE_CHECKING:
     from efem_viz.viewer.parts.core import ViewerCore
@@ -37,9 +37,10 @@ class TimelinePart:
         s = self.core.state
         if s.result is None:
             return None
-        if s.num_steps == 0:  # a run that ended before its first step (a scene of one or two points)
-            none = np.zeros(0, np.int64)
-            return StepView(0, none, np.zeros(0, np.float32), none)
+        if s.num_steps == 0:  # no step yet: a running solve's first proposals (their anchors are drawn), or
+            # none at all (a run that ended before its first step: a scene of one or two points)
+            ids = np.arange(s.result.trace.num_proposals, dtype=np.int64)
+            return StepView(0, ids, np.zeros(len(ids), np.float32), ids)
         t = int(np.clip(s.step if step is None else step, 0, max(s.num_steps - 1, 0)))
         ids, scores = s.result.trace.alive_scores(t)
         return StepView(t, ids, scores, top_n(ids, scores, s.max_shapes))
@@ -75,8 +76,11 @@ class TimelinePart:
     def samples(self, drawn: np.ndarray, step: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(M, 3) float32 world points and (M, 3) uint8 colours of the drawn proposals' samples at a step."""
         s = self.core.state
+        trace = s.require_result().trace
+        if trace.num_steps == 0:  # a running solve before its first step: where its proposals start
+            return proposal_anchors(trace, drawn, s.require_scene().points)
         t = s.step if step is None else int(step)
-        return proposal_samples(s.require_result().trace, t, drawn, s.require_scene().points)
+        return proposal_samples(trace, t, drawn, s.require_scene().points)
 
     def decode_shape(self, pid: int, step: int) -> tuple[np.ndarray, np.ndarray] | None:
         """(vertices, faces) of proposal `pid`'s decoded shape at `step`, from its stored latent.
