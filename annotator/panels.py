@@ -161,7 +161,7 @@ class Panels:
                                                     hint="'real' for single-view captures, 'fast' for a quick look")
             self.gui_efem_proposals = gui.add_number(
                 "Proposals", 0, min=0, max=2000, step=10,
-                hint="0: the preset's (real 200, fast 80); more finds more, slower")
+                hint="0: the preset's (real 120, fast 80); more finds more, slower")
             self.gui_efem_free_space = gui.add_dropdown(
                 "Free space", get_args(FreeSpaceMode), initial_value="auto",
                 hint="remove fits the scan's cameras saw through: auto = the preset's (on for 'real'); "

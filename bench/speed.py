@@ -1,11 +1,10 @@
 """EFEM in seconds: per-phase seconds of one solve, before and after the speed work, same answers.
 
-For each scene (default: the bundled real frames `real_tabletop_{0,6,8}` with the `real` preset, 200 proposals
-spread over the frame, and the fixed synthetic scene `z_7000` of bench/em.py with the `synthetic` preset, 400
-proposals; `chair_z_7000` is its chair scene with the chair prior and the `chairs` preset, 200 proposals) and each
-variant, runs the
-solver `--repeats` times and reports the median seconds per phase (the solver's own `EMResult.timings`), the
-total, and what the answers are:
+For each scene (default: the bundled real frames `real_tabletop_{0,6,8}` with the `real` preset, 120 proposals
+spread over the frame above its table, and the fixed synthetic scene `z_7000` of bench/em.py with the `synthetic`
+preset, 400 proposals; `chair_z_7000` is its chair scene with the chair prior and the `chairs` preset) and each
+variant, runs the solver `--repeats` times and reports the median seconds per phase (the solver's own
+`EMResult.timings`), the total, and what the answers are:
 
 * `AP50` against the scene's ground truth (where it has one),
 * `mask IoU to baseline`: for each instance of the baseline run of the same seed (confidence >= `--cut`), the

@@ -4,7 +4,7 @@
 #   2. its output-mask threshold tau_out (metadata of mug.pt), calibrated on six generated synthetic table scenes
 #      (z, so3, pile; seeds 0 and 1, regenerated here bit-identically; the bench/em.py test scenes are never used)
 #   3. the precomputed EFEM traces of every bundled scene that ships one (sample_scenes/<scene>.efem.npz: seed 0,
-#      today's presets: 400 proposals on the synthetic scenes, the real preset's 200 spread ones on the real frames;
+#      today's presets: 400 proposals on the synthetic scenes, the real preset's 120 spread ones on the real frames;
 #      saved compact, latents in float16; traces replay by re-decoding stored latents, so old traces are wrong with
 #      new weights)
 #   4. the static demo of syn_tree_0 (static/syn_tree_0/)

@@ -1055,7 +1055,11 @@ def test_run_efem_is_drawn_as_it_goes_and_leaves_only_prelabels(spheres, monkeyp
             return sent
 
         ses.on_preview = spy
+        lines: list[str] = []
+        said = a._show_efem_run
+        ses.on_efem = lambda text, percent: (lines.append(text or ""), said(text, percent))
         ids = a.run_efem(wait=True)
+        assert any("found so far" in t for t in lines), "the progress line counts what the run accepted so far"
         assert seen and seen[0][0] == -1 and seen[0][1] > 0, "the drawn proposals show before the first step"
         assert seen[1][0] == 0 and seen[1][1] > 0, "then the first step's samples"
         assert all(ok for *_, ok in seen), "tinted vertices were sent in the search colour"

@@ -160,6 +160,38 @@ def test_anchor_candidates_seed_the_first_episode_there(sphere_run: tuple) -> No
             run_em(scene, prior, cfg, anchor_candidates=bad)
 
 
+def test_anchors_above_the_support_plane(sphere_run: tuple) -> None:
+    """`proposals.anchor_min_height` anchors every episode's proposals only on points that high above z = 0 (the
+    table's points still join the crops), falls back to anywhere when nothing available is that high, keeps the
+    click candidates' restriction, and refuses a height that is not a finite number."""
+    scene, prior, _, _ = sphere_run
+    z = scene.points[:, 2]
+    h = 0.01  # most of this scene is its table at z = 0
+    assert (z < h).mean() > 0.5
+    cfg = preset("fast").replace(proposals={"n_init": (24, 8), "anchor_min_height": h},
+                                 steps={"t1": 3, "t2": 2, "end_step": 2})
+    res = run_em(scene, prior, cfg, seed=3)
+    tr = res.trace
+    first, second = tr.prop_anchor[tr.prop_episode == 0], tr.prop_anchor[tr.prop_episode == 1]
+    assert len(first) == 24 and (z[first] >= h).all()
+    claimed = np.zeros(len(z), bool)  # the second episode draws among what the first one's instances left
+    for k in np.flatnonzero(tr.prop_episode[res.instances.ids] == 0):
+        claimed[res.instances.masks[k]] = True
+    assert len(second) == 0 or (z[second] >= h).all() or not ((z >= h) & ~claimed).any()
+    plain = run_em(scene, prior, cfg.replace(proposals={"anchor_min_height": None}), seed=3)
+    assert (z[plain.trace.prop_anchor] < h).any()  # without it the draw lands low too
+    rows = tr.rows(0)
+    assert (z[np.unique(tr.row_samples[rows])] < h).any()  # the crops still take the low points
+    high_all = run_em(scene, prior, cfg.replace(proposals={"anchor_min_height": float(z.max()) + 1.0}), seed=3)
+    np.testing.assert_array_equal(high_all.trace.prop_anchor[:24], plain.trace.prop_anchor[:24])  # anywhere
+    low = np.flatnonzero(z < h)[:5]
+    clicked = run_em(scene, prior, cfg.replace(proposals={"n_init": (6,)}), seed=3, anchor_candidates=low)
+    assert set(clicked.trace.prop_anchor.tolist()) <= set(low.tolist())  # no candidate high enough: the clicks win
+    for bad in (float("nan"), float("inf"), "5 cm"):
+        with pytest.raises(ValueError, match="anchor_min_height"):
+            preset("fast").replace(proposals={"anchor_min_height": bad})
+
+
 def test_cancel_raises(sphere_run: tuple) -> None:
     scene, prior, _, _ = sphere_run
     ev = threading.Event()

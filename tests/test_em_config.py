@@ -82,16 +82,29 @@ def test_unknown_or_bad_settings_are_one_clear_line() -> None:
         assert err is not None and "\n" not in err and "t1" in err
 
 
-def test_a_trace_saved_with_the_flat_config_loads_grouped() -> None:
-    """The bundled real-frame trace was written before the grouping (a flat config of 63 fields): it loads, and
-    its config is the `real` preset resolved for the mug prior, as the run used."""
+def test_a_trace_saved_with_the_flat_config_loads_grouped(tmp_path: Path) -> None:
+    """Results written before the grouping carry a flat config of 63 fields (here: the one a real-frame bench
+    record of that time saved, the `real` preset of then with 400 proposals): a trace with it loads, grouped, every
+    flat value in its group."""
     from efem_viz.em.results import EMResult
 
+    record = SAMPLES.parent / "bench" / "results" / "real" / "real_fs_final_2026-12-06.json"
+    flat = json.loads(record.read_text())["config"]
+    assert len(flat) == 63 and "seen_through_margin" in flat and "free_space" not in flat
     with np.load(SAMPLES / "real_tabletop_6.efem.npz", allow_pickle=False) as data:
-        flat = json.loads(str(data["config_json"]))
-    assert "seen_through_margin" in flat and "free_space" not in flat
-    res = EMResult.load(SAMPLES / "real_tabletop_6.efem.npz")
-    want = resolve_for_prior(preset("real"), load_prior("mug", load_codebook=False))
-    assert res.config == want
+        arrays = {k: data[k] for k in data.files}
+    for key in ("config_json", "trace/config_json"):
+        arrays[key] = np.array(json.dumps(flat))
+    old = tmp_path / "old.efem.npz"
+    np.savez_compressed(old, **arrays)
+    res = EMResult.load(old)
+    assert res.config == EMConfig.from_dict(flat) and res.trace.config == res.config
     assert res.config.free_space.margin == flat["seen_through_margin"]
+    assert res.config.free_space.final is flat["seen_through_final"] is True
     assert res.config.confidence.look_alike == flat["mug_model"]
+    assert res.config.proposals.n_init == tuple(flat["n_init"]) == (400,)
+    assert res.config.proposals.anchor_min_height is None  # a setting that did not exist then: its default
+    for name, dotted in FLAT_NAMES.items():
+        group, field = dotted.split(".")
+        got = getattr(getattr(res.config, group), field)
+        assert (list(got) if isinstance(got, tuple) else got) == flat[name], name

@@ -353,14 +353,15 @@ def test_schedule_real_paper(t: int, expected: tuple[float, ...]) -> None:
 def test_real_preset_is_the_paper_one_with_the_measured_changes() -> None:
     """`real` = §3.12's real settings (`real_paper`) + the changes for noisy single-view frames (a free-space check
     that ignores depth edges and widens with the range) + the learned mug-vs-look-alike confidence + the inclusion
-    rule that spares the better fit (by stationary score; the synthetic presets compare the confidence) + 200
-    proposals spread over the frame instead of 400 uniform ones."""
+    rule that spares the better fit (by stationary score; the synthetic presets compare the confidence) + 120
+    proposals spread over the frame above its table instead of 400 uniform ones."""
     real, paper = preset("real"), preset("real_paper")
     assert real.replace(name="real_paper", steps={"tau_d": paper.steps.tau_d, "tau_n": paper.steps.tau_n,
                                                    "m_step_replace": True},
                         free_space=paper.free_space, confidence={"look_alike": None},
                         elimination={"inclusion": "paper"}, proposals=paper.proposals) == paper
-    assert real.proposals.n_init == (200,) and real.proposals.anchors == "spread" and paper.proposals.n_init == (400,)
+    assert real.proposals.n_init == (120,) and real.proposals.anchors == "spread" and paper.proposals.n_init == (400,)
+    assert real.proposals.anchor_min_height == 0.015 and paper.proposals.anchor_min_height is None
     assert (real.free_space.edge, real.free_space.range_growth, real.free_space.final) == (0.02, 0.01, True)
     # the look-alike model is the category's: the mug prior's for real frames, none for a chair or in synthetic scenes
     assert real.confidence.look_alike == "category" and paper.confidence.look_alike is None

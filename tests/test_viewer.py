@@ -867,7 +867,7 @@ def test_a_run_started_in_the_viewer_solves_over_the_extra_priors(tmp_path: Path
 
 
 def test_the_proposals_field_follows_the_preset_until_a_person_edits_it(tmp_path: Path, prior: Any) -> None:
-    """The Run tab's Proposals field started at 100 and overrode every preset (200 for `real`, 80 for `fast`). It
+    """The Run tab's Proposals field started at 100 and overrode every preset (120 for `real`, 80 for `fast`). It
     shows the chosen preset's number, follows the preset the scene suggests and a person's preset choice, and keeps
     a number a person typed."""
     from efem_viz.data.io import load_scene, save_scene
@@ -882,7 +882,7 @@ def test_the_proposals_field_follows_the_preset_until_a_person_edits_it(tmp_path
         p = a.panels
         assert p.gui_proposals.value == preset("fast").proposals.n_init[0]
         assert a.open_scene("real_tabletop_6") and a.wait_idle(600)
-        assert p.gui_preset.value == "real" and p.gui_proposals.value == preset("real").proposals.n_init[0] == 200
+        assert p.gui_preset.value == "real" and p.gui_proposals.value == preset("real").proposals.n_init[0] == 120
         p.gui_preset.value = "synthetic"  # a person's choice (the handle's callbacks run as for a client)
         assert p.gui_proposals.value == preset("synthetic").proposals.n_init[0]
         p.gui_proposals.value = 123  # typed by a person: kept from now on

@@ -397,16 +397,16 @@ class AssistPart:
             f", free space {settings.free_space}" if settings.free_space != "auto" else "") + ")"
 
         last_drawn = [-float("inf")]
+        found = [""]  # the newest drawn state's count, said on every step's line
 
         def on_step(info: Any) -> None:
-            found = ""
             every, now = self.progressive_every_s, time.monotonic()
             if every is not None and info.partial is not None and (info.step <= 0 or now - last_drawn[0] >= every):
                 last_drawn[0] = now
                 overlay = RunOverlay.of_result(info.partial(), self.efem_scene().points)
                 self._draw_run_overlay(overlay)
-                found = f" · {overlay.accepted} found so far" if overlay.accepted else ""
-            self.hooks.on_efem(f"{what}: step {info.step + 1} of {info.num_steps} · {info.status()}{found} "
+                found[0] = f" · {overlay.accepted} found so far" if overlay.accepted else ""
+            self.hooks.on_efem(f"{what}: step {info.step + 1} of {info.num_steps} · {info.status()}{found[0]} "
                                "(Cancel stops it)", round(100.0 * (info.step + 1) / max(info.num_steps, 1), 1))
 
         t0 = time.perf_counter()
