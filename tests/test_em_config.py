@@ -15,10 +15,8 @@ from efem_viz.em.config import (
     PRESETS,
     EMConfig,
     preset,
-    resolve_for_prior,
     setting_names,
 )
-from efem_viz.prior.model import load_prior
 
 SAMPLES = Path(__file__).resolve().parents[1] / "sample_scenes"
 

@@ -444,10 +444,12 @@ def test_presets_follow_the_spec_table() -> None:
     assert 50 <= fast.proposals.n_init[0] <= 100
     with pytest.raises(ValueError, match="unknown EM preset"):
         preset("sofas")
-    # the synthetic-chairs column of the spec's table; the chair prior's category brings the 0.5 / 0.8 m crop radii
+    # the synthetic-chairs column of the spec's table (150 proposals anchored above the floor instead of its 200
+    # anywhere); the chair prior's category brings the 0.5 / 0.8 m crop radii
     chairs = resolve_for_prior(preset("chairs"), _Named("chair"))
     assert (chairs.proposals.n_init, chairs.steps.alpha_d, chairs.steps.tau_d, chairs.steps.tau_n) == (
-        (200,), (5.0, 20.0), (0.2, 0.15), (120.0, 80.0))
+        (150,), (5.0, 20.0), (0.2, 0.15), (120.0, 80.0))
+    assert chairs.proposals.anchor_min_height == 0.05 and syn.proposals.anchor_min_height is None
     assert (chairs.elimination.min_size, chairs.elimination.dup_iou, chairs.proposals.r_init,
             chairs.proposals.r_err) == (1000, 0.8, 0.5, 0.8)
     assert EMConfig.from_json(real.to_json()) == real
