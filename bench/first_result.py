@@ -31,8 +31,8 @@ def _viewer_run(app: Any, preset: str, full: bool) -> dict[str, float]:
     original = app.set_result
     t0 = time.perf_counter()
 
-    def spy(result: Any, *, source: str) -> None:
-        original(result, source=source)
+    def spy(result: Any, *, source: str, view_mode: str = "result") -> None:
+        original(result, source=source, view_mode=view_mode)
         now = time.perf_counter() - t0
         if source.startswith("running:"):
             marks.setdefault("first_shown_s", now)

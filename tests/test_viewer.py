@@ -486,23 +486,47 @@ def test_a_first_run_says_it_builds_the_kernels(app: Any, monkeypatch: pytest.Mo
 
 
 def test_a_run_is_shown_as_it_goes_then_its_final_result(app: Any) -> None:
-    """Progressive results: with no wait between shown states, every step's state of a run (its proposals at the
-    newest step, the instances accepted so far) is shown, each with more steps, then the finished result; the
-    progress line says the time left."""
+    """Progressive results: with no wait between shown states, the proposals as drawn (a dot at each anchor), then
+    every step's state of a run (its proposals' samples at the newest step, the instances accepted so far) is shown
+    in the step view, each with more steps, then the finished result in the result view; the progress line says
+    the time left."""
     shown: list[tuple[int, int, str]] = []
+    drawn: list[tuple[str, int, bool]] = []  # the view, and the sample points on screen after each shown state
     original = app.set_result
-    app.set_result = lambda result, *, source: (shown.append((result.trace.num_steps, len(result.instances), source)),
-                                                original(result, source=source))
+
+    def spy(result: Any, *, source: str, view_mode: str = "result") -> None:
+        shown.append((result.trace.num_steps, len(result.instances), source))
+        original(result, source=source, view_mode=view_mode)  # type: ignore[arg-type]
+        sm = app.nodes.samples
+        drawn.append((app.state.view_mode, 0 if sm is None else len(sm.points), bool(sm is not None and sm.visible)))
+
+    from efem_viz.viewer import scene_views
+
+    decode = scene_views.decode_shapes
+    decoded_while_running: list[Any] = []
+
+    def watch(nodes: Any, session: Any, keys: Any, generation: int) -> None:
+        if session.state.running:
+            decoded_while_running.append(keys)
+        decode(nodes, session, keys, generation)
+
+    app.set_result = spy
+    scene_views.decode_shapes = watch
     try:
         app.run_panel.progressive_every_s = 0.0
         fut = app.start_run(preset="fast", proposals=8, seed=3)
         res = fut.result(timeout=600)
     finally:
         app.set_result = original
+        scene_views.decode_shapes = decode
         app.run_panel.progressive_every_s = None
     assert res is not None and app.state.result is res
-    drawn, partial, final = shown[0], shown[1:-1], shown[-1]
-    assert drawn[0] == 0 and drawn[2] == "running: 8 proposals drawn, step 1 of 20 under way"  # at once
+    first, partial, final = shown[0], shown[1:-1], shown[-1]
+    assert first[0] == 0 and first[2] == "running: 8 proposals drawn, step 1 of 20 under way"  # at once
+    assert drawn[0] == ("step", 8, True), "a dot at each proposal's anchor"
+    assert all(mode == "step" and n > 8 and vis for mode, n, vis in drawn[1:3]), "the first steps' samples"
+    assert drawn[-1][0] == "result" and not drawn[-1][2], "the finished run: its instances, no samples"
+    assert not decoded_while_running, "no shape is decoded while the run needs the CPU"
     assert app.session.timeline.step_view() is not None
     steps = [n for n, _, _ in partial]
     assert steps == list(range(1, res.trace.num_steps + 1)), steps  # one state per step, in order
@@ -511,8 +535,8 @@ def test_a_run_is_shown_as_it_goes_then_its_final_result(app: Any) -> None:
     assert accepted == sorted(accepted) and accepted[-1] <= len(res.instances)
 
     # cancelled after its second shown state: the screen keeps what the run had, saying it stopped and is not saved
-    def cancel_at_two(result: Any, *, source: str) -> None:
-        original(result, source=source)
+    def cancel_at_two(result: Any, *, source: str, view_mode: str = "result") -> None:
+        original(result, source=source, view_mode=view_mode)  # type: ignore[arg-type]
         if source.startswith("running: step 2 "):
             app.session.runs.cancel_run()
 

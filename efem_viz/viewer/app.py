@@ -109,7 +109,8 @@ class ViewerApp(ServedApp):
             self.server.gui, scene_names=[e.name for e in self.state.entries], out_dir=str(self.out_root)
         )
         self.run_panel = RunPanel(self.session, self.panels, self.jobs,
-                                  show_result=lambda result, source: self.set_result(result, source=source))
+                                  show_result=lambda result, source, mode: self.set_result(result, source=source,
+                                                                                           view_mode=mode))
         """The Run button's job, its progress and result (`efem_viz.viewer.run_panel`)."""
         self.playback = Playback(self.session, self.panels.gui_play, self.set_step)
         """Play/Pause and the timer that steps through the timeline (`efem_viz.viewer.playback`)."""
@@ -282,8 +283,9 @@ class ViewerApp(ServedApp):
         `RunSettings.of(settings, **knobs)`."""
         return self.run_panel.start_run(settings, **knobs)
 
-    def set_result(self, result: EMResult, *, source: str) -> None:
-        """Show an EMResult: timeline, proposals at the last step, final instances and ground truth."""
+    def set_result(self, result: EMResult, *, source: str, view_mode: st.ViewMode = "result") -> None:
+        """Show an EMResult: timeline, proposals at the last step, final instances and ground truth; in the result
+        view (the final instances) or the step view (the proposals at the last step: a run as it goes)."""
         with self._lock:
             self.playback.pause()
             self.session.results.set_result(result, source=source)
@@ -293,6 +295,8 @@ class ViewerApp(ServedApp):
             self.nodes.draw_results(result.instances)
             self.set_step(self.state.step, view_mode="result")
             self.set_threshold(self.state.threshold, by_user=False)  # the status line is the session's
+            if view_mode != "result":  # the threshold showed the instances; a run as it goes shows its proposals
+                self.set_step(self.state.step, view_mode=view_mode)
 
     def _draw_no_result(self) -> None:
         pv.show_no_result(self.panels, self.session, self.gui_set)

@@ -23,6 +23,7 @@ if TYPE_CHECKING:
     from efem_viz.viewer.jobs import Jobs
     from efem_viz.viewer.panels import Panels
     from efem_viz.viewer.session import ViewerSession
+    from efem_viz.viewer.state import ViewMode
 
 
 class RunPanel:
@@ -32,13 +33,14 @@ class RunPanel:
         session: the viewer session (runs EFEM; its lock).
         panels: the viewer's panels (buttons, progress bar, progress line).
         jobs: the viewer's worker threads (runs go to `jobs.runner`).
-        show_result: shows a finished run's result (`ViewerApp.set_result`).
+        show_result: shows a run's result (`ViewerApp.set_result`) in a view mode: a running or stopped run's
+            state in the step view (its proposals at the newest step), a finished run's in the result view.
         progressive_every_s: the run is shown as it goes, its proposals at the newest step and the instances
             accepted so far, at most this often (None: only the finished result).
     """
 
     def __init__(self, session: ViewerSession, panels: Panels, jobs: Jobs, *,
-                 show_result: Callable[[EMResult, str], None],
+                 show_result: Callable[[EMResult, str, ViewMode], None],
                  progressive_every_s: float | None = PROGRESSIVE_EVERY_S) -> None:
         self.session = session
         self.panels = panels
@@ -76,7 +78,7 @@ class RunPanel:
             self.show_result(partial, f"running: {info.active} proposals drawn, step 1 of {info.num_steps} under way"
                              if info.step < 0 else f"running: step {info.step + 1} of {info.num_steps}, "
                                                    f"{info.active} proposals alive, {len(partial.instances)} accepted "
-                                                   "so far")
+                                                   "so far", "step")
 
         try:
             from efem_viz.prior import fused
@@ -90,7 +92,7 @@ class RunPanel:
             if shown and self.session.runs.is_current(generation):  # say what the screen still shows
                 partial, info = shown[0]
                 self.show_result(partial, f"stopped run (not saved): as far as it went, step {info.step + 1} of "
-                                          f"{info.num_steps}")
+                                          f"{info.num_steps}", "step")
             return None
-        self.show_result(result, self.session.runs.last_run_source)
+        self.show_result(result, self.session.runs.last_run_source, "result")
         return result

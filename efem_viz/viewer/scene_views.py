@@ -32,8 +32,10 @@ def draw_step(nodes: SceneNodes, session: ViewerSession, v: StepView) -> list[tu
             nodes.draw_samples(pts, cols)
     if not len(pts):
         nodes.hide_samples()
-    started = s.num_steps > 0  # before a running solve's first step its proposals have no shape yet
-    keys = [(int(pid), v.step) for pid in v.drawn] if s.show_shapes and in_step and started else []
+    # a running solve shows its samples only: decoding its shapes would take CPU from the run (they are decoded
+    # when it has ended and a step is shown); before its first step its proposals have no shape at all
+    shapes = s.show_shapes and in_step and s.num_steps > 0 and not s.running
+    keys = [(int(pid), v.step) for pid in v.drawn] if shapes else []
     nodes.show_shapes(keys)
     return [k for k in keys if not nodes.has_shape(*k)]
 
