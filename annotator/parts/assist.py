@@ -61,8 +61,7 @@ class RunOverlay:
         Raises:
             ValueError: the result belongs to another point count.
         """
-        from scipy.spatial import cKDTree
-
+        from efem_viz._typeshims import cKDTree
         from efem_viz.colors import result_colors
 
         n = len(points)
