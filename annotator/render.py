@@ -120,6 +120,8 @@ SEARCH_COLOR = (255, 170, 0)
 """A running EFEM's live proposals: the points they sampled at the newest step are tinted this colour."""
 SEARCH_ALPHA = 0.5
 """Weight of `SEARCH_COLOR` over the scan colour."""
+
+
 def compose_colors(
     base: np.ndarray,
     labels: np.ndarray,

@@ -306,16 +306,20 @@ class EMTrace:
         """(M,) int64 sorted scene-point indices sampled at `step` by the proposals still alive after it (not
         terminated at or before it): where the run is looking at that step (a running solve's progress view)."""
         rows = self.rows(int(step))
-        ids = np.asarray(self.row_id[rows], np.int64)
-        survive = self.reason_names.index(REASON_SURVIVE)
-        dead = ((self.death_order[ids] >= 0) & (self.death_reason[ids] != survive)
-                & (self.death_step[ids] <= int(step)))
+        dead = self.dead_at(np.asarray(self.row_id[rows], np.int64), step)
         return np.unique(np.asarray(self.row_samples[rows][~dead], np.int64))
+
+    def dead_at(self, proposal_ids: np.ndarray, step: int) -> np.ndarray:
+        """(K,) bool: which of the proposals were terminated (not accepted) at or before `step`."""
+        ids = np.asarray(proposal_ids, np.int64)
+        survive = self.reason_names.index(REASON_SURVIVE)
+        reason = self.death_reason[ids]
+        return (reason >= 0) & (reason != survive) & (self.death_step[ids] <= int(step))
 
     def is_dead_at(self, proposal_id: int, step: int) -> bool:
         """True when the proposal was terminated (not accepted) at or before `step`."""
-        d = self.death(int(proposal_id))
-        return d is not None and d[1] != REASON_SURVIVE and int(d[0]) <= int(step)
+        self.check_id(proposal_id)
+        return bool(self.dead_at(np.array([proposal_id]), step)[0])
 
     def center_at(self, proposal_id: int, step: int) -> np.ndarray:
         """(3,) float32 world centre Θ_c of a proposal at a step (its last recorded step if it died before).

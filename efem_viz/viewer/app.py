@@ -293,10 +293,9 @@ class ViewerApp(ServedApp):
             self.nodes.clear_inspector()
             self.nodes.remove_shapes()  # old per-step shapes; the final instances are drawn once
             self.nodes.draw_results(result.instances)
-            self.set_step(self.state.step, view_mode="result")
-            self.set_threshold(self.state.threshold, by_user=False)  # the status line is the session's
-            if view_mode != "result":  # the threshold showed the instances; a run as it goes shows its proposals
-                self.set_step(self.state.step, view_mode=view_mode)
+            self.set_step(self.state.step, view_mode=view_mode)
+            # the status line is the session's; a run as it goes stays on its proposals (the step view)
+            self.set_threshold(self.state.threshold, by_user=False, show_instances=view_mode == "result")
 
     def _draw_no_result(self) -> None:
         pv.show_no_result(self.panels, self.session, self.gui_set)
@@ -401,16 +400,18 @@ class ViewerApp(ServedApp):
             self._redraw_layers()
 
     # ================================================================== 5./6. results and ground truth
-    def set_threshold(self, threshold: float, *, by_user: bool = True) -> None:
+    def set_threshold(self, threshold: float, *, by_user: bool = True, show_instances: bool = True) -> None:
         """Filter the final instances by confidence (visibility + colours only, no re-run); `by_user=False` for
-        redraws (only a person's cut carries over to the next result)."""
+        redraws (only a person's cut carries over to the next result); `show_instances=False` keeps the view mode
+        (else the result view is shown, where the cut acts)."""
         with self._lock:
             s = self.state
             self.session.results.set_threshold(threshold, by_user=by_user)
             self.gui_set(self.panels.gui_threshold, s.threshold)
             if s.result is None:
                 return
-            self._show_result_view()  # the threshold filters the final instances: show them
+            if show_instances:
+                self._show_result_view()  # the threshold filters the final instances: show them
             sv.show_results(self.nodes, self.session)
             self.draw_point_colors()
             pv.show_threshold(self.panels, self.session, self.gui_set)
