@@ -8,6 +8,7 @@ import torch
 import torch.nn.functional as F
 
 from efem_viz.prior import fused
+from efem_viz.prior.decoder import SDFDecoder
 from efem_viz.prior.encoder import _gather
 from efem_viz.prior.model import PriorConfig, ShapePrior
 from efem_viz.prior.vn_layers import VNLinearLeakyReLU
@@ -222,3 +223,89 @@ def test_a_pending_build_is_told_before_it_starts_and_a_finished_one_is_not(tmp_
     (tmp_path / name / f"{name}.so").unlink()
     monkeypatch.setattr(fused, "_state", {"loaded": False})
     assert not fused.pending_build()
+
+
+def _decoder(hidden: int, blocks: int, use_qnorm: bool, seed: int) -> SDFDecoder:
+    from efem_viz.prior.decoder import SDFDecoder
+
+    torch.manual_seed(seed)
+    dec = SDFDecoder(latent_dim=6, hidden=hidden, n_blocks=blocks, use_qnorm=use_qnorm).eval()
+    with torch.no_grad():
+        for p in dec.parameters():  # fc_1 starts at zero: give every block something to do
+            p.copy_(torch.randn_like(p) / p.shape[-1] ** 0.5)
+    return dec
+
+
+def _decoder_inputs(dec: SDFDecoder, b: int, n: int, seed: int) -> tuple[torch.Tensor, ...]:
+    g = torch.Generator().manual_seed(seed)
+    m, bias = dec.fold(torch.randn(b, 6, 3, generator=g), torch.randn(b, 6, generator=g))
+    return torch.randn(b, n, 3, generator=g), m.detach(), bias.detach()
+
+
+@needs_kernels
+@pytest.mark.parametrize("hidden,blocks,use_qnorm,b,n", [(32, 2, True, 3, 301), (16, 1, False, 5, 97),
+                                                          (24, 3, True, 1, 1000)])
+def test_fused_decoder_pass_matches_the_eager_tiles(hidden: int, blocks: int, use_qnorm: bool, b: int, n: int,
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """SDF of every query, the band and ∂sdf/∂q of the band rows as the eager tiles give them (float32 rounding),
+    for row counts that are no multiple of the tile, with and without the ‖q‖ feature."""
+    dec = _decoder(hidden, blocks, use_qnorm, seed=hidden)
+    q, m, bias = _decoder_inputs(dec, b, n, seed=blocks)
+    with torch.no_grad():
+        monkeypatch.setenv("EFEM_VIZ_FUSED_DECODER", "0")
+        ref_fwd = dec.forward_batched(q, m, bias)
+        levels = ref_fwd.abs().flatten().sort().values
+        within = float(levels[len(levels) // 2] + levels[len(levels) // 2 + 1]) / 2  # half the rows, no tie
+        ref = dec.sdf_and_band_grad(q, m, bias, within=within)
+        monkeypatch.setenv("EFEM_VIZ_FUSED_DECODER", "1")
+        calls = []
+        plain = fused.decoder_band
+        monkeypatch.setattr(fused, "decoder_band", lambda *a, **k: calls.append(1) or plain(*a, **k))
+        fwd = dec.forward_batched(q, m, bias)
+        out = dec.sdf_and_band_grad(q, m, bias, within=within)
+    assert len(calls) == 2  # both inference passes took the kernel
+    torch.testing.assert_close(fwd, ref_fwd, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(out[0], ref[0], rtol=1e-5, atol=1e-5)
+    assert torch.equal(out[2], ref[2]) and 0 < int(out[2].sum()) < b * n
+    torch.testing.assert_close(out[1], ref[1], rtol=1e-4, atol=1e-5)
+    assert torch.all(out[1][~out[2]] == 0)
+
+
+@needs_kernels
+def test_fused_decoder_tiles_and_threads_change_nothing_but_rounding(monkeypatch: pytest.MonkeyPatch) -> None:
+    dec = _decoder(32, 2, True, seed=3)
+    q, m, bias = _decoder_inputs(dec, 4, 250, seed=4)
+    threads = torch.get_num_threads()
+    with torch.no_grad():
+        one = dec.sdf_and_band_grad(q, m, bias, within=0.5)
+        monkeypatch.setattr(fused, "DECODER_TILE", 7)  # 143 tiles, the last one of 6 rows
+        try:
+            torch.set_num_threads(2)
+            small = dec.sdf_and_band_grad(q, m, bias, within=0.5)
+        finally:
+            torch.set_num_threads(threads)
+    for a, b in zip(one, small):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
+
+
+@needs_kernels
+def test_fused_decoder_leaves_training_float64_and_bad_shapes_alone(monkeypatch: pytest.MonkeyPatch) -> None:
+    dec = _decoder(16, 2, True, seed=5)
+    q, m, bias = _decoder_inputs(dec, 2, 100, seed=6)
+    monkeypatch.setattr(fused, "decoder_band", lambda *a, **k: pytest.fail("the kernel must not serve this call"))
+    q.requires_grad_(True)
+    sdf = dec.forward_batched(q, m, bias)  # training: autograd through the eager ops
+    (grad,) = torch.autograd.grad(sdf.sum(), q)
+    assert grad.abs().sum() > 0
+    with torch.no_grad():
+        dec64 = _decoder(16, 2, True, seed=5).double()
+        dec64.forward_batched(q.detach().double(), m.double(), bias.double())
+        monkeypatch.setenv("EFEM_VIZ_FUSED_DECODER", "0")
+        dec.forward_batched(q.detach(), m, bias)
+    w = torch.zeros(16, 16)
+    with pytest.raises(RuntimeError, match="mt must be"):
+        torch.ops.efem_vn.decoder_band(q.detach(), torch.zeros(2, 4, 16), [w], [torch.zeros(16)], [w],
+                                       [torch.zeros(16)], torch.zeros(16), 0.0, 0.1, True, 8)
+    with pytest.raises(RuntimeError, match="block weights"):
+        torch.ops.efem_vn.decoder_band(q.detach(), torch.zeros(2, 5, 16), [torch.zeros(16, 8)], [torch.zeros(16)],
+                                       [w], [torch.zeros(16)], torch.zeros(16), 0.0, 0.1, True, 8)

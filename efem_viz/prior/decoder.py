@@ -12,14 +12,19 @@ hidden unit.
 
 from __future__ import annotations
 
+import os
+
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from efem_viz.prior import fused
+
 
 TILE_ROWS = 1024
-"""Rows per tile of the decoder's inference passes on a CPU: at width 128 every activation of a tile (512 KB)
-stays in the core's cache between the matrix products."""
+"""Rows per tile of the decoder's eager inference passes on a CPU (where `fused.decoder_band` does not serve them:
+bf16 autocast, no compiler): at width 128 every activation of a tile (512 KB) stays in the core's cache between
+the matrix products."""
 
 
 def _qnorm(q: torch.Tensor) -> torch.Tensor:
@@ -129,7 +134,25 @@ class SDFDecoder(nn.Module):
         Returns:
             ``(B, Q)`` canonical SDF.
         """
+        out = self._fused(q, m, bias, -1.0)
+        if out is not None:
+            return out[0]
         return self._mlp(self._first_layer(q, m, bias))
+
+    def _fused(self, q: torch.Tensor, m: torch.Tensor, bias: torch.Tensor, within: float
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+        """`fused.decoder_band` of these queries (None where it does not serve them: not a float32 CPU inference
+        call, autocast or autograd on, no kernels, ``EFEM_VIZ_FUSED_DECODER=0``, too few queries for a tile to
+        pay)."""
+        if (q.device.type != "cpu" or q.shape[0] * q.shape[1] < 64 or os.environ.get("EFEM_VIZ_FUSED_DECODER") == "0"
+                or not fused.usable(q, m, bias)):
+            return None
+        blocks = [getattr(self, f"block{i}") for i in range(self.n_blocks)]
+        params = [(b.fc_0.weight, b.fc_0.bias, b.fc_1.weight, b.fc_1.bias) for b in blocks]
+        a_q = (self.fc_in.weight[:, self.latent_dim] if self.use_qnorm else self.fc_in.weight.new_zeros(m.shape[1]))
+        mt = torch.cat([m.transpose(1, 2), a_q.expand(m.shape[0], 1, -1), bias[:, None, :]], 1)
+        return fused.decoder_band(q.contiguous(), mt, params, self.fc_out.weight[0], float(self.fc_out.bias[0]),
+                                  within, self.use_qnorm)
 
     def _first_layer(self, q: torch.Tensor, m: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
         """``h_0 = M q + a_q ‖q‖ + bias`` for batched queries ``(B, Q, 3)`` -> ``(B, Q, H)``: one batched product
@@ -156,6 +179,9 @@ class SDFDecoder(nn.Module):
         Returns:
             ``sdf (B, Q)``, ``dq (B, Q, 3)`` (∂sdf/∂q; zeros outside the band) and ``band (B, Q)`` bool.
         """
+        out = self._fused(q, m, bias, within)
+        if out is not None:
+            return out
         h = self._first_layer(q, m, bias)
         if torch.is_autocast_enabled(h.device.type):
             h = h.to(torch.get_autocast_dtype(h.device.type))

@@ -1,4 +1,5 @@
-"""Fused VN edge kernels of the encoder: one pass over the edges instead of fifteen.
+"""Fused CPU kernels: the encoder's VN edge passes (one pass over the edges instead of fifteen) and the decoder's
+inference pass.
 
 The VN-DGCNN encoder spends most of its time not in matrix products but in the VN-LeakyReLU applied to every
 edge feature ``(B, N, k, 3, C)`` and the mean over the ``k`` neighbours that follows: a dozen elementwise passes
@@ -11,6 +12,12 @@ over a ``k``-fold tensor, memory-bound. Two exact rewrites remove that:
 
 The k-NN of every block (in feature space) keeps the eager Gram product and replaces the `topk` over the
 distance matrix by one insertion pass per row (`knn`: the same neighbours in the same order, ties included).
+
+The decoder's inference pass (`decoder_band`, serving `SDFDecoder.forward_batched` and `sdf_and_band_grad`) runs
+in one C++ loop over tiles of 256 rows: the first layer, each block's two products with bias, ReLU and residual
+fused into the pass that follows each product, the output, and the band rows' input gradient, every activation
+of a tile kept in cache (float32, the eager tiles' result to rounding; ``EFEM_VIZ_FUSED_DECODER=0`` turns this
+one off).
 
 The C++ file is compiled on first use with torch's own toolchain support (`torch.utils.cpp_extension`, about
 35 s once per machine, cached under ``~/.cache/efem-viz/torch_extensions`` in a folder keyed by everything that
@@ -158,7 +165,7 @@ def prepare(say: Callable[[str], None] | None = None) -> bool:
 
 
 def _registered() -> bool:
-    return all(hasattr(torch.ops.efem_vn, op) for op in ("edge_mean", "act_mean", "attention"))
+    return all(hasattr(torch.ops.efem_vn, op) for op in ("edge_mean", "act_mean", "attention", "decoder_band"))
 
 
 def _library() -> tuple[str, list[str], Path]:
@@ -306,3 +313,34 @@ def knn(query: torch.Tensor, ref: torch.Tensor, k: int) -> torch.Tensor:
             return knn_indices(query, ref, k)
         gram = q @ r.transpose(1, 2)
         return torch.ops.efem_vn.knn_select(gram, (q * q).sum(-1), (r * r).sum(-1), int(k))
+
+
+DECODER_TILE = 256
+"""Rows per tile of the fused decoder pass: every activation the tile keeps for its backward (width 128, two
+blocks: 5 x 128 KB) stays in the core's L2."""
+
+
+def decoder_band(q: torch.Tensor, mt: torch.Tensor, blocks: list[tuple[torch.Tensor, ...]], w_out: torch.Tensor,
+                 b_out: float, within: float, use_qnorm: bool
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+    """The decoder's inference pass in one C++ loop over tiles (`SDFDecoder.sdf_and_band_grad` is the same
+    math; None where the kernels do not serve these tensors: the caller runs its eager code).
+
+    Args:
+        q: ``(B, Q, 3)`` canonical queries.
+        mt: ``(B, 5, H)`` per latent: the rows of ``Mᵀ``, ``a_q`` and the folded bias.
+        blocks: ``(W0, b0, W1, b1)`` of each residual block, as ``nn.Linear`` stores them.
+        w_out: ``(H,)`` output weights.
+        b_out: output bias.
+        within: band half-width; negative: the SDF only.
+        use_qnorm: whether ``a_q ‖q‖`` enters the first layer.
+
+    Returns:
+        ``sdf (B, Q)``, ``dq (B, Q, 3)`` (∂sdf/∂q, zeros outside the band), ``band (B, Q)`` bool.
+    """
+    flat = [t for blk in blocks for t in blk]
+    if not usable(q, mt, w_out, *flat):
+        return None
+    w0, b0, w1, b1 = ([blk[i] for blk in blocks] for i in range(4))
+    return torch.ops.efem_vn.decoder_band(q, mt, w0, b0, w1, b1, w_out, float(b_out), float(within),
+                                          bool(use_qnorm), DECODER_TILE)

@@ -1,11 +1,13 @@
-// Fused VN edge kernels of the encoder (efem_viz/prior/fused.py builds and loads this file; the Python
-// references there are the same math). CPU, float32; every neighbour index is checked before use.
+// Fused VN edge kernels of the encoder and the decoder's inference pass (efem_viz/prior/fused.py builds and loads
+// this file; the Python references there are the same math). CPU, float32; every neighbour index is checked
+// before use.
 #include <ATen/ATen.h>
 #include <ATen/Parallel.h>
 #include <torch/library.h>
 #include <algorithm>
 #include <utility>
 #include <cmath>
+#include <tuple>
 #include <limits>
 #include <vector>
 
@@ -277,6 +279,171 @@ at::Tensor knn_select(const at::Tensor& gram_, const at::Tensor& qq_, const at::
   return out;
 }
 
+inline void relu_rows(const float* x, float* out, int64_t n) {
+  for (int64_t j = 0; j < n; ++j) out[j] = x[j] > 0.0f ? x[j] : 0.0f;
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor> decoder_band(
+    const at::Tensor& q_, const at::Tensor& mt_, at::TensorList w0, at::TensorList b0, at::TensorList w1,
+    at::TensorList b1, const at::Tensor& w_out_, double b_out, double within, bool use_qnorm, int64_t tile) {
+  // The SDF decoder's inference pass (efem_viz/prior/decoder.py, `SDFDecoder.sdf_and_band_grad` is the same math)
+  // over tiles of rows whose activations stay in cache: the first layer h0 = M q + a_q |q| + bias, the
+  // pre-activation residual blocks h + W1 relu(W0 relu(h) + b0) + b1 and sdf = w_out . relu(h) + b_out, with bias,
+  // ReLU and residual fused into one pass per layer between the matrix products; then, for the rows with
+  // |sdf| <= within (none when within < 0), the input gradient back-propagated by hand through the kept ReLU masks
+  // (a unit passes where its pre-activation > 0, as autograd's relu backward). q (B, Q, 3); mt (B, 5, H): the rows
+  // of M^T, a_q and the bias of each latent; w0/w1 (H, H) as nn.Linear stores them, b0/b1 (H); w_out (H).
+  // Returns sdf (B, Q), dq (B, Q, 3) (zeros outside the band) and band (B, Q) bool.
+  TORCH_CHECK(q_.dim() == 3 && q_.size(2) == 3 && q_.scalar_type() == at::kFloat, "q must be (B, Q, 3) float32");
+  TORCH_CHECK(mt_.dim() == 3 && mt_.size(0) == q_.size(0) && mt_.size(1) == 5 && mt_.scalar_type() == at::kFloat,
+              "mt must be (B, 5, H) float32");
+  const int64_t nb = static_cast<int64_t>(w0.size());
+  TORCH_CHECK(static_cast<int64_t>(b0.size()) == nb && static_cast<int64_t>(w1.size()) == nb &&
+              static_cast<int64_t>(b1.size()) == nb, "one w0, b0, w1, b1 per block");
+  const int64_t B = q_.size(0), Q = q_.size(1), H = mt_.size(2), N = B * Q;
+  for (int64_t i = 0; i < nb; ++i) {
+    for (const at::Tensor* w : {&w0[i], &w1[i]})
+      TORCH_CHECK(w->dim() == 2 && w->size(0) == H && w->size(1) == H && w->scalar_type() == at::kFloat,
+                  "block weights must be (H, H) float32");
+    for (const at::Tensor* b : {&b0[i], &b1[i]})
+      TORCH_CHECK(b->dim() == 1 && b->size(0) == H && b->scalar_type() == at::kFloat, "block biases must be (H,)");
+  }
+  TORCH_CHECK(w_out_.numel() == H && w_out_.scalar_type() == at::kFloat, "w_out must hold H float32");
+  TORCH_CHECK(q_.device().is_cpu() && mt_.device().is_cpu(), "CPU tensors only");
+  TORCH_CHECK(tile >= 1, "tile must be positive");
+  const auto q = q_.detach().contiguous(), mt = mt_.detach().contiguous();
+  const auto w_out = w_out_.detach().contiguous().view({H});
+  std::vector<at::Tensor> w0c, w1c, w0t, w1t, b0c, b1c;
+  for (int64_t i = 0; i < nb; ++i) {
+    // detached: the worker threads of parallel_for do not inherit the caller's no-grad mode, and the out= products
+    // refuse tensors that require grad
+    w0c.push_back(w0[i].detach().contiguous());
+    w1c.push_back(w1[i].detach().contiguous());
+    w0t.push_back(w0c.back().t());
+    w1t.push_back(w1c.back().t());
+    b0c.push_back(b0[i].detach().contiguous());
+    b1c.push_back(b1[i].detach().contiguous());
+  }
+  auto sdf = at::empty({B, Q}, q.options());
+  auto dq = at::zeros({B, Q, 3}, q.options());
+  auto band = at::zeros({B, Q}, q.options().dtype(at::kBool));
+  if (N == 0) return {sdf, dq, band};
+  const float* pq = q.data_ptr<float>();
+  const float* pm = mt.data_ptr<float>();
+  const float* pw = w_out.data_ptr<float>();
+  float* ps = sdf.data_ptr<float>();
+  float* pd = dq.data_ptr<float>();
+  bool* pb = band.data_ptr<bool>();
+  const float bo = static_cast<float>(b_out), lim = static_cast<float>(within);
+  const int64_t T = std::min(tile, N), n_tiles = (N + T - 1) / T;
+  at::parallel_for(0, n_tiles, 1, [&](int64_t t_begin, int64_t t_end) {
+    const auto opt = q.options();
+    std::vector<at::Tensor> hs, us;  // the stream h_i (nb + 1) and the blocks' inner pre-activations u_i (nb)
+    for (int64_t i = 0; i <= nb; ++i) hs.push_back(at::empty({T, H}, opt));
+    for (int64_t i = 0; i < nb; ++i) us.push_back(at::empty({T, H}, opt));
+    auto act = at::empty({T, H}, opt), g = at::empty({T, H}, opt), tmp = at::empty({T, H}, opt);
+    std::vector<int64_t> sel;
+    for (int64_t t = t_begin; t < t_end; ++t) {
+      const int64_t s = t * T, n = std::min(T, N - s);
+      float* h0 = hs[0].data_ptr<float>();
+      float* a = act.data_ptr<float>();
+      for (int64_t r = 0; r < n; ++r) {  // first layer, and its ReLU for the first block
+        const int64_t row = s + r;
+        const float* m = pm + (row / Q) * 5 * H;
+        const float q0 = pq[row * 3], q1 = pq[row * 3 + 1], q2 = pq[row * 3 + 2];
+        const float qn = use_qnorm ? std::sqrt(std::max(q0 * q0 + q1 * q1 + q2 * q2, 1e-24f)) : 0.0f;
+        float* hr = h0 + r * H;
+        float* ar = a + r * H;
+        for (int64_t j = 0; j < H; ++j) {
+          const float v = m[j] * q0 + m[H + j] * q1 + m[2 * H + j] * q2 + m[3 * H + j] * qn + m[4 * H + j];
+          hr[j] = v;
+          ar[j] = v > 0.0f ? v : 0.0f;
+        }
+      }
+      auto a_n = act.narrow(0, 0, n);
+      for (int64_t i = 0; i < nb; ++i) {
+        auto u = us[i].narrow(0, 0, n);
+        at::addmm_out(u, b0c[i], a_n, w0t[i]);
+        relu_rows(u.data_ptr<float>(), a, n * H);
+        auto h_next = hs[i + 1].narrow(0, 0, n);
+        at::addmm_out(h_next, hs[i].narrow(0, 0, n), a_n, w1t[i]);
+        float* hn = h_next.data_ptr<float>();
+        const float* bb = b1c[i].data_ptr<float>();
+        for (int64_t r = 0; r < n; ++r) {
+          float* hr = hn + r * H;
+          float* ar = a + r * H;
+          for (int64_t j = 0; j < H; ++j) {
+            const float v = hr[j] + bb[j];
+            hr[j] = v;
+            ar[j] = v > 0.0f ? v : 0.0f;
+          }
+        }
+      }
+      sel.clear();
+      for (int64_t r = 0; r < n; ++r) {
+        const float* ar = a + r * H;
+        float acc = 0.0f;
+        for (int64_t j = 0; j < H; ++j) acc += ar[j] * pw[j];
+        const float v = acc + bo;
+        ps[s + r] = v;
+        if (std::abs(v) <= lim) sel.push_back(r);
+      }
+      const int64_t nsel = static_cast<int64_t>(sel.size());
+      if (nsel == 0) continue;
+      float* gp = g.data_ptr<float>();
+      const float* hl = hs[nb].data_ptr<float>();
+      for (int64_t k = 0; k < nsel; ++k) {
+        const float* hr = hl + sel[k] * H;
+        for (int64_t j = 0; j < H; ++j) gp[k * H + j] = hr[j] > 0.0f ? pw[j] : 0.0f;
+      }
+      auto g_n = g.narrow(0, 0, nsel), tmp_n = tmp.narrow(0, 0, nsel);
+      float* tp = tmp.data_ptr<float>();
+      for (int64_t i = nb - 1; i >= 0; --i) {
+        at::mm_out(tmp_n, g_n, w1c[i]);  // d/d relu(u): g W1, then through u's mask
+        const float* up = us[i].data_ptr<float>();
+        for (int64_t k = 0; k < nsel; ++k) {
+          const float* ur = up + sel[k] * H;
+          float* tr = tp + k * H;
+          for (int64_t j = 0; j < H; ++j) tr[j] = ur[j] > 0.0f ? tr[j] : 0.0f;
+        }
+        auto x_n = act.narrow(0, 0, nsel);  // act is free now: (t W0) through h_i's mask
+        at::mm_out(x_n, tmp_n, w0c[i]);
+        const float* hp = hs[i].data_ptr<float>();
+        for (int64_t k = 0; k < nsel; ++k) {
+          const float* hr = hp + sel[k] * H;
+          const float* xr = a + k * H;
+          float* gr = gp + k * H;
+          for (int64_t j = 0; j < H; ++j) gr[j] += hr[j] > 0.0f ? xr[j] : 0.0f;
+        }
+      }
+      for (int64_t k = 0; k < nsel; ++k) {  // dsdf/dq = g [M, a_q] d[q, |q|]/dq
+        const int64_t row = s + sel[k];
+        const float* m = pm + (row / Q) * 5 * H;
+        const float* gr = gp + k * H;
+        float d0 = 0.0f, d1 = 0.0f, d2 = 0.0f, d3 = 0.0f;
+        for (int64_t j = 0; j < H; ++j) {
+          d0 += gr[j] * m[j];
+          d1 += gr[j] * m[H + j];
+          d2 += gr[j] * m[2 * H + j];
+          d3 += gr[j] * m[3 * H + j];
+        }
+        const float q0 = pq[row * 3], q1 = pq[row * 3 + 1], q2 = pq[row * 3 + 2];
+        if (use_qnorm) {
+          const float qn = std::sqrt(std::max(q0 * q0 + q1 * q1 + q2 * q2, 1e-24f));
+          d0 += d3 * q0 / qn;
+          d1 += d3 * q1 / qn;
+          d2 += d3 * q2 / qn;
+        }
+        pd[row * 3] = d0;
+        pd[row * 3 + 1] = d1;
+        pd[row * 3 + 2] = d2;
+        pb[row] = true;
+      }
+    }
+  });
+  return {sdf, dq, band};
+}
+
 }  // namespace
 
 TORCH_LIBRARY(efem_vn, m) {
@@ -285,4 +452,6 @@ TORCH_LIBRARY(efem_vn, m) {
   m.def("knn_select(Tensor gram, Tensor qq, Tensor rr, int k) -> Tensor", &knn_select);
   m.def("attention(Tensor av, Tensor cv, Tensor dav, Tensor dcv, Tensor ak, Tensor ck, Tensor dak, Tensor dck, "
         "Tensor q, Tensor nbr, float slope, int head_dim, float eps) -> Tensor", &attention);
+  m.def("decoder_band(Tensor q, Tensor mt, Tensor[] w0, Tensor[] b0, Tensor[] w1, Tensor[] b1, Tensor w_out, "
+        "float b_out, float within, bool use_qnorm, int tile) -> (Tensor, Tensor, Tensor)", &decoder_band);
 }
