@@ -112,3 +112,15 @@ def test_resolve_device_takes_cuda_only_where_it_is(monkeypatch: pytest.MonkeyPa
         resolve_device("tpu")
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     assert resolve_device("auto") == "cuda" and resolve_device("cuda:1") == "cuda:1"
+
+
+def test_a_one_prior_run_decodes_with_the_prior_it_recorded(counted: list[str]) -> None:
+    """A viewer started with one prior that opens another category's run decodes it with that run's prior, not its
+    own (both priors here have the same latent size, so nothing else would tell them apart)."""
+    given = make_sphere_prior()
+    priors = PriorSet("sphere", prior=given)
+    assert priors.for_trace(_Trace(prior_names=("sphere",), row_R=np.zeros((2, 4, 3)))) is given
+    other = priors.for_trace(_Trace(prior_names=("ball",), row_R=np.zeros((2, 4, 3))))
+    assert other is not given and other.name == "ball" and counted == ["ball"]
+    assert priors.for_run(_Trace(prior_names=("ball",), row_R=np.zeros((2, 4, 3)))) is other
+    assert priors.for_trace(_Trace(prior_names=(), row_R=np.zeros((2, 4, 3)))) is given  # nothing recorded

@@ -307,10 +307,14 @@ def test_traces_saved_before_the_name_table_still_read(tmp_path: Path) -> None:
     old = tmp_path / "syn_z_1.efem.npz"
     np.savez_compressed(old, **data)
     res = EMResult.load(old)
-    assert res.trace.reason_names == LEGACY_REASONS and res.trace.prior_names == ()
+    # the prior's name comes from the result's one category (the prior the run's shapes are decoded with)
+    assert res.trace.reason_names == LEGACY_REASONS and res.trace.prior_names == ("mug",)
     reasons = {e.reason for e in res.trace.events()}
     assert "survive" in reasons and "duplicated or included" in reasons and reasons <= set(LEGACY_REASONS)
-    assert res.trace.category_of(int(res.instances.ids[0])) == ""
+    assert res.trace.category_of(int(res.instances.ids[0])) == "mug"
+    from efem_viz.em.trace import EMTrace
+
+    assert EMTrace.from_npz_dict(data).prior_names == ()  # the trace alone records none
 
 
 def test_a_custom_rule_is_recorded_under_its_name_and_survives_a_round_trip(tmp_path: Path) -> None:

@@ -387,3 +387,23 @@ def test_run_cancel_and_one_at_a_time(sphere_dir: Path, tmp_path: Path) -> None:
     assert done.wait(120)
     assert out == [None] and not s.state.running and s.state.result is None
     assert s.state.status == "Run cancelled."
+
+
+def test_every_bundled_trace_opens_with_its_own_prior(tmp_path: Path) -> None:
+    """Each sample scene that ships a trace opens with it, and the trace's own prior decodes its proposals (the
+    kitchen scene's with the kitchen prior, which names every member of the scene)."""
+    s = ViewerSession([SAMPLES], out_dir=tmp_path)
+    traced = sorted(p.name[: -len(".efem.npz")] for p in SAMPLES.glob("*.efem.npz"))
+    assert "syn_kitchen_z_2" in traced and "syn_chairs_z_1" in traced
+    for name in traced:
+        assert s.scenes.open_scene(name) is not None, s.state.error
+        res = s.results.load_result()
+        assert res is not None and s.state.error is None, (name, s.state.error)
+        pid = int(res.instances.ids[0])
+        prior = s.priors.for_trace(res.trace, pid)
+        assert getattr(prior, "name", "") == res.categories[0].name, name  # the trace's prior, not the default
+        verts, faces = s.timeline.decode_shape(pid, res.trace.num_steps - 1)
+        assert len(verts) > 0 and len(faces) > 0, name
+        if name == "syn_kitchen_z_2":
+            assert {"mug", "bowl", "bottle", "can"} <= set(res.instances.category)
+            assert getattr(prior, "name", "") == "kitchen"

@@ -7,6 +7,7 @@ schema version, the scene name and its number of points. Exports: the ScanNet be
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
@@ -481,6 +482,8 @@ class EMResult:
                                   f"trace has {n_props} proposals")
         categories = _read_categories(data, p)
         warnings = _read_warnings(data, p)
+        if not trace.prior_names and len(categories) == 1:  # a one-prior run saved before runs named their prior
+            trace = dataclasses.replace(trace, prior_names=(categories[0].name,))
         return cls(
             trace=trace,
             instances=Instances.from_npz_dict(data),

@@ -444,7 +444,7 @@ class Solver:
         prior_names = tuple(c.name for c in (_category(p) for p in table.priors))
         self.rec = TraceRecorder(cfg, self.n_full, work_idx=self.work_idx, work_min_size=self.min_size,
                                  reasons=reason_names(self.step_rules, self.review_rules),
-                                 prior_names=prior_names if len(table) > 1 else ())
+                                 prior_names=prior_names)
         self.categories = prior_names
         self.pose_votes: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         """Proposal id -> the codebook rows its last review's pose search retrieved and how well each aligned

@@ -212,7 +212,8 @@ class EMTrace:
     prop_prior: np.ndarray | None = None
     """(P,) int8 index into `prior_names` of each proposal's prior (None = a single-prior run)."""
     prior_names: tuple[str, ...] = ()
-    """Category names of the priors of the solve, in order (empty for traces older than multi-prior runs)."""
+    """Category names of the priors of the solve, in order (one name for a one-prior run; empty in traces saved
+    before runs recorded them, which `EMResult.load` fills from the result's one category)."""
     rev_seen_through: np.ndarray | None = None
     """(V,) float32 seen-through fraction of each review's shape (NaN: not checked); None in traces of runs
     without the free-space check (`EMConfig.free_space.margin`) and in older traces."""

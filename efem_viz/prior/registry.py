@@ -298,12 +298,14 @@ class PriorSet:
             return [self._by_category[n] for n in names]
 
     def for_trace(self, trace: TraceLike, pid: int | None = None) -> ShapePriorLike:
-        """The prior of a trace's proposal `pid`: for a one-prior run the primary prior, checked against the latent
-        size recorded in the trace; for a multi-prior run the prior of the proposal's category (`named`).
+        """The prior of a trace's proposal `pid`: for a one-prior run the primary prior when the run's recorded
+        category is the primary's (or none is recorded), else the prior of that category (`named`: a chair run
+        opened in a viewer started with the mug prior decodes with the chair prior), checked against the latent
+        size recorded in the trace; for a multi-prior run the prior of the proposal's category.
 
         Raises:
-            RuntimeError: no prior, one whose latent size differs from the trace's (another prior's run), or a
-                multi-prior run asked without `pid`.
+            RuntimeError: no prior, the run's prior unavailable, one whose latent size differs from the trace's
+                (another prior's run), or a multi-prior run asked without `pid`.
         """
         names = tuple(trace.prior_names or ())
         if len(names) > 1:
@@ -311,6 +313,8 @@ class PriorSet:
                 raise RuntimeError(f"this run used several priors {list(names)}: shapes are decoded per proposal")
             return self.named(names)[trace.prior_index(int(pid))]
         prior = self.primary()
+        if names and prior_category(prior).name != names[0]:
+            prior = self.named(names)[0]
         c_trace = int(np.asarray(trace.row_R).shape[1]) if len(trace.row_R) else None
         c_prior = getattr(getattr(prior, "config", None), "latent_dim", None)  # analytic priors have no config
         if c_trace is not None and c_prior is not None and int(c_prior) != c_trace:
