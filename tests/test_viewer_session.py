@@ -407,3 +407,25 @@ def test_every_bundled_trace_opens_with_its_own_prior(tmp_path: Path) -> None:
         if name == "syn_kitchen_z_2":
             assert {"mug", "bowl", "bottle", "can"} <= set(res.instances.category)
             assert getattr(prior, "name", "") == "kitchen"
+
+
+def test_a_chair_or_kitchen_scene_runs_with_its_own_prior(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """*Run* on a generated chair (kitchen) scene solves with the chair (kitchen) prior, as it suggests the scene's
+    preset, whatever the session's default prior; a mug scene keeps the session's prior."""
+    import efem_viz.em as em
+    from efem_viz.em.config import suggested_prior
+    from efem_viz.prior.config import prior_category
+
+    used: list[list[str]] = []
+
+    def fake_run_em(scene: Any, *, priors: Any, **kw: Any) -> Any:
+        used.append([prior_category(p).name for p in priors])
+        raise RuntimeError("stop here")  # the solve itself is tested elsewhere
+
+    monkeypatch.setattr(em, "run_em", fake_run_em)
+    s = ViewerSession([SAMPLES], out_dir=tmp_path)  # the default prior: mug
+    for name, want in (("syn_chairs_z_1", "chair"), ("syn_kitchen_z_2", "kitchen"), ("syn_pile_0", "mug")):
+        scene = s.scenes.open_scene(name)
+        assert scene is not None and suggested_prior(scene) == (None if want == "mug" else want)
+        assert s.runs.run(preset="fast", proposals=8, seed=0) is None and "stop here" in str(s.state.error)
+        assert used[-1] == [want], name

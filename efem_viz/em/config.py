@@ -720,6 +720,13 @@ def suggested_preset(scene: Any) -> PresetName:
     return "chairs" if prov.get("targets") == "chair" else "fast"
 
 
+def suggested_prior(scene: Any) -> str | None:
+    """The shipped prior a generated scene was made for: "chair" or "kitchen" from its provenance's `targets`
+    (`generate --targets`); None for mug scenes and every other scan (the caller's own prior)."""
+    targets = (dict(getattr(scene, "provenance", None) or {})).get("targets")
+    return str(targets) if targets in ("chair", "kitchen") else None
+
+
 def preset_for_scene(scene: Any) -> PresetName:
     """What `segment --preset auto` runs a scene with: "real" for a single-view capture and "chairs" for a chair
     scene (as `suggested_preset`), else "synthetic" (fused scans, generated scenes, a user's own scan)."""

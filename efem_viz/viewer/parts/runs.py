@@ -112,14 +112,19 @@ class RunPart:
     def _solve(self, settings: RunSettings, *, on_step: ProgressCallback | None) -> EMResult:
         """The EFEM solve of a run on the open scene (its status line says what runs); raises what `run_em` raises."""
         from efem_viz.em import run_em
+        from efem_viz.em.config import suggested_prior
+        from efem_viz.prior.config import prior_category
 
         scene = self.core.state.require_scene()
         cfg = settings.config()
+        priors = self.core.priors.solve_priors()
+        fit = suggested_prior(scene)
+        if fit is not None and len(priors) == 1 and prior_category(priors[0]).name != fit:
+            priors = self.core.priors.named([fit])  # a chair or kitchen scene runs with its own prior
         self.core.set_status(f"Running EFEM ({settings.preset}, {cfg.proposals.n_init[0]} proposals, "
-                             f"seed {settings.seed}"
+                             f"seed {settings.seed}, {' + '.join(prior_category(p).name for p in priors)} prior"
                              f"{', bf16' if settings.matmul_dtype == 'bfloat16' else ''}"
                              f"{', on ' + self.core.priors.device if self.core.priors.device != 'cpu' else ''}) …")
-        priors = self.core.priors.solve_priors()
         return run_em(scene, cfg=cfg, priors=priors, seed=int(settings.seed), on_step=on_step,
                       cancel=self.core.cancel_event, device=self.core.priors.device)
 
