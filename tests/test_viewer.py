@@ -677,8 +677,9 @@ def test_labels_copy_shares_the_base_result(tmp_path: Path) -> None:
 def test_prior_mismatch_is_reported_once(scene_dir: Path) -> None:
     from efem_viz.viewer.app import ViewerApp
 
-    class OtherPrior:
+    class OtherPrior:  # the run's category (a run is decoded with the prior of its category), another network
         name = "other"
+        metadata = {"category": {"name": "sphere"}}
         config = type("Cfg", (), {"latent_dim": 999})()
 
     a = ViewerApp([scene_dir], port=0, prior=OtherPrior(), open_first=False)
