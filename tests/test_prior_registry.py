@@ -124,3 +124,13 @@ def test_a_one_prior_run_decodes_with_the_prior_it_recorded(counted: list[str]) 
     assert other is not given and other.name == "ball" and counted == ["ball"]
     assert priors.for_run(_Trace(prior_names=("ball",), row_R=np.zeros((2, 4, 3)))) is other
     assert priors.for_trace(_Trace(prior_names=(), row_R=np.zeros((2, 4, 3)))) is given  # nothing recorded
+
+
+def test_a_solve_for_another_category_takes_that_category_prior(counted: list[str]) -> None:
+    given = make_sphere_prior()
+    priors = PriorSet("sphere", prior=given)
+    assert priors.solve_priors() == [given] and priors.solve_priors("sphere") == [given]
+    (ball,) = priors.solve_priors("ball")
+    assert ball.name == "ball" and counted == ["ball"]
+    joint = PriorSet("sphere", prior=given, extra=["ball"])
+    assert [p.name for p in joint.solve_priors("ball")] == ["sphere", "ball"]  # a joint solve is kept as asked

@@ -717,7 +717,7 @@ def suggested_preset(scene: Any) -> PresetName:
     camera, problem = Camera.parse(prov)
     if prov.get("source") == "rgbd" or camera is not None or problem is not None:
         return "real"
-    return "chairs" if prov.get("targets") == "chair" else "fast"
+    return "chairs" if suggested_prior(scene) == "chair" else "fast"
 
 
 def suggested_prior(scene: Any) -> str | None:

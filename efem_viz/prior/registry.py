@@ -266,15 +266,20 @@ class PriorSet:
                 _check_distinct_categories(self._extras)
             return [primary, *self._extras]
 
-    def solve_priors(self) -> list[ShapePriorLike]:
+    def solve_priors(self, category: str | None = None) -> list[ShapePriorLike]:
         """The priors a solve started with this set passes to `run_em(priors=...)`: `run_priors()`, or the primary
-        alone (the one place that decides; `run_em` treats `priors=[p]` as `prior=p`).
+        alone (the one place that decides; `run_em` treats `priors=[p]` as `prior=p`). With `category` (the prior a
+        scene was made for, `efem_viz.em.config.suggested_prior`), a one-prior set whose primary is of another
+        category solves with that category's prior instead (`named`).
 
         Raises:
-            RuntimeError: the primary prior is unavailable.
+            RuntimeError: the primary prior is unavailable, or the category's.
             ValueError, FileNotFoundError: an extra prior cannot be loaded (as `load_priors`).
         """
-        return self.run_priors() or [self.primary()]
+        priors = self.run_priors() or [self.primary()]
+        if category is not None and len(priors) == 1 and prior_category(priors[0]).name != category:
+            return self.named([category])
+        return priors
 
     def named(self, names: Sequence[str]) -> list[ShapePriorLike]:
         """The priors of a multi-prior run by category name: the priors loaded here where the name matches, the

@@ -117,10 +117,7 @@ class RunPart:
 
         scene = self.core.state.require_scene()
         cfg = settings.config()
-        priors = self.core.priors.solve_priors()
-        fit = suggested_prior(scene)
-        if fit is not None and len(priors) == 1 and prior_category(priors[0]).name != fit:
-            priors = self.core.priors.named([fit])  # a chair or kitchen scene runs with its own prior
+        priors = self.core.priors.solve_priors(suggested_prior(scene))  # a chair or kitchen scene: its own prior
         self.core.set_status(f"Running EFEM ({settings.preset}, {cfg.proposals.n_init[0]} proposals, "
                              f"seed {settings.seed}, {' + '.join(prior_category(p).name for p in priors)} prior"
                              f"{', bf16' if settings.matmul_dtype == 'bfloat16' else ''}"
