@@ -440,6 +440,45 @@ def test_several_priors_are_loaded_once_and_solved_together(tmp_path: Path) -> N
         BatchJob.create(priors=("mug", "mug"))
 
 
+def test_segment_solves_a_generated_chair_scene_with_the_chair_prior(tmp_path: Path,
+                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """`segment` without --prior solves a scene generated for chairs with the chair prior (as the viewer's Run),
+    says so in the scene's line, and keeps the mug prior for every other scene; an explicit --prior is kept."""
+    from efem_viz.batch import worker as worker_mod
+    from efem_viz.batch.commands import SegmentArgs
+    from efem_viz.data.scene import Scene
+    from efem_viz.em import solver
+    from efem_viz.prior.analytic import make_sphere_scene
+
+    base = make_sphere_scene(seed=0, spacing=0.01, radii=(0.05,), name="chairs")
+    for name, targets in (("chairs", "chair"), ("mugs", "mug")):
+        save_scene(Scene.create(name, base.points, provenance={"source": "synthetic", "targets": targets}),
+                   tmp_path / f"{name}.npz")
+    used: dict[str, list[str]] = {}
+    real_run_em = solver.run_em
+
+    def spy(scene: Any, **kw: Any) -> Any:
+        used[scene.name] = [p.name for p in kw["priors"]]
+        return real_run_em(scene, **kw)
+
+    monkeypatch.setattr(solver, "run_em", spy)
+    args = SegmentArgs(scenes=[tmp_path], proposals=4)
+    default = BatchJob.create(**args.settings(), priors=("mug",), scene_priors=True)
+    explicit = BatchJob.create(**args.settings(), priors=("mug",))
+    assert default.fingerprint() != explicit.fingerprint()
+    lines = {}
+    for job in (default, explicit):
+        worker = worker_mod.SceneWorker(job)
+        for name in ("chairs", "mugs"):
+            out = worker.process(SceneTask(index=0, path=tmp_path / f"{name}.npz", name=name,
+                                           out=tmp_path / f"out{int(job.scene_priors)}"))
+            assert out.status == "ok", out.error
+            lines[(job.scene_priors, name)] = (used[name], out.preset)
+    assert lines[(True, "chairs")] == (["chair"], "chairs, chair prior")
+    assert lines[(True, "mugs")][0] == ["mug"] and "prior" not in lines[(True, "mugs")][1]
+    assert lines[(False, "chairs")][0] == ["mug"] and "prior" not in lines[(False, "chairs")][1]
+
+
 def test_outcome_records_round_trip() -> None:
     o = SceneOutcome(name="a", path="/x/a.ply", status="failed", error="SceneError: bad", seconds=1.5)
     assert SceneOutcome.from_dict({**o.to_dict(), "future_key": 1}) == o

@@ -28,7 +28,7 @@ class SegmentArgs(SolveSettings):
     """Scene files (.ply/.pcd/.las/.laz/.obj/.off/.glb/.npz) and/or folders of them."""
     prior: tyro.conf.UseAppendAction[list[str]] = field(default_factory=list)
     """Shape prior (repeat for several categories in one solve): a name under efem_viz/weights/, "sphere" (the
-    analytic sphere) or a .pt path. Default: mug."""
+    analytic sphere) or a .pt path. Default: mug, and a generated chair or kitchen scene with its own prior."""
     out: Path | None = None
     """Output folder: <scene>.efem.npz, scannet/<scene>.txt + scannet/pred_mask/, <scene>.seg.ply,
     <scene>.objects.json, batch.json.
@@ -87,7 +87,8 @@ class SegmentArgs(SolveSettings):
         from efem_viz.batch.console import RichBatchDisplay
 
         job = BatchJob.create(
-            priors=tuple(self.prior or [DEFAULT_PRIOR]), seed=self.seed, device=self.device,
+            priors=tuple(self.prior or [DEFAULT_PRIOR]), scene_priors=not self.prior, seed=self.seed,
+            device=self.device,
             threads=self.threads, threshold=self.threshold, frame=self.frame,
             objects_dir=None if self.export_objects is None else str(self.export_objects),
             objects_format=self.object_format, scannet=self.scannet, ply=self.ply,

@@ -23,7 +23,7 @@ from typing import Literal
 
 from efem_viz.data.files import BATCH_FILE as _BATCH_FILE
 from efem_viz.data.io import RESULT_SUFFIX, SEG_SUFFIX  # SEG_SUFFIX: the coloured PLY written per scene
-from efem_viz.em.config import SolveSettings
+from efem_viz.em.config import SCENE_PRIOR_CATEGORIES, SolveSettings
 from efem_viz.prior.config import DEFAULT_PRIOR
 
 BATCH_SCHEMA_VERSION = 1
@@ -77,6 +77,10 @@ class BatchJob(SolveSettings):
     frame: str = "scene"
     """Frame of the coloured PLY and `<name>.objects.json`: "scene" (metres, +Z up) or "original" (an imported
     scan's own frame and units, `efem_viz.data.scan.ScanFrame`; the scene frame for scenes made in it)."""
+    scene_priors: bool = False
+    """A generated chair or kitchen scene (`efem_viz.em.config.suggested_prior`) is solved with that category's
+    shipped prior instead of the one prior of `priors` (as the viewer's Run; `PriorSet.solve_priors`): what
+    `segment` does when no --prior is given."""
 
     @classmethod
     def create(cls, **kwargs: object) -> BatchJob:
@@ -119,6 +123,8 @@ class BatchJob(SolveSettings):
         }
         if self.frame != "scene":  # the exports' frame; left out by default so earlier batches stay valid
             payload["frame"] = self.frame
+        if self.scene_priors and len(self.priors) == 1:  # the priors a scene may be solved with instead
+            payload["scene_priors"] = [prior_identity(c) for c in SCENE_PRIOR_CATEGORIES]
         return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:20]
 
     def to_dict(self) -> dict[str, object]:

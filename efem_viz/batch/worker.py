@@ -90,6 +90,21 @@ class SceneWorker:
         )
         self.scenes_done = 0
 
+    def priors_for(self, scene: Any) -> tuple[list[ShapePriorLike], str]:
+        """The priors a scene is solved with and what its line says about them: the job's priors, or, for a job
+        with `scene_priors`, a generated chair or kitchen scene's own prior (`PriorSet.solve_priors`; ", chair
+        prior")."""
+        if not self.job.scene_priors:
+            return self.priors, ""
+        from efem_viz.em.config import suggested_prior
+        from efem_viz.prior.config import prior_category
+
+        category = suggested_prior(scene)
+        priors = self.prior_set.solve_priors(category)
+        if [id(p) for p in priors] == [id(p) for p in self.priors]:
+            return self.priors, ""
+        return priors, f", {prior_category(priors[0]).name} prior"
+
     def process(self, task: SceneTask, *, on_step: StepCallback | None = None) -> SceneOutcome:
         """Segment one scene and write its outputs (`<name>.efem.npz` last).
 
@@ -139,13 +154,14 @@ class SceneWorker:
                 raise SceneError(f"the scene spans {span:.3g} m: not a scan in metres (EFEM's objects are cm-sized); "
                                  "bring it in with `efem-viz import-scan --units ...`")
             cfg = self.cfg if self.job.preset != "auto" else self.job.config(scene)
+            priors, prior_words = self.priors_for(scene)
             t1 = time.perf_counter()
             load_s = t1 - t0
             if self.job.timeout_s is not None:
                 timer = threading.Timer(float(self.job.timeout_s), cancel.set)
                 timer.daemon = True
                 timer.start()
-            result = run_em(scene, cfg=cfg, priors=self.priors, seed=self.job.seed, device=self.job.device,
+            result = run_em(scene, cfg=cfg, priors=priors, seed=self.job.seed, device=self.job.device,
                             on_step=on_step, cancel=cancel)
             t2 = time.perf_counter()
             solve_s = t2 - t1
@@ -182,7 +198,7 @@ class SceneWorker:
             name=task.name, path=str(task.path), status="ok", instances=len(result.instances), points=points,
             seconds=time.perf_counter() - t0, worker=self.worker, load_s=load_s, solve_s=solve_s, write_s=write_s,
             rss_mb=peak_rss_mb(), fingerprint=fp, cpu_s=time.process_time() - c0, scene_stamp=stamp,
-            preset=cfg.name + _free_space_words(cfg, scene),
+            preset=cfg.name + prior_words + _free_space_words(cfg, scene),
         )
 
 

@@ -31,10 +31,10 @@ if TYPE_CHECKING:
     from efem_viz.prior.config import ShapePriorLike
 
 __all__ = ["CATEGORY_LOOK_ALIKE", "DEFAULT_TAU_OUT", "FLAT_NAMES", "FREE_SPACE", "FREE_SPACE_FUSED", "GROUPS",
-           "MAX_TAU_OUT", "PRESETS", "ComputeSettings", "ConfidenceSettings", "EMConfig", "EliminationSettings",
-           "FreeSpaceMode", "FreeSpaceSettings", "OutputSettings", "PresetName", "ProposalSettings", "RefineSettings",
-           "ReviewSettings", "SolvePresetName", "SolveSettings", "StepSettings", "preset", "preset_for_scene",
-           "resolve_for_prior", "setting_names", "suggested_preset"]
+           "MAX_TAU_OUT", "PRESETS", "SCENE_PRIOR_CATEGORIES", "ComputeSettings", "ConfidenceSettings", "EMConfig",
+           "EliminationSettings", "FreeSpaceMode", "FreeSpaceSettings", "OutputSettings", "PresetName",
+           "ProposalSettings", "RefineSettings", "ReviewSettings", "SolvePresetName", "SolveSettings", "StepSettings",
+           "preset", "preset_for_scene", "resolve_for_prior", "setting_names", "suggested_preset", "suggested_prior"]
 
 PresetName = Literal["synthetic", "real", "real_paper", "fast", "chairs"]
 SolvePresetName = Literal["auto", "synthetic", "real", "real_paper", "fast", "chairs"]
@@ -720,11 +720,15 @@ def suggested_preset(scene: Any) -> PresetName:
     return "chairs" if suggested_prior(scene) == "chair" else "fast"
 
 
+SCENE_PRIOR_CATEGORIES: tuple[str, ...] = ("chair", "kitchen")
+"""The shipped priors `suggested_prior` can name for a generated scene."""
+
+
 def suggested_prior(scene: Any) -> str | None:
     """The shipped prior a generated scene was made for: "chair" or "kitchen" from its provenance's `targets`
     (`generate --targets`); None for mug scenes and every other scan (the caller's own prior)."""
     targets = (dict(getattr(scene, "provenance", None) or {})).get("targets")
-    return str(targets) if targets in ("chair", "kitchen") else None
+    return str(targets) if targets in SCENE_PRIOR_CATEGORIES else None
 
 
 def preset_for_scene(scene: Any) -> PresetName:
