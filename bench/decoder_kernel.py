@@ -1,15 +1,19 @@
-"""The E-step decoder with and without its fused C++ pass, on the decode calls of real solves.
+"""The E-step decoder with and without its fused C++ pass, in float32 and bf16, on the decode calls of real solves.
 
 One solve of each scene (`bench/speed.py`'s scenes, presets and priors, seed 0) records every E-step decode call
-(latents, neighbourhoods, points, normals, band); the calls are then replayed through `decode_rows` with the fused
-pass (`efem_viz.prior.fused.decoder_band`) and with the eager tiles it replaces (``EFEM_VIZ_FUSED_DECODER=0``),
-alternating, `--repeats` times each. Reported per scene: the median seconds of both, their ratio, GFLOP/s achieved
-against this machine's GEMM peak (`bench.speed.gemm_peak`: every query's forward plus the band queries' backward,
-the products only), and the largest difference of the SDF (relative where |sdf| > 1: degenerate latents of tiny
-scale put queries at |q| ~ 1e6) and of the normal angles between the two (float32 rounding: the same math summed
-in another order; an angle moves where a unit sits at its ReLU kink), with the band entries that differ.
+(latents, neighbourhoods, points, normals, band); the calls are then replayed through `decode_rows` in each mode,
+alternating, `--repeats` times each: the eager tiles (``EFEM_VIZ_FUSED_DECODER=0``), the fused pass
+(`efem_viz.prior.fused.decoder_band`), and, where the CPU has native bf16, both under the bf16 autocast of
+`compute.matmul_dtype="bfloat16"` (the eager tiles' whole stream in bf16; the fused pass's products only).
+Reported per scene and mode: the median seconds, the ratio to the eager float32 tiles, GFLOP/s achieved against this
+machine's GEMM peak of the mode's precision (`bench.speed.gemm_peak`: every query's forward plus the band queries'
+backward, the products only), and the differences from the eager float32 decodes: the largest SDF difference
+(relative where |sdf| > 1: degenerate latents of tiny scale put queries at |q| ~ 1e6), the 99th percentile and the
+largest normal angle difference (an angle moves where a unit sits at its ReLU kink), and the band entries that
+differ.
 
-Usage: python -m bench.decoder_kernel [--scenes real_tabletop_0 z_7000] [--repeats 3] [--threads 1] [--tag NAME]
+Usage: python -m bench.decoder_kernel [--scenes real_tabletop_0 z_7000] [--repeats 3] [--threads 1]
+       [--modes eager fused fused_bf16] [--tag NAME]
 Writes bench/results/decoder_kernel/latest.json (decoder_kernel_<TAG>.json with --tag).
 """
 
@@ -53,19 +57,26 @@ def record_calls(name: str) -> tuple[Any, list[tuple[Any, ...]]]:
     return prior, calls
 
 
-def replay(prior: Any, calls: list[tuple[Any, ...]], fused_on: bool) -> tuple[float, list[Any], dict[str, float]]:
-    """Seconds to decode every recorded call (fused pass on or off), the results and the query counts."""
+MODES: dict[str, tuple[bool, str]] = {"eager": (False, "float32"), "fused": (True, "float32"),
+                                      "eager_bf16": (False, "bfloat16"), "fused_bf16": (True, "bfloat16")}
+"""Replay modes: (fused pass on, `EMConfig.compute.matmul_dtype` of the E-steps' decode)."""
+
+
+def replay(prior: Any, calls: list[tuple[Any, ...]], mode: str) -> tuple[float, list[Any], dict[str, float]]:
+    """Seconds to decode every recorded call in a `MODES` mode, the results and the query counts."""
     import os
 
-    from efem_viz.em.decoding import decode_rows
+    from efem_viz.em.decoding import decode_rows, matmul_precision
 
+    fused_on, dtype = MODES[mode]
     os.environ["EFEM_VIZ_FUSED_DECODER"] = "1" if fused_on else "0"
     try:
         stats: dict[str, float] = {}
         out = []
         t0 = time.perf_counter()
-        for lat, rag, pts, nrm, kw in calls:
-            out.append(decode_rows(prior, lat, rag, pts, nrm, stats=stats, **kw))
+        with matmul_precision(dtype, prior):
+            for lat, rag, pts, nrm, kw in calls:
+                out.append(decode_rows(prior, lat, rag, pts, nrm, stats=stats, **kw))
         seconds = time.perf_counter() - t0
     finally:
         os.environ.pop("EFEM_VIZ_FUSED_DECODER", None)
@@ -73,65 +84,83 @@ def replay(prior: Any, calls: list[tuple[Any, ...]], fused_on: bool) -> tuple[fl
     return seconds, out, stats
 
 
+def differences(ref: list[Any], got: list[Any]) -> dict[str, float]:
+    """How far one mode's decodes are from the reference's: the largest SDF difference (relative where
+    |sdf| > 1), the largest and the 99th-percentile normal angle difference over entries in both bands, and the
+    band entries that differ."""
+    d_diff = max(float((np.abs(e[0] - f[0]) / np.maximum(1.0, np.abs(e[0]))).max(initial=0.0))
+                 for e, f in zip(ref, got))
+    angles = np.concatenate([np.abs(e[1] - f[1])[(e[1] < 180) & (f[1] < 180)] for e, f in zip(ref, got)])
+    moved = sum(int(((e[1] < 180) != (f[1] < 180)).sum()) for e, f in zip(ref, got))
+    return {"max_rel_sdf_diff": d_diff, "max_angle_diff_deg": float(angles.max(initial=0.0)),
+            "p99_angle_diff_deg": float(np.percentile(angles, 99)) if len(angles) else 0.0,
+            "band_entries_moved": moved}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", nargs="+", default=["real_tabletop_0", "z_7000"])
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--modes", nargs="+", choices=list(MODES), default=None,
+                    help="default: eager and fused, and their bf16 modes where the CPU has native bf16")
     ap.add_argument("--tag", default=None)
     a = ap.parse_args()
 
     import torch
 
     from efem_viz.prior import fused
+    from efem_viz.prior.config import fast_cpu_bf16
     from bench.speed import decoder_flops, gemm_peak
 
     torch.set_num_threads(a.threads)
     if not fused.load():
         print("the fused kernels are unavailable on this machine: nothing to compare")
         return 1
+    modes = a.modes or ["eager", "fused", *(["eager_bf16", "fused_bf16"] if fast_cpu_bf16() else [])]
+    if "eager" not in modes:
+        modes = ["eager", *modes]  # the reference of every difference and ratio
     rows: dict[str, Any] = {}
-    peak = None
+    peaks: dict[str, float] = {}
     for name in a.scenes:
         prior, calls = record_calls(name)
-        if peak is None:
-            peak = gemm_peak(decoder_flops(prior)[2])
-            print(f"GEMM peak (1,024 x 128 times 128 x 128, {a.threads} threads): float32 {peak:.0f} GFLOP/s",
+        if not peaks:
+            dims = decoder_flops(prior)[2]
+            peaks = {"float32": gemm_peak(dims), **({"bfloat16": gemm_peak(dims, "bfloat16")}
+                                                    if any(MODES[m][1] == "bfloat16" for m in modes) else {})}
+            print(f"GEMM peak ({a.threads} threads): " + ", ".join(f"{k} {v:.0f} GFLOP/s" for k, v in peaks.items()),
                   flush=True)
-        times: dict[bool, list[float]] = {False: [], True: []}
-        results: dict[bool, Any] = {}
+        times: dict[str, list[float]] = {m: [] for m in modes}
+        results: dict[str, Any] = {}
         stats: dict[str, float] = {}
         with torch.no_grad():
             for _ in range(a.repeats):
-                for on in (False, True):
-                    sec, results[on], stats = replay(prior, calls, on)
-                    times[on].append(sec)
+                for m in modes:
+                    sec, results[m], stats = replay(prior, calls, m)
+                    times[m].append(sec)
         f_fwd, f_bwd, _ = decoder_flops(prior)
         flops = stats["decoder_queries"] * f_fwd + stats.get("normal_queries", 0.0) * f_bwd
-        d_diff = max(float((np.abs(e[0] - f[0]) / np.maximum(1.0, np.abs(e[0]))).max(initial=0.0))
-                     for e, f in zip(results[False], results[True]))
-        both = [(e[1] < 180) & (f[1] < 180) for e, f in zip(results[False], results[True])]
-        g_diff = max(float(np.abs(e[1] - f[1])[b].max(initial=0.0))
-                     for e, f, b in zip(results[False], results[True], both))
-        band_moved = sum(int(((e[1] < 180) != (f[1] < 180)).sum()) for e, f in zip(results[False], results[True]))
-        eager, fast = statistics.median(times[False]), statistics.median(times[True])
-        assert peak is not None
-        row = {"calls": len(calls), "queries": stats["decoder_queries"],
-               "band_queries": stats.get("normal_queries", 0.0),
-               "eager_s": eager, "fused_s": fast, "ratio": fast / eager,
-               "eager_share_of_peak": flops / eager / 1e9 / peak, "fused_share_of_peak": flops / fast / 1e9 / peak,
-               "floor_s": flops / 1e9 / peak, "max_rel_sdf_diff": d_diff, "max_angle_diff_deg": g_diff,
-               "band_entries_moved": band_moved, "times": {"eager": times[False], "fused": times[True]}}
+        med = {m: statistics.median(times[m]) for m in modes}
+        row: dict[str, Any] = {"calls": len(calls), "queries": stats["decoder_queries"],
+                               "band_queries": stats.get("normal_queries", 0.0), "modes": {}}
+        for m in modes:
+            peak = peaks[MODES[m][1]]
+            row["modes"][m] = {"seconds": med[m], "ratio_to_eager": med[m] / med["eager"],
+                               "share_of_peak": flops / med[m] / 1e9 / peak, "floor_s": flops / 1e9 / peak,
+                               "times": times[m], **(differences(results["eager"], results[m]) if m != "eager"
+                                                     else {})}
         rows[name] = row
         print(f"{name:>16}: {len(calls)} E-step decodes, {row['queries'] / 1e6:.2f} M queries "
-              f"({row['band_queries'] / 1e6:.2f} M in the band): eager {eager:.2f} s "
-              f"({100 * row['eager_share_of_peak']:.0f} % of peak), fused {fast:.2f} s "
-              f"({100 * row['fused_share_of_peak']:.0f} %), ratio {row['ratio']:.2f}; floor {row['floor_s']:.2f} s; "
-              f"max |Δsdf| / max(1, |sdf|) {d_diff:.1e}, max |Δangle| {g_diff:.1e}°, "
-              f"band entries moved {band_moved}", flush=True)
+              f"({row['band_queries'] / 1e6:.2f} M in the band)", flush=True)
+        for m, r in row["modes"].items():
+            diff = ("" if m == "eager" else f"; against eager: max |Δsdf| / max(1, |sdf|) {r['max_rel_sdf_diff']:.1e}, "
+                    f"Δangle p99 {r['p99_angle_diff_deg']:.2f}° max {r['max_angle_diff_deg']:.1f}°, "
+                    f"band entries moved {r['band_entries_moved']}")
+            print(f"{'':>18}{m:>11}: {r['seconds']:.2f} s, ratio {r['ratio_to_eager']:.2f}, "
+                  f"{100 * r['share_of_peak']:.0f} % of its peak (floor {r['floor_s']:.2f} s){diff}", flush=True)
     write_result(result_path("decoder_kernel", a.tag),
-                 {"machine": machine(a.threads) | {"gemm_peak_gflops": peak}, "repeats": a.repeats,
-                  "tile": fused.DECODER_TILE, "scenes": rows})
+                 {"machine": machine(a.threads) | {"gemm_peak_gflops": peaks}, "repeats": a.repeats,
+                  "tile": {"float32": fused.DECODER_TILE, "bfloat16": fused.DECODER_TILE_BF16}, "scenes": rows})
     return 0
 
 

@@ -83,14 +83,17 @@ class SDFDecoder(nn.Module):
             inv: ``(B, L)`` Θ_inv.
 
         Returns:
-            ``M (B, H, 3)`` and ``bias (B, H)`` so that ``h_0 = M q + a_q ‖q‖ + bias``.
+            ``M (B, H, 3)`` and ``bias (B, H)`` so that ``h_0 = M q + a_q ‖q‖ + bias``, in float32 under an
+            autocast too (one small product per latent; the fused bf16 pass takes float32 first-layer weights).
         """
         L = self.latent_dim
         w = self.fc_in.weight
-        m = torch.matmul(w[:, :L], R)  # (B, H, 3)
-        if self.proj_gain != 1.0:
-            m = m * self.proj_gain
-        bias = F.linear(inv * self.inv_gain if self.inv_gain != 1.0 else inv, w[:, -L:], self.fc_in.bias)
+        with torch.autocast(R.device.type, enabled=False):
+            R, inv = R.float(), inv.float()
+            m = torch.matmul(w[:, :L], R)  # (B, H, 3)
+            if self.proj_gain != 1.0:
+                m = m * self.proj_gain
+            bias = F.linear(inv * self.inv_gain if self.inv_gain != 1.0 else inv, w[:, -L:], self.fc_in.bias)
         return m, bias
 
     def _mlp(self, h: torch.Tensor) -> torch.Tensor:
@@ -142,10 +145,10 @@ class SDFDecoder(nn.Module):
     def _fused(self, q: torch.Tensor, m: torch.Tensor, bias: torch.Tensor, within: float
                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
         """`fused.decoder_band` of these queries (None where it does not serve them: not a float32 CPU inference
-        call, autocast or autograd on, no kernels, ``EFEM_VIZ_FUSED_DECODER=0``, too few queries for a tile to
-        pay)."""
+        call, autograd or an autocast other than the CPU's bf16 on, no kernels, ``EFEM_VIZ_FUSED_DECODER=0``, too
+        few queries for a tile to pay). Under a CPU bf16 autocast its products are bf16, as the eager tiles'."""
         if (q.device.type != "cpu" or q.shape[0] * q.shape[1] < 64 or os.environ.get("EFEM_VIZ_FUSED_DECODER") == "0"
-                or not fused.usable(q, m, bias)):
+                or not fused.usable(q, m, bias, autocast_ok=fused.autocast_bf16())):
             return None
         blocks = [getattr(self, f"block{i}") for i in range(self.n_blocks)]
         params = [(b.fc_0.weight, b.fc_0.bias, b.fc_1.weight, b.fc_1.bias) for b in blocks]

@@ -17,13 +17,17 @@ The decoder's inference pass (`decoder_band`, serving `SDFDecoder.forward_batche
 in one C++ loop over tiles of 256 rows: the first layer, each block's two products with bias, ReLU and residual
 fused into the pass that follows each product, the output, and the band rows' input gradient, every activation
 of a tile kept in cache (float32, the eager tiles' result to rounding; ``EFEM_VIZ_FUSED_DECODER=0`` turns this
-one off).
+one off). Under a CPU bf16 autocast (`EMConfig.compute.matmul_dtype` "bfloat16") its hidden products take bf16
+operands and give bf16 results, as the autocast's linear layers do, while the first layer, the residual stream,
+the output and the gradient's sums stay float32 (closer to float32 than the eager bf16 tiles, whose whole stream is
+bf16), in tiles of 1,024 rows.
 
 The C++ file is compiled on first use with torch's own toolchain support (`torch.utils.cpp_extension`, about
 35 s once per machine, cached under ``~/.cache/efem-viz/torch_extensions`` in a folder keyed by everything that
 changes the build, `build_key`; an exclusive flock makes a build safe against concurrent and killed ones). The eager
 references below are the same math and serve everything the kernels
-do not: float64 (the equivariance tests), autograd (training), autocast, CUDA, and any machine where the build
+do not: float64 (the equivariance tests), autograd (training), autocast (but the decoder's CPU bf16), CUDA, and
+any machine where the build
 fails (one warning, then eager for the rest of the process). ``EFEM_VIZ_FUSED=0`` turns the kernels off.
 """
 
@@ -211,11 +215,12 @@ def _load_or_build() -> bool:
     return _registered()
 
 
-def usable(*tensors: torch.Tensor) -> bool:
-    """Whether the kernels serve a call on these tensors: float32 on the CPU, no autograd, no autocast."""
+def usable(*tensors: torch.Tensor, autocast_ok: bool = False) -> bool:
+    """Whether the kernels serve a call on these tensors: float32 on the CPU, no autograd, no autocast (unless
+    `autocast_ok`: a kernel that does the autocast's bf16 products itself, `decoder_band`)."""
     if os.environ.get("EFEM_VIZ_FUSED", "1") == "0" or _state["loaded"] is False:
         return False
-    if torch.is_autocast_enabled("cpu"):
+    if torch.is_autocast_enabled("cpu") and not autocast_ok:
         return False
     for t in tensors:
         if t.dtype != torch.float32 or t.device.type != "cpu" or (torch.is_grad_enabled() and t.requires_grad):
@@ -318,10 +323,20 @@ def knn(query: torch.Tensor, ref: torch.Tensor, k: int) -> torch.Tensor:
 DECODER_TILE = 256
 """Rows per tile of the fused decoder pass: every activation the tile keeps for its backward (width 128, two
 blocks: 5 x 128 KB) stays in the core's L2."""
+DECODER_TILE_BF16 = 1024
+"""Rows per tile of its bf16 products: oneDNN's bf16 products gain more from taller tiles than the cache loses
+(per pass on a Zen 4 core, tiles of 256 / 512 / 1024 / 2048 rows: 1.2 / 1.4 / 1.55 / 1.5x the float32 pass at
+256; `bench/decoder_kernel.py`)."""
+
+
+def autocast_bf16() -> bool:
+    """Whether a CPU bf16 autocast is on (`EMConfig.compute.matmul_dtype` "bfloat16"): `decoder_band` then
+    takes bf16 products, as the autocast's linear layers would."""
+    return torch.is_autocast_enabled("cpu") and torch.get_autocast_dtype("cpu") == torch.bfloat16
 
 
 def decoder_band(q: torch.Tensor, mt: torch.Tensor, blocks: list[tuple[torch.Tensor, ...]], w_out: torch.Tensor,
-                 b_out: float, within: float, use_qnorm: bool
+                 b_out: float, within: float, use_qnorm: bool, *, bf16: bool | None = None
                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
     """The decoder's inference pass in one C++ loop over tiles (`SDFDecoder.sdf_and_band_grad` is the same
     math; None where the kernels do not serve these tensors: the caller runs its eager code).
@@ -334,13 +349,19 @@ def decoder_band(q: torch.Tensor, mt: torch.Tensor, blocks: list[tuple[torch.Ten
         b_out: output bias.
         within: band half-width; negative: the SDF only.
         use_qnorm: whether ``a_q ‖q‖`` enters the first layer.
+        bf16: the hidden layers' matrix products (forward and the band's backward) in bfloat16 with bfloat16
+            results, as a bf16 autocast's linear layers; the first layer, biases, ReLU, residual stream, output
+            and the gradient's sums stay float32. None: whether a CPU bf16 autocast is on (`autocast_bf16`).
 
     Returns:
-        ``sdf (B, Q)``, ``dq (B, Q, 3)`` (∂sdf/∂q, zeros outside the band), ``band (B, Q)`` bool.
+        ``sdf (B, Q)``, ``dq (B, Q, 3)`` (∂sdf/∂q, zeros outside the band), ``band (B, Q)`` bool, float32.
     """
     flat = [t for blk in blocks for t in blk]
-    if not usable(q, mt, w_out, *flat):
+    on = autocast_bf16()
+    if not usable(q, mt, w_out, *flat, autocast_ok=on):
         return None
     w0, b0, w1, b1 = ([blk[i] for blk in blocks] for i in range(4))
-    return torch.ops.efem_vn.decoder_band(q, mt, w0, b0, w1, b1, w_out, float(b_out), float(within),
-                                          bool(use_qnorm), DECODER_TILE)
+    half = on if bf16 is None else bool(bf16)
+    with torch.autocast("cpu", enabled=False):
+        return torch.ops.efem_vn.decoder_band(q, mt, w0, b0, w1, b1, w_out, float(b_out), float(within),
+                                              bool(use_qnorm), DECODER_TILE_BF16 if half else DECODER_TILE, half)

@@ -4,9 +4,14 @@
 #include <ATen/ATen.h>
 #include <ATen/Parallel.h>
 #include <torch/library.h>
+#ifdef __AVX512F__
+#include <immintrin.h>
+#endif
 #include <algorithm>
 #include <utility>
 #include <cmath>
+#include <cstdint>
+#include <cstring>
 #include <tuple>
 #include <limits>
 #include <vector>
@@ -283,9 +288,125 @@ inline void relu_rows(const float* x, float* out, int64_t n) {
   for (int64_t j = 0; j < n; ++j) out[j] = x[j] > 0.0f ? x[j] : 0.0f;
 }
 
+// float -> bfloat16 bits, rounded to nearest even (c10::BFloat16's rounding, NaN kept a NaN), and back: plain
+// integer arithmetic the compiler vectorises inside the fused loops
+inline uint16_t to_bf16(float v) {
+  uint32_t u;
+  std::memcpy(&u, &v, sizeof u);
+  if ((u & 0x7fffffffu) > 0x7f800000u) return 0x7fc0;
+  return static_cast<uint16_t>((u + 0x7fffu + ((u >> 16) & 1u)) >> 16);
+}
+
+inline float from_bf16(uint16_t b) {
+  const uint32_t u = static_cast<uint32_t>(b) << 16;
+  float v;
+  std::memcpy(&v, &u, sizeof v);
+  return v;
+}
+
+// The row loops of the bf16 decoder pass, 16 lanes at a time where the build has AVX-512 (the same rounding as
+// to_bf16, which does the tail); the scalar loops are the reference.
+#ifdef __AVX512F__
+inline __m256i to_bf16x16(__m512 v) {
+  const __m512i u = _mm512_castps_si512(v);
+  const __m512i lsb = _mm512_and_si512(_mm512_srli_epi32(u, 16), _mm512_set1_epi32(1));
+  __m512i r = _mm512_srli_epi32(_mm512_add_epi32(_mm512_add_epi32(u, _mm512_set1_epi32(0x7fff)), lsb), 16);
+  r = _mm512_mask_mov_epi32(r, _mm512_cmp_ps_mask(v, v, _CMP_UNORD_Q), _mm512_set1_epi32(0x7fc0));
+  return _mm512_cvtepi32_epi16(r);
+}
+
+inline __m512 from_bf16x16(const uint16_t* p) {
+  const __m512i w = _mm512_cvtepu16_epi32(_mm256_loadu_si256(reinterpret_cast<const __m256i*>(p)));
+  return _mm512_castsi512_ps(_mm512_slli_epi32(w, 16));
+}
+
+inline void store16(uint16_t* p, __m256i v) { _mm256_storeu_si256(reinterpret_cast<__m256i*>(p), v); }
+constexpr int64_t kLanes = 16;
+#else
+constexpr int64_t kLanes = 0;
+#endif
+
+// l = bf16(x)
+inline void bf16_row(const float* x, uint16_t* l, int64_t n) {
+  int64_t j = 0;
+#ifdef __AVX512F__
+  for (; j + kLanes <= n; j += kLanes) store16(l + j, to_bf16x16(_mm512_loadu_ps(x + j)));
+#endif
+  for (; j < n; ++j) l[j] = to_bf16(x[j]);
+}
+
+// u = o + b; l = bf16(relu(u))
+inline void inner_row(const uint16_t* o, const float* b, float* u, uint16_t* l, int64_t n) {
+  int64_t j = 0;
+#ifdef __AVX512F__
+  const __m512 zero = _mm512_setzero_ps();
+  for (; j + kLanes <= n; j += kLanes) {
+    const __m512 v = _mm512_add_ps(from_bf16x16(o + j), _mm512_loadu_ps(b + j));
+    _mm512_storeu_ps(u + j, v);
+    store16(l + j, to_bf16x16(_mm512_max_ps(v, zero)));
+  }
+#endif
+  for (; j < n; ++j) {
+    const float v = from_bf16(o[j]) + b[j];
+    u[j] = v;
+    l[j] = to_bf16(v > 0.0f ? v : 0.0f);
+  }
+}
+
+// h' = h + o + b; a = relu(h'); l = bf16(a)
+inline void stream_row(const float* h, const uint16_t* o, const float* b, float* hn, float* a, uint16_t* l,
+                       int64_t n) {
+  int64_t j = 0;
+#ifdef __AVX512F__
+  const __m512 zero = _mm512_setzero_ps();
+  for (; j + kLanes <= n; j += kLanes) {
+    const __m512 v = _mm512_add_ps(_mm512_add_ps(_mm512_loadu_ps(h + j), from_bf16x16(o + j)),
+                                   _mm512_loadu_ps(b + j));
+    const __m512 y = _mm512_max_ps(v, zero);
+    _mm512_storeu_ps(hn + j, v);
+    _mm512_storeu_ps(a + j, y);
+    store16(l + j, to_bf16x16(y));
+  }
+#endif
+  for (; j < n; ++j) {
+    const float v = h[j] + from_bf16(o[j]) + b[j];
+    const float y = v > 0.0f ? v : 0.0f;
+    hn[j] = v;
+    a[j] = y;
+    l[j] = to_bf16(y);
+  }
+}
+
+// l = o where u > 0, else 0 (bf16 bits)
+inline void mask_row(const float* u, const uint16_t* o, uint16_t* l, int64_t n) {
+  int64_t j = 0;
+#ifdef __AVX512F__
+  for (; j + kLanes <= n; j += kLanes) {
+    const __mmask16 k = _mm512_cmp_ps_mask(_mm512_loadu_ps(u + j), _mm512_setzero_ps(), _CMP_GT_OQ);
+    const __m512i w = _mm512_cvtepu16_epi32(_mm256_loadu_si256(reinterpret_cast<const __m256i*>(o + j)));
+    store16(l + j, _mm512_cvtepi32_epi16(_mm512_maskz_mov_epi32(k, w)));
+  }
+#endif
+  for (; j < n; ++j) l[j] = u[j] > 0.0f ? o[j] : uint16_t(0);
+}
+
+// g += o where h > 0
+inline void grad_row(const float* h, const uint16_t* o, float* g, int64_t n) {
+  int64_t j = 0;
+#ifdef __AVX512F__
+  for (; j + kLanes <= n; j += kLanes) {
+    const __mmask16 k = _mm512_cmp_ps_mask(_mm512_loadu_ps(h + j), _mm512_setzero_ps(), _CMP_GT_OQ);
+    const __m512 gv = _mm512_loadu_ps(g + j);
+    _mm512_storeu_ps(g + j, _mm512_mask_add_ps(gv, k, gv, from_bf16x16(o + j)));
+  }
+#endif
+  for (; j < n; ++j) g[j] += h[j] > 0.0f ? from_bf16(o[j]) : 0.0f;
+}
+
 std::tuple<at::Tensor, at::Tensor, at::Tensor> decoder_band(
     const at::Tensor& q_, const at::Tensor& mt_, at::TensorList w0, at::TensorList b0, at::TensorList w1,
-    at::TensorList b1, const at::Tensor& w_out_, double b_out, double within, bool use_qnorm, int64_t tile) {
+    at::TensorList b1, const at::Tensor& w_out_, double b_out, double within, bool use_qnorm, int64_t tile,
+    bool bf16) {
   // The SDF decoder's inference pass (efem_viz/prior/decoder.py, `SDFDecoder.sdf_and_band_grad` is the same math)
   // over tiles of rows whose activations stay in cache: the first layer h0 = M q + a_q |q| + bias, the
   // pre-activation residual blocks h + W1 relu(W0 relu(h) + b0) + b1 and sdf = w_out . relu(h) + b_out, with bias,
@@ -294,6 +415,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> decoder_band(
   // (a unit passes where its pre-activation > 0, as autograd's relu backward). q (B, Q, 3); mt (B, 5, H): the rows
   // of M^T, a_q and the bias of each latent; w0/w1 (H, H) as nn.Linear stores them, b0/b1 (H); w_out (H).
   // Returns sdf (B, Q), dq (B, Q, 3) (zeros outside the band) and band (B, Q) bool.
+  // bf16: the matrix products take bfloat16 operands (activations rounded to nearest even, weights converted once)
+  // and give bfloat16 products, as torch.autocast's linear layers do; the first layer, biases, ReLU masks, the
+  // residual stream, the output layer and the gradient's sums stay float32.
   TORCH_CHECK(q_.dim() == 3 && q_.size(2) == 3 && q_.scalar_type() == at::kFloat, "q must be (B, Q, 3) float32");
   TORCH_CHECK(mt_.dim() == 3 && mt_.size(0) == q_.size(0) && mt_.size(1) == 5 && mt_.scalar_type() == at::kFloat,
               "mt must be (B, 5, H) float32");
@@ -313,7 +437,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> decoder_band(
   TORCH_CHECK(tile >= 1, "tile must be positive");
   const auto q = q_.detach().contiguous(), mt = mt_.detach().contiguous();
   const auto w_out = w_out_.detach().contiguous().view({H});
-  std::vector<at::Tensor> w0c, w1c, w0t, w1t, b0c, b1c;
+  std::vector<at::Tensor> w0c, w1c, w0t, w1t, b0c, b1c, w0cb, w1cb, w0tb, w1tb;
   for (int64_t i = 0; i < nb; ++i) {
     // detached: the worker threads of parallel_for do not inherit the caller's no-grad mode, and the out= products
     // refuse tensors that require grad
@@ -323,6 +447,12 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> decoder_band(
     w1t.push_back(w1c.back().t());
     b0c.push_back(b0[i].detach().contiguous());
     b1c.push_back(b1[i].detach().contiguous());
+    if (bf16) {
+      w0cb.push_back(w0c.back().to(at::kBFloat16));
+      w1cb.push_back(w1c.back().to(at::kBFloat16));
+      w0tb.push_back(w0cb.back().t());
+      w1tb.push_back(w1cb.back().t());
+    }
   }
   auto sdf = at::empty({B, Q}, q.options());
   auto dq = at::zeros({B, Q, 3}, q.options());
@@ -342,6 +472,11 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> decoder_band(
     for (int64_t i = 0; i <= nb; ++i) hs.push_back(at::empty({T, H}, opt));
     for (int64_t i = 0; i < nb; ++i) us.push_back(at::empty({T, H}, opt));
     auto act = at::empty({T, H}, opt), g = at::empty({T, H}, opt), tmp = at::empty({T, H}, opt);
+    // bf16: a product's left operand and its result
+    const auto bopt = opt.dtype(at::kBFloat16);
+    auto lb = bf16 ? at::empty({T, H}, bopt) : at::Tensor(), ob = bf16 ? at::empty({T, H}, bopt) : at::Tensor();
+    uint16_t* lp = bf16 ? reinterpret_cast<uint16_t*>(lb.data_ptr<at::BFloat16>()) : nullptr;
+    const uint16_t* op = bf16 ? reinterpret_cast<const uint16_t*>(ob.data_ptr<at::BFloat16>()) : nullptr;
     std::vector<int64_t> sel;
     for (int64_t t = t_begin; t < t_end; ++t) {
       const int64_t s = t * T, n = std::min(T, N - s);
@@ -359,9 +494,22 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> decoder_band(
           hr[j] = v;
           ar[j] = v > 0.0f ? v : 0.0f;
         }
+        if (bf16) bf16_row(ar, lp + r * H, H);
       }
       auto a_n = act.narrow(0, 0, n);
-      for (int64_t i = 0; i < nb; ++i) {
+      for (int64_t i = 0; bf16 && i < nb; ++i) {  // the blocks with bfloat16 products
+        auto l_n = lb.narrow(0, 0, n), o_n = ob.narrow(0, 0, n);
+        at::mm_out(o_n, l_n, w0tb[i]);
+        float* up = us[i].data_ptr<float>();
+        const float* bz = b0c[i].data_ptr<float>();
+        for (int64_t r = 0; r < n * H; r += H) inner_row(op + r, bz, up + r, lp + r, H);
+        at::mm_out(o_n, l_n, w1tb[i]);
+        const float* hp = hs[i].data_ptr<float>();
+        float* hn = hs[i + 1].data_ptr<float>();
+        const float* bb = b1c[i].data_ptr<float>();
+        for (int64_t r = 0; r < n * H; r += H) stream_row(hp + r, op + r, bb, hn + r, a + r, lp + r, H);
+      }
+      for (int64_t i = 0; !bf16 && i < nb; ++i) {
         auto u = us[i].narrow(0, 0, n);
         at::addmm_out(u, b0c[i], a_n, w0t[i]);
         relu_rows(u.data_ptr<float>(), a, n * H);
@@ -398,7 +546,17 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> decoder_band(
       }
       auto g_n = g.narrow(0, 0, nsel), tmp_n = tmp.narrow(0, 0, nsel);
       float* tp = tmp.data_ptr<float>();
-      for (int64_t i = nb - 1; i >= 0; --i) {
+      for (int64_t i = nb - 1; bf16 && i >= 0; --i) {  // the same with bfloat16 products
+        auto l_n = lb.narrow(0, 0, nsel), o_n = ob.narrow(0, 0, nsel);
+        bf16_row(gp, lp, nsel * H);
+        at::mm_out(o_n, l_n, w1cb[i]);
+        const float* up = us[i].data_ptr<float>();
+        for (int64_t k = 0; k < nsel; ++k) mask_row(up + sel[k] * H, op + k * H, lp + k * H, H);
+        at::mm_out(o_n, l_n, w0cb[i]);
+        const float* hp = hs[i].data_ptr<float>();
+        for (int64_t k = 0; k < nsel; ++k) grad_row(hp + sel[k] * H, op + k * H, gp + k * H, H);
+      }
+      for (int64_t i = nb - 1; !bf16 && i >= 0; --i) {
         at::mm_out(tmp_n, g_n, w1c[i]);  // d/d relu(u): g W1, then through u's mask
         const float* up = us[i].data_ptr<float>();
         for (int64_t k = 0; k < nsel; ++k) {
@@ -453,5 +611,6 @@ TORCH_LIBRARY(efem_vn, m) {
   m.def("attention(Tensor av, Tensor cv, Tensor dav, Tensor dcv, Tensor ak, Tensor ck, Tensor dak, Tensor dck, "
         "Tensor q, Tensor nbr, float slope, int head_dim, float eps) -> Tensor", &attention);
   m.def("decoder_band(Tensor q, Tensor mt, Tensor[] w0, Tensor[] b0, Tensor[] w1, Tensor[] b1, Tensor w_out, "
-        "float b_out, float within, bool use_qnorm, int tile) -> (Tensor, Tensor, Tensor)", &decoder_band);
+        "float b_out, float within, bool use_qnorm, int tile, bool bf16=False) -> (Tensor, Tensor, Tensor)",
+        &decoder_band);
 }
