@@ -118,7 +118,7 @@ def segment_at_point(
     crop = np.sort(np.asarray(cKDTree(pts).query_ball_point(centre, crop_radius), np.int64))
     if n_proposals is not None:
         settings = dataclasses.replace(settings, proposals=int(n_proposals))
-    cfg = settings.config()
+    cfg = settings.config(device=solve_device())
     cfg = cfg.replace(**overrides) if overrides else cfg
     if len(crop) <= cfg.elimination.min_size:
         raise ValueError(
@@ -167,7 +167,7 @@ def solve_scan(
     """
     from efem_viz.em import run_em
 
-    cfg = settings.config()
+    cfg = settings.config(device=solve_device())
     prior = get_prior(prior_name)
     return run_em(scene, cfg=cfg, priors=[prior], seed=seed, on_step=on_step, cancel=cancel, device=solve_device())
 

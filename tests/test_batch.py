@@ -592,6 +592,25 @@ def test_solve_knobs_are_declared_once_and_reach_the_job(tmp_path: Path) -> None
         BatchJob.create(priors=("sphere",), matmul_dtype="float16")  # type: ignore[arg-type]
 
 
+def test_solve_precision_resolves_for_the_machine_and_the_device(monkeypatch: pytest.MonkeyPatch) -> None:
+    """bfloat16 runs the decoder's products in bf16 and keeps the encoder float32; auto is that on a CPU with
+    native bf16 and float32 on one without it and on a GPU; a job resolves it for its own device."""
+    from efem_viz.em.config import SolveSettings, precision_compute
+    from efem_viz.prior import config as prior_config
+
+    assert precision_compute("float32") == {"matmul_dtype": "float32", "encoder_dtype": None}
+    assert precision_compute("bfloat16", "cuda") == {"matmul_dtype": "bfloat16", "encoder_dtype": "float32"}
+    for native, want in ((True, "bfloat16"), (False, "float32")):
+        monkeypatch.setattr(prior_config, "fast_cpu_bf16", lambda native=native: native)
+        assert precision_compute("auto")["matmul_dtype"] == want
+        assert SolveSettings(matmul_dtype="auto").config().compute.matmul_dtype == want
+        assert precision_compute("auto", "cuda:0")["matmul_dtype"] == "float32"
+        job = BatchJob.create(priors=("sphere",), matmul_dtype="auto", device="cuda")
+        assert job.config().compute.matmul_dtype == "float32"
+    with pytest.raises(ValueError, match="matmul_dtype must be one of"):
+        precision_compute("float16")
+
+
 def test_segment_without_scenes_creates_nothing(tmp_path: Path) -> None:
     out = tmp_path / "never"
     proc = subprocess.run([sys.executable, "-m", "efem_viz.cli", "segment", str(tmp_path / "missing.ply"),

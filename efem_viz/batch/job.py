@@ -23,7 +23,7 @@ from typing import Literal
 
 from efem_viz.data.files import BATCH_FILE as _BATCH_FILE
 from efem_viz.data.io import RESULT_SUFFIX, SEG_SUFFIX  # SEG_SUFFIX: the coloured PLY written per scene
-from efem_viz.em.config import SCENE_PRIOR_CATEGORIES, SolveSettings
+from efem_viz.em.config import SCENE_PRIOR_CATEGORIES, EMConfig, SolveSettings
 from efem_viz.prior.config import DEFAULT_PRIOR
 
 BATCH_SCHEMA_VERSION = 1
@@ -109,6 +109,10 @@ class BatchJob(SolveSettings):
         job = dataclasses.replace(job, priors=specs)
         job.config()  # validate now, before any worker starts
         return job
+
+    def config(self, scene: object = None, device: str | None = None) -> EMConfig:
+        """`SolveSettings.config` on the job's device (a precision of "auto" resolves for it)."""
+        return super().config(scene, self.device if device is None else device)
 
     def fingerprint(self) -> str:
         """A hex digest of what decides a scene's result: the solver config, each prior's identity (the weights

@@ -31,10 +31,11 @@ if TYPE_CHECKING:
     from efem_viz.prior.config import ShapePriorLike
 
 __all__ = ["CATEGORY_LOOK_ALIKE", "DEFAULT_TAU_OUT", "FLAT_NAMES", "FREE_SPACE", "FREE_SPACE_FUSED", "GROUPS",
-           "MAX_TAU_OUT", "PRESETS", "SCENE_PRIOR_CATEGORIES", "ComputeSettings", "ConfidenceSettings", "EMConfig",
-           "EliminationSettings", "FreeSpaceMode", "FreeSpaceSettings", "OutputSettings", "PresetName",
-           "ProposalSettings", "RefineSettings", "ReviewSettings", "SolvePresetName", "SolveSettings", "StepSettings",
-           "preset", "preset_for_scene", "resolve_for_prior", "setting_names", "suggested_preset", "suggested_prior"]
+           "MAX_TAU_OUT", "PRESETS", "SCENE_PRIOR_CATEGORIES", "SOLVE_PRECISIONS", "ComputeSettings",
+           "ConfidenceSettings", "EMConfig", "EliminationSettings", "FreeSpaceMode", "FreeSpaceSettings",
+           "OutputSettings", "PresetName", "ProposalSettings", "RefineSettings", "ReviewSettings", "SolvePrecision",
+           "SolvePresetName", "SolveSettings", "StepSettings", "precision_compute", "preset", "preset_for_scene",
+           "resolve_for_prior", "setting_names", "suggested_preset", "suggested_prior"]
 
 PresetName = Literal["synthetic", "real", "real_paper", "fast", "chairs"]
 SolvePresetName = Literal["auto", "synthetic", "real", "real_paper", "fast", "chairs"]
@@ -481,9 +482,9 @@ class ComputeSettings(_Settings):
     """Precision of the networks' matrix products in the EM steps: "float32" (the method), or "bfloat16"
     (`torch.autocast`: the encoder's and decoder's linear layers in bf16; k-NN graphs, SDF values, normals and
     every energy stay float32). The reviews (completed meshes, poses, coverage and the output masks) always
-    decode in float32. A speed knob for GPUs: on a CPU (even one with AMX or AVX-512 BF16) the shipped prior's
-    small matrix products gain nothing and the solver runs no faster or slower; docs/BENCHMARKS.md measures speed
-    and AP."""
+    decode in float32. On a CPU the decoder's fused pass then takes bf16 products and keeps its stream float32
+    (`efem_viz.prior.fused.decoder_band`); with `encoder_dtype` "float32" that is what `SolveSettings`'
+    "bfloat16" and "auto" run (docs/BENCHMARKS.md measures speed and AP)."""
     encoder_dtype: MatmulDtype | None = None
     """Precision of the encoder in the EM steps; None = `matmul_dtype`. "float32" with `matmul_dtype`
     "bfloat16" runs only the decoder in bf16: the encoder keeps its fused float32 kernels (autocast switches
@@ -648,6 +649,31 @@ def setting_names() -> list[str]:
     return ["name", "domain", *(f"{group}.{f.name}" for group, cls in GROUPS.items() for f in dataclasses.fields(cls))]
 
 
+SolvePrecision = Literal["auto", "float32", "bfloat16"]
+"""A solve's precision as commands and apps offer it (`precision_compute`)."""
+SOLVE_PRECISIONS: tuple[str, ...] = get_args(SolvePrecision)
+
+
+def precision_compute(precision: str, device: str = "cpu") -> dict[str, Any]:
+    """The `ComputeSettings` of a solve precision on a device: "float32" (the method); "bfloat16", the decoder's
+    matrix products in bf16 and the encoder in float32 (its fused float32 kernels: under an autocast they switch
+    off and cost more than bf16 gains); "auto", "bfloat16" on a CPU with native bf16 matrix hardware (AVX-512 BF16
+    or AMX, `fast_cpu_bf16`), "float32" elsewhere (a GPU, or a CPU where bf16 is 10x slower).
+
+    Raises:
+        ValueError: an unknown precision.
+    """
+    if precision not in SOLVE_PRECISIONS:
+        raise ValueError(f"matmul_dtype must be one of {SOLVE_PRECISIONS}, got {precision!r}")
+    if precision == "auto":
+        from efem_viz.prior.config import fast_cpu_bf16
+
+        precision = "bfloat16" if str(device).startswith("cpu") and fast_cpu_bf16() else "float32"
+    if precision == "float32":
+        return {"matmul_dtype": "float32", "encoder_dtype": None}
+    return {"matmul_dtype": "bfloat16", "encoder_dtype": "float32"}
+
+
 @dataclass(frozen=True, kw_only=True)
 class SolveSettings:
     """The solver knobs a command or a job sets on top of a preset, declared once: `efem-viz segment`
@@ -665,22 +691,23 @@ class SolveSettings:
     resolution. None: the preset's."""
     tau_out: float | None = None
     """Output-mask SDF band (canonical units); default: the prior's calibrated value (`calibrate-masks`), else 0.04."""
-    matmul_dtype: MatmulDtype = "float32"
-    """Precision of the networks' matrix products: float32 (the method) or bfloat16 (`torch.autocast`; with the
-    shipped prior it is no faster than float32 on a CPU, even one with AMX or AVX-512 BF16: docs/BENCHMARKS.md;
-    `EMConfig.compute.matmul_dtype`)."""
+    matmul_dtype: SolvePrecision = "float32"
+    """Precision of the networks' matrix products (`precision_compute`): float32 (the method), bfloat16 (the
+    decoder's products in bf16, the encoder float32; on a CPU with AVX-512 BF16 or AMX the E-steps decode in about
+    0.6-0.8x the time, docs/BENCHMARKS.md) or auto (bfloat16 on such a CPU, else float32)."""
     free_space: FreeSpaceMode = "auto"
     """The free-space check against the scene's recorded cameras (a frame's capture camera, every camera of a
     fused scan): auto (the preset's: on for real, off otherwise), on (where the preset has none, the check for
     fused scans, `FREE_SPACE_FUSED`: 2 cm margin, a fit more than 30 % seen through removed) or off. Scenes
     without a recorded camera are never checked."""
 
-    def config(self, scene: Any = None) -> EMConfig:
+    def config(self, scene: Any = None, device: str = "cpu") -> EMConfig:
         """The solver config: the preset with these overrides (validated).
 
         Args:
             scene: the scene it is for (``preset="auto"`` resolves to `preset_for_scene` of it; without a scene,
                 to "synthetic", which checks the overrides).
+            device: the device it runs on (``matmul_dtype="auto"`` resolves for it, `precision_compute`).
 
         Raises:
             ValueError: an unknown preset or a bad value.
@@ -700,7 +727,7 @@ class SolveSettings:
             cfg = cfg.replace(free_space=FREE_SPACE_FUSED)
         elif self.free_space not in ("auto", "on"):
             raise ValueError(f"free_space must be auto, on or off, got {self.free_space!r}")
-        return cfg.replace(compute={"matmul_dtype": self.matmul_dtype})
+        return cfg.replace(compute=precision_compute(self.matmul_dtype, device))
 
     def settings(self) -> dict[str, Any]:
         """These fields as keyword arguments (to build another `SolveSettings` subclass from them)."""

@@ -176,10 +176,11 @@ def _run_tab(gui: GuiApi) -> dict[str, Any]:
     cancel = gui.add_button("Cancel", disabled=True, color="red")
     load = gui.add_button("Load saved trace", hint="<scene>.efem.npz next to the scene file")
     # below the buttons: Tab from Seed goes to Run EFEM, not into a dropdown that opens over it
-    precision = gui.add_dropdown("Precision", em_config.MATMUL_DTYPES, initial_value="float32",
-                                 hint="bfloat16: the networks' matrix work in bf16, for GPUs; on a CPU, even with "
-                                      "AMX or AVX-512 BF16, it is no faster than float32 with the shipped prior "
-                                      "(docs/BENCHMARKS.md)")
+    precision = gui.add_dropdown("Precision", em_config.SOLVE_PRECISIONS,
+                                 initial_value=em_config.SolveSettings().matmul_dtype,
+                                 hint="bfloat16: the decoder's matrix products in bf16 (faster on a CPU with "
+                                      "AVX-512 BF16 or AMX, slower without); auto: bfloat16 on such a CPU, float32 "
+                                      "elsewhere; float32: the method as published")
     free_space = gui.add_dropdown("Free space", get_args(em_config.FreeSpaceMode), initial_value="auto",
                                   hint="check fits against what the scene's recorded cameras saw empty: auto (the "
                                        "preset's: on for real), on (also a fused scan, against all its cameras) "

@@ -23,8 +23,7 @@ if TYPE_CHECKING:
     from typing_extensions import TypeVarTuple, Unpack  # typing has them from Python 3.11 only
     from viser import ClientHandle, GuiInputHandle
 
-    from efem_viz.em.config import FreeSpaceMode, PresetName
-    from efem_viz.prior.config import MatmulDtype
+    from efem_viz.em.config import FreeSpaceMode, PresetName, SolvePrecision
     from efem_viz.viewer.export_tab import ExportTab
     from efem_viz.viewer.instance_table import InstanceTable
     from efem_viz.viewer.panels import Panels
@@ -117,7 +116,7 @@ def wire(app: ViewerControls) -> None:
         guard(lambda: app.start_run(RunSettings(preset=cast("PresetName", read_choice(p.gui_preset)),
                                                 proposals=read_int(p.gui_proposals, write_back=wb),
                                                 seed=read_int(p.gui_seed, write_back=wb),
-                                                matmul_dtype=cast("MatmulDtype", read_choice(p.gui_precision)),
+                                                matmul_dtype=cast("SolvePrecision", read_choice(p.gui_precision)),
                                                 free_space=cast("FreeSpaceMode", read_choice(p.gui_free_space)))))
     )
     p.gui_preset.on_update(guard(lambda: app.choose_preset(read_choice(p.gui_preset))))

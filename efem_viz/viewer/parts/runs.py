@@ -116,11 +116,11 @@ class RunPart:
         from efem_viz.prior.config import prior_category
 
         scene = self.core.state.require_scene()
-        cfg = settings.config()
+        cfg = settings.config(device=self.core.priors.device)
         priors = self.core.priors.solve_priors(suggested_prior(scene))  # a chair or kitchen scene: its own prior
         self.core.set_status(f"Running EFEM ({settings.preset}, {cfg.proposals.n_init[0]} proposals, "
                              f"seed {settings.seed}, {' + '.join(prior_category(p).name for p in priors)} prior"
-                             f"{', bf16' if settings.matmul_dtype == 'bfloat16' else ''}"
+                             f"{', bf16 decoder' if cfg.compute.matmul_dtype == 'bfloat16' else ''}"
                              f"{', on ' + self.core.priors.device if self.core.priors.device != 'cpu' else ''}) …")
         return run_em(scene, cfg=cfg, priors=priors, seed=int(settings.seed), on_step=on_step,
                       cancel=self.core.cancel_event, device=self.core.priors.device)
