@@ -6,25 +6,33 @@
 #   bash scripts/train_gpu.sh --smoke OUT               there: CUDA, data, 20 steps, a checkpoint in OUT (< 1 min)
 #   bash scripts/train_gpu.sh OUT [MINUTES] [train-prior options, which win over the ones below]
 #
-# The training run resumes efem_viz/weights/mug_resume.pt (override with --resume-from), prepares its data on the
-# GPU from the carried mesh packs (torch signed distance and ray casting; no open3d), trains in bf16 autocast with a
-# batch sized for a large GPU, and writes into OUT every minute: last.pt (the full checkpoint), mug_resume.pt (the
-# shippable resume state), mug.pt (the best export) and the training report (the data cache stays in $TMPDIR).
+# The training run resumes efem_viz/weights/<category>_resume.pt (override with --resume-from), prepares its data on
+# the GPU from the carried mesh packs (torch signed distance and ray casting; no open3d), trains in bf16 autocast with
+# a batch sized for a large GPU, and writes into OUT every minute: last.pt (the full checkpoint), <category>_resume.pt
+# (the shippable resume state), <category>.pt (the best export) and the training report (the data cache stays in
+# $TMPDIR). The category's own settings are those its CPU runs use (efem_viz/weights/<category>_training_notes.md).
 # MINUTES (default 8) is the whole process's budget, data preparation included, so that a call of the device tool
 # (9-10 minutes) ends with everything in OUT. Work is counted in iterations (--steps N stops after N of them).
 #
-# Environment: EFEM_TRAIN_DEVICE (default cuda; cpu runs the same path here), EFEM_TRAIN_BATCH (default 256),
-# EFEM_TRAIN_THREADS (default 8), EFEM_CARRY (default runs/carry).
+# Environment: EFEM_CATEGORY (mug, kitchen or chair; default mug), EFEM_TRAIN_DEVICE (default cuda; cpu runs the
+# same path here), EFEM_TRAIN_BATCH (default 256), EFEM_TRAIN_THREADS (default 8), EFEM_CARRY (default runs/carry).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 CARRY=${EFEM_CARRY:-runs/carry}
 WHEELS=(tyro docstring-parser typeguard typing-extensions tqdm)
+CAT=${EFEM_CATEGORY:-mug}
+case $CAT in  # each prior's own training settings (its training notes)
+  mug) CAT_OPTS=(--preset cpu --lr 3e-5) ;;
+  kitchen) CAT_OPTS=(--preset cpu --lr 1e-4 --top-only-p 0.25 --table-side-p 0.5) ;;
+  chair) CAT_OPTS=(--preset cpu-chair --lr 3e-4 --top-only-p 0.25 --table-side-p 0.5) ;;
+  *) echo "[train_gpu] EFEM_CATEGORY must be mug, kitchen or chair, not '$CAT'" >&2; exit 2 ;;
+esac
 
 if [[ ${1:-} == --prepare ]]; then
   mkdir -p "$CARRY/wheels"
-  $PY -m efem_viz.cli pack-meshes --category mug --split train --count 400 --out "$CARRY/mug_train.npz"
-  $PY -m efem_viz.cli pack-meshes --category mug --split val --count 96 --out "$CARRY/mug_val.npz"
+  $PY -m efem_viz.cli pack-meshes --category "$CAT" --split train --count 400 --out "$CARRY/${CAT}_train.npz"
+  $PY -m efem_viz.cli pack-meshes --category "$CAT" --split val --count 96 --out "$CARRY/${CAT}_val.npz"
   # pure-Python wheels for a machine without tyro/tqdm (installed there into a temporary folder, never from a network)
   $PY -m pip download -q --only-binary=:all: --no-deps --python-version 3.12 --implementation py \
     --platform any -d "$CARRY/wheels" "${WHEELS[@]}"
@@ -40,8 +48,8 @@ MINUTES=8
 if (( ! SMOKE )) && [[ $# -gt 0 && $1 != --* ]]; then MINUTES=$1; shift; fi
 DEVICE=${EFEM_TRAIN_DEVICE:-cuda}
 mkdir -p "$OUT"
-for f in "$CARRY/mug_train.npz" "$CARRY/mug_val.npz"; do
-  [[ -f $f ]] || { echo "[train_gpu] missing $f: run 'bash scripts/train_gpu.sh --prepare' here and carry $CARRY" >&2; exit 1; }
+for f in "$CARRY/${CAT}_train.npz" "$CARRY/${CAT}_val.npz"; do
+  [[ -f $f ]] || { echo "[train_gpu] missing $f: run 'EFEM_CATEGORY=$CAT bash scripts/train_gpu.sh --prepare' here and carry $CARRY" >&2; exit 1; }
 done
 
 # what the machine lacks of the pure-Python dependencies comes from the carried wheels, into a folder of OUT's
@@ -66,11 +74,12 @@ DTYPE=bfloat16
 if [[ $DEVICE == cpu ]]; then
   DTYPE=$($PY -c "from efem_viz.prior.config import fast_cpu_bf16; print('bfloat16' if fast_cpu_bf16() else 'float32')")
 fi
-RESUME=efem_viz/weights/mug_resume.pt
-COMMON=(--category mug --preset cpu --meshes "$CARRY/mug_train.npz" --val-meshes "$CARRY/mug_val.npz"
+RESUME=efem_viz/weights/${CAT}_resume.pt
+COMMON=(--category "$CAT" "${CAT_OPTS[@]}" --meshes "$CARRY/${CAT}_train.npz" --val-meshes "$CARRY/${CAT}_val.npz"
   --device "$DEVICE" --matmul-dtype "$DTYPE" --threads "${EFEM_TRAIN_THREADS:-8}" --min-views 1
-  --sensor-p 0.75 --fixed-point-p 0.25 --lr 3e-5 --decay-at 0.95 --iterations 200000
-  --cache-dir "${TMPDIR:-/tmp}/efem-train-cache" --out-dir "$OUT" --export "$OUT/mug.pt" --resume-export "$OUT/mug_resume.pt"
+  --sensor-p 0.75 --fixed-point-p 0.25 --decay-at 0.95 --iterations 200000
+  --cache-dir "${TMPDIR:-/tmp}/efem-train-cache" --out-dir "$OUT" --export "$OUT/${CAT}.pt"
+  --resume-export "$OUT/${CAT}_resume.pt"
   --ckpt-every-min 1 --resume-export-every-min 1 --no-progress)
 [[ -f $RESUME ]] && COMMON+=(--resume-from "$RESUME" --reset-best)
 if (( SMOKE )); then

@@ -625,6 +625,22 @@ def test_gpu_training_script_smoke_and_run_without_open3d_counting_iterations(tm
                            capture_output=True, text=True, timeout=1800)
     assert again.returncode == 0 and "Adam restarts" in again.stderr, again.stderr[-3000:]
     assert torch.load(tmp_path / "again" / "last.pt", weights_only=False)["state"]["iteration"] == 3 + 5 + 2
+    # another prior: its packs, its shipped resume state and settings, its file names
+    _small_pack(carry / "kitchen_train.npz", range(4))
+    _small_pack(carry / "kitchen_val.npz", range(4, 6))
+    shipped = root / "efem_viz" / "weights" / "kitchen_resume.pt"
+    shipped_at = torch.load(shipped, weights_only=False)["state"]["iteration"]
+    kit = subprocess.run(["bash", script, str(tmp_path / "kit"), "600", "--batch-size", "4", "--n-train", "4",
+                          "--n-val", "2", "--time-budget-min", "600", "--steps", "2"],
+                         env={**env, "EFEM_CATEGORY": "kitchen"}, capture_output=True, text=True, timeout=1800)
+    assert kit.returncode == 0, kit.stderr[-3000:]
+    ck = torch.load(tmp_path / "kit" / "last.pt", weights_only=False)
+    assert ck["state"]["iteration"] == shipped_at + 2 and ck["args"]["category"] == "kitchen"
+    assert ck["args"]["table_side_p"] == 0.5 and (tmp_path / "kit" / "kitchen_resume.pt").is_file()
+    bad = subprocess.run(["bash", script, str(tmp_path / "sofa")], env={**env, "EFEM_CATEGORY": "sofa"},
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "EFEM_CATEGORY" in bad.stderr
+    assert not (tmp_path / "sofa").exists()
 
 
 def test_handled_only_training_family_has_a_handle_on_every_mug() -> None:
