@@ -207,11 +207,15 @@ def sdf_grid(
     return v
 
 
+_undecimated_warned: list[bool] = []
+
+
 def simplify_mesh(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
     """Quadric-edge-collapse decimation to at most `max_faces` faces (unchanged if already small).
 
     Uses open3d (fastest here); if that breaks the watertightness of a watertight input, falls back to
-    pymeshlab's topology-preserving quadric decimation.
+    pymeshlab's topology-preserving quadric decimation. On a machine without open3d (a GPU machine running
+    `bench/gpu_check.py`) the mesh is returned undecimated, with one warning per process.
 
     Args:
         mesh: input triangle mesh.
@@ -226,7 +230,13 @@ def simplify_mesh(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
         raise ValueError(f"max_faces must be >= 4, got {max_faces}")
     if len(mesh.faces) <= max_faces:
         return mesh
-    import open3d as o3d
+    try:
+        import open3d as o3d
+    except ImportError:
+        if not _undecimated_warned:
+            _undecimated_warned.append(True)
+            logger.warning("open3d is not installed: completed meshes stay undecimated (more faces, the same shapes)")
+        return mesh
 
     om = o3d.geometry.TriangleMesh(
         o3d.utility.Vector3dVector(np.asarray(mesh.vertices, dtype=np.float64)),
