@@ -135,7 +135,8 @@ def main() -> int:
     print(f"{agree} of {len(a.scenes)} scenes with the same masks (IoU >= 0.9) on both devices", flush=True)
     out = a.out or result_path("gpu_check")
     write_result(out, {"machine": machine(torch.get_num_threads()) | {"device": a.device, "device_name": gpu_name},
-                       "seed": a.seed, "proposals": a.proposals, "cut": a.cut, "repeats": a.repeats, "scenes": rows, "agree": agree})
+                       "seed": a.seed, "proposals": a.proposals, "cut": a.cut, "repeats": a.repeats, "scenes": rows,
+                       "agree": agree})
     return 0
 
 
