@@ -223,7 +223,8 @@ def test_segment_picks_each_scenes_preset_and_refuses_a_scan_far_from_metric(tmp
                           "--no-scannet"], capture_output=True, text=True, env=env, timeout=1200)
     out = seg.stdout
     assert seg.returncode == 1, out + seg.stderr  # one scene failed
-    assert out.splitlines()[0].endswith("preset auto (real for single-view captures, chairs for chair scenes, else synthetic)")
+    assert out.splitlines()[0].endswith(
+        "preset auto (real for single-view captures, chairs for chair scenes, else synthetic)")
     assert re.search(r"capture: \d+ instances in .* \(local, preset real, free space from 1 camera\)", out), out
     assert re.search(r"fused: \d+ instances in .* \(local, preset synthetic\)", out), out
     assert re.search(r"huge: failed: SceneError: the scene spans [\d.e+]+ m: not a scan in metres", out), out
