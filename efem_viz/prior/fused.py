@@ -25,9 +25,8 @@ bf16), in tiles of 1,024 rows.
 The C++ file is compiled on first use with torch's own toolchain support (`torch.utils.cpp_extension`, about
 35 s once per machine, cached under ``~/.cache/efem-viz/torch_extensions`` in a folder keyed by everything that
 changes the build, `build_key`; an exclusive flock makes a build safe against concurrent and killed ones). The eager
-references below are the same math and serve everything the kernels
-do not: float64 (the equivariance tests), autograd (training), autocast (but the decoder's CPU bf16), CUDA, and
-any machine where the build
+references below are the same math and serve everything the kernels do not: float64 (the equivariance tests),
+autograd (training), autocast (but the decoder's CPU bf16), CUDA, and any machine where the build
 fails (one warning, then eager for the rest of the process). ``EFEM_VIZ_FUSED=0`` turns the kernels off.
 """
 
