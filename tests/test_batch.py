@@ -587,7 +587,8 @@ def test_solve_knobs_are_declared_once_and_reach_the_job(tmp_path: Path) -> None
     job = BatchJob.create(priors=("sphere",), **args.settings())
     cfg = job.config()
     assert (cfg.compute.matmul_dtype, cfg.proposals.n_init[0], cfg.compute.work_voxel) == ("bfloat16", 12, 0.006)
-    assert job.fingerprint() != BatchJob.create(priors=("sphere",), proposals=12, work_voxel=0.006).fingerprint()
+    assert job.fingerprint() != BatchJob.create(priors=("sphere",), proposals=12, work_voxel=0.006,
+                                                matmul_dtype="float32").fingerprint()
     with pytest.raises(ValueError, match="matmul_dtype"):
         BatchJob.create(priors=("sphere",), matmul_dtype="float16")  # type: ignore[arg-type]
 

@@ -693,8 +693,9 @@ class SolveSettings:
     """Output-mask SDF band (canonical units); default: the prior's calibrated value (`calibrate-masks`), else 0.04."""
     matmul_dtype: SolvePrecision = "float32"
     """Precision of the networks' matrix products (`precision_compute`): float32 (the method), bfloat16 (the
-    decoder's products in bf16, the encoder float32; on a CPU with AVX-512 BF16 or AMX the E-steps decode in about
-    0.6-0.8x the time, docs/BENCHMARKS.md) or auto (bfloat16 on such a CPU, else float32)."""
+    decoder's products in bf16, the encoder float32: on a CPU with AVX-512 BF16 or AMX the E-steps decode in
+    0.6-0.8x the time; synthetic scenes as good, real frames a few AP50 points lower over 8 seeds,
+    docs/BENCHMARKS.md) or auto (bfloat16 on such a CPU, else float32)."""
     free_space: FreeSpaceMode = "auto"
     """The free-space check against the scene's recorded cameras (a frame's capture camera, every camera of a
     fused scan): auto (the preset's: on for real, off otherwise), on (where the preset has none, the check for
