@@ -48,7 +48,8 @@ def write_result(path: Path, out: Any, *, indent: int = 1, archive: bool = True)
         day = time.strftime("%Y-%m-%d", time.gmtime(path.stat().st_mtime))
         kept = path.with_name(f"{path.parent.name}_{day}.json")
         n = 1
-        while kept.exists():  # a second run of the day, or a tag that reads like a date
+        # taken: a second run of the day, a tag that reads like a date, or a record gzipped since
+        while kept.exists() or kept.with_name(kept.name + ".gz").exists():
             n += 1
             kept = path.with_name(f"{path.parent.name}_{day}_{n}.json")
         path.replace(kept)

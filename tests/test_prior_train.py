@@ -214,7 +214,8 @@ def test_resume_is_exact(tmp_path: Path, cache_dir: Path) -> None:
     assert sa["np_rng"] == sb["np_rng"]
 
 
-def test_the_learning_rate_warms_up_whenever_adam_starts_without_moments(tmp_path: Path, cache_dir: Path) -> None:
+def test_the_learning_rate_warms_up_whenever_adam_starts_without_moments(tmp_path: Path, cache_dir: Path,
+                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
     """A new run and a resume state without the optimiser's moments ramp the learning rate up linearly; a full
     checkpoint (moments kept) continues the ramp where it was."""
     from efem_viz.prior.train import write_resume_state
@@ -229,6 +230,13 @@ def test_the_learning_rate_warms_up_whenever_adam_starts_without_moments(tmp_pat
     restarted = train(_args(tmp_path / "b", cache_dir, resume_from=shipped, **kw), max_iterations=2)
     assert restarted["iteration"] == 7
     assert [c["lr"] for c in restarted["curve"]][5:] == pytest.approx([2.5e-4, 5e-4])
+    # a resume state keeps the last entries of the training-loss curve (the report's window), not the whole curve
+    import efem_viz.prior.train as train_mod
+
+    monkeypatch.setattr(train_mod, "RESUME_CURVE_KEEP", 3)
+    assert write_resume_state(tmp_path / "b" / "run" / "last.pt", shipped) is not None
+    kept = torch.load(shipped, weights_only=False)["state"]["curve"]
+    assert [c["iteration"] for c in kept] == [c["iteration"] for c in restarted["curve"][-3:]]
 
 
 def test_resume_without_checkpoint_fails(tmp_path: Path, cache_dir: Path) -> None:

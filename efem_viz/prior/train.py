@@ -656,12 +656,17 @@ RESUME_STATE_LIMIT_BYTES = 20 * 2**20
 """A resume state is committed with the weights: never larger than this."""
 
 
+RESUME_CURVE_KEEP = 400
+"""Training-loss curve entries a resume state keeps: the last ones, as many as the training report shows
+(`train_curve`); the full curve of a long run was a fifth of a shipped resume state."""
+
+
 def write_resume_state(checkpoint: Path, dest: Path) -> int | None:
-    """Write the shippable resume state of a training checkpoint: weights (stored in float16), loop state, RNG
-    states and metadata, without the optimiser's moments (two thirds of the file; a resumed run restarts Adam,
-    which re-estimates them within a few dozen steps). Float16 halves what the repository carries per prior; a
-    resumed run continues in float32 from weights rounded by at most 2^-11 of their size, less than one of its
-    steps moves them. Atomic.
+    """Write the shippable resume state of a training checkpoint: weights (stored in float16), loop state (the
+    training-loss curve cut to its last `RESUME_CURVE_KEEP` entries), RNG states and metadata, without the
+    optimiser's moments (two thirds of the file; a resumed run restarts Adam, which re-estimates them within a few
+    dozen steps). Float16 halves what the repository carries per prior; a resumed run continues in float32 from
+    weights rounded by at most 2^-11 of their size, less than one of its steps moves them. Atomic.
 
     Returns:
         The bytes written, or None (with a warning) when even that would exceed `RESUME_STATE_LIMIT_BYTES`.
@@ -673,6 +678,9 @@ def write_resume_state(checkpoint: Path, dest: Path) -> int | None:
     ckpt = torch.load(checkpoint, map_location="cpu", weights_only=False)
     ckpt["optimizer"] = None
     ckpt["state_dict"] = {k: v.half() if v.is_floating_point() else v for k, v in ckpt["state_dict"].items()}
+    state = ckpt.get("state")
+    if isinstance(state, dict) and isinstance(state.get("curve"), list):
+        state["curve"] = state["curve"][-RESUME_CURVE_KEEP:]
     buf = io.BytesIO()
     torch.save(ckpt, buf)
     data = buf.getvalue()
