@@ -10,6 +10,7 @@
 # 3 minutes of CPU solves on a 16-core machine). Environment: EFEM_CARRY (default runs/carry), EFEM_CHECK_DEVICE
 # (default cuda; cpu runs the same comparison here).
 set -euo pipefail
+HERE=$PWD  # a relative OUT is where the caller stands
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 CARRY=${EFEM_CARRY:-runs/carry}/gpu_check
@@ -39,6 +40,7 @@ fi
 
 OUT=${1:?usage: bash scripts/gpu_check.sh [--prepare | OUT [bench.gpu_check options]]}
 shift
+[[ $OUT == /* ]] || OUT=$HERE/$OUT
 [[ -f $CARRY/z_7000.npz ]] || { echo "[gpu_check] missing $CARRY/z_7000.npz: run 'bash scripts/gpu_check.sh --prepare' here and carry ${CARRY%/gpu_check}" >&2; exit 1; }
 mkdir -p "$OUT"
 if ! $PY -c "import trimesh, plyfile" >/dev/null 2>&1; then

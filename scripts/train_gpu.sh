@@ -17,22 +17,23 @@
 # Environment: EFEM_CATEGORY (mug, kitchen or chair; default mug), EFEM_TRAIN_DEVICE (default cuda; cpu runs the
 # same path here), EFEM_TRAIN_BATCH (default 256), EFEM_TRAIN_THREADS (default 8), EFEM_CARRY (default runs/carry).
 set -euo pipefail
+HERE=$PWD  # a relative OUT is where the caller stands
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 CARRY=${EFEM_CARRY:-runs/carry}
 WHEELS=(tyro docstring-parser typeguard typing-extensions tqdm)
 CAT=${EFEM_CATEGORY:-mug}
 case $CAT in  # each prior's own training settings (its training notes)
-  mug) CAT_OPTS=(--preset cpu --lr 3e-5) ;;
-  kitchen) CAT_OPTS=(--preset cpu --lr 1e-4 --top-only-p 0.25 --table-side-p 0.5) ;;
-  chair) CAT_OPTS=(--preset cpu-chair --lr 3e-4 --top-only-p 0.25 --table-side-p 0.5) ;;
+  mug) CAT_OPTS=(--preset cpu --lr 3e-5); N_VAL=96 ;;
+  kitchen) CAT_OPTS=(--preset cpu --lr 1e-4 --top-only-p 0.25 --table-side-p 0.5); N_VAL=96 ;;
+  chair) CAT_OPTS=(--preset cpu-chair --lr 3e-4 --top-only-p 0.25 --table-side-p 0.5); N_VAL=48 ;;
   *) echo "[train_gpu] EFEM_CATEGORY must be mug, kitchen or chair, not '$CAT'" >&2; exit 2 ;;
 esac
 
 if [[ ${1:-} == --prepare ]]; then
   mkdir -p "$CARRY/wheels"
   $PY -m efem_viz.cli pack-meshes --category "$CAT" --split train --count 400 --out "$CARRY/${CAT}_train.npz"
-  $PY -m efem_viz.cli pack-meshes --category "$CAT" --split val --count 96 --out "$CARRY/${CAT}_val.npz"
+  $PY -m efem_viz.cli pack-meshes --category "$CAT" --split val --count "$N_VAL" --out "$CARRY/${CAT}_val.npz"
   # pure-Python wheels for a machine without tyro/tqdm (installed there into a temporary folder, never from a network)
   $PY -m pip download -q --only-binary=:all: --no-deps --python-version 3.12 --implementation py \
     --platform any -d "$CARRY/wheels" "${WHEELS[@]}"
@@ -46,6 +47,7 @@ OUT=${1:?usage: bash scripts/train_gpu.sh [--prepare | --smoke OUT | OUT [MINUTE
 shift
 MINUTES=8
 if (( ! SMOKE )) && [[ $# -gt 0 && $1 != --* ]]; then MINUTES=$1; shift; fi
+[[ $OUT == /* ]] || OUT=$HERE/$OUT
 DEVICE=${EFEM_TRAIN_DEVICE:-cuda}
 mkdir -p "$OUT"
 for f in "$CARRY/${CAT}_train.npz" "$CARRY/${CAT}_val.npz"; do
@@ -86,6 +88,6 @@ if (( SMOKE )); then
   exec $PY -m efem_viz.cli train-prior "${COMMON[@]}" --n-train 16 --n-val 4 --batch-size 32 --steps 20 \
     --val-every 10 --log-every 5 --time-budget-min 3 "$@"
 fi
-exec $PY -m efem_viz.cli train-prior "${COMMON[@]}" --n-train 400 --n-val 96 \
+exec $PY -m efem_viz.cli train-prior "${COMMON[@]}" --n-train 400 --n-val "$N_VAL" \
   --batch-size "${EFEM_TRAIN_BATCH:-256}" --val-every 250 --log-every 50 \
   --time-budget-min "$MINUTES" "$@"

@@ -600,7 +600,8 @@ def test_solve_precision_resolves_for_the_machine_and_the_device(monkeypatch: py
     from efem_viz.prior import config as prior_config
 
     assert precision_compute("float32") == {"matmul_dtype": "float32", "encoder_dtype": None}
-    assert precision_compute("bfloat16", "cuda") == {"matmul_dtype": "bfloat16", "encoder_dtype": "float32"}
+    assert precision_compute("bfloat16") == {"matmul_dtype": "bfloat16", "encoder_dtype": "float32"}
+    assert precision_compute("bfloat16", "cuda") == {"matmul_dtype": "bfloat16", "encoder_dtype": None}
     for native, want in ((True, "bfloat16"), (False, "float32")):
         monkeypatch.setattr(prior_config, "fast_cpu_bf16", lambda native=native: native)
         assert precision_compute("auto")["matmul_dtype"] == want

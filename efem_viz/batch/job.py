@@ -117,7 +117,8 @@ class BatchJob(SolveSettings):
     def fingerprint(self) -> str:
         """A hex digest of what decides a scene's result: the solver config, each prior's identity (the weights
         file's content hash, or the analytic prior's name), the seed and the PLY threshold. Device, threads,
-        backend and timeout are left out (they do not change what is computed)."""
+        backend and timeout are left out (they do not change what is computed), but a precision of "auto" enters
+        as what it resolves to on this machine and device (bf16 computes another result than float32)."""
         payload = {
             "schema": BATCH_SCHEMA_VERSION,
             "config": json.loads(self.config().to_json()),

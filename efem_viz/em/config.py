@@ -655,10 +655,11 @@ SOLVE_PRECISIONS: tuple[str, ...] = get_args(SolvePrecision)
 
 
 def precision_compute(precision: str, device: str = "cpu") -> dict[str, Any]:
-    """The `ComputeSettings` of a solve precision on a device: "float32" (the method); "bfloat16", the decoder's
-    matrix products in bf16 and the encoder in float32 (its fused float32 kernels: under an autocast they switch
-    off and cost more than bf16 gains); "auto", "bfloat16" on a CPU with native bf16 matrix hardware (AVX-512 BF16
-    or AMX, `fast_cpu_bf16`), "float32" elsewhere (a GPU, or a CPU where bf16 is 10x slower).
+    """The `ComputeSettings` of a solve precision on a device: "float32" (the method); "bfloat16", the networks'
+    matrix products in bf16, on a CPU the decoder's only (the encoder keeps its fused float32 kernels: under an
+    autocast they switch off and cost more than bf16 gains); "auto", "bfloat16" on a CPU with native bf16 matrix
+    hardware (AVX-512 BF16 or AMX, `fast_cpu_bf16`), "float32" elsewhere (a GPU, or a CPU where bf16 is 10x
+    slower).
 
     Raises:
         ValueError: an unknown precision.
@@ -671,7 +672,7 @@ def precision_compute(precision: str, device: str = "cpu") -> dict[str, Any]:
         precision = "bfloat16" if str(device).startswith("cpu") and fast_cpu_bf16() else "float32"
     if precision == "float32":
         return {"matmul_dtype": "float32", "encoder_dtype": None}
-    return {"matmul_dtype": "bfloat16", "encoder_dtype": "float32"}
+    return {"matmul_dtype": "bfloat16", "encoder_dtype": "float32" if str(device).startswith("cpu") else None}
 
 
 @dataclass(frozen=True, kw_only=True)

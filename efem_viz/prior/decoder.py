@@ -83,13 +83,14 @@ class SDFDecoder(nn.Module):
             inv: ``(B, L)`` Θ_inv.
 
         Returns:
-            ``M (B, H, 3)`` and ``bias (B, H)`` so that ``h_0 = M q + a_q ‖q‖ + bias``, in float32 under an
-            autocast too (one small product per latent; the fused bf16 pass takes float32 first-layer weights).
+            ``M (B, H, 3)`` and ``bias (B, H)`` so that ``h_0 = M q + a_q ‖q‖ + bias``, in the weights' precision
+            under an autocast too (one small product per latent; the fused bf16 pass takes float32 first-layer
+            weights).
         """
         L = self.latent_dim
         w = self.fc_in.weight
         with torch.autocast(R.device.type, enabled=False):
-            R, inv = R.float(), inv.float()
+            R, inv = R.to(w.dtype), inv.to(w.dtype)
             m = torch.matmul(w[:, :L], R)  # (B, H, 3)
             if self.proj_gain != 1.0:
                 m = m * self.proj_gain

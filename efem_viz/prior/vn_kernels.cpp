@@ -416,8 +416,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> decoder_band(
   // of M^T, a_q and the bias of each latent; w0/w1 (H, H) as nn.Linear stores them, b0/b1 (H); w_out (H).
   // Returns sdf (B, Q), dq (B, Q, 3) (zeros outside the band) and band (B, Q) bool.
   // bf16: the matrix products take bfloat16 operands (activations rounded to nearest even, weights converted once)
-  // and give bfloat16 products, as torch.autocast's linear layers do; the first layer, biases, ReLU masks, the
-  // residual stream, the output layer and the gradient's sums stay float32.
+  // and give bfloat16 products (autocast's linear layers also add their bias in bf16; here it is added in float32
+  // after the rounding); the first layer, biases, ReLU masks, the residual stream, the output layer and the
+  // gradient's sums stay float32.
   TORCH_CHECK(q_.dim() == 3 && q_.size(2) == 3 && q_.scalar_type() == at::kFloat, "q must be (B, Q, 3) float32");
   TORCH_CHECK(mt_.dim() == 3 && mt_.size(0) == q_.size(0) && mt_.size(1) == 5 && mt_.scalar_type() == at::kFloat,
               "mt must be (B, 5, H) float32");
