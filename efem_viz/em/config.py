@@ -666,13 +666,14 @@ def precision_compute(precision: str, device: str = "cpu") -> dict[str, Any]:
     """
     if precision not in SOLVE_PRECISIONS:
         raise ValueError(f"matmul_dtype must be one of {SOLVE_PRECISIONS}, got {precision!r}")
+    on_cpu = str(device).startswith("cpu")
     if precision == "auto":
         from efem_viz.prior.config import fast_cpu_bf16
 
-        precision = "bfloat16" if str(device).startswith("cpu") and fast_cpu_bf16() else "float32"
+        precision = "bfloat16" if on_cpu and fast_cpu_bf16() else "float32"
     if precision == "float32":
         return {"matmul_dtype": "float32", "encoder_dtype": None}
-    return {"matmul_dtype": "bfloat16", "encoder_dtype": "float32" if str(device).startswith("cpu") else None}
+    return {"matmul_dtype": "bfloat16", "encoder_dtype": "float32" if on_cpu else None}
 
 
 @dataclass(frozen=True, kw_only=True)
