@@ -488,6 +488,7 @@ def test_run_tab_precision_and_run_button(viewer: Any, page: Any) -> None:
                "the run's result shown")
     cfg = viewer.state.result.config
     assert cfg.compute.matmul_dtype == "bfloat16" and cfg.proposals.n_init[0] == 12
+    assert cfg.compute.encoder_dtype == "float32"  # on the CPU: the decoder's products in bf16, the encoder float32
     assert cfg.free_space.margin == FREE_SPACE_FUSED.margin
 
 
