@@ -273,10 +273,11 @@ def test_fused_decoder_pass_matches_the_eager_tiles(hidden: int, blocks: int, us
 
 def _bf16_products_reference(dec: SDFDecoder, q: torch.Tensor, m: torch.Tensor, bias: torch.Tensor, within: float
                              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Eager `sdf_and_band_grad` with the hidden products in bf16 (bf16 operands, bf16 results) and everything
-    else float32: what the kernel's bf16 pass computes."""
+    """Eager `sdf_and_band_grad` with the hidden products' operands rounded to bf16 (float32 products: a
+    product of two bf16 values is exact in float64 and float32 alike) and everything else float32: what the
+    kernel's bf16 pass computes."""
     def bmm(x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-        return (x.bfloat16() @ w.bfloat16()).float()
+        return (x.bfloat16().double() @ w.bfloat16().double()).float()
 
     relu = torch.relu
     hs, us = [dec._first_layer(q, m, bias)], []
@@ -298,11 +299,12 @@ def _bf16_products_reference(dec: SDFDecoder, q: torch.Tensor, m: torch.Tensor, 
 
 
 @needs_kernels
-@pytest.mark.parametrize("hidden,blocks", [(40, 2), (32, 1)])
+@pytest.mark.parametrize("hidden,blocks", [(40, 2), (32, 1), (128, 2)])
 def test_fused_decoder_bf16_products_are_the_autocast_rounding(hidden: int, blocks: int) -> None:
-    """Under a CPU bf16 autocast the kernel takes bf16 products (bf16 operands and results) and keeps the rest in
-    float32: it matches an eager reference of that rounding far more closely than it matches float32, for
-    widths with and without a partial vector (40 = 2 x 16 + 8), and the first-layer weights stay float32."""
+    """Under a CPU bf16 autocast the kernel rounds the hidden products' operands to bf16 (float32 products) and
+    keeps the rest in float32: it matches an eager reference of that rounding far more closely than it matches
+    float32, for widths with and without a partial vector (40 = 2 x 16 + 8; 32 and 128 take the bf16
+    micro-kernel where the CPU has one), and the first-layer weights stay float32."""
     dec = _decoder(hidden, blocks, True, seed=hidden + blocks)
     g = torch.Generator().manual_seed(7)
     with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
@@ -316,10 +318,12 @@ def test_fused_decoder_bf16_products_are_the_autocast_rounding(hidden: int, bloc
     assert 0 < int(ref[2].sum()) < ref[2].numel()
     same = out[2] & ref[2]
     assert same.float().mean() > 0.99 * ref[2].float().mean()
-    err_sdf, gap_sdf = (out[0] - ref[0]).abs().max(), (f32[0] - ref[0]).abs().max()
-    err_dq, gap_dq = (out[1] - ref[1])[same].abs().max(), (f32[1] - ref[1])[same].abs().max()
-    assert gap_sdf > 1e-4 and err_sdf < 0.01 * gap_sdf, (err_sdf, gap_sdf)
-    assert gap_dq > 1e-4 and err_dq < 0.01 * gap_dq, (err_dq, gap_dq)
+    # another float32 summation order can move an activation across a bf16 rounding boundary (one bf16 step,
+    # 0.4 % of that unit) for a rare query: the bulk matches to float32 rounding, no query is far off
+    d_sdf, d_dq = (out[0] - ref[0]).abs().flatten(), (out[1] - ref[1])[same].abs().flatten()
+    gap_sdf, gap_dq = (f32[0] - ref[0]).abs().max(), (f32[1] - ref[1])[same].abs().max()
+    assert gap_sdf > 1e-4 and d_sdf.quantile(0.99) < 0.001 * gap_sdf and d_sdf.max() < 0.05 * gap_sdf
+    assert gap_dq > 1e-4 and d_dq.quantile(0.99) < 0.001 * gap_dq and d_dq.max() < 0.05 * gap_dq
     assert torch.all(out[1][~out[2]] == 0)
 
 

@@ -3,6 +3,7 @@
 // before use.
 #include <ATen/ATen.h>
 #include <ATen/Parallel.h>
+#include <ATen/native/CPUBlas.h>
 #include <torch/library.h>
 #ifdef __AVX512F__
 #include <immintrin.h>
@@ -315,11 +316,6 @@ inline __m256i to_bf16x16(__m512 v) {
   return _mm512_cvtepi32_epi16(r);
 }
 
-inline __m512 from_bf16x16(const uint16_t* p) {
-  const __m512i w = _mm512_cvtepu16_epi32(_mm256_loadu_si256(reinterpret_cast<const __m256i*>(p)));
-  return _mm512_castsi512_ps(_mm512_slli_epi32(w, 16));
-}
-
 inline void store16(uint16_t* p, __m256i v) { _mm256_storeu_si256(reinterpret_cast<__m256i*>(p), v); }
 constexpr int64_t kLanes = 16;
 #else
@@ -335,32 +331,75 @@ inline void bf16_row(const float* x, uint16_t* l, int64_t n) {
   for (; j < n; ++j) l[j] = to_bf16(x[j]);
 }
 
-// u = o + b; l = bf16(relu(u))
-inline void inner_row(const uint16_t* o, const float* b, float* u, uint16_t* l, int64_t n) {
+// h = M q + a_q |q| + bias (m: the five rows of one latent, each H wide), a = relu(h); the same operations in the
+// same order in both branches (the q1 product, fused multiply-adds of q0, q2 and |q|, then the bias: the rounding
+// GCC gave the plain expression, so the pass's results did not change when it was written out)
+inline void first_row(const float* m, float q0, float q1, float q2, float qn, float* h, float* a, int64_t H) {
+  int64_t j = 0;
+#ifdef __AVX512F__
+  const __m512 v0 = _mm512_set1_ps(q0), v1 = _mm512_set1_ps(q1), v2 = _mm512_set1_ps(q2),
+               vn = _mm512_set1_ps(qn), zero = _mm512_setzero_ps();
+  for (; j + kLanes <= H; j += kLanes) {
+    __m512 v = _mm512_mul_ps(_mm512_loadu_ps(m + H + j), v1);
+    v = _mm512_fmadd_ps(_mm512_loadu_ps(m + j), v0, v);
+    v = _mm512_fmadd_ps(_mm512_loadu_ps(m + 2 * H + j), v2, v);
+    v = _mm512_fmadd_ps(_mm512_loadu_ps(m + 3 * H + j), vn, v);
+    v = _mm512_add_ps(v, _mm512_loadu_ps(m + 4 * H + j));
+    _mm512_storeu_ps(h + j, v);
+    _mm512_storeu_ps(a + j, _mm512_max_ps(v, zero));
+  }
+#endif
+  for (; j < H; ++j) {
+    float v = m[H + j] * q1;
+    v = std::fma(m[j], q0, v);
+    v = std::fma(m[2 * H + j], q2, v);
+    v = std::fma(m[3 * H + j], qn, v);
+    v = v + m[4 * H + j];
+    h[j] = v;
+    a[j] = v > 0.0f ? v : 0.0f;
+  }
+}
+
+// g = w where h > 0, else 0 (the output layer's gradient through the last ReLU)
+inline void pass_row(const float* h, const float* w, float* g, int64_t H) {
+  int64_t j = 0;
+#ifdef __AVX512F__
+  for (; j + kLanes <= H; j += kLanes) {
+    const __mmask16 k = _mm512_cmp_ps_mask(_mm512_loadu_ps(h + j), _mm512_setzero_ps(), _CMP_GT_OQ);
+    _mm512_storeu_ps(g + j, _mm512_maskz_mov_ps(k, _mm512_loadu_ps(w + j)));
+  }
+#endif
+  for (; j < H; ++j) g[j] = h[j] > 0.0f ? w[j] : 0.0f;
+}
+
+// The epilogues of products with float32 results (bf16 operands): the same as inner_row / stream_row / mask_row /
+// grad_row below with a float32 product c in place of the bf16 one.
+// u = u + b (u holds the product); l = bf16(relu(u))
+inline void inner_rowf(float* u, const float* b, uint16_t* l, int64_t n) {
   int64_t j = 0;
 #ifdef __AVX512F__
   const __m512 zero = _mm512_setzero_ps();
   for (; j + kLanes <= n; j += kLanes) {
-    const __m512 v = _mm512_add_ps(from_bf16x16(o + j), _mm512_loadu_ps(b + j));
+    const __m512 v = _mm512_add_ps(_mm512_loadu_ps(u + j), _mm512_loadu_ps(b + j));
     _mm512_storeu_ps(u + j, v);
     store16(l + j, to_bf16x16(_mm512_max_ps(v, zero)));
   }
 #endif
   for (; j < n; ++j) {
-    const float v = from_bf16(o[j]) + b[j];
+    const float v = u[j] + b[j];
     u[j] = v;
     l[j] = to_bf16(v > 0.0f ? v : 0.0f);
   }
 }
 
-// h' = h + o + b; a = relu(h'); l = bf16(a)
-inline void stream_row(const float* h, const uint16_t* o, const float* b, float* hn, float* a, uint16_t* l,
-                       int64_t n) {
+// h' = h + c + b; a = relu(h'); l = bf16(a)
+inline void stream_rowf(const float* h, const float* c, const float* b, float* hn, float* a, uint16_t* l,
+                        int64_t n) {
   int64_t j = 0;
 #ifdef __AVX512F__
   const __m512 zero = _mm512_setzero_ps();
   for (; j + kLanes <= n; j += kLanes) {
-    const __m512 v = _mm512_add_ps(_mm512_add_ps(_mm512_loadu_ps(h + j), from_bf16x16(o + j)),
+    const __m512 v = _mm512_add_ps(_mm512_add_ps(_mm512_loadu_ps(h + j), _mm512_loadu_ps(c + j)),
                                    _mm512_loadu_ps(b + j));
     const __m512 y = _mm512_max_ps(v, zero);
     _mm512_storeu_ps(hn + j, v);
@@ -369,7 +408,7 @@ inline void stream_row(const float* h, const uint16_t* o, const float* b, float*
   }
 #endif
   for (; j < n; ++j) {
-    const float v = h[j] + from_bf16(o[j]) + b[j];
+    const float v = h[j] + c[j] + b[j];
     const float y = v > 0.0f ? v : 0.0f;
     hn[j] = v;
     a[j] = y;
@@ -377,30 +416,99 @@ inline void stream_row(const float* h, const uint16_t* o, const float* b, float*
   }
 }
 
-// l = o where u > 0, else 0 (bf16 bits)
-inline void mask_row(const float* u, const uint16_t* o, uint16_t* l, int64_t n) {
+// l = bf16(c) where u > 0, else 0
+inline void mask_rowf(const float* u, const float* c, uint16_t* l, int64_t n) {
   int64_t j = 0;
 #ifdef __AVX512F__
   for (; j + kLanes <= n; j += kLanes) {
     const __mmask16 k = _mm512_cmp_ps_mask(_mm512_loadu_ps(u + j), _mm512_setzero_ps(), _CMP_GT_OQ);
-    const __m512i w = _mm512_cvtepu16_epi32(_mm256_loadu_si256(reinterpret_cast<const __m256i*>(o + j)));
-    store16(l + j, _mm512_cvtepi32_epi16(_mm512_maskz_mov_epi32(k, w)));
+    store16(l + j, to_bf16x16(_mm512_maskz_mov_ps(k, _mm512_loadu_ps(c + j))));
   }
 #endif
-  for (; j < n; ++j) l[j] = u[j] > 0.0f ? o[j] : uint16_t(0);
+  for (; j < n; ++j) l[j] = to_bf16(u[j] > 0.0f ? c[j] : 0.0f);
 }
 
-// g += o where h > 0
-inline void grad_row(const float* h, const uint16_t* o, float* g, int64_t n) {
+// g += c where h > 0
+inline void grad_rowf(const float* h, const float* c, float* g, int64_t n) {
   int64_t j = 0;
 #ifdef __AVX512F__
   for (; j + kLanes <= n; j += kLanes) {
     const __mmask16 k = _mm512_cmp_ps_mask(_mm512_loadu_ps(h + j), _mm512_setzero_ps(), _CMP_GT_OQ);
     const __m512 gv = _mm512_loadu_ps(g + j);
-    _mm512_storeu_ps(g + j, _mm512_mask_add_ps(gv, k, gv, from_bf16x16(o + j)));
+    _mm512_storeu_ps(g + j, _mm512_mask_add_ps(gv, k, gv, _mm512_loadu_ps(c + j)));
   }
 #endif
-  for (; j < n; ++j) g[j] += h[j] > 0.0f ? from_bf16(o[j]) : 0.0f;
+  for (; j < n; ++j) g[j] += h[j] > 0.0f ? c[j] : 0.0f;
+}
+
+// The hidden products of the bf16 pass: C (m x H, float32) = L (m x H, bf16 bits) B, B an (H x H) float32 matrix
+// whose entries are rounded to bf16 once. oneDNN's batch-reduce GEMM micro-kernel (bf16 operands, float32
+// accumulation and results; AMX or AVX-512 BF16) where this torch and CPU have it, else the same math as a float32
+// GEMM of the rounded operands (a product of two bf16 values is exact in float32).
+struct Bf16Products {
+  static constexpr int64_t kPanel = 32;
+  bool brgemm = false;
+  int64_t H = 0;
+  std::vector<at::Tensor> packed;   // brgemm: B in the micro-kernel's VNNI layout
+  std::vector<at::Tensor> rounded;  // otherwise: B rounded to bf16, as float32
+
+  Bf16Products(const std::vector<at::Tensor>& mats, int64_t h) : H(h) {
+    // the micro-kernel packs and multiplies B in column panels of kPanel (its packing refuses wider ones)
+    brgemm = !mats.empty() && H % kPanel == 0 && at::native::cpublas::could_pack(at::kBFloat16);
+    for (const auto& b : mats) {
+      auto bb = b.contiguous().to(at::kBFloat16);
+      if (brgemm) {
+        auto out = at::empty({H * H}, bb.options());
+        for (int64_t c = 0; c < H; c += kPanel)
+          at::native::cpublas::pack(H, kPanel, H, kPanel, at::kBFloat16, at::kBFloat16,
+                                    bb.data_ptr<at::BFloat16>() + c, out.data_ptr<at::BFloat16>() + c * H);
+        packed.push_back(out);
+      } else {
+        rounded.push_back(bb.to(at::kFloat));
+      }
+    }
+  }
+
+  // C = L B_i for m rows; lf: an (m x H) float32 scratch for the GEMM fallback
+  void run(int64_t i, const uint16_t* l, int64_t m, float* c, float* lf) const {
+    if (m == 0) return;
+    if (brgemm) {
+      const auto* a = reinterpret_cast<const at::BFloat16*>(l);
+      const at::BFloat16* b = packed[i].data_ptr<at::BFloat16>();
+      for (int64_t p = 0; p < H; p += kPanel)
+        at::native::cpublas::brgemm(m, kPanel, H, H, kPanel, H, false, a, b + p * H, c + p, true);
+      return;
+    }
+    for (int64_t r = 0; r < m * H; ++r) lf[r] = from_bf16(l[r]);
+    auto opt = at::TensorOptions().dtype(at::kFloat);
+    auto lt = at::from_blob(lf, {m, H}, opt), ct = at::from_blob(c, {m, H}, opt);
+    at::mm_out(ct, lt, rounded[i]);
+  }
+
+  void release() const {
+    if (brgemm) at::native::cpublas::brgemm_release(true);
+  }
+};
+
+// The serial sums of several rows side by side: each row keeps its own order of additions (the rounding of a
+// loop over one row) while the rows' chains overlap instead of waiting on one another.
+constexpr int64_t kRowGroup = 8;
+
+// sdf_r = w_out . a_r + b_out for n rows of width H
+inline void output_rows(const float* a, const float* w, float b, float* out, int64_t n, int64_t H) {
+  int64_t r = 0;
+  for (; r + kRowGroup <= n; r += kRowGroup) {
+    float acc[kRowGroup] = {};
+    for (int64_t j = 0; j < H; ++j)
+      for (int64_t k = 0; k < kRowGroup; ++k) acc[k] += a[(r + k) * H + j] * w[j];
+    for (int64_t k = 0; k < kRowGroup; ++k) out[r + k] = acc[k] + b;
+  }
+  for (; r < n; ++r) {
+    const float* ar = a + r * H;
+    float acc = 0.0f;
+    for (int64_t j = 0; j < H; ++j) acc += ar[j] * w[j];
+    out[r] = acc + b;
+  }
 }
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor> decoder_band(
@@ -438,7 +546,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> decoder_band(
   TORCH_CHECK(tile >= 1, "tile must be positive");
   const auto q = q_.detach().contiguous(), mt = mt_.detach().contiguous();
   const auto w_out = w_out_.detach().contiguous().view({H});
-  std::vector<at::Tensor> w0c, w1c, w0t, w1t, b0c, b1c, w0cb, w1cb, w0tb, w1tb;
+  std::vector<at::Tensor> w0c, w1c, w0t, w1t, b0c, b1c, mats;
   for (int64_t i = 0; i < nb; ++i) {
     // detached: the worker threads of parallel_for do not inherit the caller's no-grad mode, and the out= products
     // refuse tensors that require grad
@@ -448,13 +556,14 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> decoder_band(
     w1t.push_back(w1c.back().t());
     b0c.push_back(b0[i].detach().contiguous());
     b1c.push_back(b1[i].detach().contiguous());
-    if (bf16) {
-      w0cb.push_back(w0c.back().to(at::kBFloat16));
-      w1cb.push_back(w1c.back().to(at::kBFloat16));
-      w0tb.push_back(w0cb.back().t());
-      w1tb.push_back(w1cb.back().t());
+    if (bf16) {  // per block: the forward's W0^T, W1^T, the backward's W1, W0 (products 4 i .. 4 i + 3)
+      mats.push_back(w0t.back());
+      mats.push_back(w1t.back());
+      mats.push_back(w1c.back());
+      mats.push_back(w0c.back());
     }
   }
+  const Bf16Products prod(mats, H);
   auto sdf = at::empty({B, Q}, q.options());
   auto dq = at::zeros({B, Q, 3}, q.options());
   auto band = at::zeros({B, Q}, q.options().dtype(at::kBool));
@@ -473,11 +582,12 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> decoder_band(
     for (int64_t i = 0; i <= nb; ++i) hs.push_back(at::empty({T, H}, opt));
     for (int64_t i = 0; i < nb; ++i) us.push_back(at::empty({T, H}, opt));
     auto act = at::empty({T, H}, opt), g = at::empty({T, H}, opt), tmp = at::empty({T, H}, opt);
-    // bf16: a product's left operand and its result
-    const auto bopt = opt.dtype(at::kBFloat16);
-    auto lb = bf16 ? at::empty({T, H}, bopt) : at::Tensor(), ob = bf16 ? at::empty({T, H}, bopt) : at::Tensor();
+    // bf16: a product's left operand (bf16 bits) and the float32 scratch of the GEMM fallback
+    auto lb = bf16 ? at::empty({T, H}, opt.dtype(at::kBFloat16)) : at::Tensor();
+    auto lfb = bf16 && !prod.brgemm ? at::empty({T, H}, opt) : at::Tensor();
     uint16_t* lp = bf16 ? reinterpret_cast<uint16_t*>(lb.data_ptr<at::BFloat16>()) : nullptr;
-    const uint16_t* op = bf16 ? reinterpret_cast<const uint16_t*>(ob.data_ptr<at::BFloat16>()) : nullptr;
+    float* lf = lfb.defined() ? lfb.data_ptr<float>() : nullptr;
+    float* cp = tmp.data_ptr<float>();
     std::vector<int64_t> sel;
     for (int64_t t = t_begin; t < t_end; ++t) {
       const int64_t s = t * T, n = std::min(T, N - s);
@@ -488,27 +598,21 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> decoder_band(
         const float* m = pm + (row / Q) * 5 * H;
         const float q0 = pq[row * 3], q1 = pq[row * 3 + 1], q2 = pq[row * 3 + 2];
         const float qn = use_qnorm ? std::sqrt(std::max(q0 * q0 + q1 * q1 + q2 * q2, 1e-24f)) : 0.0f;
-        float* hr = h0 + r * H;
         float* ar = a + r * H;
-        for (int64_t j = 0; j < H; ++j) {
-          const float v = m[j] * q0 + m[H + j] * q1 + m[2 * H + j] * q2 + m[3 * H + j] * qn + m[4 * H + j];
-          hr[j] = v;
-          ar[j] = v > 0.0f ? v : 0.0f;
-        }
+        first_row(m, q0, q1, q2, qn, h0 + r * H, ar, H);
         if (bf16) bf16_row(ar, lp + r * H, H);
       }
       auto a_n = act.narrow(0, 0, n);
-      for (int64_t i = 0; bf16 && i < nb; ++i) {  // the blocks with bfloat16 products
-        auto l_n = lb.narrow(0, 0, n), o_n = ob.narrow(0, 0, n);
-        at::mm_out(o_n, l_n, w0tb[i]);
+      for (int64_t i = 0; bf16 && i < nb; ++i) {  // the blocks with bf16 operands
         float* up = us[i].data_ptr<float>();
+        prod.run(4 * i, lp, n, up, lf);
         const float* bz = b0c[i].data_ptr<float>();
-        for (int64_t r = 0; r < n * H; r += H) inner_row(op + r, bz, up + r, lp + r, H);
-        at::mm_out(o_n, l_n, w1tb[i]);
+        for (int64_t r = 0; r < n * H; r += H) inner_rowf(up + r, bz, lp + r, H);
+        prod.run(4 * i + 1, lp, n, cp, lf);
         const float* hp = hs[i].data_ptr<float>();
         float* hn = hs[i + 1].data_ptr<float>();
         const float* bb = b1c[i].data_ptr<float>();
-        for (int64_t r = 0; r < n * H; r += H) stream_row(hp + r, op + r, bb, hn + r, a + r, lp + r, H);
+        for (int64_t r = 0; r < n * H; r += H) stream_rowf(hp + r, cp + r, bb, hn + r, a + r, lp + r, H);
       }
       for (int64_t i = 0; !bf16 && i < nb; ++i) {
         auto u = us[i].narrow(0, 0, n);
@@ -529,33 +633,24 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> decoder_band(
         }
       }
       sel.clear();
-      for (int64_t r = 0; r < n; ++r) {
-        const float* ar = a + r * H;
-        float acc = 0.0f;
-        for (int64_t j = 0; j < H; ++j) acc += ar[j] * pw[j];
-        const float v = acc + bo;
-        ps[s + r] = v;
-        if (std::abs(v) <= lim) sel.push_back(r);
-      }
+      output_rows(a, pw, bo, ps + s, n, H);
+      for (int64_t r = 0; r < n; ++r)
+        if (std::abs(ps[s + r]) <= lim) sel.push_back(r);
       const int64_t nsel = static_cast<int64_t>(sel.size());
       if (nsel == 0) continue;
       float* gp = g.data_ptr<float>();
       const float* hl = hs[nb].data_ptr<float>();
-      for (int64_t k = 0; k < nsel; ++k) {
-        const float* hr = hl + sel[k] * H;
-        for (int64_t j = 0; j < H; ++j) gp[k * H + j] = hr[j] > 0.0f ? pw[j] : 0.0f;
-      }
+      for (int64_t k = 0; k < nsel; ++k) pass_row(hl + sel[k] * H, pw, gp + k * H, H);
       auto g_n = g.narrow(0, 0, nsel), tmp_n = tmp.narrow(0, 0, nsel);
       float* tp = tmp.data_ptr<float>();
-      for (int64_t i = nb - 1; bf16 && i >= 0; --i) {  // the same with bfloat16 products
-        auto l_n = lb.narrow(0, 0, nsel), o_n = ob.narrow(0, 0, nsel);
+      for (int64_t i = nb - 1; bf16 && i >= 0; --i) {  // the same with bf16 operands
         bf16_row(gp, lp, nsel * H);
-        at::mm_out(o_n, l_n, w1cb[i]);
+        prod.run(4 * i + 2, lp, nsel, cp, lf);
         const float* up = us[i].data_ptr<float>();
-        for (int64_t k = 0; k < nsel; ++k) mask_row(up + sel[k] * H, op + k * H, lp + k * H, H);
-        at::mm_out(o_n, l_n, w0cb[i]);
+        for (int64_t k = 0; k < nsel; ++k) mask_rowf(up + sel[k] * H, cp + k * H, lp + k * H, H);
+        prod.run(4 * i + 3, lp, nsel, cp, lf);
         const float* hp = hs[i].data_ptr<float>();
-        for (int64_t k = 0; k < nsel; ++k) grad_row(hp + sel[k] * H, op + k * H, gp + k * H, H);
+        for (int64_t k = 0; k < nsel; ++k) grad_rowf(hp + sel[k] * H, cp + k * H, gp + k * H, H);
       }
       for (int64_t i = nb - 1; !bf16 && i >= 0; --i) {
         at::mm_out(tmp_n, g_n, w1c[i]);  // d/d relu(u): g W1, then through u's mask
@@ -575,30 +670,37 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> decoder_band(
           for (int64_t j = 0; j < H; ++j) gr[j] += hr[j] > 0.0f ? xr[j] : 0.0f;
         }
       }
-      for (int64_t k = 0; k < nsel; ++k) {  // dsdf/dq = g [M, a_q] d[q, |q|]/dq
-        const int64_t row = s + sel[k];
-        const float* m = pm + (row / Q) * 5 * H;
-        const float* gr = gp + k * H;
-        float d0 = 0.0f, d1 = 0.0f, d2 = 0.0f, d3 = 0.0f;
-        for (int64_t j = 0; j < H; ++j) {
-          d0 += gr[j] * m[j];
-          d1 += gr[j] * m[H + j];
-          d2 += gr[j] * m[2 * H + j];
-          d3 += gr[j] * m[3 * H + j];
+      for (int64_t k0 = 0; k0 < nsel; k0 += kRowGroup) {  // dsdf/dq = g [M, a_q] d[q, |q|]/dq
+        const int64_t kn = std::min(kRowGroup, nsel - k0);
+        float d[kRowGroup][4];
+        const float *ms[kRowGroup], *gs[kRowGroup];
+        for (int64_t k = 0; k < kRowGroup; ++k) {  // a short group repeats its last row (results unused)
+          const int64_t kk = k0 + std::min(k, kn - 1);
+          ms[k] = pm + ((s + sel[kk]) / Q) * 5 * H;
+          gs[k] = gp + kk * H;
+          d[k][0] = d[k][1] = d[k][2] = d[k][3] = 0.0f;
         }
-        const float q0 = pq[row * 3], q1 = pq[row * 3 + 1], q2 = pq[row * 3 + 2];
-        if (use_qnorm) {
-          const float qn = std::sqrt(std::max(q0 * q0 + q1 * q1 + q2 * q2, 1e-24f));
-          d0 += d3 * q0 / qn;
-          d1 += d3 * q1 / qn;
-          d2 += d3 * q2 / qn;
+        for (int64_t j = 0; j < H; ++j)
+          for (int64_t k = 0; k < kRowGroup; ++k)
+            for (int64_t c = 0; c < 4; ++c) d[k][c] += gs[k][j] * ms[k][c * H + j];
+        for (int64_t k = k0; k < k0 + kn; ++k) {
+          const int64_t row = s + sel[k];
+          float d0 = d[k - k0][0], d1 = d[k - k0][1], d2 = d[k - k0][2], d3 = d[k - k0][3];
+          const float q0 = pq[row * 3], q1 = pq[row * 3 + 1], q2 = pq[row * 3 + 2];
+          if (use_qnorm) {
+            const float qn = std::sqrt(std::max(q0 * q0 + q1 * q1 + q2 * q2, 1e-24f));
+            d0 += d3 * q0 / qn;
+            d1 += d3 * q1 / qn;
+            d2 += d3 * q2 / qn;
+          }
+          pd[row * 3] = d0;
+          pd[row * 3 + 1] = d1;
+          pd[row * 3 + 2] = d2;
+          pb[row] = true;
         }
-        pd[row * 3] = d0;
-        pd[row * 3 + 1] = d1;
-        pd[row * 3 + 2] = d2;
-        pb[row] = true;
       }
     }
+    prod.release();
   });
   return {sdf, dq, band};
 }
