@@ -147,7 +147,8 @@ class SDFDecoder(nn.Module):
                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
         """`fused.decoder_band` of these queries (None where it does not serve them: not a float32 CPU inference
         call, autograd or an autocast other than the CPU's bf16 on, no kernels, ``EFEM_VIZ_FUSED_DECODER=0``, too
-        few queries for a tile to pay). Under a CPU bf16 autocast its products are bf16, as the eager tiles'."""
+        few queries for a tile to pay). Under a CPU bf16 autocast its products take bf16 operands, as the eager
+        tiles' do (their results float32)."""
         if (q.device.type != "cpu" or q.shape[0] * q.shape[1] < 64 or os.environ.get("EFEM_VIZ_FUSED_DECODER") == "0"
                 or not fused.usable(q, m, bias, autocast_ok=fused.autocast_bf16())):
             return None

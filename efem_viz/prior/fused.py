@@ -18,9 +18,9 @@ in one C++ loop over tiles of 256 rows: the first layer, each block's two produc
 fused into the pass that follows each product, the output, and the band rows' input gradient, every activation
 of a tile kept in cache (float32, the eager tiles' result to rounding; ``EFEM_VIZ_FUSED_DECODER=0`` turns this
 one off). Under a CPU bf16 autocast (`EMConfig.compute.matmul_dtype` "bfloat16") its hidden products take bf16
-operands and give bf16 results, as the autocast's linear layers do, while the first layer, the residual stream,
-the output and the gradient's sums stay float32 (closer to float32 than the eager bf16 tiles, whose whole stream is
-bf16), in tiles of 1,024 rows.
+operands and give float32 results (oneDNN's bf16 micro-kernel on AMX or AVX-512 BF16, else a float32 product of
+the rounded operands), while the first layer, the residual stream, the output and the gradient's sums stay float32
+(closer to float32 than the eager bf16 tiles, whose whole stream is bf16), in tiles of 1,024 rows.
 
 The C++ file is compiled on first use with torch's own toolchain support (`torch.utils.cpp_extension`, about
 35 s once per machine, cached under ``~/.cache/efem-viz/torch_extensions`` in a folder keyed by everything that
@@ -323,14 +323,14 @@ DECODER_TILE = 256
 """Rows per tile of the fused decoder pass: every activation the tile keeps for its backward (width 128, two
 blocks: 5 x 128 KB) stays in the core's L2."""
 DECODER_TILE_BF16 = 1024
-"""Rows per tile of its bf16 products: oneDNN's bf16 products gain more from taller tiles than the cache loses
-(per pass on a Zen 4 core, tiles of 256 / 512 / 1024 / 2048 rows: 1.2 / 1.4 / 1.55 / 1.5x the float32 pass at
-256; `bench/decoder_kernel.py`)."""
+"""Rows per tile of its bf16 pass: bf16 products gain more from taller tiles than the cache loses (per pass on
+a Zen 4 core, tiles of 256 / 512 / 1024 / 2048 rows: 1.2 / 1.4 / 1.55 / 1.5x the float32 pass at 256;
+`bench/decoder_kernel.py`)."""
 
 
 def autocast_bf16() -> bool:
     """Whether a CPU bf16 autocast is on (`EMConfig.compute.matmul_dtype` "bfloat16"): `decoder_band` then
-    takes bf16 products, as the autocast's linear layers would."""
+    rounds its hidden products' operands to bf16, as the autocast's linear layers would."""
     return torch.is_autocast_enabled("cpu") and torch.get_autocast_dtype("cpu") == torch.bfloat16
 
 
@@ -348,9 +348,9 @@ def decoder_band(q: torch.Tensor, mt: torch.Tensor, blocks: list[tuple[torch.Ten
         b_out: output bias.
         within: band half-width; negative: the SDF only.
         use_qnorm: whether ``a_q ‖q‖`` enters the first layer.
-        bf16: the hidden layers' matrix products (forward and the band's backward) in bfloat16 with bfloat16
-            results, as a bf16 autocast's linear layers; the first layer, biases, ReLU, residual stream, output
-            and the gradient's sums stay float32. None: whether a CPU bf16 autocast is on (`autocast_bf16`).
+        bf16: the hidden layers' matrix products (forward and the band's backward) with bfloat16 operands and
+            float32 results; the first layer, biases, ReLU, residual stream, output and the gradient's sums stay
+            float32. None: whether a CPU bf16 autocast is on (`autocast_bf16`).
 
     Returns:
         ``sdf (B, Q)``, ``dq (B, Q, 3)`` (∂sdf/∂q, zeros outside the band), ``band (B, Q)`` bool, float32.

@@ -289,20 +289,13 @@ inline void relu_rows(const float* x, float* out, int64_t n) {
   for (int64_t j = 0; j < n; ++j) out[j] = x[j] > 0.0f ? x[j] : 0.0f;
 }
 
-// float -> bfloat16 bits, rounded to nearest even (c10::BFloat16's rounding, NaN kept a NaN), and back: plain
-// integer arithmetic the compiler vectorises inside the fused loops
+// float -> bfloat16 bits, rounded to nearest even (c10::BFloat16's rounding, NaN kept a NaN): plain integer
+// arithmetic
 inline uint16_t to_bf16(float v) {
   uint32_t u;
   std::memcpy(&u, &v, sizeof u);
   if ((u & 0x7fffffffu) > 0x7f800000u) return 0x7fc0;
   return static_cast<uint16_t>((u + 0x7fffu + ((u >> 16) & 1u)) >> 16);
-}
-
-inline float from_bf16(uint16_t b) {
-  const uint32_t u = static_cast<uint32_t>(b) << 16;
-  float v;
-  std::memcpy(&v, &u, sizeof v);
-  return v;
 }
 
 // The row loops of the bf16 decoder pass, 16 lanes at a time where the build has AVX-512 (the same rounding as
@@ -372,8 +365,8 @@ inline void pass_row(const float* h, const float* w, float* g, int64_t H) {
   for (; j < H; ++j) g[j] = h[j] > 0.0f ? w[j] : 0.0f;
 }
 
-// The epilogues of products with float32 results (bf16 operands): the same as inner_row / stream_row / mask_row /
-// grad_row below with a float32 product c in place of the bf16 one.
+// The epilogues between the bf16 pass's products (c: a product, float32), each writing the next product's bf16
+// operand l.
 // u = u + b (u holds the product); l = bf16(relu(u))
 inline void inner_rowf(float* u, const float* b, uint16_t* l, int64_t n) {
   int64_t j = 0;
@@ -442,51 +435,46 @@ inline void grad_rowf(const float* h, const float* c, float* g, int64_t n) {
 }
 
 // The hidden products of the bf16 pass: C (m x H, float32) = L (m x H, bf16 bits) B, B an (H x H) float32 matrix
-// whose entries are rounded to bf16 once. oneDNN's batch-reduce GEMM micro-kernel (bf16 operands, float32
-// accumulation and results; AMX or AVX-512 BF16) where this torch and CPU have it, else the same math as a float32
-// GEMM of the rounded operands (a product of two bf16 values is exact in float32).
+// whose entries are rounded to bf16 once; bf16 operands, float32 accumulation and results. Where oneDNN's bf16
+// micro-kernel has a packed layout (AMX), B is packed once in column panels of kPanel (its packing takes no wider
+// ones) and the micro-kernel runs per panel; elsewhere torch's CPU BLAS multiplies the plain bf16 B (oneDNN's bf16
+// GEMM with float32 results on AVX-512 BF16, a slow reference loop on CPUs without bf16 hardware).
 struct Bf16Products {
   static constexpr int64_t kPanel = 32;
-  bool brgemm = false;
+  bool vnni = false;
   int64_t H = 0;
-  std::vector<at::Tensor> packed;   // brgemm: B in the micro-kernel's VNNI layout
-  std::vector<at::Tensor> rounded;  // otherwise: B rounded to bf16, as float32
+  std::vector<at::Tensor> mats;  // bf16: packed panels (vnni) or row-major (H x H)
 
-  Bf16Products(const std::vector<at::Tensor>& mats, int64_t h) : H(h) {
-    // the micro-kernel packs and multiplies B in column panels of kPanel (its packing refuses wider ones)
-    brgemm = !mats.empty() && H % kPanel == 0 && at::native::cpublas::could_pack(at::kBFloat16);
-    for (const auto& b : mats) {
+  Bf16Products(const std::vector<at::Tensor>& src, int64_t h) : H(h) {
+    vnni = !src.empty() && H % kPanel == 0 && at::native::cpublas::could_pack(at::kBFloat16);
+    for (const auto& b : src) {
       auto bb = b.contiguous().to(at::kBFloat16);
-      if (brgemm) {
+      if (vnni) {
         auto out = at::empty({H * H}, bb.options());
         for (int64_t c = 0; c < H; c += kPanel)
           at::native::cpublas::pack(H, kPanel, H, kPanel, at::kBFloat16, at::kBFloat16,
                                     bb.data_ptr<at::BFloat16>() + c, out.data_ptr<at::BFloat16>() + c * H);
-        packed.push_back(out);
-      } else {
-        rounded.push_back(bb.to(at::kFloat));
+        bb = out;
       }
+      mats.push_back(bb);
     }
   }
 
-  // C = L B_i for m rows; lf: an (m x H) float32 scratch for the GEMM fallback
-  void run(int64_t i, const uint16_t* l, int64_t m, float* c, float* lf) const {
+  // C = L B_i for m rows
+  void run(int64_t i, const uint16_t* l, int64_t m, float* c) const {
     if (m == 0) return;
-    if (brgemm) {
-      const auto* a = reinterpret_cast<const at::BFloat16*>(l);
-      const at::BFloat16* b = packed[i].data_ptr<at::BFloat16>();
-      for (int64_t p = 0; p < H; p += kPanel)
-        at::native::cpublas::brgemm(m, kPanel, H, H, kPanel, H, false, a, b + p * H, c + p, true);
+    const auto* a = reinterpret_cast<const at::BFloat16*>(l);
+    const at::BFloat16* b = mats[i].data_ptr<at::BFloat16>();
+    if (!vnni) {
+      at::native::cpublas::brgemm(m, H, H, H, H, H, false, a, b, c, false);
       return;
     }
-    for (int64_t r = 0; r < m * H; ++r) lf[r] = from_bf16(l[r]);
-    auto opt = at::TensorOptions().dtype(at::kFloat);
-    auto lt = at::from_blob(lf, {m, H}, opt), ct = at::from_blob(c, {m, H}, opt);
-    at::mm_out(ct, lt, rounded[i]);
+    for (int64_t p = 0; p < H; p += kPanel)
+      at::native::cpublas::brgemm(m, kPanel, H, H, kPanel, H, false, a, b + p * H, c + p, true);
   }
 
   void release() const {
-    if (brgemm) at::native::cpublas::brgemm_release(true);
+    if (vnni) at::native::cpublas::brgemm_release(true);
   }
 };
 
@@ -523,10 +511,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> decoder_band(
   // (a unit passes where its pre-activation > 0, as autograd's relu backward). q (B, Q, 3); mt (B, 5, H): the rows
   // of M^T, a_q and the bias of each latent; w0/w1 (H, H) as nn.Linear stores them, b0/b1 (H); w_out (H).
   // Returns sdf (B, Q), dq (B, Q, 3) (zeros outside the band) and band (B, Q) bool.
-  // bf16: the matrix products take bfloat16 operands (activations rounded to nearest even, weights converted once)
-  // and give bfloat16 products (autocast's linear layers also add their bias in bf16; here it is added in float32
-  // after the rounding); the first layer, biases, ReLU masks, the residual stream, the output layer and the
-  // gradient's sums stay float32.
+  // bf16: the hidden matrix products take bfloat16 operands (activations rounded to nearest even, weights rounded
+  // once) and give float32 products (Bf16Products); the first layer, biases, ReLU masks, the residual stream, the
+  // output layer and the gradient's sums stay float32.
   TORCH_CHECK(q_.dim() == 3 && q_.size(2) == 3 && q_.scalar_type() == at::kFloat, "q must be (B, Q, 3) float32");
   TORCH_CHECK(mt_.dim() == 3 && mt_.size(0) == q_.size(0) && mt_.size(1) == 5 && mt_.scalar_type() == at::kFloat,
               "mt must be (B, 5, H) float32");
@@ -582,11 +569,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> decoder_band(
     for (int64_t i = 0; i <= nb; ++i) hs.push_back(at::empty({T, H}, opt));
     for (int64_t i = 0; i < nb; ++i) us.push_back(at::empty({T, H}, opt));
     auto act = at::empty({T, H}, opt), g = at::empty({T, H}, opt), tmp = at::empty({T, H}, opt);
-    // bf16: a product's left operand (bf16 bits) and the float32 scratch of the GEMM fallback
+    // bf16: a product's left operand (bf16 bits)
     auto lb = bf16 ? at::empty({T, H}, opt.dtype(at::kBFloat16)) : at::Tensor();
-    auto lfb = bf16 && !prod.brgemm ? at::empty({T, H}, opt) : at::Tensor();
     uint16_t* lp = bf16 ? reinterpret_cast<uint16_t*>(lb.data_ptr<at::BFloat16>()) : nullptr;
-    float* lf = lfb.defined() ? lfb.data_ptr<float>() : nullptr;
     float* cp = tmp.data_ptr<float>();
     std::vector<int64_t> sel;
     for (int64_t t = t_begin; t < t_end; ++t) {
@@ -605,10 +590,10 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> decoder_band(
       auto a_n = act.narrow(0, 0, n);
       for (int64_t i = 0; bf16 && i < nb; ++i) {  // the blocks with bf16 operands
         float* up = us[i].data_ptr<float>();
-        prod.run(4 * i, lp, n, up, lf);
+        prod.run(4 * i, lp, n, up);
         const float* bz = b0c[i].data_ptr<float>();
         for (int64_t r = 0; r < n * H; r += H) inner_rowf(up + r, bz, lp + r, H);
-        prod.run(4 * i + 1, lp, n, cp, lf);
+        prod.run(4 * i + 1, lp, n, cp);
         const float* hp = hs[i].data_ptr<float>();
         float* hn = hs[i + 1].data_ptr<float>();
         const float* bb = b1c[i].data_ptr<float>();
@@ -645,10 +630,10 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> decoder_band(
       float* tp = tmp.data_ptr<float>();
       for (int64_t i = nb - 1; bf16 && i >= 0; --i) {  // the same with bf16 operands
         bf16_row(gp, lp, nsel * H);
-        prod.run(4 * i + 2, lp, nsel, cp, lf);
+        prod.run(4 * i + 2, lp, nsel, cp);
         const float* up = us[i].data_ptr<float>();
         for (int64_t k = 0; k < nsel; ++k) mask_rowf(up + sel[k] * H, cp + k * H, lp + k * H, H);
-        prod.run(4 * i + 3, lp, nsel, cp, lf);
+        prod.run(4 * i + 3, lp, nsel, cp);
         const float* hp = hs[i].data_ptr<float>();
         for (int64_t k = 0; k < nsel; ++k) grad_rowf(hp + sel[k] * H, cp + k * H, gp + k * H, H);
       }
