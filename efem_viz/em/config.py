@@ -695,8 +695,8 @@ class SolveSettings:
     """Output-mask SDF band (canonical units); default: the prior's calibrated value (`calibrate-masks`), else 0.04."""
     matmul_dtype: SolvePrecision = "float32"
     """Precision of the networks' matrix products (`precision_compute`): float32 (the method), bfloat16 (the
-    decoder's products in bf16, the encoder float32: on a CPU with AVX-512 BF16 or AMX the E-steps decode in
-    0.6-0.8x the time; synthetic scenes as good, real frames a few AP50 points lower over 8 seeds,
+    decoder's products with bf16 operands, the encoder float32: on a CPU with AMX the E-steps decode in about
+    half the time, on AVX-512 BF16 in 0.6x; the real frames' AP50 within a few points of float32 either way,
     docs/BENCHMARKS.md) or auto (bfloat16 on such a CPU, else float32)."""
     free_space: FreeSpaceMode = "auto"
     """The free-space check against the scene's recorded cameras (a frame's capture camera, every camera of a
