@@ -160,7 +160,7 @@ def main() -> int:
                   f"{100 * r['share_of_peak']:.0f} % of its peak (floor {r['floor_s']:.2f} s){diff}", flush=True)
     write_result(result_path("decoder_kernel", a.tag),
                  {"machine": machine(a.threads) | {"gemm_peak_gflops": peaks}, "repeats": a.repeats,
-                  "tile": {"float32": fused.DECODER_TILE, "bfloat16": fused.DECODER_TILE_BF16}, "scenes": rows})
+                  "tile": {"float32": fused.DECODER_TILE, "bfloat16": fused.bf16_tile()}, "scenes": rows})
     return 0
 
 

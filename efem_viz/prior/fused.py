@@ -18,9 +18,9 @@ in one C++ loop over tiles of 256 rows: the first layer, each block's two produc
 fused into the pass that follows each product, the output, and the band rows' input gradient, every activation
 of a tile kept in cache (float32, the eager tiles' result to rounding; ``EFEM_VIZ_FUSED_DECODER=0`` turns this
 one off). Under a CPU bf16 autocast (`EMConfig.compute.matmul_dtype` "bfloat16") its hidden products take bf16
-operands and give float32 results (oneDNN's bf16 micro-kernel on AMX or AVX-512 BF16, else a float32 product of
-the rounded operands), while the first layer, the residual stream, the output and the gradient's sums stay float32
-(closer to float32 than the eager bf16 tiles, whose whole stream is bf16), in tiles of 1,024 rows.
+operands and give float32 results (torch's CPU BLAS: the packed bf16 micro-kernel where the CPU has AMX, its bf16
+GEMM with float32 results elsewhere), while the first layer, the residual stream, the output and the gradient's sums stay float32
+(closer to float32 than the eager bf16 tiles, whose whole stream is bf16), in tiles of `bf16_tile()` rows.
 
 The C++ file is compiled on first use with torch's own toolchain support (`torch.utils.cpp_extension`, about
 35 s once per machine, cached under ``~/.cache/efem-viz/torch_extensions`` in a folder keyed by everything that
@@ -323,9 +323,23 @@ DECODER_TILE = 256
 """Rows per tile of the fused decoder pass: every activation the tile keeps for its backward (width 128, two
 blocks: 5 x 128 KB) stays in the core's L2."""
 DECODER_TILE_BF16 = 1024
-"""Rows per tile of its bf16 pass: bf16 products gain more from taller tiles than the cache loses (per pass on
-a Zen 4 core, tiles of 256 / 512 / 1024 / 2048 rows: 1.2 / 1.4 / 1.55 / 1.5x the float32 pass at 256;
-`bench/decoder_kernel.py`)."""
+"""Rows per tile of its bf16 pass on a CPU without AMX, whose bf16 GEMM gains more from taller tiles than the
+cache loses (per pass on a Zen 4 core, tiles of 256 / 512 / 1024 / 2048 rows: 1.2 / 1.4 / 1.55 / 1.5x the float32
+pass at 256; `bench/decoder_kernel.py`)."""
+DECODER_TILE_BF16_AMX = 256
+"""The same where the CPU has AMX: its packed bf16 micro-kernel has no per-call setup to spread, and tiles that stay
+in L2 win (replayed E-step decodes of a real frame on an AMX Xeon, tiles of 128 / 256 / 512 / 1024 / 2048 rows:
+1.05 / 1.00 / 1.01 / 1.13-1.26 / 1.27-1.50x the time at 256)."""
+
+
+def bf16_tile() -> int:
+    """Rows per tile of the bf16 pass on this CPU (`DECODER_TILE_BF16_AMX` where it has AMX tiles)."""
+    if "amx" not in _state:
+        try:
+            _state["amx"] = bool(torch.cpu._is_amx_tile_supported())
+        except AttributeError:  # a torch without the probe
+            _state["amx"] = False
+    return DECODER_TILE_BF16_AMX if _state["amx"] else DECODER_TILE_BF16
 
 
 def autocast_bf16() -> bool:
@@ -363,4 +377,4 @@ def decoder_band(q: torch.Tensor, mt: torch.Tensor, blocks: list[tuple[torch.Ten
     half = on if bf16 is None else bool(bf16)
     with torch.autocast("cpu", enabled=False):
         return torch.ops.efem_vn.decoder_band(q, mt, w0, b0, w1, b1, w_out, float(b_out), float(within),
-                                              bool(use_qnorm), DECODER_TILE_BF16 if half else DECODER_TILE, half)
+                                              bool(use_qnorm), bf16_tile() if half else DECODER_TILE, half)
