@@ -345,6 +345,30 @@ def test_fused_decoder_tiles_and_threads_change_nothing_but_rounding(monkeypatch
 
 
 @needs_kernels
+def test_fused_decoder_bf16_pass_is_the_same_in_any_tiles_and_threads(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The bf16 pass's rows never see one another: 7-row tiles on two threads give the same bits as the
+    default tiles on one thread, at a width that takes the bf16 micro-kernel where the CPU has one."""
+    dec = _decoder(128, 2, True, seed=5)
+    g = torch.Generator().manual_seed(6)
+    threads = torch.get_num_threads()
+    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
+        m, bias = dec.fold(torch.randn(3, 6, 3, generator=g), torch.randn(3, 6, generator=g))
+        q = torch.randn(3, 900, 3, generator=g)
+        try:
+            torch.set_num_threads(1)
+            one = dec.sdf_and_band_grad(q, m, bias, within=0.5)
+            monkeypatch.setattr(fused, "DECODER_TILE_BF16", 7)
+            monkeypatch.setattr(fused, "DECODER_TILE_BF16_AMX", 7)
+            torch.set_num_threads(2)
+            small = dec.sdf_and_band_grad(q, m, bias, within=0.5)
+        finally:
+            torch.set_num_threads(threads)
+    assert 0 < int(one[2].sum()) < one[2].numel()
+    for a, b in zip(one, small):
+        assert torch.equal(a, b)
+
+
+@needs_kernels
 def test_fused_decoder_leaves_training_float64_and_bad_shapes_alone(monkeypatch: pytest.MonkeyPatch) -> None:
     dec = _decoder(16, 2, True, seed=5)
     q, m, bias = _decoder_inputs(dec, 2, 100, seed=6)
