@@ -483,8 +483,8 @@ class ComputeSettings(_Settings):
     (`torch.autocast`: the encoder's and decoder's linear layers in bf16; k-NN graphs, SDF values, normals and
     every energy stay float32). The reviews (completed meshes, poses, coverage and the output masks) always
     decode in float32. On a CPU the decoder's fused pass then takes bf16 operands (float32 products) and keeps
-    its stream float32 (`efem_viz.prior.fused.decoder_band`); with `encoder_dtype` "float32" that is what `SolveSettings`'
-    "bfloat16" and "auto" run (docs/BENCHMARKS.md measures speed and AP)."""
+    its stream float32 (`efem_viz.prior.fused.decoder_band`); with `encoder_dtype` "float32" that is what
+    `SolveSettings`' "bfloat16" and "auto" run (docs/BENCHMARKS.md measures speed and AP)."""
     encoder_dtype: MatmulDtype | None = None
     """Precision of the encoder in the EM steps; None = `matmul_dtype`. "float32" with `matmul_dtype`
     "bfloat16" runs only the decoder in bf16: the encoder keeps its fused float32 kernels (autocast switches

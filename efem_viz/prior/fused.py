@@ -19,8 +19,9 @@ fused into the pass that follows each product, the output, and the band rows' in
 of a tile kept in cache (float32, the eager tiles' result to rounding; ``EFEM_VIZ_FUSED_DECODER=0`` turns this
 one off). Under a CPU bf16 autocast (`EMConfig.compute.matmul_dtype` "bfloat16") its hidden products take bf16
 operands and give float32 results (torch's CPU BLAS: the packed bf16 micro-kernel where the CPU has AMX, its bf16
-GEMM with float32 results elsewhere), while the first layer, the residual stream, the output and the gradient's sums stay float32
-(closer to float32 than the eager bf16 tiles, whose whole stream is bf16), in tiles of `bf16_tile()` rows.
+GEMM with float32 results elsewhere), while the first layer, the residual stream, the output and the gradient's
+sums stay float32 (closer to float32 than the eager bf16 tiles, whose whole stream is bf16), in tiles of
+`bf16_tile()` rows.
 
 The C++ file is compiled on first use with torch's own toolchain support (`torch.utils.cpp_extension`, about
 35 s once per machine, cached under ``~/.cache/efem-viz/torch_extensions`` in a folder keyed by everything that
