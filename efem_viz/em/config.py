@@ -696,8 +696,9 @@ class SolveSettings:
     matmul_dtype: SolvePrecision = "float32"
     """Precision of the networks' matrix products (`precision_compute`): float32 (the method), bfloat16 (the
     decoder's products with bf16 operands, the encoder float32: on a CPU with AMX the E-steps decode in about
-    half the time, on AVX-512 BF16 in 0.6x; the real frames' AP50 within a few points of float32 either way,
-    docs/BENCHMARKS.md) or auto (bfloat16 on such a CPU, else float32)."""
+    half the time, on AVX-512 BF16 in 0.6x; answers of lower quality: the synthetic fixed set's AP50 about 10
+    points lower, the real frames' within a few points either way, docs/BENCHMARKS.md) or auto (bfloat16 on
+    such a CPU, else float32)."""
     free_space: FreeSpaceMode = "auto"
     """The free-space check against the scene's recorded cameras (a frame's capture camera, every camera of a
     fused scan): auto (the preset's: on for real, off otherwise), on (where the preset has none, the check for
