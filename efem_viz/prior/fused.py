@@ -324,9 +324,10 @@ DECODER_TILE = 256
 """Rows per tile of the fused decoder pass: every activation the tile keeps for its backward (width 128, two
 blocks: 5 x 128 KB) stays in the core's L2."""
 DECODER_TILE_BF16 = 1024
-"""Rows per tile of its bf16 pass on a CPU without AMX, whose bf16 GEMM gains more from taller tiles than the
-cache loses (per pass on a Zen 4 core, tiles of 256 / 512 / 1024 / 2048 rows: 1.2 / 1.4 / 1.55 / 1.5x the float32
-pass at 256; `bench/decoder_kernel.py`)."""
+"""Rows per tile of its bf16 pass on a CPU without AMX, whose bf16 GEMM gained more from taller tiles than the
+cache lost (per pass on a Zen 4 core, tiles of 256 / 512 / 1024 / 2048 rows: 1.2 / 1.4 / 1.55 / 1.5x the float32
+pass at 256; `bench/decoder_kernel.py`; measured when the pass's products had bf16 results, not re-measured
+since)."""
 DECODER_TILE_BF16_AMX = 256
 """The same where the CPU has AMX: its packed bf16 micro-kernel has no per-call setup to spread, and tiles that stay
 in L2 win (replayed E-step decodes of a real frame on an AMX Xeon, tiles of 128 / 256 / 512 / 1024 / 2048 rows:

@@ -344,9 +344,15 @@ inline void first_row(const float* m, float q0, float q1, float q2, float qn, fl
 #endif
   for (; j < H; ++j) {
     float v = m[H + j] * q1;
+#ifdef __FMA__
     v = std::fma(m[j], q0, v);
     v = std::fma(m[2 * H + j], q2, v);
     v = std::fma(m[3 * H + j], qn, v);
+#else  // a build without FMA instructions (below AVX2): plain products, not a library call per unit
+    v = v + m[j] * q0;
+    v = v + m[2 * H + j] * q2;
+    v = v + m[3 * H + j] * qn;
+#endif
     v = v + m[4 * H + j];
     h[j] = v;
     a[j] = v > 0.0f ? v : 0.0f;
@@ -437,8 +443,8 @@ inline void grad_rowf(const float* h, const float* c, float* g, int64_t n) {
 // The hidden products of the bf16 pass: C (m x H, float32) = L (m x H, bf16 bits) B, B an (H x H) float32 matrix
 // whose entries are rounded to bf16 once; bf16 operands, float32 accumulation and results. Where oneDNN's bf16
 // micro-kernel has a packed layout (AMX), B is packed once in column panels of kPanel (its packing takes no wider
-// ones) and the micro-kernel runs per panel; elsewhere torch's CPU BLAS multiplies the plain bf16 B (oneDNN's bf16
-// GEMM with float32 results on AVX-512 BF16, a slow reference loop on CPUs without bf16 hardware).
+// ones) and the micro-kernel runs per panel; elsewhere torch's CPU BLAS multiplies the plain bf16 B (the bf16 GEMM
+// with float32 results of the BLAS library torch was built with; slow on CPUs without bf16 hardware).
 struct Bf16Products {
   static constexpr int64_t kPanel = 32;
   bool vnni = false;
