@@ -69,6 +69,16 @@ def matmul_precision(dtype: str, device_type: str = "cpu") -> AbstractContextMan
     return torch.autocast(device_type, dtype=torch.bfloat16)
 
 
+def cpu_has_amx() -> bool:
+    """Whether this CPU has AMX tiles (False with a torch that cannot tell)."""
+    import torch
+
+    try:
+        return bool(torch.cpu._is_amx_tile_supported())
+    except AttributeError:  # a torch without the probe
+        return False
+
+
 def fast_cpu_bf16() -> bool:
     """Whether this CPU has bf16 matrix hardware (AMX tiles or AVX-512 BF16). Without it, bf16 matrix products
     fall back to conversions around scalar code: 10-17x *slower* than float32 (measured on an AVX2-only AMD
@@ -76,7 +86,7 @@ def fast_cpu_bf16() -> bool:
     import torch
 
     try:
-        return bool(torch.cpu._is_amx_tile_supported() or torch.cpu._is_avx512_bf16_supported())
+        return cpu_has_amx() or bool(torch.cpu._is_avx512_bf16_supported())
     except AttributeError:  # a torch without the probes: assume not
         return False
 

@@ -336,12 +336,9 @@ in L2 win (replayed E-step decodes of a real frame on an AMX Xeon, tiles of 128 
 
 def bf16_tile() -> int:
     """Rows per tile of the bf16 pass on this CPU (`DECODER_TILE_BF16_AMX` where it has AMX tiles)."""
-    if "amx" not in _state:
-        try:
-            _state["amx"] = bool(torch.cpu._is_amx_tile_supported())
-        except AttributeError:  # a torch without the probe
-            _state["amx"] = False
-    return DECODER_TILE_BF16_AMX if _state["amx"] else DECODER_TILE_BF16
+    from efem_viz.prior.config import cpu_has_amx
+
+    return DECODER_TILE_BF16_AMX if cpu_has_amx() else DECODER_TILE_BF16
 
 
 def autocast_bf16() -> bool:

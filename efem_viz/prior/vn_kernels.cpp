@@ -633,7 +633,6 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> decoder_band(
       const float* hl = hs[nb].data_ptr<float>();
       for (int64_t k = 0; k < nsel; ++k) pass_row(hl + sel[k] * H, pw, gp + k * H, H);
       auto g_n = g.narrow(0, 0, nsel), tmp_n = tmp.narrow(0, 0, nsel);
-      float* tp = tmp.data_ptr<float>();
       for (int64_t i = nb - 1; bf16 && i >= 0; --i) {  // the same with bf16 operands
         bf16_row(gp, lp, nsel * H);
         prod.run(4 * i + 2, lp, nsel, cp);
@@ -648,7 +647,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> decoder_band(
         const float* up = us[i].data_ptr<float>();
         for (int64_t k = 0; k < nsel; ++k) {
           const float* ur = up + sel[k] * H;
-          float* tr = tp + k * H;
+          float* tr = cp + k * H;
           for (int64_t j = 0; j < H; ++j) tr[j] = ur[j] > 0.0f ? tr[j] : 0.0f;
         }
         auto x_n = act.narrow(0, 0, nsel);  // act is free now: (t W0) through h_i's mask
