@@ -156,7 +156,12 @@ class Panels:
             self.gui_progress = gui.add_progress_bar(0.0)
         with gui.add_folder("EFEM assist", expand_by_default=False):
             self.gui_efem_run = gui.add_button("Run EFEM on this scan",
-                                               hint="its instances become pre-labels to review (the prior below)")
+                                               hint="its instances become pre-labels to review (the settings and the prior below)")
+            self.gui_efem_cancel = gui.add_button("Cancel EFEM run", disabled=True)
+            # Cancel, the run's progress and its words right under Run, the run's settings after them: in view where
+            # Run is clicked on a small window (below the settings they fell below the fold); they show while a run goes
+            self.gui_efem_progress = gui.add_progress_bar(0.0, visible=False)
+            self.gui_efem_status = gui.add_markdown("")
             self.gui_efem_preset = gui.add_dropdown("Run preset", PRESETS, initial_value=preset,
                                                     hint="'real' for single-view captures, 'fast' for a quick look")
             self.gui_efem_proposals = gui.add_number(
@@ -166,11 +171,6 @@ class Panels:
                 "Free space", get_args(FreeSpaceMode), initial_value="auto",
                 hint="remove fits the scan's cameras saw through: auto = the preset's (on for 'real'); "
                      "'on' adds it for a fused scan with several cameras; 'off' keeps every fit")
-            self.gui_efem_cancel = gui.add_button("Cancel EFEM run", disabled=True)
-            # the run's progress and words right under its buttons: in view when Run is clicked (at the folder's
-            # end they were below the fold); they show only while a run goes
-            self.gui_efem_progress = gui.add_progress_bar(0.0, visible=False)
-            self.gui_efem_status = gui.add_markdown("")
             self.gui_efem_path = gui.add_text("EFEM result", efem_result)
             self.gui_efem_import = gui.add_button("Import EFEM pre-labels")
             self.gui_prelabel = gui.add_dropdown("Pre-label", NO_OPTIONS,
