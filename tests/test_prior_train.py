@@ -133,6 +133,39 @@ def test_table_patch_from_a_random_side_touches_the_object(tmp_path: Path, cache
         _args(tmp_path, cache_dir, table_side_p=-0.1).sample_config(256)
 
 
+def test_neighbour_part_lies_beside_the_object_inside_its_reach(tmp_path: Path, cache_dir: Path) -> None:
+    """With ``neighbour_p`` = 1 the other-object points are one piece of a whole other object placed beside this
+    one: inside the input's reach, outside the object (a gap, not through it), most of them from one rigid copy."""
+    from scipy.spatial import cKDTree
+
+    objs = [load_or_prepare(s, cache_dir=cache_dir / "data", cfg=SMALL_PREP, seed=i)
+            for i, s in enumerate(procedural_sources("mug", "train", 2))]
+    cfg = dataclasses.replace(_args(tmp_path, cache_dir, neighbour_p=1.0).sample_config(256),
+                              noise_std=0.0, aug_ratio=1.0, p_obj=1.0, p_ball=0.0, p_table=0.0)
+    assert cfg.p_neighbour == 1.0
+    rng = np.random.default_rng(11)
+    base = input_cloud(objs[0], cfg, rng)
+    seen = {tuple(p) for p in base.tolist()}
+    centre = base.mean(axis=0)
+    reach = float(np.sqrt(((base - centre) ** 2).sum(-1)).max()) * 1.25  # the kept cloud's reach with a margin
+    surface = cKDTree(objs[0].surface)
+    # the object's inside, by its own SDF samples: a neighbour never reaches into it
+    inside = cKDTree(objs[0].uni[objs[0].uni[:, 3] < -0.02, :3])
+    n_checked = 0
+    for _ in range(20):
+        out = augment_v1(base, objs[0], objs[0].uni[:1024], objs[1:], cfg, rng)
+        new = np.array([p for p in out.tolist() if tuple(p) not in seen])
+        if len(new) < 20:
+            continue
+        assert np.sqrt(((new - centre) ** 2).sum(-1)).max() <= reach + 1e-5
+        assert np.median(surface.query(new)[0]) > 0.01
+        assert (inside.query(new)[0] < 0.005).mean() < 0.02
+        n_checked += 1
+    assert n_checked >= 8
+    with pytest.raises(ValueError, match="neighbour_p"):
+        _args(tmp_path, cache_dir, neighbour_p=1.5).sample_config(256)
+
+
 def test_top_only_probability_chooses_the_views_an_input_comes_from(tmp_path: Path, cache_dir: Path) -> None:
     src = procedural_sources("mug", "train", 1)[0]
     obj = load_or_prepare(src, cache_dir=cache_dir / "data", cfg=SMALL_PREP, seed=0)

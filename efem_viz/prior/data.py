@@ -131,6 +131,12 @@ class SampleConfig:
     p_table_any_side: float = 0.0
     """Probability that a table patch touches the object from a random direction (uniform on the sphere) instead of
     from below (an object lying on its side, back or top, as tumbled chairs do, has its support plane there)."""
+    p_neighbour: float = 0.0
+    """Probability that the other-object points of an example are the part of a whole neighbouring object that
+    falls inside the example's reach (the object placed beside it, touching or a small gap away, as a pile's
+    neighbours are) instead of small crops floating around it."""
+    neighbour_gap: tuple[float, float] = (0.0, 0.08)
+    """Range of the gap (canonical units) between a neighbour and the object."""
     crop_radius: tuple[float, float] = (0.15, 0.09)
     """Crop radius mean / std."""
     crop_scale: tuple[float, float] = (0.5, 1.5)
@@ -714,6 +720,40 @@ def _object_crops(n_obj: int, pcl: np.ndarray, uni: np.ndarray, others: Sequence
     return np.concatenate(crops, axis=0)[:n_obj]
 
 
+def _neighbour_part(n_obj: int, obj: ObjectData, pcl: np.ndarray, others: Sequence[ObjectData],
+                    cfg: SampleConfig, rng: np.random.Generator) -> np.ndarray:
+    """Up to ``n_obj`` points of a whole other object, randomly turned and scaled, slid towards this object from a
+    random direction until it is within a random gap of its surface (never through it), cut to the ball that holds
+    the input cloud with a margin: what a neighbour in a pile leaves in a proposal's neighbourhood."""
+    from scipy.spatial import cKDTree
+
+    other = others[int(rng.integers(len(others)))]
+    pts = other.surface[rng.integers(0, len(other.surface), max(4 * n_obj, 512))].astype(np.float64)
+    pts = (pts - pts.mean(0)) @ _random_rotation(rng).T * rng.uniform(0.8, 1.2)
+    probe = pts[:256]  # the slide tests a subset against a subset of the surface: a few ms
+    tree = cKDTree(obj.surface[rng.choice(len(obj.surface), min(len(obj.surface), 2048), replace=False)])
+    d = rng.normal(size=3)
+    d /= max(float(np.linalg.norm(d)), 1e-12)
+    centre = pcl.mean(0).astype(np.float64)
+    reach = float(np.sqrt(((pcl - centre) ** 2).sum(-1)).max()) * 1.1
+    gap = rng.uniform(*cfg.neighbour_gap)
+    step = 0.03
+    t = reach + float(np.sqrt((probe ** 2).sum(-1)).max()) + step
+    placed_t = None
+    while t > 0.0:  # slide in from beyond the reach; stop before the first position within the gap
+        if tree.query(probe + centre + t * d, k=1)[0].min() < gap:
+            break
+        placed_t = t
+        t -= step
+    if placed_t is None:
+        return np.zeros((0, 3), np.float32)
+    placed = pts + centre + placed_t * d
+    inside = placed[((placed - centre) ** 2).sum(-1) <= reach * reach]
+    if len(inside) > n_obj:
+        inside = inside[rng.choice(len(inside), n_obj, replace=False)]
+    return inside.astype(np.float32)
+
+
 def _support_direction(cfg: SampleConfig, rng: np.random.Generator) -> np.ndarray:
     """Unit normal of a table patch, pointing from the plane to the object: +Z, or with probability
     ``p_table_any_side`` uniform on the sphere."""
@@ -776,8 +816,10 @@ def augment_v1(pcl: np.ndarray, obj: ObjectData, uni: np.ndarray, others: Sequen
     reduced = pcl[keep]
     added: list[np.ndarray] = []
     if n_obj > 0:
-        crops = _object_crops(n_obj, reduced, uni, others, cfg, rng)
-        added.append(crops)
+        if cfg.p_neighbour > 0 and rng.random() < cfg.p_neighbour:
+            added.append(_neighbour_part(n_obj, obj, reduced, others, cfg, rng))
+        else:
+            added.append(_object_crops(n_obj, reduced, uni, others, cfg, rng))
     if n_table > 0:
         half = rng.uniform(*cfg.table_scale)
         c = rng.uniform(-0.2, 0.2, 2)

@@ -160,6 +160,10 @@ class TrainArgs:
     """Probability that a table-plane patch touches the object from a random direction (uniform on the sphere,
     above included) instead of from below: objects that lie on their side, back or top in scenes, as tumbled
     chairs do. Validation inputs have no table patch."""
+    neighbour_p: float = 0.0
+    """Probability that the other-object points of an example are the part of a whole neighbouring object inside
+    the example's reach (placed touching it or a small gap away, as in a pile) instead of small floating crops.
+    Validation inputs have none."""
     min_views: int = 4
     """Fewest depth views in an input cloud (spec: 4 for mugs; 1 also trains single-view inputs, as real RGB-D
     frames are). Validation inputs are drawn with the same setting."""
@@ -247,9 +251,11 @@ class TrainArgs:
             raise ValueError(f"top_only_p must be in [0, 1] (got {self.top_only_p})")
         if not 0.0 <= self.table_side_p <= 1.0:
             raise ValueError(f"table_side_p must be in [0, 1] (got {self.table_side_p})")
+        if not 0.0 <= self.neighbour_p <= 1.0:
+            raise ValueError(f"neighbour_p must be in [0, 1] (got {self.neighbour_p})")
         return SampleConfig(n_pcl=n_pcl, p_table=self.p_table, min_views=self.min_views, sensor_p=self.sensor_p,
                             p_top_only=self.top_only_p, p_table_any_side=self.table_side_p,
-                            n_query_near=near, n_query_uniform=total - near)
+                            p_neighbour=self.neighbour_p, n_query_near=near, n_query_uniform=total - near)
 
     def resolved_out_dir(self) -> Path:
         """``out_dir`` or ``runs/<category>``."""
