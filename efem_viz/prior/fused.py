@@ -296,8 +296,10 @@ def lin_act_mean(x: torch.Tensor, w_lin: torch.Tensor, w_dir: torch.Tensor, slop
 def knn(query: torch.Tensor, ref: torch.Tensor, k: int) -> torch.Tensor:
     """`efem_viz.geometry.knn.knn_indices` (the same neighbours, ascending distance), with the selection in one
     pass per row when `usable` instead of a `topk` over the distance matrix: the distances are formed as the
-    eager formula forms them (float32, the same rounding), and a row with equal distances among its k takes
-    torch's own selection, so the indices equal `topk`'s, ties included.
+    eager formula forms them (float32, the same rounding). Where equal distances among a row's k all belong to
+    identical reference rows (duplicate points: the M-step draws with replacement) the row keeps its one pass,
+    equal distances by ascending index: indices may differ from `topk`'s there, never what they gather. A row
+    with equal distances between different points takes torch's own selection, so its indices equal `topk`'s.
 
     Args:
         query: ``(B, Nq, D)`` float.
@@ -317,7 +319,7 @@ def knn(query: torch.Tensor, ref: torch.Tensor, k: int) -> torch.Tensor:
         if not usable(q, r):
             return knn_indices(query, ref, k)
         gram = q @ r.transpose(1, 2)
-        return torch.ops.efem_vn.knn_select(gram, (q * q).sum(-1), (r * r).sum(-1), int(k))
+        return torch.ops.efem_vn.knn_select(gram, (q * q).sum(-1), (r * r).sum(-1), int(k), r)
 
 
 DECODER_TILE = 256

@@ -15,9 +15,16 @@
 #include <cstring>
 #include <tuple>
 #include <limits>
+#include <optional>
 #include <vector>
 
 namespace {
+
+#ifdef __AVX512F__
+constexpr int64_t kLanes = 16;  // floats in one AVX-512 register
+#else
+constexpr int64_t kLanes = 0;
+#endif
 
 template <bool Accumulate>
 inline void vn_leaky(const float* x, const float* d, float* out, int64_t C, float f) {
@@ -213,12 +220,15 @@ void topk_smallest_like_torch(const float* d, int64_t n, int64_t k, int64_t* out
   for (int64_t j = 0; j < k; ++j) out[j] = queue[j].second;
 }
 
-at::Tensor knn_select(const at::Tensor& gram_, const at::Tensor& qq_, const at::Tensor& rr_, int64_t k) {
+at::Tensor knn_select(const at::Tensor& gram_, const at::Tensor& qq_, const at::Tensor& rr_, int64_t k,
+                      const std::optional<at::Tensor>& ref_) {
   // The k nearest reference rows of every query row from the Gram matrix G = q r^T and the squared norms, with
   // the answer of the eager `((qq_i - 2 G_ij) + rr_j).topk(k, largest=False)`: the distances rounded as it
   // rounds them, the k smallest found by one insertion pass per row (no sort of the row); a row with equal
   // distances among or at the edge of its k (duplicate points, mostly) or a NaN takes torch's own selection, so
-  // ties come out in torch's order too.
+  // ties come out in torch's order too. Given the reference rows (`ref`, (B, Nr, D)), a row whose equal distances
+  // all belong to identical reference rows (duplicates: every gather of them gives the same values in any order)
+  // keeps the insertion pass's answer (equal distances by ascending index), as cheap as a row without ties.
   TORCH_CHECK(gram_.dim() == 3 && gram_.scalar_type() == at::kFloat, "gram must be (B, Nq, Nr) float32");
   TORCH_CHECK(qq_.dim() == 2 && qq_.size(0) == gram_.size(0) && qq_.size(1) == gram_.size(1) &&
               qq_.scalar_type() == at::kFloat, "qq must be (B, Nq) float32");
@@ -228,6 +238,15 @@ at::Tensor knn_select(const at::Tensor& gram_, const at::Tensor& qq_, const at::
   const int64_t B = gram_.size(0), Nq = gram_.size(1), Nr = gram_.size(2);
   TORCH_CHECK(k >= 1 && k <= Nr, "k must be in [1, Nr]");
   const auto gram = gram_.contiguous(), qq = qq_.contiguous(), rr = rr_.contiguous();
+  at::Tensor ref;
+  int64_t D = 0;
+  if (ref_.has_value()) {
+    TORCH_CHECK(ref_->dim() == 3 && ref_->size(0) == B && ref_->size(1) == Nr && ref_->scalar_type() == at::kFloat,
+                "ref must be (B, Nr, D) float32");
+    ref = ref_->contiguous();
+    D = ref.size(2);
+  }
+  const float* pf = D > 0 ? ref.data_ptr<float>() : nullptr;
   auto out = at::empty({B, Nq, k}, gram.options().dtype(at::kLong));
   if (out.numel() == 0) return out;
   const float* pg = gram.data_ptr<float>();
@@ -238,13 +257,28 @@ at::Tensor knn_select(const at::Tensor& gram_, const at::Tensor& qq_, const at::
     std::vector<float> d(Nr), bd(k);
     std::vector<int64_t> bi(k);
     std::vector<std::pair<float, int64_t>> queue;
+    std::vector<int64_t> within;
     for (int64_t row = begin; row < end; ++row) {
       const int64_t b = row / Nq;
       const float* g = pg + row * Nr;
       const float* r = pr + b * Nr;
       const float q = pq[row];
       bool nan = false;
-      for (int64_t j = 0; j < Nr; ++j) {
+      int64_t j0 = 0;
+#ifdef __AVX512F__
+      {  // the same two roundings per entry, 16 at a time
+        const __m512 vq = _mm512_set1_ps(q);
+        __mmask16 unord = 0;
+        for (; j0 + kLanes <= Nr; j0 += kLanes) {
+          const __m512 gv = _mm512_loadu_ps(g + j0);
+          const __m512 dv = _mm512_add_ps(_mm512_sub_ps(vq, _mm512_add_ps(gv, gv)), _mm512_loadu_ps(r + j0));
+          unord |= _mm512_cmp_ps_mask(dv, dv, _CMP_UNORD_Q);
+          _mm512_storeu_ps(d.data() + j0, dv);
+        }
+        nan = unord != 0;
+      }
+#endif
+      for (int64_t j = j0; j < Nr; ++j) {
         const float t = q - 2.0f * g[j];  // 2 g is exact: the eager (qq - 2 G) + rr, rounding for rounding
         d[j] = t + r[j];
         nan |= std::isnan(d[j]);
@@ -255,9 +289,9 @@ at::Tensor knn_select(const at::Tensor& gram_, const at::Tensor& qq_, const at::
         continue;
       }
       int64_t n = 0;  // filled entries of the buffer, ascending
-      for (int64_t j = 0; j < Nr; ++j) {
+      auto insert = [&](int64_t j) {  // one step of the insertion pass: j's distance into the sorted buffer
         const float v = d[j];
-        if (n == k && !(v < bd[k - 1])) continue;
+        if (n == k && !(v < bd[k - 1])) return;
         int64_t pos = n < k ? n++ : k - 1;
         while (pos > 0 && v < bd[pos - 1]) {
           bd[pos] = bd[pos - 1];
@@ -266,14 +300,46 @@ at::Tensor knn_select(const at::Tensor& gram_, const at::Tensor& qq_, const at::
         }
         bd[pos] = v;
         bi[pos] = j;
+      };
+      int64_t j = 0;
+      for (; j < Nr && n < k; ++j) insert(j);
+#ifdef __AVX512F__
+      // full buffer: only entries below the k-th distance can enter, and the k-th only falls, so a lane that fails
+      // the test at its block's start fails it at its turn too; the passing lanes go through `insert` in order
+      for (; j + kLanes <= Nr; j += kLanes) {
+        __mmask16 m = _mm512_cmp_ps_mask(_mm512_loadu_ps(d.data() + j), _mm512_set1_ps(bd[k - 1]), _CMP_LT_OQ);
+        while (m) {
+          insert(j + __builtin_ctz(m));
+          m &= m - 1;
+        }
       }
+#endif
+      for (; j < Nr; ++j) insert(j);
       bool tie = false;
       for (int64_t i = 0; i + 1 < k && !tie; ++i) tie = bd[i] == bd[i + 1];
       if (!tie) {  // the k-th distance unique in the row too?
         const float last = bd[k - 1];
-        int64_t equal = 0;
-        for (int64_t j = 0; j < Nr; ++j) equal += d[j] == last;
+        int64_t equal = 0, jj = 0;
+#ifdef __AVX512F__
+        const __m512 vl = _mm512_set1_ps(last);
+        for (; jj + kLanes <= Nr; jj += kLanes)
+          equal += __builtin_popcount(_mm512_cmp_ps_mask(_mm512_loadu_ps(d.data() + jj), vl, _CMP_EQ_OQ));
+#endif
+        for (; jj < Nr; ++jj) equal += d[jj] == last;
         tie = equal != 1;
+      }
+      if (tie && pf != nullptr) {  // only duplicates tied? every entry at most the k-th distance, grouped by value
+        const float last = bd[k - 1];
+        within.clear();
+        for (int64_t jj = 0; jj < Nr; ++jj)
+          if (d[jj] <= last) within.push_back(jj);
+        std::stable_sort(within.begin(), within.end(), [&](int64_t x, int64_t y) { return d[x] < d[y]; });
+        const float* fb = pf + b * Nr * D;
+        bool same = true;
+        for (size_t i = 1; i < within.size() && same; ++i)
+          if (d[within[i]] == d[within[i - 1]])
+            same = std::memcmp(fb + within[i] * D, fb + within[i - 1] * D, sizeof(float) * D) == 0;
+        tie = !same;
       }
       if (tie) {
         topk_smallest_like_torch(d.data(), Nr, k, o, queue);
@@ -310,9 +376,6 @@ inline __m256i to_bf16x16(__m512 v) {
 }
 
 inline void store16(uint16_t* p, __m256i v) { _mm256_storeu_si256(reinterpret_cast<__m256i*>(p), v); }
-constexpr int64_t kLanes = 16;
-#else
-constexpr int64_t kLanes = 0;
 #endif
 
 // l = bf16(x)
@@ -700,7 +763,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> decoder_band(
 TORCH_LIBRARY(efem_vn, m) {
   m.def("edge_mean(Tensor a, Tensor c, Tensor da, Tensor dc, Tensor nbr, float slope) -> Tensor", &edge_mean);
   m.def("act_mean(Tensor x, Tensor d, float slope) -> Tensor", &act_mean);
-  m.def("knn_select(Tensor gram, Tensor qq, Tensor rr, int k) -> Tensor", &knn_select);
+  m.def("knn_select(Tensor gram, Tensor qq, Tensor rr, int k, Tensor? ref=None) -> Tensor", &knn_select);
   m.def("attention(Tensor av, Tensor cv, Tensor dav, Tensor dcv, Tensor ak, Tensor ck, Tensor dak, Tensor dck, "
         "Tensor q, Tensor nbr, float slope, int head_dim, float eps) -> Tensor", &attention);
   m.def("decoder_band(Tensor q, Tensor mt, Tensor[] w0, Tensor[] b0, Tensor[] w1, Tensor[] b1, Tensor w_out, "
