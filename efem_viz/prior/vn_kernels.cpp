@@ -220,6 +220,43 @@ void topk_smallest_like_torch(const float* d, int64_t n, int64_t k, int64_t* out
   for (int64_t j = 0; j < k; ++j) out[j] = queue[j].second;
 }
 
+#ifdef __AVX512F__
+// The 16 smallest of d[0, n) in ascending order into bd / bi, exactly as the insertion pass leaves them (equal
+// distances after the ones already there, the first ones kept at the edge), with the sorted buffer held in one
+// register of distances and one of indices: an entry that enters shifts the larger ones up by one lane. False
+// (nothing written) where fewer than 16 finite entries entered (infinite distances): the caller's loop decides.
+bool select16(const float* d, int64_t n, float* bd, int64_t* bi) {
+  __m512 buf = _mm512_set1_ps(std::numeric_limits<float>::infinity());
+  __m512i ids = _mm512_set1_epi32(-1);
+  const __m512i up = _mm512_set_epi32(14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0, 0);
+  const __m512i top = _mm512_set1_epi32(15);
+  auto insert = [&](int64_t j) {
+    const __m512 v = _mm512_set1_ps(d[j]);
+    const __mmask16 m = _mm512_cmp_ps_mask(v, buf, _CMP_LT_OQ);  // the lanes above it: a suffix, buf is sorted
+    if (!m) return;
+    const __mmask16 first = m & static_cast<__mmask16>(-m);
+    buf = _mm512_mask_mov_ps(_mm512_mask_mov_ps(buf, m, _mm512_permutexvar_ps(up, buf)), first, v);
+    ids = _mm512_mask_mov_epi32(_mm512_mask_mov_epi32(ids, m, _mm512_permutexvar_epi32(up, ids)), first,
+                                _mm512_set1_epi32(static_cast<int32_t>(j)));
+  };
+  int64_t j = 0;
+  for (; j + kLanes <= n; j += kLanes) {  // a lane above the 16th distance at its block's start stays above it
+    __mmask16 m = _mm512_cmp_ps_mask(_mm512_loadu_ps(d + j), _mm512_permutexvar_ps(top, buf), _CMP_LT_OQ);
+    while (m) {
+      insert(j + __builtin_ctz(m));
+      m &= m - 1;
+    }
+  }
+  for (; j < n; ++j) insert(j);
+  alignas(64) int32_t out[16];
+  _mm512_store_epi32(out, ids);
+  if (out[15] < 0) return false;
+  _mm512_storeu_ps(bd, buf);
+  for (int i = 0; i < 16; ++i) bi[i] = out[i];
+  return true;
+}
+#endif
+
 at::Tensor knn_select(const at::Tensor& gram_, const at::Tensor& qq_, const at::Tensor& rr_, int64_t k,
                       const std::optional<at::Tensor>& ref_) {
   // The k nearest reference rows of every query row from the Gram matrix G = q r^T and the squared norms, with
@@ -237,6 +274,7 @@ at::Tensor knn_select(const at::Tensor& gram_, const at::Tensor& qq_, const at::
   TORCH_CHECK(gram_.device().is_cpu(), "CPU tensors only");
   const int64_t B = gram_.size(0), Nq = gram_.size(1), Nr = gram_.size(2);
   TORCH_CHECK(k >= 1 && k <= Nr, "k must be in [1, Nr]");
+  TORCH_CHECK(Nr <= std::numeric_limits<int32_t>::max(), "at most 2^31 - 1 reference rows");
   const auto gram = gram_.contiguous(), qq = qq_.contiguous(), rr = rr_.contiguous();
   at::Tensor ref;
   int64_t D = 0;
@@ -257,7 +295,7 @@ at::Tensor knn_select(const at::Tensor& gram_, const at::Tensor& qq_, const at::
     std::vector<float> d(Nr), bd(k);
     std::vector<int64_t> bi(k);
     std::vector<std::pair<float, int64_t>> queue;
-    std::vector<int64_t> within;
+    std::vector<int32_t> within(Nr);
     for (int64_t row = begin; row < end; ++row) {
       const int64_t b = row / Nq;
       const float* g = pg + row * Nr;
@@ -288,33 +326,27 @@ at::Tensor knn_select(const at::Tensor& gram_, const at::Tensor& qq_, const at::
         topk_smallest_like_torch(d.data(), Nr, k, o, queue);
         continue;
       }
-      int64_t n = 0;  // filled entries of the buffer, ascending
-      auto insert = [&](int64_t j) {  // one step of the insertion pass: j's distance into the sorted buffer
-        const float v = d[j];
-        if (n == k && !(v < bd[k - 1])) return;
-        int64_t pos = n < k ? n++ : k - 1;
-        while (pos > 0 && v < bd[pos - 1]) {
-          bd[pos] = bd[pos - 1];
-          bi[pos] = bi[pos - 1];
-          --pos;
-        }
-        bd[pos] = v;
-        bi[pos] = j;
-      };
-      int64_t j = 0;
-      for (; j < Nr && n < k; ++j) insert(j);
+      bool done = false;
 #ifdef __AVX512F__
-      // full buffer: only entries below the k-th distance can enter, and the k-th only falls, so a lane that fails
-      // the test at its block's start fails it at its turn too; the passing lanes go through `insert` in order
-      for (; j + kLanes <= Nr; j += kLanes) {
-        __mmask16 m = _mm512_cmp_ps_mask(_mm512_loadu_ps(d.data() + j), _mm512_set1_ps(bd[k - 1]), _CMP_LT_OQ);
-        while (m) {
-          insert(j + __builtin_ctz(m));
-          m &= m - 1;
-        }
+      if (k == kLanes) {  // the usual k: the sorted buffer is one register pair
+        done = select16(d.data(), Nr, bd.data(), bi.data());
       }
 #endif
-      for (; j < Nr; ++j) insert(j);
+      if (!done) {
+        int64_t n = 0;  // filled entries of the buffer, ascending
+        for (int64_t j = 0; j < Nr; ++j) {  // insertion: equal distances after the ones already there
+          const float v = d[j];
+          if (n == k && !(v < bd[k - 1])) continue;
+          int64_t pos = n < k ? n++ : k - 1;
+          while (pos > 0 && v < bd[pos - 1]) {
+            bd[pos] = bd[pos - 1];
+            bi[pos] = bi[pos - 1];
+            --pos;
+          }
+          bd[pos] = v;
+          bi[pos] = j;
+        }
+      }
       bool tie = false;
       for (int64_t i = 0; i + 1 < k && !tie; ++i) tie = bd[i] == bd[i + 1];
       if (!tie) {  // the k-th distance unique in the row too?
@@ -330,15 +362,29 @@ at::Tensor knn_select(const at::Tensor& gram_, const at::Tensor& qq_, const at::
       }
       if (tie && pf != nullptr) {  // only duplicates tied? every entry at most the k-th distance, grouped by value
         const float last = bd[k - 1];
-        within.clear();
-        for (int64_t jj = 0; jj < Nr; ++jj)
-          if (d[jj] <= last) within.push_back(jj);
-        std::stable_sort(within.begin(), within.end(), [&](int64_t x, int64_t y) { return d[x] < d[y]; });
+        int64_t m = 0, jj = 0;
+#ifdef __AVX512F__
+        const __m512 vl = _mm512_set1_ps(last);
+        const __m512i lane = _mm512_set_epi32(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
+        for (; jj + kLanes <= Nr; jj += kLanes) {
+          const __mmask16 le = _mm512_cmp_ps_mask(_mm512_loadu_ps(d.data() + jj), vl, _CMP_LE_OQ);
+          _mm512_mask_compressstoreu_epi32(within.data() + m, le,
+                                           _mm512_add_epi32(lane, _mm512_set1_epi32(static_cast<int32_t>(jj))));
+          m += __builtin_popcount(le);
+        }
+#endif
+        for (; jj < Nr; ++jj)
+          if (d[jj] <= last) within[m++] = static_cast<int32_t>(jj);
         const float* fb = pf + b * Nr * D;
         bool same = true;
-        for (size_t i = 1; i < within.size() && same; ++i)
-          if (d[within[i]] == d[within[i - 1]])
-            same = std::memcmp(fb + within[i] * D, fb + within[i - 1] * D, sizeof(float) * D) == 0;
+        for (int64_t i = 1; i < m && same; ++i) {  // each equal to the first earlier entry of its value
+          const float v = d[within[i]];
+          for (int64_t e = 0; e < i; ++e) {
+            if (d[within[e]] != v) continue;
+            same = std::memcmp(fb + within[i] * D, fb + within[e] * D, sizeof(float) * D) == 0;
+            break;
+          }
+        }
         tie = !same;
       }
       if (tie) {
