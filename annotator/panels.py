@@ -155,8 +155,9 @@ class Panels:
             self.gui_delete = gui.add_button("Delete active", color="red")
             self.gui_progress = gui.add_progress_bar(0.0)
         with gui.add_folder("EFEM assist", expand_by_default=False):
-            self.gui_efem_run = gui.add_button("Run EFEM on this scan",
-                                               hint="its instances become pre-labels to review (the settings and the prior below)")
+            self.gui_efem_run = gui.add_button(
+                "Run EFEM on this scan",
+                hint="its instances become pre-labels to review (the settings and the prior below)")
             self.gui_efem_cancel = gui.add_button("Cancel EFEM run", disabled=True)
             # Cancel, the run's progress and its words right under Run, the run's settings after them: in view where
             # Run is clicked on a small window (below the settings they fell below the fold); they show while a run goes

@@ -59,6 +59,28 @@ def test_edge_kernel_matches_the_reference(seed: int) -> None:
 
 
 @needs_kernels
+@pytest.mark.parametrize(("c", "c_in"), [(16, 3), (13, 3), (32, 5)])
+def test_first_layer_kernel_matches_its_products_and_activation(c: int, c_in: int) -> None:
+    """`fused.lin_act_mean` in one pass (the encoder's first layer: both products per edge, never in memory)
+    equals the eager products, activation and mean to float32 rounding (widths on and off the vector lanes), a
+    zero edge included; bad shapes are refused."""
+    g = torch.Generator().manual_seed(c)
+    x = torch.randn(3, 11, 7, 3, c_in, generator=g)
+    x[0, 0, 0] = 0.0  # a zero edge: zero products, the direction's floor
+    w, u = torch.randn(c, c_in, generator=g), torch.randn(c, c, generator=g)
+    y = F.linear(x.double(), w.double())
+    want = fused.act_mean_reference(y, F.linear(y, u.double()), 0.2)
+    with torch.no_grad():
+        got = fused.lin_act_mean(x, w, u, 0.2)
+    assert got.dtype == torch.float32 and got.shape == (3, 11, 3, c)
+    torch.testing.assert_close(got.double(), want, rtol=1e-4, atol=1e-4)
+    with pytest.raises(RuntimeError, match="w must be"):
+        torch.ops.efem_vn.lin_act_mean(x, w[:, :-1], u, 0.2)
+    with pytest.raises(RuntimeError, match="u must be"):
+        torch.ops.efem_vn.lin_act_mean(x, w, u[:-1], 0.2)
+
+
+@needs_kernels
 @pytest.mark.parametrize("seed", [0, 1])
 def test_attention_kernel_matches_the_reference(seed: int) -> None:
     """The fused VN attention (values, keys, per-head softmax over the neighbours) against the eager reference,
@@ -416,3 +438,27 @@ def test_fused_decoder_leaves_training_float64_and_bad_shapes_alone(monkeypatch:
     with pytest.raises(RuntimeError, match="block weights"):
         torch.ops.efem_vn.decoder_band(q.detach(), torch.zeros(2, 5, 16), [torch.zeros(16, 8)], [torch.zeros(16)],
                                        [w], [torch.zeros(16)], torch.zeros(16), 0.0, 0.1, True, 8)
+
+
+@needs_kernels
+@pytest.mark.parametrize(("b", "n", "dim", "m", "start"), [(200, 256, 3, 64, 0), (4, 128, 3, 32, 5), (2, 9, 1, 9, 8),
+                                                           (3, 50, 48, 12, 0), (1, 1, 3, 1, 0)])
+def test_fps_gives_the_eager_indices(b: int, n: int, dim: int, m: int, start: int) -> None:
+    """`fused.fps` returns `farthest_point_sample`'s indices, index for index: random points, duplicate points
+    (the M-step draws with replacement: equal distances everywhere), coordinates on a coarse grid (equal maxima:
+    the first one wins in both), and non-finite points (the eager loop decides)."""
+    from efem_viz.geometry.fps import farthest_point_sample
+
+    g = torch.Generator().manual_seed(b * 100 + n)
+    pts = torch.randn(b, n, dim, generator=g)
+    dup = pts[:, torch.randint(0, max(1, n // 2), (n,), generator=g)]
+    grid = torch.round(torch.randn(b, n, dim, generator=g) * 2.0) / 2.0
+    turned = grid @ torch.linalg.qr(torch.randn(b, dim, dim, generator=g))[0]  # maxima equal but for rounding
+    bad = pts.clone()
+    bad[0, n // 2, 0] = float("nan")
+    for x in (pts, dup, grid, turned, pts * 1e3, bad):
+        want = farthest_point_sample(x, m, start=start)
+        got = fused.fps(x, m, start=start)
+        assert got.dtype == torch.int64 and torch.equal(got, want)
+    with pytest.raises(ValueError, match="n_samples"):
+        fused.fps(pts, n + 1)

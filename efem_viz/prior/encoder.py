@@ -14,7 +14,6 @@ import torch.nn.functional as F
 from torch import nn
 
 from efem_viz.prior import fused
-from efem_viz.geometry.fps import farthest_point_sample
 from efem_viz.prior.vn_layers import (
     EPS,
     VNLinear,
@@ -125,7 +124,7 @@ class VNDGCNNEncoder(nn.Module):
             n_src = feat.shape[1]
             if b in self.down:
                 n_dst = max(1, n_src // self.down[b])
-                sel = farthest_point_sample(pos, n_dst, start=0)
+                sel = fused.fps(pos, n_dst, start=0)
                 f_dst = _gather(feat, sel)
                 pos = _gather(pos, sel)
             else:

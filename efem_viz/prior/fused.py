@@ -285,12 +285,30 @@ def attention(v: tuple[torch.Tensor, ...], k: tuple[torch.Tensor, ...], q: torch
 
 
 def lin_act_mean(x: torch.Tensor, w_lin: torch.Tensor, w_dir: torch.Tensor, slope: float) -> torch.Tensor:
-    """``mean_k VN-LeakyReLU_U(W x)`` for ``x (B, Nd, k, 3, C_in)`` (fused activation when `usable`)."""
+    """``mean_k VN-LeakyReLU_U(W x)`` for ``x (B, Nd, k, 3, C_in)``: one C++ pass when `usable` (the products
+    kept per edge, never in memory), else the products here and the fused activation or its reference."""
+    if x.dim() == 5 and x.shape[3] == 3 and usable(x, w_lin, w_dir):
+        return torch.ops.efem_vn.lin_act_mean(x, w_lin, w_dir, float(slope))
     y = F.linear(x, w_lin)
     d = F.linear(y, w_dir)
     if usable(y, d):
         return torch.ops.efem_vn.act_mean(y, d, float(slope))
     return act_mean_reference(y, d, slope)
+
+
+def fps(points: torch.Tensor, n_samples: int, *, start: int = 0) -> torch.Tensor:
+    """`efem_viz.geometry.fps.farthest_point_sample` (the same indices: the same roundings, the first of equal
+    maxima) in one C++ loop per batch row when `usable` and the points are finite, instead of a Python loop of
+    kernel launches per sample."""
+    from efem_viz.geometry.fps import farthest_point_sample
+
+    if points.ndim != 3 or not 1 <= n_samples <= points.shape[1] or not 0 <= start < points.shape[1]:
+        return farthest_point_sample(points, n_samples, start=start)  # its one error message
+    with torch.no_grad(), torch.autocast(points.device.type, enabled=False):
+        p = points.detach()
+        if p.shape[2] < 1 or not usable(p) or not bool(torch.isfinite(p).all()):
+            return farthest_point_sample(points, n_samples, start=start)
+        return torch.ops.efem_vn.fps(p, int(n_samples), int(start))
 
 
 def knn(query: torch.Tensor, ref: torch.Tensor, k: int) -> torch.Tensor:

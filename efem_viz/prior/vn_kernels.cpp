@@ -26,10 +26,18 @@ constexpr int64_t kLanes = 16;  // floats in one AVX-512 register
 constexpr int64_t kLanes = 0;
 #endif
 
+#if defined(__GNUC__)
+#define EFEM_INLINE inline __attribute__((always_inline))  // into each loop that calls it: vectorised there
+#else
+#define EFEM_INLINE inline
+#endif
+
 template <bool Accumulate>
-inline void vn_leaky(const float* x, const float* d, float* out, int64_t C, float f) {
+EFEM_INLINE void vn_leaky(const float* __restrict x, const float* __restrict d, float* __restrict out, int64_t C,
+                          float f) {
   // VN-LeakyReLU(x; d) of one edge, added to out[0..3C) (Accumulate) or written there; x, d, out are (3, C) with
-  // C contiguous
+  // C contiguous and never overlap (`__restrict`: the compiler vectorises the loop over channels wherever it is
+  // inlined; without it, whether it did depended on the other kernels in this file)
   for (int64_t ch = 0; ch < C; ++ch) {
     const float x0 = x[ch], x1 = x[C + ch], x2 = x[2 * C + ch];
     const float d0 = d[ch], d1 = d[C + ch], d2 = d[2 * C + ch];
@@ -48,8 +56,8 @@ inline void vn_leaky(const float* x, const float* d, float* out, int64_t C, floa
   }
 }
 
-inline void vn_acc(const float* x, const float* d, float* acc, int64_t C, float f) { vn_leaky<true>(x, d, acc, C, f); }
-inline void vn_act(const float* x, const float* d, float* out, int64_t C, float f) { vn_leaky<false>(x, d, out, C, f); }
+EFEM_INLINE void vn_acc(const float* x, const float* d, float* acc, int64_t C, float f) { vn_leaky<true>(x, d, acc, C, f); }
+EFEM_INLINE void vn_act(const float* x, const float* d, float* out, int64_t C, float f) { vn_leaky<false>(x, d, out, C, f); }
 
 at::Tensor edge_mean(const at::Tensor& a_, const at::Tensor& c_, const at::Tensor& da_, const at::Tensor& dc_,
                      const at::Tensor& nbr_, double slope) {
@@ -118,6 +126,71 @@ at::Tensor act_mean(const at::Tensor& x_, const at::Tensor& d_, double slope) {
     for (int64_t bi = begin; bi < end; ++bi) {
       std::fill(acc.begin(), acc.end(), 0.0f);
       for (int64_t j = 0; j < K; ++j) vn_acc(px + (bi * K + j) * S, pd + (bi * K + j) * S, acc.data(), C, f);
+      float* o = po + bi * S;
+      for (int64_t t = 0; t < S; ++t) o[t] = acc[t] * invk;
+    }
+  });
+  return out;
+}
+
+at::Tensor lin_act_mean(const at::Tensor& x_, const at::Tensor& w_, const at::Tensor& u_, double slope) {
+  // mean_k VN-LeakyReLU_U(W x) for x (B, N, k, 3, Cin): `act_mean(linear(x, W), linear(linear(x, W), U))` in one
+  // pass without the two (B, N, k, 3, C) products in memory. Each product entry is the chain a_0 w_0, then
+  // fma(a_i, w_i, .) in input order (the order the CPU GEMM takes for these small products on the machines
+  // measured, so the result is the same bits there; the same math to rounding anywhere), then act_mean's own
+  // activation and mean.
+  TORCH_CHECK(x_.dim() == 5 && x_.size(3) == 3 && x_.scalar_type() == at::kFloat, "x must be (B, N, k, 3, Cin) float32");
+  TORCH_CHECK(w_.dim() == 2 && w_.size(1) == x_.size(4) && w_.scalar_type() == at::kFloat, "w must be (C, Cin) float32");
+  TORCH_CHECK(u_.dim() == 2 && u_.size(0) == w_.size(0) && u_.size(1) == w_.size(0) && u_.scalar_type() == at::kFloat,
+              "u must be (C, C) float32");
+  TORCH_CHECK(x_.device().is_cpu() && w_.device().is_cpu() && u_.device().is_cpu(), "CPU tensors only");
+  const auto x = x_.contiguous();
+  const auto wt = w_.t().contiguous(), ut = u_.t().contiguous();  // (Cin, C), (C, C): a row per input channel
+  const int64_t B = x.size(0), N = x.size(1), K = x.size(2), Cin = x.size(4), C = w_.size(0), S = 3 * C;
+  auto out = at::empty({B, N, 3, C}, x.options());
+  if (out.numel() == 0) return out;
+  TORCH_CHECK(K > 0, "k must be >= 1");
+  TORCH_CHECK(Cin > 0, "x needs at least one channel");
+  const float* px = x.data_ptr<float>();
+  const float* pw = wt.data_ptr<float>();
+  const float* pu = ut.data_ptr<float>();
+  float* po = out.data_ptr<float>();
+  const float f = 1.0f - static_cast<float>(slope);
+  const float invk = 1.0f / static_cast<float>(K);
+  // product entries: out[c] = chain over i of a[i] * m[i][c] (m: rows of n contiguous entries)
+  auto chain = [](const float* a, const float* m, int64_t n_in, int64_t n, float* o) {
+    int64_t c = 0;
+#ifdef __AVX512F__
+    for (; c + kLanes <= n; c += kLanes) {
+      __m512 acc = _mm512_mul_ps(_mm512_set1_ps(a[0]), _mm512_loadu_ps(m + c));
+      for (int64_t i = 1; i < n_in; ++i) acc = _mm512_fmadd_ps(_mm512_set1_ps(a[i]), _mm512_loadu_ps(m + i * n + c), acc);
+      _mm512_storeu_ps(o + c, acc);
+    }
+#endif
+    for (; c < n; ++c) {
+      float acc = a[0] * m[c];
+      for (int64_t i = 1; i < n_in; ++i) {
+#ifdef __FMA__
+        acc = std::fma(a[i], m[i * n + c], acc);
+#else
+        acc = a[i] * m[i * n + c] + acc;
+#endif
+      }
+      o[c] = acc;
+    }
+  };
+  at::parallel_for(0, B * N, 16, [&](int64_t begin, int64_t end) {
+    std::vector<float> y(S), d(S), acc(S);
+    for (int64_t bi = begin; bi < end; ++bi) {
+      std::fill(acc.begin(), acc.end(), 0.0f);
+      for (int64_t j = 0; j < K; ++j) {
+        const float* e = px + (bi * K + j) * 3 * Cin;
+        for (int64_t r = 0; r < 3; ++r) {
+          chain(e + r * Cin, pw, Cin, C, y.data() + r * C);
+          chain(y.data() + r * C, pu, C, C, d.data() + r * C);
+        }
+        vn_acc(y.data(), d.data(), acc.data(), C, f);
+      }
       float* o = po + bi * S;
       for (int64_t t = 0; t < S; ++t) o[t] = acc[t] * invk;
     }
@@ -256,6 +329,75 @@ bool select16(const float* d, int64_t n, float* bd, int64_t* bi) {
   return true;
 }
 #endif
+
+#if defined(__GNUC__) && !defined(__clang__)
+#define EFEM_NO_CONTRACT __attribute__((optimize("fp-contract=off")))
+#else
+#define EFEM_NO_CONTRACT  // clang contracts within one expression only; the squares and sums below are separate
+#endif
+
+// One batch row of farthest-point sampling, rounding for rounding the eager loop of `geometry.fps`: per component
+// the difference, its square, the sum over components in order (no fused multiply-add), the running minimum and
+// the first index of its maximum. pts: (D, N) component-major; out: n_samples indices.
+EFEM_NO_CONTRACT void fps_row(const float* pts, int64_t D, int64_t N, int64_t stride, int64_t n_samples,
+                              int64_t start, int64_t* out, float* dist, float* dd) {
+  std::fill(dist, dist + N, std::numeric_limits<float>::infinity());
+  int64_t cur = start;
+  for (int64_t i = 0; i < n_samples; ++i) {
+    out[i] = cur;
+    for (int64_t c = 0; c < D; ++c) {
+      const float* pc = pts + c * stride;
+      const float x = pc[cur];
+      if (c == 0) {
+        for (int64_t j = 0; j < N; ++j) {
+          const float diff = pc[j] - x;
+          dd[j] = diff * diff;
+        }
+      } else {
+        for (int64_t j = 0; j < N; ++j) {
+          const float diff = pc[j] - x;
+          const float sq = diff * diff;
+          dd[j] = dd[j] + sq;
+        }
+      }
+    }
+    float best = -std::numeric_limits<float>::infinity();
+    int64_t arg = 0;
+    for (int64_t j = 0; j < N; ++j) {
+      const float m = dd[j] < dist[j] ? dd[j] : dist[j];
+      dist[j] = m;
+    }
+    for (int64_t j = 0; j < N; ++j) {
+      if (dist[j] > best) {
+        best = dist[j];
+        arg = j;
+      }
+    }
+    cur = arg;
+  }
+}
+
+at::Tensor fps(const at::Tensor& points_, int64_t n_samples, int64_t start) {
+  // Farthest-point sampling of every batch row from `start` (`efem_viz.geometry.fps.farthest_point_sample`: the
+  // same indices). Finite float32 points only (the caller checks); one loop per row instead of one kernel launch
+  // per sample and component.
+  TORCH_CHECK(points_.dim() == 3 && points_.scalar_type() == at::kFloat, "points must be (B, N, D) float32");
+  TORCH_CHECK(points_.device().is_cpu(), "CPU tensors only");
+  const int64_t B = points_.size(0), N = points_.size(1), D = points_.size(2);
+  TORCH_CHECK(D >= 1, "points need at least one coordinate");
+  TORCH_CHECK(n_samples >= 1 && n_samples <= N, "n_samples must be in [1, N]");
+  TORCH_CHECK(start >= 0 && start < N, "start must be in [0, N)");
+  const auto pts = points_.permute({0, 2, 1}).contiguous();  // (B, D, N)
+  auto out = at::empty({B, n_samples}, points_.options().dtype(at::kLong));
+  const float* pp = pts.data_ptr<float>();
+  int64_t* po = out.data_ptr<int64_t>();
+  at::parallel_for(0, B, 1, [&](int64_t begin, int64_t end) {
+    std::vector<float> dist(N), dd(N);
+    for (int64_t b = begin; b < end; ++b)
+      fps_row(pp + b * D * N, D, N, N, n_samples, start, po + b * n_samples, dist.data(), dd.data());
+  });
+  return out;
+}
 
 at::Tensor knn_select(const at::Tensor& gram_, const at::Tensor& qq_, const at::Tensor& rr_, int64_t k,
                       const std::optional<at::Tensor>& ref_) {
@@ -809,6 +951,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> decoder_band(
 TORCH_LIBRARY(efem_vn, m) {
   m.def("edge_mean(Tensor a, Tensor c, Tensor da, Tensor dc, Tensor nbr, float slope) -> Tensor", &edge_mean);
   m.def("act_mean(Tensor x, Tensor d, float slope) -> Tensor", &act_mean);
+  m.def("lin_act_mean(Tensor x, Tensor w, Tensor u, float slope) -> Tensor", &lin_act_mean);
+  m.def("fps(Tensor points, int n_samples, int start) -> Tensor", &fps);
   m.def("knn_select(Tensor gram, Tensor qq, Tensor rr, int k, Tensor? ref=None) -> Tensor", &knn_select);
   m.def("attention(Tensor av, Tensor cv, Tensor dav, Tensor dcv, Tensor ak, Tensor ck, Tensor dak, Tensor dck, "
         "Tensor q, Tensor nbr, float slope, int head_dim, float eps) -> Tensor", &attention);

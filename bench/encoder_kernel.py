@@ -1,0 +1,163 @@
+"""The encoder on the point sets of real solves: eager, with the fused kernels as they were, and as they are.
+
+One solve of each scene (`bench/speed.py`'s scenes, presets and priors, seed 0) records every batch of point sets
+the encoder gets; the batches are then replayed through the prior's encoder in each mode, alternating, `--repeats`
+times each:
+
+- ``eager``: no C++ kernels (``EFEM_VIZ_FUSED=0``): `torch.topk` k-NN, the Python farthest-point loop.
+- ``fused_topk``: the fused edge kernels with `torch.topk` k-NN (`geometry.knn.knn_indices`), the Python
+  farthest-point loop and the first layer's products in memory (`F.linear` twice, then the fused activation): the
+  encoder of 2026-12-04.
+- ``fused_topk_order``: the same with the one-pass k-NN selection, every row with equal distances decided in
+  torch's order (the k-NN selection before duplicate points were recognised).
+- ``fused``: as the product runs it (`fused.knn` with its duplicate rows, `fused.fps`, the first layer in one
+  pass, `fused.lin_act_mean`).
+
+Reported per scene and mode: the median seconds, milliseconds per point set, the ratio to ``eager``, to
+``fused_topk`` and to ``fused_topk_order``, and whether the outputs (Θ_R, Θ_inv, δ, Θ_s) equal
+``fused_topk_order``'s bit for bit (``eager`` differs by float rounding: its largest difference is given).
+
+Usage: python -m bench.encoder_kernel [--scenes real_tabletop_0 z_7000] [--repeats 3] [--threads 1] [--tag NAME]
+Writes bench/results/encoder_kernel/latest.json (encoder_kernel_<TAG>.json with --tag).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import time
+from typing import Any
+
+from bench.common import machine, result_path, write_result  # first: the OpenMP wait policy, before torch
+
+MODES = ("eager", "fused_topk", "fused_topk_order", "fused")
+"""Replay modes, the reference of the bit-for-bit comparison second."""
+
+
+def record_batches(name: str) -> tuple[Any, list[Any]]:
+    """One solve of the scene; its prior and every batch of point sets its encoder was given."""
+    from efem_viz.em.config import preset
+    from efem_viz.em.solver import run_em
+    from efem_viz.prior.model import load_prior
+    from bench.speed import load
+
+    scene, pname, prior_name = load(name)
+    prior = load_prior(prior_name)
+    batches: list[Any] = []
+    enc = prior.encoder
+    plain = enc.forward
+
+    def recording(x: Any) -> Any:
+        batches.append(x.detach().clone())
+        return plain(x)
+
+    enc.forward = recording
+    try:
+        run_em(scene, prior, preset(pname), seed=0)
+    finally:
+        del enc.forward  # the class's forward again
+    return prior, batches
+
+
+def _knn_topk_order(query: Any, ref: Any, k: int) -> Any:
+    """`fused.knn` without its reference rows: every tie row decided in torch's order."""
+    import torch
+
+    with torch.no_grad(), torch.autocast(query.device.type, enabled=False):
+        q, r = query.detach(), ref.detach()
+        gram = q @ r.transpose(1, 2)
+        return torch.ops.efem_vn.knn_select(gram, (q * q).sum(-1), (r * r).sum(-1), int(k))
+
+
+def _first_layer_in_memory(x: Any, w_lin: Any, w_dir: Any, slope: float) -> Any:
+    """The first layer as it was: both products in memory, then the fused activation and mean."""
+    import torch
+    import torch.nn.functional as F
+
+    y = F.linear(x, w_lin)
+    return torch.ops.efem_vn.act_mean(y, F.linear(y, w_dir), float(slope))
+
+
+def replay(prior: Any, batches: list[Any], mode: str) -> tuple[float, list[Any]]:
+    """Seconds to encode every recorded batch in a `MODES` mode, and the outputs."""
+    import torch
+
+    from efem_viz.geometry.fps import farthest_point_sample
+    from efem_viz.geometry.knn import knn_indices
+    from efem_viz.prior import fused
+
+    knn, fps, first = fused.knn, fused.fps, fused.lin_act_mean
+    os.environ["EFEM_VIZ_FUSED"] = "0" if mode == "eager" else "1"
+    if mode in ("fused_topk", "fused_topk_order"):
+        fused.knn = knn_indices if mode == "fused_topk" else _knn_topk_order  # type: ignore[assignment]
+        fused.fps, fused.lin_act_mean = farthest_point_sample, _first_layer_in_memory  # type: ignore[assignment]
+    try:
+        out = []
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            for x in batches:
+                o = prior.encoder(x)
+                out.append(torch.cat([o.R.flatten(1), o.inv, o.delta, o.scale[:, None]], dim=1))
+        seconds = time.perf_counter() - t0
+    finally:
+        fused.knn, fused.fps, fused.lin_act_mean = knn, fps, first  # type: ignore[assignment]
+        os.environ.pop("EFEM_VIZ_FUSED", None)
+    return seconds, out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scenes", nargs="+", default=["real_tabletop_0", "z_7000"])
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--tag", default=None)
+    a = ap.parse_args()
+
+    import torch
+
+    from efem_viz.prior import fused
+
+    torch.set_num_threads(a.threads)
+    if not fused.load():
+        print("the fused kernels are unavailable on this machine: nothing to compare")
+        return 1
+    rows: dict[str, Any] = {}
+    for name in a.scenes:
+        prior, batches = record_batches(name)
+        sets = sum(int(x.shape[0]) for x in batches)
+        times: dict[str, list[float]] = {m: [] for m in MODES}
+        results: dict[str, list[Any]] = {}
+        for _ in range(a.repeats):
+            for m in MODES:
+                sec, results[m] = replay(prior, batches, m)
+                times[m].append(sec)
+        med = {m: statistics.median(times[m]) for m in MODES}
+        ref = results["fused_topk_order"]
+        row: dict[str, Any] = {"batches": len(batches), "point_sets": sets,
+                               "points_per_set": sorted({int(x.shape[1]) for x in batches}), "modes": {}}
+        for m in MODES:
+            same = all(torch.equal(e, f) for e, f in zip(ref, results[m]))
+            diff = max(float((e - f).abs().max()) for e, f in zip(ref, results[m]))
+            row["modes"][m] = {"seconds": med[m], "ms_per_set": 1e3 * med[m] / sets,
+                               "ratio_to_eager": med[m] / med["eager"],
+                               "ratio_to_topk": med[m] / med["fused_topk"],
+                               "ratio_to_topk_order": med[m] / med["fused_topk_order"],
+                               "bitwise_equal_to_topk_order": same, "max_abs_diff_to_topk_order": diff,
+                               "times": times[m]}
+        rows[name] = row
+        print(f"{name:>16}: {len(batches)} encoder calls, {sets} point sets of {row['points_per_set']} points",
+              flush=True)
+        for m, r in row["modes"].items():
+            print(f"{'':>18}{m:>16}: {r['seconds']:.2f} s, {r['ms_per_set']:.2f} ms a set, "
+                  f"ratio to eager {r['ratio_to_eager']:.2f}, to topk {r['ratio_to_topk']:.2f}, "
+                  f"to topk order {r['ratio_to_topk_order']:.2f}; "
+                  + ("outputs bit for bit those of topk order" if r["bitwise_equal_to_topk_order"]
+                     else f"largest output difference {r['max_abs_diff_to_topk_order']:.1e}"), flush=True)
+    write_result(result_path("encoder_kernel", a.tag),
+                 {"machine": machine(a.threads), "repeats": a.repeats, "scenes": rows})
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
