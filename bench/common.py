@@ -16,7 +16,10 @@ import platform
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    import argparse
 
 ROOT = Path(__file__).resolve().parents[1]
 """The checkout (first on `sys.path`: a bench measures this tree, not an installed copy)."""
@@ -57,6 +60,32 @@ def write_result(path: Path, out: Any, *, indent: int = 1, archive: bool = True)
     atomic_write_text(path, text)
     print(f"wrote {path.relative_to(ROOT) if path.is_relative_to(ROOT) else path}")
     return path
+
+
+def replay_parser(doc: str | None) -> "argparse.ArgumentParser":
+    """The options of the kernel replay benches (`bench.decoder_kernel`, `bench.encoder_kernel`): the scenes whose
+    solve is recorded, repeats, torch threads and the record's tag; the bench adds its own."""
+    import argparse
+
+    ap = argparse.ArgumentParser(description=(doc or "").split("\n\n")[0])
+    ap.add_argument("--scenes", nargs="+", default=["real_tabletop_0", "z_7000"])
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--tag", default=None)
+    return ap
+
+
+def kernels_or_say(threads: int) -> bool:
+    """Set the torch threads and load the fused kernels; False, said in one line, where they are unavailable."""
+    import torch
+
+    from efem_viz.prior import fused
+
+    torch.set_num_threads(threads)
+    if fused.load():
+        return True
+    print("the fused kernels are unavailable on this machine: nothing to compare")
+    return False
 
 
 def rss_mb() -> int:

@@ -19,14 +19,14 @@ Writes bench/results/decoder_kernel/latest.json (decoder_kernel_<TAG>.json with 
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import time
 from typing import Any
 
 import numpy as np
 
-from bench.common import machine, result_path, write_result  # first: the OpenMP wait policy, before torch
+# first: the OpenMP wait policy, before torch
+from bench.common import kernels_or_say, machine, replay_parser, result_path, write_result
 
 
 def record_calls(name: str) -> tuple[Any, list[tuple[Any, ...]]]:
@@ -98,25 +98,18 @@ def differences(ref: list[Any], got: list[Any]) -> dict[str, float]:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scenes", nargs="+", default=["real_tabletop_0", "z_7000"])
-    ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--threads", type=int, default=1)
+    ap = replay_parser(__doc__)
     ap.add_argument("--modes", nargs="+", choices=list(MODES), default=None,
                     help="default: eager and fused, and their bf16 modes where the CPU has native bf16")
-    ap.add_argument("--tag", default=None)
     a = ap.parse_args()
-
+    if not kernels_or_say(a.threads):
+        return 1
     import torch
 
     from efem_viz.prior import fused
     from efem_viz.prior.config import fast_cpu_bf16
     from bench.speed import decoder_flops, gemm_peak
 
-    torch.set_num_threads(a.threads)
-    if not fused.load():
-        print("the fused kernels are unavailable on this machine: nothing to compare")
-        return 1
     modes = a.modes or ["eager", "fused", *(["eager_bf16", "fused_bf16"] if fast_cpu_bf16() else [])]
     if "eager" not in modes:
         modes = ["eager", *modes]  # the reference of every difference and ratio

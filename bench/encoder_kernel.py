@@ -23,13 +23,13 @@ Writes bench/results/encoder_kernel/latest.json (encoder_kernel_<TAG>.json with 
 
 from __future__ import annotations
 
-import argparse
 import os
 import statistics
 import time
 from typing import Any
 
-from bench.common import machine, result_path, write_result  # first: the OpenMP wait policy, before torch
+# first: the OpenMP wait policy, before torch
+from bench.common import kernels_or_say, machine, replay_parser, result_path, write_result
 
 MODES = ("eager", "fused_topk", "fused_topk_order", "fused")
 """Replay modes, the reference of the bit-for-bit comparison second."""
@@ -107,21 +107,11 @@ def replay(prior: Any, batches: list[Any], mode: str) -> tuple[float, list[Any]]
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scenes", nargs="+", default=["real_tabletop_0", "z_7000"])
-    ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--tag", default=None)
-    a = ap.parse_args()
-
+    a = replay_parser(__doc__).parse_args()
+    if not kernels_or_say(a.threads):
+        return 1
     import torch
 
-    from efem_viz.prior import fused
-
-    torch.set_num_threads(a.threads)
-    if not fused.load():
-        print("the fused kernels are unavailable on this machine: nothing to compare")
-        return 1
     rows: dict[str, Any] = {}
     for name in a.scenes:
         prior, batches = record_batches(name)
