@@ -11,7 +11,10 @@ over a ``k``-fold tensor, memory-bound. Two exact rewrites remove that:
    writing the ``k``-fold tensors (45x faster than the eager ops at the shipped widths, one thread).
 
 The k-NN of every block (in feature space) keeps the eager Gram product and replaces the `topk` over the
-distance matrix by one insertion pass per row (`knn`: the same neighbours in the same order, ties included).
+distance matrix by one selection pass per row (`knn`: the same neighbours in the same order; among copies of one
+point, another copy may stand for it, never another value). The first layer's two products, activation and mean
+run in one pass per point (`lin_act_mean`), and the down-sampling's farthest-point sampling in one loop per point
+set (`fps`, the same indices as the eager loop).
 
 The decoder's inference pass (`decoder_band`, serving `SDFDecoder.forward_batched` and `sdf_and_band_grad`) runs
 in one C++ loop over tiles of 256 rows: the first layer, each block's two products with bias, ReLU and residual
