@@ -725,7 +725,7 @@ def _neighbour_part(n_obj: int, obj: ObjectData, pcl: np.ndarray, others: Sequen
     """Up to ``n_obj`` points of a whole other object, randomly turned and scaled, slid towards this object from a
     random direction until it is within a random gap of its surface (never through it), cut to the ball that holds
     the input cloud with a margin: what a neighbour in a pile leaves in a proposal's neighbourhood."""
-    from scipy.spatial import cKDTree
+    from efem_viz._typeshims import cKDTree
 
     other = others[int(rng.integers(len(others)))]
     pts = other.surface[rng.integers(0, len(other.surface), max(4 * n_obj, 512))].astype(np.float64)
