@@ -88,21 +88,29 @@ def load(name: str) -> tuple[Any, str, str]:
 def gemm_peak(width: int, dtype: str = "float32", rows: int = 1024) -> float:
     """GFLOP/s of the decoder's hidden product on this machine at the set torch threads: (rows x width) times
     (width x width) plus bias, the decoder's tile shape (`efem_viz.prior.decoder.TILE_ROWS`); the best of three
-    timings of 200 products (a measured ceiling, not the data sheet's)."""
+    timings of 200 products (a measured ceiling, not the data sheet's). With T threads the ceiling is T times the
+    one-thread tile's: the decoder runs one tile per thread, while torch splits a single product of this size
+    across threads at a loss (0.3-0.4x of one thread on 2 threads), which would put the ceiling under what the
+    decoder reaches."""
     import torch
 
+    threads = torch.get_num_threads()
     dt = getattr(torch, dtype)
     x = torch.randn(rows, width).to(dt)
     w = torch.randn(width, width).to(dt)
     b = torch.randn(width).to(dt)
     best = float("inf")
-    for _ in range(3):
-        torch.nn.functional.linear(x, w, b)
-        t0 = time.perf_counter()
-        for _ in range(200):
+    torch.set_num_threads(1)
+    try:
+        for _ in range(3):
             torch.nn.functional.linear(x, w, b)
-        best = min(best, (time.perf_counter() - t0) / 200)
-    return 2.0 * rows * width * width / best / 1e9
+            t0 = time.perf_counter()
+            for _ in range(200):
+                torch.nn.functional.linear(x, w, b)
+            best = min(best, (time.perf_counter() - t0) / 200)
+    finally:
+        torch.set_num_threads(threads)
+    return threads * 2.0 * rows * width * width / best / 1e9
 
 
 def decoder_flops(prior: Any) -> tuple[float, float, int]:

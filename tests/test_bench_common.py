@@ -52,3 +52,29 @@ def test_results_go_to_one_folder_per_bench(tmp_path: Path) -> None:
     write_result(latest, {"run": 4}, archive=False)  # a bench that updates sections of its record in place
     assert json.loads(latest.read_text()) == {"run": 4}
     assert sorted(p.name for p in latest.parent.iterdir()) == ["latest.json", f"speed_{day}.json", second.name]
+
+
+def test_gemm_ceiling_is_per_thread_tiles_and_leaves_the_thread_setting_alone() -> None:
+    """The speed bench's ceiling at T threads is T one-thread tiles (the decoder runs one tile per thread); the
+    measurement runs on one thread and gives the caller's thread count back, even when it is interrupted."""
+    code = (
+        "import torch, bench.speed as s\n"
+        "torch.set_num_threads(2)\n"
+        "seen = []\n"
+        "real = torch.nn.functional.linear\n"
+        "def spy(*a):\n"
+        "    seen.append(torch.get_num_threads())\n"
+        "    if len(seen) > 5: raise KeyboardInterrupt\n"
+        "    return real(*a)\n"
+        "torch.nn.functional.linear = spy\n"
+        "try:\n"
+        "    s.gemm_peak(32, rows=64)\n"
+        "except KeyboardInterrupt:\n"
+        "    pass\n"
+        "torch.nn.functional.linear = real\n"
+        "assert set(seen) == {1}, seen\n"
+        "assert torch.get_num_threads() == 2\n"
+        "print('ok')\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-3000:]
