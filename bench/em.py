@@ -57,11 +57,12 @@ def get_scene(config: str, seed: int, mode: str, *, distractors: bool = True, ta
 
     tag = "" if distractors else "_nodistr"
     kind = "" if targets == "mug" else f"{targets}_"
-    path = CACHE / f"{kind}{config}_{seed}{tag}_{mode}.npz"
-    if path.is_file():
-        return load_scene(path)
+    name = f"{kind}{config}_{seed}{tag}"
+    path = CACHE / f"{name}_{mode}.npz"
+    if path.is_file():  # named as when it was generated (not by the cache file's stem)
+        return load_scene(path, name=name)
     scene = generate_scene(config, seed=seed, split="test", mode=mode,  # type: ignore[arg-type]
-                           name=f"{kind}{config}_{seed}{tag}", distractors=distractors, targets=targets)
+                           name=name, distractors=distractors, targets=targets)
     save_scene(scene, path)
     return scene
 
@@ -84,16 +85,26 @@ def mug_prediction(res: Any, name: str) -> Any:
     return prediction_from_instances(res.instances, name=name, class_names=names)
 
 
-def agnostic(res: Any, scene: Any) -> tuple[Any, Any]:
-    """(prediction, ground truth) with every instance and every labelled object as one class "object": the
-    measure of a family's scenes that ignores which member an instance was named (the paper's kitchen prior
-    names none)."""
-    from efem_viz.eval import SceneGroundTruth, prediction_from_instances
+def agnostic_prediction(res: Any, name: str) -> Any:
+    """A result's instances as one class "object": the measure of a family's scenes that ignores which member an
+    instance was named (the paper's kitchen prior names none)."""
+    from efem_viz.eval import prediction_from_instances
 
     inst = dataclasses.replace(res.instances, category=np.full(len(res.instances), "object"))
-    gt = SceneGroundTruth.from_scene(scene)
-    return (prediction_from_instances(inst, name=scene.name, class_names=("object",)),
-            dataclasses.replace(gt, categories={k: "object" for k in gt.categories}))
+    return prediction_from_instances(inst, name=name, class_names=("object",))
+
+
+def agnostic_truth(gt: Any) -> Any:
+    """Ground truth with every labelled object as class "object" (`agnostic_prediction`'s counterpart)."""
+    return dataclasses.replace(gt, categories={k: "object" for k in gt.categories})
+
+
+def agnostic(res: Any, scene: Any) -> tuple[Any, Any]:
+    """(prediction, ground truth) of a scene's result, every instance and every labelled object as one class
+    "object"."""
+    from efem_viz.eval import SceneGroundTruth
+
+    return agnostic_prediction(res, scene.name), agnostic_truth(SceneGroundTruth.from_scene(scene))
 
 
 def run_one(scene: Any, prior: Any, cfg: Any, seed: int = 0) -> Any:
@@ -150,14 +161,18 @@ def compare(args: argparse.Namespace, prior: Any, cfgs: dict[str, Any]) -> int:
           f"preset {args.preset}, {args.threads} threads")
     per: dict[str, dict[str, Any]] = {n: {"em_config": json.loads(c.to_json()), "accuracy": {}, "seconds": [],
                                           "cpu_seconds": [], "timings": []} for n, c in cfgs.items()}
+    family = len(EVAL_CLASSES) > 1  # a family's scenes are also scored class-agnostic, as `main` does
     for config in args.configs:
         preds: dict[str, list[Any]] = {n: [] for n in cfgs}
-        gts = []
+        any_preds: dict[str, list[Any]] = {n: [] for n in cfgs}
+        gts, any_gts = [], []
         for i, em_seed in itertools.product(range(n_scenes), args.em_seeds):
             scene = get_scene(config, args.seed0 + i, args.mode, distractors=not args.no_distractors,
                               targets=args.targets)
             gt = SceneGroundTruth.from_scene(scene)
             gts.append(dataclasses.replace(gt, name=f"{scene.name}_s{em_seed}"))
+            if family:
+                any_gts.append(dataclasses.replace(agnostic_truth(gt), name=f"{scene.name}_s{em_seed}"))
             line = [f"  {scene.name:>10} s{em_seed}:"]
             for name, c in cfgs.items():
                 with config_env(args.config_env.get(name, {})):
@@ -174,6 +189,11 @@ def compare(args: argparse.Namespace, prior: Any, cfgs: dict[str, Any]) -> int:
                 preds[name].append(mug_prediction(res, f"{scene.name}_s{em_seed}"))
                 one = evaluate([preds[name][-1]], [gts[-1]], class_names=tuple(EVAL_CLASSES))
                 per[name].setdefault("per_run_ap50", []).append(one.ap50 * 100)
+                if family:
+                    any_preds[name].append(agnostic_prediction(res, f"{scene.name}_s{em_seed}"))
+                    any_one = evaluate([any_preds[name][-1]], [any_gts[-1]], class_names=("object",))
+                    per[name].setdefault("per_run_class_agnostic_ap50", {}).setdefault(config, []).append(
+                        any_one.ap50 * 100)
                 per[name]["seconds"].append(res.timings["total"])
                 per[name]["cpu_seconds"].append(res.timings["total_cpu"])
                 per[name]["timings"].append(res.timings)
@@ -184,6 +204,13 @@ def compare(args: argparse.Namespace, prior: Any, cfgs: dict[str, Any]) -> int:
             per[name]["accuracy"][config] = {"ap": ev.ap * 100, "ap50": ev.ap50 * 100, "ap25": ev.ap25 * 100}
             print(f"{config:>5} {name:>10}: AP {ev.ap * 100:5.1f}  AP50 {ev.ap50 * 100:5.1f}  "
                   f"AP25 {ev.ap25 * 100:5.1f}")
+            if family:
+                per[name]["accuracy"][config]["per_class"] = ev.per_class()
+                ea = evaluate(any_preds[name], any_gts, class_names=("object",))
+                per[name]["accuracy"][config]["class_agnostic"] = {"ap": ea.ap * 100, "ap50": ea.ap50 * 100,
+                                                                   "ap25": ea.ap25 * 100}
+                print(f"{'':>16} class-agnostic: AP {ea.ap * 100:5.1f}  AP50 {ea.ap50 * 100:5.1f}  "
+                      f"AP25 {ea.ap25 * 100:5.1f}")
     print(f"{'config':>10} {'median s':>9} {'median cpu s':>13}  " + "  ".join(f"{c:>12}" for c in args.configs))
     for name, r in per.items():
         r["median_seconds_per_scene"] = float(np.median(r["seconds"]))
@@ -194,6 +221,8 @@ def compare(args: argparse.Namespace, prior: Any, cfgs: dict[str, Any]) -> int:
         r["sem_run_ap50"] = float(runs.std(ddof=1) / np.sqrt(len(runs))) if len(runs) > 1 else 0.0
         print(f"{name:>10} {r['median_seconds_per_scene']:9.1f} {r['median_cpu_seconds_per_scene']:13.1f}  "
               + "  ".join(f"AP50 {r['accuracy'][c]['ap50']:6.1f}" for c in args.configs)
+              + ("  class-agnostic " + " ".join(f"{r['accuracy'][c]['class_agnostic']['ap50']:.1f}"
+                                                for c in args.configs) if family else "")
               + f"  per-run AP50 {r['mean_run_ap50']:.1f} ± {r['sem_run_ap50']:.1f} ({len(runs)} runs)")
     out = {"machine": machine(args.threads),
            "prior": {"name": args.prior, "metadata": {k: v for k, v in prior.metadata.items()

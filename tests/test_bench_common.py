@@ -78,3 +78,35 @@ def test_gemm_ceiling_is_per_thread_tiles_and_leaves_the_thread_setting_alone() 
     )
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-3000:]
+
+
+def test_family_scenes_are_also_scored_class_agnostic() -> None:
+    """`bench.em`'s class-agnostic measure of a family's scenes (every run path records it): two objects found
+    with exact masks but each named the other's member score AP50 0 per member and 1 class-agnostic."""
+    import dataclasses
+
+    sys.path.insert(0, str(ROOT))
+    try:
+        from bench.em import agnostic_prediction, agnostic_truth
+    finally:
+        sys.path.remove(str(ROOT))
+    from efem_viz.em.results import Instances
+    from efem_viz.eval import SceneGroundTruth, evaluate
+
+    inst_ids = np.repeat([0, 1, 2, 0], 300)  # objects large enough to count (the evaluation's minimum size)
+    gt = SceneGroundTruth(name="s", instance=inst_ids, categories={1: "mug", 2: "can"})
+    found = dataclasses.replace(Instances.empty(), ids=np.array([1, 2]),
+                                masks=[np.arange(300, 600, dtype=np.int32), np.arange(600, 900, dtype=np.int32)],
+                                confidence=np.array([0.9, 0.8]), category=np.array(["can", "mug"]))
+
+    class Result:
+        instances = found
+
+    from efem_viz.eval import prediction_from_instances
+
+    named = prediction_from_instances(found, name="s", class_names=("mug", "can"))
+    assert evaluate([named], [gt], class_names=("mug", "can")).ap50 == 0.0
+    any_gt = agnostic_truth(gt)
+    assert set(any_gt.categories.values()) == {"object"} and gt.categories[1] == "mug"  # the input is not changed
+    ev = evaluate([agnostic_prediction(Result(), "s")], [any_gt], class_names=("object",))
+    assert ev.ap50 == 1.0
