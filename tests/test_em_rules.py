@@ -336,6 +336,52 @@ def test_review_rules_first_failure_wins() -> None:
     assert first_failed_review(ok._replace(seen_through=0.35), final.replace(steps={"t2": 0})) == ("seen-through", 0.35)
 
 
+def test_the_planar_check_kills_box_edges_only_where_the_category_asks_for_it() -> None:
+    """`review.max_planar`: a fit whose mask normals three directions hold above the limit fails as "planar";
+    unset (most categories, every single-view frame) or unmeasured (NaN, older traces) passes. The kitchen
+    family sets it for fused scans only."""
+    from efem_viz.em import preset
+    from efem_viz.em.config import resolve_for_prior
+    from efem_viz.em.rules import ReviewRecord
+    from efem_viz.prior.config import KNOWN_CATEGORIES, CategorySettings
+
+    z3 = np.zeros(3)
+    rec = ReviewRecord(step=0, phase=1, proposal_id=0, R=np.eye(3), R_raw=np.eye(3), scale_sel=1.0, db_sim=0.0,
+                       coverage=0.5, radii=np.array([0.04, 0.05]), scale_pass=True, up_angle=0.0, pose_pass=True,
+                       obb_center=z3, obb_axes=np.eye(3), obb_half_extents=z3, mask=np.zeros(0, np.int32),
+                       mesh_vertices=np.zeros((0, 3)), mesh_faces=np.zeros((0, 3), np.int32),
+                       neighbours=np.zeros(0, np.int32), planar=0.7)
+    assert np.isnan(rec._replace(planar=float("nan")).planar) and np.isnan(ReviewRecord(*rec[:-1]).planar)  # the default
+
+    class Prior:
+        def __init__(self, name: str) -> None:
+            self.name, self.metadata = name, {}
+
+    kitchen_syn = resolve_for_prior(preset("synthetic"), Prior("kitchen"))
+    assert kitchen_syn.review.max_planar == 0.5
+    assert first_failed_review(rec, kitchen_syn) == ("planar", 0.7)
+    assert first_failed_review(rec._replace(planar=0.5), kitchen_syn) is None
+    assert first_failed_review(rec._replace(planar=float("nan")), kitchen_syn) is None
+    # single-view frames and the other categories are not checked; an explicit value wins over the category's
+    assert resolve_for_prior(preset("real"), Prior("kitchen")).review.max_planar is None
+    mug_syn = resolve_for_prior(preset("synthetic"), Prior("mug"))
+    assert mug_syn.review.max_planar is None and first_failed_review(rec, mug_syn) is None
+    own = resolve_for_prior(preset("synthetic").replace(review={"max_planar": 0.8}), Prior("kitchen"))
+    assert own.review.max_planar == 0.8 and first_failed_review(rec, own) is None
+    with pytest.raises(ValueError, match="max_planar"):
+        preset("synthetic").replace(review={"max_planar": 1.5}).validate()
+    # the category's limit travels with a prior's metadata; a category saved before it takes the known one's
+    cat = KNOWN_CATEGORIES["kitchen"]
+    assert CategorySettings.from_dict(cat.to_dict()) == cat
+    from efem_viz.prior.config import category_settings
+
+    old = {k: v for k, v in cat.to_dict().items() if k != "max_planar"}
+    assert category_settings("kitchen", {"category": old}).max_planar == {"synthetic": 0.5}
+    for bad in ({"synthetic": 0.0}, {"synthetic": "0.5"}, {"synthetic": True}, {"lab": 0.5}):
+        with pytest.raises(ValueError, match="max_planar"):
+            CategorySettings.from_dict({**cat.to_dict(), "max_planar": bad})
+
+
 # ---------------------------------------------------------------------------------------------- schedule
 @pytest.mark.parametrize(
     "t, expected",

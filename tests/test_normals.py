@@ -44,3 +44,25 @@ def test_coincident_points_are_estimated_on_the_distinct_positions() -> None:
             " n = estimate_normals(np.zeros((300000, 3)));"
             " assert np.allclose(np.linalg.norm(n, axis=1), 1)" % str(root))
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+
+
+def test_planar_share_tells_box_faces_from_a_curved_surface() -> None:
+    """`planar_share`: the normals of a box corner (three faces) are all held by three directions; a cylinder's
+    side seen from around spreads them, three 30-degree cones hold about a quarter; a flat patch alone is all
+    one direction. The measure ignores normal length and is the same on a repeat."""
+    from efem_viz.geometry.normals import planar_share
+
+    rng = np.random.default_rng(1)
+    faces = np.repeat(np.eye(3), [300, 250, 200], axis=0) + rng.normal(0, 0.02, (750, 3))
+    assert planar_share(faces) == 1.0
+    assert planar_share(faces * rng.uniform(0.1, 5.0, (750, 1))) == 1.0
+    a = rng.uniform(0, 2 * np.pi, 2000)
+    side = np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], 1)
+    share = planar_share(side)
+    assert 0.2 < share < 0.35 and planar_share(side) == share  # 3 x 30 of 360 degrees, and sampling
+    # a can: its side and its top; the top is one direction among three
+    can = np.concatenate([side[:1200], np.tile([0.0, 0.0, 1.0], (300, 1))])
+    assert 0.3 < planar_share(can) < 0.5
+    assert planar_share(np.tile([0.0, 0.0, 1.0], (40, 1))) == 1.0
+    assert np.isnan(planar_share(np.zeros((0, 3))))
+    assert planar_share(np.zeros((10, 3))) == 0.0  # no direction at all

@@ -396,6 +396,10 @@ class ReviewSettings(_Settings):
     """Samples (of the proposal and of each codebook cloud) the pose search aligns and scores
     (`estimate_pose(search_points=...)`); None = all `n_store` (the release). 1000 of 5000 cut the search's
     cost about 5x (docs/BENCHMARKS.md)."""
+    max_planar: float | None = None
+    """Largest share of a fit's mask normals that three directions may hold (`geometry.normals.planar_share`);
+    above it the review kills the fit as "planar" (a box's edge or corner). None = the category's for the config's
+    `domain` (`CategorySettings.max_planar`; most categories: unchecked); 1.0 = never."""
 
     def validate(self) -> None:
         for nm in ("scale_horizontal", "scale_height", "up_range"):
@@ -409,6 +413,8 @@ class ReviewSettings(_Settings):
             raise ValueError(f"pose_points must be >= 1 or None, got {self.pose_points}")
         if self.n_store < 1:
             raise ValueError(f"n_store must be >= 1, got {self.n_store}")
+        if self.max_planar is not None and not 0.0 < self.max_planar <= 1.0:
+            raise ValueError(f"max_planar must be in (0, 1] or None, got {self.max_planar}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -908,6 +914,9 @@ def category_fields(cfg: EMConfig, cat: CategorySettings) -> dict[str, dict[str,
     for name, value in (("r_init", cat.r_init), ("r_err", cat.r_err)):
         if getattr(cfg.proposals, name) is None:
             out.setdefault("proposals", {})[name] = value
+    planar = cat.max_planar.get(cfg.domain)
+    if cfg.review.max_planar is None and planar is not None:
+        out.setdefault("review", {})["max_planar"] = float(planar)
     if cfg.confidence.look_alike == CATEGORY_LOOK_ALIKE:
         out["confidence"] = {"look_alike": cat.look_alike.get(cfg.domain)}
     return out

@@ -39,6 +39,8 @@ REASON_INCLUDES_BETTER = "includes a better fit"
 REASON_SCALE = "scale-fail"
 REASON_POSE = "pose-fail"
 REASON_SEEN_THROUGH = "seen-through"
+REASON_PLANAR = "planar"
+"""A fit whose mask's normals three directions hold (`EMConfig.review.max_planar`): the edge or corner of a box."""
 REASON_SURVIVE = "survive"
 LEGACY_REASONS: tuple[str, ...] = ("proposal too small", "duplicated or included", "scale-fail", "pose-fail",
                                    "survive")
@@ -391,6 +393,9 @@ class ReviewRecord(NamedTuple):
     """Index of the proposal's prior in the solve."""
     seen_through: float = float("nan")
     """Fraction of the completed shape's surface the capture camera saw through (NaN: not checked)."""
+    planar: float = float("nan")
+    """Share of its mask's normals that three directions hold (`geometry.normals.planar_share`; NaN: older
+    traces, an empty mask)."""
 
 
 @dataclass(frozen=True)
@@ -436,6 +441,7 @@ REVIEW_COLUMNS: tuple[ReviewColumn, ...] = (
     ReviewColumn("neighbours", "rev_neighbours", dtype=np.int32, offsets="rev_neighbour_offsets"),
     ReviewColumn("seen_through", "rev_seen_through", measured=lambda cfg: cfg.free_space.margin is not None,
                  scores=("seen_through",)),
+    ReviewColumn("planar", "rev_planar", measured=lambda cfg: True, scores=("planar",)),
 )
 """Every measure a review records, declared once: the trace's arrays, the recorder, `EMTrace.review_record`,
 saving and loading, and the replay's scores are derived from this table (`ReviewRecord.prior` is not a column:
@@ -493,13 +499,21 @@ def _seen_through_check(rec: ReviewRecord, cfg: EMConfig | None) -> tuple[bool, 
     return bool(not math.isfinite(st) or st <= limit), st
 
 
+def _planar_check(rec: ReviewRecord, cfg: EMConfig | None) -> tuple[bool, float]:
+    share = float(rec.planar)
+    limit = cfg.review.max_planar if cfg is not None else None
+    return bool(limit is None or not math.isfinite(share) or share <= limit), share
+
+
 REVIEW_RULES: tuple[ReviewRule, ...] = (
     ReviewRule(REASON_SCALE, _scale_check),
     ReviewRule(REASON_POSE, _pose_check),
     ReviewRule(REASON_SEEN_THROUGH, _seen_through_check),
+    ReviewRule(REASON_PLANAR, _planar_check),
 )
 """The review checks: the method's (§3.9: the completed shape's size, then its up axis), then the free-space
-check of single-view frames (`EMConfig.free_space.margin`; passes when it was not measured)."""
+check of single-view frames (`EMConfig.free_space.margin`; passes when it was not measured), then the planar
+check of categories that ask for it (`EMConfig.review.max_planar`: a fit on a box's edge or corner)."""
 
 
 def first_failed_review(rec: ReviewRecord, cfg: EMConfig | None, rules: Sequence[ReviewRule] = REVIEW_RULES

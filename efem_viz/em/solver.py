@@ -53,6 +53,7 @@ from efem_viz.em.rules import (
     up_passes,
 )
 from efem_viz.em.trace import TraceRecorder
+from efem_viz.geometry.normals import planar_share
 
 if TYPE_CHECKING:
     import trimesh
@@ -711,14 +712,15 @@ class Solver:
             m_ok = np.abs(d_full[sl]) < cfg_k.output.out_tau
             if cfg.output.gamma_out < 180.0:
                 m_ok &= g_full[sl] < cfg.output.gamma_out
+            mask = ball[m_ok]
             rec = ReviewRecord(
                 step=step, phase=phase, proposal_id=pid, R=R, R_raw=R_raw, scale_sel=s_sel, db_sim=db_sim,
                 coverage=cov, radii=radii, scale_pass=scale_pass, up_angle=up_angle, pose_pass=pose_pass,
                 obb_center=obb.center, obb_axes=obb.axes, obb_half_extents=obb.half_extents,
-                mask=ball[m_ok].astype(np.int32),
+                mask=mask.astype(np.int32),
                 mesh_vertices=(np.asarray(mesh.vertices) - center).astype(np.float32),
                 mesh_faces=np.asarray(mesh.faces, np.int32), neighbours=np.asarray(nbrs, np.int32), prior=k,
-                seen_through=st,
+                seen_through=st, planar=planar_share(self.full_normals[mask]),
             )
             self.rec.review(rec)
             records[pid] = rec

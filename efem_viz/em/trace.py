@@ -217,6 +217,9 @@ class EMTrace:
     rev_seen_through: np.ndarray | None = None
     """(V,) float32 seen-through fraction of each review's shape (NaN: not checked); None in traces of runs
     without the free-space check (`EMConfig.free_space.margin`) and in older traces."""
+    rev_planar: np.ndarray | None = None
+    """(V,) float32 share of each review's mask normals that three directions hold (`ReviewRecord.planar`); None
+    in older traces."""
 
     # ------------------------------------------------------------------ basic queries
     @property

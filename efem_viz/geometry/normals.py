@@ -345,3 +345,43 @@ def _flip_pieces(pts: np.ndarray, nrm: np.ndarray, labels: np.ndarray, n_comp: i
     per_point = np.where(flat[labels], nrm[:, 2], outward)
     score = np.bincount(labels, weights=per_point, minlength=n_comp)
     nrm[score[labels] < 0] *= -1.0
+
+
+def planar_share(normals: np.ndarray, *, directions: int = 3, within_deg: float = 15.0,
+                 max_samples: int = 600) -> float:
+    """The share of a surface's normals that `directions` directions hold, each every normal within `within_deg`
+    of it: near 1 for the faces of a box (two or three faces meet at an edge or corner), far less for a curved
+    surface seen from around (a cylinder's side spreads its normals over a circle).
+
+    Greedy: each direction is the normal with the most others within the angle, and takes those out. Signed
+    angles (a face and its opposite are two directions). At most `max_samples` normals take part, a fixed
+    subsample (seed 0) of larger sets, so the measure is cheap and repeatable.
+
+    Args:
+        normals: (N, 3) normals (any length; zero rows count as no direction).
+        directions: directions to take.
+        within_deg: the angle around each.
+        max_samples: normals used at most.
+
+    Returns:
+        The share in [0, 1]; NaN for an empty set.
+    """
+    n = np.asarray(normals, np.float64).reshape(-1, 3)
+    if len(n) == 0:
+        return float("nan")
+    if len(n) > max_samples:
+        n = n[np.random.default_rng(0).choice(len(n), max_samples, replace=False)]
+    length = np.linalg.norm(n, axis=1)
+    unit = n / np.maximum(length, 1e-12)[:, None]
+    near = (unit @ unit.T) >= np.cos(np.radians(within_deg))
+    near &= (length > 0)[:, None] & (length > 0)[None, :]
+    left = length > 0
+    taken = 0
+    for _ in range(directions):
+        if not left.any():
+            break
+        counts = near[:, left].sum(axis=1) * left
+        members = near[int(np.argmax(counts))] & left
+        taken += int(members.sum())
+        left &= ~members
+    return taken / len(n)
