@@ -214,6 +214,27 @@ def _ctx(phase: int, inliers: list[int], rows: list[list[int]], stationary: list
                        coverage=np.full(len(rows), 0.4) if phase == 2 else None)  # phase 2 rows have a review
 
 
+def test_too_small_with_patience_waits_for_steps_in_a_row() -> None:
+    """`elimination.min_size_patience`: 1 kills a row the step it falls under the threshold (the method); 2 spares
+    it once, and kills it when it was under the threshold the step before too. The rule marks every row under
+    the threshold in `ctx.small`, spared or not, for the runner's streak."""
+    rows = [list(range(0, 20)), list(range(40, 42)), list(range(60, 62))]
+    ctx = _ctx(1, [20, 2, 2], rows, [0.5, 0.5, 0.5])
+    assert [k.row for k in apply_step_rules(ctx)] == [1, 2] and ctx.small.tolist() == [False, True, True]
+    ctx = _ctx(1, [20, 2, 2], rows, [0.5, 0.5, 0.5])
+    ctx.cfg = ctx.cfg.replace(elimination={"min_size_patience": 2})
+    ctx.small_streak = np.array([0, 1, 0])  # row 1 was under the threshold at the step before, row 2 was not
+    kills = apply_step_rules(ctx)
+    assert [(k.row, k.reason) for k in kills] == [(1, REASON_TOO_SMALL)]
+    assert ctx.small.tolist() == [False, True, True] and ctx.active.tolist() == [True, False, True]
+    ctx = _ctx(1, [20, 2, 2], rows, [0.5, 0.5, 0.5])
+    ctx.cfg = ctx.cfg.replace(elimination={"min_size_patience": 2})  # no streak yet: nobody dies
+    assert apply_step_rules(ctx) == []
+    for bad in (0, 2.0, True, 101):
+        with pytest.raises(ValueError, match="min_size_patience"):
+            preset("fast").replace(elimination={"min_size_patience": bad}).validate()
+
+
 def test_step_rules_run_in_order_and_each_kill_hides_the_row_from_later_rules() -> None:
     a, b = list(range(0, 20)), list(range(0, 19))
     small = list(range(40, 42))

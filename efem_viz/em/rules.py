@@ -257,6 +257,10 @@ class StepContext:
         active: (P,) bool rows still alive; the runner clears the rows each rule kills.
         coverage: (P,) coverage of each row's last review (in phase 2 its phase-1 review; for
             `cfg.elimination.inclusion_by` = "confidence"), or None before any review.
+        small_streak: (P,) steps in a row each row was under the "too small" threshold before this one (for
+            `cfg.elimination.min_size_patience`), or None (none yet).
+        small: (P,) bool rows under the threshold at this step, set by the "too small" rule (the runner carries
+            the streak on from it).
     """
 
     phase: int
@@ -274,10 +278,14 @@ class StepContext:
     tau_d: float = float("inf")
     spacing: np.ndarray | None = None
     coverage: np.ndarray | None = None
+    small_streak: np.ndarray | None = None
+    small: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
 
     def __post_init__(self) -> None:
         if len(self.active) != len(self.inliers):
             self.active = np.ones(len(self.inliers), bool)
+        if len(self.small) != len(self.inliers):
+            self.small = np.zeros(len(self.inliers), bool)
 
     @cached_property
     def sets(self) -> "sp.csr_matrix":
@@ -306,7 +314,13 @@ class StepRule:
 
 def _too_small(ctx: StepContext) -> list[Kill]:
     counts, thr = size_counts(ctx.cfg, ctx.inliers, ctx.d, ctx.rag, ctx.min_size, ctx.tau_d, spacing=ctx.spacing)
-    return find_too_small(counts, thr)
+    kills = find_too_small(counts, thr)
+    ctx.small[[k.row for k in kills]] = True
+    patience = ctx.cfg.elimination.min_size_patience
+    if patience > 1:  # under the threshold for `patience` steps in a row, this one included
+        before = ctx.small_streak if ctx.small_streak is not None else np.zeros(len(counts), np.int64)
+        kills = [k for k in kills if int(before[k.row]) + 1 >= patience]
+    return kills
 
 
 def _duplicates(ctx: StepContext) -> list[Kill]:

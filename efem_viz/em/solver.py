@@ -171,6 +171,7 @@ class ProposalPool:
     inliers: np.ndarray | None = None  # (P,)
     scale_max: np.ndarray | None = None  # (P,) largest Θ_s so far (EMConfig.elimination.trust_scale)
     coverage: np.ndarray | None = None  # (P,) coverage of the last review (elimination.inclusion_by = "confidence")
+    small_streak: np.ndarray | None = None  # (P,) steps in a row under the "too small" threshold (min_size_patience)
 
     @property
     def size(self) -> int:
@@ -196,6 +197,8 @@ class ProposalPool:
             self.scale_max = self.scale_max[rows]
         if self.coverage is not None:
             self.coverage = self.coverage[rows]
+        if self.small_streak is not None:
+            self.small_streak = self.small_streak[rows]
 
 
 class _Timer:
@@ -657,8 +660,11 @@ class Solver:
         ctx = StepContext(phase=phase, step=step, local_step=local, cfg=self.cfg, inliers=pool.inliers,
                           stationary=pool.stationary, d=pool.d,
                           rag=pool.rag, n_points=self.n, min_size=self.min_size, owner=pool.owner,
-                          tau_d=schedule(self.cfg, local)[1], spacing=self.spacing, coverage=pool.coverage)
+                          tau_d=schedule(self.cfg, local)[1], spacing=self.spacing, coverage=pool.coverage,
+                          small_streak=pool.small_streak)
         kills = apply_step_rules(ctx, self.step_rules)
+        before = pool.small_streak if pool.small_streak is not None else np.zeros(pool.size, np.int64)
+        pool.small_streak = np.where(ctx.small, before + 1, 0)
         for k in kills:
             partner = int(pool.ids[k.partner]) if k.partner >= 0 else -1
             self.rec.death(int(pool.ids[k.row]), step, k.reason, partner, k.ratio)
