@@ -230,6 +230,22 @@ def test_too_small_with_patience_waits_for_steps_in_a_row() -> None:
     ctx = _ctx(1, [20, 2, 2], rows, [0.5, 0.5, 0.5])
     ctx.cfg = ctx.cfg.replace(elimination={"min_size_patience": 2})  # no streak yet: nobody dies
     assert apply_step_rules(ctx) == []
+    # per row (a joint solve's priors each with their own): row 2's prior kills at once
+    ctx = _ctx(1, [20, 2, 2], rows, [0.5, 0.5, 0.5])
+    ctx.patience = np.array([2, 2, 1])
+    assert [k.row for k in apply_step_rules(ctx)] == [2]
+    # the kitchen family waits two steps (its tumbled bowls flip), the others none; an explicit value wins
+    from efem_viz.em.config import resolve_for_prior
+
+    class Prior:
+        def __init__(self, name: str) -> None:
+            self.name, self.metadata = name, {}
+
+    assert resolve_for_prior(preset("synthetic"), Prior("kitchen")).elimination.min_size_patience == 2
+    assert resolve_for_prior(preset("real"), Prior("kitchen")).elimination.min_size_patience == 2
+    assert resolve_for_prior(preset("synthetic"), Prior("mug")).elimination.min_size_patience == 1
+    own = preset("synthetic").replace(elimination={"min_size_patience": 1})
+    assert resolve_for_prior(own, Prior("kitchen")).elimination.min_size_patience == 1
     for bad in (0, 2.0, True, 101):
         with pytest.raises(ValueError, match="min_size_patience"):
             preset("fast").replace(elimination={"min_size_patience": bad}).validate()

@@ -232,10 +232,10 @@ class EliminationSettings(_Settings):
 
     min_size: int = 300
     """A proposal with fewer inliers than this dies ("proposal too small")."""
-    min_size_patience: int = 1
-    """Steps in a row a proposal must be under `min_size` before it dies: 1 = at once (the method). A tumbled
-    kitchen bowl lying flat can flip between two fits from one step to the next, its inliers under the limit on
-    every other step."""
+    min_size_patience: int | None = None
+    """Steps in a row a proposal must be under `min_size` before it dies: 1 = at once (the method). None = its
+    prior's category's (`CategorySettings.min_size_patience`; 1 for most). A tumbled kitchen bowl lying flat can
+    flip between two fits from one step to the next, its inliers under the limit on every other step."""
     min_size_on: Literal["inliers", "band"] = "inliers"
     """What `min_size` counts: the E-step inliers (|d| ≤ τ_D and normal angle ≤ τ_N; the method) or the
     SDF-band support |d| ≤ τ_D (normals ignored: depth noise tilts normals, not distances)."""
@@ -283,8 +283,9 @@ class EliminationSettings(_Settings):
             raise ValueError(f"inclusion_by must be one of {INCLUSION_SCORES}, got {self.inclusion_by!r}")
         if self.min_size_on not in ("inliers", "band"):
             raise ValueError(f"min_size_on must be 'inliers' or 'band', got {self.min_size_on!r}")
-        if isinstance(self.min_size_patience, bool) or not isinstance(self.min_size_patience, int) \
-                or not 1 <= self.min_size_patience <= 100:
+        if self.min_size_patience is not None and (
+                isinstance(self.min_size_patience, bool) or not isinstance(self.min_size_patience, int)
+                or not 1 <= self.min_size_patience <= 100):
             raise ValueError(f"min_size_patience must be a whole number of steps in [1, 100], got "
                              f"{self.min_size_patience!r}")
         if self.min_size_spacing is not None and not (0.0 < self.min_size_spacing < 1.0):
@@ -922,6 +923,8 @@ def category_fields(cfg: EMConfig, cat: CategorySettings) -> dict[str, dict[str,
     for name, value in (("r_init", cat.r_init), ("r_err", cat.r_err)):
         if getattr(cfg.proposals, name) is None:
             out.setdefault("proposals", {})[name] = value
+    if cfg.elimination.min_size_patience is None:
+        out["elimination"] = {"min_size_patience": int(cat.min_size_patience)}
     planar = cat.max_planar.get(cfg.domain)
     if cfg.review.max_planar is None and planar is not None:
         out.setdefault("review", {})["max_planar"] = float(planar)

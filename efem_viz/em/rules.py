@@ -259,6 +259,7 @@ class StepContext:
             `cfg.elimination.inclusion_by` = "confidence"), or None before any review.
         small_streak: (P,) steps in a row each row was under the "too small" threshold before this one (for
             `cfg.elimination.min_size_patience`), or None (none yet).
+        patience: (P,) each row's `min_size_patience` (its prior's resolved config), or None: `cfg`'s for all.
         small: (P,) bool rows under the threshold at this step, set by the "too small" rule (the runner carries
             the streak on from it).
     """
@@ -279,6 +280,7 @@ class StepContext:
     spacing: np.ndarray | None = None
     coverage: np.ndarray | None = None
     small_streak: np.ndarray | None = None
+    patience: np.ndarray | None = None
     small: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
 
     def __post_init__(self) -> None:
@@ -316,10 +318,11 @@ def _too_small(ctx: StepContext) -> list[Kill]:
     counts, thr = size_counts(ctx.cfg, ctx.inliers, ctx.d, ctx.rag, ctx.min_size, ctx.tau_d, spacing=ctx.spacing)
     kills = find_too_small(counts, thr)
     ctx.small[[k.row for k in kills]] = True
-    patience = ctx.cfg.elimination.min_size_patience
-    if patience > 1:  # under the threshold for `patience` steps in a row, this one included
+    patience = (ctx.patience if ctx.patience is not None
+                else np.full(len(counts), ctx.cfg.elimination.min_size_patience or 1, np.int64))
+    if np.any(patience > 1):  # under the threshold for `patience` steps in a row, this one included
         before = ctx.small_streak if ctx.small_streak is not None else np.zeros(len(counts), np.int64)
-        kills = [k for k in kills if int(before[k.row]) + 1 >= patience]
+        kills = [k for k in kills if int(before[k.row]) + 1 >= int(patience[k.row])]
     return kills
 
 

@@ -437,6 +437,8 @@ class Solver:
         self.table = table
         self.cfg = cfg  # shared settings (with several priors: τ_out = the largest, used for decode bounds)
         self.cfgs = cfgs  # per prior: the category's sizes, up range and τ_out filled in
+        self.patience = np.array([c.elimination.min_size_patience or 1 for c in cfgs], np.int64)
+        """Per prior: steps in a row its proposals may be too small before they die."""
         self.step_rules = tuple(step_rules)
         self.review_rules = tuple(review_rules)
         self.rng = np.random.default_rng(seed)
@@ -661,7 +663,7 @@ class Solver:
                           stationary=pool.stationary, d=pool.d,
                           rag=pool.rag, n_points=self.n, min_size=self.min_size, owner=pool.owner,
                           tau_d=schedule(self.cfg, local)[1], spacing=self.spacing, coverage=pool.coverage,
-                          small_streak=pool.small_streak)
+                          small_streak=pool.small_streak, patience=self.patience[pool.owner])
         kills = apply_step_rules(ctx, self.step_rules)
         before = pool.small_streak if pool.small_streak is not None else np.zeros(pool.size, np.int64)
         pool.small_streak = np.where(ctx.small, before + 1, 0)
