@@ -412,11 +412,15 @@ def test_the_planar_check_kills_box_edges_only_where_the_category_asks_for_it() 
     assert CategorySettings.from_dict(cat.to_dict()) == cat
     from efem_viz.prior.config import category_settings
 
-    old = {k: v for k, v in cat.to_dict().items() if k != "max_planar"}
+    old = {k: v for k, v in cat.to_dict().items() if k not in ("max_planar", "min_size_patience")}
     assert category_settings("kitchen", {"category": old}).max_planar == {"synthetic": 0.5}
     for bad in ({"synthetic": 0.0}, {"synthetic": "0.5"}, {"synthetic": True}, {"lab": 0.5}):
         with pytest.raises(ValueError, match="max_planar"):
             CategorySettings.from_dict({**cat.to_dict(), "max_planar": bad})
+    assert category_settings("kitchen", {"category": old}).min_size_patience == 2
+    for bad_patience in (0, 1.5, True, "2"):
+        with pytest.raises(ValueError, match="min_size_patience"):
+            CategorySettings.from_dict({**cat.to_dict(), "min_size_patience": bad_patience})
 
 
 # ---------------------------------------------------------------------------------------------- schedule
