@@ -69,8 +69,8 @@ def _busy() -> None:
 
 
 def load(name: str) -> tuple[Any, str, str]:
-    """A scene by name (a bundled sample, a bench/em.py fixed-set scene `<config>_<seed>`, or one of its chair
-    scenes `chair_<config>_<seed>`), its preset and its prior."""
+    """A scene by name (a bundled sample, a bench/em.py fixed-set scene `<config>_<seed>`, or one of its chair or
+    kitchen scenes `chair_<config>_<seed>`, `kitchen_<config>_<seed>`), its preset and its prior."""
     from efem_viz.data.io import load_scene
 
     p = ROOT / "sample_scenes" / f"{name}.ply"
@@ -81,6 +81,9 @@ def load(name: str) -> tuple[Any, str, str]:
     if name.startswith("chair_"):
         config, seed = name.removeprefix("chair_").rsplit("_", 1)
         return get_scene(config, int(seed), "tsdf", targets="chair"), "chairs", "chair"
+    if name.startswith("kitchen_"):  # merged points like the mug scenes (about 60k), for a like-for-like cost
+        config, seed = name.removeprefix("kitchen_").rsplit("_", 1)
+        return get_scene(config, int(seed), "points", targets="kitchen"), "synthetic", "kitchen"
     config, seed = name.rsplit("_", 1)
     return get_scene(config, int(seed), "points"), "synthetic", "mug"
 

@@ -45,6 +45,29 @@ def sphere_run() -> tuple[object, object, EMResult, list[StepInfo]]:
 
 
 # ---------------------------------------------------------------------------------------------- sphere prior
+def test_a_categorys_planar_check_runs_on_meshes_only_an_explicit_limit_everywhere(sphere_run: tuple) -> None:
+    """A category's planar limit (`CategorySettings.max_planar`) needs a mesh's normals: on a point cloud (the
+    sphere scene) the share is recorded but nothing dies as "planar", and the run is the plain one; a limit the
+    caller sets in the config holds on a point cloud too."""
+    import copy
+
+    from efem_viz.prior.config import prior_category
+
+    scene, prior, base, _ = sphere_run
+    assert getattr(scene, "faces", None) is None
+    strict = copy.copy(prior)
+    strict.metadata = {**prior.metadata, "category": {**prior_category(prior).to_dict(),
+                                                      "max_planar": {"synthetic": 0.01, "real": 0.01}}}
+    cfg = preset("fast").replace(proposals={"n_init": (64,)})
+    res = run_em(scene, strict, cfg, seed=5)
+    assert res.config.review.max_planar is None
+    assert len(res.instances) == len(base.instances) and len(res.instances) > 0
+    assert res.trace.rev_planar is not None and np.isfinite(res.trace.rev_planar).any()
+    told = run_em(scene, prior, cfg.replace(review={"max_planar": 0.01}), seed=5)
+    reasons = [told.trace.death(k)[1] for k in range(told.trace.num_proposals) if told.trace.death(k)]
+    assert len(told.instances) == 0 and "planar" in reasons
+
+
 def test_free_space_check_scales_confidence_and_is_recorded(sphere_run: tuple, tmp_path: Path) -> None:
     """With a capture camera in the provenance, `seen_through_margin` measures each review's seen-through
     fraction (near 0 for spheres fitted where they are), records it in the trace (saved and loaded), and

@@ -408,7 +408,8 @@ class ReviewSettings(_Settings):
     max_planar: float | None = None
     """Largest share of a fit's mask normals that three directions may hold (`geometry.normals.planar_share`);
     above it the review kills the fit as "planar" (a box's edge or corner). None = the category's for the config's
-    `domain` (`CategorySettings.max_planar`; most categories: unchecked); 1.0 = never."""
+    `domain` (`CategorySettings.max_planar`; most categories: unchecked), on mesh scenes only; 1.0 = never. A value
+    set here holds on point clouds too."""
 
     def validate(self) -> None:
         for nm in ("scale_horizontal", "scale_height", "up_range"):

@@ -220,7 +220,8 @@ class CategorySettings:
     """Per capture domain, the largest share of a fit's mask normals that three directions may hold
     (`EMConfig.review.max_planar`; the review kills fits above it as "planar": the edges and corners of boxes,
     which a family of round objects fits as thin bottles and cans); a domain without one is not checked. Only for
-    fused scans seen from around: one view of a cylinder holds its normals in a narrow fan too."""
+    fused scans seen from around (one view of a cylinder holds its normals in a narrow fan too), and only on
+    meshes: a point cloud's estimated normals gather in a few directions (`run_em` leaves it unchecked there)."""
     min_size_patience: int = 1
     """Steps in a row this category's proposals must be under the solver's size limit before they die
     (`EMConfig.elimination.min_size_patience`); 1 = at once, the method."""
