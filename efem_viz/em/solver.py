@@ -787,15 +787,15 @@ class Solver:
 
     def _category(self, rev: ReviewRecord, lat: LatentArrays) -> str:
         """An accepted instance's category: its prior's name, or for a family prior (kitchen) the class its final
-        latent `lat` says (the prior's member head, `prior.member_head`), else the class its last pose search's
-        codebook entries vote for, each by how well it aligned (`Codebook.category_of`)."""
+        latent `lat` and its completed shape's size say (the prior's member head, `member_head_of`), else the class
+        its last pose search's codebook entries vote for, each by how well it aligned (`Codebook.category_of`)."""
         from efem_viz.prior.member_head import member_head_of
 
         name = self.categories[rev.prior]
         prior = self.table.priors[rev.prior]
         head = member_head_of(prior)
         if head is not None:
-            return head.classify(np.asarray(lat["inv"]))
+            return head.classify(np.asarray(lat["inv"]), radii=np.asarray(rev.radii, np.float64))
         cb = getattr(prior, "codebook", None)
         if cb is None:
             return name

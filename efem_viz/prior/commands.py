@@ -70,7 +70,7 @@ class BuildCodebookArgs:
 @dataclass
 class FitMemberHeadArgs:
     """Fit a family prior's member head: the classifier that names each instance's member (mug, bowl, bottle,
-    can) from its latent, in place of the codebook vote."""
+    can) from its latent and its completed shape's size, in place of the codebook vote."""
 
     prior: str = "kitchen"
     """Prior weights: a .pt path, or a name under efem_viz/weights/."""
@@ -102,7 +102,7 @@ class FitMemberHeadArgs:
         rep = head.report
         print(f"member head of {path}: {len(head.classes)} classes, train accuracy {rep['train_accuracy']:.3f}, "
               f"val accuracy {rep['val_accuracy']:.3f} ({self.n_val} objects x {self.views} views, "
-              f"{time.perf_counter() - t0:.0f} s)")
+              f"{time.perf_counter() - t0:.0f} s); with each object's size {rep['val_accuracy_with_size']:.3f}")
         width = max(len(c) for c in head.classes)
         print(" " * (width + 2) + "  ".join(f"{c:>{width}}" for c in head.classes) + "   (rows: true, columns: named)")
         for c, row in zip(head.classes, rep["val_confusion"]):

@@ -10,6 +10,12 @@ head is too. (Θ_s is left out on purpose: the training objects are normalised t
 nothing, and a scene's objects have their own sizes: a head with a log-scale feature named nearly every instance
 of the SynKit scenes "bottle".)
 
+The members' metric sizes do tell them apart (a bottle stands 15-26 cm, a can 6-15 cm), and the latent of a partial
+fit often does not: on SynKit-like tuning scenes most misnamed bottles were completed as the can their visible part
+resembles. So the head also keeps each member's size model, a Gaussian over the log horizontal radius and log
+half-height of its training objects as made (metres), and `classify` adds its log-likelihood of the completed
+shape's measured size to the latent's logits when it is given one (`MemberHead.size_mean`, `size_cov`).
+
 The head lives in the prior file's metadata (key "member_head"), with a fingerprint of the encoder weights it was
 fitted on: a head left over from other weights (a prior trained on from this one) is ignored with a warning.
 """
@@ -59,24 +65,53 @@ class MemberHead:
     """`encoder_fingerprint` of the prior it was fitted on."""
     report: Mapping[str, Any]
     """How it was fitted and its held-out accuracy (free-form, JSON-able)."""
+    size_mean: np.ndarray | None = None
+    """(K, 2) per member, the mean of log(horizontal radius), log(half-height) of its training objects in metres
+    (None: the head names by the latent alone)."""
+    size_cov: np.ndarray | None = None
+    """(K, 2, 2) their covariances (positive definite)."""
 
-    def probabilities(self, inv: np.ndarray) -> np.ndarray:
-        """(N, K) class probabilities of N latents' Θ_inv (N, C)."""
+    def probabilities(self, inv: np.ndarray, radii: np.ndarray | None = None) -> np.ndarray:
+        """(N, K) class probabilities of N latents' Θ_inv (N, C); with `radii` (N, 2) the completed shapes' measured
+        (horizontal radius, half-height) in metres and a size model, weighed by each member's size likelihood
+        (rows with a non-finite or non-positive size by the latent alone)."""
         x = (np.asarray(inv, np.float64).reshape(-1, len(self.mean)) - self.mean) / self.std
         z = x @ self.weight.T + self.bias
+        if radii is not None and self.size_mean is not None and self.size_cov is not None:
+            z = z + self.size_log_likelihood(radii)
         z -= z.max(axis=1, keepdims=True)
         p = np.exp(z)
         return p / p.sum(axis=1, keepdims=True)
 
-    def classify(self, inv: np.ndarray) -> str:
-        """The class of one latent's Θ_inv (C,)."""
-        return self.classes[int(np.argmax(self.probabilities(np.asarray(inv)[None])[0]))]
+    def size_log_likelihood(self, radii: np.ndarray) -> np.ndarray:
+        """(N, K) log-density of each member's size model at N measured sizes (N, 2) (metres); 0 where a size is
+        not finite and positive, or without a size model."""
+        r = np.asarray(radii, np.float64).reshape(-1, 2)
+        out = np.zeros((len(r), len(self.classes)))
+        if self.size_mean is None or self.size_cov is None:
+            return out
+        ok = np.isfinite(r).all(axis=1) & (r > 0).all(axis=1)
+        if not ok.any():
+            return out
+        d = np.log(r[ok])[:, None, :] - self.size_mean[None]  # (n, K, 2)
+        inv_cov = np.linalg.inv(self.size_cov)
+        maha = np.einsum("nki,kij,nkj->nk", d, inv_cov, d)
+        out[ok] = -0.5 * maha - 0.5 * np.log(np.linalg.det(self.size_cov))[None]
+        return out
+
+    def classify(self, inv: np.ndarray, radii: np.ndarray | None = None) -> str:
+        """The class of one latent's Θ_inv (C,), with its completed shape's (radius, half-height) when given."""
+        r = None if radii is None else np.asarray(radii, np.float64).reshape(1, 2)
+        return self.classes[int(np.argmax(self.probabilities(np.asarray(inv)[None], r)[0]))]
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able dict (the prior file's metadata entry)."""
-        return {"classes": list(self.classes), "mean": self.mean.tolist(), "std": self.std.tolist(),
-                "weight": self.weight.tolist(), "bias": self.bias.tolist(), "fingerprint": self.fingerprint,
-                "report": dict(self.report)}
+        d = {"classes": list(self.classes), "mean": self.mean.tolist(), "std": self.std.tolist(),
+             "weight": self.weight.tolist(), "bias": self.bias.tolist(), "fingerprint": self.fingerprint,
+             "report": dict(self.report)}
+        if self.size_mean is not None and self.size_cov is not None:
+            d["size_mean"], d["size_cov"] = self.size_mean.tolist(), self.size_cov.tolist()
+        return d
 
     @classmethod
     def from_dict(cls, d: Any, *, width: int) -> MemberHead:
@@ -106,8 +141,16 @@ class MemberHead:
         if not isinstance(fp, str) or len(fp) > 64:
             raise ValueError("member head fingerprint must be a short string")
         report = d.get("report") or {}
+        size_mean = size_cov = None
+        if d.get("size_mean") is not None or d.get("size_cov") is not None:
+            size_mean, size_cov = arr("size_mean", (k, 2)), arr("size_cov", (k, 2, 2))
+            sym = np.allclose(size_cov, size_cov.transpose(0, 2, 1))
+            if not sym or (np.linalg.eigvalsh(size_cov) <= 1e-9).any() or (np.abs(size_mean) > 20).any():
+                raise ValueError("member head size model must have symmetric positive-definite covariances and "
+                                 "log sizes within ±20")
         return cls(classes=tuple(classes), mean=arr("mean", (f,)), std=std, weight=arr("weight", (k, f)),
-                   bias=arr("bias", (k,)), fingerprint=fp, report=dict(report) if isinstance(report, Mapping) else {})
+                   bias=arr("bias", (k,)), fingerprint=fp, report=dict(report) if isinstance(report, Mapping) else {},
+                   size_mean=size_mean, size_cov=size_cov)
 
 
 def member_head_of(prior: Any) -> MemberHead | None:
@@ -194,16 +237,49 @@ def fit_member_head(prior: Any, family: str, *, n_train: int = 400, n_val: int =
         loss = torch.nn.functional.cross_entropy(lin(xt), yt)
         loss.backward()
         opt.step()
+    size_mean, size_cov = member_size_model(family, "train", n_train)
     head = MemberHead(classes=tuple(members), mean=mean, std=std, weight=lin.weight.detach().numpy().copy(),
-                      bias=lin.bias.detach().numpy().copy(), fingerprint=encoder_fingerprint(prior), report={})
+                      bias=lin.bias.detach().numpy().copy(), fingerprint=encoder_fingerprint(prior), report={},
+                      size_mean=size_mean, size_cov=size_cov)
     pred_t = head.probabilities(train_x).argmax(axis=1)
     pred_v = head.probabilities(val_x).argmax(axis=1)
+    val_sizes = np.repeat(object_sizes(family, "val", n_val), views, axis=0)
+    pred_vs = head.probabilities(val_x, val_sizes).argmax(axis=1)
     confusion = np.zeros((len(members), len(members)), np.int64)
     np.add.at(confusion, (val_y, pred_v), 1)
     report = {"family": family, "n_train": n_train, "n_val": n_val, "views": views, "epochs": int(epochs),
               "train_accuracy": float(np.mean(pred_t == train_y)), "val_accuracy": float(np.mean(pred_v == val_y)),
+              "val_accuracy_with_size": float(np.mean(pred_vs == val_y)),
               "val_confusion": confusion.tolist(), "final_loss": float(loss.detach())}
     return dataclasses.replace(head, report=report)
+
+
+def object_sizes(family: str, split: str, n: int) -> np.ndarray:
+    """(n, 2) (horizontal radius, half-height) in metres of the first `n` objects of a family's split as made
+    (`procedural.family_seeds`; the mesh's bounding-box centre at the origin, +Z up), the measure the solver's
+    review takes of a completed shape around its centre."""
+    from efem_viz.data.procedural import family_seeds, make_shape
+
+    out = np.empty((n, 2))
+    for i, (cat, seed) in enumerate(family_seeds(family, split, n)):  # type: ignore[arg-type]
+        v = np.asarray(make_shape(cat, seed).vertices, np.float64)
+        out[i] = np.linalg.norm(v[:, :2], axis=1).max(), np.abs(v[:, 2]).max()
+    return out
+
+
+def member_size_model(family: str, split: str, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each member's Gaussian over log(horizontal radius), log(half-height) of the first `n` objects of a family's
+    split (object i is member i mod k): ((k, 2) means, (k, 2, 2) covariances with a 1e-4 ridge)."""
+    from efem_viz.data.procedural import family_members
+
+    k = len(family_members(family))
+    logs = np.log(object_sizes(family, split, n))
+    member = np.arange(n) % k
+    if np.bincount(member, minlength=k).min() < 3:
+        raise ValueError(f"a size model needs at least 3 objects per member (got {n} for {k} members)")
+    mean = np.stack([logs[member == j].mean(axis=0) for j in range(k)])
+    cov = np.stack([np.cov(logs[member == j].T) + 1e-4 * np.eye(2) for j in range(k)])
+    return mean, cov
 
 
 def _encoded_views(prior: Any, objs: list[Any], n_classes: int, views: int, seed: int
@@ -237,4 +313,5 @@ def _encode(prior: Any, x: torch.Tensor) -> Any:
         prior.train(was)
 
 
-__all__ = ["METADATA_KEY", "MemberHead", "encoder_fingerprint", "fit_member_head", "member_head_of"]
+__all__ = ["METADATA_KEY", "MemberHead", "encoder_fingerprint", "fit_member_head", "member_head_of",
+           "member_size_model", "object_sizes"]
