@@ -195,6 +195,121 @@ ENCODERS = {
 }
 
 
+def _grads(fn, inputs: list[torch.Tensor], dtype: torch.dtype, seed: int = 5) -> list[torch.Tensor]:
+    """The output and the input gradients of ``sum(fn(*inputs) * G)`` for a fixed random G, in float64."""
+    leaves = [t.to(dtype).detach().requires_grad_() for t in inputs]
+    out = fn(*leaves)
+    weight = torch.randn(out.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(seed))
+    (out.double() * weight).sum().backward()
+    return [out.detach().double()] + [t.grad.double() for t in leaves]  # type: ignore[union-attr]
+
+
+def _edge_terms(seed: int, b: int = 3, ns: int = 40, nd: int = 30, k: int = 8, c: int = 16
+                ) -> tuple[list[torch.Tensor], torch.Tensor]:
+    """a, c, da, dc in float64 with duplicate neighbours (a source named twice by one destination) and edges at the
+    activation's bounds: a zero direction (|d|^2 below the clamp) and x ⟂ d (dot = 0)."""
+    g = torch.Generator().manual_seed(seed)
+    a, dst = torch.randn(b, ns, 3, c, generator=g, dtype=torch.float64), torch.randn(b, nd, 3, c, generator=g,
+                                                                                      dtype=torch.float64)
+    da, dc = torch.randn(b, ns, 3, c, generator=g, dtype=torch.float64), torch.randn(b, nd, 3, c, generator=g,
+                                                                                      dtype=torch.float64)
+    nbr = torch.randint(0, ns, (b, nd, k), generator=g)
+    nbr[:, :, 1] = nbr[:, :, 0]
+    da[0, nbr[0, 0, 2]], dc[0, 0] = 0.0, 0.0  # a zero direction on one edge
+    return [a, dst, da, dc], nbr
+
+
+@needs_kernels
+@pytest.mark.parametrize("seed", [0, 1])
+def test_training_kernels_give_the_eager_gradients(seed: int) -> None:
+    """In training (autograd on, float32) the edge mean, every edge's activation and the activation itself run fused
+    forward and backward; outputs and gradients equal the eager float64 graph's to float32 rounding."""
+    terms, nbr = _edge_terms(seed)
+    cases = [
+        (lambda *t: fused.edge_mean_reference(*t, nbr, 0.2),
+         lambda *t: fused._EdgeMean.apply(*t, nbr, 0.2), terms),
+        (lambda *t: fused._edge_act_reference(*t, nbr, 0.2), lambda *t: fused._edge_act_trained(*t, nbr, 0.2), terms),
+        (lambda x, d: fused.vn_leaky_relu(x, d, 0.2), lambda x, d: fused.leaky(x, d, 0.2), [terms[0], terms[2]]),
+    ]
+    for ref_fn, fused_fn, inputs in cases:
+        ref = _grads(ref_fn, inputs, torch.float64)
+        got = _grads(fused_fn, inputs, torch.float32)
+        for r, x in zip(ref, got):
+            assert torch.isfinite(x).all()
+            assert float((r - x).abs().max() / r.abs().max()) < 2e-6
+    # the public entries take the fused path in training and the eager one in float64
+    x, d = terms[0].float().requires_grad_(), terms[2].float()
+    assert fused.trainable(x, d) and not fused.trainable(x.double(), d.double())
+    with torch.no_grad():
+        assert not fused.trainable(x, d)  # inference: `usable` decides, the eager roundings stay
+
+
+@needs_kernels
+def test_training_kernels_take_bf16_autocast_inputs_and_sum_in_a_fixed_order() -> None:
+    """bf16 inputs (an autocast's products) are computed in float32; the backward's sums over destinations run in
+    one order, so one and two threads give the same bits."""
+    terms, nbr = _edge_terms(3)
+    x32 = [t.float() for t in terms]
+    out = fused._edge_act_trained(*[t.bfloat16().requires_grad_() for t in x32], nbr, 0.2)
+    assert out.dtype == torch.float32
+    ref = fused._edge_act_reference(*[t.bfloat16().float() for t in x32], nbr, 0.2)
+    torch.testing.assert_close(out.detach(), ref, rtol=1e-5, atol=1e-5)
+    grad = torch.randn(out.shape, generator=torch.Generator().manual_seed(0))
+    threads = torch.get_num_threads()
+    try:
+        got = []
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            got.append(torch.ops.efem_vn.edge_act_backward(grad, *x32, nbr, 0.2))
+    finally:
+        torch.set_num_threads(threads)
+    for u, v in zip(*got):
+        assert torch.equal(u, v)
+
+
+@needs_kernels
+def test_training_kernels_refuse_bad_indices_and_shapes() -> None:
+    terms, nbr = _edge_terms(4)
+    x32 = [t.float() for t in terms]
+    bad = nbr.clone()
+    bad[0, 0, 0] = 10**6
+    with pytest.raises(RuntimeError, match="out of range"):
+        torch.ops.efem_vn.edge_act(*x32, bad, 0.2)
+    with pytest.raises(RuntimeError, match="out of range"):
+        torch.ops.efem_vn.edge_mean_backward(torch.zeros_like(x32[1]), *x32, bad, 0.2)
+    with pytest.raises(RuntimeError, match="grad must"):
+        torch.ops.efem_vn.edge_act_backward(torch.zeros(1), *x32, nbr, 0.2)
+    with pytest.raises(RuntimeError, match="d must match"):
+        torch.ops.efem_vn.leaky(x32[0], x32[1], 0.2)
+
+
+@needs_kernels
+@pytest.mark.parametrize("design", sorted(ENCODERS))
+def test_training_encoder_gradients_with_kernels_match_the_eager_graph(design: str,
+                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A training step's encoder gradients (mean aggregation and the chair design's attention) with the kernels:
+    the eager float64 graph's to float32 rounding, as close as the eager float32 graph gets."""
+    torch.manual_seed(0)
+    cfg = ENCODERS[design]
+    prior = ShapePrior(PriorConfig(**cfg, latent_dim=16, center_hidden=8, decoder_hidden=32,  # type: ignore[arg-type]
+                                   decoder_blocks=2))
+    pts = torch.randn(2, int(cfg["n_pcl"]), 3) * 0.2  # type: ignore[call-overload]
+
+    def grads(dtype: torch.dtype, kernels: bool) -> torch.Tensor:
+        monkeypatch.setenv("EFEM_VIZ_FUSED", "1" if kernels else "0")
+        enc = prior.encoder.to(dtype)
+        enc.zero_grad()
+        out = enc(pts.to(dtype))
+        (out.R.double().square().sum() + out.inv.double().sum() + out.delta.double().sum()).backward()
+        return torch.cat([q.grad.double().reshape(-1) for q in enc.parameters() if q.grad is not None])
+
+    ref = grads(torch.float64, False)
+    eager = grads(torch.float32, False)
+    fast = grads(torch.float32, True)
+    scale = float(ref.abs().max())
+    assert float((fast - ref).abs().max()) / scale < max(4 * float((eager - ref).abs().max()) / scale, 1e-5)
+
+
 @needs_kernels
 @pytest.mark.parametrize("design", sorted(ENCODERS))
 def test_encoder_with_kernels_matches_the_eager_encoder(design: str, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -231,9 +231,103 @@ def usable(*tensors: torch.Tensor, autocast_ok: bool = False) -> bool:
     return load()
 
 
+def trainable(*tensors: torch.Tensor) -> bool:
+    """Whether the kernels with a fused backward serve a training call on these tensors: CPU, float32 or bfloat16
+    (an autocast's products; the kernel computes in float32), autograd on for at least one of them. Float64 (the
+    equivariance tests) keeps the eager references. ``EFEM_VIZ_FUSED_TRAINING=0`` (or ``EFEM_VIZ_FUSED=0``) turns
+    them off."""
+    if (os.environ.get("EFEM_VIZ_FUSED", "1") == "0" or os.environ.get("EFEM_VIZ_FUSED_TRAINING", "1") == "0"
+            or _state["loaded"] is False or not torch.is_grad_enabled()):
+        return False
+    if not any(t.requires_grad for t in tensors):
+        return False
+    if any(t.dtype not in (torch.float32, torch.bfloat16) or t.device.type != "cpu" for t in tensors):
+        return False
+    return load() and hasattr(torch.ops.efem_vn, "leaky_backward")
+
+
+class _EdgeMean(torch.autograd.Function):
+    """`edge_mean` in training: the fused forward, and a fused backward (`edge_mean_backward`) instead of the
+    eager graph's (B, Nd, k, 3, C) gathers and their scatter-adds."""
+
+    @staticmethod
+    def forward(ctx: Any, a: torch.Tensor, c: torch.Tensor, da: torch.Tensor, dc: torch.Tensor, nbr: torch.Tensor,
+                slope: float) -> torch.Tensor:
+        ctx.save_for_backward(a, c, da, dc, nbr)
+        ctx.slope = slope
+        return torch.ops.efem_vn.edge_mean(a, c, da, dc, nbr, slope)
+
+    @staticmethod
+    def backward(ctx: Any, grad: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+        a, c, da, dc, nbr = ctx.saved_tensors
+        ga, gc, gda, gdc = torch.ops.efem_vn.edge_mean_backward(grad.float().contiguous(), a, c, da, dc, nbr,
+                                                                 ctx.slope)
+        return ga, gc, gda, gdc, None, None
+
+
+class _EdgeAct(torch.autograd.Function):
+    """Every edge's ``VN-LeakyReLU(a[nbr] + c; da[nbr] + dc)`` (B, Nd, k, 3, C) in training, with its fused backward
+    (`edge_act_backward`)."""
+
+    @staticmethod
+    def forward(ctx: Any, a: torch.Tensor, c: torch.Tensor, da: torch.Tensor, dc: torch.Tensor, nbr: torch.Tensor,
+                slope: float) -> torch.Tensor:
+        ctx.save_for_backward(a, c, da, dc, nbr)
+        ctx.slope = slope
+        return torch.ops.efem_vn.edge_act(a, c, da, dc, nbr, slope)
+
+    @staticmethod
+    def backward(ctx: Any, grad: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+        a, c, da, dc, nbr = ctx.saved_tensors
+        ga, gc, gda, gdc = torch.ops.efem_vn.edge_act_backward(grad.float().contiguous(), a, c, da, dc, nbr,
+                                                                ctx.slope)
+        return ga, gc, gda, gdc, None, None
+
+
+class _Leaky(torch.autograd.Function):
+    """`vn_leaky_relu` in training (directions of the features' shape), with its fused backward."""
+
+    @staticmethod
+    def forward(ctx: Any, x: torch.Tensor, d: torch.Tensor, slope: float) -> torch.Tensor:
+        ctx.save_for_backward(x, d)
+        ctx.slope = slope
+        return torch.ops.efem_vn.leaky(x, d, slope)
+
+    @staticmethod
+    def backward(ctx: Any, grad: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+        x, d = ctx.saved_tensors
+        gx, gd = torch.ops.efem_vn.leaky_backward(grad.float().contiguous(), x, d, ctx.slope)
+        return gx, gd, None
+
+
+def leaky(x: torch.Tensor, d: torch.Tensor, slope: float) -> torch.Tensor:
+    """`vn_leaky_relu(x, d, slope)`; in training (`trainable`, ``d`` of ``x``'s shape) one fused pass forward and one
+    backward instead of a dozen eager element-wise passes each way (float32 results, also for bfloat16 inputs).
+    Inference keeps the eager function, whose roundings the solver's answers were measured with."""
+    if d.shape == x.shape and x.dim() >= 2 and x.shape[-2] == 3 and trainable(x, d):
+        return _Leaky.apply(x.float().contiguous(), d.float().contiguous(), float(slope))  # type: ignore[no-any-return]
+    return vn_leaky_relu(x, d, slope)
+
+
+def _edge_act_reference(a: torch.Tensor, c: torch.Tensor, da: torch.Tensor, dc: torch.Tensor, nbr: torch.Tensor,
+                        slope: float) -> torch.Tensor:
+    """Eager ``VN-LeakyReLU(a[nbr] + c; da[nbr] + dc)`` of every edge: ``(B, Nd, k, 3, C)``."""
+    b = a.shape[0]
+    ar = torch.arange(b, device=a.device).view(b, 1, 1)
+    return vn_leaky_relu(a[ar, nbr] + c[:, :, None], da[ar, nbr] + dc[:, :, None], slope)
+
+
+def _edge_act_trained(a: torch.Tensor, c: torch.Tensor, da: torch.Tensor, dc: torch.Tensor, nbr: torch.Tensor,
+                      slope: float) -> torch.Tensor:
+    """`_edge_act_reference` with the fused forward and backward (training; `trainable` checked by the caller)."""
+    f32 = [t.float().contiguous() for t in (a, c, da, dc)]
+    return _EdgeAct.apply(*f32, nbr.contiguous(), float(slope))  # type: ignore[no-any-return]
+
+
 def edge_mean(a: torch.Tensor, c: torch.Tensor, nbr: torch.Tensor, w_dir: torch.Tensor,
               slope: float) -> torch.Tensor:
-    """``mean_k VN-LeakyReLU_U(a[nbr] + c)`` with ``U = w_dir`` (`edge_mean_reference`; fused when `usable`).
+    """``mean_k VN-LeakyReLU_U(a[nbr] + c)`` with ``U = w_dir`` (`edge_mean_reference`; fused when `usable`, and
+    in training with a fused backward when `trainable`: float32 results, also for bfloat16 inputs).
 
     Args:
         a: ``(B, Ns, 3, C)``.
@@ -245,11 +339,15 @@ def edge_mean(a: torch.Tensor, c: torch.Tensor, nbr: torch.Tensor, w_dir: torch.
     da, dc = F.linear(a, w_dir), F.linear(c, w_dir)
     if usable(a, c, da, dc):
         return torch.ops.efem_vn.edge_mean(a, c, da, dc, nbr, float(slope))
+    if trainable(a, c, da, dc):
+        f32 = [t.float().contiguous() for t in (a, c, da, dc)]
+        return _EdgeMean.apply(*f32, nbr.contiguous(), float(slope))  # type: ignore[no-any-return]
     return edge_mean_reference(a, c, da, dc, nbr, slope)
 
 
 def attention_reference(v: tuple[torch.Tensor, ...], k: tuple[torch.Tensor, ...], q: torch.Tensor, nbr: torch.Tensor,
-                        slope: float, head_dim: int) -> torch.Tensor:
+                        slope: float, head_dim: int,
+                        edge_act: Callable[..., torch.Tensor] = _edge_act_reference) -> torch.Tensor:
     """Eager VN attention of each destination point over its ``k`` neighbours (the spec's chair aggregation).
 
     Args:
@@ -259,19 +357,14 @@ def attention_reference(v: tuple[torch.Tensor, ...], k: tuple[torch.Tensor, ...]
         nbr: ``(B, Nd, k)`` int64 indices into the sources.
         slope: negative slope α of both activations.
         head_dim: channels per head.
+        edge_act: computes every edge's activation from one of the term tuples (the eager one, or in training
+            the fused `_edge_act_trained`).
 
     Returns:
         ``(B, Nd, 3, C)``: ``Σ_j softmax_j(Σ_{c ∈ head} <q_c, κ_jc> / (‖κ_j‖_F √(3 head_dim))) u_jc``. ChNorm of the
         keys is one scalar per edge, so it divides the per-head dot products instead of the keys.
     """
-    b = q.shape[0]
-    ar = torch.arange(b, device=q.device).view(b, 1, 1)
-
-    def act(terms: tuple[torch.Tensor, ...]) -> torch.Tensor:
-        a, c, da, dc = terms
-        return vn_leaky_relu(a[ar, nbr] + c[:, :, None], da[ar, nbr] + dc[:, :, None], slope)
-
-    u, kraw = act(v), act(k)  # (B, Nd, k, 3, C)
+    u, kraw = edge_act(*v, nbr, slope), edge_act(*k, nbr, slope)  # (B, Nd, k, 3, C)
     heads = kraw.shape[-1] // head_dim
     dots = (q[:, :, None] * kraw).unflatten(-1, (heads, head_dim)).sum(dim=(-3, -1))  # (B, Nd, k, H)
     k_norm = kraw.flatten(-2).norm(dim=-1).clamp_min(EPS)  # (B, Nd, k)
@@ -284,6 +377,8 @@ def attention(v: tuple[torch.Tensor, ...], k: tuple[torch.Tensor, ...], q: torch
     """`attention_reference`, in one pass per point that never writes the ``k``-fold tensors when `usable`."""
     if usable(*v, *k, q):
         return torch.ops.efem_vn.attention(*v, *k, q, nbr, float(slope), int(head_dim), float(EPS))
+    if trainable(*v, *k):
+        return attention_reference(v, k, q, nbr, slope, head_dim, edge_act=_edge_act_trained)
     return attention_reference(v, k, q, nbr, slope, head_dim)
 
 
@@ -296,6 +391,8 @@ def lin_act_mean(x: torch.Tensor, w_lin: torch.Tensor, w_dir: torch.Tensor, slop
     d = F.linear(y, w_dir)
     if usable(y, d):
         return torch.ops.efem_vn.act_mean(y, d, float(slope))
+    if trainable(y, d):
+        return leaky(y, d, slope).mean(dim=2)
     return act_mean_reference(y, d, slope)
 
 

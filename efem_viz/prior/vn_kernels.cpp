@@ -59,8 +59,8 @@ EFEM_INLINE void vn_leaky(const float* __restrict x, const float* __restrict d, 
 EFEM_INLINE void vn_acc(const float* x, const float* d, float* acc, int64_t C, float f) { vn_leaky<true>(x, d, acc, C, f); }
 EFEM_INLINE void vn_act(const float* x, const float* d, float* out, int64_t C, float f) { vn_leaky<false>(x, d, out, C, f); }
 
-at::Tensor edge_mean(const at::Tensor& a_, const at::Tensor& c_, const at::Tensor& da_, const at::Tensor& dc_,
-                     const at::Tensor& nbr_, double slope) {
+void check_edge_terms(const at::Tensor& a_, const at::Tensor& c_, const at::Tensor& da_, const at::Tensor& dc_,
+                      const at::Tensor& nbr_) {
   TORCH_CHECK(a_.dim() == 4 && a_.size(2) == 3 && a_.scalar_type() == at::kFloat, "a must be (B, Ns, 3, C) float32");
   TORCH_CHECK(c_.dim() == 4 && c_.size(0) == a_.size(0) && c_.size(2) == 3 && c_.size(3) == a_.size(3) &&
               c_.scalar_type() == at::kFloat, "c must be (B, Nd, 3, C) float32");
@@ -69,15 +69,22 @@ at::Tensor edge_mean(const at::Tensor& a_, const at::Tensor& c_, const at::Tenso
   TORCH_CHECK(nbr_.dim() == 3 && nbr_.size(0) == a_.size(0) && nbr_.size(1) == c_.size(1) &&
               nbr_.scalar_type() == at::kLong, "nbr must be (B, Nd, k) int64");
   TORCH_CHECK(a_.device().is_cpu(), "CPU tensors only");
+  TORCH_CHECK(nbr_.size(2) > 0 || c_.numel() == 0, "k must be >= 1");
+  const auto nbr = nbr_.contiguous();
+  const int64_t* pn = nbr.data_ptr<int64_t>();
+  const int64_t n_idx = nbr.numel(), Ns = a_.size(1);
+  for (int64_t t = 0; t < n_idx; ++t) TORCH_CHECK(pn[t] >= 0 && pn[t] < Ns, "neighbour index out of range");
+}
+
+at::Tensor edge_mean(const at::Tensor& a_, const at::Tensor& c_, const at::Tensor& da_, const at::Tensor& dc_,
+                     const at::Tensor& nbr_, double slope) {
+  check_edge_terms(a_, c_, da_, dc_, nbr_);
   const auto a = a_.contiguous(), c = c_.contiguous(), da = da_.contiguous(), dc = dc_.contiguous();
   const auto nbr = nbr_.contiguous();
   const int64_t B = a.size(0), Ns = a.size(1), C = a.size(3), Nd = c.size(1), K = nbr.size(2);
   auto out = at::empty({B, Nd, 3, C}, a.options());
   if (out.numel() == 0) return out;
-  TORCH_CHECK(K > 0, "k must be >= 1");
   const int64_t* pn = nbr.data_ptr<int64_t>();
-  const int64_t n_idx = nbr.numel();
-  for (int64_t t = 0; t < n_idx; ++t) TORCH_CHECK(pn[t] >= 0 && pn[t] < Ns, "neighbour index out of range");
   const float* pa = a.data_ptr<float>();
   const float* pc = c.data_ptr<float>();
   const float* pda = da.data_ptr<float>();
@@ -105,6 +112,193 @@ at::Tensor edge_mean(const at::Tensor& a_, const at::Tensor& c_, const at::Tenso
     }
   });
   return out;
+}
+
+EFEM_INLINE void vn_leaky_grad(const float* __restrict x, const float* __restrict d, const float* __restrict g,
+                               float* __restrict gx, float* __restrict gd, int64_t C, float f) {
+  // Gradients of VN-LeakyReLU(x; d) of one edge for the output gradient g, written to gx and gd (each (3, C)):
+  // with dot = <x, d>, D = max(|d|^2, 1e-24) and coef = min(dot, 0) f / D, y = x - coef d gives
+  //   dL/dx = g - <g, d> f / D d and dL/dd = -coef g - <g, d> (f / D x - 2 coef / D d)  where dot <= 0,
+  //   dL/dx = g and dL/dd = 0 elsewhere;
+  // the 2 coef / D d term only where |d|^2 >= 1e-24 (torch's clamp passes gradients at its bounds: so here).
+  for (int64_t ch = 0; ch < C; ++ch) {
+    const float x0 = x[ch], x1 = x[C + ch], x2 = x[2 * C + ch];
+    const float d0 = d[ch], d1 = d[C + ch], d2 = d[2 * C + ch];
+    const float g0 = g[ch], g1 = g[C + ch], g2 = g[2 * C + ch];
+    const float dot = x0 * d0 + x1 * d1 + x2 * d2;
+    const float dn2 = d0 * d0 + d1 * d1 + d2 * d2;
+    const float den = std::max(dn2, 1e-24f);
+    const float on = dot <= 0.0f ? 1.0f : 0.0f;
+    const float s = on * f / den;
+    const float coef = s * dot;
+    const float gdd = g0 * d0 + g1 * d1 + g2 * d2;
+    const float k = gdd * s;
+    const float q = dn2 >= 1e-24f ? 2.0f * gdd * coef / den : 0.0f;
+    gx[ch] = g0 - k * d0;
+    gx[C + ch] = g1 - k * d1;
+    gx[2 * C + ch] = g2 - k * d2;
+    gd[ch] = -coef * g0 - k * x0 + q * d0;
+    gd[C + ch] = -coef * g1 - k * x1 + q * d1;
+    gd[2 * C + ch] = -coef * g2 - k * x2 + q * d2;
+  }
+}
+
+template <bool Mean>
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> edge_backward(
+    const at::Tensor& grad_, const at::Tensor& a_, const at::Tensor& c_, const at::Tensor& da_, const at::Tensor& dc_,
+    const at::Tensor& nbr_, double slope) {
+  // Gradients with respect to a, c, da and dc of `edge_mean` (Mean: grad (B, Nd, 3, C), each edge takes 1/k of
+  // it) or of `edge_act` (grad (B, Nd, k, 3, C), one per edge). The source terms gather from every destination that
+  // names them, so the work is split by batch row: each thread owns its rows' sources, and the sums run in one
+  // fixed order (deterministic for any thread count).
+  check_edge_terms(a_, c_, da_, dc_, nbr_);
+  const int64_t B = a_.size(0), Ns = a_.size(1), C = a_.size(3), Nd = c_.size(1), K = nbr_.size(2);
+  if constexpr (Mean) {
+    TORCH_CHECK(grad_.sizes() == c_.sizes() && grad_.scalar_type() == at::kFloat, "grad must match c");
+  } else {
+    TORCH_CHECK(grad_.dim() == 5 && grad_.size(0) == B && grad_.size(1) == Nd && grad_.size(2) == K &&
+                grad_.size(3) == 3 && grad_.size(4) == C && grad_.scalar_type() == at::kFloat,
+                "grad must be (B, Nd, k, 3, C) float32");
+  }
+  const auto a = a_.contiguous(), c = c_.contiguous(), da = da_.contiguous(), dc = dc_.contiguous();
+  const auto grad = grad_.contiguous(), nbr = nbr_.contiguous();
+  auto ga = at::zeros_like(a), gda = at::zeros_like(a);
+  auto gc = at::zeros_like(c), gdc = at::zeros_like(c);
+  if (c.numel() == 0 || a.numel() == 0) return {ga, gc, gda, gdc};
+  const int64_t* pn = nbr.data_ptr<int64_t>();
+  const float* pa = a.data_ptr<float>();
+  const float* pc = c.data_ptr<float>();
+  const float* pda = da.data_ptr<float>();
+  const float* pdc = dc.data_ptr<float>();
+  const float* pg = grad.data_ptr<float>();
+  float* pga = ga.data_ptr<float>();
+  float* pgda = gda.data_ptr<float>();
+  float* pgc = gc.data_ptr<float>();
+  float* pgdc = gdc.data_ptr<float>();
+  const float f = 1.0f - static_cast<float>(slope);
+  const float invk = 1.0f / static_cast<float>(K);
+  const int64_t S = 3 * C;
+  at::parallel_for(0, B, 1, [&](int64_t begin, int64_t end) {
+    std::vector<float> x(S), d(S), g(S), gx(S), gd(S);
+    for (int64_t b = begin; b < end; ++b) {
+      for (int64_t i = 0; i < Nd; ++i) {
+        const int64_t bi = b * Nd + i;
+        const float* ci = pc + bi * S;
+        const float* dci = pdc + bi * S;
+        float* gci = pgc + bi * S;
+        float* gdci = pgdc + bi * S;
+        if constexpr (Mean) {
+          for (int64_t t = 0; t < S; ++t) g[t] = pg[bi * S + t] * invk;
+        }
+        for (int64_t j = 0; j < K; ++j) {
+          const int64_t src = (b * Ns + pn[bi * K + j]) * S;
+          const float* aj = pa + src;
+          const float* daj = pda + src;
+          for (int64_t t = 0; t < S; ++t) { x[t] = aj[t] + ci[t]; d[t] = daj[t] + dci[t]; }
+          const float* ge = Mean ? g.data() : pg + (bi * K + j) * S;
+          vn_leaky_grad(x.data(), d.data(), ge, gx.data(), gd.data(), C, f);
+          float* gaj = pga + src;
+          float* gdaj = pgda + src;
+          for (int64_t t = 0; t < S; ++t) {
+            gaj[t] += gx[t];
+            gci[t] += gx[t];
+            gdaj[t] += gd[t];
+            gdci[t] += gd[t];
+          }
+        }
+      }
+    }
+  });
+  return {ga, gc, gda, gdc};
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> edge_mean_backward(
+    const at::Tensor& grad, const at::Tensor& a, const at::Tensor& c, const at::Tensor& da, const at::Tensor& dc,
+    const at::Tensor& nbr, double slope) {
+  return edge_backward<true>(grad, a, c, da, dc, nbr, slope);
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> edge_act_backward(
+    const at::Tensor& grad, const at::Tensor& a, const at::Tensor& c, const at::Tensor& da, const at::Tensor& dc,
+    const at::Tensor& nbr, double slope) {
+  return edge_backward<false>(grad, a, c, da, dc, nbr, slope);
+}
+
+at::Tensor edge_act(const at::Tensor& a_, const at::Tensor& c_, const at::Tensor& da_, const at::Tensor& dc_,
+                    const at::Tensor& nbr_, double slope) {
+  // VN-LeakyReLU(a[nbr] + c; da[nbr] + dc) of every edge: (B, Nd, k, 3, C), what `edge_mean` averages.
+  check_edge_terms(a_, c_, da_, dc_, nbr_);
+  const auto a = a_.contiguous(), c = c_.contiguous(), da = da_.contiguous(), dc = dc_.contiguous();
+  const auto nbr = nbr_.contiguous();
+  const int64_t B = a.size(0), Ns = a.size(1), C = a.size(3), Nd = c.size(1), K = nbr.size(2);
+  auto out = at::empty({B, Nd, K, 3, C}, a.options());
+  if (out.numel() == 0) return out;
+  const int64_t* pn = nbr.data_ptr<int64_t>();
+  const float* pa = a.data_ptr<float>();
+  const float* pc = c.data_ptr<float>();
+  const float* pda = da.data_ptr<float>();
+  const float* pdc = dc.data_ptr<float>();
+  float* po = out.data_ptr<float>();
+  const float f = 1.0f - static_cast<float>(slope);
+  const int64_t S = 3 * C;
+  at::parallel_for(0, B * Nd, 16, [&](int64_t begin, int64_t end) {
+    std::vector<float> x(S), d(S);
+    for (int64_t bi = begin; bi < end; ++bi) {
+      const int64_t b = bi / Nd;
+      const float* ci = pc + bi * S;
+      const float* dci = pdc + bi * S;
+      for (int64_t j = 0; j < K; ++j) {
+        const int64_t src = (b * Ns + pn[bi * K + j]) * S;
+        for (int64_t t = 0; t < S; ++t) { x[t] = pa[src + t] + ci[t]; d[t] = pda[src + t] + dci[t]; }
+        vn_act(x.data(), d.data(), po + (bi * K + j) * S, C, f);
+      }
+    }
+  });
+  return out;
+}
+
+at::Tensor leaky(const at::Tensor& x_, const at::Tensor& d_, double slope) {
+  // VN-LeakyReLU(x; d) of (..., 3, C) features with directions of the same shape.
+  TORCH_CHECK(x_.dim() >= 2 && x_.size(-2) == 3 && x_.scalar_type() == at::kFloat, "x must be (..., 3, C) float32");
+  TORCH_CHECK(d_.sizes() == x_.sizes() && d_.scalar_type() == at::kFloat, "d must match x");
+  TORCH_CHECK(x_.device().is_cpu(), "CPU tensors only");
+  const auto x = x_.contiguous(), d = d_.contiguous();
+  auto out = at::empty_like(x);
+  const int64_t C = x.size(-1), S = 3 * C, M = C > 0 ? x.numel() / S : 0;
+  if (M == 0) return out;
+  const float* px = x.data_ptr<float>();
+  const float* pd = d.data_ptr<float>();
+  float* po = out.data_ptr<float>();
+  const float f = 1.0f - static_cast<float>(slope);
+  at::parallel_for(0, M, 64, [&](int64_t begin, int64_t end) {
+    for (int64_t m = begin; m < end; ++m) vn_act(px + m * S, pd + m * S, po + m * S, C, f);
+  });
+  return out;
+}
+
+std::tuple<at::Tensor, at::Tensor> leaky_backward(const at::Tensor& grad_, const at::Tensor& x_, const at::Tensor& d_,
+                                                  double slope) {
+  // Gradients of `leaky` with respect to x and d.
+  TORCH_CHECK(x_.dim() >= 2 && x_.size(-2) == 3 && x_.scalar_type() == at::kFloat, "x must be (..., 3, C) float32");
+  TORCH_CHECK(d_.sizes() == x_.sizes() && d_.scalar_type() == at::kFloat, "d must match x");
+  TORCH_CHECK(grad_.sizes() == x_.sizes() && grad_.scalar_type() == at::kFloat, "grad must match x");
+  TORCH_CHECK(x_.device().is_cpu(), "CPU tensors only");
+  const auto x = x_.contiguous(), d = d_.contiguous(), grad = grad_.contiguous();
+  auto gx = at::empty_like(x), gd = at::empty_like(x);
+  const int64_t C = x.size(-1), S = 3 * C, M = C > 0 ? x.numel() / S : 0;
+  if (M == 0) return {gx, gd};
+  const float* px = x.data_ptr<float>();
+  const float* pd = d.data_ptr<float>();
+  const float* pg = grad.data_ptr<float>();
+  float* pgx = gx.data_ptr<float>();
+  float* pgd = gd.data_ptr<float>();
+  const float f = 1.0f - static_cast<float>(slope);
+  at::parallel_for(0, M, 64, [&](int64_t begin, int64_t end) {
+    for (int64_t m = begin; m < end; ++m) {
+      vn_leaky_grad(px + m * S, pd + m * S, pg + m * S, pgx + m * S, pgd + m * S, C, f);
+    }
+  });
+  return {gx, gd};
 }
 
 at::Tensor act_mean(const at::Tensor& x_, const at::Tensor& d_, double slope) {
@@ -950,6 +1144,13 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> decoder_band(
 
 TORCH_LIBRARY(efem_vn, m) {
   m.def("edge_mean(Tensor a, Tensor c, Tensor da, Tensor dc, Tensor nbr, float slope) -> Tensor", &edge_mean);
+  m.def("edge_mean_backward(Tensor grad, Tensor a, Tensor c, Tensor da, Tensor dc, Tensor nbr, float slope) -> "
+        "(Tensor, Tensor, Tensor, Tensor)", &edge_mean_backward);
+  m.def("edge_act(Tensor a, Tensor c, Tensor da, Tensor dc, Tensor nbr, float slope) -> Tensor", &edge_act);
+  m.def("edge_act_backward(Tensor grad, Tensor a, Tensor c, Tensor da, Tensor dc, Tensor nbr, float slope) -> "
+        "(Tensor, Tensor, Tensor, Tensor)", &edge_act_backward);
+  m.def("leaky(Tensor x, Tensor d, float slope) -> Tensor", &leaky);
+  m.def("leaky_backward(Tensor grad, Tensor x, Tensor d, float slope) -> (Tensor, Tensor)", &leaky_backward);
   m.def("act_mean(Tensor x, Tensor d, float slope) -> Tensor", &act_mean);
   m.def("lin_act_mean(Tensor x, Tensor w, Tensor u, float slope) -> Tensor", &lin_act_mean);
   m.def("fps(Tensor points, int n_samples, int start) -> Tensor", &fps);

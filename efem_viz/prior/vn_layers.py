@@ -73,7 +73,9 @@ class VNLeakyReLU(nn.Module):
         Returns:
             ``(..., 3, C)``.
         """
-        return vn_leaky_relu(x, self.lin_dir(x), self.negative_slope)
+        from efem_viz.prior.fused import leaky  # imports this module: here, not at the top
+
+        return leaky(x, self.lin_dir(x), self.negative_slope)
 
 
 def vn_leaky_relu(x: torch.Tensor, d: torch.Tensor, negative_slope: float) -> torch.Tensor:
