@@ -227,7 +227,7 @@ def test_training_kernels_give_the_eager_gradients(seed: int) -> None:
     terms, nbr = _edge_terms(seed)
     cases = [
         (lambda *t: fused.edge_mean_reference(*t, nbr, 0.2),
-         lambda *t: fused._EdgeMean.apply(*t, nbr, 0.2), terms),
+         lambda *t: fused._Edges.apply(*t, nbr, 0.2, True), terms),
         (lambda *t: fused._edge_act_reference(*t, nbr, 0.2), lambda *t: fused._edge_act_trained(*t, nbr, 0.2), terms),
         (lambda x, d: fused.vn_leaky_relu(x, d, 0.2), lambda x, d: fused.leaky(x, d, 0.2), [terms[0], terms[2]]),
     ]

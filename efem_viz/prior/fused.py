@@ -246,42 +246,25 @@ def trainable(*tensors: torch.Tensor) -> bool:
     return load() and hasattr(torch.ops.efem_vn, "leaky_backward")
 
 
-class _EdgeMean(torch.autograd.Function):
-    """`edge_mean` in training: the fused forward, and a fused backward (`edge_mean_backward`) instead of the
-    eager graph's (B, Nd, k, 3, C) gathers and their scatter-adds."""
+class _Edges(torch.autograd.Function):
+    """The edge kernels in training: ``VN-LeakyReLU(a[nbr] + c; da[nbr] + dc)`` averaged over each destination's
+    edges (`edge_mean`) or of every edge ((B, Nd, k, 3, C), `edge_act`, the attention's), with a fused backward
+    (`edge_mean_backward`, `edge_act_backward`) instead of the eager graph's k-fold gathers and scatter-adds."""
 
     @staticmethod
     def forward(ctx: Any, a: torch.Tensor, c: torch.Tensor, da: torch.Tensor, dc: torch.Tensor, nbr: torch.Tensor,
-                slope: float) -> torch.Tensor:
+                slope: float, mean: bool) -> torch.Tensor:
         ctx.save_for_backward(a, c, da, dc, nbr)
-        ctx.slope = slope
-        return torch.ops.efem_vn.edge_mean(a, c, da, dc, nbr, slope)
+        ctx.slope, ctx.mean = slope, mean
+        op = torch.ops.efem_vn.edge_mean if mean else torch.ops.efem_vn.edge_act
+        return op(a, c, da, dc, nbr, slope)
 
     @staticmethod
     def backward(ctx: Any, grad: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
         a, c, da, dc, nbr = ctx.saved_tensors
-        ga, gc, gda, gdc = torch.ops.efem_vn.edge_mean_backward(grad.float().contiguous(), a, c, da, dc, nbr,
-                                                                 ctx.slope)
-        return ga, gc, gda, gdc, None, None
-
-
-class _EdgeAct(torch.autograd.Function):
-    """Every edge's ``VN-LeakyReLU(a[nbr] + c; da[nbr] + dc)`` (B, Nd, k, 3, C) in training, with its fused backward
-    (`edge_act_backward`)."""
-
-    @staticmethod
-    def forward(ctx: Any, a: torch.Tensor, c: torch.Tensor, da: torch.Tensor, dc: torch.Tensor, nbr: torch.Tensor,
-                slope: float) -> torch.Tensor:
-        ctx.save_for_backward(a, c, da, dc, nbr)
-        ctx.slope = slope
-        return torch.ops.efem_vn.edge_act(a, c, da, dc, nbr, slope)
-
-    @staticmethod
-    def backward(ctx: Any, grad: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
-        a, c, da, dc, nbr = ctx.saved_tensors
-        ga, gc, gda, gdc = torch.ops.efem_vn.edge_act_backward(grad.float().contiguous(), a, c, da, dc, nbr,
-                                                                ctx.slope)
-        return ga, gc, gda, gdc, None, None
+        op = torch.ops.efem_vn.edge_mean_backward if ctx.mean else torch.ops.efem_vn.edge_act_backward
+        ga, gc, gda, gdc = op(grad.float().contiguous(), a, c, da, dc, nbr, ctx.slope)
+        return ga, gc, gda, gdc, None, None, None
 
 
 class _Leaky(torch.autograd.Function):
@@ -321,7 +304,7 @@ def _edge_act_trained(a: torch.Tensor, c: torch.Tensor, da: torch.Tensor, dc: to
                       slope: float) -> torch.Tensor:
     """`_edge_act_reference` with the fused forward and backward (training; `trainable` checked by the caller)."""
     f32 = [t.float().contiguous() for t in (a, c, da, dc)]
-    return _EdgeAct.apply(*f32, nbr.contiguous(), float(slope))  # type: ignore[no-any-return]
+    return _Edges.apply(*f32, nbr.contiguous(), float(slope), False)  # type: ignore[no-any-return]
 
 
 def edge_mean(a: torch.Tensor, c: torch.Tensor, nbr: torch.Tensor, w_dir: torch.Tensor,
@@ -341,7 +324,7 @@ def edge_mean(a: torch.Tensor, c: torch.Tensor, nbr: torch.Tensor, w_dir: torch.
         return torch.ops.efem_vn.edge_mean(a, c, da, dc, nbr, float(slope))
     if trainable(a, c, da, dc):
         f32 = [t.float().contiguous() for t in (a, c, da, dc)]
-        return _EdgeMean.apply(*f32, nbr.contiguous(), float(slope))  # type: ignore[no-any-return]
+        return _Edges.apply(*f32, nbr.contiguous(), float(slope), True)  # type: ignore[no-any-return]
     return edge_mean_reference(a, c, da, dc, nbr, slope)
 
 

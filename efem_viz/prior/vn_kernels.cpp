@@ -76,13 +76,16 @@ void check_edge_terms(const at::Tensor& a_, const at::Tensor& c_, const at::Tens
   for (int64_t t = 0; t < n_idx; ++t) TORCH_CHECK(pn[t] >= 0 && pn[t] < Ns, "neighbour index out of range");
 }
 
-at::Tensor edge_mean(const at::Tensor& a_, const at::Tensor& c_, const at::Tensor& da_, const at::Tensor& dc_,
-                     const at::Tensor& nbr_, double slope) {
+template <bool Mean>
+at::Tensor edge_forward(const at::Tensor& a_, const at::Tensor& c_, const at::Tensor& da_, const at::Tensor& dc_,
+                        const at::Tensor& nbr_, double slope) {
+  // VN-LeakyReLU(a[nbr] + c; da[nbr] + dc) of every edge: averaged over each destination's k edges (Mean, `edge_mean`,
+  // (B, Nd, 3, C)) or every edge's own ((B, Nd, k, 3, C), `edge_act`).
   check_edge_terms(a_, c_, da_, dc_, nbr_);
   const auto a = a_.contiguous(), c = c_.contiguous(), da = da_.contiguous(), dc = dc_.contiguous();
   const auto nbr = nbr_.contiguous();
   const int64_t B = a.size(0), Ns = a.size(1), C = a.size(3), Nd = c.size(1), K = nbr.size(2);
-  auto out = at::empty({B, Nd, 3, C}, a.options());
+  auto out = Mean ? at::empty({B, Nd, 3, C}, a.options()) : at::empty({B, Nd, K, 3, C}, a.options());
   if (out.numel() == 0) return out;
   const int64_t* pn = nbr.data_ptr<int64_t>();
   const float* pa = a.data_ptr<float>();
@@ -94,24 +97,40 @@ at::Tensor edge_mean(const at::Tensor& a_, const at::Tensor& c_, const at::Tenso
   const float invk = 1.0f / static_cast<float>(K);
   const int64_t S = 3 * C;
   at::parallel_for(0, B * Nd, 16, [&](int64_t begin, int64_t end) {
-    std::vector<float> x(S), d(S), acc(S);
+    std::vector<float> x(S), d(S), acc(Mean ? S : 0);
     for (int64_t bi = begin; bi < end; ++bi) {
       const int64_t b = bi / Nd;
       const float* ci = pc + bi * S;
       const float* dci = pdc + bi * S;
-      std::fill(acc.begin(), acc.end(), 0.0f);
+      if constexpr (Mean) std::fill(acc.begin(), acc.end(), 0.0f);
       for (int64_t j = 0; j < K; ++j) {
         const int64_t s = pn[bi * K + j];
         const float* aj = pa + (b * Ns + s) * S;
         const float* daj = pda + (b * Ns + s) * S;
         for (int64_t t = 0; t < S; ++t) { x[t] = aj[t] + ci[t]; d[t] = daj[t] + dci[t]; }
-        vn_acc(x.data(), d.data(), acc.data(), C, f);
+        if constexpr (Mean) {
+          vn_acc(x.data(), d.data(), acc.data(), C, f);
+        } else {
+          vn_act(x.data(), d.data(), po + (bi * K + j) * S, C, f);
+        }
       }
-      float* o = po + bi * S;
-      for (int64_t t = 0; t < S; ++t) o[t] = acc[t] * invk;
+      if constexpr (Mean) {
+        float* o = po + bi * S;
+        for (int64_t t = 0; t < S; ++t) o[t] = acc[t] * invk;
+      }
     }
   });
   return out;
+}
+
+at::Tensor edge_mean(const at::Tensor& a, const at::Tensor& c, const at::Tensor& da, const at::Tensor& dc,
+                     const at::Tensor& nbr, double slope) {
+  return edge_forward<true>(a, c, da, dc, nbr, slope);
+}
+
+at::Tensor edge_act(const at::Tensor& a, const at::Tensor& c, const at::Tensor& da, const at::Tensor& dc,
+                    const at::Tensor& nbr, double slope) {
+  return edge_forward<false>(a, c, da, dc, nbr, slope);
 }
 
 EFEM_INLINE void vn_leaky_grad(const float* __restrict x, const float* __restrict d, const float* __restrict g,
@@ -222,39 +241,6 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> edge_act_backward(
     const at::Tensor& grad, const at::Tensor& a, const at::Tensor& c, const at::Tensor& da, const at::Tensor& dc,
     const at::Tensor& nbr, double slope) {
   return edge_backward<false>(grad, a, c, da, dc, nbr, slope);
-}
-
-at::Tensor edge_act(const at::Tensor& a_, const at::Tensor& c_, const at::Tensor& da_, const at::Tensor& dc_,
-                    const at::Tensor& nbr_, double slope) {
-  // VN-LeakyReLU(a[nbr] + c; da[nbr] + dc) of every edge: (B, Nd, k, 3, C), what `edge_mean` averages.
-  check_edge_terms(a_, c_, da_, dc_, nbr_);
-  const auto a = a_.contiguous(), c = c_.contiguous(), da = da_.contiguous(), dc = dc_.contiguous();
-  const auto nbr = nbr_.contiguous();
-  const int64_t B = a.size(0), Ns = a.size(1), C = a.size(3), Nd = c.size(1), K = nbr.size(2);
-  auto out = at::empty({B, Nd, K, 3, C}, a.options());
-  if (out.numel() == 0) return out;
-  const int64_t* pn = nbr.data_ptr<int64_t>();
-  const float* pa = a.data_ptr<float>();
-  const float* pc = c.data_ptr<float>();
-  const float* pda = da.data_ptr<float>();
-  const float* pdc = dc.data_ptr<float>();
-  float* po = out.data_ptr<float>();
-  const float f = 1.0f - static_cast<float>(slope);
-  const int64_t S = 3 * C;
-  at::parallel_for(0, B * Nd, 16, [&](int64_t begin, int64_t end) {
-    std::vector<float> x(S), d(S);
-    for (int64_t bi = begin; bi < end; ++bi) {
-      const int64_t b = bi / Nd;
-      const float* ci = pc + bi * S;
-      const float* dci = pdc + bi * S;
-      for (int64_t j = 0; j < K; ++j) {
-        const int64_t src = (b * Ns + pn[bi * K + j]) * S;
-        for (int64_t t = 0; t < S; ++t) { x[t] = pa[src + t] + ci[t]; d[t] = pda[src + t] + dci[t]; }
-        vn_act(x.data(), d.data(), po + (bi * K + j) * S, C, f);
-      }
-    }
-  });
-  return out;
 }
 
 at::Tensor leaky(const at::Tensor& x_, const at::Tensor& d_, double slope) {
