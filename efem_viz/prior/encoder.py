@@ -14,8 +14,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from efem_viz.prior import fused
+from efem_viz.prior.vn_math import EPS
 from efem_viz.prior.vn_layers import (
-    EPS,
     VNLinear,
     VNLinearLeakyReLU,
     VNResnetBlock,

@@ -46,7 +46,7 @@ from typing import Any, Callable
 import torch
 import torch.nn.functional as F
 
-from efem_viz.prior.vn_layers import EPS, vn_leaky_relu
+from efem_viz.prior.vn_math import EPS, vn_leaky_relu
 
 log = logging.getLogger(__name__)
 

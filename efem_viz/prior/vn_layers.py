@@ -18,7 +18,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-EPS = 1e-12
+from efem_viz.prior.fused import leaky
+from efem_viz.prior.vn_math import EPS
 
 
 class VNLinear(nn.Module):
@@ -73,24 +74,7 @@ class VNLeakyReLU(nn.Module):
         Returns:
             ``(..., 3, C)``.
         """
-        from efem_viz.prior.fused import leaky  # imports this module: here, not at the top
-
         return leaky(x, self.lin_dir(x), self.negative_slope)
-
-
-def vn_leaky_relu(x: torch.Tensor, d: torch.Tensor, negative_slope: float) -> torch.Tensor:
-    """VN-LeakyReLU of ``x (..., 3, C)`` along directions ``d (..., 3, C or 1)`` (the one copy of the math; the
-    fused kernels of `prior.fused` compute the same).
-
-    ``proj_c k̂_c = <v_c, k_c> k_c / ‖k_c‖²``; the three components are handled as separate contiguous slices
-    because reductions over the short strided 3-axis are very slow on CPU.
-    """
-    dx, dy, dz = d.unbind(-2)
-    xx, xy, xz = x.unbind(-2)
-    dot = xx * dx + xy * dy + xz * dz
-    dn2 = dx * dx + dy * dy + dz * dz
-    coef = dot.clamp_max(0.0) / dn2.clamp_min(EPS * EPS) * (1.0 - negative_slope)
-    return x - coef.unsqueeze(-2) * d
 
 
 class VNLinearLeakyReLU(nn.Module):
