@@ -301,10 +301,11 @@ def _edge_act_reference(a: torch.Tensor, c: torch.Tensor, da: torch.Tensor, dc: 
 
 
 def _edge_act_trained(a: torch.Tensor, c: torch.Tensor, da: torch.Tensor, dc: torch.Tensor, nbr: torch.Tensor,
-                      slope: float) -> torch.Tensor:
-    """`_edge_act_reference` with the fused forward and backward (training; `trainable` checked by the caller)."""
+                      slope: float, mean: bool = False) -> torch.Tensor:
+    """`_edge_act_reference` (or with `mean` its average over each destination's edges, `edge_mean_reference`) with
+    the fused forward and backward (training; `trainable` checked by the caller)."""
     f32 = [t.float().contiguous() for t in (a, c, da, dc)]
-    return _Edges.apply(*f32, nbr.contiguous(), float(slope), False)  # type: ignore[no-any-return]
+    return _Edges.apply(*f32, nbr.contiguous(), float(slope), mean)  # type: ignore[no-any-return]
 
 
 def edge_mean(a: torch.Tensor, c: torch.Tensor, nbr: torch.Tensor, w_dir: torch.Tensor,
@@ -323,8 +324,7 @@ def edge_mean(a: torch.Tensor, c: torch.Tensor, nbr: torch.Tensor, w_dir: torch.
     if usable(a, c, da, dc):
         return torch.ops.efem_vn.edge_mean(a, c, da, dc, nbr, float(slope))
     if trainable(a, c, da, dc):
-        f32 = [t.float().contiguous() for t in (a, c, da, dc)]
-        return _Edges.apply(*f32, nbr.contiguous(), float(slope), True)  # type: ignore[no-any-return]
+        return _edge_act_trained(a, c, da, dc, nbr, slope, mean=True)
     return edge_mean_reference(a, c, da, dc, nbr, slope)
 
 

@@ -77,7 +77,7 @@ class MemberHead:
         (rows with a non-finite or non-positive size by the latent alone)."""
         x = (np.asarray(inv, np.float64).reshape(-1, len(self.mean)) - self.mean) / self.std
         z = x @ self.weight.T + self.bias
-        if radii is not None and self.size_mean is not None and self.size_cov is not None:
+        if radii is not None:
             z = z + self.size_log_likelihood(radii)
         z -= z.max(axis=1, keepdims=True)
         p = np.exp(z)
