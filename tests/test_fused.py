@@ -165,6 +165,25 @@ def test_knn_selection_gives_the_eager_neighbours_index_for_index(b: int, nq: in
 
 
 @needs_kernels
+def test_knn_of_bf16_features_runs_the_selection_in_float32(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A bf16 autocast's features (training) take the one-pass selection on their float32 values, with the
+    neighbours the eager function finds for them, not `topk` over a bf16 distance matrix."""
+    from efem_viz.geometry.knn import knn_indices
+
+    g = torch.Generator().manual_seed(5)
+    ref = torch.randn(3, 96, 48, generator=g).bfloat16()
+    query = ref[:, :40].clone()
+    calls = []
+    select = torch.ops.efem_vn.knn_select
+    monkeypatch.setattr(fused.torch.ops.efem_vn, "knn_select", lambda *a: calls.append(a[0].dtype) or select(*a),
+                        raising=False)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        got = fused.knn(query, ref, 16)
+    assert calls == [torch.float32]
+    assert torch.equal(got, knn_indices(query, ref, 16))
+
+
+@needs_kernels
 def test_knn_selection_refuses_bad_shapes_and_k() -> None:
     gram, qq, rr = torch.randn(2, 5, 7), torch.randn(2, 5), torch.randn(2, 7)
     with pytest.raises(RuntimeError, match=r"k must be in \[1, Nr\]"):

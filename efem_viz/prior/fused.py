@@ -401,6 +401,7 @@ def knn(query: torch.Tensor, ref: torch.Tensor, k: int) -> torch.Tensor:
     identical reference rows (duplicate points: the M-step draws with replacement) the row keeps its one pass,
     equal distances by ascending index: indices may differ from `topk`'s there, never what they gather. A row
     with equal distances between different points takes torch's own selection, so its indices equal `topk`'s.
+    Half-precision features (a bf16 autocast's, in training) are selected in float32, as `knn_indices` does.
 
     Args:
         query: ``(B, Nq, D)`` float.
@@ -417,6 +418,8 @@ def knn(query: torch.Tensor, ref: torch.Tensor, k: int) -> torch.Tensor:
         return knn_indices(query, ref, k)  # its one error message
     with torch.no_grad(), torch.autocast(query.device.type, enabled=False):
         q, r = query.detach(), ref.detach()
+        if q.dtype in (torch.bfloat16, torch.float16) and r.dtype == q.dtype:  # an autocast's features in training
+            q, r = q.float(), r.float()  # the float32 distances `knn_indices` forms for them
         if not usable(q, r):
             return knn_indices(query, ref, k)
         gram = q @ r.transpose(1, 2)
