@@ -10,14 +10,19 @@ times each:
   encoder of 2026-12-04.
 - ``fused_topk_order``: the same with the one-pass k-NN selection, every row with equal distances decided in
   torch's order (the k-NN selection before duplicate points were recognised).
-- ``fused``: as the product runs it (`fused.knn` with its duplicate rows, `fused.fps`, the first layer in one
-  pass, `fused.lin_act_mean`).
+- ``fused_gram``: the same as ``fused`` but for the k-NN's Gram matrix, formed whole for the batch before the
+  selection (the encoder of 2026-12-06).
+- ``fused``: as the product runs it (`fused.knn`: its Gram rows a slab at a time, its duplicate rows; `fused.fps`,
+  the first layer in one pass, `fused.lin_act_mean`).
 
 Reported per scene and mode: the median seconds, milliseconds per point set, the ratio to ``eager``, to
 ``fused_topk`` and to ``fused_topk_order``, and whether the outputs (Θ_R, Θ_inv, δ, Θ_s) equal
 ``fused_topk_order``'s bit for bit (``eager`` differs by float rounding: its largest difference is given).
 
 Usage: python -m bench.encoder_kernel [--scenes real_tabletop_0 z_7000] [--repeats 3] [--threads 1] [--tag NAME]
+    [--prior PRIOR] [--modes fused_gram fused]
+(``--prior``: solve and replay with this prior instead of the scene's own, e.g. a candidate's weights; ``--modes``:
+a subset of the modes, ``fused_topk_order`` always among them as the reference.)
 Writes bench/results/encoder_kernel/latest.json (encoder_kernel_<TAG>.json with --tag).
 """
 
@@ -31,19 +36,20 @@ from typing import Any
 # first: the OpenMP wait policy, before torch
 from bench.common import kernels_or_say, machine, replay_parser, result_path, write_result
 
-MODES = ("eager", "fused_topk", "fused_topk_order", "fused")
+MODES = ("eager", "fused_topk", "fused_topk_order", "fused_gram", "fused")
 """Replay modes, the reference of the bit-for-bit comparison second."""
 
 
-def record_batches(name: str) -> tuple[Any, list[Any]]:
-    """One solve of the scene; its prior and every batch of point sets its encoder was given."""
+def record_batches(name: str, prior_spec: str | None = None) -> tuple[Any, list[Any]]:
+    """One solve of the scene (with `prior_spec`, else the scene's own prior); the prior and every batch of point
+    sets its encoder was given."""
     from efem_viz.em.config import preset
     from efem_viz.em.solver import run_em
     from efem_viz.prior.model import load_prior
     from bench.speed import load
 
     scene, pname, prior_name = load(name)
-    prior = load_prior(prior_name)
+    prior = load_prior(prior_spec or prior_name)
     batches: list[Any] = []
     enc = prior.encoder
     plain = enc.forward
@@ -70,6 +76,16 @@ def _knn_topk_order(query: Any, ref: Any, k: int) -> Any:
         return torch.ops.efem_vn.knn_select(gram, (q * q).sum(-1), (r * r).sum(-1), int(k))
 
 
+def _knn_whole_gram(query: Any, ref: Any, k: int) -> Any:
+    """`fused.knn` with the batch's whole Gram matrix formed first (its duplicate rows kept)."""
+    import torch
+
+    with torch.no_grad(), torch.autocast(query.device.type, enabled=False):
+        q, r = query.detach(), ref.detach()
+        gram = q @ r.transpose(1, 2)
+        return torch.ops.efem_vn.knn_select(gram, (q * q).sum(-1), (r * r).sum(-1), int(k), r)
+
+
 def _first_layer_in_memory(x: Any, w_lin: Any, w_dir: Any, slope: float) -> Any:
     """The first layer as it was: both products in memory, then the fused activation and mean."""
     import torch
@@ -92,6 +108,8 @@ def replay(prior: Any, batches: list[Any], mode: str) -> tuple[float, list[Any]]
     if mode in ("fused_topk", "fused_topk_order"):
         fused.knn = knn_indices if mode == "fused_topk" else _knn_topk_order  # type: ignore[assignment]
         fused.fps, fused.lin_act_mean = farthest_point_sample, _first_layer_in_memory  # type: ignore[assignment]
+    elif mode == "fused_gram":
+        fused.knn = _knn_whole_gram  # type: ignore[assignment]
     try:
         out = []
         t0 = time.perf_counter()
@@ -107,45 +125,49 @@ def replay(prior: Any, batches: list[Any], mode: str) -> tuple[float, list[Any]]
 
 
 def main() -> int:
-    a = replay_parser(__doc__).parse_args()
+    ap = replay_parser(__doc__)
+    ap.add_argument("--prior", default=None, help="solve and replay with this prior (default: the scene's own)")
+    ap.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES))
+    a = ap.parse_args()
+    modes = [m for m in MODES if m in a.modes or m == "fused_topk_order"]
     if not kernels_or_say(a.threads):
         return 1
     import torch
 
     rows: dict[str, Any] = {}
     for name in a.scenes:
-        prior, batches = record_batches(name)
+        prior, batches = record_batches(name, a.prior)
         sets = sum(int(x.shape[0]) for x in batches)
-        times: dict[str, list[float]] = {m: [] for m in MODES}
+        times: dict[str, list[float]] = {m: [] for m in modes}
         results: dict[str, list[Any]] = {}
         for _ in range(a.repeats):
-            for m in MODES:
+            for m in modes:
                 sec, results[m] = replay(prior, batches, m)
                 times[m].append(sec)
-        med = {m: statistics.median(times[m]) for m in MODES}
+        med = {m: statistics.median(times[m]) for m in modes}
         ref = results["fused_topk_order"]
         row: dict[str, Any] = {"batches": len(batches), "point_sets": sets,
                                "points_per_set": sorted({int(x.shape[1]) for x in batches}), "modes": {}}
-        for m in MODES:
+        for m in modes:
             same = all(torch.equal(e, f) for e, f in zip(ref, results[m]))
             diff = max(float((e - f).abs().max()) for e, f in zip(ref, results[m]))
-            row["modes"][m] = {"seconds": med[m], "ms_per_set": 1e3 * med[m] / sets,
-                               "ratio_to_eager": med[m] / med["eager"],
-                               "ratio_to_topk": med[m] / med["fused_topk"],
-                               "ratio_to_topk_order": med[m] / med["fused_topk_order"],
+            ratios = {f"ratio_to_{short}": (med[m] / med[base] if base in med else None)
+                      for short, base in (("eager", "eager"), ("topk", "fused_topk"),
+                                          ("topk_order", "fused_topk_order"), ("gram", "fused_gram"))}
+            row["modes"][m] = {"seconds": med[m], "ms_per_set": 1e3 * med[m] / sets, **ratios,
                                "bitwise_equal_to_topk_order": same, "max_abs_diff_to_topk_order": diff,
                                "times": times[m]}
         rows[name] = row
         print(f"{name:>16}: {len(batches)} encoder calls, {sets} point sets of {row['points_per_set']} points",
               flush=True)
         for m, r in row["modes"].items():
-            print(f"{'':>18}{m:>16}: {r['seconds']:.2f} s, {r['ms_per_set']:.2f} ms a set, "
-                  f"ratio to eager {r['ratio_to_eager']:.2f}, to topk {r['ratio_to_topk']:.2f}, "
-                  f"to topk order {r['ratio_to_topk_order']:.2f}; "
+            ratios = ", ".join(f"to {short.replace('_', ' ')} {r['ratio_to_' + short]:.2f}"
+                               for short in ("eager", "topk", "topk_order", "gram") if r["ratio_to_" + short])
+            print(f"{'':>18}{m:>16}: {r['seconds']:.2f} s, {r['ms_per_set']:.2f} ms a set, ratio {ratios}; "
                   + ("outputs bit for bit those of topk order" if r["bitwise_equal_to_topk_order"]
                      else f"largest output difference {r['max_abs_diff_to_topk_order']:.1e}"), flush=True)
     write_result(result_path("encoder_kernel", a.tag),
-                 {"machine": machine(a.threads), "repeats": a.repeats, "scenes": rows})
+                 {"machine": machine(a.threads), "repeats": a.repeats, "prior": a.prior, "scenes": rows})
     return 0
 
 

@@ -165,6 +165,34 @@ def test_knn_selection_gives_the_eager_neighbours_index_for_index(b: int, nq: in
 
 
 @needs_kernels
+@pytest.mark.parametrize("threads", [1, 2])
+def test_knn_by_gram_slabs_equals_the_selection_on_the_whole_gram_matrix(threads: int) -> None:
+    """The slab kernel (Gram rows 64 query rows at a time) gives the indices of `knn_select` on the batched
+    product, bit for bit, at slab edges (130 = 2 x 64 + 2 rows), with duplicates, a NaN and more queries than
+    references, on one and two threads."""
+    g = torch.Generator().manual_seed(11)
+    old_threads = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        for b, nq, nr, dim in ((3, 130, 130, 48), (2, 200, 64, 3), (2, 64, 1024, 6), (1, 1, 17, 5)):
+            r = torch.randn(b, nr, dim, generator=g)
+            r[:, nr // 2] = r[:, 0]
+            q = torch.cat([r[:, : min(nq, nr)], torch.randn(b, max(0, nq - nr), dim, generator=g)], 1)
+            q[0, -1, 0] = float("nan")
+            qq, rr = (q * q).sum(-1), (r * r).sum(-1)
+            want = torch.ops.efem_vn.knn_select(q @ r.transpose(1, 2), qq, rr, min(16, nr), r)
+            assert torch.equal(torch.ops.efem_vn.knn(q, r, qq, rr, min(16, nr)), want)
+    finally:
+        torch.set_num_threads(old_threads)
+    with pytest.raises(RuntimeError, match="must be float32 and agree"):
+        torch.ops.efem_vn.knn(q, r[..., :-1], qq, rr, 3)
+    with pytest.raises(RuntimeError, match="rr must be"):
+        torch.ops.efem_vn.knn(q, r, qq, rr[:, :-1], 3)
+    with pytest.raises(RuntimeError, match=r"k must be in \[1, Nr\]"):
+        torch.ops.efem_vn.knn(q, r, qq, rr, nr + 1)
+
+
+@needs_kernels
 def test_knn_of_bf16_features_runs_the_selection_in_float32(monkeypatch: pytest.MonkeyPatch) -> None:
     """A bf16 autocast's features (training) take the one-pass selection on their float32 values, with the
     neighbours the eager function finds for them, not `topk` over a bf16 distance matrix."""
@@ -174,8 +202,8 @@ def test_knn_of_bf16_features_runs_the_selection_in_float32(monkeypatch: pytest.
     ref = torch.randn(3, 96, 48, generator=g).bfloat16()
     query = ref[:, :40].clone()
     calls = []
-    select = torch.ops.efem_vn.knn_select
-    monkeypatch.setattr(fused.torch.ops.efem_vn, "knn_select", lambda *a: calls.append(a[0].dtype) or select(*a),
+    select = torch.ops.efem_vn.knn
+    monkeypatch.setattr(fused.torch.ops.efem_vn, "knn", lambda *a: calls.append(a[0].dtype) or select(*a),
                         raising=False)
     with torch.autocast("cpu", dtype=torch.bfloat16):
         got = fused.knn(query, ref, 16)

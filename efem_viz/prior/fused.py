@@ -172,7 +172,7 @@ def prepare(say: Callable[[str], None] | None = None) -> bool:
 
 
 def _registered() -> bool:
-    return all(hasattr(torch.ops.efem_vn, op) for op in ("edge_mean", "act_mean", "attention", "decoder_band"))
+    return all(hasattr(torch.ops.efem_vn, op) for op in ("edge_mean", "act_mean", "attention", "decoder_band", "knn"))
 
 
 def _library() -> tuple[str, list[str], Path]:
@@ -401,6 +401,8 @@ def knn(query: torch.Tensor, ref: torch.Tensor, k: int) -> torch.Tensor:
     identical reference rows (duplicate points: the M-step draws with replacement) the row keeps its one pass,
     equal distances by ascending index: indices may differ from `topk`'s there, never what they gather. A row
     with equal distances between different points takes torch's own selection, so its indices equal `topk`'s.
+    The Gram rows come from the CPU GEMM a slab of query rows at a time (`knn` in `vn_kernels.cpp`): the batched
+    product's entries, without the (B, Nq, Nr) matrix in memory.
     Half-precision features (a bf16 autocast's, in training) are selected in float32, as `knn_indices` does.
 
     Args:
@@ -422,8 +424,7 @@ def knn(query: torch.Tensor, ref: torch.Tensor, k: int) -> torch.Tensor:
             q, r = q.float(), r.float()  # the float32 distances `knn_indices` forms for them
         if not usable(q, r):
             return knn_indices(query, ref, k)
-        gram = q @ r.transpose(1, 2)
-        return torch.ops.efem_vn.knn_select(gram, (q * q).sum(-1), (r * r).sum(-1), int(k), r)
+        return torch.ops.efem_vn.knn(q, r, (q * q).sum(-1), (r * r).sum(-1), int(k))
 
 
 DECODER_TILE = 256

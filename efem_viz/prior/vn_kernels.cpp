@@ -579,6 +579,114 @@ at::Tensor fps(const at::Tensor& points_, int64_t n_samples, int64_t start) {
   return out;
 }
 
+// Scratch of one thread's k-NN rows.
+struct KnnScratch {
+  std::vector<float> d, bd;
+  std::vector<int64_t> bi;
+  std::vector<std::pair<float, int64_t>> queue;
+  std::vector<int32_t> within;
+  KnnScratch(int64_t Nr, int64_t k) : d(Nr), bd(k), bi(k), within(Nr) {}
+};
+
+// One query row of `knn_select`: g its Gram row (Nr entries), q its squared norm, r the reference rows' squared
+// norms, fb the reference rows themselves ((Nr, D), or null: every tie takes torch's selection); o gets k indices.
+void knn_row(const float* g, float q, const float* r, int64_t Nr, int64_t k, const float* fb, int64_t D, int64_t* o,
+             KnnScratch& s) {
+  std::vector<float>& d = s.d;
+  std::vector<float>& bd = s.bd;
+  std::vector<int64_t>& bi = s.bi;
+  std::vector<int32_t>& within = s.within;
+  bool nan = false;
+  int64_t j0 = 0;
+#ifdef __AVX512F__
+  {  // the same two roundings per entry, 16 at a time
+    const __m512 vq = _mm512_set1_ps(q);
+    __mmask16 unord = 0;
+    for (; j0 + kLanes <= Nr; j0 += kLanes) {
+      const __m512 gv = _mm512_loadu_ps(g + j0);
+      const __m512 dv = _mm512_add_ps(_mm512_sub_ps(vq, _mm512_add_ps(gv, gv)), _mm512_loadu_ps(r + j0));
+      unord |= _mm512_cmp_ps_mask(dv, dv, _CMP_UNORD_Q);
+      _mm512_storeu_ps(d.data() + j0, dv);
+    }
+    nan = unord != 0;
+  }
+#endif
+  for (int64_t j = j0; j < Nr; ++j) {
+    const float t = q - 2.0f * g[j];  // 2 g is exact: the eager (qq - 2 G) + rr, rounding for rounding
+    d[j] = t + r[j];
+    nan |= std::isnan(d[j]);
+  }
+  if (nan) {
+    topk_smallest_like_torch(d.data(), Nr, k, o, s.queue);
+    return;
+  }
+  bool done = false;
+#ifdef __AVX512F__
+  if (k == kLanes) {  // the usual k: the sorted buffer is one register pair
+    done = select16(d.data(), Nr, bd.data(), bi.data());
+  }
+#endif
+  if (!done) {
+    int64_t n = 0;  // filled entries of the buffer, ascending
+    for (int64_t j = 0; j < Nr; ++j) {  // insertion: equal distances after the ones already there
+      const float v = d[j];
+      if (n == k && !(v < bd[k - 1])) continue;
+      int64_t pos = n < k ? n++ : k - 1;
+      while (pos > 0 && v < bd[pos - 1]) {
+        bd[pos] = bd[pos - 1];
+        bi[pos] = bi[pos - 1];
+        --pos;
+      }
+      bd[pos] = v;
+      bi[pos] = j;
+    }
+  }
+  bool tie = false;
+  for (int64_t i = 0; i + 1 < k && !tie; ++i) tie = bd[i] == bd[i + 1];
+  if (!tie) {  // the k-th distance unique in the row too?
+    const float last = bd[k - 1];
+    int64_t equal = 0, jj = 0;
+#ifdef __AVX512F__
+    const __m512 vl = _mm512_set1_ps(last);
+    for (; jj + kLanes <= Nr; jj += kLanes)
+      equal += __builtin_popcount(_mm512_cmp_ps_mask(_mm512_loadu_ps(d.data() + jj), vl, _CMP_EQ_OQ));
+#endif
+    for (; jj < Nr; ++jj) equal += d[jj] == last;
+    tie = equal != 1;
+  }
+  if (tie && fb != nullptr) {  // only duplicates tied? every entry at most the k-th distance, grouped by value
+    const float last = bd[k - 1];
+    int64_t m = 0, jj = 0;
+#ifdef __AVX512F__
+    const __m512 vl = _mm512_set1_ps(last);
+    const __m512i lane = _mm512_set_epi32(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
+    for (; jj + kLanes <= Nr; jj += kLanes) {
+      const __mmask16 le = _mm512_cmp_ps_mask(_mm512_loadu_ps(d.data() + jj), vl, _CMP_LE_OQ);
+      _mm512_mask_compressstoreu_epi32(within.data() + m, le,
+                                       _mm512_add_epi32(lane, _mm512_set1_epi32(static_cast<int32_t>(jj))));
+      m += __builtin_popcount(le);
+    }
+#endif
+    for (; jj < Nr; ++jj)
+      if (d[jj] <= last) within[m++] = static_cast<int32_t>(jj);
+    bool same = true;
+    for (int64_t i = 1; i < m && same; ++i) {  // each equal to the first earlier entry of its value
+      const float v = d[within[i]];
+      for (int64_t e = 0; e < i; ++e) {
+        if (d[within[e]] != v) continue;
+        same = std::memcmp(fb + within[i] * D, fb + within[e] * D, sizeof(float) * D) == 0;
+        break;
+      }
+    }
+    tie = !same;
+  }
+  if (tie) {
+    topk_smallest_like_torch(d.data(), Nr, k, o, s.queue);
+  } else {
+    std::copy(bi.begin(), bi.end(), o);
+  }
+}
+
 at::Tensor knn_select(const at::Tensor& gram_, const at::Tensor& qq_, const at::Tensor& rr_, int64_t k,
                       const std::optional<at::Tensor>& ref_) {
   // The k nearest reference rows of every query row from the Gram matrix G = q r^T and the squared norms, with
@@ -614,105 +722,52 @@ at::Tensor knn_select(const at::Tensor& gram_, const at::Tensor& qq_, const at::
   const float* pr = rr.data_ptr<float>();
   int64_t* po = out.data_ptr<int64_t>();
   at::parallel_for(0, B * Nq, 16, [&](int64_t begin, int64_t end) {
-    std::vector<float> d(Nr), bd(k);
-    std::vector<int64_t> bi(k);
-    std::vector<std::pair<float, int64_t>> queue;
-    std::vector<int32_t> within(Nr);
+    KnnScratch s(Nr, k);
     for (int64_t row = begin; row < end; ++row) {
       const int64_t b = row / Nq;
-      const float* g = pg + row * Nr;
-      const float* r = pr + b * Nr;
-      const float q = pq[row];
-      bool nan = false;
-      int64_t j0 = 0;
-#ifdef __AVX512F__
-      {  // the same two roundings per entry, 16 at a time
-        const __m512 vq = _mm512_set1_ps(q);
-        __mmask16 unord = 0;
-        for (; j0 + kLanes <= Nr; j0 += kLanes) {
-          const __m512 gv = _mm512_loadu_ps(g + j0);
-          const __m512 dv = _mm512_add_ps(_mm512_sub_ps(vq, _mm512_add_ps(gv, gv)), _mm512_loadu_ps(r + j0));
-          unord |= _mm512_cmp_ps_mask(dv, dv, _CMP_UNORD_Q);
-          _mm512_storeu_ps(d.data() + j0, dv);
-        }
-        nan = unord != 0;
-      }
-#endif
-      for (int64_t j = j0; j < Nr; ++j) {
-        const float t = q - 2.0f * g[j];  // 2 g is exact: the eager (qq - 2 G) + rr, rounding for rounding
-        d[j] = t + r[j];
-        nan |= std::isnan(d[j]);
-      }
-      int64_t* o = po + row * k;
-      if (nan) {
-        topk_smallest_like_torch(d.data(), Nr, k, o, queue);
-        continue;
-      }
-      bool done = false;
-#ifdef __AVX512F__
-      if (k == kLanes) {  // the usual k: the sorted buffer is one register pair
-        done = select16(d.data(), Nr, bd.data(), bi.data());
-      }
-#endif
-      if (!done) {
-        int64_t n = 0;  // filled entries of the buffer, ascending
-        for (int64_t j = 0; j < Nr; ++j) {  // insertion: equal distances after the ones already there
-          const float v = d[j];
-          if (n == k && !(v < bd[k - 1])) continue;
-          int64_t pos = n < k ? n++ : k - 1;
-          while (pos > 0 && v < bd[pos - 1]) {
-            bd[pos] = bd[pos - 1];
-            bi[pos] = bi[pos - 1];
-            --pos;
-          }
-          bd[pos] = v;
-          bi[pos] = j;
-        }
-      }
-      bool tie = false;
-      for (int64_t i = 0; i + 1 < k && !tie; ++i) tie = bd[i] == bd[i + 1];
-      if (!tie) {  // the k-th distance unique in the row too?
-        const float last = bd[k - 1];
-        int64_t equal = 0, jj = 0;
-#ifdef __AVX512F__
-        const __m512 vl = _mm512_set1_ps(last);
-        for (; jj + kLanes <= Nr; jj += kLanes)
-          equal += __builtin_popcount(_mm512_cmp_ps_mask(_mm512_loadu_ps(d.data() + jj), vl, _CMP_EQ_OQ));
-#endif
-        for (; jj < Nr; ++jj) equal += d[jj] == last;
-        tie = equal != 1;
-      }
-      if (tie && pf != nullptr) {  // only duplicates tied? every entry at most the k-th distance, grouped by value
-        const float last = bd[k - 1];
-        int64_t m = 0, jj = 0;
-#ifdef __AVX512F__
-        const __m512 vl = _mm512_set1_ps(last);
-        const __m512i lane = _mm512_set_epi32(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
-        for (; jj + kLanes <= Nr; jj += kLanes) {
-          const __mmask16 le = _mm512_cmp_ps_mask(_mm512_loadu_ps(d.data() + jj), vl, _CMP_LE_OQ);
-          _mm512_mask_compressstoreu_epi32(within.data() + m, le,
-                                           _mm512_add_epi32(lane, _mm512_set1_epi32(static_cast<int32_t>(jj))));
-          m += __builtin_popcount(le);
-        }
-#endif
-        for (; jj < Nr; ++jj)
-          if (d[jj] <= last) within[m++] = static_cast<int32_t>(jj);
-        const float* fb = pf + b * Nr * D;
-        bool same = true;
-        for (int64_t i = 1; i < m && same; ++i) {  // each equal to the first earlier entry of its value
-          const float v = d[within[i]];
-          for (int64_t e = 0; e < i; ++e) {
-            if (d[within[e]] != v) continue;
-            same = std::memcmp(fb + within[i] * D, fb + within[e] * D, sizeof(float) * D) == 0;
-            break;
-          }
-        }
-        tie = !same;
-      }
-      if (tie) {
-        topk_smallest_like_torch(d.data(), Nr, k, o, queue);
-      } else {
-        std::copy(bi.begin(), bi.end(), o);
+      knn_row(pg + row * Nr, pq[row], pr + b * Nr, Nr, k, D > 0 ? pf + b * Nr * D : nullptr, D, po + row * k, s);
+    }
+  });
+  return out;
+}
+
+constexpr int64_t kKnnSlab = 64;  // query rows per Gram slab: 64 x Nr floats stay in L2 (256 KB at Nr = 1024)
+
+at::Tensor knn(const at::Tensor& q_, const at::Tensor& r_, const at::Tensor& qq_, const at::Tensor& rr_, int64_t k) {
+  // `knn_select(q @ r^T, qq, rr, k, r)` without the (B, Nq, Nr) Gram matrix in memory: each slab of 64 query rows
+  // gets its Gram rows from the CPU GEMM (the entries of the batched product, bit for bit: the same dot products
+  // in the same order) into a buffer that stays in cache, and the rows are selected from there.
+  TORCH_CHECK(q_.dim() == 3 && r_.dim() == 3 && q_.size(0) == r_.size(0) && q_.size(2) == r_.size(2) &&
+              q_.scalar_type() == at::kFloat && r_.scalar_type() == at::kFloat,
+              "q (B, Nq, D) and r (B, Nr, D) must be float32 and agree");
+  TORCH_CHECK(q_.device().is_cpu() && r_.device().is_cpu(), "CPU tensors only");
+  const int64_t B = q_.size(0), Nq = q_.size(1), Nr = r_.size(1), D = q_.size(2);
+  TORCH_CHECK(qq_.dim() == 2 && qq_.size(0) == B && qq_.size(1) == Nq && qq_.scalar_type() == at::kFloat,
+              "qq must be (B, Nq) float32");
+  TORCH_CHECK(rr_.dim() == 2 && rr_.size(0) == B && rr_.size(1) == Nr && rr_.scalar_type() == at::kFloat,
+              "rr must be (B, Nr) float32");
+  TORCH_CHECK(k >= 1 && k <= Nr, "k must be in [1, Nr]");
+  TORCH_CHECK(Nr <= std::numeric_limits<int32_t>::max(), "at most 2^31 - 1 reference rows");
+  const auto q = q_.contiguous(), r = r_.contiguous(), qq = qq_.contiguous(), rr = rr_.contiguous();
+  auto out = at::empty({B, Nq, k}, q.options().dtype(at::kLong));
+  if (out.numel() == 0) return out;
+  const float* pf = D > 0 ? r.data_ptr<float>() : nullptr;
+  const float* pq = qq.data_ptr<float>();
+  const float* pr = rr.data_ptr<float>();
+  int64_t* po = out.data_ptr<int64_t>();
+  const int64_t slabs = (Nq + kKnnSlab - 1) / kKnnSlab;
+  at::parallel_for(0, B * slabs, 1, [&](int64_t begin, int64_t end) {
+    KnnScratch s(Nr, k);
+    auto gram = at::empty({kKnnSlab, Nr}, q.options());
+    for (int64_t t = begin; t < end; ++t) {
+      const int64_t b = t / slabs, s0 = (t % slabs) * kKnnSlab, n = std::min(kKnnSlab, Nq - s0);
+      auto g = gram.narrow(0, 0, n);
+      at::mm_out(g, q[b].narrow(0, s0, n), r[b].t());
+      const float* pg = g.data_ptr<float>();
+      for (int64_t i = 0; i < n; ++i) {
+        const int64_t row = b * Nq + s0 + i;
+        knn_row(pg + i * Nr, pq[row], pr + b * Nr, Nr, k, pf != nullptr ? pf + b * Nr * D : nullptr, D,
+                po + row * k, s);
       }
     }
   });
@@ -1141,6 +1196,7 @@ TORCH_LIBRARY(efem_vn, m) {
   m.def("lin_act_mean(Tensor x, Tensor w, Tensor u, float slope) -> Tensor", &lin_act_mean);
   m.def("fps(Tensor points, int n_samples, int start) -> Tensor", &fps);
   m.def("knn_select(Tensor gram, Tensor qq, Tensor rr, int k, Tensor? ref=None) -> Tensor", &knn_select);
+  m.def("knn(Tensor q, Tensor r, Tensor qq, Tensor rr, int k) -> Tensor", &knn);
   m.def("attention(Tensor av, Tensor cv, Tensor dav, Tensor dcv, Tensor ak, Tensor ck, Tensor dak, Tensor dck, "
         "Tensor q, Tensor nbr, float slope, int head_dim, float eps) -> Tensor", &attention);
   m.def("decoder_band(Tensor q, Tensor mt, Tensor[] w0, Tensor[] b0, Tensor[] w1, Tensor[] b1, Tensor w_out, "
