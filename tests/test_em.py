@@ -215,6 +215,30 @@ def test_anchors_above_the_support_plane(sphere_run: tuple) -> None:
             preset("fast").replace(proposals={"anchor_min_height": bad})
 
 
+def test_points_below_min_point_height_join_no_proposal(sphere_run: tuple) -> None:
+    """`proposals.min_point_height` keeps the support plane's points out of every crop, M-step draw and mask (the
+    spheres on the table are still found, whole above that height); a scene with nothing that high ends with no
+    instance and no error; a height that is not a finite number is refused."""
+    scene, prior, _, _ = sphere_run
+    z = scene.points[:, 2]
+    h = 0.01
+    cfg = preset("fast").replace(proposals={"n_init": (24,), "min_point_height": h},
+                                 steps={"t1": 3, "t2": 2, "end_step": 2})
+    res = run_em(scene, prior, cfg, seed=3)
+    tr = res.trace
+    assert (z[tr.prop_anchor] >= h).all() and (z[np.unique(tr.row_samples)] >= h).all()
+    assert len(res.instances) >= 1 and all((z[m] >= h).all() for m in res.instances.masks)
+    m = ious(res.instances, np.where(z >= h, scene.instance, 0))
+    assert (m.max(axis=0) >= 0.8).sum() >= 1  # a sphere found, its points above the plane
+    plain = run_em(scene, prior, cfg.replace(proposals={"min_point_height": None}), seed=3)
+    assert (z[np.unique(plain.trace.row_samples)] < h).any()  # the method's crops hold table points
+    none = run_em(scene, prior, cfg.replace(proposals={"min_point_height": float(z.max()) + 1.0}), seed=3)
+    assert len(none.instances) == 0
+    for bad in (float("nan"), float("-inf"), "2 cm"):
+        with pytest.raises(ValueError, match="min_point_height"):
+            preset("fast").replace(proposals={"min_point_height": bad})
+
+
 def test_cancel_raises(sphere_run: tuple) -> None:
     scene, prior, _, _ = sphere_run
     ev = threading.Event()

@@ -531,9 +531,11 @@ class Solver:
         assigned = np.zeros(self.n_full, bool)  # full resolution
         accepted = self.accepted
         look_alike = _look_alike_models(self.cfgs)
+        floor = cfg.proposals.min_point_height
+        eligible = np.ones(self.n_full, bool) if floor is None else self.full_points[:, 2] >= floor
         for ep, n_init in enumerate(cfg.proposals.n_init):
             self._check_cancel()
-            available_full = ~assigned
+            available_full = ~assigned & eligible
             available = available_full[self.work_idx]
             n_avail = int(available.sum())
             if n_avail <= self.min_size:
