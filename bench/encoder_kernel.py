@@ -16,8 +16,9 @@ times each:
   the first layer in one pass, `fused.lin_act_mean`).
 
 Reported per scene and mode: the median seconds, milliseconds per point set, the ratio to ``eager``, to
-``fused_topk`` and to ``fused_topk_order``, and whether the outputs (Θ_R, Θ_inv, δ, Θ_s) equal
-``fused_topk_order``'s bit for bit (``eager`` differs by float rounding: its largest difference is given).
+``fused_topk``, to ``fused_topk_order`` and to ``fused_gram`` (those of the modes run), and whether the outputs
+(Θ_R, Θ_inv, δ, Θ_s) equal ``fused_topk_order``'s bit for bit (``eager`` differs by float rounding: its largest
+difference is given).
 
 Usage: python -m bench.encoder_kernel [--scenes real_tabletop_0 z_7000] [--repeats 3] [--threads 1] [--tag NAME]
     [--prior PRIOR] [--modes fused_gram fused]
@@ -66,24 +67,20 @@ def record_batches(name: str, prior_spec: str | None = None) -> tuple[Any, list[
     return prior, batches
 
 
+def _knn_whole_gram(query: Any, ref: Any, k: int, *, duplicates: bool = True) -> Any:
+    """`fused.knn` with the batch's whole Gram matrix formed first; without `duplicates` every tie row is decided in
+    torch's order (the selection before duplicate points were recognised)."""
+    import torch
+
+    with torch.no_grad(), torch.autocast(query.device.type, enabled=False):
+        q, r = query.detach(), ref.detach()
+        gram = q @ r.transpose(1, 2)
+        return torch.ops.efem_vn.knn_select(gram, (q * q).sum(-1), (r * r).sum(-1), int(k), r if duplicates else None)
+
+
 def _knn_topk_order(query: Any, ref: Any, k: int) -> Any:
-    """`fused.knn` without its reference rows: every tie row decided in torch's order."""
-    import torch
-
-    with torch.no_grad(), torch.autocast(query.device.type, enabled=False):
-        q, r = query.detach(), ref.detach()
-        gram = q @ r.transpose(1, 2)
-        return torch.ops.efem_vn.knn_select(gram, (q * q).sum(-1), (r * r).sum(-1), int(k))
-
-
-def _knn_whole_gram(query: Any, ref: Any, k: int) -> Any:
-    """`fused.knn` with the batch's whole Gram matrix formed first (its duplicate rows kept)."""
-    import torch
-
-    with torch.no_grad(), torch.autocast(query.device.type, enabled=False):
-        q, r = query.detach(), ref.detach()
-        gram = q @ r.transpose(1, 2)
-        return torch.ops.efem_vn.knn_select(gram, (q * q).sum(-1), (r * r).sum(-1), int(k), r)
+    """`_knn_whole_gram` with every tie row in torch's order."""
+    return _knn_whole_gram(query, ref, k, duplicates=False)
 
 
 def _first_layer_in_memory(x: Any, w_lin: Any, w_dir: Any, slope: float) -> Any:
