@@ -687,6 +687,16 @@ void knn_row(const float* g, float q, const float* r, int64_t Nr, int64_t k, con
   }
 }
 
+// The squared norms and k of a k-NN call on B batches of Nq query and Nr reference rows.
+void check_knn_norms(const at::Tensor& qq, const at::Tensor& rr, int64_t B, int64_t Nq, int64_t Nr, int64_t k) {
+  TORCH_CHECK(qq.dim() == 2 && qq.size(0) == B && qq.size(1) == Nq && qq.scalar_type() == at::kFloat,
+              "qq must be (B, Nq) float32");
+  TORCH_CHECK(rr.dim() == 2 && rr.size(0) == B && rr.size(1) == Nr && rr.scalar_type() == at::kFloat,
+              "rr must be (B, Nr) float32");
+  TORCH_CHECK(k >= 1 && k <= Nr, "k must be in [1, Nr]");
+  TORCH_CHECK(Nr <= std::numeric_limits<int32_t>::max(), "at most 2^31 - 1 reference rows");
+}
+
 at::Tensor knn_select(const at::Tensor& gram_, const at::Tensor& qq_, const at::Tensor& rr_, int64_t k,
                       const std::optional<at::Tensor>& ref_) {
   // The k nearest reference rows of every query row from the Gram matrix G = q r^T and the squared norms, with
@@ -697,14 +707,9 @@ at::Tensor knn_select(const at::Tensor& gram_, const at::Tensor& qq_, const at::
   // all belong to identical reference rows (duplicates: every gather of them gives the same values in any order)
   // keeps the insertion pass's answer (equal distances by ascending index), as cheap as a row without ties.
   TORCH_CHECK(gram_.dim() == 3 && gram_.scalar_type() == at::kFloat, "gram must be (B, Nq, Nr) float32");
-  TORCH_CHECK(qq_.dim() == 2 && qq_.size(0) == gram_.size(0) && qq_.size(1) == gram_.size(1) &&
-              qq_.scalar_type() == at::kFloat, "qq must be (B, Nq) float32");
-  TORCH_CHECK(rr_.dim() == 2 && rr_.size(0) == gram_.size(0) && rr_.size(1) == gram_.size(2) &&
-              rr_.scalar_type() == at::kFloat, "rr must be (B, Nr) float32");
   TORCH_CHECK(gram_.device().is_cpu(), "CPU tensors only");
   const int64_t B = gram_.size(0), Nq = gram_.size(1), Nr = gram_.size(2);
-  TORCH_CHECK(k >= 1 && k <= Nr, "k must be in [1, Nr]");
-  TORCH_CHECK(Nr <= std::numeric_limits<int32_t>::max(), "at most 2^31 - 1 reference rows");
+  check_knn_norms(qq_, rr_, B, Nq, Nr, k);
   const auto gram = gram_.contiguous(), qq = qq_.contiguous(), rr = rr_.contiguous();
   at::Tensor ref;
   int64_t D = 0;
@@ -742,12 +747,7 @@ at::Tensor knn(const at::Tensor& q_, const at::Tensor& r_, const at::Tensor& qq_
               "q (B, Nq, D) and r (B, Nr, D) must be float32 and agree");
   TORCH_CHECK(q_.device().is_cpu() && r_.device().is_cpu(), "CPU tensors only");
   const int64_t B = q_.size(0), Nq = q_.size(1), Nr = r_.size(1), D = q_.size(2);
-  TORCH_CHECK(qq_.dim() == 2 && qq_.size(0) == B && qq_.size(1) == Nq && qq_.scalar_type() == at::kFloat,
-              "qq must be (B, Nq) float32");
-  TORCH_CHECK(rr_.dim() == 2 && rr_.size(0) == B && rr_.size(1) == Nr && rr_.scalar_type() == at::kFloat,
-              "rr must be (B, Nr) float32");
-  TORCH_CHECK(k >= 1 && k <= Nr, "k must be in [1, Nr]");
-  TORCH_CHECK(Nr <= std::numeric_limits<int32_t>::max(), "at most 2^31 - 1 reference rows");
+  check_knn_norms(qq_, rr_, B, Nq, Nr, k);
   const auto q = q_.contiguous(), r = r_.contiguous(), qq = qq_.contiguous(), rr = rr_.contiguous();
   auto out = at::empty({B, Nq, k}, q.options().dtype(at::kLong));
   if (out.numel() == 0) return out;
