@@ -5,13 +5,15 @@ from __future__ import annotations
 import dataclasses
 import json
 from pathlib import Path
-from typing import Any
+from types import SimpleNamespace
+from typing import Any, cast
 
 import numpy as np
 import pytest
 import torch
 
 from efem_viz.prior.data import (
+    ObjectData,
     PrepConfig,
     SampleConfig,
     augment_v1,
@@ -22,7 +24,14 @@ from efem_viz.prior.data import (
     procedural_sources,
 )
 from efem_viz.prior.model import WEIGHTS_DIR, PriorConfig, ShapePrior, load_prior, save_prior
-from efem_viz.prior.train import TrainArgs, lr_at, train, with_iso_offset
+from efem_viz.prior.train import (
+    TrainArgs,
+    lr_at,
+    member_weight_map,
+    sampling_probabilities,
+    train,
+    with_iso_offset,
+)
 
 SMALL_PREP = PrepConfig(n_uniform=4000, n_near=4000, n_surface=2000, resolution=64, max_view_points=800)
 
@@ -227,6 +236,38 @@ def test_a_kitchen_prior_trains_on_its_four_categories_and_validates_each(tmp_pa
     assert all(0.0 <= v <= 1.0 for v in per.values())
     assert np.mean(list(per.values())) == pytest.approx(last["iou_cal"], abs=1e-9)  # one object each
     assert load_prior(tmp_path / "w" / "mug.pt").category.name == "kitchen"
+
+
+def test_member_weights_draw_the_named_members_more_often(tmp_path: Path, cache_dir: Path,
+                                                        monkeypatch: Any) -> None:
+    """``--member-weights mug=3`` makes a mug three times as likely as any other object in every batch; a typo'd
+    member, a bad weight or a repeated member is refused before any data is loaded."""
+    names = ("mug_000000", "bowl_000000", "can_000000", "bottle_000000")
+    objs = cast(list[ObjectData], [SimpleNamespace(name=n) for n in names])
+    p = sampling_probabilities(objs, member_weight_map(["mug=3"]))
+    assert p is not None and p.tolist() == pytest.approx([0.5, 1 / 6, 1 / 6, 1 / 6])
+    assert sampling_probabilities(objs, {}) is None
+    with pytest.raises(ValueError, match="names no training object: mugg"):
+        sampling_probabilities(objs, {"mugg": 2.0})
+    for bad in (["mug"], ["mug=0"], ["mug=nan"], ["mug=-1"], ["=2"], ["mug=2", "mug=3"]):
+        with pytest.raises(ValueError, match="member=weight"):
+            member_weight_map(bad)
+    with pytest.raises(ValueError, match="member=weight"):
+        train(_args(tmp_path, cache_dir, member_weights=("mug=x",)))
+    # a run draws its batches with these probabilities
+    drawn: list[str] = []
+    import efem_viz.prior.data as data_mod
+    real = data_mod.make_batch
+
+    def spy(objs_: Any, *a: Any, **k: Any) -> Any:
+        drawn.extend(o.name.split("_")[0] for o in objs_)
+        return real(objs_, *a, **k)
+
+    monkeypatch.setattr(data_mod, "make_batch", spy)
+    train(_args(tmp_path, cache_dir, category="kitchen", n_train=4, n_val=4, iterations=12, val_every=100,
+                member_weights=("mug=20",)), max_iterations=12)
+    assert len(drawn) == 12 * _args(tmp_path, cache_dir).batch_size
+    assert drawn.count("mug") > 0.7 * len(drawn)  # expected 20/23 = 0.87
 
 
 def test_resume_is_exact(tmp_path: Path, cache_dir: Path) -> None:

@@ -17,7 +17,7 @@ import math
 import os
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, cast
@@ -164,6 +164,11 @@ class TrainArgs:
     """Probability that the other-object points of an example are the part of a whole neighbouring object inside
     the example's reach (placed touching it or a small gap away, as in a pile) instead of small floating crops.
     Validation inputs have none."""
+    member_weights: tuple[str, ...] = ()
+    """Sampling weights of a family's members for the training batches, as ``member=weight`` (e.g. ``mug=2
+    bowl=1.5``; a member not named weighs 1): the hard members of one prior (thin-walled mugs and bowls of the
+    kitchen family) seen more often. Objects are named ``<member>_<seed>``. Empty: every object equally often.
+    Validation is unchanged."""
     min_views: int = 4
     """Fewest depth views in an input cloud (spec: 4 for mugs; 1 also trains single-view inputs, as real RGB-D
     frames are). Validation inputs are drawn with the same setting."""
@@ -629,6 +634,45 @@ def _check_args(args: TrainArgs) -> None:
                          f"{args.iterations}, {args.val_every})")
     if args.steps is not None and args.steps < 1:
         raise ValueError(f"--steps must be >= 1 (got {args.steps})")
+    member_weight_map(args.member_weights)
+
+
+def member_weight_map(items: Sequence[str]) -> dict[str, float]:
+    """``("mug=2", "bowl=1.5")`` as a mapping; each weight finite and > 0.
+
+    Raises:
+        ValueError: an item without ``=``, an empty or repeated member, or a weight that is not a positive number.
+    """
+    out: dict[str, float] = {}
+    for item in items:
+        name, sep, value = str(item).partition("=")
+        name = name.strip()
+        try:
+            w = float(value)
+        except ValueError:
+            w = math.nan
+        if not sep or not name or name in out or not (math.isfinite(w) and w > 0):
+            raise ValueError(f"--member-weights takes distinct member=weight items with a weight > 0 (got {item!r})")
+        out[name] = w
+    return out
+
+
+def sampling_probabilities(objs: Sequence[ObjectData], weights: dict[str, float]) -> np.ndarray | None:
+    """Per-object sampling probabilities from member weights (an object ``<member>_<seed>`` takes its member's
+    weight, others 1); None when no weight is given (uniform).
+
+    Raises:
+        ValueError: a weighted member that names no training object (a typo would silently train uniform).
+    """
+    if not weights:
+        return None
+    members = [o.name.rsplit("_", 1)[0] if "_" in o.name else o.name for o in objs]
+    unknown = sorted(set(weights) - set(members))
+    if unknown:
+        raise ValueError(f"--member-weights names no training object: {', '.join(unknown)} "
+                         f"(members: {', '.join(sorted(set(members)))})")
+    w = np.array([weights.get(m, 1.0) for m in members], dtype=np.float64)
+    return w / w.sum()
 
 
 def _read_resume_checkpoint(args: TrainArgs, last: Path) -> tuple[Path | None, dict[str, Any] | None]:
@@ -810,6 +854,7 @@ class _TrainLoop:
         if adam_fresh:
             state.warmup_from = state.iteration
         self.scfg, self.train_objs, self.val_objs = scfg, train_objs, val_objs
+        self.sample_p = sampling_probabilities(train_objs, member_weight_map(args.member_weights))
         self.out_dir, self.export, self.last, self.args_dict = out_dir, export, out_dir / "last.pt", args_dict
         self.t_start = t_start
         self.enc_params = list(prior.encoder.parameters())
@@ -913,7 +958,10 @@ class _TrainLoop:
             lr *= min(1.0, (state.iteration - state.warmup_from + 1) / args.warmup_steps)
         for g in self.opt.param_groups:
             g["lr"] = lr
-        idx = rng.integers(0, len(self.train_objs), args.batch_size)
+        if self.sample_p is None:
+            idx = rng.integers(0, len(self.train_objs), args.batch_size)
+        else:
+            idx = rng.choice(len(self.train_objs), size=args.batch_size, p=self.sample_p)
         pcl_np, q_np = make_batch([self.train_objs[i] for i in idx], scfg, rng, others=self.train_objs, augment=True)
         noise_np = rng.normal(0.0, scfg.centroid_noise, (args.batch_size, 3))
         if args.fixed_point_p > 0:
