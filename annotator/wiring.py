@@ -171,7 +171,11 @@ def _wire_buttons(app: AnnotatorControls) -> None:
                                                                 "reject")))
     p.gui_prelabel_next.on_click(_for_client(app, lambda client: app.step_prelabel(+1, client=client)))
     p.gui_prelabel_prev.on_click(_for_client(app, lambda client: app.step_prelabel(-1, client=client)))
-    p.gui_prior.on_update(on(lambda: setattr(ses.toolbox.settings, "prior", read_choice(p.gui_prior))))
+    def choose_prior() -> None:  # the Run preset follows the prior: the chair prior runs "chairs" on a scan
+        ses.toolbox.settings.prior = read_choice(p.gui_prior)
+        app.write_back(p.gui_efem_preset, ses.assist.suggested_preset())
+
+    p.gui_prior.on_update(on(choose_prior))
     ses.toolbox.settings.prior = read_choice(p.gui_prior)
     p.gui_seg_accept.on_click(on(ses.assist.accept_segment))
     p.gui_seg_cancel.on_click(on(ses.assist.discard_segment))

@@ -1305,3 +1305,21 @@ def test_a_room_sized_scan_opens_with_sliders_as_long_as_it_needs(tmp_path: Path
         assert a.resize_brush(100.0) <= slider.max / 100 + 1e-9  # `]` stops at the slider's end
     finally:
         a.close()
+
+
+def test_the_run_preset_follows_the_prior_a_client_chooses(app: AnnotatorApp) -> None:
+    """A scan labelled with chairs: choosing the chair prior (a real client's dropdown event) sets the EFEM Run
+    preset to `chairs` (its floor joins no chair); back to the mug prior, the scan's own `fast` again."""
+    from viser_client import RawClient, wait_for
+
+    p = app.panels
+    assert "chair" in tuple(p.gui_prior.options) and p.gui_efem_preset.value == "fast"
+    assert app.session.assist.suggested_preset("chair") == "chairs"
+    assert app.session.assist.suggested_preset("no-such-prior") == "fast"  # the scan alone decides
+    with RawClient(app.url) as c:
+        assert wait_for(lambda: len(app.server.get_clients()) == 1)
+        c.set_gui(p.gui_prior, value="chair")
+        assert wait_for(lambda: p.gui_efem_preset.value == "chairs")
+        assert app.session.toolbox.settings.prior == "chair"
+        c.set_gui(p.gui_prior, value="mug")
+        assert wait_for(lambda: p.gui_efem_preset.value == "fast")

@@ -477,6 +477,15 @@ def test_segment_solves_a_generated_chair_scene_with_the_chair_prior(tmp_path: P
     assert lines[(True, "chairs")] == (["chair"], "chairs, chair prior")
     assert lines[(True, "mugs")][0] == ["mug"] and "prior" not in lines[(True, "mugs")][1]
     assert lines[(False, "chairs")][0] == ["mug"] and "prior" not in lines[(False, "chairs")][1]
+    # a scan of no chair scene solved with the chair prior (a room scan): `chairs`, whose floor joins no chair
+    chair_job = BatchJob.create(**args.settings(), priors=("chair",))
+    out = worker_mod.SceneWorker(chair_job).process(SceneTask(index=0, path=tmp_path / "mugs.npz", name="mugs",
+                                                              out=tmp_path / "out_chair"))
+    assert out.status == "ok", out.error
+    assert used["mugs"] == ["chair"] and out.preset == "chairs"
+    # results of "auto" are keyed by its rule, apart from the preset it names without a scene
+    synthetic = BatchJob.create(**{**args.settings(), "preset": "synthetic"}, priors=("mug",))
+    assert explicit.fingerprint() != synthetic.fingerprint()
 
 
 def test_outcome_records_round_trip() -> None:

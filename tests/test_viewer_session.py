@@ -18,7 +18,6 @@ import pytest
 from efem_viz.prior import analytic
 from efem_viz.viewer.legend import color_key_html
 from efem_viz.viewer.session import FlyTarget, Inspection, PointColors, RunSettings, StepView, ViewerSession
-from efem_viz.viewer.parts.results import ResultPart
 from helpers import sample_scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -156,13 +155,17 @@ def test_the_cut_stays_within_the_slider(tmp_path: Path) -> None:
     assert s.state.threshold == top / 2
 
 
-def test_the_run_preset_fits_the_scene() -> None:
+def test_the_run_preset_fits_the_scene(session: ViewerSession, tmp_path: Path) -> None:
     """a real capture (import-rgbd provenance, a recorded camera) runs with the `real` preset,
-    a synthetic scan (whose generator records only its renders' image size) with `fast`."""
+    a synthetic scan (whose generator records only its renders' image size) with `fast`; in a viewer started with
+    the chair prior, a scan that is not a single-view capture runs with `chairs` (its floor joins no chair)."""
     from efem_viz.data.io import load_scene
 
-    assert ResultPart.suggested_preset(load_scene(SAMPLES / "real_tabletop_8.ply")) == "real"
-    assert ResultPart.suggested_preset(load_scene(sample_scene("syn_z_0"))) == "fast"
+    real, syn = load_scene(SAMPLES / "real_tabletop_8.ply"), load_scene(sample_scene("syn_z_0"))
+    assert session.results.suggested_preset(real) == "real"
+    assert session.results.suggested_preset(syn) == "fast"
+    chairs = ViewerSession([SAMPLES], prior_name="chair", out_dir=tmp_path)
+    assert chairs.results.suggested_preset(syn) == "chairs" and chairs.results.suggested_preset(real) == "real"
 
 
 def test_step_through_iterations(session: ViewerSession) -> None:

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
-from annotator.efem_runs import SEGMENT_SETTINGS
+from annotator.efem_runs import SEGMENT_SETTINGS, get_prior
 from annotator.io import LabelData, LabelIOError, load_labels, resolve_inside
 from annotator.labels import Delta, prelabel_note, unreviewed_prelabels
 from efem_viz.data.io import RESULT_SUFFIX
@@ -338,6 +338,20 @@ class AssistPart:
                                "nothing was written")
         return path
 
+    def suggested_preset(self, prior: str | None = None) -> str:
+        """The EFEM preset that fits the scan solved with a shipped prior (``prior``: its name; None: the chosen
+        one, `settings.prior`): `efem_viz.em.config.suggested_preset`, where the chair prior runs "chairs" on a scan
+        that is not a single-view capture. A prior that cannot be loaded leaves the scan to decide alone (the run
+        then says what is wrong with it)."""
+        from efem_viz.em.config import suggested_preset
+        from efem_viz.prior.config import prior_category
+
+        try:
+            category: str | None = prior_category(get_prior(prior or self.toolbox.settings.prior)).name
+        except (ValueError, RuntimeError, OSError):
+            category = None
+        return suggested_preset(self.efem_scene(), category)
+
     def run_efem(self, *, preset: str | None = None, proposals: int | None = None, free_space: str = "auto",
                  seed: int = 0, wait: bool = False) -> list[int] | None:
         """Run EFEM on the whole scan with the chosen prior (`settings.prior`); its instances become unreviewed
@@ -348,7 +362,7 @@ class AssistPart:
         `cancel_efem` (the Cancel EFEM run button) stops it at its next step.
 
         Args:
-            preset: solver preset (None: the one that fits the scan, `efem_viz.em.config.suggested_preset`).
+            preset: solver preset (None: the one that fits the scan and the chosen prior, `suggested_preset`).
             proposals: first-episode proposals (None: the preset's).
             free_space: the free-space check against the scan's recorded cameras, auto | on | off
                 (`SolveSettings.free_space`: auto is the preset's; on adds the check for fused scans).
@@ -361,10 +375,10 @@ class AssistPart:
         Raises:
             ValueError: another EFEM job is running, or a bad preset / proposal count / free-space mode.
         """
-        from efem_viz.em.config import SolveSettings, suggested_preset
+        from efem_viz.em.config import SolveSettings
 
         big = self.scan.n > EFEM_FULL_RESOLUTION_POINTS
-        settings = SolveSettings(preset=preset or suggested_preset(self.efem_scene()),  # type: ignore[arg-type]
+        settings = SolveSettings(preset=preset or self.suggested_preset(),  # type: ignore[arg-type]
                                  proposals=None if not proposals else int(proposals),
                                  work_voxel=EFEM_BIG_SCAN_VOXEL if big else None,
                                  free_space=free_space)  # type: ignore[arg-type]  # checked by config()

@@ -23,7 +23,7 @@ from typing import Literal
 
 from efem_viz.data.files import BATCH_FILE as _BATCH_FILE
 from efem_viz.data.io import RESULT_SUFFIX, SEG_SUFFIX  # SEG_SUFFIX: the coloured PLY written per scene
-from efem_viz.em.config import SCENE_PRIOR_CATEGORIES, EMConfig, SolveSettings
+from efem_viz.em.config import AUTO_PRESET_RULE, SCENE_PRIOR_CATEGORIES, EMConfig, SolveSettings
 from efem_viz.prior.config import DEFAULT_PRIOR
 
 BATCH_SCHEMA_VERSION = 1
@@ -110,9 +110,9 @@ class BatchJob(SolveSettings):
         job.config()  # validate now, before any worker starts
         return job
 
-    def config(self, scene: object = None, device: str | None = None) -> EMConfig:
+    def config(self, scene: object = None, device: str | None = None, prior: str | None = None) -> EMConfig:
         """`SolveSettings.config` on the job's device (a precision of "auto" resolves for it)."""
-        return super().config(scene, self.device if device is None else device)
+        return super().config(scene, self.device if device is None else device, prior)
 
     def fingerprint(self) -> str:
         """A hex digest of what decides a scene's result: the solver config, each prior's identity (the weights
@@ -128,6 +128,8 @@ class BatchJob(SolveSettings):
         }
         if self.frame != "scene":  # the exports' frame; left out by default so earlier batches stay valid
             payload["frame"] = self.frame
+        if self.preset == "auto":  # each scene's own preset: a change of the rule re-keys the results
+            payload["auto_rule"] = AUTO_PRESET_RULE
         if self.scene_priors and len(self.priors) == 1:  # the priors a scene may be solved with instead
             payload["scene_priors"] = [prior_identity(c) for c in SCENE_PRIOR_CATEGORIES]
         return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:20]

@@ -153,8 +153,13 @@ class SceneWorker:
             if not span <= MAX_SCENE_SPAN_M:
                 raise SceneError(f"the scene spans {span:.3g} m: not a scan in metres (EFEM's objects are cm-sized); "
                                  "bring it in with `efem-viz import-scan --units ...`")
-            cfg = self.cfg if self.job.preset != "auto" else self.job.config(scene)
             priors, prior_words = self.priors_for(scene)
+            if self.job.preset == "auto":  # the scene's own preset, for the prior it is solved with
+                from efem_viz.prior.config import prior_category
+
+                cfg = self.job.config(scene, prior=prior_category(priors[0]).name)
+            else:
+                cfg = self.cfg
             t1 = time.perf_counter()
             load_s = t1 - t0
             if self.job.timeout_s is not None:

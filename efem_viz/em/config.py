@@ -30,8 +30,9 @@ from efem_viz.prior.config import (
 if TYPE_CHECKING:
     from efem_viz.prior.config import ShapePriorLike
 
-__all__ = ["CATEGORY_LOOK_ALIKE", "DEFAULT_TAU_OUT", "FLAT_NAMES", "FREE_SPACE", "FREE_SPACE_FUSED", "GROUPS",
-           "MAX_TAU_OUT", "PRESETS", "SCENE_PRIOR_CATEGORIES", "SOLVE_PRECISIONS", "ComputeSettings",
+__all__ = ["AUTO_PRESET_RULE", "CATEGORY_LOOK_ALIKE", "DEFAULT_TAU_OUT", "FLAT_NAMES", "FREE_SPACE",
+           "FREE_SPACE_FUSED", "GROUPS", "MAX_TAU_OUT", "PRESETS", "SCENE_PRIOR_CATEGORIES", "SOLVE_PRECISIONS",
+           "ComputeSettings",
            "ConfidenceSettings", "EMConfig", "EliminationSettings", "FreeSpaceMode", "FreeSpaceSettings",
            "OutputSettings", "PresetName", "ProposalSettings", "RefineSettings", "ReviewSettings", "SolvePrecision",
            "SolvePresetName", "SolveSettings", "StepSettings", "precision_compute", "preset", "preset_for_scene",
@@ -703,7 +704,8 @@ class SolveSettings:
 
     preset: SolvePresetName = "auto"
     """Solver configuration (docs/design/efem-method.md §3.12): auto (each scene's own: real for a single-view
-    capture such as an `import-rgbd` frame, chairs for a generated chair scene, else synthetic; `segment` names it
+    capture such as an `import-rgbd` frame, chairs for a generated chair scene or the chair prior, else synthetic;
+    `segment` names it
     on each scene's line), synthetic, real, real_paper, fast or chairs; category sizes, crop radii and τ_out come
     with each prior."""
     proposals: int | None = None
@@ -725,18 +727,19 @@ class SolveSettings:
     fused scans, `FREE_SPACE_FUSED`: 2 cm margin, a fit more than 30 % seen through removed) or off. Scenes
     without a recorded camera are never checked."""
 
-    def config(self, scene: Any = None, device: str = "cpu") -> EMConfig:
+    def config(self, scene: Any = None, device: str = "cpu", prior: str | None = None) -> EMConfig:
         """The solver config: the preset with these overrides (validated).
 
         Args:
             scene: the scene it is for (``preset="auto"`` resolves to `preset_for_scene` of it; without a scene,
                 to "synthetic", which checks the overrides).
             device: the device it runs on (``matmul_dtype="auto"`` resolves for it, `precision_compute`).
+            prior: the category of the prior it is solved with (``preset="auto"``: the chair prior runs "chairs").
 
         Raises:
             ValueError: an unknown preset or a bad value.
         """
-        name = self.preset if self.preset != "auto" else (preset_for_scene(scene) if scene is not None
+        name = self.preset if self.preset != "auto" else (preset_for_scene(scene, prior) if scene is not None
                                                            else "synthetic")
         cfg = preset(name)
         if self.proposals is not None:
@@ -758,17 +761,19 @@ class SolveSettings:
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(SolveSettings)}
 
 
-def suggested_preset(scene: Any) -> PresetName:
+def suggested_preset(scene: Any, prior: str | None = None) -> PresetName:
     """The preset that fits a scene: "real" for a single-view capture (`import-rgbd` provenance or a recorded
-    camera), "chairs" for a generated chair scene (`generate --targets chair`), else "fast" (a real scan was run
-    with the synthetic `fast` settings). The viewer's Run and the annotator's EFEM run start from it."""
+    camera), "chairs" for a generated chair scene (`generate --targets chair`) or any other scan solved with the
+    chair prior (``prior``: the category of the solve's prior, e.g. a room scan labelled with chairs: its floor
+    joins no chair), else "fast" (a real scan was run with the synthetic `fast` settings). The viewer's Run and
+    the annotator's EFEM run start from it."""
     from efem_viz.geometry.camera import Camera
 
     prov = dict(getattr(scene, "provenance", None) or {})
     camera, problem = Camera.parse(prov)
     if prov.get("source") == "rgbd" or camera is not None or problem is not None:
         return "real"
-    return "chairs" if suggested_prior(scene) == "chair" else "fast"
+    return "chairs" if "chair" in (suggested_prior(scene), prior) else "fast"
 
 
 SCENE_PRIOR_CATEGORIES: tuple[str, ...] = ("chair", "kitchen")
@@ -782,10 +787,15 @@ def suggested_prior(scene: Any) -> str | None:
     return str(targets) if targets in SCENE_PRIOR_CATEGORIES else None
 
 
-def preset_for_scene(scene: Any) -> PresetName:
+AUTO_PRESET_RULE = "real for single-view captures; chairs for chair scenes and the chair prior; else synthetic"
+"""What `preset_for_scene` decides by (batch fingerprints carry it: results of another rule are computed again)."""
+
+
+def preset_for_scene(scene: Any, prior: str | None = None) -> PresetName:
     """What `segment --preset auto` runs a scene with: "real" for a single-view capture and "chairs" for a chair
-    scene (as `suggested_preset`), else "synthetic" (fused scans, generated scenes, a user's own scan)."""
-    got = suggested_preset(scene)
+    scene or a scan solved with the chair prior (``prior``: its category; as `suggested_preset`), else "synthetic"
+    (fused scans, generated scenes, a user's own scan)."""
+    got = suggested_preset(scene, prior)
     return got if got in ("real", "chairs") else "synthetic"
 
 

@@ -132,12 +132,17 @@ class ResultPart:
         if by_user:
             self.core.state.threshold_by_user = True
 
-    @staticmethod
-    def suggested_preset(scene: "Scene") -> str:
-        """The Run preset that fits a scene (`efem_viz.em.config.suggested_preset`)."""
+    def suggested_preset(self, scene: "Scene") -> str:
+        """The Run preset that fits a scene solved with the viewer's prior (`efem_viz.em.config.suggested_preset`:
+        a scan opened in a viewer started with the chair prior runs "chairs")."""
         from efem_viz.em.config import suggested_preset
+        from efem_viz.prior.config import prior_category
 
-        return suggested_preset(scene)
+        try:
+            category: str | None = prior_category(self.core.priors.primary()).name
+        except RuntimeError:  # no prior to run with: the scene decides alone
+            category = None
+        return suggested_preset(scene, category)
 
     def default_threshold(self, result: EMResult) -> float:
         """The cut a result opens with: `DEFAULT_CONFIDENCE_CUT`, lowered to its best instance's confidence when
