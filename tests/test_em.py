@@ -4,6 +4,7 @@ progress), result views and exports, the CLI, and a regression on a seeded mug s
 from __future__ import annotations
 
 import dataclasses
+import logging
 import threading
 from pathlib import Path
 
@@ -215,7 +216,8 @@ def test_anchors_above_the_support_plane(sphere_run: tuple) -> None:
             preset("fast").replace(proposals={"anchor_min_height": bad})
 
 
-def test_points_below_min_point_height_join_no_proposal(sphere_run: tuple) -> None:
+def test_points_below_min_point_height_join_no_proposal(sphere_run: tuple, caplog: pytest.LogCaptureFixture
+                                                        ) -> None:
     """`proposals.min_point_height` keeps the support plane's points out of every crop, M-step draw and mask (the
     spheres on the table are still found, whole above that height); a scene with nothing that high ends with no
     instance and no error; a height that is not a finite number is refused."""
@@ -234,6 +236,17 @@ def test_points_below_min_point_height_join_no_proposal(sphere_run: tuple) -> No
     assert (z[np.unique(plain.trace.row_samples)] < h).any()  # the method's crops hold table points
     none = run_em(scene, prior, cfg.replace(proposals={"min_point_height": float(z.max()) + 1.0}), seed=3)
     assert len(none.instances) == 0
+    # a scan whose support plane is not at z = 0 (its origin a metre above the table) keeps every point, said once
+    from efem_viz.data.scene import Scene
+
+    low = Scene.create("low", scene.points - np.array([0.0, 0.0, 1.0], np.float32), normals=scene.normals,
+                       instance=scene.instance)
+    with caplog.at_level(logging.WARNING, logger="efem_viz.em.solver"):
+        kept = run_em(low, prior, cfg, seed=3)
+    assert "not its support plane" in caplog.text and "low:" in caplog.text
+    uncut = run_em(low, prior, cfg.replace(proposals={"min_point_height": None}), seed=3)
+    np.testing.assert_array_equal(kept.trace.row_samples, uncut.trace.row_samples)  # the same run as without a cut
+    assert len(kept.instances) == len(uncut.instances)
     for bad in (float("nan"), float("-inf"), "2 cm"):
         with pytest.raises(ValueError, match="min_point_height"):
             preset("fast").replace(proposals={"min_point_height": bad})

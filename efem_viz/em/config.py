@@ -153,7 +153,9 @@ class ProposalSettings(_Settings):
     method)."""
     min_point_height: float | None = None
     """Points lower than this (m) above the support plane at z = 0 join no proposal: no crop, E-step, review or mask
-    holds them (a room's floor under chairs). None: every point may (the method: no background mask)."""
+    holds them (a room's floor under chairs). None: every point may (the method: no background mask). A scan whose
+    support plane is not at z = 0 (a tenth of its points 10 cm or more below it) keeps every point, with a warning
+    (`efem_viz.em.solver.eligible_points`)."""
 
     @property
     def num_episodes(self) -> int:

@@ -76,6 +76,29 @@ PROGRESSIVE_EVERY_S = 1.0
 step is always shown, the finished result replaces the last)."""
 
 
+BELOW_SUPPORT_M = 0.1
+BELOW_SUPPORT_SHARE = 0.1
+"""A scan with more than this share of its points over `BELOW_SUPPORT_M` below z = 0 does not stand on a support
+plane at z = 0 (a room scan with its origin at the sensor): `proposals.min_point_height` is not applied to it."""
+
+
+def eligible_points(points: np.ndarray, min_height: float | None, name: str = "scene") -> np.ndarray:
+    """Which points may join a proposal: those at least ``min_height`` above the support plane at z = 0
+    (`ProposalSettings.min_point_height`; None: all). A scan whose support plane is not at z = 0 (`BELOW_SUPPORT_*`)
+    keeps every point, with a warning: cutting at z = 0 there would remove whole objects, not a floor."""
+    every = np.ones(len(points), bool)
+    if min_height is None or not len(points):
+        return every
+    z = np.asarray(points[:, 2], np.float64)
+    below = float(np.mean(z < -BELOW_SUPPORT_M))
+    if below > BELOW_SUPPORT_SHARE:
+        logger.warning("%s: %.0f %% of its points lie more than %g cm below z = 0, so z = 0 is not its support plane; "
+                       "the points low above it are not kept out (min_point_height). Bring the scan in with "
+                       "`efem-viz import-scan` to put its floor at z = 0.", name, 100 * below, 100 * BELOW_SUPPORT_M)
+        return every
+    return z >= float(min_height)
+
+
 class EMCancelled(RuntimeError):
     """Raised by `run_em` when its `cancel` event is set."""
 
@@ -531,8 +554,7 @@ class Solver:
         assigned = np.zeros(self.n_full, bool)  # full resolution
         accepted = self.accepted
         look_alike = _look_alike_models(self.cfgs)
-        floor = cfg.proposals.min_point_height
-        eligible = np.ones(self.n_full, bool) if floor is None else self.full_points[:, 2] >= floor
+        eligible = eligible_points(self.full_points, cfg.proposals.min_point_height, self.name)
         for ep, n_init in enumerate(cfg.proposals.n_init):
             self._check_cancel()
             available_full = ~assigned & eligible
