@@ -7,6 +7,7 @@ import subprocess
 import sys
 import threading
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -563,3 +564,26 @@ def test_an_imported_scan_exports_back_on_its_own_file_frame(tmp_path: Path) -> 
             s.files.export("ply", frame="file")
     finally:
         s.close()
+
+
+def test_a_big_scan_runs_efem_on_a_working_set_no_finer_than_its_presets(session: AnnotatorSession,
+                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Over `EFEM_FULL_RESOLUTION_POINTS` vertices EFEM iterates on a 5 mm working set, unless the preset's own is
+    coarser (`chairs`, 2.5 cm: a room scan labelled with chairs keeps it); a small scan runs the preset's as it is."""
+    from annotator import efem_runs
+    from annotator.parts import assist as assist_mod
+    from efem_viz.em.solver import EMCancelled
+
+    seen: list[float | None] = []
+
+    def solve(scene: Any, *, settings: Any, **kw: Any) -> Any:
+        seen.append(settings.config().compute.work_voxel)
+        raise EMCancelled("enough")
+
+    monkeypatch.setattr(efem_runs, "solve_scan", solve)
+    for preset in ("fast", "chairs"):
+        session.assist.run_efem(preset=preset, wait=True)
+    monkeypatch.setattr(assist_mod, "EFEM_FULL_RESOLUTION_POINTS", session.scan.n - 1)  # now a "big" scan
+    for preset in ("fast", "chairs"):
+        session.assist.run_efem(preset=preset, wait=True)
+    assert seen == [None, 0.025, assist_mod.EFEM_BIG_SCAN_VOXEL, 0.025]

@@ -3,6 +3,7 @@ shape prior (its background thread, preview, accept, discard)."""
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 import uuid
@@ -22,7 +23,8 @@ EFEM_FULL_RESOLUTION_POINTS = 250_000
 """Scans with more vertices run EFEM on a thinned working set (`EFEM_BIG_SCAN_VOXEL`; masks stay full resolution):
 a real frame has ~60k points, and EM's cost grows with the points it iterates on."""
 EFEM_BIG_SCAN_VOXEL = 0.005
-"""The working-set cell (m) of an EFEM run on a big scan (`SolveSettings.work_voxel`)."""
+"""The working-set cell (m) of an EFEM run on a big scan (`SolveSettings.work_voxel`), unless its preset's own is
+coarser (`chairs`: 2.5 cm)."""
 
 if TYPE_CHECKING:
     from efem_viz.em.config import SolveSettings
@@ -377,12 +379,12 @@ class AssistPart:
         """
         from efem_viz.em.config import SolveSettings
 
-        big = self.scan.n > EFEM_FULL_RESOLUTION_POINTS
         settings = SolveSettings(preset=preset or self.suggested_preset(),  # type: ignore[arg-type]
                                  proposals=None if not proposals else int(proposals),
-                                 work_voxel=EFEM_BIG_SCAN_VOXEL if big else None,
                                  free_space=free_space)  # type: ignore[arg-type]  # checked by config()
-        settings.config()  # a bad preset, count or mode: one clear error before anything starts
+        own_voxel = settings.config().compute.work_voxel  # a bad preset, count or mode: one clear error first
+        if self.scan.n > EFEM_FULL_RESOLUTION_POINTS and (own_voxel or 0.0) < EFEM_BIG_SCAN_VOXEL:
+            settings = dataclasses.replace(settings, work_voxel=EFEM_BIG_SCAN_VOXEL)  # a preset's coarser one stays
         self.result_path()  # and an output that would land outside the output folder
         prior_name = self.toolbox.settings.prior
         cancel = self._claim("efem")
