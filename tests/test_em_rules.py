@@ -326,6 +326,43 @@ def test_confidence_inclusion_spares_a_tight_fit_inside_a_wide_one() -> None:
         preset("fast").replace(elimination={"inclusion_by": "coverage"}).validate()
 
 
+def test_score_memory_lets_a_fit_keep_its_pairs_through_one_bad_step() -> None:
+    """`elimination.score_memory`: the pair rules compare each fit's best stationary score of its last steps. The
+    kitchen pile case by hand: a tight fit b (19 points, coverage 0.32) inside a wide fit a (30 points, coverage
+    0.25) scores 0.83, 0.84, then dips to 0.48 at the step it is compared; a scores 0.89, 0.69, 0.82. By this step's
+    confidence b dies inside a (0.48 · 0.8 = 0.38 against 0.82 · 0.625 = 0.51); by the best of 3 steps it is the
+    better one (0.84 · 0.8 = 0.67 against 0.89 · 0.625 = 0.56) and "score" keeps both. A duplicate pair alike."""
+    from efem_viz.em.solver import ProposalPool
+
+    a, b = list(range(0, 30)), list(range(0, 19))
+    pool = ProposalPool(ids=np.array([0, 1]), rag=Ragged.from_lists([np.array(a), np.array(b)]),
+                        w=np.ones(49, np.float32), owner=np.zeros(2, np.int64))
+    assert pool.remember(np.array([0.89, 0.83]), 1) is None  # the method: this step's scores
+    for scores in ([0.89, 0.83], [0.69, 0.84]):
+        pool.remember(np.array(scores), 3)
+    best = pool.remember(np.array([0.82, 0.48]), 3)
+    np.testing.assert_allclose(best, [0.89, 0.84])
+    got = {}
+    for memory, recent in ((1, None), (3, best)):
+        ctx = _ctx(2, [30, 19], [a, b], [0.82, 0.48])
+        ctx.coverage, ctx.recent_best = np.array([0.25, 0.32]), recent
+        ctx.cfg = ctx.cfg.replace(elimination={"joint_dup_iou": 1.01, "inclusion": "score",
+                                               "inclusion_by": "confidence", "score_memory": memory})
+        got[memory] = [(k.row, k.partner, k.reason) for k in apply_step_rules(ctx)]
+    assert got == {1: [(1, 0, REASON_INCLUDED)], 3: []}
+    # duplicates: the pair's survivor is the one with the better recent best, not this step's score
+    ctx = _ctx(1, [20, 19], [list(range(20)), list(range(19))], [0.9, 0.5])
+    ctx.recent_best = np.array([0.9, 0.95])
+    assert [(k.row, k.reason) for k in apply_step_rules(ctx)] == [(0, REASON_DUPLICATE)]
+    # a row that leaves the pool takes its history with it; the rest keep theirs, newest last
+    pool.keep(np.array([1]))
+    np.testing.assert_allclose(pool.remember(np.array([0.5]), 3), [0.84])
+    np.testing.assert_allclose(pool.remember(np.array([0.5]), 2), [0.5])  # a shorter memory forgets the oldest
+    for bad in (0, 21, 2.0, True):
+        with pytest.raises(ValueError, match="score_memory"):
+            preset("fast").replace(elimination={"score_memory": bad}).validate()
+
+
 def test_a_registered_rule_runs_and_its_reason_enters_the_name_table() -> None:
     def odd_rows(ctx: StepContext) -> list[Kill]:
         return [Kill(int(r), "odd") for r in np.flatnonzero(ctx.active) if r % 2]

@@ -276,8 +276,18 @@ class EliminationSettings(_Settings):
     times the capped coverage of the phase-1 review, `rules.capped_confidence`): a wide fit over two objects
     explains its samples well but leaves most of its completed shape unobserved, so by confidence it no longer
     outranks a tight fit of one of them."""
+    score_memory: int = 1
+    """Steps of each fit's stationary score the pair rules (duplicates, inclusions) compare: its best score over
+    its last `score_memory` steps of the episode; 1 = this step's (the method). A fit's score at one step rests on
+    one random M-step draw, and a good fit whose draw dips loses its pair and dies for good (on kitchen piles, tight
+    fits of a bowl and a bottle, mask IoU 0.91 and 0.96, died "included" in wide fits over the object and the table
+    at the one step their score fell from 0.84 to 0.48 and 0.59). Measured at 3 and not adopted: the tuning scenes
+    lost more than those fits gained (docs/BENCHMARKS.md)."""
 
     def validate(self) -> None:
+        if isinstance(self.score_memory, bool) or not isinstance(self.score_memory, int) \
+                or not 1 <= self.score_memory <= 20:
+            raise ValueError(f"score_memory must be a whole number of steps in [1, 20], got {self.score_memory!r}")
         for nm in ("dup_iou", "joint_dup_iou", "early_dup_iou", "joint_incl"):
             v = getattr(self, nm)
             if v is not None and not v > 0.0:  # above 1: the rule never fires

@@ -262,6 +262,8 @@ class StepContext:
         patience: (P,) each row's `min_size_patience` (its prior's resolved config), or None: `cfg`'s for all.
         small: (P,) bool rows under the threshold at this step, set by the "too small" rule (the runner carries
             the streak on from it).
+        recent_best: (P,) each row's best stationary score over its last `cfg.elimination.score_memory` steps,
+            this one included, or None: this step's (`pair_scores`).
     """
 
     phase: int
@@ -282,6 +284,12 @@ class StepContext:
     small_streak: np.ndarray | None = None
     patience: np.ndarray | None = None
     small: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    recent_best: np.ndarray | None = None
+
+    @property
+    def pair_scores(self) -> np.ndarray:
+        """The stationary scores the pair rules compare (`EliminationSettings.score_memory`)."""
+        return self.stationary if self.recent_best is None else self.recent_best
 
     def __post_init__(self) -> None:
         if len(self.active) != len(self.inliers):
@@ -330,15 +338,15 @@ def _duplicates(ctx: StepContext) -> list[Kill]:
     thr = ctx.cfg.elimination.dup_iou if ctx.phase == 1 else ctx.cfg.elimination.joint_dup_iou
     if ctx.cfg.elimination.early_dup_iou is not None and ctx.local_step < ctx.cfg.elimination.early_dup_steps:
         thr = ctx.cfg.elimination.early_dup_iou
-    return find_duplicates(ctx.sets, ctx.stationary, thr, active=ctx.active)
+    return find_duplicates(ctx.sets, ctx.pair_scores, thr, active=ctx.active)
 
 
 def _inclusions(ctx: StepContext) -> list[Kill]:
-    scores = ctx.stationary
+    scores = ctx.pair_scores
     if ctx.cfg.elimination.inclusion != "paper" and ctx.cfg.elimination.inclusion_by == "confidence":
         if ctx.coverage is None:
             raise ValueError("inclusion_by 'confidence' needs the rows' review coverage (StepContext.coverage)")
-        scores = capped_confidence(ctx.stationary, ctx.coverage, ctx.cfg.confidence.cov_cap)
+        scores = capped_confidence(scores, ctx.coverage, ctx.cfg.confidence.cov_cap)
     return find_inclusions(ctx.sets, ctx.cfg.elimination.joint_incl, active=ctx.active, scores=scores,
                            mode=ctx.cfg.elimination.inclusion)
 

@@ -195,6 +195,7 @@ class ProposalPool:
     scale_max: np.ndarray | None = None  # (P,) largest Θ_s so far (EMConfig.elimination.trust_scale)
     coverage: np.ndarray | None = None  # (P,) coverage of the last review (elimination.inclusion_by = "confidence")
     small_streak: np.ndarray | None = None  # (P,) steps in a row under the "too small" threshold (min_size_patience)
+    recent: np.ndarray | None = None  # (P, m) the last m stationary scores, newest last, NaN before (score_memory)
 
     @property
     def size(self) -> int:
@@ -222,6 +223,22 @@ class ProposalPool:
             self.coverage = self.coverage[rows]
         if self.small_streak is not None:
             self.small_streak = self.small_streak[rows]
+        if self.recent is not None:
+            self.recent = self.recent[rows]
+
+    def remember(self, stationary: np.ndarray, memory: int) -> np.ndarray | None:
+        """Add this step's stationary scores to the rows' last `memory` (`EliminationSettings.score_memory`) and
+        return each row's best of them; None for a memory of 1 (this step's scores are the ones compared)."""
+        if memory <= 1:
+            return None
+        fresh = np.full((self.size, memory), np.nan)
+        if self.recent is not None:
+            keep = min(memory - 1, self.recent.shape[1])
+            if keep:
+                fresh[:, -1 - keep:-1] = self.recent[:, -keep:]
+        fresh[:, -1] = stationary
+        self.recent = fresh
+        return np.nanmax(fresh, axis=1)
 
 
 class _Timer:
@@ -691,7 +708,8 @@ class Solver:
                           stationary=pool.stationary, d=pool.d,
                           rag=pool.rag, n_points=self.n, min_size=self.min_size, owner=pool.owner,
                           tau_d=schedule(self.cfg, local)[1], spacing=self.spacing, coverage=pool.coverage,
-                          small_streak=pool.small_streak, patience=self.patience[pool.owner])
+                          small_streak=pool.small_streak, patience=self.patience[pool.owner],
+                          recent_best=pool.remember(pool.stationary, self.cfg.elimination.score_memory))
         kills = apply_step_rules(ctx, self.step_rules)
         before = pool.small_streak if pool.small_streak is not None else np.zeros(pool.size, np.int64)
         pool.small_streak = np.where(ctx.small, before + 1, 0)
