@@ -247,6 +247,14 @@ def test_member_weights_draw_the_named_members_more_often(tmp_path: Path, cache_
     p = sampling_probabilities(objs, member_weight_map(["mug=3"]))
     assert p is not None and p.tolist() == pytest.approx([0.5, 1 / 6, 1 / 6, 1 / 6])
     assert sampling_probabilities(objs, {}) is None
+    # a chair's member is its base: `stool=3` weighs the stools of the chair family
+    from efem_viz.data.chairs import sample_chair_params
+
+    chairs = cast(list[ObjectData], [SimpleNamespace(name=f"chair_{s:06d}") for s in range(12)])
+    stool = np.array([sample_chair_params(s).base == "stool" for s in range(12)])
+    assert 0 < stool.sum() < 12
+    p = sampling_probabilities(chairs, {"stool": 3.0})
+    assert p is not None and np.allclose(p[stool], 3 * p[~stool][0]) and np.allclose(p[~stool], p[~stool][0])
     with pytest.raises(ValueError, match="names no training object: mugg"):
         sampling_probabilities(objs, {"mugg": 2.0})
     for bad in (["mug"], ["mug=0"], ["mug=nan"], ["mug=-1"], ["=2"], ["mug=2", "mug=3"]):

@@ -708,6 +708,20 @@ def family_members(name: str) -> tuple[str, ...]:
     return (name,)
 
 
+def variant_of(name: str) -> str:
+    """The variant a procedural training object stands for, from its name ``<category>_<seed>``: its category (a
+    family's member: mug, bowl, bottle, can), or for a chair its base (four_legs, stool, sled, cantilever,
+    swivel; `efem_viz.data.chairs.sample_chair_params`). Any other name is its own variant."""
+    category, sep, seed = name.rpartition("_")
+    if not sep or not category:
+        return name
+    if category == "chair" and seed.isdigit():
+        from efem_viz.data.chairs import sample_chair_params
+
+        return sample_chair_params(int(seed)).base
+    return category
+
+
 def family_seeds(name: str, split: Split, n: int) -> list[tuple[str, int]]:
     """The first `n` objects of a family's split as (category, seed): object i is member i mod k (k members)
     with that member's seed number i div k, so every prefix is balanced over the members.

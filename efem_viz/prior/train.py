@@ -167,8 +167,8 @@ class TrainArgs:
     member_weights: tuple[str, ...] = ()
     """Sampling weights of a family's members for the training batches, as ``member=weight`` (e.g. ``mug=2
     bowl=1.5``; a member not named weighs 1): the hard members of one prior (thin-walled mugs and bowls of the
-    kitchen family) seen more often. Objects are named ``<member>_<seed>``. Empty: every object equally often.
-    Validation is unchanged."""
+    kitchen family) seen more often. A member is what `efem_viz.data.procedural.variant_of` names: a kitchen
+    object's category, a chair's base (``stool=3``). Empty: every object equally often. Validation is unchanged."""
     min_views: int = 4
     """Fewest depth views in an input cloud (spec: 4 for mugs; 1 also trains single-view inputs, as real RGB-D
     frames are). Validation inputs are drawn with the same setting."""
@@ -658,15 +658,17 @@ def member_weight_map(items: Sequence[str]) -> dict[str, float]:
 
 
 def sampling_probabilities(objs: Sequence[ObjectData], weights: dict[str, float]) -> np.ndarray | None:
-    """Per-object sampling probabilities from member weights (an object ``<member>_<seed>`` takes its member's
-    weight, others 1); None when no weight is given (uniform).
+    """Per-object sampling probabilities from member weights (an object takes its member's weight,
+    `efem_viz.data.procedural.variant_of`, others 1); None when no weight is given (uniform).
 
     Raises:
         ValueError: a weighted member that names no training object (a typo would silently train uniform).
     """
+    from efem_viz.data.procedural import variant_of
+
     if not weights:
         return None
-    members = [o.name.rsplit("_", 1)[0] if "_" in o.name else o.name for o in objs]
+    members = [variant_of(o.name) for o in objs]
     unknown = sorted(set(weights) - set(members))
     if unknown:
         raise ValueError(f"--member-weights names no training object: {', '.join(unknown)} "
