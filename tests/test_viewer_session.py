@@ -166,6 +166,10 @@ def test_the_run_preset_fits_the_scene(session: ViewerSession, tmp_path: Path) -
     assert session.results.suggested_preset(syn) == "fast"
     chairs = ViewerSession([SAMPLES], prior_name="chair", out_dir=tmp_path)
     assert chairs.results.suggested_preset(syn) == "chairs" and chairs.results.suggested_preset(real) == "real"
+    # a generated kitchen scene is solved with its own prior, whichever the viewer started with: not `chairs`
+    kitchen = load_scene(sample_scene("syn_kitchen_z_2"))
+    assert chairs.priors.solve_category("kitchen") == "kitchen" and chairs.results.suggested_preset(kitchen) == "fast"
+    assert session.results.suggested_preset(load_scene(sample_scene("syn_chairs_z_1"))) == "chairs"
 
 
 def test_step_through_iterations(session: ViewerSession) -> None:

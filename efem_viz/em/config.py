@@ -716,10 +716,9 @@ class SolveSettings:
 
     preset: SolvePresetName = "auto"
     """Solver configuration (docs/design/efem-method.md §3.12): auto (each scene's own: real for a single-view
-    capture such as an `import-rgbd` frame, chairs for a generated chair scene or the chair prior, else synthetic;
-    `segment` names it
-    on each scene's line), synthetic, real, real_paper, fast or chairs; category sizes, crop radii and τ_out come
-    with each prior."""
+    capture such as an `import-rgbd` frame, chairs for a scan solved with the chair prior, else synthetic;
+    `segment` names it on each scene's line), synthetic, real, real_paper, fast or chairs; category sizes, crop
+    radii and τ_out come with each prior."""
     proposals: int | None = None
     """Override the number of proposals (first episode)."""
     work_voxel: float | None = None
@@ -775,17 +774,17 @@ class SolveSettings:
 
 def suggested_preset(scene: Any, prior: str | None = None) -> PresetName:
     """The preset that fits a scene: "real" for a single-view capture (`import-rgbd` provenance or a recorded
-    camera), "chairs" for a generated chair scene (`generate --targets chair`) or any other scan solved with the
-    chair prior (``prior``: the category of the solve's prior, e.g. a room scan labelled with chairs: its floor
-    joins no chair), else "fast" (a real scan was run with the synthetic `fast` settings). The viewer's Run and
-    the annotator's EFEM run start from it."""
+    camera), "chairs" for a scan solved with the chair prior (``prior``: the category of the prior that solves
+    it, e.g. a room scan labelled with chairs, whose floor then joins no chair; None: the prior the scene was made
+    for, `suggested_prior`: a generated chair scene), else "fast" (a real scan was run with the synthetic `fast`
+    settings). The viewer's Run and the annotator's EFEM run start from it."""
     from efem_viz.geometry.camera import Camera
 
     prov = dict(getattr(scene, "provenance", None) or {})
     camera, problem = Camera.parse(prov)
     if prov.get("source") == "rgbd" or camera is not None or problem is not None:
         return "real"
-    return "chairs" if "chair" in (suggested_prior(scene), prior) else "fast"
+    return "chairs" if (prior if prior is not None else suggested_prior(scene)) == "chair" else "fast"
 
 
 SCENE_PRIOR_CATEGORIES: tuple[str, ...] = ("chair", "kitchen")
@@ -799,14 +798,14 @@ def suggested_prior(scene: Any) -> str | None:
     return str(targets) if targets in SCENE_PRIOR_CATEGORIES else None
 
 
-AUTO_PRESET_RULE = "real for single-view captures; chairs for chair scenes and the chair prior; else synthetic"
+AUTO_PRESET_RULE = "real for single-view captures; chairs for the chair prior; else synthetic"
 """What `preset_for_scene` decides by (batch fingerprints carry it: results of another rule are computed again)."""
 
 
 def preset_for_scene(scene: Any, prior: str | None = None) -> PresetName:
-    """What `segment --preset auto` runs a scene with: "real" for a single-view capture and "chairs" for a chair
-    scene or a scan solved with the chair prior (``prior``: its category; as `suggested_preset`), else "synthetic"
-    (fused scans, generated scenes, a user's own scan)."""
+    """What `segment --preset auto` runs a scene with: "real" for a single-view capture and "chairs" for a scan
+    solved with the chair prior (``prior``: the category of the prior that solves it; None: the scene's own, as
+    `suggested_preset`), else "synthetic" (fused scans, generated scenes, a user's own scan)."""
     got = suggested_preset(scene, prior)
     return got if got in ("real", "chairs") else "synthetic"
 

@@ -276,10 +276,25 @@ class PriorSet:
             RuntimeError: the primary prior is unavailable, or the category's.
             ValueError, FileNotFoundError: an extra prior cannot be loaded (as `load_priors`).
         """
-        priors = self.run_priors() or [self.primary()]
-        if category is not None and len(priors) == 1 and prior_category(priors[0]).name != category:
+        if category is not None and self._replaced_by(category):
             return self.named([category])
-        return priors
+        return self.run_priors() or [self.primary()]
+
+    def solve_category(self, category: str | None = None) -> str:
+        """The category of the prior `solve_priors(category)` leads with, without loading a scene's own prior (the
+        preset follows it: `efem_viz.em.config.suggested_preset`).
+
+        Raises:
+            RuntimeError: the primary prior is unavailable.
+        """
+        if category is not None and self._replaced_by(category):
+            return category
+        return prior_category(self.primary()).name
+
+    def _replaced_by(self, category: str) -> bool:
+        """Whether a solve for a scene made for ``category`` replaces a one-prior set's primary with that category's
+        prior (`solve_priors`)."""
+        return not self.extra_specs and prior_category(self.primary()).name != category
 
     def named(self, names: Sequence[str]) -> list[ShapePriorLike]:
         """The priors of a multi-prior run by category name: the priors loaded here where the name matches, the

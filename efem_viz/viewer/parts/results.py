@@ -133,13 +133,13 @@ class ResultPart:
             self.core.state.threshold_by_user = True
 
     def suggested_preset(self, scene: "Scene") -> str:
-        """The Run preset that fits a scene solved with the viewer's prior (`efem_viz.em.config.suggested_preset`:
-        a scan opened in a viewer started with the chair prior runs "chairs")."""
-        from efem_viz.em.config import suggested_preset
-        from efem_viz.prior.config import prior_category
+        """The Run preset that fits a scene solved with the prior its Run solves with
+        (`efem_viz.em.config.suggested_preset`, `PriorSet.solve_category`: a scan opened in a viewer started with
+        the chair prior runs "chairs"; a generated kitchen scene, solved with its own prior, does not)."""
+        from efem_viz.em.config import suggested_preset, suggested_prior
 
         try:
-            category: str | None = prior_category(self.core.priors.primary()).name
+            category: str | None = self.core.priors.solve_category(suggested_prior(scene))
         except RuntimeError:  # no prior to run with: the scene decides alone
             category = None
         return suggested_preset(scene, category)
