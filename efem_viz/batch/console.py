@@ -75,7 +75,7 @@ class RichBatchDisplay(BatchObserver):
     def on_plan(self, plan: BatchPlan) -> None:
         self.out = str(plan.out)
         skipped = f", {len(plan.skipped)} skipped (valid results there)" if plan.skipped else ""
-        auto = ", preset auto (real for single-view captures, chairs for chair scenes, else synthetic)"
+        auto = ", preset auto (real for single-view captures, chairs for the chair prior, else synthetic)"
         preset = "" if not self.preset else auto if self.preset == "auto" else f", preset {self.preset}"
         self.console.print(f"{plan.total} scene(s) -> {_shown(plan.out)}: "
                            f"{len(plan.tasks)} to segment{skipped}{preset}",
