@@ -224,7 +224,7 @@ def test_segment_picks_each_scenes_preset_and_refuses_a_scan_far_from_metric(tmp
     out = seg.stdout
     assert seg.returncode == 1, out + seg.stderr  # one scene failed
     assert out.splitlines()[0].endswith(
-        "preset auto (real for single-view captures, chairs for chair scenes, else synthetic)")
+        "preset auto (real for single-view captures, chairs for the chair prior, else synthetic)")
     assert re.search(r"capture: \d+ instances in .* \(local, preset real, free space from 1 camera\)", out), out
     assert re.search(r"fused: \d+ instances in .* \(local, preset synthetic\)", out), out
     assert re.search(r"huge: failed: SceneError: the scene spans [\d.e+]+ m: not a scan in metres", out), out
