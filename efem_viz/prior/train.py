@@ -664,10 +664,10 @@ def sampling_probabilities(objs: Sequence[ObjectData], weights: dict[str, float]
     Raises:
         ValueError: a weighted member that names no training object (a typo would silently train uniform).
     """
-    from efem_viz.data.procedural import variant_of
-
     if not weights:
         return None
+    from efem_viz.data.procedural import variant_of  # (trimesh): only when weights are given
+
     members = [variant_of(o.name) for o in objs]
     unknown = sorted(set(weights) - set(members))
     if unknown:
