@@ -244,8 +244,8 @@ def main() -> int:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--mode", default="points", choices=["points", "tsdf"])
     ap.add_argument("--preset", default="auto",
-                    help="solver preset (auto: the one `segment --preset auto` takes for the --targets scenes: "
-                         "chairs for chair scenes, else synthetic)")
+                    help="solver preset (auto: the one `segment --preset auto` takes for the --targets scenes solved "
+                         "with --prior: chairs for the chair prior, else synthetic)")
     ap.add_argument("--proposals", type=int, default=None, help="proposals per scene (default: the preset's)")
     ap.add_argument("--work-voxel", type=float, default=None,
                     help="EMConfig.compute.work_voxel for every run (m; default: the preset's)")
@@ -301,12 +301,12 @@ def main() -> int:
     from efem_viz.data.procedural import FAMILIES, family_members
 
     EVAL_CLASSES[:] = list(family_members(args.targets)) if args.targets in FAMILIES else CATEGORIES[:1]
-    if args.preset == "auto":  # what `segment --preset auto` takes for a generated scene of these targets
+    if args.preset == "auto":  # what `segment --preset auto` takes for these targets' scenes solved with --prior
         from types import SimpleNamespace
 
         from efem_viz.em.config import preset_for_scene
 
-        args.preset = preset_for_scene(SimpleNamespace(provenance={"targets": args.targets}))
+        args.preset = preset_for_scene(SimpleNamespace(provenance={"targets": args.targets}), CATEGORIES[0])
     cfg = preset(args.preset)
     if args.proposals is not None:
         cfg = cfg.with_proposals(args.proposals)
