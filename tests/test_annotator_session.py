@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import re
 import subprocess
 import sys
 import threading
@@ -580,10 +581,16 @@ def test_a_big_scan_runs_efem_on_a_working_set_no_finer_than_its_presets(session
         seen.append(settings.config().compute.work_voxel)
         raise EMCancelled("enough")
 
+    said: list[str] = []
     monkeypatch.setattr(efem_runs, "solve_scan", solve)
+    monkeypatch.setattr(session, "notify", lambda _title, body: said.append(body))  # "<what the run was> was stopped"
     for preset in ("fast", "chairs"):
         session.assist.run_efem(preset=preset, wait=True)
     monkeypatch.setattr(assist_mod, "EFEM_FULL_RESOLUTION_POINTS", session.scan.n - 1)  # now a "big" scan
     for preset in ("fast", "chairs"):
         session.assist.run_efem(preset=preset, wait=True)
     assert seen == [None, 0.025, assist_mod.EFEM_BIG_SCAN_VOXEL, 0.025]
+    # the run's line names the working set it iterates on: the preset's own (chairs) or the big scan's
+    runs = [s for s in said if s.startswith("EFEM (")]
+    mm = [m.group(1) if (m := re.search(r"on a ([0-9.]+) mm working set", s)) else None for s in runs]
+    assert mm == [None, "25", f"{1000 * assist_mod.EFEM_BIG_SCAN_VOXEL:g}", "25"], runs
