@@ -26,6 +26,7 @@ from efem_viz.prior.data import (
 from efem_viz.prior.model import WEIGHTS_DIR, PriorConfig, ShapePrior, load_prior, save_prior
 from efem_viz.prior.train import (
     TrainArgs,
+    compute_losses,
     lr_at,
     member_weight_map,
     sampling_probabilities,
@@ -236,6 +237,27 @@ def test_a_kitchen_prior_trains_on_its_four_categories_and_validates_each(tmp_pa
     assert all(0.0 <= v <= 1.0 for v in per.values())
     assert np.mean(list(per.values())) == pytest.approx(last["iou_cal"], abs=1e-9)  # one object each
     assert load_prior(tmp_path / "w" / "mug.pt").category.name == "kitchen"
+
+
+def test_inside_weight_scales_the_sdf_error_inside_the_shape_only(tmp_path: Path, cache_dir: Path) -> None:
+    """Worked by hand: a model that predicts 0 everywhere, two uniform queries (GT SDF -0.02 inside, 0.03 outside)
+    and two near ones (-0.01, 0.04). The SDF loss is the mean of the two groups' means: 0.025 with the
+    specification's weights, (3 x 0.02 + 0.03) / 2 and (3 x 0.01 + 0.04) / 2 averaged = 0.04 with the inside
+    weight 3. The weight must be a positive number."""
+    fake = SimpleNamespace(
+        encode=lambda pcl, centroid_noise=None: SimpleNamespace(center=torch.zeros(1, 3, dtype=torch.float64),
+                                                                scale=torch.ones(1, dtype=torch.float64)),
+        sdf=lambda x, lat: torch.zeros(x.shape[:2], dtype=torch.float64))
+    q = torch.zeros(1, 4, 4, dtype=torch.float64)
+    q[0, :, 3] = torch.tensor([-0.02, 0.03, -0.01, 0.04], dtype=torch.float64)
+    pcl = torch.zeros(1, 8, 3, dtype=torch.float64)
+    spec = compute_losses(cast(Any, fake), pcl, q, n_uniform=2)
+    inside = compute_losses(cast(Any, fake), pcl, q, n_uniform=2, inside_weight=3.0)
+    assert float(spec["sdf"]) == pytest.approx(0.025, abs=1e-12)
+    assert float(inside["sdf"]) == pytest.approx(0.04, abs=1e-12)
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="inside-weight"):
+            train(_args(tmp_path, cache_dir, inside_weight=bad))
 
 
 def test_member_weights_draw_the_named_members_more_often(tmp_path: Path, cache_dir: Path,

@@ -181,6 +181,11 @@ class TrainArgs:
     mostly, Kinect/RealSense axial noise ×U(0.5, 2), quantisation, jitter, grazing dropout, 300-3000 visible
     points). 0 = the isotropic-noise inputs of earlier sessions. Validation then also reports ``sensor_*``
     metrics on fixed sensor inputs and selects the export by them."""
+    inside_weight: float = 1.0
+    """Weight of the SDF error at queries inside the shape (ground-truth SDF < 0) against those outside (1: the
+    specification's loss). Above 1 for thin parts (chair legs, a stool's frame, a mug's handle), which have few
+    inside queries and are otherwise learnt as a slightly positive shell whose field never turns negative: no
+    surface to mesh or measure."""
     fixed_point_p: float = 0.0
     """Probability that an example is re-encoded from the model's own SDF-band inliers of its input (as one EM
     M-step would), so that one step cannot shrink a good fit."""
@@ -386,7 +391,7 @@ def load_objects(args: TrainArgs, split: Literal["train", "val"], *,
 
 
 def compute_losses(prior: ShapePrior, pcl: torch.Tensor, queries: torch.Tensor, *, n_uniform: int,
-                   centroid_noise: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+                   centroid_noise: torch.Tensor | None = None, inside_weight: float = 1.0) -> dict[str, torch.Tensor]:
     """Training losses of §2.5 for a batch.
 
     Args:
@@ -395,6 +400,7 @@ def compute_losses(prior: ShapePrior, pcl: torch.Tensor, queries: torch.Tensor, 
         queries: (B, Q, 4) xyz + GT SDF, the first ``n_uniform`` uniform, the rest near-surface.
         n_uniform: Number of uniform queries per example.
         centroid_noise: Optional (B, 3) centroid noise.
+        inside_weight: Weight of the SDF error at inside queries (GT SDF < 0; `TrainArgs.inside_weight`).
 
     Returns:
         Dict with ``loss`` (clamped to [-4, 4]), ``sdf``, ``center``, ``scale`` (scalars).
@@ -405,6 +411,8 @@ def compute_losses(prior: ShapePrior, pcl: torch.Tensor, queries: torch.Tensor, 
     pred = prior.sdf(queries[..., :3], lat).to(queries.dtype)  # losses in the model dtype under autocast too
     err = (pred - queries[..., 3]).abs()
     w = torch.where(err.detach() < 0.1, 1.0, 0.5).to(err)
+    if inside_weight != 1.0:
+        w = w * torch.where(queries[..., 3] < 0, float(inside_weight), 1.0).to(err)
     we = w * err
     parts = [we[:, :n_uniform], we[:, n_uniform:]]
     parts = [p for p in parts if p.shape[1] > 0]
@@ -620,8 +628,9 @@ def _check_args(args: TrainArgs) -> None:
     """Refuse a run that cannot work, before any data is loaded.
 
     Raises:
-        ValueError: an unknown matmul precision, a grown decoder without a prior to grow, or a batch size, iteration
-            count or validation interval below 1.
+        ValueError: an unknown matmul precision, a grown decoder without a prior to grow, a batch size, iteration
+            count or validation interval below 1, an inside weight that is not a positive number, or bad member
+            weights.
     """
     from efem_viz.prior.config import matmul_precision
 
@@ -634,6 +643,8 @@ def _check_args(args: TrainArgs) -> None:
                          f"{args.iterations}, {args.val_every})")
     if args.steps is not None and args.steps < 1:
         raise ValueError(f"--steps must be >= 1 (got {args.steps})")
+    if not (math.isfinite(args.inside_weight) and args.inside_weight > 0):
+        raise ValueError(f"--inside-weight must be a positive number (got {args.inside_weight})")
     member_weight_map(args.member_weights)
 
 
@@ -974,7 +985,8 @@ class _TrainLoop:
         q = torch.as_tensor(q_np, dtype=prior.dtype, device=prior.device)
         noise = torch.as_tensor(noise_np, dtype=prior.dtype, device=prior.device)
         with matmul_precision(args.matmul_dtype, prior.device.type):
-            losses = compute_losses(prior, pcl, q, n_uniform=scfg.n_query_uniform, centroid_noise=noise)
+            losses = compute_losses(prior, pcl, q, n_uniform=scfg.n_query_uniform, centroid_noise=noise,
+                                    inside_weight=args.inside_weight)
         self.opt.zero_grad(set_to_none=True)
         losses["loss"].backward()
         gn_e = float(torch.nn.utils.clip_grad_norm_(self.enc_params, 4.0))
