@@ -129,3 +129,30 @@ def test_late_keys_after_an_action_go_to_the_instance_they_were_typed_for(sessio
     session.instances.type_text("name", "right box")
     session.instances.flush_typing()
     assert ls.info(b).name == "right box" and ls.info(a).name == "left box"
+
+
+def test_late_keys_that_continue_the_committed_name_go_to_its_instance_on_a_busy_server(
+        session: AnnotatorSession) -> None:
+    """A busy server (an EFEM run beside the typing) can receive the trailing keys of a name later than
+    `late_keys_s` after the N: a value that only adds to what was committed still goes to the instance it was typed
+    for; a new name for the new instance (the field restarts from that instance's own name) is the new one's, and
+    so is a continuation arriving after `late_continuation_s`."""
+    ins = session.instances
+    ins.late_keys_s = 0.0  # every key below comes "late"
+    a = ins.new_instance(category="mug")
+    ins.type_text("name", "left b")
+    ins.flush_typing()  # what the app does before N
+    b = ins.new_instance(category="mug")
+    ins.type_text("name", "left box")  # the trailing keys, late
+    ins.flush_typing()
+    ls = session.scan.store.labelset
+    assert ls.info(a).name == "left box" and ls.info(b).name != "left box"
+    ins.type_text("name", "r")  # the person now names B: a fresh value, not a continuation of A's
+    ins.type_text("name", "right box")
+    ins.flush_typing()
+    assert ls.info(b).name == "right box" and ls.info(a).name == "left box"
+    c = ins.new_instance(category="mug")
+    ins.late_continuation_s = 0.0  # long after: even a continuation is for the active instance
+    ins.type_text("name", "right box 2")
+    ins.flush_typing()
+    assert ls.info(c).name == "right box 2" and ls.info(b).name == "right box"

@@ -18,6 +18,11 @@ LATE_KEYS_S = 1.0
 """A browser sends a text field's keystrokes and a hotkey on separate paths: the last keys of a name can reach the
 server after the N that followed them. Keys of a field this soon after its value was committed by an action go to
 the instance it was committed to, not to the one the action made active."""
+LATE_CONTINUATION_S = 15.0
+"""On a busy server (an EFEM run beside the typing) the trailing keys can come later than `LATE_KEYS_S`: a value
+that only adds characters to the one just committed still goes to that instance this long after. Typing for the
+newly active instance starts from the field as the panel then shows it (that instance's own name), never as a
+continuation of the other's."""
 
 TYPING_FILE = "typing.json"
 """In the work folder: the value of a Name / Category field being typed and not committed yet, written at every
@@ -41,7 +46,10 @@ class InstancePart:
         self.scan, self.toolbox, self.hooks, self.brush = scan, toolbox, hooks, brush
         self.late_keys_s = LATE_KEYS_S
         """Keystrokes this soon after a field was committed belong to the instance it was committed to."""
-        self._committed: dict[str, tuple[int, float]] = {}
+        self.late_continuation_s = LATE_CONTINUATION_S
+        """Keystrokes that only add to the value a field was committed with belong to its instance this long."""
+        self._committed: dict[str, tuple[int, float, str]] = {}
+        """By field: the instance, time and value of its last commit."""
         self.typing = TypingBuffer(self._commit_text, on_error=lambda msg: self.hooks.notify("Not done", msg),
                                    idle_s=text_idle_s, on_idle=lambda: self.hooks.on_change())
         """The Name and Category fields being typed (each committed once: `type_text`, `flush_typing`)."""
@@ -62,8 +70,11 @@ class InstancePart:
         iid = self.toolbox.settings.active_id
         last = self._committed.get(field)
         typing_it = any(cast("tuple[int, str]", k)[1] == field for k in self.typing.pending())
-        if last is not None and not typing_it and time.monotonic() - last[1] < self.late_keys_s:
-            iid = last[0]  # the last keys of a typing that an action committed, arriving after that action
+        if last is not None and not typing_it:
+            age = time.monotonic() - last[1]
+            continues = len(value.strip()) > len(last[2]) and value.strip().startswith(last[2])
+            if age < self.late_keys_s or (continues and age < self.late_continuation_s):
+                iid = last[0]  # the last keys of a typing that an action committed, arriving after that action
         with self._typing_file_lock:
             self.typing.typed((iid, field), value)
             self._write_typing_file(int(iid), field, value)
@@ -133,7 +144,7 @@ class InstancePart:
                 self.toolbox.settings.category = text
             elif not text:
                 raise ValueError("a name cannot be empty; the stored one is kept")
-            self._committed[field] = (int(iid), time.monotonic())
+            self._committed[field] = (int(iid), time.monotonic(), text)
             if iid > 0 and iid in self.scan.store.labelset.instances:
                 stack = self.scan.store.labelset.undo_stack
                 key2 = (int(iid), field)
