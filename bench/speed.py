@@ -197,6 +197,10 @@ def main() -> int:
         fused.load()  # a first build is not a solve's time
     except ImportError:  # a checkout from before the fused kernels
         pass
+    import importlib
+
+    for mod in ("open3d", "skimage.measure", "scipy.sparse.csgraph", "scipy.ndimage", "trimesh"):
+        importlib.import_module(mod)  # the solver's lazy imports: a process's first solve would pay them
     from efem_viz.prior.config import fast_cpu_bf16
 
     peaks: dict[str, float] = {}
