@@ -790,6 +790,30 @@ def test_results_folder_is_searched_and_refreshed(scene_dir: Path, prior: Any, t
         a.stop()
 
 
+def test_the_viewer_opens_on_a_scene_with_a_saved_result(scene_dir: Path, prior: Any, tmp_path: Path) -> None:
+    """A folder of scans of which only some have a saved result (the bundled scenes: the real frames first in the
+    list have none) opens on the first one with a result, drawn at once; the list keeps its order."""
+    import shutil
+
+    from efem_viz.viewer.app import ViewerApp
+
+    shutil.copy(scene_dir / "spheres.ply", tmp_path / "a_plain.ply")
+    shutil.copy(scene_dir / "spheres.ply", tmp_path / "b_run.ply")
+    shutil.copy(scene_dir / "spheres.efem.npz", tmp_path / "b_run.efem.npz")
+    a = ViewerApp([tmp_path], port=0, prior=prior)
+    try:
+        assert [e.name for e in a.state.entries] == ["a_plain", "b_run"]
+        assert a.wait_idle(60) and a.state.scene_name == "b_run" and a.state.result is not None
+    finally:
+        a.stop()
+    (tmp_path / "b_run.efem.npz").unlink()  # no result anywhere: the first scene
+    a = ViewerApp([tmp_path], port=0, prior=prior)
+    try:
+        assert a.wait_idle(60) and a.state.scene_name == "a_plain" and a.state.result is None
+    finally:
+        a.stop()
+
+
 def test_a_results_folder_alone_lists_its_segment_outputs(scene_dir: Path, prior: Any, tmp_path: Path) -> None:
     import shutil
 

@@ -64,7 +64,7 @@ class ViewerApp(ServedApp):
             listed (only scene files inside `paths`), the priors, saved-result folders, the size limit.
         host: interface to bind (default loopback only).
         port: port (0 = a free random port; a busy port is replaced by the next free one, see `url`).
-        open_first: open the first scene at start (and its saved trace when present).
+        open_first: open a scene at start: the first with a saved result (and that result), else the first.
         out_dir: the output root: every export from the GUI goes into this folder or below it (a folder typed
             into the GUI must resolve inside it); the static demo defaults to `<out_dir>/static/<scene>/`.
             Default: `view/` in the user's data folder (`efem_viz.serve.outputs`), never the working directory.
@@ -128,7 +128,9 @@ class ViewerApp(ServedApp):
         self.server.on_client_connect(self.browsers.connect)
         self.server.on_client_disconnect(self.camera_guard.forget)
         if open_first and self.state.entries:
-            for e in self.state.entries:  # the first scene that opens (a bad file only shows its error)
+            # the first scene that opens (a bad file only shows its error), one with a saved result before the
+            # others: a person opening a folder of scans and results sees a result at once
+            for e in sorted(self.state.entries, key=lambda e: not e.trace_path.is_file()):
                 if self.open_scene(e.name):
                     break
         elif not self.state.entries:
