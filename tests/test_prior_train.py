@@ -26,6 +26,7 @@ from efem_viz.prior.data import (
 from efem_viz.prior.model import WEIGHTS_DIR, PriorConfig, ShapePrior, load_prior, save_prior
 from efem_viz.prior.train import (
     TrainArgs,
+    best_iso_offset,
     compute_losses,
     lr_at,
     member_weight_map,
@@ -237,6 +238,20 @@ def test_a_kitchen_prior_trains_on_its_four_categories_and_validates_each(tmp_pa
     assert all(0.0 <= v <= 1.0 for v in per.values())
     assert np.mean(list(per.values())) == pytest.approx(last["iou_cal"], abs=1e-9)  # one object each
     assert load_prior(tmp_path / "w" / "mug.pt").category.name == "kitchen"
+
+
+def test_iso_offset_calibration_thins_a_fat_field_and_fattens_a_shell() -> None:
+    """Queries on a line through a 0.2-wide slab (SDF |x| − 0.1): a field 0.01 too low everywhere (fat, as the
+    inside-weighted loss learns) is calibrated with c = −0.01, one 0.02 too high (a thin wall's positive shell)
+    with c = +0.02, each to IoU 1; an exact field keeps c = 0 even where other offsets tie with it."""
+    x = np.linspace(-0.5, 0.5, 2001)[None]
+    sdf = np.abs(x) - 0.1
+    inside = sdf <= 0
+    for bias, want in ((-0.01, -0.01), (0.02, 0.02), (0.0, 0.0)):
+        c, iou = best_iso_offset(sdf + bias, inside)
+        assert c == pytest.approx(want, abs=1e-9) and iou == pytest.approx(1.0, abs=1e-3), (bias, c, iou)
+    c, _ = best_iso_offset(np.where(inside, -1.0, 1.0), inside)  # a sharp field: every offset in (-1, 1) ties
+    assert c == 0.0
 
 
 def test_inside_weight_scales_the_sdf_error_inside_the_shape_only(tmp_path: Path, cache_dir: Path) -> None:
