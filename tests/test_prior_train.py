@@ -240,6 +240,17 @@ def test_a_kitchen_prior_trains_on_its_four_categories_and_validates_each(tmp_pa
     assert load_prior(tmp_path / "w" / "mug.pt").category.name == "kitchen"
 
 
+def test_a_run_exports_into_its_own_folder_unless_told_otherwise(tmp_path: Path) -> None:
+    """Without --export the best model goes to the run's folder, never over a shipped prior (whose codebook and
+    settings belong to its own weights)."""
+    from efem_viz.prior.model import WEIGHTS_DIR
+
+    args = TrainArgs(category="chair", out_dir=tmp_path / "run")
+    assert args.resolved_export() == tmp_path / "run" / "chair.pt"
+    assert TrainArgs(category="kitchen").resolved_export() == Path("runs") / "kitchen" / "kitchen.pt"
+    assert TrainArgs(category="mug", export=WEIGHTS_DIR / "mug.pt").resolved_export() == WEIGHTS_DIR / "mug.pt"
+
+
 def test_iso_offset_calibration_thins_a_fat_field_and_fattens_a_shell() -> None:
     """Queries on a line through a 0.2-wide slab (SDF |x| − 0.1): a field 0.01 too low everywhere (fat, as the
     inside-weighted loss learns) is calibrated with c = −0.01, one 0.02 too high (a thin wall's positive shell)

@@ -4,7 +4,7 @@ The module top is light (the CLI imports it); torch/open3d are imported inside f
 
 Outputs under ``out_dir`` (default ``runs/<category>``): ``config.json`` (resolved run config) and ``last.pt``
 (full resume checkpoint: model, optimizer, iteration, RNG states, curve); progress goes to logging. The best
-model by validation IoU goes to ``export`` (default ``efem_viz/weights/<category>.pt``) with
+model by validation IoU goes to ``export`` (default ``<out_dir>/<category>.pt``; shipping it is explicit) with
 ``<stem>_training_report.json`` / ``.md`` next to it.
 """
 
@@ -79,7 +79,8 @@ class TrainArgs:
     out_dir: Path | None = None
     """Run folder (checkpoints, config, log). Default: runs/<category>."""
     export: Path | None = None
-    """Where the best model goes. Default: efem_viz/weights/<category>.pt."""
+    """Where the best model goes. Default: <out_dir>/<category>.pt (a run never replaces a shipped prior, whose
+    codebook and settings belong to its own weights, unless told to: ``--export efem_viz/weights/mug.pt``)."""
     resume_export: Path | None = None
     """Also write the latest resume state here (`write_resume_state`: without the optimiser's moments, at most
     20 MB), e.g. efem_viz/weights/mug_resume.pt."""
@@ -272,12 +273,8 @@ class TrainArgs:
         return self.out_dir if self.out_dir is not None else Path("runs") / self.category
 
     def resolved_export(self) -> Path:
-        """``export`` or ``efem_viz/weights/<category>.pt``."""
-        if self.export is not None:
-            return self.export
-        from efem_viz.prior.model import WEIGHTS_DIR
-
-        return WEIGHTS_DIR / f"{self.category}.pt"
+        """``export`` or ``<out_dir>/<category>.pt``."""
+        return self.export if self.export is not None else self.resolved_out_dir() / f"{self.category}.pt"
 
 
 # --------------------------------------------------------------------------------------------------- helpers
