@@ -25,7 +25,7 @@ WHEELS=(tyro docstring-parser typeguard typing-extensions tqdm)
 CAT=${EFEM_CATEGORY:-mug}
 case $CAT in  # each prior's own training settings (its training notes)
   mug) CAT_OPTS=(--preset cpu --lr 3e-5); N_VAL=96 ;;
-  kitchen) CAT_OPTS=(--preset cpu --lr 1e-4 --top-only-p 0.25 --table-side-p 0.5); N_VAL=96 ;;
+  kitchen) CAT_OPTS=(--preset cpu --lr 1e-4 --top-only-p 0.1 --table-side-p 0.5); N_VAL=96 ;;
   chair) CAT_OPTS=(--preset cpu-chair --lr 3e-4 --top-only-p 0.25 --table-side-p 0.5); N_VAL=48 ;;
   *) echo "[train_gpu] EFEM_CATEGORY must be mug, kitchen or chair, not '$CAT'" >&2; exit 2 ;;
 esac

@@ -243,8 +243,6 @@ def test_a_kitchen_prior_trains_on_its_four_categories_and_validates_each(tmp_pa
 def test_a_run_exports_into_its_own_folder_unless_told_otherwise(tmp_path: Path) -> None:
     """Without --export the best model goes to the run's folder, never over a shipped prior (whose codebook and
     settings belong to its own weights)."""
-    from efem_viz.prior.model import WEIGHTS_DIR
-
     args = TrainArgs(category="chair", out_dir=tmp_path / "run")
     assert args.resolved_export() == tmp_path / "run" / "chair.pt"
     assert TrainArgs(category="kitchen").resolved_export() == Path("runs") / "kitchen" / "kitchen.pt"

@@ -134,25 +134,53 @@ def test_late_keys_after_an_action_go_to_the_instance_they_were_typed_for(sessio
 def test_late_keys_that_continue_the_committed_name_go_to_its_instance_on_a_busy_server(
         session: AnnotatorSession) -> None:
     """A busy server (an EFEM run beside the typing) can receive the trailing keys of a name later than
-    `late_keys_s` after the N: a value that only adds to what was committed still goes to the instance it was typed
-    for; a new name for the new instance (the field restarts from that instance's own name) is the new one's, and
-    so is a continuation arriving after `late_continuation_s`."""
+    `late_keys_s` after the N: values that only add to what was committed still go to the instance they were typed
+    for, every one of them (the second finds the first waiting); a new name for the new instance (the field
+    restarts from that instance's own name) is the new one's, and so is a continuation arriving after
+    `late_continuation_s`."""
     ins = session.instances
     ins.late_keys_s = 0.0  # every key below comes "late"
+    ins.late_continuation_s = float("inf")  # ... but within the continuation window, however slow the machine
     a = ins.new_instance(category="mug")
     ins.type_text("name", "left b")
     ins.flush_typing()  # what the app does before N
     b = ins.new_instance(category="mug")
-    ins.type_text("name", "left box")  # the trailing keys, late
-    ins.flush_typing()
-    ls = session.scan.store.labelset
-    assert ls.info(a).name == "left box" and ls.info(b).name != "left box"
+    ins.type_text("name", "left bo")  # the trailing keys, late, two of them
+    ins.type_text("name", "left box")
     ins.type_text("name", "r")  # the person now names B: a fresh value, not a continuation of A's
     ins.type_text("name", "right box")
     ins.flush_typing()
-    assert ls.info(b).name == "right box" and ls.info(a).name == "left box"
+    ls = session.scan.store.labelset
+    assert ls.info(a).name == "left box" and ls.info(b).name == "right box"
     c = ins.new_instance(category="mug")
     ins.late_continuation_s = 0.0  # long after: even a continuation is for the active instance
     ins.type_text("name", "right box 2")
     ins.flush_typing()
     assert ls.info(c).name == "right box 2" and ls.info(b).name == "right box"
+
+
+def test_editing_a_new_instances_inherited_category_stays_with_it(session: AnnotatorSession) -> None:
+    """A new instance takes the category typed last ("box"); editing it to "boxes" continues both that stored value
+    and the value committed for the previous instance: it is the new instance's edit. Late keys for a deleted
+    instance go to the active one."""
+    ins = session.instances
+    ins.late_keys_s = 0.0
+    ins.late_continuation_s = float("inf")
+    a = ins.new_instance(category="mug")
+    ins.type_text("category", "box")
+    ins.flush_typing()
+    b = ins.new_instance(category=session.toolbox.settings.category)  # what N does
+    ls = session.scan.store.labelset
+    assert ls.info(b).category == "box"
+    ins.type_text("category", "boxe")
+    ins.type_text("category", "boxes")
+    ins.flush_typing()
+    assert ls.info(b).category == "boxes" and ls.info(a).category == "box"
+    ins.type_text("name", "left b")  # B's name; then N makes C, and B is deleted before its trailing keys arrive
+    ins.flush_typing()
+    c = ins.new_instance(category="mug")
+    ins.delete_instance(b)
+    ins.set_active(c)
+    ins.type_text("name", "left box")
+    ins.flush_typing()
+    assert ls.info(c).name == "left box" and b not in ls.instances

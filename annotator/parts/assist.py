@@ -407,7 +407,7 @@ class AssistPart:
         from annotator.io import labels_from_result
         from efem_viz.em.solver import EMCancelled
 
-        voxel = settings.work_voxel or settings.config().compute.work_voxel  # forced here, or the preset's own
+        voxel = settings.config().compute.work_voxel  # forced here, or the preset's own
         what = f"EFEM ({settings.preset}, prior {prior_name!r}" + (
             f", on a {1000 * voxel:g} mm working set" if voxel else "") + (
             f", free space {settings.free_space}" if settings.free_space != "auto" else "") + ")"

@@ -20,9 +20,9 @@ server after the N that followed them. Keys of a field this soon after its value
 the instance it was committed to, not to the one the action made active."""
 LATE_CONTINUATION_S = 15.0
 """On a busy server (an EFEM run beside the typing) the trailing keys can come later than `LATE_KEYS_S`: a value
-that only adds characters to the one just committed still goes to that instance this long after. Typing for the
-newly active instance starts from the field as the panel then shows it (that instance's own name), never as a
-continuation of the other's."""
+that only adds characters to the one just committed still goes to that instance this long after, unless it also
+adds to the newly active instance's own stored value (a new instance takes the category typed last, and editing
+it continues both). Typing for the newly active instance starts from the field as the panel then shows it."""
 
 TYPING_FILE = "typing.json"
 """In the work folder: the value of a Name / Category field being typed and not committed yet, written at every
@@ -67,17 +67,44 @@ class InstancePart:
         when it was typed."""
         if field not in ("name", "category"):
             raise ValueError(f"no text field {field!r}")
-        iid = self.toolbox.settings.active_id
-        last = self._committed.get(field)
-        typing_it = any(cast("tuple[int, str]", k)[1] == field for k in self.typing.pending())
-        if last is not None and not typing_it:
-            age = time.monotonic() - last[1]
-            continues = len(value.strip()) > len(last[2]) and value.strip().startswith(last[2])
-            if age < self.late_keys_s or (continues and age < self.late_continuation_s):
-                iid = last[0]  # the last keys of a typing that an action committed, arriving after that action
+        iid = self._typed_for(field, value.strip())
         with self._typing_file_lock:
             self.typing.typed((iid, field), value)
             self._write_typing_file(int(iid), field, value)
+
+    def _typed_for(self, field: str, text: str) -> int:
+        """The instance a keystroke's value `text` (stripped) belongs to: the active one, unless it is a trailing
+        key of a typing for another instance that an action (N, a click) interrupted. Such keys arrive after the
+        action and only add characters to what that instance's field was given: to the value committed by the
+        action (within `late_keys_s` any value, within `late_continuation_s` a continuation), or to a trailing
+        value already waiting for that instance. A continuation of the active instance's own stored value stays
+        with it (a new instance can start with the other's category), and so does anything for an instance that
+        no longer exists."""
+        active = self.toolbox.settings.active_id
+        instances = self.scan.store.labelset.instances
+
+        def stored(i: int) -> str:
+            info = instances.get(i)
+            return str(getattr(info, field, "") or "") if info is not None else ""
+
+        def extends(base: str) -> bool:
+            return bool(base) and len(text) > len(base) and text.startswith(base)
+
+        own = extends(stored(active))
+        pending = [(cast("tuple[int, str]", k)[0], v.strip()) for k, v in self.typing.pending().items()
+                   if cast("tuple[int, str]", k)[1] == field]
+        if pending:  # a typing of this field is waiting: its next keys are for the same instance
+            for other, waiting in pending:
+                if other != active and other in instances and extends(waiting) and not own:
+                    return other
+            return active
+        last = self._committed.get(field)
+        if last is None or last[0] not in instances:
+            return active
+        age = time.monotonic() - last[1]
+        if age < self.late_keys_s or (extends(last[2]) and not own and age < self.late_continuation_s):
+            return last[0]  # the last keys of a typing that an action committed, arriving after that action
+        return active
 
     @property
     def typing_file(self) -> Path:

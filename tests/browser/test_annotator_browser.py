@@ -651,9 +651,10 @@ def test_typing_a_category_is_one_edit_and_the_field_shows_what_is_stored(keyed:
     assert len(edits) == 1 and "category='box'" in edits[0].header["label"], [r.header.get("label") for r in edits]
     assert field.input_value() == "box" and app.panels.gui_category.value == "box"
     # typing, then an action at once (N: a new instance) commits the typed name first, to the instance it was for.
-    # Keys and hotkeys reach the server on separate paths, and a key that trails the N by up to `late_keys_s` still
-    # goes to the name's instance: a busy machine may stretch that trail, so the window is widened here as the
-    # idle time was above (the rule itself is tested without a browser, in tests/test_typing_buffer.py)
+    # Keys and hotkeys reach the server on separate paths: a key that trails the N by up to `late_keys_s` (any value)
+    # or `late_continuation_s` (one that continues the committed name) still goes to the name's instance. A busy
+    # machine may stretch that trail, so the short window is widened here as the idle time was above (both rules
+    # are tested without a browser, in tests/test_typing_buffer.py)
     instances = app.session.instances
     late_s, instances.late_keys_s = instances.late_keys_s, 25 * instances.late_keys_s
     try:
