@@ -142,6 +142,45 @@ def test_sphere_scene_each_object_found_once(sphere_run: tuple) -> None:
     assert np.allclose(np.sort(res.instances.scale), np.sort(2 * np.array(scene.provenance["radii"])), atol=0.01)
 
 
+def test_explained_decay_sets_the_confidences_of_the_instances_and_the_trace(sphere_run: tuple,
+                                                                              monkeypatch: pytest.MonkeyPatch
+                                                                              ) -> None:
+    """`confidence.explained_decay` passes the episode's survivors (their method confidences and final masks) to
+    `rules.explained_decay` once, and what it returns is each instance's confidence and its survival record in
+    the trace; the fits themselves are the same draw for draw as with the decay off (the method, `real_paper`)."""
+    from efem_viz.em import solver as solver_module
+    from efem_viz.em.rules import explained_decay
+
+    scene, prior, _, _ = sphere_run
+    assert preset("real_paper").confidence.explained_decay == 0.0
+    base_cfg = preset("fast").replace(proposals={"n_init": (64,)})
+    off = run_em(scene, prior, base_cfg.replace(confidence={"explained_decay": 0.0}), seed=5)
+    calls: list[tuple] = []
+
+    def halve(conf: np.ndarray, masks: list, n: int, power: float, *, above: list = ()) -> np.ndarray:
+        calls.append((np.array(conf), [np.array(m) for m in masks], n, power, len(above)))
+        return np.asarray(conf) * 0.5
+
+    cfg = base_cfg.replace(confidence={"explained_decay": 3.0})
+    monkeypatch.setattr(solver_module, "explained_decay", halve)
+    res = run_em(scene, prior, cfg, seed=5)
+    assert len(calls) == 1
+    conf, masks, n, power, n_above = calls[0]
+    assert (n, power, n_above) == (len(scene.points), 3.0, 0)
+    assert np.array_equal(res.instances.ids, off.instances.ids)
+    np.testing.assert_allclose(conf, off.instances.confidence, rtol=1e-6)
+    assert all(np.array_equal(a, np.asarray(b)) for a, b in zip(masks, off.instances.masks))
+    np.testing.assert_allclose(res.instances.confidence, 0.5 * off.instances.confidence, rtol=1e-6)
+    for k, pid in enumerate(res.instances.ids):
+        death = res.trace.death(int(pid))
+        assert death is not None and death[1] == "survive"
+        assert death[3] == pytest.approx(float(res.instances.confidence[k]), rel=1e-6)
+    monkeypatch.undo()
+    real = run_em(scene, prior, cfg, seed=5)
+    want = explained_decay(off.instances.confidence, list(off.instances.masks), len(scene.points), 3.0)
+    np.testing.assert_allclose(real.instances.confidence, want, rtol=1e-6)
+
+
 def test_progress_and_active_counts(sphere_run: tuple) -> None:
     _, _, res, steps = sphere_run
     tr = res.trace

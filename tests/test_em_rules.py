@@ -28,6 +28,7 @@ from efem_viz.em.rules import (
     StepRule,
     apply_step_rules,
     capped_confidence,
+    explained_decay,
     first_failed_review,
     reason_names,
     set_matrix,
@@ -291,6 +292,68 @@ def test_capped_confidence_is_the_papers_confidence() -> None:
         capped_confidence(0.5, 0.2, 0.0)
 
 
+def test_explained_decay_by_hand() -> None:
+    """Three fits on 100 points. a = 0..39 (0.9), b = 20..59 (0.8: half of it inside a), c = 60..79 (0.5, alone).
+    With p = 1: a keeps 0.9; b falls to 0.8 · (1 − 20/40) = 0.4; c, which nobody overlaps, keeps 0.5 and is
+    now taken before b. With p = 2, b falls to 0.8 · 0.25 = 0.2. p = 0 changes nothing."""
+    a, b, c = np.arange(0, 40), np.arange(20, 60), np.arange(60, 80)
+    conf = np.array([0.9, 0.8, 0.5])
+    np.testing.assert_allclose(explained_decay(conf, [a, b, c], N, 1.0), [0.9, 0.4, 0.5])
+    np.testing.assert_allclose(explained_decay(conf, [a, b, c], N, 2.0), [0.9, 0.2, 0.5])
+    np.testing.assert_array_equal(explained_decay(conf, [a, b, c], N, 0.0), conf)
+    # disjoint masks keep their confidences whatever the power
+    np.testing.assert_array_equal(explained_decay(conf, [a, c, np.arange(80, 100)], N, 3.0), conf)
+
+
+def test_explained_decay_takes_the_lowered_order() -> None:
+    """The union grows in the order of the lowered confidences, not the raw ones. a = 0..39 (1.0); w = 30..69
+    (0.9, a quarter inside a) falls to 0.9 · 0.75 = 0.675 with p = 1, below t = 60..79 (0.7, alone), which is
+    taken first; w then also loses the 10 points it shares with t: 0.9 · (1 − 20/40) = 0.45. A raw-order pass
+    would give w 0.675 and t 0.7 · 0.5 = 0.35."""
+    a, w, t = np.arange(0, 40), np.arange(30, 70), np.arange(60, 80)
+    got = explained_decay(np.array([1.0, 0.9, 0.7]), [a, w, t], N, 1.0)
+    np.testing.assert_allclose(got, [1.0, 0.45, 0.7])
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 90), st.integers(1, 30), st.floats(0.01, 1.0)), min_size=1, max_size=8),
+       st.sampled_from([0.5, 1.0, 2.0]))
+def test_explained_decay_properties(fits: list, power: float) -> None:
+    """On random interval masks: no confidence rises; the highest keeps its value; a fit that shares no point
+    with any other keeps its value; a loop over the greedy order by hand gives the same numbers."""
+    masks = [np.arange(a, min(a + w, N)) for a, w, _ in fits]
+    conf = np.array([c for *_, c in fits])
+    got = explained_decay(conf, masks, N, power)
+    assert (got <= conf + 1e-12).all()
+    assert got[int(np.argmax(conf))] == pytest.approx(conf.max())
+    for j, m in enumerate(masks):
+        others = [k for k in range(len(masks)) if k != j]
+        if not any(np.intersect1d(m, masks[k]).size for k in others):
+            assert got[j] == pytest.approx(conf[j])
+    taken, left, want = np.zeros(N, bool), list(range(len(conf))), np.zeros(len(conf))
+    while left:
+        vals = [conf[j] * (1 - taken[masks[j]].mean()) ** power for j in left]
+        j = left.pop(int(np.argmax(vals)))
+        want[j] = max(vals)
+        taken[masks[j]] = True
+    np.testing.assert_allclose(got, want, atol=1e-12)
+
+
+def test_explained_decay_counts_masks_above_and_rejects_bad_input() -> None:
+    """`above` (an earlier episode's instances) outranks every fit: a fit half inside one is halved."""
+    got = explained_decay(np.array([0.6]), [np.arange(10, 30)], N, 1.0, above=[np.arange(0, 20)])
+    np.testing.assert_allclose(got, [0.3])
+    assert explained_decay(np.array([]), [], N, 1.0).shape == (0,)
+    with pytest.raises(ValueError, match="2 masks but 1 confidences"):
+        explained_decay(np.array([0.5]), [np.arange(3), np.arange(3)], N, 1.0)
+    with pytest.raises(ValueError, match="power"):
+        explained_decay(np.array([0.5]), [np.arange(3)], N, -1.0)
+    with pytest.raises(ValueError, match="outside the scene"):
+        explained_decay(np.array([0.5]), [np.array([N])], N, 1.0)
+    with pytest.raises(ValueError, match="explained_decay"):
+        preset("synthetic").replace(confidence={"explained_decay": -0.5}).validate()
+
+
 def test_confidence_inclusion_spares_a_tight_fit_inside_a_wide_one() -> None:
     """(tree and box scenes): a fit over two mugs (a, 30 points, stationary 0.9) holds all of a tight
     fit of one of them (b, 19 points, stationary 0.6; a holds only 19/30 of a's own points in b, so a is not
@@ -478,11 +541,12 @@ def test_real_preset_is_the_paper_one_with_the_measured_changes() -> None:
     """`real` = §3.12's real settings (`real_paper`) + the changes for noisy single-view frames (a free-space check
     that ignores depth edges and widens with the range) + the learned mug-vs-look-alike confidence + the inclusion
     rule that spares the better fit (by stationary score; the synthetic presets compare the confidence) + 120
-    proposals spread over the frame above its table instead of 400 uniform ones."""
+    proposals spread over the frame above its table instead of 400 uniform ones + the explained-share decay of the
+    confidences (every preset but the paper's)."""
     real, paper = preset("real"), preset("real_paper")
     assert real.replace(name="real_paper", steps={"tau_d": paper.steps.tau_d, "tau_n": paper.steps.tau_n,
                                                    "m_step_replace": True},
-                        free_space=paper.free_space, confidence={"look_alike": None},
+                        free_space=paper.free_space, confidence={"look_alike": None, "explained_decay": 0.0},
                         elimination={"inclusion": "paper"}, proposals=paper.proposals) == paper
     assert real.proposals.n_init == (120,) and real.proposals.anchors == "spread" and paper.proposals.n_init == (400,)
     assert real.proposals.anchor_min_height == 0.015 and paper.proposals.anchor_min_height is None
@@ -495,6 +559,8 @@ def test_real_preset_is_the_paper_one_with_the_measured_changes() -> None:
     assert resolve_for_prior(real.replace(confidence={"look_alike": "mug_uois_tune"}),
                              _Named("chair")).confidence.look_alike == "mug_uois_tune"  # named: as given
     assert real.confidence.pose_weight == 0.0
+    assert paper.confidence.explained_decay == 0.0
+    assert {preset(n).confidence.explained_decay for n in ("synthetic", "real", "fast", "chairs")} == {2.0}
     assert (real.elimination.inclusion, real.elimination.inclusion_by) == ("score", "stationary")
     assert paper.elimination.inclusion == "paper"
     for name in ("synthetic", "fast"):  # the better-explained fit is spared

@@ -47,6 +47,7 @@ from efem_viz.em.rules import (
     StepRule,
     apply_step_rules,
     capped_confidence,
+    explained_decay,
     first_failed_review,
     reason_names,
     size_passes,
@@ -614,6 +615,7 @@ class Solver:
                                           partial=self.partial_result))
             t0 = time.perf_counter()
             final_step = self.rec.num_steps - 1
+            confs = np.empty(pool.size)
             for r, pid in enumerate(pool.ids):
                 # every live proposal has been through an E-step, which sets both
                 assert pool.stationary is not None and pool.latent is not None
@@ -629,6 +631,15 @@ class Solver:
                         stationary=s_stat, coverage=float(rev.coverage), pose=float(rev.db_sim),
                         radius=float(rev.radii[0]), half_height=float(rev.radii[1]), up_angle=float(rev.up_angle),
                         seen_through=float(rev.seen_through), mask_size=len(rev.mask)))
+                confs[r] = conf
+            if cfg.confidence.explained_decay > 0:
+                confs = explained_decay(confs, [last_review[int(pid)].mask for pid in pool.ids], self.n_full,
+                                        cfg.confidence.explained_decay, above=[a["mask"] for a in accepted])
+            for r, pid in enumerate(pool.ids):
+                assert pool.stationary is not None and pool.latent is not None
+                rev = last_review[int(pid)]
+                s_stat = float(pool.stationary[r])
+                conf = float(confs[r])
                 self.rec.death(int(pid), final_step, REASON_SURVIVE, -1, conf)
                 accepted.append({**rev._asdict(), "confidence": conf, "stationary": s_stat,
                                  "center": pool.latent["center"][r], "scale": float(pool.latent["scale"][r]),
