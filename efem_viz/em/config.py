@@ -393,7 +393,10 @@ class ConfidenceSettings(_Settings):
     """Exponent p of the explained-share decay of the accepted fits (`rules.explained_decay`): highest first, each
     fit's confidence × (1 − e)^p, e the share of its mask that the fits ranked above it already hold. A fit over
     two found objects, or a partial copy of one, ranks below the fits of objects nobody else holds; no fit is
-    removed. 0 = off (the method)."""
+    removed. 0 = off (the method, and every preset): with 2, AP50 rose on the tune scenes (mug pile +3.8, kitchen
+    pile +2.5, chair z +1.1) but not on the fixed sets (solver seeds 0 and 1: kitchen pile +1.4 / −0.1, mug tree
+    −0.5 / −2.0, the rest within ±0.6; docs/BENCHMARKS.md): neighbouring true objects share a few points of their
+    masks, and that demotes them as much as it demotes fits over found objects."""
 
     def validate(self) -> None:
         if not (0.0 <= self.explained_decay <= 16.0):
@@ -817,17 +820,7 @@ def preset_for_scene(scene: Any, prior: str | None = None) -> PresetName:
     return got if got in ("real", "chairs") else "synthetic"
 
 
-EXPLAINED_DECAY = 2.0
-"""The presets' `confidence.explained_decay` (all but `real_paper`): a fit's confidence × (1 − e)², e the share of
-its mask that fits ranked above it already hold. Chosen on the tune scenes (seeds 9000+ and 9100+, the shipped
-priors; runs saved by `python -m bench.em --save-results` and re-scored, which is exact: the decay changes no fit):
-AP50 rose on every configuration that has overlapping fits (mug pile +3.8, box +1.3, tree +1.3; kitchen pile +2.5;
-chair z +1.1, pile +0.9) and fell on none; exponent 1 gave about the same, 3-4 no more. The UOIS real frames did
-not move (their false positives are look-alikes, not fits over found objects). Judged on the fixed sets in
-docs/BENCHMARKS.md."""
-
-_SYNTHETIC = EMConfig(elimination=EliminationSettings(inclusion="score", inclusion_by="confidence"),
-                      confidence=ConfidenceSettings(explained_decay=EXPLAINED_DECAY))
+_SYNTHETIC = EMConfig(elimination=EliminationSettings(inclusion="score", inclusion_by="confidence"))
 """§3.12's synthetic settings, but an inclusion spares the included fit when it is the better one (`inclusion`,
 `inclusion_by`: a fit wider than its object — two mugs in a box, a mug and its peg — killed better fits of those
 mugs as "included"). The better one is the one with the higher confidence (stationary score x capped phase-1
@@ -861,7 +854,7 @@ _REAL = _REAL_PAPER.replace(
     steps={"tau_d": (0.15, 0.15), "tau_n": (180.0, 180.0), "m_step_replace": False},
     elimination={"inclusion": "score"},
     free_space=FREE_SPACE.replace(final=True),
-    confidence={"look_alike": CATEGORY_LOOK_ALIKE, "explained_decay": EXPLAINED_DECAY},
+    confidence={"look_alike": CATEGORY_LOOK_ALIKE},
 )
 """Real single-view depth frames (measured with bench/em_stability.py, bench/real.py and bench/stereo_mug.py;
 docs/BENCHMARKS.md): §3.12's settings, but the E-step does not truncate on normals (depth noise tilts estimated
@@ -895,7 +888,6 @@ _FAST = EMConfig(
     name="fast",
     proposals=ProposalSettings(n_init=(80,)),
     elimination=EliminationSettings(inclusion="score", inclusion_by="confidence"),
-    confidence=ConfidenceSettings(explained_decay=EXPLAINED_DECAY),
     review=ReviewSettings(n_store=2000, mesh_resolution=32),
 )
 

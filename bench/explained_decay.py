@@ -1,0 +1,90 @@
+"""Re-score saved EFEM runs with the explained-share decay of their confidences (`confidence.explained_decay`).
+
+The decay changes no fit, only the confidences (`efem_viz.em.rules.explained_decay`), so runs saved without it by
+`python -m bench.em --save-results DIR` (or `bench.real --save-results`) score exactly as if they had run with it.
+
+    python -m bench.explained_decay DIR... [--powers 0 1 2] [--classes mug] [--out FILE.json]
+
+Each DIR is scored as one set (every `<scene>.efem.npz` beside its `<scene>.ply`, or with solver seeds
+`<scene>_s<k>.efem.npz`), class-agnostic (every labelled object one class) unless `--classes` names the evaluated
+categories; prints AP / AP50 / AP25 per power and writes them as JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import re
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+def load_runs(folder: Path) -> list[tuple[str, object, object]]:
+    """(key, scene, result) of every saved run in a folder."""
+    from efem_viz.data.io import load_scene
+    from efem_viz.em.results import EMResult
+
+    out = []
+    for npz in sorted(folder.glob("*.efem.npz")):
+        name = npz.name[: -len(".efem.npz")]
+        ply = folder / f"{name}.ply"
+        if not ply.is_file():
+            ply = folder / f"{re.sub(r'_s[0-9]+$', '', name)}.ply"
+        if ply.is_file():
+            out.append((f"{folder.name}/{name}", load_scene(ply), EMResult.load(npz)))
+    return out
+
+
+def score(runs: list, power: float, classes: tuple[str, ...] | None) -> dict[str, float]:
+    from efem_viz.em.rules import explained_decay
+    from efem_viz.eval import SceneGroundTruth, evaluate, prediction_from_instances
+
+    preds, gts = [], []
+    for key, scene, res in runs:
+        inst = res.instances
+        conf = explained_decay(inst.confidence, list(inst.masks), len(scene.points), power)
+        inst = dataclasses.replace(inst, confidence=conf.astype(np.float32))
+        gt = dataclasses.replace(SceneGroundTruth.from_scene(scene), name=key)
+        if classes is None:
+            inst = dataclasses.replace(inst, category=np.full(len(inst), "object"))
+            gt = dataclasses.replace(gt, categories={k: "object" for k in gt.categories})
+        preds.append(prediction_from_instances(inst, name=key, class_names=classes or ("object",)))
+        gts.append(gt)
+    e = evaluate(preds, gts, class_names=classes or ("object",))
+    return {"ap": e.ap * 100, "ap50": e.ap50 * 100, "ap25": e.ap25 * 100}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("folders", nargs="+", type=Path)
+    ap.add_argument("--powers", nargs="+", type=float, default=[0.0, 1.0, 2.0])
+    ap.add_argument("--classes", nargs="+", default=None, help="evaluated categories (default: class-agnostic)")
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args()
+    classes = tuple(args.classes) if args.classes else None
+    record: dict[str, dict[str, dict[str, float]]] = {}
+    for folder in args.folders:
+        runs = load_runs(folder)
+        if not runs:
+            raise SystemExit(f"{folder}: no saved runs (<scene>.efem.npz beside <scene>.ply)")
+        record[str(folder)] = {}
+        for p in args.powers:
+            r = score(runs, p, classes)
+            record[str(folder)][f"{p:g}"] = r
+            print(f"{folder} ({len(runs)} runs) power {p:g}: "
+                  f"AP {r['ap']:.1f} AP50 {r['ap50']:.1f} AP25 {r['ap25']:.1f}")
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(record, indent=1))
+        print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
