@@ -1,7 +1,10 @@
 """Re-score saved EFEM runs with the explained-share decay of their confidences (`confidence.explained_decay`).
 
-The decay changes no fit, only the confidences (`efem_viz.em.rules.explained_decay`), so runs saved without it by
-`python -m bench.em --save-results DIR` (or `bench.real --save-results`) score exactly as if they had run with it.
+The decay changes no fit, only the confidences (`efem_viz.em.rules.explained_decay`), so runs saved by `python -m
+bench.em --save-results DIR` (or `bench.real --save-results`) score exactly as if they had run with any power. A run
+saved with the decay on gets its method confidences back from its instances first (`method_confidences`: the
+stationary score, coverage, pose score and seen-through fraction the solver multiplied); runs with a look-alike
+model and the decay on cannot be undone and are refused.
 
     python -m bench.explained_decay DIR... [--powers 0 1 2] [--classes mug] [--out FILE.json]
 
@@ -41,6 +44,27 @@ def load_runs(folder: Path) -> list[tuple[str, object, object]]:
     return out
 
 
+def method_confidences(res: object) -> np.ndarray:
+    """The instances' confidences before any explained-share decay: as saved when the run had none, else rebuilt
+    with `solver.confidence` from each instance's stationary score, coverage and pose score and its last review's
+    seen-through fraction (equal to the saved values to 1e-7 on runs without the decay).
+
+    Raises:
+        SystemExit: the run had the decay and a look-alike model (its probabilities are not stored).
+    """
+    from efem_viz.em.solver import confidence
+
+    inst, cfg = res.instances, res.config.confidence  # type: ignore[attr-defined]
+    if cfg.explained_decay == 0:
+        return np.asarray(inst.confidence, np.float64)
+    if cfg.look_alike is not None:
+        raise SystemExit("a run with a look-alike model and the explained-share decay cannot be re-scored")
+    trace = res.trace  # type: ignore[attr-defined]
+    return np.array([confidence(float(s), float(c), cap=cfg.cov_cap, pose=float(db), pose_weight=cfg.pose_weight,
+                                pose_ref=cfg.pose_ref, seen_through=float(trace.reviews(int(pid))[-1].seen_through))
+                     for s, c, db, pid in zip(inst.stationary, inst.coverage, inst.db_sim, inst.ids)], np.float64)
+
+
 def score(runs: list, power: float, classes: tuple[str, ...] | None) -> dict[str, float]:
     from efem_viz.em.rules import explained_decay
     from efem_viz.eval import SceneGroundTruth, evaluate, prediction_from_instances
@@ -48,7 +72,7 @@ def score(runs: list, power: float, classes: tuple[str, ...] | None) -> dict[str
     preds, gts = [], []
     for key, scene, res in runs:
         inst = res.instances
-        conf = explained_decay(inst.confidence, list(inst.masks), len(scene.points), power)
+        conf = explained_decay(method_confidences(res), list(inst.masks), len(scene.points), power)
         inst = dataclasses.replace(inst, confidence=conf.astype(np.float32))
         gt = dataclasses.replace(SceneGroundTruth.from_scene(scene), name=key)
         if classes is None:

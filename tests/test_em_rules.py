@@ -339,10 +339,7 @@ def test_explained_decay_properties(fits: list, power: float) -> None:
     np.testing.assert_allclose(got, want, atol=1e-12)
 
 
-def test_explained_decay_counts_masks_above_and_rejects_bad_input() -> None:
-    """`above` (an earlier episode's instances) outranks every fit: a fit half inside one is halved."""
-    got = explained_decay(np.array([0.6]), [np.arange(10, 30)], N, 1.0, above=[np.arange(0, 20)])
-    np.testing.assert_allclose(got, [0.3])
+def test_explained_decay_rejects_bad_input() -> None:
     assert explained_decay(np.array([]), [], N, 1.0).shape == (0,)
     with pytest.raises(ValueError, match="2 masks but 1 confidences"):
         explained_decay(np.array([0.5]), [np.arange(3), np.arange(3)], N, 1.0)
@@ -350,6 +347,10 @@ def test_explained_decay_counts_masks_above_and_rejects_bad_input() -> None:
         explained_decay(np.array([0.5]), [np.arange(3)], N, -1.0)
     with pytest.raises(ValueError, match="outside the scene"):
         explained_decay(np.array([0.5]), [np.array([N])], N, 1.0)
+    with pytest.raises(ValueError, match="integer point indices"):
+        explained_decay(np.array([0.5]), [np.ones(N, bool)], N, 1.0)
+    with pytest.raises(ValueError, match="finite and >= 0"):
+        explained_decay(np.array([-0.5]), [np.arange(3)], N, 1.0)
     with pytest.raises(ValueError, match="explained_decay"):
         preset("synthetic").replace(confidence={"explained_decay": -0.5}).validate()
 

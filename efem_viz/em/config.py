@@ -393,10 +393,10 @@ class ConfidenceSettings(_Settings):
     """Exponent p of the explained-share decay of the accepted fits (`rules.explained_decay`): highest first, each
     fit's confidence × (1 − e)^p, e the share of its mask that the fits ranked above it already hold. A fit over
     two found objects, or a partial copy of one, ranks below the fits of objects nobody else holds; no fit is
-    removed. 0 = off (the method, and every preset): with 2, AP50 rose on the tune scenes (mug pile +3.8, kitchen
-    pile +2.5, chair z +1.1) but not on the fixed sets (solver seeds 0 and 1: kitchen pile +1.4 / −0.1, mug tree
-    −0.5 / −2.0, the rest within ±0.6; docs/BENCHMARKS.md): neighbouring true objects share a few points of their
-    masks, and that demotes them as much as it demotes fits over found objects."""
+    removed. 0 = off (the method, and every preset): with 2, AP50 on the fixed sets (solver seeds 0 and 1) rose for
+    chairs on every configuration (+2.0 on average) and a little for kitchen scenes (+0.6), but fell for mugs in
+    boxes (−1.5, −1.4; docs/BENCHMARKS.md): neighbouring true mugs share a few points of their masks, and that
+    demotes them as it demotes fits over found objects."""
 
     def validate(self) -> None:
         if not (0.0 <= self.explained_decay <= 16.0):

@@ -181,61 +181,59 @@ def capped_confidence(stationary: np.ndarray | float, coverage: np.ndarray | flo
     return np.asarray(stationary, np.float64) * np.minimum(np.asarray(coverage, np.float64), cap) / cap
 
 
-def explained_decay(confidences: np.ndarray, masks: Sequence[np.ndarray], n_points: int, power: float, *,
-                    above: Sequence[np.ndarray] = ()) -> np.ndarray:
+def explained_decay(confidences: np.ndarray, masks: Sequence[np.ndarray], n_points: int, power: float
+                    ) -> np.ndarray:
     """Confidences lowered by how much of each mask fits ranked above it already explain.
 
     Greedy, highest first: a fit's confidence is multiplied by (1 − e)^`power`, where e is the share of its mask's
-    points inside the union of the masks taken before it (and of `above`, masks that outrank every fit here: an
-    earlier episode's instances). The next taken is the fit with the highest lowered confidence. A fit over two
-    objects that two better fits already hold, or a partial copy of a found object, falls below the fits of
-    objects nobody else holds; a fit no other overlaps keeps its confidence. Nothing is removed (masks may still
-    overlap, as the method lets them): only the order, and what a confidence threshold shows, change.
+    points inside the union of the masks taken before it. The next taken is the fit with the highest lowered
+    confidence. A fit over two objects that two better fits already hold, or a partial copy of a found object,
+    falls below the fits of objects nobody else holds; a fit no other overlaps keeps its confidence. Nothing is
+    removed (masks may still overlap, as the method lets them): only the order, and what a confidence threshold
+    shows, change. (The solver calls it per episode: a later episode's masks hold only points no earlier instance
+    took.)
 
     Args:
-        confidences: (K,) confidences.
-        masks: K int index arrays into the scene's `n_points` points.
+        confidences: (K,) confidences, >= 0.
+        masks: K integer index arrays into the scene's `n_points` points.
         n_points: the scene's point count.
         power: the exponent (0: confidences unchanged).
-        above: masks that rank above all of these.
 
     Returns:
         (K,) float64 lowered confidences.
 
     Raises:
-        ValueError: lengths differ, a negative power, or indices outside the scene.
+        ValueError: lengths differ, a negative or non-finite confidence or power, or a mask that is not integer
+            indices into the scene.
     """
     conf = np.asarray(confidences, np.float64).reshape(-1)
     if len(conf) != len(masks):
         raise ValueError(f"{len(masks)} masks but {len(conf)} confidences")
     if not (math.isfinite(power) and power >= 0):
         raise ValueError(f"power must be finite and >= 0, got {power}")
+    if not (np.isfinite(conf).all() and (conf >= 0).all()):
+        raise ValueError("confidences must be finite and >= 0")
     out = conf.copy()
     if power == 0 or not len(conf):
         return out
     import scipy.sparse as sp
 
-    idx = [np.unique(np.asarray(m, np.int64).reshape(-1)) for m in masks]
-    for m in [*idx, *(np.asarray(a, np.int64).reshape(-1) for a in above)]:
-        if len(m) and (int(m.min()) < 0 or int(m.max()) >= n_points):
+    idx = []
+    for m in masks:
+        a = np.asarray(m).reshape(-1)
+        if len(a) and not np.issubdtype(a.dtype, np.integer):
+            raise ValueError(f"masks must be integer point indices, got dtype {a.dtype}")
+        a = np.unique(a.astype(np.int64))
+        if len(a) and (int(a[0]) < 0 or int(a[-1]) >= n_points):
             raise ValueError(f"a mask indexes outside the scene's {n_points} points")
+        idx.append(a)
     sizes = np.array([len(m) for m in idx], np.float64)
     # (N, K) incidence: the fits each point belongs to; `held` counts each fit's points already taken
     incidence = sp.csr_matrix((np.ones(int(sizes.sum()), np.float64),
-                               (np.concatenate(idx) if len(idx) else np.zeros(0, np.int64),
-                                np.repeat(np.arange(len(idx)), sizes.astype(np.int64)))),
+                               (np.concatenate(idx), np.repeat(np.arange(len(idx)), sizes.astype(np.int64)))),
                               shape=(int(n_points), len(idx)))
     taken = np.zeros(int(n_points), bool)
     held = np.zeros(len(idx))
-
-    def take(points: np.ndarray) -> None:
-        new = np.unique(points[~taken[points]])
-        if len(new):
-            taken[new] = True
-            held[:] += np.asarray(incidence[new].sum(axis=0)).reshape(-1)
-
-    for a in above:
-        take(np.asarray(a, np.int64).reshape(-1))
     left = np.ones(len(conf), bool)
     for _ in range(len(conf)):
         share = np.divide(held, sizes, out=np.zeros_like(held), where=sizes > 0)
@@ -243,7 +241,10 @@ def explained_decay(confidences: np.ndarray, masks: Sequence[np.ndarray], n_poin
         j = int(np.flatnonzero(left)[np.argmax(lowered[left])])  # ties: the earlier row
         out[j] = lowered[j]
         left[j] = False
-        take(idx[j])
+        new = idx[j][~taken[idx[j]]]
+        if len(new):
+            taken[new] = True
+            held += np.asarray(incidence[new].sum(axis=0)).reshape(-1)
     return out
 
 

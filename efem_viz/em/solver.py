@@ -634,7 +634,7 @@ class Solver:
                 confs[r] = conf
             if cfg.confidence.explained_decay > 0:
                 confs = explained_decay(confs, [last_review[int(pid)].mask for pid in pool.ids], self.n_full,
-                                        cfg.confidence.explained_decay, above=[a["mask"] for a in accepted])
+                                        cfg.confidence.explained_decay)
             for r, pid in enumerate(pool.ids):
                 assert pool.stationary is not None and pool.latent is not None
                 rev = last_review[int(pid)]
