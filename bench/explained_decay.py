@@ -65,22 +65,33 @@ def method_confidences(res: object) -> np.ndarray:
                      for s, c, db, pid in zip(inst.stationary, inst.coverage, inst.db_sim, inst.ids)], np.float64)
 
 
-def score(runs: list, power: float, classes: tuple[str, ...] | None) -> dict[str, float]:
-    from efem_viz.em.rules import explained_decay
-    from efem_viz.eval import SceneGroundTruth, evaluate, prediction_from_instances
+def prepared(runs: list, classes: tuple[str, ...] | None) -> list[tuple[str, object, np.ndarray, object]]:
+    """Per run what every power re-scores: (key, result, method confidences, ground truth), the ground truth as
+    one class "object" when `classes` is None (`bench.em.agnostic_truth`)."""
+    from bench.em import agnostic_truth
+    from efem_viz.eval import SceneGroundTruth
 
-    preds, gts = [], []
+    out = []
     for key, scene, res in runs:
-        inst = res.instances
-        conf = explained_decay(method_confidences(res), list(inst.masks), len(scene.points), power)
-        inst = dataclasses.replace(inst, confidence=conf.astype(np.float32))
         gt = dataclasses.replace(SceneGroundTruth.from_scene(scene), name=key)
-        if classes is None:
-            inst = dataclasses.replace(inst, category=np.full(len(inst), "object"))
-            gt = dataclasses.replace(gt, categories={k: "object" for k in gt.categories})
-        preds.append(prediction_from_instances(inst, name=key, class_names=classes or ("object",)))
-        gts.append(gt)
-    e = evaluate(preds, gts, class_names=classes or ("object",))
+        out.append((key, res, method_confidences(res), agnostic_truth(gt) if classes is None else gt))
+    return out
+
+
+def score(runs: list, power: float, classes: tuple[str, ...] | None) -> dict[str, float]:
+    """AP / AP50 / AP25 (percent) of `prepared` runs with their confidences decayed at `power`."""
+    from bench.em import agnostic_prediction
+    from efem_viz.em.rules import explained_decay
+    from efem_viz.eval import evaluate, prediction_from_instances
+
+    preds = []
+    for key, res, conf0, _ in runs:
+        inst = res.instances
+        conf = explained_decay(conf0, list(inst.masks), res.num_points, power)
+        res = dataclasses.replace(res, instances=dataclasses.replace(inst, confidence=conf.astype(np.float32)))
+        preds.append(agnostic_prediction(res, key) if classes is None
+                     else prediction_from_instances(res.instances, name=key, class_names=classes))
+    e = evaluate(preds, [gt for *_, gt in runs], class_names=classes or ("object",))
     return {"ap": e.ap * 100, "ap50": e.ap50 * 100, "ap25": e.ap25 * 100}
 
 
@@ -94,9 +105,10 @@ def main() -> int:
     classes = tuple(args.classes) if args.classes else None
     record: dict[str, dict[str, dict[str, float]]] = {}
     for folder in args.folders:
-        runs = load_runs(folder)
-        if not runs:
+        loaded = load_runs(folder)
+        if not loaded:
             raise SystemExit(f"{folder}: no saved runs (<scene>.efem.npz beside <scene>.ply)")
+        runs = prepared(loaded, classes)
         record[str(folder)] = {}
         for p in args.powers:
             r = score(runs, p, classes)

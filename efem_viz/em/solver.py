@@ -613,13 +613,15 @@ class Solver:
                 if self.on_step is not None:
                     self.on_step(StepInfo(step, self.planned_steps, phase, pool.size, elapsed, ep,
                                           partial=self.partial_result))
+            if pool.size == 0:
+                continue
             t0 = time.perf_counter()
             final_step = self.rec.num_steps - 1
+            # every live proposal has been through an E-step (stationary, latent) and the last review
+            assert pool.stationary is not None and pool.latent is not None
+            revs = [last_review[int(pid)] for pid in pool.ids]
             confs = np.empty(pool.size)
-            for r, pid in enumerate(pool.ids):
-                # every live proposal has been through an E-step, which sets both
-                assert pool.stationary is not None and pool.latent is not None
-                rev = last_review[int(pid)]
+            for r, rev in enumerate(revs):
                 s_stat = float(pool.stationary[r])
                 conf = confidence(s_stat, float(rev.coverage), cap=cfg.confidence.cov_cap,
                                   seen_through=rev.seen_through,
@@ -633,15 +635,11 @@ class Solver:
                         seen_through=float(rev.seen_through), mask_size=len(rev.mask)))
                 confs[r] = conf
             if cfg.confidence.explained_decay > 0:
-                confs = explained_decay(confs, [last_review[int(pid)].mask for pid in pool.ids], self.n_full,
-                                        cfg.confidence.explained_decay)
-            for r, pid in enumerate(pool.ids):
-                assert pool.stationary is not None and pool.latent is not None
-                rev = last_review[int(pid)]
-                s_stat = float(pool.stationary[r])
+                confs = explained_decay(confs, [rev.mask for rev in revs], self.n_full, cfg.confidence.explained_decay)
+            for r, (pid, rev) in enumerate(zip(pool.ids, revs)):
                 conf = float(confs[r])
                 self.rec.death(int(pid), final_step, REASON_SURVIVE, -1, conf)
-                accepted.append({**rev._asdict(), "confidence": conf, "stationary": s_stat,
+                accepted.append({**rev._asdict(), "confidence": conf, "stationary": float(pool.stationary[r]),
                                  "center": pool.latent["center"][r], "scale": float(pool.latent["scale"][r]),
                                  "category": self._category(rev, self.table.latent_of(
                                      int(pool.owner[r]), {key: v[r] for key, v in pool.latent.items()}))})
