@@ -147,7 +147,8 @@ def test_explained_decay_sets_the_confidences_of_the_instances_and_the_trace(sph
                                                                               ) -> None:
     """`confidence.explained_decay` passes the episode's survivors (their method confidences and final masks) to
     `rules.explained_decay` once, and what it returns is each instance's confidence and its survival record in
-    the trace; the fits themselves are the same draw for draw as with the decay off (the method, every preset)."""
+    the trace; the fits themselves are the same draw for draw as with the decay off (the method; every preset
+    but `chairs`)."""
     from efem_viz.em import solver as solver_module
 
     scene, prior, off, _ = sphere_run

@@ -41,6 +41,14 @@ def test_presets_round_trip_through_json(name: str) -> None:
     assert EMConfig.from_json(text) == cfg
 
 
+def test_only_the_chair_preset_lowers_confidences_by_what_better_fits_hold() -> None:
+    """Chair solves rank fits over found chairs (and chair + cabinet) under the chairs; the mug presets keep the
+    method's confidences, because the decay demotes mugs packed close together in boxes."""
+    assert preset("chairs").confidence.explained_decay == 2.0
+    assert {name: preset(name).confidence.explained_decay for name in PRESETS if name != "chairs"} == dict.fromkeys(
+        (n for n in PRESETS if n != "chairs"), 0.0)
+
+
 def test_changes_by_group_by_dotted_name_and_by_old_flat_name_agree() -> None:
     base = preset("synthetic")
     by_group = base.replace(elimination={"min_size": 150, "inclusion": "swap"}, free_space={"margin": 0.02})
