@@ -11,7 +11,7 @@ import scipy.sparse as sp
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from efem_viz.em.config import PRESETS, EMConfig, ProposalSettings, category_fields, preset, resolve_for_prior
+from efem_viz.em.config import EMConfig, ProposalSettings, category_fields, preset, resolve_for_prior
 from efem_viz.em.estep import energy_weights, schedule
 from efem_viz.em.proposals import AvailableTree, Ragged, init_crops, lookup, sample_independent, sample_joint
 from efem_viz.em.rules import (

@@ -900,27 +900,27 @@ _CHAIRS = _SYNTHETIC.replace(
     compute={"work_voxel": 0.025},
     confidence={"explained_decay": 2.0},
 )
-"""§3.12's synthetic-chairs column (the chairs' SDF and normal bands, 1,000 inliers, duplicates at IoU 0.8; the
-E-step reach of 0.8 m comes with the chair prior's category) on a 2.5 cm working set: a chair's neighbourhood is
-seven times a mug's across, so at the scan's 1 cm it would hold fifty times the points (the solver scales
-`min_size` to the working set's spacing). Proposals anchored at least 5 cm above the floor instead of §3.12's
-200 anywhere (150 of them at first): half a room's points are floor, and 60 % of the proposals had started there; on the SynChairs-like
+"""§3.12's synthetic-chairs column (the chairs' SDF and normal bands, 1,000 inliers, duplicates at IoU 0.8; the E-step
+reach of 0.8 m comes with the chair prior's category) on a 2.5 cm working set: a chair's neighbourhood is seven
+times a mug's across, so at the scan's 1 cm it would hold fifty times the points (the solver scales `min_size` to
+the working set's spacing). Proposals anchored at least 5 cm above the floor instead of §3.12's 200 anywhere (150 of
+them at first): half a room's points are floor, and 60 % of the proposals had started there; on the SynChairs-like
 sets (4 scenes x 2 solver seeds, the step-32,000 prior) per-run AP50 z / so3 98.6 / 94.3 against 100.0 / 93.9, in
-half the time (median 26.8 CPU s a scene against 55.8; docs/BENCHMARKS.md). The floor's points, up to 1 cm above
-it, join no proposal (`proposals.min_point_height`, a deviation: the method uses no background mask): the fits had
-taken whole patches of floor with a chair or a cabinet, and a chair's fit lost to a floor blob's. Tuning scenes
-(seeds 9100-9103, the shipped prior, AP50 z / so3 / pile) 80.9 / 98.5 / 39.0 with the floor, 90.5 / 100.0 / 64.3
-without 1 cm of it (96.7 / 98.1 / 54.1 without 2 cm, 88.6 / 98.4 / 46.6 without 4 cm), in 40 % of the time.
-Each accepted fit's confidence is lowered by the share of its mask that higher fits already hold
-(`confidence.explained_decay` 2, `rules.explained_decay`): fits over two chairs, or a chair and a cabinet, rank
-under the chairs themselves. Chosen on the chair tuning scenes (AP50 z 84.2 -> 85.3, pile 51.3 -> 52.2), judged on
-the fixed sets over solver seeds 0-3: AP50 higher in 11 of 12 configuration-seeds, +1.5 on average (z +0.6 to +2.3,
-so3 +0.2 to +0.8, pile -0.1 to +4.7; docs/BENCHMARKS.md). The mug presets keep it off: mugs in boxes lost 1.5.
-300 proposals cropped at 0.35 m (§3.12's real-chair radius) instead of 150 at the category's 0.5 m: in a pile a
-0.5 m ball around an anchor holds parts of two or three chairs, and the fits that start there straddle them. On the
-chair tuning piles (seeds 9100-9109, solver seeds 0-1, with the decay) AP50 49.1 -> 61.3 (300 at 0.5 m 54.8, 150 at
-0.35 m 49.6); on the fixed sets over solver seeds 0-3 pile 53.2 -> 59.5 on average (3 of 4 seeds higher), z 93.2
--> 93.0 and so3 94.1 -> 94.0; a pile scene costs 1.5x a mug scene (30 s against 20 s, was 0.9x)."""
+half the time (median 26.8 CPU s a scene against 55.8; docs/BENCHMARKS.md). The floor's points, up to 1 cm above it,
+join no proposal (`proposals.min_point_height`, a deviation: the method uses no background mask): the fits had taken
+whole patches of floor with a chair or a cabinet, and a chair's fit lost to a floor blob's. Tuning scenes (seeds
+9100-9103, the shipped prior, AP50 z / so3 / pile) 80.9 / 98.5 / 39.0 with the floor, 90.5 / 100.0 / 64.3 without 1
+cm of it (96.7 / 98.1 / 54.1 without 2 cm, 88.6 / 98.4 / 46.6 without 4 cm), in 40 % of the time. Each accepted
+fit's confidence is lowered by the share of its mask that higher fits already hold (`confidence.explained_decay` 2,
+`rules.explained_decay`): fits over two chairs, or a chair and a cabinet, rank under the chairs themselves. Chosen
+on the chair tuning scenes (AP50 z 84.2 -> 85.3, pile 51.3 -> 52.2), judged on the fixed sets over solver seeds 0-3:
+AP50 higher in 11 of 12 configuration-seeds, +1.5 on average (z +0.6 to +2.3, so3 +0.2 to +0.8, pile -0.1 to +4.7;
+docs/BENCHMARKS.md). The mug presets keep it off: mugs in boxes lost 1.5. 300 proposals cropped at 0.35 m (§3.12's
+real-chair radius) instead of 150 at the category's 0.5 m: in a pile a 0.5 m ball around an anchor holds parts of
+two or three chairs, and the fits that start there straddle them. On the chair tuning piles (seeds 9100-9109, solver
+seeds 0-1, with the decay) AP50 49.1 -> 61.3 (300 at 0.5 m 54.8, 150 at 0.35 m 49.6); on the fixed sets over solver
+seeds 0-3 pile 53.2 -> 59.5 on average (3 of 4 seeds higher), z 93.2 -> 93.0 and so3 94.1 -> 94.0; a pile scene
+costs 1.5x a mug scene (30 s against 20 s, was 0.9x)."""
 
 
 def preset(name: str) -> EMConfig:
