@@ -150,6 +150,7 @@ def test_explained_decay_sets_the_confidences_of_the_instances_and_the_trace(sph
     the trace; the fits themselves are the same draw for draw as with the decay off (the method; every preset
     but `chairs`)."""
     from efem_viz.em import solver as solver_module
+    from efem_viz.em.rules import explained_decay
 
     scene, prior, off, _ = sphere_run
     assert off.config.confidence.explained_decay == 0.0
@@ -173,6 +174,10 @@ def test_explained_decay_sets_the_confidences_of_the_instances_and_the_trace(sph
         death = res.trace.death(int(pid))
         assert death is not None and death[1] == "survive"
         assert death[3] == pytest.approx(float(res.instances.confidence[k]), rel=1e-6)
+    monkeypatch.undo()
+    real = run_em(scene, prior, cfg, seed=5)
+    want = explained_decay(off.instances.confidence, list(off.instances.masks), len(scene.points), 3.0)
+    np.testing.assert_allclose(real.instances.confidence, want, rtol=1e-6)
 
 
 def test_progress_and_active_counts(sphere_run: tuple) -> None:
