@@ -55,7 +55,7 @@ def method_confidences(res: object) -> np.ndarray:
     from efem_viz.em.solver import confidence
 
     inst, cfg = res.instances, res.config.confidence  # type: ignore[attr-defined]
-    if cfg.explained_decay == 0:
+    if not cfg.explained_decay:
         return np.asarray(inst.confidence, np.float64)
     if cfg.look_alike is not None:
         raise SystemExit("a run with a look-alike model and the explained-share decay cannot be re-scored")

@@ -147,8 +147,8 @@ def test_explained_decay_sets_the_confidences_of_the_instances_and_the_trace(sph
                                                                               ) -> None:
     """`confidence.explained_decay` passes the episode's survivors (their method confidences and final masks) to
     `rules.explained_decay` once, and what it returns is each instance's confidence and its survival record in
-    the trace; the fits themselves are the same draw for draw as with the decay off (the method; every preset
-    but `chairs`)."""
+    the trace; the fits themselves are the same draw for draw as with the decay off (the method; the sphere's
+    category has none)."""
     from efem_viz.em import solver as solver_module
     from efem_viz.em.rules import explained_decay
 
@@ -178,6 +178,21 @@ def test_explained_decay_sets_the_confidences_of_the_instances_and_the_trace(sph
     real = run_em(scene, prior, cfg, seed=5)
     want = explained_decay(off.instances.confidence, list(off.instances.masks), len(scene.points), 3.0)
     np.testing.assert_allclose(real.instances.confidence, want, rtol=1e-6)
+
+
+def test_a_joint_solve_ranks_with_the_weakest_decay_of_its_priors(sphere_run: tuple) -> None:
+    """A solve takes the explained-share decay of its prior's category; a joint solve one ranking with the smallest
+    of its priors' (a category without the decay keeps the method's confidences beside one that has it)."""
+    from efem_viz.prior.analytic import make_sphere_prior
+    from efem_viz.prior.config import category_settings
+
+    scene = sphere_run[0]
+    decaying, plain = make_sphere_prior(), make_sphere_prior()
+    decaying.metadata = {"category": category_settings("sphere").replace(explained_decay={"synthetic": 2.0}).to_dict()}
+    plain.name = "ball"
+    cfg = preset("fast").replace(proposals={"n_init": (8,)}, steps={"t1": 2, "t2": 1, "end_step": 1})
+    assert run_em(scene, decaying, cfg, seed=0).config.confidence.explained_decay == 2.0
+    assert run_em(scene, priors=[decaying, plain], cfg=cfg, seed=0).config.confidence.explained_decay == 0.0
 
 
 def test_progress_and_active_counts(sphere_run: tuple) -> None:

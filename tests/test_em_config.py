@@ -41,11 +41,36 @@ def test_presets_round_trip_through_json(name: str) -> None:
     assert EMConfig.from_json(text) == cfg
 
 
-def test_only_the_chair_preset_lowers_confidences_by_what_better_fits_hold() -> None:
-    """Chair solves rank fits over found chairs (and chair + cabinet) under the chairs; the mug presets keep the
-    method's confidences, because the decay demotes mugs packed close together in boxes."""
-    assert preset("chairs").confidence.explained_decay == 2.0
-    assert all(preset(name).confidence.explained_decay == 0.0 for name in PRESETS if name != "chairs")
+def test_chair_and_kitchen_solves_lower_confidences_by_what_better_fits_hold() -> None:
+    """The explained-share decay comes with the prior's category: chair and kitchen fits in synthetic scenes rank
+    under the fits of what they straddle; mugs keep the method's confidences (the decay demotes mugs packed close
+    together in boxes), and so does every category on real captures, where it was never measured. An explicit
+    value wins; a prior saved with category settings from before the field takes its known category's."""
+    from types import SimpleNamespace
+
+    from efem_viz.em.config import resolve_for_prior
+    from efem_viz.prior.config import CategorySettings, category_settings
+
+    assert all(preset(name).confidence.explained_decay is None for name in PRESETS)
+
+    def decay(preset_name: str, category: str, metadata: dict | None = None, **change: float) -> float | None:
+        cfg = preset(preset_name)
+        if change:
+            cfg = cfg.replace(confidence=change)
+        prior = SimpleNamespace(name=category, metadata=metadata or {})
+        return resolve_for_prior(cfg, prior).confidence.explained_decay
+
+    assert [decay(p, c) for p in ("chairs", "synthetic") for c in ("chair", "kitchen", "mug")] == [2, 2, 0] * 2
+    assert [decay("real", c) for c in ("chair", "kitchen", "mug")] == [0, 0, 0]
+    assert decay("synthetic", "mug", explained_decay=1.5) == 1.5 and decay("chairs", "chair", explained_decay=0) == 0
+    saved = category_settings("kitchen").to_dict()
+    assert CategorySettings.from_dict(saved) == category_settings("kitchen")
+    del saved["explained_decay"]
+    assert decay("synthetic", "kitchen", {"category": saved}) == 2.0
+    with pytest.raises(ValueError, match="explained_decay"):
+        CategorySettings(name="x", explained_decay={"synthetic": -1.0})
+    with pytest.raises(ValueError, match="capture domain"):
+        CategorySettings(name="x", explained_decay={"moon": 1.0})
 
 
 def test_changes_by_group_by_dotted_name_and_by_old_flat_name_agree() -> None:

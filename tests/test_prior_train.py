@@ -367,6 +367,74 @@ def test_the_learning_rate_warms_up_whenever_adam_starts_without_moments(tmp_pat
     assert [c["iteration"] for c in kept] == [c["iteration"] for c in restarted["curve"][-3:]]
 
 
+def test_weight_average_follows_its_formula_swaps_back_and_refuses_a_foreign_average() -> None:
+    """`WeightAverage`: a ← β a + (1 − β) w with β = min(decay, (1 + n) / (10 + n)) on floating-point entries,
+    integer entries copied; swapping twice gives both sets back; a saved average of other shapes or with NaN is
+    refused."""
+    from efem_viz.prior.train import WeightAverage
+
+    torch.manual_seed(0)
+    model = torch.nn.Linear(3, 2).double()
+    model.register_buffer("count", torch.zeros((), dtype=torch.long))
+    avg = WeightAverage(model, 0.5)
+    expect = {k: v.clone() for k, v in model.state_dict().items()}
+    for n in range(4):
+        with torch.no_grad():
+            model.weight.add_(torch.randn(2, 3, dtype=torch.float64))
+            model.bias.mul_(-2.0)
+            model.count += 3
+        beta = min(0.5, (1 + n) / (10 + n))
+        for k, v in model.state_dict().items():
+            expect[k] = beta * expect[k] + (1 - beta) * v if v.is_floating_point() else v.clone()
+        avg.update(model)
+    assert avg.updates == 4
+    for k, v in avg.state().items():
+        assert torch.allclose(v, expect[k], rtol=0, atol=1e-15), k
+    trained, averaged = {k: v.clone() for k, v in model.state_dict().items()}, avg.state()
+    avg.swap(model)
+    assert torch.equal(model.weight, averaged["weight"]) and torch.equal(avg.average["weight"], trained["weight"])
+    avg.swap(model)
+    assert all(torch.equal(model.state_dict()[k], trained[k]) for k in trained)
+    with pytest.raises(ValueError, match="does not match"):
+        WeightAverage(model, 0.5, average={"weight": torch.zeros(3, 3), "bias": torch.zeros(2),
+                                           "count": torch.zeros((), dtype=torch.long)})
+    bad = avg.state()
+    bad["bias"][0] = float("nan")
+    with pytest.raises(ValueError, match="finite"):
+        WeightAverage(model, 0.5, average=bad)
+    with pytest.raises(ValueError, match="ema-decay"):
+        train(TrainArgs(ema_decay=1.0))
+
+
+def test_a_weight_averaged_run_resumes_its_average_exactly_and_exports_it(tmp_path: Path, cache_dir: Path) -> None:
+    """`--ema-decay`: checkpoints carry the average, a resumed run continues it to the same values as a straight
+    run, validation reports the trained weights beside the averaged ones, and the export is the average."""
+    from efem_viz.prior.train import write_resume_state
+
+    kw = dict(iterations=6, val_every=100, ema_decay=0.9, calibrate_iso=False)
+    train(_args(tmp_path / "a", cache_dir, **kw))
+    train(_args(tmp_path / "b", cache_dir, **kw), max_iterations=3)
+    resumed = train(_args(tmp_path / "b", cache_dir, resume=True, **kw))
+    sa = torch.load(tmp_path / "a" / "run" / "last.pt", weights_only=False)
+    sb = torch.load(tmp_path / "b" / "run" / "last.pt", weights_only=False)
+    assert sa["state"]["ema_updates"] == sb["state"]["ema_updates"] == 6
+    for k, v in sa["ema"].items():
+        assert torch.allclose(v, sb["ema"][k], rtol=1e-6, atol=1e-9), k
+    moved = [k for k, v in sa["ema"].items() if v.is_floating_point() and not torch.equal(v, sa["state_dict"][k])]
+    assert moved  # the average is not the trained weights
+    last = resumed["val_curve"][-1]
+    assert last["iteration"] == 6 and {"trained_iou", "trained_iou_cal"} <= set(last)
+    # a validation of the finished run with the best forgotten exports what it scores: the average
+    train(_args(tmp_path / "a", cache_dir, resume=True, reset_best=True, **kw))
+    exported = load_prior(tmp_path / "a" / "w" / "mug.pt").state_dict()
+    for k, v in sa["ema"].items():
+        assert torch.allclose(exported[k].float(), v.float(), rtol=1e-6, atol=1e-7), k
+    shipped = tmp_path / "shipped.pt"
+    assert write_resume_state(tmp_path / "a" / "run" / "last.pt", shipped) is not None
+    state = torch.load(shipped, weights_only=False)
+    assert state["ema"][moved[0]].dtype == torch.float16 and state["optimizer"] is None
+
+
 def test_resume_without_checkpoint_fails(tmp_path: Path, cache_dir: Path) -> None:
     with pytest.raises(FileNotFoundError, match="resume"):
         train(_args(tmp_path, cache_dir, resume=True))

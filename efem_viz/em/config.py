@@ -389,17 +389,17 @@ class ConfidenceSettings(_Settings):
     (`CategorySettings.look_alike`; `resolve_for_prior` puts its name, or None, in the prior's config), or the name
     of a shipped model (`efem_viz/em/models/<name>.json`; it scores the fits of its own category). None = off (the
     method)."""
-    explained_decay: float = 0.0
+    explained_decay: float | None = None
     """Exponent p of the explained-share decay of the accepted fits (`rules.explained_decay`): highest first, each
     fit's confidence × (1 − e)^p, e the share of its mask that the fits ranked above it already hold. A fit over
     two found objects, or a partial copy of one, ranks below the fits of objects nobody else holds; no fit is
-    removed. 0 = off (the method, and every preset but `chairs`, which takes 2): with 2, AP50 on the chair fixed
-    sets rose in 11 of 12 configuration-seeds (solver seeds 0-3, +1.5 on average), a little for kitchen scenes
-    (+0.6, seeds 0-1), but fell for mugs in boxes (−1.5, −1.4; docs/BENCHMARKS.md): neighbouring true mugs share a
-    few points of their masks, and that demotes them as it demotes fits over found objects."""
+    removed. 0 = off (the method). None = the prior's category's for the config's `domain`
+    (`CategorySettings.explained_decay`: 2 for chairs and the kitchen family in synthetic scenes, off for mugs,
+    whose neighbours in a box share a few points of their masks; a solve with several priors takes the smallest
+    of theirs)."""
 
     def validate(self) -> None:
-        if not (0.0 <= self.explained_decay <= 16.0):
+        if self.explained_decay is not None and not (0.0 <= self.explained_decay <= 16.0):
             raise ValueError(f"explained_decay must be in [0, 16], got {self.explained_decay}")
         if not (0.0 <= self.pose_weight <= 16.0) or not (0.0 < self.pose_ref <= 1.0):
             raise ValueError(f"pose_weight must be in [0, 16] and pose_ref in (0, 1], got {self.pose_weight}, "
@@ -898,7 +898,6 @@ _CHAIRS = _SYNTHETIC.replace(
     steps={"alpha_d": (5.0, 20.0), "tau_d": (0.2, 0.15), "tau_n": (120.0, 80.0)},
     elimination={"min_size": 1000, "dup_iou": 0.8},
     compute={"work_voxel": 0.025},
-    confidence={"explained_decay": 2.0},
 )
 """§3.12's synthetic-chairs column (the chairs' SDF and normal bands, 1,000 inliers, duplicates at IoU 0.8; the E-step
 reach of 0.8 m comes with the chair prior's category) on a 2.5 cm working set: a chair's neighbourhood is seven
@@ -911,11 +910,10 @@ join no proposal (`proposals.min_point_height`, a deviation: the method uses no 
 whole patches of floor with a chair or a cabinet, and a chair's fit lost to a floor blob's. Tuning scenes (seeds
 9100-9103, the shipped prior, AP50 z / so3 / pile) 80.9 / 98.5 / 39.0 with the floor, 90.5 / 100.0 / 64.3 without 1
 cm of it (96.7 / 98.1 / 54.1 without 2 cm, 88.6 / 98.4 / 46.6 without 4 cm), in 40 % of the time. Each accepted
-fit's confidence is lowered by the share of its mask that higher fits already hold (`confidence.explained_decay` 2,
-`rules.explained_decay`): fits over two chairs, or a chair and a cabinet, rank under the chairs themselves. Chosen
-on the chair tuning scenes (AP50 z 84.2 -> 85.3, pile 51.3 -> 52.2), judged on the fixed sets over solver seeds 0-3:
-AP50 higher in 11 of 12 configuration-seeds, +1.5 on average (z +0.6 to +2.3, so3 +0.2 to +0.8, pile -0.1 to +4.7;
-docs/BENCHMARKS.md). The mug presets keep it off: mugs in boxes lost 1.5. 300 proposals cropped at 0.35 m (§3.12's
+chair fit's confidence is lowered by the share of its mask that higher fits already hold (the chair category's
+`explained_decay`, 2): fits over two chairs, or a chair and a cabinet, rank under the chairs themselves (on the
+fixed sets over solver seeds 0-3, AP50 higher in 11 of 12 configuration-seeds, +1.5 on average; docs/BENCHMARKS.md).
+300 proposals cropped at 0.35 m (§3.12's
 real-chair radius) instead of 150 at the category's 0.5 m: in a pile a 0.5 m ball around an anchor holds parts of
 two or three chairs, and the fits that start there straddle them. On the chair tuning piles (seeds 9100-9109, solver
 seeds 0-1, with the decay) AP50 49.1 -> 61.3 (300 at 0.5 m 54.8, 150 at 0.35 m 49.6); on the fixed sets over solver
@@ -980,5 +978,7 @@ def category_fields(cfg: EMConfig, cat: CategorySettings) -> dict[str, dict[str,
     if cfg.review.max_planar is None and planar is not None:
         out.setdefault("review", {})["max_planar"] = float(planar)
     if cfg.confidence.look_alike == CATEGORY_LOOK_ALIKE:
-        out["confidence"] = {"look_alike": cat.look_alike.get(cfg.domain)}
+        out.setdefault("confidence", {})["look_alike"] = cat.look_alike.get(cfg.domain)
+    if cfg.confidence.explained_decay is None:
+        out.setdefault("confidence", {})["explained_decay"] = float(cat.explained_decay.get(cfg.domain, 0.0))
     return out

@@ -313,9 +313,11 @@ def run_em(
         # a category's planar check reads a mesh's surface normals; a point cloud's estimated normals gather in a
         # few directions (true fits on merged-points kitchen piles held 0.41-0.53): not checked, only recorded
         cfgs = [c.replace(review={"max_planar": None}) for c in cfgs]
-    # a joint solve shares one crop and neighbourhood: the widest of its priors' (a narrower one only costs time)
+    # a joint solve shares one crop and neighbourhood: the widest of its priors' (a narrower one only costs time);
+    # and one ranking: the weakest explained-share decay of its priors'
     run_cfg = cfgs[0] if len(plist) == 1 else base.replace(
         output={"tau_out": max(c.output.out_tau for c in cfgs)},
+        confidence={"explained_decay": min(c.confidence.explained_decay or 0.0 for c in cfgs)},
         proposals={"r_init": max(c.proposals.radii()[0] for c in cfgs),
                    "r_err": max(c.proposals.radii()[1] for c in cfgs)})
     points, normals = _scene_arrays(scene)
@@ -634,7 +636,7 @@ class Solver:
                         radius=float(rev.radii[0]), half_height=float(rev.radii[1]), up_angle=float(rev.up_angle),
                         seen_through=float(rev.seen_through), mask_size=len(rev.mask)))
                 confs[r] = conf
-            if cfg.confidence.explained_decay > 0:
+            if cfg.confidence.explained_decay:  # a solve's config has its priors' value (`run_em`)
                 confs = explained_decay(confs, [rev.mask for rev in revs], self.n_full, cfg.confidence.explained_decay)
             for r, (pid, rev) in enumerate(zip(pool.ids, revs)):
                 conf = float(confs[r])

@@ -210,6 +210,12 @@ class TrainArgs:
     calibrate_iso: bool = True
     """Select and export by the iso-offset-calibrated validation IoU (the offset is folded into the exported
     ``fc_out.bias`` and stored as metadata ``iso_offset``); False = the spec's raw IoU."""
+    ema_decay: float = 0.0
+    """Average the weights over the run as it goes (an exponential moving average with this decay per step,
+    about ``1 / (1 - decay)`` steps wide, e.g. 0.999; `WeightAverage`): validation scores and exports the
+    averaged weights and also reports the trained ones (``trained_*``), checkpoints and resume states carry the
+    average. For a run whose validation has stopped rising and wanders around a level: the average of the
+    wandering is often better than any point of it. 0: off."""
 
     def run(self) -> int:
         """CLI entry: train with a tqdm progress bar. Returns 0 on success."""
@@ -569,6 +575,8 @@ class _State:
     best_iteration: int = -1
     warmup_from: int = 0
     """Where Adam last started without moments (the learning-rate warm-up counts from here)."""
+    ema_updates: int = 0
+    """Steps the weight average (``--ema-decay``) has taken in so far."""
     curve: list[dict[str, Any]] = field(default_factory=list)
     val_curve: list[dict[str, Any]] = field(default_factory=list)
 
@@ -577,9 +585,65 @@ def _rng_state(rng: np.random.Generator) -> dict[str, Any]:
     return dict(rng.bit_generator.state)
 
 
+class WeightAverage:
+    """An exponential moving average of a model's weights (Polyak averaging; ``train-prior --ema-decay``).
+
+    After each optimiser step every floating-point entry of the state dict moves to ``a ← β a + (1 − β) w`` with
+    ``β = min(decay, (1 + n) / (10 + n))`` for the n-th update (the short early window lets the average leave the
+    starting weights quickly); other entries are copied.
+
+    Args:
+        model: the trained module.
+        decay: β's limit, in [0, 1).
+        average: a saved average (`state`) to continue; None starts from the model's weights.
+        updates: how many updates ``average`` already holds.
+    """
+
+    def __init__(self, model: torch.nn.Module, decay: float, *, average: dict[str, torch.Tensor] | None = None,
+                 updates: int = 0) -> None:
+        own = model.state_dict()
+        if average is not None and (set(average) != set(own)
+                                    or any(average[k].shape != v.shape for k, v in own.items())
+                                    or any(t.is_floating_point() and not bool(t.isfinite().all())
+                                           for t in average.values())):
+            raise ValueError("the saved weight average does not match the model's weights (names, shapes or "
+                             "finite values)")
+        src = average if average is not None else own
+        self.decay, self.updates = float(decay), int(updates)
+        self.average = {k: src[k].detach().to(device=v.device, dtype=v.dtype).clone() for k, v in own.items()}
+
+    def update(self, model: torch.nn.Module) -> None:
+        """Take the model's current weights into the average."""
+        import torch
+
+        beta = min(self.decay, (1.0 + self.updates) / (10.0 + self.updates))
+        with torch.no_grad():
+            for k, v in model.state_dict().items():
+                a = self.average[k]
+                if a.is_floating_point():
+                    a.mul_(beta).add_(v.detach(), alpha=1.0 - beta)
+                else:
+                    a.copy_(v)
+        self.updates += 1
+
+    def swap(self, model: torch.nn.Module) -> None:
+        """Exchange the model's weights with the average (in place; twice restores both)."""
+        import torch
+
+        with torch.no_grad():
+            for k, v in model.state_dict().items():
+                tmp = v.clone()
+                v.copy_(self.average[k])
+                self.average[k].copy_(tmp)
+
+    def state(self) -> dict[str, torch.Tensor]:
+        """The averaged weights (copies, on the CPU)."""
+        return {k: v.detach().cpu().clone() for k, v in self.average.items()}
+
+
 def save_checkpoint(path: Path, prior: ShapePrior, opt: Any, state: _State, rng: np.random.Generator,
-                    args_dict: dict[str, Any]) -> None:
-    """Full resume checkpoint (atomic)."""
+                    args_dict: dict[str, Any], average: WeightAverage | None = None) -> None:
+    """Full resume checkpoint (atomic); with the weight average (``ema``) when the run keeps one."""
     import torch
 
     from efem_viz.prior.model import CHECKPOINT_FORMAT, atomic_torch_save
@@ -589,6 +653,7 @@ def save_checkpoint(path: Path, prior: ShapePrior, opt: Any, state: _State, rng:
         "state_dict": {k: v.detach().cpu().clone() for k, v in prior.state_dict().items()},
         "optimizer": opt.state_dict(), "state": dataclasses.asdict(state), "np_rng": _rng_state(rng),
         "torch_rng": torch.get_rng_state(), "args": args_dict, "metadata": dict(prior.metadata),
+        **({"ema": average.state()} if average is not None else {}),
     }, path)
 
 
@@ -646,8 +711,8 @@ def _check_args(args: TrainArgs) -> None:
 
     Raises:
         ValueError: an unknown matmul precision, a grown decoder without a prior to grow, a batch size, iteration
-            count or validation interval below 1, an inside weight that is not a positive number, or bad member
-            weights.
+            count or validation interval below 1, an inside weight that is not a positive number, a weight-average
+            decay outside [0, 1), or bad member weights.
     """
     from efem_viz.prior.config import matmul_precision
 
@@ -662,6 +727,8 @@ def _check_args(args: TrainArgs) -> None:
         raise ValueError(f"--steps must be >= 1 (got {args.steps})")
     if not (math.isfinite(args.inside_weight) and args.inside_weight > 0):
         raise ValueError(f"--inside-weight must be a positive number (got {args.inside_weight})")
+    if not (math.isfinite(args.ema_decay) and 0.0 <= args.ema_decay < 1.0):
+        raise ValueError(f"--ema-decay must be in [0, 1) (got {args.ema_decay})")
     member_weight_map(args.member_weights)
 
 
@@ -742,7 +809,8 @@ RESUME_CURVE_KEEP = 400
 
 
 def write_resume_state(checkpoint: Path, dest: Path) -> int | None:
-    """Write the shippable resume state of a training checkpoint: weights (stored in float16), loop state (the
+    """Write the shippable resume state of a training checkpoint: weights and their average when the run keeps
+    one (stored in float16), loop state (the
     training-loss curve cut to its last `RESUME_CURVE_KEEP` entries), RNG states and metadata, without the
     optimiser's moments (two thirds of the file; a resumed run restarts Adam, which re-estimates them within a few
     dozen steps). Float16 halves what the repository carries per prior; a resumed run continues in float32 from
@@ -757,7 +825,9 @@ def write_resume_state(checkpoint: Path, dest: Path) -> int | None:
 
     ckpt = torch.load(checkpoint, map_location="cpu", weights_only=False)
     ckpt["optimizer"] = None
-    ckpt["state_dict"] = {k: v.half() if v.is_floating_point() else v for k, v in ckpt["state_dict"].items()}
+    for key in ("state_dict", "ema"):
+        if isinstance(ckpt.get(key), dict):
+            ckpt[key] = {k: v.half() if v.is_floating_point() else v for k, v in ckpt[key].items()}
     state = ckpt.get("state")
     if isinstance(state, dict) and isinstance(state.get("curve"), list):
         state["curve"] = state["curve"][-RESUME_CURVE_KEEP:]
@@ -875,12 +945,16 @@ class _TrainLoop:
         args_dict: ``args`` as JSON (stored in every checkpoint).
         t_start: when `train` started (`time.monotonic`; the time budget counts from it).
         adam_fresh: Adam starts without moments here (the learning rate warms up from this iteration).
+        average: the weight average (``--ema-decay``) that validation scores and exports; None: the trained
+            weights.
     """
 
     def __init__(self, args: TrainArgs, prior: ShapePrior, opt: Any, state: _State, rng: np.random.Generator, *,
                  scfg: SampleConfig, train_objs: list[ObjectData], val_objs: list[ObjectData], out_dir: Path,
-                 export: Path, args_dict: dict[str, Any], t_start: float, adam_fresh: bool = True) -> None:
+                 export: Path, args_dict: dict[str, Any], t_start: float, adam_fresh: bool = True,
+                 average: WeightAverage | None = None) -> None:
         self.args, self.prior, self.opt, self.state, self.rng = args, prior, opt, state, rng
+        self.average = average
         if adam_fresh:
             state.warmup_from = state.iteration
         self.scfg, self.train_objs, self.val_objs = scfg, train_objs, val_objs
@@ -910,10 +984,11 @@ class _TrainLoop:
         args, prior, state = self.args, self.prior, self.state
         prior.eval()
         t0 = time.monotonic()
-        m = validate(prior, self.val_objs, self.scfg, seed=args.seed + 99)
-        if args.sensor_p > 0:
-            ms = validate(prior, self.val_objs, self.scfg, seed=args.seed + 98, sensor=True)
-            m.update({f"sensor_{k}": v for k, v in ms.items()})
+        m = self._scores()
+        if self.average is not None:  # the trained weights reported beside the average, which is exported
+            trained = {f"trained_{k}": v for k, v in m.items() if k in ("iou", "iou_cal", "sensor_iou_cal")}
+            self.average.swap(prior)
+            m = {**self._scores(), **trained}
         prior.train()
         m.update(iteration=state.iteration, wall_s=self.wall0 + (time.monotonic() - self.t_loop),
                  train_loss=float(np.mean(self.running)) if self.running else float("nan"),
@@ -924,6 +999,10 @@ class _TrainLoop:
                  m["scale"], m["sdf_l1"], m["val_time_s"],
                  f"; sensor inputs: calibrated IoU {m['sensor_iou_cal']:.4f} Θs {m['sensor_scale']:.3f}"
                  if "sensor_iou_cal" in m else "")
+        if "trained_iou_cal" in m:
+            log.info("val @%d: averaged weights above; the trained weights: calibrated IoU %.4f%s", state.iteration,
+                     m["trained_iou_cal"], f", sensor inputs {m['trained_sensor_iou_cal']:.4f}"
+                     if "trained_sensor_iou_cal" in m else "")
         per_cat = {k[len("sensor_iou_cal_"):]: v for k, v in m.items() if k.startswith("sensor_iou_cal_")} or \
             {k[len("iou_cal_"):]: v for k, v in m.items() if k.startswith("iou_cal_")}
         if per_cat:
@@ -941,16 +1020,28 @@ class _TrainLoop:
                               "iso_offset": offset, "val_metrics": m, "trained_on": trained_on,
                               "n_train": len(self.train_objs)})
             log.info("exported best model to %s", self.export)
+        if self.average is not None:
+            self.average.swap(prior)  # the trained weights back
         spi = float(np.median(self.iter_times[-200:])) if self.iter_times else None
         _report(args, prior, state, sec_per_iter=spi, n_train=len(self.train_objs), n_val=len(self.val_objs),
                 out_dir=self.out_dir, export=self.export)
+
+    def _scores(self) -> dict[str, Any]:
+        """Validation metrics of the prior's current weights: clean inputs, and sensor-like ones (``sensor_*``)
+        when trained on them."""
+        args = self.args
+        m = validate(self.prior, self.val_objs, self.scfg, seed=args.seed + 99)
+        if args.sensor_p > 0:
+            ms = validate(self.prior, self.val_objs, self.scfg, seed=args.seed + 98, sensor=True)
+            m.update({f"sensor_{k}": v for k, v in ms.items()})
+        return m
 
     def checkpoint(self, final: bool = False) -> None:
         """Write the resume checkpoint ``last.pt``; copy it to ``--resume-export`` at its interval and at the end
         (when under 20 MB)."""
         args = self.args
         self.state.wall_s = self.wall0 + (time.monotonic() - self.t_loop)
-        save_checkpoint(self.last, self.prior, self.opt, self.state, self.rng, self.args_dict)
+        save_checkpoint(self.last, self.prior, self.opt, self.state, self.rng, self.args_dict, self.average)
         self.last_ckpt = time.monotonic()
         due = time.monotonic() - self.last_resume_export >= args.resume_export_every_min * 60
         if args.resume_export is not None and (due or final):
@@ -1009,6 +1100,9 @@ class _TrainLoop:
         gn_e = float(torch.nn.utils.clip_grad_norm_(self.enc_params, 4.0))
         gn_d = 0.0 if args.freeze_decoder else float(torch.nn.utils.clip_grad_norm_(self.dec_params, 4.0))
         self.opt.step()
+        if self.average is not None:
+            self.average.update(prior)
+            state.ema_updates = self.average.updates
         state.iteration += 1
         self.done_here += 1
         dt = time.monotonic() - t0
@@ -1114,6 +1208,11 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
         state = _resume_state(args, prior, opt, rng, ckpt, resume_path)
     elif not from_init or args.init_matching:  # a new architecture's σ is measured on its own inputs
         _calibrate_new_prior(args, prior, scfg, train_objs)
+    average = None
+    if args.ema_decay > 0:
+        saved = ckpt.get("ema") if ckpt is not None else None
+        average = WeightAverage(prior, args.ema_decay, average=saved,
+                                updates=state.ema_updates if saved is not None else 0)
     args_dict = _args_dict(args)
     _write_text_atomic(out_dir / "config.json", json.dumps(
         {"args": args_dict, "prior": prior.config.to_dict(), "sample": dataclasses.asdict(scfg),
@@ -1122,7 +1221,7 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
              count_parameters(prior.decoder))
     loop = _TrainLoop(args, prior, opt, state, rng, scfg=scfg, train_objs=train_objs, val_objs=val_objs,
                       out_dir=out_dir, export=export, args_dict=args_dict, t_start=t_start,
-                      adam_fresh=ckpt is None or ckpt.get("optimizer") is None)
+                      adam_fresh=ckpt is None or ckpt.get("optimizer") is None, average=average)
     stop_reason = loop.run(validate_first=(state.iteration == 0 and not state.val_curve)
                            or (ckpt is not None and args.reset_best),
                            on_progress=on_progress,
