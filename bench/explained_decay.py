@@ -6,11 +6,12 @@ saved with the decay on gets its method confidences back from its instances firs
 stationary score, coverage, pose score and seen-through fraction the solver multiplied); runs with a look-alike
 model and the decay on cannot be undone and are refused.
 
-    python -m bench.explained_decay DIR... [--powers 0 1 2] [--classes mug] [--out FILE.json]
+    python -m bench.explained_decay DIR... [--powers 0 1 2] [--classes mug] [--by-seed] [--out FILE.json]
 
 Each DIR is scored as one set (every `<scene>.efem.npz` beside its `<scene>.ply`, or with solver seeds
-`<scene>_s<k>.efem.npz`), class-agnostic (every labelled object one class) unless `--classes` names the evaluated
-categories; prints AP / AP50 / AP25 per power and writes them as JSON.
+`<scene>_s<k>.efem.npz`), or with `--by-seed` as one set per solver seed (`DIR#s<k>`; runs without a seed suffix
+as `DIR#s-`), class-agnostic (every labelled object one class) unless `--classes` names the evaluated categories;
+prints AP / AP50 / AP25 per power and writes them as JSON.
 """
 
 from __future__ import annotations
@@ -42,6 +43,16 @@ def load_runs(folder: Path) -> list[tuple[str, object, object]]:
         if ply.is_file():
             out.append((f"{folder.name}/{name}", load_scene(ply), EMResult.load(npz)))
     return out
+
+
+def by_seed(runs: list[tuple[str, object, object]]) -> dict[str, list[tuple[str, object, object]]]:
+    """`load_runs`'s runs grouped by the solver seed in their names (``<scene>_s<k>``; "-" without one), seeds in
+    ascending order."""
+    groups: dict[str, list[tuple[str, object, object]]] = {}
+    for run in runs:
+        m = re.search(r"_s([0-9]+)$", run[0])
+        groups.setdefault(m.group(1) if m else "-", []).append(run)
+    return dict(sorted(groups.items(), key=lambda kv: (kv[0] == "-", int(kv[0]) if kv[0] != "-" else 0)))
 
 
 def method_confidences(res: object) -> np.ndarray:
@@ -100,6 +111,7 @@ def main() -> int:
     ap.add_argument("folders", nargs="+", type=Path)
     ap.add_argument("--powers", nargs="+", type=float, default=[0.0, 1.0, 2.0])
     ap.add_argument("--classes", nargs="+", default=None, help="evaluated categories (default: class-agnostic)")
+    ap.add_argument("--by-seed", action="store_true", help="score each solver seed of a folder as its own set")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     classes = tuple(args.classes) if args.classes else None
@@ -108,13 +120,16 @@ def main() -> int:
         loaded = load_runs(folder)
         if not loaded:
             raise SystemExit(f"{folder}: no saved runs (<scene>.efem.npz beside <scene>.ply)")
-        runs = prepared(loaded, classes)
-        record[str(folder)] = {}
-        for p in args.powers:
-            r = score(runs, p, classes)
-            record[str(folder)][f"{p:g}"] = r
-            print(f"{folder} ({len(runs)} runs) power {p:g}: "
-                  f"AP {r['ap']:.1f} AP50 {r['ap50']:.1f} AP25 {r['ap25']:.1f}")
+        sets = {f"{folder}#s{k}": group for k, group in by_seed(loaded).items()} if args.by_seed \
+            else {str(folder): loaded}
+        for name, group in sets.items():
+            runs = prepared(group, classes)
+            record[name] = {}
+            for p in args.powers:
+                r = score(runs, p, classes)
+                record[name][f"{p:g}"] = r
+                print(f"{name} ({len(runs)} runs) power {p:g}: "
+                      f"AP {r['ap']:.1f} AP50 {r['ap50']:.1f} AP25 {r['ap25']:.1f}")
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(record, indent=1))
