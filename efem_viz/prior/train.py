@@ -810,9 +810,8 @@ RESUME_CURVE_KEEP = 400
 
 def write_resume_state(checkpoint: Path, dest: Path) -> int | None:
     """Write the shippable resume state of a training checkpoint: weights and their average when the run keeps
-    one (stored in float16), loop state (the
-    training-loss curve cut to its last `RESUME_CURVE_KEEP` entries), RNG states and metadata, without the
-    optimiser's moments (two thirds of the file; a resumed run restarts Adam, which re-estimates them within a few
+    one (stored in float16), loop state (the training-loss curve cut to its last `RESUME_CURVE_KEEP` entries), RNG
+    states and metadata, without the optimiser's moments (two thirds of the file; a resumed run restarts Adam, which re-estimates them within a few
     dozen steps). Float16 halves what the repository carries per prior; a resumed run continues in float32 from
     weights rounded by at most 2^-11 of their size, less than one of its steps moves them. Atomic.
 
