@@ -212,10 +212,10 @@ class TrainArgs:
     ``fc_out.bias`` and stored as metadata ``iso_offset``); False = the spec's raw IoU."""
     ema_decay: float = 0.0
     """Average the weights over the run as it goes (an exponential moving average with this decay per step,
-    about ``1 / (1 - decay)`` steps wide, e.g. 0.999; `WeightAverage`): validation scores and exports the
-    averaged weights and also reports the trained ones (``trained_*``), checkpoints and resume states carry the
-    average. For a run whose validation has stopped rising and wanders around a level: the average of the
-    wandering is often better than any point of it. 0: off."""
+    about ``1 / (1 - decay)`` steps wide, e.g. 0.999; `WeightAverage`): validation scores the averaged weights
+    and the trained ones (reported as ``trained_*``) and exports whichever scores higher (metadata ``weights``);
+    checkpoints and resume states carry the average. For a run whose validation has stopped rising and wanders
+    around a level, the average of the wandering is often better than any point of it. 0: off."""
 
     def run(self) -> int:
         """CLI entry: train with a tqdm progress bar. Returns 0 on success."""
@@ -799,6 +799,9 @@ def _read_resume_checkpoint(args: TrainArgs, last: Path) -> tuple[Path | None, d
     return resume_path, ckpt
 
 
+TRAINED_KEYS = ("iou", "iou_cal", "iso_offset", "sensor_iou_cal", "sensor_iso_offset")
+"""Validation metrics of the trained weights a weight-averaged run reports beside the average's (``trained_*``)."""
+
 RESUME_STATE_LIMIT_BYTES = 20 * 2**20
 """A resume state is committed with the weights: never larger than this."""
 
@@ -811,9 +814,10 @@ RESUME_CURVE_KEEP = 400
 def write_resume_state(checkpoint: Path, dest: Path) -> int | None:
     """Write the shippable resume state of a training checkpoint: weights and their average when the run keeps
     one (stored in float16), loop state (the training-loss curve cut to its last `RESUME_CURVE_KEEP` entries), RNG
-    states and metadata, without the optimiser's moments (two thirds of the file; a resumed run restarts Adam, which re-estimates them within a few
-    dozen steps). Float16 halves what the repository carries per prior; a resumed run continues in float32 from
-    weights rounded by at most 2^-11 of their size, less than one of its steps moves them. Atomic.
+    states and metadata, without the optimiser's moments (two thirds of the file; a resumed run restarts Adam,
+    which re-estimates them within a few dozen steps). Float16 halves what the repository carries per prior; a
+    resumed run continues in float32 from weights rounded by at most 2^-11 of their size, less than one of its steps
+    moves them. Atomic.
 
     Returns:
         The bytes written, or None (with a warning) when even that would exceed `RESUME_STATE_LIMIT_BYTES`.
@@ -984,8 +988,8 @@ class _TrainLoop:
         prior.eval()
         t0 = time.monotonic()
         m = self._scores()
-        if self.average is not None:  # the trained weights reported beside the average, which is exported
-            trained = {f"trained_{k}": v for k, v in m.items() if k in ("iou", "iou_cal", "sensor_iou_cal")}
+        if self.average is not None:  # the average scored beside the trained weights (now in the model)
+            trained = {f"trained_{k}": v for k, v in m.items() if k in TRAINED_KEYS}
             self.average.swap(prior)
             m = {**self._scores(), **trained}
         prior.train()
@@ -1008,18 +1012,25 @@ class _TrainLoop:
             log.info("val @%d per category (calibrated IoU%s): %s", state.iteration,
                      ", sensor inputs" if args.sensor_p > 0 else "",
                      ", ".join(f"{c} {v:.4f}" for c, v in per_cat.items()))
-        key = "iou_cal" if args.calibrate_iso else "iou"
-        score = m[f"sensor_{key}"] if args.sensor_p > 0 else m[key]
+        key = ("sensor_" if args.sensor_p > 0 else "") + ("iou_cal" if args.calibrate_iso else "iou")
+        offset_key = ("sensor_" if args.sensor_p > 0 else "") + "iso_offset"
+        # with an average, the export is whichever of the two scores higher (the average lags a fast-learning run)
+        weights = "average" if self.average is not None else "trained"
+        if self.average is not None and m[f"trained_{key}"] > m[key]:
+            weights = "trained"
+            self.average.swap(prior)
+        prefix = "trained_" if weights == "trained" and self.average is not None else ""
+        score = m[prefix + key]
         if score > state.best_iou:
             state.best_iou, state.best_iteration = score, state.iteration
             trained_on = str(args.meshes) if args.meshes is not None else f"procedural:{args.category}"
-            offset = m["sensor_iso_offset" if args.sensor_p > 0 else "iso_offset"] if args.calibrate_iso else 0.0
+            offset = m[prefix + offset_key] if args.calibrate_iso else 0.0
             save_prior(with_iso_offset(prior, offset), self.export,
-                       extra={"iteration": state.iteration, "val_iou": score, "val_iou_raw": m["iou"],
+                       extra={"iteration": state.iteration, "val_iou": score, "val_iou_raw": m[prefix + "iou"],
                               "iso_offset": offset, "val_metrics": m, "trained_on": trained_on,
-                              "n_train": len(self.train_objs)})
-            log.info("exported best model to %s", self.export)
-        if self.average is not None:
+                              "n_train": len(self.train_objs), "weights": weights})
+            log.info("exported best model (%s weights) to %s", weights, self.export)
+        if weights == "average":
             self.average.swap(prior)  # the trained weights back
         spi = float(np.median(self.iter_times[-200:])) if self.iter_times else None
         _report(args, prior, state, sec_per_iter=spi, n_train=len(self.train_objs), n_val=len(self.val_objs),
