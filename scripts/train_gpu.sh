@@ -10,7 +10,9 @@
 # the GPU from the carried mesh packs (torch signed distance and ray casting; no open3d), trains in bf16 autocast with
 # a batch sized for a large GPU, and writes into OUT every minute: last.pt (the full checkpoint), <category>_resume.pt
 # (the shippable resume state), <category>.pt (the best export) and the training report (the data cache stays in
-# $TMPDIR). The category's own settings are those its CPU runs use (efem_viz/weights/<category>_training_notes.md).
+# $TMPDIR). The category's own settings are those its CPU runs use (efem_viz/weights/<category>_training_notes.md);
+# the weights are averaged as they go (--ema-decay 0.999), and the export is the better of the average and the
+# trained weights.
 # MINUTES (default 8) is the whole process's budget, data preparation included, so that a call of the device tool
 # (9-10 minutes) ends with everything in OUT. Work is counted in iterations (--steps N stops after N of them).
 #
@@ -82,7 +84,7 @@ COMMON=(--category "$CAT" "${CAT_OPTS[@]}" --meshes "$CARRY/${CAT}_train.npz" --
   --sensor-p 0.75 --fixed-point-p 0.25 --decay-at 0.95 --iterations 200000
   --cache-dir "${TMPDIR:-/tmp}/efem-train-cache" --out-dir "$OUT" --export "$OUT/${CAT}.pt"
   --resume-export "$OUT/${CAT}_resume.pt"
-  --ckpt-every-min 1 --resume-export-every-min 1 --no-progress)
+  --ckpt-every-min 1 --resume-export-every-min 1 --no-progress --ema-decay 0.999)
 [[ -f $RESUME ]] && COMMON+=(--resume-from "$RESUME" --reset-best)
 if (( SMOKE )); then
   exec $PY -m efem_viz.cli train-prior "${COMMON[@]}" --n-train 16 --n-val 4 --batch-size 32 --steps 20 \

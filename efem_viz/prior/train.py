@@ -214,7 +214,8 @@ class TrainArgs:
     """Average the weights over the run as it goes (an exponential moving average with this decay per step,
     about ``1 / (1 - decay)`` steps wide, e.g. 0.999; `WeightAverage`): validation scores the averaged weights
     and the trained ones (reported as ``trained_*``) and exports whichever scores higher (metadata ``weights``);
-    checkpoints and resume states carry the average. For a run whose validation has stopped rising and wanders
+    checkpoints carry the average (shippable resume states do not: a run resumed from one starts it again from the
+    weights). For a run whose validation has stopped rising and wanders
     around a level, the average of the wandering is often better than any point of it. 0: off."""
 
     def run(self) -> int:
@@ -812,12 +813,13 @@ RESUME_CURVE_KEEP = 400
 
 
 def write_resume_state(checkpoint: Path, dest: Path) -> int | None:
-    """Write the shippable resume state of a training checkpoint: weights and their average when the run keeps
-    one (stored in float16), loop state (the training-loss curve cut to its last `RESUME_CURVE_KEEP` entries), RNG
-    states and metadata, without the optimiser's moments (two thirds of the file; a resumed run restarts Adam,
-    which re-estimates them within a few dozen steps). Float16 halves what the repository carries per prior; a
-    resumed run continues in float32 from weights rounded by at most 2^-11 of their size, less than one of its steps
-    moves them. Atomic.
+    """Write the shippable resume state of a training checkpoint: weights (stored in float16), loop state (the
+    training-loss curve cut to its last `RESUME_CURVE_KEEP` entries), RNG states and metadata, without the
+    optimiser's moments (two thirds of the file; a resumed run restarts Adam, which re-estimates them within a few
+    dozen steps) and without the weight average of ``--ema-decay`` (it would double the file; a run resumed from it
+    starts its average from the weights, and the average forgets where it started within about ``1 / (1 - decay)``
+    steps). Float16 halves what the repository carries per prior; a resumed run continues in float32 from weights
+    rounded by at most 2^-11 of their size, less than one of its steps moves them. Atomic.
 
     Returns:
         The bytes written, or None (with a warning) when even that would exceed `RESUME_STATE_LIMIT_BYTES`.
@@ -828,9 +830,8 @@ def write_resume_state(checkpoint: Path, dest: Path) -> int | None:
 
     ckpt = torch.load(checkpoint, map_location="cpu", weights_only=False)
     ckpt["optimizer"] = None
-    for key in ("state_dict", "ema"):
-        if isinstance(ckpt.get(key), dict):
-            ckpt[key] = {k: v.half() if v.is_floating_point() else v for k, v in ckpt[key].items()}
+    ckpt.pop("ema", None)
+    ckpt["state_dict"] = {k: v.half() if v.is_floating_point() else v for k, v in ckpt["state_dict"].items()}
     state = ckpt.get("state")
     if isinstance(state, dict) and isinstance(state.get("curve"), list):
         state["curve"] = state["curve"][-RESUME_CURVE_KEEP:]
