@@ -800,7 +800,7 @@ def _read_resume_checkpoint(args: TrainArgs, last: Path) -> tuple[Path | None, d
     return resume_path, ckpt
 
 
-TRAINED_KEYS = ("iou", "iou_cal", "iso_offset", "sensor_iou_cal", "sensor_iso_offset")
+TRAINED_KEYS = ("iou", "iou_cal", "iso_offset", "sensor_iou", "sensor_iou_cal", "sensor_iso_offset")
 """Validation metrics of the trained weights a weight-averaged run reports beside the average's (``trained_*``)."""
 
 RESUME_STATE_LIMIT_BYTES = 20 * 2**20
