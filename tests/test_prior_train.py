@@ -441,6 +441,11 @@ def test_a_weight_averaged_run_resumes_its_average_exactly_and_exports_it(tmp_pa
     cont = train(_args(tmp_path / "c", cache_dir, resume_from=shipped, **{**kw, "iterations": 7}))
     ck = torch.load(tmp_path / "c" / "run" / "last.pt", weights_only=False)
     assert cont["iteration"] == 7 and ck["state"]["ema_updates"] == 1  # started again from the weights
+    bad = dict(sa, ema={**sa["ema"], moved[0]: torch.full_like(sa["ema"][moved[0]], float("nan"))})
+    torch.save(bad, tmp_path / "bad.pt")
+    with pytest.raises(ValueError, match="weight average does not match"):
+        train(_args(tmp_path / "d", cache_dir, resume_from=tmp_path / "bad.pt", **kw))
+    assert not (tmp_path / "d" / "run" / "config.json").exists()  # refused before any work
 
 
 def test_resume_without_checkpoint_fails(tmp_path: Path, cache_dir: Path) -> None:

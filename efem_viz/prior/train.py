@@ -797,6 +797,15 @@ def _read_resume_checkpoint(args: TrainArgs, last: Path) -> tuple[Path | None, d
     # the prior loaders' checks (sizes declared, shapes, views, finite values) before anything is allocated or
     # any data is prepared (a 16 KB file declaring a 20,000-wide decoder cost 90 s and 6.5 GB)
     checked_prior_parts(ckpt, Path(resume_path))
+    ema = ckpt.get("ema")
+    if ema is not None:  # the weight average (--ema-decay): the weights' names and shapes, finite
+        import torch
+
+        own = ckpt["state_dict"]
+        if not isinstance(ema, dict) or set(ema) != set(own) or any(
+                not isinstance(v, torch.Tensor) or v.shape != own[k].shape
+                or (v.is_floating_point() and not bool(v.isfinite().all())) for k, v in ema.items()):
+            raise ValueError(f"{resume_path}: its weight average does not match its weights")
     return resume_path, ckpt
 
 
@@ -1224,6 +1233,7 @@ def train(args: TrainArgs, *, on_progress: Callable[[int, int, dict[str, Any]], 
         saved = ckpt.get("ema") if ckpt is not None else None
         average = WeightAverage(prior, args.ema_decay, average=saved,
                                 updates=state.ema_updates if saved is not None else 0)
+        state.ema_updates = average.updates  # a fresh average counts from 0 in every checkpoint it reaches
     args_dict = _args_dict(args)
     _write_text_atomic(out_dir / "config.json", json.dumps(
         {"args": args_dict, "prior": prior.config.to_dict(), "sample": dataclasses.asdict(scfg),
