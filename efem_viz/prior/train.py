@@ -1040,7 +1040,7 @@ class _TrainLoop:
                               "iso_offset": offset, "val_metrics": m, "trained_on": trained_on,
                               "n_train": len(self.train_objs), "weights": weights})
             log.info("exported best model (%s weights) to %s", weights, self.export)
-        if weights == "average":
+        if weights == "average" and self.average is not None:
             self.average.swap(prior)  # the trained weights back
         spi = float(np.median(self.iter_times[-200:])) if self.iter_times else None
         _report(args, prior, state, sec_per_iter=spi, n_train=len(self.train_objs), n_val=len(self.val_objs),
