@@ -215,8 +215,8 @@ class TrainArgs:
     about ``1 / (1 - decay)`` steps wide, e.g. 0.999; `WeightAverage`): validation scores the averaged weights
     and the trained ones (reported as ``trained_*``) and exports whichever scores higher (metadata ``weights``);
     checkpoints carry the average (shippable resume states do not: a run resumed from one starts it again from the
-    weights). For a run whose validation has stopped rising and wanders
-    around a level, the average of the wandering is often better than any point of it. 0: off."""
+    weights). For a run whose validation has stopped rising and wanders around a level, the average of the
+    wandering is often better than any point of it. 0: off."""
 
     def run(self) -> int:
         """CLI entry: train with a tqdm progress bar. Returns 0 on success."""
@@ -586,6 +586,16 @@ def _rng_state(rng: np.random.Generator) -> dict[str, Any]:
     return dict(rng.bit_generator.state)
 
 
+def average_matches(average: Any, weights: dict[str, torch.Tensor]) -> bool:
+    """Whether a saved weight average (``--ema-decay``) fits these weights: a dict of tensors with their names and
+    shapes, its floating-point entries finite."""
+    import torch
+
+    return isinstance(average, dict) and set(average) == set(weights) and all(
+        isinstance(v, torch.Tensor) and v.shape == weights[k].shape
+        and not (v.is_floating_point() and not bool(v.isfinite().all())) for k, v in average.items())
+
+
 class WeightAverage:
     """An exponential moving average of a model's weights (Polyak averaging; ``train-prior --ema-decay``).
 
@@ -603,10 +613,7 @@ class WeightAverage:
     def __init__(self, model: torch.nn.Module, decay: float, *, average: dict[str, torch.Tensor] | None = None,
                  updates: int = 0) -> None:
         own = model.state_dict()
-        if average is not None and (set(average) != set(own)
-                                    or any(average[k].shape != v.shape for k, v in own.items())
-                                    or any(t.is_floating_point() and not bool(t.isfinite().all())
-                                           for t in average.values())):
+        if average is not None and not average_matches(average, own):
             raise ValueError("the saved weight average does not match the model's weights (names, shapes or "
                              "finite values)")
         src = average if average is not None else own
@@ -798,14 +805,8 @@ def _read_resume_checkpoint(args: TrainArgs, last: Path) -> tuple[Path | None, d
     # any data is prepared (a 16 KB file declaring a 20,000-wide decoder cost 90 s and 6.5 GB)
     checked_prior_parts(ckpt, Path(resume_path))
     ema = ckpt.get("ema")
-    if ema is not None:  # the weight average (--ema-decay): the weights' names and shapes, finite
-        import torch
-
-        own = ckpt["state_dict"]
-        if not isinstance(ema, dict) or set(ema) != set(own) or any(
-                not isinstance(v, torch.Tensor) or v.shape != own[k].shape
-                or (v.is_floating_point() and not bool(v.isfinite().all())) for k, v in ema.items()):
-            raise ValueError(f"{resume_path}: its weight average does not match its weights")
+    if ema is not None and not average_matches(ema, ckpt["state_dict"]):  # checked before any data is prepared
+        raise ValueError(f"{resume_path}: its weight average does not match its weights")
     return resume_path, ckpt
 
 
@@ -1025,11 +1026,10 @@ class _TrainLoop:
         key = ("sensor_" if args.sensor_p > 0 else "") + ("iou_cal" if args.calibrate_iso else "iou")
         offset_key = ("sensor_" if args.sensor_p > 0 else "") + "iso_offset"
         # with an average, the export is whichever of the two scores higher (the average lags a fast-learning run)
-        weights = "average" if self.average is not None else "trained"
-        if self.average is not None and m[f"trained_{key}"] > m[key]:
-            weights = "trained"
-            self.average.swap(prior)
-        prefix = "trained_" if weights == "trained" and self.average is not None else ""
+        averaged = self.average is not None and m[key] >= m[f"trained_{key}"]
+        if self.average is not None and not averaged:
+            self.average.swap(prior)  # the trained weights back before the export
+        weights, prefix = ("average", "") if averaged else ("trained", "trained_" if self.average is not None else "")
         score = m[prefix + key]
         if score > state.best_iou:
             state.best_iou, state.best_iteration = score, state.iteration
@@ -1040,7 +1040,7 @@ class _TrainLoop:
                               "iso_offset": offset, "val_metrics": m, "trained_on": trained_on,
                               "n_train": len(self.train_objs), "weights": weights})
             log.info("exported best model (%s weights) to %s", weights, self.export)
-        if weights == "average" and self.average is not None:
+        if averaged and self.average is not None:
             self.average.swap(prior)  # the trained weights back
         spi = float(np.median(self.iter_times[-200:])) if self.iter_times else None
         _report(args, prior, state, sec_per_iter=spi, n_train=len(self.train_objs), n_val=len(self.val_objs),
