@@ -257,3 +257,42 @@ def test_kitchen_scenes_label_mugs_bowls_bottles_and_cans_and_leave_mug_scenes_a
             generate_scene(bad, seed=0, targets="kitchen", **FAST)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="unknown targets"):
         generate_scene("z", seed=0, targets="pantry", **FAST)  # type: ignore[arg-type]
+
+
+def test_tree_distractors_find_room_where_the_first_draw_fails(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Where the first scatter of the tree's distractors finds no room (the generator used to fail there: tree
+    seed 9103 on its second drop), the placement draws again on a wider square, and every distractor stands on
+    the table, clear of the pegs' reach and of the others."""
+    import efem_viz.data.synth.layout as layout
+    from efem_viz.data.synth.generate import CONFIGS, _draw_objects
+    from efem_viz.data.synth.stage import stage_for
+
+    objs, tree = _draw_objects("tree", 9103, np.random.default_rng([9103, CONFIGS.index("tree"), 0x5CE7E]),
+                               n_objects=None, distractors=True, split="test", targets="mug", stage=stage_for("mug"))
+    assert tree is not None
+
+    def first_draw_fails(s: int) -> bool:
+        with monkeypatch.context() as m:
+            m.setattr(layout, "TREE_SCATTER_RETRIES", 0)
+            try:
+                layout.hang_on_tree(objs, tree, np.random.default_rng(s))
+            except RuntimeError as e:
+                assert "no room for" in str(e) and "distractors" in str(e)
+                return True
+        return False
+
+    s = next((s for s in range(400) if first_draw_fails(s)), None)
+    assert s is not None, "no stream in 400 where the first draw fails"
+    layout.hang_on_tree(objs, tree, np.random.default_rng(s))
+    reach = max(p.length for p in tree.pegs) + 0.12
+    feet = []
+    for o in (o for o in objs if o.label == 0):
+        c, r = layout._footprint_radius(o.mesh, o.T_world_object[:3, :3])
+        xy = o.T_world_object[:2, 3] + c
+        assert np.all(np.abs(xy) + r <= layout.TABLE_HALF + 1e-6), "a distractor stands over the table's edge"
+        assert np.linalg.norm(xy) >= reach + r, "a distractor stands under the pegs"
+        feet.append((xy, r))
+    assert feet
+    for i, (a, ra) in enumerate(feet):
+        for b, rb in feet[i + 1:]:
+            assert np.linalg.norm(a - b) >= ra + rb, "two distractors overlap"

@@ -27,6 +27,9 @@ STRUCTURE_CONFIGS: tuple[str, ...] = ("tree", "box", "shelf")
 
 TABLE_HALF = TABLETOP.half_size
 """Half side of the square table top (metres); the top face is at z = 0."""
+TREE_SCATTER_RETRIES = 12
+"""Fresh draws of the tree configuration's distractor places after the first finds no room, each on a square 2.5 cm
+wider a side, up to the table's edge."""
 TABLE_THICKNESS = TABLETOP.thickness
 DISTRACTOR_CATEGORIES: tuple[str, ...] = TABLETOP.distractors
 """The distractors of tabletop scenes."""
@@ -293,10 +296,16 @@ def hang_on_tree(objs: list[SceneObject], tree: "Structure", rng: np.random.Gene
         rots = [_yaw(float(rng.uniform(0, 2 * np.pi))) for _ in others]
         foot = [_footprint_radius(o.mesh, R) for o, R in zip(others, rots)]
         reach = max(p.length for p in tree.pegs) + 0.12
-        xy = _scatter_in(rng, [r for _, r in foot], np.full(2, -reach - 0.1), np.full(2, reach + 0.1),
-                         keep_out=(np.zeros(2), reach))
+        xy = None
+        for retry in range(TREE_SCATTER_RETRIES + 1):  # a failed draw: again on a square up to the table's edge
+            half = min(reach + 0.1 + 0.025 * retry, TABLE_HALF - 0.01)
+            xy = _scatter_in(rng, [r for _, r in foot], np.full(2, -half), np.full(2, half),
+                             keep_out=(np.zeros(2), reach))
+            if xy is not None:
+                break
         if xy is None:
-            raise RuntimeError("no room for the distractors around the mug tree")
+            raise RuntimeError(f"no room for {len(others)} distractors on the table around the mug tree "
+                               f"(footprint radii {', '.join(f'{r:.2f}' for _, r in foot)} m); ask for fewer")
         for o, R, (c, _), p in zip(others, rots, foot, xy):
             _rest_upright(o, R, p, 0.0, c)
 
