@@ -629,6 +629,16 @@ def test_init_from_another_category_keeps_the_weights_not_the_settings(tmp_path:
                   init_from=src, calibrate_iso=False)
     train(again)
     assert load_prior(again.resolved_export(), load_codebook=False).metadata["tau_out"] == 0.05
+    # ... but not the record of the saved prior's own validation: a snapshot of the new run shows none of it
+    mug.metadata = {**mug.metadata, "val_iou": 0.99, "val_metrics": {"iou": 0.99}, "iso_offset": 0.02,
+                    "weights": "average", "iteration": 123456}
+    src = save_prior(mug, tmp_path / "mug_scored.pt")
+    snap = _args(tmp_path / "d", cache_dir, export=tmp_path / "w3" / "mug.pt", iterations=2, val_every=100,
+                 snapshot_every=1, init_from=src, calibrate_iso=False)
+    train(snap)
+    meta = load_prior(Path(snap.out_dir) / "snap_1.pt", load_codebook=False).metadata
+    assert meta["iteration"] == 1 and meta["tau_out"] == 0.05
+    assert not {"val_iou", "val_metrics", "iso_offset", "weights"} & set(meta)
 
 
 def test_init_matching_takes_the_shared_weights_into_an_attention_encoder(tmp_path: Path, monkeypatch: Any) -> None:

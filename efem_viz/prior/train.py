@@ -810,6 +810,9 @@ def _read_resume_checkpoint(args: TrainArgs, last: Path) -> tuple[Path | None, d
     return resume_path, ckpt
 
 
+INIT_VALIDATION_KEYS = ("iteration", "val_iou", "val_iou_raw", "val_metrics", "iso_offset", "weights")
+"""Metadata of a saved prior that describe its own validation: a run started from it (`--init-from`) drops them, so
+that its snapshots and exports never show the start's scores as their own."""
 TRAINED_KEYS = ("iou", "iou_cal", "iso_offset", "sensor_iou", "sensor_iou_cal", "sensor_iso_offset")
 """Validation metrics of the trained weights a weight-averaged run reports beside the average's (``trained_*``)."""
 
@@ -903,7 +906,9 @@ def _build_prior(args: TrainArgs, ckpt: dict[str, Any] | None) -> tuple[ShapePri
     elif init is not None:
         prior.load_state_dict(init.state_dict())
         # Another category's prior gives weights only: its τ_out, calibration and category settings are not ours.
+        # The same category's keep the rest; the record of the saved prior's own validation is not this run's.
         kept = dict(init.metadata or {}) if prior_category(init).name == args.category else {}
+        kept = {k: v for k, v in kept.items() if k not in INIT_VALIDATION_KEYS}
         prior.metadata = {**kept, "init_from": str(args.init_from)}
         log.info("initialised from %s", args.init_from)
     return prior, init is not None
