@@ -103,3 +103,20 @@ def sample_scene(name: str) -> Path:
         scene = generate_scene(config, seed=seed, n_objects=objects, mode="tsdf", name=name)  # type: ignore[arg-type]
         save_scene(scene, path)
     return path
+
+
+ROOT = Path(__file__).resolve().parents[1]
+"""The checkout."""
+
+
+def bench_module(name: str) -> Any:
+    """``bench.<name>`` of this checkout (`bench/` is not installed), with the checkout first on `sys.path` only
+    while importing."""
+    import importlib
+    import sys
+
+    sys.path.insert(0, str(ROOT))
+    try:
+        return importlib.import_module(f"bench.{name}")
+    finally:
+        sys.path.remove(str(ROOT))

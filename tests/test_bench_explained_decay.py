@@ -14,7 +14,7 @@ from efem_viz.data.io import save_scene
 from efem_viz.em import preset, run_em
 from efem_viz.prior.analytic import make_sphere_prior, make_sphere_scene
 
-ROOT = Path(__file__).resolve().parents[1]
+from helpers import ROOT, bench_module
 
 
 @pytest.fixture(scope="module")
@@ -37,17 +37,8 @@ def saved(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
     return folder, {"plain_dir": plain, **runs}
 
 
-def _bench():  # noqa: ANN202
-    sys.path.insert(0, str(ROOT))
-    try:
-        import bench.explained_decay as mod
-    finally:
-        sys.path.remove(str(ROOT))
-    return mod
-
-
 def test_a_decayed_run_gives_back_its_method_confidences_and_scores_as_the_plain_one(saved: tuple) -> None:
-    mod = _bench()
+    mod = bench_module("explained_decay")
     folder, runs = saved
     loaded = mod.load_runs(folder)
     groups = mod.by_seed(loaded)
@@ -69,6 +60,6 @@ def test_by_seed_scores_each_seed_as_its_own_set(saved: tuple, tmp_path: Path) -
     assert res.returncode == 0, res.stderr[-2000:]
     rec = json.loads(out.read_text())
     assert sorted(rec) == [f"{folder}#s{k}" for k in range(3)]
-    mod = _bench()
+    mod = bench_module("explained_decay")
     alone = mod.prepared(mod.by_seed(mod.load_runs(folder))["1"], None)
     assert rec[f"{folder}#s1"]["0"] == pytest.approx(mod.score(alone, 0.0, None), abs=1e-9)

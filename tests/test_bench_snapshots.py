@@ -14,16 +14,7 @@ import torch
 from efem_viz.prior.model import load_prior
 from efem_viz.prior.train import TrainArgs, train
 
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def _bench():  # noqa: ANN202
-    sys.path.insert(0, str(ROOT))
-    try:
-        import bench.snapshots as mod
-    finally:
-        sys.path.remove(str(ROOT))
-    return mod
+from helpers import ROOT, bench_module
 
 
 @pytest.fixture(scope="module")
@@ -38,7 +29,7 @@ def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_snapshots_are_found_with_their_validations_and_sensor_offsets(run_dir: Path) -> None:
-    mod = _bench()
+    mod = bench_module("snapshots")
     snaps = mod.snapshots(run_dir)
     assert list(snaps) == [2, 4]
     curve = mod.val_curve(run_dir)
@@ -49,7 +40,7 @@ def test_snapshots_are_found_with_their_validations_and_sensor_offsets(run_dir: 
 
 
 def test_a_prepared_snapshot_has_the_offset_folded_in_and_its_own_codebook(run_dir: Path, tmp_path: Path) -> None:
-    mod = _bench()
+    mod = bench_module("snapshots")
     snap = mod.snapshots(run_dir)[2]
     path = mod.prepare(snap, 0.02, "mug", tmp_path / "snap_2", count=3, n_store=12)
     before, after = load_prior(snap, load_codebook=False), load_prior(path)
