@@ -30,6 +30,8 @@ from typing import Any
 from bench.common import ROOT, machine, result_path, write_result
 
 SNAPSHOT = re.compile(r"^snap_([0-9]+)\.pt$")
+FIXED_SEEDS = (7000, 7010)
+"""Scene seeds of the fixed test sets (`bench.em`'s default): never used to choose."""
 
 
 def snapshots(run_dir: Path) -> dict[int, Path]:
@@ -111,8 +113,9 @@ def main() -> int:
     ap.add_argument("--keep-runs", action="store_true")
     ap.add_argument("--tag", default=None)
     args = ap.parse_args()
-    if args.seed0 == 7000:
-        raise SystemExit("--seed0 7000 is the fixed test set: choose snapshots on tuning scenes")
+    if args.seed0 < FIXED_SEEDS[1] and args.seed0 + args.n_scenes > FIXED_SEEDS[0]:
+        raise SystemExit(f"--seed0 {args.seed0} with --n-scenes {args.n_scenes} takes scenes of the fixed test set "
+                         f"(seeds {FIXED_SEEDS[0]}-{FIXED_SEEDS[1] - 1}): choose snapshots on tuning scenes")
     snaps = snapshots(args.run_dir)
     if not snaps:
         raise SystemExit(f"{args.run_dir}: no snap_<iteration>.pt (train with --snapshot-every N)")
